@@ -1,0 +1,1 @@
+"""Data shipped with vprbench: dataset manifests and method presets (TOML)."""

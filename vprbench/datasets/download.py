@@ -1,0 +1,48 @@
+"""Fetching a dataset whose manifest names a stable direct source (pooch, sha256-checked)."""
+from __future__ import annotations
+
+import shutil
+from importlib.resources import files
+from pathlib import Path
+
+from ..errors import VPRBenchError
+from .manifest import DatasetManifest
+
+
+def read_registry(name: str) -> dict[str, str]:
+    """A sha256 registry shipped beside the manifests: lines '<relative path> <sha256>'."""
+    text = (files("vprbench.manifests") / "datasets" / name).read_text()
+    return dict(line.split() for line in text.splitlines() if line.strip() and not line.startswith("#"))
+
+
+def how_to_get(manifest: DatasetManifest, root: Path) -> str:
+    if manifest.download:
+        return f"Run 'vprbench datasets download {manifest.name}' to fetch it into {root}."
+    text = manifest.instructions.strip() or f"Get it from {manifest.source or 'its authors'}."
+    return f"{text} Then place it at {root} or run 'vprbench datasets import {manifest.name} PATH'."
+
+
+def download(manifest: DatasetManifest, root: Path, progress: bool = True) -> Path:
+    """Download into root (via root.partial, renamed when every file checks out)."""
+    if not manifest.download:
+        raise VPRBenchError(f"Dataset {manifest.name!r} has no direct download. {how_to_get(manifest, root)}")
+    import pooch
+
+    partial = root.with_name(root.name + ".partial")
+    fetcher = pooch.create(
+        path=partial,
+        base_url=manifest.download["base_url"],
+        registry={k: f"sha256:{v}" for k, v in read_registry(manifest.download["registry"]).items()},
+    )
+    try:
+        for relative in fetcher.registry:
+            fetcher.fetch(relative, progressbar=False)
+    except Exception as error:  # network or checksum failure: keep partial for resuming
+        raise VPRBenchError(
+            f"Downloading {manifest.name!r} from {manifest.download['base_url']} failed: {error}. "
+            f"Files fetched so far stay in {partial}; rerun to resume. {how_to_get(manifest, root) if not manifest.download else ''}"
+        ) from None
+    if root.exists():
+        shutil.rmtree(root)
+    partial.rename(root)
+    return root

@@ -1,0 +1,128 @@
+"""A user's own dataset: database/ and queries/ folders, positions from a CSV or UTM file names.
+
+    mydata/
+      database/*.jpg
+      queries/*.jpg
+      positions.csv      # optional if file names carry UTM as @easting@northing@...
+      dataset.toml       # optional: name, radius, unit, domain, title, citation, licence
+
+positions.csv has a column `image` (path relative to mydata/, e.g. database/0001.jpg) and
+one of: `x,y` or `easting,northing` (metres), `latitude,longitude` (degrees, converted to
+UTM metres), or `frame` (frame index). Radius: 25 m by default for metres; give `radius`
+in dataset.toml for frames.
+"""
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ...errors import VPRBenchError
+from ...images import list_images
+from ..manifest import DatasetManifest
+from ..model import GroundTruth
+from . import from_manifest, layout, require
+
+DEFAULT_RADIUS_M = 25.0
+
+
+def utm_from_name(path: Path) -> tuple[float, float]:
+    """(easting, northing) from a name like @0551234.5@4178910.2@10@S@....jpg"""
+    parts = path.name.split("@")
+    try:
+        return float(parts[1]), float(parts[2])
+    except (IndexError, ValueError):
+        raise VPRBenchError(
+            f"Cannot read UTM coordinates from the file name {path.name!r}: expected "
+            "'@easting@northing@...' (or provide positions.csv)."
+        ) from None
+
+
+def latlon_to_metres(lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
+    """UTM easting/northing in the zone of the first point, so all points share one plane."""
+    import utm
+
+    zone_number, zone_letter = utm.from_latlon(float(lat[0]), float(lon[0]))[2:]
+    easting, northing, _, _ = utm.from_latlon(
+        np.asarray(lat, float), np.asarray(lon, float), force_zone_number=zone_number, force_zone_letter=zone_letter
+    )
+    return np.stack([easting, northing], axis=1)
+
+
+def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.ndarray, str]:
+    try:
+        table = pd.read_csv(csv)
+    except (OSError, ValueError) as error:
+        raise VPRBenchError(f"Cannot read {csv}: {error}") from None
+    if "image" not in table.columns:
+        raise VPRBenchError(f"{csv} needs a column 'image' (path relative to {root}); it has {list(table.columns)}")
+    columns = set(table.columns)
+    if {"x", "y"} <= columns:
+        values, unit = table[["x", "y"]].to_numpy(float), "metres"
+    elif {"easting", "northing"} <= columns:
+        values, unit = table[["easting", "northing"]].to_numpy(float), "metres"
+    elif {"latitude", "longitude"} <= columns:
+        values, unit = latlon_to_metres(table["latitude"].to_numpy(), table["longitude"].to_numpy()), "metres"
+    elif "frame" in columns:
+        values, unit = table[["frame"]].to_numpy(float), "frames"
+    else:
+        raise VPRBenchError(
+            f"{csv} needs position columns x,y or easting,northing (metres), latitude,longitude, "
+            f"or frame; it has {list(table.columns)}"
+        )
+    if not np.isfinite(values).all():
+        raise VPRBenchError(f"{csv} has missing or non-numeric positions; every row needs a value.")
+    by_name = {str(Path(name)): row for name, row in zip(table["image"], values)}
+    missing = [str(p.relative_to(root)) for p in images if str(p.relative_to(root)) not in by_name]
+    if missing:
+        raise VPRBenchError(f"{csv} has no position for {len(missing)} image(s), e.g. {missing[:3]}")
+    return np.stack([by_name[str(p.relative_to(root))] for p in images]), unit
+
+
+@layout("own")
+def read_own(root: Path, manifest: DatasetManifest):
+    database = list_images(require(root, "database", manifest))
+    queries = list_images(require(root, "queries", manifest))
+    if not database or not queries:
+        raise VPRBenchError(f"Dataset {manifest.name!r}: no images in {root}/database or {root}/queries.")
+    csv = root / "positions.csv"
+    if csv.is_file():
+        positions, unit = positions_from_csv(csv, root, database + queries)
+    else:
+        positions = np.array([utm_from_name(p) for p in database + queries])
+        unit = "metres"
+    radius = manifest.radius
+    if radius is None:
+        if unit == "frames":
+            raise VPRBenchError(f"{root}: frame positions need 'radius = N' (frames) in {root}/dataset.toml")
+        radius = DEFAULT_RADIUS_M
+    ground_truth = GroundTruth(
+        unit=unit, radius=radius, database_positions=positions[: len(database)], query_positions=positions[len(database):]
+    )
+    return from_manifest(manifest, root, database, queries, ground_truth)
+
+
+def own_manifest(root: Path) -> DatasetManifest:
+    """The manifest of a folder of the user's own: defaults, overridden by its dataset.toml."""
+    settings = {}
+    if (root / "dataset.toml").is_file():
+        try:
+            settings = tomllib.loads((root / "dataset.toml").read_text())
+        except tomllib.TOMLDecodeError as error:
+            raise VPRBenchError(f"Cannot read {root / 'dataset.toml'}: {error}") from None
+    allowed = {"name", "title", "radius", "domain", "citation", "licence"}
+    if set(settings) - allowed:
+        raise VPRBenchError(f"{root / 'dataset.toml'}: unknown key(s) {sorted(set(settings) - allowed)}; allowed: {sorted(allowed)}")
+    return DatasetManifest(
+        name=settings.get("name", root.resolve().name),
+        title=settings.get("title", root.resolve().name),
+        layout="own",
+        directory=str(root),
+        domain=settings.get("domain", "custom"),
+        unit="metres",
+        radius=settings.get("radius"),
+        citation=settings.get("citation", ""),
+        licence=settings.get("licence", ""),
+    )

@@ -1,0 +1,80 @@
+"""Dataset manifests: one TOML file per dataset under manifests/datasets/."""
+from __future__ import annotations
+
+import os
+import tomllib
+from dataclasses import dataclass, field
+from importlib.resources import files
+from pathlib import Path
+
+from ..errors import VPRBenchError, closest_names
+
+DATA_ENV = "VPRBENCH_DATA"
+
+
+@dataclass(frozen=True)
+class DatasetManifest:
+    name: str
+    title: str
+    layout: str
+    directory: str
+    domain: str
+    unit: str
+    radius: float | None = None
+    database_count: int | None = None
+    query_count: int | None = None
+    citation: str = ""
+    licence: str = ""
+    source: str = ""
+    #: how to get the data: pooch base_url + file registry, or instructions for a person
+    download: dict = field(default_factory=dict)
+    instructions: str = ""
+    #: layout-specific settings (folder names, ground-truth file, strides...)
+    options: dict = field(default_factory=dict)
+    notes: str = ""
+
+    @classmethod
+    def from_toml(cls, text: str, origin: str) -> "DatasetManifest":
+        data = tomllib.loads(text)
+        known = {f for f in cls.__dataclass_fields__}
+        unknown = set(data) - known
+        if unknown:
+            raise VPRBenchError(f"Manifest {origin}: unknown field(s) {sorted(unknown)}")
+        try:
+            return cls(**data)
+        except TypeError as error:
+            raise VPRBenchError(f"Manifest {origin}: {error}") from None
+
+
+def _manifest_dir():
+    return files("vprbench.manifests") / "datasets"
+
+
+def dataset_manifests() -> dict[str, DatasetManifest]:
+    manifests = {}
+    for entry in sorted(_manifest_dir().iterdir(), key=lambda e: e.name):
+        if entry.name.endswith(".toml"):
+            manifest = DatasetManifest.from_toml(entry.read_text(), entry.name)
+            manifests[manifest.name] = manifest
+    return manifests
+
+
+def dataset_manifest(name: str) -> DatasetManifest:
+    manifests = dataset_manifests()
+    if name not in manifests:
+        raise VPRBenchError(
+            f"Unknown dataset {name!r}.{closest_names(name, manifests)} "
+            "Run 'vprbench datasets list' to see all datasets, or pass a folder path for your own data."
+        )
+    return manifests[name]
+
+
+def data_root(data_dir: str | Path | None = None) -> Path:
+    """--data-dir, else $VPRBENCH_DATA, else the user cache."""
+    if data_dir is None:
+        data_dir = os.environ.get(DATA_ENV)
+    if data_dir is None:
+        import pooch
+
+        return Path(pooch.os_cache("vprbench")) / "data"
+    return Path(data_dir).expanduser()

@@ -1,0 +1,116 @@
+"""One representation of a VPR dataset and its ground truth."""
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+#: how ground truth says a database image is a positive for a query
+UNITS = ("metres", "frames", "positives")
+
+
+@dataclass
+class GroundTruth:
+    """Positions (metres or frame indices) with a radius, or explicit positive lists.
+
+    - unit "metres": `database_positions`/`query_positions` are (N, 2) easting/northing (or
+      any metric plane); positive when the Euclidean distance is <= radius.
+    - unit "frames": positions are (N, 1) frame indices; positive when |i - j| <= radius.
+    - unit "positives": `positive_lists[q]` are the database indices positive for query q
+      (VPR-Bench style); `radius` documents how the provider made them, if known.
+    """
+
+    unit: str
+    radius: float | None = None
+    database_positions: np.ndarray | None = None
+    query_positions: np.ndarray | None = None
+    positive_lists: list[np.ndarray] | None = None
+
+    def __post_init__(self):
+        if self.unit not in UNITS:
+            raise ValueError(f"ground-truth unit must be one of {UNITS}, got {self.unit!r}")
+        if self.unit == "positives":
+            if self.positive_lists is None:
+                raise ValueError("unit 'positives' needs positive_lists")
+        elif self.database_positions is None or self.query_positions is None or self.radius is None:
+            raise ValueError(f"unit {self.unit!r} needs database/query positions and a radius")
+
+    def positives(self) -> list[np.ndarray]:
+        """For each query, the sorted int64 indices of its positive database images."""
+        if self.unit == "positives":
+            return [np.unique(np.asarray(p, dtype=np.int64)) for p in self.positive_lists]
+        from sklearn.neighbors import NearestNeighbors
+
+        db = np.asarray(self.database_positions, dtype=np.float64).reshape(len(self.database_positions), -1)
+        q = np.asarray(self.query_positions, dtype=np.float64).reshape(len(self.query_positions), -1)
+        # the tiny slack keeps a pair at exactly the radius positive despite float rounding
+        tree = NearestNeighbors().fit(db)
+        found = tree.radius_neighbors(q, radius=float(self.radius) + 1e-9, return_distance=False)
+        return [np.sort(np.asarray(idx, dtype=np.int64)) for idx in found]
+
+
+@dataclass
+class Dataset:
+    """Database and query images (in ground-truth order) plus ground truth and provenance."""
+
+    name: str
+    database: list[Path]
+    queries: list[Path]
+    ground_truth: GroundTruth
+    domain: str = ""
+    title: str = ""
+    citation: str = ""
+    licence: str = ""
+    root: Path | None = None
+    notes: list[str] = field(default_factory=list)
+
+    @cached_property
+    def positives(self) -> list[np.ndarray]:
+        positives = self.ground_truth.positives()
+        if len(positives) != len(self.queries):
+            from ..errors import VPRBenchError
+
+            raise VPRBenchError(
+                f"Dataset {self.name!r}: ground truth covers {len(positives)} queries "
+                f"but {len(self.queries)} query images were found."
+            )
+        bad = [q for q, p in enumerate(positives) if len(p) and (p.min() < 0 or p.max() >= len(self.database))]
+        if bad:
+            from ..errors import VPRBenchError
+
+            raise VPRBenchError(
+                f"Dataset {self.name!r}: ground truth of query {bad[0]} points past the "
+                f"{len(self.database)} database images; the ground-truth file does not match the images."
+            )
+        return positives
+
+    def summary(self) -> dict:
+        pos = self.positives
+        return {
+            "name": self.name,
+            "title": self.title,
+            "domain": self.domain,
+            "database": len(self.database),
+            "queries": len(self.queries),
+            "queries_with_positives": int(sum(len(p) > 0 for p in pos)),
+            "positive_pairs": int(sum(len(p) for p in pos)),
+            "unit": self.ground_truth.unit,
+            "radius": self.ground_truth.radius,
+            "root": str(self.root) if self.root else None,
+        }
+
+    def fingerprint(self) -> str:
+        """Changes when the images (by name and size) or the ground truth change."""
+        h = hashlib.sha256()
+        h.update(self.name.encode())
+        for split in (self.database, self.queries):
+            h.update(b"|split|")
+            for path in split:
+                rel = path.relative_to(self.root) if self.root and path.is_relative_to(self.root) else path.name
+                h.update(f"{rel}:{path.stat().st_size if path.exists() else -1};".encode())
+        h.update(json.dumps([p.tolist() for p in self.positives]).encode())
+        return h.hexdigest()[:16]

@@ -1,0 +1,54 @@
+"""The interface every method implements, core and third-party alike."""
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+
+class Method(ABC):
+    """Turns images into L2-normalised float32 global descriptors.
+
+    Subclass it, then `vprbench.register_method("my-method", MyMethod)`. Contract:
+    - `describe` returns one row per image, in input order, and a row never depends on
+      which other images share its batch.
+    - `fingerprint` names everything that changes descriptors (weights identity,
+      preprocessing, options); the descriptor store is keyed by it.
+    - A method that learns something (a vocabulary) sets `needs_fit = True`, fits in
+      `fit` on database images only, and round-trips it through `fit_state`/`load_fit_state`
+      so an interrupted extraction resumes with the same vocabulary.
+    """
+
+    #: set by the registry to the name the method was created under
+    name: str = ""
+    needs_fit: bool = False
+    #: images handed to one `describe` call by the pipeline
+    batch_size: int = 16
+
+    def fingerprint(self) -> dict:
+        return {}
+
+    def fit(self, database: Sequence[Path]) -> None:  # pragma: no cover - default no-op
+        """Learn from the database images (never the queries)."""
+
+    def fit_state(self) -> dict[str, np.ndarray]:
+        return {}
+
+    def load_fit_state(self, state: dict[str, np.ndarray]) -> None:  # pragma: no cover
+        """Restore what `fit` learnt, as returned by `fit_state`."""
+
+    @abstractmethod
+    def describe(self, images: Sequence[Path]) -> np.ndarray:
+        """(len(images), dim) float32, rows L2-normalised."""
+
+    def postprocess(self, database: np.ndarray, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Transform stored descriptors before search (e.g. PCA-whitening fitted on the database)."""
+        return database, queries
+
+
+def l2_normalise(x: np.ndarray, axis: int = -1) -> np.ndarray:
+    x = np.asarray(x, dtype=np.float32)
+    norm = np.linalg.norm(x, axis=axis, keepdims=True)
+    return x / np.maximum(norm, 1e-12)

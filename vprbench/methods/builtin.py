@@ -1,0 +1,1 @@
+"""Core methods: importing this module registers them."""
