@@ -1,0 +1,21 @@
+from pathlib import Path
+
+import pytest
+
+#: real public data shared beside the repo (../shared/data); never copied into it
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"real data folder {SHARED_DATA} is absent (it sits beside the repo as ../shared/data)")
+    return SHARED_DATA
+
+
+@pytest.fixture(autouse=True)
+def isolated_cache(tmp_path, monkeypatch):
+    """Every test writes stores, vocabularies and results under its own temporary folder."""
+    monkeypatch.setenv("VPRBENCH_CACHE", str(tmp_path / "cache"))
+    monkeypatch.delenv("VPRBENCH_DATA", raising=False)
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch-home"))
