@@ -81,6 +81,12 @@ def kmeans_cosine(
     return centres, iterations
 
 
+def _unit(x: np.ndarray) -> np.ndarray:
+    """Rows L2-normalised as F.normalize (norm clamped at 1e-12); only kept rows pay for it."""
+    x = x.astype(np.float32, copy=False)
+    return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
+
+
 class FeatureSampler:
     """Uniform random sample of at most `budget` features from a stream (reservoir sampling).
 
@@ -98,15 +104,15 @@ class FeatureSampler:
         self.seen = 0  # features offered so far
 
     def add(self, features) -> None:
-        x = torch.as_tensor(features).float().reshape(-1, torch.as_tensor(features).shape[-1])
-        x = F.normalize(x, dim=-1).numpy()
+        x = features.detach().cpu().numpy() if isinstance(features, torch.Tensor) else np.asarray(features)
+        x = x.reshape(-1, x.shape[-1])
         if self.buffer is None:
             self.buffer = np.empty((self.budget, x.shape[1]), dtype=np.float32)
         elif x.shape[1] != self.buffer.shape[1]:
             raise VPRBenchError(f"Feature dimension changed from {self.buffer.shape[1]} to {x.shape[1]} while sampling.")
         filled = min(self.seen, self.budget)
         take = min(self.budget - filled, len(x))
-        self.buffer[filled:filled + take] = x[:take]
+        self.buffer[filled:filled + take] = _unit(x[:take])
         rest = x[take:]
         if len(rest):
             # item t (0-based over the stream) replaces slot j ~ U{0..t} when j < budget
@@ -114,10 +120,9 @@ class FeatureSampler:
             slots = self.rng.integers(0, t + 1)
             keep = np.flatnonzero(slots < self.budget)
             # a later item overwrites an earlier one in the same slot: keep the last per slot
-            slots_rev = slots[keep][::-1]
-            _, first = np.unique(slots_rev, return_index=True)
+            _, first = np.unique(slots[keep][::-1], return_index=True)
             chosen = keep[::-1][first]
-            self.buffer[slots[chosen]] = rest[chosen]
+            self.buffer[slots[chosen]] = _unit(rest[chosen])
         self.seen += len(x)
 
     def sample(self) -> np.ndarray:
