@@ -1,12 +1,11 @@
 """`vprbench vocabulary`: fit, import, show and list VLAD vocabularies.
 
-Wire into the main parser with `add_parser(subparsers)`; `run(args)` does the work.
+Wired like the other command modules: `add_parsers(commands)`; each subcommand sets `run`.
 Fitting needs a method whose `iter_patch_features(paths, resize)` yields each image's
 (N, D) patch features as they enter VLAD (AnyLoc provides it).
 """
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 from ..aggregation import domain_datasets, domain_image_size, load_vocabulary
@@ -15,61 +14,54 @@ from ..aggregation.policies import (
 )
 from ..aggregation.vocabulary import DEFAULT_BUDGET
 from ..errors import VPRBenchError
+from .options import add_location_options, add_method_options, apply_locations, method_options
 
 
-def add_parser(subparsers) -> argparse.ArgumentParser:
-    parser = subparsers.add_parser("vocabulary", help="fit, import, show and list VLAD vocabularies")
-    commands = parser.add_subparsers(dest="vocabulary_command", required=True)
+def add_parsers(commands) -> None:
+    parser = commands.add_parser("vocabulary", help="fit, import, show and list VLAD vocabularies")
+    sub = parser.add_subparsers(dest="vocabulary_command", required=True, metavar="COMMAND")
 
-    fit = commands.add_parser("fit", help="fit a domain or map-specific vocabulary")
-    which = fit.add_mutually_exclusive_group(required=True)
+    p = sub.add_parser("fit", help="fit a domain or map-specific vocabulary with a method's features")
+    which = p.add_mutually_exclusive_group(required=True)
     which.add_argument("--domain", help=f"one of: {', '.join(domain_names())}")
     which.add_argument("--dataset", help="map-specific: the dataset's own database")
-    fit.add_argument("--method", default="anyloc-vlad-dinov2", help="method preset giving the features")
-    fit.add_argument("-o", "--option", action="append", default=[], metavar="KEY=VALUE", help="method option")
-    fit.add_argument("--clusters", type=int, help="number of clusters (default: the method's)")
-    fit.add_argument("--budget", type=int, default=DEFAULT_BUDGET, help="features kept by the seeded sampler")
-    fit.add_argument("--exact", action="store_true", help="official fit on every patch (memory grows with data)")
-    fit.add_argument("--seed", type=int, default=42)
-    fit.add_argument("--output", type=Path, help="also write the vocabulary file here")
+    p.add_argument("--budget", type=int, default=DEFAULT_BUDGET,
+                   help=f"features kept by the seeded sampler (default {DEFAULT_BUDGET:,})")
+    p.add_argument("--exact", action="store_true", help="the authors' fit on every patch (memory grows with the data)")
+    p.add_argument("--seed", type=int, default=42)
+    p.add_argument("--output", type=Path, help="also write the vocabulary file here")
+    add_location_options(p)
+    add_method_options(p)
+    p.set_defaults(run=run_fit)
 
-    imp = commands.add_parser("import", help="put a vocabulary file (e.g. the authors' c_centers.pt) in the cache")
-    imp.add_argument("path", type=Path)
-    imp.add_argument("--source", required=True, help="domain name or map-<dataset>")
-    imp.add_argument("--backbone", default="dinov2_vitg14")
-    imp.add_argument("--layer", type=int, default=31)
-    imp.add_argument("--facet", default="value")
+    p = sub.add_parser("import", help="put a vocabulary file (e.g. the authors' c_centers.pt) in the cache by name")
+    p.add_argument("path", type=Path)
+    p.add_argument("--source", required=True, help="domain name or map-<dataset>")
+    p.add_argument("--backbone", default="dinov2_vitg14")
+    p.add_argument("--layer", type=int, default=31)
+    p.add_argument("--facet", default="value")
+    add_location_options(p)
+    p.set_defaults(run=run_import)
 
-    show = commands.add_parser("show", help="print a vocabulary file's shape and metadata")
-    show.add_argument("path", type=Path)
+    p = sub.add_parser("show", help="print a vocabulary file's shape and metadata")
+    p.add_argument("path", type=Path)
+    p.set_defaults(run=run_show)
 
-    commands.add_parser("domains", help="list the domain vocabularies and their datasets")
-    return parser
-
-
-def _method_options(pairs: list[str]) -> dict:
-    options = {}
-    for pair in pairs:
-        key, sep, value = pair.partition("=")
-        if not sep:
-            raise VPRBenchError(f"Option {pair!r} is not KEY=VALUE.")
-        options[key.strip()] = value
-    return options
+    p = sub.add_parser("domains", help="list the domain vocabularies and their datasets")
+    p.set_defaults(run=run_domains)
 
 
-def _fit(args) -> None:
-    from ..methods.registry import create_method
+def run_fit(args) -> int:
+    from ..methods import create_method
 
-    options = _method_options(args.option)
-    if args.clusters:
-        options["clusters"] = args.clusters
-    method = create_method(args.method, device=getattr(args, "device", None) or "cpu", **options)
+    apply_locations(args)
+    method = create_method(args.method, **method_options(args))
     if not hasattr(method, "iter_patch_features"):
         raise VPRBenchError(f"Method {args.method!r} does not expose patch features, so it cannot fit a vocabulary.")
     clusters = int(method.clusters)
     setting = {"backbone": method.backbone, "layer": method.layer, "facet": method.facet}
     common = {"exact": args.exact, "budget": args.budget, "seed": args.seed, "meta": dict(setting)}
-    data_dir = getattr(args, "data_dir", None)
+    data_dir = args.data_dir
     if args.domain:
         size = domain_image_size()
         vocabulary = fit_domain_vocabulary(
@@ -86,25 +78,29 @@ def _fit(args) -> None:
           f"{vocabulary.meta['features_used']} of {vocabulary.meta['features_seen']} features -> {path}")
     if args.output:
         print(f"Also written to {vocabulary.save(args.output)}")
+    return 0
 
 
-def run(args) -> int:
-    command = args.vocabulary_command
-    if command == "fit":
-        _fit(args)
-    elif command == "import":
-        vocabulary = load_vocabulary(args.path)
-        vocabulary.meta["imported_from"] = vocabulary.meta.pop("path")
-        path = save_to_cache(vocabulary, args.backbone, args.layer, args.facet, args.source)
-        print(f"Imported {vocabulary.clusters} x {vocabulary.dim} centres as {args.source!r} -> {path}")
-    elif command == "show":
-        vocabulary = load_vocabulary(args.path)
-        print(f"{vocabulary.meta['path']}: {vocabulary.clusters} clusters x {vocabulary.dim} dims")
-        for key, value in sorted(vocabulary.meta.items()):
-            print(f"  {key}: {value}")
-    elif command == "domains":
-        height, width = domain_image_size()
-        print(f"Domain vocabularies (images resized to {height}x{width}; dataset:stride):")
-        for domain in domain_names():
-            print(f"  {domain}: " + ", ".join(f"{name}:{stride}" for name, stride in domain_datasets(domain)))
+def run_import(args) -> int:
+    apply_locations(args)
+    vocabulary = load_vocabulary(args.path)
+    vocabulary.meta["imported_from"] = vocabulary.meta.pop("path")
+    path = save_to_cache(vocabulary, args.backbone, args.layer, args.facet, args.source)
+    print(f"Imported {vocabulary.clusters} x {vocabulary.dim} centres as {args.source!r} -> {path}")
+    return 0
+
+
+def run_show(args) -> int:
+    vocabulary = load_vocabulary(args.path)
+    print(f"{vocabulary.meta['path']}: {vocabulary.clusters} clusters x {vocabulary.dim} dims")
+    for key, value in sorted(vocabulary.meta.items()):
+        print(f"  {key}: {value}")
+    return 0
+
+
+def run_domains(args) -> int:
+    height, width = domain_image_size()
+    print(f"Domain vocabularies (images resized to {height}x{width}; dataset:stride):")
+    for domain in domain_names():
+        print(f"  {domain}: " + ", ".join(f"{name}:{stride}" for name, stride in domain_datasets(domain)))
     return 0
