@@ -67,6 +67,8 @@ class Dataset:
     licence: str = ""
     root: Path | None = None
     notes: list[str] = field(default_factory=list)
+    #: the layout the images were read in (a manifest may accept several)
+    layout: str = ""
 
     @cached_property
     def positives(self) -> list[np.ndarray]:
@@ -101,6 +103,7 @@ class Dataset:
             "unit": self.ground_truth.unit,
             "radius": self.ground_truth.radius,
             "root": str(self.root) if self.root else None,
+            "layout": self.layout,
         }
 
     def fingerprint(self) -> str:

@@ -81,7 +81,7 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
     return np.stack([by_name[str(p.relative_to(root))] for p in images]), unit
 
 
-@layout("own")
+@layout("own", expects=lambda options: ["database/", "queries/"])
 def read_own(root: Path, manifest: DatasetManifest):
     database = list_images(require(root, "database", manifest))
     queries = list_images(require(root, "queries", manifest))
