@@ -44,6 +44,7 @@ def test_pitts30k_counts_and_25m_positives_match_real_coordinates(gt, tmp_path, 
     assert summary["positive_pairs"] == sum(len(e) for e in expected)
     assert summary["queries_with_positives"] == sum(bool(e) for e in expected)
     assert (summary["unit"], summary["radius"], summary["domain"]) == ("metres", 25, "urban")
+    assert (summary["queries_with_positives"], summary["positive_pairs"]) == (6816, 968448)
 
 
 def test_st_lucia_counts_and_positives_from_utm_names(gt, tmp_path, make_images, brute_force):
@@ -62,7 +63,8 @@ def test_st_lucia_counts_and_positives_from_utm_names(gt, tmp_path, make_images,
     for qi, path in enumerate(dataset.queries):
         assert {dataset.database[d].name for d in dataset.positives[qi]} == {db_names[i] for i in by_name[path.name]}
     assert all(name in db_order for name in db_names)
-    assert dataset.summary()["positive_pairs"] == sum(len(e) for e in expected)
+    assert dataset.summary()["positive_pairs"] == sum(len(e) for e in expected) == 21787
+    assert dataset.summary()["queries_with_positives"] == 1464
 
 
 @pytest.mark.parametrize("layout", ["release", "pose-folders"])

@@ -23,9 +23,13 @@ def read_db_struct(path: Path) -> dict:
     from scipy.io import loadmat
 
     try:
-        struct = loadmat(path)["dbStruct"][0]
+        loaded = loadmat(path)["dbStruct"]
+        # a 1x8 cell array (as the release has it) or a MATLAB struct: fields by position either way
+        values = list(loaded.ravel()[0]) if loaded.dtype.names else list(loaded.ravel())
         names = ("db_image", "db_loc", "q_image", "q_loc", "num_db", "num_q", "radius")
-        fields = dict(zip(names, struct))
+        if len(values) < len(names):
+            raise ValueError(f"dbStruct has {len(values)} fields, expected at least {len(names)}")
+        fields = dict(zip(names, values))
         images = {k: [str(np.ravel(v)[0]).replace(" ", "") for v in np.ravel(fields[k])] for k in ("db_image", "q_image")}
         locs = {k: np.asarray(fields[k], dtype=np.float64) for k in ("db_loc", "q_loc")}
         # NetVLAD stores locations as 2xN
