@@ -20,6 +20,7 @@ Ground-truth kinds (images are indexed in natural name order, as the authors' lo
 """
 from __future__ import annotations
 
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -63,7 +64,7 @@ def pose_rows(path: Path, gt: dict, n_database: int, n_queries: int) -> tuple[np
     dims = int(gt.get("dimensions", 2))
     try:
         poses = np.asarray(np.load(path, allow_pickle=True)[:, :dims], dtype=np.float64)
-    except (OSError, ValueError, TypeError, IndexError, EOFError) as error:
+    except (OSError, ValueError, TypeError, IndexError, EOFError, pickle.UnpicklingError) as error:
         raise VPRBenchError(f"Cannot read poses {path}: {error}. Expected an (N, >= {dims}) array of positions.") from None
     parts = []
     for split, (start, stop), count in (("database", gt["database_rows"], n_database), ("query", gt["query_rows"], n_queries)):

@@ -6,6 +6,7 @@ only positives that exist among the references, and so do we when this is true).
 """
 from __future__ import annotations
 
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +23,7 @@ def load_rows(path: Path) -> np.ndarray:
         rows = np.load(path, allow_pickle=True)
         if rows.ndim != 2 or rows.shape[1] < 2:
             raise ValueError(f"shape {rows.shape}, expected rows of [query index, positives]")
-    except (OSError, ValueError, TypeError, EOFError) as error:
+    except (OSError, ValueError, TypeError, EOFError, pickle.UnpicklingError) as error:
         raise VPRBenchError(
             f"Cannot read ground truth {path}: {error}. Expected rows [query_index, [positive "
             "reference indices]]; the file is damaged or not this dataset's; re-download it."
