@@ -171,4 +171,6 @@ def test_sped_vpr_bench_and_downloader_layouts(gt, tmp_path, make_images):
         warnings.simplefilter("error")
         b = load_dataset("sped", tmp_path / "other")
     assert b.layout == "utm-names"
+    assert (b.summary()["unit"], b.summary()["radius"], b.summary()["radius_unit"]) == ("metres", 25, "metres")
+    assert (a.summary()["unit"], a.summary()["radius"], a.summary()["radius_unit"]) == ("positives", 0, "frames")
     assert [p.tolist() for p in b.positives] == [[i] for i in range(607)]

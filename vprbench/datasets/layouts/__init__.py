@@ -40,7 +40,10 @@ def candidates(manifest: DatasetManifest) -> list[DatasetManifest]:
     found = [dataclasses.replace(manifest, options=options)]
     for alternative in manifest.options.get("alternatives", []):
         alternative = dict(alternative)
-        overrides = {k: alternative.pop(k) for k in ("layout", "database_count", "query_count", "radius", "unit") if k in alternative}
+        keys = ("layout", "database_count", "query_count", "radius", "unit", "radius_unit")
+        overrides = {k: alternative.pop(k) for k in keys if k in alternative}
+        if "unit" in overrides:
+            overrides.setdefault("radius_unit", "")
         found.append(dataclasses.replace(manifest, options=alternative, **overrides))
     return found
 
@@ -122,6 +125,7 @@ def from_manifest(manifest: DatasetManifest, root: Path, database, queries, grou
         licence=manifest.licence,
         root=root,
         notes=[manifest.notes] if manifest.notes else [],
+        radius_unit=manifest.radius_unit or (manifest.unit if manifest.unit != "positives" else ""),
     )
 
 
