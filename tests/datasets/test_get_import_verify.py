@@ -1,14 +1,13 @@
 """Getting data: download, import, verify, and the errors each gives on bad input."""
 from __future__ import annotations
 
-import argparse
 import json
 
 import numpy as np
 import pytest
 
 import vprbench.datasets as datasets
-from vprbench.cli import datasets as cli
+from vprbench.cli.main import build_parser, main
 from vprbench.datasets import import_dataset, load_dataset, read_registry, verify_dataset
 from vprbench.errors import VPRBenchError
 
@@ -25,11 +24,8 @@ def gardens(tmp_path, make_images, save_rows):
 
 
 def run(*argv) -> int:
-    parser = argparse.ArgumentParser()
-    parser.add_argument("--data-dir")
-    cli.add_parser(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(list(argv))
-    return args.handler(args)
+    args = build_parser().parse_args(list(argv))
+    return args.run(args)
 
 
 def test_wrong_layout_names_what_each_layout_expects(tmp_path):
@@ -37,9 +33,8 @@ def test_wrong_layout_names_what_each_layout_expects(tmp_path):
     with pytest.raises(VPRBenchError) as error:
         load_dataset("gardens-point", tmp_path)
     message = str(error.value)
-    assert "authors' release layout" in message
-    assert "missing night_right/, gardens_gt.npy" in message
-    assert "missing ref/, query/, ground_truth_new.npy" in message
+    assert "layout 'folders' (the authors' release) is missing folder 'night_right', file 'gardens_gt.npy'" in message
+    assert "layout 'vpr-bench' is missing folder 'ref', folder 'query', file 'ground_truth_new.npy'" in message
 
 
 def test_missing_dataset_says_how_to_get_it(tmp_path):
@@ -114,7 +109,7 @@ def test_import_validates_before_registering(tmp_path, gardens, monkeypatch):
     data_root = tmp_path / "data"
     broken = tmp_path / "broken"
     (broken / "day_right").mkdir(parents=True)
-    with pytest.raises(VPRBenchError, match="missing night_right/"):
+    with pytest.raises(VPRBenchError, match="missing folder 'night_right'"):
         import_dataset("gardens-point", broken, data_root)
     assert not (data_root / "datasets.json").exists()  # nothing half-imported
 
@@ -166,16 +161,25 @@ def test_download_with_direct_source_checks_counts(tmp_path, monkeypatch, shared
     assert calls == ["corridor"]
 
 
-def test_cli_import_and_verify(tmp_path, gardens, capsys):
-    data_root = tmp_path / "data"
-    assert run("--data-dir", str(data_root), "datasets", "import", "gardens-point", str(gardens)) == 0
+def test_cli_import_verify_list_info(tmp_path, gardens, capsys):
+    data = ["--data-dir", str(tmp_path / "data")]
+    assert run("datasets", "import", "gardens-point", str(gardens), *data) == 0
     assert "Imported 'gardens-point'" in capsys.readouterr().out
-    assert run("--data-dir", str(data_root), "datasets", "verify", "gardens-point", "--json") == 0
+    assert run("datasets", "verify", "gardens-point", "--json", *data) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["ok"] and report["layout"] == "folders"
     assert report["summary"]["positive_pairs"] == 200 * 5 - 6
-    assert run("--data-dir", str(data_root), "datasets", "verify", "hawkins") == 1
+    assert run("datasets", "verify", "hawkins", *data) == 1
     out = capsys.readouterr().out
     assert out.startswith("hawkins: PROBLEMS") and "does not exist" in out
-    with pytest.raises(VPRBenchError, match="no direct download"):
-        run("--data-dir", str(data_root), "datasets", "download", "hawkins")
+    assert main(["datasets", "download", "hawkins", *data]) == 1
+    assert "no direct download" in capsys.readouterr().err
+    # list and info see the imported copy
+    assert run("datasets", "list", "--json", *data) == 0
+    rows = {r["name"]: r for r in json.loads(capsys.readouterr().out)}
+    assert rows["gardens-point"]["on_disk"] and not rows["hawkins"]["on_disk"]
+    assert (rows["gardens-point"]["radius"], rows["gardens-point"]["radius_unit"]) == (2, "frames")
+    assert run("datasets", "info", "gardens-point", "--json", *data) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert (info["database"], info["queries"], info["queries_with_positives"], info["positive_pairs"]) == (200, 200, 200, 994)
+    assert (info["unit"], info["radius"], info["radius_unit"], info["domain"]) == ("positives", 2, "frames", "indoor")

@@ -72,5 +72,5 @@ def test_no_positions_and_no_utm_names(mydata):
 
 def test_missing_queries_folder_is_named(tmp_path, make_images):
     make_images(tmp_path / "mine" / "database", ["a.jpg"])
-    with pytest.raises(VPRBenchError, match=r"missing queries/"):
+    with pytest.raises(VPRBenchError, match=r"expected folder 'queries' under .*mine \(layout 'own'\) but it is missing. Put the database images"):
         load_dataset(str(tmp_path / "mine"))

@@ -1,66 +1,102 @@
-"""`vprbench datasets ...`: download, import and verify (list and info are the lead's, same module).
-
-Each handler takes the parsed arguments and returns the exit code; user errors are raised as
-VPRBenchError for the main program to print. `--data-dir` is read from the arguments when the
-main parser defines it (it also sets VPRBENCH_DATA).
-"""
+"""vprbench datasets list / info / download / import / verify."""
 from __future__ import annotations
 
-import argparse
 import json
 import warnings
 
-from ..datasets import download_dataset, import_dataset, verify_dataset
+from rich.console import Console
+from rich.table import Table
+
+from ..datasets import dataset_location, dataset_manifests, download_dataset, import_dataset, load_dataset, verify_dataset
+from .options import add_location_options, apply_locations
 
 
-def add_download_parser(sub) -> argparse.ArgumentParser:
-    parser = sub.add_parser("download", help="fetch a dataset that has a direct source (else print how to get it)")
-    parser.add_argument("name")
-    parser.add_argument("--no-strict", dest="strict", action="store_false", help="only warn when counts differ from the manifest")
-    parser.set_defaults(handler=run_download)
-    return parser
+def add_parsers(commands) -> None:
+    datasets = commands.add_parser("datasets", help="list datasets, show their counts, get them")
+    sub = datasets.add_subparsers(dest="datasets_command", required=True, metavar="COMMAND")
+    p = sub.add_parser("list", help="every dataset with its domain and whether it is on disk")
+    add_location_options(p)
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(run=run_list)
+    p = sub.add_parser("info", help="counts, positives, unit and radius of one dataset")
+    p.add_argument("name", help="dataset name or a folder of your own")
+    add_location_options(p)
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(run=run_info)
+    p = sub.add_parser("download", help="fetch a dataset with a direct source, else print how to get it")
+    p.add_argument("name")
+    add_location_options(p)
+    p.add_argument("--no-strict", dest="strict", action="store_false", help="only warn when counts differ from the manifest")
+    p.set_defaults(run=run_download)
+    p = sub.add_parser("import", help="register a copy of a dataset already on disk (checked first)")
+    p.add_argument("name")
+    p.add_argument("path", help="folder holding the dataset in its release layout (or a supported alternative)")
+    add_location_options(p)
+    p.add_argument("--strict", action="store_true", help="refuse when counts differ from the manifest")
+    p.set_defaults(run=run_import)
+    p = sub.add_parser("verify", help="check a dataset on disk: layout, counts, ground truth, images")
+    p.add_argument("name")
+    add_location_options(p)
+    p.add_argument("--strict", action="store_true", help="counts that differ from the manifest are errors")
+    p.add_argument("--sample", type=int, default=20, help="images decoded per split (default 20)")
+    p.add_argument("--all-images", action="store_true", help="decode every image")
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.set_defaults(run=run_verify)
 
 
-def add_import_parser(sub) -> argparse.ArgumentParser:
-    parser = sub.add_parser("import", help="register a copy of a dataset already on disk")
-    parser.add_argument("name")
-    parser.add_argument("path", help="folder holding the dataset in its release layout (or a supported alternative)")
-    parser.add_argument("--strict", action="store_true", help="refuse when counts differ from the manifest")
-    parser.set_defaults(handler=run_import)
-    return parser
+def run_list(args) -> int:
+    apply_locations(args)
+    rows = []
+    for manifest in dataset_manifests().values():
+        root = dataset_location(manifest, args.data_dir)
+        rows.append({"name": manifest.name, "title": manifest.title, "domain": manifest.domain,
+                     "database": manifest.database_count, "queries": manifest.query_count,
+                     "unit": manifest.unit, "radius": manifest.radius,
+                     "radius_unit": manifest.radius_unit or (manifest.unit if manifest.unit != "positives" else None),
+                     "on_disk": root.exists(), "path": str(root)})
+    if args.json:
+        print(json.dumps(rows, indent=2))
+        return 0
+    table = Table(title="Datasets")
+    for column in ("name", "domain", "database", "queries", "radius", "on disk"):
+        table.add_column(column)
+    for r in rows:
+        radius = f"{r['radius']:g} {r['radius_unit'] or ''}".strip()
+        radius += " (lists)" if r["unit"] == "positives" else ""
+        table.add_row(r["name"], r["domain"], str(r["database"] or "?"), str(r["queries"] or "?"), radius,
+                      "[green]yes[/]" if r["on_disk"] else "no")
+    Console().print(table)
+    return 0
 
 
-def add_verify_parser(sub) -> argparse.ArgumentParser:
-    parser = sub.add_parser("verify", help="check a dataset on disk: layout, counts, ground truth, images")
-    parser.add_argument("name")
-    parser.add_argument("--strict", action="store_true", help="counts that differ from the manifest are errors")
-    parser.add_argument("--sample", type=int, default=20, help="images decoded per split (default 20)")
-    parser.add_argument("--all-images", action="store_true", help="decode every image")
-    parser.add_argument("--json", action="store_true", help="print the report as JSON")
-    parser.set_defaults(handler=run_verify)
-    return parser
+def run_info(args) -> int:
+    apply_locations(args)
+    dataset = load_dataset(args.name, args.data_dir, fetch=False)
+    info = dataset.summary()
+    info.update({"citation": dataset.citation, "licence": dataset.licence})
+    if args.json:
+        print(json.dumps(info, indent=2))
+        return 0
+    table = Table(title=f"{dataset.title or dataset.name}", show_header=False)
+    for key, value in info.items():
+        table.add_row(key, str(value))
+    Console().print(table)
+    return 0
 
-
-def add_parser(subparsers) -> argparse.ArgumentParser:
-    """The `datasets` command with download/import/verify (the lead adds list and info here)."""
-    parser = subparsers.add_parser("datasets", help="get, register and check benchmark datasets")
-    sub = parser.add_subparsers(dest="datasets_command", required=True)
-    add_download_parser(sub)
-    add_import_parser(sub)
-    add_verify_parser(sub)
-    return parser
 
 
 def run_download(args) -> int:
-    dataset = download_dataset(args.name, getattr(args, "data_dir", None), strict=args.strict)
+    apply_locations(args)
+    dataset = download_dataset(args.name, args.data_dir, strict=args.strict)
     print(f"{args.name}: {len(dataset.database)} database and {len(dataset.queries)} query images at {dataset.root}")
     return 0
 
 
 def run_import(args) -> int:
+    apply_locations(args)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        dataset = import_dataset(args.name, args.path, getattr(args, "data_dir", None), strict=args.strict)
+        dataset = import_dataset(args.name, args.path, args.data_dir, strict=args.strict)
     for warning in caught:
         print(f"warning: {warning.message}")
     print(
@@ -71,9 +107,8 @@ def run_import(args) -> int:
 
 
 def run_verify(args) -> int:
-    report = verify_dataset(
-        args.name, getattr(args, "data_dir", None), strict=args.strict, sample=None if args.all_images else args.sample
-    )
+    apply_locations(args)
+    report = verify_dataset(args.name, args.data_dir, strict=args.strict, sample=None if args.all_images else args.sample)
     if args.json:
         print(json.dumps({
             "name": report.name, "root": str(report.root), "layout": report.layout, "ok": report.ok,

@@ -64,6 +64,10 @@ def describe_layout(manifest: DatasetManifest) -> str:
     return f"layout {manifest.layout!r} ({', '.join(expected) or 'any'})"
 
 
+def describe_missing(missing: list[str]) -> str:
+    return ", ".join(f"folder '{m[:-1]}'" if m.endswith("/") else f"file '{m}'" for m in missing)
+
+
 def detect_layout(root: Path, manifest: DatasetManifest) -> DatasetManifest:
     """The first candidate layout whose expected folders and files are all under root."""
     options = candidates(manifest)
@@ -72,13 +76,18 @@ def detect_layout(root: Path, manifest: DatasetManifest) -> DatasetManifest:
         missing = missing_paths(root, candidate)
         if not missing:
             return candidate
-        report.append(f"{describe_layout(candidate)}: missing {', '.join(missing)}")
-    which = "the authors' release layout" if len(options) > 1 else "its layout"
-    raise VPRBenchError(
-        f"Dataset {manifest.name!r}: {root} is not in {which} or any other known layout. Expected "
-        + "; or ".join(report)
-        + f". See 'vprbench datasets info {manifest.name}' for how to get and place the data."
-    )
+        report.append((candidate.layout, missing))
+    if manifest.layout == "own":
+        hint = "Put the database images in database/ and the query images in queries/ (see the own-data guide)."
+    else:
+        hint = f"See 'vprbench datasets info {manifest.name}' for how to get and place the data."
+    if len(report) == 1:
+        layout_name, missing = report[0]
+        return_text = f"expected {describe_missing(missing)} under {root} (layout {layout_name!r}) but {'it is' if len(missing) == 1 else 'they are'} missing"
+        raise VPRBenchError(f"Dataset {manifest.name!r}: {return_text}. {hint}")
+    parts = [f"layout {report[0][0]!r} (the authors' release) is missing {describe_missing(report[0][1])}"]
+    parts += [f"layout {name!r} is missing {describe_missing(missing)}" for name, missing in report[1:]]
+    raise VPRBenchError(f"Dataset {manifest.name!r}: {root} is in none of its known layouts: " + "; ".join(parts) + f". {hint}")
 
 
 def read_layout(root: Path, manifest: DatasetManifest) -> Dataset:
