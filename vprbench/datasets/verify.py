@@ -41,7 +41,7 @@ class VerifyReport:
             s = self.summary
             body.append(
                 f"  {s['database']} database, {s['queries']} queries, {s['queries_with_positives']} queries with a positive, "
-                f"{s['positive_pairs']} positive pairs ({s['unit']}, radius {s['radius']}); {self.images_checked} images decoded"
+                f"{s['positive_pairs']} positive pairs ({s['unit']}, radius {s['radius']} {s.get('radius_unit') or ''}); {self.images_checked} images decoded"
             )
         return [head, *body]
 
