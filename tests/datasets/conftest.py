@@ -45,12 +45,12 @@ def make_images(tiny_jpeg):
     return make
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def save_rows():
     return write_rows
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def brute_force():
     return brute_force_positives
 

@@ -19,23 +19,32 @@ def utm_name(easting: float, northing: float, original: str) -> str:
     return f"@{float(easting)!r}@{float(northing)!r}@17@T@@@{original.replace('/', '_')}@@@@@@@@.jpg"
 
 
-def test_pitts30k_counts_and_25m_positives_match_real_coordinates(gt, tmp_path, make_images, brute_force, monkeypatch):
-    data = np.load(gt / "patchnetvlad" / "pitts30k_test.npz")
-    utm_db, utm_q = data["utmDb"], data["utmQ"]
+@pytest.fixture(scope="module")
+def pitts30k(shared_data, brute_force):
+    """Real Pitts-30k test names and UTM coordinates, and the brute-force positives within 25 m."""
+    base = shared_data / "ground-truth" / "patchnetvlad"
+    data = np.load(base / "pitts30k_test.npz")
     assert int(data["posDistThr"]) == 25
-    db_names = (gt / "patchnetvlad" / "pitts30k_imageNames_index.txt").read_text().split()
-    q_names = (gt / "patchnetvlad" / "pitts30k_imageNames_query.txt").read_text().split()
+    strip = lambda text: [n.removeprefix("./Pittsburgh250k/") for n in text.split()]  # noqa: E731
+    db_names = strip((base / "pitts30k_imageNames_index.txt").read_text())
+    q_names = strip((base / "pitts30k_imageNames_query.txt").read_text())
+    return data["utmDb"], data["utmQ"], db_names, q_names, brute_force(data["utmQ"], data["utmDb"], 25.0)
+
+
+def test_pitts30k_counts_and_25m_positives_match_real_coordinates(pitts30k, tmp_path, make_images):
+    utm_db, utm_q, db_names, q_names, expected = pitts30k
     root = tmp_path / "pitts30k" / "images" / "test"
-    make_images(root / "database", [utm_name(*u, n) for u, n in zip(utm_db, db_names)])
-    make_images(root / "queries", [utm_name(*u, n) for u, n in zip(utm_q, q_names)])
+    db_files = [utm_name(*u, n) for u, n in zip(utm_db, db_names)]
+    q_files = [utm_name(*u, n) for u, n in zip(utm_q, q_names)]
+    make_images(root / "database", db_files)
+    make_images(root / "queries", q_files)
 
     dataset = load_dataset("pitts30k", tmp_path, strict=True)
     assert (len(dataset.database), len(dataset.queries)) == (10000, 6816)
     assert dataset.layout == "utm-names"
     # map reader order back to the order of utmDb/utmQ, then compare with brute force at 25 m
-    db_index = {name: i for i, name in enumerate(utm_name(*u, n) for u, n in zip(utm_db, db_names))}
-    q_index = {name: i for i, name in enumerate(utm_name(*u, n) for u, n in zip(utm_q, q_names))}
-    expected = brute_force(utm_q, utm_db, 25.0)
+    db_index = {name: i for i, name in enumerate(db_files)}
+    q_index = {name: i for i, name in enumerate(q_files)}
     positives = dataset.positives
     for q, path in enumerate(dataset.queries):
         got = {db_index[dataset.database[d].name] for d in positives[q]}
@@ -45,6 +54,26 @@ def test_pitts30k_counts_and_25m_positives_match_real_coordinates(gt, tmp_path, 
     assert summary["queries_with_positives"] == sum(bool(e) for e in expected)
     assert (summary["unit"], summary["radius"], summary["domain"]) == ("metres", 25, "urban")
     assert (summary["queries_with_positives"], summary["positive_pairs"]) == (6816, 968448)
+
+
+def test_pitts30k_netvlad_layout(pitts30k, tmp_path, make_images):
+    """The original NetVLAD packaging: datasets/pitts30k_test.mat (named struct, 2 x N UTM) + image folders."""
+    from scipy.io import savemat
+
+    utm_db, utm_q, db_names, q_names, expected = pitts30k
+    root = tmp_path / "pitts30k"
+    make_images(root, db_names + q_names)
+    (root / "datasets").mkdir()
+    struct = {
+        "whichSet": "test", "dbImageFns": np.array(db_names, dtype=object).reshape(-1, 1), "utmDb": utm_db.T,
+        "qImageFns": np.array(q_names, dtype=object).reshape(-1, 1), "utmQ": utm_q.T,
+        "numImages": 10000, "numQueries": 6816, "posDistThr": 25, "posDistSqThr": 625, "nonTrivPosDistSqThr": 100,
+    }
+    savemat(root / "datasets" / "pitts30k_test.mat", {"dbStruct": struct})
+    dataset = load_dataset("pitts30k", tmp_path, strict=True)
+    assert dataset.layout == "netvlad-mat"
+    assert [p.relative_to(root).as_posix() for p in dataset.database[:2]] == db_names[:2]
+    assert [set(p.tolist()) for p in dataset.positives] == expected
 
 
 def test_st_lucia_counts_and_positives_from_utm_names(gt, tmp_path, make_images, brute_force):

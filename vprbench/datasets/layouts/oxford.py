@@ -1,9 +1,11 @@
 """`netvlad-mat`: a NetVLAD-style dbStruct .mat naming database/query images and their positions.
 
 The AnyLoc release of the Oxford RobotCar subsample (`Oxford_Robotcar/oxdatapart.mat` with
-images under `oxDataPart/`) uses it. The struct holds, in order: dbImage, locDb, qImage, locQ,
-numDb, numQ, posDistThr, posDistSqThr. Image names have their spaces removed, as the
-authors' loader does. The manifest's radius (the paper's) wins over posDistThr.
+images under `oxDataPart/`) uses it: a cell array holding, in order, dbImage, locDb, qImage,
+locQ, numDb, numQ, posDistThr, posDistSqThr. Image names have their spaces removed, as the
+authors' loader does. NetVLAD's own files (e.g. `datasets/pitts30k_test.mat`: a struct with
+named fields dbImageFns, utmDb, qImageFns, utmQ, posDistThr) are read by field name.
+The manifest's radius (the paper's) wins over posDistThr.
 
 Options: `mat` (file), `images` (folder the names are relative to).
 """
@@ -24,12 +26,15 @@ def read_db_struct(path: Path) -> dict:
 
     try:
         loaded = loadmat(path)["dbStruct"]
-        # a 1x8 cell array (as the release has it) or a MATLAB struct: fields by position either way
-        values = list(loaded.ravel()[0]) if loaded.dtype.names else list(loaded.ravel())
         names = ("db_image", "db_loc", "q_image", "q_loc", "num_db", "num_q", "radius")
-        if len(values) < len(names):
-            raise ValueError(f"dbStruct has {len(values)} fields, expected at least {len(names)}")
-        fields = dict(zip(names, values))
+        if loaded.dtype.names and "dbImageFns" in loaded.dtype.names:  # NetVLAD's named struct
+            record = loaded.ravel()[0]
+            fields = {k: record[n] for k, n in zip(names, ("dbImageFns", "utmDb", "qImageFns", "utmQ", "numImages", "numQueries", "posDistThr"))}
+        else:  # a 1x8 cell array (as the release has it) or a struct: fields by position
+            values = list(loaded.ravel()[0]) if loaded.dtype.names else list(loaded.ravel())
+            if len(values) < len(names):
+                raise ValueError(f"dbStruct has {len(values)} fields, expected at least {len(names)}")
+            fields = dict(zip(names, values))
         images = {k: [str(np.ravel(v)[0]).replace(" ", "") for v in np.ravel(fields[k])] for k in ("db_image", "q_image")}
         locs = {k: np.asarray(fields[k], dtype=np.float64) for k in ("db_loc", "q_loc")}
         # NetVLAD stores locations as 2xN
