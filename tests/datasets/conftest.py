@@ -31,10 +31,12 @@ def make_images(tiny_jpeg):
 
     def make(folder: Path, names) -> list[Path]:
         folder.mkdir(parents=True, exist_ok=True)
-        paths = []
+        paths, made = [], {folder}
         for name in names:
             path = folder / name
-            path.parent.mkdir(parents=True, exist_ok=True)
+            if path.parent not in made:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                made.add(path.parent)
             try:
                 os.link(tiny_jpeg, path)
             except OSError:
