@@ -183,3 +183,4 @@ def test_cli_import_verify_list_info(tmp_path, gardens, capsys):
     info = json.loads(capsys.readouterr().out)
     assert (info["database"], info["queries"], info["queries_with_positives"], info["positive_pairs"]) == (200, 200, 200, 994)
     assert (info["unit"], info["radius"], info["radius_unit"], info["domain"]) == ("positives", 2, "frames", "indoor")
+    assert info["layout"] == "folders" and "night_right" in info["notes"]

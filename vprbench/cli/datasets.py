@@ -73,7 +73,7 @@ def run_info(args) -> int:
     apply_locations(args)
     dataset = load_dataset(args.name, args.data_dir, fetch=False)
     info = dataset.summary()
-    info.update({"citation": dataset.citation, "licence": dataset.licence})
+    info.update({"citation": dataset.citation, "licence": dataset.licence, "notes": " ".join(dataset.notes)})
     if args.json:
         print(json.dumps(info, indent=2))
         return 0
