@@ -48,7 +48,10 @@ def test_laurel_caverns_skips_rows_141_to_228(tmp_path, make_images):
     poses = np.full((341, 3), 1000.0)
     poses[:141, :2] = np.stack([np.arange(141) * 2.0, np.zeros(141)], 1)  # database every 2 m
     poses[229:341, :2] = np.stack([np.arange(112) * 2.0 + 1.0, np.full(112, 3.0)], 1)  # 3 m to the side
-    np.save(root / "pose_topic_list.npy", poses)
+    # an object array with a topic-name column: only the first two columns are read
+    table = np.empty((341, 4), dtype=object)
+    table[:, :3], table[:, 3] = poses, "/camera/image"
+    np.save(root / "pose_topic_list.npy", table, allow_pickle=True)
 
     dataset = load_dataset("laurel-caverns", tmp_path, strict=True)
     assert (len(dataset.database), len(dataset.queries)) == (141, 112)
