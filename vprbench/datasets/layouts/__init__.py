@@ -80,11 +80,13 @@ def detect_layout(root: Path, manifest: DatasetManifest) -> DatasetManifest:
     if manifest.layout == "own":
         hint = "Put the database images in database/ and the query images in queries/ (see the own-data guide)."
     else:
-        hint = f"See 'vprbench datasets info {manifest.name}' for how to get and place the data."
+        from ..download import how_to_get
+
+        hint = how_to_get(manifest, root)
     if len(report) == 1:
         layout_name, missing = report[0]
-        return_text = f"expected {describe_missing(missing)} under {root} (layout {layout_name!r}) but {'it is' if len(missing) == 1 else 'they are'} missing"
-        raise VPRBenchError(f"Dataset {manifest.name!r}: {return_text}. {hint}")
+        text = f"expected {describe_missing(missing)} under {root} (layout {layout_name!r}) but {'it is' if len(missing) == 1 else 'they are'} missing"
+        raise VPRBenchError(f"Dataset {manifest.name!r}: {text}. {hint}")
     parts = [f"layout {report[0][0]!r} (the authors' release) is missing {describe_missing(report[0][1])}"]
     parts += [f"layout {name!r} is missing {describe_missing(missing)}" for name, missing in report[1:]]
     raise VPRBenchError(f"Dataset {manifest.name!r}: {root} is in none of its known layouts: " + "; ".join(parts) + f". {hint}")
