@@ -74,3 +74,15 @@ def test_missing_queries_folder_is_named(tmp_path, make_images):
     make_images(tmp_path / "mine" / "database", ["a.jpg"])
     with pytest.raises(VPRBenchError, match=r"expected folder 'queries' under .*mine \(layout 'own'\) but it is missing. Put the database images"):
         load_dataset(str(tmp_path / "mine"))
+
+
+def test_verify_own_data(mydata):
+    from vprbench.datasets import verify_dataset
+
+    pd.DataFrame({"image": images(mydata), "x": [0, 10, 20, 30, 40, 0, 400], "y": 0}).to_csv(mydata / "positions.csv", index=False)
+    report = verify_dataset(str(mydata))
+    assert report.ok and report.layout == "own" and report.images_checked == 7
+    assert report.warnings == ["1 queries have no positive (they count as failures in Recall@K)"]
+    assert report.summary["positive_pairs"] == 3
+    missing = verify_dataset(str(mydata / "nope"))
+    assert not missing.ok and "does not exist" in missing.problems[0]

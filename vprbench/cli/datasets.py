@@ -35,7 +35,7 @@ def add_parsers(commands) -> None:
     p.add_argument("--strict", action="store_true", help="refuse when counts differ from the manifest")
     p.set_defaults(run=run_import)
     p = sub.add_parser("verify", help="check a dataset on disk: layout, counts, ground truth, images")
-    p.add_argument("name")
+    p.add_argument("name", help="dataset name or a folder of your own")
     add_location_options(p)
     p.add_argument("--strict", action="store_true", help="counts that differ from the manifest are errors")
     p.add_argument("--sample", type=int, default=20, help="images decoded per split (default 20)")

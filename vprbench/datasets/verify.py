@@ -54,8 +54,17 @@ def sample_paths(paths: list[Path], sample: int | None) -> list[Path]:
 
 
 def verify_dataset(name: str, data_dir=None, strict: bool = False, sample: int | None = 20) -> VerifyReport:
-    manifest = dataset_manifest(name)
-    root = dataset_location(manifest, data_dir)
+    """`name` is a dataset name, or a folder of the user's own data (a path)."""
+    if "/" in name or name.startswith(".") or Path(name).is_dir():
+        from .layouts.own_data import own_manifest
+
+        root = Path(name).expanduser()
+        if not root.is_dir():
+            return VerifyReport(name=name, root=root, problems=[f"folder {root} does not exist"])
+        manifest = own_manifest(root)
+    else:
+        manifest = dataset_manifest(name)
+        root = dataset_location(manifest, data_dir)
     report = VerifyReport(name=name, root=root)
     if not root.is_dir():
         report.problems.append(f"folder {root} does not exist. {how_to_get(manifest, root)}")
