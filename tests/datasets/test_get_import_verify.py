@@ -84,6 +84,10 @@ def test_verify_reports_missing_paths_and_corrupt_images(gardens, tmp_path):
     assert report.problems == [report.problems[0]] and "Cannot read image" in report.problems[0]
     assert "Image000.jpg" in report.problems[0]
 
+    with pytest.raises(VPRBenchError, match="--sample must be 0 or more"):
+        verify_dataset("gardens-point", gardens.parent, sample=-1)
+    assert verify_dataset("gardens-point", gardens.parent, sample=0).images_checked == 0
+
     (gardens / "gardens_gt.npy").unlink()
     report = verify_dataset("gardens-point", gardens.parent)
     assert report.problems == [

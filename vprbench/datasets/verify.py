@@ -55,6 +55,8 @@ def sample_paths(paths: list[Path], sample: int | None) -> list[Path]:
 
 def verify_dataset(name: str, data_dir=None, strict: bool = False, sample: int | None = 20) -> VerifyReport:
     """`name` is a dataset name, or a folder of the user's own data (a path)."""
+    if sample is not None and sample < 0:
+        raise VPRBenchError(f"--sample must be 0 or more images per split, got {sample}")
     if "/" in name or name.startswith(".") or Path(name).is_dir():
         from .layouts.own_data import own_manifest
 
