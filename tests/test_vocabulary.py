@@ -177,3 +177,25 @@ def test_domain_fit_lists_every_missing_dataset(tmp_path):
     message = str(info.value)
     assert all(name in message for name in ("gardens-point", "17places", "baidu-mall"))
     assert "c_centers.pt" in message and calls == []
+
+
+def test_domain_fit_order_strides_and_metadata(monkeypatch):
+    from types import SimpleNamespace
+
+    import vprbench.datasets as datasets
+
+    databases = {name: [f"{name}/{i:03d}.jpg" for i in range(9)] for name, _ in domain_datasets("urban")}
+    monkeypatch.setattr(datasets, "load_dataset", lambda name, data_dir=None, fetch=True: SimpleNamespace(database=databases[name]))
+    seen = []
+
+    def extract(paths):
+        for path in paths:
+            seen.append(path)
+            yield features(20, seed=len(seen))
+
+    vocabulary = fit_domain_vocabulary("urban", extract, 4, budget=50, meta={"backbone": "b"})
+    # oxford and st-lucia every image, pitts30k every 4th, in the authors' order
+    assert seen == databases["oxford"] + databases["st-lucia"] + databases["pitts30k"][::4]
+    assert vocabulary.meta["datasets"] == {"oxford": 9, "st-lucia": 9, "pitts30k": 3}
+    assert vocabulary.meta["image_size"] == [320, 320] and vocabulary.meta["source"] == "urban"
+    assert vocabulary.meta["features_seen"] == 21 * 20 and vocabulary.meta["features_used"] == 50
