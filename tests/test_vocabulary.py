@@ -184,7 +184,9 @@ def test_domain_fit_order_strides_and_metadata(monkeypatch):
 
     import vprbench.datasets as datasets
 
-    databases = {name: [f"{name}/{i:03d}.jpg" for i in range(9)] for name, _ in domain_datasets("urban")}
+    from pathlib import Path
+
+    databases = {name: [Path(f"{name}/{i:03d}.jpg") for i in range(9)] for name, _ in domain_datasets("urban")}
     monkeypatch.setattr(datasets, "load_dataset", lambda name, data_dir=None, fetch=True: SimpleNamespace(database=databases[name]))
     seen = []
 
@@ -199,3 +201,15 @@ def test_domain_fit_order_strides_and_metadata(monkeypatch):
     assert vocabulary.meta["datasets"] == {"oxford": 9, "st-lucia": 9, "pitts30k": 3}
     assert vocabulary.meta["image_size"] == [320, 320] and vocabulary.meta["source"] == "urban"
     assert vocabulary.meta["features_seen"] == 21 * 20 and vocabulary.meta["features_used"] == 50
+
+
+def test_vocabulary_images_leave_out_distractors_and_stride():
+    from pathlib import Path
+
+    from vprbench.aggregation import vocabulary_images
+
+    refs = [Path(f"VPAir/reference_views/{i:05d}.png") for i in range(6)]
+    distractors = [Path(f"VPAir/distractors/{i:05d}.png") for i in range(4)]
+    assert vocabulary_images("vp-air", refs + distractors) == refs[::2]
+    assert vocabulary_images("vp-air", refs + distractors, stride=1) == refs
+    assert vocabulary_images("baidu-mall", refs + distractors) == refs + distractors

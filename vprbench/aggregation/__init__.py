@@ -13,6 +13,7 @@ from .policies import (
     paper_vocabulary,
     resolve_vocabulary,
     save_to_cache,
+    vocabulary_images,
 )
 from .pooling import POOLINGS, gap, gem, gmp
 from .vlad import vlad_hard, vlad_soft, vlad_soft_official
@@ -28,5 +29,5 @@ __all__ = [
     "POOLINGS", "FeatureSampler", "PCAWhitening", "Vocabulary", "domain_datasets", "domain_image_size",
     "fit_database_vocabulary", "fit_domain_vocabulary", "fit_map_vocabulary", "fit_vocabulary",
     "gap", "gem", "gmp", "kmeans_cosine", "load_vocabulary", "paper_vocabulary", "pca_whiten",
-    "resolve_vocabulary", "save_to_cache", "vlad_hard", "vlad_soft", "vlad_soft_official",
+    "resolve_vocabulary", "save_to_cache", "vlad_hard", "vocabulary_images", "vlad_soft", "vlad_soft_official",
 ]

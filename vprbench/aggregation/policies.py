@@ -59,6 +59,14 @@ def map_stride(dataset: str) -> int:
     return int(vocabulary_policies()["map_stride"].get(dataset, 1))
 
 
+def vocabulary_images(dataset: str, database: Sequence[Path], stride: int | None = None) -> list[Path]:
+    """The database images a vocabulary of `dataset` is fitted on: distractor folders left
+    out, then every `stride`-th image (default: the map-specific stride)."""
+    excluded = set(vocabulary_policies()["exclude_folders"].get(dataset, []))
+    kept = [Path(path) for path in database if not excluded.intersection(Path(path).parts[:-1])]
+    return kept[:: map_stride(dataset) if stride is None else stride]
+
+
 def paper_vocabulary(dataset: str) -> str:
     """The source the paper's AnyLoc-VLAD-DINOv2 uses for `dataset`: a domain, or `map-<dataset>`."""
     choice = vocabulary_policies()["paper_vocabulary"].get(dataset, "map")
@@ -81,7 +89,7 @@ def _load_all(pairs: list[tuple[str, int]], data_dir) -> list[tuple[str, list[Pa
         except VPRBenchError as exc:
             missing.append(f"  - {name}: {exc}")
             continue
-        loaded.append((name, list(dataset.database)[::stride]))
+        loaded.append((name, vocabulary_images(name, dataset.database, stride)))
     if missing:
         raise VPRBenchError(
             "Cannot fit this vocabulary: these datasets are needed and could not be loaded:\n"
@@ -111,7 +119,7 @@ def fit_map_vocabulary(
     dataset: str, extract: Extractor, clusters: int, *, data_dir=None, exact: bool = False,
     budget: int = DEFAULT_BUDGET, seed: int = KMEANS_SEED, meta: dict | None = None,
 ) -> Vocabulary:
-    """Fit a map-specific vocabulary on the dataset's own database images."""
+    """Fit a map-specific vocabulary on the dataset's own database images (distractors left out)."""
     (name, images), = _load_all([(dataset, map_stride(dataset))], data_dir)
     info = {**(meta or {}), "source": f"{MAP_PREFIX}{name}", "datasets": {name: len(images)}}
     return fit_vocabulary(extract(images), clusters, exact=exact, budget=budget, seed=seed, meta=info)
