@@ -13,6 +13,7 @@ OpenCLIP's own transform (shorter side 224 bicubic, centre crop 224, CLIP mean/s
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -158,7 +159,9 @@ def load_image_tower(backbone: str, path: Path) -> nn.Module:
     with torch.device("meta"):
         full = open_clip.create_model(backbone, device="meta")
     state = _read(path)
-    load_exact(full, state, METHOD)  # names missing/unexpected/mis-shaped keys; a no-op copy on meta
+    with warnings.catch_warnings():  # copying into meta tensors is a deliberate no-op: only the key check matters
+        warnings.simplefilter("ignore", UserWarning)
+        load_exact(full, state, METHOD)  # names missing, unexpected and mis-shaped keys
     visual = full.visual
     visual.load_state_dict({k[len("visual."):]: v for k, v in state.items() if k.startswith("visual.")}, strict=True, assign=True)
     return visual.float()
