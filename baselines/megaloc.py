@@ -122,7 +122,8 @@ def build(config: MegaLocConfig, *, weights=None, resize=None, batch_size=None, 
         "backbone": "dinov2_vitb14" if config == MegaLocConfig() else repr(config),
         "dim": config.dim,
     }
-    preprocess = Preprocess(resize=resize, interpolation="bilinear")
+    # As the authors' evaluation: normalise, then the optional resize (bilinear, antialiased).
+    preprocess = Preprocess(resize=resize, interpolation="bilinear", normalise_first=True)
     return TorchMethod(model, preprocess, fingerprint, batch_size=batch_size, device=device, precision=precision, dim=config.dim)
 
 

@@ -8,12 +8,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from vprbench import VPRBenchError, register_method
+from vprbench.images import load_image
 
 from .common import (
     Preprocess,
@@ -117,6 +119,22 @@ class Salad(nn.Module):
         return self.aggregator(patch_map(tokens, height, width, self.patch), tokens[:, 0])
 
 
+class PilResize(Preprocess):
+    """The authors' eval transform: PIL bilinear resize of the 8-bit image, ToTensor, normalise."""
+
+    def __call__(self, path: Path) -> torch.Tensor:
+        from PIL import Image
+        from torchvision.transforms import functional as TF
+
+        image = load_image(path, "RGB")
+        if self.resize is not None:
+            image = image.resize((self.resize[1], self.resize[0]), Image.BILINEAR)
+        return TF.normalize(TF.to_tensor(image), self.mean, self.std)
+
+    def fingerprint(self) -> dict:
+        return {**super().fingerprint(), "resize_on": "8-bit image (PIL)"}
+
+
 def official_to_model(state: dict, prefix: str) -> dict:
     """The released files keep DINOv2's unused mask_token; timm's ViT has none."""
     return {k: v for k, v in state.items() if k != f"{prefix}mask_token"}
@@ -136,8 +154,7 @@ def build(config: SaladConfig, *, weights=None, resize=(322, 322), batch_size=No
         "backbone": "dinov2_vitb14" if config == SaladConfig() else repr(config),
         "dim": config.dim,
     }
-    # The authors' eval resizes the PIL image (bilinear, antialiased) before ToTensor.
-    preprocess = Preprocess(resize=resize, interpolation="bilinear")
+    preprocess = PilResize(resize=resize, interpolation="bilinear")
     return TorchMethod(model, preprocess, fingerprint, batch_size=batch_size, device=device, precision=precision, dim=config.dim)
 
 

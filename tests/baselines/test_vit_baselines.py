@@ -112,9 +112,13 @@ def test_salad_descriptors_from_official_layout_file(tmp_path):
     np.testing.assert_allclose(np.linalg.norm(together, axis=1), 1.0, atol=1e-5)
     alone = np.concatenate([method.describe([p]) for p in paths])
     np.testing.assert_allclose(together, alone, atol=1e-5)
-    # the same as the network on the authors' input: 56x56 resize, ImageNet normalisation
+    # the same as the network on the authors' eval input: PIL bilinear resize, ToTensor, normalise
+    import torchvision.transforms as T
+
+    official = T.Compose([T.Resize((56, 56), interpolation=T.InterpolationMode.BILINEAR), T.ToTensor(),
+                          T.Normalize(mean=[0.485, 0.456, 0.406], std=[0.229, 0.224, 0.225])])
     x = method.preprocess(paths[0]).unsqueeze(0)
-    assert x.shape == (1, 3, 56, 56)
+    assert torch.equal(x[0], official(Image.open(paths[0]).convert("RGB")))
     with torch.no_grad():
         direct = method.model(x)[0].numpy()
     np.testing.assert_allclose(together[0], direct, atol=1e-5)
