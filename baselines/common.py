@@ -151,13 +151,13 @@ def state_dict_of(checkpoint, keys: Sequence[str] = ("state_dict", "model_state_
                 break
     if not isinstance(checkpoint, Mapping):
         raise VPRBenchError(f"Checkpoint holds a {type(checkpoint).__name__}, not a state dict.")
-    if checkpoint and all(k.startswith("module.") for k in checkpoint):
-        checkpoint = {k[len("module."):]: v for k, v in checkpoint.items()}
-    return dict(checkpoint)
+    # nn.DataParallel adds a "module." segment (whole model or one submodule) when training on several GPUs
+    return {".".join(part for part in k.split(".") if part != "module"): v for k, v in checkpoint.items()}
 
 
 def load_exact(model: nn.Module, state_dict: Mapping, method: str, limit: int = 8) -> None:
-    """Load every parameter, or name the missing, unexpected and mis-shaped keys."""
+    """Load every parameter (taking the checkpoint's tensors), or name the missing, unexpected
+    and mis-shaped keys."""
     expected = model.state_dict()
     missing = [k for k in expected if k not in state_dict]
     unexpected = [k for k in state_dict if k not in expected]
@@ -176,7 +176,15 @@ def load_exact(model: nn.Module, state_dict: Mapping, method: str, limit: int = 
             f"{method}: the checkpoint does not match this architecture ({'; '.join(problems)}). "
             "Check that the weights belong to the chosen backbone and dimension."
         )
-    model.load_state_dict(state_dict, strict=True)
+    model.load_state_dict(state_dict, strict=True, assign=True)
+
+
+def build_loaded(build, state_dict: Mapping, method: str) -> nn.Module:
+    """`build()` on the meta device (no random init to throw away), then take the checkpoint's tensors."""
+    with torch.device("meta"):
+        model = build()
+    load_exact(model, state_dict, method)
+    return model.float()
 
 
 # ---------------------------------------------------------------- preprocessing
@@ -185,7 +193,9 @@ class Preprocess:
     """How the authors turn an image file into a network input.
 
     resize: (H, W) to resize to exactly, an int for the shorter side, or None for full resolution.
-    normalise_first: some code bases normalise the full image and resize the tensor after.
+    normalise_first: False = resize the PIL image, then ToTensor + Normalize (torchvision
+    transforms.Resize on images); True = normalise the full image and resize the tensor after,
+    as some code bases do, with `antialias` as their torchvision version had it.
     """
 
     resize: tuple[int, int] | int | None = None
@@ -193,21 +203,23 @@ class Preprocess:
     mean: tuple[float, float, float] = IMAGENET_MEAN
     std: tuple[float, float, float] = IMAGENET_STD
     normalise_first: bool = False
+    antialias: bool = True
 
     def __call__(self, path: Path) -> torch.Tensor:
         from torchvision.transforms import InterpolationMode
         from torchvision.transforms import functional as F
 
-        image = F.to_tensor(load_image(path, "RGB"))
+        image = load_image(path, "RGB")
         mode = InterpolationMode(self.interpolation)
         size = list(self.resize) if isinstance(self.resize, tuple) else self.resize
         if self.normalise_first:
-            image = F.normalize(image, self.mean, self.std)
+            tensor = F.normalize(F.to_tensor(image), self.mean, self.std)
+            if size is not None:
+                tensor = F.resize(tensor, size, interpolation=mode, antialias=self.antialias)
+            return tensor
         if size is not None:
-            image = F.resize(image, size, interpolation=mode, antialias=True)
-        if not self.normalise_first:
-            image = F.normalize(image, self.mean, self.std)
-        return image
+            image = F.resize(image, size, interpolation=mode)
+        return F.normalize(F.to_tensor(image), self.mean, self.std)
 
     def fingerprint(self) -> dict:
         return {
@@ -216,6 +228,7 @@ class Preprocess:
             "mean": list(self.mean),
             "std": list(self.std),
             "normalise_first": self.normalise_first,
+            "antialias": self.antialias,
         }
 
 
