@@ -1,1 +1,4 @@
 """Core methods: importing this module registers them."""
+from . import anyloc
+
+anyloc.register()
