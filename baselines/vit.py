@@ -2,18 +2,18 @@
 
 The VPR methods fine-tune DINOv2 and ship the backbone inside their own checkpoint, so
 only the architecture is needed here: timm's VisionTransformer has the official DINOv2
-parameter names (minus the unused `mask_token`). Position embeddings are resampled the
-way the official code does it, which timm's own resampling does not match.
+parameter names (minus the unused `mask_token`). Position embeddings are resampled with
+vprbench's official DINOv2 interpolation (timm's own resampling does not match it).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from vprbench import VPRBenchError
+from vprbench.features.dense import interpolate_pos_embed  # the official DINOv2 resampling
 
 
 @dataclass(frozen=True)
@@ -45,30 +45,6 @@ def dinov2_vit(config: ViTConfig = DINOV2_VITB14) -> nn.Module:
         num_classes=0,
         dynamic_img_size=True,  # accept any multiple of the patch size
     )
-
-
-def interpolate_pos_embed(pos_embed: torch.Tensor, grid: tuple[int, int]) -> torch.Tensor:
-    """Official DINOv2 resampling of (1, 1 + M*M, C) embeddings to a (rows, cols) patch grid.
-
-    Bicubic, no antialiasing, driven by scale_factor = (grid + 0.1) / M (so the sampling
-    grid differs from a plain resize to `grid`); untouched for a square M x M grid.
-    """
-    m = int(round((pos_embed.shape[1] - 1) ** 0.5))
-    if grid == (m, m):
-        return pos_embed
-    dtype = pos_embed.dtype
-    cls_pos, patch_pos = pos_embed[:, :1].float(), pos_embed[:, 1:].float()
-    dim = pos_embed.shape[-1]
-    patch_pos = F.interpolate(
-        patch_pos.reshape(1, m, m, dim).permute(0, 3, 1, 2),
-        scale_factor=((grid[0] + 0.1) / m, (grid[1] + 0.1) / m),
-        mode="bicubic",
-        antialias=False,
-    )
-    if tuple(patch_pos.shape[-2:]) != tuple(grid):  # the +0.1 offset exists to prevent this
-        raise RuntimeError(f"position embedding resampled to {tuple(patch_pos.shape[-2:])}, not {grid}")
-    patch_pos = patch_pos.permute(0, 2, 3, 1).reshape(1, -1, dim)
-    return torch.cat((cls_pos, patch_pos), dim=1).to(dtype)
 
 
 def check_patch_multiple(height: int, width: int, patch: int, method: str) -> None:
