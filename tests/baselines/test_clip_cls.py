@@ -137,3 +137,14 @@ def test_offline_without_weights_says_how_to_supply_them(no_network):
 def test_invalid_options_list_valid_ones(options, pattern, no_network):
     with pytest.raises(VPRBenchError, match=pattern):
         create_method("clip-cls", **options)
+
+
+def test_real_corridor_images(shared_data, tiny_weights):
+    """Real 160x120 fisheye frames through the paper's CLIP path (ImageNet round trip, 224 crop)."""
+    paths = sorted((shared_data / "corridor" / "ref").glob("*.jpg"))[:3]
+    assert len(paths) == 3
+    method = create_method("clip-cls", backbone=TINY, weights=str(tiny_weights))
+    out = method.describe(paths)
+    assert out.shape == (3, 24)
+    np.testing.assert_allclose(np.linalg.norm(out, axis=1), 1.0, atol=1e-5)
+    np.testing.assert_allclose(out, reference(tiny_weights, paths, lambda im: clip.anyloc_round_trip(im, None)), atol=1e-5)
