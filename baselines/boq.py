@@ -28,7 +28,9 @@ _RELEASE = "https://github.com/amaralibey/Bag-of-Queries/releases/download/v1.0/
 class BoQBlock(nn.Module):
     def __init__(self, dim: int, queries: int, heads: int):
         super().__init__()
-        self.encoder = nn.TransformerEncoderLayer(d_model=dim, nhead=heads, dim_feedforward=4 * dim, batch_first=True, dropout=0.0)
+        self.encoder = nn.TransformerEncoderLayer(
+            d_model=dim, nhead=heads, dim_feedforward=4 * dim, batch_first=True, dropout=0.0
+        )
         self.queries = nn.Parameter(torch.randn(1, queries, dim))
         # Self-attention among the queries: input-independent, kept because the weights hold it.
         self.self_attn = nn.MultiheadAttention(dim, num_heads=heads, batch_first=True)
@@ -120,25 +122,34 @@ class BoQ(nn.Module):
     def __init__(self, config: BoQConfig):
         super().__init__()
         self.backbone = ResNet50Trunk() if config.backbone == "resnet50" else DinoV2Trunk(config.vit)
-        self.aggregator = BoQAggregator(self.backbone.out_channels, config.proj_channels, config.queries, config.layers, config.row_dim)
+        self.aggregator = BoQAggregator(
+            self.backbone.out_channels, config.proj_channels, config.queries, config.layers, config.row_dim
+        )
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         return self.aggregator(self.backbone(images))
 
 
-def build(config: BoQConfig, *, weights=None, resize=None, batch_size=None, precision="fp32", device="cpu") -> TorchMethod:
+def build(
+    config: BoQConfig, *, weights=None, resize=None, batch_size=None, precision="fp32", device="cpu"
+) -> TorchMethod:
     """A BoQ method for `config` (a released one, or a reduced one in tests)."""
     resize = as_resize(resize) or config.resize
     if config.backbone == "dinov2":
         check_patch_multiple(*resize, config.vit.patch, METHOD)
-    source = WeightSource(config.file_name, url=_RELEASE + config.file_name, page="https://github.com/amaralibey/Bag-of-Queries")
+    source = WeightSource(
+        config.file_name, url=_RELEASE + config.file_name, page="https://github.com/amaralibey/Bag-of-Queries"
+    )
     checkpoint, identity = load_checkpoint(weights, source, METHOD)
     model = BoQ(config)
     load_exact(model, official_to_model(state_dict_of(checkpoint), "backbone.dino."), METHOD)
     released = config in RELEASED.values()
-    fingerprint = {"method": METHOD, **identity, "backbone": config.backbone if released else repr(config), "dim": config.dim}
+    backbone = config.backbone if released else repr(config)
+    fingerprint = {"method": METHOD, **identity, "backbone": backbone, "dim": config.dim}
     preprocess = Preprocess(resize=resize, interpolation="bicubic")
-    return TorchMethod(model, preprocess, fingerprint, batch_size=batch_size, device=device, precision=precision, dim=config.dim)
+    return TorchMethod(
+        model, preprocess, fingerprint, batch_size=batch_size, device=device, precision=precision, dim=config.dim
+    )
 
 
 def boq(backbone="dinov2", dim=None, weights=None, resize=None, batch_size=None, precision="fp32", device="cpu"):
@@ -150,7 +161,9 @@ def boq(backbone="dinov2", dim=None, weights=None, resize=None, batch_size=None,
     dim = dims[0] if dim is None else as_int(dim, "dim")
     if (name, dim) not in RELEASED:
         raise VPRBenchError(f"{METHOD}: no released model for backbone {name} with dimension {dim}; valid: {valid}.")
-    return build(RELEASED[name, dim], weights=weights, resize=resize, batch_size=batch_size, precision=precision, device=device)
+    return build(
+        RELEASED[name, dim], weights=weights, resize=resize, batch_size=batch_size, precision=precision, device=device
+    )
 
 
 def register() -> None:

@@ -136,7 +136,10 @@ def _how_to_get(backbone: str, pretrained: str | None) -> str:
     import open_clip
 
     cfg = open_clip.get_pretrained_cfg(backbone, pretrained) if pretrained else {}
-    where = f"https://huggingface.co/{cfg['hf_hub'].rstrip('/')}" if cfg.get("hf_hub") else cfg.get("url") or "the OpenCLIP release"
+    if cfg.get("hf_hub"):
+        where = f"https://huggingface.co/{cfg['hf_hub'].rstrip('/')}"
+    else:
+        where = cfg.get("url") or "the OpenCLIP release"
     return f"download {_FILES} from {where} and pass it with --weights PATH"
 
 
@@ -163,7 +166,8 @@ def load_image_tower(backbone: str, path: Path) -> nn.Module:
         warnings.simplefilter("ignore", UserWarning)
         load_exact(full, state, METHOD)  # names missing, unexpected and mis-shaped keys
     visual = full.visual
-    visual.load_state_dict({k[len("visual."):]: v for k, v in state.items() if k.startswith("visual.")}, strict=True, assign=True)
+    image_state = {k[len("visual."):]: v for k, v in state.items() if k.startswith("visual.")}
+    visual.load_state_dict(image_state, strict=True, assign=True)  # takes the tensors, no copy
     return visual.float()
 
 
@@ -191,7 +195,8 @@ def clip_cls(backbone="ViT-bigG-14", pretrained="laion2b_s39b_b160k", weights=No
         resize=resize,
     )
     dim = visual.output_dim
-    fingerprint = {"method": METHOD, **identity, "backbone": backbone, "pretrained": pretrained if weights is None else None, "dim": dim}
+    tag = pretrained if weights is None else None  # a local file is identified by its hash
+    fingerprint = {"method": METHOD, **identity, "backbone": backbone, "pretrained": tag, "dim": dim}
     return TorchMethod(ClipImageEncoder(visual), preprocessing, fingerprint, batch_size=batch_size, device=device,
                        precision=precision, dim=dim)
 

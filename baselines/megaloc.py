@@ -55,7 +55,9 @@ class MegaLocConfig:
 class MegaLocAggregator(nn.Module):
     def __init__(self, config: MegaLocConfig):
         super().__init__()
-        self.agg = SaladAggregator(config.vit.embed_dim, config.clusters, config.cluster_dim, config.token_dim, config.hidden)
+        self.agg = SaladAggregator(
+            config.vit.embed_dim, config.clusters, config.cluster_dim, config.token_dim, config.hidden
+        )
         self.linear = nn.Linear(config.clusters * config.cluster_dim + config.token_dim, config.dim)
 
     def forward(self, features: torch.Tensor, token: torch.Tensor) -> torch.Tensor:
@@ -110,7 +112,9 @@ def _read_safetensors(path: Path) -> dict:
         raise VPRBenchError(f"{METHOD}: cannot read {path}: {error}. Is it the complete model.safetensors?") from None
 
 
-def build(config: MegaLocConfig, *, weights=None, resize=None, batch_size=None, precision="fp32", device="cpu") -> TorchMethod:
+def build(
+    config: MegaLocConfig, *, weights=None, resize=None, batch_size=None, precision="fp32", device="cpu"
+) -> TorchMethod:
     """A MegaLoc method for `config` (the published one, or a reduced one in tests)."""
     resize = as_resize(resize)
     state, identity = read_weights(weights)
@@ -124,10 +128,14 @@ def build(config: MegaLocConfig, *, weights=None, resize=None, batch_size=None, 
     }
     # As the authors' evaluation: normalise, then the optional resize (bilinear, antialiased).
     preprocess = Preprocess(resize=resize, interpolation="bilinear", normalise_first=True)
-    return TorchMethod(model, preprocess, fingerprint, batch_size=batch_size, device=device, precision=precision, dim=config.dim)
+    return TorchMethod(
+        model, preprocess, fingerprint, batch_size=batch_size, device=device, precision=precision, dim=config.dim
+    )
 
 
-def megaloc(backbone="dinov2_vitb14", weights=None, resize=None, batch_size=None, precision="fp32", device="cpu", dim=None):
+def megaloc(
+    backbone="dinov2_vitb14", weights=None, resize=None, batch_size=None, precision="fp32", device="cpu", dim=None
+):
     choose("backbone", backbone, list(BACKBONES), METHOD)
     config = MegaLocConfig()
     if dim is not None and as_int(dim, "dim") != config.dim:

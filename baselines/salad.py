@@ -71,14 +71,18 @@ class SaladAggregator(nn.Module):
     convolutional MLPs and holds no parameters).
     """
 
-    def __init__(self, channels: int, clusters: int = 64, cluster_dim: int = 128, token_dim: int = 256, hidden: int = 512):
+    def __init__(
+        self, channels: int, clusters: int = 64, cluster_dim: int = 128, token_dim: int = 256, hidden: int = 512
+    ):
         super().__init__()
         self.clusters, self.cluster_dim = clusters, cluster_dim
         self.token_features = nn.Sequential(nn.Linear(channels, hidden), nn.ReLU(), nn.Linear(hidden, token_dim))
         self.cluster_features = nn.Sequential(
             nn.Conv2d(channels, hidden, 1), nn.Dropout(0.3), nn.ReLU(), nn.Conv2d(hidden, cluster_dim, 1)
         )
-        self.score = nn.Sequential(nn.Conv2d(channels, hidden, 1), nn.Dropout(0.3), nn.ReLU(), nn.Conv2d(hidden, clusters, 1))
+        self.score = nn.Sequential(
+            nn.Conv2d(channels, hidden, 1), nn.Dropout(0.3), nn.ReLU(), nn.Conv2d(hidden, clusters, 1)
+        )
         self.dust_bin = nn.Parameter(torch.tensor(1.0))
 
     def forward(self, features: torch.Tensor, token: torch.Tensor) -> torch.Tensor:
@@ -140,7 +144,9 @@ def official_to_model(state: dict, prefix: str) -> dict:
     return {k: v for k, v in state.items() if k != f"{prefix}mask_token"}
 
 
-def build(config: SaladConfig, *, weights=None, resize=(322, 322), batch_size=None, precision="fp32", device="cpu") -> TorchMethod:
+def build(
+    config: SaladConfig, *, weights=None, resize=(322, 322), batch_size=None, precision="fp32", device="cpu"
+) -> TorchMethod:
     """A SALAD method for `config` (the published one, or a reduced one in tests)."""
     resize = as_resize(resize)
     if resize is not None:
@@ -155,10 +161,14 @@ def build(config: SaladConfig, *, weights=None, resize=(322, 322), batch_size=No
         "dim": config.dim,
     }
     preprocess = PilResize(resize=resize, interpolation="bilinear")
-    return TorchMethod(model, preprocess, fingerprint, batch_size=batch_size, device=device, precision=precision, dim=config.dim)
+    return TorchMethod(
+        model, preprocess, fingerprint, batch_size=batch_size, device=device, precision=precision, dim=config.dim
+    )
 
 
-def salad(backbone="dinov2_vitb14", weights=None, resize=(322, 322), batch_size=None, precision="fp32", device="cpu", dim=None):
+def salad(
+    backbone="dinov2_vitb14", weights=None, resize=(322, 322), batch_size=None, precision="fp32", device="cpu", dim=None
+):
     choose("backbone", backbone, list(BACKBONES), METHOD)
     config = SaladConfig()
     if dim is not None and as_int(dim, "dim") != config.dim:
