@@ -13,6 +13,7 @@ OpenCLIP's own transform (shorter side 224 bicubic, centre crop 224, CLIP mean/s
 """
 from __future__ import annotations
 
+import pickle
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -149,9 +150,13 @@ def _read(path: Path) -> dict:
             from safetensors.torch import load_file
 
             return load_file(str(path))
-        # mmap: the 10 GB ViT-bigG-14 file is not copied into memory a second time
-        return state_dict_of(torch.load(path, map_location="cpu", weights_only=True, mmap=True))
-    except (RuntimeError, OSError, EOFError) as error:
+        try:  # mmap: the 10 GB ViT-bigG-14 file is not copied into memory a second time
+            checkpoint = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+        except RuntimeError:  # files in torch's legacy (non-zip) format cannot be mapped
+            checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+        return state_dict_of(checkpoint)
+    # what torch's unpickler raises on a truncated or foreign file
+    except (RuntimeError, OSError, EOFError, KeyError, ValueError, pickle.UnpicklingError) as error:
         raise VPRBenchError(f"{METHOD}: cannot read checkpoint {path}: {error}") from None
 
 

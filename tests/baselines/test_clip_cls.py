@@ -51,6 +51,9 @@ def no_network(monkeypatch):
     def refuse(*args, **kwargs):
         raise FileNotFoundError("no network in tests")
 
+    import huggingface_hub.constants
+
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_OFFLINE", True)
     monkeypatch.setattr(open_clip.pretrained, "hf_hub_download", refuse)
     monkeypatch.setattr(open_clip.pretrained.urllib.request, "urlopen", refuse)
 
@@ -103,6 +106,16 @@ def test_published_preprocessing_of_the_paper_model():
     cfg = open_clip.get_pretrained_cfg("ViT-bigG-14", "laion2b_s39b_b160k")
     assert cfg["hf_hub"].startswith("laion/CLIP-ViT-bigG-14-laion2B-39B-b160k")
     assert tuple(cfg["mean"]) == open_clip.OPENAI_DATASET_MEAN and cfg["resize_mode"] == "shortest"
+
+
+def test_legacy_format_file_and_unreadable_file(tmp_path, tiny_weights):
+    state = torch.load(tiny_weights, weights_only=True)
+    torch.save(state, tmp_path / "legacy.pt", _use_new_zipfile_serialization=False)
+    method = create_method("clip-cls", backbone=TINY, weights=str(tmp_path / "legacy.pt"))
+    assert method.fingerprint()["weights_sha256"] == clip.file_sha256(tmp_path / "legacy.pt")
+    (tmp_path / "broken.bin").write_bytes(b"half a file")
+    with pytest.raises(VPRBenchError, match="cannot read checkpoint .*broken.bin"):
+        create_method("clip-cls", backbone=TINY, weights=str(tmp_path / "broken.bin"))
 
 
 def test_checkpoint_mismatch_names_the_keys(tmp_path, tiny_weights):

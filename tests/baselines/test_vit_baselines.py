@@ -141,7 +141,7 @@ def test_salad_aggregator_mass_and_layout():
 def test_boq_descriptors_from_official_layout_file(tmp_path, backbone):
     config = boq.BoQConfig(backbone, 64, (56, 56), "tiny.pth", vit=TINY_VIT, queries=4, row_dim=2)
     prefix = "backbone.dino." if backbone == "dinov2" else None
-    weights = save_official(boq.BoQ(config), tmp_path / "tiny.pth", prefix)
+    weights = save_official(boq.BoQ(config), tmp_path / "tiny.pth", prefix, wrap=backbone == "resnet50")
     method = boq.build(config, weights=str(weights))
     paths = images(tmp_path)[:2]
     out = method.describe(paths)
