@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
-import torchvision
 from torch import nn
 
 from vprbench import VPRBenchError, register_method
@@ -54,6 +53,8 @@ DVGL_ALIASES = {"resnet18": "resnet18conv4", "resnet50": "resnet50conv4", "resne
 
 
 def dvgl_backbone(name: str) -> nn.Sequential:
+    import torchvision  # here, not at the top: listing methods must not pay for importing it
+
     if name == "vgg16":
         return nn.Sequential(*list(torchvision.models.vgg16(weights=None).features.children())[:-2])
     resnet = getattr(torchvision.models, name.removesuffix("conv4"))(weights=None)
