@@ -26,3 +26,12 @@ def official_state_dict(name: str, variant: str, seed: int = 0) -> dict:
 def official_checkpoint():
     """official_checkpoint(layout file, variant) -> a random state dict in the authors' layout."""
     return official_state_dict
+
+
+@pytest.fixture(autouse=True)
+def one_torch_thread():
+    """The tiny test inputs run faster on one thread; on a busy machine, several threads mostly wait on each other."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
