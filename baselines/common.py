@@ -116,7 +116,10 @@ def _torch_load(path: Path):
         with torch.serialization.safe_globals(_numpy_globals()):
             return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError:
-        extra = ", ".join(torch.serialization.get_unsafe_globals_in_checkpoint(path))
+        try:
+            extra = ", ".join(torch.serialization.get_unsafe_globals_in_checkpoint(path))
+        except (RuntimeError, ValueError):  # only zip-format files can be inspected
+            extra = "objects of unknown types"
         raise VPRBenchError(
             f"Checkpoint {path} also holds Python objects ({extra}), which are not loaded because "
             "unpickling them can run code. If you trust the file, save its weights alone, e.g. "

@@ -102,7 +102,7 @@ def netvlad(
     train_set = choose("train_set", train_set, list(files), name)
     check_dim(name, dim, [CLUSTERS * channels], backbone)
     source = WeightSource(
-        file_name=f"{backbone}_netvlad_{train_set}.pth (the benchmark's best_model.pth)",
+        file_name=f"the model zoo's '{backbone.removesuffix('conv4')}-netvlad' {train_set} checkpoint",
         page=f"https://drive.google.com/file/d/{files[train_set]}/view",
     )
     checkpoint, identity = load_checkpoint(weights, source, name)
