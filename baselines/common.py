@@ -6,7 +6,6 @@ Only the public vprbench API is used here, as a third-party plugin would.
 from __future__ import annotations
 
 import hashlib
-import logging
 import os
 import pickle
 from collections.abc import Mapping, Sequence
@@ -21,8 +20,6 @@ from vprbench import Method, VPRBenchError
 from vprbench.images import load_image
 from vprbench.methods import l2_normalise
 from vprbench.paths import cache_root
-
-log = logging.getLogger(__name__)
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -99,14 +96,35 @@ def file_sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
-def _torch_load(path: Path):
+def _numpy_globals() -> list:
+    """numpy scalars/arrays that training checkpoints pickle beside the tensors (scores, recalls),
+    under their numpy 1.x and 2.x module names."""
     try:
-        return torch.load(path, map_location="cpu", weights_only=True)
+        from numpy._core import multiarray
+    except ImportError:  # numpy 1.x
+        from numpy.core import multiarray
+    allowed = [np.dtype, np.ndarray]
+    allowed += [getattr(np.dtypes, n) for n in dir(np.dtypes) if n.endswith("DType")]  # numpy's dtype classes
+    for module in ("numpy.core.multiarray", "numpy._core.multiarray"):
+        allowed += [(multiarray.scalar, f"{module}.scalar"), (multiarray._reconstruct, f"{module}._reconstruct")]
+    return allowed
+
+
+def _torch_load(path: Path):
+    """Tensors, containers and numpy scalars only: a checkpoint never runs code when loaded."""
+    try:
+        with torch.serialization.safe_globals(_numpy_globals()):
+            return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError:
-        # Some official training checkpoints also pickle numpy scalars (scores, epochs)
-        # next to the tensors; the file is one the user chose to trust.
-        log.warning("%s holds more than tensors; loading it with full unpickling", path)
-        return torch.load(path, map_location="cpu", weights_only=False)
+        try:
+            extra = ", ".join(torch.serialization.get_unsafe_globals_in_checkpoint(path))
+        except (RuntimeError, ValueError):  # only zip-format files can be inspected
+            extra = "objects of unknown types"
+        raise VPRBenchError(
+            f"Checkpoint {path} also holds Python objects ({extra}), which are not loaded because "
+            "unpickling them can run code. If you trust the file, save its weights alone, e.g. "
+            "torch.save(torch.load(FILE, weights_only=False)['state_dict'], 'weights.pth'), and pass that."
+        ) from None
     except (RuntimeError, EOFError, OSError) as error:
         raise VPRBenchError(f"Cannot read checkpoint {path}: {error}. Is it a complete PyTorch file?") from None
 

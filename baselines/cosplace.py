@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
-import torchvision
 from torch import nn
 
 from vprbench import VPRBenchError, register_method
@@ -55,6 +54,7 @@ class Flatten(nn.Module):
 
 def conv_backbone(name: str) -> nn.Sequential:
     """torchvision ResNet without avgpool/fc, or VGG16 features without the last ReLU+pool."""
+    import torchvision  # here, not at the top: listing methods must not pay for importing it
     model = getattr(torchvision.models, name.lower())(weights=None)
     if name.startswith("ResNet"):
         return nn.Sequential(*list(model.children())[:-2])

@@ -6,7 +6,6 @@ released `resnet50_MixVPR_4096_channels(1024)_rows(4).ckpt` loads exactly.
 from __future__ import annotations
 
 import torch.nn.functional as F
-import torchvision
 from torch import nn
 
 from vprbench import VPRBenchError, register_method
@@ -31,6 +30,8 @@ class CroppedResNet(nn.Module):
     """torchvision ResNet-50 without layer4, avgpool and fc (state-dict prefix `model.`)."""
 
     def __init__(self):
+        import torchvision  # here, not at the top: listing methods must not pay for importing it
+
         super().__init__()
         self.model = torchvision.models.resnet50(weights=None)
         self.model.avgpool = None

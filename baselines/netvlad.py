@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
-import torchvision
 from torch import nn
 
 from vprbench import VPRBenchError, register_method
@@ -54,6 +53,8 @@ DVGL_ALIASES = {"resnet18": "resnet18conv4", "resnet50": "resnet50conv4", "resne
 
 
 def dvgl_backbone(name: str) -> nn.Sequential:
+    import torchvision  # here, not at the top: listing methods must not pay for importing it
+
     if name == "vgg16":
         return nn.Sequential(*list(torchvision.models.vgg16(weights=None).features.children())[:-2])
     resnet = getattr(torchvision.models, name.removesuffix("conv4"))(weights=None)
@@ -101,7 +102,7 @@ def netvlad(
     train_set = choose("train_set", train_set, list(files), name)
     check_dim(name, dim, [CLUSTERS * channels], backbone)
     source = WeightSource(
-        file_name=f"{backbone}_netvlad_{train_set}.pth (the benchmark's best_model.pth)",
+        file_name=f"the model zoo's '{backbone.removesuffix('conv4')}-netvlad' {train_set} checkpoint",
         page=f"https://drive.google.com/file/d/{files[train_set]}/view",
     )
     checkpoint, identity = load_checkpoint(weights, source, name)

@@ -134,3 +134,33 @@ def test_torch_method_rejects_bad_device_and_precision():
         common.TorchMethod(_MeanColour(), common.Preprocess(), {}, precision="fp8")
     with pytest.raises(VPRBenchError, match="device"):
         common.TorchMethod(_MeanColour(), common.Preprocess(), {}, device="tpu")
+
+
+def test_training_checkpoint_with_numpy_scalars_loads_without_unpickling_code(tmp_path):
+    path = tmp_path / "train.pth.tar"
+    torch.save({"epoch": 3, "best_score": np.float64(0.8), "recalls": {1: np.float64(0.7)},
+                "pca": np.zeros(2), "state_dict": {"w": torch.ones(2)}}, path)
+    checkpoint, _ = common.load_checkpoint(path, common.WeightSource("train.pth.tar"), "toy")
+    assert checkpoint["best_score"] == 0.8
+    assert torch.equal(common.state_dict_of(checkpoint)["w"], torch.ones(2))
+
+
+class _Opaque:
+    pass
+
+
+def test_checkpoint_with_python_objects_is_refused_with_a_way_out(tmp_path):
+    path = tmp_path / "pickled.pth"
+    torch.save({"state_dict": {"w": torch.ones(1)}, "args": _Opaque()}, path)
+    with pytest.raises(VPRBenchError) as info:
+        common.load_checkpoint(path, common.WeightSource("pickled.pth"), "toy")
+    assert "_Opaque" in str(info.value)
+    assert "save its weights alone" in str(info.value)
+
+
+def test_truncated_checkpoint_is_named(tmp_path):
+    path = tmp_path / "cut.pth"
+    torch.save({"w": torch.ones(1000)}, path)
+    path.write_bytes(path.read_bytes()[:100])
+    with pytest.raises(VPRBenchError, match="Cannot read checkpoint .*cut.pth"):
+        common.load_checkpoint(path, common.WeightSource("cut.pth"), "toy")

@@ -1,6 +1,5 @@
 """Each baseline loads a random checkpoint in the authors' file layout through the real
 `weights=PATH` path, describes images, and fails with clear messages on bad input."""
-import json
 from pathlib import Path
 
 import numpy as np
@@ -10,24 +9,6 @@ from PIL import Image
 
 import vprbench
 from vprbench import VPRBenchError, create_method
-
-DATA = Path(__file__).resolve().parents[1] / "data" / "checkpoints"
-
-
-def official_state_dict(name: str, variant: str, seed: int = 0) -> dict:
-    """Random tensors with the official names and shapes (batch-norm variances kept positive)."""
-    layout = json.loads((DATA / f"{name}.json").read_text())["models"][variant]
-    generator = torch.Generator().manual_seed(seed)
-    state = {}
-    for key, shape in layout.items():
-        if key.endswith("num_batches_tracked"):
-            state[key] = torch.tensor(0)
-        elif key.endswith("running_var"):
-            state[key] = torch.rand(shape, generator=generator) + 0.5
-        else:
-            state[key] = torch.randn(shape, generator=generator) * 0.05
-    return state
-
 
 @pytest.fixture
 def images(tmp_path):
@@ -66,8 +47,8 @@ def test_registered_through_entry_points_only():
         assert "vprbench_baselines" not in source.read_text(), source
 
 
-def test_cosplace_loads_official_layout(tmp_path, images):
-    state = official_state_dict("cosplace", "ResNet18_512")
+def test_cosplace_loads_official_layout(tmp_path, images, official_checkpoint):
+    state = official_checkpoint("cosplace", "ResNet18_512")
     path = tmp_path / "ResNet18_512_cosplace.pth"
     torch.save(state, path)  # the released files are plain state dicts
     method = create_method("cosplace", backbone="ResNet18", dim=512, weights=str(path), resize=(64, 64), device="cpu")
@@ -78,8 +59,8 @@ def test_cosplace_loads_official_layout(tmp_path, images):
     assert len(fp["weights_sha256"]) == 64
 
 
-def test_cosplace_other_release_from_minus_o_strings(tmp_path, images):
-    state = official_state_dict("cosplace", "ResNet18_512")
+def test_cosplace_other_release_from_minus_o_strings(tmp_path, images, official_checkpoint):
+    state = official_checkpoint("cosplace", "ResNet18_512")
     state["aggregation.3.weight"] = state["aggregation.3.weight"][:128]
     state["aggregation.3.bias"] = state["aggregation.3.bias"][:128]
     path = tmp_path / "ResNet18_128_cosplace.pth"
@@ -90,8 +71,8 @@ def test_cosplace_other_release_from_minus_o_strings(tmp_path, images):
     assert out.shape == (3, 128)
 
 
-def test_eigenplaces_loads_official_layout(tmp_path, images):
-    state = official_state_dict("eigenplaces", "ResNet18_512")
+def test_eigenplaces_loads_official_layout(tmp_path, images, official_checkpoint):
+    state = official_checkpoint("eigenplaces", "ResNet18_512")
     path = tmp_path / "ResNet18_512_eigenplaces.pth"
     torch.save(state, path)
     method = create_method("eigenplaces", backbone="ResNet18", dim=512, weights=str(path), device="cpu")
@@ -100,8 +81,8 @@ def test_eigenplaces_loads_official_layout(tmp_path, images):
     assert method.fingerprint()["architecture"] == "eigenplaces"
 
 
-def test_mixvpr_loads_official_layout_at_320(tmp_path, images):
-    state = official_state_dict("mixvpr", "resnet50_4096")
+def test_mixvpr_loads_official_layout_at_320(tmp_path, images, official_checkpoint):
+    state = official_checkpoint("mixvpr", "resnet50_4096")
     path = tmp_path / "resnet50_MixVPR_4096_channels(1024)_rows(4).ckpt"
     torch.save(state, path)
     method = create_method("mixvpr", weights=str(path), device="cpu")
@@ -111,8 +92,8 @@ def test_mixvpr_loads_official_layout_at_320(tmp_path, images):
     assert method.fingerprint()["preprocess"]["interpolation"] == "bicubic"
 
 
-def test_benchmark_netvlad_loads_training_checkpoint_with_dataparallel_prefix(tmp_path, images):
-    state = official_state_dict("netvlad-dvgl", "resnet18conv4_netvlad")
+def test_benchmark_netvlad_loads_training_checkpoint_with_dataparallel_prefix(tmp_path, images, official_checkpoint):
+    state = official_checkpoint("netvlad-dvgl", "resnet18conv4_netvlad")
     path = tmp_path / "best_model.pth"
     torch.save({"epoch_num": 3, "model_state_dict": {f"module.{k}": v for k, v in state.items()}}, path)
     method = create_method("netvlad", weights=str(path), resize=(64, 64), device="cpu")
@@ -122,8 +103,8 @@ def test_benchmark_netvlad_loads_training_checkpoint_with_dataparallel_prefix(tm
     assert (fp["backbone"], fp["training"], fp["preprocess"]["normalise_first"]) == ("resnet18conv4", "pitts30k", True)
 
 
-def test_netvlad_vgg16_wpca_loads_patch_netvlad_checkpoint(tmp_path, images):
-    state = official_state_dict("netvlad-patchnetvlad", "vgg16_wpca128")
+def test_netvlad_vgg16_wpca_loads_patch_netvlad_checkpoint(tmp_path, images, official_checkpoint):
+    state = official_checkpoint("netvlad-patchnetvlad", "vgg16_wpca128")
     path = tmp_path / "pitts_WPCA128.pth.tar"
     # Patch-NetVLAD files are training checkpoints holding numpy scalars beside the weights
     torch.save({"epoch": 1, "best_score": np.float64(0.9), "state_dict": state}, path)
@@ -171,9 +152,9 @@ def test_mixvpr_rejects_a_resize_its_mixer_cannot_take():
         create_method("mixvpr", resize=(224, 224), device="cpu")
 
 
-def test_checkpoint_of_another_backbone_names_the_keys(tmp_path):
+def test_checkpoint_of_another_backbone_names_the_keys(tmp_path, official_checkpoint):
     path = tmp_path / "ResNet18_512_cosplace.pth"
-    torch.save(official_state_dict("cosplace", "ResNet18_512"), path)
+    torch.save(official_checkpoint("cosplace", "ResNet18_512"), path)
     with pytest.raises(VPRBenchError) as info:
         create_method("cosplace", backbone="ResNet50", dim=2048, weights=str(path), device="cpu")
     message = str(info.value)

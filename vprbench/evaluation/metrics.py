@@ -1,9 +1,7 @@
 """Retrieval and its scores: faiss exact search, Recall@K, and VPR-Bench's top-1 precision-recall."""
 from __future__ import annotations
 
-import faiss
 import numpy as np
-from sklearn.metrics import auc, precision_recall_curve
 
 from ..errors import VPRBenchError
 
@@ -21,6 +19,8 @@ def check_ks(ks, n_database: int) -> tuple[int, ...]:
 
 def search(database: np.ndarray, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Top-k database rows per query by inner product (cosine on L2-normalised descriptors)."""
+    import faiss  # heavy: only commands that search pay for it
+
     if database.shape[1] != queries.shape[1]:
         raise VPRBenchError(f"Database descriptors have {database.shape[1]} dims, queries {queries.shape[1]}")
     index = faiss.IndexFlatIP(database.shape[1])
@@ -46,6 +46,8 @@ def top1_precision_recall(top1_scores: np.ndarray, top1_correct: np.ndarray) -> 
     auc_pr is the area under that curve; recall_at_100_precision the largest recall whose
     precision is 1 (0 when even the most confident match is wrong).
     """
+    from sklearn.metrics import auc, precision_recall_curve
+
     correct = np.asarray(top1_correct, dtype=bool)
     if not correct.any():
         return {"auc_pr": 0.0, "recall_at_100_precision": 0.0, "curve": {"precision": [], "recall": []}}
