@@ -16,7 +16,7 @@ import torch.nn.functional as F
 
 from ..aggregation.vlad import vlad_hard
 from ..errors import VPRBenchError
-from ..features.backbones import backbone_spec, file_sha256, load_backbone
+from ..features.backbones import backbone_spec, load_backbone, sha256_of
 from ..features.dense import FACETS, DenseExtractor
 from ..features.preprocess import dataset_resize, parse_size, preprocess
 from .base import Method, l2_normalise
@@ -159,7 +159,7 @@ class AnyLoc(Method):
     # ------------------------------------------------------------ identity
     def weights_identity(self) -> str:
         if self._weights_id is None:
-            self._weights_id = ("sha256:" + file_sha256(Path(self.weights).expanduser())
+            self._weights_id = ("sha256:" + sha256_of(Path(self.weights).expanduser())
                                 if self.weights else self.spec.url)
         return self._weights_id
 
@@ -174,7 +174,7 @@ class AnyLoc(Method):
         if self.aggregation in VLADS:
             fp["clusters"] = self.clusters
             fp["vocabulary"] = self.vocabulary if self.vocabulary == "map" or not Path(self.vocabulary).is_file() \
-                else "sha256:" + file_sha256(Path(self.vocabulary))
+                else "sha256:" + sha256_of(Path(self.vocabulary))
         if self.aggregation == "gem":
             fp["gem_p"] = self.gem_p
         if self.pca_dim:
@@ -185,12 +185,12 @@ class AnyLoc(Method):
     @property
     def extractor(self) -> DenseExtractor:
         if self._extractor is None:
-            model, spec, identity = load_backbone(self.backbone, self.weights)
+            model, spec, identity = load_backbone(self.backbone, self.weights, self.device)
             self._weights_id = identity
             layer, facet = self.layer, self.facet
             if self.aggregation == "cls" and self.family == "dinov2":
                 layer, facet = len(model.blocks) - 1, "token"  # CLS comes from the final norm
-            self._extractor = DenseExtractor(model.to(self.device), spec, layer, facet, stride=self.stride,
+            self._extractor = DenseExtractor(model, spec, layer, facet, stride=self.stride,
                                              head_interleaved=self.family == "dino")
         return self._extractor
 
