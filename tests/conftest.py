@@ -19,3 +19,13 @@ def isolated_cache(tmp_path, monkeypatch):
     monkeypatch.setenv("VPRBENCH_CACHE", str(tmp_path / "cache"))
     monkeypatch.delenv("VPRBENCH_DATA", raising=False)
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch-home"))
+
+
+def pytest_collection_modifyitems(config, items):
+    """Benchmarks (tests/benchmarks) run only when asked: pytest tests/benchmarks --benchmark-enable."""
+    if config.getoption("benchmark_enable", False):
+        return
+    skip = pytest.mark.skip(reason="benchmark: run with --benchmark-enable")
+    for item in items:
+        if "benchmarks" in item.path.parts:
+            item.add_marker(skip)

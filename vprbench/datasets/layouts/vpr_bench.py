@@ -1,6 +1,7 @@
 """VPR-Bench layout: ref/, query/ and ground_truth_new.npy (rows [query index, [positive ref indices]])."""
 from __future__ import annotations
 
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +20,7 @@ def read_positive_lists(path: Path, n_queries: int) -> list[np.ndarray]:
         lists: list[np.ndarray] = [np.zeros(0, np.int64) for _ in range(n_queries)]
         for query, positives in rows:
             lists[int(query)] = np.asarray(positives, dtype=np.int64).reshape(-1)
-    except (OSError, ValueError, TypeError, IndexError) as error:
+    except (OSError, ValueError, TypeError, IndexError, EOFError, pickle.UnpicklingError) as error:
         raise VPRBenchError(
             f"Cannot read ground truth {path}: {error}. Expected VPR-Bench rows "
             "[query_index, [positive reference indices]] for each of the "

@@ -1,0 +1,46 @@
+import numpy as np
+import pytest
+
+from vprbench.errors import VPRBenchError
+from vprbench.methods import create_method
+
+
+@pytest.fixture
+def corridor_images(shared_data):
+    return sorted((shared_data / "corridor" / "ref").glob("*.jpg"))[:12]
+
+
+def test_dense_vlad_fits_and_describes_independently_of_batches(corridor_images):
+    method = create_method("dense-vlad", clusters=8, bin_sizes=(6,), step=6)
+    method.fit(corridor_images[:8])
+    assert method.centres.shape == (8, 128)
+    together = method.describe(corridor_images[8:])
+    alone = np.concatenate([method.describe([p]) for p in corridor_images[8:]])
+    assert together.shape == (4, 8 * 128) and together.dtype == np.float32
+    np.testing.assert_allclose(together, alone, atol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(together, axis=1), 1, rtol=1e-5)
+
+    again = create_method("dense-vlad", clusters=8, bin_sizes=(6,), step=6)
+    again.fit(corridor_images[:8])
+    np.testing.assert_array_equal(again.centres, method.centres)  # seeded
+
+
+def test_rootsift_rows_are_unit_length(corridor_images):
+    features = create_method("dense-vlad", bin_sizes=(4,), step=8).local_features(corridor_images[0])
+    assert features.shape[1] == 128 and (features >= 0).all()
+    np.testing.assert_allclose(np.linalg.norm(features, axis=1), 1, rtol=1e-4)
+
+
+def test_dense_vlad_needs_fit_and_enough_features(corridor_images):
+    with pytest.raises(VPRBenchError, match="not fitted"):
+        create_method("dense-vlad").describe(corridor_images[:1])
+    with pytest.raises(VPRBenchError, match="cannot make 128 clusters"):
+        create_method("dense-vlad", sample=50).fit(corridor_images[:2])
+
+
+def test_hog_dimension_and_settings(corridor_images):
+    descriptors = create_method("hog", resize=(64, 64)).describe(corridor_images[:2])
+    # 64x64 window, 16px blocks every 8px: 7x7 blocks of one 16px cell, 9 bins
+    assert descriptors.shape == (2, 7 * 7 * 9)
+    with pytest.raises(VPRBenchError, match="multiple of 8"):
+        create_method("hog", resize=(60, 64))

@@ -1,0 +1,155 @@
+"""The command line end to end on real data, and every class of bad input."""
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+from vprbench.cli.main import main
+from vprbench.paths import cache_root
+
+
+def run(capsys, *args):
+    code = main(list(args))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_evaluate_hog_on_corridor_then_served_from_store(capsys, shared_data):
+    code, out, err = run(capsys, "evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", str(shared_data), "--json")
+    assert code == 0, err
+    record = json.loads(out)
+    assert record["counts"] == {"database": 111, "queries": 111, "queries_without_positives": 0, "positive_pairs": 549}
+    assert record["descriptors_computed"] == {"database": 111, "queries": 111}
+    assert set(record["recall"]) == {"1", "5", "10", "20"}
+    assert record["recall"]["1"] <= record["recall"]["5"] <= record["recall"]["10"] <= record["recall"]["20"]
+    assert {"vprbench", "torch", "faiss"} <= set(record["versions"])
+
+    code, out, _ = run(capsys, "evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", str(shared_data),
+                       "--json", "--k", "1", "3")
+    again = json.loads(out)
+    assert again["descriptors_computed"] == {"database": 0, "queries": 0}
+    assert again["recall"]["1"] == record["recall"]["1"] and set(again["recall"]) == {"1", "3"}
+
+    code, out, _ = run(capsys, "leaderboard", "--format", "markdown")
+    assert code == 0 and "| hog " in out and "corridor" in out
+
+
+def test_describe_writes_descriptors_in_input_order(capsys, shared_data, tmp_path):
+    a, b = shared_data / "corridor" / "ref" / "0000003.jpg", shared_data / "corridor" / "query" / "0000050.jpg"
+    code, _, err = run(capsys, "describe", "--method", "hog", "--resize", "64", "64", str(a), str(b), "--out", str(tmp_path / "ab.npy"))
+    assert code == 0, err
+    run(capsys, "describe", "--method", "hog", "--resize", "64", "64", str(b), str(a), "--out", str(tmp_path / "ba.npy"))
+    ab, ba = np.load(tmp_path / "ab.npy"), np.load(tmp_path / "ba.npy")
+    assert ab.shape[0] == 2 and ab.dtype == np.float32
+    np.testing.assert_array_equal(ab, ba[::-1])
+    np.testing.assert_allclose(np.linalg.norm(ab, axis=1), 1, rtol=1e-5)
+
+
+def test_publish_writes_markdown(capsys, shared_data, tmp_path):
+    run(capsys, "evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", str(shared_data), "--resize", "64", "64")
+    code, out, _ = run(capsys, "leaderboard", "publish", "--to", str(tmp_path / "docs"))
+    page = (tmp_path / "docs" / "leaderboard.md").read_text()
+    assert code == 0 and "| hog" in page and "corridor" in page
+
+
+# --- bad input: clear message, exit 1, no traceback, nothing stored ------------------------------
+
+def assert_user_error(code, err, *fragments):
+    assert code == 1
+    assert "Traceback" not in err
+    for fragment in fragments:
+        assert fragment in err, err
+    results = cache_root() / "results.jsonl"
+    assert not results.exists(), "a failed evaluation must not add a result"
+
+
+def test_unknown_method_suggests(capsys, shared_data):
+    code, _, err = run(capsys, "evaluate", "--method", "hogg", "--dataset", "corridor", "--data-dir", str(shared_data))
+    assert_user_error(code, err, "Unknown method 'hogg'", "Did you mean: hog")
+
+
+def test_unknown_dataset_suggests(capsys):
+    code, _, err = run(capsys, "evaluate", "--method", "hog", "--dataset", "coridor")
+    assert_user_error(code, err, "Unknown dataset 'coridor'", "corridor")
+
+
+def test_option_the_method_does_not_take(capsys, shared_data):
+    code, _, err = run(capsys, "evaluate", "--method", "hog", "--layer", "3", "--dataset", "corridor", "--data-dir", str(shared_data))
+    assert_user_error(code, err, "does not take option(s) layer")
+
+
+@pytest.mark.parametrize("ks, message", [(["0"], "K >= 1"), (["abc"], "whole numbers"), (["500"], "exceeds the 111")])
+def test_invalid_k(capsys, shared_data, ks, message):
+    code, _, err = run(capsys, "evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", str(shared_data), "--k", *ks)
+    assert_user_error(code, err, message)
+
+
+def test_missing_data_root_without_network(capsys, tmp_path, monkeypatch):
+    import pooch
+
+    def offline(*args, **kwargs):
+        raise ConnectionError("no network")
+
+    monkeypatch.setattr(pooch.Pooch, "fetch", offline)
+    code, _, err = run(capsys, "evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", str(tmp_path / "nothing"))
+    assert_user_error(code, err, "Downloading 'corridor'", "failed", "rerun")
+    assert not (tmp_path / "nothing" / "corridor").exists(), "no half-downloaded dataset in place"
+
+
+def corridor_copy(shared_data, tmp_path):
+    root = tmp_path / "data" / "corridor"
+    shutil.copytree(shared_data / "corridor", root, copy_function=os.symlink)
+    return root
+
+
+def test_missing_folder_named(capsys, shared_data, tmp_path):
+    root = corridor_copy(shared_data, tmp_path)
+    shutil.rmtree(root / "query")
+    code, _, err = run(capsys, "evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", str(root.parent))
+    assert_user_error(code, err, "expected folder 'query'")
+
+
+def test_corrupt_ground_truth_named(capsys, shared_data, tmp_path):
+    root = corridor_copy(shared_data, tmp_path)
+    (root / "ground_truth_new.npy").unlink()
+    (root / "ground_truth_new.npy").write_bytes(b"garbage")
+    code, _, err = run(capsys, "datasets", "info", "corridor", "--data-dir", str(root.parent))
+    assert_user_error(code, err, "ground_truth_new.npy")
+
+
+def test_corrupt_image_named_and_store_not_complete(capsys, shared_data, tmp_path):
+    root = corridor_copy(shared_data, tmp_path)
+    (root / "query" / "0000042.jpg").unlink()
+    (root / "query" / "0000042.jpg").write_bytes(b"\xff\xd8 truncated jpeg")
+    code, _, err = run(capsys, "evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", str(root.parent), "--resize", "64", "64")
+    assert_user_error(code, err, "0000042.jpg")
+    assert not list(cache_root().rglob("queries.h5")), "the query store must not be complete"
+
+
+def test_count_mismatch_warns_or_fails_strict(capsys, shared_data, tmp_path):
+    root = corridor_copy(shared_data, tmp_path)
+    (root / "ref" / "0000110.jpg").unlink()
+    (root / "ground_truth_new.npy").unlink()
+    gt = np.load(shared_data / "corridor" / "ground_truth_new.npy", allow_pickle=True)
+    for row in gt:
+        row[1] = [p for p in row[1] if p < 110]
+    np.save(root / "ground_truth_new.npy", gt, allow_pickle=True)
+    code, _, err = run(capsys, "evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", str(root.parent), "--strict")
+    assert_user_error(code, err, "110 database images", "expects 111")
+    with pytest.warns(UserWarning, match="expects 111"):
+        code, _, _ = run(capsys, "datasets", "info", "corridor", "--data-dir", str(root.parent), "--json")
+    assert code == 0
+
+
+def test_describe_bad_inputs(capsys, tmp_path):
+    code, _, err = run(capsys, "describe", "--method", "hog", str(tmp_path / "none.jpg"), "--out", str(tmp_path / "x.npy"))
+    assert_user_error(code, err, "Image not found", "none.jpg")
+    code, _, err = run(capsys, "describe", "--method", "dense-vlad", __file__, "--out", str(tmp_path / "x.npy"))
+    assert_user_error(code, err, "--fit-on")
+
+
+def test_leaderboard_without_results(capsys):
+    code, _, err = run(capsys, "leaderboard")
+    assert_user_error(code, err, "No results yet")

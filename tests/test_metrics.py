@@ -1,0 +1,45 @@
+import numpy as np
+import pytest
+
+from vprbench.errors import VPRBenchError
+from vprbench.evaluation.metrics import check_ks, recall_at_k, search, top1_precision_recall
+
+
+def test_search_ranks_by_inner_product():
+    db = np.eye(4, dtype=np.float32)
+    q = np.array([[0.1, 0.9, 0.3, 0.0]], dtype=np.float32)
+    scores, idx = search(db, q, 3)
+    assert idx.tolist() == [[1, 2, 0]]
+    np.testing.assert_allclose(scores, [[0.9, 0.3, 0.1]], rtol=1e-6)
+
+
+def test_recall_counts_queries_without_positives_as_failures():
+    indices = np.array([[0, 1, 2], [2, 0, 1], [1, 2, 0], [0, 1, 2]])
+    positives = [np.array([0]), np.array([1]), np.array([0, 5]), np.array([], dtype=np.int64)]
+    # q0 hit at 1; q1 at 3; q2 at 3; q3 never (no positives)
+    assert recall_at_k(indices, positives, (1, 2, 3)) == {1: 25.0, 2: 25.0, 3: 75.0}
+
+
+def test_precision_recall_follows_vpr_bench():
+    scores = np.array([0.9, 0.8, 0.7, 0.6])
+    correct = np.array([True, True, False, True])
+    pr = top1_precision_recall(scores, correct)
+    # the two most confident matches are right: precision 1 up to recall 2/3
+    assert pr["recall_at_100_precision"] == pytest.approx(2 / 3)
+    # trapezoids over recall 0 -> 1/3 -> 2/3 at precision 1, then 2/3 -> 1 from 2/3 to 3/4
+    assert pr["auc_pr"] == pytest.approx(2 / 3 + (2 / 3 + 3 / 4) / 2 / 3, abs=1e-9)
+
+
+def test_most_confident_match_wrong_gives_zero_recall_at_full_precision():
+    pr = top1_precision_recall(np.array([0.9, 0.5]), np.array([False, True]))
+    assert pr["recall_at_100_precision"] == 0.0
+
+
+@pytest.mark.parametrize("ks", [(0,), (-1, 5), (), (200,)])
+def test_invalid_k_is_refused(ks):
+    with pytest.raises(VPRBenchError):
+        check_ks(ks, 100)
+
+
+def test_ks_sorted_and_unique():
+    assert check_ks([5, 1, 5], 10) == (1, 5)
