@@ -94,7 +94,7 @@ def test_option_errors(weights):
     with pytest.raises(VPRBenchError, match=r"valid layers are 0\.\.11"):
         create_method("anyloc-vlad-dinov2", backbone="dinov2_vits14", weights=str(weights)).extractor
     m = create_method("anyloc-vlad-dinov2-pca", backbone="dinov2_vits14", weights=str(weights), layer=0)
-    with pytest.raises(VPRBenchError, match="pca_dim 512 exceeds the 3 database images"):
+    with pytest.raises(VPRBenchError, match=r"PCA dimension 512 is larger than the number of database images \(3\)"):
         m.postprocess(np.eye(3, 8, dtype=np.float32), np.eye(2, 8, dtype=np.float32))
 
 
