@@ -104,3 +104,28 @@ def test_dataset_resize_policy_feeds_fingerprint(weights):
     assert m.fingerprint()["resize"] == [480, 640]
     m = AnyLoc(backbone="dinov2_vits14", weights=str(weights), aggregation="gem", resize="224x224", dataset="pitts30k")
     assert m.fingerprint()["resize"] == [224, 224]
+
+
+def test_released_centres_and_domain_vocabulary(shared_data, tmp_path, monkeypatch):
+    released = shared_data / "vocabularies" / "anyloc-dinov2_vitg14-l31-value-c32" / "indoor" / "c_centers.pt"
+    m = create_method("anyloc-vlad-dinov2", vocabulary=str(released))  # no weights needed to resolve
+    assert not m.needs_fit and m.centres.shape == (32, 1536)
+    fp = m.fingerprint()
+    assert fp["vocabulary"].startswith("sha256:") and fp["weights"].endswith("dinov2_vitg14_pretrain.pth")
+    domain = create_method("anyloc-vlad-dinov2", vocabulary="domain")
+    assert domain.centres is None and not domain.needs_fit
+    with pytest.raises(VPRBenchError, match="No 'indoor' vocabulary for dinov2_vitg14 layer 31 value"):
+        domain.use_dataset("baidu-mall")
+    with pytest.raises(VPRBenchError, match="has 32 clusters, the method asks for 8"):
+        create_method("anyloc-vlad-dinov2", vocabulary=str(released), clusters=8)
+
+
+def test_patch_feature_stream_in_input_order(weights, corridor, shared_data):
+    _, queries = corridor
+    tokyo = shared_data / "images" / "tokyo247-pair" / "tokyo_db.png"
+    m = create_method("anyloc-vlad-dinov2", backbone="dinov2_vits14", weights=str(weights), layer=1, batch_size=3)
+    feats = list(m.iter_patch_features([queries[0], tokyo, queries[1]], resize=(28, 42)))
+    assert [tuple(f.shape) for f in feats] == [(6, 384)] * 3
+    np.testing.assert_allclose(torch.stack(feats).norm(dim=-1).numpy(), 1, atol=1e-5)
+    native = list(m.iter_patch_features([queries[0], tokyo]))
+    assert [tuple(f.shape) for f in native] == [(88, 384), (45 * 34, 384)]

@@ -154,19 +154,20 @@ class AnyLoc(Method):
                                              head_interleaved=self.family == "dino")
         return self._extractor
 
-    def _batches(self, images: Sequence[Path]):
-        """(indices, batch tensor) groups of same-sized preprocessed images, at most batch_size each."""
-        by_size: dict[tuple, list[tuple[int, torch.Tensor]]] = {}
+    def _batches(self, images: Sequence[Path], resize: tuple[int, int] | None = None):
+        """(indices, batch tensor): runs of consecutive same-sized preprocessed images, at most
+        batch_size each, in input order (so streams, e.g. vocabulary sampling, never depend on
+        the batch size)."""
+        resize = parse_size(resize) or self.resize
+        group: list[tuple[int, torch.Tensor]] = []
         for i, path in enumerate(images):
-            x = preprocess(path, family=self.family, patch=self.spec.patch, resize=self.resize)
-            group = by_size.setdefault(tuple(x.shape), [])
+            x = preprocess(path, family=self.family, patch=self.spec.patch, resize=resize)
+            if group and (len(group) == self.batch_size or group[0][1].shape != x.shape):
+                yield [j for j, _ in group], torch.stack([t for _, t in group])
+                group = []
             group.append((i, x))
-            if len(group) == self.batch_size:
-                yield [j for j, _ in group], torch.stack([t for _, t in group])
-                group.clear()
-        for group in by_size.values():
-            if group:
-                yield [j for j, _ in group], torch.stack([t for _, t in group])
+        if group:
+            yield [j for j, _ in group], torch.stack([t for _, t in group])
 
     def _autocast(self):
         dtype = PRECISIONS[self.precision]
@@ -209,8 +210,13 @@ class AnyLoc(Method):
         if not self.needs_fit:
             return
         # one image's features at a time into the bounded-memory sampler of fit_vocabulary
-        stream = (f.cpu() for _, batch in self._batches(database) for f in self.patch_features(batch))
-        self.centres = fit_vocabulary(stream, self.clusters).centres.float()
+        self.centres = fit_vocabulary(self.iter_patch_features(database), self.clusters).centres.float()
+
+    def iter_patch_features(self, paths: Sequence[Path], resize=None):
+        """Each image's (N, D) patch features as they enter VLAD, in input order.
+        `resize` (H, W) overrides the method's resize (domain vocabularies use 320x320)."""
+        for _, batch in self._batches(paths, resize):
+            yield from self.patch_features(batch).cpu()
 
     def fit_state(self) -> dict[str, np.ndarray]:
         return {"centres": self.centres.cpu().numpy()} if self.needs_fit and self.centres is not None else {}
