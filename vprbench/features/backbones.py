@@ -58,10 +58,14 @@ def backbone_spec(name: str) -> BackboneSpec:
     return BACKBONES[name]
 
 
-def create_model(spec: BackboneSpec) -> nn.Module:
-    """The timm architecture with random weights and no classifier head."""
+def create_model(spec: BackboneSpec, *, empty: bool = False) -> nn.Module:
+    """The timm architecture with no classifier head: random weights, or, with `empty`,
+    parameters without storage (on the meta device) to be filled by a state dict."""
     import timm
 
+    if empty:
+        with torch.device("meta"):  # skips the random initialisation of large models
+            return timm.create_model(spec.timm_arch, pretrained=False, num_classes=0).eval()
     return timm.create_model(spec.timm_arch, pretrained=False, num_classes=0).eval()
 
 
@@ -88,7 +92,7 @@ def resolve_weights(spec: BackboneSpec, weights: str | Path | None) -> tuple[Pat
                 f"Weights file {path} does not exist. Pass --weights with the path of the official "
                 f"checkpoint {spec.file_name} for backbone {spec.name} (from {spec.url})."
             )
-        return path, "sha256:" + file_sha256(path)
+        return path, "sha256:" + sha256_of(path)
     path = hub_checkpoint_dir() / spec.file_name
     if not path.is_file():
         try:
@@ -100,6 +104,17 @@ def resolve_weights(spec: BackboneSpec, weights: str | Path | None) -> tuple[Pat
                 f"--weights /path/to/{spec.file_name}, or put it in {path.parent}."
             ) from None
     return path, spec.url
+
+
+_SHA256: dict[tuple, str] = {}
+
+
+def sha256_of(path: Path) -> str:
+    stat = path.stat()
+    key = (str(path.resolve()), stat.st_mtime_ns, stat.st_size)
+    if key not in _SHA256:
+        _SHA256[key] = file_sha256(path)
+    return _SHA256[key]
 
 
 def file_sha256(path: Path, chunk: int = 1 << 22) -> str:
@@ -159,17 +174,28 @@ def convert_official(state: dict[str, torch.Tensor], model: nn.Module) -> dict[s
     return converted
 
 
-def load_backbone(name: str, weights: str | Path | None = None) -> tuple[nn.Module, BackboneSpec, str]:
-    """(timm model in eval mode with official weights, spec, weights identity)."""
+#: loaded models, shared by methods in one process (they never modify a model)
+_LOADED: dict[tuple, tuple[nn.Module, str]] = {}
+
+
+def load_backbone(name: str, weights: str | Path | None = None,
+                  device: str | torch.device = "cpu") -> tuple[nn.Module, BackboneSpec, str]:
+    """(timm model in eval mode with official weights on `device`, spec, weights identity)."""
     spec = backbone_spec(name)
     path, identity = resolve_weights(spec, weights)
-    model = create_model(spec)
-    state = read_checkpoint(path)
-    try:
-        model.load_state_dict(convert_official(state, model), strict=True)
-    except VPRBenchError as error:
-        raise VPRBenchError(f"{path} for backbone {spec.name}: {error}") from None
-    return model.eval(), spec, identity
+    stat = path.stat()
+    key = (name, str(path.resolve()), stat.st_mtime_ns, stat.st_size, str(device))
+    if key not in _LOADED:
+        model = create_model(spec, empty=True)
+        state = read_checkpoint(path)
+        try:
+            model.load_state_dict(convert_official(state, model), strict=True, assign=True)
+        except VPRBenchError as error:
+            raise VPRBenchError(f"{path} for backbone {spec.name}: {error}") from None
+        _LOADED.clear()  # keep one model: a ViT-G takes 4.5 GB
+        _LOADED[key] = (model.float().eval().to(device), identity)
+    model, identity = _LOADED[key]
+    return model, spec, identity
 
 
 def official_state_dict(model: nn.Module, spec: BackboneSpec) -> dict[str, torch.Tensor]:

@@ -5,6 +5,7 @@ PCA; the paper's variants are presets (data in manifests/methods/anyloc.toml).
 """
 from __future__ import annotations
 
+import hashlib
 import tomllib
 from collections.abc import Sequence
 from importlib.resources import files
@@ -14,9 +15,13 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..aggregation import pooling, vlad
+from ..aggregation.pca import PCAWhitening
+from ..aggregation.policies import paper_vocabulary, resolve_vocabulary
 from ..aggregation.vlad import vlad_hard
+from ..aggregation.vocabulary import fit_vocabulary
 from ..errors import VPRBenchError
-from ..features.backbones import backbone_spec, file_sha256, load_backbone
+from ..features.backbones import backbone_spec, load_backbone, sha256_of
 from ..features.dense import FACETS, DenseExtractor
 from ..features.preprocess import dataset_resize, parse_size, preprocess
 from .base import Method, l2_normalise
@@ -29,53 +34,16 @@ VLADS = ("vlad", "vlad-soft-official", "vlad-soft")
 PRECISIONS = {"fp32": None, "fp16": torch.float16, "bf16": torch.bfloat16}
 
 
-def _pool(name: str, feats: torch.Tensor, p: float = 3.0) -> torch.Tensor:
-    try:
-        from ..aggregation import pooling
-    except ImportError:  # older aggregation package: the same formulas inline
-        if name == "gem":
-            m = (feats.double() ** p).mean(dim=-2)
-            return (m.abs() ** (1.0 / p) * torch.sign(m)).float()
-        return feats.mean(dim=-2) if name == "gap" else feats.amax(dim=-2)
-    return pooling.gem(feats, p) if name == "gem" else getattr(pooling, name)(feats)
-
-
-def _fit_centres(features: torch.Tensor, clusters: int) -> torch.Tensor:
-    """Cosine k-means vocabulary (official AnyLoc settings) on (N, D) features."""
-    try:
-        from ..aggregation.vocabulary import fit_vocabulary
-    except ImportError:
-        fit_vocabulary = _cosine_kmeans
-    return torch.as_tensor(fit_vocabulary(features, clusters)).float()
-
-
-def _cosine_kmeans(x: torch.Tensor, k: int, iters: int = 100, tol: float = 1e-4, seed: int = 42) -> torch.Tensor:
-    """Spherical-assignment k-means with plain-mean centres; empty clusters become zero."""
-    if x.shape[0] < k:
-        raise VPRBenchError(f"Cannot fit {k} clusters on {x.shape[0]} features: use fewer clusters.")
-    rng = np.random.default_rng(seed)
-    centres = x[torch.from_numpy(rng.choice(x.shape[0], k, replace=False))].clone()
-    xn = F.normalize(x, dim=-1)
-    for _ in range(iters):
-        labels = (xn @ F.normalize(centres, dim=-1).T).argmax(dim=-1)
-        one_hot = F.one_hot(labels, k).float()
-        new = (one_hot.T @ x) / one_hot.sum(0).clamp(min=1).unsqueeze(1)
-        shift = (new - centres).norm(dim=-1).sum()
-        centres = new
-        if shift <= tol:
-            break
-    return centres
-
-
-def _vlad(name: str, feats: torch.Tensor, centres: torch.Tensor) -> torch.Tensor:
+def _aggregate(name: str, feats: torch.Tensor, centres: torch.Tensor | None, gem_p: float) -> torch.Tensor:
     if name == "vlad":
         return vlad_hard(feats, centres)
-    from ..aggregation import vlad
-
-    fn = {"vlad-soft-official": "vlad_soft_official", "vlad-soft": "vlad_soft"}[name]
-    if not hasattr(vlad, fn):
-        raise VPRBenchError(f"Aggregation {name!r} is not available in this vprbench version.")
-    return getattr(vlad, fn)(feats, centres)
+    if name == "vlad-soft-official":
+        return vlad.vlad_soft_official(feats, centres)
+    if name == "vlad-soft":
+        return vlad.vlad_soft(feats, centres)
+    if name == "gem":
+        return pooling.gem(feats, gem_p)
+    return getattr(pooling, name)(feats)
 
 
 class AnyLoc(Method):
@@ -121,7 +89,7 @@ class AnyLoc(Method):
     def use_dataset(self, name: str) -> None:
         """Tell the method which dataset it runs on (AnyLoc's per-dataset resize, domain vocabularies)."""
         self.dataset = name
-        if self.aggregation in VLADS and self.vocabulary not in ("map",) and not Path(self.vocabulary).is_file():
+        if self.aggregation in VLADS and self.vocabulary == "domain":
             self.centres = self._resolve_vocabulary()
 
     @property
@@ -133,33 +101,23 @@ class AnyLoc(Method):
         # DINOv2 extractor normalises every patch; for DINO v1 only the official VLAD does
         return self.family == "dinov2" or self.aggregation in VLADS
 
-    def _resolve_vocabulary(self) -> torch.Tensor:
-        path = Path(self.vocabulary).expanduser()
-        if path.suffix in (".pt", ".pth", ".npy") or path.is_file():
-            from ..aggregation.vlad import _as_tensor
-
-            if not path.is_file():
-                raise VPRBenchError(f"Vocabulary file {path} does not exist.")
-            try:
-                centres = np.load(path) if path.suffix == ".npy" else torch.load(path, map_location="cpu", weights_only=True)
-            except Exception as error:  # torch/numpy raise many types for a foreign file
-                raise VPRBenchError(f"Cannot read vocabulary file {path}: {error}") from None
-            return _as_tensor(centres).float()
-        try:
-            from ..aggregation.vocabulary import resolve_vocabulary
-        except ImportError:
-            raise VPRBenchError(
-                f"Vocabulary {self.vocabulary!r} needs domain vocabularies, which this vprbench "
-                "version lacks; use vocabulary=map or a centres file (.pt/.npy)."
-            ) from None
-        if self.dataset is None:
-            return None  # resolved in use_dataset()
-        return torch.as_tensor(resolve_vocabulary(self.vocabulary, dataset=self.dataset, method=self))
+    def _resolve_vocabulary(self) -> torch.Tensor | None:
+        """Centres for a vocabulary option other than "map": a file/folder path, a cached
+        source name (a domain such as "indoor", or "map-<dataset>"), or "domain" = the
+        vocabulary the paper uses for the current dataset."""
+        spec = self.vocabulary
+        if spec == "domain":
+            if self.dataset is None:
+                return None  # resolved in use_dataset()
+            spec = paper_vocabulary(self.dataset)
+        layer = self.layer
+        found = resolve_vocabulary(spec, self.backbone, layer, self.facet, self.clusters)
+        return found.centres.float()
 
     # ------------------------------------------------------------ identity
     def weights_identity(self) -> str:
         if self._weights_id is None:
-            self._weights_id = ("sha256:" + file_sha256(Path(self.weights).expanduser())
+            self._weights_id = ("sha256:" + sha256_of(Path(self.weights).expanduser())
                                 if self.weights else self.spec.url)
         return self._weights_id
 
@@ -173,8 +131,10 @@ class AnyLoc(Method):
         }
         if self.aggregation in VLADS:
             fp["clusters"] = self.clusters
-            fp["vocabulary"] = self.vocabulary if self.vocabulary == "map" or not Path(self.vocabulary).is_file() \
-                else "sha256:" + file_sha256(Path(self.vocabulary))
+            # a named or file vocabulary is identified by its centres' bytes
+            fp["vocabulary"] = "map" if self.vocabulary == "map" else (
+                "sha256:" + hashlib.sha256(self.centres.numpy().tobytes()).hexdigest()
+                if self.centres is not None else self.vocabulary)
         if self.aggregation == "gem":
             fp["gem_p"] = self.gem_p
         if self.pca_dim:
@@ -185,28 +145,29 @@ class AnyLoc(Method):
     @property
     def extractor(self) -> DenseExtractor:
         if self._extractor is None:
-            model, spec, identity = load_backbone(self.backbone, self.weights)
+            model, spec, identity = load_backbone(self.backbone, self.weights, self.device)
             self._weights_id = identity
             layer, facet = self.layer, self.facet
             if self.aggregation == "cls" and self.family == "dinov2":
                 layer, facet = len(model.blocks) - 1, "token"  # CLS comes from the final norm
-            self._extractor = DenseExtractor(model.to(self.device), spec, layer, facet, stride=self.stride,
+            self._extractor = DenseExtractor(model, spec, layer, facet, stride=self.stride,
                                              head_interleaved=self.family == "dino")
         return self._extractor
 
-    def _batches(self, images: Sequence[Path]):
-        """(indices, batch tensor) groups of same-sized preprocessed images, at most batch_size each."""
-        by_size: dict[tuple, list[tuple[int, torch.Tensor]]] = {}
+    def _batches(self, images: Sequence[Path], resize: tuple[int, int] | None = None):
+        """(indices, batch tensor): runs of consecutive same-sized preprocessed images, at most
+        batch_size each, in input order (so streams, e.g. vocabulary sampling, never depend on
+        the batch size)."""
+        resize = parse_size(resize) or self.resize
+        group: list[tuple[int, torch.Tensor]] = []
         for i, path in enumerate(images):
-            x = preprocess(path, family=self.family, patch=self.spec.patch, resize=self.resize)
-            group = by_size.setdefault(tuple(x.shape), [])
+            x = preprocess(path, family=self.family, patch=self.spec.patch, resize=resize)
+            if group and (len(group) == self.batch_size or group[0][1].shape != x.shape):
+                yield [j for j, _ in group], torch.stack([t for _, t in group])
+                group = []
             group.append((i, x))
-            if len(group) == self.batch_size:
-                yield [j for j, _ in group], torch.stack([t for _, t in group])
-                group.clear()
-        for group in by_size.values():
-            if group:
-                yield [j for j, _ in group], torch.stack([t for _, t in group])
+        if group:
+            yield [j for j, _ in group], torch.stack([t for _, t in group])
 
     def _autocast(self):
         dtype = PRECISIONS[self.precision]
@@ -225,11 +186,13 @@ class AnyLoc(Method):
                     return self.extractor.cls_token(batch.to(self.device)).float()
                 return self.extractor(batch.to(self.device), keep_prefix=True)[:, 0].float()
         feats = self.patch_features(batch)
+        centres = None
         if self.aggregation in VLADS:
             if self.centres is None:
-                raise VPRBenchError("AnyLoc VLAD needs a vocabulary: call fit() on the database first.")
-            return _vlad(self.aggregation, feats, self.centres.to(feats.device))
-        return _pool(self.aggregation, feats, self.gem_p)
+                raise VPRBenchError("AnyLoc VLAD needs a vocabulary: call fit() on the database first"
+                                    + (" or use_dataset() for vocabulary=domain." if self.vocabulary == "domain" else "."))
+            centres = self.centres.to(feats.device)
+        return _aggregate(self.aggregation, feats, centres, self.gem_p)
 
     def describe(self, images: Sequence[Path]) -> np.ndarray:
         out: np.ndarray | None = None
@@ -246,9 +209,14 @@ class AnyLoc(Method):
     def fit(self, database: Sequence[Path]) -> None:
         if not self.needs_fit:
             return
-        feats = [self.patch_features(batch).reshape(-1, self.extractor.dim).cpu()
-                 for _, batch in self._batches(database)]
-        self.centres = _fit_centres(torch.cat(feats), self.clusters)
+        # one image's features at a time into the bounded-memory sampler of fit_vocabulary
+        self.centres = fit_vocabulary(self.iter_patch_features(database), self.clusters).centres.float()
+
+    def iter_patch_features(self, paths: Sequence[Path], resize=None):
+        """Each image's (N, D) patch features as they enter VLAD, in input order.
+        `resize` (H, W) overrides the method's resize (domain vocabularies use 320x320)."""
+        for _, batch in self._batches(paths, resize):
+            yield from self.patch_features(batch).cpu()
 
     def fit_state(self) -> dict[str, np.ndarray]:
         return {"centres": self.centres.cpu().numpy()} if self.needs_fit and self.centres is not None else {}
@@ -261,18 +229,7 @@ class AnyLoc(Method):
     def postprocess(self, database: np.ndarray, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if not self.pca_dim:
             return database, queries
-        if self.pca_dim > len(database):
-            raise VPRBenchError(
-                f"pca_dim {self.pca_dim} exceeds the {len(database)} database images; use pca_dim <= {len(database)}."
-            )
-        try:
-            from ..aggregation.pca import PCAWhitening
-        except ImportError:
-            from sklearn.decomposition import PCA
-
-            pca = PCA(self.pca_dim, whiten=True).fit(database)
-        else:
-            pca = PCAWhitening(self.pca_dim).fit(database)
+        pca = PCAWhitening(self.pca_dim).fit(database)
         return l2_normalise(pca.transform(database)), l2_normalise(pca.transform(queries))
 
 

@@ -1,0 +1,75 @@
+import argparse
+
+import pytest
+import torch
+
+from vprbench.aggregation import Vocabulary, resolve_vocabulary
+from vprbench.cli import vocabulary as cli
+from vprbench.errors import VPRBenchError
+
+
+def parse(*argv):
+    parser = argparse.ArgumentParser(prog="vprbench")
+    cli.add_parser(parser.add_subparsers(dest="command"))
+    return parser.parse_args(argv)
+
+
+def test_import_then_resolve_by_name(tmp_path, capsys):
+    Vocabulary(torch.randn(3, 6)).save(tmp_path / "mine.pt")
+    assert cli.run(parse("vocabulary", "import", str(tmp_path / "mine.pt"), "--source", "urban",
+                         "--backbone", "dinov2_vits14", "--layer", "9", "--facet", "key")) == 0
+    found = resolve_vocabulary("urban", "dinov2_vits14", 9, "key", 3)
+    assert found.centres.shape == (3, 6) and found.meta["source"] == "urban"
+    assert "Imported 3 x 6 centres as 'urban'" in capsys.readouterr().out
+
+
+def test_show_and_domains(tmp_path, capsys):
+    Vocabulary(torch.zeros(2, 4), {"backbone": "b"}).save(tmp_path / "v.pt")
+    cli.run(parse("vocabulary", "show", str(tmp_path / "v.pt")))
+    cli.run(parse("vocabulary", "domains"))
+    out = capsys.readouterr().out
+    assert "2 clusters x 4 dims" in out and "backbone: b" in out
+    assert "urban: oxford:1, st-lucia:1, pitts30k:4" in out and "320x320" in out
+
+
+def test_fit_needs_domain_or_dataset_and_key_value_options():
+    with pytest.raises(SystemExit):
+        parse("vocabulary", "fit")
+    with pytest.raises(VPRBenchError, match="not KEY=VALUE"):
+        cli._method_options(["layer"])
+    assert cli._method_options(["layer=9", "facet=key"]) == {"layer": "9", "facet": "key"}
+
+
+class FakeMethod:
+    """Stands in for AnyLoc: 4x4 grey-level patches of the real image as 'patch features'."""
+
+    backbone, layer, facet = "fake", 0, "token"
+
+    def __init__(self, clusters=32, **options):
+        self.clusters, self.seen, self.resizes = int(clusters), [], set()
+
+    def iter_patch_features(self, paths, resize=None):
+        from vprbench.images import load_rgb
+
+        self.resizes.add(resize)
+        for path in paths:
+            self.seen.append(path)
+            grey = torch.tensor(load_rgb(path)).float().mean(-1)[:120, :160]
+            yield grey.reshape(30, 4, 40, 4).permute(0, 2, 1, 3).reshape(-1, 16) + 1.0
+
+
+def test_fit_map_vocabulary_on_real_dataset(shared_data, monkeypatch, capsys, tmp_path):
+    import vprbench.methods.registry as registry
+
+    made = []
+    monkeypatch.setattr(registry, "create_method", lambda name, **kw: made.append(FakeMethod(**kw)) or made[-1])
+    args = parse("vocabulary", "fit", "--dataset", "corridor", "--clusters", "8", "--budget", "5000",
+                 "--output", str(tmp_path / "out.pt"))
+    args.data_dir = str(shared_data)
+    assert cli.run(args) == 0
+    assert len(made[0].seen) == 111 and made[0].resizes == {None}
+    found = resolve_vocabulary("map-corridor", "fake", 0, "token", 8)
+    assert found.centres.shape == (8, 16)
+    assert found.meta["features_seen"] == 111 * 1200 and found.meta["features_used"] == 5000
+    assert found.meta["datasets"] == {"corridor": 111}
+    assert "5000 of 133200 features" in capsys.readouterr().out and (tmp_path / "out.pt").is_file()

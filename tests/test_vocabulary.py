@@ -1,0 +1,179 @@
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from vprbench.aggregation import (
+    FeatureSampler, Vocabulary, domain_datasets, fit_domain_vocabulary, fit_vocabulary, kmeans_cosine,
+    load_vocabulary, paper_vocabulary, resolve_vocabulary, save_to_cache, vlad_hard,
+)
+from vprbench.errors import VPRBenchError
+
+RELEASED = "vocabularies/anyloc-dinov2_vitg14-l31-value-c32"
+
+
+def features(n=300, d=8, seed=0):
+    return F.normalize(torch.randn(n, d, generator=torch.Generator().manual_seed(seed)), dim=-1)
+
+
+def test_kmeans_is_deterministic_and_seeded():
+    x = features()
+    a, iterations = kmeans_cosine(x, 6, seed=42)
+    b, _ = kmeans_cosine(x.numpy(), 6, seed=42)
+    assert torch.equal(a, b) and 1 <= iterations <= 100
+    c, _ = kmeans_cosine(x, 6, seed=7)
+    assert not torch.equal(a, c)
+    # centres are plain means, so not unit vectors
+    assert (a.norm(dim=1) < 0.999).all()
+
+
+def test_kmeans_initial_centres_are_the_numpy_seed_draw():
+    x = features(50)
+    start = np.random.RandomState(42).choice(50, size=[4], replace=False)
+    centres, iterations = kmeans_cosine(x, 4, seed=42, max_iter=1)
+    labels = (F.normalize(x) @ F.normalize(x[start]).T).argmax(1)
+    assert iterations == 1
+    assert torch.allclose(centres[0], x[labels == 0].mean(0), atol=1e-6)
+
+
+def test_kmeans_empty_cluster_becomes_zero():
+    # three identical rows and one other: a third centre drawn on a duplicate gets no member
+    x = torch.tensor([[1.0, 0.0], [1.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    centres, _ = kmeans_cosine(x, 3, seed=42)
+    assert sorted(map(tuple, centres.tolist())) == [(0.0, 0.0), (0.0, 1.0), (1.0, 0.0)]
+
+
+def test_more_clusters_than_features_is_a_clear_error():
+    with pytest.raises(VPRBenchError, match="Cannot fit 10 clusters on 4 features"):
+        kmeans_cosine(features(4), 10)
+    with pytest.raises(VPRBenchError, match="Cannot fit 10 clusters on 6 features"):
+        fit_vocabulary([features(3), features(3, seed=1)], 10)
+
+
+def test_sampler_buffer_never_exceeds_budget():
+    sampler = FeatureSampler(budget=100, seed=1)
+    for i in range(40):
+        sampler.add(features(37, seed=i))
+        assert sampler.buffer.shape == (100, 8)
+        assert len(sampler.sample()) == min(sampler.seen, 100)
+    assert sampler.seen == 40 * 37
+    assert np.allclose(np.linalg.norm(sampler.sample(), axis=1), 1, atol=1e-6)
+
+
+def test_sampler_is_seeded_and_roughly_uniform():
+    # image i's 10 features point at angle 0.005 * i, so a sampled row tells its image
+    angles = 0.005 * torch.arange(200.0)
+    stream = [torch.stack([angle.cos(), angle.sin()]).repeat(10, 1) for angle in angles]
+
+    def run(seed):
+        sampler = FeatureSampler(budget=400, seed=seed)
+        for chunk in stream:
+            sampler.add(chunk)
+        return sampler.sample().copy()
+
+    a, b = run(5), run(5)
+    assert np.array_equal(a, b) and not np.array_equal(a, run(6))
+    index = np.round(np.arctan2(a[:, 1], a[:, 0]) / 0.005).astype(int)
+    # a uniform sample of 400 out of 2000: mean image index ~99.5 (sd ~2.6), every part of the stream present
+    assert len(a) == 400 and 90 < index.mean() < 109
+    assert index.min() < 10 and index.max() > 190
+
+
+def test_sampler_errors():
+    with pytest.raises(VPRBenchError, match="budget"):
+        FeatureSampler(budget=0)
+    sampler = FeatureSampler(budget=5)
+    with pytest.raises(VPRBenchError, match="No features"):
+        sampler.sample()
+    sampler.add(features(3))
+    with pytest.raises(VPRBenchError, match="dimension changed from 8 to 4"):
+        sampler.add(features(3, d=4))
+
+
+def test_fit_vocabulary_exact_equals_kmeans_on_all_and_sampled_is_bounded():
+    stream = [features(50, seed=i) * 3 for i in range(6)]  # unnormalised in, normalised inside
+    exact = fit_vocabulary(stream, 5, exact=True)
+    assert torch.equal(exact.centres, kmeans_cosine(F.normalize(torch.cat(stream)), 5)[0])
+    sampled = fit_vocabulary(iter(stream), 5, budget=120, meta={"backbone": "x"})
+    assert sampled.meta["features_used"] == 120 and sampled.meta["features_seen"] == 300
+    assert sampled.meta["backbone"] == "x" and sampled.clusters == 5 and sampled.dim == 8
+
+
+def test_save_load_roundtrip_and_cache(tmp_path):
+    vocabulary = Vocabulary(torch.randn(4, 8), {"backbone": "dinov2_vits14", "layer": 11})
+    loaded = load_vocabulary(vocabulary.save(tmp_path / "v.pt"))
+    assert torch.equal(loaded.centres, vocabulary.centres) and loaded.meta["layer"] == 11
+    np.save(tmp_path / "c.npy", vocabulary.centres.numpy())
+    assert torch.equal(load_vocabulary(tmp_path / "c.npy").centres, vocabulary.centres)
+    save_to_cache(vocabulary, "dinov2_vits14", 11, "value", "indoor")
+    found = resolve_vocabulary("indoor", "dinov2_vits14", 11, "value", 4)
+    assert torch.equal(found.centres, vocabulary.centres) and found.meta["source"] == "indoor"
+    with pytest.raises(VPRBenchError, match="has 4 clusters, the method asks for 8"):
+        resolve_vocabulary(str(tmp_path / "v.pt"), "dinov2_vits14", 11, "value", 8)
+    with pytest.raises(VPRBenchError, match="No 'indoor' vocabulary .* 8 clusters"):
+        resolve_vocabulary("indoor", "dinov2_vits14", 11, "value", 8)
+    with pytest.raises(VPRBenchError, match="vocabulary fit --dataset baidu-mall"):
+        resolve_vocabulary("map-baidu-mall", "dinov2_vits14", 11, "value", 4)
+
+
+def test_load_errors(tmp_path):
+    with pytest.raises(VPRBenchError, match="does not exist"):
+        load_vocabulary(tmp_path / "missing.pt")
+    with pytest.raises(VPRBenchError, match="neither vocabulary.pt nor c_centers.pt"):
+        load_vocabulary(tmp_path)
+    (tmp_path / "bad.pt").write_text("not torch")
+    with pytest.raises(VPRBenchError, match="not a readable torch file"):
+        load_vocabulary(tmp_path / "bad.pt")
+    torch.save(torch.zeros(5), tmp_path / "flat.pt")
+    with pytest.raises(VPRBenchError, match=r"shape \(5,\)"):
+        load_vocabulary(tmp_path / "flat.pt")
+
+
+def test_released_centres_load_and_wrong_dimension(shared_data):
+    path = shared_data / RELEASED / "indoor" / "c_centers.pt"
+    if not path.is_file():
+        pytest.skip(f"released centres {path} are absent")
+    vocabulary = load_vocabulary(path.parent)  # the folder works too
+    assert vocabulary.centres.shape == (32, 1536) and vocabulary.centres.dtype == torch.float32
+    vocabulary.check_dim(1536)
+    with pytest.raises(VPRBenchError, match="1536-dimensional centres but the features are 384-dimensional"):
+        vocabulary.check_dim(384)
+    with pytest.raises(VPRBenchError, match="Vocabulary dimension 1536 does not match feature dimension 384"):
+        vlad_hard(torch.randn(10, 384), vocabulary.centres)
+    out = vlad_hard(F.normalize(torch.randn(20, 1536)), vocabulary.centres)
+    assert out.shape == (32 * 1536,) and abs(out.norm().item() - 1) < 1e-5
+
+
+def test_released_folder_copied_into_cache_is_found(shared_data, tmp_path):
+    source = shared_data / RELEASED / "laurel_caverns" / "c_centers.pt"
+    if not source.is_file():
+        pytest.skip(f"released centres {source} are absent")
+    from vprbench.aggregation.vocabulary import vocabulary_dir
+
+    target = vocabulary_dir("dinov2_vitg14", 31, "value", 32, "laurel_caverns")
+    target.mkdir(parents=True)
+    (target / "c_centers.pt").write_bytes(source.read_bytes())
+    found = resolve_vocabulary("laurel-caverns", "dinov2_vitg14", 31, "value", 32)
+    assert found.centres.shape == (32, 1536)
+
+
+def test_domain_policies():
+    assert domain_datasets("indoor") == [("gardens-point", 1), ("17places", 1), ("baidu-mall", 1)]
+    assert ("pitts30k", 4) in domain_datasets("urban") and ("vp-air", 2) in domain_datasets("aerial")
+    assert len(domain_datasets("global")) == 12
+    assert {name for name, _ in domain_datasets("unstructured")} == {
+        "nardo-air", "nardo-air-r", "vp-air", "hawkins", "laurel-caverns", "mid-atlantic-ridge"}
+    assert domain_datasets("structured")[0] == ("oxford", 1)  # the authors' concatenation order
+    assert paper_vocabulary("baidu-mall") == "indoor"
+    assert paper_vocabulary("mid-atlantic-ridge") == "map-mid-atlantic-ridge"
+    with pytest.raises(VPRBenchError, match="Did you mean: indoor"):
+        domain_datasets("indor")
+
+
+def test_domain_fit_lists_every_missing_dataset(tmp_path):
+    calls = []
+    with pytest.raises(VPRBenchError) as info:
+        fit_domain_vocabulary("indoor", lambda paths: calls.append(paths), 4, data_dir=tmp_path)
+    message = str(info.value)
+    assert all(name in message for name in ("gardens-point", "17places", "baidu-mall"))
+    assert "c_centers.pt" in message and calls == []
