@@ -10,15 +10,6 @@ from PIL import Image
 
 
 @pytest.fixture(scope="session")
-def shared_data() -> Path:
-    """../shared/data beside the repo, or $VPRBENCH_SHARED_DATA (e.g. for a git worktree elsewhere)."""
-    for candidate in (Path(__file__).resolve().parents[2].parent / "shared" / "data", os.environ.get("VPRBENCH_SHARED_DATA")):
-        if candidate and Path(candidate).is_dir():
-            return Path(candidate)
-    pytest.skip("real data folder ../shared/data is absent (set VPRBENCH_SHARED_DATA to its path)")
-
-
-@pytest.fixture(scope="session")
 def tiny_jpeg(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("tiny") / "tiny.jpg"
     Image.fromarray(np.full((8, 8, 3), 127, np.uint8)).save(path)

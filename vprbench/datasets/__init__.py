@@ -20,7 +20,10 @@ __all__ = [
 
 
 def is_path(name: str) -> bool:
-    return "/" in name or name.startswith(".") or Path(name).is_dir()
+    """A folder of the user's own: a path-like name, or an existing folder that is no manifest's name."""
+    if "/" in name or name.startswith((".", "~")):
+        return True
+    return name not in dataset_manifests() and Path(name).is_dir()
 
 
 def is_on_disk(name: str, data_dir=None) -> bool:

@@ -1,4 +1,5 @@
 """Core methods: importing this module registers them."""
+from . import anyloc
 from .dense_vlad import DenseVLAD
 from .hog import HOG
 from .registry import register_method
@@ -7,3 +8,4 @@ register_method("hog", HOG, description="HOG of the resized whole image (VPR-Ben
 register_method("dense-vlad", DenseVLAD,
                 description="DenseVLAD: dense multi-scale RootSIFT + VLAD (128 words fitted on the database)",
                 source="vprbench")
+anyloc.register()

@@ -1,0 +1,131 @@
+"""The anyloc method: presets, options, fit/describe on real images, batch invariance."""
+import numpy as np
+import pytest
+import torch
+
+from vprbench import VPRBenchError, available_methods, create_method
+from vprbench.features.backbones import backbone_spec, create_model, official_state_dict
+from vprbench.methods.anyloc import AnyLoc, presets
+
+
+@pytest.fixture(scope="module")
+def weights(tmp_path_factory):
+    torch.manual_seed(0)
+    spec = backbone_spec("dinov2_vits14")
+    path = tmp_path_factory.mktemp("w") / "dinov2_vits14_pretrain.pth"
+    torch.save(official_state_dict(create_model(spec), spec), path)
+    return path
+
+
+@pytest.fixture
+def corridor(shared_data):
+    root = shared_data / "corridor"
+    return sorted((root / "ref").glob("*.jpg"))[:6], sorted((root / "query").glob("*.jpg"))[:4]
+
+
+def test_presets_are_the_papers():
+    p = presets()
+    assert set(p) >= {"anyloc-vlad-dinov2", "anyloc-vlad-dinov2-pca", "anyloc-gem-dinov2", "anyloc-vlad-dino",
+                      "anyloc-vlad-dino-pca", "dinov2-cls", "dino-cls"}
+    assert p["anyloc-vlad-dinov2"]["options"] == dict(backbone="dinov2_vitg14", layer=31, facet="value",
+                                                      aggregation="vlad", clusters=32, vocabulary="map")
+    assert p["anyloc-vlad-dino"]["options"]["clusters"] == 128 and p["anyloc-vlad-dino"]["options"]["layer"] == 9
+    assert p["anyloc-vlad-dinov2-pca"]["options"]["pca_dim"] == 512
+    assert set(p) <= set(available_methods())
+
+
+def test_end_to_end_vlad_on_corridor(weights, corridor):
+    db, queries = corridor
+    m = create_method("anyloc-vlad-dinov2", backbone="dinov2_vits14", weights=str(weights), layer=3, clusters=4)
+    assert m.needs_fit
+    with pytest.raises(VPRBenchError, match="fit"):
+        m.describe(queries)
+    m.fit(db)
+    assert m.centres.shape == (4, 384)
+    d = m.describe(queries)
+    assert d.shape == (4, 4 * 384) and d.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1, atol=1e-5)
+    # round trip of the vocabulary through the store's fit state
+    again = create_method("anyloc-vlad-dinov2", backbone="dinov2_vits14", weights=str(weights), layer=3, clusters=4)
+    again.load_fit_state(m.fit_state())
+    np.testing.assert_array_equal(again.describe(queries), d)
+    fp = m.fingerprint()
+    assert fp["weights"].startswith("sha256:") and fp["layer"] == 3 and fp["clusters"] == 4 and fp["resize"] == "native"
+
+
+def test_batch_size_does_not_change_descriptors(weights, shared_data, corridor):
+    _, queries = corridor
+    images = queries[:3] + [shared_data / "images" / "tokyo247-pair" / "tokyo_db.png"] + queries[3:]
+    out = [create_method("anyloc-gem-dinov2", backbone="dinov2_vits14", weights=str(weights), layer=2,
+                         resize=(120, 160), batch_size=b).describe(images) for b in (1, 3, 8)]
+    assert out[0].shape == (5, 384)
+    np.testing.assert_allclose(out[1], out[0], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(out[2], out[0], rtol=0, atol=1e-6)
+
+
+def test_mixed_sizes_keep_input_order(weights, shared_data, corridor):
+    _, queries = corridor
+    tokyo = shared_data / "images" / "tokyo247-pair" / "tokyo_db.png"
+    m = create_method("anyloc", backbone="dinov2_vits14", weights=str(weights), layer=1, aggregation="gap", batch_size=2)
+    mixed = m.describe([queries[0], tokyo, queries[1]])
+    alone = np.concatenate([m.describe([p]) for p in (queries[0], tokyo, queries[1])])
+    np.testing.assert_allclose(mixed, alone, atol=1e-6)
+
+
+def test_vocabulary_file_and_cls(weights, corridor, tmp_path):
+    _, queries = corridor
+    centres = torch.randn(3, 384)
+    torch.save(centres, tmp_path / "c_centers.pt")
+    m = create_method("anyloc", backbone="dinov2_vits14", weights=str(weights), layer=4,
+                      vocabulary=str(tmp_path / "c_centers.pt"), clusters=3)
+    assert not m.needs_fit and m.describe(queries[:1]).shape == (1, 3 * 384)
+    assert m.fingerprint()["vocabulary"].startswith("sha256:")
+    cls = create_method("dinov2-cls", backbone="dinov2_vits14", weights=str(weights)).describe(queries[:2])
+    assert cls.shape == (2, 384)
+
+
+def test_option_errors(weights):
+    with pytest.raises(VPRBenchError, match="Unknown aggregation 'netvlad'"):
+        create_method("anyloc", aggregation="netvlad")
+    with pytest.raises(VPRBenchError, match="needs a CUDA device"):
+        create_method("anyloc-gem-dinov2", precision="fp16", device="cpu")
+    with pytest.raises(VPRBenchError, match="does not take option"):
+        create_method("anyloc", colour="red")
+    with pytest.raises(VPRBenchError, match=r"valid layers are 0\.\.11"):
+        create_method("anyloc-vlad-dinov2", backbone="dinov2_vits14", weights=str(weights)).extractor
+    m = create_method("anyloc-vlad-dinov2-pca", backbone="dinov2_vits14", weights=str(weights), layer=0)
+    with pytest.raises(VPRBenchError, match=r"PCA dimension 512 is larger than the number of database images \(3\)"):
+        m.postprocess(np.eye(3, 8, dtype=np.float32), np.eye(2, 8, dtype=np.float32))
+
+
+def test_dataset_resize_policy_feeds_fingerprint(weights):
+    m = AnyLoc(backbone="dinov2_vits14", weights=str(weights), aggregation="gem")
+    m.use_dataset("pitts30k")
+    assert m.fingerprint()["resize"] == [480, 640]
+    m = AnyLoc(backbone="dinov2_vits14", weights=str(weights), aggregation="gem", resize="224x224", dataset="pitts30k")
+    assert m.fingerprint()["resize"] == [224, 224]
+
+
+def test_released_centres_and_domain_vocabulary(shared_data, tmp_path, monkeypatch):
+    released = shared_data / "vocabularies" / "anyloc-dinov2_vitg14-l31-value-c32" / "indoor" / "c_centers.pt"
+    m = create_method("anyloc-vlad-dinov2", vocabulary=str(released))  # no weights needed to resolve
+    assert not m.needs_fit and m.centres.shape == (32, 1536)
+    fp = m.fingerprint()
+    assert fp["vocabulary"].startswith("sha256:") and fp["weights"].endswith("dinov2_vitg14_pretrain.pth")
+    domain = create_method("anyloc-vlad-dinov2", vocabulary="domain")
+    assert domain.centres is None and not domain.needs_fit
+    with pytest.raises(VPRBenchError, match="No 'indoor' vocabulary for dinov2_vitg14 layer 31 value"):
+        domain.use_dataset("baidu-mall")
+    with pytest.raises(VPRBenchError, match="has 32 clusters, the method asks for 8"):
+        create_method("anyloc-vlad-dinov2", vocabulary=str(released), clusters=8)
+
+
+def test_patch_feature_stream_in_input_order(weights, corridor, shared_data):
+    _, queries = corridor
+    tokyo = shared_data / "images" / "tokyo247-pair" / "tokyo_db.png"
+    m = create_method("anyloc-vlad-dinov2", backbone="dinov2_vits14", weights=str(weights), layer=1, batch_size=3)
+    feats = list(m.iter_patch_features([queries[0], tokyo, queries[1]], resize=(28, 42)))
+    assert [tuple(f.shape) for f in feats] == [(6, 384)] * 3
+    np.testing.assert_allclose(torch.stack(feats).norm(dim=-1).numpy(), 1, atol=1e-5)
+    native = list(m.iter_patch_features([queries[0], tokyo]))
+    assert [tuple(f.shape) for f in native] == [(88, 384), (45 * 34, 384)]

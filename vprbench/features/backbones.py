@@ -1,0 +1,215 @@
+"""Self-supervised ViT backbones (DINOv2, DINO v1) built with timm from official checkpoints.
+
+A backbone is a small record (timm architecture, patch size, official weight file and URL).
+Weights come from a local file in the official checkpoint format (`weights=PATH`) or are
+downloaded once from the official release URL into the torch hub cache.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from ..errors import VPRBenchError, closest_names
+from ..paths import cache_root
+
+
+@dataclass(frozen=True)
+class BackboneSpec:
+    name: str
+    timm_arch: str
+    family: str  # "dinov2" or "dino"
+    patch: int
+    url: str
+
+    @property
+    def file_name(self) -> str:
+        return self.url.rsplit("/", 1)[-1]
+
+
+_DINOV2 = "https://dl.fbaipublicfiles.com/dinov2/{0}/{0}_pretrain.pth"
+_DINO = "https://dl.fbaipublicfiles.com/dino/{0}/{0}.pth"
+
+BACKBONES: dict[str, BackboneSpec] = {
+    s.name: s
+    for s in [
+        BackboneSpec("dinov2_vits14", "vit_small_patch14_dinov2", "dinov2", 14, _DINOV2.format("dinov2_vits14")),
+        BackboneSpec("dinov2_vitb14", "vit_base_patch14_dinov2", "dinov2", 14, _DINOV2.format("dinov2_vitb14")),
+        BackboneSpec("dinov2_vitl14", "vit_large_patch14_dinov2", "dinov2", 14, _DINOV2.format("dinov2_vitl14")),
+        BackboneSpec("dinov2_vitg14", "vit_giant_patch14_dinov2", "dinov2", 14, _DINOV2.format("dinov2_vitg14")),
+        BackboneSpec("dino_vits8", "vit_small_patch8_224", "dino", 8, _DINO.format("dino_deitsmall8_pretrain")),
+        BackboneSpec("dino_vits16", "vit_small_patch16_224", "dino", 16, _DINO.format("dino_deitsmall16_pretrain")),
+        BackboneSpec("dino_vitb8", "vit_base_patch8_224", "dino", 8, _DINO.format("dino_vitbase8_pretrain")),
+        BackboneSpec("dino_vitb16", "vit_base_patch16_224", "dino", 16, _DINO.format("dino_vitbase16_pretrain")),
+    ]
+}
+
+
+def backbone_spec(name: str) -> BackboneSpec:
+    if name not in BACKBONES:
+        raise VPRBenchError(
+            f"Unknown backbone {name!r}.{closest_names(name, BACKBONES)} "
+            f"Available: {', '.join(BACKBONES)}."
+        )
+    return BACKBONES[name]
+
+
+def create_model(spec: BackboneSpec, *, empty: bool = False) -> nn.Module:
+    """The timm architecture with no classifier head: random weights, or, with `empty`,
+    parameters without storage (on the meta device) to be filled by a state dict."""
+    import timm
+
+    if empty:
+        with torch.device("meta"):  # skips the random initialisation of large models
+            return timm.create_model(spec.timm_arch, pretrained=False, num_classes=0).eval()
+    return timm.create_model(spec.timm_arch, pretrained=False, num_classes=0).eval()
+
+
+# ---------------------------------------------------------------- weight files
+def hub_checkpoint_dir() -> Path:
+    """$TORCH_HOME/hub/checkpoints when TORCH_HOME is set, else under the vprbench cache."""
+    if os.environ.get("TORCH_HOME"):
+        return Path(torch.hub.get_dir()) / "checkpoints"
+    return cache_root() / "torch" / "hub" / "checkpoints"
+
+
+def _download(url: str, destination: Path) -> None:
+    """torch.hub's downloader (atomic: writes a temporary file, then renames)."""
+    destination.parent.mkdir(parents=True, exist_ok=True)
+    torch.hub.download_url_to_file(url, str(destination), progress=True)
+
+
+def resolve_weights(spec: BackboneSpec, weights: str | Path | None) -> tuple[Path, str]:
+    """(local file, identity). Identity is the official URL for downloaded files, else 'sha256:...'."""
+    if weights is not None:
+        path = Path(weights).expanduser()
+        if not path.is_file():
+            raise VPRBenchError(
+                f"Weights file {path} does not exist. Pass --weights with the path of the official "
+                f"checkpoint {spec.file_name} for backbone {spec.name} (from {spec.url})."
+            )
+        return path, "sha256:" + sha256_of(path)
+    path = hub_checkpoint_dir() / spec.file_name
+    if not path.is_file():
+        try:
+            _download(spec.url, path)
+        except (OSError, RuntimeError, ValueError) as error:  # URLError is an OSError
+            raise VPRBenchError(
+                f"Cannot download the {spec.name} weights from {spec.url} ({error}). "
+                f"Download {spec.file_name} on a machine with internet access and either pass "
+                f"--weights /path/to/{spec.file_name}, or put it in {path.parent}."
+            ) from None
+    return path, spec.url
+
+
+_SHA256: dict[tuple, str] = {}
+
+
+def sha256_of(path: Path) -> str:
+    stat = path.stat()
+    key = (str(path.resolve()), stat.st_mtime_ns, stat.st_size)
+    if key not in _SHA256:
+        _SHA256[key] = file_sha256(path)
+    return _SHA256[key]
+
+
+def file_sha256(path: Path, chunk: int = 1 << 22) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        while block := handle.read(chunk):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def read_checkpoint(path: Path) -> dict[str, torch.Tensor]:
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # torch raises many types for a corrupt or foreign file
+        raise VPRBenchError(f"Cannot read weights file {path}: {error}") from None
+    # DINO v1 training checkpoints wrap the weights; the released *_pretrain.pth are flat
+    for key in ("teacher", "model", "state_dict"):
+        if isinstance(state, dict) and isinstance(state.get(key), dict):
+            state = state[key]
+    if not isinstance(state, dict):
+        raise VPRBenchError(f"Weights file {path} does not hold a state dict (got {type(state).__name__})")
+    return {k.removeprefix("module.").removeprefix("backbone."): v for k, v in state.items()}
+
+
+def convert_official(state: dict[str, torch.Tensor], model: nn.Module) -> dict[str, torch.Tensor]:
+    """Official DINOv2/DINO checkpoint keys -> timm keys, refusing shape changes.
+
+    timm's checkpoint filter renames DINOv2 keys (SwiGLU w12/w3 -> fc1/fc2, drops mask_token);
+    it would also silently resample a position embedding or patch kernel of another size,
+    so those shapes are checked first: such a file is another architecture.
+    """
+    from timm.models.vision_transformer import checkpoint_filter_fn
+
+    expected = model.state_dict()
+    mismatched = [
+        f"{k}: file {tuple(state[k].shape)} vs model {tuple(expected[k].shape)}"
+        for k in ("pos_embed", "patch_embed.proj.weight")
+        if k in state and k in expected and state[k].shape != expected[k].shape
+    ]
+    converted = checkpoint_filter_fn(dict(state), model) if not mismatched else dict(state)
+    mismatched += [
+        f"{k}: file {tuple(v.shape)} vs model {tuple(expected[k].shape)}"
+        for k, v in converted.items()
+        if k in expected and v.shape != expected[k].shape and k not in ("pos_embed", "patch_embed.proj.weight")
+    ]
+    missing = sorted(set(expected) - set(converted))
+    unexpected = sorted(set(converted) - set(expected))
+    if missing or unexpected or mismatched:
+        def show(keys):
+            return ", ".join(keys[:8]) + (f" (+{len(keys) - 8} more)" if len(keys) > 8 else "") if keys else "none"
+
+        raise VPRBenchError(
+            "The weights file does not fit this backbone (wrong architecture?). "
+            f"Missing keys: {show(missing)}. Unexpected keys: {show(unexpected)}. "
+            f"Shape mismatches: {show(mismatched)}."
+        )
+    return converted
+
+
+#: loaded models, shared by methods in one process (they never modify a model)
+_LOADED: dict[tuple, tuple[nn.Module, str]] = {}
+
+
+def load_backbone(name: str, weights: str | Path | None = None,
+                  device: str | torch.device = "cpu") -> tuple[nn.Module, BackboneSpec, str]:
+    """(timm model in eval mode with official weights on `device`, spec, weights identity)."""
+    spec = backbone_spec(name)
+    path, identity = resolve_weights(spec, weights)
+    stat = path.stat()
+    key = (name, str(path.resolve()), stat.st_mtime_ns, stat.st_size, str(device))
+    if key not in _LOADED:
+        model = create_model(spec, empty=True)
+        state = read_checkpoint(path)
+        try:
+            model.load_state_dict(convert_official(state, model), strict=True, assign=True)
+        except VPRBenchError as error:
+            raise VPRBenchError(f"{path} for backbone {spec.name}: {error}") from None
+        _LOADED.clear()  # keep one model: a ViT-G takes 4.5 GB
+        _LOADED[key] = (model.float().eval().to(device), identity)
+    model, identity = _LOADED[key]
+    return model, spec, identity
+
+
+def official_state_dict(model: nn.Module, spec: BackboneSpec) -> dict[str, torch.Tensor]:
+    """The timm model's weights under the official checkpoint's key names (inverse of
+    `convert_official`; used to write official-format files, e.g. for tests)."""
+    state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+    if spec.family == "dinov2":
+        renamed = {}
+        for k, v in state.items():
+            if ".mlp.fc1." in k and spec.name == "dinov2_vitg14":
+                k = k.replace(".mlp.fc1.", ".mlp.w12.")
+            elif ".mlp.fc2." in k and spec.name == "dinov2_vitg14":
+                k = k.replace(".mlp.fc2.", ".mlp.w3.")
+            renamed[k] = v
+        state = renamed
+        state["mask_token"] = torch.zeros(1, state["cls_token"].shape[-1])
+    return state

@@ -1,0 +1,148 @@
+"""Dense (per-patch) features from one block and facet of a ViT, as AnyLoc extracts them.
+
+The forward pass is written out here (patch embedding, official position-embedding
+interpolation, blocks) so it stops right after the requested block: for a q/k/v facet a
+hook on that block's fused qkv linear captures its output and ends the pass; later
+blocks never run.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..errors import VPRBenchError
+from .backbones import BackboneSpec
+
+FACETS = ("query", "key", "value", "token")
+
+
+class _Stop(Exception):
+    """Raised by the qkv hook to end the forward pass once the facet is captured."""
+
+
+def interpolate_pos_embed(pos_embed: torch.Tensor, grid: tuple[int, int], num_prefix: int = 1) -> torch.Tensor:
+    """Resample a square patch position embedding to `grid` (rows, cols) as DINO/DINOv2 do.
+
+    Bicubic, align_corners=False, no antialiasing, driven by scale_factor = (grid + 0.1) / M
+    (M = side of the trained grid), so the sampling follows that scale and not the output
+    size ratio. Returned unchanged for an M x M grid.
+    """
+    prefix, patches = pos_embed[:, :num_prefix], pos_embed[:, num_prefix:]
+    n = patches.shape[1]
+    m = int(math.sqrt(n))
+    if m * m != n:
+        raise VPRBenchError(f"Position embedding of {n} patches is not a square grid")
+    if tuple(grid) == (m, m):
+        return pos_embed
+    dim = patches.shape[-1]
+    dtype = patches.dtype
+    resampled = F.interpolate(
+        patches.float().reshape(1, m, m, dim).permute(0, 3, 1, 2),
+        scale_factor=((grid[0] + 0.1) / m, (grid[1] + 0.1) / m),
+        mode="bicubic",
+        align_corners=False,
+        antialias=False,
+    )
+    if tuple(resampled.shape[-2:]) != tuple(grid):  # the 0.1 offset guarantees this
+        raise RuntimeError(f"position embedding resampled to {tuple(resampled.shape[-2:])}, expected {grid}")
+    resampled = resampled.permute(0, 2, 3, 1).reshape(1, -1, dim).to(dtype)
+    return torch.cat([prefix, resampled], dim=1)
+
+
+class DenseExtractor(nn.Module):
+    """Per-patch features of block `layer` (0-based) and `facet` of a timm ViT.
+
+    `stride` < patch size runs overlapping patches (the DINO v1 extractor's stride 4).
+    `head_interleaved` orders q/k/v channels as the DINO v1 extractor does (channel
+    j*heads + h, i.e. dims within a head vary slowest); otherwise the natural [q|k|v] thirds.
+    """
+
+    def __init__(self, model: nn.Module, spec: BackboneSpec, layer: int, facet: str, *,
+                 stride: int | None = None, head_interleaved: bool = False):
+        super().__init__()
+        depth = len(model.blocks)
+        if facet not in FACETS:
+            raise VPRBenchError(f"Unknown facet {facet!r}: use one of {', '.join(FACETS)}.")
+        if not isinstance(layer, int) or isinstance(layer, bool) or not 0 <= layer < depth:
+            raise VPRBenchError(
+                f"Layer {layer!r} is out of range for {spec.name}: it has {depth} blocks, "
+                f"valid layers are 0..{depth - 1} (0-based)."
+            )
+        self.model, self.spec, self.layer, self.facet = model, spec, layer, facet
+        self.stride = stride or spec.patch
+        if spec.patch % self.stride:
+            raise VPRBenchError(f"stride {self.stride} must divide the patch size {spec.patch} of {spec.name}")
+        self.head_interleaved = head_interleaved
+        self.num_prefix = getattr(model, "num_prefix_tokens", 1)
+        self.dim = model.embed_dim
+
+    def grid(self, height: int, width: int) -> tuple[int, int]:
+        p, s = self.spec.patch, self.stride
+        return 1 + (height - p) // s, 1 + (width - p) // s
+
+    def _tokens(self, images: torch.Tensor) -> torch.Tensor:
+        """Patch embedding + prefix tokens + interpolated position embedding."""
+        m = self.model
+        proj = m.patch_embed.proj
+        x = F.conv2d(images, proj.weight, proj.bias, stride=self.stride)
+        grid = tuple(x.shape[-2:])
+        x = m.patch_embed.norm(x.flatten(2).transpose(1, 2))
+        prefix = [m.cls_token.expand(x.shape[0], -1, -1)]
+        if getattr(m, "reg_token", None) is not None:
+            prefix.append(m.reg_token.expand(x.shape[0], -1, -1))
+        if getattr(m, "no_embed_class", False):  # DINOv2 with registers: prefix tokens carry no pos-embed
+            x = x + interpolate_pos_embed(m.pos_embed, grid, num_prefix=0)
+            x = torch.cat(prefix + [x], dim=1)
+        else:
+            x = torch.cat(prefix + [x], dim=1)
+            x = x + interpolate_pos_embed(m.pos_embed, grid, num_prefix=1)
+        return m.norm_pre(m.pos_drop(x))
+
+    @torch.no_grad()
+    def forward(self, images: torch.Tensor, keep_prefix: bool = False) -> torch.Tensor:
+        """(B, 3, H, W) -> (B, patches, D) raw facet features (CLS/register tokens dropped
+        unless `keep_prefix`)."""
+        x = self._tokens(images)
+        block = self.model.blocks[self.layer]
+        for blk in self.model.blocks[: self.layer]:
+            x = blk(x)
+        if self.facet == "token":
+            out = block(x)
+        else:
+            captured = {}
+
+            def hook(_module, _inputs, output):
+                captured["qkv"] = output
+                raise _Stop
+
+            handle = block.attn.qkv.register_forward_hook(hook)
+            try:
+                block(x)
+            except _Stop:
+                pass
+            finally:
+                handle.remove()
+            out = self._facet(captured["qkv"])
+        return out if keep_prefix else out[:, self.num_prefix:]
+
+    def _facet(self, qkv: torch.Tensor) -> torch.Tensor:
+        index = FACETS.index(self.facet)
+        b, t, three_d = qkv.shape
+        d = three_d // 3
+        part = qkv[..., index * d:(index + 1) * d]
+        if not self.head_interleaved:
+            return part
+        heads = self.model.blocks[self.layer].attn.num_heads
+        # (B, T, heads, d_head) -> (B, T, d_head, heads): channel j*heads + h
+        return part.reshape(b, t, heads, d // heads).transpose(2, 3).reshape(b, t, d)
+
+    @torch.no_grad()
+    def cls_token(self, images: torch.Tensor) -> torch.Tensor:
+        """The final-norm CLS token (the backbone's global output), unnormalised."""
+        x = self._tokens(images)
+        for blk in self.model.blocks:
+            x = blk(x)
+        return self.model.norm(x)[:, 0]

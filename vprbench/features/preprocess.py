@@ -1,0 +1,115 @@
+"""Image preprocessing exactly as AnyLoc's official extraction scripts do it.
+
+DINOv2 path: ToTensor -> ImageNet mean/std -> optional resize of the *normalised* tensor
+(bilinear, align_corners=False, no antialiasing, as the torchvision of 2023 did on
+tensors) -> centre crop to the largest multiple of the patch size.
+DINO v1 path: ToTensor -> mean/std -> optional resize -> nearest interpolation to 224x298,
+no crop.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..errors import VPRBenchError
+from ..images import load_rgb
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+#: the DINO v1 extractor's fixed input size (AnyLoc-VLAD-DINO), height x width
+DINO_V1_INPUT = (224, 298)
+
+#: AnyLoc's per-dataset resize (height, width) before the crop; datasets not listed keep
+#: their native size (Oxford, Gardens Point, Hawkins, Laurel Caverns, Nardo-Air, VP-Air).
+#: Keys are vprbench dataset names; aliases map the other common spellings.
+DATASET_RESIZE: dict[str, tuple[int, int]] = {
+    "pitts30k": (480, 640),
+    "st-lucia": (480, 640),
+    "17places": (480, 640),
+    "baidu-mall": (480, 640),
+    "mid-atlantic-ridge": (405, 720),
+}
+_ALIASES = {
+    "pitts30k-test": "pitts30k", "pittsburgh30k": "pitts30k", "pitts-30k": "pitts30k",
+    "stlucia": "st-lucia", "st_lucia": "st-lucia",
+    "17-places": "17places", "seventeen-places": "17places",
+    "baidu": "baidu-mall", "baidu_mall": "baidu-mall", "baidumall": "baidu-mall",
+    "mid-atlantic": "mid-atlantic-ridge", "eiffel": "mid-atlantic-ridge",
+}
+
+
+def dataset_resize(dataset: str | None) -> tuple[int, int] | None:
+    """AnyLoc's resize for `dataset` (None = native size)."""
+    if not dataset:
+        return None
+    key = dataset.strip().lower()
+    return DATASET_RESIZE.get(_ALIASES.get(key, key))
+
+
+def parse_size(size) -> tuple[int, int] | None:
+    """(H, W) from a tuple, "HxW" / "H,W" string, or None/"native"."""
+    if size is None or (isinstance(size, str) and size.strip().lower() in ("", "none", "native")):
+        return None
+    if isinstance(size, str):
+        parts = size.lower().replace("x", ",").split(",")
+    else:
+        parts = list(size)
+    try:
+        h, w = (int(p) for p in parts)
+    except (TypeError, ValueError):
+        raise VPRBenchError(f"resize must be two integers HEIGHT WIDTH (e.g. 480x640), got {size!r}") from None
+    if h <= 0 or w <= 0:
+        raise VPRBenchError(f"resize must be positive, got {h}x{w}")
+    return h, w
+
+
+def to_normalised_tensor(rgb: np.ndarray, mean=IMAGENET_MEAN, std=IMAGENET_STD) -> torch.Tensor:
+    """HxWx3 uint8 -> 3xHxW float32, as ToTensor() then Normalize(mean, std)."""
+    x = torch.from_numpy(np.array(rgb, copy=True)).permute(2, 0, 1).float().div(255.0)
+    mean_t = torch.tensor(mean, dtype=torch.float32).view(3, 1, 1)
+    std_t = torch.tensor(std, dtype=torch.float32).view(3, 1, 1)
+    return (x - mean_t) / std_t
+
+
+def resize_tensor(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """Bilinear resize of a (3,H,W) tensor without antialiasing (torchvision < 0.17 on tensors)."""
+    if tuple(x.shape[-2:]) == tuple(size):
+        return x
+    return F.interpolate(x[None], size=size, mode="bilinear", align_corners=False, antialias=False)[0]
+
+
+def crop_offsets(height: int, width: int, patch: int) -> tuple[int, int, int, int]:
+    """(top, left, new_h, new_w) of the centre crop to multiples of `patch`.
+
+    torchvision's CenterCrop uses Python's round(), i.e. half to even: 227 -> 224 starts at row 2.
+    """
+    new_h, new_w = (height // patch) * patch, (width // patch) * patch
+    if new_h == 0 or new_w == 0:
+        raise VPRBenchError(f"Image of {height}x{width} pixels is smaller than one {patch}x{patch} patch")
+    return round((height - new_h) / 2), round((width - new_w) / 2), new_h, new_w
+
+
+def centre_crop_to_patches(x: torch.Tensor, patch: int) -> torch.Tensor:
+    top, left, h, w = crop_offsets(x.shape[-2], x.shape[-1], patch)
+    return x[..., top:top + h, left:left + w]
+
+
+def preprocess(
+    path: str | Path,
+    *,
+    family: str,
+    patch: int,
+    resize: tuple[int, int] | None = None,
+) -> torch.Tensor:
+    """One image file -> the (3, H, W) tensor the backbone sees."""
+    x = to_normalised_tensor(load_rgb(path))
+    if resize is not None:
+        x = resize_tensor(x, resize)
+    if family == "dino":
+        # F.interpolate's default mode (nearest), as the official DINO v1 script calls it
+        return F.interpolate(x[None], size=DINO_V1_INPUT)[0]
+    return centre_crop_to_patches(x, patch)
