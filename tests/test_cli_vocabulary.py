@@ -1,5 +1,6 @@
 import argparse
 
+import numpy as np
 import pytest
 import torch
 
@@ -78,3 +79,25 @@ def test_fit_map_vocabulary_on_real_dataset(shared_data, monkeypatch, capsys, tm
     assert found.meta["features_seen"] == 111 * 1200 and found.meta["features_used"] == 5000
     assert found.meta["datasets"] == {"corridor": 111}
     assert "5000 of 133200 features" in capsys.readouterr().out and (tmp_path / "out.pt").is_file()
+
+
+def test_fit_with_the_anyloc_method_then_use_by_name(shared_data, tmp_path, capsys):
+    """The real AnyLoc features (random-initialised ViT-S/14, block 0) through the CLI."""
+    from vprbench import create_method
+    from vprbench.features.backbones import backbone_spec, create_model, official_state_dict
+
+    torch.manual_seed(0)
+    spec = backbone_spec("dinov2_vits14")
+    weights = tmp_path / "dinov2_vits14_pretrain.pth"
+    torch.save(official_state_dict(create_model(spec), spec), weights)
+    options = ["--backbone", "dinov2_vits14", "--weights", str(weights), "--layer", "0", "--clusters", "4"]
+    args = parse("vocabulary", "fit", "--dataset", "corridor", "--method", "anyloc-vlad-dinov2", *options,
+                 "--budget", "3000", "--data-dir", str(shared_data))
+    assert run(args) == 0
+    # 111 images of 160x120 -> 154x112 after the crop -> 11 x 8 patches
+    assert "3000 of 9768 features" in capsys.readouterr().out
+    method = create_method("anyloc-vlad-dinov2", backbone="dinov2_vits14", weights=str(weights), layer=0,
+                           clusters=4, vocabulary="map-corridor")
+    images = sorted((shared_data / "corridor" / "query").glob("*.jpg"))[:2]
+    out = method.describe(images)
+    assert out.shape == (2, 4 * 384) and np.allclose(np.linalg.norm(out, axis=1), 1, atol=1e-5)
