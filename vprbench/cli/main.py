@@ -6,14 +6,14 @@ import sys
 
 from .. import __version__
 from ..errors import VPRBenchError
-from . import datasets, evaluate, leaderboard, methods
+from . import datasets, evaluate, leaderboard, methods, vocabulary
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vprbench", description="Benchmark suite for visual place recognition.")
     parser.add_argument("--version", action="version", version=f"vprbench {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for module in (evaluate, datasets, methods, leaderboard):
+    for module in (evaluate, datasets, methods, vocabulary, leaderboard):
         module.add_parsers(commands)
     return parser
 
