@@ -80,7 +80,6 @@ class AnyLoc(Method):
         self.centres: torch.Tensor | None = None
         self._extractor: DenseExtractor | None = None
         self._weights_id: str | None = None
-        self._pca = None
         self.needs_fit = aggregation in VLADS and self.vocabulary == "map"
         if aggregation in VLADS and self.vocabulary != "map":
             self.centres = self._resolve_vocabulary()
@@ -110,8 +109,7 @@ class AnyLoc(Method):
             if self.dataset is None:
                 return None  # resolved in use_dataset()
             spec = paper_vocabulary(self.dataset)
-        layer = self.layer
-        found = resolve_vocabulary(spec, self.backbone, layer, self.facet, self.clusters)
+        found = resolve_vocabulary(spec, self.backbone, self.layer, self.facet, self.clusters)
         return found.centres.float()
 
     # ------------------------------------------------------------ identity
@@ -129,6 +127,8 @@ class AnyLoc(Method):
             "preprocess": f"{self.family}-official", "stride": self.stride,
             "resize": list(self.resize) if self.resize else "native", "precision": self.precision,
         }
+        if self.aggregation == "cls" and self.family == "dinov2":
+            fp["layer"], fp["facet"] = "final-norm", "cls"  # layer/facet options do not apply
         if self.aggregation in VLADS:
             fp["clusters"] = self.clusters
             # a named or file vocabulary is identified by its centres' bytes
