@@ -21,7 +21,7 @@ from ..aggregation.policies import paper_vocabulary, resolve_vocabulary
 from ..aggregation.vlad import vlad_hard
 from ..aggregation.vocabulary import fit_vocabulary
 from ..errors import VPRBenchError
-from ..features.backbones import backbone_spec, load_backbone, sha256_of
+from ..features.backbones import backbone_spec, load_backbone, weights_identity
 from ..features.dense import FACETS, DenseExtractor
 from ..features.preprocess import dataset_resize, parse_size, preprocess
 from .base import Method, l2_normalise
@@ -115,8 +115,7 @@ class AnyLoc(Method):
     # ------------------------------------------------------------ identity
     def weights_identity(self) -> str:
         if self._weights_id is None:
-            self._weights_id = ("sha256:" + sha256_of(Path(self.weights).expanduser())
-                                if self.weights else self.spec.url)
+            self._weights_id = weights_identity(self.spec, self.weights)
         return self._weights_id
 
     def fingerprint(self) -> dict:
