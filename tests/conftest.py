@@ -1,9 +1,10 @@
+import os
 from pathlib import Path
 
 import pytest
 
-#: real public data shared beside the repo (../shared/data); never copied into it
-SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+#: real public data shared beside the repo (../shared/data, or $VPRBENCH_SHARED_DATA); never copied into it
+SHARED_DATA = Path(os.environ.get("VPRBENCH_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 
 
 @pytest.fixture(scope="session")

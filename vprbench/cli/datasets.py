@@ -1,12 +1,13 @@
-"""vprbench datasets list / info."""
+"""vprbench datasets list / info / download / import / verify."""
 from __future__ import annotations
 
 import json
+import warnings
 
 from rich.console import Console
 from rich.table import Table
 
-from ..datasets import dataset_location, dataset_manifests, load_dataset
+from ..datasets import dataset_location, dataset_manifests, download_dataset, import_dataset, load_dataset, verify_dataset
 from .options import add_location_options, apply_locations
 
 
@@ -22,6 +23,25 @@ def add_parsers(commands) -> None:
     add_location_options(p)
     p.add_argument("--json", action="store_true")
     p.set_defaults(run=run_info)
+    p = sub.add_parser("download", help="fetch a dataset with a direct source, else print how to get it")
+    p.add_argument("name")
+    add_location_options(p)
+    p.add_argument("--no-strict", dest="strict", action="store_false", help="only warn when counts differ from the manifest")
+    p.set_defaults(run=run_download)
+    p = sub.add_parser("import", help="register a copy of a dataset already on disk (checked first)")
+    p.add_argument("name")
+    p.add_argument("path", help="folder holding the dataset in its release layout (or a supported alternative)")
+    add_location_options(p)
+    p.add_argument("--strict", action="store_true", help="refuse when counts differ from the manifest")
+    p.set_defaults(run=run_import)
+    p = sub.add_parser("verify", help="check a dataset on disk: layout, counts, ground truth, images")
+    p.add_argument("name", help="dataset name or a folder of your own")
+    add_location_options(p)
+    p.add_argument("--strict", action="store_true", help="counts that differ from the manifest are errors")
+    p.add_argument("--sample", type=int, default=20, help="images decoded per split (default 20)")
+    p.add_argument("--all-images", action="store_true", help="decode every image")
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.set_defaults(run=run_verify)
 
 
 def run_list(args) -> int:
@@ -32,6 +52,7 @@ def run_list(args) -> int:
         rows.append({"name": manifest.name, "title": manifest.title, "domain": manifest.domain,
                      "database": manifest.database_count, "queries": manifest.query_count,
                      "unit": manifest.unit, "radius": manifest.radius,
+                     "radius_unit": manifest.radius_unit or (manifest.unit if manifest.unit != "positives" else None),
                      "on_disk": root.exists(), "path": str(root)})
     if args.json:
         print(json.dumps(rows, indent=2))
@@ -40,7 +61,8 @@ def run_list(args) -> int:
     for column in ("name", "domain", "database", "queries", "radius", "on disk"):
         table.add_column(column)
     for r in rows:
-        radius = "positive lists" if r["unit"] == "positives" else f"{r['radius']:g} {r['unit']}"
+        radius = f"{r['radius']:g} {r['radius_unit'] or ''}".strip()
+        radius += " (lists)" if r["unit"] == "positives" else ""
         table.add_row(r["name"], r["domain"], str(r["database"] or "?"), str(r["queries"] or "?"), radius,
                       "[green]yes[/]" if r["on_disk"] else "no")
     Console().print(table)
@@ -51,7 +73,7 @@ def run_info(args) -> int:
     apply_locations(args)
     dataset = load_dataset(args.name, args.data_dir, fetch=False)
     info = dataset.summary()
-    info.update({"citation": dataset.citation, "licence": dataset.licence})
+    info.update({"citation": dataset.citation, "licence": dataset.licence, "notes": " ".join(dataset.notes)})
     if args.json:
         print(json.dumps(info, indent=2))
         return 0
@@ -61,3 +83,38 @@ def run_info(args) -> int:
     Console().print(table)
     return 0
 
+
+
+def run_download(args) -> int:
+    apply_locations(args)
+    dataset = download_dataset(args.name, args.data_dir, strict=args.strict)
+    print(f"{args.name}: {len(dataset.database)} database and {len(dataset.queries)} query images at {dataset.root}")
+    return 0
+
+
+def run_import(args) -> int:
+    apply_locations(args)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        dataset = import_dataset(args.name, args.path, args.data_dir, strict=args.strict)
+    for warning in caught:
+        print(f"warning: {warning.message}")
+    print(
+        f"Imported {args.name!r} from {dataset.root} (layout {dataset.layout}): "
+        f"{len(dataset.database)} database and {len(dataset.queries)} query images."
+    )
+    return 0
+
+
+def run_verify(args) -> int:
+    apply_locations(args)
+    report = verify_dataset(args.name, args.data_dir, strict=args.strict, sample=None if args.all_images else args.sample)
+    if args.json:
+        print(json.dumps({
+            "name": report.name, "root": str(report.root), "layout": report.layout, "ok": report.ok,
+            "problems": report.problems, "warnings": report.warnings, "summary": report.summary,
+            "images_checked": report.images_checked,
+        }, indent=2))
+    else:
+        print("\n".join(report.lines()))
+    return 0 if report.ok else 1

@@ -1,7 +1,6 @@
 """Datasets: manifests + layout readers -> `Dataset` (images, ground truth, provenance)."""
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 from ..errors import VPRBenchError
@@ -10,19 +9,26 @@ from .layouts import read_layout
 from .layouts.own_data import own_manifest
 from .manifest import DatasetManifest, data_root, dataset_manifest, dataset_manifests
 from .model import Dataset, GroundTruth
+from .storage import check_counts, dataset_location, import_dataset, read_registry
+from .verify import VerifyReport, verify_dataset
 
 __all__ = [
-    "Dataset", "DatasetManifest", "GroundTruth", "data_root", "dataset_manifest",
-    "dataset_manifests", "load_dataset", "dataset_location",
+    "Dataset", "DatasetManifest", "GroundTruth", "VerifyReport", "data_root", "dataset_location",
+    "dataset_manifest", "dataset_manifests", "download_dataset", "import_dataset", "is_on_disk",
+    "load_dataset", "read_registry", "verify_dataset",
 ]
 
 
 def is_path(name: str) -> bool:
-    return "/" in name or name.startswith(".") or Path(name).is_dir()
+    """A folder of the user's own: a path-like name, or an existing folder that is no manifest's name."""
+    if "/" in name or name.startswith((".", "~")):
+        return True
+    return name not in dataset_manifests() and Path(name).is_dir()
 
 
-def dataset_location(manifest: DatasetManifest, data_dir=None) -> Path:
-    return data_root(data_dir) / manifest.directory
+def is_on_disk(name: str, data_dir=None) -> bool:
+    """Whether the dataset's folder (default or imported) exists; for `datasets list`."""
+    return dataset_location(dataset_manifest(name), data_dir).is_dir()
 
 
 def load_dataset(name: str, data_dir=None, *, fetch: bool = True, strict: bool = False) -> Dataset:
@@ -44,13 +50,14 @@ def load_dataset(name: str, data_dir=None, *, fetch: bool = True, strict: bool =
     return dataset
 
 
-def check_counts(dataset: Dataset, manifest: DatasetManifest, strict: bool) -> None:
-    for split, expected, found in (
-        ("database", manifest.database_count, len(dataset.database)),
-        ("query", manifest.query_count, len(dataset.queries)),
-    ):
-        if expected is not None and expected != found:
-            message = f"Dataset {manifest.name!r}: {found} {split} images at {dataset.root}, the manifest expects {expected}."
-            if strict:
-                raise VPRBenchError(message + " (--strict)")
-            warnings.warn(message, stacklevel=3)
+def download_dataset(name: str, data_dir=None, strict: bool = True) -> Dataset:
+    """`vprbench datasets download NAME`: fetch (when a direct source exists), then read and check it."""
+    manifest = dataset_manifest(name)
+    root = data_root(data_dir) / manifest.directory
+    if not manifest.download:
+        raise VPRBenchError(f"Dataset {name!r} has no direct download. {how_to_get(manifest, root)}")
+    if not root.exists():
+        download(manifest, root)
+    dataset = read_layout(root, manifest)
+    check_counts(dataset, manifest, strict)
+    return dataset

@@ -21,6 +21,8 @@ class DatasetManifest:
     domain: str
     unit: str
     radius: float | None = None
+    #: the radius's unit when `unit` is "positives" (lists made by the provider): "metres" or "frames"
+    radius_unit: str = ""
     database_count: int | None = None
     query_count: int | None = None
     citation: str = ""

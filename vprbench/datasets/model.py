@@ -67,6 +67,10 @@ class Dataset:
     licence: str = ""
     root: Path | None = None
     notes: list[str] = field(default_factory=list)
+    #: the layout the images were read in (a manifest may accept several)
+    layout: str = ""
+    #: unit of ground_truth.radius ("metres"/"frames"); for explicit lists, how the provider made them
+    radius_unit: str = ""
 
     @cached_property
     def positives(self) -> list[np.ndarray]:
@@ -100,7 +104,9 @@ class Dataset:
             "positive_pairs": int(sum(len(p) for p in pos)),
             "unit": self.ground_truth.unit,
             "radius": self.ground_truth.radius,
+            "radius_unit": self.radius_unit or (self.ground_truth.unit if self.ground_truth.unit != "positives" else None),
             "root": str(self.root) if self.root else None,
+            "layout": self.layout,
         }
 
     def fingerprint(self) -> str:

@@ -1,29 +1,102 @@
-"""Layout readers: how a dataset lies on disk -> `Dataset`. Datasets sharing a layout share its reader."""
+"""Layout readers: how a dataset lies on disk -> `Dataset`. Datasets sharing a layout share its reader.
+
+A manifest names its primary layout (usually the authors' release) and may list
+`[[options.alternatives]]`: other layouts the same data is commonly found in (e.g. the
+`images/test/{database,queries}` layout with UTM in file names, or VPR-Bench's
+`ref/ query/ ground_truth_new.npy`). `read_layout` picks the first whose expected
+folders and files are present, and otherwise says what each layout expects.
+"""
 from __future__ import annotations
 
+import dataclasses
+import re
 from collections.abc import Callable
 from pathlib import Path
 
 from ...errors import VPRBenchError
+from ...images import IMAGE_SUFFIXES
 from ..manifest import DatasetManifest
 from ..model import Dataset
 
 Reader = Callable[[Path, DatasetManifest], Dataset]
+#: what a layout needs on disk, given the manifest options: relative paths (folders end in "/")
+Expects = Callable[[dict], list[str]]
 LAYOUTS: dict[str, Reader] = {}
+EXPECTS: dict[str, Expects] = {}
 
 
-def layout(name: str):
+def layout(name: str, expects: Expects | None = None):
     def register(reader: Reader) -> Reader:
         LAYOUTS[name] = reader
+        EXPECTS[name] = expects or (lambda options: [])
         return reader
 
     return register
 
 
-def read_layout(root: Path, manifest: DatasetManifest) -> Dataset:
+def candidates(manifest: DatasetManifest) -> list[DatasetManifest]:
+    """The manifest's primary layout, then each alternative as a manifest of its own."""
+    options = {k: v for k, v in manifest.options.items() if k != "alternatives"}
+    found = [dataclasses.replace(manifest, options=options)]
+    for alternative in manifest.options.get("alternatives", []):
+        alternative = dict(alternative)
+        keys = ("layout", "database_count", "query_count", "radius", "unit", "radius_unit")
+        overrides = {k: alternative.pop(k) for k in keys if k in alternative}
+        if "unit" in overrides:
+            overrides.setdefault("radius_unit", "")
+        found.append(dataclasses.replace(manifest, options=alternative, **overrides))
+    return found
+
+
+def missing_paths(root: Path, manifest: DatasetManifest) -> list[str]:
     if manifest.layout not in LAYOUTS:
         raise VPRBenchError(f"Dataset {manifest.name!r}: unknown layout {manifest.layout!r} (known: {sorted(LAYOUTS)})")
-    return LAYOUTS[manifest.layout](root, manifest)
+    missing = []
+    for relative in EXPECTS[manifest.layout](manifest.options):
+        path = root / relative
+        if not (path.is_dir() if relative.endswith("/") else path.is_file()):
+            missing.append(relative)
+    return missing
+
+
+def describe_layout(manifest: DatasetManifest) -> str:
+    expected = EXPECTS[manifest.layout](manifest.options)
+    return f"layout {manifest.layout!r} ({', '.join(expected) or 'any'})"
+
+
+def describe_missing(missing: list[str]) -> str:
+    return ", ".join(f"folder '{m[:-1]}'" if m.endswith("/") else f"file '{m}'" for m in missing)
+
+
+def detect_layout(root: Path, manifest: DatasetManifest) -> DatasetManifest:
+    """The first candidate layout whose expected folders and files are all under root."""
+    options = candidates(manifest)
+    report = []
+    for candidate in options:
+        missing = missing_paths(root, candidate)
+        if not missing:
+            return candidate
+        report.append((candidate.layout, missing))
+    if manifest.layout == "own":
+        hint = "Put the database images in database/ and the query images in queries/ (see the own-data guide)."
+    else:
+        from ..download import how_to_get
+
+        hint = how_to_get(manifest, root)
+    if len(report) == 1:
+        layout_name, missing = report[0]
+        text = f"expected {describe_missing(missing)} under {root} (layout {layout_name!r}) but {'it is' if len(missing) == 1 else 'they are'} missing"
+        raise VPRBenchError(f"Dataset {manifest.name!r}: {text}. {hint}")
+    parts = [f"layout {report[0][0]!r} (the authors' release) is missing {describe_missing(report[0][1])}"]
+    parts += [f"layout {name!r} is missing {describe_missing(missing)}" for name, missing in report[1:]]
+    raise VPRBenchError(f"Dataset {manifest.name!r}: {root} is in none of its known layouts: " + "; ".join(parts) + f". {hint}")
+
+
+def read_layout(root: Path, manifest: DatasetManifest) -> Dataset:
+    candidate = detect_layout(root, manifest)
+    dataset = LAYOUTS[candidate.layout](root, candidate)
+    dataset.layout = candidate.layout
+    return dataset
 
 
 def require(root: Path, relative: str, manifest: DatasetManifest, kind: str = "folder") -> Path:
@@ -39,6 +112,17 @@ def require(root: Path, relative: str, manifest: DatasetManifest, kind: str = "f
     return path
 
 
+def natural_key(path: Path) -> list:
+    """Sort key treating digit runs as numbers (img2 < img10), as the authors' loaders do (natsort)."""
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.name)]
+
+
+def list_images_natural(folder: Path, recursive: bool = False) -> list[Path]:
+    """Image files in folder (and below when recursive), in natural name order."""
+    found = folder.rglob("*") if recursive else folder.iterdir()
+    return sorted((p for p in found if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()), key=natural_key)
+
+
 def from_manifest(manifest: DatasetManifest, root: Path, database, queries, ground_truth) -> Dataset:
     """A Dataset carrying the manifest's provenance."""
     return Dataset(
@@ -51,8 +135,10 @@ def from_manifest(manifest: DatasetManifest, root: Path, database, queries, grou
         citation=manifest.citation,
         licence=manifest.licence,
         root=root,
+        notes=[manifest.notes] if manifest.notes else [],
+        radius_unit=manifest.radius_unit or (manifest.unit if manifest.unit != "positives" else ""),
     )
 
 
 # readers register themselves on import
-from . import own_data, vpr_bench  # noqa: E402,F401
+from . import oxford, own_data, release, utm_names, vpr_bench  # noqa: E402,F401

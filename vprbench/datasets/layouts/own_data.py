@@ -7,8 +7,8 @@
       dataset.toml       # optional: name, radius, unit, domain, title, citation, licence
 
 positions.csv has a column `image` (path relative to mydata/, e.g. database/0001.jpg) and
-one of: `x,y` or `easting,northing` (metres), `latitude,longitude` (degrees, converted to
-UTM metres), or `frame` (frame index). Radius: 25 m by default for metres; give `radius`
+one of: `x,y` or `easting,northing` (metres), `latitude,longitude` or `lat,lon` (degrees,
+converted to UTM metres in the zone of the first row), or `frame` (frame index). Radius: 25 m by default for metres; give `radius`
 in dataset.toml for frames.
 """
 from __future__ import annotations
@@ -59,21 +59,28 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
     if "image" not in table.columns:
         raise VPRBenchError(f"{csv} needs a column 'image' (path relative to {root}); it has {list(table.columns)}")
     columns = set(table.columns)
-    if {"x", "y"} <= columns:
-        values, unit = table[["x", "y"]].to_numpy(float), "metres"
-    elif {"easting", "northing"} <= columns:
-        values, unit = table[["easting", "northing"]].to_numpy(float), "metres"
-    elif {"latitude", "longitude"} <= columns:
-        values, unit = latlon_to_metres(table["latitude"].to_numpy(), table["longitude"].to_numpy()), "metres"
-    elif "frame" in columns:
-        values, unit = table[["frame"]].to_numpy(float), "frames"
-    else:
+    choices = (
+        (("x", "y"), "metres"), (("easting", "northing"), "metres"),
+        (("latitude", "longitude"), "degrees"), (("lat", "lon"), "degrees"), (("frame",), "frames"),
+    )
+    chosen = next(((names, unit) for names, unit in choices if set(names) <= columns), None)
+    if chosen is None:
         raise VPRBenchError(
-            f"{csv} needs position columns x,y or easting,northing (metres), latitude,longitude, "
+            f"{csv} needs position columns x,y or easting,northing (metres), latitude,longitude (or lat,lon), "
             f"or frame; it has {list(table.columns)}"
         )
-    if not np.isfinite(values).all():
-        raise VPRBenchError(f"{csv} has missing or non-numeric positions; every row needs a value.")
+    names, unit = chosen
+    values = table[list(names)].apply(pd.to_numeric, errors="coerce").to_numpy(float)
+    bad = np.flatnonzero(~np.isfinite(values).all(axis=1))
+    if len(bad):
+        raise VPRBenchError(
+            f"{csv} has missing or non-numeric positions in {len(bad)} row(s), e.g. for "
+            f"{[str(table['image'].iloc[i]) for i in bad[:3]]}; every row needs a value."
+        )
+    if unit == "degrees":
+        if (np.abs(values[:, 0]) > 84).any() or (np.abs(values[:, 1]) > 180).any():
+            raise VPRBenchError(f"{csv}: latitudes must lie within +-84 degrees (UTM) and longitudes within +-180.")
+        values, unit = latlon_to_metres(values[:, 0], values[:, 1]), "metres"
     by_name = {str(Path(name)): row for name, row in zip(table["image"], values)}
     missing = [str(p.relative_to(root)) for p in images if str(p.relative_to(root)) not in by_name]
     if missing:
@@ -81,7 +88,7 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
     return np.stack([by_name[str(p.relative_to(root))] for p in images]), unit
 
 
-@layout("own")
+@layout("own", expects=lambda options: ["database/", "queries/"])
 def read_own(root: Path, manifest: DatasetManifest):
     database = list_images(require(root, "database", manifest))
     queries = list_images(require(root, "queries", manifest))

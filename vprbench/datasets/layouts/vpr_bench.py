@@ -1,4 +1,9 @@
-"""VPR-Bench layout: ref/, query/ and ground_truth_new.npy (rows [query index, [positive ref indices]])."""
+"""VPR-Bench layout: ref/, query/ and ground_truth_new.npy (rows [query index, [positive ref indices]]).
+
+Options: `database`, `queries`, `ground_truth` (names), `drop_out_of_range` (VPR-Bench's
+17 Places and Gardens Point lists name frames past the last reference; the AnyLoc code keeps
+only positives that exist among the references, and so do we when this is true).
+"""
 from __future__ import annotations
 
 import pickle
@@ -7,20 +12,33 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import VPRBenchError
-from ...images import list_images
 from ..manifest import DatasetManifest
 from ..model import GroundTruth
-from . import from_manifest, layout, require
+from . import from_manifest, layout, list_images_natural, require
+
+
+def load_rows(path: Path) -> np.ndarray:
+    """An .npy of [index, [positives]] rows (pickled object array), with a clear error when unreadable."""
+    try:
+        rows = np.load(path, allow_pickle=True)
+        if rows.ndim != 2 or rows.shape[1] < 2:
+            raise ValueError(f"shape {rows.shape}, expected rows of [query index, positives]")
+    except (OSError, ValueError, TypeError, EOFError, pickle.UnpicklingError) as error:
+        raise VPRBenchError(
+            f"Cannot read ground truth {path}: {error}. Expected rows [query_index, [positive "
+            "reference indices]]; the file is damaged or not this dataset's; re-download it."
+        ) from None
+    return rows
 
 
 def read_positive_lists(path: Path, n_queries: int) -> list[np.ndarray]:
     """VPR-Bench's object array of [query_index, [db indices]] rows -> one array per query."""
+    rows = load_rows(path)
+    lists: list[np.ndarray] = [np.zeros(0, np.int64) for _ in range(n_queries)]
     try:
-        rows = np.load(path, allow_pickle=True)
-        lists: list[np.ndarray] = [np.zeros(0, np.int64) for _ in range(n_queries)]
-        for query, positives in rows:
+        for query, positives in rows[:, :2]:
             lists[int(query)] = np.asarray(positives, dtype=np.int64).reshape(-1)
-    except (OSError, ValueError, TypeError, IndexError, EOFError, pickle.UnpicklingError) as error:
+    except (ValueError, TypeError, IndexError) as error:
         raise VPRBenchError(
             f"Cannot read ground truth {path}: {error}. Expected VPR-Bench rows "
             "[query_index, [positive reference indices]] for each of the "
@@ -29,13 +47,19 @@ def read_positive_lists(path: Path, n_queries: int) -> list[np.ndarray]:
     return lists
 
 
-@layout("vpr-bench")
+def vpr_bench_expects(options: dict) -> list[str]:
+    return [options.get("database", "ref") + "/", options.get("queries", "query") + "/",
+            options.get("ground_truth", "ground_truth_new.npy")]
+
+
+@layout("vpr-bench", expects=vpr_bench_expects)
 def read_vpr_bench(root: Path, manifest: DatasetManifest):
     opts = manifest.options
-    database = list_images(require(root, opts.get("database", "ref"), manifest))
-    queries = list_images(require(root, opts.get("queries", "query"), manifest))
+    database = list_images_natural(require(root, opts.get("database", "ref"), manifest))
+    queries = list_images_natural(require(root, opts.get("queries", "query"), manifest))
     gt_path = require(root, opts.get("ground_truth", "ground_truth_new.npy"), manifest, kind="file")
-    ground_truth = GroundTruth(
-        unit="positives", radius=manifest.radius, positive_lists=read_positive_lists(gt_path, len(queries))
-    )
+    lists = read_positive_lists(gt_path, len(queries))
+    if opts.get("drop_out_of_range", False):
+        lists = [p[(p >= 0) & (p < len(database))] for p in lists]
+    ground_truth = GroundTruth(unit="positives", radius=manifest.radius, positive_lists=lists)
     return from_manifest(manifest, root, database, queries, ground_truth)

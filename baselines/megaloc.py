@@ -1,0 +1,152 @@
+"""MegaLoc (Berton & Masone, CVPRW 2025): DINOv2 ViT-B/14 + SALAD-style aggregation + linear to 8448.
+
+Matches the authors' released `model.safetensors` (parameter names `backbone.*`,
+`aggregator.agg.*`, `aggregator.linear.*`) and their model's own input handling: full
+resolution, ImageNet normalisation, sides not divisible by 14 resized (bilinear,
+antialiased) to the nearest multiple of 14.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+import torchvision.transforms.functional as TF
+from torch import nn
+
+from vprbench import VPRBenchError, register_method
+
+from .common import (
+    Preprocess,
+    TorchMethod,
+    WeightSource,
+    as_int,
+    as_resize,
+    choose,
+    file_sha256,
+    load_checkpoint,
+    load_exact,
+    state_dict_of,
+    weights_dir,
+)
+from .salad import SaladAggregator
+from .vit import DINOV2_VITB14, ViTConfig, dinov2_vit, patch_map, vit_tokens
+
+METHOD = "megaloc"
+WEIGHTS = WeightSource(
+    "megaloc-model.safetensors",  # saved under this name in the cache; the hub file is model.safetensors
+    url="https://huggingface.co/gberton/MegaLoc/resolve/main/model.safetensors",
+    page="https://huggingface.co/gberton/MegaLoc",
+)
+BACKBONES = {"dinov2_vitb14": 768}
+
+
+@dataclass(frozen=True)
+class MegaLocConfig:
+    vit: ViTConfig = field(default_factory=lambda: DINOV2_VITB14)
+    clusters: int = 64
+    cluster_dim: int = 256
+    token_dim: int = 256
+    hidden: int = 512
+    dim: int = 8448
+
+
+class MegaLocAggregator(nn.Module):
+    def __init__(self, config: MegaLocConfig):
+        super().__init__()
+        self.agg = SaladAggregator(
+            config.vit.embed_dim, config.clusters, config.cluster_dim, config.token_dim, config.hidden
+        )
+        self.linear = nn.Linear(config.clusters * config.cluster_dim + config.token_dim, config.dim)
+
+    def forward(self, features: torch.Tensor, token: torch.Tensor) -> torch.Tensor:
+        return self.linear(self.agg(features, token))
+
+
+class MegaLoc(nn.Module):
+    def __init__(self, config: MegaLocConfig = MegaLocConfig()):
+        super().__init__()
+        self.patch = config.vit.patch
+        self.backbone = dinov2_vit(config.vit)
+        self.aggregator = MegaLocAggregator(config)
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        height, width = images.shape[-2:]
+        if height % self.patch or width % self.patch:  # as the released model does
+            height = round(height / self.patch) * self.patch
+            width = round(width / self.patch) * self.patch
+            images = TF.resize(images, [height, width], antialias=True)
+        tokens = vit_tokens(self.backbone, images, final_norm=True)
+        return F.normalize(self.aggregator(patch_map(tokens, height, width, self.patch), tokens[:, 0]), dim=-1)
+
+
+def read_weights(weights) -> tuple[dict, dict]:
+    """(state dict, identity) from a local .safetensors/.pth file or the released file."""
+    if weights is not None and Path(weights).suffix == ".safetensors" and Path(weights).expanduser().is_file():
+        path = Path(weights).expanduser()
+        return _read_safetensors(path), {"weights_sha256": file_sha256(path)}
+    if weights is None:
+        cached = weights_dir() / WEIGHTS.file_name
+        if not cached.is_file():
+            try:
+                cached.parent.mkdir(parents=True, exist_ok=True)
+                torch.hub.download_url_to_file(WEIGHTS.url, str(cached), progress=False)
+            except (OSError, RuntimeError) as error:  # URLError is an OSError
+                raise VPRBenchError(
+                    f"{METHOD}: could not download model.safetensors from {WEIGHTS.url} ({error}). "
+                    f"Offline? Download model.safetensors from {WEIGHTS.page} and pass it with --weights PATH."
+                ) from None
+        return _read_safetensors(cached), {"weights_url": WEIGHTS.url}
+    checkpoint, identity = load_checkpoint(weights, WEIGHTS, METHOD)  # a converted .pth, or a clear error
+    return state_dict_of(checkpoint), identity
+
+
+def _read_safetensors(path: Path) -> dict:
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    try:
+        return load_file(str(path))
+    except (SafetensorError, OSError) as error:
+        raise VPRBenchError(f"{METHOD}: cannot read {path}: {error}. Is it the complete model.safetensors?") from None
+
+
+def build(
+    config: MegaLocConfig, *, weights=None, resize=None, batch_size=None, precision="fp32", device="cpu"
+) -> TorchMethod:
+    """A MegaLoc method for `config` (the published one, or a reduced one in tests)."""
+    resize = as_resize(resize)
+    state, identity = read_weights(weights)
+    model = MegaLoc(config)
+    load_exact(model, state, METHOD)
+    fingerprint = {
+        "method": METHOD,
+        **identity,
+        "backbone": "dinov2_vitb14" if config == MegaLocConfig() else repr(config),
+        "dim": config.dim,
+    }
+    # As the authors' evaluation: normalise, then the optional resize (bilinear, antialiased).
+    preprocess = Preprocess(resize=resize, interpolation="bilinear", normalise_first=True)
+    return TorchMethod(
+        model, preprocess, fingerprint, batch_size=batch_size, device=device, precision=precision, dim=config.dim
+    )
+
+
+def megaloc(
+    backbone="dinov2_vitb14", weights=None, resize=None, batch_size=None, precision="fp32", device="cpu", dim=None
+):
+    choose("backbone", backbone, list(BACKBONES), METHOD)
+    config = MegaLocConfig()
+    if dim is not None and as_int(dim, "dim") != config.dim:
+        raise VPRBenchError(f"{METHOD}: dimension {dim} is not available; valid: dinov2_vitb14 -> {config.dim}.")
+    return build(config, weights=weights, resize=resize, batch_size=batch_size, precision=precision, device=device)
+
+
+def register() -> None:
+    register_method(
+        "megaloc",
+        megaloc,
+        defaults={"backbone": "dinov2_vitb14"},
+        description="MegaLoc (CVPRW 2025): DINOv2 ViT-B/14 + SALAD-style aggregation, 8448-D, full-resolution input.",
+    )

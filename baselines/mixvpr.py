@@ -1,0 +1,121 @@
+"""MixVPR (Ali-bey et al., WACV 2023): ResNet-50 cropped after layer3 + feature-mixer aggregator.
+
+Layer names follow the authors' `VPRModel` (`backbone.model.*`, `aggregator.*`) so their
+released `resnet50_MixVPR_4096_channels(1024)_rows(4).ckpt` loads exactly.
+"""
+from __future__ import annotations
+
+import torch.nn.functional as F
+from torch import nn
+
+from vprbench import VPRBenchError, register_method
+
+from .common import Preprocess, TorchMethod, WeightSource, as_int, as_resize, choose, build_loaded, load_checkpoint, state_dict_of
+
+#: descriptor dim -> the authors' aggregator settings. Only the 4096-d configuration is
+#: published with its checkpoint (README); the 512/128-d checkpoints' settings are not.
+CONFIGS = {
+    4096: dict(in_channels=1024, in_h=20, in_w=20, out_channels=1024, mix_depth=4, mlp_ratio=1, out_rows=4),
+}
+WEIGHTS = {
+    4096: WeightSource(
+        file_name="resnet50_MixVPR_4096_channels(1024)_rows(4).ckpt",
+        page="https://drive.google.com/file/d/1vuz3PvnR7vxnDDLQrdHJaOA04SQrtk5L/view",
+    ),
+}
+IMAGE_SIZE = (320, 320)
+
+
+class CroppedResNet(nn.Module):
+    """torchvision ResNet-50 without layer4, avgpool and fc (state-dict prefix `model.`)."""
+
+    def __init__(self):
+        import torchvision  # here, not at the top: listing methods must not pay for importing it
+
+        super().__init__()
+        self.model = torchvision.models.resnet50(weights=None)
+        self.model.avgpool = None
+        self.model.fc = None
+        self.model.layer4 = None
+
+    def forward(self, x):
+        m = self.model
+        x = m.maxpool(m.relu(m.bn1(m.conv1(x))))
+        return m.layer3(m.layer2(m.layer1(x)))
+
+
+class FeatureMixerLayer(nn.Module):
+    def __init__(self, in_dim: int, mlp_ratio: float = 1):
+        super().__init__()
+        hidden = int(in_dim * mlp_ratio)
+        self.mix = nn.Sequential(nn.LayerNorm(in_dim), nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, in_dim))
+
+    def forward(self, x):
+        return x + self.mix(x)
+
+
+class MixVPR(nn.Module):
+    """Mixes each channel's flattened HxW map, then projects channels and rows."""
+
+    def __init__(self, in_channels, in_h, in_w, out_channels, mix_depth, mlp_ratio, out_rows):
+        super().__init__()
+        hw = in_h * in_w
+        self.mix = nn.Sequential(*[FeatureMixerLayer(hw, mlp_ratio) for _ in range(mix_depth)])
+        self.channel_proj = nn.Linear(in_channels, out_channels)
+        self.row_proj = nn.Linear(hw, out_rows)
+
+    def forward(self, x):
+        x = self.mix(x.flatten(2))
+        x = self.channel_proj(x.permute(0, 2, 1)).permute(0, 2, 1)
+        x = self.row_proj(x)
+        return F.normalize(x.flatten(1), p=2, dim=-1)
+
+
+class MixVPRNet(nn.Module):
+    def __init__(self, config: dict):
+        super().__init__()
+        self.backbone = CroppedResNet()
+        self.aggregator = MixVPR(**config)
+
+    def forward(self, x):
+        return self.aggregator(self.backbone(x))
+
+
+def mixvpr(
+    backbone: str = "resnet50",
+    dim: int | str = 4096,
+    weights: str | None = None,
+    resize=IMAGE_SIZE,
+    batch_size: int | None = None,
+    device: str = "cpu",
+    precision: str = "fp32",
+) -> TorchMethod:
+    """MixVPR trained on GSV-Cities; images resized to 320x320 (bicubic) as the authors do."""
+    backbone = choose("backbone", backbone, ["resnet50"], "mixvpr")
+    dim = as_int(dim, "dim")
+    if dim not in CONFIGS:
+        raise VPRBenchError(f"mixvpr: dim {dim} is not available; valid: {', '.join(map(str, CONFIGS))}.")
+    resize = as_resize(resize)
+    # The mixer works on a fixed 20x20 map: the input must be 16x that (ResNet stride after layer3).
+    config = CONFIGS[dim]
+    if resize != (config["in_h"] * 16, config["in_w"] * 16):
+        raise VPRBenchError(
+            f"mixvpr: resize {resize} does not fit the aggregator's {config['in_h']}x{config['in_w']} "
+            f"feature map; valid: {config['in_h'] * 16} {config['in_w'] * 16}."
+        )
+    checkpoint, identity = load_checkpoint(weights, WEIGHTS[dim], "mixvpr")
+    net = build_loaded(lambda: MixVPRNet(config), state_dict_of(checkpoint), "mixvpr")
+    preprocess = Preprocess(resize=resize, interpolation="bicubic")
+    fingerprint = {"architecture": "mixvpr", "backbone": backbone, "dim": dim, "training": "GSV-Cities",
+                   "config": config, **identity}
+    return TorchMethod(net, preprocess, fingerprint, batch_size=batch_size, device=device, precision=precision, dim=dim)
+
+
+def register() -> None:
+    """Entry point of the `vprbench.methods` group."""
+    register_method(
+        "mixvpr",
+        mixvpr,
+        defaults={"backbone": "resnet50", "dim": 4096},
+        description="MixVPR (WACV 2023), ResNet-50 + feature mixer, 4096-d, 320x320 input, trained on GSV-Cities.",
+    )

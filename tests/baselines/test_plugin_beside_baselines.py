@@ -1,0 +1,90 @@
+"""docs/add-your-method.md end to end: the example plugin, installed as a separate package,
+is listed, describes images, and lands on the leaderboard next to a baseline."""
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from vprbench.cli.main import main as vprbench_cli
+from vprbench.methods import registry
+
+ROOT = Path(__file__).resolve().parents[2]
+DOC = ROOT / "docs" / "add-your-method.md"
+EXAMPLE = ROOT / "docs" / "examples" / "vprbench-example-plugin"
+
+
+def test_doc_shows_the_example_files_verbatim():
+    blocks = re.findall(r"```(?:toml|python)\n(.*?)```", DOC.read_text(), flags=re.S)
+    assert (EXAMPLE / "pyproject.toml").read_text() in blocks
+    assert (EXAMPLE / "vprbench_example_plugin" / "__init__.py").read_text() in blocks
+
+
+@pytest.fixture(scope="module")
+def plugin_site(tmp_path_factory):
+    target = tmp_path_factory.mktemp("site")
+    subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
+                    "--no-index", "--target", str(target), str(EXAMPLE)], check=True)
+    return target
+
+
+@pytest.fixture
+def with_plugin(plugin_site, monkeypatch, shared_data):
+    """The plugin's folder on the import path, as after 'pip install'; entry points are scanned afresh.
+    (In-process rather than a subprocess per command: each would import torch again.)"""
+    if not (shared_data / "corridor").is_dir():
+        pytest.skip("corridor dataset is absent")
+    monkeypatch.syspath_prepend(str(plugin_site))
+    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
+    monkeypatch.setattr(registry, "_plugins_loaded", False)
+    monkeypatch.setenv("VPRBENCH_DATA", str(shared_data))  # the CLI's --data-dir sets it; undone after the test
+    yield
+    sys.modules.pop("vprbench_example_plugin", None)
+
+
+def run(capsys, *args) -> str:
+    capsys.readouterr()
+    code = vprbench_cli(list(args))
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    return out
+
+
+def test_plugin_listed_beside_baselines_and_describes(with_plugin, capsys, tmp_path, shared_data):
+    listed = {m["name"]: m for m in json.loads(run(capsys, "methods", "list", "--json"))}
+    assert listed["thumbnail"]["source"] == "vprbench_example_plugin"
+    assert listed["cosplace"]["source"] == "vprbench_baselines"
+    assert listed["cosplace"]["defaults"] == {"backbone": "ResNet101", "dim": 2048}
+
+    images = sorted((shared_data / "corridor" / "query").glob("*.jpg"))[:3]
+    out = tmp_path / "d.npy"
+    run(capsys, "describe", "--method", "thumbnail", *map(str, images), "--out", str(out))
+    descriptors = np.load(out)
+    assert descriptors.shape == (3, 256)
+    np.testing.assert_allclose(np.linalg.norm(descriptors, axis=1), 1.0, atol=1e-5)
+
+
+def test_plugin_and_baseline_share_the_leaderboard(with_plugin, capsys, tmp_path, shared_data, official_checkpoint):
+    state = official_checkpoint("cosplace", "ResNet18_512")
+    state["aggregation.3.weight"] = state["aggregation.3.weight"][:32]
+    state["aggregation.3.bias"] = state["aggregation.3.bias"][:32]
+    weights = tmp_path / "ResNet18_32_cosplace.pth"
+    torch.save(state, weights)
+    common = ["--dataset", "corridor", "--data-dir", str(shared_data), "--json"]
+    plugin = json.loads(run(capsys, "evaluate", "--method", "thumbnail", *common))
+    baseline = json.loads(run(capsys, "evaluate", "--method", "cosplace", "--backbone", "ResNet18", "-o", "dim=32",
+                              "--weights", str(weights), "--resize", "32", "32", *common))
+    assert baseline["descriptor_dim"] == 32 and plugin["descriptor_dim"] == 256
+    fingerprint = baseline["method_fingerprint"]
+    assert fingerprint["backbone"] == "ResNet18" and fingerprint["preprocess"]["resize"] == [32, 32]
+    assert len(fingerprint["weights_sha256"]) == 64
+    assert baseline["counts"]["queries"] == 111 and 0 <= baseline["recall"]["1"] <= 100
+
+    rows = {line.split(",")[0]: line for line in run(capsys, "leaderboard", "--format", "csv").splitlines()[1:]}
+    assert {"thumbnail", "cosplace"} <= set(rows)
+    assert f"{baseline['recall']['1']:.1f} / {baseline['recall']['5']:.1f}" in rows["cosplace"]
+    assert f"{plugin['recall']['1']:.1f} / {plugin['recall']['5']:.1f}" in rows["thumbnail"]

@@ -1,0 +1,190 @@
+"""Getting data: download, import, verify, and the errors each gives on bad input."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import vprbench.datasets as datasets
+from vprbench.cli.main import build_parser, main
+from vprbench.datasets import import_dataset, load_dataset, read_registry, verify_dataset
+from vprbench.errors import VPRBenchError
+
+
+@pytest.fixture
+def gardens(tmp_path, make_images, save_rows):
+    """A complete Gardens Point copy in the release layout, outside the data root."""
+    root = tmp_path / "elsewhere" / "gardens"
+    names = [f"Image{i:03d}.jpg" for i in range(200)]
+    make_images(root / "day_right", names)
+    make_images(root / "night_right", names)
+    save_rows(root / "gardens_gt.npy", [range(max(0, i - 2), min(200, i + 3)) for i in range(200)])
+    return root
+
+
+def run(*argv) -> int:
+    args = build_parser().parse_args(list(argv))
+    return args.run(args)
+
+
+def test_wrong_layout_names_what_each_layout_expects(tmp_path):
+    (tmp_path / "gardens" / "day_right").mkdir(parents=True)
+    with pytest.raises(VPRBenchError) as error:
+        load_dataset("gardens-point", tmp_path)
+    message = str(error.value)
+    assert "layout 'folders' (the authors' release) is missing folder 'night_right', file 'gardens_gt.npy'" in message
+    assert "layout 'vpr-bench' is missing folder 'ref', folder 'query', file 'ground_truth_new.npy'" in message
+
+
+def test_missing_dataset_says_how_to_get_it(tmp_path):
+    with pytest.raises(VPRBenchError, match=r"not at .*hawkins_long_corridor.*hawkins_long_corridor.tar.gz.*datasets import hawkins"):
+        load_dataset("hawkins", tmp_path)
+
+
+def test_count_differing_from_manifest_warns_and_fails_when_strict(tmp_path, gardens):
+    (gardens / "night_right" / "Image199.jpg").unlink()
+    (gardens / "night_right" / "Image198.jpg").unlink()
+    with pytest.raises(VPRBenchError, match="has 200 query rows .* but 198 query images"):
+        load_dataset("gardens-point", gardens.parent)
+    # with matching ground truth, only the count differs from the manifest
+    np.save(gardens / "gardens_gt.npy", np.load(gardens / "gardens_gt.npy", allow_pickle=True)[:198], allow_pickle=True)
+    with pytest.warns(UserWarning, match="198 query images .* the manifest expects 200"):
+        load_dataset("gardens-point", gardens.parent)
+    with pytest.raises(VPRBenchError, match="expects 200.*--strict"):
+        load_dataset("gardens-point", gardens.parent, strict=True)
+    report = verify_dataset("gardens-point", gardens.parent)
+    assert report.ok and report.warnings[0] == "198 query images, the manifest expects 200 (+2)"
+    strict = verify_dataset("gardens-point", gardens.parent, strict=True)
+    assert not strict.ok and strict.problems == ["198 query images, the manifest expects 200 (+2)"]
+
+
+def test_unreadable_ground_truth_is_a_clear_error(gardens):
+    (gardens / "gardens_gt.npy").write_bytes(b"not a numpy file")
+    with pytest.raises(VPRBenchError, match=r"Cannot read ground truth .*gardens_gt.npy.*re-download"):
+        load_dataset("gardens-point", gardens.parent)
+    report = verify_dataset("gardens-point", gardens.parent)
+    assert not report.ok and "gardens_gt.npy" in report.problems[0]
+
+
+def test_ground_truth_pointing_past_the_database(gardens, save_rows):
+    save_rows(gardens / "gardens_gt.npy", [[250]] * 200)
+    with pytest.raises(VPRBenchError, match="points past the 200 database images"):
+        load_dataset("gardens-point", gardens.parent).positives
+
+
+def test_verify_reports_missing_paths_and_corrupt_images(gardens, tmp_path):
+    report = verify_dataset("gardens-point", tmp_path)
+    assert not report.ok and report.problems[0].startswith(f"folder {tmp_path / 'gardens'} does not exist")
+
+    (gardens / "day_right" / "Image000.jpg").unlink()
+    (gardens / "day_right" / "Image000.jpg").write_bytes(b"broken jpeg")
+    report = verify_dataset("gardens-point", gardens.parent, sample=3)
+    assert report.images_checked == 6
+    assert report.problems == [report.problems[0]] and "Cannot read image" in report.problems[0]
+    assert "Image000.jpg" in report.problems[0]
+
+    with pytest.raises(VPRBenchError, match="--sample must be 0 or more"):
+        verify_dataset("gardens-point", gardens.parent, sample=-1)
+    assert verify_dataset("gardens-point", gardens.parent, sample=0).images_checked == 0
+
+    (gardens / "gardens_gt.npy").unlink()
+    report = verify_dataset("gardens-point", gardens.parent)
+    assert report.problems == [
+        "layout 'folders' (day_right/, night_right/, gardens_gt.npy) is missing: gardens_gt.npy",
+        "layout 'vpr-bench' (ref/, query/, ground_truth_new.npy) is missing: ref/, query/, ground_truth_new.npy",
+    ]
+
+
+def test_verify_netvlad_mat_with_missing_images(tmp_path, make_images):
+    from scipy.io import savemat
+
+    root = tmp_path / "Oxford_Robotcar"
+    make_images(root / "oxDataPart", ["a.png"])
+    struct = np.empty((1, 8), dtype=object)
+    for k, value in enumerate((np.array(["a.png", "b.png"]), np.zeros((2, 2)), np.array(["c.png"]), np.zeros((1, 2)), 2, 1, 25, 625)):
+        struct[0, k] = value
+    savemat(root / "oxdatapart.mat", {"dbStruct": struct})
+    with pytest.raises(VPRBenchError, match=r"2 image\(s\) named in oxdatapart.mat are missing .* e.g. b.png"):
+        load_dataset("oxford", tmp_path)
+
+
+def test_import_validates_before_registering(tmp_path, gardens, monkeypatch):
+    data_root = tmp_path / "data"
+    broken = tmp_path / "broken"
+    (broken / "day_right").mkdir(parents=True)
+    with pytest.raises(VPRBenchError, match="missing folder 'night_right'"):
+        import_dataset("gardens-point", broken, data_root)
+    assert not (data_root / "datasets.json").exists()  # nothing half-imported
+
+    dataset = import_dataset("gardens-point", gardens, data_root)
+    assert (len(dataset.database), len(dataset.queries)) == (200, 200)
+    assert read_registry(data_root) == {"gardens-point": str(gardens.resolve())}
+    assert load_dataset("gardens-point", data_root).root == gardens.resolve()
+    assert datasets.is_on_disk("gardens-point", data_root) and not datasets.is_on_disk("hawkins", data_root)
+    # a later failed import of another dataset leaves the registry as it was
+    with pytest.raises(VPRBenchError):
+        import_dataset("hawkins", broken, data_root)
+    assert read_registry(data_root) == {"gardens-point": str(gardens.resolve())}
+
+
+def test_import_strict_refuses_wrong_counts(tmp_path, gardens, save_rows):
+    (gardens / "day_right" / "Image199.jpg").unlink()
+    save_rows(gardens / "gardens_gt.npy", [range(max(0, i - 2), min(199, i + 3)) for i in range(200)])
+    with pytest.raises(VPRBenchError, match="199 database images .* expects 200"):
+        import_dataset("gardens-point", gardens, tmp_path / "data", strict=True)
+    assert read_registry(tmp_path / "data") == {}
+
+
+def test_damaged_registry_is_a_clear_error(tmp_path):
+    (tmp_path / "datasets.json").write_text("{not json")
+    with pytest.raises(VPRBenchError, match="Cannot read the dataset registry .*datasets.json"):
+        load_dataset("hawkins", tmp_path)
+
+
+def test_download_without_direct_source_prints_instructions(tmp_path):
+    with pytest.raises(VPRBenchError, match=r"no direct download\. Download baidu_datasets.tar.gz from the AnyLoc public release"):
+        datasets.download_dataset("baidu-mall", tmp_path)
+
+
+def test_download_with_direct_source_checks_counts(tmp_path, monkeypatch, shared_data):
+    """The pooch download is replaced by a local copy (tests never touch the network)."""
+    import shutil
+
+    calls = []
+
+    def fake_download(manifest, root, progress=True):
+        calls.append(manifest.name)
+        shutil.copytree(shared_data / "corridor", root)
+        return root
+
+    monkeypatch.setattr(datasets, "download", fake_download)
+    dataset = datasets.download_dataset("corridor", tmp_path)
+    assert calls == ["corridor"] and (len(dataset.database), len(dataset.queries)) == (111, 111)
+    datasets.download_dataset("corridor", tmp_path)  # already there: not fetched again
+    assert calls == ["corridor"]
+
+
+def test_cli_import_verify_list_info(tmp_path, gardens, capsys):
+    data = ["--data-dir", str(tmp_path / "data")]
+    assert run("datasets", "import", "gardens-point", str(gardens), *data) == 0
+    assert "Imported 'gardens-point'" in capsys.readouterr().out
+    assert run("datasets", "verify", "gardens-point", "--json", *data) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["ok"] and report["layout"] == "folders"
+    assert report["summary"]["positive_pairs"] == 200 * 5 - 6
+    assert run("datasets", "verify", "hawkins", *data) == 1
+    out = capsys.readouterr().out
+    assert out.startswith("hawkins: PROBLEMS") and "does not exist" in out
+    assert main(["datasets", "download", "hawkins", *data]) == 1
+    assert "no direct download" in capsys.readouterr().err
+    # list and info see the imported copy
+    assert run("datasets", "list", "--json", *data) == 0
+    rows = {r["name"]: r for r in json.loads(capsys.readouterr().out)}
+    assert rows["gardens-point"]["on_disk"] and not rows["hawkins"]["on_disk"]
+    assert (rows["gardens-point"]["radius"], rows["gardens-point"]["radius_unit"]) == (2, "frames")
+    assert run("datasets", "info", "gardens-point", "--json", *data) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert (info["database"], info["queries"], info["queries_with_positives"], info["positive_pairs"]) == (200, 200, 200, 994)
+    assert (info["unit"], info["radius"], info["radius_unit"], info["domain"]) == ("positives", 2, "frames", "indoor")
+    assert info["layout"] == "folders" and "night_right" in info["notes"]

@@ -1,0 +1,88 @@
+"""The user's own data: folders + positions.csv (metres, lat/lon, frames) or UTM file names."""
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from vprbench.datasets import load_dataset
+from vprbench.errors import VPRBenchError
+
+
+@pytest.fixture
+def mydata(tmp_path, make_images):
+    root = tmp_path / "mydata"
+    make_images(root / "database", [f"{i:03d}.jpg" for i in range(5)])
+    make_images(root / "queries", ["q0.jpg", "q1.jpg"])
+    return root
+
+
+def images(root):
+    return [f"database/{i:03d}.jpg" for i in range(5)] + ["queries/q0.jpg", "queries/q1.jpg"]
+
+
+def test_latitude_longitude_become_metres(mydata):
+    # database every 0.0001 degree of latitude (about 11.1 m) north of 48.85 N; queries at 0 and 15 m
+    lat = [48.85 + 0.0001 * i for i in range(5)] + [48.85, 48.85 + 15 / 111_200]
+    pd.DataFrame({"image": images(mydata), "latitude": lat, "longitude": [2.35] * 7}).to_csv(mydata / "positions.csv", index=False)
+    dataset = load_dataset(str(mydata))
+    northing = dataset.ground_truth.database_positions[:, 1]
+    assert np.diff(northing) == pytest.approx(11.12, abs=0.02)
+    # 25 m default radius: query 0 reaches 0, 11, 22 m; query 1 (15 m) reaches 0..40 m
+    assert [p.tolist() for p in dataset.positives] == [[0, 1, 2], [0, 1, 2, 3]]
+    assert dataset.summary()["unit"] == "metres" and dataset.summary()["radius"] == 25
+
+
+def test_frames_need_a_radius_and_use_it(mydata):
+    pd.DataFrame({"image": images(mydata), "frame": [0, 1, 2, 3, 4, 0, 4]}).to_csv(mydata / "positions.csv", index=False)
+    with pytest.raises(VPRBenchError, match="radius = N"):
+        load_dataset(str(mydata))
+    (mydata / "dataset.toml").write_text('name = "mine"\nradius = 1\ndomain = "indoor"\n')
+    dataset = load_dataset(str(mydata))
+    assert [p.tolist() for p in dataset.positives] == [[0, 1], [3, 4]]
+    assert (dataset.name, dataset.domain, dataset.ground_truth.unit) == ("mine", "indoor", "frames")
+
+
+def test_utm_in_file_names(tmp_path, make_images):
+    root = tmp_path / "utm"
+    make_images(root / "database", [f"@{500000 + 30 * i}.0@4000000.0@31@U@@@{i}@.jpg" for i in range(4)])
+    make_images(root / "queries", ["@500040.0@4000000.0@31@U@@@q@.jpg"])
+    dataset = load_dataset(str(root))
+    assert [p.tolist() for p in dataset.positives] == [[1, 2]]  # 10 m and 20 m; 40 m and 50 m are out
+
+
+def test_missing_rows_and_bad_values_are_named(mydata):
+    table = pd.DataFrame({"image": images(mydata)[:-1], "x": range(6), "y": 0})
+    table.to_csv(mydata / "positions.csv", index=False)
+    with pytest.raises(VPRBenchError, match=r"no position for 1 image\(s\), e.g. \['queries/q1.jpg'\]"):
+        load_dataset(str(mydata))
+    table = pd.DataFrame({"image": images(mydata), "x": ["1", "2", "oops", "4", "5", "6", ""], "y": 0})
+    table.to_csv(mydata / "positions.csv", index=False)
+    with pytest.raises(VPRBenchError, match=r"non-numeric positions in 2 row\(s\), e.g. for \['database/002.jpg', 'queries/q1.jpg'\]"):
+        load_dataset(str(mydata))
+    pd.DataFrame({"image": images(mydata), "latitude": 95.0, "longitude": 0.0}).to_csv(mydata / "positions.csv", index=False)
+    with pytest.raises(VPRBenchError, match="latitudes must lie within"):
+        load_dataset(str(mydata))
+
+
+def test_no_positions_and_no_utm_names(mydata):
+    with pytest.raises(VPRBenchError, match="Cannot read UTM coordinates from the file name '000.jpg'.*positions.csv"):
+        load_dataset(str(mydata))
+
+
+def test_missing_queries_folder_is_named(tmp_path, make_images):
+    make_images(tmp_path / "mine" / "database", ["a.jpg"])
+    with pytest.raises(VPRBenchError, match=r"expected folder 'queries' under .*mine \(layout 'own'\) but it is missing. Put the database images"):
+        load_dataset(str(tmp_path / "mine"))
+
+
+def test_verify_own_data(mydata):
+    from vprbench.datasets import verify_dataset
+
+    pd.DataFrame({"image": images(mydata), "x": [0, 10, 20, 30, 40, 0, 400], "y": 0}).to_csv(mydata / "positions.csv", index=False)
+    report = verify_dataset(str(mydata))
+    assert report.ok and report.layout == "own" and report.images_checked == 7
+    assert report.warnings == ["1 queries have no positive (they count as failures in Recall@K)"]
+    assert report.summary["positive_pairs"] == 3
+    missing = verify_dataset(str(mydata / "nope"))
+    assert not missing.ok and "does not exist" in missing.problems[0]

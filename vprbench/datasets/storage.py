@@ -1,0 +1,93 @@
+"""Where each dataset lives: the data root's default folder, or a copy registered with `import`.
+
+`vprbench datasets import NAME PATH` records NAME -> PATH in `datasets.json` in the data
+root, after the copy at PATH has been read completely (layout, images, ground truth), so a
+failed import leaves nothing behind.
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import warnings
+from pathlib import Path
+
+from ..errors import VPRBenchError
+from .layouts import read_layout
+from .manifest import DatasetManifest, data_root, dataset_manifest
+from .model import Dataset
+
+REGISTRY = "datasets.json"
+
+
+def registry_path(data_dir=None) -> Path:
+    return data_root(data_dir) / REGISTRY
+
+
+def read_registry(data_dir=None) -> dict[str, str]:
+    path = registry_path(data_dir)
+    if not path.is_file():
+        return {}
+    try:
+        entries = json.loads(path.read_text())
+        if not isinstance(entries, dict):
+            raise ValueError("expected a JSON object of name -> path")
+    except (OSError, ValueError) as error:
+        raise VPRBenchError(f"Cannot read the dataset registry {path}: {error}. Fix or delete it, then import again.") from None
+    return {str(k): str(v) for k, v in entries.items()}
+
+
+def write_registry(entries: dict[str, str], data_dir=None) -> Path:
+    """Write atomically (temporary file + rename), so a crash never leaves half a registry."""
+    path = registry_path(data_dir)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=".datasets-", suffix=".json")
+    with os.fdopen(handle, "w") as file:
+        json.dump(dict(sorted(entries.items())), file, indent=2)
+    os.replace(temporary, path)
+    return path
+
+
+def dataset_location(manifest: DatasetManifest, data_dir=None) -> Path:
+    """The imported copy if one is registered, else <data root>/<manifest directory>."""
+    registered = read_registry(data_dir).get(manifest.name)
+    return Path(registered) if registered else data_root(data_dir) / manifest.directory
+
+
+def check_counts(dataset: Dataset, manifest: DatasetManifest, strict: bool) -> list[str]:
+    """Messages for counts that differ from the manifest; raises instead when strict."""
+    messages = []
+    for split, expected, found in (
+        ("database", manifest.database_count, len(dataset.database)),
+        ("query", manifest.query_count, len(dataset.queries)),
+    ):
+        if expected is not None and expected != found:
+            messages.append(f"Dataset {manifest.name!r}: {found} {split} images at {dataset.root}, the manifest expects {expected}.")
+    if messages and strict:
+        raise VPRBenchError(" ".join(messages) + " (--strict)")
+    for message in messages:
+        warnings.warn(message, stacklevel=3)
+    return messages
+
+
+def import_dataset(name: str, path: str | Path, data_dir=None, strict: bool = False) -> Dataset:
+    """Register an existing copy of dataset `name` at `path`, after checking it reads completely."""
+    manifest = dataset_manifest(name)
+    root = Path(path).expanduser().resolve()
+    if not root.is_dir():
+        raise VPRBenchError(f"Cannot import {name!r}: {root} is not a folder.")
+    dataset = read_layout(root, manifest)  # raises, naming what is missing, before anything is written
+    dataset.positives  # ground truth must match the images  # noqa: B018
+    check_counts(dataset, manifest, strict)
+    entries = read_registry(data_dir)
+    entries[name] = str(root)
+    write_registry(entries, data_dir)
+    return dataset
+
+
+def forget_dataset(name: str, data_dir=None) -> bool:
+    entries = read_registry(data_dir)
+    if entries.pop(name, None) is None:
+        return False
+    write_registry(entries, data_dir)
+    return True

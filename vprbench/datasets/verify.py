@@ -1,0 +1,108 @@
+"""`vprbench datasets verify NAME`: is the dataset on disk complete and readable?
+
+Checks, in order, and reports exactly what is missing or wrong: the folder, the layout's
+expected folders and files, the image and query counts against the manifest (a warning, an
+error with strict), the ground truth (readable, one entry per query, indices inside the
+database), and a sample of images (decoded; all of them when sample is None).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import VPRBenchError
+from ..images import load_image
+from .download import how_to_get
+from .layouts import candidates, describe_layout, detect_layout, missing_paths, read_layout
+from .manifest import dataset_manifest
+from .storage import dataset_location
+
+
+@dataclass
+class VerifyReport:
+    name: str
+    root: Path
+    layout: str = ""
+    problems: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    summary: dict = field(default_factory=dict)
+    images_checked: int = 0
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+    def lines(self) -> list[str]:
+        head = f"{self.name}: {'OK' if self.ok else 'PROBLEMS'} at {self.root}" + (f" (layout {self.layout})" if self.layout else "")
+        body = [f"  error: {p}" for p in self.problems] + [f"  warning: {w}" for w in self.warnings]
+        if self.summary:
+            s = self.summary
+            body.append(
+                f"  {s['database']} database, {s['queries']} queries, {s['queries_with_positives']} queries with a positive, "
+                f"{s['positive_pairs']} positive pairs ({s['unit']}, radius {s['radius']} {s.get('radius_unit') or ''}); {self.images_checked} images decoded"
+            )
+        return [head, *body]
+
+
+def sample_paths(paths: list[Path], sample: int | None) -> list[Path]:
+    """Evenly spaced (deterministic) sample, always including the first and last."""
+    if sample is None or sample >= len(paths):
+        return list(paths)
+    return [paths[i] for i in np.unique(np.linspace(0, len(paths) - 1, sample).round().astype(int))]
+
+
+def verify_dataset(name: str, data_dir=None, strict: bool = False, sample: int | None = 20) -> VerifyReport:
+    """`name` is a dataset name, or a folder of the user's own data (a path)."""
+    if sample is not None and sample < 0:
+        raise VPRBenchError(f"--sample must be 0 or more images per split, got {sample}")
+    if "/" in name or name.startswith(".") or Path(name).is_dir():
+        from .layouts.own_data import own_manifest
+
+        root = Path(name).expanduser()
+        if not root.is_dir():
+            return VerifyReport(name=name, root=root, problems=[f"folder {root} does not exist"])
+        manifest = own_manifest(root)
+    else:
+        manifest = dataset_manifest(name)
+        root = dataset_location(manifest, data_dir)
+    report = VerifyReport(name=name, root=root)
+    if not root.is_dir():
+        report.problems.append(f"folder {root} does not exist. {how_to_get(manifest, root)}")
+        return report
+    try:
+        chosen = detect_layout(root, manifest)
+    except VPRBenchError:
+        for candidate in candidates(manifest):
+            report.problems.append(f"{describe_layout(candidate)} is missing: {', '.join(missing_paths(root, candidate))}")
+        return report
+    report.layout = chosen.layout
+    try:
+        dataset = read_layout(root, manifest)
+    except VPRBenchError as error:
+        report.problems.append(str(error))
+        return report
+    for split, expected, paths in (("database", chosen.database_count, dataset.database), ("query", chosen.query_count, dataset.queries)):
+        if expected is not None and expected != len(paths):
+            message = f"{len(paths)} {split} images, the manifest expects {expected} ({expected - len(paths):+d})"
+            (report.problems if strict else report.warnings).append(message)
+    absent = [p for p in dataset.database + dataset.queries if not p.is_file()]
+    if absent:
+        report.problems.append(f"{len(absent)} listed image(s) are missing, e.g. {', '.join(str(p) for p in absent[:5])}")
+    try:
+        report.summary = dataset.summary()
+    except VPRBenchError as error:
+        report.problems.append(str(error))
+    else:
+        without = report.summary["queries"] - report.summary["queries_with_positives"]
+        if without:
+            report.warnings.append(f"{without} queries have no positive (they count as failures in Recall@K)")
+    for path in sample_paths(dataset.database, sample) + sample_paths(dataset.queries, sample):
+        if path.is_file():
+            try:
+                load_image(path)
+            except VPRBenchError as error:
+                report.problems.append(str(error))
+            report.images_checked += 1
+    return report
