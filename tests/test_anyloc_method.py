@@ -129,3 +129,17 @@ def test_patch_feature_stream_in_input_order(weights, corridor, shared_data):
     np.testing.assert_allclose(torch.stack(feats).norm(dim=-1).numpy(), 1, atol=1e-5)
     native = list(m.iter_patch_features([queries[0], tokyo]))
     assert [tuple(f.shape) for f in native] == [(88, 384), (45 * 34, 384)]
+
+
+def test_dino_v1_path_end_to_end(corridor, tmp_path):
+    torch.manual_seed(3)
+    spec = backbone_spec("dino_vits8")
+    torch.save(official_state_dict(create_model(spec), spec), tmp_path / spec.file_name)
+    torch.save(torch.randn(2, 384), tmp_path / "c.pt")
+    _, queries = corridor
+    # weights given as the folder holding the official file
+    m = create_method("anyloc-vlad-dino", weights=str(tmp_path), layer=1, clusters=2, vocabulary=str(tmp_path / "c.pt"))
+    assert m.stride == 4 and m.fingerprint()["preprocess"] == "dino-official"
+    feats = next(iter(m.iter_patch_features(queries[:1])))
+    assert feats.shape == (55 * 73, 384)  # 224x298 at stride 4: 1 + (224-8)//4 by 1 + (298-8)//4
+    assert m.describe(queries[:1]).shape == (1, 2 * 384)

@@ -83,10 +83,26 @@ def _download(url: str, destination: Path) -> None:
     torch.hub.download_url_to_file(url, str(destination), progress=True)
 
 
+def local_weights_path(spec: BackboneSpec, weights: str | Path) -> Path:
+    """The file `weights` names; a folder of official files gives this backbone's file."""
+    path = Path(weights).expanduser()
+    return path / spec.file_name if path.is_dir() else path
+
+
+def weights_identity(spec: BackboneSpec, weights: str | Path | None) -> str:
+    """'sha256:<hex>' of a local file, else the official URL (nothing is downloaded)."""
+    if weights is None:
+        return spec.url
+    path = local_weights_path(spec, weights)
+    if not path.is_file():
+        raise VPRBenchError(f"Weights file {path} does not exist (backbone {spec.name} expects {spec.file_name}).")
+    return "sha256:" + sha256_of(path)
+
+
 def resolve_weights(spec: BackboneSpec, weights: str | Path | None) -> tuple[Path, str]:
     """(local file, identity). Identity is the official URL for downloaded files, else 'sha256:...'."""
     if weights is not None:
-        path = Path(weights).expanduser()
+        path = local_weights_path(spec, weights)
         if not path.is_file():
             raise VPRBenchError(
                 f"Weights file {path} does not exist. Pass --weights with the path of the official "

@@ -21,7 +21,7 @@ from ..aggregation.policies import paper_vocabulary, resolve_vocabulary
 from ..aggregation.vlad import vlad_hard
 from ..aggregation.vocabulary import fit_vocabulary
 from ..errors import VPRBenchError
-from ..features.backbones import backbone_spec, load_backbone, sha256_of
+from ..features.backbones import backbone_spec, load_backbone, weights_identity
 from ..features.dense import FACETS, DenseExtractor
 from ..features.preprocess import dataset_resize, parse_size, preprocess
 from .base import Method, l2_normalise
@@ -80,7 +80,6 @@ class AnyLoc(Method):
         self.centres: torch.Tensor | None = None
         self._extractor: DenseExtractor | None = None
         self._weights_id: str | None = None
-        self._pca = None
         self.needs_fit = aggregation in VLADS and self.vocabulary == "map"
         if aggregation in VLADS and self.vocabulary != "map":
             self.centres = self._resolve_vocabulary()
@@ -110,15 +109,13 @@ class AnyLoc(Method):
             if self.dataset is None:
                 return None  # resolved in use_dataset()
             spec = paper_vocabulary(self.dataset)
-        layer = self.layer
-        found = resolve_vocabulary(spec, self.backbone, layer, self.facet, self.clusters)
+        found = resolve_vocabulary(spec, self.backbone, self.layer, self.facet, self.clusters)
         return found.centres.float()
 
     # ------------------------------------------------------------ identity
     def weights_identity(self) -> str:
         if self._weights_id is None:
-            self._weights_id = ("sha256:" + sha256_of(Path(self.weights).expanduser())
-                                if self.weights else self.spec.url)
+            self._weights_id = weights_identity(self.spec, self.weights)
         return self._weights_id
 
     def fingerprint(self) -> dict:
@@ -129,6 +126,8 @@ class AnyLoc(Method):
             "preprocess": f"{self.family}-official", "stride": self.stride,
             "resize": list(self.resize) if self.resize else "native", "precision": self.precision,
         }
+        if self.aggregation == "cls" and self.family == "dinov2":
+            fp["layer"], fp["facet"] = "final-norm", "cls"  # layer/facet options do not apply
         if self.aggregation in VLADS:
             fp["clusters"] = self.clusters
             # a named or file vocabulary is identified by its centres' bytes
