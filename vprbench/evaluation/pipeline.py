@@ -63,6 +63,7 @@ def evaluate(method: Method, dataset: Dataset, *, ks=DEFAULT_KS, cache_dir=None,
     started = time.perf_counter()
     ks = check_ks(ks, len(dataset.database))
     positives = dataset.positives
+    method.use_dataset(dataset.name)
     fingerprint = {"method": method.name, **method.fingerprint()}
     key = dataset.fingerprint()
     stores = {

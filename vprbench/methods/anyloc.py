@@ -17,7 +17,7 @@ import torch.nn.functional as F
 
 from ..aggregation import pooling, vlad
 from ..aggregation.pca import PCAWhitening
-from ..aggregation.policies import paper_vocabulary, resolve_vocabulary
+from ..aggregation.policies import paper_vocabulary, resolve_vocabulary, vocabulary_images
 from ..aggregation.vlad import vlad_hard
 from ..aggregation.vocabulary import fit_vocabulary
 from ..errors import VPRBenchError
@@ -208,6 +208,8 @@ class AnyLoc(Method):
     def fit(self, database: Sequence[Path]) -> None:
         if not self.needs_fit:
             return
+        if self.dataset is not None:  # as the authors: no distractors, the dataset's stride
+            database = vocabulary_images(self.dataset, database)
         # one image's features at a time into the bounded-memory sampler of fit_vocabulary
         self.centres = fit_vocabulary(self.iter_patch_features(database), self.clusters).centres.float()
 

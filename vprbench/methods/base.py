@@ -27,6 +27,11 @@ class Method(ABC):
     #: images handed to one `describe` call by the pipeline
     batch_size: int = 16
 
+    def use_dataset(self, name: str) -> None:  # pragma: no cover - default no-op
+        """Called first by an evaluation with the dataset's name: per-dataset settings
+        (e.g. AnyLoc's resize policy and domain vocabulary) must be in place before
+        `fingerprint` and `fit`."""
+
     def fingerprint(self) -> dict:
         return {}
 
