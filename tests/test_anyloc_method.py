@@ -27,9 +27,9 @@ def test_presets_are_the_papers():
     p = presets()
     assert set(p) >= {"anyloc-vlad-dinov2", "anyloc-vlad-dinov2-pca", "anyloc-gem-dinov2", "anyloc-vlad-dino",
                       "anyloc-vlad-dino-pca", "dinov2-cls", "dino-cls"}
-    assert p["anyloc-vlad-dinov2"]["options"] == dict(backbone="dinov2_vitg14", layer=31, facet="value",
+    assert p["anyloc-vlad-dinov2"]["options"] == dict(backbone="dinov2_vitg14", layer_for="dinov2_vitg14:31", facet="value",
                                                       aggregation="vlad", clusters=32, vocabulary="map")
-    assert p["anyloc-vlad-dino"]["options"]["clusters"] == 128 and p["anyloc-vlad-dino"]["options"]["layer"] == 9
+    assert p["anyloc-vlad-dino"]["options"]["clusters"] == 128 and p["anyloc-vlad-dino"]["options"]["layer_for"] == "dino_vits8:9"
     assert p["anyloc-vlad-dinov2-pca"]["options"]["pca_dim"] == 512
     assert set(p) <= set(available_methods())
 
@@ -92,10 +92,20 @@ def test_option_errors(weights):
     with pytest.raises(VPRBenchError, match="does not take option"):
         create_method("anyloc", colour="red")
     with pytest.raises(VPRBenchError, match=r"valid layers are 0\.\.11"):
-        create_method("anyloc-vlad-dinov2", backbone="dinov2_vits14", weights=str(weights)).extractor
+        create_method("anyloc-vlad-dinov2", backbone="dinov2_vits14", weights=str(weights), layer=31).extractor
     m = create_method("anyloc-vlad-dinov2-pca", backbone="dinov2_vits14", weights=str(weights), layer=0)
     with pytest.raises(VPRBenchError, match=r"PCA dimension 512 is larger than the number of database images \(3\)"):
         m.postprocess(np.eye(3, 8, dtype=np.float32), np.eye(2, 8, dtype=np.float32))
+
+
+def test_preset_layer_moves_to_the_same_relative_depth_on_another_backbone(weights):
+    assert create_method("anyloc-vlad-dinov2").layer == 31
+    with pytest.warns(UserWarning, match="block 9 at the same relative depth"):
+        assert create_method("anyloc-vlad-dinov2", backbone="dinov2_vits14").layer == 9  # 31/39 of 11 blocks
+    with pytest.warns(UserWarning, match="block 18"):
+        assert create_method("anyloc-gem-dinov2", backbone="dinov2_vitl14").layer == 18
+    assert create_method("anyloc-vlad-dinov2", backbone="dinov2_vits14", layer=4).layer == 4  # the user's choice
+    assert create_method("anyloc-vlad-dino", backbone="dino_vitb16").layer == 9  # same depth: unchanged
 
 
 def test_dataset_resize_policy_feeds_fingerprint(weights):

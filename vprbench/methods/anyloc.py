@@ -6,6 +6,7 @@ PCA; the paper's variants are presets (data in manifests/methods/anyloc.toml).
 from __future__ import annotations
 
 import hashlib
+import warnings
 import tomllib
 from collections.abc import Sequence
 from importlib.resources import files
@@ -49,7 +50,8 @@ def _aggregate(name: str, feats: torch.Tensor, centres: torch.Tensor | None, gem
 class AnyLoc(Method):
     """Global descriptors from one block/facet of DINOv2 or DINO, aggregated."""
 
-    def __init__(self, *, backbone: str = "dinov2_vitg14", weights: str | None = None, layer: int = 31,
+    def __init__(self, *, backbone: str = "dinov2_vitg14", weights: str | None = None, layer: int | None = None,
+                 layer_for: str = "dinov2_vitg14:31",
                  facet: str = "value", aggregation: str = "vlad", clusters: int = 32,
                  vocabulary: str = "map", resize=None, pca_dim: int | None = None, batch_size: int = 8,
                  precision: str = "fp32", device: str = "cpu", dataset: str | None = None,
@@ -69,7 +71,13 @@ class AnyLoc(Method):
             raise VPRBenchError(f"batch_size must be at least 1, got {batch_size}")
         if aggregation in VLADS and int(clusters) < 1:
             raise VPRBenchError(f"clusters must be at least 1, got {clusters}")
-        self.backbone, self.weights, self.layer, self.facet = backbone, weights, int(layer), facet
+        self.backbone, self.weights, self.facet = backbone, weights, facet
+        if layer is not None:
+            self.layer = int(layer)
+        elif aggregation == "cls" and self.family == "dinov2":
+            self.layer = self.spec.depth - 1  # the CLS comes from the final norm: no layer to choose
+        else:
+            self.layer = self._preset_layer(layer_for)
         self.aggregation, self.clusters, self.vocabulary = aggregation, int(clusters), str(vocabulary)
         self.user_resize = parse_size(resize)
         self.pca_dim = int(pca_dim) if pca_dim else None
@@ -85,6 +93,19 @@ class AnyLoc(Method):
             self.centres = self._resolve_vocabulary()
 
     # ------------------------------------------------------------ configuration
+    def _preset_layer(self, layer_for: str) -> int:
+        """A preset's layer is given for its own backbone ("dinov2_vitg14:31"); on another
+        backbone without --layer, the block at the same relative depth is used, and said."""
+        reference, _, layer = layer_for.partition(":")
+        if reference == self.backbone:
+            return int(layer)
+        depth, reference_depth = self.spec.depth, backbone_spec(reference).depth
+        chosen = round(int(layer) * (depth - 1) / (reference_depth - 1))
+        warnings.warn(f"layer {layer} is {reference}'s ({reference_depth} blocks); on {self.backbone} "
+                      f"({depth} blocks) block {chosen} at the same relative depth is used. Pass --layer to choose.",
+                      stacklevel=2)
+        return chosen
+
     def use_dataset(self, name: str) -> None:
         """Tell the method which dataset it runs on (AnyLoc's per-dataset resize, domain vocabularies)."""
         self.dataset = name
