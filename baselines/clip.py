@@ -13,7 +13,6 @@ OpenCLIP's own transform (shorter side 224 bicubic, centre crop 224, CLIP mean/s
 """
 from __future__ import annotations
 
-import pickle
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +27,7 @@ from vprbench import VPRBenchError, register_method
 from vprbench.errors import closest_names
 from vprbench.images import load_image
 from vprbench.paths import cache_root
+from vprbench.weights import read_torch_file
 
 from .common import IMAGENET_MEAN, IMAGENET_STD, TorchMethod, as_resize, choose, file_sha256, load_exact, state_dict_of
 
@@ -145,19 +145,15 @@ def _how_to_get(backbone: str, pretrained: str | None) -> str:
 
 
 def _read(path: Path) -> dict:
-    try:
-        if path.suffix == ".safetensors":
-            from safetensors.torch import load_file
+    if path.suffix == ".safetensors":
+        from safetensors.torch import load_file
 
+        try:
             return load_file(str(path))
-        try:  # mmap: the 10 GB ViT-bigG-14 file is not copied into memory a second time
-            checkpoint = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
-        except RuntimeError:  # files in torch's legacy (non-zip) format cannot be mapped
-            checkpoint = torch.load(path, map_location="cpu", weights_only=True)
-        return state_dict_of(checkpoint)
-    # what torch's unpickler raises on a truncated or foreign file
-    except (RuntimeError, OSError, EOFError, KeyError, ValueError, pickle.UnpicklingError) as error:
-        raise VPRBenchError(f"{METHOD}: cannot read checkpoint {path}: {error}") from None
+        except (OSError, ValueError, RuntimeError) as error:  # safetensors' error is a RuntimeError-like
+            raise VPRBenchError(f"{METHOD}: cannot read checkpoint {path}: {error}") from None
+    # mmap: the 10 GB ViT-bigG-14 file is not copied into memory a second time
+    return state_dict_of(read_torch_file(path, f"{METHOD} checkpoint", mmap=True))
 
 
 def load_image_tower(backbone: str, path: Path) -> nn.Module:

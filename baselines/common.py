@@ -5,9 +5,7 @@ Only the public vprbench API is used here, as a third-party plugin would.
 """
 from __future__ import annotations
 
-import hashlib
 import os
-import pickle
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,6 +18,7 @@ from vprbench import Method, VPRBenchError
 from vprbench.images import load_image
 from vprbench.methods import l2_normalise
 from vprbench.paths import cache_root
+from vprbench.weights import file_sha256, read_torch_file  # noqa: F401  (baselines import file_sha256 from here)
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -88,47 +87,6 @@ def weights_dir() -> Path:
     return cache_root() / "torch" / "hub" / "checkpoints"
 
 
-def file_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
-def _numpy_globals() -> list:
-    """numpy scalars/arrays that training checkpoints pickle beside the tensors (scores, recalls),
-    under their numpy 1.x and 2.x module names."""
-    try:
-        from numpy._core import multiarray
-    except ImportError:  # numpy 1.x
-        from numpy.core import multiarray
-    allowed = [np.dtype, np.ndarray]
-    allowed += [getattr(np.dtypes, n) for n in dir(np.dtypes) if n.endswith("DType")]  # numpy's dtype classes
-    for module in ("numpy.core.multiarray", "numpy._core.multiarray"):
-        allowed += [(multiarray.scalar, f"{module}.scalar"), (multiarray._reconstruct, f"{module}._reconstruct")]
-    return allowed
-
-
-def _torch_load(path: Path):
-    """Tensors, containers and numpy scalars only: a checkpoint never runs code when loaded."""
-    try:
-        with torch.serialization.safe_globals(_numpy_globals()):
-            return torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError:
-        try:
-            extra = ", ".join(torch.serialization.get_unsafe_globals_in_checkpoint(path))
-        except (RuntimeError, ValueError):  # only zip-format files can be inspected
-            extra = "objects of unknown types"
-        raise VPRBenchError(
-            f"Checkpoint {path} also holds Python objects ({extra}), which are not loaded because "
-            "unpickling them can run code. If you trust the file, save its weights alone, e.g. "
-            "torch.save(torch.load(FILE, weights_only=False)['state_dict'], 'weights.pth'), and pass that."
-        ) from None
-    except (RuntimeError, EOFError, OSError) as error:
-        raise VPRBenchError(f"Cannot read checkpoint {path}: {error}. Is it a complete PyTorch file?") from None
-
-
 def load_checkpoint(weights: str | os.PathLike | None, source: WeightSource, method: str):
     """The checkpoint object and the weights identity for the fingerprint.
 
@@ -140,7 +98,7 @@ def load_checkpoint(weights: str | os.PathLike | None, source: WeightSource, met
         path = Path(weights).expanduser()
         if not path.is_file():
             raise VPRBenchError(f"{method}: weights file {path} does not exist; {source.how_to_get()}.")
-        return _torch_load(path), {"weights_sha256": file_sha256(path)}
+        return read_torch_file(path), {"weights_sha256": file_sha256(path)}
     if source.url is None:
         raise VPRBenchError(
             f"{method}: the authors publish {source.file_name} only at {source.page}, which cannot be "
@@ -157,7 +115,7 @@ def load_checkpoint(weights: str | os.PathLike | None, source: WeightSource, met
                 f"{method}: could not download {source.file_name} from {source.url} ({error}). "
                 f"Offline? {source.how_to_get()}."
             ) from None
-    return _torch_load(target), identity
+    return read_torch_file(target), identity
 
 
 def state_dict_of(checkpoint, keys: Sequence[str] = ("state_dict", "model_state_dict")) -> dict:

@@ -107,3 +107,4 @@ def test_torn_partial_file_is_discarded(tmp_path):
     store.write_rows(handle, [0, 1], np.ones((2, 4), np.float32))
     store.finish(handle)
     assert store.complete and store.read().shape == (2, 4)
+

@@ -114,7 +114,7 @@ def test_legacy_format_file_and_unreadable_file(tmp_path, tiny_weights):
     method = create_method("clip-cls", backbone=TINY, weights=str(tmp_path / "legacy.pt"))
     assert method.fingerprint()["weights_sha256"] == clip.file_sha256(tmp_path / "legacy.pt")
     (tmp_path / "broken.bin").write_bytes(b"half a file")
-    with pytest.raises(VPRBenchError, match="cannot read checkpoint .*broken.bin"):
+    with pytest.raises(VPRBenchError, match="Cannot read clip-cls checkpoint .*broken.bin: it is damaged or not a PyTorch file"):
         create_method("clip-cls", backbone=TINY, weights=str(tmp_path / "broken.bin"))
 
 

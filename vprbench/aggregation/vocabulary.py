@@ -27,6 +27,7 @@ import torch.nn.functional as F
 
 from ..errors import VPRBenchError
 from ..paths import cache_root
+from ..weights import read_torch_file
 
 #: AnyLoc's k-means settings (fast_pytorch_kmeans 0.1.6 defaults + AnyLoc's seed)
 KMEANS_SEED, KMEANS_MAX_ITER, KMEANS_TOL = 42, 100, 1e-4
@@ -179,10 +180,7 @@ def load_vocabulary(path: str | Path) -> Vocabulary:
     if path.suffix == ".npy":
         data = np.load(path)
     else:
-        try:
-            data = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # torch raises several types for a non-torch file
-            raise VPRBenchError(f"Vocabulary file {path} is not a readable torch file: {exc}") from exc
+        data = read_torch_file(path, "vocabulary file")
     meta = {}
     if isinstance(data, dict):
         if "centres" not in data:

@@ -6,7 +6,6 @@ downloaded once from the official release URL into the torch hub cache.
 """
 from __future__ import annotations
 
-import hashlib
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,6 +15,7 @@ from torch import nn
 
 from ..errors import VPRBenchError, closest_names
 from ..paths import cache_root
+from ..weights import file_sha256, read_torch_file
 
 
 @dataclass(frozen=True)
@@ -97,7 +97,7 @@ def weights_identity(spec: BackboneSpec, weights: str | Path | None) -> str:
     path = local_weights_path(spec, weights)
     if not path.is_file():
         raise VPRBenchError(f"Weights file {path} does not exist (backbone {spec.name} expects {spec.file_name}).")
-    return "sha256:" + sha256_of(path)
+    return "sha256:" + file_sha256(path)
 
 
 def resolve_weights(spec: BackboneSpec, weights: str | Path | None) -> tuple[Path, str]:
@@ -109,7 +109,7 @@ def resolve_weights(spec: BackboneSpec, weights: str | Path | None) -> tuple[Pat
                 f"Weights file {path} does not exist. Pass --weights with the path of the official "
                 f"checkpoint {spec.file_name} for backbone {spec.name} (from {spec.url})."
             )
-        return path, "sha256:" + sha256_of(path)
+        return path, "sha256:" + file_sha256(path)
     path = hub_checkpoint_dir() / spec.file_name
     if not path.is_file():
         try:
@@ -123,30 +123,8 @@ def resolve_weights(spec: BackboneSpec, weights: str | Path | None) -> tuple[Pat
     return path, spec.url
 
 
-_SHA256: dict[tuple, str] = {}
-
-
-def sha256_of(path: Path) -> str:
-    stat = path.stat()
-    key = (str(path.resolve()), stat.st_mtime_ns, stat.st_size)
-    if key not in _SHA256:
-        _SHA256[key] = file_sha256(path)
-    return _SHA256[key]
-
-
-def file_sha256(path: Path, chunk: int = 1 << 22) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        while block := handle.read(chunk):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def read_checkpoint(path: Path) -> dict[str, torch.Tensor]:
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # torch raises many types for a corrupt or foreign file
-        raise VPRBenchError(f"Cannot read weights file {path}: {error}") from None
+    state = read_torch_file(path, "weights file")
     # DINO v1 training checkpoints wrap the weights; the released *_pretrain.pth are flat
     for key in ("teacher", "model", "state_dict"):
         if isinstance(state, dict) and isinstance(state.get(key), dict):

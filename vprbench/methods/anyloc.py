@@ -97,9 +97,9 @@ class AnyLoc(Method):
         """A preset's layer is given for its own backbone ("dinov2_vitg14:31"); on another
         backbone without --layer, the block at the same relative depth is used, and said."""
         reference, _, layer = layer_for.partition(":")
-        if reference == self.backbone:
-            return int(layer)
         depth, reference_depth = self.spec.depth, backbone_spec(reference).depth
+        if depth == reference_depth:
+            return int(layer)
         chosen = round(int(layer) * (depth - 1) / (reference_depth - 1))
         warnings.warn(f"layer {layer} is {reference}'s ({reference_depth} blocks); on {self.backbone} "
                       f"({depth} blocks) block {chosen} at the same relative depth is used. Pass --layer to choose.",

@@ -1,0 +1,77 @@
+"""Weight files, for every method that loads them: read safely, named by their content."""
+from __future__ import annotations
+
+import hashlib
+import pickle
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from .errors import VPRBenchError
+
+_SHA256: dict[tuple, str] = {}
+
+
+def file_sha256(path: str | Path, chunk: int = 1 << 22) -> str:
+    """Hex sha256 of a file's bytes; remembered per (path, mtime, size), so multi-GB files hash once."""
+    path = Path(path)
+    stat = path.stat()
+    key = (str(path.resolve()), stat.st_mtime_ns, stat.st_size)
+    if key not in _SHA256:
+        digest = hashlib.sha256()
+        with open(path, "rb") as handle:
+            while block := handle.read(chunk):
+                digest.update(block)
+        _SHA256[key] = digest.hexdigest()
+    return _SHA256[key]
+
+
+def _numpy_globals() -> list:
+    """numpy scalars/arrays that training checkpoints pickle beside the tensors (scores, recalls),
+    under their numpy 1.x and 2.x module names."""
+    try:
+        from numpy._core import multiarray
+    except ImportError:  # numpy 1.x
+        from numpy.core import multiarray
+    allowed = [np.dtype, np.ndarray]
+    allowed += [getattr(np.dtypes, n) for n in dir(np.dtypes) if n.endswith("DType")]
+    for module in ("numpy.core.multiarray", "numpy._core.multiarray"):
+        allowed += [(multiarray.scalar, f"{module}.scalar"), (multiarray._reconstruct, f"{module}._reconstruct")]
+    return allowed
+
+
+def read_torch_file(path: str | Path, what: str = "checkpoint", *, mmap: bool = False):
+    """torch.load of tensors, containers and numpy scalars only: loading never runs code.
+
+    `mmap` maps large zip-format files instead of copying them (legacy files are read whole).
+    Any failure is a VPRBenchError naming the file.
+    """
+    import torch
+
+    path = Path(path)
+    try:
+        with torch.serialization.safe_globals(_numpy_globals()):
+            try:
+                return torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
+            except RuntimeError:
+                if not mmap:
+                    raise
+                return torch.load(path, map_location="cpu", weights_only=True)  # legacy format cannot be mapped
+    except pickle.UnpicklingError:
+        try:
+            extra = ", ".join(torch.serialization.get_unsafe_globals_in_checkpoint(path))
+        except (RuntimeError, ValueError, OSError):  # only zip-format files can be inspected
+            extra = ""
+        if not extra:
+            raise VPRBenchError(f"Cannot read {what} {path}: it is damaged or not a PyTorch file.") from None
+        raise VPRBenchError(
+            f"{what.capitalize()} {path} also holds Python objects ({extra}), which are not loaded because "
+            "unpickling them can run code. If you trust the file, save its weights alone, e.g. "
+            "torch.save(torch.load(FILE, weights_only=False)['state_dict'], 'weights.pth'), and pass that."
+        ) from None
+    except (RuntimeError, EOFError, OSError, KeyError, ValueError, IndexError, struct.error) as error:
+        # what torch's unpickler raises on truncated or foreign files
+        raise VPRBenchError(
+            f"Cannot read {what} {path}: it is damaged or not a PyTorch file ({type(error).__name__}: {error})."
+        ) from None
