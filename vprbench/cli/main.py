@@ -19,16 +19,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+def format_warning(message, category, filename, lineno, line=None) -> str:
     """Warnings are for people: one line, no source location."""
-    from rich.console import Console
-
-    Console(stderr=True).print(f"[yellow]warning:[/] {message}", highlight=False)
+    return f"warning: {message}\n"
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    warnings.showwarning = show_warning
+    warnings.formatwarning = format_warning
     try:
         return args.run(args)
     except VPRBenchError as error:
