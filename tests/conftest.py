@@ -14,6 +14,19 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+@pytest.fixture(scope="session")
+def example_plugin_site(tmp_path_factory) -> Path:
+    """docs/examples/vprbench-example-plugin installed, as a separate package, into its own folder."""
+    import subprocess
+    import sys
+
+    example = Path(__file__).resolve().parents[1] / "docs" / "examples" / "vprbench-example-plugin"
+    target = tmp_path_factory.mktemp("site")
+    subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
+                    "--no-index", "--target", str(target), str(example)], check=True)
+    return target
+
+
 @pytest.fixture(autouse=True)
 def isolated_cache(tmp_path, monkeypatch):
     """Every test writes stores, vocabularies and results under its own temporary folder."""

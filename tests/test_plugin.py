@@ -3,19 +3,6 @@ import json
 import os
 import subprocess
 import sys
-from pathlib import Path
-
-import pytest
-
-EXAMPLE = Path(__file__).resolve().parents[1] / "docs" / "examples" / "vprbench-example-plugin"
-
-
-@pytest.fixture(scope="module")
-def plugin_site(tmp_path_factory):
-    target = tmp_path_factory.mktemp("site")
-    subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
-                    "--no-index", "--target", str(target), str(EXAMPLE)], check=True)
-    return target
 
 
 def vprbench_cli(args, site, cache):
@@ -23,19 +10,19 @@ def vprbench_cli(args, site, cache):
     return subprocess.run([sys.executable, "-m", "vprbench.cli.main", *args], env=env, capture_output=True, text=True)
 
 
-def test_plugin_is_listed_and_evaluated(plugin_site, shared_data, tmp_path):
-    listed = vprbench_cli(["methods", "list", "--json"], plugin_site, tmp_path)
+def test_plugin_is_listed_and_evaluated(example_plugin_site, shared_data, tmp_path):
+    listed = vprbench_cli(["methods", "list", "--json"], example_plugin_site, tmp_path)
     entry = {m["name"]: m for m in json.loads(listed.stdout)}["thumbnail"]
     assert entry["source"] == "vprbench_example_plugin"
 
     run = vprbench_cli(["evaluate", "--method", "thumbnail", "--dataset", "corridor", "--data-dir", str(shared_data),
-                        "--json"], plugin_site, tmp_path)
+                        "--json"], example_plugin_site, tmp_path)
     assert run.returncode == 0, run.stderr
     record = json.loads(run.stdout)
     assert record["method"] == "thumbnail" and record["descriptor_dim"] == 256
     assert record["counts"]["queries"] == 111 and 0 <= record["recall"]["1"] <= 100
 
-    board = vprbench_cli(["leaderboard", "--format", "csv"], plugin_site, tmp_path)
+    board = vprbench_cli(["leaderboard", "--format", "csv"], example_plugin_site, tmp_path)
     assert board.returncode == 0 and "thumbnail" in board.stdout
 
 

@@ -2,7 +2,6 @@
 is listed, describes images, and lands on the leaderboard next to a baseline."""
 import json
 import re
-import subprocess
 import sys
 from pathlib import Path
 
@@ -24,21 +23,13 @@ def test_doc_shows_the_example_files_verbatim():
     assert (EXAMPLE / "vprbench_example_plugin" / "__init__.py").read_text() in blocks
 
 
-@pytest.fixture(scope="module")
-def plugin_site(tmp_path_factory):
-    target = tmp_path_factory.mktemp("site")
-    subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
-                    "--no-index", "--target", str(target), str(EXAMPLE)], check=True)
-    return target
-
-
 @pytest.fixture
-def with_plugin(plugin_site, monkeypatch, shared_data):
+def with_plugin(example_plugin_site, monkeypatch, shared_data):
     """The plugin's folder on the import path, as after 'pip install'; entry points are scanned afresh.
     (In-process rather than a subprocess per command: each would import torch again.)"""
     if not (shared_data / "corridor").is_dir():
         pytest.skip("corridor dataset is absent")
-    monkeypatch.syspath_prepend(str(plugin_site))
+    monkeypatch.syspath_prepend(str(example_plugin_site))
     monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
     monkeypatch.setattr(registry, "_plugins_loaded", False)
     monkeypatch.setenv("VPRBENCH_DATA", str(shared_data))  # the CLI's --data-dir sets it; undone after the test
