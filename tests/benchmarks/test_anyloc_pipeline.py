@@ -42,11 +42,12 @@ def measure(benchmark, name: str, images: int, rounds: int):
     benchmark.extra_info.update(peak_memory(name))
 
 
-@pytest.mark.parametrize("name", ["extract-batch8", "extract-batch1"])
+@pytest.mark.parametrize("name", ["extract-anyloc-batch8", "extract-anyloc-batch1"])
 def test_extraction(benchmark, name):
-    """ViT-S/14 value facet of layer 11 at 224x224, 8 images, batched vs one by one."""
-    benchmark.group = "extraction (ViT-S/14, 224x224, 8 images)"
-    measure(benchmark, name, 8, rounds=3)
+    """vprbench's AnyLoc describe() on 8 PNG files, 224x224: ViT-S/14 value facet of block 9
+    + GeM, batches of 8 vs one by one."""
+    benchmark.group = "extraction (AnyLoc describe, ViT-S/14, 224x224, 8 images)"
+    measure(benchmark, name, workloads.EXTRACT_IMAGES, rounds=3)
 
 
 @pytest.mark.parametrize("name", ["vlad-ours-vits", "vlad-naive-vits", "vlad-ours-vitg", "vlad-naive-vitg"])

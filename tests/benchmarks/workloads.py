@@ -8,41 +8,55 @@ through /proc/self/clear_refs.
 """
 from __future__ import annotations
 
+import atexit
 import json
+import shutil
 import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
-import timm
 import torch
 import torch.nn.functional as F
+from PIL import Image
 
+import vprbench
 from vprbench.aggregation import fit_vocabulary, vlad_hard
+from vprbench.features.backbones import backbone_spec, create_model, official_state_dict
 
 IMAGE_SIZE = 224          # ViT-S/14 at 224x224: 16x16 = 256 patches of 384 dims
-LAYER = 11                # last block of ViT-S, value facet (the authors' script defaults)
+LAYER = 9                 # value facet of block 9 of ViT-S/14
 CLUSTERS = 32
+EXTRACT_IMAGES = 8
 
 
-def vit_small(seed: int = 0) -> torch.nn.Module:
-    torch.manual_seed(seed)  # random init: no pretrained weights on this machine
-    return timm.create_model("vit_small_patch14_dinov2", pretrained=False, img_size=IMAGE_SIZE).eval()
+def extraction_inputs(folder: Path) -> tuple[Path, list[Path]]:
+    """A random ViT-S/14 in the official checkpoint format (no pretrained weights on this
+    machine) and 8 random 224x224 PNGs, written to `folder`."""
+    torch.manual_seed(0)
+    spec = backbone_spec("dinov2_vits14")
+    weights = folder / "dinov2_vits14_pretrain.pth"
+    torch.save(official_state_dict(create_model(spec), spec), weights)
+    rng = np.random.default_rng(0)
+    paths = []
+    for i in range(EXTRACT_IMAGES):
+        path = folder / f"{i:02d}.png"
+        Image.fromarray(rng.integers(0, 256, (IMAGE_SIZE, IMAGE_SIZE, 3), dtype=np.uint8)).save(path)
+        paths.append(path)
+    return weights, paths
 
 
-@torch.no_grad()
-def value_facet(model, images: torch.Tensor, layer: int = LAYER) -> torch.Tensor:
-    """(B, 3, H, W) -> (B, patches, 384) L2-normalised value facet of block `layer`, CLS dropped."""
-    x = model._pos_embed(model.patch_embed(images))
-    for block in model.blocks[:layer]:
-        x = block(x)
-    block = model.blocks[layer]
-    dim = x.shape[-1]
-    qkv = block.attn.qkv(block.norm1(x))
-    return F.normalize(qkv[:, 1:, 2 * dim:], dim=-1)
-
-
-def images(n: int, seed: int = 0) -> torch.Tensor:
-    return torch.randn(n, 3, IMAGE_SIZE, IMAGE_SIZE, generator=torch.Generator().manual_seed(seed))
+def anyloc_describe(batch_size: int):
+    """vprbench's own path: create_method + describe (file reading, preprocessing, backbone,
+    value facet, GeM), the model loaded during setup as a long run would have it."""
+    folder = Path(tempfile.mkdtemp(prefix="vprbench-bench-"))
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)
+    weights, paths = extraction_inputs(folder)
+    method = vprbench.create_method("anyloc-vlad-dinov2", backbone="dinov2_vits14", weights=str(weights),
+                                    layer=LAYER, facet="value", aggregation="gem", batch_size=batch_size)
+    method.extractor  # load the backbone now, not inside the timed run
+    return lambda: method.describe(paths)
 
 
 def patch_features(n_images: int, n_patches: int, dim: int, seed: int = 0) -> torch.Tensor:
@@ -85,10 +99,8 @@ FIT_IMAGES, FIT_BUDGET = 600, 20_000  # 153,600 features of 384 dims (236 MB) vs
 
 
 def workload(name: str):
-    if name in ("extract-batch8", "extract-batch1"):
-        model, batch = vit_small(), images(8)
-        size = 8 if name == "extract-batch8" else 1
-        return lambda: [value_facet(model, batch[i:i + size]) for i in range(0, 8, size)]
+    if name in ("extract-anyloc-batch8", "extract-anyloc-batch1"):
+        return anyloc_describe(int(name.removeprefix("extract-anyloc-batch")))
     kind, _, shape = name.rpartition("-")
     if kind in ("vlad-ours", "vlad-naive"):
         n, d = VLAD_SHAPES[shape]
