@@ -13,6 +13,7 @@ OpenCLIP's own transform (shorter side 224 bicubic, centre crop 224, CLIP mean/s
 """
 from __future__ import annotations
 
+import logging
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -160,8 +161,15 @@ def load_image_tower(backbone: str, path: Path) -> nn.Module:
     """The image tower of `backbone` holding the weights in `path` (whose keys must match exactly)."""
     import open_clip
 
-    with torch.device("meta"):
-        full = open_clip.create_model(backbone, device="meta")
+    # an empty model, filled from `path` below: OpenCLIP's "no pretrained weights" log line would mislead
+    logger = logging.getLogger()
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        with torch.device("meta"):
+            full = open_clip.create_model(backbone, device="meta")
+    finally:
+        logger.setLevel(level)
     state = _read(path)
     with warnings.catch_warnings():  # copying into meta tensors is a deliberate no-op: only the key check matters
         warnings.simplefilter("ignore", UserWarning)

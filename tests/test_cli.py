@@ -153,3 +153,12 @@ def test_describe_bad_inputs(capsys, tmp_path):
 def test_leaderboard_without_results(capsys):
     code, _, err = run(capsys, "leaderboard")
     assert_user_error(code, err, "No results yet")
+
+
+def test_ablations_get_their_own_leaderboard_rows(capsys, shared_data):
+    common = ["evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", str(shared_data)]
+    run(capsys, *common, "--resize", "64", "64")
+    run(capsys, *common, "--resize", "128", "128", "--device", "cpu")
+    code, out, _ = run(capsys, "leaderboard", "--format", "csv")
+    rows = {line.split(",")[0] for line in out.splitlines()[1:] if line}
+    assert code == 0 and rows == {"hog [resize=64x64]", "hog [resize=128x128]"}

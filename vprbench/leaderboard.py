@@ -10,13 +10,24 @@ from .errors import VPRBenchError
 from .evaluation.record import read_results
 
 FORMATS = ("table", "markdown", "csv")
+#: options that change how a run is computed, not what it computes
+UNLABELLED_OPTIONS = {"device", "batch_size", "weights"}
+
+
+def method_label(record: dict) -> str:
+    """The method name, with the options the user set on top of its preset: ablations get rows of their own."""
+    options = {k: v for k, v in record.get("method_options", {}).items() if k not in UNLABELLED_OPTIONS}
+    if not options:
+        return record["method"]
+    shown = " ".join(f"{k}={'x'.join(map(str, v)) if isinstance(v, list) else v}" for k, v in sorted(options.items()))
+    return f"{record['method']} [{shown}]"
 
 
 def latest_results(records: list[dict]) -> pd.DataFrame:
     """One row per (method, dataset): the newest record."""
     if not records:
         return pd.DataFrame(columns=["method", "dataset", "r1", "r5", "created"])
-    rows = [{"method": r["method"], "dataset": r["dataset"], "created": r["created"],
+    rows = [{"method": method_label(r), "dataset": r["dataset"], "created": r["created"],
              "r1": r["recall"].get("1"), "r5": r["recall"].get("5"), "auc_pr": r.get("auc_pr"),
              "version": r.get("versions", {}).get("vprbench"), "device": (r.get("hardware") or {}).get("cuda") or "cpu"}
             for r in records]

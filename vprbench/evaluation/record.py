@@ -34,6 +34,7 @@ def result_record(*, method, fingerprint, dataset, dataset_key, recalls, pr, des
     return {
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "method": method.name,
+        "method_options": {k: list(v) if isinstance(v, tuple) else v for k, v in method.options.items()},
         "method_fingerprint": fingerprint,
         "dataset": dataset.name,
         "dataset_fingerprint": dataset_key,

@@ -23,6 +23,8 @@ class Method(ABC):
 
     #: set by the registry to the name the method was created under
     name: str = ""
+    #: set by the registry: the options the user gave on top of the preset
+    options: dict = {}
     needs_fit: bool = False
     #: images handed to one `describe` call by the pipeline
     batch_size: int = 16

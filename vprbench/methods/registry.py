@@ -107,4 +107,5 @@ def create_method(name: str, **options) -> Method:
     if not isinstance(method, Method):
         raise VPRBenchError(f"Method {name!r} ({entry.source}) did not return a vprbench.Method")
     method.name = name
+    method.options = {k: v for k, v in options.items() if v is not None}
     return method
