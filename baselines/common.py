@@ -87,6 +87,16 @@ def weights_dir() -> Path:
     return cache_root() / "torch" / "hub" / "checkpoints"
 
 
+def check_dim(method: str, dim, valid, what: str) -> int | None:
+    """`dim` as an int if one of the released `valid` dimensions for `what`; None stays None."""
+    if dim is None:
+        return None
+    dim = as_int(dim, "dim")
+    if dim not in valid:
+        raise VPRBenchError(f"{method}: dim {dim} is not available for {what}; valid: {', '.join(map(str, valid))}.")
+    return dim
+
+
 def load_checkpoint(weights: str | os.PathLike | None, source: WeightSource, method: str):
     """The checkpoint object and the weights identity for the fingerprint.
 

@@ -10,7 +10,7 @@ from torch import nn
 
 from vprbench import VPRBenchError, register_method
 
-from .common import Preprocess, TorchMethod, WeightSource, as_int, as_resize, choose, build_loaded, load_checkpoint, state_dict_of
+from .common import Preprocess, TorchMethod, WeightSource, as_resize, check_dim, choose, build_loaded, load_checkpoint, state_dict_of
 
 #: descriptor dim -> the authors' aggregator settings. Only the 4096-d configuration is
 #: published with its checkpoint (README); the 512/128-d checkpoints' settings are not.
@@ -92,9 +92,7 @@ def mixvpr(
 ) -> TorchMethod:
     """MixVPR trained on GSV-Cities; images resized to 320x320 (bicubic) as the authors do."""
     backbone = choose("backbone", backbone, ["resnet50"], "mixvpr")
-    dim = as_int(dim, "dim")
-    if dim not in CONFIGS:
-        raise VPRBenchError(f"mixvpr: dim {dim} is not available; valid: {', '.join(map(str, CONFIGS))}.")
+    dim = check_dim("mixvpr", dim, list(CONFIGS), "ResNet-50 MixVPR")
     resize = as_resize(resize)
     # The mixer works on a fixed 20x20 map: the input must be 16x that (ResNet stride after layer3).
     config = CONFIGS[dim]

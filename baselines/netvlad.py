@@ -16,7 +16,7 @@ from torch import nn
 
 from vprbench import VPRBenchError, register_method
 
-from .common import Preprocess, TorchMethod, WeightSource, as_int, as_resize, choose, build_loaded, load_checkpoint, state_dict_of
+from .common import Preprocess, TorchMethod, WeightSource, as_resize, check_dim, choose, build_loaded, load_checkpoint, state_dict_of
 from .cosplace import Flatten, L2Norm
 
 CLUSTERS = 64
@@ -69,15 +69,6 @@ class DVGLNetVLAD(nn.Module):
 
     def forward(self, x):
         return self.aggregation(self.backbone(x))
-
-
-def check_dim(method: str, dim, valid: list[int], what: str) -> int | None:
-    if dim is None:
-        return None
-    dim = as_int(dim, "dim")
-    if dim not in valid:
-        raise VPRBenchError(f"{method}: dim {dim} is not available for {what}; valid: {', '.join(map(str, valid))}.")
-    return dim
 
 
 def netvlad(

@@ -21,8 +21,8 @@ from .common import (
     Preprocess,
     TorchMethod,
     WeightSource,
-    as_int,
     as_resize,
+    check_dim,
     choose,
     load_checkpoint,
     load_exact,
@@ -171,8 +171,7 @@ def salad(
 ):
     choose("backbone", backbone, list(BACKBONES), METHOD)
     config = SaladConfig()
-    if dim is not None and as_int(dim, "dim") != config.dim:
-        raise VPRBenchError(f"{METHOD}: dimension {dim} is not available; valid: dinov2_vitb14 -> {config.dim}.")
+    check_dim(METHOD, dim, [config.dim], "dinov2_vitb14")
     return build(config, weights=weights, resize=resize, batch_size=batch_size, precision=precision, device=device)
 
 

@@ -204,9 +204,10 @@ def test_checkpoint_mismatch_names_the_keys(tmp_path):
         ("boq-resnet50", {"backbone": "vgg16"}, r"unknown backbone 'vgg16'.*resnet50 -> 16384, dinov2 -> 12288"),
         ("boq-dinov2", {"dim": "many"}, r"dim must be an integer"),
         ("salad", {"backbone": "dinov2_vitl14"}, r"unknown backbone 'dinov2_vitl14'; valid: dinov2_vitb14"),
-        ("salad", {"dim": "4096"}, r"dimension 4096 is not available; valid: dinov2_vitb14 -> 8448"),
+        ("salad", {"dim": "4096"}, r"dim 4096 is not available for dinov2_vitb14; valid: 8448"),
         ("salad", {"resize": (320, 320)}, r"not a multiple of the patch size 14"),
         ("megaloc", {"backbone": "resnet50"}, r"valid: dinov2_vitb14"),
+        ("megaloc", {"dim": 1024}, r"dim 1024 is not available for dinov2_vitb14; valid: 8448"),
         ("boq-dinov2", {"layer": 3}, r"does not take option\(s\) layer"),
     ],
 )
