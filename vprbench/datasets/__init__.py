@@ -53,11 +53,7 @@ def load_dataset(name: str, data_dir=None, *, fetch: bool = True, strict: bool =
 def download_dataset(name: str, data_dir=None, strict: bool = True) -> Dataset:
     """`vprbench datasets download NAME`: fetch (when a direct source exists), then read and check it."""
     manifest = dataset_manifest(name)
-    root = data_root(data_dir) / manifest.directory
     if not manifest.download:
+        root = dataset_location(manifest, data_dir)
         raise VPRBenchError(f"Dataset {name!r} has no direct download. {how_to_get(manifest, root)}")
-    if not root.exists():
-        download(manifest, root)
-    dataset = read_layout(root, manifest)
-    check_counts(dataset, manifest, strict)
-    return dataset
+    return load_dataset(name, data_dir, fetch=True, strict=strict)

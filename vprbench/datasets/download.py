@@ -40,7 +40,7 @@ def download(manifest: DatasetManifest, root: Path, progress: bool = True) -> Pa
     except Exception as error:  # network or checksum failure: keep partial for resuming
         raise VPRBenchError(
             f"Downloading {manifest.name!r} from {manifest.download['base_url']} failed: {error}. "
-            f"Files fetched so far stay in {partial}; rerun to resume. {how_to_get(manifest, root) if not manifest.download else ''}"
+            f"Files fetched so far stay in {partial}; rerun to resume."
         ) from None
     if root.exists():
         shutil.rmtree(root)
