@@ -11,7 +11,7 @@ from ..datasets import Dataset
 from ..errors import VPRBenchError
 from ..methods import Method
 from ..store import DescriptorStore
-from .metrics import DEFAULT_KS, check_ks, correct_at, recall_at_k, search, top1_precision_recall
+from .metrics import DEFAULT_KS, check_ks, search
 from .record import result_record
 
 
@@ -90,11 +90,9 @@ def evaluate(method: Method, dataset: Dataset, *, ks=DEFAULT_KS, cache_dir=None,
     t = time.perf_counter()
     scores, indices = search(database, queries, ks[-1])
     timings["search_s"] = time.perf_counter() - t
-    recalls = recall_at_k(indices, positives, ks)
-    pr = top1_precision_recall(scores[:, 0], correct_at(indices[:, :1], positives)[:, 0])
     timings["total_s"] = time.perf_counter() - started
     return result_record(
-        method=method, fingerprint=fingerprint, dataset=dataset, dataset_key=key, recalls=recalls, pr=pr,
+        method=method, fingerprint=fingerprint, dataset=dataset, dataset_key=key, ks=ks,
+        scores=scores, indices=indices, positives=positives,
         descriptor_dim=int(database.shape[1]), computed=computed, timings=timings,
-        predictions=indices[:, : min(ks[-1], 5)],
     )

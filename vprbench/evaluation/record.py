@@ -26,8 +26,15 @@ def environment() -> dict:
     return {"versions": versions, "hardware": hardware}
 
 
-def result_record(*, method, fingerprint, dataset, dataset_key, recalls, pr, descriptor_dim, computed,
-                  timings, predictions) -> dict:
+def result_record(*, method, fingerprint, dataset, dataset_key, ks, scores, indices, positives,
+                  descriptor_dim, computed, timings, search=None, context=None) -> dict:
+    """The record of one run, from the search's top-K (scores and database indices per query):
+    every metric is computed here, from what the record keeps."""
+    from .metrics import correct_at, recall_at_k, top1_precision_recall
+
+    recalls = recall_at_k(indices, positives, ks)
+    pr = top1_precision_recall(scores[:, 0], correct_at(indices[:, :1], positives)[:, 0])
+    predictions = indices[:, : min(ks[-1], 5)]
     summary = dataset.summary()
     described = computed["database"] + computed["queries"]
     extract_s = timings["database_s"] + timings["queries_s"]
@@ -54,6 +61,9 @@ def result_record(*, method, fingerprint, dataset, dataset_key, recalls, pr, des
         "timings": {k: round(v, 4) for k, v in timings.items()},
         "images_per_second": round(described / extract_s, 3) if described and extract_s > 0 else None,
         "top_predictions": np.asarray(predictions).tolist(),
+        "provenance": method.provenance(),
+        "search": search or {"index": "exact"},
+        **({"context": context} if context else {}),
         **environment(),
     }
 

@@ -46,9 +46,21 @@ class Method(ABC):
     def load_fit_state(self, state: dict[str, np.ndarray]) -> None:  # pragma: no cover
         """Restore what `fit` learnt, as returned by `fit_state`."""
 
+    def load(self, path: Path):
+        """Read and preprocess one image for `describe`; runs in data-loader worker processes.
+        The default hands `describe` the path itself."""
+        return path
+
     @abstractmethod
-    def describe(self, images: Sequence[Path]) -> np.ndarray:
-        """(len(images), dim) float32, rows L2-normalised."""
+    def describe(self, images: Sequence) -> np.ndarray:
+        """(len(images), dim) float32, rows L2-normalised; `images` are what `load` returned."""
+
+    def provenance(self) -> dict:
+        """Where what shapes the descriptors came from, for the result record:
+        {"weights": {"source": "official"|"user"|"random"|"none", ...},
+         "vocabulary": {"source": ..., "fitted_on_evaluated_database": bool, ...}, "pca": {...}}.
+        Keys that do not apply are left out."""
+        return {}
 
     def postprocess(self, database: np.ndarray, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Transform stored descriptors before search (e.g. PCA-whitening fitted on the database)."""
