@@ -75,3 +75,17 @@ def read_torch_file(path: str | Path, what: str = "checkpoint", *, mmap: bool = 
         raise VPRBenchError(
             f"Cannot read {what} {path}: it is damaged or not a PyTorch file ({type(error).__name__}: {error})."
         ) from None
+
+
+def weights_provenance(identity: str | None) -> dict:
+    """Where a method's weights came from, for result records and the leaderboard.
+
+    `identity` is what fingerprints hold: the official URL for a file vprbench downloaded
+    from the authors' release, 'sha256:<hex>' for a local file, None for a model run
+    without weights (random initialisation).
+    """
+    if identity is None:
+        return {"source": "random"}
+    if identity.startswith(("http://", "https://")):
+        return {"source": "official", "url": identity}
+    return {"source": "user", "sha256": identity.removeprefix("sha256:")}

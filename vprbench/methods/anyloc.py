@@ -23,6 +23,7 @@ from ..aggregation.vlad import vlad_hard
 from ..aggregation.vocabulary import fit_vocabulary
 from ..errors import VPRBenchError
 from ..features.backbones import backbone_spec, load_backbone, weights_identity
+from ..weights import weights_provenance
 from ..features.dense import FACETS, DenseExtractor
 from ..features.preprocess import dataset_resize, parse_size, preprocess
 from .base import Method, l2_normalise
@@ -160,6 +161,14 @@ class AnyLoc(Method):
         if self.pca_dim:
             fp["pca_dim"] = self.pca_dim
         return fp
+
+    def provenance(self) -> dict:
+        found = {"weights": weights_provenance(self.weights_identity())}
+        if self.aggregation in VLADS:
+            found["vocabulary"] = {"source": self.vocabulary, "fitted_on_evaluated_database": self.needs_fit}
+        if self.pca_dim:
+            found["pca"] = {"dim": self.pca_dim, "fitted_on_evaluated_database": True}
+        return found
 
     # ------------------------------------------------------------ extraction
     @property
