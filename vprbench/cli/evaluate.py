@@ -1,8 +1,11 @@
 """vprbench evaluate / describe."""
 from __future__ import annotations
 
+import io
 import json
+import os
 import sys
+from contextlib import nullcontext
 from pathlib import Path
 
 import numpy as np
@@ -11,10 +14,14 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from ..datasets import load_dataset
+from ..distributed import Ranks
 from ..errors import VPRBenchError
-from ..evaluation import append_result, evaluate
+from ..evaluation import append_result, describe_splits, evaluate
+from ..fsutil import atomic_write
 from ..methods import create_method
-from .options import add_location_options, add_method_options, apply_locations, method_options, parse_ks
+from ..paths import cache_root
+from .options import (add_extraction_options, add_location_options, add_method_options, apply_locations,
+                      extraction_settings, method_options, parse_ks)
 
 
 def progress_bar(console: Console) -> Progress:
@@ -23,8 +30,9 @@ def progress_bar(console: Console) -> Progress:
 
 
 def add_parsers(commands) -> None:
-    p = commands.add_parser("evaluate", help="evaluate a method on a dataset (Recall@K, PR)")
+    p = commands.add_parser("evaluate", help="evaluate a method on a dataset (Recall@K, PR); under torchrun, sharded over ranks")
     add_method_options(p)
+    add_extraction_options(p)
     p.add_argument("--dataset", required=True, help="dataset name ('vprbench datasets list') or a folder of your own")
     add_location_options(p)
     p.add_argument("--k", nargs="+", help="K values for Recall@K (default 1 5 10 20)")
@@ -34,20 +42,37 @@ def add_parsers(commands) -> None:
 
     p = commands.add_parser("describe", help="write global descriptors of images to a .npy file, in input order")
     add_method_options(p)
+    add_extraction_options(p)
     p.add_argument("images", nargs="+", type=Path, help="image files")
     p.add_argument("--out", required=True, type=Path, help="output .npy file")
-    p.add_argument("--fit-on", type=Path, help="folder of database images to fit the method's vocabulary on")
+    p.add_argument("--fit-on", type=Path,
+                   help="folder of database images: the method's vocabulary and PCA-whitening are fitted on them "
+                        "(without it, PCA is fitted on the images described)")
+    p.add_argument("--dataset", help="apply this dataset's per-method settings (e.g. AnyLoc's resize and vocabulary)")
     add_location_options(p)
     p.set_defaults(run=run_describe)
 
 
 def run_evaluate(args) -> int:
     apply_locations(args)
-    console = Console(stderr=True)
-    dataset = load_dataset(args.dataset, args.data_dir, strict=args.strict)
-    method = create_method(args.method, **method_options(args))
-    with progress_bar(console) as progress:
-        record = evaluate(method, dataset, ks=parse_ks(args.k), cache_dir=args.cache_dir, progress=progress)
+    options = method_options(args)
+    ks = parse_ks(args.k)
+    ranks = Ranks.from_environment(options["device"])
+    try:
+        options["device"] = ranks.device(options["device"])
+        method = create_method(args.method, **options)  # method and options are checked before any data is touched
+        ranks.agree({"method": args.method, "options": {k: v for k, v in options.items() if k != "device"},
+                     "dataset": args.dataset, "data_dir": os.environ.get("VPRBENCH_DATA"), "k": ks,
+                     "cache": str(cache_root().resolve()), "store_dtype": args.store_dtype}, "options")
+        # loaded (and fetched, on first use) by rank 0 alone, then handed to the other ranks
+        dataset = ranks.on_zero(lambda: load_dataset(args.dataset, args.data_dir, strict=args.strict))
+        with progress_bar(Console(stderr=True)) if ranks.rank == 0 else nullcontext() as progress:
+            record = evaluate(method, dataset, ks=ks, cache_dir=args.cache_dir, progress=progress, ranks=ranks,
+                              **extraction_settings(args, options["device"]))
+    finally:
+        ranks.close()
+    if record is None:  # another rank than 0: its shard is written, rank 0 reports
+        return 0
     append_result(record, args.cache_dir)
     if args.json:
         print(json.dumps(record, indent=2, sort_keys=True))
@@ -79,23 +104,34 @@ def run_describe(args) -> int:
     apply_locations(args)
     if args.out.suffix != ".npy":
         raise VPRBenchError(f"--out must be a .npy file, got {args.out}")
+    options = method_options(args)
+    method = create_method(args.method, **options)
     for image in args.images:
         if not image.is_file():
             raise VPRBenchError(f"Image not found: {image}")
-    method = create_method(args.method, **method_options(args))
-    if method.needs_fit:
-        if args.fit_on is None:
-            raise VPRBenchError(f"Method {args.method!r} fits a vocabulary on database images: give --fit-on FOLDER "
-                                "(or a ready vocabulary with --vocabulary, where the method takes one).")
+    splits = {}
+    if args.fit_on is not None:
+        if not args.fit_on.is_dir():
+            raise VPRBenchError(f"--fit-on must be a folder of images, got {args.fit_on}")
         from ..images import list_images
 
-        method.fit(list_images(args.fit_on))
-    rows = []
-    batch = max(1, method.batch_size)
-    for start in range(0, len(args.images), batch):
-        rows.append(np.asarray(method.describe(args.images[start:start + batch]), dtype=np.float32))
-    descriptors = np.concatenate(rows)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    np.save(args.out, descriptors)
+        splits["database"] = list_images(args.fit_on)
+    elif method.needs_fit:
+        raise VPRBenchError(f"Method {args.method!r} fits a vocabulary on database images: give --fit-on FOLDER "
+                            "(or a ready vocabulary with --vocabulary, where the method takes one).")
+    splits["queries"] = list(args.images)
+    if args.dataset:
+        method.use_dataset(args.dataset)
+    with progress_bar(Console(stderr=True)) as progress:
+        described = describe_splits(method, splits, label=f"describe-{args.dataset or 'images'}",
+                                    cache_dir=args.cache_dir, progress=progress,
+                                    **extraction_settings(args, options["device"]))
+    queries = described.stores["queries"].read()
+    database = described.stores["database"].read() if "database" in splits else queries
+    _, descriptors = method.postprocess(database, queries)
+    descriptors = np.ascontiguousarray(descriptors, dtype=np.float32)
+    buffer = io.BytesIO()
+    np.save(buffer, descriptors)
+    atomic_write(args.out, buffer.getvalue())
     print(f"Wrote {descriptors.shape[0]} descriptors of dimension {descriptors.shape[1]} to {args.out}", file=sys.stderr)
     return 0

@@ -9,6 +9,7 @@ import numpy as np
 
 from ..errors import VPRBenchError
 from ..images import load_rgb
+from ..loader import loaded
 from .base import Method, l2_normalise
 
 
@@ -21,16 +22,15 @@ class HOG(Method):
         if height < block or width < block or height % block_stride or width % block_stride:
             raise VPRBenchError(f"hog: --resize {height} {width} must be at least {block} and a multiple of {block_stride}")
         self.size = (width, height)
-        self.settings = {"resize": [height, width], "cell": cell, "block": block, "block_stride": block_stride, "bins": bins}
+        self.params = {"resize": [height, width], "cell": cell, "block": block, "block_stride": block_stride, "bins": bins}
         self.hog = cv2.HOGDescriptor(self.size, (block, block), (block_stride, block_stride), (cell, cell), bins)
 
     def fingerprint(self) -> dict:
-        return {**self.settings, "opencv": cv2.__version__.split(".")[0]}
+        return {**self.params, "opencv": cv2.__version__.split(".")[0]}
 
-    def describe(self, images: Sequence[Path]) -> np.ndarray:
-        rows = []
-        for path in images:
-            # OpenCV order (BGR) as VPR-Bench reads images; HOG takes the strongest channel gradient
-            bgr = cv2.resize(load_rgb(path)[:, :, ::-1], self.size, interpolation=cv2.INTER_LINEAR)
-            rows.append(self.hog.compute(np.ascontiguousarray(bgr)).reshape(-1))
-        return l2_normalise(np.stack(rows))
+    def load(self, path: Path) -> np.ndarray:
+        # OpenCV order (BGR) as VPR-Bench reads images; HOG takes the strongest channel gradient
+        return np.ascontiguousarray(cv2.resize(load_rgb(path)[:, :, ::-1], self.size, interpolation=cv2.INTER_LINEAR))
+
+    def describe(self, images: Sequence) -> np.ndarray:
+        return l2_normalise(np.stack([self.hog.compute(bgr).reshape(-1) for bgr in loaded(self, images)]))

@@ -1,0 +1,160 @@
+"""The one atomic-write helper and the one inter-process lock of vprbench.
+
+- `atomic_path(path)` / `atomic_write(path, data)`: the file is written under a temporary
+  name in the same folder and `os.replace`d over `path`, so a reader (or a kill at any
+  moment) sees the old content or the new, never half of one.
+- `lock(path, timeout)`: an exclusive `filelock` lock shared by every process on the
+  machine (and by hosts sharing the folder, where the filesystem supports `flock`). A
+  process that has to wait says, in one line, who holds the lock; a timeout is a
+  `LockTimeout` naming the lock and its holder.
+- `cache_error(error, path, doing)`: an `OSError` turned into a `CacheError` (a
+  `VPRBenchError`) that names the path and says what to do (full disk, read-only folder).
+"""
+from __future__ import annotations
+
+import errno
+import os
+import socket
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from .errors import VPRBenchError
+
+
+class CacheError(VPRBenchError):
+    """A file under the cache (or an output path) could not be read or written."""
+
+
+class LockTimeout(CacheError):
+    """Waited longer than the given timeout for a lock."""
+
+
+_FULL = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
+_DENIED = {errno.EACCES, errno.EPERM, errno.EROFS}
+
+
+def cache_error(error: OSError, path: str | os.PathLike, doing: str = "write") -> CacheError:
+    """One clear message for an `OSError` met while `doing` something to `path`."""
+    reason = error.strerror or str(error)
+    if error.errno in _FULL:
+        advice = ("the disk is full (or the file size limit is reached): free space or choose another "
+                  "--cache-dir; finished descriptors are kept and the next run resumes")
+    elif error.errno in _DENIED:
+        advice = "the folder is not writable: choose a writable folder with --cache-dir (or $VPRBENCH_CACHE)"
+    else:
+        advice = "check the path and the disk"
+    return CacheError(f"Cannot {doing} {path}: {reason}; {advice}.")
+
+
+def _sync_folder(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return  # not every platform opens folders; the rename itself is still atomic
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """A temporary path beside `path` to write to; it replaces `path` when the block succeeds
+    and is removed when it fails. The data are flushed to disk before the rename."""
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as error:
+        raise cache_error(error, path) from None
+    os.close(fd)
+    temporary = Path(name)
+    try:
+        yield temporary
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(temporary, 0o666 & ~mask)  # mkstemp makes 0600; give the file the usual mode
+        with open(temporary, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(temporary, path)
+        _sync_folder(path.parent)
+    except OSError as error:
+        temporary.unlink(missing_ok=True)
+        raise cache_error(error, path) from None
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+
+
+def atomic_write(path: str | os.PathLike, data: bytes | str) -> Path:
+    """Write `data` (str as UTF-8) to `path` atomically."""
+    with atomic_path(path) as temporary:
+        temporary.write_bytes(data.encode("utf-8") if isinstance(data, str) else data)
+    return Path(path)
+
+
+def is_temporary(path: Path) -> bool:
+    """A leftover of `atomic_path` (a writer killed before its rename)."""
+    return path.name.startswith(".") and path.name.endswith(".tmp")
+
+
+# ------------------------------------------------------------------ locks
+def _holder_path(path: Path) -> Path:
+    return path.with_name(path.name + ".holder")
+
+
+def _describe_holder(path: Path) -> str:
+    try:
+        return _holder_path(path).read_text(encoding="utf-8").strip() or "another process"
+    except OSError:
+        return "another process"
+
+
+@contextmanager
+def lock(path: str | os.PathLike, timeout: float | None = None, *, what: str | None = None) -> Iterator[None]:
+    """Hold the exclusive lock `path` (a lock file, created if needed) for the block.
+
+    timeout: seconds to wait (None waits as long as it takes; the wait is announced once on
+    stderr with the holder's pid, host and command). Re-entrant within a process.
+    """
+    from filelock import FileLock, Timeout
+
+    path = Path(path)
+    what = what or str(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        held = FileLock(path, is_singleton=True)
+        if not held.acquire(blocking=False, timeout=0):  # pragma: no cover - filelock raises instead
+            raise Timeout(str(path))
+    except Timeout:
+        holder = _describe_holder(path)
+        print(f"waiting for {what}: locked by {holder}", file=sys.stderr, flush=True)
+        try:
+            held.acquire(timeout=-1 if timeout is None else timeout)
+        except Timeout:
+            raise LockTimeout(
+                f"Timed out after {timeout:g} s waiting for {what} (lock {path}), held by "
+                f"{_describe_holder(path)}. Let that run finish, or stop it; a lock whose holder "
+                "has died is released by the system."
+            ) from None
+    except OSError as error:
+        raise cache_error(error, path, "lock") from None
+    try:
+        if held.lock_counter == 1:
+            since = time.strftime("%Y-%m-%d %H:%M:%S")
+            command = " ".join(os.path.basename(a) if i == 0 else a for i, a in enumerate(sys.argv))[:200]
+            try:
+                atomic_write(_holder_path(path), f"pid {os.getpid()} on {socket.gethostname()} since {since} ({command})\n")
+            except CacheError:
+                pass  # the note is for people; the lock itself is held
+        yield
+    finally:
+        if held.lock_counter == 1:
+            _holder_path(path).unlink(missing_ok=True)
+        held.release()
