@@ -45,8 +45,9 @@ def method_fingerprint(method, store_dtype: str = "float32") -> dict:
             **method.fingerprint(), "store_dtype": store_dtype}
 
 
-def fingerprint_key(fingerprint: dict) -> str:
-    return hashlib.sha256(fingerprint_json(fingerprint).encode()).hexdigest()[:16]
+def fingerprint_key(fingerprint: dict | str) -> str:
+    text = fingerprint if isinstance(fingerprint, str) else fingerprint_json(fingerprint)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 def shard_range(total: int, rank: int, world: int) -> tuple[int, int]:
@@ -72,7 +73,8 @@ class StoreFolder:
     def __init__(self, method_name: str, fingerprint: dict, label: str, image_keys: dict[str, str], cache_dir=None):
         images = hashlib.sha256(json.dumps(image_keys, sort_keys=True).encode()).hexdigest()[:16]
         self.fingerprint = fingerprint
-        self.key = f"{method_name}-{fingerprint_key(fingerprint)}/{label}-{images}"
+        self.fingerprint_json = fingerprint_json(fingerprint)
+        self.key = f"{method_name}-{fingerprint_key(self.fingerprint_json)}/{label}-{images}"
         self.path = cache_root(cache_dir) / "stores" / self.key
         self.fit_path = self.path / "fit_state.h5"
 
@@ -87,7 +89,7 @@ class StoreFolder:
                  start: int = 0, stop: int | None = None) -> RowsIdentity:
         stop = len(names) if stop is None else stop
         return RowsIdentity(store=f"{self.key}/{split}", start=start, stop=stop, total=len(names), fit_id=fit_id,
-                            dtype=dtype, fingerprint=fingerprint_json(self.fingerprint), names=names[start:stop])
+                            dtype=dtype, fingerprint=self.fingerprint_json, names=names[start:stop])
 
     # ------------------------------------------------------------ the lock
     @contextmanager

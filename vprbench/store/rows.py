@@ -44,7 +44,13 @@ class RowsIdentity:
 
     def attrs(self) -> dict:
         return {"format": FORMAT, "store": self.store, "start": self.start, "stop": self.stop,
-                "total": self.total, "fit_id": self.fit_id, "dtype": self.dtype, "fingerprint": self.fingerprint}
+                "total": self.total, "fit_id": self.fit_id, "dtype": self.dtype}
+
+    def write_into(self, f: h5py.File) -> None:
+        """Names and fingerprint as datasets (attributes are capped at 64 KB), the rest as attributes."""
+        f.create_dataset("names", data=self.names, dtype=h5py.string_dtype("utf-8"))
+        f.create_dataset("fingerprint", data=self.fingerprint, dtype=h5py.string_dtype("utf-8"))
+        f.attrs.update(self.attrs())
 
 
 @dataclass
@@ -76,8 +82,7 @@ def create_rows_file(path: Path, identity: RowsIdentity, dim: int) -> None:
                                  fill_time="never")
                 f.create_dataset("done", shape=(n,), dtype="uint8", dcpl=_early_contiguous(), fillvalue=0)
                 f.create_dataset("complete", shape=(), dtype="uint8", dcpl=_early_contiguous(), fillvalue=0)
-                f.create_dataset("names", data=identity.names, dtype=h5py.string_dtype("utf-8"))
-                f.attrs.update(identity.attrs())
+                identity.write_into(f)
         except OSError as error:
             raise cache_error(error, path) from None
 
@@ -129,19 +134,32 @@ class RowWriter:
             self.file = h5py.File(path, "r+")
         except OSError as error:
             raise cache_error(error, path) from None
-        self.dim = int(self.file["descriptors"].shape[1])
+        self.descriptors, self.done = self.file["descriptors"], self.file["done"]
+        self.dim = int(self.descriptors.shape[1])
 
     def write(self, rows: np.ndarray, descriptors: np.ndarray) -> None:
         """`rows` are ascending split row numbers inside this file's range."""
         local = np.asarray(rows, dtype=np.int64) - self.identity.start
+        if not len(local):
+            return
         values = np.asarray(descriptors, dtype=self.identity.dtype)
+        first, last = int(local[0]), int(local[-1]) + 1
         try:
-            for first, last in _runs(local):
-                at = int(np.searchsorted(local, first))
-                self.file["descriptors"][first:last] = values[at:at + last - first]
+            runs = _runs(local)
+            if len(runs) > 1 and last - first <= 4 * len(local):
+                # scattered rows (a resumed run): rewrite the block around them; rows already
+                # done are written back with the bytes they hold
+                block = self.descriptors[first:last]
+                block[local - first] = values
+                self.descriptors[first:last] = block
+            else:
+                for start, stop in runs:
+                    at = int(np.searchsorted(local, start))
+                    self.descriptors[start:stop] = values[at:at + stop - start]
             self.file.flush()
-            for first, last in _runs(local):
-                self.file["done"][first:last] = 1
+            flags = self.done[first:last]
+            flags[local - first] = 1
+            self.done[first:last] = flags
             self.file.flush()
         except OSError as error:
             raise cache_error(error, self.path) from None
@@ -149,7 +167,7 @@ class RowWriter:
     def finish(self) -> None:
         """Set the completion byte (last), flush to disk, close."""
         try:
-            if not self.file["done"][...].all():
+            if not self.done[...].all():
                 raise VPRBenchError(f"{self.path}: rows are missing; it cannot be marked complete")
             self.file["complete"][()] = 1
             self.file.flush()
@@ -263,8 +281,7 @@ def merge_rows_files(parts: list[tuple[Path, RowsIdentity]], path: Path, identit
                             target[part.start + first:part.start + last] = source[first:last]
                 out.create_dataset("done", data=np.ones(n, np.uint8), dcpl=_early_contiguous())
                 out.create_dataset("complete", data=np.uint8(1), dcpl=_early_contiguous())
-                out.create_dataset("names", data=identity.names, dtype=h5py.string_dtype("utf-8"))
-                out.attrs.update(identity.attrs())
+                identity.write_into(out)
         except OSError as error:
             raise cache_error(error, path) from None
 
