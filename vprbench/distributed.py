@@ -74,13 +74,15 @@ class Ranks:
     def on_zero(self, work: Callable[[], object]):
         """`work()` on rank 0, its result on every rank; a `VPRBenchError` there is raised on all
         ranks (so none waits for a rank that has given up)."""
-        outcome = None
+        outcome, failure = None, None
         if self.rank == 0:
             try:
                 outcome = ("ok", work())
             except VPRBenchError as error:
-                outcome = ("error", str(error))
+                outcome, failure = ("error", str(error)), error
         outcome = self.broadcast(outcome)
+        if failure is not None:
+            raise failure
         if outcome[0] == "error":
             raise VPRBenchError(outcome[1])
         return outcome[1]

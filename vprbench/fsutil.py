@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 import socket
 import sys
 import tempfile
@@ -37,13 +38,18 @@ _FULL = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
 _DENIED = {errno.EACCES, errno.EPERM, errno.EROFS}
 
 
-def cache_error(error: OSError, path: str | os.PathLike, doing: str = "write") -> CacheError:
-    """One clear message for an `OSError` met while `doing` something to `path`."""
-    reason = error.strerror or str(error)
-    if error.errno in _FULL:
+def cache_error(error: Exception, path: str | os.PathLike, doing: str = "write") -> CacheError:
+    """One clear message for an `OSError` (or HDF5's `RuntimeError`, which carries the errno in
+    its text) met while `doing` something to `path`."""
+    number = getattr(error, "errno", None)
+    if number is None:
+        found = re.search(r"errno = (\d+)", str(error))
+        number = int(found.group(1)) if found else None
+    reason = getattr(error, "strerror", None) or (os.strerror(number) if number else str(error))
+    if number in _FULL:
         advice = ("the disk is full (or the file size limit is reached): free space or choose another "
                   "--cache-dir; finished descriptors are kept and the next run resumes")
-    elif error.errno in _DENIED:
+    elif number in _DENIED:
         advice = "the folder is not writable: choose a writable folder with --cache-dir (or $VPRBENCH_CACHE)"
     else:
         advice = "check the path and the disk"

@@ -26,7 +26,7 @@ import numpy as np
 from ..errors import VPRBenchError
 from ..fsutil import atomic_path, cache_error, is_temporary, lock
 from ..paths import cache_root
-from .rows import DescriptorStore, RowsIdentity, fingerprint_json, inspect_rows_file
+from .rows import DescriptorStore, RowsIdentity, fingerprint_json, hdf5_written, inspect_rows_file
 
 #: options that change how a run goes, not the descriptors (left out of the store key)
 RUN_OPTIONS = frozenset({"device", "batch_size", "workers"})
@@ -171,12 +171,9 @@ class StoreFolder:
         state = {key: np.asarray(value) for key, value in state.items()}
         fit_id = fit_id_of(state)
         with atomic_path(self.fit_path) as temporary:
-            try:
-                with h5py.File(temporary, "w") as f:
-                    group = f.create_group("state")
-                    for key, value in state.items():
-                        group.create_dataset(key, data=value)
-                    f.attrs["fit_id"] = fit_id
-            except OSError as error:
-                raise cache_error(error, self.fit_path) from None
+            with hdf5_written(temporary, self.fit_path, "w") as f:
+                group = f.create_group("state")
+                for key, value in state.items():
+                    group.create_dataset(key, data=value)
+                f.attrs["fit_id"] = fit_id
         return fit_id

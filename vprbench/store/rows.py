@@ -12,8 +12,10 @@ file is opened for reading and again when it has changed since.
 """
 from __future__ import annotations
 
+import errno
 import json
 import os
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -76,15 +78,60 @@ def create_rows_file(path: Path, identity: RowsIdentity, dim: int) -> None:
         raise VPRBenchError(f"store dtype must be one of {', '.join(DTYPES)}, got {identity.dtype!r}")
     n = identity.stop - identity.start
     with atomic_path(path) as temporary:
+        with hdf5_written(temporary, path, "w") as f:
+            reserve(temporary, path, identity, dim)
+            f.create_dataset("descriptors", shape=(n, dim), dtype=identity.dtype, dcpl=_early_contiguous(),
+                             fill_time="never")
+            f.create_dataset("done", shape=(n,), dtype="uint8", dcpl=_early_contiguous(), fillvalue=0)
+            f.create_dataset("complete", shape=(), dtype="uint8", dcpl=_early_contiguous(), fillvalue=0)
+            identity.write_into(f)
+
+
+def reserve(path: Path, shown: Path, identity: RowsIdentity, dim: int) -> None:
+    """Claim the file's disk space now: a full disk is then one clear error before any
+    descriptor is computed, and writing rows later never needs a new block."""
+    rows = identity.stop - identity.start
+    size = rows * (dim * np.dtype(identity.dtype).itemsize + 1) + sum(len(n.encode()) + 32 for n in identity.names)
+    if not hasattr(os, "posix_fallocate"):
+        return
+    fd = os.open(path, os.O_RDWR)
+    try:
+        os.posix_fallocate(fd, 0, size + 2**16)
+    except OSError as error:
+        if error.errno not in (errno.EOPNOTSUPP, errno.EINVAL):  # a filesystem that cannot: written as it comes
+            raise cache_error(error, shown) from None
+    finally:
+        os.close(fd)
+
+
+@contextmanager
+def hdf5_written(path: Path, shown: Path, mode: str):
+    """An HDF5 file open for writing, closed however the block ends: a failed write or close
+    (a full disk) becomes a `CacheError` naming `shown`, and leaves no file handle behind."""
+    try:
+        f = h5py.File(path, mode, libver="earliest") if mode == "w" else h5py.File(path, mode)
+    except (OSError, RuntimeError) as error:
+        raise cache_error(error, shown) from None
+    try:
+        yield f
+        f.close()
+    except (OSError, RuntimeError) as error:
+        close_quietly(f)
+        raise cache_error(error, shown) from None
+    except BaseException:
+        close_quietly(f)
+        raise
+
+
+def close_quietly(f: h5py.File) -> None:
+    """Close after a failure; when HDF5 cannot flush (disk full), drop the handle anyway."""
+    try:
+        f.close()
+    except (OSError, RuntimeError):
         try:
-            with h5py.File(temporary, "w", libver="earliest") as f:
-                f.create_dataset("descriptors", shape=(n, dim), dtype=identity.dtype, dcpl=_early_contiguous(),
-                                 fill_time="never")
-                f.create_dataset("done", shape=(n,), dtype="uint8", dcpl=_early_contiguous(), fillvalue=0)
-                f.create_dataset("complete", shape=(), dtype="uint8", dcpl=_early_contiguous(), fillvalue=0)
-                identity.write_into(f)
-        except OSError as error:
-            raise cache_error(error, path) from None
+            f.id.close()
+        except (OSError, RuntimeError, ValueError):
+            pass
 
 
 def inspect_rows_file(path: Path, identity: RowsIdentity) -> Inspection:
@@ -132,7 +179,7 @@ class RowWriter:
         self.path, self.identity = path, identity
         try:
             self.file = h5py.File(path, "r+")
-        except OSError as error:
+        except (OSError, RuntimeError) as error:
             raise cache_error(error, path) from None
         self.descriptors, self.done = self.file["descriptors"], self.file["done"]
         self.dim = int(self.descriptors.shape[1])
@@ -161,7 +208,7 @@ class RowWriter:
             flags[local - first] = 1
             self.done[first:last] = flags
             self.file.flush()
-        except OSError as error:
+        except (OSError, RuntimeError) as error:
             raise cache_error(error, self.path) from None
 
     def finish(self) -> None:
@@ -174,12 +221,12 @@ class RowWriter:
             self.file.close()
             with open(self.path, "rb+") as f:
                 os.fsync(f.fileno())
-        except OSError as error:
+        except (OSError, RuntimeError) as error:
             raise cache_error(error, self.path) from None
 
     def close(self) -> None:
         if self.file.id.valid:
-            self.file.close()
+            close_quietly(self.file)
 
 
 def _runs(local: np.ndarray) -> list[tuple[int, int]]:
@@ -269,21 +316,19 @@ def merge_rows_files(parts: list[tuple[Path, RowsIdentity]], path: Path, identit
     n = identity.stop - identity.start
     block = max(1, BLOCK_BYTES // max(1, dim * np.dtype(identity.dtype).itemsize))
     with atomic_path(path) as temporary:
-        try:
-            with h5py.File(temporary, "w", libver="earliest") as out:
-                target = out.create_dataset("descriptors", shape=(n, dim), dtype=identity.dtype,
-                                            dcpl=_early_contiguous(), fill_time="never")
-                for part_path, part in parts:
-                    with h5py.File(part_path, "r") as f:
-                        source = f["descriptors"]
-                        for first in range(0, part.stop - part.start, block):
-                            last = min(part.stop - part.start, first + block)
-                            target[part.start + first:part.start + last] = source[first:last]
-                out.create_dataset("done", data=np.ones(n, np.uint8), dcpl=_early_contiguous())
-                out.create_dataset("complete", data=np.uint8(1), dcpl=_early_contiguous())
-                identity.write_into(out)
-        except OSError as error:
-            raise cache_error(error, path) from None
+        with hdf5_written(temporary, path, "w") as out:
+            reserve(temporary, path, identity, dim)
+            target = out.create_dataset("descriptors", shape=(n, dim), dtype=identity.dtype,
+                                        dcpl=_early_contiguous(), fill_time="never")
+            for part_path, part in parts:
+                with h5py.File(part_path, "r") as f:
+                    source = f["descriptors"]
+                    for first in range(0, part.stop - part.start, block):
+                        last = min(part.stop - part.start, first + block)
+                        target[part.start + first:part.start + last] = source[first:last]
+            out.create_dataset("done", data=np.ones(n, np.uint8), dcpl=_early_contiguous())
+            out.create_dataset("complete", data=np.uint8(1), dcpl=_early_contiguous())
+            identity.write_into(out)
 
 
 def fingerprint_json(fingerprint: dict) -> str:
