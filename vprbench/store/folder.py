@@ -171,7 +171,7 @@ class StoreFolder:
         state = {key: np.asarray(value) for key, value in state.items()}
         fit_id = fit_id_of(state)
         with atomic_path(self.fit_path) as temporary:
-            with hdf5_written(temporary, self.fit_path, "w") as f:
+            with hdf5_written(temporary, self.fit_path) as f:
                 group = f.create_group("state")
                 for key, value in state.items():
                     group.create_dataset(key, data=value)

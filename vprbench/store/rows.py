@@ -78,7 +78,7 @@ def create_rows_file(path: Path, identity: RowsIdentity, dim: int) -> None:
         raise VPRBenchError(f"store dtype must be one of {', '.join(DTYPES)}, got {identity.dtype!r}")
     n = identity.stop - identity.start
     with atomic_path(path) as temporary:
-        with hdf5_written(temporary, path, "w") as f:
+        with hdf5_written(temporary, path) as f:
             reserve(temporary, path, identity, dim)
             f.create_dataset("descriptors", shape=(n, dim), dtype=identity.dtype, dcpl=_early_contiguous(),
                              fill_time="never")
@@ -89,7 +89,8 @@ def create_rows_file(path: Path, identity: RowsIdentity, dim: int) -> None:
 
 def reserve(path: Path, shown: Path, identity: RowsIdentity, dim: int) -> None:
     """Claim the file's disk space now: a full disk is then one clear error before any
-    descriptor is computed, and writing rows later never needs a new block."""
+    descriptor is computed, and writing rows later never needs a new block. (Instant on
+    ext4, XFS, btrfs; where the filesystem cannot, the C library writes the zeros.)"""
     rows = identity.stop - identity.start
     size = rows * (dim * np.dtype(identity.dtype).itemsize + 1) + sum(len(n.encode()) + 32 for n in identity.names)
     if not hasattr(os, "posix_fallocate"):
@@ -105,11 +106,11 @@ def reserve(path: Path, shown: Path, identity: RowsIdentity, dim: int) -> None:
 
 
 @contextmanager
-def hdf5_written(path: Path, shown: Path, mode: str):
-    """An HDF5 file open for writing, closed however the block ends: a failed write or close
-    (a full disk) becomes a `CacheError` naming `shown`, and leaves no file handle behind."""
+def hdf5_written(path: Path, shown: Path):
+    """A new HDF5 file, closed however the block ends: a failed write or close (a full disk)
+    becomes a `CacheError` naming `shown`, and leaves no file handle behind."""
     try:
-        f = h5py.File(path, mode, libver="earliest") if mode == "w" else h5py.File(path, mode)
+        f = h5py.File(path, "w", libver="earliest")
     except (OSError, RuntimeError) as error:
         raise cache_error(error, shown) from None
     try:
@@ -316,7 +317,7 @@ def merge_rows_files(parts: list[tuple[Path, RowsIdentity]], path: Path, identit
     n = identity.stop - identity.start
     block = max(1, BLOCK_BYTES // max(1, dim * np.dtype(identity.dtype).itemsize))
     with atomic_path(path) as temporary:
-        with hdf5_written(temporary, path, "w") as out:
+        with hdf5_written(temporary, path) as out:
             reserve(temporary, path, identity, dim)
             target = out.create_dataset("descriptors", shape=(n, dim), dtype=identity.dtype,
                                         dcpl=_early_contiguous(), fill_time="never")
