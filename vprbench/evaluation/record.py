@@ -150,14 +150,11 @@ def _memory_gib() -> float | None:
 
 
 # ---------------------------------------------------------------- the record
-def per_query_section(scores: np.ndarray, indices: np.ndarray, positives) -> dict:
+def per_query_section(scores: np.ndarray, indices: np.ndarray, correct: np.ndarray, positives) -> dict:
     """What any retrieval metric needs, per query, without descriptors: the top-K database
     indices and similarities, the 1-based rank of the first positive among them (0 = none in the
     top K) and the number of positives the query has in the whole database."""
-    from .metrics import correct_at
-
     indices = np.asarray(indices, dtype=np.int64)
-    correct = correct_at(indices, positives) if len(indices) else np.zeros(indices.shape, bool)
     first = np.where(correct.any(axis=1), correct.argmax(axis=1) + 1, 0)
     return {
         "k": int(indices.shape[1]) if indices.ndim == 2 else 0,
@@ -172,10 +169,13 @@ def result_record(*, method, fingerprint, dataset, dataset_key, ks, scores, indi
                   descriptor_dim, computed, timings, search=None, context=None) -> dict:
     """The record of one run, from the search's top-K (scores and database indices per query):
     every metric is computed here, from what the record keeps."""
-    from .metrics import correct_at, recall_at_k, top1_precision_recall
+    from .metrics import correct_at, top1_precision_recall
 
-    recalls = recall_at_k(indices, positives, ks)
-    pr = top1_precision_recall(scores[:, 0], correct_at(indices[:, :1], positives)[:, 0])
+    correct = correct_at(indices, positives)  # (queries, K): once, for every metric below
+    section = per_query_section(scores, indices, correct, positives)
+    first = np.asarray(section["first_positive_rank"])
+    recalls = {k: float(100.0 * np.mean((first >= 1) & (first <= k))) for k in ks}  # all queries count
+    pr = top1_precision_recall(scores[:, 0], correct[:, 0])
     summary = dataset.summary()
     described = computed["database"] + computed["queries"]
     extract_s = timings["database_s"] + timings["queries_s"]
@@ -215,7 +215,7 @@ def result_record(*, method, fingerprint, dataset, dataset_key, ks, scores, indi
         "search": search or {"index": "exact"},
         **({"context": context} if context else {}),
         **environment(),
-        "per_query": per_query_section(scores, indices, positives),
+        "per_query": section,
     }
 
 
