@@ -25,12 +25,26 @@ class FakeMethod(Method):
         return {"weights": dict(self._weights)}
 
 
-def synthetic_search(n_database, n_queries, k, quality, seed):
-    """Positives: each query's 5 database neighbours in sequence; the top-1 is a positive with
-    probability `quality`, the rest of the top K is drawn at random (without repeats)."""
-    rng = np.random.default_rng(seed)
-    positives = [np.arange(max(0, q * n_database // n_queries - 2), min(n_database, q * n_database // n_queries + 3))
+def synthetic_ground_truth(n_database, n_queries, unit="positives", radius=None):
+    """Database and queries along one line; each query's positives are its ~5 database neighbours,
+    in the manifest's own unit (explicit lists, frames or metres) so the protocol matches."""
+    if unit == "positives":
+        lists = [np.arange(max(0, q * n_database // n_queries - 2), min(n_database, q * n_database // n_queries + 3))
                  for q in range(n_queries)]
+        return GroundTruth("positives", radius=radius, positive_lists=lists)
+    step = float(radius) / 2
+    database = np.arange(n_database, dtype=float)[:, None] * step
+    queries = (np.arange(n_queries) * n_database // n_queries).astype(float)[:, None] * step
+    if unit == "metres":
+        database, queries = np.hstack([database, 0 * database]), np.hstack([queries, 0 * queries])
+    return GroundTruth(unit, radius=radius, database_positions=database, query_positions=queries)
+
+
+def synthetic_search(positives, n_database, k, quality, seed):
+    """The top-1 is a positive with probability `quality`; the rest of the top K is drawn at
+    random (without repeats)."""
+    rng = np.random.default_rng(seed)
+    n_queries = len(positives)
     draws = rng.integers(0, n_database, size=(n_queries, 3 * k + 10))
     hit = rng.random(n_queries) < quality
     indices = np.empty((n_queries, k), dtype=np.int64)
@@ -53,8 +67,9 @@ def make_record(tmp_path):
         manifest = dataset_manifest(dataset) if kind == "benchmark" else None
         n_database = n_database or manifest.database_count
         n_queries = n_queries or manifest.query_count
-        scores, indices, positives = synthetic_search(n_database, n_queries, k, quality, seed)
-        gt = GroundTruth("positives", radius=manifest.radius if manifest else None, positive_lists=positives)
+        gt = synthetic_ground_truth(n_database, n_queries, *((manifest.unit, manifest.radius) if manifest else ()))
+        positives = gt.positives()
+        scores, indices, positives = synthetic_search(positives, n_database, k, quality, seed)
         images = Path(root) if root else tmp_path / "no-images" / dataset
         data = Dataset(dataset, [images / f"db{i}.jpg" for i in range(n_database)],
                        [images / f"q{i}.jpg" for i in range(n_queries)], gt,

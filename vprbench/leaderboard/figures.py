@@ -109,7 +109,19 @@ def efficiency(cells: list[Cell], path: Path) -> Path:
                    va="center", transform=right.transAxes, fontsize=8)
     for ax in (left, right):
         ax.grid(alpha=0.3)
+        _decades(ax)
     return _save(fig, path)
+
+
+def _decades(ax) -> None:
+    """Log axis with a decade of room around the points and plain labels at powers of ten."""
+    from matplotlib.ticker import LogLocator, NullFormatter
+
+    low, high = ax.dataLim.intervalx
+    if np.isfinite([low, high]).all() and low > 0:
+        ax.set_xlim(10 ** np.floor(np.log10(low) - 0.3), 10 ** np.ceil(np.log10(high) + 0.3))
+    ax.xaxis.set_major_locator(LogLocator(base=10))
+    ax.xaxis.set_minor_formatter(NullFormatter())
 
 
 def domain_averages(board: Board) -> dict[str, dict[str, float]]:
@@ -154,8 +166,8 @@ def radar(board: Board, path: Path) -> Path:
         ax.plot(closed[1], closed[0], style, marker="o", label=label)
     ax.set_xticks(angles, [d.capitalize() for d in domains])
     ax.set_ylim(0, 100)
-    ax.legend(fontsize=7, loc="upper right", bbox_to_anchor=(1.35, 1.12))
-    ax.set_title("Average R@1 (%) per domain; a domain a row was not measured on has no point", fontsize=8)
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.08), ncol=2, frameon=False)
+    ax.set_title("Average R@1 (%) per domain\n(no point where a row was not measured)", fontsize=8)
     return _save(fig, path)
 
 

@@ -6,6 +6,7 @@ so a failure (full disk, a kill) leaves the previous section whole and no partia
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import tempfile
 import warnings
@@ -25,6 +26,8 @@ from .stats import RESAMPLES, overlaps, paired_test, successes
 from .tables import GROUPS, LEGEND, TOLERANCE_PP, cell_stats, comparisons, fmt, group_table, other_rows
 
 SECTION = "leaderboard"
+#: MkDocs Material front matter: the wide tables get the table-of-contents column
+PAGE_HEAD = "---\nhide:\n  - toc\n---\n"
 #: mosaics drawn per dataset page (the best rows by R@1)
 MOSAIC_ROWS = 4
 
@@ -55,6 +58,7 @@ def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0) -> Pa
         write_section(staging, build_board(records), records, cache_dir=cache_dir, data_dir=data_dir, seed=seed)
         with FileLock(str(folder / f".{SECTION}.lock"), timeout=60):
             _swap(staging, target)
+            _remove_stale(folder)
     except OSError as error:
         raise VPRBenchError(f"Cannot write the leaderboard to {folder} ({error.strerror or error}); "
                             f"the previous {target} is unchanged.") from None
@@ -79,6 +83,16 @@ def _swap(staging: Path, target: Path) -> None:
     staging.rename(target)
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
+
+
+def _remove_stale(folder: Path, age_s: float = 3600) -> None:
+    """Folders a killed publish left: old sections (only ever made under the lock, so stale when we
+    hold it) and staging folders untouched for an hour (a live publish writes into its own)."""
+    import time
+
+    for path in folder.glob(f".{SECTION}-*-*"):
+        if path.is_dir() and (path.name.startswith(f".{SECTION}-old-") or time.time() - path.stat().st_mtime > age_s):
+            shutil.rmtree(path, ignore_errors=True)
 
 
 # ---------------------------------------------------------------- pages
@@ -127,7 +141,7 @@ def _ci(entry) -> str:
 
 def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: int = 0) -> str:
     written = datetime.now(timezone.utc).date().isoformat()
-    lines = ["# Leaderboard", "",
+    lines = [PAGE_HEAD, "# Leaderboard", "",
              f"Measured by `vprbench evaluate` ({len(records)} stored run(s); vprbench {__version__}; written {written}). "
              "Regenerate with `vprbench leaderboard publish --to docs/`.", "", _marks(board),
              "**How a cell is chosen.** " + CELL_RULE, ""]
@@ -150,10 +164,10 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
     lines += ["", "## Figures", ""]
     lines += _figure(lambda p: figures.radar(board, p), out, "radar.svg",
                      "Average R@1 per domain (AnyLoc Fig. 1, right): measured rows solid; the paper's "
-                     f"{', '.join(figures.RADAR_PAPER_ROWS)} dashed (reported).")
+                     f"{', '.join(figures.RADAR_PAPER_ROWS)} dashed (reported).", "Radar chart")
     lines += _figure(lambda p: figures.pca_map(records, p, cache_dir=cache_dir, seed=seed), out, "pca-gem.png",
                      "Database GeM descriptors of one method on every dataset it was run on, first two principal "
-                     "components, coloured by domain (AnyLoc Fig. 1, middle).")
+                     "components, coloured by domain (AnyLoc Fig. 1, middle).", "PCA map of GeM descriptors")
     others = other_rows(board)
     lines += ["## Other runs", "", "Runs that are not official runs on a benchmark: weights other than the authors' "
               "release (†) or the user's own data. They never fill a cell above.", ""]
@@ -179,11 +193,11 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
     return "\n".join(lines)
 
 
-def _figure(draw, out: Path, name: str, caption: str) -> list[str]:
+def _figure(draw, out: Path, name: str, caption: str, what: str | None = None) -> list[str]:
     try:
         draw(out / "figures" / name)
     except figures.Skipped as why:
-        return [f"*{caption.split(':')[0].split('(')[0].strip()}: not drawn, {why}.*", ""]
+        return [f"*{what or caption}: not drawn, {why}.*", ""]
     return [f"![{caption}](figures/{name})", "", f"*{caption}*", ""]
 
 
@@ -193,7 +207,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
     counts, gt, protocol = first["counts"], first.get("ground_truth", {}), first.get("protocol", {})
     positives = np.asarray((first.get("per_query") or {}).get("positives") or
                            (cells[0].arrays["positives"] if cells[0].arrays is not None else []))
-    lines = [f"# {column.title}", "", _marks(board),
+    lines = [PAGE_HEAD, f"# {column.title}", "", _marks(board),
              f"Domain: {column.domain or '–'}. Kind: {'benchmark' if column.kind == 'benchmark' else 'own data (not a benchmark)'}.", "",
              "## Data and ground truth", "",
              "| Database | Queries | Queries without positives | Positive pairs | Positives per query (min / median / max) | Ground truth | Protocol | Dataset fingerprint |",
@@ -206,17 +220,21 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
              "Queries without positives count as failures. " + CELL_RULE, "",
              "## Results", "",
              f"Seeded 95 % bootstrap intervals over queries ({RESAMPLES:,} resamples, seed {seed}).", "",
-             "| Method | Weights | R@1 [95 % CI] | R@5 [95 % CI] | R@10 | R@20 | AUC-PR | R@100%P | Dim | Bytes | Images/s | Run |",
-             "|:--|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|:--|"]
+             "| Method | Weights | R@1 [95 % CI] | R@5 [95 % CI] | R@10 | R@20 | AUC-PR | R@100%P | Dim | Bytes | Images/s |",
+             "|:--|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|"]
+    runs = ["| Method | Run | Created | vprbench | Commit | Descriptors computed | Older runs of the row |",
+            "|:--|:--|:--|:--|:--|--:|--:|"]
     for cell in cells:
         s, r = stats[(cell.row, column.key)], cell.record
-        run = f"`{r.get('run_id')}` {r.get('created', '')[:10]}, vprbench {r.get('versions', {}).get('vprbench', '?')}"
-        run += f" ({cell.passed_over} older run(s) not shown)" if cell.passed_over else ""
-        lines.append(f"| {cell.row.label}{' †' if not cell.row.official else ''} | {cell.row.mark or 'official'} | "
+        name = f"{cell.row.label}{' †' if not cell.row.official else ''}"
+        lines.append(f"| {name} | {cell.row.mark or 'official'} | "
                      f"{_ci(s[1])} | {_ci(s[5])} | {fmt(cell.recall(10))} | {fmt(cell.recall(20))} | "
                      f"{_num(r.get('auc_pr'), 3)} | {_num(r.get('recall_at_100_precision'), 3)} | {r.get('descriptor_dim')} | "
-                     f"{r.get('descriptor_bytes') or 4 * int(r.get('descriptor_dim') or 0)} | {_num(r.get('images_per_second'), 1)} | {run} |")
-    lines += ["", *_paired(cells, seed), "## Figures", ""]
+                     f"{r.get('descriptor_bytes') or 4 * int(r.get('descriptor_dim') or 0)} | {_num(r.get('images_per_second'), 1)} |")
+        versions, computed = r.get("versions") or {}, r.get("descriptors_computed") or {}
+        runs.append(f"| {name} | `{r.get('run_id')}` | {r.get('created', '–')} | {versions.get('vprbench', '–')} | "
+                    f"`{str(versions.get('git') or '–')[:10]}` | {sum(computed.values()) if computed else '–'} | {cell.passed_over} |")
+    lines += ["", "The runs in the cells above:", "", *runs, "", *_paired(cells, seed), "## Figures", ""]
     slug = column.slug
     lines += _figure(lambda p: figures.recall_curves(cells, p), out, f"{slug}-recall.svg", "Recall@K per run")
     lines += _figure(lambda p: figures.pr_curves(cells, p), out, f"{slug}-pr.svg",
@@ -227,7 +245,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
     for cell in cells[:MOSAIC_ROWS]:
         name = f"{slug}-mosaic-{_file_slug(cell.row.name)}.png"
         lines += _figure(lambda p, c=cell: figures.mosaic(c, p, data_dir=data_dir, seed=seed), out, name,
-                         f"{cell.row.name}: queries and their top 5")
+                         f"{cell.row.name}: queries and their top 5", f"Mosaic of {cell.row.name}")
     download = [_record_download(c) for c in cells]
     _write(out / "downloads" / f"{slug}.json", json.dumps(download, indent=1, sort_keys=True, default=_plain))
     pd.DataFrame([_summary(c, stats[(c.row, column.key)]) for c in cells]).to_csv(out / "downloads" / f"{slug}.csv", index=False)
@@ -262,7 +280,7 @@ def _num(value, digits: int) -> str:
 
 
 def _file_slug(text: str) -> str:
-    return "".join(ch if ch.isalnum() or ch in "-_." else "-" for ch in text).strip("-")[:80]
+    return re.sub("-+", "-", "".join(ch if ch.isalnum() or ch in "_." else "-" for ch in text)).strip("-")[:80]
 
 
 def _summary(cell: Cell, stats: dict) -> dict:

@@ -118,7 +118,7 @@ def group_table(board: Board, table: str, link=lambda column: column.dataset) ->
     for label, part in paper.groupby("row", sort=False):
         values = {(name, k): (_value(part, name, f"r{k}"), True)
                   for name in datasets for k in CELL_KS}
-        lines.append((f"{label} (paper)", f"reported, Table {table}", values))
+        lines.append((f"*{label}* (paper)", "reported", values))
     measured_any = any(source == "measured" for _, source, _ in lines)
 
     best = {}
@@ -135,14 +135,13 @@ def group_table(board: Board, table: str, link=lambda column: column.dataset) ->
         text = f"*{text}*" if is_reported else text
         return f"**{text}**" if best.get((name, k)) is not None and abs(value - best[(name, k)]) < 1e-9 else text
 
-    header = ["Method", "Source", *[f"[{n}]({link(by_name[n])})" if n in by_name else n for n in datasets],
-              "Average"]
+    header = ["Method", *[f"[{n}]({link(by_name[n])})" if n in by_name else n for n in datasets], "Average"]
     note = "" if measured_any else " No official run measured in this group yet: every value below is reported."
     out = [f"### Table {table}: {title}", "", "R@1 / R@5 (%) per dataset. " + LEGEND + note, "",
-           "| " + " | ".join(header) + " |", "|" + "|".join([":--", ":--"] + ["--:"] * (len(datasets) + 1)) + "|"]
+           "| " + " | ".join(header) + " |", "|" + "|".join([":--"] + ["--:"] * (len(datasets) + 1)) + "|"]
     for name, source, values in lines:
         cells = [f"{show(*values[(n, 1)], n, 1)} / {show(*values[(n, 5)], n, 5)}" for n in datasets]
-        out.append("| " + " | ".join([name, source, *cells, _average(values, datasets, source)]) + " |")
+        out.append("| " + " | ".join([name, *cells, _average(values, datasets, source)]) + " |")
     return "\n".join(out) + "\n"
 
 
