@@ -118,6 +118,29 @@ def test_no_results_writes_nothing(capsys, tmp_path):
     assert code == 1 and "No results yet" in err
 
 
+def test_only_old_records_say_why_no_cell_is_filled(capsys):
+    line = {"method": "hog", "dataset": "corridor", "recall": {"1": 48.6}, "counts": {"queries": 111}}
+    cache_root().mkdir(parents=True, exist_ok=True)
+    (cache_root() / "results.jsonl").write_text(json.dumps(line) + "\n")
+    code, _, err = run(capsys, "leaderboard")
+    assert code == 1 and "None of the 1 stored run(s) can fill a cell: recorded by vprbench 0.1" in err
+
+
+def test_compare_names_what_is_missing(capsys, make_record):
+    save_result(make_record("hog", seed=1))
+    save_result(make_record("dense-vlad", seed=2))
+    code, _, err = run(capsys, "leaderboard", "compare", "hogg", "dense-vlad", "--dataset", "corridor")
+    assert code == 1 and "No run of 'hogg' on corridor. Did you mean: hog?" in err
+    code, _, err = run(capsys, "leaderboard", "compare", "hog", "dense-vlad", "--dataset", "coridor")
+    assert code == 1 and "No run on dataset 'coridor' fills a cell. Did you mean: corridor?" in err
+    code, _, err = run(capsys, "leaderboard", "compare", "hog", "--dataset", "corridor")
+    assert code == 1 and "needs two methods and a dataset" in err
+    code, _, err = run(capsys, "leaderboard", "compare", "hog", "dense-vlad", "--dataset", "corridor", "--k", "50")
+    assert code == 1 and "searched only the top 20" in err
+    code, out, _ = run(capsys, "leaderboard", "compare", "hog", "dense-vlad", "--dataset", "corridor")
+    assert code == 0 and "difference (hog - dense-vlad)" in out and "McNemar exact test" in out
+
+
 def test_to_a_file_is_refused(capsys, tmp_path, make_record):
     save_result(make_record())
     target = tmp_path / "docs.md"

@@ -32,9 +32,9 @@ def _pyplot():
     return plt
 
 
-def _save(fig, path: Path) -> Path:
+def _save(fig, path: Path, dpi: int = 110) -> Path:
     metadata = {"Date": None} if path.suffix == ".svg" else {}
-    fig.savefig(path, bbox_inches="tight", metadata=metadata, dpi=110)
+    fig.savefig(path, bbox_inches="tight", metadata=metadata, dpi=dpi)
     _pyplot().close(fig)
     return path
 
@@ -226,7 +226,7 @@ def mosaic(cell: Cell, path: Path, *, data_dir=None, seed: int = 0, queries: int
     except VPRBenchError as error:
         plt.close(fig)
         raise Skipped(f"an image of {cell.record['dataset']} is unreadable ({error})") from None
-    return _save(fig, path)
+    return _save(fig, path, dpi=80)  # photographs: keep the PNG small
 
 
 def stored_descriptors(record: dict, split: str = "database", cache_dir=None) -> np.ndarray | None:
