@@ -27,6 +27,7 @@ import json
 import re
 import tomllib
 from dataclasses import dataclass, field
+from functools import cache
 from pathlib import Path
 
 from ..errors import VPRBenchError, closest_names
@@ -51,12 +52,7 @@ class Cell:
     @property
     def protocol_id(self) -> str:
         """`dataset:protocol` (the default's name filled in); a folder of one's own has 'own'."""
-        from ..datasets import dataset_manifests, is_path
-        from ..datasets.protocol import find_protocol
-
-        if is_path(self.dataset):
-            return f"{Path(self.dataset).expanduser().resolve().name}:own"
-        return find_protocol(dataset_manifests()[self.dataset], self.protocol).id
+        return _protocol_id(self.dataset, self.protocol)
 
     def identity(self) -> dict:
         """What the cell computes: the claim key and the match against stored records."""
@@ -80,6 +76,24 @@ class Plan:
     name: str
     cells: list[Cell]
     description: str = ""
+
+
+@cache
+def _manifests() -> dict:
+    """The shipped manifests, read once per process (a plan of many cells asks often)."""
+    from ..datasets import dataset_manifests
+
+    return dataset_manifests()
+
+
+@cache
+def _protocol_id(dataset: str, protocol: str | None) -> str:
+    from ..datasets import is_path
+    from ..datasets.protocol import find_protocol
+
+    if is_path(dataset):
+        return f"{Path(dataset).expanduser().resolve().name}:own"
+    return find_protocol(_manifests()[dataset], protocol).id
 
 
 def _line_index(text: str) -> dict[tuple[str, int, str], int]:
@@ -114,7 +128,7 @@ def read_plan(path: str | Path, *, device: str | None = None) -> Plan:
 def build_plan(data: dict, origin: str, lines: dict | None = None, *, device: str | None = None,
                default_name: str = "plan") -> Plan:
     """Cells of a plan given as a dict; raises one error listing every problem."""
-    from ..datasets import dataset_manifests, is_path
+    from ..datasets import is_path
     from ..datasets.protocol import protocols
     from ..methods import available_methods
 
@@ -151,7 +165,7 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, device: st
                             f"{closest_names(option, accepted)} (it accepts: {', '.join(accepted) or 'none'})")
         methods.append((name, {k: tuple(v) if isinstance(v, list) else v for k, v in options.items()}, entry.get("label", "")))
 
-    datasets, manifests = [], dataset_manifests()
+    datasets, manifests = [], _manifests()
     for i, entry in enumerate(_entries(data, "datasets", problems, where)):
         entry = {"name": entry} if isinstance(entry, str) else entry
         for key in sorted(set(entry) - DATASET_KEYS):
