@@ -5,6 +5,7 @@ import json
 import warnings
 
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from ..datasets import (
@@ -110,7 +111,7 @@ def protocol_table(name: str, listed: list[dict]) -> Table:
         table.add_row(p["name"], p["hash"],
                       f"{db['count'] or '?'} ({db['split']}{', without ' + ', '.join(db['exclude_folders']) if db['exclude_folders'] else ''})",
                       f"{q['count'] or 'all'} ({q['split']}{', listed subset' if q['subset'] else ''})", within,
-                      p["source"])
+                      escape(p["source"]))
     return table
 
 
