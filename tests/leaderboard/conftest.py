@@ -3,12 +3,13 @@ search: a dataset with the real Corridor's counts and ground-truth rule (or any 
 method with declared weights, and top-K lists whose quality is chosen."""
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from vprbench.datasets import dataset_manifest
+from vprbench.datasets import apply_protocol, dataset_manifest, find_protocol, own_protocol
 from vprbench.datasets.model import Dataset, GroundTruth
 from vprbench.evaluation.record import result_record
 from vprbench.methods import Method
@@ -63,7 +64,7 @@ def make_record(tmp_path):
 
     def make(method="hog", dataset="corridor", *, k=20, ks=(1, 5, 10, 20), quality=0.5, seed=0, options=None,
              weights=None, kind="benchmark", n_database=None, n_queries=None, root=None, fingerprint=None,
-             domain=None, created=None, descriptor_dim=64):
+             domain=None, created=None, descriptor_dim=64, protocol=None):
         manifest = dataset_manifest(dataset) if kind == "benchmark" else None
         n_database = n_database or manifest.database_count
         n_queries = n_queries or manifest.query_count
@@ -74,7 +75,10 @@ def make_record(tmp_path):
         data = Dataset(dataset, [images / f"db{i}.jpg" for i in range(n_database)],
                        [images / f"q{i}.jpg" for i in range(n_queries)], gt,
                        domain=domain or (manifest.domain if manifest else "custom"), root=images,
-                       layout="vpr-bench" if kind == "benchmark" else "own")
+                       layout="vpr-bench" if kind == "benchmark" else "own", kind=kind)
+        # as load_dataset does: the manifest's protocol (default or named), or the folder's own
+        data = apply_protocol(data, find_protocol(manifest, protocol)) if manifest else \
+            dataclasses.replace(data, protocol=own_protocol(data))
         fake = FakeMethod(method, options or {}, weights or {"source": "none"})
         record = result_record(
             method=fake, fingerprint={"method": method, **(options or {})}, dataset=data,

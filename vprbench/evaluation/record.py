@@ -34,16 +34,16 @@ REQUIRED = ("method", "dataset", "recall", "counts")
 
 # ---------------------------------------------------------------- protocol and dataset identity
 def provisional_protocol(name: str, database: int, queries: int, unit: str, radius) -> dict:
-    """A protocol built from what defines it today (manifest name, split counts, ground-truth unit
-    and radius). The ONE place to replace when datasets carry `dataset.protocol`."""
+    """For a dataset that carries no protocol (one built by hand, outside `load_dataset`): what
+    defines it, marked provisional. The leaderboard puts such runs in no benchmark's cell."""
     defining = {"dataset": name, "database": int(database), "queries": int(queries), "unit": unit,
                 "radius": None if radius is None else float(radius)}
     digest = hashlib.sha256(json.dumps(defining, sort_keys=True).encode()).hexdigest()[:16]
-    return {"name": name, "id": f"{name}/provisional", "hash": digest, "provisional": True, **defining}
+    return {"name": "provisional", "id": f"{name}:provisional", "hash": digest, "provisional": True, **defining}
 
 
 def protocol_of(dataset) -> dict:
-    """The evaluated dataset's protocol: its own when it has one, else the provisional one."""
+    """The evaluated dataset's protocol (datasets/protocol.py), else the provisional one."""
     found = getattr(dataset, "protocol", None)
     if found:
         return dict(found)
@@ -51,26 +51,24 @@ def protocol_of(dataset) -> dict:
     return provisional_protocol(dataset.name, len(dataset.database), len(dataset.queries), gt.unit, gt.radius)
 
 
-def benchmark_protocol(name: str) -> dict | None:
-    """The protocol a benchmark's leaderboard cells must have (from its manifest); None for a
-    name that is no benchmark."""
-    from ..datasets import dataset_manifests
+def benchmark_protocols(name: str) -> dict[str, dict]:
+    """Hash -> protocol record of every protocol a benchmark's manifest defines, the default first;
+    {} for a name that is no benchmark."""
+    from ..datasets import dataset_manifests, protocols
 
     manifest = dataset_manifests().get(name)
-    if manifest is None or manifest.database_count is None or manifest.query_count is None:
-        return None
-    return provisional_protocol(name, manifest.database_count, manifest.query_count, manifest.unit, manifest.radius)
+    return {} if manifest is None else {p.hash: p.record() for p in protocols(manifest).values()}
+
+
+def benchmark_protocol(name: str) -> dict | None:
+    """A benchmark's default protocol (the one its manifest names first), or None."""
+    return next(iter(benchmark_protocols(name).values()), None)
 
 
 def dataset_kind(dataset) -> str:
     """'benchmark' (read through a shipped manifest) or 'own' (a folder of the user's own, even
     one whose dataset.toml borrows a benchmark's name)."""
-    found = getattr(dataset, "kind", None)
-    if found:
-        return found
-    from ..datasets import dataset_manifests
-
-    return "benchmark" if dataset.layout != "own" and dataset.name in dataset_manifests() else "own"
+    return "own" if dataset.layout == "own" else getattr(dataset, "kind", None) or "benchmark"
 
 
 def dataset_fingerprints(dataset, dataset_key: str) -> dict:

@@ -4,9 +4,11 @@ The rules (stated on every published page, CELL_RULE):
 - a row is a method label (the method and the options set on top of its preset) with its
   weights: official weights (or a method without learnt weights) and every other weights source
   get rows of their own, so a user's or random weights never overwrite an official row;
-- a benchmark column takes only runs on that benchmark's protocol (manifest counts, ground-truth
-  unit and radius) and on one copy of its data (the dataset fingerprint most runs share, the
-  newest on a tie); own datasets get columns of their own, even one named like a benchmark;
+- a benchmark column is one of the benchmark's protocols (datasets/protocol.py; the default one
+  carries the dataset's name, a variant is "name [protocol]"): it takes only runs whose protocol
+  hash is that protocol's, whose image counts are the protocol's, and on one copy of its data (the
+  dataset fingerprint most runs share, the newest on a tie); own datasets get columns of their own,
+  even one named like a benchmark;
 - a cell is exactly one run: the newest eligible run that reports R@1 and R@5 (read from its
   per-query ranks when its search went deep enough), else the newest eligible run.
 """
@@ -18,7 +20,7 @@ from functools import cached_property
 
 import numpy as np
 
-from ..evaluation.record import benchmark_protocol, per_query
+from ..evaluation.record import benchmark_protocols, per_query
 
 #: options that change how a run is computed, not what it computes
 UNLABELLED_OPTIONS = {"device", "batch_size", "weights"}
@@ -31,9 +33,10 @@ UNSTRUCTURED = ("aerial", "subt", "degraded", "underwater")
 
 CELL_RULE = (
     "Each cell is exactly one run: the newest run of that method (with those options and weights) on that "
-    "dataset that reports R@1 and R@5, else its newest run. A benchmark's column takes only runs on the "
-    "benchmark's protocol (manifest image counts, ground-truth unit and radius) and on one copy of its data "
-    "(the dataset fingerprint most runs share; the newest on a tie). Runs on your own data get their own "
+    "dataset that reports R@1 and R@5, else its newest run. A benchmark's column is one of its protocols "
+    "(which images, which ground truth: its id and hash are on the dataset's page) and takes only runs on "
+    "that protocol, with its image counts, and on one copy of its data (the dataset fingerprint most runs "
+    "share; the newest on a tie). Runs on your own data get their own "
     "columns, even when named like a benchmark; runs with weights other than the authors' release get their "
     "own rows, marked, and never replace an official row."
 )
@@ -80,19 +83,26 @@ class Row:
 
 @dataclass(frozen=True)
 class Column:
-    key: str       # unique: the dataset name, or "<name> (own <fingerprint>)"
+    key: str       # unique: the dataset name, "<name> [<protocol>]" or "<name> (own <fingerprint>)"
     dataset: str
     kind: str      # "benchmark" or "own"
     domain: str
     fingerprint: str
+    protocol: str = ""
+    #: the benchmark's default protocol (the one the paper's tables use)
+    default: bool = True
 
     @property
     def title(self) -> str:
-        return self.dataset if self.kind == "benchmark" else f"{self.dataset} (own data)"
+        if self.kind != "benchmark":
+            return f"{self.dataset} (own data)"
+        return self.dataset if self.default else f"{self.dataset} [{self.protocol}]"
 
     @property
     def slug(self) -> str:
-        return self.dataset if self.kind == "benchmark" else f"own-{self.dataset}-{self.fingerprint[:8]}"
+        if self.kind != "benchmark":
+            return f"own-{self.dataset}-{self.fingerprint[:8]}"
+        return self.dataset if self.default else f"{self.dataset}-{self.protocol}"
 
 
 @dataclass
@@ -148,55 +158,65 @@ def _max_k(record: dict) -> int:
     return max([(record.get("per_query") or {}).get("k", 0), *ks], default=0)
 
 
-def _column_of(record: dict) -> tuple[str, str] | str:
-    """(kind, reason-free) or an exclusion reason."""
+def _column_of(record: dict) -> tuple[str, str, bool] | str:
+    """(kind, protocol name, is the default protocol), or the reason the run fills no cell."""
     if int(record.get("schema_version", 1)) < 2:
         return ("recorded by vprbench 0.1, without protocol, dataset kind or weights provenance; "
                 "rerun it to include it (its descriptors are served from the store)")
-    kind = record.get("dataset_kind", "own")
-    if kind != "benchmark":
-        return "own", ""
-    expected = benchmark_protocol(record["dataset"])
     found = record.get("protocol") or {}
-    if expected is None:
-        return "own", ""
-    if found.get("hash") != expected["hash"]:
-        differ = [k for k in ("database", "queries", "unit", "radius") if found.get(k) != expected.get(k)]
-        shown = ", ".join(f"{k} {found.get(k)!r} (benchmark: {expected.get(k)!r})" for k in differ) or "protocol id"
-        return f"not the {record['dataset']} benchmark's protocol: {shown}"
-    return "benchmark", ""
+    if record.get("dataset_kind", "own") != "benchmark":
+        return "own", str(found.get("name", "own")), True
+    known = benchmark_protocols(record["dataset"])
+    if not known:
+        return f"no benchmark is named {record['dataset']!r} in this vprbench"
+    if found.get("hash") not in known:
+        names = ", ".join(f"{p['name']} ({h})" for h, p in known.items())
+        return (f"protocol {found.get('id', '?')} ({found.get('hash', 'no hash')}) is none of {record['dataset']}'s: "
+                f"{names}" + ("; recorded before protocols existed, rerun it" if found.get("provisional") else ""))
+    protocol = known[found["hash"]]
+    counts = record.get("counts") or {}
+    for split, key in (("database", "database"), ("queries", "queries")):
+        expected = (protocol.get(split) or {}).get("count")
+        if expected is not None and counts.get(key) != expected:
+            return (f"{counts.get(key)} {split} images, but protocol {protocol['id']} has {expected}: "
+                    "not a complete copy of the benchmark")
+    return "benchmark", protocol["name"], found["hash"] == next(iter(known))
 
 
 def build_board(records: list[dict]) -> Board:
     """Apply the rules above to every record (oldest first, as read_results gives them)."""
     excluded: list[tuple[dict, str]] = []
-    placed: list[tuple[dict, Row, str, str]] = []  # record, row, kind, dataset fingerprint
+    placed: list[tuple[dict, Row, Column]] = []
     for record in records:
         found = _column_of(record)
         if isinstance(found, str):
             excluded.append((record, found))
             continue
-        key, mark = weights_of(record)
-        placed.append((record, Row(method_label(record), key, mark), found[0], str(record.get("dataset_fingerprint", ""))))
+        kind, protocol, default = found
+        name, fingerprint = record["dataset"], str(record.get("dataset_fingerprint", ""))
+        if kind == "benchmark":
+            key = name if default else f"{name} [{protocol}]"
+        else:
+            key = f"{name} (own {fingerprint[:8]})"
+        column = Column(key, name, kind, str(record.get("domain") or ""), fingerprint, protocol, default)
+        key_, mark = weights_of(record)
+        placed.append((record, Row(method_label(record), key_, mark), column))
 
-    # one copy of each benchmark's data: the fingerprint most runs share (the newest on a tie)
+    # one copy of each benchmark column's data: the fingerprint most runs share (the newest on a tie)
     chosen: dict[str, str] = {}
-    for name in {r["dataset"] for r, _, kind, _ in placed if kind == "benchmark"}:
-        runs = [(r, fp) for r, _, kind, fp in placed if kind == "benchmark" and r["dataset"] == name]
-        counts = Counter(fp for _, fp in runs)
-        newest = {fp: i for i, (_, fp) in enumerate(runs)}
-        chosen[name] = max(counts, key=lambda fp: (counts[fp], newest[fp]))
+    for key in {c.key for _, _, c in placed if c.kind == "benchmark"}:
+        prints = [c.fingerprint for _, _, c in placed if c.key == key]
+        counts = Counter(prints)
+        newest = {fp: i for i, fp in enumerate(prints)}
+        chosen[key] = max(counts, key=lambda fp: (counts[fp], newest[fp]))
 
     columns: dict[str, Column] = {}
     candidates: dict[tuple[Row, str], list[dict]] = {}
-    for record, row, kind, fingerprint in placed:
-        name = record["dataset"]
-        if kind == "benchmark" and fingerprint != chosen[name]:
-            excluded.append((record, f"dataset fingerprint {fingerprint} differs from the {chosen[name]} the other "
-                                     f"{name} runs share (another copy of its images or ground truth)"))
+    for record, row, column in placed:
+        if column.kind == "benchmark" and column.fingerprint != chosen[column.key]:
+            excluded.append((record, f"dataset fingerprint {column.fingerprint} differs from the {chosen[column.key]} "
+                                     f"the other {column.key} runs share (another copy of its images or ground truth)"))
             continue
-        column = Column(name if kind == "benchmark" else f"{name} (own {fingerprint[:8]})", name, kind,
-                        str(record.get("domain") or ""), fingerprint)
         columns.setdefault(column.key, column)
         candidates.setdefault((row, column.key), []).append(record)
 

@@ -15,7 +15,7 @@ def _cell(board: Board, method: str, dataset: str) -> Cell:
                             f"Datasets on the leaderboard: {', '.join(names) or 'none'}.")
     if len(columns) > 1 and not benchmark:
         raise VPRBenchError(f"Several own datasets are named {dataset!r}: give one of {', '.join(repr(c.key) for c in columns)}.")
-    column = (benchmark or columns)[0]
+    column = ([c for c in benchmark if c.key == dataset or c.default] or benchmark or columns)[0]
     rows = [r for r in board.find_row(method) if board.cell(r, column)]
     if not rows:
         names = [r.name for r in board.rows if board.cell(r, column)]

@@ -132,7 +132,7 @@ def domain_averages(board: Board) -> dict[str, dict[str, float]]:
             continue
         for column in board.columns:
             cell = board.cell(row, column)
-            if cell and column.kind == "benchmark" and cell.recall(1) is not None:
+            if cell and column.kind == "benchmark" and column.default and cell.recall(1) is not None:
                 found.setdefault(row.label, {}).setdefault(column.domain, []).append(cell.recall(1))
     return {label: {d: float(np.mean(v)) for d, v in domains.items()} for label, domains in found.items()}
 
@@ -173,17 +173,20 @@ def radar(board: Board, path: Path) -> Path:
 
 def _dataset_of(record: dict, data_dir=None):
     """The run's dataset loaded again, or Skipped when its images are gone or are not the run's."""
-    from ..datasets import dataset_manifest, load_dataset
+    from ..datasets import apply_protocol, dataset_manifest, find_protocol, load_dataset
     from ..datasets.layouts import read_layout
     from ..datasets.layouts.own_data import own_manifest
 
     root = Path(record["dataset_root"]) if record.get("dataset_root") else None
+    protocol = (record.get("protocol") or {}).get("name")
     try:
-        if root is not None and root.is_dir():
-            manifest = own_manifest(root) if record.get("dataset_kind") == "own" else dataset_manifest(record["dataset"])
-            dataset = read_layout(root, manifest)
+        if root is not None and root.is_dir() and record.get("dataset_kind") == "own":
+            dataset = read_layout(root, own_manifest(root))
+        elif root is not None and root.is_dir():
+            manifest = dataset_manifest(record["dataset"])
+            dataset = apply_protocol(read_layout(root, manifest), find_protocol(manifest, protocol))
         elif record.get("dataset_kind") == "benchmark":
-            dataset = load_dataset(record["dataset"], data_dir, fetch=False)
+            dataset = load_dataset(record["dataset"], data_dir, fetch=False, protocol=protocol)
         else:
             raise Skipped(f"the images of {record['dataset']} are no longer at {root}")
         positives = [len(p) for p in dataset.positives]

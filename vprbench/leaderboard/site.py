@@ -217,6 +217,8 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
              + (f"{positives.min()} / {np.median(positives):g} / {positives.max()}" if len(positives) else "–")
              + f" | {gt.get('unit', '–')}, radius {gt.get('radius', '–')} {gt.get('radius_unit') or ''} | "
              f"`{protocol.get('id', '–')}` (`{protocol.get('hash', '–')}`) | `{column.fingerprint}` |", "",
+             f"Protocol `{protocol.get('id', '–')}`: {protocol.get('description') or 'no description'}"
+             + (f" (source: {protocol['source']})" if protocol.get("source") else "") + ".", "",
              "Queries without positives count as failures. " + CELL_RULE, "",
              "## Results", "",
              f"Seeded 95 % bootstrap intervals over queries ({RESAMPLES:,} resamples, seed {seed}).", "",

@@ -75,7 +75,7 @@ def comparisons(board: Board, seed: int = 0) -> list[dict]:
             continue
         for column in board.columns:
             cell = board.cell(row, column)
-            if cell is None or column.kind != "benchmark":
+            if cell is None or column.kind != "benchmark" or not column.default:  # the paper's protocols
                 continue
             stats = cell_stats(cell, seed=seed)
             for k in CELL_KS:
@@ -100,7 +100,7 @@ def group_table(board: Board, table: str, link=lambda column: column.dataset) ->
     title, domains = GROUPS[table]
     paper = paper_results(table=table)
     datasets = list(dict.fromkeys(paper["column"]))
-    ours = [c for c in board.columns if c.kind == "benchmark" and c.domain in domains]
+    ours = [c for c in board.columns if c.kind == "benchmark" and c.default and c.domain in domains]
     datasets += [c.dataset for c in ours if c.dataset not in datasets]
     by_name = {c.dataset: c for c in ours}
 
