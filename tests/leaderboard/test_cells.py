@@ -66,8 +66,24 @@ def test_other_protocol_and_other_copy_never_land_in_the_benchmark_cell(make_rec
     board = board_of(*good, partial, other_copy)
     assert only_cell(board).record["run_id"] == good[1]["run_id"]
     reasons = {r["run_id"]: why for r, why in board.excluded}
-    assert "database 110 (benchmark: 111)" in reasons[partial["run_id"]]
+    assert "110 database images, but protocol corridor:vpr-bench has 111" in reasons[partial["run_id"]]
     assert "another-copy differs from the fp-corridor-111" in reasons[other_copy["run_id"]]
+
+
+def test_each_protocol_of_a_benchmark_is_its_own_column_and_unknown_ones_none(make_record):
+    default = make_record(dataset="vp-air", n_database=12706, n_queries=2706, seed=1)
+    variant = make_record(dataset="vp-air", n_database=2706, n_queries=2706, protocol="no-distractors", seed=2,
+                          fingerprint="fp-vp-air-2706")
+    edited = make_record(seed=3, created="2026-05-01T00:00:00+00:00")
+    edited["protocol"] = {**edited["protocol"], "hash": "0123456789abcdef"}  # e.g. another radius
+    hand_made = make_record(seed=4)
+    hand_made["protocol"] = {"id": "corridor:provisional", "hash": "fedcba9876543210", "provisional": True}
+    board = board_of(default, variant, edited, hand_made)
+    assert {c.key: (c.protocol, c.default) for c in board.columns} == {
+        "vp-air": ("with-distractors", True), "vp-air [no-distractors]": ("no-distractors", False)}
+    reasons = {r["run_id"]: why for r, why in board.excluded}
+    assert "is none of corridor's: vpr-bench (" in reasons[edited["run_id"]]
+    assert "recorded before protocols existed" in reasons[hand_made["run_id"]]
 
 
 def test_user_and_random_weights_get_marked_rows_and_never_replace_the_official_one(make_record):
