@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from ..errors import VPRBenchError, closest_names
 from .cells import Board, Cell
-from .stats import RESAMPLES, bootstrap_ci, overlaps, paired_test, successes
+from .stats import RESAMPLES, bootstrap_ci, format_p, overlaps, paired_test, successes
 
 
 def _cell(board: Board, method: str, dataset: str) -> Cell:
@@ -59,7 +59,7 @@ def describe(result: dict) -> str:
     lines += [
         f"  intervals overlap: {'yes' if result['overlap'] else 'no'}",
         f"  difference ({first.row.name} - {second.row.name}): {t['difference']:+.1f} pp, 95 % CI "
-        f"[{t['ci'][0]:+.1f}, {t['ci'][1]:+.1f}], paired bootstrap p = {t['p_bootstrap']:.3g}",
+        f"[{t['ci'][0]:+.1f}, {t['ci'][1]:+.1f}], paired bootstrap p {format_p(t['p_bootstrap'], t['resamples'])}",
         f"  McNemar exact test: {t['only_a']} queries only {first.row.name} gets right, {t['only_b']} only "
         f"{second.row.name}; p = {t['p_mcnemar']:.3g}",
         f"  {'A difference at the 5 % level' if t['p_mcnemar'] < 0.05 else 'No difference at the 5 % level'} (McNemar).",

@@ -22,7 +22,7 @@ from ..evaluation.record import read_results
 from ..reference import paper_results
 from . import figures
 from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board
-from .stats import RESAMPLES, overlaps, paired_test, successes
+from .stats import RESAMPLES, format_p, overlaps, paired_test, successes
 from .tables import GROUPS, LEGEND, TOLERANCE_PP, cell_stats, comparisons, fmt, group_table, other_rows
 
 SECTION = "leaderboard"
@@ -267,7 +267,7 @@ def _paired(cells: list[Cell], seed: int) -> list[str]:
             continue
         t = paired_test(successes(a.arrays["first_positive_rank"], 1), successes(b.arrays["first_positive_rank"], 1), seed=seed)
         lines.append(f"| {a.row.name} − {b.row.name} | {t['difference']:+.1f} [{t['ci'][0]:+.1f}, {t['ci'][1]:+.1f}] | "
-                     f"{t['p_bootstrap']:.3g} | {t['only_a']} / {t['only_b']} | {t['p_mcnemar']:.3g} |")
+                     f"{format_p(t['p_bootstrap']).lstrip('= ')} | {t['only_a']} / {t['only_b']} | {t['p_mcnemar']:.3g} |")
     if not lines:
         return []
     return ["### Paired tests where R@1 intervals overlap", "",

@@ -64,3 +64,8 @@ def paired_test(a: np.ndarray, b: np.ndarray, *, seed: int = SEED, resamples: in
 
 def overlaps(a: tuple[float, float], b: tuple[float, float]) -> bool:
     return a[0] <= b[1] and b[0] <= a[1]
+
+
+def format_p(p: float, resamples: int = RESAMPLES) -> str:
+    """A bootstrap p-value of 0 means below the resolution of the resamples, not zero."""
+    return f"< {1 / resamples:g}" if p == 0 else f"= {p:.3g}"
