@@ -57,7 +57,7 @@ def test_msls_size_records_statistics_and_compare(make_record):
     assert np.asarray(a["per_query"]["database_indices"]).shape == (11_000, 20)
     for record in (a, b):
         path = save_result(record)
-        assert path.stat().st_size < 200_000, "the JSON stays small: per-query arrays live in the .npz"
+        assert path.stat().st_size < 1_000_000, "the JSON stays small: per-query arrays live in the .npz"
     records = read_results()
     arrays = per_query(records[0])
     assert arrays["database_indices"].shape == (11_000, 20) and arrays["database_indices"].dtype == np.int32

@@ -209,6 +209,7 @@ def result_record(*, method, fingerprint, dataset, dataset_key, ks, scores, indi
         "descriptors_computed": computed,
         "timings": {k: round(v, 4) for k, v in timings.items()},
         "images_per_second": round(described / extract_s, 3) if described and extract_s > 0 else None,
+        "top_predictions": np.asarray(indices)[:, : min(ks[-1], 5)].tolist(),  # 0.1's key; per_query has the whole top K
         "provenance": method_provenance(method),
         "search": search or {"index": "exact"},
         **({"context": context} if context else {}),
