@@ -249,7 +249,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
         lines += _figure(lambda p, c=cell: figures.mosaic(c, p, data_dir=data_dir, seed=seed), out, name,
                          f"{cell.row.name}: queries and their top 5", f"Mosaic of {cell.row.name}")
     download = [_record_download(c) for c in cells]
-    _write(out / "downloads" / f"{slug}.json", json.dumps(download, indent=1, sort_keys=True, default=_plain))
+    _write(out / "downloads" / f"{slug}.json", json.dumps(download, sort_keys=True, default=_plain))  # compact: per-query arrays
     pd.DataFrame([_summary(c, stats[(c.row, column.key)]) for c in cells]).to_csv(out / "downloads" / f"{slug}.csv", index=False)
     lines += ["## Downloads", "", f"[{slug}.csv](downloads/{slug}.csv) (one row per cell), "
               f"[{slug}.json](downloads/{slug}.json) (the cells' full records, per-query predictions included).", ""]
