@@ -1,7 +1,6 @@
 """Sweeps: resume, failures, bad plans, two processes sharing one plan and cache, a killed runner."""
 from __future__ import annotations
 
-import json
 import os
 import re
 import shutil
@@ -14,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from vprbench.cli.main import main
+from vprbench.evaluation import read_results
 
 PLAN = """name = "two-by-two"
 k = [1, 5]
@@ -57,8 +57,7 @@ def plan(tmp_path, own):
 
 
 def records(cache: Path) -> list[dict]:
-    path = cache / "results.jsonl"
-    return [json.loads(line) for line in path.read_text().splitlines()] if path.is_file() else []
+    return read_results(cache)
 
 
 def vprbench(*args, cache: Path, data: Path):
@@ -127,7 +126,7 @@ def test_bad_plan_lists_every_problem_with_lines_and_runs_nothing(tmp_path, caps
                      "bad.toml:13: unknown dataset 'coridor'", "bad.toml:17: dataset 'nordland' has no protocol 'tolerance-5'",
                      "vpr-bench, tolerance-10, swapped"):
         assert expected in " ".join(err.split()), err
-    assert not (tmp_path / "cache" / "results.jsonl").exists()
+    assert not read_results(tmp_path / "cache")
     plan.write_text("[[methods]\n")
     assert main(["run", str(plan)]) == 1 and "not valid TOML" in capsys.readouterr().err
 

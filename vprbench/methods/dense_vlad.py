@@ -42,6 +42,11 @@ class DenseVLAD(Method):
                 "max_side": self.max_side, "sample": self.sample, "seed": self.seed,
                 "opencv": cv2.__version__.split(".")[0], "descriptor_version": 1}
 
+    def provenance(self) -> dict:
+        return {"weights": {"source": "none"},  # SIFT: nothing learnt but the vocabulary
+                "vocabulary": {"source": "map", "fitted_on_evaluated_database": True, "clusters": self.clusters,
+                               "seed": self.seed}}
+
     def local_features(self, path: Path) -> np.ndarray:
         """(n, 128) RootSIFT descriptors on the dense multi-scale grid."""
         gray = cv2.cvtColor(load_rgb(path), cv2.COLOR_RGB2GRAY)

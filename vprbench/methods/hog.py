@@ -27,6 +27,9 @@ class HOG(Method):
     def fingerprint(self) -> dict:
         return {**self.settings, "opencv": cv2.__version__.split(".")[0]}
 
+    def provenance(self) -> dict:
+        return {"weights": {"source": "none"}}  # nothing learnt
+
     def describe(self, images: Sequence[Path]) -> np.ndarray:
         rows = []
         for path in images:
