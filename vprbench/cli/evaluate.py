@@ -14,7 +14,7 @@ from ..datasets import load_dataset
 from ..errors import VPRBenchError
 from ..evaluation import append_result, evaluate
 from ..methods import create_method
-from .options import add_location_options, add_method_options, apply_locations, method_options, parse_ks
+from .options import add_download_option, add_location_options, add_method_options, apply_locations, method_options, parse_ks
 
 
 def progress_bar(console: Console) -> Progress:
@@ -27,6 +27,7 @@ def add_parsers(commands) -> None:
     add_method_options(p)
     p.add_argument("--dataset", required=True, help="dataset name ('vprbench datasets list') or a folder of your own")
     add_location_options(p)
+    add_download_option(p)
     p.add_argument("--k", nargs="+", help="K values for Recall@K (default 1 5 10 20)")
     p.add_argument("--strict", action="store_true", help="fail when image counts differ from the manifest")
     p.add_argument("--json", action="store_true", help="print the result record as JSON on stdout")
@@ -44,7 +45,7 @@ def add_parsers(commands) -> None:
 def run_evaluate(args) -> int:
     apply_locations(args)
     console = Console(stderr=True)
-    dataset = load_dataset(args.dataset, args.data_dir, strict=args.strict)
+    dataset = load_dataset(args.dataset, args.data_dir, strict=args.strict, fetch=args.download or None)
     method = create_method(args.method, **method_options(args))
     with progress_bar(console) as progress:
         record = evaluate(method, dataset, ks=parse_ks(args.k), cache_dir=args.cache_dir, progress=progress)
