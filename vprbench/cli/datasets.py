@@ -4,10 +4,10 @@ from __future__ import annotations
 import json
 import warnings
 
-from rich.console import Console
 from rich.table import Table
 
 from ..datasets import dataset_location, dataset_manifests, download_dataset, import_dataset, load_dataset, verify_dataset
+from .console import console, styled
 from .options import add_location_options, apply_locations
 
 
@@ -64,8 +64,8 @@ def run_list(args) -> int:
         radius = f"{r['radius']:g} {r['radius_unit'] or ''}".strip()
         radius += " (lists)" if r["unit"] == "positives" else ""
         table.add_row(r["name"], r["domain"], str(r["database"] or "?"), str(r["queries"] or "?"), radius,
-                      "[green]yes[/]" if r["on_disk"] else "no")
-    Console().print(table)
+                      styled("yes", "green") if r["on_disk"] else "no")
+    console().print(table)
     return 0
 
 
@@ -80,7 +80,7 @@ def run_info(args) -> int:
     table = Table(title=f"{dataset.title or dataset.name}", show_header=False)
     for key, value in info.items():
         table.add_row(key, str(value))
-    Console().print(table)
+    console().print(table)
     return 0
 
 

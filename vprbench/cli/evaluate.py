@@ -14,11 +14,12 @@ from ..datasets import load_dataset
 from ..errors import VPRBenchError
 from ..evaluation import append_result, evaluate
 from ..methods import create_method
+from .console import console as make_console
 from .options import add_download_option, add_location_options, add_method_options, apply_locations, method_options, parse_ks
 
 
 def progress_bar(console: Console) -> Progress:
-    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+    return Progress(TextColumn("{task.description}", markup=False), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
                     console=console, transient=True)
 
 
@@ -44,16 +45,15 @@ def add_parsers(commands) -> None:
 
 def run_evaluate(args) -> int:
     apply_locations(args)
-    console = Console(stderr=True)
     dataset = load_dataset(args.dataset, args.data_dir, strict=args.strict, fetch=args.download or None)
     method = create_method(args.method, **method_options(args))
-    with progress_bar(console) as progress:
+    with progress_bar(make_console(stderr=True)) as progress:
         record = evaluate(method, dataset, ks=parse_ks(args.k), cache_dir=args.cache_dir, progress=progress)
-    append_result(record, args.cache_dir)
-    if args.json:
+    if args.json:  # shown first: a result that cannot be saved (full or read-only disk) is still seen
         print(json.dumps(record, indent=2, sort_keys=True))
     else:
-        Console().print(results_table(record))
+        make_console().print(results_table(record))
+    append_result(record, args.cache_dir)
     return 0
 
 

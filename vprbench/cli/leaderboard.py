@@ -3,12 +3,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from rich.console import Console
 from rich.table import Table
 
 from ..errors import VPRBenchError
 from ..evaluation import read_results
 from ..leaderboard import FORMATS, leaderboard, publish, render
+from .console import console
 from .options import apply_locations
 
 
@@ -40,5 +40,5 @@ def run(args) -> int:
         view.add_column(str(column), justify="right")
     for method, row in table.iterrows():
         view.add_row(str(method), *row.tolist())
-    Console().print(view)
+    console().print(view)
     return 0
