@@ -151,10 +151,11 @@ class Vocabulary:
     def check_dim(self, feature_dim: int) -> None:
         if feature_dim != self.dim:
             source = self.meta.get("path") or self.meta.get("source") or "the vocabulary"
+            fitted = "/".join(str(self.meta[k]) for k in ("backbone", "layer", "facet") if k in self.meta)
             raise VPRBenchError(
                 f"Vocabulary {source} has {self.dim}-dimensional centres but the features are "
-                f"{feature_dim}-dimensional: it was fitted for other features (backbone, layer or facet "
-                f"{self.meta.get('backbone', '?')}/{self.meta.get('layer', '?')}/{self.meta.get('facet', '?')})."
+                f"{feature_dim}-dimensional: it was fitted for other features (another backbone, layer or facet"
+                f"{f': {fitted}' if fitted else ''}). Use a vocabulary fitted for these features."
             )
 
     def save(self, path: str | Path) -> Path:
