@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import errno as codes
+import io
 import os
 import re
 
@@ -36,8 +37,9 @@ _WHAT_TO_DO = {
 
 
 def _path_of(error: OSError) -> str | None:
-    """The file an OSError is about: its filename, a path named in its message (HDF5 puts
-    one there), or the name HDF5 was opening (HDF5's lock errors name no file)."""
+    """The file an OSError is about: its filename; a path named in its message (HDF5 puts one
+    there); else, from the innermost frame outwards, the file object being read or written
+    (a failed write() names no file) or the name HDF5 was opening (its lock errors name none)."""
     if getattr(error, "lock_file", None):  # filelock.Timeout
         return str(error.lock_file)
     if error.filename is not None:
@@ -45,12 +47,16 @@ def _path_of(error: OSError) -> str | None:
     found = re.search(r"name = '([^']+)'", str(error))
     if found:
         return found.group(1)
-    trace = error.__traceback__
+    frames, trace = [], error.__traceback__
     while trace is not None:
-        frame = trace.tb_frame
+        frames.append(trace.tb_frame)
+        trace = trace.tb_next
+    for frame in reversed(frames):
+        for value in frame.f_locals.values():
+            if isinstance(value, io.IOBase) and isinstance(getattr(value, "name", None), (str, bytes)):
+                return os.fsdecode(value.name)
         if "h5py" in frame.f_code.co_filename and isinstance(frame.f_locals.get("name"), (str, bytes, os.PathLike)):
             return os.fsdecode(frame.f_locals["name"])
-        trace = trace.tb_next
     return None
 
 

@@ -39,13 +39,19 @@ def read_registry(data_dir=None) -> dict[str, str]:
 
 
 def write_registry(entries: dict[str, str], data_dir=None) -> Path:
-    """Write atomically (temporary file + rename), so a crash never leaves half a registry."""
+    """Write atomically (temporary file + rename), so a crash or a full disk never leaves half
+    a registry; a failed write removes its temporary file and names the registry.
+    (A private atomic write until vprbench/fsutil.py's atomic_write lands.)"""
     path = registry_path(data_dir)
     path.parent.mkdir(parents=True, exist_ok=True)
     handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=".datasets-", suffix=".json")
-    with os.fdopen(handle, "w") as file:
-        json.dump(dict(sorted(entries.items())), file, indent=2)
-    os.replace(temporary, path)
+    try:
+        with os.fdopen(handle, "w") as file:
+            json.dump(dict(sorted(entries.items())), file, indent=2)
+        os.replace(temporary, path)
+    except OSError as error:
+        os.unlink(temporary)
+        raise OSError(error.errno, error.strerror, str(path)) from None
     return path
 
 
