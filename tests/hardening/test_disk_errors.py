@@ -149,3 +149,12 @@ def test_hdf5_lock_error_names_the_file(tmp_path):
 def test_message_for_errors_this_machine_cannot_cause(error, expected):
     """Root ignores permissions and the disks are healthy here: these are constructed errors."""
     assert os_error_message(error) == expected
+
+
+def test_output_into_a_closed_pipe_ends_quietly():
+    """`vprbench ... | head` closing early is no error worth a message."""
+    process = subprocess.Popen([str(os.path.join(os.path.dirname(sys.executable), "vprbench")), "methods", "list", "--json"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    process.stdout.close()  # the reader is gone before anything is written
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 141 and err == b""

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import warnings
 
@@ -38,6 +39,9 @@ def main(argv=None) -> int:
     except VPRBenchError as error:
         print_error(str(error))
         return 1
+    except BrokenPipeError:  # output piped into a reader that stopped (| head): end quietly, as other tools do
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     except OSError as error:  # permissions, full or read-only disks, lock timeouts: say which path and what to do
         print_error(os_error_message(error))
         return 1
