@@ -46,10 +46,9 @@ def test_gadgets_are_real(marker):
 
 
 def test_real_ground_truth_files_load_exactly_as_numpy_loads_them(shared_data):
-    """Every object-array and numeric ground-truth file in ../shared/data: same values, no pickle run."""
-    files = [f for f in sorted(glob.glob(str(shared_data / "**" / "*.npy"), recursive=True))
-             if "Images" not in os.path.basename(f)]  # image-name lists are not ground truth
-    assert len(files) == 15  # corridor, 12 VPR-Bench lists, VLAD-BuFF Nordland_gt and SPED_gt
+    """Every .npy in ../shared/data (object-array row files, numeric lists, image-name lists): same values."""
+    files = sorted(glob.glob(str(shared_data / "**" / "*.npy"), recursive=True))
+    assert len(files) == 27  # corridor, 12 VPR-Bench lists, 14 VLAD-BuFF files
     for path in files:
         ours, numpy_s = read_npy(path, "ground truth", "rows"), np.load(path, allow_pickle=True)
         assert ours.shape == numpy_s.shape and ours.dtype == numpy_s.dtype, path

@@ -86,7 +86,8 @@ def _unpickle_array(handle, shape: tuple) -> np.ndarray:
 
 
 def read_npy(path: Path, what: str, expected: str) -> np.ndarray:
-    """The array in an .npy file: numbers, or an object array of numbers, lists of numbers and texts.
+    """The array in an .npy file: numbers or texts, or an object array of numbers, lists of
+    numbers and texts.
 
     Anything else, a pickle asking for any other Python object included, is refused with a
     VPRBenchError naming the file, `what` it is and what was `expected`; nothing is run.
@@ -98,8 +99,8 @@ def read_npy(path: Path, what: str, expected: str) -> np.ndarray:
             shape, dtype = _header(handle)
             if dtype.hasobject:
                 return _unpickle_array(handle, shape)
-            if dtype.kind not in "iuf":
-                raise ValueError(f"it holds {dtype} values, not numbers")
+            if dtype.kind not in "iufUS":  # numbers, or texts (image lists): no pickle involved
+                raise ValueError(f"it holds {dtype} values, not numbers or texts")
             needed, available = math.prod(shape) * dtype.itemsize, path.stat().st_size - handle.tell()
             if needed > available:
                 raise ValueError(f"it is truncated ({available} of {needed} data bytes)")
