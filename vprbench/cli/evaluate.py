@@ -16,6 +16,7 @@ from ..evaluation import append_result, evaluate
 from ..methods import create_method
 from .console import console as make_console
 from .options import add_download_option, add_location_options, add_method_options, apply_locations, method_options, parse_ks
+from .run import add_sweep_options, run_matrix
 
 
 def progress_bar(console: Console) -> Progress:
@@ -24,9 +25,11 @@ def progress_bar(console: Console) -> Progress:
 
 
 def add_parsers(commands) -> None:
-    p = commands.add_parser("evaluate", help="evaluate a method on a dataset (Recall@K, PR)")
-    add_method_options(p)
-    p.add_argument("--dataset", required=True, help="dataset name ('vprbench datasets list') or a folder of your own")
+    p = commands.add_parser("evaluate", help="evaluate methods on datasets (Recall@K, PR); several of each run as a sweep")
+    add_method_options(p, several=True)
+    p.add_argument("--dataset", required=True, nargs="+", help="dataset names ('vprbench datasets list') or folders of your own")
+    p.add_argument("--protocol", help="the dataset's protocol ('vprbench datasets info NAME'; default: its first)")
+    add_sweep_options(p)
     add_location_options(p)
     add_download_option(p)
     p.add_argument("--k", nargs="+", help="K values for Recall@K (default 1 5 10 20)")
@@ -45,6 +48,9 @@ def add_parsers(commands) -> None:
 
 def run_evaluate(args) -> int:
     apply_locations(args)
+    if len(args.method) > 1 or len(args.dataset) > 1 or args.protocol:
+        return run_matrix(args, method_options(args))  # the sweep: resumable, shared across processes
+    args.method, args.dataset = args.method[0], args.dataset[0]
     dataset = load_dataset(args.dataset, args.data_dir, strict=args.strict, fetch=args.download or None)
     method = create_method(args.method, **method_options(args))
     with progress_bar(make_console(stderr=True)) as progress:

@@ -26,8 +26,11 @@ def apply_locations(args) -> None:
         os.environ["VPRBENCH_CACHE"] = args.cache_dir
 
 
-def add_method_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--method", required=True, help="method or preset name ('vprbench methods list')")
+def add_method_options(parser: argparse.ArgumentParser, several: bool = False) -> None:
+    if several:
+        parser.add_argument("--method", required=True, nargs="+", help="method or preset names ('vprbench methods list')")
+    else:
+        parser.add_argument("--method", required=True, help="method or preset name ('vprbench methods list')")
     group = parser.add_argument_group("method options (override the preset; a method rejects those it does not use)")
     group.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda (default: cpu)")
     group.add_argument("--backbone", help="backbone, e.g. dinov2_vitg14, dino_vits8, resnet101")

@@ -34,6 +34,10 @@ class DatasetManifest:
     #: layout-specific settings (folder names, ground-truth file, strides...)
     options: dict = field(default_factory=dict)
     notes: str = ""
+    #: the default evaluation protocol (name, description, source; see datasets/protocol.py)
+    protocol: dict = field(default_factory=dict)
+    #: named variants of the protocol (swapped splits, another tolerance, a query subset...)
+    protocols: list = field(default_factory=list)
 
     @classmethod
     def from_toml(cls, text: str, origin: str) -> "DatasetManifest":

@@ -18,7 +18,7 @@ import torch.nn.functional as F
 
 from ..aggregation import pooling, vlad
 from ..aggregation.pca import PCAWhitening
-from ..aggregation.policies import paper_vocabulary, resolve_vocabulary, vocabulary_images
+from ..aggregation.policies import MAP_PREFIX, paper_choice, released_provenance, resolve_vocabulary, vocabulary_images
 from ..aggregation.vlad import vlad_hard
 from ..aggregation.vocabulary import fit_vocabulary
 from ..errors import VPRBenchError
@@ -93,8 +93,11 @@ class AnyLoc(Method):
         self.centres: torch.Tensor | None = None
         self._extractor: DenseExtractor | None = None
         self._weights_id: str | None = None
-        self.needs_fit = aggregation in VLADS and self.vocabulary == "map"
-        if aggregation in VLADS and self.vocabulary != "map":
+        #: where the centres came from, for provenance(): name, source, file, sha256, note
+        self.vocabulary_info: dict = {}
+        # "domain" (the paper's choice per dataset) is settled in use_dataset; until then, fit on the database
+        self.needs_fit = aggregation in VLADS and self.vocabulary in ("map", "domain")
+        if aggregation in VLADS and self.vocabulary not in ("map", "domain"):
             self.centres = self._resolve_vocabulary()
 
     # ------------------------------------------------------------ configuration
@@ -116,7 +119,13 @@ class AnyLoc(Method):
         """Tell the method which dataset it runs on (AnyLoc's per-dataset resize, domain vocabularies)."""
         self.dataset = name
         if self.aggregation in VLADS and self.vocabulary == "domain":
-            self.centres = self._resolve_vocabulary()
+            found, source, note = paper_choice(name, self.backbone, self.layer, self.facet, self.clusters)
+            self.needs_fit = found is None
+            self.centres = None if found is None else found.centres.float()
+            self.vocabulary_info = {"name": source, **({"note": note} if note else {}),
+                                    **(self._file_info(found) if found is not None else {})}
+            if note:
+                warnings.warn(note, stacklevel=2)
 
     @property
     def resize(self) -> tuple[int, int] | None:
@@ -127,18 +136,21 @@ class AnyLoc(Method):
         # DINOv2 extractor normalises every patch; for DINO v1 only the official VLAD does
         return self.family == "dinov2" or self.aggregation in VLADS
 
-    def _resolve_vocabulary(self) -> torch.Tensor | None:
-        """Centres for a vocabulary option other than "map": a file/folder path, a cached
-        source name (a domain such as "indoor", or "map-<dataset>"), or "domain" = the
-        vocabulary the paper uses for the current dataset."""
-        spec = self.vocabulary
-        if spec == "domain":
-            if self.dataset is None:
-                return None  # resolved in use_dataset()
-            spec = paper_vocabulary(self.dataset)
-        found = resolve_vocabulary(spec, self.backbone, self.layer, self.facet, self.clusters)
+    def _resolve_vocabulary(self) -> torch.Tensor:
+        """Centres for a vocabulary option other than "map"/"domain": a file/folder path or a
+        cached source name (a domain such as "indoor", or "map-<dataset>"); the authors'
+        released centres are downloaded on first use where they fit these features."""
+        found = resolve_vocabulary(self.vocabulary, self.backbone, self.layer, self.facet, self.clusters)
         found.check_dim(self.spec.dim)  # before the model loads, naming the file
+        self.vocabulary_info = {"name": self.vocabulary, **self._file_info(found)}
         return found.centres.float()
+
+    @staticmethod
+    def _file_info(vocabulary) -> dict:
+        found = released_provenance(vocabulary)
+        if found.get("source") == "file" and "vocabularies" in Path(found["file"]).parts:
+            found["source"] = "cache"  # fitted earlier with `vprbench vocabulary fit` or imported
+        return found
 
     # ------------------------------------------------------------ identity
     def weights_identity(self) -> str:
@@ -158,8 +170,8 @@ class AnyLoc(Method):
             fp["layer"], fp["facet"] = "final-norm", "cls"  # layer/facet options do not apply
         if self.aggregation in VLADS:
             fp["clusters"] = self.clusters
-            # a named or file vocabulary is identified by its centres' bytes
-            fp["vocabulary"] = "map" if self.vocabulary == "map" else (
+            # a named or file vocabulary is identified by its centres' bytes; fitted ones by "map"
+            fp["vocabulary"] = "map" if self.needs_fit else (
                 "sha256:" + hashlib.sha256(self.centres.numpy().tobytes()).hexdigest()
                 if self.centres is not None else self.vocabulary)
         if self.aggregation == "gem":
@@ -171,10 +183,23 @@ class AnyLoc(Method):
     def provenance(self) -> dict:
         found = {"weights": weights_provenance(self.weights_identity())}
         if self.aggregation in VLADS:
-            found["vocabulary"] = {"source": self.vocabulary, "fitted_on_evaluated_database": self.needs_fit}
+            found["vocabulary"] = self.vocabulary_provenance()
         if self.pca_dim:
-            found["pca"] = {"dim": self.pca_dim, "fitted_on_evaluated_database": True}
+            found["pca"] = {"dim": self.pca_dim, "fitted_on": "the evaluated database's descriptors",
+                            "fitted_on_evaluated_database": True}
         return found
+
+    def vocabulary_provenance(self) -> dict:
+        """Which vocabulary, its source and sha256, and whether it was fitted on the evaluated database."""
+        info = {"option": self.vocabulary, **self.vocabulary_info, "fitted_on_evaluated_database": self.needs_fit}
+        if self.needs_fit:
+            info.update(source="fitted", name=f"{MAP_PREFIX}{self.dataset}" if self.dataset else "map",
+                        fitted_on=f"the database of {self.dataset}" if self.dataset else "the database given to fit()")
+            info.pop("file", None)
+        if self.centres is not None:
+            info["centres_sha256"] = hashlib.sha256(self.centres.numpy().tobytes()).hexdigest()
+            info["clusters"], info["dim"] = int(self.centres.shape[0]), int(self.centres.shape[1])
+        return info
 
     # ------------------------------------------------------------ extraction
     @property
