@@ -61,26 +61,27 @@ def test_real_ground_truth_files_load_exactly_as_numpy_loads_them(shared_data):
 
 
 # ---------------------------------------------------------------- .npy ground truth and poses
-def vpr_bench_gt(tmp_path, shared_data, corridor):
+def vpr_bench_gt(tmp_path, shared_data, request):
+    corridor = request.getfixturevalue("corridor_copy")
     return corridor / "ground_truth_new.npy", ["evaluate", "--method", "hog", "--resize", 64, 64, "--dataset",
                                                "corridor", "--data-dir", corridor.parent]
 
 
-def gardens_gt(tmp_path, shared_data, corridor):
+def gardens_gt(tmp_path, shared_data, request):
     root = tmp_path / "gardens-data" / "gardens"
     tiny_images(root / "day_right", ["Image000.jpg", "Image001.jpg", "Image002.jpg"])
     tiny_images(root / "night_right", ["Image000.jpg", "Image001.jpg", "Image002.jpg"])
     return root / "gardens_gt.npy", ["datasets", "info", "gardens-point", "--data-dir", root.parent]
 
 
-def hawkins_poses(tmp_path, shared_data, corridor):
+def hawkins_poses(tmp_path, shared_data, request):
     root = tmp_path / "hawkins-data" / "hawkins_long_corridor"
     tiny_images(root / "db_images", [f"{i}.png" for i in range(3)])
     tiny_images(root / "q_images", [f"{i}.png" for i in range(3)])
     return root / "pose_topic_list.npy", ["datasets", "info", "hawkins", "--data-dir", root.parent]
 
 
-def vocabulary_npy(tmp_path, shared_data, corridor):
+def vocabulary_npy(tmp_path, shared_data, request):
     return tmp_path / "centres.npy", ["evaluate", "--method", "anyloc", "--backbone", "dinov2_vits14", "--layer", 3,
                                       "--vocabulary", tmp_path / "centres.npy", "--dataset", "corridor",
                                       "--data-dir", shared_data]
@@ -92,8 +93,8 @@ NPY_READERS = {"vpr-bench-ground-truth": vpr_bench_gt, "positive-lists": gardens
 
 @pytest.mark.parametrize("gadget", [*GADGETS, "payload-inside-real-rows"])
 @pytest.mark.parametrize("reader", list(NPY_READERS))
-def test_hostile_npy_is_refused(reader, gadget, tmp_path, shared_data, corridor_copy, marker, cli):
-    path, command = NPY_READERS[reader](tmp_path, shared_data, corridor_copy)
+def test_hostile_npy_is_refused(reader, gadget, tmp_path, shared_data, request, marker, cli):
+    path, command = NPY_READERS[reader](tmp_path, shared_data, request)
     path.unlink(missing_ok=True)
     if gadget == "payload-inside-real-rows":
         np.save(path, rows_with_payload(marker), allow_pickle=True)
