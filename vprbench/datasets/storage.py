@@ -12,7 +12,7 @@ import tempfile
 import warnings
 from pathlib import Path
 
-from ..errors import VPRBenchError, closest_names
+from ..errors import VPRBenchError
 from .download import how_to_get
 from .layouts import candidates, missing_paths, read_layout
 from .manifest import DatasetManifest, data_root, dataset_manifest, is_default_data_root
