@@ -93,7 +93,12 @@ def test_missing_data_root_without_network(capsys, tmp_path, monkeypatch):
         raise ConnectionError("no network")
 
     monkeypatch.setattr(pooch.Pooch, "fetch", offline)
+    # a data root the user named is never downloaded into unless asked
     code, _, err = run(capsys, "evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", str(tmp_path / "nothing"))
+    assert_user_error(code, err, "not in the data root", "add --download")
+    assert not (tmp_path / "nothing").exists(), "nothing created where the user did not ask"
+    code, _, err = run(capsys, "evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", str(tmp_path / "nothing"),
+                       "--download")
     assert_user_error(code, err, "Downloading 'corridor'", "failed", "rerun")
     assert not (tmp_path / "nothing" / "corridor").exists(), "no half-downloaded dataset in place"
 

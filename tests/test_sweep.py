@@ -136,7 +136,7 @@ def test_evaluate_matrix_continues_past_a_failing_cell(shared_data, tmp_path, ca
     code = main(["evaluate", "--method", "hog", "--dataset", "corridor", "hawkins", "--data-dir", str(shared_data),
                  "--resize", "32", "32", "--k", "1"])
     out = " ".join(capsys.readouterr().out.split())
-    assert code == 1 and "1 ran" in out and "1 failed" in out and "'hawkins' is not at" in out
+    assert code == 1 and "1 ran" in out and "1 failed" in out and "'hawkins' is not in the data root" in out
     assert [r["dataset"] for r in records(tmp_path / "cache")] == ["corridor"]
     code = main(["evaluate", "--method", "hog", "--dataset", "corridor", "--protocol", "swapped"])
     assert code == 1 and "has no protocol 'swapped'" in capsys.readouterr().err

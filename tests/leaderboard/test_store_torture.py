@@ -128,7 +128,7 @@ def test_full_disk_fails_cleanly_and_keeps_every_stored_record(small_disk, make_
     monkeypatch.setenv("VPRBENCH_CACHE", str(disk))
     record = make_record(kind="own", n_database=5000, n_queries=2000, dataset="full")
     saved = 0
-    with pytest.raises(VPRBenchError, match=r"Cannot save the result to .*results \(No space left on device\); nothing was stored"):
+    with pytest.raises(VPRBenchError, match=r"Cannot use .*results: No space left on device; .* The result was not stored\."):
         for _ in range(100):
             save_result(dict(record, run_id=f"run-{saved:03d}"))
             saved += 1

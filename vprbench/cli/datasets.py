@@ -4,14 +4,13 @@ from __future__ import annotations
 import json
 import warnings
 
-from rich.console import Console
-from rich.markup import escape
 from rich.table import Table
 
 from ..datasets import (
     dataset_location, dataset_manifest, dataset_manifests, download_dataset, import_dataset, load_dataset, protocols,
     verify_dataset,
 )
+from .console import console, styled
 from .options import add_location_options, apply_locations
 
 
@@ -70,8 +69,8 @@ def run_list(args) -> int:
         radius = f"{r['radius']:g} {r['radius_unit'] or ''}".strip()
         radius += " (lists)" if r["unit"] == "positives" else ""
         table.add_row(r["name"], r["domain"], str(r["database"] or "?"), str(r["queries"] or "?"), radius,
-                      "[green]yes[/]" if r["on_disk"] else "no")
-    Console().print(table)
+                      styled("yes", "green") if r["on_disk"] else "no")
+    console().print(table)
     return 0
 
 
@@ -82,7 +81,7 @@ def run_info(args) -> int:
         if args.json:
             print(json.dumps(listed, indent=2))
         else:
-            Console().print(protocol_table(args.name, listed))
+            console().print(protocol_table(args.name, listed))
         return 0
     dataset = load_dataset(args.name, args.data_dir, fetch=False, protocol=args.protocol)
     info = dataset.summary()
@@ -95,8 +94,8 @@ def run_info(args) -> int:
     table = Table(title=f"{dataset.title or dataset.name}", show_header=False)
     for key, value in info.items():
         table.add_row(key, value["id"] if key == "protocol" else str(value))
-    Console().print(table)
-    Console().print(protocol_table(dataset.name, listed))
+    console().print(table)
+    console().print(protocol_table(dataset.name, listed))
     return 0
 
 
@@ -111,7 +110,7 @@ def protocol_table(name: str, listed: list[dict]) -> Table:
         table.add_row(p["name"], p["hash"],
                       f"{db['count'] or '?'} ({db['split']}{', without ' + ', '.join(db['exclude_folders']) if db['exclude_folders'] else ''})",
                       f"{q['count'] or 'all'} ({q['split']}{', listed subset' if q['subset'] else ''})", within,
-                      escape(p["source"]))
+                      p["source"])
     return table
 
 

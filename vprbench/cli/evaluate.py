@@ -14,12 +14,13 @@ from ..datasets import load_dataset
 from ..errors import VPRBenchError
 from ..evaluation import append_result, evaluate
 from ..methods import create_method
-from .options import add_location_options, add_method_options, apply_locations, method_options, parse_ks
+from .console import console as make_console
+from .options import add_download_option, add_location_options, add_method_options, apply_locations, method_options, parse_ks
 from .run import add_sweep_options, run_matrix
 
 
 def progress_bar(console: Console) -> Progress:
-    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+    return Progress(TextColumn("{task.description}", markup=False), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
                     console=console, transient=True)
 
 
@@ -30,6 +31,7 @@ def add_parsers(commands) -> None:
     p.add_argument("--protocol", help="the dataset's protocol ('vprbench datasets info NAME'; default: its first)")
     add_sweep_options(p)
     add_location_options(p)
+    add_download_option(p)
     p.add_argument("--k", nargs="+", help="K values for Recall@K (default 1 5 10 20)")
     p.add_argument("--strict", action="store_true", help="fail when image counts differ from the manifest")
     p.add_argument("--json", action="store_true", help="print the result record as JSON on stdout")
@@ -49,16 +51,15 @@ def run_evaluate(args) -> int:
     if len(args.method) > 1 or len(args.dataset) > 1 or args.protocol:
         return run_matrix(args, method_options(args))  # the sweep: resumable, shared across processes
     args.method, args.dataset = args.method[0], args.dataset[0]
-    console = Console(stderr=True)
-    dataset = load_dataset(args.dataset, args.data_dir, strict=args.strict)
+    dataset = load_dataset(args.dataset, args.data_dir, strict=args.strict, fetch=args.download or None)
     method = create_method(args.method, **method_options(args))
-    with progress_bar(console) as progress:
+    with progress_bar(make_console(stderr=True)) as progress:
         record = evaluate(method, dataset, ks=parse_ks(args.k), cache_dir=args.cache_dir, progress=progress)
-    append_result(record, args.cache_dir)
-    if args.json:
+    if args.json:  # shown first: a result that cannot be saved (full or read-only disk) is still seen
         print(json.dumps(record, indent=2, sort_keys=True))
     else:
-        Console().print(results_table(record))
+        make_console().print(results_table(record))
+    append_result(record, args.cache_dir)
     return 0
 
 

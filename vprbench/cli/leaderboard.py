@@ -3,13 +3,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from rich.console import Console
-from rich.markup import escape
 from rich.table import Table
 
 from ..errors import VPRBenchError
 from ..evaluation import read_results
 from ..leaderboard import FORMATS, build_board, grid, publish, render
+from .console import console
 from .options import apply_locations
 
 NO_RESULTS = "No results yet: run 'vprbench evaluate --method M --dataset D' first."
@@ -61,12 +60,11 @@ def run(args) -> int:
     view = Table(title="R@1 / R@5 (%): one run per cell")
     view.add_column("method")
     for column in table.columns:
-        view.add_column(escape(str(column)), justify="right" if column != "weights" else "left")
+        view.add_column(str(column), justify="right" if column != "weights" else "left")
     for method, row in table.iterrows():
-        view.add_row(escape(str(method)), *[escape(str(v)) for v in row.tolist()])
-    console = Console()
-    console.print(view)
+        view.add_row(str(method), *[str(v) for v in row.tolist()])
+    out = console()
+    out.print(view)
     if board.excluded:
-        console.print(f"{len(board.excluded)} run(s) left out of every cell, e.g.: {escape(board.excluded[0][1])}",
-                      highlight=False)
+        out.print(f"{len(board.excluded)} run(s) left out of every cell, e.g.: {board.excluded[0][1]}", highlight=False)
     return 0

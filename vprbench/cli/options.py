@@ -13,6 +13,11 @@ def add_location_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cache-dir", help="where descriptor stores, vocabularies and results live (default: $VPRBENCH_CACHE or the user cache)")
 
 
+def add_download_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--download", action="store_true",
+                        help="fetch a missing dataset into --data-dir (without it, only the default data root is downloaded into)")
+
+
 def apply_locations(args) -> None:
     """Every part of vprbench (vocabularies fitted on other datasets, stores) then sees the same folders."""
     if getattr(args, "data_dir", None):

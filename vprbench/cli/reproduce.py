@@ -3,12 +3,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from rich.console import Console
 from rich.table import Table
+from rich.text import Text
 
 from ..sweep import find_record, run_cells, summary_table
 from ..sweep.reproduce import measured, missing_for, reported_value, table_cells, table_spec
 from ..sweep.runner import FAILED
+from .console import console as make_console
 from .options import add_location_options, apply_locations
 from .run import add_sweep_options
 
@@ -37,7 +38,7 @@ def run_reproduce(args) -> int:
     if args.device:
         for key, (c, tc) in list(cells.items()):
             c.options.setdefault("device", args.device)
-    console = Console()
+    console = make_console()
     missing = {key: missing_for(c, weights.get(tc.row), args.data_dir) for key, (c, tc) in cells.items()}
     if args.dry_run:
         listing = Table(title=f"{spec['title']}: {len(cells)} cells (dry run, nothing runs)")
@@ -46,11 +47,12 @@ def run_reproduce(args) -> int:
         for tc in table_cells_:
             for c in tc.cells or [None]:
                 if c is None:
-                    listing.add_row(tc.row, tc.column, "", f"[yellow]not runnable[/]: {tc.reason}")
+                    listing.add_row(tc.row, tc.column, "", Text.assemble(("not runnable", "yellow"), f": {tc.reason}"))
                     continue
                 record = find_record(c, args.cache_dir)
-                status = (f"[cyan]complete[/] (record of {record.get('created')})" if record else
-                          f"[yellow]missing[/]: {missing[c.key]}" if missing[c.key] else "[green]would run[/]")
+                status = (Text.assemble(("complete", "cyan"), f" (record of {record.get('created')})") if record else
+                          Text.assemble(("missing", "yellow"), f": {missing[c.key]}") if missing[c.key] else
+                          Text("would run", style="green"))
                 listing.add_row(tc.row, tc.column, c.protocol_id, status)
         console.print(listing)
         return 0
@@ -103,7 +105,7 @@ def publish(args, spec: dict, rendered: Table) -> None:
     from ..errors import VPRBenchError
 
     args.publish.mkdir(parents=True, exist_ok=True)
-    capture = RichConsole(record=True, width=200)
+    capture = RichConsole(record=True, width=200, markup=False)
     capture.print(rendered)
     page = args.publish / f"{args.paper}-table-{args.table}.md"
     page.write_text(f"# {spec['title']}\n\nReported by the paper / measured by vprbench here.\n\n```\n{capture.export_text()}```\n",
@@ -112,6 +114,6 @@ def publish(args, spec: dict, rendered: Table) -> None:
         leaderboard.publish(args.publish, args.cache_dir)
     except VPRBenchError:
         pass  # no results yet: the table page alone
-    Console(stderr=True).print(f"wrote {page}")
+    make_console(stderr=True).print(f"wrote {page}")
 
 

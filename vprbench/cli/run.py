@@ -1,10 +1,9 @@
 """vprbench run PLAN.toml, and the matrix form of vprbench evaluate (several methods/datasets)."""
 from __future__ import annotations
 
-from rich.console import Console
-
 from ..sweep import build_plan, read_plan, run_cells, summary_table
 from ..sweep.runner import FAILED
+from .console import console
 from .options import add_location_options, apply_locations
 
 DEFAULT_LEASE_S = 120.0
@@ -49,5 +48,5 @@ def run_matrix(args, options: dict) -> int:
 
 
 def report(title: str, outcomes) -> int:
-    Console().print(summary_table(outcomes, title))
+    console().print(summary_table(outcomes, title))
     return 1 if any(o.status == FAILED for o in outcomes) else 0

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..errors import VPRBenchError
+from ..errors import VPRBenchError, os_error_message
 from ..paths import cache_root
 
 SCHEMA = "vprbench-result"
@@ -275,10 +275,7 @@ def save_result(record: dict, cache_dir=None) -> Path:
                                     "fields": list(PER_QUERY_FIELDS)}
         _atomic_write(path, json.dumps(summary, sort_keys=True, indent=1).encode())
     except OSError as error:
-        raise VPRBenchError(
-            f"Cannot save the result to {folder} ({error.strerror or error}); nothing was stored. "
-            "Free some space or choose another --cache-dir, then rerun (descriptors already computed are kept)."
-        ) from None
+        raise VPRBenchError(f"{os_error_message(error, folder)} The result was not stored.") from None
     return path
 
 

@@ -27,6 +27,8 @@ from ..weights import weights_provenance
 from ..features.dense import FACETS, DenseExtractor
 from ..features.preprocess import dataset_resize, parse_size, preprocess
 from .base import Method, l2_normalise
+from .checks import choice, number, text, whole
+from .checks import device as check_device
 from .registry import register_method
 
 #: bump when a change in this code changes descriptors (part of the fingerprint)
@@ -57,35 +59,37 @@ class AnyLoc(Method):
                  vocabulary: str = "map", resize=None, pca_dim: int | None = None, batch_size: int = 8,
                  precision: str = "fp32", device: str = "cpu", dataset: str | None = None,
                  stride: int | None = None, gem_p: float = 3.0):
-        self.spec = backbone_spec(backbone)
+        # every option is checked here, before weights or vocabularies are touched
+        self.spec = backbone_spec(text("anyloc", "backbone", backbone))
         self.family = self.spec.family
-        if aggregation not in AGGREGATIONS:
-            raise VPRBenchError(f"Unknown aggregation {aggregation!r}: use one of {', '.join(AGGREGATIONS)}.")
-        if facet not in FACETS:
-            raise VPRBenchError(f"Unknown facet {facet!r}: use one of {', '.join(FACETS)}.")
-        if precision not in PRECISIONS:
-            raise VPRBenchError(f"Unknown precision {precision!r}: use fp32, fp16 or bf16.")
-        self.device = torch.device(device)
+        aggregation = choice("anyloc", "aggregation", aggregation, AGGREGATIONS)
+        facet = choice("anyloc", "facet", facet, FACETS)
+        precision = choice("anyloc", "precision", precision, tuple(PRECISIONS))
+        self.device = torch.device(check_device("anyloc", device))
         if precision != "fp32" and self.device.type != "cuda":
             raise VPRBenchError(f"precision={precision} needs a CUDA device; on {device} use fp32.")
-        if int(batch_size) < 1:
-            raise VPRBenchError(f"batch_size must be at least 1, got {batch_size}")
-        if aggregation in VLADS and int(clusters) < 1:
-            raise VPRBenchError(f"clusters must be at least 1, got {clusters}")
-        self.backbone, self.weights, self.facet = backbone, weights, facet
+        self.backbone, self.facet = backbone, facet
+        if isinstance(weights, Path):
+            weights = str(weights)
+        self.weights = None if weights is None else text("anyloc", "weights", weights, "a checkpoint file in the official format")
+        self.aggregation = aggregation
+        self.clusters = whole("anyloc", "clusters", clusters, 1, what="VLAD vocabulary size")
+        self.vocabulary = text("anyloc", "vocabulary", vocabulary, "map, domain, a domain name or a file")
+        self.user_resize = parse_size(resize)
+        self.pca_dim = None if pca_dim is None else whole("anyloc", "pca_dim", pca_dim, 1, what="PCA output dimension; leave it unset for none")
+        self.batch_size = whole("anyloc", "batch_size", batch_size, 1, what="images per batch")
+        self.precision = precision
+        self.dataset = None if dataset is None else text("anyloc", "dataset", dataset)
+        # DINO v1 follows the official dino extractor: stride 4, interleaved heads, raw features
+        self.stride = whole("anyloc", "stride", stride, 1, self.spec.patch, f"pixels, at most the patch size {self.spec.patch}") \
+            if stride is not None else (4 if self.family == "dino" else self.spec.patch)
+        self.gem_p = number("anyloc", "gem_p", gem_p, above=0, what="GeM's power, e.g. 3")
         if layer is not None:
-            self.layer = int(layer)
+            self.layer = whole("anyloc", "layer", layer, 0, self.spec.depth - 1, f"0-based block of {backbone}")
         elif aggregation == "cls" and self.family == "dinov2":
             self.layer = self.spec.depth - 1  # the CLS comes from the final norm: no layer to choose
         else:
-            self.layer = self._preset_layer(layer_for)
-        self.aggregation, self.clusters, self.vocabulary = aggregation, int(clusters), str(vocabulary)
-        self.user_resize = parse_size(resize)
-        self.pca_dim = int(pca_dim) if pca_dim else None
-        self.batch_size, self.precision, self.dataset = int(batch_size), precision, dataset
-        # DINO v1 follows the official dino extractor: stride 4, interleaved heads, raw features
-        self.stride = int(stride) if stride else (4 if self.family == "dino" else self.spec.patch)
-        self.gem_p = float(gem_p)
+            self.layer = self._preset_layer(text("anyloc", "layer_for", layer_for, "BACKBONE:LAYER"))
         self.centres: torch.Tensor | None = None
         self._extractor: DenseExtractor | None = None
         self._weights_id: str | None = None
@@ -102,6 +106,7 @@ class AnyLoc(Method):
         backbone without --layer, the block at the same relative depth is used, and said."""
         reference, _, layer = layer_for.partition(":")
         depth, reference_depth = self.spec.depth, backbone_spec(reference).depth
+        layer = whole("anyloc", "layer_for", layer, 0, reference_depth - 1, f"BACKBONE:LAYER, a block of {reference}")
         if depth == reference_depth:
             return int(layer)
         chosen = round(int(layer) * (depth - 1) / (reference_depth - 1))
@@ -136,6 +141,7 @@ class AnyLoc(Method):
         cached source name (a domain such as "indoor", or "map-<dataset>"); the authors'
         released centres are downloaded on first use where they fit these features."""
         found = resolve_vocabulary(self.vocabulary, self.backbone, self.layer, self.facet, self.clusters)
+        found.check_dim(self.spec.dim)  # before the model loads, naming the file
         self.vocabulary_info = {"name": self.vocabulary, **self._file_info(found)}
         return found.centres.float()
 

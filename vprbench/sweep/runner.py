@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
+from rich.text import Text
 
 from ..errors import VPRBenchError
 from .claims import Claims, save_record
@@ -72,13 +73,13 @@ def run_cells(cells: list[Cell], *, data_dir=None, cache_dir=None, strict=False,
               poll_s: float = 2.0, console: Console | None = None, plan: str = "", runnable=None) -> list[Outcome]:
     """Evaluate every cell once across all processes sharing the cache. `runnable(cell)` may
     return a reason not to run a cell here (reproduce: the dataset or weights are missing)."""
-    console = console or Console(stderr=True)
+    console = console or Console(stderr=True, markup=False)  # names and reasons print as they are
     claims = Claims(cache_dir, lease_s=lease_s)
     outcomes: dict[str, Outcome] = {}
     pending = list({c.key: c for c in cells}.values())  # a plan may list a cell twice
     first_look = True
     try:
-        with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+        with Progress(TextColumn("{task.description}", markup=False), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                       console=console, transient=True) as progress:
             overall = progress.add_task(f"cells of {plan or 'the sweep'}", total=len(pending))
             while pending:
@@ -142,7 +143,7 @@ def summary_table(outcomes: list[Outcome], title: str = "Sweep") -> Table:
     for o in outcomes:
         recall = (o.record or {}).get("recall", {})
         computed = (o.record or {}).get("descriptors_computed") if o.status == RAN else None
-        table.add_row(o.cell.title(), f"[{colour[o.status]}]{o.status}[/]",
+        table.add_row(o.cell.title(), Text(o.status, style=colour[o.status]),
                       f"{recall['1']:.1f}" if "1" in recall else "", f"{recall['5']:.1f}" if "5" in recall else "",
                       f"{computed['database'] + computed['queries']}" if computed else "", o.detail)
     return table
