@@ -3,8 +3,9 @@ database in memory.
 
 A row source is anything with `row_count`, `dim`, `dtype`, `folder` (where state fitted on
 it may be kept, or None), `read_rows(start, stop)` and `read_rows_at(indices)` (indices
-sorted ascending); both reads return float32 whatever the stored dtype (float16 stores
-are widened). A complete descriptor store is one; `ArrayRows` wraps an in-memory array.
+sorted ascending); both reads return a fresh float32 array the caller may modify, whatever
+the stored dtype (float16 stores are widened). A complete descriptor store is one;
+`ArrayRows` wraps an in-memory array.
 """
 from __future__ import annotations
 
@@ -78,7 +79,8 @@ def read_bytes_per_row(rows: RowSource) -> int:
 
 
 def chunks(rows: RowSource, chunk_rows: int) -> Iterator[tuple[int, np.ndarray]]:
-    """(start, float32 block) over the whole source, `chunk_rows` rows at a time."""
+    """(start, float32 block) over the whole source, `chunk_rows` rows at a time. A caller that
+    budgets for one chunk drops its block before asking for the next."""
     for start in range(0, rows.row_count, chunk_rows):
         stop = min(start + chunk_rows, rows.row_count)
         block = np.asarray(rows.read_rows(start, stop), dtype=np.float32)
@@ -86,6 +88,7 @@ def chunks(rows: RowSource, chunk_rows: int) -> Iterator[tuple[int, np.ndarray]]
             raise VPRBenchError(f"Row source returned shape {block.shape} for rows {start}:{stop}; expected "
                                 f"({stop - start}, {rows.dim}).")
         yield start, block
+        del block  # with the caller's reference gone too, one chunk is alive at a time
 
 
 def parse_memory(text) -> int:

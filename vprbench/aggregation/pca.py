@@ -27,8 +27,8 @@ PASSES = 10
 SOLVERS = ("covariance", "gram", "randomized")
 #: variances below this share of the largest are float32 rounding, not directions of the data
 RANK_TOLERANCE = 1e-6
-#: a chunk is held as read, centred, and through one product of at most its size
-ROW_COPIES = 3
+#: a chunk (centred in place) and one product of at most its size
+ROW_COPIES = 2
 
 
 def _solver_memory(solver: str, n: int, d: int, dim: int) -> int:
@@ -139,12 +139,15 @@ class PCAWhitening:
 
 
 def _shifted(rows, chunk_rows: int):
-    """Chunks minus the first chunk's mean (a shift keeps float32 sums well conditioned)."""
+    """Chunks minus the first chunk's mean (a shift keeps float32 sums well conditioned),
+    shifted in place; callers drop each before the next is read."""
     shift = None
     for start, block in chunks(rows, chunk_rows):
         if shift is None:
             shift = block.mean(axis=0, dtype=np.float64).astype(np.float32)
-        yield start, block - shift, shift
+        block -= shift
+        yield start, block, shift
+        del block
 
 
 def _fit_covariance(rows, dim: int, chunk_rows: int, seed: int):
@@ -153,6 +156,7 @@ def _fit_covariance(rows, dim: int, chunk_rows: int, seed: int):
     for _, x, shift in _shifted(rows, chunk_rows):
         sums += x.sum(axis=0, dtype=np.float64)
         products += x.T @ x
+        del x
     m = sums / n
     for i in range(0, d, 256):  # products -= n m m^T, a band at a time (no D x D temporary)
         products[i:i + 256] -= n * np.outer(m[i:i + 256], m)
@@ -168,10 +172,13 @@ def _fit_gram(rows, dim: int, chunk_rows: int, seed: int):
         sums += xi.sum(axis=0, dtype=np.float64)
         gram[i:i + len(xi), i:i + len(xi)] = xi @ xi.T
         for j in range(i + len(xi), n, chunk_rows):
-            xj = np.asarray(rows.read_rows(j, min(j + chunk_rows, n)), dtype=np.float32) - shift
+            xj = np.asarray(rows.read_rows(j, min(j + chunk_rows, n)), dtype=np.float32)
+            xj -= shift
             block = xi @ xj.T
             gram[i:i + len(xi), j:j + len(xj)] = block
             gram[j:j + len(xj), i:i + len(xi)] = block.T
+            del xj, block
+        del xi
     means = gram.mean(axis=0)  # double centring: X_c X_c^T = J G J
     gram -= means[:, None]
     gram -= means[None, :]
@@ -181,7 +188,9 @@ def _fit_gram(rows, dim: int, chunk_rows: int, seed: int):
     m = sums / n
     components = np.zeros((d, dim))
     for start, x, _ in _shifted(rows, chunk_rows):
-        components += (x - m.astype(np.float32)).T @ vectors[start:start + len(x)]
+        x -= m.astype(np.float32)
+        components += x.T @ vectors[start:start + len(x)]
+        del x
     return shift + m, (components / np.sqrt(np.maximum(values, 1e-300))).T, values / (n - 1)
 
 
@@ -196,6 +205,7 @@ def _fit_randomized(rows, dim: int, chunk_rows: int, seed: int):
         for _, x, shift in _shifted(rows, chunk_rows):
             sums += x.sum(axis=0, dtype=np.float64)
             product += x.T @ (x @ basis)
+            del x
         m = sums / n
         product -= n * np.outer(m, m @ basis)
         product /= n - 1

@@ -138,12 +138,12 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
     if short:  # honest fallback: those queries are searched exactly
         fallback = exact_search(database, ArrayRows(queries.read_rows_at(np.array(short))), k, memory_budget=memory_budget)
         scores[short], indices[short] = fallback.scores, fallback.indices
-    search_s = time.perf_counter() - started
+    query_s = time.perf_counter() - started
 
     info = {"index": kind, "memory_budget": int(memory_budget), "options": o, "index_bytes": index_bytes,
             "chunk_rows": int(chunk_rows), "chunks": -(-n // chunk_rows), "query_chunk_rows": int(min(q_chunk, n_queries)),
             "query_chunks": -(-n_queries // q_chunk), "exact_fallback_queries": len(short),
-            "build_s": round(build_s, 3), "search_s": round(search_s, 3), "tie_order": TIE_ORDER,
+            "build_s": round(build_s, 3), "query_s": round(query_s, 3), "tie_order": TIE_ORDER,
             "recall_loss": recall_loss(database, queries, k, indices, o, memory_budget)}
     return SearchResult(scores, indices, info)
 

@@ -2,13 +2,14 @@
 applied chunk by chunk, then exact top-K search streamed from row sources (or an approximate
 index, see approximate.py). Peak memory is set by a budget in bytes, not by the data size.
 
-Exact search computes inner products tile by tile on a fixed grid of rows (aligned to row
-0, its size a function of the dimension only) and merges each tile into faiss heaps, so a
-query's results are identical whatever the budget (one chunk or thousands): BLAS gives
-different last bits for different matrix shapes (OpenBLAS's gemv and small-matrix kernels
-differ from its blocked gemm by a few ulps), and a fixed grid gives every pair the same
-shape in every run. Ties are broken by the lower database index: results are ordered by
-score descending, then database index ascending.
+Exact search computes inner products tile by tile and merges each tile into faiss heaps.
+BLAS gives different last bits for different matrix shapes (OpenBLAS's gemv and
+small-matrix kernels differ from its blocked gemm by a few ulps), which would let the
+budget, or a row's place in the file, decide near-ties. So every product has one shape: a
+fixed grid of rows (aligned to row 0, its size a function of the dimension only), the last
+tile padded with zero rows. Results are then identical whatever the budget (one chunk or
+thousands), duplicated rows score alike, and ties go to the lower database index: results
+are ordered by score descending, then database index ascending.
 """
 from __future__ import annotations
 
@@ -74,10 +75,11 @@ def _plan(database, queries, k: int, budget: int, extra: int = 0) -> dict:
     """Query and database chunk rows (whole tiles) for the budget; a clear error when too small."""
     tile, dim = tile_rows(database.dim), database.dim
     (db_row, db_fixed), (q_row, q_fixed) = read_cost(database), read_cost(queries)
-    n, q = database.row_count, queries.row_count
+    n, q = int(database.row_count), int(queries.row_count)
     results = q * k * 12  # float32 score + int64 index per result
     db_min, q_min = min(n, tile), min(q, tile)
-    fixed = extra + results + db_fixed + q_fixed + q_min * db_min * 4 + db_min * dim * 4  # + a score tile, a negated db tile
+    # + a score tile, a negated database tile, a padded query tile
+    fixed = extra + results + db_fixed + q_fixed + q_min * db_min * 4 + (db_min + q_min) * dim * 4
     need = fixed + db_min * db_row + q_min * q_row
     if budget < need:
         raise VPRBenchError(
@@ -92,8 +94,17 @@ def _plan(database, queries, k: int, budget: int, extra: int = 0) -> dict:
 
     db_chunk = whole_tiles(min(READ_BYTES, avail - q_min * q_row) // db_row, n, db_min)
     q_chunk = whole_tiles((avail - db_chunk * db_row) // q_row, q, q_min)
-    return {"tile_rows": tile, "chunk_rows": db_chunk, "chunks": -(-n // db_chunk),
-            "query_chunk_rows": q_chunk, "query_chunks": -(-q // q_chunk)}
+    return {"tile_rows": int(tile), "chunk_rows": int(db_chunk), "chunks": int(-(-n // db_chunk)),
+            "query_chunk_rows": int(q_chunk), "query_chunks": int(-(-q // q_chunk))}
+
+
+def padded(block: np.ndarray, rows: int) -> np.ndarray:
+    """`block` with zero rows appended up to `rows` (itself when it has them)."""
+    if len(block) == rows:
+        return block
+    out = np.zeros((rows, block.shape[1]), dtype=np.float32)
+    out[:len(block)] = block
+    return out
 
 
 def _heap(distances: np.ndarray, ids: np.ndarray):
@@ -118,18 +129,24 @@ def exact_search(database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDG
     plan = _plan(database, queries, k, budget)
     tile, q_chunk = plan["tile_rows"], plan["query_chunk_rows"]
     n_queries = queries.row_count
+    q_tile, d_tile = min(n_queries, tile), min(database.row_count, tile)  # the one product shape
     distances = np.empty((n_queries, k), dtype=np.float32)  # negated scores while merging
     indices = np.empty((n_queries, k), dtype=np.int64)
     for q0, block in chunks(queries, q_chunk):
         q1 = q0 + len(block)
         heap = _heap(distances[q0:q1], indices[q0:q1])
+        q_tiles = [padded(block[a:a + tile], q_tile) for a in range(0, len(block), tile)]
         for d0, rows in chunks(database, plan["chunk_rows"]):
             for t0 in range(0, len(rows), tile):
-                negated = np.negative(rows[t0:t0 + tile])  # q @ (-d) is exactly -(q @ d)
-                for a in range(0, len(block), tile):
-                    tile_distances = block[a:a + tile] @ negated.T
-                    heap.addn(len(negated), faiss.swig_ptr(tile_distances), d0 + t0, a, len(tile_distances))
+                n = min(tile, len(rows) - t0)
+                negated = padded(np.negative(rows[t0:t0 + n]), d_tile)  # q @ (-d) is exactly -(q @ d)
+                for a, q_rows in zip(range(0, len(block), tile), q_tiles):
+                    m = min(tile, len(block) - a)
+                    tile_distances = np.ascontiguousarray((q_rows @ negated.T)[:m, :n])
+                    heap.addn(n, faiss.swig_ptr(tile_distances), d0 + t0, a, m)
+            del rows, negated, tile_distances  # before the next chunk is read: the budget holds one
         heap.reorder()
+        del block, q_tiles
     scores, indices = order_results(np.negative(distances), indices)
     return SearchResult(scores, indices, {"index": "exact", "memory_budget": budget, **plan, "tie_order": TIE_ORDER})
 
@@ -142,26 +159,28 @@ def search(database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDGET) ->
 
 
 class TransformedRows:
-    """A row source seen through a fitted post-processor. Ranges are transformed tile by tile
-    on the grid of `tile_rows(source.dim)`, aligned to row 0, so a row's values never depend
-    on how a caller chunks its reads. `read_rows_at` (approximate shortlists) transforms the
-    rows it gathers in one call."""
+    """A row source seen through a fitted post-processor, transformed tile by tile on the grid
+    of `tile_rows(source.dim)` (aligned to row 0, short tiles padded with zero rows), so a
+    row's values depend neither on how a caller chunks its reads nor on its neighbours."""
 
     def __init__(self, source: RowSource, postprocessor):
         self.source, self.postprocessor = source, postprocessor
-        self.row_count, self.folder, self.dtype = source.row_count, source.folder, np.dtype(np.float32)
+        self.row_count, self.folder, self.dtype = int(source.row_count), source.folder, np.dtype(np.float32)
         self.tile = tile_rows(source.dim)
         self.dim = int(self._transform(source.read_rows(0, 1)).shape[1])
 
     def _transform(self, block: np.ndarray) -> np.ndarray:
-        out = np.asarray(self.postprocessor.transform(np.asarray(block, dtype=np.float32)), dtype=np.float32)
-        if out.ndim != 2 or out.shape[0] != block.shape[0]:
+        """At most one tile of rows, transformed as one full tile."""
+        size = min(self.tile, self.row_count)
+        out = np.asarray(self.postprocessor.transform(padded(np.asarray(block, dtype=np.float32), size)),
+                         dtype=np.float32)
+        if out.ndim != 2 or out.shape[0] != size:
             raise VPRBenchError(f"Post-processor {type(self.postprocessor).__name__} returned shape {out.shape} "
-                                f"for {block.shape[0]} rows; expected one row per row.")
-        return out
+                                f"for {size} rows; expected one row per row.")
+        return out[:len(block)]
 
     def read_cost(self) -> tuple[int, int]:
-        return self.dim * 4, self.tile * (read_bytes_per_row(self.source) + 2 * 4 * self.dim)
+        return self.dim * 4, self.tile * (read_bytes_per_row(self.source) + 4 * self.source.dim + 2 * 4 * self.dim)
 
     def read_rows(self, start: int, stop: int) -> np.ndarray:
         out = np.empty((stop - start, self.dim), dtype=np.float32)
@@ -173,7 +192,9 @@ class TransformedRows:
         return out
 
     def read_rows_at(self, indices) -> np.ndarray:
-        return self._transform(self.source.read_rows_at(indices))
+        rows = self.source.read_rows_at(indices)
+        return np.concatenate([self._transform(rows[a:a + self.tile]) for a in range(0, len(rows), self.tile)]
+                              or [np.zeros((0, self.dim), dtype=np.float32)])
 
 
 # ---------------------------------------------------------------- post-processing state
