@@ -37,7 +37,7 @@ def _solver_memory(solver: str, n: int, d: int, dim: int) -> int:
         return 12 * d * d + 8 * d * dim
     if solver == "gram":        # float64 Gram + eigenvectors, then eigenvectors + float64 components
         return max(8 * n * n, 8 * d * dim) + 8 * n * dim
-    return 16 * d * min(d, n, 2 * dim)  # float32 basis + float64 product + its QR (randomized)
+    return 20 * d * min(d, n, 2 * dim)  # float32 basis, float64 product, and a float64 temporary or its QR
 
 
 def _flip(components: np.ndarray) -> np.ndarray:
@@ -213,8 +213,9 @@ def _fit_randomized(rows, dim: int, chunk_rows: int, seed: int):
             basis = None  # freed before its successor is made
             basis = qr(product, mode="economic", overwrite_a=True, check_finite=False)[0].astype(np.float32)
     small = basis.T.astype(np.float64) @ product  # Rayleigh-Ritz on the final basis
+    del product
     values, vectors = _top_eigen((small + small.T) / 2, dim)
-    return shift + m, (basis.astype(np.float64) @ vectors).T, values
+    return shift + m, (basis @ vectors.astype(np.float32)).T, values
 
 
 def pca_whiten(database: np.ndarray, queries: np.ndarray, dim: int = DEFAULT_PCA_DIM) -> tuple[np.ndarray, np.ndarray]:

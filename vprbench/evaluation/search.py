@@ -67,19 +67,21 @@ def order_results(scores: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, 
 def check_pair(database: RowSource, queries: RowSource, k: int) -> None:
     if database.dim != queries.dim:
         raise VPRBenchError(f"Database descriptors have {database.dim} dims, queries {queries.dim}")
+    if queries.row_count < 1:
+        raise VPRBenchError("There are no query descriptors to search with.")
     if not 1 <= int(k) <= database.row_count:
         raise VPRBenchError(f"K = {k} must be between 1 and the {database.row_count} database rows; use a smaller --k.")
 
 
-def _plan(database, queries, k: int, budget: int, extra: int = 0) -> dict:
+def _plan(database, queries, k: int, budget: int) -> dict:
     """Query and database chunk rows (whole tiles) for the budget; a clear error when too small."""
     tile, dim = tile_rows(database.dim), database.dim
     (db_row, db_fixed), (q_row, q_fixed) = read_cost(database), read_cost(queries)
     n, q = int(database.row_count), int(queries.row_count)
     results = q * k * 12  # float32 score + int64 index per result
     db_min, q_min = min(n, tile), min(q, tile)
-    # + a score tile, a negated database tile, a padded query tile
-    fixed = extra + results + db_fixed + q_fixed + q_min * db_min * 4 + (db_min + q_min) * dim * 4
+    # + a score tile (and its trimmed copy), a negated database tile, a padded query tile
+    fixed = results + db_fixed + q_fixed + 2 * q_min * db_min * 4 + (db_min + q_min) * dim * 4
     need = fixed + db_min * db_row + q_min * q_row
     if budget < need:
         raise VPRBenchError(
