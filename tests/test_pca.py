@@ -67,7 +67,7 @@ def test_each_path_matches_sklearn_within_the_stated_tolerance(n, d, budget, sol
     database, queries = descriptors(n, d, 1), descriptors(300, d, 2)
     rows = CountingRows(database)
     pca = PCAWhitening(48)
-    assert pca.solver(n, d, budget) == solver and pca.key(rows, budget)["solver"] == solver
+    assert pca.solver(rows, budget) == solver and pca.key(rows, budget)["solver"] == solver
     pca.fit(rows, budget)
     exact = sklearn_whitening(database, 48)
     ours_q, ours_db = pca.transform(queries), pca.transform(database)

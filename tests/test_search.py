@@ -271,6 +271,76 @@ def test_unreadable_state_is_refitted(tmp_path):
     np.testing.assert_array_equal(again.indices, first.indices)
 
 
+def test_a_crash_while_saving_the_state_leaves_nothing_behind(tmp_path, monkeypatch):
+    db = ArrayRows(spectrum(600, 32, 13), folder=tmp_path)
+
+    def torn_savez(f, **arrays):
+        f.write(b"PK half a file")
+        raise KeyboardInterrupt  # killed mid-write
+
+    monkeypatch.setattr(np, "savez", torn_savez)
+    with pytest.raises(KeyboardInterrupt):
+        retrieve(Whitened(8), db, db, 3)
+    assert list(tmp_path.iterdir()) == []
+    monkeypatch.undo()
+    assert retrieve(Whitened(8), db, db, 3).info["postprocess"]["state"] == "fitted"
+
+
+CENTRING = """
+import numpy as np
+from vprbench.methods import Method
+from vprbench.rows import chunks
+
+
+class Centre:
+    \"\"\"A small post-processor: subtract the database mean.\"\"\"
+    def key(self, rows, memory_budget):
+        return {"kind": "centre"}
+
+    def fit(self, rows, memory_budget):
+        self.mean = sum(block.sum(axis=0, dtype=np.float64) for _, block in chunks(rows, 100)) / rows.row_count
+
+    def transform(self, x):
+        return (x - self.mean).astype(np.float32)
+
+    def state(self):
+        return {"mean": self.mean}
+
+    def load_state(self, state):
+        self.mean = state["mean"]
+
+
+class Centred(Method):
+    def describe(self, images):
+        raise AssertionError
+
+    def postprocessor(self):
+        return Centre()
+"""
+
+
+def test_two_processes_fitting_one_state_at_once(tmp_path):
+    import subprocess
+    import sys
+
+    np.save(tmp_path / "db.npy", unit(5000, 32, 19))
+    script = CENTRING + (
+        "import sys\nfrom vprbench.evaluation.search import ArrayRows, retrieve\n"
+        f"db = ArrayRows(np.load({str(tmp_path / 'db.npy')!r}), folder={str(tmp_path)!r})\n"
+        "np.save(sys.argv[1], retrieve(Centred(), db, db, 5).indices)\n")
+    runs = [subprocess.Popen([sys.executable, "-c", script, str(tmp_path / f"out{i}.npy")]) for i in range(2)]
+    assert [run.wait(timeout=120) for run in runs] == [0, 0]
+    states = sorted(p.name for p in tmp_path.iterdir() if p.name.startswith("postprocess-"))
+    assert len(states) == 1 and states[0].endswith(".npz")  # one whole file, no temporary left
+    np.testing.assert_array_equal(np.load(tmp_path / "out0.npy"), np.load(tmp_path / "out1.npy"))
+    namespace = {}
+    exec(CENTRING, namespace)
+    warm = retrieve(namespace["Centred"](), ArrayRows(np.load(tmp_path / "db.npy"), folder=tmp_path),
+                    np.load(tmp_path / "db.npy"), 5)
+    assert warm.info["postprocess"]["state"] == "loaded"
+    np.testing.assert_array_equal(warm.indices, np.load(tmp_path / "out0.npy"))
+
+
 def test_old_postprocess_override_still_runs_in_memory():
     db, q = unit(300, 16, 14), unit(20, 16, 15)
     result = retrieve(OldPlugin(), db, q, 5)

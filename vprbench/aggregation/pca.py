@@ -20,11 +20,10 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import VPRBenchError
-from ..rows import DEFAULT_MEMORY_BUDGET, READ_BYTES, as_rows, chunks, format_bytes, read_bytes_per_row
+from ..rows import DEFAULT_MEMORY_BUDGET, READ_BYTES, as_rows, chunks, format_bytes, parse_memory, read_bytes_per_row
 
 DEFAULT_PCA_DIM = 512
 PASSES = 10
-SOLVERS = ("covariance", "gram", "randomized")
 #: variances below this share of the largest are float32 rounding, not directions of the data
 RANK_TOLERANCE = 1e-6
 #: a chunk (centred in place) and one product of at most its size
@@ -67,15 +66,17 @@ class PCAWhitening:
         self.projection: np.ndarray | None = None  # (dim, D): components / sqrt(explained variance)
 
     # ------------------------------------------------------------ planning
-    def solver(self, n: int, d: int, memory_budget: int) -> str:
-        """The exact path on the smaller side when it fits the budget, else the randomized one."""
+    def solver(self, rows, memory_budget: int) -> str:
+        """The exact path on the smaller side when it fits the budget (with one chunk of rows),
+        else the randomized one."""
+        n, d = rows.row_count, rows.dim
         exact = "covariance" if d <= n else "gram"
-        least_rows = ROW_COPIES * 4 * d * (2 if exact == "gram" else 1)
+        least_rows = ROW_COPIES * read_bytes_per_row(rows) * (2 if exact == "gram" else 1)
         return exact if _solver_memory(exact, n, d, self.dim) + least_rows <= memory_budget else "randomized"
 
     def key(self, rows, memory_budget: int = DEFAULT_MEMORY_BUDGET) -> dict:
         """What defines the fitted state (its file name in the store folder)."""
-        solver = self.solver(rows.row_count, rows.dim, memory_budget)
+        solver = self.solver(rows, memory_budget)
         key = {"kind": "pca-whitening", "dim": self.dim, "solver": solver}
         if solver == "randomized":
             key.update(sketch=min(rows.dim, rows.row_count, 2 * self.dim), passes=PASSES, seed=self.seed)
@@ -84,15 +85,13 @@ class PCAWhitening:
     # ------------------------------------------------------------ fitting
     def fit(self, database, memory_budget=DEFAULT_MEMORY_BUDGET) -> "PCAWhitening":
         """Fit on database descriptors: an (N, D) array or a row source, streamed within the budget."""
-        from ..rows import parse_memory
-
         rows, budget = as_rows(database, "database descriptors"), parse_memory(memory_budget)
         n, d = rows.row_count, rows.dim
         if self.dim > min(n, d):
             raise VPRBenchError(
                 f"PCA dimension {self.dim} is larger than the number of database images ({n}) or the "
                 f"descriptor dimension ({d}): choose pca_dim <= {min(n, d)}.")
-        solver = self.solver(n, d, budget)
+        solver = self.solver(rows, budget)
         held = _solver_memory(solver, n, d, self.dim)
         row_cost = ROW_COPIES * read_bytes_per_row(rows)
         blocks = 2 if solver == "gram" else 1  # the Gram path holds two chunks

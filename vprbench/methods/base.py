@@ -23,7 +23,8 @@ class PostProcessor(Protocol):
         """Learn from the database rows, holding at most `memory_budget` bytes."""
 
     def transform(self, descriptors: np.ndarray) -> np.ndarray:
-        """(n, D) float32 -> (n, D') float32; each output row depends on its input row only."""
+        """(n, D) float32 -> (n, D') float32; each output row depends on its input row only
+        (blocks may arrive padded with zero rows, whose outputs are dropped)."""
 
     def state(self) -> dict[str, np.ndarray]: ...
 
