@@ -1,6 +1,7 @@
 """Memory-bounded retrieval: exact search streamed from row sources, its tie order and its
 identity across budgets, approximate indexes, post-processing fitted once and reused."""
 import argparse
+import json
 
 import h5py
 import numpy as np
@@ -231,6 +232,7 @@ def test_retrieve_fits_pca_once_and_is_identical_for_every_budget(tmp_path, monk
     assert post["state"] == "fitted" and post["key"]["postprocessor"] == {"kind": "pca-whitening", "dim": 16,
                                                                           "solver": "covariance"}
     assert post["file"].startswith(str(tmp_path)) and first.info["dim"] == 16
+    json.dumps(first.info)  # it goes into the JSON result record as is
     pca = PCAWhitening(16).fit(db)
     expected = exact_search(pca.transform(db), pca.transform(q), 10)
     np.testing.assert_array_equal(first.indices, expected.indices)
@@ -377,6 +379,7 @@ def test_approximate_index_reports_its_measured_recall_loss(tmp_path, kind, n):
     database = h5_rows(tmp_path, "db", db)
     result = retrieve(None, database, q, 10, index=kind)
     info = result.info
+    json.dumps(info)
     assert info["index"] == kind and info["options"]["shortlist"] == 100 and info["exact_fallback_queries"] == 0
     loss = info["recall_loss"]
     assert loss["queries"] == 200 and loss["seed"] == 0 and loss["k"] == 10

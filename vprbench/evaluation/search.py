@@ -247,7 +247,10 @@ def retrieve(method, database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_
              state_folder=None, index_options: dict | None = None) -> SearchResult:
     """Top-k database rows per query for `method`'s descriptors, within `memory_budget` bytes
     (or "1GB"): its post-processor fitted on the database (or loaded from `state_folder`,
-    default the database's folder), applied chunk by chunk, then searched with `index`."""
+    default the database's folder), applied chunk by chunk, then searched with `index`
+    ("exact", "ivf-pq" or "hnsw"; `index_options` tune the approximate ones, see
+    approximate.py). `method` None searches the rows as they are. The result's info is the
+    result record's "search" section."""
     budget = parse_memory(memory_budget)
     if index not in INDEXES:
         raise VPRBenchError(f"Unknown index {index!r}: use one of {', '.join(INDEXES)}.")
