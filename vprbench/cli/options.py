@@ -6,6 +6,8 @@ import os
 
 from ..errors import VPRBenchError
 from ..evaluation.metrics import DEFAULT_KS
+from ..evaluation.search import INDEXES
+from ..rows import DEFAULT_MEMORY_BUDGET, format_bytes, parse_memory
 
 
 def add_location_options(parser: argparse.ArgumentParser) -> None:
@@ -78,3 +80,19 @@ def parse_ks(values) -> tuple[int, ...]:
         return tuple(int(v) for text in values for v in str(text).split(","))
     except ValueError:
         raise VPRBenchError(f"--k takes positive whole numbers, got {' '.join(map(str, values))}") from None
+
+
+def add_search_options(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("search (docs/evaluation.md)")
+    group.add_argument("--index", choices=INDEXES, default="exact",
+                       help="exact (default): streamed exact search; ivf-pq or hnsw: approximate faiss index, "
+                            "shortlist re-scored exactly, recall loss against exact reported")
+    group.add_argument("--search-memory", metavar="SIZE",
+                       help=f"memory budget of search and PCA fitting, e.g. 1GB, 512MB, 4GiB "
+                            f"(default {format_bytes(DEFAULT_MEMORY_BUDGET)})")
+
+
+def search_settings(args) -> dict:
+    """Keyword options of `retrieve` (and `evaluate`) from the search options."""
+    memory = DEFAULT_MEMORY_BUDGET if args.search_memory is None else parse_memory(args.search_memory)
+    return {"memory_budget": memory, "index": args.index}

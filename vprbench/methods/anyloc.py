@@ -288,11 +288,9 @@ class AnyLoc(Method):
             self.centres = torch.from_numpy(np.asarray(state["centres"], dtype=np.float32))
 
     # ------------------------------------------------------------ PCA-whitening
-    def postprocess(self, database: np.ndarray, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        if not self.pca_dim:
-            return database, queries
-        pca = PCAWhitening(self.pca_dim).fit(database)
-        return l2_normalise(pca.transform(database)), l2_normalise(pca.transform(queries))
+    def postprocessor(self) -> PCAWhitening | None:
+        """The -PCA presets: whitening fitted on the database descriptors (output L2-normalised)."""
+        return PCAWhitening(self.pca_dim) if self.pca_dim else None
 
 
 # ---------------------------------------------------------------- presets
