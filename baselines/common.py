@@ -19,7 +19,7 @@ from vprbench.images import load_image
 from vprbench.loader import loaded
 from vprbench.methods import l2_normalise
 from vprbench.paths import cache_root
-from vprbench.weights import file_sha256, read_torch_file  # noqa: F401  (baselines import file_sha256 from here)
+from vprbench.weights import file_sha256, read_torch_file, weights_provenance  # noqa: F401  (baselines import file_sha256 from here)
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -263,6 +263,24 @@ class TorchMethod(Method):
     def load(self, path: Path) -> torch.Tensor:
         """Read and preprocess one image (in a data-loader worker)."""
         return self.preprocess(Path(path))
+
+    def provenance(self) -> dict:
+        """The weights' source, read from the identity `load_checkpoint` (or a baseline's own
+        resolver) put in the fingerprint: a release URL, a release name ('open_clip:...'), or the
+        sha256 of the user's file. Every layer (PCA and vocabulary included) comes from the checkpoint."""
+        fp = self._fingerprint
+        if fp.get("weights_url"):
+            identity = fp["weights_url"]
+        elif isinstance(fp.get("weights"), str):
+            identity = fp["weights"]
+        elif fp.get("weights_sha256"):
+            identity = "sha256:" + fp["weights_sha256"]
+        else:
+            identity = None
+        weights = weights_provenance(identity)
+        if fp.get("hf_hub"):
+            weights["hub"] = fp["hf_hub"]
+        return {"weights": weights}
 
     @torch.inference_mode()
     def describe(self, images: Sequence) -> np.ndarray:

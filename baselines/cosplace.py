@@ -94,10 +94,10 @@ def build_gem_fc_method(
     backbone, dim = check_release(method, released, backbone, dim)
     file_url = url.format(backbone=backbone, dim=dim)
     source = WeightSource(file_name=file_url.rsplit("/", 1)[1], url=file_url)
+    # The authors evaluate at full resolution (ToTensor + ImageNet normalisation, no resize).
+    preprocess = Preprocess(resize=as_resize(resize))  # checked before the weights load
     checkpoint, identity = load_checkpoint(weights, source, method)
     net = build_loaded(lambda: GeoLocalizationNet(backbone, dim), state_dict_of(checkpoint), method)
-    # The authors evaluate at full resolution (ToTensor + ImageNet normalisation, no resize).
-    preprocess = Preprocess(resize=as_resize(resize))
     fingerprint = {"architecture": method, "backbone": backbone, "dim": dim, "training": training, **identity}
     return TorchMethod(net, preprocess, fingerprint, batch_size=batch_size, device=device, precision=precision, dim=dim)
 

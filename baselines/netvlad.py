@@ -96,11 +96,11 @@ def netvlad(
         file_name=f"the model zoo's '{backbone.removesuffix('conv4')}-netvlad' {train_set} checkpoint",
         page=f"https://drive.google.com/file/d/{files[train_set]}/view",
     )
+    # The benchmark normalises the full image, then resizes the tensor to 480x640 ("hard_resize");
+    # its torchvision (0.8) resized tensors without antialiasing. Checked before the weights load.
+    preprocess = Preprocess(resize=as_resize(resize), normalise_first=True, antialias=False)
     checkpoint, identity = load_checkpoint(weights, source, name)
     net = build_loaded(lambda: DVGLNetVLAD(backbone), state_dict_of(checkpoint), name)
-    # The benchmark normalises the full image, then resizes the tensor to 480x640 ("hard_resize");
-    # its torchvision (0.8) resized tensors without antialiasing.
-    preprocess = Preprocess(resize=as_resize(resize), normalise_first=True, antialias=False)
     fingerprint = {"architecture": "netvlad-dvgl", "backbone": backbone, "dim": CLUSTERS * channels,
                    "clusters": CLUSTERS, "training": train_set, **identity}
     return TorchMethod(net, preprocess, fingerprint, batch_size=batch_size, device=device, precision=precision,

@@ -34,13 +34,16 @@ def test_rootsift_rows_are_unit_length(corridor_images):
 def test_dense_vlad_needs_fit_and_enough_features(corridor_images):
     with pytest.raises(VPRBenchError, match="not fitted"):
         create_method("dense-vlad").describe(corridor_images[:1])
-    with pytest.raises(VPRBenchError, match="cannot make 128 clusters"):
-        create_method("dense-vlad", sample=50).fit(corridor_images[:2])
+    with pytest.raises(VPRBenchError, match="option sample takes a whole number >= 128"):
+        create_method("dense-vlad", sample=50)
+    # 12 keypoints per image (bin 10, step 40 on 160x120): 24 descriptors for 128 words
+    with pytest.raises(VPRBenchError, match="24 sampled descriptors cannot make 128 clusters"):
+        create_method("dense-vlad", bin_sizes=(10,), step=40).fit(corridor_images[:2])
 
 
 def test_hog_dimension_and_settings(corridor_images):
     descriptors = create_method("hog", resize=(64, 64)).describe(corridor_images[:2])
     # 64x64 window, 16px blocks every 8px: 7x7 blocks of one 16px cell, 9 bins
     assert descriptors.shape == (2, 7 * 7 * 9)
-    with pytest.raises(VPRBenchError, match="multiple of 8"):
+    with pytest.raises(VPRBenchError, match=r"multiple of block_stride \(8\)"):
         create_method("hog", resize=(60, 64))

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from vprbench.cli.main import main
+from vprbench.evaluation import read_results
 from vprbench.paths import cache_root
 
 
@@ -50,8 +51,8 @@ def test_describe_writes_descriptors_in_input_order(capsys, shared_data, tmp_pat
 def test_publish_writes_markdown(capsys, shared_data, tmp_path):
     run(capsys, "evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", str(shared_data), "--resize", "64", "64")
     code, out, _ = run(capsys, "leaderboard", "publish", "--to", str(tmp_path / "docs"))
-    page = (tmp_path / "docs" / "leaderboard.md").read_text()
-    assert code == 0 and "| hog" in page and "corridor" in page
+    page = (tmp_path / "docs" / "leaderboard" / "index.md").read_text()
+    assert code == 0 and "| hog [resize=64x64] | " in page and "[corridor](corridor.md)" in page
 
 
 # --- bad input: clear message, exit 1, no traceback, nothing stored ------------------------------
@@ -61,8 +62,7 @@ def assert_user_error(code, err, *fragments):
     assert "Traceback" not in err
     for fragment in fragments:
         assert fragment in err, err
-    results = cache_root() / "results.jsonl"
-    assert not results.exists(), "a failed evaluation must not add a result"
+    assert not read_results(), "a failed evaluation must not add a result"
 
 
 def test_unknown_method_suggests(capsys, shared_data):
@@ -93,7 +93,12 @@ def test_missing_data_root_without_network(capsys, tmp_path, monkeypatch):
         raise ConnectionError("no network")
 
     monkeypatch.setattr(pooch.Pooch, "fetch", offline)
+    # a data root the user named is never downloaded into unless asked
     code, _, err = run(capsys, "evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", str(tmp_path / "nothing"))
+    assert_user_error(code, err, "not in the data root", "add --download")
+    assert not (tmp_path / "nothing").exists(), "nothing created where the user did not ask"
+    code, _, err = run(capsys, "evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", str(tmp_path / "nothing"),
+                       "--download")
     assert_user_error(code, err, "Downloading 'corridor'", "failed", "rerun")
     assert not (tmp_path / "nothing" / "corridor").exists(), "no half-downloaded dataset in place"
 

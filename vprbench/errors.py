@@ -1,4 +1,10 @@
 """User-facing errors: the CLI prints their message and exits non-zero, without a traceback."""
+from __future__ import annotations
+
+import errno as codes
+import io
+import os
+import re
 
 
 class VPRBenchError(Exception):
@@ -11,3 +17,72 @@ def closest_names(name: str, choices, n: int = 3) -> str:
 
     close = difflib.get_close_matches(name, list(choices), n=n, cutoff=0.5)
     return f" Did you mean: {', '.join(close)}?" if close else ""
+
+
+# ---------------------------------------------------------------- operating-system errors
+#: errno -> what to do; {move} becomes "point --cache-dir at" (or --data-dir) when the path lies under one
+_WHAT_TO_DO = {
+    codes.EROFS: "{move} a folder on a writable disk",
+    codes.ENOSPC: "free some space, or {move} a folder on another disk (finished descriptors are kept)",
+    codes.EDQUOT: "free some space, or {move} a folder on another disk (finished descriptors are kept)",
+    codes.EACCES: "change its permissions, or {move} a folder this user may write to",
+    codes.EPERM: "{move} another folder",
+    codes.ENOENT: "check the path",
+    codes.ENOTDIR: "a part of the path is a file, not a folder: check the path",
+    codes.EISDIR: "it is a folder, not a file: check the path",
+    codes.EAGAIN: "another process holds it open (another vprbench run?): wait for it to finish, then rerun",
+    codes.EMFILE: "raise the limit (ulimit -n) or run fewer jobs at once",
+    codes.EIO: "check the disk",
+}
+
+
+def _path_of(error: OSError) -> str | None:
+    """The file an OSError is about: its filename; a path named in its message (HDF5 puts one
+    there); else, from the innermost frame outwards, the file object being read or written
+    (a failed write() names no file) or the name HDF5 was opening (its lock errors name none)."""
+    if getattr(error, "lock_file", None):  # filelock.Timeout
+        return str(error.lock_file)
+    if error.filename is not None:
+        return os.fsdecode(error.filename)
+    found = re.search(r"name = '([^']+)'", str(error))
+    if found:
+        return found.group(1)
+    frames, trace = [], error.__traceback__
+    while trace is not None:
+        frames.append(trace.tb_frame)
+        trace = trace.tb_next
+    for frame in reversed(frames):
+        for value in frame.f_locals.values():
+            if isinstance(value, io.IOBase) and isinstance(getattr(value, "name", None), (str, bytes)):
+                return os.fsdecode(value.name)
+        if "h5py" in frame.f_code.co_filename and isinstance(frame.f_locals.get("name"), (str, bytes, os.PathLike)):
+            return os.fsdecode(frame.f_locals["name"])
+    return None
+
+
+def _move(path: str | None) -> str:
+    """'point --cache-dir at' or 'point --data-dir at' when the path lies under that root, else 'use'."""
+    if path is not None:
+        from .datasets.manifest import data_root
+        from .paths import cache_root
+
+        target = os.path.abspath(path)
+        for option, root in (("--cache-dir", cache_root()), ("--data-dir", data_root())):
+            root = os.path.abspath(root)
+            if target == root or target.startswith(root + os.sep):
+                return f"point {option} at"
+    return "use"
+
+
+def os_error_message(error: OSError, path: str | os.PathLike | None = None) -> str:
+    """One sentence for an operating-system error: the path (`path`, else the one the error is
+    about), what went wrong, what to do."""
+    path = os.fspath(path) if path is not None else _path_of(error)
+    where = f" {path}" if path else " a file (the system did not say which)"
+    if getattr(error, "lock_file", None) or isinstance(error, TimeoutError):
+        return (f"Timed out waiting for the lock{where}: another vprbench process is working on the same "
+                "files; wait for it to finish, then rerun.")
+    number = codes.EAGAIN if error.errno == codes.EWOULDBLOCK else error.errno
+    reason = os.strerror(number) if number else (str(error) or type(error).__name__)
+    advice = _WHAT_TO_DO.get(number)
+    return f"Cannot use{where}: {reason}" + (f"; {advice.format(move=_move(path))}." if advice else ".")

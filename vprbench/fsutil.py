@@ -7,8 +7,8 @@
   machine (and by hosts sharing the folder, where the filesystem supports `flock`). A
   process that has to wait says, in one line, who holds the lock; a timeout is a
   `LockTimeout` naming the lock and its holder.
-- `cache_error(error, path, doing)`: an `OSError` turned into a `CacheError` (a
-  `VPRBenchError`) that names the path and says what to do (full disk, read-only folder).
+- `cache_error(error, path)`: an `OSError` (or HDF5's `RuntimeError`) turned into a
+  `CacheError` (a `VPRBenchError`) that names the path and says what to do.
 """
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from .errors import VPRBenchError
+from .errors import VPRBenchError, os_error_message
 
 
 class CacheError(VPRBenchError):
@@ -34,26 +34,15 @@ class LockTimeout(CacheError):
     """Waited longer than the given timeout for a lock."""
 
 
-_FULL = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
-_DENIED = {errno.EACCES, errno.EPERM, errno.EROFS}
-
-
-def cache_error(error: Exception, path: str | os.PathLike, doing: str = "write") -> CacheError:
-    """One clear message for an `OSError` (or HDF5's `RuntimeError`, which carries the errno in
-    its text) met while `doing` something to `path`."""
-    number = getattr(error, "errno", None)
-    if number is None:
+def cache_error(error: Exception, path: str | os.PathLike | None = None) -> CacheError:
+    """One clear message (errors.os_error_message: the path, what went wrong, what to do) for an
+    `OSError`, or for HDF5's `RuntimeError`, which carries the errno only in its text. `path`
+    names the file when the error itself does not."""
+    if not isinstance(error, OSError):
         found = re.search(r"errno = (\d+)", str(error))
-        number = int(found.group(1)) if found else None
-    reason = getattr(error, "strerror", None) or (os.strerror(number) if number else str(error))
-    if number in _FULL:
-        advice = ("the disk is full (or the file size limit is reached): free space or choose another "
-                  "--cache-dir; finished descriptors are kept and the next run resumes")
-    elif number in _DENIED:
-        advice = "the folder is not writable: choose a writable folder with --cache-dir (or $VPRBENCH_CACHE)"
-    else:
-        advice = "check the path and the disk"
-    return CacheError(f"Cannot {doing} {path}: {reason}; {advice}.")
+        number = int(found.group(1)) if found else errno.EIO
+        error = OSError(number, os.strerror(number))
+    return CacheError(os_error_message(error, None if error.filename is not None else path))
 
 
 def _sync_folder(folder: Path) -> None:
@@ -92,7 +81,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         _sync_folder(path.parent)
     except OSError as error:
         temporary.unlink(missing_ok=True)
-        raise cache_error(error, path) from None
+        raise CacheError(os_error_message(error, path)) from None  # the target, not the temporary name
     except BaseException:
         temporary.unlink(missing_ok=True)
         raise
@@ -150,7 +139,7 @@ def lock(path: str | os.PathLike, timeout: float | None = None, *, what: str | N
                 "has died is released by the system."
             ) from None
     except OSError as error:
-        raise cache_error(error, path, "lock") from None
+        raise cache_error(error, path) from None
     try:
         if held.lock_counter == 1:
             since = time.strftime("%Y-%m-%d %H:%M:%S")

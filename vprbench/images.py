@@ -1,4 +1,10 @@
-"""Reading images, with errors that name the file at fault."""
+"""Reading images, with errors that name the file at fault.
+
+Only the formats of IMAGE_SUFFIXES are decoded, whatever a file's content claims: Pillow
+would otherwise open, say, a PostScript file named .jpg and hand it to Ghostscript.
+High-bit-depth images (16-bit PNG and TIFF, 32-bit integer or float TIFF) are scaled to
+8 bits, not clipped.
+"""
 from __future__ import annotations
 
 from pathlib import Path
@@ -9,18 +15,38 @@ from PIL import Image, UnidentifiedImageError
 from .errors import VPRBenchError
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".ppm", ".webp")
+#: the Pillow decoders for IMAGE_SUFFIXES (JPEG includes multi-picture MPO files)
+IMAGE_FORMATS = ("JPEG", "PNG", "BMP", "TIFF", "PPM", "WEBP")
+#: full scale of Pillow's high-bit-depth modes: 16-bit integers ("I" is how Pillow widens
+#: 16-bit files), float images in [0, 1]
+_FULL_SCALE = {"I;16": 65535, "I;16B": 65535, "I;16L": 65535, "I;16N": 65535, "I": 65535, "F": 1.0}
+
+
+def to_8bit(image: Image.Image) -> Image.Image:
+    """An "L" image with a high-bit-depth image's values scaled from its full range to 0..255."""
+    scale = _FULL_SCALE[image.mode]
+    values = np.asarray(image, dtype=np.float64)
+    return Image.fromarray(np.clip(np.rint(values * (255 / scale)), 0, 255).astype(np.uint8), "L")
 
 
 def load_image(path: str | Path, mode: str = "RGB") -> Image.Image:
     """Open an image fully decoded in `mode` ("RGB" or "L")."""
     path = Path(path)
     try:
-        with Image.open(path) as image:
+        with Image.open(path, formats=IMAGE_FORMATS) as image:
             image.load()
-            return image.convert(mode)
+            return (to_8bit(image) if image.mode in _FULL_SCALE else image).convert(mode)
     except FileNotFoundError:
         raise VPRBenchError(f"Image not found: {path}") from None
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as error:
+    except PermissionError:
+        raise  # not a corrupt image: the CLI names the path and what to do
+    except Image.DecompressionBombError as error:
+        raise VPRBenchError(f"Image {path} is too large to decode safely ({error}).") from None
+    except UnidentifiedImageError:
+        raise VPRBenchError(
+            f"Cannot read image {path}: it is not a {', '.join(IMAGE_FORMATS)} image. Replace or remove the file."
+        ) from None
+    except (OSError, SyntaxError, ValueError) as error:
         raise VPRBenchError(
             f"Cannot read image {path}: {error}. Replace or remove the corrupt file."
         ) from None

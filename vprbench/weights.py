@@ -4,6 +4,9 @@ from __future__ import annotations
 import hashlib
 import pickle
 import struct
+import tomllib
+from functools import cache
+from importlib.resources import files
 from pathlib import Path
 
 import numpy as np
@@ -77,15 +80,32 @@ def read_torch_file(path: str | Path, what: str = "checkpoint", *, mmap: bool = 
         ) from None
 
 
+@cache
+def official_releases() -> tuple[dict, ...]:
+    """The official weight releases vprbench knows (manifests/weights.toml)."""
+    text = (files("vprbench.manifests") / "weights.toml").read_text()
+    return tuple(tomllib.loads(text)["release"])
+
+
 def weights_provenance(identity: str | None) -> dict:
     """Where a method's weights came from, for result records and the leaderboard.
 
-    `identity` is what fingerprints hold: the official URL for a file vprbench downloaded
-    from the authors' release, 'sha256:<hex>' for a local file, None for a model run
-    without weights (random initialisation).
+    `identity` is what fingerprints hold: the official URL (or 'open_clip:<arch>/<tag>') of a
+    file vprbench downloaded from the authors' release, 'sha256:<hex>' for a local file, None
+    for a model run without weights (random initialisation). A local file is official only when
+    its sha256 equals one the authors publish (manifests/weights.toml); otherwise it is the
+    user's file, identified by its sha256.
     """
     if identity is None:
         return {"source": "random"}
-    if identity.startswith(("http://", "https://")):
-        return {"source": "official", "url": identity}
-    return {"source": "user", "sha256": identity.removeprefix("sha256:")}
+    if not identity.startswith("sha256:"):
+        release = next((r for r in official_releases() if identity.startswith(r["url_prefix"])), None)
+        return {"source": "official", "url": identity, "recognised_by": "download",
+                **({"release": release["name"]} if release else {})}
+    digest = identity.removeprefix("sha256:")
+    for release in official_releases():
+        for name, published in release.get("sha256", {}).items():
+            if published.lower() == digest.lower():
+                return {"source": "official", "sha256": digest, "recognised_by": "sha256",
+                        "release": release["name"], "file": name, "checksum_source": release.get("checksum_source", "")}
+    return {"source": "user", "sha256": digest}

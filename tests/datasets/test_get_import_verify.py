@@ -38,7 +38,7 @@ def test_wrong_layout_names_what_each_layout_expects(tmp_path):
 
 
 def test_missing_dataset_says_how_to_get_it(tmp_path):
-    with pytest.raises(VPRBenchError, match=r"not at .*hawkins_long_corridor.*hawkins_long_corridor.tar.gz.*datasets import hawkins"):
+    with pytest.raises(VPRBenchError, match=r"not in the data root .*looked for .*hawkins_long_corridor.*hawkins_long_corridor.tar.gz.*datasets import hawkins"):
         load_dataset("hawkins", tmp_path)
 
 

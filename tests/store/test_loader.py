@@ -64,9 +64,11 @@ def test_batch_sizes_below_one_are_refused(corridor_images, capsys):
         method.batch_size = bad
         with pytest.raises(VPRBenchError, match="batch size must be a whole number >= 1"):
             collect(method, corridor_images, workers=0)
+    assert main(["evaluate", "--method", "anyloc", "--batch-size", "0", "--dataset", "corridor"]) == 1
+    assert "option batch_size takes a whole number >= 1" in capsys.readouterr().err
     with pytest.raises(SystemExit) as exit_code:
-        main(["evaluate", "--method", "anyloc", "--batch-size", "0", "--dataset", "corridor"])
-    assert exit_code.value.code == 2 and "--batch-size: must be >= 1, got 0" in capsys.readouterr().err
+        main(["evaluate", "--method", "hog", "--workers", "-1", "--dataset", "corridor"])
+    assert exit_code.value.code == 2 and "--workers: must be >= 0, got -1" in capsys.readouterr().err
 
 
 def test_device_auto_is_cuda_only_where_there_is_one():

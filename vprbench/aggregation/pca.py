@@ -1,73 +1,224 @@
 """PCA-whitening of global descriptors (AnyLoc's -PCA presets: 49,152 -> 512 dims).
 
-As AnyLoc: sklearn `PCA(dim, svd_solver="full", whiten=True)` fitted on the dataset's
-database descriptors, applied to database and queries, then L2 normalisation.
+As AnyLoc: the fit of sklearn `PCA(dim, svd_solver="full", whiten=True)` on the dataset's
+database descriptors (never the queries), applied to database and queries, then L2
+normalisation. Fitted from a row source chunk by chunk, with memory bounded by a budget
+whatever N is, along one of three paths:
+
+- "covariance" (D <= N, D x D fits the budget): the covariance streamed in float64, its top
+  eigenvectors. Exact up to rounding.
+- "gram" (N < D, N x N fits): the Gram matrix streamed block by block, its top
+  eigenvectors, components from one more pass. Exact up to rounding.
+- "randomized" (neither fits): randomized subspace iteration on the streamed covariance,
+  a sketch of 2 x dim columns, PASSES passes, seeded. Approximate (docs/evaluation.md
+  states the tolerance).
+
+Components follow sklearn's sign convention (each one's largest-magnitude entry positive).
 """
 from __future__ import annotations
 
 import numpy as np
 
 from ..errors import VPRBenchError
+from ..rows import DEFAULT_MEMORY_BUDGET, READ_BYTES, as_rows, chunks, format_bytes, parse_memory, read_bytes_per_row
 
 DEFAULT_PCA_DIM = 512
+PASSES = 10
+#: variances below this share of the largest are float32 rounding, not directions of the data
+RANK_TOLERANCE = 1e-6
+#: a chunk (centred in place) and one product of at most its size
+ROW_COPIES = 2
+
+
+def _solver_memory(solver: str, n: int, d: int, dim: int) -> int:
+    """Bytes a path holds besides its chunk of rows."""
+    if solver == "covariance":  # float64 sums, a float32 chunk product, eigenvectors
+        return 12 * d * d + 8 * d * dim
+    if solver == "gram":        # float64 Gram + eigenvectors, then eigenvectors + float64 components
+        return max(8 * n * n, 8 * d * dim) + 8 * n * dim
+    return 20 * d * min(d, n, 2 * dim)  # float32 basis, float64 product, and a float64 temporary or its QR
+
+
+def _flip(components: np.ndarray) -> np.ndarray:
+    """sklearn's svd_flip(u_based_decision=False): each row's largest-|.| entry positive."""
+    largest = components[np.arange(len(components)), np.argmax(np.abs(components), axis=1)]
+    return components * np.where(largest < 0, -1.0, 1.0)[:, None]
+
+
+def _top_eigen(matrix: np.ndarray, dim: int) -> tuple[np.ndarray, np.ndarray]:
+    """Largest `dim` eigenvalues (descending) and their eigenvectors (columns) of a symmetric matrix."""
+    from scipy.linalg import eigh
+
+    size = matrix.shape[0]
+    values, vectors = eigh(matrix, subset_by_index=[size - dim, size - 1], overwrite_a=True, check_finite=False)
+    return values[::-1], vectors[:, ::-1]
 
 
 class PCAWhitening:
-    """Fit on database descriptors, transform any descriptors; state is plain numpy arrays."""
+    """The post-processor of AnyLoc's -PCA presets: fit on database rows, transform any rows;
+    its state is plain numpy arrays (see `vprbench.methods.base.PostProcessor`)."""
 
-    def __init__(self, dim: int = DEFAULT_PCA_DIM):
+    def __init__(self, dim: int = DEFAULT_PCA_DIM, *, seed: int = 0):
         if dim < 1:
             raise VPRBenchError(f"PCA dimension must be at least 1, got {dim}.")
-        self.dim = dim
+        self.dim, self.seed = int(dim), int(seed)
         self.mean: np.ndarray | None = None
         self.projection: np.ndarray | None = None  # (dim, D): components / sqrt(explained variance)
 
-    def fit(self, database: np.ndarray) -> "PCAWhitening":
-        from sklearn.decomposition import PCA
+    # ------------------------------------------------------------ planning
+    def solver(self, rows, memory_budget: int) -> str:
+        """The exact path on the smaller side when it fits the budget (with one chunk of rows),
+        else the randomized one."""
+        n, d = rows.row_count, rows.dim
+        exact = "covariance" if d <= n else "gram"
+        least_rows = ROW_COPIES * read_bytes_per_row(rows) * (2 if exact == "gram" else 1)
+        return exact if _solver_memory(exact, n, d, self.dim) + least_rows <= memory_budget else "randomized"
 
-        database = np.asarray(database, dtype=np.float32)
-        if database.ndim != 2:
-            raise VPRBenchError(f"PCA needs (N, D) descriptors, got shape {database.shape}.")
-        n, d = database.shape
+    def key(self, rows, memory_budget: int = DEFAULT_MEMORY_BUDGET) -> dict:
+        """What defines the fitted state (its file name in the store folder)."""
+        solver = self.solver(rows, memory_budget)
+        key = {"kind": "pca-whitening", "dim": self.dim, "solver": solver}
+        if solver == "randomized":
+            key.update(sketch=min(rows.dim, rows.row_count, 2 * self.dim), passes=PASSES, seed=self.seed)
+        return key
+
+    # ------------------------------------------------------------ fitting
+    def fit(self, database, memory_budget=DEFAULT_MEMORY_BUDGET) -> "PCAWhitening":
+        """Fit on database descriptors: an (N, D) array or a row source, streamed within the budget."""
+        rows, budget = as_rows(database, "database descriptors"), parse_memory(memory_budget)
+        n, d = rows.row_count, rows.dim
         if self.dim > min(n, d):
             raise VPRBenchError(
                 f"PCA dimension {self.dim} is larger than the number of database images ({n}) or the "
-                f"descriptor dimension ({d}): choose pca_dim <= {min(n, d)}."
-            )
-        pca = PCA(self.dim, svd_solver="full", whiten=True).fit(database)
-        self.mean = pca.mean_.astype(np.float32)
-        self.projection = (pca.components_ / np.sqrt(pca.explained_variance_)[:, None]).astype(np.float32)
+                f"descriptor dimension ({d}): choose pca_dim <= {min(n, d)}.")
+        solver = self.solver(rows, budget)
+        held = _solver_memory(solver, n, d, self.dim)
+        row_cost = ROW_COPIES * read_bytes_per_row(rows)
+        blocks = 2 if solver == "gram" else 1  # the Gram path holds two chunks
+        chunk_rows = min(READ_BYTES // row_cost, (budget - held) // (row_cost * blocks))
+        if chunk_rows < 1:
+            raise VPRBenchError(
+                f"A memory budget of {format_bytes(budget)} is too small to fit PCA-whitening of {d:,}-dim descriptors "
+                f"to {self.dim} dims: its {solver} path needs at least {format_bytes(held + row_cost * blocks)}. "
+                "Raise --search-memory (memory_budget).")
+        fit = {"covariance": _fit_covariance, "gram": _fit_gram, "randomized": _fit_randomized}[solver]
+        mean, components, variances = fit(rows, self.dim, int(chunk_rows), self.seed)
+        floor = RANK_TOLERANCE * max(variances[0], 1e-300)
+        if not variances[-1] > floor:
+            rank = int(np.sum(variances > floor))
+            raise VPRBenchError(f"The database descriptors vary along only {rank} directions; whitening to {self.dim} "
+                                f"dims would divide by zero: choose pca_dim <= {rank}.")
+        self.mean = mean.astype(np.float32)
+        self.projection = (_flip(components) / np.sqrt(variances)[:, None]).astype(np.float32)
         return self
 
+    # ------------------------------------------------------------ applying
     def transform(self, descriptors: np.ndarray) -> np.ndarray:
-        """(N, D) -> (N, dim) float32, whitened and L2-normalised."""
+        """(N, D) -> (N, dim) float32, whitened and L2-normalised, row by row."""
         if self.projection is None:
             raise VPRBenchError("PCA-whitening was used before being fitted on database descriptors.")
         descriptors = np.asarray(descriptors, dtype=np.float32)
         if descriptors.ndim != 2 or descriptors.shape[1] != self.projection.shape[1]:
             raise VPRBenchError(
-                f"PCA was fitted on {self.projection.shape[1]}-dimensional descriptors, got shape {descriptors.shape}."
-            )
+                f"PCA was fitted on {self.projection.shape[1]}-dimensional descriptors, got shape {descriptors.shape}.")
         out = (descriptors - self.mean) @ self.projection.T
         norms = np.linalg.norm(out, axis=1, keepdims=True)
         return (out / np.maximum(norms, 1e-12)).astype(np.float32)
 
     def state(self) -> dict[str, np.ndarray]:
-        """For `Method.fit_state()`: saved beside the descriptors."""
         if self.projection is None:
             raise VPRBenchError("PCA-whitening has no state before it is fitted.")
         return {"pca_mean": self.mean, "pca_projection": self.projection}
 
-    @classmethod
-    def from_state(cls, state: dict[str, np.ndarray]) -> "PCAWhitening":
-        pca = cls(int(state["pca_projection"].shape[0]))
-        pca.mean = np.asarray(state["pca_mean"], dtype=np.float32)
-        pca.projection = np.asarray(state["pca_projection"], dtype=np.float32)
-        return pca
+    def load_state(self, state: dict[str, np.ndarray]) -> None:
+        projection = np.asarray(state["pca_projection"], dtype=np.float32)
+        if projection.shape[0] != self.dim:
+            raise VPRBenchError(f"Saved PCA state has {projection.shape[0]} dims, this PCA {self.dim}.")
+        self.mean, self.projection = np.asarray(state["pca_mean"], dtype=np.float32), projection
+
+
+def _shifted(rows, chunk_rows: int):
+    """Chunks minus the first chunk's mean (a shift keeps float32 sums well conditioned),
+    shifted in place; callers drop each before the next is read."""
+    shift = None
+    for start, block in chunks(rows, chunk_rows):
+        if shift is None:
+            shift = block.mean(axis=0, dtype=np.float64).astype(np.float32)
+        block -= shift
+        yield start, block, shift
+        del block
+
+
+def _fit_covariance(rows, dim: int, chunk_rows: int, seed: int):
+    n, d = rows.row_count, rows.dim
+    sums, products = np.zeros(d), np.zeros((d, d))
+    for _, x, shift in _shifted(rows, chunk_rows):
+        sums += x.sum(axis=0, dtype=np.float64)
+        products += x.T @ x
+        del x
+    m = sums / n
+    for i in range(0, d, 256):  # products -= n m m^T, a band at a time (no D x D temporary)
+        products[i:i + 256] -= n * np.outer(m[i:i + 256], m)
+    products /= n - 1
+    variances, vectors = _top_eigen(products, dim)
+    return shift + m, vectors.T, variances
+
+
+def _fit_gram(rows, dim: int, chunk_rows: int, seed: int):
+    n, d = rows.row_count, rows.dim
+    gram, sums = np.zeros((n, n)), np.zeros(d)
+    for i, xi, shift in _shifted(rows, chunk_rows):
+        sums += xi.sum(axis=0, dtype=np.float64)
+        gram[i:i + len(xi), i:i + len(xi)] = xi @ xi.T
+        for j in range(i + len(xi), n, chunk_rows):
+            xj = np.asarray(rows.read_rows(j, min(j + chunk_rows, n)), dtype=np.float32)
+            xj -= shift
+            block = xi @ xj.T
+            gram[i:i + len(xi), j:j + len(xj)] = block
+            gram[j:j + len(xj), i:i + len(xi)] = block.T
+            del xj, block
+        del xi
+    means = gram.mean(axis=0)  # double centring: X_c X_c^T = J G J
+    gram -= means[:, None]
+    gram -= means[None, :]
+    gram += means.mean()
+    values, vectors = _top_eigen(gram, dim)
+    del gram
+    m = sums / n
+    components = np.zeros((d, dim))
+    for start, x, _ in _shifted(rows, chunk_rows):
+        x -= m.astype(np.float32)
+        components += x.T @ vectors[start:start + len(x)]
+        del x
+    return shift + m, (components / np.sqrt(np.maximum(values, 1e-300))).T, values / (n - 1)
+
+
+def _fit_randomized(rows, dim: int, chunk_rows: int, seed: int):
+    from scipy.linalg import qr
+
+    n, d = rows.row_count, rows.dim
+    sketch = min(d, n, 2 * dim)
+    basis = qr(np.random.default_rng(seed).standard_normal((d, sketch)), mode="economic")[0].astype(np.float32)
+    for p in range(PASSES):  # basis <- orth(C basis), C the covariance, never formed
+        product, sums = np.zeros((d, sketch), order="F"), np.zeros(d)
+        for _, x, shift in _shifted(rows, chunk_rows):
+            sums += x.sum(axis=0, dtype=np.float64)
+            product += x.T @ (x @ basis)
+            del x
+        m = sums / n
+        product -= n * np.outer(m, m @ basis)
+        product /= n - 1
+        if p < PASSES - 1:
+            basis = None  # freed before its successor is made
+            basis = qr(product, mode="economic", overwrite_a=True, check_finite=False)[0].astype(np.float32)
+    small = basis.T.astype(np.float64) @ product  # Rayleigh-Ritz on the final basis
+    del product
+    values, vectors = _top_eigen((small + small.T) / 2, dim)
+    return shift + m, (basis @ vectors.astype(np.float32)).T, values
 
 
 def pca_whiten(database: np.ndarray, queries: np.ndarray, dim: int = DEFAULT_PCA_DIM) -> tuple[np.ndarray, np.ndarray]:
     """Fit on `database`, return (database, queries) whitened to `dim` and L2-normalised
-    (drop-in for `Method.postprocess`)."""
+    (whole matrices in memory; pipelines use the post-processor hook instead)."""
     pca = PCAWhitening(dim).fit(database)
     return pca.transform(database), pca.transform(queries)

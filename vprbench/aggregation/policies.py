@@ -78,6 +78,93 @@ def released_name(source: str) -> str | None:
     return vocabulary_policies()["released"].get(source)
 
 
+def release() -> dict:
+    """The authors' released centres: repository, commit, URL pattern, setting, sha256 per folder."""
+    return vocabulary_policies()["release"]
+
+
+def released_setting() -> tuple[str, int, str, int]:
+    r = release()
+    return r["backbone"], int(r["layer"]), r["facet"], int(r["clusters"])
+
+
+def released_path(source: str, cache_dir=None) -> Path | None:
+    """Where the released centres of `source` live once downloaded (None: not released)."""
+    folder = released_name(source)
+    if folder is None or folder not in release()["sha256"]:
+        return None
+    return vocabulary_dir(*released_setting(), folder, cache_dir) / RELEASED_FILE
+
+
+def released_url(source: str) -> str:
+    r = release()
+    return r["url"].format(commit=r["commit"], folder=released_name(source))
+
+
+def released_sources() -> list[str]:
+    """vprbench source names whose released centres have a recorded checksum."""
+    return [source for source in vocabulary_policies()["released"] if released_path(source) is not None]
+
+
+def fetch_released(source: str, cache_dir=None) -> Path:
+    """The released c_centers.pt of `source`, downloaded with pooch on first use (sha256-checked);
+    a file already in place with the right checksum is used as it is."""
+    path = released_path(source, cache_dir)
+    if path is None:
+        raise VPRBenchError(f"The authors released no centres for {source!r}; released: {', '.join(released_sources())}.")
+    import pooch
+
+    url = released_url(source)
+    try:
+        pooch.retrieve(url, known_hash=f"sha256:{release()['sha256'][released_name(source)]}", fname=path.name,
+                       path=path.parent, progressbar=False)
+    except Exception as error:  # network failure or checksum mismatch: say where the file goes
+        raise VPRBenchError(
+            f"Cannot download the authors' {source!r} centres from {url} ({type(error).__name__}: {error}). "
+            f"On a machine with internet access run `vprbench vocabulary download` (or fetch that URL) "
+            f"and put the file at {path}."
+        ) from None
+    return path
+
+
+def released_provenance(vocabulary: Vocabulary) -> dict:
+    """{"source": "released", repository, commit, url, sha256} when the file is a released one, else the file's sha256."""
+    from ..weights import file_sha256
+
+    path = vocabulary.meta.get("path") or vocabulary.meta.get("imported_from")
+    if not path or not Path(path).is_file():
+        return {}
+    digest = file_sha256(path)
+    for source in released_sources():
+        if release()["sha256"][released_name(source)] == digest:
+            r = release()
+            return {"source": "released", "released_as": released_name(source), "repository": r["repository"],
+                    "commit": r["commit"], "url": released_url(source), "sha256": digest, "file": str(path)}
+    return {"source": "file", "sha256": digest, "file": str(path)}
+
+
+def paper_choice(dataset: str, backbone: str, layer: int, facet: str, clusters: int,
+                 cache_dir=None) -> tuple[Vocabulary | None, str, str]:
+    """(vocabulary or None, source name, note) for the paper's vocabulary of `dataset`.
+
+    None means map-specific: where the paper fits it on the evaluated database (e.g. Mid-Atlantic
+    Ridge), or, with a note, where neither a cached nor a released vocabulary of the paper's
+    source fits these features (another backbone, layer, facet or cluster count)."""
+    source = paper_vocabulary(dataset)
+    if source.startswith(MAP_PREFIX):
+        return None, source, ""
+    found = find_vocabulary(source, backbone, layer, facet, clusters, cache_dir)
+    if found is not None:
+        return found, source, ""
+    if released_path(source) is not None and (backbone, layer, facet, clusters) == released_setting():
+        return load_vocabulary(fetch_released(source, cache_dir)), source, ""
+    rb, rl, rf, rc = released_setting()
+    note = (f"no {source!r} vocabulary for {backbone} layer {layer} {facet} with {clusters} clusters (the authors "
+            f"released {rb} layer {rl} {rf} {rc} only; `vprbench vocabulary fit --domain {source}` makes one): "
+            f"fitted on the evaluated database of {dataset} (map-specific) instead")
+    return None, f"{MAP_PREFIX}{dataset}", note
+
+
 def _load_all(pairs: list[tuple[str, int]], data_dir) -> list[tuple[str, list[Path]]]:
     """Database images of every dataset, strided; one error naming every dataset that is missing."""
     from ..datasets import load_dataset
@@ -167,6 +254,8 @@ def resolve_vocabulary(spec: str, backbone: str, layer: int, facet: str, cluster
         vocabulary = load_vocabulary(path)
     else:
         vocabulary = find_vocabulary(spec, backbone, layer, facet, clusters, cache_dir)
+        if vocabulary is None and released_path(spec) is not None and (backbone, layer, facet, clusters) == released_setting():
+            vocabulary = load_vocabulary(fetch_released(spec, cache_dir))
         if vocabulary is None:
             where = vocabulary_dir(backbone, layer, facet, clusters, spec, cache_dir)
             how = f"--dataset {spec[len(MAP_PREFIX):]}" if spec.startswith(MAP_PREFIX) else f"--domain {spec}"

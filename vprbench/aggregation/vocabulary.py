@@ -151,10 +151,11 @@ class Vocabulary:
     def check_dim(self, feature_dim: int) -> None:
         if feature_dim != self.dim:
             source = self.meta.get("path") or self.meta.get("source") or "the vocabulary"
+            fitted = "/".join(str(self.meta[k]) for k in ("backbone", "layer", "facet") if k in self.meta)
             raise VPRBenchError(
                 f"Vocabulary {source} has {self.dim}-dimensional centres but the features are "
-                f"{feature_dim}-dimensional: it was fitted for other features (backbone, layer or facet "
-                f"{self.meta.get('backbone', '?')}/{self.meta.get('layer', '?')}/{self.meta.get('facet', '?')})."
+                f"{feature_dim}-dimensional: it was fitted for other features (another backbone, layer or facet"
+                f"{f': {fitted}' if fitted else ''}). Use a vocabulary fitted for these features."
             )
 
     def save(self, path: str | Path) -> Path:
@@ -178,7 +179,10 @@ def load_vocabulary(path: str | Path) -> Vocabulary:
     if not path.is_file():
         raise VPRBenchError(f"Vocabulary file {path} does not exist.")
     if path.suffix == ".npy":
-        data = np.load(path)
+        try:
+            data = np.load(path, allow_pickle=False)  # a pickled array is refused, never run
+        except (ValueError, EOFError) as error:
+            raise VPRBenchError(f"Cannot read vocabulary file {path}: {error}. Expected a (clusters, dim) float array.") from None
     else:
         data = read_torch_file(path, "vocabulary file")
     meta = {}
@@ -186,7 +190,10 @@ def load_vocabulary(path: str | Path) -> Vocabulary:
         if "centres" not in data:
             raise VPRBenchError(f"Vocabulary file {path} has no 'centres' entry (keys: {sorted(data)}).")
         data, meta = data["centres"], dict(data.get("meta", {}))
-    centres = torch.as_tensor(np.asarray(data) if isinstance(data, np.ndarray) else data).float()
+    try:
+        centres = torch.as_tensor(np.asarray(data) if isinstance(data, np.ndarray) else data).float()
+    except (TypeError, ValueError, RuntimeError):
+        raise VPRBenchError(f"Vocabulary file {path} holds a {type(data).__name__}, not a (clusters, dim) array of numbers.") from None
     if centres.dim() != 2 or centres.shape[0] < 1:
         raise VPRBenchError(f"Vocabulary file {path} holds a tensor of shape {tuple(centres.shape)}, expected (clusters, dim).")
     meta.setdefault("clusters", int(centres.shape[0]))

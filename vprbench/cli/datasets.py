@@ -4,10 +4,13 @@ from __future__ import annotations
 import json
 import warnings
 
-from rich.console import Console
 from rich.table import Table
 
-from ..datasets import dataset_location, dataset_manifests, download_dataset, import_dataset, load_dataset, verify_dataset
+from ..datasets import (
+    dataset_location, dataset_manifest, dataset_manifests, download_dataset, import_dataset, load_dataset, protocols,
+    verify_dataset,
+)
+from .console import console, styled
 from .options import add_location_options, apply_locations
 
 
@@ -18,8 +21,10 @@ def add_parsers(commands) -> None:
     add_location_options(p)
     p.add_argument("--json", action="store_true")
     p.set_defaults(run=run_list)
-    p = sub.add_parser("info", help="counts, positives, unit and radius of one dataset")
+    p = sub.add_parser("info", help="counts, positives, unit and radius of one dataset, and its protocols")
     p.add_argument("name", help="dataset name or a folder of your own")
+    p.add_argument("--protocol", help="show the dataset under this protocol (default: its first)")
+    p.add_argument("--protocols", action="store_true", help="only list the dataset's protocols (no data needed)")
     add_location_options(p)
     p.add_argument("--json", action="store_true")
     p.set_defaults(run=run_info)
@@ -64,24 +69,49 @@ def run_list(args) -> int:
         radius = f"{r['radius']:g} {r['radius_unit'] or ''}".strip()
         radius += " (lists)" if r["unit"] == "positives" else ""
         table.add_row(r["name"], r["domain"], str(r["database"] or "?"), str(r["queries"] or "?"), radius,
-                      "[green]yes[/]" if r["on_disk"] else "no")
-    Console().print(table)
+                      styled("yes", "green") if r["on_disk"] else "no")
+    console().print(table)
     return 0
 
 
 def run_info(args) -> int:
     apply_locations(args)
-    dataset = load_dataset(args.name, args.data_dir, fetch=False)
+    if args.protocols:
+        listed = [p.record() for p in protocols(dataset_manifest(args.name)).values()]
+        if args.json:
+            print(json.dumps(listed, indent=2))
+        else:
+            console().print(protocol_table(args.name, listed))
+        return 0
+    dataset = load_dataset(args.name, args.data_dir, fetch=False, protocol=args.protocol)
     info = dataset.summary()
-    info.update({"citation": dataset.citation, "licence": dataset.licence, "notes": " ".join(dataset.notes)})
+    info.update({"citation": dataset.citation, "licence": dataset.licence, "notes": " ".join(dataset.notes),
+                 "kind": dataset.kind, "protocol": dataset.protocol})
+    listed = [p.record() for p in protocols(dataset_manifest(args.name)).values()] if dataset.kind == "benchmark" else [dataset.protocol]
     if args.json:
-        print(json.dumps(info, indent=2))
+        print(json.dumps({**info, "protocols": listed}, indent=2))
         return 0
     table = Table(title=f"{dataset.title or dataset.name}", show_header=False)
     for key, value in info.items():
-        table.add_row(key, str(value))
-    Console().print(table)
+        table.add_row(key, value["id"] if key == "protocol" else str(value))
+    console().print(table)
+    console().print(protocol_table(dataset.name, listed))
     return 0
+
+
+def protocol_table(name: str, listed: list[dict]) -> Table:
+    table = Table(title=f"Protocols of {name} (the first is the default; choose with --protocol NAME)")
+    for column in ("name", "hash", "database", "queries", "positive if", "source"):
+        table.add_column(column, overflow="fold")
+    for p in listed:
+        gt = p["ground_truth"]
+        within = f"within {gt['radius']:g} {gt['radius_unit'] or ''}".strip() + (" (lists)" if gt["unit"] == "positives" else "")
+        db, q = p["database"], p["queries"]
+        table.add_row(p["name"], p["hash"],
+                      f"{db['count'] or '?'} ({db['split']}{', without ' + ', '.join(db['exclude_folders']) if db['exclude_folders'] else ''})",
+                      f"{q['count'] or 'all'} ({q['split']}{', listed subset' if q['subset'] else ''})", within,
+                      p["source"])
+    return table
 
 
 

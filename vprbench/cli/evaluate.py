@@ -20,21 +20,29 @@ from ..evaluation import append_result, describe_splits, evaluate
 from ..fsutil import atomic_write
 from ..methods import create_method
 from ..paths import cache_root
-from .options import (add_extraction_options, add_location_options, add_method_options, apply_locations,
-                      extraction_settings, method_options, parse_ks)
+from .console import console as make_console
+from .options import (add_download_option, add_extraction_options, add_location_options, add_method_options,
+                      add_search_options, apply_locations, extraction_settings, method_options, parse_ks,
+                      search_settings)
+from .run import add_sweep_options, run_matrix
 
 
 def progress_bar(console: Console) -> Progress:
-    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+    return Progress(TextColumn("{task.description}", markup=False), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
                     console=console, transient=True)
 
 
 def add_parsers(commands) -> None:
-    p = commands.add_parser("evaluate", help="evaluate a method on a dataset (Recall@K, PR); under torchrun, sharded over ranks")
-    add_method_options(p)
+    p = commands.add_parser("evaluate", help="evaluate methods on datasets (Recall@K, PR); several of each run as a "
+                                             "sweep; under torchrun, one evaluation sharded over the ranks")
+    add_method_options(p, several=True)
     add_extraction_options(p)
-    p.add_argument("--dataset", required=True, help="dataset name ('vprbench datasets list') or a folder of your own")
+    p.add_argument("--dataset", required=True, nargs="+", help="dataset names ('vprbench datasets list') or folders of your own")
+    p.add_argument("--protocol", help="the dataset's protocol ('vprbench datasets info NAME'; default: its first)")
+    add_sweep_options(p)
+    add_search_options(p)
     add_location_options(p)
+    add_download_option(p)
     p.add_argument("--k", nargs="+", help="K values for Recall@K (default 1 5 10 20)")
     p.add_argument("--strict", action="store_true", help="fail when image counts differ from the manifest")
     p.add_argument("--json", action="store_true", help="print the result record as JSON on stdout")
@@ -43,6 +51,7 @@ def add_parsers(commands) -> None:
     p = commands.add_parser("describe", help="write global descriptors of images to a .npy file, in input order")
     add_method_options(p)
     add_extraction_options(p)
+    add_search_options(p)
     p.add_argument("images", nargs="+", type=Path, help="image files")
     p.add_argument("--out", required=True, type=Path, help="output .npy file")
     p.add_argument("--fit-on", type=Path,
@@ -56,6 +65,9 @@ def add_parsers(commands) -> None:
 def run_evaluate(args) -> int:
     apply_locations(args)
     options = method_options(args)
+    if len(args.method) > 1 or len(args.dataset) > 1 or args.protocol:
+        return run_matrix(args, options)  # the sweep: resumable, shared across processes
+    args.method, args.dataset = args.method[0], args.dataset[0]
     ks = parse_ks(args.k)
     ranks = Ranks.from_environment(options["device"])
     try:
@@ -63,21 +75,23 @@ def run_evaluate(args) -> int:
         method = create_method(args.method, **options)  # method and options are checked before any data is touched
         ranks.agree({"method": args.method, "options": {k: v for k, v in options.items() if k != "device"},
                      "dataset": args.dataset, "data_dir": os.environ.get("VPRBENCH_DATA"), "k": ks,
-                     "cache": str(cache_root().resolve()), "store_dtype": args.store_dtype}, "options")
+                     "cache": str(cache_root().resolve()), "store_dtype": args.store_dtype,
+                     "search": search_settings(args)}, "options")
         # loaded (and fetched, on first use) by rank 0 alone, then handed to the other ranks
-        dataset = ranks.on_zero(lambda: load_dataset(args.dataset, args.data_dir, strict=args.strict))
-        with progress_bar(Console(stderr=True)) if ranks.rank == 0 else nullcontext() as progress:
+        dataset = ranks.on_zero(lambda: load_dataset(args.dataset, args.data_dir, strict=args.strict,
+                                                     fetch=args.download or None))
+        with progress_bar(make_console(stderr=True)) if ranks.rank == 0 else nullcontext() as progress:
             record = evaluate(method, dataset, ks=ks, cache_dir=args.cache_dir, progress=progress, ranks=ranks,
-                              **extraction_settings(args, options["device"]))
+                              **extraction_settings(args, options["device"]), **search_settings(args))
     finally:
         ranks.close()
     if record is None:  # another rank than 0: its shard is written, rank 0 reports
         return 0
-    append_result(record, args.cache_dir)
-    if args.json:
+    if args.json:  # shown first: a result that cannot be saved (full or read-only disk) is still seen
         print(json.dumps(record, indent=2, sort_keys=True))
     else:
-        Console().print(results_table(record))
+        make_console().print(results_table(record))
+    append_result(record, args.cache_dir)
     return 0
 
 
@@ -101,6 +115,10 @@ def results_table(record: dict) -> Table:
 
 
 def run_describe(args) -> int:
+    """The evaluation's describe path without the search: the --fit-on images are the database
+    (what the method fits on, and what PCA-whitening is fitted on), the images the queries."""
+    from ..evaluation.search import postprocessed
+
     apply_locations(args)
     if args.out.suffix != ".npy":
         raise VPRBenchError(f"--out must be a .npy file, got {args.out}")
@@ -122,14 +140,14 @@ def run_describe(args) -> int:
     splits["queries"] = list(args.images)
     if args.dataset:
         method.use_dataset(args.dataset)
-    with progress_bar(Console(stderr=True)) as progress:
+    with progress_bar(make_console(stderr=True)) as progress:
         described = describe_splits(method, splits, label=f"describe-{args.dataset or 'images'}",
                                     cache_dir=args.cache_dir, progress=progress,
                                     **extraction_settings(args, options["device"]))
-    queries = described.stores["queries"].read()
-    database = described.stores["database"].read() if "database" in splits else queries
-    _, descriptors = method.postprocess(database, queries)
-    descriptors = np.ascontiguousarray(descriptors, dtype=np.float32)
+    queries = described.stores["queries"]
+    database = described.stores.get("database", queries)
+    _, queries, _ = postprocessed(method, database, queries, search_settings(args)["memory_budget"])
+    descriptors = np.ascontiguousarray(queries.read_rows(0, queries.row_count), dtype=np.float32)
     buffer = io.BytesIO()
     np.save(buffer, descriptors)
     atomic_write(args.out, buffer.getvalue())

@@ -1,23 +1,30 @@
-"""vprbench leaderboard [--format] / leaderboard publish --to DIR."""
+"""vprbench leaderboard [show] / publish --to DIR / compare A B --dataset D."""
 from __future__ import annotations
 
 from pathlib import Path
 
-from rich.console import Console
 from rich.table import Table
 
 from ..errors import VPRBenchError
 from ..evaluation import read_results
-from ..leaderboard import FORMATS, leaderboard, publish, render
+from ..leaderboard import FORMATS, build_board, grid, publish, render
+from .console import console
 from .options import apply_locations
+
+NO_RESULTS = "No results yet: run 'vprbench evaluate --method M --dataset D' first."
 
 
 def add_parsers(commands) -> None:
-    p = commands.add_parser("leaderboard", help="methods x datasets table of R@1 / R@5 from all evaluations")
-    p.add_argument("action", nargs="?", choices=("show", "publish"), default="show")
+    p = commands.add_parser("leaderboard", help="leaderboard of all evaluations: show, publish to the docs, compare two methods")
+    p.add_argument("action", nargs="?", choices=("show", "publish", "compare"), default="show")
+    p.add_argument("methods", nargs="*", metavar="METHOD", help="with 'compare': the two method rows to compare")
     p.add_argument("--format", choices=FORMATS, default="table")
-    p.add_argument("--to", type=Path, help="with 'publish': folder for leaderboard.md (e.g. docs/)")
+    p.add_argument("--to", type=Path, help="with 'publish': the docs folder; the section goes to <folder>/leaderboard/")
+    p.add_argument("--dataset", help="with 'compare': the dataset both were run on")
+    p.add_argument("--k", type=int, default=1, help="with 'compare': the K of Recall@K compared (default 1)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the bootstrap (default 0)")
     p.add_argument("--cache-dir", help="where the results store lives")
+    p.add_argument("--data-dir", help="with 'publish': where the datasets' images are, for the retrieval mosaics")
     p.set_defaults(run=run)
 
 
@@ -26,19 +33,38 @@ def run(args) -> int:
     if args.action == "publish":
         if args.to is None:
             raise VPRBenchError("leaderboard publish needs --to FOLDER (e.g. --to docs/)")
-        print(f"Wrote {publish(args.to, args.cache_dir)}")
+        print(f"Wrote {publish(args.to, args.cache_dir, data_dir=args.data_dir, seed=args.seed)}")
         return 0
-    table = leaderboard(read_results(args.cache_dir))
-    if table.empty:
-        raise VPRBenchError("No results yet: run 'vprbench evaluate --method M --dataset D' first.")
+    records = read_results(args.cache_dir)
+    if not records:
+        raise VPRBenchError(NO_RESULTS)
+    board = build_board(records)
+    if args.action == "compare":
+        from ..leaderboard.compare import compare, describe
+
+        if len(args.methods) != 2 or not args.dataset:
+            raise VPRBenchError("leaderboard compare needs two methods and a dataset: "
+                                "vprbench leaderboard compare A B --dataset D")
+        print(describe(compare(board, *args.methods, args.dataset, k=args.k, seed=args.seed)))
+        return 0
+    if args.methods:
+        raise VPRBenchError(f"'leaderboard {args.action}' takes no method names (got {' '.join(args.methods)}); "
+                            "did you mean 'leaderboard compare A B --dataset D'?")
+    if not board.cells:
+        raise VPRBenchError(f"None of the {len(records)} stored run(s) can fill a cell: "
+                            f"{board.excluded[0][1]}." if board.excluded else NO_RESULTS)
+    table = grid(board)
     if args.format != "table":
         print(render(table, args.format))
         return 0
-    view = Table(title="R@1 / R@5 (%)")
+    view = Table(title="R@1 / R@5 (%): one run per cell")
     view.add_column("method")
     for column in table.columns:
-        view.add_column(str(column), justify="right")
+        view.add_column(str(column), justify="right" if column != "weights" else "left")
     for method, row in table.iterrows():
-        view.add_row(str(method), *row.tolist())
-    Console().print(view)
+        view.add_row(str(method), *[str(v) for v in row.tolist()])
+    out = console()
+    out.print(view)
+    if board.excluded:
+        out.print(f"{len(board.excluded)} run(s) left out of every cell, e.g.: {board.excluded[0][1]}", highlight=False)
     return 0

@@ -2,19 +2,21 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import warnings
 
 from .. import __version__
-from ..errors import VPRBenchError
-from . import datasets, evaluate, leaderboard, methods, vocabulary
+from ..errors import VPRBenchError, os_error_message
+from . import datasets, evaluate, leaderboard, methods, reproduce, run, vocabulary
+from .console import console, styled
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vprbench", description="Benchmark suite for visual place recognition.")
     parser.add_argument("--version", action="version", version=f"vprbench {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for module in (evaluate, datasets, methods, vocabulary, leaderboard):
+    for module in (evaluate, run, reproduce, datasets, methods, vocabulary, leaderboard):
         module.add_parsers(commands)
     return parser
 
@@ -24,15 +26,24 @@ def format_warning(message, category, filename, lineno, line=None) -> str:
     return f"warning: {message}\n"
 
 
+def print_error(message: str) -> None:
+    # soft wrap: no line breaks inserted, so paths in the message stay whole for copying
+    console(stderr=True).print(styled("error:", "bold red"), message, highlight=False, soft_wrap=True)
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     warnings.formatwarning = format_warning
     try:
         return args.run(args)
     except VPRBenchError as error:
-        from rich.console import Console
-
-        Console(stderr=True).print(f"[bold red]error:[/] {error}", highlight=False, markup=True)
+        print_error(str(error))
+        return 1
+    except BrokenPipeError:  # output piped into a reader that stopped (| head): end quietly, as other tools do
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
+    except OSError as error:  # permissions, full or read-only disks, lock timeouts: say which path and what to do
+        print_error(os_error_message(error))
         return 1
     except KeyboardInterrupt:
         print("interrupted; finished descriptors are kept and the next run resumes", file=sys.stderr)

@@ -3,10 +3,10 @@ from __future__ import annotations
 
 import json
 
-from rich.console import Console
 from rich.table import Table
 
 from ..methods import available_methods
+from .console import console
 
 
 def add_parsers(commands) -> None:
@@ -28,5 +28,5 @@ def run_list(args) -> int:
         table.add_column(column)
     for e in entries:
         table.add_row(e.name, e.source, e.description)
-    Console().print(table)
+    console().print(table)
     return 0

@@ -6,11 +6,18 @@ import os
 
 from ..errors import VPRBenchError
 from ..evaluation.metrics import DEFAULT_KS
+from ..evaluation.search import INDEXES
+from ..rows import DEFAULT_MEMORY_BUDGET, format_bytes, parse_memory
 
 
 def add_location_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data-dir", help="data root holding the datasets (default: $VPRBENCH_DATA or the user cache)")
     parser.add_argument("--cache-dir", help="where descriptor stores, vocabularies and results live (default: $VPRBENCH_CACHE or the user cache)")
+
+
+def add_download_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--download", action="store_true",
+                        help="fetch a missing dataset into --data-dir (without it, only the default data root is downloaded into)")
 
 
 def apply_locations(args) -> None:
@@ -21,8 +28,11 @@ def apply_locations(args) -> None:
         os.environ["VPRBENCH_CACHE"] = args.cache_dir
 
 
-def add_method_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--method", required=True, help="method or preset name ('vprbench methods list')")
+def add_method_options(parser: argparse.ArgumentParser, several: bool = False) -> None:
+    if several:
+        parser.add_argument("--method", required=True, nargs="+", help="method or preset names ('vprbench methods list')")
+    else:
+        parser.add_argument("--method", required=True, help="method or preset name ('vprbench methods list')")
     group = parser.add_argument_group("method options (override the preset; a method rejects those it does not use)")
     group.add_argument("--device", default="auto",
                        help="torch device: auto (cuda when available, else cpu), cpu, cuda, cuda:1 (default: auto)")
@@ -35,7 +45,7 @@ def add_method_options(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--vocabulary", help="vocabulary name (map, indoor, urban, ...) or file (e.g. c_centers.pt)")
     group.add_argument("--resize", type=int, nargs=2, metavar=("H", "W"), help="resize images to H x W")
     group.add_argument("--pca-dim", type=int, help="PCA-whitening output dimension")
-    group.add_argument("--batch-size", type=whole_number(1), help="images per forward pass (>= 1)")
+    group.add_argument("--batch-size", type=int, help="images per forward pass (>= 1)")
     group.add_argument("--precision", choices=("fp32", "fp16", "bf16"), help="autocast precision on GPU (default fp32)")
     group.add_argument("-o", "--option", action="append", default=[], metavar="KEY=VALUE",
                        help="any other method option (repeatable)")
@@ -109,3 +119,19 @@ def parse_ks(values) -> tuple[int, ...]:
         return tuple(int(v) for text in values for v in str(text).split(","))
     except ValueError:
         raise VPRBenchError(f"--k takes positive whole numbers, got {' '.join(map(str, values))}") from None
+
+
+def add_search_options(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("search (docs/evaluation.md)")
+    group.add_argument("--index", choices=INDEXES, default="exact",
+                       help="exact (default): streamed exact search; ivf-pq or hnsw: approximate faiss index, "
+                            "shortlist re-scored exactly, recall loss against exact reported")
+    group.add_argument("--search-memory", metavar="SIZE",
+                       help=f"memory budget of search and PCA fitting, e.g. 1GB, 512MB, 4GiB "
+                            f"(default {format_bytes(DEFAULT_MEMORY_BUDGET)})")
+
+
+def search_settings(args) -> dict:
+    """Keyword options of `retrieve` (and `evaluate`) from the search options."""
+    memory = DEFAULT_MEMORY_BUDGET if args.search_memory is None else parse_memory(args.search_memory)
+    return {"memory_budget": memory, "index": args.index}

@@ -50,6 +50,10 @@ def add_parsers(commands) -> None:
     p = sub.add_parser("domains", help="list the domain vocabularies and their datasets")
     p.set_defaults(run=run_domains)
 
+    p = sub.add_parser("download", help="fetch the authors' released centres ahead of time (sha256-checked)")
+    add_location_options(p)
+    p.set_defaults(run=run_download)
+
 
 def run_fit(args) -> int:
     from ..methods import create_method
@@ -95,6 +99,19 @@ def run_show(args) -> int:
     print(f"{vocabulary.meta['path']}: {vocabulary.clusters} clusters x {vocabulary.dim} dims")
     for key, value in sorted(vocabulary.meta.items()):
         print(f"  {key}: {value}")
+    return 0
+
+
+def run_download(args) -> int:
+    from ..aggregation.policies import fetch_released, release, released_name, released_sources
+
+    apply_locations(args)
+    r = release()
+    print(f"The authors' released centres ({r['backbone']} layer {r['layer']} {r['facet']}, {r['clusters']} clusters; "
+          f"{r['repository']} at {r['commit'][:12]}):")
+    for source in released_sources():
+        path = fetch_released(source)
+        print(f"  {source:<22} {released_name(source):<15} sha256 {r['sha256'][released_name(source)][:16]}  {path}")
     return 0
 
 

@@ -7,15 +7,16 @@ from ..errors import VPRBenchError
 from .download import download, how_to_get
 from .layouts import read_layout
 from .layouts.own_data import own_manifest
-from .manifest import DatasetManifest, data_root, dataset_manifest, dataset_manifests
+from .manifest import DatasetManifest, data_root, dataset_manifest, dataset_manifests, is_default_data_root
 from .model import Dataset, GroundTruth
-from .storage import check_counts, dataset_location, import_dataset, read_registry
+from .protocol import Protocol, apply_protocol, find_protocol, own_protocol, protocols
+from .storage import check_counts, dataset_location, import_dataset, missing_dataset_message, nearest_existing, read_registry
 from .verify import VerifyReport, verify_dataset
 
 __all__ = [
     "Dataset", "DatasetManifest", "GroundTruth", "VerifyReport", "data_root", "dataset_location",
     "dataset_manifest", "dataset_manifests", "download_dataset", "import_dataset", "is_on_disk",
-    "load_dataset", "read_registry", "verify_dataset",
+    "load_dataset", "protocols", "read_registry", "verify_dataset",
 ]
 
 
@@ -31,23 +32,36 @@ def is_on_disk(name: str, data_dir=None) -> bool:
     return dataset_location(dataset_manifest(name), data_dir).is_dir()
 
 
-def load_dataset(name: str, data_dir=None, *, fetch: bool = True, strict: bool = False) -> Dataset:
-    """A dataset by manifest name, or a folder of the user's own (see layouts/own_data.py)."""
+def load_dataset(name: str, data_dir=None, *, fetch: bool | None = None, strict: bool = False,
+                 protocol: str | None = None) -> Dataset:
+    """A dataset by manifest name, or a folder of the user's own (see layouts/own_data.py),
+    under one of its protocols (None: the default; see datasets/protocol.py).
+
+    A missing dataset with a direct source is downloaded when `fetch` is True; with None (the
+    default) only into the default data root, never into a data root the user named
+    (--data-dir, $VPRBENCH_DATA) nor to an imported copy's place; with False never.
+    """
     if is_path(name):
         root = Path(name).expanduser()
         if not root.is_dir():
-            raise VPRBenchError(f"Dataset folder {root} does not exist.")
-        return read_layout(root, own_manifest(root))
+            raise VPRBenchError(f"Dataset folder {root} does not exist (closest existing folder: {nearest_existing(root)}).")
+        if protocol not in (None, "default", "own"):
+            raise VPRBenchError(f"A folder of your own has one protocol, 'own' (its positions and radius); got {protocol!r}.")
+        dataset = read_layout(root, own_manifest(root))
+        dataset.kind, dataset.protocol = "own", own_protocol(dataset)
+        return dataset
     manifest = dataset_manifest(name)
+    chosen = find_protocol(manifest, protocol)  # an unknown protocol fails before any reading
     root = dataset_location(manifest, data_dir)
     if not root.exists():
-        if fetch and manifest.download:
-            download(manifest, root)
-        else:
-            raise VPRBenchError(f"Dataset {name!r} is not at {root}. {how_to_get(manifest, root)}")
+        if fetch is None:
+            fetch = is_default_data_root(data_dir) and name not in read_registry(data_dir)
+        if not (fetch and manifest.download):
+            raise VPRBenchError(missing_dataset_message(manifest, root, data_dir))
+        download(manifest, root)
     dataset = read_layout(root, manifest)
     check_counts(dataset, manifest, strict)
-    return dataset
+    return apply_protocol(dataset, chosen)
 
 
 def download_dataset(name: str, data_dir=None, strict: bool = True) -> Dataset:

@@ -6,7 +6,7 @@ from importlib.resources import files
 from pathlib import Path
 
 from ..errors import VPRBenchError
-from .manifest import DatasetManifest
+from .manifest import DatasetManifest, default_data_root
 
 
 def read_registry(name: str) -> dict[str, str]:
@@ -17,7 +17,8 @@ def read_registry(name: str) -> dict[str, str]:
 
 def how_to_get(manifest: DatasetManifest, root: Path) -> str:
     if manifest.download:
-        return f"Run 'vprbench datasets download {manifest.name}' to fetch it into {root}."
+        named = "" if root.parent == default_data_root() else f" --data-dir {root.parent}"
+        return f"Run 'vprbench datasets download {manifest.name}{named}' to fetch it into {root}."
     text = manifest.instructions.strip() or f"Get it from {manifest.source or 'its authors'}."
     return f"{text} Then place it at {root} or run 'vprbench datasets import {manifest.name} PATH'."
 

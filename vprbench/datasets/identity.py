@@ -3,15 +3,15 @@
 An image is identified by its name (relative to the dataset root) and the sha256 of its
 bytes. Hashing a million files on every run would read the whole dataset, so each hash is
 remembered in a small SQLite table in the cache keyed by (absolute path, size, mtime_ns):
-a warm run only stats the files. A file rewritten in place with the same size within one
-mtime tick is not noticed (as with make or git); rename or touch it.
+a warm run only stats the files (where the cache cannot be written, every run hashes the
+files). A file rewritten in place with the same size within one mtime tick is not noticed
+(as with make or git); rename or touch it.
 """
 from __future__ import annotations
 
 import hashlib
 import os
 import sqlite3
-import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -45,8 +45,7 @@ class _Memo:
             self.db = sqlite3.connect(path, timeout=60)
             self.db.execute("CREATE TABLE IF NOT EXISTS hashes "
                             "(path TEXT PRIMARY KEY, size INTEGER, mtime_ns INTEGER, sha256 TEXT)")
-        except (OSError, sqlite3.Error) as error:  # read-only cache: hash without remembering
-            warnings.warn(f"image hashes are not remembered ({path}: {error}); every run reads the images", stacklevel=3)
+        except (OSError, sqlite3.Error):  # a read-only cache: hash without remembering (slower, still right)
             self.db = None
 
     def lookup(self, keys: dict[str, tuple[int, int]]) -> dict[str, str]:
@@ -68,8 +67,8 @@ class _Memo:
         try:
             with self.db:
                 self.db.executemany("INSERT OR REPLACE INTO hashes VALUES (?, ?, ?, ?)", rows)
-        except sqlite3.Error as error:
-            warnings.warn(f"image hashes could not be remembered: {error}", stacklevel=3)
+        except sqlite3.Error:  # read-only or full: the hashes are right, only not remembered
+            pass
 
     def close(self) -> None:
         if self.db is not None:

@@ -34,6 +34,10 @@ class DatasetManifest:
     #: layout-specific settings (folder names, ground-truth file, strides...)
     options: dict = field(default_factory=dict)
     notes: str = ""
+    #: the default evaluation protocol (name, description, source; see datasets/protocol.py)
+    protocol: dict = field(default_factory=dict)
+    #: named variants of the protocol (swapped splits, another tolerance, a query subset...)
+    protocols: list = field(default_factory=list)
 
     @classmethod
     def from_toml(cls, text: str, origin: str) -> "DatasetManifest":
@@ -71,12 +75,23 @@ def dataset_manifest(name: str) -> DatasetManifest:
     return manifests[name]
 
 
+def default_data_root() -> Path:
+    """<user cache>/vprbench/data: where datasets are downloaded when no data root is given."""
+    import pooch
+
+    return Path(pooch.os_cache("vprbench")) / "data"
+
+
 def data_root(data_dir: str | Path | None = None) -> Path:
-    """--data-dir, else $VPRBENCH_DATA, else the user cache."""
+    """--data-dir, else $VPRBENCH_DATA, else the default data root."""
     if data_dir is None:
         data_dir = os.environ.get(DATA_ENV)
     if data_dir is None:
-        import pooch
-
-        return Path(pooch.os_cache("vprbench")) / "data"
+        return default_data_root()
     return Path(data_dir).expanduser()
+
+
+def is_default_data_root(data_dir: str | Path | None = None) -> bool:
+    """True unless the user named a data root (--data-dir or $VPRBENCH_DATA): only the default
+    one is downloaded into without being asked."""
+    return data_dir is None and os.environ.get(DATA_ENV) is None

@@ -71,6 +71,10 @@ class Dataset:
     layout: str = ""
     #: unit of ground_truth.radius ("metres"/"frames"); for explicit lists, how the provider made them
     radius_unit: str = ""
+    #: the evaluation protocol: name, id, hash and what defines it (datasets/protocol.py)
+    protocol: dict = field(default_factory=dict)
+    #: "benchmark" (a shipped manifest) or "own" (a folder of the user's own)
+    kind: str = "benchmark"
 
     @cached_property
     def positives(self) -> list[np.ndarray]:

@@ -13,8 +13,9 @@ import warnings
 from pathlib import Path
 
 from ..errors import VPRBenchError
-from .layouts import read_layout
-from .manifest import DatasetManifest, data_root, dataset_manifest
+from .download import how_to_get
+from .layouts import candidates, missing_paths, read_layout
+from .manifest import DatasetManifest, data_root, dataset_manifest, is_default_data_root
 from .model import Dataset
 
 REGISTRY = "datasets.json"
@@ -38,13 +39,19 @@ def read_registry(data_dir=None) -> dict[str, str]:
 
 
 def write_registry(entries: dict[str, str], data_dir=None) -> Path:
-    """Write atomically (temporary file + rename), so a crash never leaves half a registry."""
+    """Write atomically (temporary file + rename), so a crash or a full disk never leaves half
+    a registry; a failed write removes its temporary file and names the registry.
+    (A private atomic write until vprbench/fsutil.py's atomic_write lands.)"""
     path = registry_path(data_dir)
     path.parent.mkdir(parents=True, exist_ok=True)
     handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=".datasets-", suffix=".json")
-    with os.fdopen(handle, "w") as file:
-        json.dump(dict(sorted(entries.items())), file, indent=2)
-    os.replace(temporary, path)
+    try:
+        with os.fdopen(handle, "w") as file:
+            json.dump(dict(sorted(entries.items())), file, indent=2)
+        os.replace(temporary, path)
+    except OSError as error:
+        os.unlink(temporary)
+        raise OSError(error.errno, error.strerror, str(path)) from None
     return path
 
 
@@ -52,6 +59,48 @@ def dataset_location(manifest: DatasetManifest, data_dir=None) -> Path:
     """The imported copy if one is registered, else <data root>/<manifest directory>."""
     registered = read_registry(data_dir).get(manifest.name)
     return Path(registered) if registered else data_root(data_dir) / manifest.directory
+
+
+def nearest_existing(path: Path) -> str:
+    """The deepest existing folder on the way to `path`, with the names in it closest to the
+    first missing part (so a typo in --data-dir shows)."""
+    import difflib
+
+    missing = Path(path).absolute()
+    while not missing.parent.exists() and missing.parent != missing:
+        missing = missing.parent
+    try:
+        folders = [p.name for p in missing.parent.iterdir() if p.is_dir()]
+    except OSError:
+        folders = []
+    close = difflib.get_close_matches(missing.name, folders, n=3, cutoff=0.6)
+    return str(missing.parent) + (f" (which holds {', '.join(close)})" if close else "")
+
+
+def is_dataset_folder(folder: Path, manifest: DatasetManifest) -> bool:
+    """Whether `folder` itself holds the dataset in one of its layouts."""
+    return folder.is_dir() and any(not missing_paths(folder, c) for c in candidates(manifest))
+
+
+def missing_dataset_message(manifest: DatasetManifest, root: Path, data_dir=None) -> str:
+    """Why `manifest`'s dataset is not found at `root` and what to do: a data root that is the
+    dataset folder itself, the closest existing path, how to get the data."""
+    name, base = manifest.name, data_root(data_dir)
+    if read_registry(data_dir).get(name):
+        return (f"Dataset {name!r} was imported from {root}, which no longer exists (closest existing folder: "
+                f"{nearest_existing(root)}). Import it again with 'vprbench datasets import {name} PATH'.")
+    if is_dataset_folder(base, manifest) or base.name == manifest.directory:
+        return (f"The data root {base} is the {name!r} dataset folder itself; the data root is the folder that "
+                f"holds the datasets: use the folder above, --data-dir {base.parent}.")
+    where = f"; closest existing path: {nearest_existing(root)}"
+    if manifest.download and is_default_data_root(data_dir):
+        get = f"Run 'vprbench datasets download {name}' (evaluate fetches it by itself into the default data root)."
+    elif manifest.download:
+        get = (f"To download it there, add --download to evaluate or run 'vprbench datasets download {name} "
+               f"--data-dir {base}'.")
+    else:
+        get = how_to_get(manifest, root)
+    return f"Dataset {name!r} is not in the data root {base}: looked for {root}{where}. {get}"
 
 
 def check_counts(dataset: Dataset, manifest: DatasetManifest, strict: bool) -> list[str]:

@@ -1,9 +1,10 @@
-"""Retrieval and its scores: faiss exact search, Recall@K, and VPR-Bench's top-1 precision-recall."""
+"""Scores of a retrieval: Recall@K and VPR-Bench's top-1 precision-recall (the search itself is in search.py)."""
 from __future__ import annotations
 
 import numpy as np
 
 from ..errors import VPRBenchError
+from .search import search  # noqa: F401  moved to search.py; still imported from here by pipeline.py
 
 DEFAULT_KS = (1, 5, 10, 20)
 
@@ -15,18 +16,6 @@ def check_ks(ks, n_database: int) -> tuple[int, ...]:
     if ks[-1] > n_database:
         raise VPRBenchError(f"K = {ks[-1]} exceeds the {n_database} database images; use a smaller --k.")
     return ks
-
-
-def search(database: np.ndarray, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Top-k database rows per query by inner product (cosine on L2-normalised descriptors)."""
-    import faiss  # heavy: only commands that search pay for it
-
-    if database.shape[1] != queries.shape[1]:
-        raise VPRBenchError(f"Database descriptors have {database.shape[1]} dims, queries {queries.shape[1]}")
-    index = faiss.IndexFlatIP(database.shape[1])
-    index.add(np.ascontiguousarray(database, dtype=np.float32))
-    scores, indices = index.search(np.ascontiguousarray(queries, dtype=np.float32), k)
-    return scores, indices
 
 
 def correct_at(indices: np.ndarray, positives: list[np.ndarray]) -> np.ndarray:

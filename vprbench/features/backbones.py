@@ -26,6 +26,7 @@ class BackboneSpec:
     patch: int
     url: str
     depth: int  # number of blocks
+    dim: int  # feature dimension of every block and facet (embedding width)
 
     @property
     def file_name(self) -> str:
@@ -38,14 +39,14 @@ _DINO = "https://dl.fbaipublicfiles.com/dino/{0}/{0}.pth"
 BACKBONES: dict[str, BackboneSpec] = {
     s.name: s
     for s in [
-        BackboneSpec("dinov2_vits14", "vit_small_patch14_dinov2", "dinov2", 14, _DINOV2.format("dinov2_vits14"), 12),
-        BackboneSpec("dinov2_vitb14", "vit_base_patch14_dinov2", "dinov2", 14, _DINOV2.format("dinov2_vitb14"), 12),
-        BackboneSpec("dinov2_vitl14", "vit_large_patch14_dinov2", "dinov2", 14, _DINOV2.format("dinov2_vitl14"), 24),
-        BackboneSpec("dinov2_vitg14", "vit_giant_patch14_dinov2", "dinov2", 14, _DINOV2.format("dinov2_vitg14"), 40),
-        BackboneSpec("dino_vits8", "vit_small_patch8_224", "dino", 8, _DINO.format("dino_deitsmall8_pretrain"), 12),
-        BackboneSpec("dino_vits16", "vit_small_patch16_224", "dino", 16, _DINO.format("dino_deitsmall16_pretrain"), 12),
-        BackboneSpec("dino_vitb8", "vit_base_patch8_224", "dino", 8, _DINO.format("dino_vitbase8_pretrain"), 12),
-        BackboneSpec("dino_vitb16", "vit_base_patch16_224", "dino", 16, _DINO.format("dino_vitbase16_pretrain"), 12),
+        BackboneSpec("dinov2_vits14", "vit_small_patch14_dinov2", "dinov2", 14, _DINOV2.format("dinov2_vits14"), 12, 384),
+        BackboneSpec("dinov2_vitb14", "vit_base_patch14_dinov2", "dinov2", 14, _DINOV2.format("dinov2_vitb14"), 12, 768),
+        BackboneSpec("dinov2_vitl14", "vit_large_patch14_dinov2", "dinov2", 14, _DINOV2.format("dinov2_vitl14"), 24, 1024),
+        BackboneSpec("dinov2_vitg14", "vit_giant_patch14_dinov2", "dinov2", 14, _DINOV2.format("dinov2_vitg14"), 40, 1536),
+        BackboneSpec("dino_vits8", "vit_small_patch8_224", "dino", 8, _DINO.format("dino_deitsmall8_pretrain"), 12, 384),
+        BackboneSpec("dino_vits16", "vit_small_patch16_224", "dino", 16, _DINO.format("dino_deitsmall16_pretrain"), 12, 384),
+        BackboneSpec("dino_vitb8", "vit_base_patch8_224", "dino", 8, _DINO.format("dino_vitbase8_pretrain"), 12, 768),
+        BackboneSpec("dino_vitb16", "vit_base_patch16_224", "dino", 16, _DINO.format("dino_vitbase16_pretrain"), 12, 768),
     ]
 }
 

@@ -18,7 +18,7 @@ import torch.nn.functional as F
 
 from ..aggregation import pooling, vlad
 from ..aggregation.pca import PCAWhitening
-from ..aggregation.policies import paper_vocabulary, resolve_vocabulary, vocabulary_images
+from ..aggregation.policies import MAP_PREFIX, paper_choice, released_provenance, resolve_vocabulary, vocabulary_images
 from ..aggregation.vlad import vlad_hard
 from ..aggregation.vocabulary import fit_vocabulary
 from ..errors import VPRBenchError
@@ -28,6 +28,8 @@ from ..features.dense import FACETS, DenseExtractor
 from ..features.preprocess import dataset_resize, parse_size, preprocess
 from ..loader import loaded
 from .base import Method, l2_normalise
+from .checks import choice, number, text, whole
+from .checks import device as check_device
 from .registry import register_method
 
 #: bump when a change in this code changes descriptors (part of the fingerprint)
@@ -58,40 +60,45 @@ class AnyLoc(Method):
                  vocabulary: str = "map", resize=None, pca_dim: int | None = None, batch_size: int = 8,
                  precision: str = "fp32", device: str = "cpu", dataset: str | None = None,
                  stride: int | None = None, gem_p: float = 3.0):
-        self.spec = backbone_spec(backbone)
+        # every option is checked here, before weights or vocabularies are touched
+        self.spec = backbone_spec(text("anyloc", "backbone", backbone))
         self.family = self.spec.family
-        if aggregation not in AGGREGATIONS:
-            raise VPRBenchError(f"Unknown aggregation {aggregation!r}: use one of {', '.join(AGGREGATIONS)}.")
-        if facet not in FACETS:
-            raise VPRBenchError(f"Unknown facet {facet!r}: use one of {', '.join(FACETS)}.")
-        if precision not in PRECISIONS:
-            raise VPRBenchError(f"Unknown precision {precision!r}: use fp32, fp16 or bf16.")
-        self.device = torch.device(device)
+        aggregation = choice("anyloc", "aggregation", aggregation, AGGREGATIONS)
+        facet = choice("anyloc", "facet", facet, FACETS)
+        precision = choice("anyloc", "precision", precision, tuple(PRECISIONS))
+        self.device = torch.device(check_device("anyloc", device))
         if precision != "fp32" and self.device.type != "cuda":
             raise VPRBenchError(f"precision={precision} needs a CUDA device; on {device} use fp32.")
-        if int(batch_size) < 1:
-            raise VPRBenchError(f"batch_size must be at least 1, got {batch_size}")
-        if aggregation in VLADS and int(clusters) < 1:
-            raise VPRBenchError(f"clusters must be at least 1, got {clusters}")
-        self.backbone, self.weights, self.facet = backbone, weights, facet
+        self.backbone, self.facet = backbone, facet
+        if isinstance(weights, Path):
+            weights = str(weights)
+        self.weights = None if weights is None else text("anyloc", "weights", weights, "a checkpoint file in the official format")
+        self.aggregation = aggregation
+        self.clusters = whole("anyloc", "clusters", clusters, 1, what="VLAD vocabulary size")
+        self.vocabulary = text("anyloc", "vocabulary", vocabulary, "map, domain, a domain name or a file")
+        self.user_resize = parse_size(resize)
+        self.pca_dim = None if pca_dim is None else whole("anyloc", "pca_dim", pca_dim, 1, what="PCA output dimension; leave it unset for none")
+        self.batch_size = whole("anyloc", "batch_size", batch_size, 1, what="images per batch")
+        self.precision = precision
+        self.dataset = None if dataset is None else text("anyloc", "dataset", dataset)
+        # DINO v1 follows the official dino extractor: stride 4, interleaved heads, raw features
+        self.stride = whole("anyloc", "stride", stride, 1, self.spec.patch, f"pixels, at most the patch size {self.spec.patch}") \
+            if stride is not None else (4 if self.family == "dino" else self.spec.patch)
+        self.gem_p = number("anyloc", "gem_p", gem_p, above=0, what="GeM's power, e.g. 3")
         if layer is not None:
-            self.layer = int(layer)
+            self.layer = whole("anyloc", "layer", layer, 0, self.spec.depth - 1, f"0-based block of {backbone}")
         elif aggregation == "cls" and self.family == "dinov2":
             self.layer = self.spec.depth - 1  # the CLS comes from the final norm: no layer to choose
         else:
-            self.layer = self._preset_layer(layer_for)
-        self.aggregation, self.clusters, self.vocabulary = aggregation, int(clusters), str(vocabulary)
-        self.user_resize = parse_size(resize)
-        self.pca_dim = int(pca_dim) if pca_dim else None
-        self.batch_size, self.precision, self.dataset = int(batch_size), precision, dataset
-        # DINO v1 follows the official dino extractor: stride 4, interleaved heads, raw features
-        self.stride = int(stride) if stride else (4 if self.family == "dino" else self.spec.patch)
-        self.gem_p = float(gem_p)
+            self.layer = self._preset_layer(text("anyloc", "layer_for", layer_for, "BACKBONE:LAYER"))
         self.centres: torch.Tensor | None = None
         self._extractor: DenseExtractor | None = None
         self._weights_id: str | None = None
-        self.needs_fit = aggregation in VLADS and self.vocabulary == "map"
-        if aggregation in VLADS and self.vocabulary != "map":
+        #: where the centres came from, for provenance(): name, source, file, sha256, note
+        self.vocabulary_info: dict = {}
+        # "domain" (the paper's choice per dataset) is settled in use_dataset; until then, fit on the database
+        self.needs_fit = aggregation in VLADS and self.vocabulary in ("map", "domain")
+        if aggregation in VLADS and self.vocabulary not in ("map", "domain"):
             self.centres = self._resolve_vocabulary()
 
     # ------------------------------------------------------------ configuration
@@ -100,6 +107,7 @@ class AnyLoc(Method):
         backbone without --layer, the block at the same relative depth is used, and said."""
         reference, _, layer = layer_for.partition(":")
         depth, reference_depth = self.spec.depth, backbone_spec(reference).depth
+        layer = whole("anyloc", "layer_for", layer, 0, reference_depth - 1, f"BACKBONE:LAYER, a block of {reference}")
         if depth == reference_depth:
             return int(layer)
         chosen = round(int(layer) * (depth - 1) / (reference_depth - 1))
@@ -112,7 +120,13 @@ class AnyLoc(Method):
         """Tell the method which dataset it runs on (AnyLoc's per-dataset resize, domain vocabularies)."""
         self.dataset = name
         if self.aggregation in VLADS and self.vocabulary == "domain":
-            self.centres = self._resolve_vocabulary()
+            found, source, note = paper_choice(name, self.backbone, self.layer, self.facet, self.clusters)
+            self.needs_fit = found is None
+            self.centres = None if found is None else found.centres.float()
+            self.vocabulary_info = {"name": source, **({"note": note} if note else {}),
+                                    **(self._file_info(found) if found is not None else {})}
+            if note:
+                warnings.warn(note, stacklevel=2)
 
     @property
     def resize(self) -> tuple[int, int] | None:
@@ -123,17 +137,21 @@ class AnyLoc(Method):
         # DINOv2 extractor normalises every patch; for DINO v1 only the official VLAD does
         return self.family == "dinov2" or self.aggregation in VLADS
 
-    def _resolve_vocabulary(self) -> torch.Tensor | None:
-        """Centres for a vocabulary option other than "map": a file/folder path, a cached
-        source name (a domain such as "indoor", or "map-<dataset>"), or "domain" = the
-        vocabulary the paper uses for the current dataset."""
-        spec = self.vocabulary
-        if spec == "domain":
-            if self.dataset is None:
-                return None  # resolved in use_dataset()
-            spec = paper_vocabulary(self.dataset)
-        found = resolve_vocabulary(spec, self.backbone, self.layer, self.facet, self.clusters)
+    def _resolve_vocabulary(self) -> torch.Tensor:
+        """Centres for a vocabulary option other than "map"/"domain": a file/folder path or a
+        cached source name (a domain such as "indoor", or "map-<dataset>"); the authors'
+        released centres are downloaded on first use where they fit these features."""
+        found = resolve_vocabulary(self.vocabulary, self.backbone, self.layer, self.facet, self.clusters)
+        found.check_dim(self.spec.dim)  # before the model loads, naming the file
+        self.vocabulary_info = {"name": self.vocabulary, **self._file_info(found)}
         return found.centres.float()
+
+    @staticmethod
+    def _file_info(vocabulary) -> dict:
+        found = released_provenance(vocabulary)
+        if found.get("source") == "file" and "vocabularies" in Path(found["file"]).parts:
+            found["source"] = "cache"  # fitted earlier with `vprbench vocabulary fit` or imported
+        return found
 
     # ------------------------------------------------------------ identity
     def weights_identity(self) -> str:
@@ -153,8 +171,8 @@ class AnyLoc(Method):
             fp["layer"], fp["facet"] = "final-norm", "cls"  # layer/facet options do not apply
         if self.aggregation in VLADS:
             fp["clusters"] = self.clusters
-            # a named or file vocabulary is identified by its centres' bytes
-            fp["vocabulary"] = "map" if self.vocabulary == "map" else (
+            # a named or file vocabulary is identified by its centres' bytes; fitted ones by "map"
+            fp["vocabulary"] = "map" if self.needs_fit else (
                 "sha256:" + hashlib.sha256(self.centres.numpy().tobytes()).hexdigest()
                 if self.centres is not None else self.vocabulary)
         if self.aggregation == "gem":
@@ -166,10 +184,23 @@ class AnyLoc(Method):
     def provenance(self) -> dict:
         found = {"weights": weights_provenance(self.weights_identity())}
         if self.aggregation in VLADS:
-            found["vocabulary"] = {"source": self.vocabulary, "fitted_on_evaluated_database": self.needs_fit}
+            found["vocabulary"] = self.vocabulary_provenance()
         if self.pca_dim:
-            found["pca"] = {"dim": self.pca_dim, "fitted_on_evaluated_database": True}
+            found["pca"] = {"dim": self.pca_dim, "fitted_on": "the evaluated database's descriptors",
+                            "fitted_on_evaluated_database": True}
         return found
+
+    def vocabulary_provenance(self) -> dict:
+        """Which vocabulary, its source and sha256, and whether it was fitted on the evaluated database."""
+        info = {"option": self.vocabulary, **self.vocabulary_info, "fitted_on_evaluated_database": self.needs_fit}
+        if self.needs_fit:
+            info.update(source="fitted", name=f"{MAP_PREFIX}{self.dataset}" if self.dataset else "map",
+                        fitted_on=f"the database of {self.dataset}" if self.dataset else "the database given to fit()")
+            info.pop("file", None)
+        if self.centres is not None:
+            info["centres_sha256"] = hashlib.sha256(self.centres.numpy().tobytes()).hexdigest()
+            info["clusters"], info["dim"] = int(self.centres.shape[0]), int(self.centres.shape[1])
+        return info
 
     # ------------------------------------------------------------ extraction
     @property
@@ -260,11 +291,9 @@ class AnyLoc(Method):
             self.centres = torch.from_numpy(np.asarray(state["centres"], dtype=np.float32))
 
     # ------------------------------------------------------------ PCA-whitening
-    def postprocess(self, database: np.ndarray, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        if not self.pca_dim:
-            return database, queries
-        pca = PCAWhitening(self.pca_dim).fit(database)
-        return l2_normalise(pca.transform(database)), l2_normalise(pca.transform(queries))
+    def postprocessor(self) -> PCAWhitening | None:
+        """The -PCA presets: whitening fitted on the database descriptors (output L2-normalised)."""
+        return PCAWhitening(self.pca_dim) if self.pca_dim else None
 
 
 # ---------------------------------------------------------------- presets

@@ -4,8 +4,31 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
+
+
+class PostProcessor(Protocol):
+    """A transform of stored descriptors learnt from the database (never the queries), e.g.
+    PCA-whitening. The evaluation fits it on the database's row source (`vprbench.rows`)
+    within a memory budget, saves `state()` in the store's folder under a name made from
+    `key(...)`, and applies `transform` chunk by chunk, so no split is ever whole in memory.
+    """
+
+    def key(self, rows, memory_budget: int) -> dict:
+        """What defines the fitted state (options, and the algorithm the budget selects)."""
+
+    def fit(self, rows, memory_budget: int) -> object:
+        """Learn from the database rows, holding at most `memory_budget` bytes."""
+
+    def transform(self, descriptors: np.ndarray) -> np.ndarray:
+        """(n, D) float32 -> (n, D') float32; each output row depends on its input row only
+        (blocks may arrive padded with zero rows, whose outputs are dropped)."""
+
+    def state(self) -> dict[str, np.ndarray]: ...
+
+    def load_state(self, state: dict[str, np.ndarray]) -> None: ...
 
 
 class Method(ABC):
@@ -62,9 +85,22 @@ class Method(ABC):
         Keys that do not apply are left out."""
         return {}
 
+    def postprocessor(self) -> PostProcessor | None:
+        """What transforms stored descriptors before search (fitted on the database, applied
+        chunk by chunk with bounded memory), or None."""
+        return None
+
     def postprocess(self, database: np.ndarray, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Transform stored descriptors before search (e.g. PCA-whitening fitted on the database)."""
-        return database, queries
+        """Whole matrices in memory: the `postprocessor()` fitted on `database` and applied to both.
+        A plugin may still override this older hook; the evaluation then holds both splits in
+        memory, so prefer `postprocessor()`."""
+        post = self.postprocessor()
+        if post is None:
+            return database, queries
+        from ..rows import DEFAULT_MEMORY_BUDGET, ArrayRows
+
+        post.fit(ArrayRows(database), DEFAULT_MEMORY_BUDGET)
+        return post.transform(database), post.transform(queries)
 
 
 def l2_normalise(x: np.ndarray, axis: int = -1) -> np.ndarray:

@@ -19,6 +19,7 @@ from ..errors import VPRBenchError
 from ..images import load_rgb
 from ..loader import loaded
 from .base import Method
+from .checks import whole, wholes
 
 #: OpenCV's descriptor bin width is 1.5 x keypoint size
 _CV_BIN_PER_SIZE = 1.5
@@ -30,10 +31,13 @@ class DenseVLAD(Method):
 
     def __init__(self, clusters: int = 128, bin_sizes: tuple[int, ...] = (4, 6, 8, 10), step: int = 2,
                  max_side: int = 640, sample: int = 200_000, seed: int = 0, device: str = "cpu"):
-        if clusters < 2:
-            raise VPRBenchError(f"dense-vlad: --clusters must be at least 2, got {clusters}")
-        self.clusters, self.bin_sizes, self.step = int(clusters), tuple(int(b) for b in bin_sizes), int(step)
-        self.max_side, self.sample, self.seed = int(max_side), int(sample), int(seed)
+        self.clusters = whole("dense-vlad", "clusters", clusters, 2, what="vocabulary size")
+        self.bin_sizes = wholes("dense-vlad", "bin_sizes", bin_sizes, what="SIFT bin widths in pixels")
+        self.step = whole("dense-vlad", "step", step, what="pixels between grid points")
+        self.max_side = whole("dense-vlad", "max_side", max_side, 4 * max(self.bin_sizes),
+                              what="longest image side in pixels, at least 4 x the largest bin size")
+        self.sample = whole("dense-vlad", "sample", sample, self.clusters, what="descriptors sampled for k-means, at least clusters")
+        self.seed = whole("dense-vlad", "seed", seed, 0)
         self.sift = cv2.SIFT_create()
         self.centres: np.ndarray | None = None
         self._grids: dict[tuple[int, int], list] = {}
@@ -42,6 +46,11 @@ class DenseVLAD(Method):
         return {"clusters": self.clusters, "bin_sizes": list(self.bin_sizes), "step": self.step,
                 "max_side": self.max_side, "sample": self.sample, "seed": self.seed,
                 "opencv": cv2.__version__.split(".")[0], "descriptor_version": 1}
+
+    def provenance(self) -> dict:
+        return {"weights": {"source": "none"},  # SIFT: nothing learnt but the vocabulary
+                "vocabulary": {"source": "map", "fitted_on_evaluated_database": True, "clusters": self.clusters,
+                               "seed": self.seed}}
 
     def load(self, path: Path) -> np.ndarray:
         """The grey image at the working size (at most max_side pixels)."""

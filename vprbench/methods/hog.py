@@ -8,9 +8,14 @@ import cv2
 import numpy as np
 
 from ..errors import VPRBenchError
+from ..features.preprocess import parse_size
 from ..images import load_rgb
 from ..loader import loaded
 from .base import Method, l2_normalise
+from .checks import whole
+
+#: OpenCV's HOG crashes (SIGSEGV) with fewer orientation bins
+MIN_BINS = 4
 
 
 class HOG(Method):
@@ -18,15 +23,28 @@ class HOG(Method):
 
     def __init__(self, resize: tuple[int, int] = (512, 512), cell: int = 16, block: int = 16,
                  block_stride: int = 8, bins: int = 9, device: str = "cpu"):
-        height, width = (int(v) for v in resize)
-        if height < block or width < block or height % block_stride or width % block_stride:
-            raise VPRBenchError(f"hog: --resize {height} {width} must be at least {block} and a multiple of {block_stride}")
+        # OpenCV's own checks are a SIGFPE (cell 0), a SIGSEGV (bins < 4) or an assertion at the first image
+        cell, block = whole("hog", "cell", cell, what="pixels per cell side"), whole("hog", "block", block, what="pixels per block side")
+        block_stride = whole("hog", "block_stride", block_stride, what="pixels between blocks")
+        bins = whole("hog", "bins", bins, MIN_BINS, what="orientation bins")
+        if block % cell:
+            raise VPRBenchError(f"hog: option block ({block}) must be a multiple of cell ({cell}).")
+        size = parse_size(resize)
+        if size is None:
+            raise VPRBenchError("hog: option resize takes the size HOG is computed at, H W (e.g. 512 512); got none.")
+        height, width = size
+        if height < block or width < block or (height - block) % block_stride or (width - block) % block_stride:
+            raise VPRBenchError(f"hog: --resize {height} {width} must be at least the block ({block}) and exceed it "
+                                f"by a multiple of block_stride ({block_stride}), e.g. {block + 8 * block_stride} {block + 8 * block_stride}.")
         self.size = (width, height)
-        self.params = {"resize": [height, width], "cell": cell, "block": block, "block_stride": block_stride, "bins": bins}
+        self.parameters = {"resize": [height, width], "cell": cell, "block": block, "block_stride": block_stride, "bins": bins}
         self.hog = cv2.HOGDescriptor(self.size, (block, block), (block_stride, block_stride), (cell, cell), bins)
 
     def fingerprint(self) -> dict:
-        return {**self.params, "opencv": cv2.__version__.split(".")[0]}
+        return {**self.parameters, "opencv": cv2.__version__.split(".")[0]}
+
+    def provenance(self) -> dict:
+        return {"weights": {"source": "none"}}  # nothing learnt
 
     def load(self, path: Path) -> np.ndarray:
         # OpenCV order (BGR) as VPR-Bench reads images; HOG takes the strongest channel gradient

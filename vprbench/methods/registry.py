@@ -17,6 +17,7 @@ from importlib.metadata import entry_points
 
 from ..errors import VPRBenchError, closest_names
 from .base import Method
+from .checks import device, whole
 
 ENTRY_POINT_GROUP = "vprbench.methods"
 
@@ -29,10 +30,15 @@ class MethodEntry:
     description: str = ""
     source: str = "vprbench"
 
-    def options(self) -> list[str]:
-        """Keyword options the factory accepts."""
+    def factory_options(self) -> list[str]:
+        """Keyword options the factory itself accepts."""
         params = inspect.signature(self.factory).parameters.values()
         return [p.name for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)]
+
+    def options(self) -> list[str]:
+        """Options the method takes: the factory's, and batch_size, which every method takes."""
+        own = self.factory_options()
+        return own + ([] if "batch_size" in own else ["batch_size"])
 
 
 _REGISTRY: dict[str, MethodEntry] = {}
@@ -93,9 +99,16 @@ def method_entry(name: str) -> MethodEntry:
 
 
 def create_method(name: str, **options) -> Method:
-    """Build the method `name` with its preset defaults overridden by `options` (None = unset)."""
+    """Build the method `name` with its preset defaults overridden by `options` (None = unset).
+
+    Every option is checked here or by the method's constructor, before anything is loaded.
+    The registry handles `batch_size` for every method (a whole number >= 1; passed to the
+    factory when it takes it, else set on the method) and checks `device` for those taking it. The method gets `name`, `options`
+    (what the user gave) and `settings` (preset + user options, what the store is keyed on).
+    """
     entry = method_entry(name)
-    merged = {**entry.defaults, **{k: v for k, v in options.items() if v is not None}}
+    given = {k: v for k, v in options.items() if v is not None}
+    merged = {**entry.defaults, **given}
     accepted = entry.options()
     unknown = sorted(set(merged) - set(accepted))
     if unknown:
@@ -103,9 +116,20 @@ def create_method(name: str, **options) -> Method:
             f"Method {name!r} does not take option(s) {', '.join(unknown)}; "
             f"it accepts: {', '.join(accepted) or 'none'}."
         )
-    method = entry.factory(**merged)
+    if "batch_size" in merged:
+        merged["batch_size"] = whole(name, "batch_size", merged["batch_size"], 1, what="images per batch")
+    if merged.get("device") is not None and "device" in accepted:  # before a plugin loads its weights
+        merged["device"] = device(name, merged["device"])
+    takes_batch_size = "batch_size" in entry.factory_options()
+    method = entry.factory(**{k: v for k, v in merged.items() if takes_batch_size or k != "batch_size"})
     if not isinstance(method, Method):
         raise VPRBenchError(f"Method {name!r} ({entry.source}) did not return a vprbench.Method")
+    if "batch_size" in merged:
+        method.batch_size = merged["batch_size"]
+    if isinstance(method.batch_size, bool) or not isinstance(method.batch_size, int) or method.batch_size < 1:
+        raise VPRBenchError(f"Method {name!r} ({entry.source}) has batch_size {method.batch_size!r}; "
+                            "it must be a whole number >= 1 (fix the plugin, or pass --batch-size).")
     method.name = name
-    method.options = {k: v for k, v in options.items() if v is not None}
+    method.options = given
+    method.settings = merged
     return method

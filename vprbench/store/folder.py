@@ -45,6 +45,15 @@ def method_fingerprint(method, store_dtype: str = "float32") -> dict:
             **method.fingerprint(), "store_dtype": store_dtype}
 
 
+def run_store(record: dict, split: str = "database", cache_dir=None) -> DescriptorStore | None:
+    """The complete store an evaluation's result record was computed from (its
+    context.store.folder), or None when the record does not name one or the store is gone."""
+    folder = ((record.get("context") or {}).get("store") or {}).get("folder")
+    if not folder:
+        return None
+    return DescriptorStore.recorded(cache_root(cache_dir) / "stores" / folder / f"{split}.h5", f"{folder}/{split}")
+
+
 def fingerprint_key(fingerprint: dict | str) -> str:
     text = fingerprint if isinstance(fingerprint, str) else fingerprint_json(fingerprint)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
@@ -123,7 +132,7 @@ class StoreFolder:
         try:
             path.unlink(missing_ok=True)
         except OSError as error:
-            raise cache_error(error, path, "remove") from None
+            raise cache_error(error, path) from None
 
     def tidy(self, split: str) -> None:
         """After the split's store is complete: its shards (any number of ranks) and any
@@ -131,11 +140,11 @@ class StoreFolder:
         try:
             for path in self.path.glob(f"{split}.rank*-of-*.partial.h5"):
                 path.unlink(missing_ok=True)
-            for path in self.path.iterdir():
-                if is_temporary(path):
+            for path in self.path.iterdir():  # only this split's and the fit state's: others write theirs unlocked
+                if is_temporary(path) and path.name.startswith((f".{split}.", f".{self.fit_path.name}.")):
                     path.unlink(missing_ok=True)
         except OSError as error:
-            raise cache_error(error, self.path, "tidy") from None
+            raise cache_error(error, self.path) from None
 
     # ------------------------------------------------------------ fit state
     def fit_id_on_disk(self) -> str | None:
@@ -161,7 +170,7 @@ class StoreFolder:
             return state, recorded
         except (OSError, KeyError, ValueError) as error:
             if isinstance(error, PermissionError):
-                raise cache_error(error, self.fit_path, "read") from None
+                raise cache_error(error, self.fit_path) from None
             self.discard(self.fit_path, f"the fit state cannot be read ({error})")
             return None
 

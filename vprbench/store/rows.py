@@ -164,7 +164,7 @@ def inspect_rows_file(path: Path, identity: RowsIdentity) -> Inspection:
             return Inspection("partial", done=done, dim=dim)
     except (OSError, KeyError, ValueError, TypeError) as error:
         if isinstance(error, PermissionError):
-            raise cache_error(error, path, "read") from None
+            raise cache_error(error, path) from None
         return Inspection("torn", f"it cannot be read ({error})")
 
 
@@ -250,6 +250,21 @@ class DescriptorStore:
         self._verified = None
         self._verify()
 
+    @classmethod
+    def recorded(cls, path: Path, store: str) -> "DescriptorStore | None":
+        """The complete store at `path` as its own content describes it (for readers that do
+        not know the images, e.g. the leaderboard), or None when it is absent or incomplete."""
+        try:
+            with h5py.File(path, "r") as f:
+                attrs = {k: _plain(v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+                names = f["names"].asstr()[...].tolist()
+                fingerprint = f["fingerprint"].asstr()[()]
+            identity = RowsIdentity(store=store, start=attrs["start"], stop=attrs["stop"], total=attrs["total"],
+                                    fit_id=attrs["fit_id"], dtype=attrs["dtype"], fingerprint=fingerprint, names=names)
+            return cls(path, identity)
+        except (OSError, KeyError, ValueError, TypeError, VPRBenchError):
+            return None
+
     def _verify(self) -> None:
         try:
             stat = os.stat(self.path)
@@ -309,7 +324,7 @@ class DescriptorStore:
         try:
             return h5py.File(self.path, "r")
         except OSError as error:
-            raise cache_error(error, self.path, "read") from None
+            raise cache_error(error, self.path) from None
 
 
 def merge_rows_files(parts: list[tuple[Path, RowsIdentity]], path: Path, identity: RowsIdentity, dim: int) -> None:

@@ -9,11 +9,13 @@
 positions.csv has a column `image` (path relative to mydata/, e.g. database/0001.jpg) and
 one of: `x,y` or `easting,northing` (metres), `latitude,longitude` or `lat,lon` (degrees,
 converted to UTM metres in the zone of the first row), or `frame` (frame index). Radius: 25 m by default for metres; give `radius`
-in dataset.toml for frames.
+in dataset.toml for frames. Each image has one row: a repeated image is an error, a row naming
+an image that is not in database/ or queries/ a warning.
 """
 from __future__ import annotations
 
 import tomllib
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -70,6 +72,13 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
             f"or frame; it has {list(table.columns)}"
         )
     names, unit = chosen
+    listed = [str(Path(str(name))) for name in table["image"]]
+    names_column = pd.Series(listed)
+    repeated = sorted(set(names_column[names_column.duplicated()]))
+    if repeated:
+        raise VPRBenchError(
+            f"{csv} lists {len(repeated)} image(s) more than once, e.g. {repeated[:3]}; keep one row per image."
+        )
     values = table[list(names)].apply(pd.to_numeric, errors="coerce").to_numpy(float)
     bad = np.flatnonzero(~np.isfinite(values).all(axis=1))
     if len(bad):
@@ -81,10 +90,15 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
         if (np.abs(values[:, 0]) > 84).any() or (np.abs(values[:, 1]) > 180).any():
             raise VPRBenchError(f"{csv}: latitudes must lie within +-84 degrees (UTM) and longitudes within +-180.")
         values, unit = latlon_to_metres(values[:, 0], values[:, 1]), "metres"
-    by_name = {str(Path(name)): row for name, row in zip(table["image"], values)}
-    missing = [str(p.relative_to(root)) for p in images if str(p.relative_to(root)) not in by_name]
+    by_name = dict(zip(listed, values))
+    found = [str(p.relative_to(root)) for p in images]
+    missing = [name for name in found if name not in by_name]
     if missing:
         raise VPRBenchError(f"{csv} has no position for {len(missing)} image(s), e.g. {missing[:3]}")
+    absent = sorted(set(listed) - set(found))
+    if absent:
+        warnings.warn(f"{csv} lists {len(absent)} image(s) that are not in {root}/database or {root}/queries, "
+                      f"e.g. {absent[:3]}; they are left out.", stacklevel=2)
     return np.stack([by_name[str(p.relative_to(root))] for p in images]), unit
 
 
@@ -108,20 +122,28 @@ def read_own(root: Path, manifest: DatasetManifest):
     ground_truth = GroundTruth(
         unit=unit, radius=radius, database_positions=positions[: len(database)], query_positions=positions[len(database):]
     )
-    return from_manifest(manifest, root, database, queries, ground_truth)
+    dataset = from_manifest(manifest, root, database, queries, ground_truth)
+    dataset.radius_unit = unit  # the positions' unit (frames or metres), not the manifest's default
+    return dataset
 
 
 def own_manifest(root: Path) -> DatasetManifest:
     """The manifest of a folder of the user's own: defaults, overridden by its dataset.toml."""
-    settings = {}
-    if (root / "dataset.toml").is_file():
+    settings, toml = {}, root / "dataset.toml"
+    if toml.is_file():
         try:
-            settings = tomllib.loads((root / "dataset.toml").read_text())
-        except tomllib.TOMLDecodeError as error:
-            raise VPRBenchError(f"Cannot read {root / 'dataset.toml'}: {error}") from None
+            settings = tomllib.loads(toml.read_text(encoding="utf-8"))
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
+            raise VPRBenchError(f"Cannot read {toml}: {error}. It must be a UTF-8 TOML file.") from None
     allowed = {"name", "title", "radius", "domain", "citation", "licence"}
     if set(settings) - allowed:
-        raise VPRBenchError(f"{root / 'dataset.toml'}: unknown key(s) {sorted(set(settings) - allowed)}; allowed: {sorted(allowed)}")
+        raise VPRBenchError(f"{toml}: unknown key(s) {sorted(set(settings) - allowed)}; allowed: {sorted(allowed)}")
+    for key, value in settings.items():
+        if key == "radius":
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0 or value == float("inf"):
+                raise VPRBenchError(f"{toml}: radius must be a number of metres or frames, 0 or more; got {value!r}.")
+        elif not isinstance(value, str) or (key == "name" and not value.strip()):
+            raise VPRBenchError(f"{toml}: {key} must be {'a non-empty' if key == 'name' else 'a'} string; got {value!r}.")
     return DatasetManifest(
         name=settings.get("name", root.resolve().name),
         title=settings.get("title", root.resolve().name),

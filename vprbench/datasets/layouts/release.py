@@ -20,7 +20,6 @@ Ground-truth kinds (images are indexed in natural name order, as the authors' lo
 """
 from __future__ import annotations
 
-import pickle
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +28,7 @@ from ...errors import VPRBenchError
 from ..manifest import DatasetManifest
 from ..model import GroundTruth
 from . import from_manifest, layout, list_images_natural, require
+from .npy import read_npy
 from .vpr_bench import load_rows
 
 
@@ -62,10 +62,14 @@ def positive_lists(path: Path, gt: dict, n_queries: int) -> list[np.ndarray]:
 
 def pose_rows(path: Path, gt: dict, n_database: int, n_queries: int) -> tuple[np.ndarray, np.ndarray]:
     dims = int(gt.get("dimensions", 2))
+    expected = f"an (N, >= {dims}) array of positions"
+    poses = read_npy(path, "poses", expected)
     try:
-        poses = np.asarray(np.load(path, allow_pickle=True)[:, :dims], dtype=np.float64)
-    except (OSError, ValueError, TypeError, IndexError, EOFError, pickle.UnpicklingError) as error:
-        raise VPRBenchError(f"Cannot read poses {path}: {error}. Expected an (N, >= {dims}) array of positions.") from None
+        poses = np.asarray(poses[:, :dims], dtype=np.float64)
+    except (ValueError, TypeError, IndexError) as error:
+        raise VPRBenchError(f"Cannot read poses {path}: {error}. Expected {expected}.") from None
+    if poses.shape[1] < dims:
+        raise VPRBenchError(f"Cannot read poses {path}: {poses.shape[1]} columns. Expected {expected}.")
     parts = []
     for split, (start, stop), count in (("database", gt["database_rows"], n_database), ("query", gt["query_rows"], n_queries)):
         if stop > len(poses):

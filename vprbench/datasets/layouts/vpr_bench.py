@@ -6,7 +6,6 @@ only positives that exist among the references, and so do we when this is true).
 """
 from __future__ import annotations
 
-import pickle
 from pathlib import Path
 
 import numpy as np
@@ -15,19 +14,17 @@ from ...errors import VPRBenchError
 from ..manifest import DatasetManifest
 from ..model import GroundTruth
 from . import from_manifest, layout, list_images_natural, require
+from .npy import read_npy
+
+ROWS = ("rows [query_index, [positive reference indices]] of integers; the file is damaged "
+        "or not this dataset's; re-download it")
 
 
 def load_rows(path: Path) -> np.ndarray:
-    """An .npy of [index, [positives]] rows (pickled object array), with a clear error when unreadable."""
-    try:
-        rows = np.load(path, allow_pickle=True)
-        if rows.ndim != 2 or rows.shape[1] < 2:
-            raise ValueError(f"shape {rows.shape}, expected rows of [query index, positives]")
-    except (OSError, ValueError, TypeError, EOFError, pickle.UnpicklingError) as error:
-        raise VPRBenchError(
-            f"Cannot read ground truth {path}: {error}. Expected rows [query_index, [positive "
-            "reference indices]]; the file is damaged or not this dataset's; re-download it."
-        ) from None
+    """An .npy of [index, [positives]] rows (an object array, read without unpickling code)."""
+    rows = read_npy(path, "ground truth", ROWS)
+    if rows.ndim != 2 or rows.shape[1] < 2:
+        raise VPRBenchError(f"Cannot read ground truth {path}: shape {rows.shape}. Expected {ROWS}.")
     return rows
 
 

@@ -1,0 +1,82 @@
+"""The bad-input suite's tools: hostile pickles whose payload would leave a marker file behind,
+and the one check that the CLI refused cleanly."""
+from __future__ import annotations
+
+import os
+import pickle
+import subprocess
+from pathlib import Path
+
+import numpy as np
+
+from vprbench.evaluation import read_results
+from vprbench.paths import cache_root
+
+
+class Payload:
+    """Unpickling this calls `call(*args)` (os.system, exec, subprocess.call...)."""
+
+    def __init__(self, call, *args):
+        self.call, self.args = call, args
+
+    def __reduce__(self):
+        return self.call, self.args
+
+
+def gadget_pickles(marker: Path) -> dict[str, bytes]:
+    """Pickles that create `marker` when unpickled (test_gadgets_are_real checks it), through
+    every route a pickle can call code: REDUCE at protocols 0-5 (GLOBAL and STACK_GLOBAL),
+    INST, OBJ, and callables other than os.system."""
+    command = f"touch {marker}"
+    raw = command.encode()
+    return {
+        "reduce-system-protocol2": pickle.dumps(Payload(os.system, command), protocol=2),
+        "reduce-system-protocol5": pickle.dumps(Payload(os.system, command), protocol=5),
+        "global-reduce-protocol0": b"cos\nsystem\n(V" + raw + b"\ntR.",
+        "inst-protocol0": b"(V" + raw + b"\nios\nsystem\n.",
+        "obj-protocol1": b"(cos\nsystem\nV" + raw + b"\no.",
+        "exec-stack-global": pickle.dumps(Payload(exec, f"import os; os.system({command!r})"), protocol=4),
+        "subprocess-call": pickle.dumps(Payload(subprocess.call, ["touch", str(marker)]), protocol=3),
+    }
+
+
+def npy_with_pickle(path: Path, payload: bytes, shape=(3, 2)) -> Path:
+    """An .npy whose header announces an object array and whose body is `payload`."""
+    with open(path, "wb") as handle:
+        np.lib.format.write_array_header_1_0(handle, {"descr": "|O", "fortran_order": False, "shape": shape})
+        handle.write(payload)
+    return path
+
+
+def rows_with_payload(marker: Path, n: int = 3) -> np.ndarray:
+    """A VPR-Bench row array [index, [positives]] with the payload hidden in one row."""
+    rows = np.empty((n, 2), dtype=object)
+    for i in range(n):
+        rows[i, 0], rows[i, 1] = i, [i]
+    rows[n - 1, 1] = Payload(os.system, f"touch {marker}")
+    return rows
+
+
+def assert_refused(code: int, err: str, marker: Path | None, *fragments, stores_allowed: bool = False) -> None:
+    """Exit 1, one clear message holding `fragments`, no traceback, the payload never ran,
+    nothing stored (no descriptor store, no result)."""
+    assert code == 1, err
+    message = err.strip()  # (a progress bar that was running leaves an empty line)
+    assert "Traceback" not in err and message.startswith("error: "), err
+    assert "\n" not in message, f"one message on one line, got: {err}"
+    for fragment in fragments:
+        assert str(fragment) in err, err
+    if marker is not None:
+        assert not marker.exists(), "the payload ran"
+    assert not read_results(), "a refused run recorded a result"
+    if not stores_allowed:
+        assert not list(cache_root().rglob("*.h5")), "a refused run wrote a descriptor store"
+
+
+def tiny_images(folder: Path, names) -> None:
+    """Small real images (8x8 grey JPEG/PNG) under the given names."""
+    from PIL import Image
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        Image.new("RGB", (8, 8), (90, 90, 90)).save(folder / name)

@@ -1,0 +1,161 @@
+"""Operating-system errors become one line naming the path and what to do, exit 1, no traceback.
+
+The disks are real: a read-only cache is a read-only mount (tmpfs or a read-only bind of a
+filled cache), a full disk a small tmpfs (we run as root, so permissions alone would not
+stop a write). Skipped where mounting is not permitted.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import threading
+
+import pytest
+
+from vprbench.errors import os_error_message
+
+from hostile_files import assert_refused
+
+
+def mount(*args) -> None:
+    done = subprocess.run(["mount", *map(str, args)], capture_output=True, text=True)
+    if done.returncode:
+        pytest.skip(f"cannot mount here ({done.stderr.strip() or done.returncode}); needs root with mount rights")
+
+
+@pytest.fixture
+def mounts():
+    """mounts(*mount args) mounts now and unmounts after the test (latest first)."""
+    if shutil.which("mount") is None or os.geteuid() != 0:
+        pytest.skip("mounting needs root and the mount command")
+    made = []
+
+    def make(*args, target):
+        target.mkdir(parents=True, exist_ok=True)
+        mount(*args, target)
+        made.append(target)
+        return target
+
+    yield make
+    for target in reversed(made):
+        subprocess.run(["umount", "-l", str(target)], check=False)
+
+
+def evaluate(shared_data, cache) -> list:
+    return ["evaluate", "--method", "hog", "--resize", 64, 64, "--dataset", "corridor", "--data-dir", shared_data,
+            "--cache-dir", cache, "--json"]
+
+
+def test_read_only_cache_cold(mounts, tmp_path, shared_data, cli):
+    cache = mounts("-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", target=tmp_path / "ro") / "cache"
+    code, out, err = cli(*evaluate(shared_data, cache))
+    assert_refused(code, err, None, f"Cannot use {cache}: Read-only file system; point --cache-dir at a folder on a writable disk.")
+
+
+def test_read_only_cache_warm_still_shows_the_result(mounts, tmp_path, shared_data, cli):
+    warm = tmp_path / "warm"
+    code, out, _ = cli(*evaluate(shared_data, warm))
+    first = json.loads(out)
+    assert code == 0
+    frozen = mounts("--bind", warm, target=tmp_path / "frozen")
+    mount("-o", "remount,ro,bind", frozen)
+    code, out, err = cli(*evaluate(shared_data, frozen))
+    again = json.loads(out)  # computed from the stores and shown, although it cannot be saved
+    assert again["recall"] == first["recall"] and again["descriptors_computed"] == {"database": 0, "queries": 0}
+    assert code == 1 and "Traceback" not in err
+    assert err.strip() == (f"error: Cannot use {frozen / 'results'}: Read-only file system; "
+                           "point --cache-dir at a folder on a writable disk. The result was not stored.")
+
+
+@pytest.fixture
+def full_disk(mounts, tmp_path):
+    """A 256 KiB tmpfs filled to the last byte."""
+    disk = mounts("-t", "tmpfs", "-o", "size=256k", "tmpfs", target=tmp_path / "full")
+    with open(disk / "filler", "wb", buffering=0) as filler:
+        try:
+            while filler.write(b"\0" * 512):
+                pass
+        except OSError:  # ENOSPC: full
+            pass
+    return disk
+
+
+def test_full_disk_when_registering_a_dataset(full_disk, shared_data, cli):
+    code, _, err = cli("datasets", "import", "corridor", shared_data / "corridor", "--data-dir", full_disk)
+    assert code == 1 and "Traceback" not in err
+    assert "No space left on device; free some space, or point --data-dir at a folder on another disk" in err
+    assert str(full_disk) in err
+    assert [p.name for p in full_disk.iterdir()] == ["filler"], "no half-written registry left behind"
+
+
+def test_full_disk_when_writing_descriptors(full_disk, shared_data, cli):
+    images = sorted((shared_data / "corridor" / "ref").glob("*.jpg"))[:60]
+    out = full_disk / "descriptors.npy"
+    code, _, err = cli("describe", "--method", "hog", *images, "--out", out)
+    # describe goes through the stores (in the cache, on another disk): they are complete and kept
+    assert_refused(code, err, None, f"Cannot use {out}: No space left on device; free some space", stores_allowed=True)
+
+
+def test_lock_timeout_names_the_lock(tmp_path, shared_data, cli, monkeypatch):
+    filelock = pytest.importorskip("filelock")
+    path = tmp_path / "stores.lock"
+    holder = filelock.FileLock(path)
+    holder.acquire()
+    try:
+        def waits(*args, **kwargs):
+            with filelock.FileLock(path, timeout=0.05):
+                pass
+
+        monkeypatch.setattr("vprbench.cli.evaluate.evaluate", waits)
+        code, _, err = cli("evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", shared_data)
+    finally:
+        holder.release()
+    assert_refused(code, err, None, f"Timed out waiting for the lock {path}: another vprbench process is working "
+                                    "on the same files; wait for it to finish, then rerun.")
+
+
+def test_hdf5_lock_error_names_the_file(tmp_path):
+    """HDF5's lock error carries no file name; the message finds it all the same."""
+    import h5py
+
+    path = tmp_path / "database.partial.h5"
+    h5py.File(path, "w").close()
+    ready = tmp_path / "ready"
+    holder = subprocess.Popen([sys.executable, "-c", "import h5py, pathlib, time\n"
+                               f"f = h5py.File({str(path)!r}, 'a'); pathlib.Path({str(ready)!r}).touch(); time.sleep(30)"])
+    try:
+        for _ in range(200):
+            if ready.exists():
+                break
+            threading.Event().wait(0.05)
+        with pytest.raises(OSError) as caught:
+            h5py.File(path, "a")
+    finally:
+        holder.kill()
+        holder.wait()
+    assert caught.value.filename is None  # what h5py gives
+    assert os_error_message(caught.value) == (
+        f"Cannot use {path}: Resource temporarily unavailable; another process holds it open "
+        "(another vprbench run?): wait for it to finish, then rerun.")
+
+
+@pytest.mark.parametrize("error, expected", [
+    (PermissionError(13, "Permission denied", "/data/x"), "Cannot use /data/x: Permission denied; change its permissions, or use a folder this user may write to."),
+    (IsADirectoryError(21, "Is a directory", "/data/gt.npy"), "Cannot use /data/gt.npy: Is a directory; it is a folder, not a file: check the path."),
+    (OSError(5, "Input/output error"), "Cannot use a file (the system did not say which): Input/output error; check the disk."),
+])
+def test_message_for_errors_this_machine_cannot_cause(error, expected):
+    """Root ignores permissions and the disks are healthy here: these are constructed errors."""
+    assert os_error_message(error) == expected
+
+
+def test_output_into_a_closed_pipe_ends_quietly():
+    """`vprbench ... | head` closing early is no error worth a message."""
+    process = subprocess.Popen([str(os.path.join(os.path.dirname(sys.executable), "vprbench")), "methods", "list", "--json"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    process.stdout.close()  # the reader is gone before anything is written
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 141 and err == b""

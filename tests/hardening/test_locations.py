@@ -1,0 +1,129 @@
+"""Where data is looked for and downloaded: nothing is downloaded or created where the user
+did not ask. The default data root is filled on first use (here from a local HTTP server
+holding the real Corridor files: pooch, sha256 checks and all, without the internet)."""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import http.server
+import json
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pooch
+import pytest
+
+from vprbench.datasets import manifest as manifests
+
+from hostile_files import assert_refused
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture
+def no_network(monkeypatch):
+    """Records any download attempt (and fails it, as offline)."""
+    attempts = []
+
+    def offline(self, name, *args, **kwargs):
+        attempts.append(name)
+        raise ConnectionError("offline")
+
+    monkeypatch.setattr(pooch.Pooch, "fetch", offline)
+    return attempts
+
+
+def tree(folder: Path) -> list[str]:
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*")) if folder.exists() else []
+
+
+def test_mistyped_data_dir_names_where_it_looked_and_creates_nothing(tmp_path, no_network, cli):
+    (tmp_path / "shared").mkdir()
+    typo = tmp_path / "shraed"
+    code, _, err = cli("evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", typo)
+    assert_refused(code, err, None, f"Dataset 'corridor' is not in the data root {typo}: looked for {typo / 'corridor'}",
+                   f"closest existing path: {tmp_path} (which holds shared)",
+                   f"add --download to evaluate or run 'vprbench datasets download corridor --data-dir {typo}'")
+    assert tree(tmp_path) == ["shared"] and no_network == []
+
+
+def test_data_root_that_is_the_dataset_folder_says_use_the_folder_above(shared_data, no_network, cli):
+    before = tree(shared_data / "corridor")
+    code, _, err = cli("evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", shared_data / "corridor")
+    assert_refused(code, err, None, f"The data root {shared_data / 'corridor'} is the 'corridor' dataset folder itself",
+                   f"use the folder above, --data-dir {shared_data}.")
+    assert tree(shared_data / "corridor") == before and no_network == []
+
+
+def test_missing_own_folder_and_undownloadable_dataset(tmp_path, no_network, cli):
+    code, _, err = cli("evaluate", "--method", "hog", "--dataset", tmp_path / "mydta" / "x")
+    assert_refused(code, err, None, f"Dataset folder {tmp_path / 'mydta' / 'x'} does not exist (closest existing folder: {tmp_path})")
+    code, _, err = cli("evaluate", "--method", "hog", "--dataset", "hawkins", "--data-dir", tmp_path)
+    assert_refused(code, err, None, f"looked for {tmp_path / 'hawkins_long_corridor'}", "hawkins_long_corridor.tar.gz",
+                   "vprbench datasets import hawkins PATH")
+    assert no_network == [] and tree(tmp_path) == []
+
+
+def test_datasets_info_never_downloads(tmp_path, no_network, monkeypatch, cli):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "user-cache"))
+    code, _, err = cli("datasets", "info", "corridor")
+    assert_refused(code, err, None, "Run 'vprbench datasets download corridor' (evaluate fetches it by itself")
+    assert no_network == [] and tree(tmp_path) == []
+
+
+@pytest.fixture
+def corridor_server(shared_data, monkeypatch):
+    """Corridor's manifest pointing at a local HTTP server of the real files."""
+    handler = functools.partial(QuietHandler, directory=str(shared_data / "corridor"))
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    real = manifests.dataset_manifests()
+    local = {**real["corridor"].download, "base_url": f"http://127.0.0.1:{server.server_port}/"}
+    served = {**real, "corridor": dataclasses.replace(real["corridor"], download=local)}
+    monkeypatch.setattr(manifests, "dataset_manifests", lambda: served)
+    yield server
+    server.shutdown()
+
+
+class QuietHandler(http.server.SimpleHTTPRequestHandler):
+    def log_message(self, *args):
+        pass
+
+
+def test_default_data_root_is_filled_on_first_use(corridor_server, tmp_path, monkeypatch, shared_data, cli):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "user-cache"))
+    code, out, err = cli("evaluate", "--method", "hog", "--resize", 64, 64, "--dataset", "corridor", "--json")
+    assert code == 0, err
+    fetched = json.loads(out)
+    root = manifests.default_data_root() / "corridor"
+    assert root == tmp_path / "user-cache" / "vprbench" / "data" / "corridor"
+    assert len(list((root / "ref").glob("*.jpg"))) == len(list((root / "query").glob("*.jpg"))) == 111
+    assert fetched["counts"]["positive_pairs"] == 549
+    code, out, _ = cli("evaluate", "--method", "hog", "--resize", 64, 64, "--dataset", "corridor", "--data-dir",
+                       shared_data, "--json")
+    assert json.loads(out)["recall"] == fetched["recall"]  # the same data as ../shared/data
+
+
+def test_explicit_data_dir_is_downloaded_into_only_when_asked(corridor_server, tmp_path, cli):
+    target = tmp_path / "mine"
+    code, _, err = cli("evaluate", "--method", "hog", "--resize", 64, 64, "--dataset", "corridor", "--data-dir", target)
+    assert code == 1 and not target.exists()
+    code, _, err = cli("evaluate", "--method", "hog", "--resize", 64, 64, "--dataset", "corridor", "--data-dir", target,
+                       "--download")
+    assert code == 0, err
+    assert tree(target / "corridor")[:3] == ["ReadMe.txt", "ground_truth_new.npy", "query"]
+
+
+def test_readme_main_job_runs_here_as_a_real_process(shared_data, tmp_path):
+    """The README's main job, as written there, on this machine: the data beside the repo, nothing downloaded."""
+    setup = (ROOT / "README.md").read_text().split("## Set up", 1)[1].split("## Use", 1)[0]
+    line = next(line for line in setup.splitlines() if "vprbench evaluate" in line)
+    words = line.split(".venv/bin/vprbench ", 1)[1].replace("../shared/data", str(shared_data)).split()
+    before = tree(shared_data)
+    done = subprocess.run([str(Path(sys.executable).parent / "vprbench"), *words, "--cache-dir", str(tmp_path / "cache")],
+                          capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "hog on corridor" in done.stdout and "111 database, 111 queries" in done.stdout
+    assert tree(shared_data) == before

@@ -1,0 +1,143 @@
+"""Synthetic result records built by the real record builder (`result_record`) from a made-up
+search: a dataset with the real Corridor's counts and ground-truth rule (or any other), a
+method with declared weights, and top-K lists whose quality is chosen."""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vprbench.datasets import apply_protocol, dataset_manifest, find_protocol, own_protocol
+from vprbench.datasets.model import Dataset, GroundTruth
+from vprbench.evaluation.record import result_record
+from vprbench.methods import Method
+
+
+class FakeMethod(Method):
+    def __init__(self, name, options, weights, needs_fit=False):
+        self.name, self.options, self._weights, self.needs_fit = name, dict(options), weights, needs_fit
+
+    def describe(self, images):  # pragma: no cover - never called: the search is made up
+        raise AssertionError
+
+    def provenance(self):
+        return {"weights": dict(self._weights)}
+
+
+def synthetic_ground_truth(n_database, n_queries, unit="positives", radius=None):
+    """Database and queries along one line; each query's positives are its ~5 database neighbours,
+    in the manifest's own unit (explicit lists, frames or metres) so the protocol matches."""
+    if unit == "positives":
+        lists = [np.arange(max(0, q * n_database // n_queries - 2), min(n_database, q * n_database // n_queries + 3))
+                 for q in range(n_queries)]
+        return GroundTruth("positives", radius=radius, positive_lists=lists)
+    step = float(radius) / 2
+    database = np.arange(n_database, dtype=float)[:, None] * step
+    queries = (np.arange(n_queries) * n_database // n_queries).astype(float)[:, None] * step
+    if unit == "metres":
+        database, queries = np.hstack([database, 0 * database]), np.hstack([queries, 0 * queries])
+    return GroundTruth(unit, radius=radius, database_positions=database, query_positions=queries)
+
+
+def synthetic_search(positives, n_database, k, quality, seed):
+    """The top-1 is a positive with probability `quality`; the rest of the top K is drawn at
+    random (without repeats)."""
+    rng = np.random.default_rng(seed)
+    n_queries = len(positives)
+    draws = rng.integers(0, n_database, size=(n_queries, 3 * k + 10))
+    hit = rng.random(n_queries) < quality
+    indices = np.empty((n_queries, k), dtype=np.int64)
+    for q in range(n_queries):
+        order = draws[q].tolist()
+        if hit[q]:
+            order = [int(positives[q][len(positives[q]) // 2])] + [d for d in order if d not in set(positives[q].tolist())]
+        indices[q] = list(dict.fromkeys(order))[:k]
+    scores = np.sort(rng.random((n_queries, k)).astype(np.float32), axis=1)[:, ::-1]
+    return scores, indices, positives
+
+
+@pytest.fixture
+def make_record(tmp_path):
+    """make_record(method="hog", dataset="corridor", ...) -> a schema-2 record dict."""
+
+    def make(method="hog", dataset="corridor", *, k=20, ks=(1, 5, 10, 20), quality=0.5, seed=0, options=None,
+             weights=None, kind="benchmark", n_database=None, n_queries=None, root=None, fingerprint=None,
+             domain=None, created=None, descriptor_dim=64, protocol=None):
+        manifest = dataset_manifest(dataset) if kind == "benchmark" else None
+        n_database = n_database or manifest.database_count
+        n_queries = n_queries or manifest.query_count
+        gt = synthetic_ground_truth(n_database, n_queries, *((manifest.unit, manifest.radius) if manifest else ()))
+        positives = gt.positives()
+        scores, indices, positives = synthetic_search(positives, n_database, k, quality, seed)
+        images = Path(root) if root else tmp_path / "no-images" / dataset
+        data = Dataset(dataset, [images / f"db{i}.jpg" for i in range(n_database)],
+                       [images / f"q{i}.jpg" for i in range(n_queries)], gt,
+                       domain=domain or (manifest.domain if manifest else "custom"), root=images,
+                       layout="vpr-bench" if kind == "benchmark" else "own", kind=kind)
+        # as load_dataset does: the manifest's protocol (default or named), or the folder's own
+        data = apply_protocol(data, find_protocol(manifest, protocol)) if manifest else \
+            dataclasses.replace(data, protocol=own_protocol(data))
+        fake = FakeMethod(method, options or {}, weights or {"source": "none"})
+        record = result_record(
+            method=fake, fingerprint={"method": method, **(options or {})}, dataset=data,
+            dataset_key=fingerprint or f"fp-{dataset}-{n_database}", ks=ks, scores=scores, indices=indices,
+            positives=positives, descriptor_dim=descriptor_dim, computed={"database": n_database, "queries": n_queries},
+            timings={"fit_s": 0.0, "database_s": 1.0, "queries_s": 1.0, "search_s": 0.01, "total_s": 2.0})
+        if created:
+            record["created"] = created
+            record["run_id"] = f"{created.replace(':', '').replace('-', '')}-{method}-{seed}"
+        return record
+
+    return make
+
+
+def _mount(*args) -> bool:
+    import subprocess
+
+    return subprocess.run(["mount", *args], capture_output=True).returncode == 0
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """small_disk(kib) -> a folder on a tmpfs of that size (a full disk on demand); skipped where
+    mounting is not allowed."""
+    import subprocess
+
+    mounted = []
+
+    def make(kib: int) -> Path:
+        folder = tmp_path / f"disk-{len(mounted)}"
+        folder.mkdir()
+        if not _mount("-t", "tmpfs", "-o", f"size={kib}k", "tmpfs", str(folder)):
+            pytest.skip("cannot mount a small tmpfs here (needs root and mount permission)")
+        mounted.append(folder)
+        return folder
+
+    yield make
+    for folder in mounted:
+        subprocess.run(["umount", "-l", str(folder)], capture_output=True)
+
+
+@pytest.fixture
+def read_only(tmp_path):
+    """read_only(folder) -> the same folder mounted read-only (we run as root, so chmod would not
+    stop a write); skipped where bind mounts are not allowed."""
+    import subprocess
+
+    mounted = []
+
+    def make(folder: Path) -> Path:
+        view = tmp_path / f"ro-{len(mounted)}"
+        view.mkdir()
+        if not _mount("--bind", str(folder), str(view)):
+            pytest.skip("cannot bind-mount here (needs root and mount permission)")
+        mounted.append(view)
+        if not _mount("-o", "remount,bind,ro", str(view)):
+            pytest.skip("cannot remount read-only here")
+        return view
+
+    yield make
+    for view in mounted:
+        subprocess.run(["umount", "-l", str(view)], capture_output=True)

@@ -1,0 +1,135 @@
+"""One run per cell, by the stated rule: the cases that used to mix runs, own data named like a
+benchmark, other protocols and data copies, and weights that are not the authors'."""
+import pytest
+
+from vprbench.evaluation import read_results, save_result
+from vprbench.leaderboard import build_board, grid
+from vprbench.leaderboard.stats import successes
+
+
+def board_of(*records):
+    for record in records:
+        save_result(record)
+    return build_board(read_results())
+
+
+def only_cell(board, label="hog", dataset="corridor"):
+    [row] = [r for r in board.rows if r.label == label and r.official]
+    [column] = [c for c in board.columns if c.key == dataset]
+    return board.cell(row, column)
+
+
+def test_newest_run_with_k_1_10_gives_its_own_r5_not_an_older_runs(make_record):
+    """0.1: groupby().last() showed the new run's R@1 beside the old run's R@5."""
+    old = make_record(quality=0.9, seed=1, created="2026-01-01T00:00:00+00:00")
+    new = make_record(ks=(1, 10), k=10, quality=0.2, seed=2, created="2026-02-01T00:00:00+00:00")
+    cell = only_cell(board_of(old, new))
+    assert cell.record["run_id"] == new["run_id"] and cell.passed_over == 1
+    assert cell.recall(1) == new["recall"]["1"]
+    first = cell.arrays["first_positive_rank"]
+    assert cell.recall(5) == pytest.approx(100 * successes(first, 5).mean())  # from the same run's ranks
+    assert cell.recall(5) != pytest.approx(old["recall"]["5"])
+
+
+def test_a_shallow_newest_run_never_lends_its_r1_to_an_older_runs_r5(make_record):
+    old = make_record(quality=0.9, seed=1, created="2026-01-01T00:00:00+00:00")
+    shallow = make_record(ks=(1, 3), k=3, quality=0.1, seed=2, created="2026-02-01T00:00:00+00:00")
+    cell = only_cell(board_of(old, shallow))
+    assert cell.record["run_id"] == old["run_id"]
+    assert (cell.recall(1), cell.recall(5)) == (old["recall"]["1"], old["recall"]["5"])
+
+
+def test_a_shallow_run_alone_shows_no_r5(make_record):
+    cell = only_cell(board_of(make_record(ks=(1, 3), k=3)))
+    assert cell.recall(1) is not None and cell.recall(5) is None
+    assert grid(build_board(read_results())).loc["hog", "corridor"].endswith("/ –")
+
+
+def test_own_data_named_like_a_benchmark_gets_its_own_column(make_record):
+    """0.1: an own folder named "corridor" showed Nordland's numbers under Corridor."""
+    benchmark = make_record(quality=0.5, seed=1, created="2026-01-01T00:00:00+00:00")
+    own = make_record(kind="own", n_database=111, n_queries=111, quality=1.0, seed=2, fingerprint="ownfolder1",
+                      created="2026-03-01T00:00:00+00:00")
+    board = board_of(benchmark, own)
+    assert only_cell(board).record["run_id"] == benchmark["run_id"]
+    [mine] = [c for c in board.columns if c.kind == "own"]
+    assert mine.key == "corridor (own ownfolde)" and mine.title == "corridor (own data)"
+    table = grid(board)
+    assert table.loc["hog", "corridor"] == f"{benchmark['recall']['1']:.1f} / {benchmark['recall']['5']:.1f}"
+    assert table.loc["hog", "corridor (own data)"] == "100.0 / 100.0"
+
+
+def test_other_protocol_and_other_copy_never_land_in_the_benchmark_cell(make_record):
+    good = [make_record(seed=s, created=f"2026-01-0{s}T00:00:00+00:00") for s in (1, 2)]
+    partial = make_record(n_database=110, seed=3, created="2026-02-01T00:00:00+00:00")  # 110 of 111 images
+    other_copy = make_record(fingerprint="another-copy", seed=4, created="2026-03-01T00:00:00+00:00")
+    board = board_of(*good, partial, other_copy)
+    assert only_cell(board).record["run_id"] == good[1]["run_id"]
+    reasons = {r["run_id"]: why for r, why in board.excluded}
+    assert "110 database images, but protocol corridor:vpr-bench has 111" in reasons[partial["run_id"]]
+    assert "another-copy differs from the fp-corridor-111" in reasons[other_copy["run_id"]]
+
+
+def test_each_protocol_of_a_benchmark_is_its_own_column_and_unknown_ones_none(make_record):
+    default = make_record(dataset="vp-air", n_database=12706, n_queries=2706, seed=1)
+    variant = make_record(dataset="vp-air", n_database=2706, n_queries=2706, protocol="no-distractors", seed=2,
+                          fingerprint="fp-vp-air-2706")
+    edited = make_record(seed=3, created="2026-05-01T00:00:00+00:00")
+    edited["protocol"] = {**edited["protocol"], "hash": "0123456789abcdef"}  # e.g. another radius
+    hand_made = make_record(seed=4)
+    hand_made["protocol"] = {"id": "corridor:provisional", "hash": "fedcba9876543210", "provisional": True}
+    board = board_of(default, variant, edited, hand_made)
+    assert {c.key: (c.protocol, c.default) for c in board.columns} == {
+        "vp-air": ("with-distractors", True), "vp-air [no-distractors]": ("no-distractors", False)}
+    reasons = {r["run_id"]: why for r, why in board.excluded}
+    assert "is none of corridor's: vpr-bench (" in reasons[edited["run_id"]]
+    assert "recorded before protocols existed" in reasons[hand_made["run_id"]]
+
+
+def test_user_and_random_weights_get_marked_rows_and_never_replace_the_official_one(make_record):
+    official = make_record("cosplace", weights={"source": "official", "url": "https://x"}, seed=1,
+                           created="2026-01-01T00:00:00+00:00")
+    user = make_record("cosplace", weights={"source": "user", "sha256": "ab" * 32}, quality=1.0, seed=2,
+                       created="2026-02-01T00:00:00+00:00")
+    random = make_record("cosplace", weights={"source": "random"}, quality=0.0, seed=3,
+                         created="2026-03-01T00:00:00+00:00")
+    board = board_of(official, user, random)
+    assert only_cell(board, "cosplace").record["run_id"] == official["run_id"]
+    names = {r.name for r in board.rows}
+    assert names == {"cosplace", "cosplace † user weights sha256:abababababab", "cosplace † random weights"}
+    assert board.marked["non_official_weights"] == 2
+    table = grid(board).reset_index()
+    assert table.set_index("weights").loc["official", "corridor"].startswith(f"{official['recall']['1']:.1f} /")
+    assert set(table["weights"]) == {"official", "user weights sha256:abababababab", "random weights"}
+
+
+def test_options_label_rows_and_device_does_not(make_record):
+    a = make_record(options={"resize": [64, 64], "device": "cpu"}, seed=1)
+    b = make_record(options={"resize": [128, 128]}, seed=2)
+    board = board_of(a, b)
+    assert {r.label for r in board.rows} == {"hog [resize=64x64]", "hog [resize=128x128]"}
+
+
+def test_many_records_each_cell_is_the_newest_complete_one(make_record, tmp_path):
+    """2,000 stored runs (40 methods x 5 datasets x 10 repeats): 200 cells, each its row's newest run."""
+    import json
+
+    from vprbench.evaluation import results_dir
+
+    folder = results_dir()
+    folder.mkdir(parents=True)
+    base = make_record(k=5, ks=(1, 5), n_database=50, n_queries=40, kind="own")
+    base.pop("per_query")
+    for m in range(40):
+        for d in range(5):
+            for repeat in range(10):
+                run = f"2026{repeat:02d}01T000000Z-m{m}d{d}"
+                record = {**base, "method": f"m{m}", "dataset": f"own{d}", "dataset_fingerprint": f"fp{d}",
+                          "run_id": run, "created": f"2026-{repeat + 1:02d}-01T00:00:00+00:00",
+                          "recall": {"1": float(repeat), "5": float(repeat + 1)}}
+                (folder / f"{run}.json").write_text(json.dumps(record))
+    records = read_results()
+    board = build_board(records)
+    assert len(records) == 2000 and len(board.cells) == 200 and len(board.columns) == 5
+    assert {c.recall(1) for c in board.cells.values()} == {9.0}
+    assert {c.passed_over for c in board.cells.values()} == {9}

@@ -1,0 +1,158 @@
+"""The result record: a real run's provenance and per-query data; weights sources; the store's
+read side (round trip, corrupt, foreign, newer and 0.1 records)."""
+import json
+
+import numpy as np
+import pytest
+
+from vprbench.datasets import load_dataset
+from vprbench.evaluation import evaluate, per_query, read_results, results_dir, results_path, save_result
+from vprbench.evaluation.record import append_result, benchmark_protocol, method_provenance
+from vprbench.leaderboard import build_board
+from vprbench.leaderboard.stats import successes
+from vprbench.methods import create_method
+from vprbench.weights import weights_provenance
+
+CONTRACT = ("method", "dataset", "recall", "counts", "descriptors_computed", "timings", "descriptor_dim",
+            "provenance", "search")
+
+
+def test_real_run_record_has_provenance_and_recomputable_metrics(shared_data):
+    dataset = load_dataset("corridor", shared_data)
+    record = evaluate(create_method("hog", resize=(64, 64)), dataset, ks=(1, 5, 10))
+    assert set(CONTRACT) <= set(record)
+    assert record["schema_version"] == 2 and record["dataset_kind"] == "benchmark"
+    assert record["protocol"] == benchmark_protocol("corridor")
+    assert record["provenance"]["weights"] == {"source": "none"} and record["needs_fit"] is False
+    assert record["method_options"] == {"resize": [64, 64]}
+    assert {"torch", "faiss", "vprbench", "git"} <= set(record["versions"]) and record["hardware"]["cpu_count"] >= 1
+    assert record["descriptor_bytes"] == 4 * record["descriptor_dim"]
+
+    arrays = per_query(record)
+    assert arrays["database_indices"].shape == (111, 10) == arrays["similarities"].shape
+    assert (np.diff(arrays["similarities"], axis=1) <= 1e-6).all(), "similarities are sorted, best first"
+    assert arrays["positives"].sum() == record["counts"]["positive_pairs"] == 549
+    for k, value in record["recall"].items():  # every metric from the record, without descriptors
+        assert 100 * successes(arrays["first_positive_rank"], int(k)).mean() == pytest.approx(value, abs=1e-3)
+    positives = dataset.positives
+    for q in (0, 50, 110):
+        hits = np.isin(arrays["database_indices"][q], positives[q])
+        assert arrays["first_positive_rank"][q] == (hits.argmax() + 1 if hits.any() else 0)
+
+    path = save_result(record)
+    [stored] = read_results()
+    assert stored["run_id"] == record["run_id"] and path.name.startswith(record["run_id"])
+    assert stored["per_query"]["file"] == path.with_suffix(".npz").name
+    for name, array in per_query(stored).items():
+        np.testing.assert_allclose(array, arrays[name], atol=1e-6)
+
+
+def test_dense_vlad_says_its_vocabulary_is_fitted_on_the_evaluated_database():
+    found = method_provenance(create_method("dense-vlad"))
+    assert found["weights"] == {"source": "none"}
+    assert found["vocabulary"]["fitted_on_evaluated_database"] is True
+
+
+def test_a_plugin_that_does_not_declare_weights_is_never_official(make_record):
+    from vprbench.methods import Method
+
+    class Plugin(Method):
+        name, options = "plugin", {}
+
+        def describe(self, images):  # pragma: no cover
+            raise AssertionError
+
+    assert method_provenance(Plugin())["weights"] == {"source": "undeclared"}
+
+
+def test_weights_sources(monkeypatch):
+    assert weights_provenance(None) == {"source": "random"}
+    url = "https://dl.fbaipublicfiles.com/dinov2/dinov2_vitg14/dinov2_vitg14_pretrain.pth"
+    assert weights_provenance(url) == {"source": "official", "url": url, "recognised_by": "download", "release": "dinov2"}
+    assert weights_provenance("sha256:" + "ab" * 32) == {"source": "user", "sha256": "ab" * 32}
+    # a local copy of an official file is official only through a published checksum
+    import vprbench.weights as weights
+
+    published = ({"name": "dinov2", "url_prefix": "https://x/", "checksum_source": "the authors' README",
+                  "sha256": {"dinov2_vits14_pretrain.pth": "cd" * 32}},)
+    monkeypatch.setattr(weights, "official_releases", lambda: published)
+    found = weights_provenance("sha256:" + "CD" * 32)
+    assert found["source"] == "official" and found["recognised_by"] == "sha256"
+    assert found["file"] == "dinov2_vits14_pretrain.pth" and found["checksum_source"] == "the authors' README"
+
+
+def test_shipped_release_table_has_no_unsourced_checksum():
+    from vprbench.weights import official_releases
+
+    releases = official_releases()
+    assert {"dinov2", "dino", "cosplace", "salad", "open_clip"} <= {r["name"] for r in releases}
+    for release in releases:
+        assert release["sha256"] == {} or release.get("checksum_source"), release["name"]
+
+
+def test_torch_baselines_report_their_weights_source(tmp_path):
+    torch = pytest.importorskip("torch")
+    from vprbench_baselines.common import Preprocess, TorchMethod
+
+    def method(identity):
+        return TorchMethod(torch.nn.Identity(), Preprocess(), {"architecture": "x", **identity})
+
+    official = method({"weights_url": "https://github.com/gmberton/CosPlace/releases/download/v1.0/R.pth", "weights_sha256": None})
+    assert official.provenance()["weights"]["source"] == "official"
+    assert official.provenance()["weights"]["release"] == "cosplace"
+    assert method({"weights_sha256": "ef" * 32}).provenance() == {"weights": {"source": "user", "sha256": "ef" * 32}}
+    clip = method({"weights": "open_clip:ViT-bigG-14/laion2b_s39b_b160k", "hf_hub": "laion/CLIP-ViT-bigG-14/"})
+    assert clip.provenance()["weights"] == {"source": "official", "url": "open_clip:ViT-bigG-14/laion2b_s39b_b160k",
+                                            "recognised_by": "download", "release": "open_clip",
+                                            "hub": "laion/CLIP-ViT-bigG-14/"}
+
+
+def test_own_folder_named_like_a_benchmark_is_own_data(tmp_path, shared_data):
+    import shutil
+
+    root = tmp_path / "mine"
+    for split, source in (("database", "ref"), ("queries", "query")):
+        (root / split).mkdir(parents=True)
+        for i in range(6):
+            shutil.copy(shared_data / "corridor" / source / f"{i:07d}.jpg", root / split / f"{i:04d}.jpg")
+    rows = ["image,x,y"] + [f"{s}/{i:04d}.jpg,{i * 10},0" for s in ("database", "queries") for i in range(6)]
+    (root / "positions.csv").write_text("\n".join(rows))
+    (root / "dataset.toml").write_text('name = "corridor"\nradius = 5\n')
+    record = evaluate(create_method("hog", resize=(64, 64)), load_dataset(str(root)), ks=(1, 5))
+    assert record["dataset"] == "corridor" and record["dataset_kind"] == "own"
+
+
+def test_corrupt_foreign_newer_and_old_records_are_named_and_skipped(make_record):
+    save_result(make_record("hog"))
+    folder = results_dir()
+    (folder / "torn.json").write_text('{"method": "hog", "dataset": "corr')
+    (folder / "foreign.json").write_text(json.dumps({"model": "bert", "score": 1}))
+    (folder / "list.json").write_text("[1, 2]")
+    (folder / "future.json").write_text(json.dumps({**make_record("hog"), "schema_version": 99}))
+    (folder / "binary.json").write_bytes(b"\xff\xfe\x00garbage")
+    legacy = {"method": "hog", "dataset": "corridor", "recall": {"1": 48.6, "5": 75.7}, "counts": {"queries": 111},
+              "created": "2026-01-01T00:00:00+00:00"}
+    results_path().write_text(json.dumps(legacy) + "\n" + '{"method": "hog", "datas' + json.dumps(legacy) + "\n")
+    with pytest.warns(UserWarning) as caught:
+        records = read_results()
+    messages = " | ".join(str(w.message) for w in caught)
+    for name in ("torn.json", "foreign.json", "list.json", "future.json", "binary.json", "results.jsonl:2"):
+        assert name in messages
+    assert "missing method, dataset, recall, counts" in messages and "version 99" in messages
+    assert [r.get("schema_version") for r in records] == [1, 2]  # the whole 0.1 line, and ours
+    board = build_board(records)
+    assert [why for _, why in board.excluded] == [board.excluded[0][1]] and "vprbench 0.1" in board.excluded[0][1]
+    assert len(board.cells) == 1
+
+
+def test_damaged_per_query_file_is_named_and_only_statistics_are_lost(make_record):
+    path = save_result(make_record("hog"))
+    path.with_suffix(".npz").write_bytes(b"PK\x03\x04 not really")
+    [record] = read_results()
+    with pytest.warns(UserWarning, match=r"Per-query data .*\.npz of run .* is unreadable"):
+        assert per_query(record) is None
+    assert record["recall"]["1"] >= 0
+
+
+def test_append_result_is_the_same_writer():
+    assert append_result is save_result

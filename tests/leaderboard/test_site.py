@@ -1,0 +1,211 @@
+"""`vprbench leaderboard publish`: the pages, figures and downloads from real and synthetic runs,
+and every bad input (no results, a file, read-only, full disk, a kill, images gone)."""
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from vprbench.cli.main import main
+from vprbench.evaluation import read_results, save_result
+from vprbench.paths import cache_root
+from vprbench.store import RowsIdentity, RowWriter, create_rows_file, fingerprint_key
+
+
+def run(capsys, *args):
+    code = main(list(args))
+    out, err = capsys.readouterr()
+    return code, out, " ".join(err.split())  # the terminal wraps long messages
+
+
+def real_runs(capsys, shared_data, *resizes):
+    for size in resizes:
+        code, _, err = run(capsys, "evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", str(shared_data),
+                           "--resize", str(size), str(size))
+        assert code == 0, err
+    return read_results()
+
+
+def with_gem_store(record):
+    """A GeM run's database descriptors in a complete store the record names (for the PCA map)."""
+    folder = f"{record['method']}-{fingerprint_key(record['method_fingerprint'])}/{record['dataset']}-test"
+    record.setdefault("context", {})["store"] = {"folder": folder}
+    n = record["counts"]["database"]
+    identity = RowsIdentity(store=f"{folder}/database", start=0, stop=n, total=n, fit_id="none", dtype="float32",
+                            fingerprint="{}", names=[f"db{i}.jpg" for i in range(n)])
+    path = cache_root() / "stores" / folder / "database.h5"
+    create_rows_file(path, identity, 16)
+    writer = RowWriter(path, identity)
+    rng = np.random.default_rng(len(record["dataset"]))
+    writer.write(np.arange(n), rng.normal(len(record["dataset"]) % 3, 1, (n, 16)).astype("float32"))
+    writer.finish()
+    return record
+
+
+@pytest.fixture
+def full_board(capsys, shared_data, make_record):
+    """Real HOG runs on Corridor plus synthetic ones covering every kind of row and column."""
+    real = real_runs(capsys, shared_data, 64, 128)
+    corridor_fp = real[0]["dataset_fingerprint"]
+    save_result(make_record("hog", weights={"source": "user", "sha256": "ab" * 32}, fingerprint=corridor_fp, seed=3))
+    save_result(make_record("hog", kind="own", n_database=111, n_queries=111, fingerprint="mine0001", seed=4))
+    save_result(make_record("anyloc-vlad-dinov2", "hawkins", weights={"source": "official", "url": "https://x"},
+                            quality=0.65, seed=5))
+    for name in ("hawkins", "laurel-caverns", "baidu-mall"):
+        save_result(with_gem_store(make_record("anyloc-gem-dinov2", name, options={"aggregation": "gem"},
+                                               weights={"source": "official", "url": "https://x"}, seed=6)))
+    (cache_root() / "results" / "broken.json").write_text("{not json")
+    return real
+
+
+def test_publish_writes_every_page_figure_and_download(capsys, tmp_path, shared_data, full_board):
+    docs = tmp_path / "docs"
+    with pytest.warns(UserWarning, match="broken.json"):
+        code, out, err = run(capsys, "leaderboard", "publish", "--to", str(docs), "--data-dir", str(shared_data))
+    assert code == 0, err
+    section = docs / "leaderboard"
+    pages = {p.name for p in section.glob("*.md")}
+    assert pages == {"index.md", "reported.md", "corridor.md", "hawkins.md", "laurel-caverns.md", "baidu-mall.md",
+                     "own-corridor-mine0001.md"}
+    overview = (section / "index.md").read_text()
+    assert "### Table II: Structured environments" in overview and "### Table III: Unstructured environments" in overview
+    assert "| hog [resize=64x64] |" in overview and "*AnyLoc-VLAD-DINOv2* (paper)" in overview
+    assert "| anyloc-vlad-dinov2 | hawkins | R@1 |" in overview and "*65.2* (Table III)" in overview  # paper beside
+    assert "hog † user weights sha256:abababababab" not in overview.split("## Other runs")[0], "never in a paper table"
+    assert "| hog † | user weights sha256:abababababab | [corridor](corridor.md)" in overview
+    assert "[corridor (own data)](own-corridor-mine0001.md)" in overview
+    for page in pages - {"reported.md"}:
+        assert '!!! note "Marks"' in (section / page).read_text(), page
+    assert "1 cell(s) use weights other than the authors' release" in overview
+    corridor = (section / "corridor.md").read_text()
+    assert "| hog † | user weights sha256:abababababab |" in corridor
+    figures = section / "figures"
+    for name in ("radar.svg", "pca-gem.png", "corridor-recall.svg", "corridor-pr.svg", "corridor-efficiency.svg",
+                 "corridor-mosaic-hog-resize-64x64.png", "corridor-mosaic-hog-user-weights-sha256-abababababab.png"):
+        assert (figures / name).stat().st_size > 1000, name
+    assert corridor.count("queries and their top 5](figures/corridor-mosaic-") == 3
+    own = (section / "own-corridor-mine0001.md").read_text()
+    assert "*Mosaic of hog: not drawn, the images of corridor are no longer at" in own
+    hawkins = (section / "hawkins.md").read_text()
+    assert "*Mosaic of anyloc-vlad-dinov2: not drawn, the images of hawkins are not on disk here" in hawkins
+    assert (figures / "hawkins-recall.svg").is_file(), "the rest of the page is still written"
+    table = pd.read_csv(section / "downloads" / "corridor.csv")
+    assert set(table["method"]) == {"hog [resize=64x64]", "hog [resize=128x128]", "hog"}
+    records = json.loads((section / "downloads" / "corridor.json").read_text())
+    assert {len(r["per_query"]["first_positive_rank"]) for r in records} == {111}
+    summary = json.loads((section / "downloads" / "leaderboard.json").read_text())
+    assert len(summary) == 8 and all(0 <= e["r1_ci_low"] <= e["r1"] <= e["r1_ci_high"] <= 100 for e in summary)
+
+
+def test_publish_again_replaces_the_section_and_leaves_no_temporary_folder(capsys, tmp_path, shared_data):
+    real_runs(capsys, shared_data, 64)
+    docs = tmp_path / "docs"
+    assert run(capsys, "leaderboard", "publish", "--to", str(docs))[0] == 0
+    (docs / "leaderboard" / "stale-page.md").write_text("from an older publish")
+    (docs / ".leaderboard-old-x1").mkdir()  # what a publish killed during its swap would leave
+    assert run(capsys, "leaderboard", "publish", "--to", str(docs))[0] == 0
+    assert not (docs / "leaderboard" / "stale-page.md").exists()
+    assert sorted(p.name for p in docs.iterdir()) == [".leaderboard.lock", "leaderboard"]
+
+
+def test_no_results_writes_nothing(capsys, tmp_path):
+    code, _, err = run(capsys, "leaderboard", "publish", "--to", str(tmp_path / "docs"))
+    assert code == 1 and "No results yet" in err and "Traceback" not in err
+    assert not (tmp_path / "docs").exists()
+    code, _, err = run(capsys, "leaderboard", "compare", "a", "b", "--dataset", "corridor")
+    assert code == 1 and "No results yet" in err
+
+
+def test_only_old_records_say_why_no_cell_is_filled(capsys):
+    line = {"method": "hog", "dataset": "corridor", "recall": {"1": 48.6}, "counts": {"queries": 111}}
+    cache_root().mkdir(parents=True, exist_ok=True)
+    (cache_root() / "results.jsonl").write_text(json.dumps(line) + "\n")
+    code, _, err = run(capsys, "leaderboard")
+    assert code == 1 and "None of the 1 stored run(s) can fill a cell: recorded by vprbench 0.1" in err
+
+
+def test_compare_names_what_is_missing(capsys, make_record):
+    save_result(make_record("hog", seed=1))
+    save_result(make_record("dense-vlad", seed=2))
+    code, _, err = run(capsys, "leaderboard", "compare", "hogg", "dense-vlad", "--dataset", "corridor")
+    assert code == 1 and "No run of 'hogg' on corridor. Did you mean: hog?" in err
+    code, _, err = run(capsys, "leaderboard", "compare", "hog", "dense-vlad", "--dataset", "coridor")
+    assert code == 1 and "No run on dataset 'coridor' fills a cell. Did you mean: corridor?" in err
+    code, _, err = run(capsys, "leaderboard", "compare", "hog", "--dataset", "corridor")
+    assert code == 1 and "needs two methods and a dataset" in err
+    code, _, err = run(capsys, "leaderboard", "compare", "hog", "dense-vlad", "--dataset", "corridor", "--k", "50")
+    assert code == 1 and "searched only the top 20" in err
+    code, out, _ = run(capsys, "leaderboard", "compare", "hog", "dense-vlad", "--dataset", "corridor")
+    assert code == 0 and "difference (hog - dense-vlad)" in out and "McNemar exact test" in out
+
+
+def test_to_a_file_is_refused(capsys, tmp_path, make_record):
+    save_result(make_record())
+    target = tmp_path / "docs.md"
+    target.write_text("mine")
+    code, _, err = run(capsys, "leaderboard", "publish", "--to", str(target))
+    assert code == 1 and "is a file, not a folder" in err and target.read_text() == "mine"
+
+
+def test_read_only_folder_is_refused_and_the_old_section_kept(capsys, tmp_path, make_record, read_only):
+    save_result(make_record())
+    docs = tmp_path / "docs"
+    assert run(capsys, "leaderboard", "publish", "--to", str(docs))[0] == 0
+    before = (docs / "leaderboard" / "index.md").read_text()
+    save_result(make_record("other"))
+    view = read_only(docs)
+    code, _, err = run(capsys, "leaderboard", "publish", "--to", str(view))
+    assert code == 1 and "Read-only file system" in err and "nothing was written" in err
+    assert (view / "leaderboard" / "index.md").read_text() == before
+
+
+def test_full_disk_keeps_the_old_section_whole(capsys, tmp_path, shared_data, make_record, small_disk):
+    real_runs(capsys, shared_data, 64)
+    first = tmp_path / "first"
+    assert run(capsys, "leaderboard", "publish", "--to", str(first), "--data-dir", str(shared_data))[0] == 0
+    size = sum(p.stat().st_size for p in first.rglob("*") if p.is_file())
+    disk = small_disk(size // 1024 + 64)  # room for the old section, not for a second copy beside it
+    shutil.copytree(first / "leaderboard", disk / "leaderboard")
+    before = {p.relative_to(disk): p.read_bytes() for p in (disk / "leaderboard").rglob("*") if p.is_file()}
+    code, _, err = run(capsys, "leaderboard", "publish", "--to", str(disk), "--data-dir", str(shared_data))
+    assert code == 1 and "No space left on device" in err and "is unchanged" in err
+    after = {p.relative_to(disk): p.read_bytes() for p in (disk / "leaderboard").rglob("*") if p.is_file()}
+    assert after == before
+    assert not [p for p in disk.iterdir() if p.name.startswith(".leaderboard-")]
+
+
+def test_kill_9_during_publish_never_leaves_a_partial_section(capsys, tmp_path, shared_data):
+    real_runs(capsys, shared_data, 64, 128)
+    docs = tmp_path / "docs"
+    assert run(capsys, "leaderboard", "publish", "--to", str(docs), "--data-dir", str(shared_data))[0] == 0
+    whole = sorted(p.relative_to(docs / "leaderboard").as_posix() for p in (docs / "leaderboard").rglob("*"))
+    command = [sys.executable, "-m", "vprbench.cli.main", "leaderboard", "publish", "--to", str(docs),
+               "--data-dir", str(shared_data)]
+    rng = np.random.default_rng(1)
+    for _ in range(3):
+        proc = subprocess.Popen(command, env=dict(os.environ), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(float(rng.uniform(1.0, 3.0)))
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=30)
+        found = sorted(p.relative_to(docs / "leaderboard").as_posix() for p in (docs / "leaderboard").rglob("*"))
+        assert found == whole, "the section is the whole old one or the whole new one"
+    assert run(capsys, "leaderboard", "publish", "--to", str(docs), "--data-dir", str(shared_data))[0] == 0
+
+
+def test_mosaic_refuses_a_copy_that_is_not_the_runs(shared_data, capsys):
+    from vprbench.leaderboard.cells import build_board
+    from vprbench.leaderboard.figures import Skipped, mosaic
+
+    [record] = real_runs(capsys, shared_data, 64)
+    record["per_query"] = {**record["per_query"]}
+    [cell] = build_board([record]).cells.values()
+    cell.record = {**record, "per_query": {"k": 20, **{k: v.tolist() for k, v in cell.arrays.items()}}}
+    cell.record["per_query"]["positives"] = [1] * 111  # the run saw other ground truth
+    with pytest.raises(Skipped, match="not the copy this run evaluated"):
+        mosaic(cell, shared_data / "x.png")

@@ -1,0 +1,106 @@
+"""The ViT-G presets use the paper's vocabulary for each dataset: the authors' released centres
+(placed where a download would put them; never downloaded in tests), map-specific where the
+paper fits on the database, and a noted map-specific fallback where no released centres fit."""
+from __future__ import annotations
+
+import shutil
+import socket
+
+import pytest
+
+from vprbench import VPRBenchError, create_method
+from vprbench.aggregation.policies import fetch_released, paper_choice, release, released_path, released_sources
+from vprbench.cli.main import main
+from vprbench.weights import file_sha256
+
+#: dataset -> (the source the paper uses, the released folder it comes from or None for map-specific)
+PAPER = {
+    "baidu-mall": ("indoor", "indoor"), "gardens-point": ("indoor", "indoor"), "17places": ("indoor", "indoor"),
+    "pitts30k": ("urban", "urban"), "st-lucia": ("urban", "urban"), "oxford": ("urban", "urban"),
+    "hawkins": ("hawkins", "hawkins"), "laurel-caverns": ("laurel-caverns", "laurel_caverns"),
+    "nardo-air": ("aerial", "aerial"), "nardo-air-r": ("aerial", "aerial"), "vp-air": ("aerial", "aerial"),
+    "mid-atlantic-ridge": ("map-mid-atlantic-ridge", None),
+}
+
+
+@pytest.fixture
+def no_network(monkeypatch):
+    def refuse(*args, **kwargs):
+        raise OSError("network disabled in tests")
+
+    monkeypatch.setattr(socket.socket, "connect", refuse)
+
+
+@pytest.fixture
+def released_in_cache(shared_data, no_network):
+    """The shared copies of the released c_centers.pt, where `vprbench vocabulary download` puts them."""
+    source_root = shared_data / "vocabularies" / "anyloc-dinov2_vitg14-l31-value-c32"
+    for source in released_sources():
+        target = released_path(source)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(source_root / target.parent.name / "c_centers.pt", target)
+    return source_root
+
+
+def test_recorded_checksums_are_the_shared_copies(shared_data):
+    folders = shared_data / "vocabularies" / "anyloc-dinov2_vitg14-l31-value-c32"
+    recorded = release()["sha256"]
+    assert sorted(recorded) == sorted(p.name for p in folders.iterdir())
+    for folder, digest in recorded.items():
+        assert file_sha256(folders / folder / "c_centers.pt") == digest, folder
+
+
+def test_paper_choice_for_each_of_the_twelve_datasets(released_in_cache):
+    for dataset, (source, folder) in PAPER.items():
+        found, chosen, note = paper_choice(dataset, "dinov2_vitg14", 31, "value", 32)
+        assert (chosen, note) == (source, ""), dataset
+        if folder is None:
+            assert found is None, dataset
+        else:
+            assert found.centres.shape == (32, 1536)
+            assert file_sha256(found.meta["path"]) == release()["sha256"][folder], dataset
+
+
+def test_preset_records_which_vocabulary_each_run_used(released_in_cache):
+    for dataset, (source, folder) in PAPER.items():
+        method = create_method("anyloc-vlad-dinov2")  # no weights are loaded until images are described
+        method.use_dataset(dataset)
+        vocabulary = method.provenance()["vocabulary"]
+        assert vocabulary["name"] == source and vocabulary["option"] == "domain"
+        if folder is None:
+            assert method.needs_fit and vocabulary["fitted_on_evaluated_database"]
+            assert vocabulary["source"] == "fitted" and method.fingerprint()["vocabulary"] == "map"
+        else:
+            assert not method.needs_fit and not vocabulary["fitted_on_evaluated_database"]
+            assert vocabulary["source"] == "released" and vocabulary["released_as"] == folder
+            assert vocabulary["sha256"] == release()["sha256"][folder]
+            assert vocabulary["commit"] == "89cade5529a590c4ed2999b396dcd3cab86e275b"
+            assert method.fingerprint()["vocabulary"] == "sha256:" + vocabulary["centres_sha256"]
+    pca = create_method("anyloc-vlad-dinov2-pca").provenance()["pca"]
+    assert pca["fitted_on_evaluated_database"] and pca["dim"] == 512
+
+
+def test_other_features_fall_back_to_map_specific_with_a_note(released_in_cache):
+    method = create_method("anyloc-vlad-dinov2", backbone="dinov2_vits14", layer=3, clusters=4)
+    with pytest.warns(UserWarning, match="no 'indoor' vocabulary for dinov2_vits14 layer 3 value with 4 clusters.*map-specific"):
+        method.use_dataset("baidu-mall")
+    assert method.needs_fit and "note" in method.provenance()["vocabulary"]
+    with pytest.warns(UserWarning, match="layer 30"):
+        create_method("anyloc-vlad-dinov2", layer=30).use_dataset("pitts30k")
+
+
+def test_named_released_vocabulary_and_download_command(released_in_cache, capsys):
+    method = create_method("anyloc", vocabulary="aerial")
+    assert method.provenance()["vocabulary"]["source"] == "released"
+    assert main(["vocabulary", "download"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("sha256") == 9 and "89cade5529a5" in out
+
+
+def test_damaged_file_is_downloaded_again_and_offline_says_where_it_goes(released_in_cache):
+    path = released_path("urban")
+    path.write_bytes(b"not the released file")
+    with pytest.raises(VPRBenchError, match=r"Cannot download the authors' 'urban' centres from https://raw\.githubusercontent\.com/"
+                                            r"AnyLoc/Revisit-Anything/89cade5529a590c4ed2999b396dcd3cab86e275b/"
+                                            r"cache/vocabulary/dinov2_vitg14/l31_value_c32/urban/c_centers\.pt"):
+        fetch_released("urban")

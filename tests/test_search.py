@@ -1,0 +1,416 @@
+"""Memory-bounded retrieval: exact search streamed from row sources, its tie order and its
+identity across budgets, approximate indexes, post-processing fitted once and reused."""
+import argparse
+import json
+
+import h5py
+import numpy as np
+import pytest
+
+from vprbench.aggregation import PCAWhitening
+from vprbench.cli.options import add_search_options, search_settings
+from vprbench.errors import VPRBenchError
+from vprbench.evaluation.search import ArrayRows, TransformedRows, _plan, exact_search, retrieve, search, tile_rows
+from vprbench.methods import Method
+from vprbench.rows import as_rows, parse_memory
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """BLAS and OpenMP on one thread: results do not depend on it, and on a shared 2-core
+    machine two contending threads made these tests three times slower."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1):
+        yield
+
+
+class H5Rows:
+    """A row source over an HDF5 dataset, as a descriptor store exposes it."""
+
+    def __init__(self, path, folder=None):
+        self.file = h5py.File(path, "r")
+        self.data = self.file["descriptors"]
+        self.row_count, self.dim = self.data.shape
+        self.dtype, self.folder = self.data.dtype, folder
+        self.reads = []
+
+    def read_rows(self, start, stop):
+        self.reads.append(stop - start)
+        return self.data[start:stop].astype(np.float32)
+
+    def read_rows_at(self, indices):
+        assert np.all(np.diff(indices) > 0), "indices must be sorted ascending"
+        self.reads.append(len(indices))
+        return self.data[np.asarray(indices)].astype(np.float32)
+
+
+def h5_rows(tmp_path, name, array, folder=None) -> H5Rows:
+    with h5py.File(tmp_path / f"{name}.h5", "w") as f:
+        f.create_dataset("descriptors", data=array, chunks=(min(len(array), 256), array.shape[1]))
+    return H5Rows(tmp_path / f"{name}.h5", folder)
+
+
+def unit(n, d, seed):
+    x = np.random.default_rng(seed).normal(size=(n, d)).astype(np.float32)
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+
+def budget_for(database, queries, k, chunks, query_chunks=1):
+    """The smallest budget (searched in 1 kB steps) whose plan has at most these chunk counts."""
+    db, q = as_rows(database), as_rows(queries)
+    budget = 10_000
+    while True:
+        try:
+            plan = _plan(db, q, k, budget)
+            if plan["chunks"] <= chunks and plan["query_chunks"] <= query_chunks:
+                return budget
+        except VPRBenchError:
+            pass
+        budget += 1000 if budget < 10**6 else 50_000
+
+
+def reference_topk(database, queries, k):
+    """Exact integer scores (float64), ordered by score descending, then index ascending."""
+    scores = queries.astype(np.float64) @ database.astype(np.float64).T
+    order = np.lexsort((np.broadcast_to(np.arange(len(database)), scores.shape), -scores), axis=1)[:, :k]
+    return np.take_along_axis(scores, order, 1), order
+
+
+def test_tie_order_is_score_then_lower_index_across_chunk_and_query_borders():
+    # small integers: every kernel computes the scores exactly, and ties are everywhere,
+    # so every chunk border (multiples of 1,024 rows here) cuts through tied groups
+    rng = np.random.default_rng(0)
+    db = rng.integers(-2, 3, size=(5000, 8)).astype(np.float32)
+    q = rng.integers(-2, 3, size=(2500, 8)).astype(np.float32)
+    ref_scores, ref_indices = reference_topk(db, q, 20)
+    assert tile_rows(8) == 1024
+    for budget in (10**9, budget_for(db, q, 20, chunks=2, query_chunks=2), budget_for(db, q, 20, chunks=5, query_chunks=3)):
+        result = exact_search(db, q, 20, memory_budget=budget)
+        np.testing.assert_array_equal(result.indices, ref_indices)
+        np.testing.assert_array_equal(result.scores, ref_scores.astype(np.float32))
+        assert result.indices.dtype == np.int64 and result.scores.dtype == np.float32
+    assert result.info["chunks"] == 5 and result.info["query_chunks"] == 3 and result.info["chunk_rows"] == 1024
+    assert result.info["tie_order"] == "score descending, then database index ascending"
+
+
+def test_identical_for_every_budget_with_duplicated_rows_on_tile_borders(tmp_path):
+    # 12 x 1,024 rows + 1: with small budgets the last chunk is a single row, where BLAS
+    # switches kernels (a product of one row differs from a large one by a few ulps)
+    db = unit(12_289, 64, 1)
+    db[1020:1031] = db[1020]     # 11 copies across the 1,024-row border
+    db[4090:4100] = db[7]        # copies of row 7 across the 4,096 border
+    db[8191:8193] = db[12_288]   # the last row duplicated across 8,192
+    q = unit(700, 64, 2)
+    q[0], q[1], q[2] = db[1020], db[7], db[12_288]
+    database, queries = h5_rows(tmp_path, "db", db), h5_rows(tmp_path, "q", q)
+    whole = exact_search(database, queries, 20, memory_budget=10**9)
+    assert whole.info["chunks"] == 1
+    for chunks in (4, 13):
+        budget = budget_for(db, q, 20, chunks=chunks)
+        database.reads.clear()
+        split = exact_search(database, queries, 20, memory_budget=budget)
+        assert split.info["chunks"] == chunks and max(database.reads) == split.info["chunk_rows"]
+        np.testing.assert_array_equal(split.scores, whole.scores)
+        np.testing.assert_array_equal(split.indices, whole.indices)
+    assert whole.indices[0, :11].tolist() == list(range(1020, 1031))
+    assert len(set(whole.scores[0, :11].tolist())) == 1 and whole.scores[0, 11] < whole.scores[0, 10]
+    assert whole.indices[1, :11].tolist() == [7, *range(4090, 4100)]
+    assert whole.indices[2, :3].tolist() == [8191, 8192, 12_288] and len(set(whole.scores[2, :3].tolist())) == 1
+    # everywhere: equal scores are in ascending index order
+    same = np.diff(whole.scores, axis=1) == 0
+    assert np.all(np.diff(whole.indices, axis=1)[same] > 0)
+
+
+def test_matches_faiss_flat_index_at_pitts250k_database_size():
+    import faiss
+
+    db, q = unit(250_000, 16, 3), unit(1000, 16, 4)
+    result = exact_search(db, q, 20, memory_budget=budget_for(db, q, 20, chunks=40))
+    assert result.info["chunks"] >= 30
+    index = faiss.IndexFlatIP(16)
+    index.add(db)
+    scores, indices = index.search(q, 20)
+    np.testing.assert_allclose(result.scores, scores, atol=2e-6)
+    # ranks can differ only where two scores are within rounding of each other
+    gaps = np.minimum(np.abs(np.diff(scores, axis=1, prepend=np.inf)), np.abs(np.diff(scores, axis=1, append=-np.inf)))
+    assert np.array_equal(result.indices[gaps > 1e-5], indices[gaps > 1e-5])
+
+
+def test_queries_chunked_at_pitts250k_query_count():
+    db, q = unit(10_000, 32, 5), unit(8193, 32, 6)  # Pitts-250k has 8,280 queries; 8 x 1,024 + 1 ends on one
+    q[8192] = q[5]
+    whole = exact_search(db, q, 5)
+    chunked = exact_search(db, q, 5, memory_budget=budget_for(db, q, 5, chunks=10, query_chunks=9))
+    assert chunked.info["query_chunks"] == 9 and chunked.info["query_chunk_rows"] == 1024
+    np.testing.assert_array_equal(chunked.scores[8192], chunked.scores[5])
+    np.testing.assert_array_equal(chunked.indices, whole.indices)
+    np.testing.assert_array_equal(chunked.scores, whole.scores)
+
+
+def test_float16_rows_are_computed_in_float32(tmp_path):
+    db, q = unit(3000, 24, 7).astype(np.float16), unit(50, 24, 8)
+    half = exact_search(h5_rows(tmp_path, "db16", db), q, 10)
+    widened = exact_search(db.astype(np.float32), q, 10)
+    np.testing.assert_array_equal(half.indices, widened.indices)
+    np.testing.assert_array_equal(half.scores, widened.scores)
+
+
+def test_search_keeps_its_tuple_form():
+    db = np.eye(4, dtype=np.float32)
+    scores, idx = search(db, np.array([[0.1, 0.9, 0.3, 0.0]], dtype=np.float32), 3)
+    assert idx.tolist() == [[1, 2, 0]] and idx.dtype == np.int64
+    np.testing.assert_allclose(scores, [[0.9, 0.3, 0.1]], rtol=1e-6)
+
+
+def test_budget_too_small_names_what_it_must_hold_and_the_option():
+    db, q = unit(5000, 128, 9), unit(3000, 128, 10)
+    with pytest.raises(VPRBenchError, match=r"memory budget of 1\.0 MB is too small for this search: it must hold "
+                                             r"the top-20 results of 3,000 queries \(720\.0 kB\).*1024 database rows.*"
+                                             r"Raise --search-memory \(memory_budget\) to at least"):
+        exact_search(db, q, 20, memory_budget="1MB")
+    with pytest.raises(VPRBenchError, match="K = 6000 must be between 1 and the 5000 database rows"):
+        exact_search(db, q, 6000)
+    with pytest.raises(VPRBenchError, match="Database descriptors have 128 dims, queries 3"):
+        exact_search(db, np.zeros((2, 3), np.float32), 1)
+    with pytest.raises(VPRBenchError, match="lacks row_count, dim, dtype, folder, read_rows, read_rows_at"):
+        exact_search([[1.0]], q, 1)
+
+
+@pytest.mark.parametrize("text, value", [("1GB", 10**9), ("512MiB", 2**29), ("2.5 gb", 2_500_000_000), (4096, 4096)])
+def test_memory_sizes(text, value):
+    assert parse_memory(text) == value
+
+
+def test_search_options():
+    parser = argparse.ArgumentParser()
+    add_search_options(parser)
+    assert search_settings(parser.parse_args([])) == {"memory_budget": 10**9, "index": "exact"}
+    assert search_settings(parser.parse_args(["--index", "ivf-pq", "--search-memory", "4GiB"])) == {
+        "memory_budget": 4 * 2**30, "index": "ivf-pq"}
+    with pytest.raises(VPRBenchError, match="Memory size '4 bananas' is not understood"):
+        search_settings(parser.parse_args(["--search-memory", "4 bananas"]))
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--index", "lsh"])
+
+
+# ---------------------------------------------------------------- retrieve
+class Whitened(Method):
+    def __init__(self, dim=16):
+        self.dim = dim
+
+    def describe(self, images):  # pragma: no cover - never called here
+        raise AssertionError
+
+    def postprocessor(self):
+        return PCAWhitening(self.dim)
+
+
+class OldPlugin(Method):
+    def describe(self, images):  # pragma: no cover
+        raise AssertionError
+
+    def postprocess(self, database, queries):
+        return database[:, :8] * 2, queries[:, :8] * 2
+
+
+def spectrum(n, d, seed):
+    """Descriptors with a decaying spectrum (distinct eigenvalues), L2-normalised."""
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(n, d)) * np.arange(1, d + 1) ** -0.5 + 0.2
+    return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
+
+
+def test_retrieve_fits_pca_once_and_is_identical_for_every_budget(tmp_path, monkeypatch):
+    db, q = spectrum(4097, 96, 11), spectrum(400, 96, 12)
+    db[4096] = db[10]  # the copy is the last tile of the transform, a single row
+    q[0] = db[10]
+    database, queries = h5_rows(tmp_path, "db", db, folder=tmp_path), h5_rows(tmp_path, "q", q)
+    first = retrieve(Whitened(), database, queries, 10)
+    assert first.indices[0, :2].tolist() == [10, 4096] and first.scores[0, 0] == first.scores[0, 1]
+    post = first.info["postprocess"]
+    assert post["state"] == "fitted" and post["key"]["postprocessor"] == {"kind": "pca-whitening", "dim": 16,
+                                                                          "solver": "covariance"}
+    assert post["file"].startswith(str(tmp_path)) and first.info["dim"] == 16
+    json.dumps(first.info)  # it goes into the JSON result record as is
+    pca = PCAWhitening(16).fit(db)
+    expected = exact_search(pca.transform(db), pca.transform(q), 10)
+    np.testing.assert_array_equal(first.indices, expected.indices)
+    np.testing.assert_allclose(first.scores, expected.scores, atol=1e-5)
+
+    def no_refit(*args, **kwargs):
+        raise AssertionError("a warm run refitted PCA")
+
+    small = budget_for(TransformedRows(ArrayRows(db), pca), TransformedRows(ArrayRows(q), pca), 10, chunks=5)
+    monkeypatch.setattr(PCAWhitening, "fit", no_refit)
+    for budget in (10**9, small):  # one chunk; five
+        warm = retrieve(Whitened(), database, queries, 10, memory_budget=budget)
+        assert warm.info["postprocess"]["state"] == "loaded"
+        np.testing.assert_array_equal(warm.indices, first.indices)
+        np.testing.assert_array_equal(warm.scores, first.scores)
+    assert warm.info["chunks"] == 5 and warm.info["memory_budget"] == small
+
+
+def test_transformed_rows_depend_neither_on_reads_nor_on_neighbours():
+    db = spectrum(4097, 96, 18)
+    db[4096] = db[10]  # alone in the last tile of the grid
+    rows = TransformedRows(ArrayRows(db), PCAWhitening(16).fit(db))
+    whole = rows.read_rows(0, 4097)
+    pieces = np.concatenate([rows.read_rows(a, min(a + 7, 4097)) for a in range(0, 4097, 7)])
+    np.testing.assert_array_equal(pieces, whole)
+    np.testing.assert_array_equal(whole[4096], whole[10])
+    np.testing.assert_array_equal(rows.read_rows_at(np.array([3, 10, 4096])), whole[[3, 10, 4096]])
+
+
+def test_unreadable_state_is_refitted(tmp_path):
+    db = ArrayRows(spectrum(600, 32, 13), folder=tmp_path)
+    first = retrieve(Whitened(8), db, db, 3)
+    with open(first.info["postprocess"]["file"], "wb") as f:
+        f.write(b"torn")
+    with pytest.warns(UserWarning, match="Refitting"):
+        again = retrieve(Whitened(8), db, db, 3)
+    assert again.info["postprocess"]["state"] == "fitted"
+    np.testing.assert_array_equal(again.indices, first.indices)
+
+
+def test_a_crash_while_saving_the_state_leaves_nothing_behind(tmp_path, monkeypatch):
+    db = ArrayRows(spectrum(600, 32, 13), folder=tmp_path)
+
+    def torn_savez(f, **arrays):
+        f.write(b"PK half a file")
+        raise KeyboardInterrupt  # killed mid-write
+
+    monkeypatch.setattr(np, "savez", torn_savez)
+    with pytest.raises(KeyboardInterrupt):
+        retrieve(Whitened(8), db, db, 3)
+    assert list(tmp_path.iterdir()) == []
+    monkeypatch.undo()
+    assert retrieve(Whitened(8), db, db, 3).info["postprocess"]["state"] == "fitted"
+
+
+CENTRING = """
+import numpy as np
+from vprbench.methods import Method
+from vprbench.rows import chunks
+
+
+class Centre:
+    \"\"\"A small post-processor: subtract the database mean.\"\"\"
+    def key(self, rows, memory_budget):
+        return {"kind": "centre"}
+
+    def fit(self, rows, memory_budget):
+        self.mean = sum(block.sum(axis=0, dtype=np.float64) for _, block in chunks(rows, 100)) / rows.row_count
+
+    def transform(self, x):
+        return (x - self.mean).astype(np.float32)
+
+    def state(self):
+        return {"mean": self.mean}
+
+    def load_state(self, state):
+        self.mean = state["mean"]
+
+
+class Centred(Method):
+    def describe(self, images):
+        raise AssertionError
+
+    def postprocessor(self):
+        return Centre()
+"""
+
+
+def test_two_processes_fitting_one_state_at_once(tmp_path):
+    import subprocess
+    import sys
+
+    np.save(tmp_path / "db.npy", unit(5000, 32, 19))
+    script = CENTRING + (
+        "import sys\nfrom vprbench.evaluation.search import ArrayRows, retrieve\n"
+        f"db = ArrayRows(np.load({str(tmp_path / 'db.npy')!r}), folder={str(tmp_path)!r})\n"
+        "np.save(sys.argv[1], retrieve(Centred(), db, db, 5).indices)\n")
+    runs = [subprocess.Popen([sys.executable, "-c", script, str(tmp_path / f"out{i}.npy")]) for i in range(2)]
+    assert [run.wait(timeout=120) for run in runs] == [0, 0]
+    states = sorted(p.name for p in tmp_path.iterdir() if p.name.startswith("postprocess-"))
+    assert len(states) == 1 and states[0].endswith(".npz")  # one whole file, no temporary left
+    np.testing.assert_array_equal(np.load(tmp_path / "out0.npy"), np.load(tmp_path / "out1.npy"))
+    namespace = {}
+    exec(CENTRING, namespace)
+    warm = retrieve(namespace["Centred"](), ArrayRows(np.load(tmp_path / "db.npy"), folder=tmp_path),
+                    np.load(tmp_path / "db.npy"), 5)
+    assert warm.info["postprocess"]["state"] == "loaded"
+    np.testing.assert_array_equal(warm.indices, np.load(tmp_path / "out0.npy"))
+
+
+def test_old_postprocess_override_still_runs_in_memory():
+    db, q = unit(300, 16, 14), unit(20, 16, 15)
+    result = retrieve(OldPlugin(), db, q, 5)
+    assert result.info["postprocess"] == {"kind": "OldPlugin.postprocess", "in_memory": True}
+    np.testing.assert_array_equal(result.indices, exact_search(db[:, :8] * 2, q[:, :8] * 2, 5).indices)
+
+
+def test_base_postprocess_applies_the_postprocessor_in_memory():
+    db, q = spectrum(500, 32, 16), spectrum(30, 32, 17)
+    out_db, out_q = Whitened(8).postprocess(db, q)
+    pca = PCAWhitening(8).fit(db)
+    np.testing.assert_array_equal(out_q, pca.transform(q))
+    assert out_db.shape == (500, 8)
+
+
+# ---------------------------------------------------------------- approximate
+def clustered(n, d, seed):
+    rng = np.random.default_rng(seed)
+    centres = rng.normal(size=(200, d))
+    x = centres[rng.integers(0, 200, n)] + 0.7 * rng.normal(size=(n, d))
+    return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
+
+
+def near_copies(db, n, seed):
+    rng = np.random.default_rng(seed)
+    q = db[rng.choice(len(db), n, replace=False)] + 0.05 * rng.normal(size=(n, db.shape[1])).astype(np.float32)
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("kind, n", [("ivf-pq", 12_000), ("hnsw", 4000)])
+def test_approximate_index_reports_its_measured_recall_loss(tmp_path, kind, n):
+    db = clustered(n, 32, 18)
+    q = near_copies(db, 300, 19)
+    database = h5_rows(tmp_path, "db", db)
+    result = retrieve(None, database, q, 10, index=kind)
+    info = result.info
+    json.dumps(info)
+    assert info["index"] == kind and info["options"]["shortlist"] == 100 and info["exact_fallback_queries"] == 0
+    loss = info["recall_loss"]
+    assert loss["queries"] == 200 and loss["seed"] == 0 and loss["k"] == 10
+    # the reported figures are what a check against exact search gives
+    sample = np.sort(np.random.default_rng(0).choice(300, 200, replace=False))
+    exact = exact_search(db, q[sample], 10).indices
+    assert loss["r1_agreement"] == pytest.approx(np.mean(result.indices[sample, 0] == exact[:, 0]))
+    overlap = np.mean([len(np.intersect1d(a, e)) / 10 for a, e in zip(result.indices[sample], exact)])
+    assert loss["topk_overlap"] == pytest.approx(overlap)
+    assert loss["r1_agreement"] >= 0.95 and loss["topk_overlap"] >= 0.9
+    # shortlists are re-scored exactly: the scores are true inner products, best first
+    true = np.einsum("qd,qkd->qk", q, db[result.indices])
+    np.testing.assert_allclose(result.scores, true, atol=1e-5)
+    assert np.all(np.diff(result.scores, axis=1) <= 0)
+    if kind == "ivf-pq":
+        assert info["options"]["nlist"] == 128 and info["options"]["train_rows"] == 9984  # 39 x 256 PQ centroids
+        assert max(database.reads) <= 12_000
+
+
+def test_approximate_options_unsuited_to_the_database_are_refused():
+    db, q = clustered(5000, 32, 20), clustered(10, 32, 21)
+    with pytest.raises(VPRBenchError, match=r"index='ivf-pq' needs at least 9,984 database rows to train .* "
+                                             r"this database has 5,000: use index='exact'"):
+        retrieve(None, db, q, 5, index="ivf-pq")
+    with pytest.raises(VPRBenchError, match="shortlist of 4 is smaller than K = 5: .*at least 5"):
+        retrieve(None, db, q, 5, index="hnsw", index_options={"shortlist": 4})
+    with pytest.raises(VPRBenchError, match="ef_search = 50 is smaller than the shortlist \\(100\\)"):
+        retrieve(None, db, q, 5, index="hnsw", index_options={"ef_search": 50})
+    with pytest.raises(VPRBenchError, match="does not take nprobe"):
+        retrieve(None, db, q, 5, index="hnsw", index_options={"nprobe": 3})
+    with pytest.raises(VPRBenchError, match="too small for index='hnsw' on 5,000 rows"):
+        retrieve(None, db, q, 5, index="hnsw", memory_budget="1MB")
+    with pytest.raises(VPRBenchError, match="Unknown index 'annoy': use one of exact, ivf-pq, hnsw"):
+        retrieve(None, db, q, 5, index="annoy")

@@ -1,0 +1,159 @@
+"""Sweeps: resume, failures, bad plans, two processes sharing one plan and cache, a killed runner."""
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from vprbench.cli.main import main
+from vprbench.evaluation import read_results
+
+PLAN = """name = "two-by-two"
+k = [1, 5]
+
+[[methods]]
+name = "hog"
+options = {{ resize = [64, 64] }}
+
+[[methods]]
+name = "hog"
+options = {{ resize = [32, 32] }}
+
+[[datasets]]
+name = "corridor"
+
+[[datasets]]
+name = "{own}"
+"""
+
+
+@pytest.fixture
+def own(shared_data, tmp_path):
+    """A folder of one's own from 40 Corridor frames: positions are frame numbers, radius 2."""
+    root = tmp_path / "corridor-own"
+    rows = ["image,frame"]
+    for split, folder in (("database", "ref"), ("queries", "query")):
+        (root / split).mkdir(parents=True)
+        for i in range(40):
+            shutil.copyfile(shared_data / "corridor" / folder / f"{i:07d}.jpg", root / split / f"{i:07d}.jpg")
+            rows.append(f"{split}/{i:07d}.jpg,{i}")
+    (root / "positions.csv").write_text("\n".join(rows) + "\n")
+    (root / "dataset.toml").write_text('radius = 2\nname = "corridor-own"\n')
+    return root
+
+
+@pytest.fixture
+def plan(tmp_path, own):
+    path = tmp_path / "plan.toml"
+    path.write_text(PLAN.format(own=own))
+    return path
+
+
+def records(cache: Path) -> list[dict]:
+    return read_results(cache)
+
+
+def vprbench(*args, cache: Path, data: Path):
+    env = {**os.environ, "VPRBENCH_CACHE": str(cache), "VPRBENCH_DATA": str(data), "COLUMNS": "200"}
+    return subprocess.Popen([sys.executable, "-m", "vprbench.cli.main", *args], env=env, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+
+def comparable(record: dict) -> tuple:
+    return (record["method_options"]["resize"], record["protocol"]["id"], record["recall"], record["top_predictions"])
+
+
+def test_two_processes_share_the_cells_each_once_and_match_a_sequential_run(plan, shared_data, tmp_path, capsys):
+    sequential = tmp_path / "sequential"
+    assert main(["run", str(plan), "--cache-dir", str(sequential), "--data-dir", str(shared_data)]) == 0
+    alone = sorted(comparable(r) for r in records(sequential))
+    assert len(alone) == 4 and len({r[1] for r in alone}) == 2 and "two-by-two: 4 ran" in capsys.readouterr().out
+    # again: every cell complete, nothing recomputed
+    assert main(["run", str(plan), "--cache-dir", str(sequential), "--data-dir", str(shared_data)]) == 0
+    assert "two-by-two: 4 skipped" in capsys.readouterr().out and len(records(sequential)) == 4
+
+    shared = tmp_path / "shared-cache"
+    runs = [vprbench("run", str(plan), cache=shared, data=shared_data) for _ in range(2)]
+    outputs = [r.communicate(timeout=240) for r in runs]
+    assert [r.returncode for r in runs] == [0, 0], outputs
+    together = records(shared)
+    assert len(together) == 4 and len({r["context"]["sweep"]["cell"] for r in together}) == 4  # each cell once
+    assert sorted(comparable(r) for r in together) == alone  # identical to the sequential run
+    def counted(status):  # from each process's table title, e.g. "two-by-two: 2 ran, 2 done elsewhere"
+        return sum(int(n) for out, _ in outputs for n in re.findall(rf"(\d+) {status}\b", out.splitlines()[0]))
+
+    assert counted("ran") == 4 and counted("done elsewhere") + counted("skipped") == 4, outputs
+
+
+def test_a_killed_runner_s_cell_is_resumed_by_another(shared_data, tmp_path):
+    plan = tmp_path / "one.toml"
+    plan.write_text('[[methods]]\nname = "hog"\n\n[[datasets]]\nname = "corridor"\n')
+    cache = tmp_path / "cache"
+    first = vprbench("run", str(plan), "--lease", "1", cache=cache, data=shared_data)
+    deadline = time.time() + 120
+    while not list(cache.glob("stores/*/*/*.partial.h5")) and time.time() < deadline and first.poll() is None:
+        time.sleep(0.05)
+    assert first.poll() is None, first.communicate()
+    os.kill(first.pid, signal.SIGKILL)
+    first.wait()
+    assert list(cache.glob("sweeps/claims/*.lease")), "the dead runner's claim is left behind"
+    second = vprbench("run", str(plan), "--lease", "1", cache=cache, data=shared_data)
+    out, err = second.communicate(timeout=240)
+    assert second.returncode == 0, err
+    (record,) = records(cache)
+    assert "taken over from" in record["context"]["sweep"]["resumed"]
+    assert "resumed" in out and not list(cache.glob("sweeps/claims/*.lease"))
+    assert record["counts"]["queries"] == 111 and record["descriptors_computed"]["queries"] <= 111
+
+
+def test_bad_plan_lists_every_problem_with_lines_and_runs_nothing(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "1000")  # one problem per line, unwrapped
+    plan = tmp_path / "bad.toml"
+    plan.write_text('name = "bad"\nkk = [1]\n\n[[methods]]\nname = "hogg"\n\n[[methods]]\nname = "hog"\n'
+                    'options = { layer = 3 }\ncolour = "red"\n\n[[datasets]]\nname = "coridor"\n\n'
+                    '[[datasets]]\nname = "nordland"\nprotocols = ["tolerance-5"]\n')
+    assert main(["run", str(plan)]) == 1
+    err = capsys.readouterr().err
+    for expected in ("6 problem(s)", "bad.toml:2: unknown key 'kk'", "bad.toml:5: unknown method 'hogg'",
+                     "bad.toml:9: method 'hog' does not take option 'layer'", "bad.toml:10: method entry 2 has unknown key 'colour'",
+                     "bad.toml:13: unknown dataset 'coridor'", "bad.toml:17: dataset 'nordland' has no protocol 'tolerance-5'",
+                     "vpr-bench, tolerance-10, swapped"):
+        assert expected in " ".join(err.split()), err
+    assert not read_results(tmp_path / "cache")
+    plan.write_text("[[methods]\n")
+    assert main(["run", str(plan)]) == 1 and "not valid TOML" in capsys.readouterr().err
+
+
+def test_evaluate_matrix_continues_past_a_failing_cell(shared_data, tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "1000")
+    code = main(["evaluate", "--method", "hog", "--dataset", "corridor", "hawkins", "--data-dir", str(shared_data),
+                 "--resize", "32", "32", "--k", "1"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert code == 1 and "1 ran" in out and "1 failed" in out and "'hawkins' is not in the data root" in out
+    assert [r["dataset"] for r in records(tmp_path / "cache")] == ["corridor"]
+    code = main(["evaluate", "--method", "hog", "--dataset", "corridor", "--protocol", "swapped"])
+    assert code == 1 and "has no protocol 'swapped'" in capsys.readouterr().err
+
+
+def test_reproduce_dry_run_and_bad_table(shared_data, capsys, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "400")
+    assert main(["reproduce", "anyloc", "--table", "2", "--dry-run", "--data-dir", str(shared_data)]) == 0
+    out = capsys.readouterr().out
+    assert "60 cells" in out and out.count("not runnable: no vprbench method") == 6
+    assert "dataset baidu-mall (Download baidu_datasets.tar.gz" in out
+    assert "weights dinov2_vitg14_pretrain.pth (download https://dl.fbaipublicfiles.com/dinov2/dinov2_vitg14/" in out
+    assert "weights ResNet101_2048_cosplace.pth (from https://github.com/gmberton/CosPlace/" in out
+    assert not (shared_data.parent / "cache").exists()
+    assert main(["reproduce", "anyloc", "--table", "9"]) == 1
+    assert "no table '9' here; tables: 2, 3, 4, 5, 6, 7, layer, facet" in capsys.readouterr().err
+    from vprbench.sweep.reproduce import table_cells
+
+    spec, cells = table_cells("anyloc", "layer")  # one row per released run, options from its setting
+    assert len(cells) == 165 and cells[0].cells[0].options["aggregation"] == "vlad"

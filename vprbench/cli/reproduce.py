@@ -1,0 +1,119 @@
+"""vprbench reproduce PAPER --table N [--dry-run] [--publish DIR]."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from rich.table import Table
+from rich.text import Text
+
+from ..sweep import find_record, run_cells, summary_table
+from ..sweep.reproduce import measured, missing_for, reported_value, table_cells, table_spec
+from ..sweep.runner import FAILED
+from .console import console as make_console
+from .options import add_location_options, apply_locations
+from .run import add_sweep_options
+
+
+def add_parsers(commands) -> None:
+    p = commands.add_parser("reproduce", help="run a paper's table as a plan and print it with measured values")
+    p.add_argument("paper", help="the paper (anyloc)")
+    p.add_argument("--table", required=True, help="2, 3, 4, 5, 6, 7, layer or facet")
+    p.add_argument("--dry-run", action="store_true", help="list the cells and what each needs; run nothing")
+    p.add_argument("--publish", type=Path, metavar="DIR", help="also write the table (Markdown) and the leaderboard into DIR")
+    p.add_argument("--device", help="torch device for every method that takes one")
+    add_sweep_options(p)
+    add_location_options(p)
+    p.set_defaults(run=run_reproduce)
+
+
+def _row_weights(spec: dict) -> dict:
+    return {row["row"]: row.get("weights") for row in spec.get("rows", [])}
+
+
+def run_reproduce(args) -> int:
+    apply_locations(args)
+    spec, table_cells_ = table_cells(args.paper, args.table)
+    weights = _row_weights(spec)
+    cells = {c.key: (c, tc) for tc in table_cells_ for c in tc.cells}
+    if args.device:
+        for key, (c, tc) in list(cells.items()):
+            c.options.setdefault("device", args.device)
+    console = make_console()
+    missing = {key: missing_for(c, weights.get(tc.row), args.data_dir) for key, (c, tc) in cells.items()}
+    if args.dry_run:
+        listing = Table(title=f"{spec['title']}: {len(cells)} cells (dry run, nothing runs)")
+        for column in ("row", "column", "dataset:protocol", "status"):
+            listing.add_column(column, overflow="fold")
+        for tc in table_cells_:
+            for c in tc.cells or [None]:
+                if c is None:
+                    listing.add_row(tc.row, tc.column, "", Text.assemble(("not runnable", "yellow"), f": {tc.reason}"))
+                    continue
+                record = find_record(c, args.cache_dir)
+                status = (Text.assemble(("complete", "cyan"), f" (record of {record.get('created')})") if record else
+                          Text.assemble(("missing", "yellow"), f": {missing[c.key]}") if missing[c.key] else
+                          Text("would run", style="green"))
+                listing.add_row(tc.row, tc.column, c.protocol_id, status)
+        console.print(listing)
+        return 0
+    outcomes = run_cells([c for c, _ in cells.values()], data_dir=args.data_dir, cache_dir=args.cache_dir,
+                         lease_s=args.lease, plan=f"{args.paper} table {args.table}",
+                         runnable=lambda c: missing[c.key])
+    console.print(summary_table(outcomes, f"{args.paper} table {args.table}"))
+    rendered = paper_table(spec, table_cells_, args.cache_dir)
+    console.print(rendered)
+    if args.publish:
+        publish(args, spec, rendered)
+    return 1 if any(o.status == FAILED for o in outcomes) else 0
+
+
+def paper_table(spec: dict, table_cells_, cache_dir=None) -> Table:
+    table = Table(title=f"{spec['title']} — reported (paper) / measured here (delta) [95% CI]")
+    table.add_column("row")
+    columns = list(dict.fromkeys(tc.column for tc in table_cells_))
+    for column in columns:
+        for metric in spec["metrics"]:
+            table.add_column(f"{column} {metric.upper()}", overflow="fold")
+    by_row: dict[str, dict] = {}
+    for tc in table_cells_:
+        by_row.setdefault(tc.row, {})[tc.column] = tc
+    for row, cells in by_row.items():
+        values = []
+        for column in columns:
+            tc = cells.get(column)
+            records = [find_record(c, cache_dir) for c in tc.cells] if tc else []
+            for metric in spec["metrics"]:
+                reported = reported_value(spec, row, column, metric)
+                shown = "-" if reported is None else f"{reported:.1f}"
+                found = measured(records, metric)
+                if found:
+                    value, low, high = found
+                    delta = f" ({value - reported:+.1f})" if reported is not None else ""
+                    shown += f" / {value:.1f}{delta} [{low:.1f}, {high:.1f}]"
+                else:
+                    shown += " / not measured"
+                values.append(shown)
+        table.add_row(row, *values)
+    return table
+
+
+def publish(args, spec: dict, rendered: Table) -> None:
+    """The table as Markdown beside the leaderboard page (through the leaderboard's publish)."""
+    from rich.console import Console as RichConsole
+
+    from .. import leaderboard
+    from ..errors import VPRBenchError
+
+    args.publish.mkdir(parents=True, exist_ok=True)
+    capture = RichConsole(record=True, width=200, markup=False)
+    capture.print(rendered)
+    page = args.publish / f"{args.paper}-table-{args.table}.md"
+    page.write_text(f"# {spec['title']}\n\nReported by the paper / measured by vprbench here.\n\n```\n{capture.export_text()}```\n",
+                    encoding="utf-8")
+    try:
+        leaderboard.publish(args.publish, args.cache_dir)
+    except VPRBenchError:
+        pass  # no results yet: the table page alone
+    make_console(stderr=True).print(f"wrote {page}")
+
+

@@ -1,0 +1,111 @@
+"""Reading the authors' .npy files without running code.
+
+VPR-Bench's `ground_truth_new.npy` (rows `[query_index, [positives]]`) and other released
+ground-truth and pose files are numpy object arrays, which numpy stores as a pickle:
+`np.load(allow_pickle=True)` would run whatever a hostile file names. `read_npy` reads
+numeric arrays with numpy (no pickle at all), and object arrays with an unpickler that knows
+only numpy's own array, dtype and scalar reconstruction; it then accepts only what these
+files hold: ints and floats, lists, tuples or arrays of them, and texts (a pose table may
+name its ROS topic); the caller checks the shape it needs.
+"""
+from __future__ import annotations
+
+import math
+import pickle
+import struct
+from pathlib import Path
+
+import numpy as np
+from numpy.lib import format as npy_format
+
+from ...errors import VPRBenchError
+
+try:
+    from numpy._core import multiarray
+except ImportError:  # numpy 1.x
+    from numpy.core import multiarray
+
+
+def _reconstruct(subtype, shape, dtype):
+    if subtype is not np.ndarray or math.prod(shape) > 1:  # numpy writes (ndarray, (0,), ...)
+        raise pickle.UnpicklingError(f"it rebuilds {subtype!r} of shape {shape!r}, not numpy's empty array")
+    return multiarray._reconstruct(subtype, shape, dtype)
+
+
+#: everything a pickled numpy object array refers to, under numpy 1.x and 2.x module names
+_ALLOWED = {("numpy", "ndarray"): np.ndarray, ("numpy", "dtype"): np.dtype}
+for _module in ("numpy.core.multiarray", "numpy._core.multiarray"):
+    _ALLOWED[_module, "_reconstruct"] = _reconstruct
+    _ALLOWED[_module, "scalar"] = multiarray.scalar
+
+
+class _ArrayUnpickler(pickle.Unpickler):
+    def find_class(self, module, name):
+        if (module, name) not in _ALLOWED:
+            raise pickle.UnpicklingError(
+                f"it asks to load {module}.{name}, which a data file never needs (unpickling it could run code)"
+            )
+        return _ALLOWED[module, name]
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+
+
+def _numbers(value) -> bool:
+    if isinstance(value, np.ndarray):
+        return value.dtype.kind in "iuf" or (value.dtype == object and all(_number(v) for v in value.ravel()))
+    return isinstance(value, (list, tuple)) and all(_number(v) for v in value)
+
+
+def _check_entries(array: np.ndarray) -> None:
+    for index, value in np.ndenumerate(array):
+        if not (_number(value) or _numbers(value) or isinstance(value, str)):
+            where = ", ".join(map(str, index))
+            raise ValueError(f"entry [{where}] is a {type(value).__name__}, not a number, a list of numbers or a text")
+
+
+def _header(handle) -> tuple[tuple, np.dtype]:
+    if handle.read(6) != npy_format.MAGIC_PREFIX:
+        raise ValueError("it is not a .npy file (no numpy header)")
+    handle.seek(0)
+    version = npy_format.read_magic(handle)
+    if version == (1, 0):
+        shape, _, dtype = npy_format.read_array_header_1_0(handle)
+    else:  # 2.0 and 3.0 differ from 1.0 only in the header's length field (and 3.0 in its encoding)
+        shape, _, dtype = npy_format.read_array_header_2_0(handle)
+    return tuple(shape), dtype
+
+
+def _unpickle_array(handle, shape: tuple) -> np.ndarray:
+    array = _ArrayUnpickler(handle, encoding="latin1").load()  # latin1: numpy's advice for Python 2 files
+    if not isinstance(array, np.ndarray) or array.shape != shape:
+        raise ValueError(f"its pickle holds a {type(array).__name__}, not the {shape} array its header announces")
+    _check_entries(array)
+    return array
+
+
+def read_npy(path: Path, what: str, expected: str) -> np.ndarray:
+    """The array in an .npy file: numbers or texts, or an object array of numbers, lists of
+    numbers and texts.
+
+    Anything else, a pickle asking for any other Python object included, is refused with a
+    VPRBenchError naming the file, `what` it is and what was `expected`; nothing is run.
+    OSError (missing file, permissions) is left to the caller (the CLI names the path).
+    """
+    path = Path(path)
+    with open(path, "rb") as handle:
+        try:
+            shape, dtype = _header(handle)
+            if dtype.hasobject:
+                return _unpickle_array(handle, shape)
+            if dtype.kind not in "iufUS":  # numbers, or texts (image lists): no pickle involved
+                raise ValueError(f"it holds {dtype} values, not numbers or texts")
+            needed, available = math.prod(shape) * dtype.itemsize, path.stat().st_size - handle.tell()
+            if needed > available:
+                raise ValueError(f"it is truncated ({available} of {needed} data bytes)")
+            handle.seek(0)
+            return np.load(handle, allow_pickle=False)
+        except (pickle.UnpicklingError, ValueError, TypeError, EOFError, AttributeError, IndexError, KeyError,
+                OverflowError, MemoryError, RecursionError, struct.error) as error:
+            raise VPRBenchError(f"Cannot read {what} {path}: {error}. Expected {expected}.") from None

@@ -1,0 +1,165 @@
+"""Approximate search for very large databases: a faiss IVF-PQ or HNSW index trained on a
+seeded sample and filled chunk by chunk from the row source, each query's shortlist
+re-scored exactly from the rows, and the recall lost against exact search measured on a
+seeded sample of queries."""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from ..errors import VPRBenchError
+from ..rows import READ_BYTES, ArrayRows, RowSource, chunks, format_bytes
+from .search import SearchResult, TIE_ORDER, check_pair, exact_search, order_results, read_cost
+
+APPROXIMATE = ("ivf-pq", "hnsw")
+#: faiss's k-means wants at least 39 training points per centroid
+POINTS_PER_CENTROID = 39
+PQ_CENTROIDS = 256  # 8-bit PQ codes
+DEFAULTS = {"shortlist": 100, "recall_queries": 200, "seed": 0,
+            "nprobe": 32, "hnsw_m": 32, "ef_construction": 40}
+OPTIONS = {"ivf-pq": ("nlist", "pq_m", "nprobe", "train_rows", "shortlist", "recall_queries", "seed"),
+           "hnsw": ("hnsw_m", "ef_construction", "ef_search", "train_rows", "shortlist", "recall_queries", "seed")}
+
+
+def _resolve(kind: str, n: int, dim: int, k: int, given: dict | None) -> dict:
+    """Every option of `kind`, defaults filled in for this database, checked against its size."""
+    given = dict(given or {})
+    unknown = sorted(set(given) - set(OPTIONS[kind]))
+    if unknown:
+        raise VPRBenchError(f"index={kind!r} does not take {', '.join(unknown)}; its options: {', '.join(OPTIONS[kind])}.")
+    o = {**{name: DEFAULTS[name] for name in OPTIONS[kind] if name in DEFAULTS}, **given}
+    o["shortlist"] = int(given.get("shortlist", min(n, max(k, DEFAULTS["shortlist"]))))
+    if o["shortlist"] < k:
+        raise VPRBenchError(f"A shortlist of {o['shortlist']} is smaller than K = {k}: index={kind!r} needs a "
+                            f"shortlist of at least {k} (or use index='exact').")
+    if o["shortlist"] > n:
+        raise VPRBenchError(f"A shortlist of {o['shortlist']} exceeds the {n:,} database rows: use index='exact' "
+                            "(an approximate index buys nothing at this size).")
+    if kind == "ivf-pq":
+        if "nlist" not in given:  # about sqrt(n) lists, each trainable
+            o["nlist"] = 1 << max(0, round(math.log2(math.sqrt(n))))
+            while o["nlist"] > 1 and POINTS_PER_CENTROID * o["nlist"] > n:
+                o["nlist"] //= 2
+        # about 8 dims per sub-quantizer, at most 64 bytes per code
+        o["pq_m"] = int(given.get("pq_m", next(m for m in range(min(64, max(1, dim // 8)), 0, -1) if dim % m == 0)))
+        if o["pq_m"] < 1 or dim % o["pq_m"]:
+            raise VPRBenchError(f"pq_m = {o['pq_m']} must divide the descriptor dimension {dim}.")
+        least = POINTS_PER_CENTROID * max(int(o["nlist"]), PQ_CENTROIDS)
+        if n < least:
+            raise VPRBenchError(
+                f"index='ivf-pq' needs at least {least:,} database rows to train its coarse quantizer "
+                f"({POINTS_PER_CENTROID} per list x nlist={o['nlist']}) and PQ codebooks ({POINTS_PER_CENTROID} x "
+                f"{PQ_CENTROIDS} centroids); this database has {n:,}: use index='exact'.")
+        o["nprobe"] = min(int(o["nprobe"]), int(o["nlist"]))
+        o["train_rows"] = int(given.get("train_rows", min(n, max(least, 64 * int(o["nlist"])))))
+        if not least <= o["train_rows"] <= n:
+            raise VPRBenchError(f"train_rows = {o['train_rows']:,} must be between {least:,} and the {n:,} database rows.")
+    else:
+        o["ef_search"] = int(given.get("ef_search", max(o["shortlist"], 64)))
+        if o["ef_search"] < o["shortlist"]:
+            raise VPRBenchError(f"ef_search = {o['ef_search']} is smaller than the shortlist ({o['shortlist']}): "
+                                f"use ef_search >= {o['shortlist']}.")
+        o["train_rows"] = int(given.get("train_rows", min(n, 10_000)))
+        if not 1 <= o["train_rows"] <= n:
+            raise VPRBenchError(f"train_rows = {o['train_rows']:,} must be between 1 and the {n:,} database rows.")
+    if o["recall_queries"] < 1:
+        raise VPRBenchError(f"recall_queries must be at least 1, got {o['recall_queries']}.")
+    return {name: int(value) for name, value in o.items()}
+
+
+def _index_bytes(kind: str, n: int, dim: int, o: dict) -> int:
+    """Memory the filled index takes (inverted lists may hold twice their codes while growing)."""
+    if kind == "ivf-pq":
+        return 2 * n * (o["pq_m"] + 8) + (o["nlist"] + PQ_CENTROIDS) * dim * 4
+    return n * (dim + 2 * o["hnsw_m"] * 4 + 16)  # 8-bit codes + level-0 links (+ upper levels)
+
+
+def _build(kind: str, database: RowSource, o: dict, budget: int):
+    import faiss
+
+    dim, n = database.dim, database.row_count
+    if kind == "ivf-pq":
+        index = faiss.index_factory(dim, f"IVF{o['nlist']},PQ{o['pq_m']}", faiss.METRIC_INNER_PRODUCT)
+        index.nprobe, index.do_polysemous_training = o["nprobe"], False  # polysemous codes: unused, slow
+    else:
+        index = faiss.index_factory(dim, f"HNSW{o['hnsw_m']},SQ8", faiss.METRIC_INNER_PRODUCT)
+        index.hnsw.efConstruction, index.hnsw.efSearch = o["ef_construction"], o["ef_search"]
+    sample = np.sort(np.random.default_rng(o["seed"]).choice(n, o["train_rows"], replace=False))
+    index.train(np.ascontiguousarray(database.read_rows_at(sample), dtype=np.float32))
+    row_bytes, fixed = read_cost(database)
+    chunk_rows = max(1, min(READ_BYTES, budget - fixed) // row_bytes)
+    for _, rows in chunks(database, chunk_rows):
+        index.add(rows)
+    return index, chunk_rows
+
+
+def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind: str, memory_budget: int,
+                       options: dict | None = None) -> SearchResult:
+    if kind not in APPROXIMATE:
+        raise VPRBenchError(f"Unknown approximate index {kind!r}: use one of {', '.join(APPROXIMATE)}.")
+    check_pair(database, queries, k)
+    n, dim, n_queries = database.row_count, database.dim, queries.row_count
+    o = _resolve(kind, n, dim, k, options)
+    index_bytes = _index_bytes(kind, n, dim, o)
+    (row_bytes, fixed), (q_row, q_fixed) = read_cost(database), read_cost(queries)
+    # training set + index, and per query: its row, its shortlist's rows and the index's answers
+    per_query = q_row + o["shortlist"] * (row_bytes + 12)
+    need = max(o["train_rows"] * row_bytes + fixed, fixed) + index_bytes + q_fixed + n_queries * k * 12 + per_query
+    if memory_budget < need:
+        raise VPRBenchError(
+            f"A memory budget of {format_bytes(memory_budget)} is too small for index={kind!r} on {n:,} rows of {dim:,} "
+            f"dims: the index takes about {format_bytes(index_bytes)}, its training sample of {o['train_rows']:,} rows "
+            f"{format_bytes(o['train_rows'] * row_bytes)}, {format_bytes(need)} in all. Raise --search-memory "
+            "(memory_budget) to at least that, or lower train_rows / pq_m.")
+    started = time.perf_counter()
+    index, chunk_rows = _build(kind, database, o, memory_budget - index_bytes)
+    build_s = time.perf_counter() - started
+
+    started = time.perf_counter()
+    q_chunk = max(1, (memory_budget - index_bytes - q_fixed - n_queries * k * 12) // per_query)
+    scores = np.empty((n_queries, k), dtype=np.float32)
+    indices = np.empty((n_queries, k), dtype=np.int64)
+    short = []  # queries whose shortlist came back with fewer than k rows
+    for q0, block in chunks(queries, q_chunk):
+        _, found = index.search(block, o["shortlist"])
+        rows_ids = np.unique(found[found >= 0])
+        rows = database.read_rows_at(rows_ids)
+        for i, candidates in enumerate(found):
+            candidates = candidates[candidates >= 0]
+            if len(candidates) < k:
+                short.append(q0 + i)
+                continue
+            exact = rows[np.searchsorted(rows_ids, candidates)] @ block[i]
+            s, c = order_results(exact[None], candidates[None])
+            scores[q0 + i], indices[q0 + i] = s[0, :k], c[0, :k]
+    del index
+    if short:  # honest fallback: those queries are searched exactly
+        fallback = exact_search(database, ArrayRows(queries.read_rows_at(np.array(short))), k, memory_budget=memory_budget)
+        scores[short], indices[short] = fallback.scores, fallback.indices
+    query_s = time.perf_counter() - started
+
+    info = {"index": kind, "memory_budget": int(memory_budget), "options": o, "index_bytes": index_bytes,
+            "chunk_rows": int(chunk_rows), "chunks": -(-n // chunk_rows), "query_chunk_rows": int(min(q_chunk, n_queries)),
+            "query_chunks": -(-n_queries // q_chunk), "exact_fallback_queries": len(short),
+            "build_s": round(build_s, 3), "query_s": round(query_s, 3), "tie_order": TIE_ORDER,
+            "recall_loss": recall_loss(database, queries, k, indices, o, memory_budget)}
+    return SearchResult(scores, indices, info)
+
+
+def recall_loss(database: RowSource, queries: RowSource, k: int, indices: np.ndarray, o: dict, budget: int) -> dict:
+    """Agreement with exact search on a seeded sample of queries: the share whose top-1 is the
+    exact top-1, and the mean share of the exact top-k found."""
+    n_queries = queries.row_count
+    sample = np.sort(np.random.default_rng(o["seed"]).choice(n_queries, min(n_queries, o["recall_queries"]),
+                                                              replace=False))
+    exact = exact_search(database, ArrayRows(queries.read_rows_at(sample)), k, memory_budget=budget).indices
+    approx = indices[sample]
+    overlap = np.mean([len(np.intersect1d(a, e)) / k for a, e in zip(approx, exact)])
+    agreement = float(np.mean(approx[:, 0] == exact[:, 0]))
+    return {"queries": int(len(sample)), "seed": o["seed"], "k": int(k), "r1_agreement": round(agreement, 6),
+            "topk_overlap": round(float(overlap), 6), "r1_loss": round(1 - agreement, 6)}
+
+
+__all__ = ["APPROXIMATE", "approximate_search", "recall_loss"]

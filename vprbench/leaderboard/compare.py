@@ -1,0 +1,67 @@
+"""`vprbench leaderboard compare A B --dataset D`: two cells, paired over the same queries."""
+from __future__ import annotations
+
+from ..errors import VPRBenchError, closest_names
+from .cells import Board, Cell
+from .stats import RESAMPLES, bootstrap_ci, format_p, overlaps, paired_test, successes
+
+
+def _cell(board: Board, method: str, dataset: str) -> Cell:
+    columns = [c for c in board.columns if dataset in (c.key, c.dataset)]
+    benchmark = [c for c in columns if c.kind == "benchmark"]
+    if not columns:
+        names = [c.key for c in board.columns]
+        raise VPRBenchError(f"No run on dataset {dataset!r} fills a cell.{closest_names(dataset, names)} "
+                            f"Datasets on the leaderboard: {', '.join(names) or 'none'}.")
+    if len(columns) > 1 and not benchmark:
+        raise VPRBenchError(f"Several own datasets are named {dataset!r}: give one of {', '.join(repr(c.key) for c in columns)}.")
+    column = ([c for c in benchmark if c.key == dataset or c.default] or benchmark or columns)[0]
+    rows = [r for r in board.find_row(method) if board.cell(r, column)]
+    if not rows:
+        names = [r.name for r in board.rows if board.cell(r, column)]
+        raise VPRBenchError(f"No run of {method!r} on {column.key}.{closest_names(method, names)} "
+                            f"Rows on {column.key}: {', '.join(names)}.")
+    official = [r for r in rows if r.official]
+    if len(rows) > 1 and len(official) != 1:
+        raise VPRBenchError(f"{method!r} has several rows on {column.key}: give one of {', '.join(repr(r.name) for r in rows)}.")
+    return board.cell((official or rows)[0], column)
+
+
+def compare(board: Board, a: str, b: str, dataset: str, *, k: int = 1, seed: int = 0) -> dict:
+    """Both cells' R@k with intervals, and the paired tests of A against B."""
+    first, second = _cell(board, a, dataset), _cell(board, b, dataset)
+    for cell in (first, second):
+        if cell.arrays is None:
+            raise VPRBenchError(f"Run {cell.record.get('run_id')} ({cell.row.name}) has no per-query data (recorded by "
+                                "vprbench 0.1, or its .npz is gone): rerun it to compare.")
+        if cell.record["per_query"]["k"] < k:
+            raise VPRBenchError(f"Run {cell.record.get('run_id')} searched only the top {cell.record['per_query']['k']}: "
+                                f"R@{k} cannot be compared; use a smaller --k.")
+    ranks = [c.arrays["first_positive_rank"] for c in (first, second)]
+    if len(ranks[0]) != len(ranks[1]) or first.record.get("dataset_fingerprint") != second.record.get("dataset_fingerprint"):
+        raise VPRBenchError(f"The two runs were not on the same queries of {dataset} (dataset fingerprints "
+                            f"{first.record.get('dataset_fingerprint')} and {second.record.get('dataset_fingerprint')}).")
+    wins = [successes(r, k) for r in ranks]
+    intervals = [bootstrap_ci(w, seed=seed) for w in wins]
+    return {"dataset": first.column.key, "k": k, "cells": (first, second), "intervals": intervals,
+            "overlap": overlaps(*intervals), "test": paired_test(*wins, seed=seed)}
+
+
+def describe(result: dict) -> str:
+    first, second = result["cells"]
+    t, k = result["test"], result["k"]
+    width = max(len(first.row.name), len(second.row.name))
+    lines = [f"{result['dataset']}: R@{k} of two runs over the same {t['queries']} queries "
+             f"(seeded bootstrap, {RESAMPLES:,} resamples, seed {t['seed']})"]
+    for cell, (low, high), value in zip((first, second), result["intervals"], (t["a"], t["b"])):
+        lines.append(f"  {cell.row.name:<{width}}  R@{k} {value:5.1f} %  95 % CI [{low:.1f}, {high:.1f}]  "
+                     f"run {cell.record.get('run_id')}")
+    lines += [
+        f"  intervals overlap: {'yes' if result['overlap'] else 'no'}",
+        f"  difference ({first.row.name} - {second.row.name}): {t['difference']:+.1f} pp, 95 % CI "
+        f"[{t['ci'][0]:+.1f}, {t['ci'][1]:+.1f}], paired bootstrap p {format_p(t['p_bootstrap'], t['resamples'])}",
+        f"  McNemar exact test: {t['only_a']} queries only {first.row.name} gets right, {t['only_b']} only "
+        f"{second.row.name}; p = {t['p_mcnemar']:.3g}",
+        f"  {'A difference at the 5 % level' if t['p_mcnemar'] < 0.05 else 'No difference at the 5 % level'} (McNemar).",
+    ]
+    return "\n".join(lines)

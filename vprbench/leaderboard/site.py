@@ -1,0 +1,325 @@
+"""`vprbench leaderboard publish --to DIR`: the leaderboard section of the docs site.
+
+Everything is written into a temporary folder beside the target and swapped in at the end,
+so a failure (full disk, a kill) leaves the previous section whole and no partial one.
+"""
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import tempfile
+import warnings
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .. import __version__
+from ..errors import VPRBenchError
+from ..evaluation.record import read_results
+from ..reference import paper_results
+from . import figures
+from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board
+from .stats import RESAMPLES, format_p, overlaps, paired_test, successes
+from .tables import GROUPS, LEGEND, TOLERANCE_PP, cell_stats, comparisons, fmt, group_table, other_rows
+
+SECTION = "leaderboard"
+#: MkDocs Material front matter: the wide tables get the table-of-contents column
+PAGE_HEAD = "---\nhide:\n  - toc\n---\n"
+#: mosaics drawn per dataset page (the best rows by R@1)
+MOSAIC_ROWS = 4
+
+
+def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0) -> Path:
+    """Write <folder>/leaderboard/ (overview, one page per dataset, figures, downloads) from the
+    results store; returns that folder. Nothing is changed when anything fails."""
+    from filelock import FileLock, Timeout
+
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise VPRBenchError(f"--to {folder} is a file, not a folder: give the docs folder, e.g. --to docs/")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        records = read_results(cache_dir)
+    for warning in caught:  # corrupt or foreign records: named, then left out
+        warnings.warn(str(warning.message), stacklevel=2)
+    if not records:
+        raise VPRBenchError("No results yet: run 'vprbench evaluate --method M --dataset D' first; nothing was written.")
+    target = folder / SECTION
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{SECTION}-new-", dir=folder))
+    except OSError as error:
+        raise VPRBenchError(f"Cannot write to {folder} ({error.strerror or error}): choose a folder you can write "
+                            "to with --to; nothing was written.") from None
+    try:
+        write_section(staging, build_board(records), records, cache_dir=cache_dir, data_dir=data_dir, seed=seed)
+        with FileLock(str(folder / f".{SECTION}.lock"), timeout=60):
+            _swap(staging, target)
+            _remove_stale(folder)
+    except OSError as error:
+        raise VPRBenchError(f"Cannot write the leaderboard to {folder} ({error.strerror or error}); "
+                            f"the previous {target} is unchanged.") from None
+    except Timeout:
+        raise VPRBenchError(f"Another 'leaderboard publish' holds {folder / f'.{SECTION}.lock'}; try again.") from None
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    if (folder / f"{SECTION}.md").is_file():
+        warnings.warn(f"{folder / f'{SECTION}.md'} (written by vprbench 0.1) and {target}/index.md are the same page "
+                      "for MkDocs: delete the old file.", stacklevel=2)
+    return target
+
+
+def _swap(staging: Path, target: Path) -> None:
+    """Put the finished folder in place of the old one; the old one is removed only afterwards."""
+    if target.exists() and not target.is_dir():
+        raise VPRBenchError(f"{target} is a file; move it away so the leaderboard section can be written there.")
+    old = None
+    if target.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{SECTION}-old-", dir=target.parent))
+        target.rename(old / SECTION)
+    staging.rename(target)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _remove_stale(folder: Path, age_s: float = 3600) -> None:
+    """Folders a killed publish left: old sections (only ever made under the lock, so stale when we
+    hold it) and staging folders untouched for an hour (a live publish writes into its own)."""
+    import time
+
+    for path in folder.glob(f".{SECTION}-*-*"):
+        if path.is_dir() and (path.name.startswith(f".{SECTION}-old-") or time.time() - path.stat().st_mtime > age_s):
+            shutil.rmtree(path, ignore_errors=True)
+
+
+# ---------------------------------------------------------------- pages
+def write_section(out: Path, board: Board, records: list[dict], *, cache_dir=None, data_dir=None, seed: int = 0) -> None:
+    (out / "figures").mkdir()
+    (out / "downloads").mkdir()
+    stats = {key: cell_stats(cell, seed=seed) for key, cell in board.cells.items()}
+    _write(out / "index.md", overview(out, board, records, stats, cache_dir=cache_dir, seed=seed))
+    for column in board.columns:
+        _write(out / f"{column.slug}.md", dataset_page(out, board, column, stats, data_dir=data_dir, seed=seed))
+    _write(out / "reported.md", reported_page())
+    rows = [_summary(cell, stats[key]) for key, cell in board.cells.items()]
+    pd.DataFrame(rows).to_csv(out / "downloads" / "leaderboard.csv", index=False)
+    _write(out / "downloads" / "leaderboard.json", json.dumps(rows, indent=1, sort_keys=True, default=_plain))
+
+
+def _write(path: Path, text: str) -> None:
+    path.write_text(text, encoding="utf-8")
+
+
+def _plain(value):
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(type(value).__name__)
+
+
+def _marks(board: Board) -> str:
+    found = board.marked
+    parts = []
+    if found["non_official_weights"]:
+        parts.append(f"{found['non_official_weights']} cell(s) use weights other than the authors' release "
+                     "(user files or random initialisation), marked †")
+    if found["own_data"]:
+        parts.append(f"{found['own_data']} cell(s) are on the user's own data, marked *(own data)*")
+    if found["excluded"]:
+        parts.append(f"{found['excluded']} run(s) are left out of every cell (see [Runs left out](index.md#runs-left-out))")
+    text = "; ".join(parts) if parts else "every cell is an official run on a benchmark's protocol"
+    return f"!!! note \"Marks\"\n    {text[0].upper() + text[1:]}. Nothing here is presented as measured unless it was measured.\n"
+
+
+def _ci(entry) -> str:
+    return f"{fmt(entry['value'])} [{entry['ci'][0]:.1f}, {entry['ci'][1]:.1f}]" if entry["ci"] else fmt(entry["value"])
+
+
+def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: int = 0) -> str:
+    written = datetime.now(timezone.utc).date().isoformat()
+    lines = [PAGE_HEAD, "# Leaderboard", "",
+             f"Measured by `vprbench evaluate` ({len(records)} stored run(s); vprbench {__version__}; written {written}). "
+             "Regenerate with `vprbench leaderboard publish --to docs/`.", "", _marks(board),
+             "**How a cell is chosen.** " + CELL_RULE, ""]
+    for table in GROUPS:
+        lines += [group_table(board, table, link=lambda c: f"{c.slug}.md"), ""]
+    lines += ["## Measured against reported", "",
+              f"A measured cell reproduces the paper when |measured − reported| ≤ {TOLERANCE_PP:.1f} percentage point, "
+              "or ≤ the half-width of its 95 % bootstrap interval when that is wider.", ""]
+    found = comparisons(board, seed=seed)
+    if found:
+        lines += ["| Method | Dataset | Metric | Measured [95 % CI] | Reported | Δ | Tolerance | Reproduced |",
+                  "|:--|:--|:--|--:|--:|--:|--:|:--|"]
+        for c in found:
+            ci = f" [{c['ci'][0]:.1f}, {c['ci'][1]:.1f}]" if c["ci"] else ""
+            lines.append(f"| {c['method']} | {c['dataset']} | {c['metric']} | {c['measured']:.1f}{ci} | *{c['reported']:.1f}* "
+                         f"(Table {c['table']}) | {c['delta']:+.1f} | ±{c['tolerance']:.1f} | {'yes' if c['reproduced'] else '**no**'} |")
+    else:
+        lines.append("No measured cell has a counterpart in the paper yet (the paper reports none of the "
+                     "datasets measured here, or none of the methods).")
+    lines += ["", "## Figures", ""]
+    lines += _figure(lambda p: figures.radar(board, p), out, "radar.svg",
+                     "Average R@1 per domain (AnyLoc Fig. 1, right): measured rows solid; the paper's "
+                     f"{', '.join(figures.RADAR_PAPER_ROWS)} dashed (reported).", "Radar chart")
+    lines += _figure(lambda p: figures.pca_map(records, p, cache_dir=cache_dir, seed=seed), out, "pca-gem.png",
+                     "Database GeM descriptors of one method on every dataset it was run on, first two principal "
+                     "components, coloured by domain (AnyLoc Fig. 1, middle).", "PCA map of GeM descriptors")
+    others = other_rows(board)
+    lines += ["## Other runs", "", "Runs that are not official runs on a benchmark: weights other than the authors' "
+              "release (†) or the user's own data. They never fill a cell above.", ""]
+    if others:
+        lines += ["| Method | Weights | Dataset | R@1 [95 % CI] | R@5 [95 % CI] | Run |", "|:--|:--|:--|--:|--:|:--|"]
+        for row, column, cell in others:
+            s = stats[(row, column.key)]
+            lines.append(f"| {row.label}{' †' if not row.official else ''} | {row.mark or 'official'} | "
+                         f"[{column.title}]({column.slug}.md) | {_ci(s[1])} | {_ci(s[5])} | `{cell.record.get('run_id')}` |")
+    else:
+        lines.append("None.")
+    lines += ["", "## Runs left out", ""]
+    if board.excluded:
+        lines += ["| Run | Method | Dataset | Why |", "|:--|:--|:--|:--|"]
+        lines += [f"| `{r.get('run_id')}` | {r.get('method')} | {r.get('dataset')} | {why} |" for r, why in board.excluded]
+    else:
+        lines.append("None.")
+    lines += ["", "## Datasets", ""]
+    lines += [f"- [{c.title}]({c.slug}.md): {c.domain or 'no domain'}, {len(board.column_cells(c))} row(s)" for c in board.columns]
+    lines += ["", "The paper's reported tables (II–VII), as reported: [reported numbers](reported.md).", "",
+              "Downloads: [leaderboard.csv](downloads/leaderboard.csv), [leaderboard.json](downloads/leaderboard.json) "
+              "(one entry per cell: values, intervals, run and provenance).", ""]
+    return "\n".join(lines)
+
+
+def _figure(draw, out: Path, name: str, caption: str, what: str | None = None) -> list[str]:
+    try:
+        draw(out / "figures" / name)
+    except figures.Skipped as why:
+        return [f"*{what or caption}: not drawn, {why}.*", ""]
+    return [f"![{caption}](figures/{name})", "", f"*{caption}*", ""]
+
+
+def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=None, seed: int = 0) -> str:
+    cells = sorted(board.column_cells(column), key=lambda c: -(c.recall(1) or -1))
+    first = cells[0].record
+    counts, gt, protocol = first["counts"], first.get("ground_truth", {}), first.get("protocol", {})
+    positives = np.asarray((first.get("per_query") or {}).get("positives") or
+                           (cells[0].arrays["positives"] if cells[0].arrays is not None else []))
+    lines = [PAGE_HEAD, f"# {column.title}", "", _marks(board),
+             f"Domain: {column.domain or '–'}. Kind: {'benchmark' if column.kind == 'benchmark' else 'own data (not a benchmark)'}.", "",
+             "## Data and ground truth", "",
+             "| Database | Queries | Queries without positives | Positive pairs | Positives per query (min / median / max) | Ground truth | Protocol | Dataset fingerprint |",
+             "|--:|--:|--:|--:|:--|:--|:--|:--|",
+             f"| {counts['database']} | {counts['queries']} | {counts.get('queries_without_positives', '–')} | "
+             f"{counts.get('positive_pairs', '–')} | "
+             + (f"{positives.min()} / {np.median(positives):g} / {positives.max()}" if len(positives) else "–")
+             + f" | {gt.get('unit', '–')}, radius {gt.get('radius', '–')} {gt.get('radius_unit') or ''} | "
+             f"`{protocol.get('id', '–')}` (`{protocol.get('hash', '–')}`) | `{column.fingerprint}` |", "",
+             f"Protocol `{protocol.get('id', '–')}`: {protocol.get('description') or 'no description'}"
+             + (f" (source: {protocol['source']})" if protocol.get("source") else "") + ".", "",
+             "Queries without positives count as failures. " + CELL_RULE, "",
+             "## Results", "",
+             f"Seeded 95 % bootstrap intervals over queries ({RESAMPLES:,} resamples, seed {seed}).", "",
+             "| Method | Weights | R@1 [95 % CI] | R@5 [95 % CI] | R@10 | R@20 | AUC-PR | R@100%P | Dim | Bytes | Images/s |",
+             "|:--|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|"]
+    runs = ["| Method | Run | Created | vprbench | Commit | Descriptors computed | Older runs of the row |",
+            "|:--|:--|:--|:--|:--|--:|--:|"]
+    for cell in cells:
+        s, r = stats[(cell.row, column.key)], cell.record
+        name = f"{cell.row.label}{' †' if not cell.row.official else ''}"
+        lines.append(f"| {name} | {cell.row.mark or 'official'} | "
+                     f"{_ci(s[1])} | {_ci(s[5])} | {fmt(cell.recall(10))} | {fmt(cell.recall(20))} | "
+                     f"{_num(r.get('auc_pr'), 3)} | {_num(r.get('recall_at_100_precision'), 3)} | {r.get('descriptor_dim')} | "
+                     f"{r.get('descriptor_bytes') or 4 * int(r.get('descriptor_dim') or 0)} | {_num(r.get('images_per_second'), 1)} |")
+        versions, computed = r.get("versions") or {}, r.get("descriptors_computed") or {}
+        runs.append(f"| {name} | `{r.get('run_id')}` | {r.get('created', '–')} | {versions.get('vprbench', '–')} | "
+                    f"`{str(versions.get('git') or '–')[:10]}` | {sum(computed.values()) if computed else '–'} | {cell.passed_over} |")
+    lines += ["", "The runs in the cells above:", "", *runs, "", *_paired(cells, seed), "## Figures", ""]
+    slug = column.slug
+    lines += _figure(lambda p: figures.recall_curves(cells, p), out, f"{slug}-recall.svg", "Recall@K per run")
+    lines += _figure(lambda p: figures.pr_curves(cells, p), out, f"{slug}-pr.svg",
+                     "Precision-recall of the top-1 matches ranked by similarity (VPR-Bench)")
+    lines += _figure(lambda p: figures.efficiency(cells, p), out, f"{slug}-efficiency.svg",
+                     "Efficiency: R@1 against descriptor bytes and images described per second (this machine)")
+    lines += ["### Retrieval mosaics", "", f"Seeded queries (seed {seed}) and their top 5: green frame = positive, red = not.", ""]
+    for cell in cells[:MOSAIC_ROWS]:
+        name = f"{slug}-mosaic-{_file_slug(cell.row.name)}.png"
+        lines += _figure(lambda p, c=cell: figures.mosaic(c, p, data_dir=data_dir, seed=seed), out, name,
+                         f"{cell.row.name}: queries and their top 5", f"Mosaic of {cell.row.name}")
+    download = [_record_download(c) for c in cells]
+    _write(out / "downloads" / f"{slug}.json", json.dumps(download, sort_keys=True, default=_plain))  # compact: per-query arrays
+    pd.DataFrame([_summary(c, stats[(c.row, column.key)]) for c in cells]).to_csv(out / "downloads" / f"{slug}.csv", index=False)
+    lines += ["## Downloads", "", f"[{slug}.csv](downloads/{slug}.csv) (one row per cell), "
+              f"[{slug}.json](downloads/{slug}.json) (the cells' full records, per-query predictions included).", ""]
+    return "\n".join(lines)
+
+
+def _paired(cells: list[Cell], seed: int) -> list[str]:
+    """Paired tests between neighbours in the ranking whose R@1 intervals overlap."""
+    lines = []
+    for a, b in zip(cells, cells[1:]):
+        if a.arrays is None or b.arrays is None or len(a.arrays["first_positive_rank"]) != len(b.arrays["first_positive_rank"]):
+            continue
+        ci_a, ci_b = cell_stats(a, ks=(1,), seed=seed)[1]["ci"], cell_stats(b, ks=(1,), seed=seed)[1]["ci"]
+        if not overlaps(ci_a, ci_b):
+            continue
+        t = paired_test(successes(a.arrays["first_positive_rank"], 1), successes(b.arrays["first_positive_rank"], 1), seed=seed)
+        lines.append(f"| {a.row.name} − {b.row.name} | {t['difference']:+.1f} [{t['ci'][0]:+.1f}, {t['ci'][1]:+.1f}] | "
+                     f"{format_p(t['p_bootstrap']).lstrip('= ')} | {t['only_a']} / {t['only_b']} | {t['p_mcnemar']:.3g} |")
+    if not lines:
+        return []
+    return ["### Paired tests where R@1 intervals overlap", "",
+            "Over the same queries: paired-bootstrap difference of R@1 (percentage points) and McNemar's exact test "
+            "on the queries only one of the two gets right.", "",
+            "| Pair | Δ R@1 [95 % CI] | p (bootstrap) | only first / only second | p (McNemar) |", "|:--|--:|--:|--:|--:|",
+            *lines, ""]
+
+
+def _num(value, digits: int) -> str:
+    return "–" if value is None else f"{value:.{digits}f}"
+
+
+def _file_slug(text: str) -> str:
+    return re.sub("-+", "-", "".join(ch if ch.isalnum() or ch in "_." else "-" for ch in text)).strip("-")[:80]
+
+
+def _summary(cell: Cell, stats: dict) -> dict:
+    r = cell.record
+    entry = {"method": cell.row.label, "weights": cell.row.mark or "official", "dataset": cell.column.dataset,
+             "dataset_kind": cell.column.kind, "domain": cell.column.domain}
+    for k in CELL_KS:
+        entry[f"r{k}"] = stats[k]["value"]
+        entry[f"r{k}_ci_low"], entry[f"r{k}_ci_high"] = stats[k]["ci"] or (None, None)
+    for k in (10, 20):
+        entry[f"r{k}"] = cell.recall(k)
+    entry.update({key: r.get(key) for key in ("auc_pr", "recall_at_100_precision", "descriptor_dim", "descriptor_bytes",
+                                              "images_per_second", "run_id", "created", "dataset_fingerprint")})
+    entry["protocol"] = (r.get("protocol") or {}).get("id")
+    entry["vprbench"] = (r.get("versions") or {}).get("vprbench")
+    entry["provenance"] = json.dumps(r.get("provenance") or {}, sort_keys=True)
+    return entry
+
+
+def _record_download(cell: Cell) -> dict:
+    record = {k: v for k, v in cell.record.items() if not k.startswith("_")}
+    if cell.arrays is not None:
+        record["per_query"] = {"k": int(cell.arrays["database_indices"].shape[1]),
+                               **{name: array.tolist() for name, array in cell.arrays.items()}}
+    return record
+
+
+def reported_page() -> str:
+    """The paper's reported values (Tables II-VII), as reported, never as measured."""
+    frame = paper_results()
+    lines = ["# Reported by the AnyLoc paper", "",
+             "Keetha et al., *AnyLoc: Towards Universal Visual Place Recognition*, IEEE RA-L 2023. Values as "
+             "reported (percent), from `manifests/reference/anyloc-paper.csv`; none of them was measured here.", ""]
+    for table, part in frame[~frame["table"].str.startswith("ablation")].groupby("table", sort=False):
+        grid = part.assign(col=part["column"] + " " + part["metric"].str.upper().str.replace("R", "R@"))
+        wide = grid.pivot_table(index="row", columns="col", values="value", aggfunc="first", sort=False)
+        lines += [f"## Table {table}", "", wide.to_markdown(floatfmt=".1f"), ""]
+        settings = [s for s in part["setting"].unique() if s]
+        lines += [f"*{s}*" for s in settings] + ([""] if settings else [])
+    return "\n".join(lines)

@@ -1,0 +1,170 @@
+"""Boards -> tables: the terminal/CSV grid, the paper-style group tables, measured vs reported."""
+from __future__ import annotations
+
+import math
+
+import pandas as pd
+
+from ..errors import VPRBenchError
+from ..reference import paper_results
+from .cells import CELL_KS, STRUCTURED, UNSTRUCTURED, Board, Cell, Column, Row  # noqa: F401
+from .stats import bootstrap_ci, successes
+
+FORMATS = ("table", "markdown", "csv")
+#: a measured cell reproduces the paper when |measured - reported| is within this many
+#: percentage points, or within its own 95 % interval's half-width when that is wider
+TOLERANCE_PP = 1.0
+GROUPS = {"II": ("Structured environments", STRUCTURED), "III": ("Unstructured environments", UNSTRUCTURED)}
+
+
+def fmt(value) -> str:
+    return "–" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.1f}"
+
+
+def grid(board: Board) -> pd.DataFrame:
+    """Rows x dataset columns of 'R@1 / R@5', with each row's weights: the terminal and CSV view."""
+    data = []
+    for row in board.rows:
+        entry = {"method": row.label, "weights": row.mark or "official"}
+        for column in board.columns:
+            cell = board.cell(row, column)
+            entry[column.title] = f"{fmt(cell.recall(1))} / {fmt(cell.recall(5))}" if cell else "-"
+        data.append(entry)
+    return pd.DataFrame(data, columns=["method", "weights", *[c.title for c in board.columns]]).set_index("method")
+
+
+def render(table: pd.DataFrame, fmt_name: str) -> str:
+    if fmt_name not in FORMATS:
+        raise VPRBenchError(f"Unknown leaderboard format {fmt_name!r}; use one of {', '.join(FORMATS)}")
+    return table.to_csv() if fmt_name == "csv" else table.to_markdown()
+
+
+def cell_stats(cell: Cell, ks=CELL_KS, seed: int = 0) -> dict[int, dict]:
+    """{k: {"value", "ci"}} for a cell: the recall and its bootstrap interval (None without per-query data)."""
+    found = {}
+    for k in ks:
+        value = cell.recall(k)
+        ci = None
+        if cell.arrays is not None and (cell.record.get("per_query") or {}).get("k", 0) >= k:
+            ci = bootstrap_ci(successes(cell.arrays["first_positive_rank"], k), seed=seed)
+        found[k] = {"value": value, "ci": ci}
+    return found
+
+
+def reported(method: str | None = None) -> pd.DataFrame:
+    """The paper's Table II and III values, one row per (row, dataset, metric)."""
+    frame = pd.concat([paper_results(table="II"), paper_results(table="III")], ignore_index=True)
+    return frame if method is None else frame[frame["method"] == method]
+
+
+def _value(frame: pd.DataFrame, dataset: str, metric: str) -> float | None:
+    hit = frame[(frame["column"] == dataset) & (frame["metric"] == metric)]
+    return float(hit["value"].iloc[0]) if len(hit) else None
+
+
+def _reported_value(frame: pd.DataFrame, method: str, dataset: str, metric: str) -> float | None:
+    return _value(frame[frame["method"] == method], dataset, metric) if method else None
+
+
+def comparisons(board: Board, seed: int = 0) -> list[dict]:
+    """Every official measured cell the paper also reports: both values, the delta, reproduced or not."""
+    frame = reported()
+    found = []
+    for row in board.rows:
+        if not row.official:
+            continue
+        for column in board.columns:
+            cell = board.cell(row, column)
+            if cell is None or column.kind != "benchmark" or not column.default:  # the paper's protocols
+                continue
+            stats = cell_stats(cell, seed=seed)
+            for k in CELL_KS:
+                paper = _reported_value(frame, row.label, column.dataset, f"r{k}")
+                measured = stats[k]["value"]
+                if paper is None or measured is None:
+                    continue
+                ci = stats[k]["ci"]
+                tolerance = max(TOLERANCE_PP, (ci[1] - ci[0]) / 2) if ci else TOLERANCE_PP
+                table = frame[(frame["method"] == row.label) & (frame["column"] == column.dataset)]["table"].iloc[0]
+                found.append({"method": row.label, "dataset": column.dataset, "metric": f"R@{k}", "measured": measured,
+                              "ci": ci, "reported": paper, "delta": measured - paper, "tolerance": tolerance,
+                              "reproduced": abs(measured - paper) <= tolerance, "table": table,
+                              "run_id": cell.record.get("run_id")})
+    return found
+
+
+def group_table(board: Board, table: str, link=lambda column: column.dataset) -> str:
+    """A paper-style table (II structured, III unstructured) in Markdown: our official measured rows
+    and the paper's rows; R@1 / R@5 per dataset; averages over the datasets shown; best in bold.
+    Reported values are in italics, never presented as measured."""
+    title, domains = GROUPS[table]
+    paper = paper_results(table=table)
+    datasets = list(dict.fromkeys(paper["column"]))
+    ours = [c for c in board.columns if c.kind == "benchmark" and c.default and c.domain in domains]
+    datasets += [c.dataset for c in ours if c.dataset not in datasets]
+    by_name = {c.dataset: c for c in ours}
+
+    lines: list[tuple[str, str, dict]] = []  # (name, source, {(dataset, k): (value, is_reported)})
+    for row in [r for r in board.rows if r.official]:
+        values = {}
+        for name in datasets:
+            cell = board.cell(row, by_name[name]) if name in by_name else None
+            for k in CELL_KS:
+                measured = cell.recall(k) if cell else None
+                paper_value = _reported_value(paper, row.label, name, f"r{k}")
+                values[(name, k)] = (measured, False) if measured is not None else (paper_value, paper_value is not None)
+        if any(v is not None and not rep for v, rep in values.values()):
+            lines.append((row.label, "measured", values))
+    for label, part in paper.groupby("row", sort=False):
+        values = {(name, k): (_value(part, name, f"r{k}"), True)
+                  for name in datasets for k in CELL_KS}
+        lines.append((f"*{label}* (paper)", "reported", values))
+    measured_any = any(source == "measured" for _, source, _ in lines)
+
+    best = {}
+    for name in datasets:
+        for k in CELL_KS:
+            shown = [v[(name, k)][0] for n, source, v in lines
+                     if v[(name, k)][0] is not None and (source != "measured" or not v[(name, k)][1])]
+            best[(name, k)] = max(shown) if shown else None
+
+    def show(value, is_reported, name, k):
+        if value is None:
+            return "–"
+        text = f"{value:.1f}"
+        text = f"*{text}*" if is_reported else text
+        return f"**{text}**" if best.get((name, k)) is not None and abs(value - best[(name, k)]) < 1e-9 else text
+
+    header = ["Method", *[f"[{n}]({link(by_name[n])})" if n in by_name else n for n in datasets], "Average"]
+    note = "" if measured_any else " No official run measured in this group yet: every value below is reported."
+    out = [f"### Table {table}: {title}", "", "R@1 / R@5 (%) per dataset. " + LEGEND + note, "",
+           "| " + " | ".join(header) + " |", "|" + "|".join([":--"] + ["--:"] * (len(datasets) + 1)) + "|"]
+    for name, source, values in lines:
+        cells = [f"{show(*values[(n, 1)], n, 1)} / {show(*values[(n, 5)], n, 5)}" for n in datasets]
+        out.append("| " + " | ".join([name, *cells, _average(values, datasets, source)]) + " |")
+    return "\n".join(out) + "\n"
+
+
+def _average(values: dict, datasets: list[str], source: str) -> str:
+    """The mean over the datasets shown, of values of the row's own kind (a measured row's average
+    never mixes in reported numbers); '(n/m)' when the row has fewer than all of them."""
+    parts = []
+    for k in CELL_KS:
+        own = [values[(n, k)][0] for n in datasets
+               if values[(n, k)][0] is not None and (source != "measured" or not values[(n, k)][1])]
+        text = fmt(sum(own) / len(own)) if own else "–"
+        if own and len(own) < len(datasets):
+            text += f" ({len(own)}/{len(datasets)})"
+        parts.append(text if source == "measured" or not own else f"*{text}*")
+    return " / ".join(parts)
+
+
+LEGEND = ("Upright: measured here (one run per cell). *Italic*: reported by the AnyLoc paper, not measured here. "
+          "**Bold**: best in its column. Averages are over the datasets shown, each of the row's own kind; "
+          "(n/m) = over n of the m datasets.")
+
+
+def other_rows(board: Board) -> list[tuple[Row, Column, Cell]]:
+    """Cells that are not official runs on a benchmark: non-official weights or own data."""
+    return [(row, column, cell) for row in board.rows for column in board.columns
+            if (cell := board.cell(row, column)) and (not row.official or column.kind != "benchmark")]

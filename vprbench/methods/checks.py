@@ -1,0 +1,96 @@
+"""Checking method options when a method is created, so a bad value fails at once with a
+message naming the method, the option and what it accepts (not later as a crash in OpenCV
+or a NaN after a model has loaded).
+
+Options arrive from presets and the Python API as any value, and from the command line's
+`-o key=value` as str, int, float or bool; each check accepts the forms that mean the same
+value ("8", 8 and 8.0 for a whole number; "4,6,8" or [4, 6, 8] for a list) and returns it
+in one type.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+from ..errors import VPRBenchError
+
+
+def _bounds(minimum, maximum) -> str:
+    if minimum is not None and maximum is not None:
+        return f" from {minimum} to {maximum}"
+    if minimum is not None:
+        return f" >= {minimum}"
+    return f" <= {maximum}" if maximum is not None else ""
+
+
+def whole(method: str, option: str, value, minimum: int | None = 1, maximum: int | None = None, what: str = "") -> int:
+    """An int within [minimum, maximum]."""
+    number = None
+    if not isinstance(value, bool):
+        try:
+            number = float(value) if isinstance(value, (str, float)) else int(value)
+        except (TypeError, ValueError, OverflowError):
+            number = None
+    if number is None or not math.isfinite(number) or number != int(number) or \
+            (minimum is not None and number < minimum) or (maximum is not None and number > maximum):
+        raise VPRBenchError(f"{method}: option {option} takes a whole number{_bounds(minimum, maximum)}"
+                            f"{f' ({what})' if what else ''}; got {value!r}.")
+    return int(number)
+
+
+def number(method: str, option: str, value, minimum: float | None = None, above: float | None = None, what: str = "") -> float:
+    """A finite float >= minimum (or > above)."""
+    result = None
+    if not isinstance(value, bool):
+        try:
+            result = float(value)
+        except (TypeError, ValueError, OverflowError):
+            result = None
+    if result is None or not math.isfinite(result) or (minimum is not None and result < minimum) or \
+            (above is not None and result <= above):
+        bound = f" > {above:g}" if above is not None else (f" >= {minimum:g}" if minimum is not None else "")
+        raise VPRBenchError(f"{method}: option {option} takes a finite number{bound}"
+                            f"{f' ({what})' if what else ''}; got {value!r}.")
+    return result
+
+
+def wholes(method: str, option: str, value, minimum: int | None = 1, what: str = "") -> tuple[int, ...]:
+    """A non-empty tuple of whole numbers, from one number, "4,6,8" or a sequence."""
+    items = value.replace(" ", "").split(",") if isinstance(value, str) else value
+    if not isinstance(items, Sequence) or isinstance(items, str):
+        items = [items]
+    if not items or any(isinstance(v, str) and not v for v in items):
+        raise VPRBenchError(f"{method}: option {option} takes one or more whole numbers{_bounds(minimum, None)}, "
+                            f"e.g. 4,6,8{f' ({what})' if what else ''}; got {value!r}.")
+    try:
+        return tuple(whole(method, option, v, minimum, what=what) for v in items)
+    except VPRBenchError:
+        raise VPRBenchError(f"{method}: option {option} takes one or more whole numbers{_bounds(minimum, None)}, "
+                            f"e.g. 4,6,8{f' ({what})' if what else ''}; got {value!r}.") from None
+
+
+def choice(method: str, option: str, value, choices: Sequence[str]) -> str:
+    """One of `choices` (exactly)."""
+    if not isinstance(value, str) or value not in choices:
+        raise VPRBenchError(f"{method}: option {option} takes one of {', '.join(choices)}; got {value!r}.")
+    return value
+
+
+def text(method: str, option: str, value, what: str = "") -> str:
+    """A non-empty string (a name or a path)."""
+    if not isinstance(value, str) or not value.strip():
+        raise VPRBenchError(f"{method}: option {option} takes a non-empty text{f' ({what})' if what else ''}; got {value!r}.")
+    return value
+
+
+def device(method: str, value) -> str:
+    """A torch device name such as cpu, cuda or cuda:1, whose kind exists on this machine."""
+    import torch
+
+    try:
+        chosen = torch.device(text(method, "device", value, "e.g. cpu or cuda"))
+    except (RuntimeError, TypeError):
+        raise VPRBenchError(f"{method}: option device takes a torch device such as cpu, cuda or cuda:1; got {value!r}.") from None
+    if chosen.type == "cuda" and not torch.cuda.is_available():
+        raise VPRBenchError(f"{method}: device {value!r} was asked for but no CUDA GPU is available; use --device cpu.")
+    return str(chosen)

@@ -1,0 +1,151 @@
+"""A paper's table as a plan (manifests/reproduce/<paper>.toml): its cells, what each needs, and
+the table again with measured values, deltas and 95% confidence intervals beside the reported ones.
+
+Reported values come from `vprbench.reference.paper_results()`; nothing is copied.
+"""
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field
+from importlib.resources import files
+
+from ..errors import VPRBenchError
+from ..reference import paper_results
+from .plan import Cell, build_plan
+
+
+@dataclass
+class TableCell:
+    row: str
+    column: str
+    cells: list[Cell] = field(default_factory=list)  # several for a per-domain mean
+    reason: str = ""  # why it cannot run at all (no vprbench method)
+
+
+def reproduce_tables(paper: str) -> dict:
+    try:
+        text = (files("vprbench.manifests") / "reproduce" / f"{paper}.toml").read_text()
+    except FileNotFoundError:
+        raise VPRBenchError(f"No reproduction plans for paper {paper!r}; available: anyloc.") from None
+    return tomllib.loads(text)["tables"]
+
+
+def table_spec(paper: str, table: str) -> dict:
+    tables = reproduce_tables(paper)
+    if str(table) not in tables:
+        raise VPRBenchError(f"The {paper} paper has no table {table!r} here; tables: {', '.join(tables)}.")
+    return tables[str(table)]
+
+
+def _rows(spec: dict) -> list[dict]:
+    if spec.get("rows_from") == "setting":
+        reported = paper_results(table=spec["paper"])
+        rows = []
+        for label, setting in reported.drop_duplicates("row")[["row", "setting"]].itertuples(index=False):
+            options = dict(spec.get("options", {}))
+            for item in setting.split():
+                key, _, value = item.partition("=")
+                options[key] = int(value) if value.isdigit() else value
+            rows.append({"row": label, "method": spec["method"], "options": options})
+        return rows
+    return spec["rows"]
+
+
+def table_cells(paper: str, table: str, ks=(1, 5)) -> tuple[dict, list[TableCell]]:
+    spec = table_spec(paper, table)
+    out = []
+    for row in _rows(spec):
+        columns = row.get("cells") or {c: {"datasets": d} for c, d in spec["columns"].items()}
+        for column, where in columns.items():
+            if not row.get("method"):
+                out.append(TableCell(row["row"], column, reason="no vprbench method matches this row"))
+                continue
+            options = {**row.get("options", {}), **where.get("options", {})}
+            datasets = where.get("datasets") or [where["dataset"]]
+            plan = build_plan({"methods": [{"name": row["method"], "options": options}], "datasets": datasets, "k": list(ks)},
+                              f"{paper} table {table}")
+            cells = [Cell(c.method, c.dataset, c.options, c.protocol, c.ks, label=row["row"]) for c in plan.cells]
+            out.append(TableCell(row["row"], column, cells))
+    return spec, out
+
+
+def weights_for(row_weights: dict | None, cell: Cell) -> str | None:
+    """What is missing of the cell's weights (None: present, or not knowable before running)."""
+    from ..features.backbones import backbone_spec, hub_checkpoint_dir, local_weights_path
+    from ..methods.anyloc import AnyLoc
+    from ..methods.registry import method_entry
+    from ..paths import cache_root
+
+    entry = method_entry(cell.method)
+    merged = {**entry.defaults, **cell.options}
+    if entry.factory is AnyLoc:
+        spec = backbone_spec(merged.get("backbone", "dinov2_vitg14"))
+        path = local_weights_path(spec, merged["weights"]) if merged.get("weights") else hub_checkpoint_dir() / spec.file_name
+        return None if path.is_file() else f"weights {spec.file_name} (download {spec.url} into {path.parent})"
+    if merged.get("weights") or not row_weights:
+        return None
+    folder = cache_root() / row_weights["folder"] if "folder" in row_weights else hub_checkpoint_dir()
+    found = list(folder.rglob(row_weights["file"])) if folder.is_dir() else []
+    return None if found else f"weights {row_weights['file']} (from {row_weights['url']}, into {folder}, or pass weights=PATH)"
+
+
+def vocabulary_for(cell: Cell) -> str | None:
+    """A domain or union vocabulary that is neither cached nor released must be fitted first."""
+    from ..aggregation.policies import domain_names, find_vocabulary, released_path
+    from ..methods.registry import method_entry
+
+    merged = {**method_entry(cell.method).defaults, **cell.options}
+    name = merged.get("vocabulary")
+    if name not in domain_names() or released_path(name) is not None or not str(merged.get("aggregation", "")).startswith("vlad"):
+        return None
+    layer = merged.get("layer") or int(str(merged.get("layer_for", ":31")).partition(":")[2])
+    if find_vocabulary(name, merged.get("backbone", "dinov2_vitg14"), layer, merged.get("facet", "value"), merged.get("clusters", 32)):
+        return None
+    return f"vocabulary {name!r} (run 'vprbench vocabulary fit --domain {name} --method {cell.method}')"
+
+
+def missing_for(cell: Cell, row_weights, data_dir=None) -> str:
+    """Everything the cell lacks on this machine, '' when it can run."""
+    from ..datasets import dataset_location, dataset_manifest, is_path
+    from ..datasets.download import how_to_get
+
+    problems = []
+    if not is_path(cell.dataset):
+        manifest = dataset_manifest(cell.dataset)
+        root = dataset_location(manifest, data_dir)
+        if not root.is_dir():
+            problems.append(f"dataset {cell.dataset} ({how_to_get(manifest, root)})")
+    for check in (weights_for(row_weights, cell), vocabulary_for(cell)):
+        if check:
+            problems.append(check)
+    return "; ".join(problems)
+
+
+def _interval(recall: float, n: int) -> tuple[float, float]:
+    """95% Wilson interval of a recall (percent) over n queries."""
+    p, z = recall / 100, 1.96
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return 100 * (centre - half), 100 * (centre + half)
+
+
+def measured(records: list[dict | None], metric: str) -> tuple[float, float, float] | None:
+    """(value, low, high): one dataset's recall with its Wilson interval, or the mean over a domain's
+    datasets with a normal-approximation interval; None unless every dataset was measured."""
+    if not records or any(r is None for r in records):
+        return None
+    k = metric.removeprefix("r")
+    values = [(r["recall"][k], r["counts"]["queries"]) for r in records]
+    if len(values) == 1:
+        value, n = values[0]
+        return (value, *_interval(value, n))
+    mean = sum(v for v, _ in values) / len(values)
+    sd = math.sqrt(sum((v / 100) * (1 - v / 100) / n for v, n in values)) / len(values) * 100
+    return mean, mean - 1.96 * sd, mean + 1.96 * sd
+
+
+def reported_value(spec: dict, row: str, column: str, metric: str) -> float | None:
+    frame = paper_results(table=spec["paper"])
+    hit = frame[(frame["row"] == row) & (frame["column"] == column) & (frame["metric"] == metric)]
+    return float(hit["value"].iloc[0]) if len(hit) else None

@@ -1,0 +1,149 @@
+"""Run the cells of a sweep: skip complete ones, claim the rest, continue past failures, report.
+
+Several processes may run the same cells on one cache at once (two GPUs, a SLURM array,
+machines sharing a file system): each cell is claimed (claims.py) and evaluated exactly
+once; a process that finds every remaining cell claimed by a live process waits for them,
+and takes over the cell of a process that died once its lease expires.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+from rich.text import Text
+
+from ..errors import VPRBenchError
+from .claims import Claims, save_record
+from .plan import RUN_OPTIONS, Cell
+
+RAN, SKIPPED, ELSEWHERE, FAILED, MISSING = "ran", "skipped", "done elsewhere", "failed", "missing"
+
+
+@dataclass
+class Outcome:
+    cell: Cell
+    status: str
+    detail: str = ""
+    record: dict | None = None
+    seconds: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+
+def record_matches(record: dict, cell: Cell, identity: dict) -> bool:
+    """A stored record that answers the cell: same method, options, protocol, and every K."""
+    if record.get("context", {}).get("sweep", {}).get("cell") == cell.key:
+        return True
+    options = {k: v for k, v in record.get("method_options", {}).items() if k not in RUN_OPTIONS}
+    return (record.get("method") == identity["method"] and options == identity["options"]
+            and (record.get("protocol") or {}).get("id") == identity["protocol"]
+            and {str(k) for k in identity["ks"]} <= set(record.get("recall", {})))
+
+
+def find_record(cell: Cell, cache_dir=None) -> dict | None:
+    from ..evaluation.record import read_results
+
+    identity = cell.identity()
+    found = [r for r in read_results(cache_dir) if record_matches(r, cell, identity)]
+    return found[-1] if found else None
+
+
+def evaluate_cell(cell: Cell, *, data_dir=None, cache_dir=None, strict=False, progress=None, context=None) -> dict:
+    """The public API, in order: load_dataset (with the protocol), create_method, evaluate."""
+    from ..datasets import load_dataset
+    from ..evaluation import evaluate
+    from ..methods import create_method
+
+    dataset = load_dataset(cell.dataset, data_dir, strict=strict, protocol=cell.protocol)
+    method = create_method(cell.method, **cell.options)
+    record = evaluate(method, dataset, ks=cell.ks, cache_dir=cache_dir, progress=progress)
+    record.setdefault("protocol", dataset.protocol)  # the leaderboard branch's record builder sets it itself
+    record.setdefault("context", {})["sweep"] = {"cell": cell.key, **(context or {})}
+    return record
+
+
+def _one_line(error: BaseException) -> str:
+    text = " ".join(str(error).split())
+    return f"{type(error).__name__}: {text}" if not isinstance(error, VPRBenchError) else text
+
+
+def run_cells(cells: list[Cell], *, data_dir=None, cache_dir=None, strict=False, lease_s: float = 120.0,
+              poll_s: float = 2.0, console: Console | None = None, plan: str = "", runnable=None) -> list[Outcome]:
+    """Evaluate every cell once across all processes sharing the cache. `runnable(cell)` may
+    return a reason not to run a cell here (reproduce: the dataset or weights are missing)."""
+    console = console or Console(stderr=True, markup=False)  # names and reasons print as they are
+    claims = Claims(cache_dir, lease_s=lease_s)
+    outcomes: dict[str, Outcome] = {}
+    pending = list({c.key: c for c in cells}.values())  # a plan may list a cell twice
+    first_look = True
+    try:
+        with Progress(TextColumn("{task.description}", markup=False), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                      console=console, transient=True) as progress:
+            overall = progress.add_task(f"cells of {plan or 'the sweep'}", total=len(pending))
+            while pending:
+                waiting = []
+                for cell in pending:
+                    reason = runnable(cell) if runnable else None
+                    if reason:
+                        outcomes[cell.key] = Outcome(cell, MISSING, reason)
+                        progress.advance(overall)
+                        continue
+                    state, detail = claims.claim(cell.key, lambda c=cell: find_record(c, cache_dir) is not None)
+                    if state == "complete":
+                        record = find_record(cell, cache_dir)
+                        status, why = (SKIPPED, f"already complete (record of {record.get('created', '?')})") if first_look \
+                            else (ELSEWHERE, "evaluated by another process")
+                        outcomes[cell.key] = Outcome(cell, status, why, record)
+                    elif state == "failed":
+                        outcomes[cell.key] = Outcome(cell, FAILED, detail)
+                    elif state == "busy":
+                        waiting.append(cell)
+                        continue
+                    else:
+                        outcomes[cell.key] = _run_claimed(cell, claims, detail, data_dir, cache_dir, strict, progress, plan)
+                    progress.advance(overall)
+                pending, first_look = waiting, False
+                if pending:
+                    progress.update(overall, description=f"cells of {plan or 'the sweep'} ({len(pending)} held by other processes)")
+                    time.sleep(poll_s)
+    finally:
+        claims.close()
+    return [outcomes[c.key] for c in {c.key: c for c in cells}.values()]
+
+
+def _run_claimed(cell, claims, taken_over, data_dir, cache_dir, strict, progress, plan) -> Outcome:
+    started = time.perf_counter()
+    try:
+        record = evaluate_cell(cell, data_dir=data_dir, cache_dir=cache_dir, strict=strict, progress=progress,
+                               context={"plan": plan, "worker": claims.worker, **({"resumed": taken_over} if taken_over else {})})
+        if not claims.still_mine(cell.key):  # this process stalled past its lease and the cell was taken over
+            claims.held.discard(cell.key)
+            return Outcome(cell, ELSEWHERE, "lease lost while running; the other process's result counts")
+        save_record(record, cache_dir)
+    except (Exception, KeyboardInterrupt) as error:  # a failing cell must not stop the sweep
+        if isinstance(error, KeyboardInterrupt):
+            claims.release(cell.key)
+            raise
+        reason = _one_line(error)
+        claims.release(cell.key, failure=reason)
+        return Outcome(cell, FAILED, reason, seconds=time.perf_counter() - started)
+    claims.release(cell.key)
+    detail = "resumed: " + taken_over if taken_over else ""
+    return Outcome(cell, RAN, detail, record, time.perf_counter() - started)
+
+
+def summary_table(outcomes: list[Outcome], title: str = "Sweep") -> Table:
+    counts = {s: sum(o.status == s for o in outcomes) for s in (RAN, SKIPPED, ELSEWHERE, MISSING, FAILED)}
+    table = Table(title=f"{title}: " + ", ".join(f"{n} {s}" for s, n in counts.items() if n))
+    for column in ("method | dataset:protocol", "status", "R@1", "R@5", "computed", "detail"):
+        table.add_column(column, overflow="fold")
+    colour = {RAN: "green", SKIPPED: "cyan", ELSEWHERE: "cyan", MISSING: "yellow", FAILED: "red"}
+    for o in outcomes:
+        recall = (o.record or {}).get("recall", {})
+        computed = (o.record or {}).get("descriptors_computed") if o.status == RAN else None
+        table.add_row(o.cell.title(), Text(o.status, style=colour[o.status]),
+                      f"{recall['1']:.1f}" if "1" in recall else "", f"{recall['5']:.1f}" if "5" in recall else "",
+                      f"{computed['database'] + computed['queries']}" if computed else "", o.detail)
+    return table
