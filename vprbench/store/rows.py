@@ -279,7 +279,7 @@ class DescriptorStore:
                                 f"{found.reason or found.status}. Run the evaluation again to recompute it.")
         self.row_count = self.identity.stop - self.identity.start
         self.dim = found.dim
-        self.dtype = self.identity.dtype
+        self.dtype = np.dtype(self.identity.dtype)
         self._verified = signature
 
     @property
