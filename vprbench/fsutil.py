@@ -144,10 +144,10 @@ def lock(path: str | os.PathLike, timeout: float | None = None, *, what: str | N
         if held.lock_counter == 1:
             since = time.strftime("%Y-%m-%d %H:%M:%S")
             command = " ".join(os.path.basename(a) if i == 0 else a for i, a in enumerate(sys.argv))[:200]
-            try:
-                atomic_write(_holder_path(path), f"pid {os.getpid()} on {socket.gethostname()} since {since} ({command})\n")
-            except CacheError:
-                pass  # the note is for people; the lock itself is held
+            try:  # a note for people, written in place (a torn note after a kill is harmless)
+                _holder_path(path).write_text(f"pid {os.getpid()} on {socket.gethostname()} since {since} ({command})\n")
+            except OSError:
+                pass
         yield
     finally:
         if held.lock_counter == 1:
