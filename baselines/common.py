@@ -16,6 +16,7 @@ from torch import nn
 
 from vprbench import Method, VPRBenchError
 from vprbench.images import load_image
+from vprbench.loader import loaded
 from vprbench.methods import l2_normalise
 from vprbench.paths import cache_root
 from vprbench.weights import file_sha256, read_torch_file, weights_provenance  # noqa: F401  (baselines import file_sha256 from here)
@@ -259,6 +260,10 @@ class TorchMethod(Method):
     def fingerprint(self) -> dict:
         return dict(self._fingerprint)
 
+    def load(self, path: Path) -> torch.Tensor:
+        """Read and preprocess one image (in a data-loader worker)."""
+        return self.preprocess(Path(path))
+
     def provenance(self) -> dict:
         """The weights' source, read from the identity `load_checkpoint` (or a baseline's own
         resolver) put in the fingerprint: a release URL, a release name ('open_clip:...'), or the
@@ -278,8 +283,8 @@ class TorchMethod(Method):
         return {"weights": weights}
 
     @torch.inference_mode()
-    def describe(self, images: Sequence[Path]) -> np.ndarray:
-        tensors = [self.preprocess(Path(p)) for p in images]
+    def describe(self, images: Sequence) -> np.ndarray:
+        tensors = loaded(self, images)
         out: list[np.ndarray | None] = [None] * len(tensors)
         groups: dict[tuple, list[int]] = {}
         for index, tensor in enumerate(tensors):

@@ -8,7 +8,6 @@ import subprocess
 import sys
 import time
 
-import h5py
 import numpy as np
 import pandas as pd
 import pytest
@@ -16,7 +15,7 @@ import pytest
 from vprbench.cli.main import main
 from vprbench.evaluation import read_results, save_result
 from vprbench.paths import cache_root
-from vprbench.store import fingerprint_key
+from vprbench.store import RowsIdentity, RowWriter, create_rows_file, fingerprint_key
 
 
 def run(capsys, *args):
@@ -34,13 +33,18 @@ def real_runs(capsys, shared_data, *resizes):
 
 
 def with_gem_store(record):
-    """A GeM run's database descriptors where the store keeps them (for the PCA map)."""
-    folder = (cache_root() / "stores" / f"{record['method']}-{fingerprint_key(record['method_fingerprint'])}"
-              / f"{record['dataset']}-{record['dataset_fingerprint']}")
-    folder.mkdir(parents=True)
+    """A GeM run's database descriptors in a complete store the record names (for the PCA map)."""
+    folder = f"{record['method']}-{fingerprint_key(record['method_fingerprint'])}/{record['dataset']}-test"
+    record.setdefault("context", {})["store"] = {"folder": folder}
+    n = record["counts"]["database"]
+    identity = RowsIdentity(store=f"{folder}/database", start=0, stop=n, total=n, fit_id="none", dtype="float32",
+                            fingerprint="{}", names=[f"db{i}.jpg" for i in range(n)])
+    path = cache_root() / "stores" / folder / "database.h5"
+    create_rows_file(path, identity, 16)
+    writer = RowWriter(path, identity)
     rng = np.random.default_rng(len(record["dataset"]))
-    with h5py.File(folder / "database.h5", "w") as f:
-        f["descriptors"] = rng.normal(len(record["dataset"]) % 3, 1, (record["counts"]["database"], 16)).astype("float32")
+    writer.write(np.arange(n), rng.normal(len(record["dataset"]) % 3, 1, (n, 16)).astype("float32"))
+    writer.finish()
     return record
 
 

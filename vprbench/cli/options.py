@@ -34,7 +34,8 @@ def add_method_options(parser: argparse.ArgumentParser, several: bool = False) -
     else:
         parser.add_argument("--method", required=True, help="method or preset name ('vprbench methods list')")
     group = parser.add_argument_group("method options (override the preset; a method rejects those it does not use)")
-    group.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda (default: cpu)")
+    group.add_argument("--device", default="auto",
+                       help="torch device: auto (cuda when available, else cpu), cpu, cuda, cuda:1 (default: auto)")
     group.add_argument("--backbone", help="backbone, e.g. dinov2_vitg14, dino_vits8, resnet101")
     group.add_argument("--weights", help="local weights file in the official checkpoint format")
     group.add_argument("--layer", type=int, help="0-based index of the block the features come from")
@@ -44,10 +45,45 @@ def add_method_options(parser: argparse.ArgumentParser, several: bool = False) -
     group.add_argument("--vocabulary", help="vocabulary name (map, indoor, urban, ...) or file (e.g. c_centers.pt)")
     group.add_argument("--resize", type=int, nargs=2, metavar=("H", "W"), help="resize images to H x W")
     group.add_argument("--pca-dim", type=int, help="PCA-whitening output dimension")
-    group.add_argument("--batch-size", type=int, help="images per forward pass")
+    group.add_argument("--batch-size", type=int, help="images per forward pass (>= 1)")
     group.add_argument("--precision", choices=("fp32", "fp16", "bf16"), help="autocast precision on GPU (default fp32)")
     group.add_argument("-o", "--option", action="append", default=[], metavar="KEY=VALUE",
                        help="any other method option (repeatable)")
+
+
+def whole_number(minimum: int):
+    """argparse type: an integer >= minimum."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number >= {minimum}, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
+        return value
+
+    parse.__name__ = f"whole number >= {minimum}"
+    return parse
+
+
+def add_extraction_options(parser: argparse.ArgumentParser) -> None:
+    """How descriptors are computed and kept (not part of the method: they never change a descriptor's value,
+    except --store-dtype, which is part of the store key)."""
+    group = parser.add_argument_group("extraction")
+    group.add_argument("--workers", type=whole_number(0),
+                       help="data-loader worker processes reading images (default: 0 on cpu, up to 4 on cuda)")
+    group.add_argument("--store-dtype", choices=("float32", "float16"), default="float32",
+                       help="descriptor store precision; float16 halves the disk, reading gives float32 (default: float32)")
+    group.add_argument("--lock-timeout", type=float, metavar="SECONDS",
+                       help="give up waiting for another run's store lock after this long (default: wait)")
+
+
+def extraction_settings(args, device: str) -> dict:
+    """Keyword arguments of evaluate / describe_splits from the extraction options."""
+    from ..loader import default_workers
+
+    workers = args.workers if args.workers is not None else default_workers(device)
+    return {"workers": workers, "store_dtype": args.store_dtype, "lock_timeout": args.lock_timeout}
 
 
 def _value(text: str):
@@ -64,6 +100,9 @@ def method_options(args) -> dict:
     options = {name: getattr(args, name) for name in
                ("device", "backbone", "weights", "layer", "facet", "aggregation", "clusters", "vocabulary",
                 "pca_dim", "batch_size", "precision")}
+    from ..loader import resolve_device
+
+    options["device"] = resolve_device(options["device"])
     options["resize"] = tuple(args.resize) if args.resize else None
     for item in args.option:
         key, sep, value = item.partition("=")

@@ -113,14 +113,28 @@ class Dataset:
             "layout": self.layout,
         }
 
-    def fingerprint(self) -> str:
-        """Changes when the images (by name and size) or the ground truth change."""
+    def images_fingerprint(self, cache_dir=None) -> dict[str, str]:
+        """Content identity of the images, per split: names and the sha256 of every file
+        (memoised in the cache by path, size and mtime)."""
+        if "_images_fingerprint" not in self.__dict__:
+            from .identity import images_key
+
+            self._images_fingerprint = {split: images_key(getattr(self, split), self.root, cache_dir)
+                                        for split in ("database", "queries")}
+        return dict(self._images_fingerprint)
+
+    def ground_truth_fingerprint(self) -> str:
+        """Identity of what counts as a positive: a change re-scores stored descriptors."""
         h = hashlib.sha256()
-        h.update(self.name.encode())
-        for split in (self.database, self.queries):
-            h.update(b"|split|")
-            for path in split:
-                rel = path.relative_to(self.root) if self.root and path.is_relative_to(self.root) else path.name
-                h.update(f"{rel}:{path.stat().st_size if path.exists() else -1};".encode())
-        h.update(json.dumps([p.tolist() for p in self.positives]).encode())
+        h.update(json.dumps([self.ground_truth.unit, self.ground_truth.radius], default=str).encode())
+        for positives in self.positives:
+            h.update(len(positives).to_bytes(8, "little"))
+            h.update(np.ascontiguousarray(positives, dtype="<i8").tobytes())
+        return h.hexdigest()
+
+    def fingerprint(self) -> str:
+        """Images (content) and ground truth together: what a result was computed on."""
+        h = hashlib.sha256(self.name.encode())
+        h.update(json.dumps(self.images_fingerprint(), sort_keys=True).encode())
+        h.update(self.ground_truth_fingerprint().encode())
         return h.hexdigest()[:16]

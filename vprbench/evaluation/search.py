@@ -243,6 +243,21 @@ def _overrides_postprocess(method) -> bool:
     return getattr(type(method), "postprocess", Method.postprocess) is not Method.postprocess
 
 
+def postprocessed(method, database: RowSource, queries: RowSource, memory_budget: int, state_folder=None):
+    """(database, queries, info): both row sources as `method` post-processes them (its
+    post-processor fitted on the database, or a plugin's whole-matrix `postprocess`); info
+    None when there is nothing to do. `retrieve` and `vprbench describe` share it."""
+    postprocessor = method.postprocessor() if method is not None else None
+    if method is not None and _overrides_postprocess(method):  # a plugin's whole-matrix hook
+        db, q = method.postprocess(database.read_rows(0, database.row_count), queries.read_rows(0, queries.row_count))
+        database, queries = ArrayRows(np.asarray(db, dtype=np.float32)), ArrayRows(np.asarray(q, dtype=np.float32))
+        return database, queries, {"kind": f"{type(method).__name__}.postprocess", "in_memory": True}
+    if postprocessor is not None:
+        info = fit_postprocessor(postprocessor, database, memory_budget, state_folder)
+        return TransformedRows(database, postprocessor), TransformedRows(queries, postprocessor), info
+    return database, queries, None
+
+
 def retrieve(method, database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDGET, index: str = "exact",
              state_folder=None, index_options: dict | None = None) -> SearchResult:
     """Top-k database rows per query for `method`'s descriptors, within `memory_budget` bytes
@@ -255,15 +270,7 @@ def retrieve(method, database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_
     if index not in INDEXES:
         raise VPRBenchError(f"Unknown index {index!r}: use one of {', '.join(INDEXES)}.")
     database, queries = as_rows(database, "database"), as_rows(queries, "queries")
-    postprocess = None
-    postprocessor = method.postprocessor() if method is not None else None
-    if method is not None and _overrides_postprocess(method):  # a plugin's whole-matrix hook
-        db, q = method.postprocess(database.read_rows(0, database.row_count), queries.read_rows(0, queries.row_count))
-        database, queries = ArrayRows(np.asarray(db, dtype=np.float32)), ArrayRows(np.asarray(q, dtype=np.float32))
-        postprocess = {"kind": f"{type(method).__name__}.postprocess", "in_memory": True}
-    elif postprocessor is not None:
-        postprocess = fit_postprocessor(postprocessor, database, budget, state_folder)
-        database, queries = TransformedRows(database, postprocessor), TransformedRows(queries, postprocessor)
+    database, queries, postprocess = postprocessed(method, database, queries, budget, state_folder)
     started = time.perf_counter()
     if index == "exact":
         if index_options:

@@ -233,21 +233,11 @@ def mosaic(cell: Cell, path: Path, *, data_dir=None, seed: int = 0, queries: int
 
 
 def stored_descriptors(record: dict, split: str = "database", cache_dir=None) -> np.ndarray | None:
-    """The run's descriptors from its store, or None. The ONE reader of store files here: the
-    store layout belongs to vprbench/store.py (today: <stores>/<method>-<key>/<dataset>-<key>/<split>.h5,
-    HDF5 dataset "descriptors")."""
-    import h5py
+    """The run's descriptors from its complete store (vprbench.store.run_store), or None."""
+    from ..store import run_store
 
-    from ..paths import cache_root
-    from ..store import fingerprint_key
-
-    folder = (cache_root(cache_dir) / "stores" / f"{record['method']}-{fingerprint_key(record['method_fingerprint'])}"
-              / f"{record['dataset']}-{record['dataset_fingerprint']}")
-    try:
-        with h5py.File(folder / f"{split}.h5", "r") as f:
-            return np.asarray(f["descriptors"][...], dtype=np.float32)
-    except (OSError, KeyError):
-        return None
+    store = run_store(record, split, cache_dir)
+    return None if store is None else store.read_rows(0, store.row_count)
 
 
 def pca_map(records: list[dict], path: Path, *, cache_dir=None, seed: int = 0, per_dataset: int = 400) -> Path:

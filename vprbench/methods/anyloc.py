@@ -26,6 +26,7 @@ from ..features.backbones import backbone_spec, load_backbone, weights_identity
 from ..weights import weights_provenance
 from ..features.dense import FACETS, DenseExtractor
 from ..features.preprocess import dataset_resize, parse_size, preprocess
+from ..loader import loaded
 from .base import Method, l2_normalise
 from .checks import choice, number, text, whole
 from .checks import device as check_device
@@ -214,14 +215,16 @@ class AnyLoc(Method):
                                              head_interleaved=self.family == "dino")
         return self._extractor
 
-    def _batches(self, images: Sequence[Path], resize: tuple[int, int] | None = None):
+    def load(self, path: Path, resize: tuple[int, int] | None = None) -> torch.Tensor:
+        """One image file -> the (3, H, W) tensor the backbone sees (runs in loader workers)."""
+        return preprocess(path, family=self.family, patch=self.spec.patch, resize=parse_size(resize) or self.resize)
+
+    def _batches(self, tensors):
         """(indices, batch tensor): runs of consecutive same-sized preprocessed images, at most
         batch_size each, in input order (so streams, e.g. vocabulary sampling, never depend on
         the batch size)."""
-        resize = parse_size(resize) or self.resize
         group: list[tuple[int, torch.Tensor]] = []
-        for i, path in enumerate(images):
-            x = preprocess(path, family=self.family, patch=self.spec.patch, resize=resize)
+        for i, x in enumerate(tensors):
             if group and (len(group) == self.batch_size or group[0][1].shape != x.shape):
                 yield [j for j, _ in group], torch.stack([t for _, t in group])
                 group = []
@@ -254,9 +257,9 @@ class AnyLoc(Method):
             centres = self.centres.to(feats.device)
         return _aggregate(self.aggregation, feats, centres, self.gem_p)
 
-    def describe(self, images: Sequence[Path]) -> np.ndarray:
+    def describe(self, images: Sequence) -> np.ndarray:
         out: np.ndarray | None = None
-        for indices, batch in self._batches(images):
+        for indices, batch in self._batches(loaded(self, images)):
             desc = self._global(batch).cpu().numpy()
             if out is None:
                 out = np.zeros((len(images), desc.shape[1]), dtype=np.float32)
@@ -277,7 +280,7 @@ class AnyLoc(Method):
     def iter_patch_features(self, paths: Sequence[Path], resize=None):
         """Each image's (N, D) patch features as they enter VLAD, in input order.
         `resize` (H, W) overrides the method's resize (domain vocabularies use 320x320)."""
-        for _, batch in self._batches(paths, resize):
+        for _, batch in self._batches(self.load(path, resize) for path in paths):
             yield from self.patch_features(batch).cpu()
 
     def fit_state(self) -> dict[str, np.ndarray]:

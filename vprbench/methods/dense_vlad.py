@@ -17,6 +17,7 @@ import numpy as np
 from ..aggregation import vlad_hard
 from ..errors import VPRBenchError
 from ..images import load_rgb
+from ..loader import loaded
 from .base import Method
 from .checks import whole, wholes
 
@@ -51,19 +52,25 @@ class DenseVLAD(Method):
                 "vocabulary": {"source": "map", "fitted_on_evaluated_database": True, "clusters": self.clusters,
                                "seed": self.seed}}
 
-    def local_features(self, path: Path) -> np.ndarray:
-        """(n, 128) RootSIFT descriptors on the dense multi-scale grid."""
+    def load(self, path: Path) -> np.ndarray:
+        """The grey image at the working size (at most max_side pixels)."""
         gray = cv2.cvtColor(load_rgb(path), cv2.COLOR_RGB2GRAY)
         scale = min(1.0, self.max_side / max(gray.shape))
         if scale < 1.0:
             gray = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-        keypoints = self._grid(*gray.shape)
-        if not keypoints:
+        if not self._grid(*gray.shape):
             raise VPRBenchError(f"dense-vlad: image {path} {gray.shape[::-1]} is too small for bin size {max(self.bin_sizes)}")
-        _, descriptors = self.sift.compute(gray, keypoints)
+        return gray
+
+    def rootsift(self, gray: np.ndarray) -> np.ndarray:
+        """(n, 128) RootSIFT descriptors on the dense multi-scale grid of a grey image."""
+        _, descriptors = self.sift.compute(gray, self._grid(*gray.shape))
         descriptors = descriptors.astype(np.float32)
         descriptors /= np.maximum(descriptors.sum(axis=1, keepdims=True), 1e-12)  # RootSIFT: L1, then sqrt
         return np.sqrt(descriptors)
+
+    def local_features(self, path: Path) -> np.ndarray:
+        return self.rootsift(self.load(path))
 
     def _grid(self, height: int, width: int) -> list:
         """Dense keypoints for an image size (cached: datasets have few distinct sizes)."""
@@ -98,7 +105,8 @@ class DenseVLAD(Method):
     def load_fit_state(self, state: dict[str, np.ndarray]) -> None:
         self.centres = np.asarray(state["centres"], dtype=np.float32)
 
-    def describe(self, images: Sequence[Path]) -> np.ndarray:
+    def describe(self, images: Sequence) -> np.ndarray:
         if self.centres is None:
             raise VPRBenchError("dense-vlad: the vocabulary is not fitted; evaluate fits it on the database first.")
-        return np.stack([vlad_hard(self.local_features(p), self.centres, metric="euclidean").numpy() for p in images])
+        return np.stack([vlad_hard(self.rootsift(gray), self.centres, metric="euclidean").numpy()
+                         for gray in loaded(self, images)])

@@ -10,6 +10,7 @@ import numpy as np
 from ..errors import VPRBenchError
 from ..features.preprocess import parse_size
 from ..images import load_rgb
+from ..loader import loaded
 from .base import Method, l2_normalise
 from .checks import whole
 
@@ -45,10 +46,9 @@ class HOG(Method):
     def provenance(self) -> dict:
         return {"weights": {"source": "none"}}  # nothing learnt
 
-    def describe(self, images: Sequence[Path]) -> np.ndarray:
-        rows = []
-        for path in images:
-            # OpenCV order (BGR) as VPR-Bench reads images; HOG takes the strongest channel gradient
-            bgr = cv2.resize(load_rgb(path)[:, :, ::-1], self.size, interpolation=cv2.INTER_LINEAR)
-            rows.append(self.hog.compute(np.ascontiguousarray(bgr)).reshape(-1))
-        return l2_normalise(np.stack(rows))
+    def load(self, path: Path) -> np.ndarray:
+        # OpenCV order (BGR) as VPR-Bench reads images; HOG takes the strongest channel gradient
+        return np.ascontiguousarray(cv2.resize(load_rgb(path)[:, :, ::-1], self.size, interpolation=cv2.INTER_LINEAR))
+
+    def describe(self, images: Sequence) -> np.ndarray:
+        return l2_normalise(np.stack([self.hog.compute(bgr).reshape(-1) for bgr in loaded(self, images)]))

@@ -1,0 +1,87 @@
+"""The one describe loop: DataLoader workers, input order, batch independence, clear errors."""
+import numpy as np
+import pytest
+
+import vprbench
+from vprbench.cli.main import main
+from vprbench.errors import VPRBenchError
+from vprbench.loader import describe_batches, resolve_device
+
+
+def collect(method, paths, workers):
+    return np.concatenate([rows for _, rows in describe_batches(method, paths, workers=workers)])
+
+
+@pytest.fixture
+def corridor_images(shared_data):
+    root = shared_data / "corridor"
+    return sorted((root / "ref").glob("*.jpg"))[:23] + sorted((root / "query").glob("*.jpg"))[:14]
+
+
+@pytest.mark.parametrize("name,options", [("hog", {"resize": (64, 64)}), ("thumb-test", {})])
+def test_descriptors_identical_for_any_workers_and_batch_size(corridor_images, name, options):
+    reference = vprbench.create_method(name, **options)
+    reference.batch_size = 1
+    expected = collect(reference, corridor_images, workers=0)
+    for workers, batch in ((0, 7), (2, 5), (2, 37)):
+        method = vprbench.create_method(name, **options)
+        method.batch_size = batch
+        np.testing.assert_array_equal(collect(method, corridor_images, workers), expected)
+
+
+class PathsOnly(vprbench.Method):
+    """An older plugin: no load(), describe() reads the paths itself."""
+
+    batch_size = 4
+
+    def __init__(self, device="cpu"):
+        pass
+
+    def describe(self, images):
+        assert all(hasattr(p, "suffix") for p in images)
+        return np.stack([[len(p.name), p.stat().st_size, 1.0] for p in images]).astype(np.float32)
+
+
+def test_plugin_that_only_describes_paths_keeps_working(corridor_images):
+    vprbench.register_method("paths-only-test", PathsOnly)
+    method = vprbench.create_method("paths-only-test")
+    rows = collect(method, corridor_images, workers=2)
+    assert rows.shape == (37, 3) and rows[0, 1] == corridor_images[0].stat().st_size
+
+
+def test_unreadable_image_in_a_worker_is_one_clear_error(corridor_images, tmp_path):
+    broken = tmp_path / "broken.jpg"
+    broken.write_bytes(b"not a jpeg")
+    method = vprbench.create_method("hog", resize=(64, 64))
+    with pytest.raises(VPRBenchError, match="Cannot read image .*broken.jpg") as caught:
+        collect(method, corridor_images[:5] + [broken], workers=2)
+    assert "Traceback" not in str(caught.value)
+
+
+def test_batch_sizes_below_one_are_refused(corridor_images, capsys):
+    method = vprbench.create_method("thumb-test")
+    for bad in (0, -3):
+        method.batch_size = bad
+        with pytest.raises(VPRBenchError, match="batch size must be a whole number >= 1"):
+            collect(method, corridor_images, workers=0)
+    assert main(["evaluate", "--method", "anyloc", "--batch-size", "0", "--dataset", "corridor"]) == 1
+    assert "option batch_size takes a whole number >= 1" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_code:
+        main(["evaluate", "--method", "hog", "--workers", "-1", "--dataset", "corridor"])
+    assert exit_code.value.code == 2 and "--workers: must be >= 0, got -1" in capsys.readouterr().err
+
+
+def test_device_auto_is_cuda_only_where_there_is_one():
+    import torch
+
+    assert resolve_device("auto") == ("cuda" if torch.cuda.is_available() else "cpu")
+    assert resolve_device("cpu") == "cpu"
+
+
+def test_method_is_checked_before_any_dataset_is_touched(tmp_path, capsys):
+    missing = tmp_path / "no-such-data"
+    assert main(["evaluate", "--method", "hogg", "--dataset", "pitts30k", "--data-dir", str(missing)]) == 1
+    assert "Unknown method 'hogg'" in capsys.readouterr().err
+    assert main(["evaluate", "--method", "hog", "-o", "colour=3", "--dataset", "pitts30k", "--data-dir", str(missing)]) == 1
+    assert "does not take option(s) colour" in capsys.readouterr().err
+    assert not missing.exists()

@@ -1,0 +1,116 @@
+"""Ranks of a torch.distributed run (torchrun, or torchrun under srun), or one process alone.
+
+`Ranks.from_environment()` joins the process group torchrun describes in the environment
+(RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR, MASTER_PORT): gloo on CPU, nccl on CUDA. A
+single process gets `Ranks()` (rank 0 of 1) whose collectives do nothing, so the pipeline
+has one code path. See docs/distributed.md.
+"""
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable
+from datetime import timedelta
+
+from .errors import VPRBenchError
+
+#: how long a rank waits for the others (rank 0 may be waiting for another run's lock)
+TIMEOUT_ENV = "VPRBENCH_DIST_TIMEOUT"
+
+
+class Ranks:
+    """rank / world size, and the few collectives the pipeline needs (objects, not tensors)."""
+
+    def __init__(self, rank: int = 0, world_size: int = 1, local_rank: int = 0, backend: str | None = None):
+        self.rank, self.world_size, self.local_rank, self.backend = rank, world_size, local_rank, backend
+
+    @property
+    def distributed(self) -> bool:
+        return self.world_size > 1
+
+    @classmethod
+    def from_environment(cls, device: str = "cpu") -> "Ranks":
+        """The process group torchrun set up, or a single process when WORLD_SIZE is unset or 1."""
+        world = int(os.environ.get("WORLD_SIZE", "1"))
+        if world <= 1:
+            return cls()
+        import torch
+        import torch.distributed as dist
+
+        rank, local_rank = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
+        backend = "nccl" if str(device).startswith("cuda") else "gloo"
+        if not dist.is_initialized():
+            kwargs = {}
+            if backend == "nccl":
+                torch.cuda.set_device(local_rank)
+                kwargs["device_id"] = torch.device("cuda", local_rank)
+            dist.init_process_group(backend, timeout=timedelta(seconds=float(os.environ.get(TIMEOUT_ENV, 86400))),
+                                    **kwargs)
+        return cls(rank, world, local_rank, backend)
+
+    def device(self, device: str) -> str:
+        """Each rank on its own GPU: "cuda" becomes cuda:<local rank>."""
+        return f"cuda:{self.local_rank}" if self.distributed and device == "cuda" else device
+
+    def all_gather(self, value) -> list:
+        if not self.distributed:
+            return [value]
+        import torch.distributed as dist
+
+        found = [None] * self.world_size
+        dist.all_gather_object(found, value)
+        return found
+
+    def broadcast(self, value):
+        """Rank 0's `value` on every rank."""
+        if not self.distributed:
+            return value
+        import torch.distributed as dist
+
+        box = [value if self.rank == 0 else None]
+        dist.broadcast_object_list(box, src=0)
+        return box[0]
+
+    def on_zero(self, work: Callable[[], object]):
+        """`work()` on rank 0, its result on every rank; a `VPRBenchError` there is raised on all
+        ranks (so none waits for a rank that has given up)."""
+        outcome, failure = None, None
+        if self.rank == 0:
+            try:
+                outcome = ("ok", work())
+            except VPRBenchError as error:
+                outcome, failure = ("error", str(error)), error
+        outcome = self.broadcast(outcome)
+        if failure is not None:
+            raise failure
+        if outcome[0] == "error":
+            raise VPRBenchError(outcome[1])
+        return outcome[1]
+
+    def agree(self, value, what: str) -> None:
+        """Every rank must hold the same `value` (JSON-able) before any work starts."""
+        if not self.distributed:
+            return
+        found = [json.dumps(v, sort_keys=True, default=str) for v in self.all_gather(value)]
+        differ = [rank for rank, text in enumerate(found) if text != found[0]]
+        if differ:
+            raise VPRBenchError(
+                f"torchrun ranks disagree on {what}: rank 0 has {found[0]}, rank {differ[0]} has {found[differ[0]]}. "
+                "Start every rank with the same command, options, --cache-dir and data."
+            )
+
+    def barrier(self) -> None:
+        if self.distributed:
+            import torch.distributed as dist
+
+            dist.barrier()
+
+    def close(self) -> None:
+        if self.distributed:
+            import torch.distributed as dist
+
+            if dist.is_initialized():
+                dist.destroy_process_group()
+
+    def describe(self) -> dict:
+        return {"world_size": self.world_size, "backend": self.backend}

@@ -1,0 +1,240 @@
+"""Descriptors of image splits through the store, shared by `evaluate` and `describe`.
+
+1. Rank 0 looks for complete stores (no lock needed: complete stores never change).
+2. Otherwise rank 0 takes the store folder's lock (waiting for, then reusing, another run's
+   work), fits the method on the database split or loads the saved fit, and hands the fit
+   to the other ranks.
+3. Every rank describes the missing rows of its shard of each unfinished split into its
+   own shard file (resumable on its own: only rows not flagged done are described).
+4. Rank 0 stitches the shards into the split's store (one shard: a rename; several: a
+   merge into one file), then releases the lock.
+A single process is rank 0 of 1: the same steps, one shard per split.
+"""
+from __future__ import annotations
+
+import os
+import time
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..datasets.identity import image_names, images_key
+from ..distributed import Ranks
+from ..errors import VPRBenchError
+from ..fsutil import cache_error
+from ..loader import check_batch_size, describe_batches
+from ..store import (DTYPES, NO_FIT, DescriptorStore, RowWriter, StoreFolder, create_rows_file, inspect_rows_file,
+                     method_fingerprint, shard_range)
+from ..store.folder import unsaved_fit_id
+from ..store.rows import merge_rows_files
+
+#: the split a method fits on (and PCA-whitening is fitted on)
+FIT_SPLIT = "database"
+
+
+@dataclass
+class Described:
+    """The complete stores (rank 0 only; None elsewhere), what was computed now and how long it took."""
+
+    stores: dict[str, DescriptorStore] | None
+    computed: dict[str, int]
+    timings: dict[str, float]
+    fingerprint: dict
+    folder: StoreFolder
+    per_rank: list[dict[str, int]] = field(default_factory=list)
+
+
+def describe_splits(method, splits: dict[str, list[Path]], *, root: Path | None = None, label: str = "images",
+                    image_keys: dict[str, str] | None = None, cache_dir=None, store_dtype: str = "float32",
+                    workers: int = 0, lock_timeout: float | None = None, ranks: Ranks | None = None,
+                    progress=None) -> Described:
+    """Complete stores for every split of `splits` (name -> image paths), computing what is missing."""
+    ranks = ranks or Ranks()
+    if store_dtype not in DTYPES:
+        raise VPRBenchError(f"--store-dtype must be one of {', '.join(DTYPES)}, got {store_dtype!r}.")
+    check_batch_size(method)
+    for split, paths in splits.items():
+        if not paths:
+            raise VPRBenchError(f"No images to describe in the {split} split.")
+    names = {split: image_names(paths, root) for split, paths in splits.items()}
+    image_keys = image_keys or {split: images_key(paths, root, cache_dir) for split, paths in splits.items()}
+    fingerprint = method_fingerprint(method, store_dtype)
+    folder = StoreFolder(method.name, fingerprint, label, {s: image_keys[s] for s in splits}, cache_dir)
+    ranks.agree({"fingerprint": fingerprint, "images": image_keys, "store": str(folder.path.resolve())},
+                "the method, the images or the cache folder")
+    job = _Job(method, splits, names, folder, store_dtype, workers, ranks, progress, label)
+    computed = {split: 0 for split in splits}
+    timings = {"fit_s": 0.0, **{f"{split}_s": 0.0 for split in splits}}
+
+    stores = job.complete_stores() if ranks.rank == 0 else None
+    if ranks.broadcast(stores is not None):
+        return Described(stores, computed, timings, fingerprint, folder)
+    with ExitStack() as held:
+        def plan():
+            held.enter_context(folder.locked(lock_timeout))
+            return job.plan(timings)
+
+        todo, fit_id, state = ranks.on_zero(plan)
+        if ranks.rank != 0 and state:
+            method.load_fit_state(state)
+        for split in todo:
+            started = time.perf_counter()
+            computed[split] = job.extract_shard(split, fit_id)
+            timings[f"{split}_s"] = time.perf_counter() - started
+        per_rank = ranks.all_gather(computed)
+        if ranks.rank != 0:
+            return Described(None, computed, timings, fingerprint, folder, per_rank)
+        for split in todo:
+            started = time.perf_counter()
+            job.stitch(split, fit_id)
+            timings[f"{split}_s"] += time.perf_counter() - started
+        stores = job.complete_stores()
+    if stores is None:
+        raise VPRBenchError(f"The stores in {folder.path} are still incomplete after extraction; run again.")
+    totals = {split: sum(c[split] for c in per_rank) for split in splits}
+    return Described(stores, totals, timings, fingerprint, folder, per_rank)
+
+
+class _Job:
+    def __init__(self, method, splits, names, folder: StoreFolder, dtype, workers, ranks: Ranks, progress, label):
+        self.method, self.splits, self.names, self.folder = method, splits, names, folder
+        self.dtype, self.workers, self.ranks, self.progress, self.label = dtype, workers, ranks, progress, label
+
+    # ---------------------------------------------------------------- rank 0
+    def expected_fit_id(self) -> str | None:
+        if not self.method.needs_fit:
+            return NO_FIT
+        return self.folder.fit_id_on_disk() or self.folder.recorded_fit_id(FIT_SPLIT)
+
+    def complete_stores(self) -> dict[str, DescriptorStore] | None:
+        """Every split's complete store, all computed with the same fit, or None."""
+        fit_id = self.expected_fit_id()
+        if fit_id is None:
+            return None
+        stores = {}
+        for split in self.splits:
+            store = self.folder.complete(split, self.names[split], fit_id, self.dtype)
+            if store is None:
+                return None
+            stores[split] = store
+        return stores
+
+    def plan(self, timings: dict) -> tuple[list[str], str, dict | None]:
+        """Under the folder lock: (splits to extract, fit id, fit state for the other ranks)."""
+        if self.complete_stores() is not None:  # another run finished while we waited
+            return [], self.expected_fit_id(), None
+        fit_id, state = NO_FIT, None
+        if self.method.needs_fit:
+            if FIT_SPLIT not in self.splits:
+                raise VPRBenchError(f"Method {self.method.name!r} fits on database images: give them "
+                                    "(describe --fit-on FOLDER).")
+            found = self.folder.read_fit_state()
+            if found is not None:
+                state, fit_id = found
+                self.method.load_fit_state(state)
+            else:
+                started = time.perf_counter()
+                self.method.fit(self.splits[FIT_SPLIT])
+                timings["fit_s"] = time.perf_counter() - started
+                state = {k: np.asarray(v) for k, v in (self.method.fit_state() or {}).items()}
+                if state:
+                    fit_id = self._save_fit(state)
+                elif self.ranks.distributed:
+                    raise VPRBenchError(f"Method {self.method.name!r} fits on the database but its fit_state() is "
+                                        "empty, so other ranks cannot share the fit: run it in one process.")
+                else:
+                    fit_id = unsaved_fit_id()  # nothing described with an unsaved fit is ever resumed
+        todo = []
+        for split in self.splits:
+            path = self.folder.store_path(split)
+            found = inspect_rows_file(path, self.folder.identity(split, self.names[split], fit_id, self.dtype))
+            if found.status == "complete":
+                continue
+            if found.status == "foreign":
+                raise VPRBenchError(f"Descriptor store {path} does not belong to this store: {found.reason}. Delete it.")
+            if found.status in ("stale", "torn", "partial"):
+                self.folder.discard(path, found.reason or "it is not complete")
+            todo.append(split)
+        return todo, fit_id, state if self.ranks.distributed else None
+
+    def _save_fit(self, state: dict) -> str:
+        try:
+            return self.folder.write_fit_state(state)
+        except TypeError as error:
+            raise VPRBenchError(f"Method {self.method.name!r}: fit_state() must map names to numeric arrays ({error}).") from None
+
+    def stitch(self, split: str, fit_id: str) -> None:
+        """The ranks' complete shards -> the split's store; then the shards go."""
+        names, world = self.names[split], self.ranks.world_size
+        parts, dims = [], set()
+        for rank in range(world):
+            start, stop = shard_range(len(names), rank, world)
+            if start == stop:
+                continue
+            path = self.folder.shard_path(split, rank, world)
+            identity = self.folder.identity(split, names, fit_id, self.dtype, start, stop)
+            found = inspect_rows_file(path, identity)
+            if found.status != "complete":
+                raise VPRBenchError(f"Shard {path} of rank {rank} is {found.status} ({found.reason or 'rows missing'}); "
+                                    "run again to resume it.")
+            parts.append((path, identity))
+            dims.add(found.dim)
+        if len(dims) != 1:
+            raise VPRBenchError(f"The shards of {split} in {self.folder.path} have different dimensions {sorted(dims)}.")
+        final = self.folder.store_path(split)
+        try:
+            if world == 1:
+                os.replace(parts[0][0], final)  # the one shard covers every row: it is the store
+            else:
+                merge_rows_files(parts, final, self.folder.identity(split, names, fit_id, self.dtype), dims.pop())
+        except OSError as error:
+            raise cache_error(error, final) from None
+        self.folder.tidy(split)
+
+    # ---------------------------------------------------------------- every rank
+    def extract_shard(self, split: str, fit_id: str) -> int:
+        """Describe this rank's missing rows of `split`; returns how many were described."""
+        paths, names = self.splits[split], self.names[split]
+        rank, world = self.ranks.rank, self.ranks.world_size
+        start, stop = shard_range(len(paths), rank, world)
+        if start == stop:
+            return 0
+        path = self.folder.shard_path(split, rank, world)
+        identity = self.folder.identity(split, names, fit_id, self.dtype, start, stop)
+        found = inspect_rows_file(path, identity)
+        if found.status == "foreign":
+            raise VPRBenchError(f"Shard {path} is from another run ({found.reason}); it was not written for this "
+                                "method, these images and this number of ranks. Delete it and run again.")
+        if found.status in ("stale", "torn"):
+            self.folder.discard(path, found.reason)
+        if found.status == "complete":
+            return 0
+        done = found.done if found.status == "partial" else np.zeros(stop - start, dtype=bool)
+        todo = np.flatnonzero(~done) + start
+        writer = RowWriter(path, identity) if found.status == "partial" else None
+        task = None
+        if self.progress is not None and rank == 0:
+            suffix = f" (rank 0 of {world})" if world > 1 else ""
+            task = self.progress.add_task(f"{self.method.name} {self.label} {split}{suffix}", total=stop - start,
+                                          completed=stop - start - len(todo))
+        device = str(getattr(self.method, "device", "cpu"))
+        try:
+            for offset, descriptors in describe_batches(self.method, [paths[i] for i in todo], workers=self.workers,
+                                                        device=device):
+                rows = todo[offset:offset + len(descriptors)]
+                if writer is None:
+                    create_rows_file(path, identity, descriptors.shape[1])
+                    writer = RowWriter(path, identity)
+                elif descriptors.shape[1] != writer.dim:
+                    raise VPRBenchError(f"Method {self.method.name!r} now returns {descriptors.shape[1]} dimensions but "
+                                        f"{path} holds {writer.dim}; its fingerprint() misses an option. Delete the file.")
+                writer.write(rows, descriptors)
+                if task is not None:
+                    self.progress.advance(task, len(rows))
+            writer.finish()
+        finally:
+            if writer is not None:
+                writer.close()
+        return len(todo)

@@ -1,0 +1,155 @@
+"""The one atomic-write helper and the one inter-process lock of vprbench.
+
+- `atomic_path(path)` / `atomic_write(path, data)`: the file is written under a temporary
+  name in the same folder and `os.replace`d over `path`, so a reader (or a kill at any
+  moment) sees the old content or the new, never half of one.
+- `lock(path, timeout)`: an exclusive `filelock` lock shared by every process on the
+  machine (and by hosts sharing the folder, where the filesystem supports `flock`). A
+  process that has to wait says, in one line, who holds the lock; a timeout is a
+  `LockTimeout` naming the lock and its holder.
+- `cache_error(error, path)`: an `OSError` (or HDF5's `RuntimeError`) turned into a
+  `CacheError` (a `VPRBenchError`) that names the path and says what to do.
+"""
+from __future__ import annotations
+
+import errno
+import os
+import re
+import socket
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from .errors import VPRBenchError, os_error_message
+
+
+class CacheError(VPRBenchError):
+    """A file under the cache (or an output path) could not be read or written."""
+
+
+class LockTimeout(CacheError):
+    """Waited longer than the given timeout for a lock."""
+
+
+def cache_error(error: Exception, path: str | os.PathLike | None = None) -> CacheError:
+    """One clear message (errors.os_error_message: the path, what went wrong, what to do) for an
+    `OSError`, or for HDF5's `RuntimeError`, which carries the errno only in its text. `path`
+    names the file when the error itself does not."""
+    if not isinstance(error, OSError):
+        found = re.search(r"errno = (\d+)", str(error))
+        number = int(found.group(1)) if found else errno.EIO
+        error = OSError(number, os.strerror(number))
+    return CacheError(os_error_message(error, None if error.filename is not None else path))
+
+
+def _sync_folder(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return  # not every platform opens folders; the rename itself is still atomic
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """A temporary path beside `path` to write to; it replaces `path` when the block succeeds
+    and is removed when it fails. The data are flushed to disk before the rename."""
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as error:
+        raise cache_error(error, path) from None
+    os.close(fd)
+    temporary = Path(name)
+    try:
+        yield temporary
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(temporary, 0o666 & ~mask)  # mkstemp makes 0600; give the file the usual mode
+        with open(temporary, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(temporary, path)
+        _sync_folder(path.parent)
+    except OSError as error:
+        temporary.unlink(missing_ok=True)
+        raise CacheError(os_error_message(error, path)) from None  # the target, not the temporary name
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+
+
+def atomic_write(path: str | os.PathLike, data: bytes | str) -> Path:
+    """Write `data` (str as UTF-8) to `path` atomically."""
+    with atomic_path(path) as temporary:
+        temporary.write_bytes(data.encode("utf-8") if isinstance(data, str) else data)
+    return Path(path)
+
+
+def is_temporary(path: Path) -> bool:
+    """A leftover of `atomic_path` (a writer killed before its rename)."""
+    return path.name.startswith(".") and path.name.endswith(".tmp")
+
+
+# ------------------------------------------------------------------ locks
+def _holder_path(path: Path) -> Path:
+    return path.with_name(path.name + ".holder")
+
+
+def _describe_holder(path: Path) -> str:
+    try:
+        return _holder_path(path).read_text(encoding="utf-8").strip() or "another process"
+    except OSError:
+        return "another process"
+
+
+@contextmanager
+def lock(path: str | os.PathLike, timeout: float | None = None, *, what: str | None = None) -> Iterator[None]:
+    """Hold the exclusive lock `path` (a lock file, created if needed) for the block.
+
+    timeout: seconds to wait (None waits as long as it takes; the wait is announced once on
+    stderr with the holder's pid, host and command). Re-entrant within a process.
+    """
+    from filelock import FileLock, Timeout
+
+    path = Path(path)
+    what = what or str(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        held = FileLock(path, is_singleton=True)
+        if not held.acquire(blocking=False, timeout=0):  # pragma: no cover - filelock raises instead
+            raise Timeout(str(path))
+    except Timeout:
+        holder = _describe_holder(path)
+        print(f"waiting for {what}: locked by {holder}", file=sys.stderr, flush=True)
+        try:
+            held.acquire(timeout=-1 if timeout is None else timeout)
+        except Timeout:
+            raise LockTimeout(
+                f"Timed out after {timeout:g} s waiting for {what} (lock {path}), held by "
+                f"{_describe_holder(path)}. Let that run finish, or stop it; a lock whose holder "
+                "has died is released by the system."
+            ) from None
+    except OSError as error:
+        raise cache_error(error, path) from None
+    try:
+        if held.lock_counter == 1:
+            since = time.strftime("%Y-%m-%d %H:%M:%S")
+            command = " ".join(os.path.basename(a) if i == 0 else a for i, a in enumerate(sys.argv))[:200]
+            try:  # a note for people, written in place (a torn note after a kill is harmless)
+                _holder_path(path).write_text(f"pid {os.getpid()} on {socket.gethostname()} since {since} ({command})\n")
+            except OSError:
+                pass
+        yield
+    finally:
+        if held.lock_counter == 1:
+            _holder_path(path).unlink(missing_ok=True)
+        held.release()

@@ -1,0 +1,108 @@
+"""The one batching loop: images -> `Method.load` in DataLoader workers -> `Method.describe`.
+
+Workers decode and preprocess (`load`) while the main process describes the previous
+batch, so an accelerator is not left waiting for JPEG decoding. Batches keep input order
+and a row never depends on its batch (the `Method` contract), so descriptors are the same
+for any number of workers and any batch size.
+"""
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from .errors import VPRBenchError
+
+
+def resolve_device(device: str | None) -> str:
+    """"auto" (or None): cuda when a CUDA GPU is available, else cpu."""
+    if device is None or str(device).lower() == "auto":
+        import torch
+
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return str(device)
+
+
+def default_workers(device: str) -> int:
+    """0 on CPU: decoding and describing share the same cores, so workers only add process
+    start-up and copying. On an accelerator a few workers keep it fed."""
+    if str(device).startswith("cpu"):
+        return 0
+    return max(1, min(4, (os.cpu_count() or 2) - 1))
+
+
+def loaded(method, items: Sequence) -> list:
+    """`items` with any path still to be read passed through `method.load` (so `describe`
+    accepts paths as well as what `load` returns)."""
+    return [method.load(Path(x)) if isinstance(x, (str, os.PathLike)) else x for x in items]
+
+
+class _Failed:
+    """A `VPRBenchError` raised in a worker, carried to the main process as a plain message."""
+
+    def __init__(self, message: str):
+        self.message = message
+
+
+class _Images:
+    """A torch map-style dataset: item i is `method.load(paths[i])`."""
+
+    def __init__(self, method, paths: Sequence[Path]):
+        self.method, self.paths = method, list(paths)
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def __getitem__(self, i: int):
+        try:
+            return self.method.load(self.paths[i])
+        except VPRBenchError as error:
+            return _Failed(str(error))
+
+
+def _as_batch(items: list) -> list:
+    return items
+
+
+def check_batch_size(method) -> int:
+    size = getattr(method, "batch_size", 1)
+    if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 1:
+        raise VPRBenchError(f"Method {method.name!r}: batch size must be a whole number >= 1, got {size!r}.")
+    return int(size)
+
+
+def checked(method, descriptors, n: int, dim: int | None = None) -> np.ndarray:
+    """A batch's descriptors as (n, dim) finite float32, or an error naming the method."""
+    out = np.asarray(descriptors, dtype=np.float32)
+    if out.ndim != 2 or out.shape[0] != n or out.shape[1] < 1:
+        raise VPRBenchError(f"Method {method.name!r} returned shape {out.shape} for {n} images; expected ({n}, dim).")
+    if dim is not None and out.shape[1] != dim:
+        raise VPRBenchError(f"Method {method.name!r} returned {out.shape[1]}-dimensional descriptors after {dim}-dimensional ones.")
+    if not np.isfinite(out).all():
+        raise VPRBenchError(f"Method {method.name!r} returned non-finite descriptors.")
+    return out
+
+
+def describe_batches(method, paths: Sequence[Path], *, workers: int = 0, device: str = "cpu") -> Iterator[tuple[int, np.ndarray]]:
+    """(offset, descriptors) for consecutive batches of `paths`, in input order."""
+    size = check_batch_size(method)
+    if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 0:
+        raise VPRBenchError(f"--workers must be a whole number >= 0, got {workers!r}.")
+    if not paths:
+        return
+    from torch.utils.data import DataLoader
+
+    batches = -(-len(paths) // size)
+    loader = DataLoader(_Images(method, paths), batch_size=size, shuffle=False, collate_fn=_as_batch,
+                        num_workers=min(int(workers), batches), pin_memory=str(device).startswith("cuda"))
+    offset, dim = 0, None
+    for items in loader:
+        for item in items:
+            if isinstance(item, _Failed):
+                raise VPRBenchError(item.message)
+        descriptors = checked(method, method.describe(items), len(items), dim)
+        dim = descriptors.shape[1]
+        yield offset, descriptors
+        offset += len(items)

@@ -1,0 +1,188 @@
+"""A store folder: the descriptors of one method (fingerprint) on one set of images.
+
+    stores/<method>-<fingerprint key>/<label>-<images key>/
+        database.h5, queries.h5                 complete stores (one per split)
+        database.rank0-of-2.partial.h5 ...      shards being written (one per rank; 1 rank = 1 shard)
+        fit_state.h5                            what the method fitted on the database (vocabulary)
+        .lock (+ .lock.holder)                  held by the one process that writes here
+
+Only the lock holder creates, discards or renames files here (ranks of a distributed run
+write their own shards while their rank 0 holds it). Complete stores are never changed
+after they appear, so readers need no lock. The images key is the content identity of the
+images, not of the ground truth: a new radius re-scores the same stores.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import uuid
+import warnings
+from contextlib import contextmanager
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from ..errors import VPRBenchError
+from ..fsutil import atomic_path, cache_error, is_temporary, lock
+from ..paths import cache_root
+from .rows import DescriptorStore, RowsIdentity, fingerprint_json, hdf5_written, inspect_rows_file
+
+#: options that change how a run goes, not the descriptors (left out of the store key)
+RUN_OPTIONS = frozenset({"device", "batch_size", "workers"})
+#: fit id of methods that fit nothing
+NO_FIT = "none"
+
+
+def method_fingerprint(method, store_dtype: str = "float32") -> dict:
+    """What the store is keyed by: the method's name, its merged options (even those its own
+    `fingerprint()` forgets), its fingerprint and the stored dtype."""
+    settings = getattr(method, "settings", None)
+    if not isinstance(settings, dict):  # until the registry sets `settings`, the user's options
+        settings = method.options
+    settings = {k: v for k, v in sorted(settings.items()) if k not in RUN_OPTIONS}
+    return {"method": method.name, "settings": json.loads(fingerprint_json(settings)),
+            **method.fingerprint(), "store_dtype": store_dtype}
+
+
+def run_store(record: dict, split: str = "database", cache_dir=None) -> DescriptorStore | None:
+    """The complete store an evaluation's result record was computed from (its
+    context.store.folder), or None when the record does not name one or the store is gone."""
+    folder = ((record.get("context") or {}).get("store") or {}).get("folder")
+    if not folder:
+        return None
+    return DescriptorStore.recorded(cache_root(cache_dir) / "stores" / folder / f"{split}.h5", f"{folder}/{split}")
+
+
+def fingerprint_key(fingerprint: dict | str) -> str:
+    text = fingerprint if isinstance(fingerprint, str) else fingerprint_json(fingerprint)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def shard_range(total: int, rank: int, world: int) -> tuple[int, int]:
+    """Rows [start, stop) of rank `rank` among `world` contiguous shards."""
+    return total * rank // world, total * (rank + 1) // world
+
+
+def fit_id_of(state: dict[str, np.ndarray]) -> str:
+    h = hashlib.sha256()
+    for key in sorted(state):
+        value = np.ascontiguousarray(state[key])
+        h.update(f"{key}|{value.dtype.str}|{value.shape}|".encode())
+        h.update(value.tobytes())
+    return "sha256:" + h.hexdigest()
+
+
+def unsaved_fit_id() -> str:
+    """A fit the method cannot save: nothing computed with it is ever resumed by another fit."""
+    return "unsaved:" + uuid.uuid4().hex
+
+
+class StoreFolder:
+    def __init__(self, method_name: str, fingerprint: dict, label: str, image_keys: dict[str, str], cache_dir=None):
+        images = hashlib.sha256(json.dumps(image_keys, sort_keys=True).encode()).hexdigest()[:16]
+        self.fingerprint = fingerprint
+        self.fingerprint_json = fingerprint_json(fingerprint)
+        self.key = f"{method_name}-{fingerprint_key(self.fingerprint_json)}/{label}-{images}"
+        self.path = cache_root(cache_dir) / "stores" / self.key
+        self.fit_path = self.path / "fit_state.h5"
+
+    # ------------------------------------------------------------ names
+    def store_path(self, split: str) -> Path:
+        return self.path / f"{split}.h5"
+
+    def shard_path(self, split: str, rank: int, world: int) -> Path:
+        return self.path / f"{split}.rank{rank}-of-{world}.partial.h5"
+
+    def identity(self, split: str, names: list[str], fit_id: str, dtype: str,
+                 start: int = 0, stop: int | None = None) -> RowsIdentity:
+        stop = len(names) if stop is None else stop
+        return RowsIdentity(store=f"{self.key}/{split}", start=start, stop=stop, total=len(names), fit_id=fit_id,
+                            dtype=dtype, fingerprint=self.fingerprint_json, names=names[start:stop])
+
+    # ------------------------------------------------------------ the lock
+    @contextmanager
+    def locked(self, timeout: float | None = None):
+        with lock(self.path / ".lock", timeout, what=f"descriptor store {self.path}"):
+            yield
+
+    # ------------------------------------------------------------ complete stores
+    def complete(self, split: str, names: list[str], fit_id: str, dtype: str) -> DescriptorStore | None:
+        """The split's complete store, or None (absent, partial, stale or torn)."""
+        path = self.store_path(split)
+        identity = self.identity(split, names, fit_id, dtype)
+        found = inspect_rows_file(path, identity)
+        if found.status == "foreign":
+            raise VPRBenchError(f"Descriptor store {path} does not belong to this store: {found.reason}. "
+                                "Delete it (it is recomputed).")
+        return DescriptorStore(path, identity) if found.status == "complete" else None
+
+    def recorded_fit_id(self, split: str) -> str | None:
+        """The fit id a split's complete store says it was computed with."""
+        try:
+            with h5py.File(self.store_path(split), "r") as f:
+                value = f.attrs.get("fit_id")
+                return value.decode() if isinstance(value, bytes) else value
+        except (OSError, KeyError):
+            return None
+
+    def discard(self, path: Path, reason: str) -> None:
+        """Remove a file of this folder; only the lock holder calls this."""
+        warnings.warn(f"Discarding {path}: {reason}; it is recomputed.", stacklevel=3)
+        try:
+            path.unlink(missing_ok=True)
+        except OSError as error:
+            raise cache_error(error, path) from None
+
+    def tidy(self, split: str) -> None:
+        """After the split's store is complete: its shards (any number of ranks) and any
+        leftovers of killed writers go. Only the lock holder calls this."""
+        try:
+            for path in self.path.glob(f"{split}.rank*-of-*.partial.h5"):
+                path.unlink(missing_ok=True)
+            for path in self.path.iterdir():  # only this split's and the fit state's: others write theirs unlocked
+                if is_temporary(path) and path.name.startswith((f".{split}.", f".{self.fit_path.name}.")):
+                    path.unlink(missing_ok=True)
+        except OSError as error:
+            raise cache_error(error, self.path) from None
+
+    # ------------------------------------------------------------ fit state
+    def fit_id_on_disk(self) -> str | None:
+        try:
+            with h5py.File(self.fit_path, "r") as f:
+                value = f.attrs["fit_id"]
+                return value.decode() if isinstance(value, bytes) else value
+        except (OSError, KeyError):
+            return None
+
+    def read_fit_state(self) -> tuple[dict[str, np.ndarray], str] | None:
+        """(state, fit id), or None when there is none; a file that cannot be read is discarded
+        (only the lock holder calls this)."""
+        if not self.fit_path.exists():
+            return None
+        try:
+            with h5py.File(self.fit_path, "r") as f:
+                state = {key: f["state"][key][...] for key in f["state"]}
+                recorded = f.attrs["fit_id"]
+            recorded = recorded.decode() if isinstance(recorded, bytes) else recorded
+            if not state or fit_id_of(state) != recorded:
+                raise ValueError("its content does not match its fit id")
+            return state, recorded
+        except (OSError, KeyError, ValueError) as error:
+            if isinstance(error, PermissionError):
+                raise cache_error(error, self.fit_path) from None
+            self.discard(self.fit_path, f"the fit state cannot be read ({error})")
+            return None
+
+    def write_fit_state(self, state: dict[str, np.ndarray]) -> str:
+        """Saved whole or not at all (written aside, then renamed): a kill at any moment leaves
+        the old state or the new one. Returns the fit id."""
+        state = {key: np.asarray(value) for key, value in state.items()}
+        fit_id = fit_id_of(state)
+        with atomic_path(self.fit_path) as temporary:
+            with hdf5_written(temporary, self.fit_path) as f:
+                group = f.create_group("state")
+                for key, value in state.items():
+                    group.create_dataset(key, data=value)
+                f.attrs["fit_id"] = fit_id
+        return fit_id

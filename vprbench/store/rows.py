@@ -1,0 +1,351 @@
+"""One HDF5 file of descriptor rows: a whole split (a store) or a rank's shard of it.
+
+Layout: `descriptors` (rows x dim, float32 or float16), `done` (one flag per row),
+`names` (the images, variable-length UTF-8), `complete` (one byte, set last) and attributes
+saying what the file is (`RowsIdentity`). Every dataset is contiguous and allocated when
+the file is created, and the file is created whole under a temporary name and renamed into
+place: after that only raw bytes change (rows, then their flags, then the completion byte),
+never HDF5's metadata, so a kill at any moment leaves a readable file whose flagged rows
+are all on disk. A file is complete only when its content says so: completion byte set,
+every row done, names, row range, fit and dtype as expected. That is checked whenever a
+file is opened for reading and again when it has changed since.
+"""
+from __future__ import annotations
+
+import errno
+import json
+import os
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from ..errors import VPRBenchError
+from ..fsutil import atomic_path, cache_error
+
+FORMAT = "vprbench-rows-2"
+DTYPES = ("float32", "float16")
+#: bytes read or copied at a time when a whole file is read or merged
+BLOCK_BYTES = 64 * 2**20
+
+
+@dataclass(frozen=True)
+class RowsIdentity:
+    """What a rows file must say about itself to belong where it lies."""
+
+    store: str             # the store folder's key and the split, e.g. "hog-1a2b/corridor-3c4d/database"
+    start: int             # first row of the split this file holds
+    stop: int
+    total: int             # rows in the whole split
+    fit_id: str            # identity of the method's fit (vocabulary) the rows were computed with
+    dtype: str
+    fingerprint: str       # the method fingerprint, JSON (for people reading the file)
+    names: list[str] = field(repr=False)  # names of rows start..stop
+
+    def attrs(self) -> dict:
+        return {"format": FORMAT, "store": self.store, "start": self.start, "stop": self.stop,
+                "total": self.total, "fit_id": self.fit_id, "dtype": self.dtype}
+
+    def write_into(self, f: h5py.File) -> None:
+        """Names and fingerprint as datasets (attributes are capped at 64 KB), the rest as attributes."""
+        f.create_dataset("names", data=self.names, dtype=h5py.string_dtype("utf-8"))
+        f.create_dataset("fingerprint", data=self.fingerprint, dtype=h5py.string_dtype("utf-8"))
+        f.attrs.update(self.attrs())
+
+
+@dataclass
+class Inspection:
+    """What a file on disk is: absent, torn (unreadable), foreign (belongs to another store or
+    run), stale (computed with another fit), partial (with the done mask) or complete."""
+
+    status: str
+    reason: str = ""
+    done: np.ndarray | None = None
+    dim: int | None = None
+
+
+def _early_contiguous() -> h5py.h5p.PropDCID:
+    dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+    dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)
+    return dcpl
+
+
+def create_rows_file(path: Path, identity: RowsIdentity, dim: int) -> None:
+    """Write the empty file whole (all space allocated) and rename it to `path`."""
+    if identity.dtype not in DTYPES:
+        raise VPRBenchError(f"store dtype must be one of {', '.join(DTYPES)}, got {identity.dtype!r}")
+    n = identity.stop - identity.start
+    with atomic_path(path) as temporary:
+        with hdf5_written(temporary, path) as f:
+            reserve(temporary, path, identity, dim)
+            f.create_dataset("descriptors", shape=(n, dim), dtype=identity.dtype, dcpl=_early_contiguous(),
+                             fill_time="never")
+            f.create_dataset("done", shape=(n,), dtype="uint8", dcpl=_early_contiguous(), fillvalue=0)
+            f.create_dataset("complete", shape=(), dtype="uint8", dcpl=_early_contiguous(), fillvalue=0)
+            identity.write_into(f)
+
+
+def reserve(path: Path, shown: Path, identity: RowsIdentity, dim: int) -> None:
+    """Claim the file's disk space now: a full disk is then one clear error before any
+    descriptor is computed, and writing rows later never needs a new block. (Instant on
+    ext4, XFS, btrfs; where the filesystem cannot, the C library writes the zeros.)"""
+    rows = identity.stop - identity.start
+    size = rows * (dim * np.dtype(identity.dtype).itemsize + 1) + sum(len(n.encode()) + 32 for n in identity.names)
+    if not hasattr(os, "posix_fallocate"):
+        return
+    fd = os.open(path, os.O_RDWR)
+    try:
+        os.posix_fallocate(fd, 0, size + 2**16)
+    except OSError as error:
+        if error.errno not in (errno.EOPNOTSUPP, errno.EINVAL):  # a filesystem that cannot: written as it comes
+            raise cache_error(error, shown) from None
+    finally:
+        os.close(fd)
+
+
+@contextmanager
+def hdf5_written(path: Path, shown: Path):
+    """A new HDF5 file, closed however the block ends: a failed write or close (a full disk)
+    becomes a `CacheError` naming `shown`, and leaves no file handle behind."""
+    try:
+        f = h5py.File(path, "w", libver="earliest")
+    except (OSError, RuntimeError) as error:
+        raise cache_error(error, shown) from None
+    try:
+        yield f
+        f.close()
+    except (OSError, RuntimeError) as error:
+        close_quietly(f)
+        raise cache_error(error, shown) from None
+    except BaseException:
+        close_quietly(f)
+        raise
+
+
+def close_quietly(f: h5py.File) -> None:
+    """Close after a failure; when HDF5 cannot flush (disk full), drop the handle anyway."""
+    try:
+        f.close()
+    except (OSError, RuntimeError):
+        try:
+            f.id.close()
+        except (OSError, RuntimeError, ValueError):
+            pass
+
+
+def inspect_rows_file(path: Path, identity: RowsIdentity) -> Inspection:
+    if not path.exists():
+        return Inspection("absent")
+    try:
+        with h5py.File(path, "r") as f:
+            attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+            if attrs.get("format") != FORMAT:
+                return Inspection("foreign", f"it is not a vprbench {FORMAT} file (format {attrs.get('format')!r})")
+            expected = identity.attrs()
+            for key in ("store", "start", "stop", "total", "dtype"):
+                if _plain(attrs.get(key)) != expected[key]:
+                    return Inspection("foreign", f"it holds {key} {_plain(attrs.get(key))!r}, this store needs {expected[key]!r}")
+            n = identity.stop - identity.start
+            descriptors = f["descriptors"]
+            if descriptors.ndim != 2 or descriptors.shape[0] != n or len(f["names"]) != n or f["done"].shape != (n,):
+                return Inspection("foreign", f"it holds {descriptors.shape[0]} rows and {len(f['names'])} names, expected {n}")
+            names = f["names"].asstr()[...].tolist()
+            if names != identity.names:
+                first = next(i for i, (a, b) in enumerate(zip(names, identity.names)) if a != b)
+                return Inspection("foreign", f"row {identity.start + first} is {names[first]!r}, expected {identity.names[first]!r}")
+            if attrs.get("fit_id") != identity.fit_id:
+                return Inspection("stale", f"it was computed with fit {attrs.get('fit_id')!r}, not {identity.fit_id!r}")
+            done = f["done"][...].astype(bool)
+            dim = int(descriptors.shape[1])
+            if int(f["complete"][()]) == 1 and done.all():
+                return Inspection("complete", done=done, dim=dim)
+            return Inspection("partial", done=done, dim=dim)
+    except (OSError, KeyError, ValueError, TypeError) as error:
+        if isinstance(error, PermissionError):
+            raise cache_error(error, path) from None
+        return Inspection("torn", f"it cannot be read ({error})")
+
+
+def _plain(value):
+    return value.item() if isinstance(value, np.generic) else value
+
+
+class RowWriter:
+    """Rows written into an existing rows file: rows first, then their flags, each flushed,
+    so a row flagged done is always fully on disk."""
+
+    def __init__(self, path: Path, identity: RowsIdentity):
+        self.path, self.identity = path, identity
+        try:
+            self.file = h5py.File(path, "r+")
+        except (OSError, RuntimeError) as error:
+            raise cache_error(error, path) from None
+        self.descriptors, self.done = self.file["descriptors"], self.file["done"]
+        self.dim = int(self.descriptors.shape[1])
+
+    def write(self, rows: np.ndarray, descriptors: np.ndarray) -> None:
+        """`rows` are ascending split row numbers inside this file's range."""
+        local = np.asarray(rows, dtype=np.int64) - self.identity.start
+        if not len(local):
+            return
+        values = np.asarray(descriptors, dtype=self.identity.dtype)
+        first, last = int(local[0]), int(local[-1]) + 1
+        try:
+            runs = _runs(local)
+            if len(runs) > 1 and last - first <= 4 * len(local):
+                # scattered rows (a resumed run): rewrite the block around them; rows already
+                # done are written back with the bytes they hold
+                block = self.descriptors[first:last]
+                block[local - first] = values
+                self.descriptors[first:last] = block
+            else:
+                for start, stop in runs:
+                    at = int(np.searchsorted(local, start))
+                    self.descriptors[start:stop] = values[at:at + stop - start]
+            self.file.flush()
+            flags = self.done[first:last]
+            flags[local - first] = 1
+            self.done[first:last] = flags
+            self.file.flush()
+        except (OSError, RuntimeError) as error:
+            raise cache_error(error, self.path) from None
+
+    def finish(self) -> None:
+        """Set the completion byte (last), flush to disk, close."""
+        try:
+            if not self.done[...].all():
+                raise VPRBenchError(f"{self.path}: rows are missing; it cannot be marked complete")
+            self.file["complete"][()] = 1
+            self.file.flush()
+            self.file.close()
+            with open(self.path, "rb+") as f:
+                os.fsync(f.fileno())
+        except (OSError, RuntimeError) as error:
+            raise cache_error(error, self.path) from None
+
+    def close(self) -> None:
+        if self.file.id.valid:
+            close_quietly(self.file)
+
+
+def _runs(local: np.ndarray) -> list[tuple[int, int]]:
+    """Consecutive runs [first, last) of ascending row numbers."""
+    if not len(local):
+        return []
+    breaks = np.flatnonzero(np.diff(local) != 1) + 1
+    starts = np.concatenate([[0], breaks])
+    ends = np.concatenate([breaks, [len(local)]])
+    return [(int(local[s]), int(local[e - 1]) + 1) for s, e in zip(starts, ends)]
+
+
+class DescriptorStore:
+    """A complete store, read as a "row source": `row_count`, `dim`, `dtype`, `folder`,
+    `read_rows(start, stop)` and `read_rows_at(indices)` return float32 rows."""
+
+    def __init__(self, path: Path, identity: RowsIdentity):
+        self.path, self.identity = Path(path), identity
+        self.folder = self.path.parent
+        self._verified = None
+        self._verify()
+
+    @classmethod
+    def recorded(cls, path: Path, store: str) -> "DescriptorStore | None":
+        """The complete store at `path` as its own content describes it (for readers that do
+        not know the images, e.g. the leaderboard), or None when it is absent or incomplete."""
+        try:
+            with h5py.File(path, "r") as f:
+                attrs = {k: _plain(v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+                names = f["names"].asstr()[...].tolist()
+                fingerprint = f["fingerprint"].asstr()[()]
+            identity = RowsIdentity(store=store, start=attrs["start"], stop=attrs["stop"], total=attrs["total"],
+                                    fit_id=attrs["fit_id"], dtype=attrs["dtype"], fingerprint=fingerprint, names=names)
+            return cls(path, identity)
+        except (OSError, KeyError, ValueError, TypeError, VPRBenchError):
+            return None
+
+    def _verify(self) -> None:
+        try:
+            stat = os.stat(self.path)
+        except OSError as error:
+            raise VPRBenchError(f"Descriptor store {self.path} has gone ({error.strerror}); run again to recompute it.") from None
+        signature = (stat.st_ino, stat.st_size, stat.st_mtime_ns)
+        if signature == self._verified:
+            return
+        found = inspect_rows_file(self.path, self.identity)
+        if found.status != "complete":
+            raise VPRBenchError(f"Descriptor store {self.path} is not complete: "
+                                f"{found.reason or found.status}. Run the evaluation again to recompute it.")
+        self.row_count = self.identity.stop - self.identity.start
+        self.dim = found.dim
+        self.dtype = np.dtype(self.identity.dtype)
+        self._verified = signature
+
+    @property
+    def names(self) -> list[str]:
+        return list(self.identity.names)
+
+    def read_rows(self, start: int = 0, stop: int | None = None) -> np.ndarray:
+        self._verify()
+        stop = self.row_count if stop is None else stop
+        if not 0 <= start <= stop <= self.row_count:
+            raise ValueError(f"rows {start}:{stop} outside 0:{self.row_count}")
+        with self._open() as f:
+            return np.asarray(f["descriptors"][start:stop], dtype=np.float32)
+
+    def read_rows_at(self, indices) -> np.ndarray:
+        """Rows at ascending `indices` (repeats allowed), in that order."""
+        self._verify()
+        indices = np.asarray(indices, dtype=np.int64)
+        if len(indices) and (np.any(np.diff(indices) < 0) or indices[0] < 0 or indices[-1] >= self.row_count):
+            raise ValueError("indices must be ascending and inside the store")
+        out = np.empty((len(indices), self.dim), dtype=np.float32)
+        block = max(1, BLOCK_BYTES // max(1, self.dim * np.dtype(self.dtype).itemsize))
+        with self._open() as f:
+            data = f["descriptors"]
+            i = 0
+            while i < len(indices):
+                # rows close together are read as one slice; far apart ones one by one
+                j = int(np.searchsorted(indices, indices[i] + block, side="left"))
+                first, last = int(indices[i]), int(indices[j - 1]) + 1
+                if (j - i) * 4 >= last - first:
+                    out[i:j] = data[first:last][indices[i:j] - first]
+                else:
+                    for k in range(i, j):
+                        out[k] = data[int(indices[k])]
+                i = j
+        return out
+
+    def read(self) -> np.ndarray:
+        return self.read_rows(0, self.row_count)
+
+    def _open(self) -> h5py.File:
+        try:
+            return h5py.File(self.path, "r")
+        except OSError as error:
+            raise cache_error(error, self.path) from None
+
+
+def merge_rows_files(parts: list[tuple[Path, RowsIdentity]], path: Path, identity: RowsIdentity, dim: int) -> None:
+    """Copy complete shards, in row order, into one new complete file at `path` (atomically)."""
+    n = identity.stop - identity.start
+    block = max(1, BLOCK_BYTES // max(1, dim * np.dtype(identity.dtype).itemsize))
+    with atomic_path(path) as temporary:
+        with hdf5_written(temporary, path) as out:
+            reserve(temporary, path, identity, dim)
+            target = out.create_dataset("descriptors", shape=(n, dim), dtype=identity.dtype,
+                                        dcpl=_early_contiguous(), fill_time="never")
+            for part_path, part in parts:
+                with h5py.File(part_path, "r") as f:
+                    source = f["descriptors"]
+                    for first in range(0, part.stop - part.start, block):
+                        last = min(part.stop - part.start, first + block)
+                        target[part.start + first:part.start + last] = source[first:last]
+            out.create_dataset("done", data=np.ones(n, np.uint8), dcpl=_early_contiguous())
+            out.create_dataset("complete", data=np.uint8(1), dcpl=_early_contiguous())
+            identity.write_into(out)
+
+
+def fingerprint_json(fingerprint: dict) -> str:
+    return json.dumps(fingerprint, sort_keys=True, default=str)
