@@ -66,8 +66,8 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    except OSError as error:
-        raise cache_error(error, path) from None
+    except OSError as error:  # name the folder that refuses files, not a temporary name
+        raise CacheError(os_error_message(error, path.parent)) from None
     os.close(fd)
     temporary = Path(name)
     try:
@@ -112,11 +112,13 @@ def _describe_holder(path: Path) -> str:
 
 
 @contextmanager
-def lock(path: str | os.PathLike, timeout: float | None = None, *, what: str | None = None) -> Iterator[None]:
+def lock(path: str | os.PathLike, timeout: float | None = None, *, what: str | None = None,
+         announce: bool = True) -> Iterator[None]:
     """Hold the exclusive lock `path` (a lock file, created if needed) for the block.
 
-    timeout: seconds to wait (None waits as long as it takes; the wait is announced once on
-    stderr with the holder's pid, host and command). Re-entrant within a process.
+    timeout: seconds to wait (None waits as long as it takes; unless `announce` is False, for
+    locks held only for moments, the wait is announced once on stderr with the holder's pid,
+    host and command). Re-entrant within a process.
     """
     from filelock import FileLock, Timeout
 
@@ -128,8 +130,8 @@ def lock(path: str | os.PathLike, timeout: float | None = None, *, what: str | N
         if not held.acquire(blocking=False, timeout=0):  # pragma: no cover - filelock raises instead
             raise Timeout(str(path))
     except Timeout:
-        holder = _describe_holder(path)
-        print(f"waiting for {what}: locked by {holder}", file=sys.stderr, flush=True)
+        if announce:
+            print(f"waiting for {what}: locked by {_describe_holder(path)}", file=sys.stderr, flush=True)
         try:
             held.acquire(timeout=-1 if timeout is None else timeout)
         except Timeout:

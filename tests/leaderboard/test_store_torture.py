@@ -22,7 +22,7 @@ import vprbench.evaluation.record as record
 template = json.loads(Path(sys.argv[1]).read_text())
 writer, count = sys.argv[2], int(sys.argv[3])
 if os.environ.get("ANNOUNCE"):  # say which file is being written, and write slowly, so the parent can kill mid-write
-    original = record._atomic_write
+    original = record.atomic_write
     def announced(path, data):
         print("writing", path.suffix, flush=True)
         real_fsync = os.fsync
@@ -31,7 +31,7 @@ if os.environ.get("ANNOUNCE"):  # say which file is being written, and write slo
             original(path, data)
         finally:
             os.fsync = real_fsync
-    record._atomic_write = announced
+    record.atomic_write = announced  # the name save_result calls
 print("ready", flush=True)
 while not Path(sys.argv[4]).exists():  # all writers start together
     time.sleep(0.005)
@@ -128,7 +128,7 @@ def test_full_disk_fails_cleanly_and_keeps_every_stored_record(small_disk, make_
     monkeypatch.setenv("VPRBENCH_CACHE", str(disk))
     record = make_record(kind="own", n_database=5000, n_queries=2000, dataset="full")
     saved = 0
-    with pytest.raises(VPRBenchError, match=r"Cannot use .*results: No space left on device; .* The result was not stored\."):
+    with pytest.raises(VPRBenchError, match=r"Cannot use .*results/run-\d+-hog-full\.(npz|json): No space left on device; .* The result was not stored\."):
         for _ in range(100):
             save_result(dict(record, run_id=f"run-{saved:03d}"))
             saved += 1

@@ -7,12 +7,11 @@ failed import leaves nothing behind.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 import warnings
 from pathlib import Path
 
 from ..errors import VPRBenchError
+from ..fsutil import atomic_write
 from .download import how_to_get
 from .layouts import candidates, missing_paths, read_layout
 from .manifest import DatasetManifest, data_root, dataset_manifest, is_default_data_root
@@ -39,20 +38,8 @@ def read_registry(data_dir=None) -> dict[str, str]:
 
 
 def write_registry(entries: dict[str, str], data_dir=None) -> Path:
-    """Write atomically (temporary file + rename), so a crash or a full disk never leaves half
-    a registry; a failed write removes its temporary file and names the registry.
-    (A private atomic write until vprbench/fsutil.py's atomic_write lands.)"""
-    path = registry_path(data_dir)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=".datasets-", suffix=".json")
-    try:
-        with os.fdopen(handle, "w") as file:
-            json.dump(dict(sorted(entries.items())), file, indent=2)
-        os.replace(temporary, path)
-    except OSError as error:
-        os.unlink(temporary)
-        raise OSError(error.errno, error.strerror, str(path)) from None
-    return path
+    """Write atomically, so a crash or a full disk never leaves half a registry."""
+    return atomic_write(registry_path(data_dir), json.dumps(dict(sorted(entries.items())), indent=2))
 
 
 def dataset_location(manifest: DatasetManifest, data_dir=None) -> Path:

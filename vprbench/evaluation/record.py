@@ -13,7 +13,6 @@ import json
 import os
 import platform
 import re
-import tempfile
 import uuid
 import warnings
 from datetime import datetime, timezone
@@ -23,6 +22,7 @@ import numpy as np
 
 from .. import __version__
 from ..errors import VPRBenchError, os_error_message
+from ..fsutil import CacheError, atomic_write
 from ..paths import cache_root
 
 SCHEMA = "vprbench-result"
@@ -232,22 +232,6 @@ def results_path(cache_dir=None) -> Path:
     return cache_root(cache_dir) / "results.jsonl"
 
 
-def _atomic_write(path: Path, data: bytes) -> None:
-    """Write to a temporary name in the same folder, flush to disk, rename: readers see the whole
-    file or nothing. (Private until vprbench/fsutil.py provides the shared helper.)"""
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        os.fchmod(handle, 0o644)  # a shared cache: readable by every user, as a plain open() would make it
-        with os.fdopen(handle, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
-
-
 def _slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", str(text))[:60]
 
@@ -269,13 +253,15 @@ def save_result(record: dict, cache_dir=None) -> Path:
             buffer = io.BytesIO()
             np.savez_compressed(buffer, **arrays)
             data = buffer.getvalue()
-            _atomic_write(folder / f"{stem}.npz", data)
+            atomic_write(folder / f"{stem}.npz", data)
             summary["per_query"] = {"file": f"{stem}.npz", "sha256": hashlib.sha256(data).hexdigest(),
                                     "k": section["k"], "queries": len(section["first_positive_rank"]),
                                     "fields": list(PER_QUERY_FIELDS)}
-        _atomic_write(path, json.dumps(summary, sort_keys=True, indent=1).encode())
+        atomic_write(path, json.dumps(summary, sort_keys=True, indent=1).encode())
     except OSError as error:
         raise VPRBenchError(f"{os_error_message(error, folder)} The result was not stored.") from None
+    except CacheError as error:
+        raise VPRBenchError(f"{error} The result was not stored.") from None
     return path
 
 

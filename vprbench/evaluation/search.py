@@ -15,8 +15,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import tempfile
 import time
 import warnings
 import zipfile
@@ -26,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import VPRBenchError
+from ..fsutil import atomic_path
 from ..rows import (DEFAULT_MEMORY_BUDGET, READ_BYTES, ArrayRows, RowSource, as_rows, chunks, format_bytes,
                     parse_memory, read_bytes_per_row)
 
@@ -200,19 +199,6 @@ class TransformedRows:
 
 
 # ---------------------------------------------------------------- post-processing state
-def _save_npz_atomically(path: Path, arrays: dict) -> None:
-    # private until vprbench/fsutil.py (store branch) provides atomic_write: temp file + os.replace
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(handle, "wb") as f:
-            np.savez(f, **arrays)
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
-
-
 def fit_postprocessor(postprocessor, database: RowSource, memory_budget: int, state_folder=None) -> dict:
     """Fit on the database rows, or load the state a previous run saved in `state_folder`
     (default: the database's folder) under a name keyed by what defines it."""
@@ -233,7 +219,8 @@ def fit_postprocessor(postprocessor, database: RowSource, memory_budget: int, st
     postprocessor.fit(database, memory_budget)
     info.update(state="fitted", fit_s=round(time.perf_counter() - started, 3))
     if path is not None:
-        _save_npz_atomically(path, {**postprocessor.state(), "key": np.array(text)})
+        with atomic_path(path) as temporary, open(temporary, "wb") as file:
+            np.savez(file, **postprocessor.state(), key=np.array(text))
     return info
 
 

@@ -18,6 +18,7 @@ import pandas as pd
 
 from .. import __version__
 from ..errors import VPRBenchError
+from ..fsutil import LockTimeout, lock
 from ..evaluation.record import read_results
 from ..reference import paper_results
 from . import figures
@@ -35,8 +36,6 @@ MOSAIC_ROWS = 4
 def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0) -> Path:
     """Write <folder>/leaderboard/ (overview, one page per dataset, figures, downloads) from the
     results store; returns that folder. Nothing is changed when anything fails."""
-    from filelock import FileLock, Timeout
-
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise VPRBenchError(f"--to {folder} is a file, not a folder: give the docs folder, e.g. --to docs/")
@@ -56,14 +55,14 @@ def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0) -> Pa
                             "to with --to; nothing was written.") from None
     try:
         write_section(staging, build_board(records), records, cache_dir=cache_dir, data_dir=data_dir, seed=seed)
-        with FileLock(str(folder / f".{SECTION}.lock"), timeout=60):
+        with lock(folder / f".{SECTION}.lock", timeout=60, what=f"the leaderboard in {folder}"):
             _swap(staging, target)
             _remove_stale(folder)
     except OSError as error:
         raise VPRBenchError(f"Cannot write the leaderboard to {folder} ({error.strerror or error}); "
                             f"the previous {target} is unchanged.") from None
-    except Timeout:
-        raise VPRBenchError(f"Another 'leaderboard publish' holds {folder / f'.{SECTION}.lock'}; try again.") from None
+    except LockTimeout as error:
+        raise VPRBenchError(f"{error} Another 'leaderboard publish' is writing there; try again.") from None
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     if (folder / f"{SECTION}.md").is_file():

@@ -4,8 +4,7 @@
 refreshes its modification time. A lease older than `lease_s` belonged to a process that
 died: another process takes the cell over (the descriptor store resumes its partial rows).
 Claiming, taking over and releasing happen under a per-cell file lock (filelock), so two
-processes never both hold a cell. The tiny lock helper here stands in for the store
-branch's `fsutil.lock` until that lands.
+processes never both hold a cell.
 """
 from __future__ import annotations
 
@@ -17,20 +16,17 @@ import time
 import uuid
 from pathlib import Path
 
-from filelock import FileLock, Timeout
-
-from ..errors import VPRBenchError
+from ..fsutil import LockTimeout, atomic_write, lock
 from ..paths import cache_root
 
 
-def _lock(path: Path, timeout: float = 120.0) -> FileLock:
-    return FileLock(str(path), timeout=timeout)
+def _lock(path: Path):
+    # held for moments: no "waiting for" line each time two processes meet
+    return lock(path, timeout=120.0, what=f"the claim {path.stem}", announce=False)
 
 
 def _write_json(path: Path, data: dict) -> None:
-    temporary = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    temporary.write_text(json.dumps(data), encoding="utf-8")
-    os.replace(temporary, path)
+    atomic_write(path, json.dumps(data))
 
 
 class Claims:
@@ -81,7 +77,7 @@ class Claims:
                 _write_json(lease, {"worker": self.worker, "token": self.token, "since": time.time()})
                 self.held.add(key)
                 return "claimed", taken_over
-        except Timeout:
+        except LockTimeout:
             return "busy", "lock"
 
     def still_mine(self, key: str) -> bool:
@@ -104,17 +100,3 @@ class Claims:
 
     def close(self) -> None:
         self._stop.set()
-
-
-def save_record(record: dict, cache_dir=None):
-    """Through the results store, one writer at a time (records can be large)."""
-    from ..evaluation import record as records
-
-    save = getattr(records, "save_result", None) or records.append_result
-    path = records.results_path(cache_dir) if hasattr(records, "results_path") else cache_root(cache_dir) / "results.jsonl"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        with _lock(path.with_name(path.name + ".lock")):
-            return save(record, cache_dir)
-    except Timeout:
-        raise VPRBenchError(f"Could not lock the results store {path} within 120 s.") from None

@@ -16,7 +16,8 @@ from rich.table import Table
 from rich.text import Text
 
 from ..errors import VPRBenchError
-from .claims import Claims, save_record
+from ..evaluation.record import save_result
+from .claims import Claims
 from .plan import RUN_OPTIONS, Cell
 
 RAN, SKIPPED, ELSEWHERE, FAILED, MISSING = "ran", "skipped", "done elsewhere", "failed", "missing"
@@ -121,7 +122,7 @@ def _run_claimed(cell, claims, taken_over, data_dir, cache_dir, strict, progress
         if not claims.still_mine(cell.key):  # this process stalled past its lease and the cell was taken over
             claims.held.discard(cell.key)
             return Outcome(cell, ELSEWHERE, "lease lost while running; the other process's result counts")
-        save_record(record, cache_dir)
+        save_result(record, cache_dir)
     except (Exception, KeyboardInterrupt) as error:  # a failing cell must not stop the sweep
         if isinstance(error, KeyboardInterrupt):
             claims.release(cell.key)
