@@ -10,6 +10,7 @@ from ..datasets import (
     dataset_location, dataset_manifest, dataset_manifests, download_dataset, import_dataset, load_dataset, protocols,
     verify_dataset,
 )
+from ..errors import VPRBenchError
 from .console import console, styled
 from .options import add_location_options, apply_locations
 
@@ -83,7 +84,12 @@ def run_info(args) -> int:
         else:
             console().print(protocol_table(args.name, listed))
         return 0
-    dataset = load_dataset(args.name, args.data_dir, fetch=False, protocol=args.protocol)
+    try:
+        dataset = load_dataset(args.name, args.data_dir, fetch=False, protocol=args.protocol)
+    except VPRBenchError as error:
+        if args.name in dataset_manifests() and not dataset_location(dataset_manifest(args.name), args.data_dir).exists():
+            raise VPRBenchError(f"{error} Its protocols need no data: 'vprbench datasets info {args.name} --protocols'.") from None
+        raise
     info = dataset.summary()
     info.update({"citation": dataset.citation, "licence": dataset.licence, "notes": " ".join(dataset.notes),
                  "kind": dataset.kind, "protocol": dataset.protocol})
