@@ -44,9 +44,18 @@ for i in range(count):
 
 def writer(tmp_path, template, name, count, go, **env):
     script = tmp_path / "writer.py"
-    script.write_text(WRITER)
-    return subprocess.Popen([sys.executable, str(script), str(template), name, str(count), str(go)],
-                            env={**os.environ, **env}, stdout=subprocess.PIPE, text=True)
+    if not script.exists():  # rewriting it while an earlier writer starts would hand that one an empty file
+        script.write_text(WRITER)
+    errors = tmp_path / f"{name}.stderr"  # a file, not a pipe: eight children never block on it
+    proc = subprocess.Popen([sys.executable, str(script), str(template), name, str(count), str(go)],
+                            env={**os.environ, **env}, stdout=subprocess.PIPE, stderr=errors.open("w"), text=True)
+    proc.errors = errors
+    return proc
+
+
+def assert_ready(proc):
+    line = proc.stdout.readline().strip()
+    assert line == "ready", f"writer exited {proc.poll()} before it was ready: {proc.errors.read_text()[-2000:]}"
 
 
 def assert_all_whole(expected_count=None):
@@ -75,7 +84,7 @@ def test_eight_writers_at_once_lose_nothing(tmp_path, template):
     go = tmp_path / "go"
     procs = [writer(tmp_path, template(), f"w{w}", 15, go) for w in range(8)]
     for p in procs:
-        assert p.stdout.readline().strip() == "ready"  # imported and waiting: now start all at once
+        assert_ready(p)  # imported and waiting: now start all at once
     go.touch()
     assert [p.wait(timeout=120) for p in procs] == [0] * 8
     records = assert_all_whole(expected_count=120)
@@ -91,7 +100,7 @@ def test_kill_9_in_the_middle_of_a_write_leaves_whole_records_only(tmp_path, tem
     go.touch()
     source = template(n_queries=3000)
     proc = writer(tmp_path, source, "first", 3, go, ANNOUNCE="1")
-    assert proc.stdout.readline().strip() == "ready"
+    assert_ready(proc)
     seen = []
     while len(seen) < 3 or seen[-1] != f".{moment}":  # let two records finish, kill in the third
         seen.append(proc.stdout.readline().strip().removeprefix("writing "))
@@ -115,7 +124,7 @@ def test_kill_9_at_seeded_random_moments(tmp_path, template):
     kills = 0
     for round_ in range(5):
         proc = writer(tmp_path, source, f"r{round_}", 50, go)
-        assert proc.stdout.readline().strip() == "ready"
+        assert_ready(proc)
         time.sleep(float(rng.uniform(0.0, 0.4)))
         os.kill(proc.pid, signal.SIGKILL)
         kills += proc.wait(timeout=30) == -signal.SIGKILL
