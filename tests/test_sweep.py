@@ -146,7 +146,8 @@ def test_reproduce_dry_run_and_bad_table(shared_data, capsys, monkeypatch):
     monkeypatch.setenv("COLUMNS", "400")
     assert main(["reproduce", "anyloc", "--table", "2", "--dry-run", "--data-dir", str(shared_data)]) == 0
     out = capsys.readouterr().out
-    assert "60 cells" in out and out.count("not runnable: no vprbench method") == 6
+    assert "60 cells to evaluate, 6 with no vprbench method (NetVLAD)" in out
+    assert out.count("not runnable: no vprbench method") == 6
     assert "dataset baidu-mall (Download baidu_datasets.tar.gz" in out
     assert "weights dinov2_vitg14_pretrain.pth (download https://dl.fbaipublicfiles.com/dinov2/dinov2_vitg14/" in out
     assert "weights ResNet101_2048_cosplace.pth (from https://github.com/gmberton/CosPlace/" in out

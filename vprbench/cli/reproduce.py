@@ -40,8 +40,11 @@ def run_reproduce(args) -> int:
             c.options.setdefault("device", args.device)
     console = make_console()
     missing = {key: missing_for(c, weights.get(tc.row), args.data_dir) for key, (c, tc) in cells.items()}
+    unrunnable = [tc for tc in table_cells_ if not tc.cells]
+    no_method = f"{len(unrunnable)} with no vprbench method ({', '.join(sorted({tc.row for tc in unrunnable}))})"
     if args.dry_run:
-        listing = Table(title=f"{spec['title']}: {len(cells)} cells (dry run, nothing runs)")
+        listing = Table(title=f"{spec['title']}: {len(cells)} cells to evaluate"
+                        f"{f', {no_method}' if unrunnable else ''} (dry run, nothing runs)")
         for column in ("row", "column", "dataset:protocol", "status"):
             listing.add_column(column, overflow="fold")
         for tc in table_cells_:
@@ -60,6 +63,8 @@ def run_reproduce(args) -> int:
                          lease_s=args.lease, plan=f"{args.paper} table {args.table}",
                          runnable=lambda c: missing[c.key])
     console.print(summary_table(outcomes, f"{args.paper} table {args.table}"))
+    if unrunnable:
+        console.print(f"Not evaluated: {no_method}; the paper's values stand alone there.", markup=False)
     rendered = paper_table(spec, table_cells_, args.cache_dir)
     console.print(rendered)
     if args.publish:
