@@ -16,6 +16,7 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+from memory import rss_kb  # this folder is on sys.path (as a script and under pytest)
 
 DB_ROWS, DIM, QUERIES, K = 1_000_000, 512, 1000, 20
 PCA_ROWS, PCA_IN, PCA_OUT, EXACT_ROWS = 100_000, 4096, 512, 20_000
@@ -174,28 +175,22 @@ def tolerance(folder: Path, name: str, reference: str) -> dict:
     return {"max_score_difference": float(scores), "max_value_difference": float(np.abs(a - b).max())}
 
 
-def _rss_kb(field: str) -> int:
-    with open("/proc/self/status") as status:
-        for line in status:
-            if line.startswith(field):
-                return int(line.split()[1])
-    raise RuntimeError(f"{field} not in /proc/self/status")
-
-
 def probe(name: str, folder: Path) -> dict:
     run = WORKLOADS[name](folder)
     with open("/proc/self/clear_refs", "w") as refs:
         refs.write("5")  # reset the peak-RSS counter (VmHWM) to the current RSS
-    base = _rss_kb("VmRSS:")
+    base = rss_kb("VmRSS:")
     start = time.perf_counter()
     details = run()
     seconds = time.perf_counter() - start
-    peak = _rss_kb("VmHWM:")
+    peak = rss_kb("VmHWM:")
     return {"workload": name, "seconds": round(seconds, 3), "baseline_mb": round(base / 1024, 1),
             "peak_mb": round(peak / 1024, 1), "peak_above_baseline_mb": round((peak - base) / 1024, 1), **details}
 
 
 if __name__ == "__main__":
+    if len(sys.argv) < 3:
+        raise SystemExit("usage: search_workloads.py make DATA_DIR | tolerance DATA_DIR A B | CASE DATA_DIR")
     if sys.argv[1] == "make":
         make_inputs(Path(sys.argv[2]))
     elif sys.argv[1] == "tolerance":

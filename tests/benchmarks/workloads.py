@@ -24,6 +24,7 @@ from PIL import Image
 import vprbench
 from vprbench.aggregation import fit_vocabulary, vlad_hard
 from vprbench.features.backbones import backbone_spec, create_model, official_state_dict
+from memory import rss_kb  # this folder is on sys.path (as a script and under pytest)
 
 IMAGE_SIZE = 224          # ViT-S/14 at 224x224: 16x16 = 256 patches of 384 dims
 LAYER = 9                 # value facet of block 9 of ViT-S/14
@@ -114,23 +115,15 @@ def workload(name: str):
     raise SystemExit(f"unknown workload {name}")
 
 
-def _rss_kb(field: str) -> int:
-    with open("/proc/self/status") as status:
-        for line in status:
-            if line.startswith(field):
-                return int(line.split()[1])
-    raise RuntimeError(f"{field} not in /proc/self/status")
-
-
 def probe(name: str) -> dict:
     run = workload(name)
     with open("/proc/self/clear_refs", "w") as refs:
         refs.write("5")  # reset the peak-RSS counter (VmHWM) to the current RSS
-    base = _rss_kb("VmRSS:")
+    base = rss_kb("VmRSS:")
     start = time.perf_counter()
     run()
     seconds = time.perf_counter() - start
-    return {"workload": name, "peak_extra_mb": round((_rss_kb("VmHWM:") - base) / 1024, 1),
+    return {"workload": name, "peak_extra_mb": round((rss_kb("VmHWM:") - base) / 1024, 1),
             "baseline_mb": round(base / 1024, 1), "seconds_once": round(seconds, 3)}
 
 
