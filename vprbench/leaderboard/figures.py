@@ -147,6 +147,10 @@ def paper_domain_averages() -> dict[str, dict[str, float]]:
     return {row: part.groupby("domain")["value"].mean().to_dict() for row, part in frame.groupby("row", sort=False)}
 
 
+#: the paper's names for domains whose short names are not words
+DOMAIN_LABELS = {"subt": "Subterranean"}
+
+
 def radar(board: Board, path: Path) -> Path:
     """Average R@1 per domain (AnyLoc Fig. 1, right): measured rows solid, the paper's dashed."""
     plt = _pyplot()
@@ -164,7 +168,8 @@ def radar(board: Board, path: Path) -> Path:
         r = np.array([values.get(d, np.nan) for d in domains])
         closed = np.append(r, r[0]), np.append(angles, angles[0])
         ax.plot(closed[1], closed[0], style, marker="o", label=label)
-    ax.set_xticks(angles, [d.capitalize() for d in domains])
+    ax.set_xticks(angles, [DOMAIN_LABELS.get(d, d.capitalize()) for d in domains])
+    ax.tick_params(axis="x", pad=8)  # keep the labels off the outer ring
     ax.set_ylim(0, 100)
     ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.08), ncol=2, frameon=False)
     ax.set_title("Average R@1 (%) per domain\n(no point where a row was not measured)", fontsize=8)
