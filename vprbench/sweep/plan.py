@@ -161,8 +161,8 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, device: st
         if device is not None and "device" in accepted:
             options.setdefault("device", device)
         for option in sorted(set(options) - set(accepted)):
-            problems.append(f"{where('methods', i, 'options')}: method {name!r} does not take option {option!r}"
-                            f"{closest_names(option, accepted)} (it accepts: {', '.join(accepted) or 'none'})")
+            problems.append(f"{where('methods', i, 'options')}: method {name!r} does not take option {option!r}."
+                            f"{closest_names(option, accepted)} (It accepts: {', '.join(accepted) or 'none'}.)")
         methods.append((name, {k: tuple(v) if isinstance(v, list) else v for k, v in options.items()}, entry.get("label", "")))
 
     datasets, manifests = [], _manifests()
@@ -187,7 +187,8 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, device: st
             else:
                 datasets.append((name, protocol))
     if problems:
-        raise VPRBenchError(f"Plan {origin} has {len(problems)} problem(s); nothing was run:\n  " + "\n  ".join(problems))
+        what = "The command line" if origin == "the command line" else f"Plan {origin}"
+        raise VPRBenchError(f"{what} has {len(problems)} problem(s); nothing was run:\n  " + "\n  ".join(problems))
     cells = [Cell(method=m, options=o, label=label, dataset=d, protocol=p, ks=tuple(sorted(set(ks))))
              for m, o, label in methods for d, p in datasets]
     return Plan(name=str(data.get("name", default_name)), cells=cells, description=str(data.get("description", "")))
