@@ -109,10 +109,13 @@ def test_preset_layer_moves_to_the_same_relative_depth_on_another_backbone(weigh
 
 
 def test_dataset_resize_policy_feeds_fingerprint(weights):
-    m = AnyLoc(backbone="dinov2_vits14", weights=str(weights), aggregation="gem")
-    m.use_dataset("pitts30k")
+    layer_note = "layer 31 is dinov2_vitg14's .* block 9 at the same relative depth"  # the ViT-G layer on ViT-S
+    with pytest.warns(UserWarning, match=layer_note):
+        m = AnyLoc(backbone="dinov2_vits14", weights=str(weights), aggregation="gem")
+        m.use_dataset("pitts30k")
     assert m.fingerprint()["resize"] == [480, 640]
-    m = AnyLoc(backbone="dinov2_vits14", weights=str(weights), aggregation="gem", resize="224x224", dataset="pitts30k")
+    with pytest.warns(UserWarning, match=layer_note):
+        m = AnyLoc(backbone="dinov2_vits14", weights=str(weights), aggregation="gem", resize="224x224", dataset="pitts30k")
     assert m.fingerprint()["resize"] == [224, 224]
 
 

@@ -144,7 +144,9 @@ def test_empty_fit_state_means_fit_again_never_resume_unfitted(shared_data, tmp_
     with pytest.raises(KeyboardInterrupt):
         evaluate(method, dataset)
     again = vprbench.create_method("unsaved-test")
-    record = evaluate(again, dataset)
+    with pytest.warns(UserWarning, match="it was computed with fit 'unsaved:.*'; it is recomputed") as caught:
+        record = evaluate(again, dataset)
+    assert len(caught) == 2  # the database's and the queries' partial stores
     assert again.fits == 1  # fitted again, not resumed unfitted
     assert record["descriptors_computed"] == {"database": 111, "queries": 111}  # nothing of the old fit kept
     warm = vprbench.create_method("unsaved-test")

@@ -60,7 +60,6 @@ def evaluate_cell(cell: Cell, *, data_dir=None, cache_dir=None, strict=False, pr
     dataset = load_dataset(cell.dataset, data_dir, strict=strict, protocol=cell.protocol)
     method = create_method(cell.method, **cell.options)
     record = evaluate(method, dataset, ks=cell.ks, cache_dir=cache_dir, progress=progress)
-    record.setdefault("protocol", dataset.protocol)  # the leaderboard branch's record builder sets it itself
     record.setdefault("context", {})["sweep"] = {"cell": cell.key, **(context or {})}
     return record
 
