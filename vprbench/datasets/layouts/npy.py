@@ -2,7 +2,7 @@
 
 VPR-Bench's `ground_truth_new.npy` (rows `[query_index, [positives]]`) and other released
 ground-truth and pose files are numpy object arrays, which numpy stores as a pickle:
-`np.load(allow_pickle=True)` would run whatever a hostile file names. `read_npy` reads
+loading them with numpy, pickles allowed, would run whatever a hostile file names. `read_npy` reads
 numeric arrays with numpy (no pickle at all), and object arrays with an unpickler that knows
 only numpy's own array, dtype and scalar reconstruction; it then accepts only what these
 files hold: ints and floats, lists, tuples or arrays of them, and texts (a pose table may
