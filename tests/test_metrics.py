@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 
 from vprbench.errors import VPRBenchError
-from vprbench.evaluation.metrics import check_ks, recall_at_k, search, top1_precision_recall
+from vprbench.evaluation.metrics import check_ks, recall_at_k, top1_precision_recall
+from vprbench.evaluation.search import search
 
 
 def test_search_ranks_by_inner_product():

@@ -1,5 +1,4 @@
 """`describe` goes the way `evaluate` goes: per-dataset settings, the store, post-processing."""
-import json
 import shutil
 
 import h5py

@@ -7,7 +7,7 @@ from rich.table import Table
 from rich.text import Text
 
 from ..sweep import find_record, run_cells, summary_table
-from ..sweep.reproduce import measured, missing_for, reported_value, table_cells, table_spec
+from ..sweep.reproduce import measured, missing_for, reported_value, table_cells
 from ..sweep.runner import FAILED
 from .console import console as make_console
 from .options import add_location_options, apply_locations

@@ -4,7 +4,6 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import VPRBenchError
-from .search import search  # noqa: F401  moved to search.py; still imported from here by pipeline.py
 
 DEFAULT_KS = (1, 5, 10, 20)
 

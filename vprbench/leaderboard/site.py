@@ -24,7 +24,7 @@ from ..reference import paper_results
 from . import figures
 from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board
 from .stats import RESAMPLES, format_p, overlaps, paired_test, successes
-from .tables import GROUPS, LEGEND, TOLERANCE_PP, cell_stats, comparisons, fmt, group_table, other_rows
+from .tables import GROUPS, TOLERANCE_PP, cell_stats, comparisons, fmt, group_table, other_rows
 
 SECTION = "leaderboard"
 #: MkDocs Material front matter: the wide tables get the table-of-contents column
