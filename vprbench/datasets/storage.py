@@ -119,11 +119,3 @@ def import_dataset(name: str, path: str | Path, data_dir=None, strict: bool = Fa
     entries[name] = str(root)
     write_registry(entries, data_dir)
     return dataset
-
-
-def forget_dataset(name: str, data_dir=None) -> bool:
-    entries = read_registry(data_dir)
-    if entries.pop(name, None) is None:
-        return False
-    write_registry(entries, data_dir)
-    return True
