@@ -33,13 +33,30 @@ if os.environ.get("ANNOUNCE"):  # say which file is being written, and write slo
             os.fsync = real_fsync
     record.atomic_write = announced  # the name save_result calls
 print("ready", flush=True)
+started = time.time()
 while not Path(sys.argv[4]).exists():  # all writers start together
+    if time.time() - started > 300:
+        sys.exit("never told to start")
     time.sleep(0.005)
 for i in range(count):
     run = dict(template, run_id=f"{writer}-{i:03d}", context={"writer": writer, "index": i})
     run["recall"] = {"1": float(i), "5": float(i)}
     record.save_result(run)
 """
+
+
+_started: list[subprocess.Popen] = []
+
+
+@pytest.fixture(autouse=True)
+def no_writer_outlives_its_test():
+    """A failing test must not leave writers polling for their start file forever."""
+    yield
+    while _started:
+        proc = _started.pop()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=30)
 
 
 def writer(tmp_path, template, name, count, go, **env):
@@ -50,6 +67,7 @@ def writer(tmp_path, template, name, count, go, **env):
     proc = subprocess.Popen([sys.executable, str(script), str(template), name, str(count), str(go)],
                             env={**os.environ, **env}, stdout=subprocess.PIPE, stderr=errors.open("w"), text=True)
     proc.errors = errors
+    _started.append(proc)
     return proc
 
 
