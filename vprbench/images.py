@@ -7,6 +7,8 @@ High-bit-depth images (16-bit PNG and TIFF, 32-bit integer or float TIFF) are sc
 """
 from __future__ import annotations
 
+import re
+
 from pathlib import Path
 
 import numpy as np
@@ -57,6 +59,14 @@ def load_rgb(path: str | Path) -> np.ndarray:
     return np.asarray(load_image(path, "RGB"))
 
 
-def list_images(folder: Path) -> list[Path]:
-    """Image files directly in `folder`, sorted by name (the order ground truth indexes)."""
-    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+def natural_key(path: Path) -> list:
+    """Sort key treating digit runs as numbers (img2 < img10), as the authors' loaders do (natsort)."""
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.name)]
+
+
+def list_images(folder: Path, *, recursive: bool = False, natural: bool = False) -> list[Path]:
+    """The image files in `folder` (and below it when `recursive`), sorted by path, or in natural
+    name order when `natural` (the order a released dataset's ground truth indexes)."""
+    found = folder.rglob("*") if recursive else folder.iterdir()
+    images = (p for p in found if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    return sorted(images, key=natural_key if natural else None)

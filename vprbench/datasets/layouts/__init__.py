@@ -9,12 +9,10 @@ folders and files are present, and otherwise says what each layout expects.
 from __future__ import annotations
 
 import dataclasses
-import re
 from collections.abc import Callable
 from pathlib import Path
 
 from ...errors import VPRBenchError
-from ...images import IMAGE_SUFFIXES
 from ..manifest import DatasetManifest
 from ..model import Dataset
 
@@ -112,15 +110,6 @@ def require(root: Path, relative: str, manifest: DatasetManifest, kind: str = "f
     return path
 
 
-def natural_key(path: Path) -> list:
-    """Sort key treating digit runs as numbers (img2 < img10), as the authors' loaders do (natsort)."""
-    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.name)]
-
-
-def list_images_natural(folder: Path, recursive: bool = False) -> list[Path]:
-    """Image files in folder (and below when recursive), in natural name order."""
-    found = folder.rglob("*") if recursive else folder.iterdir()
-    return sorted((p for p in found if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()), key=natural_key)
 
 
 def from_manifest(manifest: DatasetManifest, root: Path, database, queries, ground_truth) -> Dataset:

@@ -27,7 +27,8 @@ import numpy as np
 from ...errors import VPRBenchError
 from ..manifest import DatasetManifest
 from ..model import GroundTruth
-from . import from_manifest, layout, list_images_natural, require
+from ...images import list_images
+from . import from_manifest, layout, require
 from .npy import read_npy
 from .vpr_bench import load_rows
 
@@ -122,8 +123,8 @@ def top_k_csv(path: Path, gt: dict, n_queries: int) -> list[np.ndarray]:
 @layout("folders", expects=folders_expects)
 def read_folders(root: Path, manifest: DatasetManifest):
     opts = manifest.options
-    database = [p for f in as_list(opts.get("database", "database")) for p in list_images_natural(require(root, f, manifest))]
-    queries = list_images_natural(require(root, opts.get("queries", "queries"), manifest))
+    database = [p for f in as_list(opts.get("database", "database")) for p in list_images(require(root, f, manifest), natural=True)]
+    queries = list_images(require(root, opts.get("queries", "queries"), manifest), natural=True)
     if not database or not queries:
         raise VPRBenchError(f"Dataset {manifest.name!r}: found {len(database)} database and {len(queries)} query images under {root}.")
     gt = opts.get("ground_truth", {})

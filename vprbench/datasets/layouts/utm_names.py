@@ -16,7 +16,8 @@ import numpy as np
 from ...errors import VPRBenchError
 from ..manifest import DatasetManifest
 from ..model import GroundTruth
-from . import from_manifest, layout, list_images_natural, require
+from ...images import list_images
+from . import from_manifest, layout, require
 
 
 def utm_positions(paths: list[Path], root: Path) -> np.ndarray:
@@ -44,8 +45,8 @@ def utm_expects(options: dict) -> list[str]:
 def read_utm_names(root: Path, manifest: DatasetManifest):
     opts = manifest.options
     base = split_folder(opts)
-    database = list_images_natural(require(root, f"{base}/{opts.get('database', 'database')}", manifest), recursive=True)
-    queries = list_images_natural(require(root, f"{base}/{opts.get('queries', 'queries')}", manifest), recursive=True)
+    database = list_images(require(root, f"{base}/{opts.get('database', 'database')}", manifest), recursive=True, natural=True)
+    queries = list_images(require(root, f"{base}/{opts.get('queries', 'queries')}", manifest), recursive=True, natural=True)
     if not database or not queries:
         raise VPRBenchError(
             f"Dataset {manifest.name!r}: no images in {root / base}/database or {root / base}/queries "

@@ -13,7 +13,8 @@ import numpy as np
 from ...errors import VPRBenchError
 from ..manifest import DatasetManifest
 from ..model import GroundTruth
-from . import from_manifest, layout, list_images_natural, require
+from ...images import list_images
+from . import from_manifest, layout, require
 from .npy import read_npy
 
 ROWS = ("rows [query_index, [positive reference indices]] of integers; the file is damaged "
@@ -52,8 +53,8 @@ def vpr_bench_expects(options: dict) -> list[str]:
 @layout("vpr-bench", expects=vpr_bench_expects)
 def read_vpr_bench(root: Path, manifest: DatasetManifest):
     opts = manifest.options
-    database = list_images_natural(require(root, opts.get("database", "ref"), manifest))
-    queries = list_images_natural(require(root, opts.get("queries", "query"), manifest))
+    database = list_images(require(root, opts.get("database", "ref"), manifest), natural=True)
+    queries = list_images(require(root, opts.get("queries", "query"), manifest), natural=True)
     gt_path = require(root, opts.get("ground_truth", "ground_truth_new.npy"), manifest, kind="file")
     lists = read_positive_lists(gt_path, len(queries))
     if opts.get("drop_out_of_range", False):
