@@ -7,12 +7,14 @@
   machine (and by hosts sharing the folder, where the filesystem supports `flock`). A
   process that has to wait says, in one line, who holds the lock; a timeout is a
   `LockTimeout` naming the lock and its holder.
+- `file_sha256(path)`: the content hash that identifies images and weight files.
 - `cache_error(error, path)`: an `OSError` (or HDF5's `RuntimeError`) turned into a
   `CacheError` (a `VPRBenchError`) that names the path and says what to do.
 """
 from __future__ import annotations
 
 import errno
+import hashlib
 import os
 import re
 import socket
@@ -92,6 +94,12 @@ def atomic_write(path: str | os.PathLike, data: bytes | str) -> Path:
     with atomic_path(path) as temporary:
         temporary.write_bytes(data.encode("utf-8") if isinstance(data, str) else data)
     return Path(path)
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """Hex sha256 of a file's bytes (read in blocks; OSError for the caller to name)."""
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def is_temporary(path: Path) -> bool:

@@ -1,7 +1,6 @@
 """Weight files, for every method that loads them: read safely, named by their content."""
 from __future__ import annotations
 
-import hashlib
 import pickle
 import struct
 import tomllib
@@ -11,22 +10,19 @@ from pathlib import Path
 
 import numpy as np
 
+from . import fsutil
 from .errors import VPRBenchError
 
 _SHA256: dict[tuple, str] = {}
 
 
-def file_sha256(path: str | Path, chunk: int = 1 << 22) -> str:
+def file_sha256(path: str | Path) -> str:
     """Hex sha256 of a file's bytes; remembered per (path, mtime, size), so multi-GB files hash once."""
     path = Path(path)
     stat = path.stat()
     key = (str(path.resolve()), stat.st_mtime_ns, stat.st_size)
     if key not in _SHA256:
-        digest = hashlib.sha256()
-        with open(path, "rb") as handle:
-            while block := handle.read(chunk):
-                digest.update(block)
-        _SHA256[key] = digest.hexdigest()
+        _SHA256[key] = fsutil.file_sha256(path)
     return _SHA256[key]
 
 

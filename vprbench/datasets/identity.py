@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from ..errors import VPRBenchError
+from ..fsutil import file_sha256
 from ..paths import cache_root
 
 MEMO_NAME = "image-hashes.sqlite"
@@ -28,8 +29,7 @@ def image_names(paths: Sequence[Path], root: Path | None) -> list[str]:
 
 def _file_sha256(path: str) -> str:
     try:
-        with open(path, "rb") as f:
-            return hashlib.file_digest(f, "sha256").hexdigest()
+        return file_sha256(path)
     except OSError as error:
         raise VPRBenchError(f"Cannot read image {path}: {error.strerror or error}.") from None
 
