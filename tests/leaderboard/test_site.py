@@ -209,3 +209,21 @@ def test_mosaic_refuses_a_copy_that_is_not_the_runs(shared_data, capsys):
     cell.record["per_query"]["positives"] = [1] * 111  # the run saw other ground truth
     with pytest.raises(Skipped, match="not the copy this run evaluated"):
         mosaic(cell, shared_data / "x.png")
+
+
+def test_two_publishes_at_once_leave_one_whole_section(capsys, tmp_path, shared_data):
+    real_runs(capsys, shared_data, 64)
+    docs = tmp_path / "docs"
+    command = [sys.executable, "-m", "vprbench.cli.main", "leaderboard", "publish", "--to", str(docs),
+               "--data-dir", str(shared_data)]
+    procs = [subprocess.Popen(command, env=dict(os.environ), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for _ in range(2)]
+    outputs = [p.communicate(timeout=240) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], outputs
+    assert all("Traceback" not in err for _, err in outputs)
+    section = docs / "leaderboard"
+    assert (section / "index.md").is_file() and (section / "corridor.md").is_file()
+    assert sorted(p.name for p in docs.iterdir() if p.name.startswith(".leaderboard-")) == []  # no staging left
+    together = sorted(p.relative_to(section).as_posix() for p in section.rglob("*"))
+    assert run(capsys, "leaderboard", "publish", "--to", str(docs), "--data-dir", str(shared_data))[0] == 0
+    assert sorted(p.relative_to(section).as_posix() for p in section.rglob("*")) == together  # one publish's whole set
