@@ -85,6 +85,7 @@ def test_publish_writes_every_page_figure_and_download(capsys, tmp_path, shared_
     assert "1 cell(s) use weights other than the authors' release" in overview
     corridor = (section / "corridor.md").read_text()
     assert "| hog † | user weights sha256:abababababab |" in corridor
+    assert "| hog [resize=64x64] | none (nothing learnt) |" in corridor  # HOG has no weights to call official
     figures = section / "figures"
     for name in ("radar.svg", "pca-gem.png", "corridor-recall.svg", "corridor-pr.svg", "corridor-efficiency.svg",
                  "corridor-mosaic-hog-resize-64x64.png", "corridor-mosaic-hog-user-weights-sha256-abababababab.png"):
@@ -95,6 +96,7 @@ def test_publish_writes_every_page_figure_and_download(capsys, tmp_path, shared_
     hawkins = (section / "hawkins.md").read_text()
     assert "*Mosaic of anyloc-vlad-dinov2: not drawn, the images of hawkins are not on disk here" in hawkins
     assert (figures / "hawkins-recall.svg").is_file(), "the rest of the page is still written"
+    assert "| anyloc-vlad-dinov2 | official |" in hawkins
     table = pd.read_csv(section / "downloads" / "corridor.csv")
     assert set(table["method"]) == {"hog [resize=64x64]", "hog [resize=128x128]", "hog"}
     records = json.loads((section / "downloads" / "corridor.json").read_text())

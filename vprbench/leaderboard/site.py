@@ -71,6 +71,15 @@ def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0) -> Pa
     return target
 
 
+def _weights_shown(row, record: dict) -> str:
+    """The Weights column: the mark of a non-official row, else 'official', or 'none' for a
+    method with nothing learnt (HOG, DenseVLAD)."""
+    if row.mark:
+        return row.mark
+    source = ((record.get("provenance") or {}).get("weights") or {}).get("source")
+    return "none (nothing learnt)" if source == "none" else "official"
+
+
 def _swap(staging: Path, target: Path) -> None:
     """Put the finished folder in place of the old one; the old one is removed only afterwards."""
     if target.exists() and not target.is_dir():
@@ -174,7 +183,7 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
         lines += ["| Method | Weights | Dataset | R@1 [95 % CI] | R@5 [95 % CI] | Run |", "|:--|:--|:--|--:|--:|:--|"]
         for row, column, cell in others:
             s = stats[(row, column.key)]
-            lines.append(f"| {row.label}{' †' if not row.official else ''} | {row.mark or 'official'} | "
+            lines.append(f"| {row.label}{' †' if not row.official else ''} | {_weights_shown(row, cell.record)} | "
                          f"[{column.title}]({column.slug}.md) | {_ci(s[1])} | {_ci(s[5])} | `{cell.record.get('run_id')}` |")
     else:
         lines.append("None.")
@@ -228,7 +237,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
     for cell in cells:
         s, r = stats[(cell.row, column.key)], cell.record
         name = f"{cell.row.label}{' †' if not cell.row.official else ''}"
-        lines.append(f"| {name} | {cell.row.mark or 'official'} | "
+        lines.append(f"| {name} | {_weights_shown(cell.row, r)} | "
                      f"{_ci(s[1])} | {_ci(s[5])} | {fmt(cell.recall(10))} | {fmt(cell.recall(20))} | "
                      f"{_num(r.get('auc_pr'), 3)} | {_num(r.get('recall_at_100_precision'), 3)} | {r.get('descriptor_dim')} | "
                      f"{r.get('descriptor_bytes') or 4 * int(r.get('descriptor_dim') or 0)} | {_num(r.get('images_per_second'), 1)} |")
