@@ -32,8 +32,11 @@ def example_plugin_site(tmp_path_factory) -> Path:
 
 @pytest.fixture(autouse=True)
 def isolated_cache(tmp_path, monkeypatch):
-    """Every test writes stores, vocabularies and results under its own temporary folder."""
-    monkeypatch.setenv("VPRBENCH_CACHE", str(tmp_path / "cache"))
+    """Every test writes stores, vocabularies and results under its own temporary folder, which is
+    both the command line's default ($VPRBENCH_CACHE) and the library's (the user cache, under
+    $XDG_CACHE_HOME)."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "user-cache"))
+    monkeypatch.setenv("VPRBENCH_CACHE", str(tmp_path / "user-cache" / "vprbench"))
     monkeypatch.delenv("VPRBENCH_DATA", raising=False)
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch-home"))
 

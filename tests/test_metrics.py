@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from vprbench.errors import VPRBenchError
-from vprbench.evaluation.metrics import check_ks, recall_at_k, top1_precision_recall
+from vprbench.evaluation.metrics import check_ks, correct_at, first_positive_rank, recall_at_k, top1_precision_recall
 from vprbench.evaluation.search import search
 
 
@@ -18,7 +18,10 @@ def test_recall_counts_queries_without_positives_as_failures():
     indices = np.array([[0, 1, 2], [2, 0, 1], [1, 2, 0], [0, 1, 2]])
     positives = [np.array([0]), np.array([1]), np.array([0, 5]), np.array([], dtype=np.int64)]
     # q0 hit at 1; q1 at 3; q2 at 3; q3 never (no positives)
-    assert recall_at_k(indices, positives, (1, 2, 3)) == {1: 25.0, 2: 25.0, 3: 75.0}
+    first = first_positive_rank(correct_at(indices, positives))
+    assert first.tolist() == [1, 3, 3, 0]
+    assert recall_at_k(first, (1, 2, 3)) == {1: 25.0, 2: 25.0, 3: 75.0}
+    assert recall_at_k(np.zeros(0, dtype=int), (1,)) == {1: 0.0}
 
 
 def test_precision_recall_follows_vpr_bench():

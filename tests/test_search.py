@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from vprbench.aggregation import PCAWhitening
-from vprbench.cli.options import add_search_options, search_settings
 from vprbench.errors import VPRBenchError
 from vprbench.evaluation.search import ArrayRows, TransformedRows, _plan, exact_search, retrieve, search, tile_rows
 from vprbench.methods import Method
@@ -180,18 +179,6 @@ def test_budget_too_small_names_what_it_must_hold_and_the_option():
 @pytest.mark.parametrize("text, value", [("1GB", 10**9), ("512MiB", 2**29), ("2.5 gb", 2_500_000_000), (4096, 4096)])
 def test_memory_sizes(text, value):
     assert parse_memory(text) == value
-
-
-def test_search_options():
-    parser = argparse.ArgumentParser()
-    add_search_options(parser)
-    assert search_settings(parser.parse_args([])) == {"memory_budget": 10**9, "index": "exact"}
-    assert search_settings(parser.parse_args(["--index", "ivf-pq", "--search-memory", "4GiB"])) == {
-        "memory_budget": 4 * 2**30, "index": "ivf-pq"}
-    with pytest.raises(VPRBenchError, match="Memory size '4 bananas' is not understood"):
-        search_settings(parser.parse_args(["--search-memory", "4 bananas"]))
-    with pytest.raises(SystemExit):
-        parser.parse_args(["--index", "lsh"])
 
 
 # ---------------------------------------------------------------- retrieve

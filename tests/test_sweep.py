@@ -126,7 +126,7 @@ def test_bad_plan_lists_every_problem_with_lines_and_runs_nothing(tmp_path, caps
                      "bad.toml:13: unknown dataset 'coridor'", "bad.toml:17: dataset 'nordland' has no protocol 'tolerance-5'",
                      "vpr-bench, tolerance-10, swapped"):
         assert expected in " ".join(err.split()), err
-    assert not read_results(tmp_path / "cache")
+    assert not read_results(tmp_path / "user-cache" / "vprbench")
     plan.write_text("[[methods]\n")
     assert main(["run", str(plan)]) == 1 and "not valid TOML" in capsys.readouterr().err
 
@@ -137,7 +137,7 @@ def test_evaluate_matrix_continues_past_a_failing_cell(shared_data, tmp_path, ca
                  "--resize", "32", "32", "--k", "1"])
     out = " ".join(capsys.readouterr().out.split())
     assert code == 1 and "1 ran" in out and "1 failed" in out and "'hawkins' is not in the data root" in out
-    assert [r["dataset"] for r in records(tmp_path / "cache")] == ["corridor"]
+    assert [r["dataset"] for r in records(tmp_path / "user-cache" / "vprbench")] == ["corridor"]
     code = main(["evaluate", "--method", "hog", "--dataset", "corridor", "--protocol", "swapped"])
     assert code == 1 and "has no protocol 'swapped'" in capsys.readouterr().err
 
@@ -157,4 +157,4 @@ def test_reproduce_dry_run_and_bad_table(shared_data, capsys, monkeypatch):
     from vprbench.sweep.reproduce import table_cells
 
     spec, cells = table_cells("anyloc", "layer")  # one row per released run, options from its setting
-    assert len(cells) == 165 and cells[0].cells[0].options["aggregation"] == "vlad"
+    assert len(cells) == 165 and cells[0].cells[0].spec.options["aggregation"] == "vlad"

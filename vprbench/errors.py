@@ -60,15 +60,20 @@ def _path_of(error: OSError) -> str | None:
     return None
 
 
+#: the folders the command line runs with, by the option that sets them (for the advice only)
+ROOTS: dict[str, str] = {}
+
+
+def name_roots(**roots) -> None:
+    """Tell error messages which folder each option (cache_dir=..., data_dir=...) points at."""
+    ROOTS.update({f"--{k.replace('_', '-')}": os.path.abspath(v) for k, v in roots.items() if v is not None})
+
+
 def _move(path: str | None) -> str:
     """'point --cache-dir at' or 'point --data-dir at' when the path lies under that root, else 'use'."""
     if path is not None:
-        from .datasets.manifest import data_root
-        from .paths import cache_root
-
         target = os.path.abspath(path)
-        for option, root in (("--cache-dir", cache_root()), ("--data-dir", data_root())):
-            root = os.path.abspath(root)
+        for option, root in ROOTS.items():
             if target == root or target.startswith(root + os.sep):
                 return f"point {option} at"
     return "use"

@@ -1,18 +1,39 @@
-"""Where vprbench keeps what it computes (descriptor stores, vocabularies, results, weights)."""
+"""Where vprbench keeps what it computes, and the one rule that turns a name into a file name.
+
+Library code is given its folders (`cache_dir`, `data_dir`); only the command line reads the
+environment ($VPRBENCH_CACHE, $VPRBENCH_DATA) for their defaults.
+"""
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 CACHE_ENV = "VPRBENCH_CACHE"
+DATA_ENV = "VPRBENCH_DATA"
+
+
+def default_cache() -> Path:
+    """The user cache folder (~/.cache/vprbench on Linux)."""
+    import pooch
+
+    return Path(pooch.os_cache("vprbench"))
 
 
 def cache_root(cache_dir: str | Path | None = None) -> Path:
-    """--cache-dir, else $VPRBENCH_CACHE, else the user cache folder."""
-    if cache_dir is None:
-        cache_dir = os.environ.get(CACHE_ENV)
-    if cache_dir is None:
-        import pooch
+    """`cache_dir`, else the user cache folder."""
+    return default_cache() if cache_dir is None else Path(cache_dir).expanduser()
 
-        return Path(pooch.os_cache("vprbench"))
-    return Path(cache_dir).expanduser()
+
+def environment_folder(given: str | None, variable: str) -> str | None:
+    """A folder option of the command line: as given, else the environment variable, else None."""
+    return given if given else os.environ.get(variable) or None
+
+
+def safe_name(text: str, limit: int = 60) -> str:
+    """`text` as a file name that stays where it is put: letters, digits, '.', '_' and '-' only,
+    never starting with a dot (no '..', no '/', no hidden files), at most `limit` characters.
+    Used for every name from data (dataset, method, protocol) that becomes part of a path;
+    callers add a hash where two names must not collide."""
+    name = re.sub(r"[^A-Za-z0-9_.-]+", "_", str(text)).lstrip(".")[:limit]
+    return name or "_"

@@ -158,7 +158,7 @@ def test_gardens_point_release_and_vpr_bench_layouts_give_vpr_bench_positives(gt
     assert [p.tolist() for p in a.positives] == clipped
     assert a.database[0].parent.name == "day_right" and a.queries[0].parent.name == "night_right"
 
-    vprbench_copy = tmp_path / "vprbench"
+    vprbench_copy = tmp_path / "user-cache" / "vprbench"
     make_images(vprbench_copy / "gardens" / "ref", [f"{i:07d}.jpg" for i in range(200)])
     make_images(vprbench_copy / "gardens" / "query", [f"{i:07d}.jpg" for i in range(200)])
     (vprbench_copy / "gardens" / "ground_truth_new.npy").symlink_to(real)

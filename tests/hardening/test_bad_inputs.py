@@ -95,7 +95,7 @@ def test_option_forms_from_the_command_line_mean_the_same_value():
 
 def test_settings_are_the_preset_merged_with_the_users_options():
     hog = create_method("hog", cell=8, batch_size=4, device=None)
-    assert hog.settings == {"cell": 8, "batch_size": 4} and hog.options == {"cell": 8, "batch_size": 4}
+    assert hog.settings == {"cell": 8} and hog.options == {"cell": 8}  # batch size: a run setting, in no identity
     assert hog.batch_size == 4 and hog.fingerprint()["cell"] == 8  # hog's own parameters are not overwritten
     gem = create_method("anyloc-gem-dinov2", backbone="dinov2_vits14", layer=3)
     assert gem.settings == {"backbone": "dinov2_vits14", "layer_for": "dinov2_vitg14:31", "facet": "value",

@@ -66,7 +66,8 @@ def test_read_only_cache_warm_still_shows_the_result(mounts, tmp_path, shared_da
     again = json.loads(out)  # computed from the stores and shown, although it cannot be saved
     assert again["recall"] == first["recall"] and again["descriptors_computed"] == {"database": 0, "queries": 0}
     assert code == 1 and "Traceback" not in err
-    assert err.strip() == (f"error: Cannot use {frozen / 'results'}: Read-only file system; "
+    folder = frozen / "results" / again["protocol"]["hash"] / again["row_key"]  # the run's identity folder
+    assert err.strip() == (f"error: Cannot use {folder}: Read-only file system; "
                            "point --cache-dir at a folder on a writable disk. The result was not stored.")
 
 
@@ -109,7 +110,7 @@ def test_lock_timeout_names_the_lock(tmp_path, shared_data, cli, monkeypatch):
             with filelock.FileLock(path, timeout=0.05):
                 pass
 
-        monkeypatch.setattr("vprbench.cli.evaluate.evaluate", waits)
+        monkeypatch.setattr("vprbench.evaluation.evaluate", waits)
         code, _, err = cli("evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", shared_data)
     finally:
         holder.release()

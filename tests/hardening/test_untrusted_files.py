@@ -29,7 +29,7 @@ from scipy.io import savemat
 
 from vprbench.datasets import load_dataset
 from vprbench.datasets.layouts.npy import read_npy
-from vprbench.evaluation.record import results_dir
+from vprbench.evaluation.results import results_dir
 from vprbench.paths import cache_root
 
 from hostile_files import Payload, assert_refused, gadget_pickles, npy_with_pickle, rows_with_payload, tiny_images

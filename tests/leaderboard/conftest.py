@@ -4,6 +4,7 @@ method with declared weights, and top-K lists whose quality is chosen."""
 from __future__ import annotations
 
 import dataclasses
+import re
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ from vprbench.datasets import apply_protocol, dataset_manifest, find_protocol, o
 from vprbench.datasets.model import Dataset, GroundTruth
 from vprbench.evaluation.record import result_record
 from vprbench.methods import Method
+from vprbench.spec import RUN_SETTINGS, DatasetSpec, RunSpec, SearchSpec, plain
 
 
 class FakeMethod(Method):
@@ -58,13 +60,25 @@ def synthetic_search(positives, n_database, k, quality, seed):
     return scores, indices, positives
 
 
+def synthetic_spec(method: str, options: dict, weights: dict, data: Dataset, ks, search: dict) -> RunSpec:
+    """The spec such a run would have (the method need not be registered: the search is made up)."""
+    protocol = data.protocol
+    kind = "own" if protocol["name"] == "own" else "benchmark"
+    files = {"weights": f"sha256:{weights['sha256']}"} if weights.get("sha256") else {}
+    options = {k: v for k, v in options.items() if k not in RUN_SETTINGS}
+    return RunSpec(method=method, options=plain(options), given=plain(options), files=files,
+                   dataset=DatasetSpec(name=data.name, kind=kind, protocol=protocol["name"], protocol_id=protocol["id"],
+                                       protocol_hash=protocol["hash"]),
+                   search=SearchSpec(**search), ks=tuple(ks))
+
+
 @pytest.fixture
 def make_record(tmp_path):
-    """make_record(method="hog", dataset="corridor", ...) -> a schema-2 record dict."""
+    """make_record(method="hog", dataset="corridor", ...) -> a record dict of the current schema."""
 
     def make(method="hog", dataset="corridor", *, k=20, ks=(1, 5, 10, 20), quality=0.5, seed=0, options=None,
              weights=None, kind="benchmark", n_database=None, n_queries=None, root=None, fingerprint=None,
-             domain=None, created=None, descriptor_dim=64, protocol=None):
+             domain=None, created=None, descriptor_dim=64, protocol=None, search=None):
         manifest = dataset_manifest(dataset) if kind == "benchmark" else None
         n_database = n_database or manifest.database_count
         n_queries = n_queries or manifest.query_count
@@ -81,13 +95,14 @@ def make_record(tmp_path):
             dataclasses.replace(data, protocol=own_protocol(data))
         fake = FakeMethod(method, options or {}, weights or {"source": "none"})
         record = result_record(
-            method=fake, fingerprint={"method": method, **(options or {})}, dataset=data,
+            spec=synthetic_spec(method, options or {}, weights or {}, data, ks, search or {}), method=fake,
+            fingerprint={"method": method, **(options or {})}, dataset=data,
             dataset_key=fingerprint or f"fp-{dataset}-{n_database}", ks=ks, scores=scores, indices=indices,
             positives=positives, descriptor_dim=descriptor_dim, computed={"database": n_database, "queries": n_queries},
             timings={"fit_s": 0.0, "database_s": 1.0, "queries_s": 1.0, "search_s": 0.01, "total_s": 2.0})
         if created:
             record["created"] = created
-            record["run_id"] = f"{created.replace(':', '').replace('-', '')}-{method}-{seed}"
+            record["run_id"] = f"{re.sub('[^0-9A-Za-z]', '', created)}-{re.sub('[^0-9A-Za-z]', '_', method)}-{seed}"
         return record
 
     return make

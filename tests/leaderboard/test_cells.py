@@ -4,7 +4,7 @@ import pytest
 
 from vprbench.evaluation import read_results, save_result
 from vprbench.leaderboard import build_board, grid
-from vprbench.leaderboard.stats import successes
+from vprbench.evaluation.metrics import successes
 
 
 def board_of(*records):
@@ -53,7 +53,7 @@ def test_own_data_named_like_a_benchmark_gets_its_own_column(make_record):
     board = board_of(benchmark, own)
     assert only_cell(board).record["run_id"] == benchmark["run_id"]
     [mine] = [c for c in board.columns if c.kind == "own"]
-    assert mine.key == "corridor (own ownfolde)" and mine.title == "corridor (own data)"
+    assert mine.key == f"corridor (own {own['protocol']['hash'][:8]})" and mine.title == "corridor (own data)"
     table = grid(board)
     assert table.loc["hog", "corridor"] == f"{benchmark['recall']['1']:.1f} / {benchmark['recall']['5']:.1f}"
     assert table.loc["hog", "corridor (own data)"] == "100.0 / 100.0"
@@ -97,7 +97,7 @@ def test_user_and_random_weights_get_marked_rows_and_never_replace_the_official_
     assert only_cell(board, "cosplace").record["run_id"] == official["run_id"]
     names = {r.name for r in board.rows}
     assert names == {"cosplace", "cosplace † user weights sha256:abababababab", "cosplace † random weights"}
-    assert board.marked["non_official_weights"] == 2
+    assert board.marked["marked_rows"] == 2
     table = grid(board).reset_index()
     assert table.set_index("weights").loc["official", "corridor"].startswith(f"{official['recall']['1']:.1f} /")
     assert set(table["weights"]) == {"official", "user weights sha256:abababababab", "random weights"}
@@ -114,17 +114,24 @@ def test_many_records_each_cell_is_the_newest_complete_one(make_record, tmp_path
     """2,000 stored runs (40 methods x 5 datasets x 10 repeats): 200 cells, each its row's newest run."""
     import json
 
-    from vprbench.evaluation import results_dir
+    from vprbench.evaluation.results import run_folder
+    from vprbench.spec import RunSpec
 
-    folder = results_dir()
-    folder.mkdir(parents=True)
     base = make_record(k=5, ks=(1, 5), n_database=50, n_queries=40, kind="own")
     base.pop("per_query")
+    template = RunSpec.model_validate(base["spec"])
     for m in range(40):
         for d in range(5):
+            protocol = {**base["protocol"], "hash": f"{d:016x}", "id": f"own{d}:own"}
+            dataset = template.dataset.model_copy(update={"name": f"own{d}", "protocol_hash": protocol["hash"],
+                                                          "protocol_id": protocol["id"]})
+            spec = template.model_copy(update={"method": f"m{m}", "dataset": dataset})
+            folder = run_folder(protocol["hash"], spec.row_key)
+            folder.mkdir(parents=True)
             for repeat in range(10):
                 run = f"2026{repeat:02d}01T000000Z-m{m}d{d}"
                 record = {**base, "method": f"m{m}", "dataset": f"own{d}", "dataset_fingerprint": f"fp{d}",
+                          "protocol": protocol, "spec": spec.to_json(), "spec_key": spec.key, "row_key": spec.row_key,
                           "run_id": run, "created": f"2026-{repeat + 1:02d}-01T00:00:00+00:00",
                           "recall": {"1": float(repeat), "5": float(repeat + 1)}}
                 (folder / f"{run}.json").write_text(json.dumps(record))

@@ -47,7 +47,8 @@ def test_a_fresh_publish_builds_strict(tmp_path, capsys, make_record, shared_dat
 
     save_result(make_record("hog", seed=1))
     save_result(make_record("hog", weights={"source": "random"}, seed=2))
-    save_result(make_record("mine", kind="own", n_database=40, n_queries=30, dataset="garden", fingerprint="g1"))
+    own = make_record("mine", kind="own", n_database=40, n_queries=30, dataset="garden", fingerprint="g1")
+    save_result(own)
     docs = tmp_path / "docs"
     shutil.copytree(ROOT / "docs", docs, ignore=shutil.ignore_patterns("leaderboard"))
     assert main(["leaderboard", "publish", "--to", str(docs)]) == 0
@@ -57,7 +58,7 @@ def test_a_fresh_publish_builds_strict(tmp_path, capsys, make_record, shared_dat
     (tmp_path / "mkdocs.yml").write_text(yaml.safe_dump(config))
     done = mkdocs_build(tmp_path / "mkdocs.yml", tmp_path / "site")
     assert done.returncode == 0, done.stdout + done.stderr
-    page = (tmp_path / "site" / "leaderboard" / "own-garden-g1" / "index.html").read_text()
+    page = (tmp_path / "site" / "leaderboard" / f"own-garden-{own['protocol']['hash'][:8]}" / "index.html").read_text()
     assert "garden (own data)" in page and "Marks" in page
 
 

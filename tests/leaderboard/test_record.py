@@ -6,10 +6,12 @@ import numpy as np
 import pytest
 
 from vprbench.datasets import load_dataset
-from vprbench.evaluation import evaluate, per_query, read_results, results_dir, results_path, save_result
-from vprbench.evaluation.record import append_result, benchmark_protocol, method_provenance
+from runs import evaluate_method as evaluate
+from vprbench.evaluation import per_query, read_results, results_dir, save_result
+from vprbench.evaluation.identity import benchmark_protocol, fingerprint_of
+from vprbench.evaluation.record import method_provenance
 from vprbench.leaderboard import build_board
-from vprbench.leaderboard.stats import successes
+from vprbench.evaluation.metrics import successes
 from vprbench.methods import create_method
 from vprbench.weights import weights_provenance
 
@@ -21,7 +23,8 @@ def test_real_run_record_has_provenance_and_recomputable_metrics(shared_data):
     dataset = load_dataset("corridor", shared_data)
     record = evaluate(create_method("hog", resize=(64, 64)), dataset, ks=(1, 5, 10))
     assert set(CONTRACT) <= set(record)
-    assert record["schema_version"] == 2 and record["dataset_kind"] == "benchmark"
+    assert record["schema_version"] == 3 and record["dataset_kind"] == "benchmark"
+    assert record["spec"]["method"] == "hog" and record["spec"]["ks"] == [1, 5, 10] and len(record["spec_key"]) == 16
     assert record["protocol"] == benchmark_protocol("corridor")
     assert record["provenance"]["weights"] == {"source": "none"} and record["needs_fit"] is False
     assert record["method_options"] == {"resize": [64, 64]}
@@ -42,6 +45,7 @@ def test_real_run_record_has_provenance_and_recomputable_metrics(shared_data):
     path = save_result(record)
     [stored] = read_results()
     assert stored["run_id"] == record["run_id"] and path.name.startswith(record["run_id"])
+    assert path.parent == results_dir() / record["protocol"]["hash"] / record["row_key"]  # found by identity
     assert stored["per_query"]["file"] == path.with_suffix(".npz").name
     for name, array in per_query(stored).items():
         np.testing.assert_allclose(array, arrays[name], atol=1e-6)
@@ -123,26 +127,48 @@ def test_own_folder_named_like_a_benchmark_is_own_data(tmp_path, shared_data):
 
 
 def test_corrupt_foreign_newer_and_old_records_are_named_and_skipped(make_record):
-    save_result(make_record("hog"))
-    folder = results_dir()
+    path = save_result(make_record("hog"))
+    folder = path.parent
     (folder / "torn.json").write_text('{"method": "hog", "dataset": "corr')
     (folder / "foreign.json").write_text(json.dumps({"model": "bert", "score": 1}))
     (folder / "list.json").write_text("[1, 2]")
     (folder / "future.json").write_text(json.dumps({**make_record("hog"), "schema_version": 99}))
     (folder / "binary.json").write_bytes(b"\xff\xfe\x00garbage")
-    legacy = {"method": "hog", "dataset": "corridor", "recall": {"1": 48.6, "5": 75.7}, "counts": {"queries": 111},
-              "created": "2026-01-01T00:00:00+00:00"}
-    results_path().write_text(json.dumps(legacy) + "\n" + '{"method": "hog", "datas' + json.dumps(legacy) + "\n")
+    (folder / "edited.json").write_text(json.dumps({**make_record("hog"), "spec_key": "0" * 16}))
+    legacy = {"method": "hog", "dataset": "corridor", "recall": {"1": 48.6, "5": 75.7}, "counts": {"queries": 111}}
+    (results_dir().parent / "results.jsonl").write_text(json.dumps(legacy) + "\n")
     with pytest.warns(UserWarning) as caught:
         records = read_results()
     messages = " | ".join(str(w.message) for w in caught)
-    for name in ("torn.json", "foreign.json", "list.json", "future.json", "binary.json", "results.jsonl:2"):
+    for name in ("torn.json", "foreign.json", "list.json", "future.json", "binary.json", "edited.json", "results.jsonl"):
         assert name in messages
-    assert "missing method, dataset, recall, counts" in messages and "version 99" in messages
-    assert [r.get("schema_version") for r in records] == [1, 2]  # the whole 0.1 line, and ours
+    assert "newer vprbench" in messages and "vprbench 0.1 records" in messages and "nothing was deleted" in messages
+    assert [r["run_id"] for r in records] == [json.loads(path.read_text())["run_id"]]
+    assert len(list(folder.glob("*.json"))) == 7  # nothing deleted
+    assert len(build_board(records).cells) == 1
+
+
+def test_a_0_2_record_is_moved_into_its_identity_folder_and_upgraded(make_record):
+    """A schema-2 record (flat in results/, no spec) lands in the row of a new run of the same method."""
+    new = make_record("hog", options={"resize": [64, 64]}, seed=1, created="2026-02-01T00:00:00+00:00")
+    new["dataset_fingerprint"] = fingerprint_of("corridor", new["dataset_fingerprints"])  # as 0.3 computes it
+    old = {k: v for k, v in make_record("hog", options={"resize": [64, 64]}, seed=2,
+                                        created="2026-01-01T00:00:00+00:00").items()
+           if k not in ("spec", "spec_key", "row_key", "label", "served_from_store", "run")}
+    old.update(schema_version=2, method_settings={"resize": [64, 64]}, method_options={"resize": [64, 64], "device": "cpu"})
+    old.pop("per_query")
+    folder = results_dir()
+    folder.mkdir(parents=True)
+    (folder / f"{old['run_id']}-hog-corridor.json").write_text(json.dumps(old))
+    save_result(new)
+    records = read_results()
+    assert [r["run_id"] for r in records] == [old["run_id"], new["run_id"]]
+    assert records[0]["upgraded_from"] == 2 and records[0]["row_key"] == new["row_key"]
+    assert not list(folder.glob("*.json"))  # moved, unchanged
+    moved = folder / new["protocol"]["hash"] / new["row_key"] / f"{old['run_id']}-hog-corridor.json"
+    assert json.loads(moved.read_text()) == old
     board = build_board(records)
-    assert [why for _, why in board.excluded] == [board.excluded[0][1]] and "vprbench 0.1" in board.excluded[0][1]
-    assert len(board.cells) == 1
+    assert len(board.rows) == 1 and next(iter(board.cells.values())).passed_over == 1
 
 
 def test_damaged_per_query_file_is_named_and_only_statistics_are_lost(make_record):
@@ -152,7 +178,3 @@ def test_damaged_per_query_file_is_named_and_only_statistics_are_lost(make_recor
     with pytest.warns(UserWarning, match=r"Per-query data .*\.npz of run .* is unreadable"):
         assert per_query(record) is None
     assert record["recall"]["1"] >= 0
-
-
-def test_append_result_is_the_same_writer():
-    assert append_result is save_result

@@ -1,6 +1,7 @@
 """`vprbench leaderboard publish`: the pages, figures and downloads from real and synthetic runs,
 and every bad input (no results, a file, read-only, full disk, a kill, images gone)."""
 import json
+from types import SimpleNamespace
 import os
 import shutil
 import signal
@@ -15,7 +16,8 @@ import pytest
 from vprbench.cli.main import main
 from vprbench.evaluation import read_results, save_result
 from vprbench.paths import cache_root
-from vprbench.store import RowsIdentity, RowWriter, create_rows_file, fingerprint_key
+from vprbench.spec import canonical_hash
+from vprbench.store import RowsIdentity, RowWriter, create_rows_file
 
 
 def run(capsys, *args):
@@ -34,7 +36,7 @@ def real_runs(capsys, shared_data, *resizes):
 
 def with_gem_store(record):
     """A GeM run's database descriptors in a complete store the record names (for the PCA map)."""
-    folder = f"{record['method']}-{fingerprint_key(record['method_fingerprint'])}/{record['dataset']}-test"
+    folder = f"{record['method']}-{canonical_hash(record['method_fingerprint'])}/{record['dataset']}-test"
     record.setdefault("context", {})["store"] = {"folder": folder}
     n = record["counts"]["database"]
     identity = RowsIdentity(store=f"{folder}/database", start=0, stop=n, total=n, fit_id="none", dtype="float32",
@@ -54,14 +56,15 @@ def full_board(capsys, shared_data, make_record):
     real = real_runs(capsys, shared_data, 64, 128)
     corridor_fp = real[0]["dataset_fingerprint"]
     save_result(make_record("hog", weights={"source": "user", "sha256": "ab" * 32}, fingerprint=corridor_fp, seed=3))
-    save_result(make_record("hog", kind="own", n_database=111, n_queries=111, fingerprint="mine0001", seed=4))
+    own = make_record("hog", kind="own", n_database=111, n_queries=111, fingerprint="mine0001", seed=4)
+    save_result(own)
     save_result(make_record("anyloc-vlad-dinov2", "hawkins", weights={"source": "official", "url": "https://x"},
                             quality=0.65, seed=5))
     for name in ("hawkins", "laurel-caverns", "baidu-mall"):
         save_result(with_gem_store(make_record("anyloc-gem-dinov2", name, options={"aggregation": "gem"},
                                                weights={"source": "official", "url": "https://x"}, seed=6)))
     (cache_root() / "results" / "broken.json").write_text("{not json")
-    return real
+    return SimpleNamespace(real=real, own_page=f"own-corridor-{own['protocol']['hash'][:8]}.md")
 
 
 def test_publish_writes_every_page_figure_and_download(capsys, tmp_path, shared_data, full_board):
@@ -72,17 +75,17 @@ def test_publish_writes_every_page_figure_and_download(capsys, tmp_path, shared_
     section = docs / "leaderboard"
     pages = {p.name for p in section.glob("*.md")}
     assert pages == {"index.md", "reported.md", "corridor.md", "hawkins.md", "laurel-caverns.md", "baidu-mall.md",
-                     "own-corridor-mine0001.md"}
+                     full_board.own_page}
     overview = (section / "index.md").read_text()
     assert "### Table II: Structured environments" in overview and "### Table III: Unstructured environments" in overview
     assert "| hog [resize=64x64] |" in overview and "*AnyLoc-VLAD-DINOv2* (paper)" in overview
     assert "| anyloc-vlad-dinov2 | hawkins | R@1 |" in overview and "*65.2* (Table III)" in overview  # paper beside
     assert "hog † user weights sha256:abababababab" not in overview.split("## Other runs")[0], "never in a paper table"
     assert "| hog † | user weights sha256:abababababab | [corridor](corridor.md)" in overview
-    assert "[corridor (own data)](own-corridor-mine0001.md)" in overview
+    assert f"[corridor (own data)]({full_board.own_page})" in overview
     for page in pages - {"reported.md"}:
         assert '!!! note "Marks"' in (section / page).read_text(), page
-    assert "1 cell(s) use weights other than the authors' release" in overview
+    assert "1 cell(s) are on rows marked †" in overview
     corridor = (section / "corridor.md").read_text()
     assert "| hog † | user weights sha256:abababababab |" in corridor
     assert "| hog [resize=64x64] | none (nothing learnt) |" in corridor  # HOG has no weights to call official
@@ -91,7 +94,7 @@ def test_publish_writes_every_page_figure_and_download(capsys, tmp_path, shared_
                  "corridor-mosaic-hog-resize-64x64.png", "corridor-mosaic-hog-user-weights-sha256-abababababab.png"):
         assert (figures / name).stat().st_size > 1000, name
     assert corridor.count("queries and their top 5](figures/corridor-mosaic-") == 3
-    own = (section / "own-corridor-mine0001.md").read_text()
+    own = (section / full_board.own_page).read_text()
     assert "*Mosaic of hog: not drawn, the images of corridor are no longer at" in own
     hawkins = (section / "hawkins.md").read_text()
     assert "*Mosaic of anyloc-vlad-dinov2: not drawn, the images of hawkins are not on disk here" in hawkins
@@ -124,12 +127,13 @@ def test_no_results_writes_nothing(capsys, tmp_path):
     assert code == 1 and "No results yet" in err
 
 
-def test_only_old_records_say_why_no_cell_is_filled(capsys):
+def test_only_old_records_say_why_nothing_is_shown(capsys):
     line = {"method": "hog", "dataset": "corridor", "recall": {"1": 48.6}, "counts": {"queries": 111}}
     cache_root().mkdir(parents=True, exist_ok=True)
     (cache_root() / "results.jsonl").write_text(json.dumps(line) + "\n")
-    code, _, err = run(capsys, "leaderboard")
-    assert code == 1 and "None of the 1 stored run(s) can fill a cell: recorded by vprbench 0.1" in err
+    with pytest.warns(UserWarning, match="holds vprbench 0.1 records"):
+        code, _, err = run(capsys, "leaderboard")
+    assert code == 1 and "No results yet" in err
 
 
 def test_compare_names_what_is_missing(capsys, make_record):

@@ -7,7 +7,8 @@ from scipy.stats import binomtest
 from vprbench.evaluation import per_query, read_results, save_result
 from vprbench.leaderboard import build_board
 from vprbench.leaderboard.compare import compare, describe
-from vprbench.leaderboard.stats import bootstrap_ci, paired_test, successes
+from vprbench.evaluation.metrics import successes
+from vprbench.leaderboard.stats import bootstrap_ci, paired_test
 from vprbench.leaderboard.tables import cell_stats
 
 

@@ -17,7 +17,7 @@ from vprbench.evaluation import per_query, read_results, results_dir, save_resul
 WRITER = """
 import json, os, sys, time
 from pathlib import Path
-import vprbench.evaluation.record as record
+import vprbench.evaluation.results as record
 
 template = json.loads(Path(sys.argv[1]).read_text())
 writer, count = sys.argv[2], int(sys.argv[3])
@@ -125,7 +125,7 @@ def test_kill_9_in_the_middle_of_a_write_leaves_whole_records_only(tmp_path, tem
     time.sleep(0.1)  # the temporary file is open and being written
     os.kill(proc.pid, signal.SIGKILL)
     assert proc.wait(timeout=30) == -signal.SIGKILL
-    leftovers = [p.name for p in results_dir().iterdir() if p.name.startswith(".")]
+    leftovers = [p.name for p in results_dir().rglob(".*") if p.is_file()]
     assert leftovers, "the kill landed in the middle of a write"
     records = assert_all_whole(expected_count=1)
     assert records[0]["run_id"] == "first-000"
@@ -152,18 +152,18 @@ def test_kill_9_at_seeded_random_moments(tmp_path, template):
 
 def test_full_disk_fails_cleanly_and_keeps_every_stored_record(small_disk, make_record, monkeypatch):
     disk = small_disk(1200)
-    monkeypatch.setenv("VPRBENCH_CACHE", str(disk))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(disk))  # the library's default cache: <disk>/vprbench
     record = make_record(kind="own", n_database=5000, n_queries=2000, dataset="full")
     saved = 0
-    with pytest.raises(VPRBenchError, match=r"Cannot use .*results/run-\d+-hog-full\.(npz|json): No space left on device; .* The result was not stored\."):
+    with pytest.raises(VPRBenchError, match=r"Cannot use .*results/[0-9a-f]{16}/[0-9a-f]{16}/run-\d+\.(npz|json): No space left on device; .* The result was not stored\."):
         for _ in range(100):
             save_result(dict(record, run_id=f"run-{saved:03d}"))
             saved += 1
     assert saved >= 2
-    assert not [p for p in results_dir().iterdir() if p.name.startswith(".")], "no temporary file left behind"
+    assert not [p for p in results_dir().rglob(".*") if p.is_file()], "no temporary file left behind"
     assert len(assert_all_whole()) == saved
     # the legacy store glued the next record to a torn line: here, once there is room, the next one is whole
-    for path in sorted(results_dir().glob("*.json"))[:2]:
+    for path in sorted(results_dir().rglob("run-*.json"))[:2]:
         path.unlink()
         path.with_suffix(".npz").unlink()
     save_result(dict(record, run_id="after-room"))
@@ -172,8 +172,8 @@ def test_full_disk_fails_cleanly_and_keeps_every_stored_record(small_disk, make_
 
 def test_read_only_cache_reads_and_refuses_to_write_with_a_message(read_only, make_record, tmp_path, monkeypatch):
     save_result(make_record())
-    view = read_only(results_dir().parent)
-    monkeypatch.setenv("VPRBENCH_CACHE", str(view))
+    view = read_only(results_dir().parent.parent)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(view))
     assert len(assert_all_whole()) == 1
     with pytest.raises(VPRBenchError, match="Read-only file system"):
         save_result(make_record())

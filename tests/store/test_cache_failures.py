@@ -11,7 +11,7 @@ import pytest
 import vprbench
 from vprbench.cli.main import main
 from vprbench.datasets import load_dataset
-from vprbench.evaluation import evaluate
+from runs import evaluate_method as evaluate
 from vprbench.fsutil import CacheError, LockTimeout
 from vprbench.store import StoreFolder, method_fingerprint
 

@@ -14,7 +14,7 @@ def test_describe_gives_the_descriptors_evaluate_stores(shared_data, tmp_path, c
     common = ["--method", "hog", "--resize", "64", "64"]
     assert main(["evaluate", *common, "--dataset", "corridor", "--data-dir", str(shared_data), "--json"]) == 0
     capsys.readouterr()
-    (stored,) = (tmp_path / "cache" / "stores").rglob("queries.h5")
+    (stored,) = (tmp_path / "user-cache" / "vprbench" / "stores").rglob("queries.h5")
     with h5py.File(stored) as f:
         expected = f["descriptors"][...][[3, 50, 7]]
     out = tmp_path / "d.npy"

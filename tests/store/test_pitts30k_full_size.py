@@ -8,7 +8,7 @@ import numpy as np
 from vprbench import create_method
 from vprbench.cli.main import main
 from vprbench.datasets import load_dataset
-from vprbench.evaluation import evaluate
+from runs import evaluate_method as evaluate
 
 COUNTS = {"database": 10000, "queries": 6816, "queries_without_positives": 0, "positive_pairs": 968448}
 
@@ -41,7 +41,7 @@ def test_hog_through_the_cli_at_full_size(pitts30k_tree, capsys, tmp_path):
     assert record["descriptor_dim"] == 81  # 3 x 3 blocks of one 16-pixel cell, 9 bins
     assert 0 < record["recall"]["1"] <= record["recall"]["5"] <= record["recall"]["10"] <= 100
 
-    (database,) = (tmp_path / "cache" / "stores").rglob("database.h5")
+    (database,) = (tmp_path / "user-cache" / "vprbench" / "stores").rglob("database.h5")
     with h5py.File(database) as f:  # names far beyond HDF5's 64 KB attribute limit, in a dataset
         names = f["names"].asstr()[...].tolist()
         assert names == pitts30k_tree.db_names and f["done"][...].all() and int(f["complete"][()]) == 1

@@ -6,7 +6,7 @@ import pytest
 import vprbench
 from vprbench.datasets import load_dataset
 from vprbench.errors import VPRBenchError
-from vprbench.evaluation import evaluate
+from runs import evaluate_method as evaluate
 from vprbench.store import DescriptorStore, RowsIdentity, RowWriter, StoreFolder, create_rows_file, inspect_rows_file
 
 

@@ -43,6 +43,7 @@ import store_helpers  # noqa: E402
 import vprbench  # noqa: E402
 from vprbench.datasets import load_dataset  # noqa: E402
 from vprbench.evaluation import evaluate  # noqa: E402
+from vprbench.spec import RunSettings, spec_for  # noqa: E402
 from vprbench.store import folder as store_folder  # noqa: E402
 
 store_helpers.register_all()
@@ -63,7 +64,8 @@ def run_child(work, data: Path, cache: Path, out: Path, *, method="fitted-test",
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             m = vprbench.create_method(method, **(options or {}))
-            record = evaluate(m, load_dataset("corridor", data), ks=ks, cache_dir=cache)
+            dataset = load_dataset("corridor", data)
+            record = evaluate(spec_for(m, dataset, ks=ks), RunSettings(cache_dir=cache), dataset=dataset, method=m)
         result = {"record": record, "fits": getattr(m, "fits", None), "warnings": [str(w.message) for w in caught]}
         out.write_text(json.dumps(result, default=str))
         if count_to is not None:
@@ -248,7 +250,8 @@ def concurrent(data: Path, work: Path) -> dict:
 def warm_up(data: Path, work: Path) -> None:
     """One evaluation in the driver itself, so children start with everything imported (torch, faiss, sklearn, cv2)."""
     for method, options in (("fitted-test", {}), ("hog", {"resize": (32, 32)})):
-        evaluate(vprbench.create_method(method, **options), load_dataset("corridor", data), cache_dir=work / "warm-up")
+        m, dataset = vprbench.create_method(method, **options), load_dataset("corridor", data)
+        evaluate(spec_for(m, dataset), RunSettings(cache_dir=work / "warm-up"), dataset=dataset, method=m)
 
 
 if __name__ == "__main__":

@@ -12,7 +12,7 @@ from ..datasets import (
 )
 from ..errors import VPRBenchError
 from .console import console, styled
-from .options import add_location_options, apply_locations
+from .options import add_location_options, resolve_locations
 
 
 def add_parsers(commands) -> None:
@@ -51,7 +51,7 @@ def add_parsers(commands) -> None:
 
 
 def run_list(args) -> int:
-    apply_locations(args)
+    resolve_locations(args)
     rows = []
     for manifest in dataset_manifests().values():
         root = dataset_location(manifest, args.data_dir)
@@ -76,7 +76,7 @@ def run_list(args) -> int:
 
 
 def run_info(args) -> int:
-    apply_locations(args)
+    resolve_locations(args)
     if args.protocols:
         listed = [p.record() for p in protocols(dataset_manifest(args.name)).values()]
         if args.json:
@@ -122,14 +122,14 @@ def protocol_table(name: str, listed: list[dict]) -> Table:
 
 
 def run_download(args) -> int:
-    apply_locations(args)
+    resolve_locations(args)
     dataset = download_dataset(args.name, args.data_dir, strict=args.strict)
     print(f"{args.name}: {len(dataset.database)} database and {len(dataset.queries)} query images at {dataset.root}")
     return 0
 
 
 def run_import(args) -> int:
-    apply_locations(args)
+    resolve_locations(args)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         dataset = import_dataset(args.name, args.path, args.data_dir, strict=args.strict)
@@ -143,7 +143,7 @@ def run_import(args) -> int:
 
 
 def run_verify(args) -> int:
-    apply_locations(args)
+    resolve_locations(args)
     report = verify_dataset(args.name, args.data_dir, strict=args.strict, sample=None if args.all_images else args.sample)
     if args.json:
         print(json.dumps({

@@ -1,57 +1,40 @@
-"""vprbench evaluate / describe."""
+"""vprbench evaluate / describe.
+
+`evaluate` builds one run spec per method x dataset and calls `vprbench.evaluate` for each: one
+spec runs (and prints) at once, under torchrun too; several are a sweep (claimed, resumable,
+shared by processes). Every option means the same either way.
+"""
 from __future__ import annotations
 
 import io
 import json
-import os
 import sys
-from contextlib import nullcontext
 from pathlib import Path
 
-import numpy as np
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-from rich.table import Table
-
-from ..datasets import load_dataset
-from ..distributed import Ranks
 from ..errors import VPRBenchError
-from ..evaluation import append_result, describe_splits, evaluate
-from ..fsutil import atomic_write
-from ..methods import create_method
-from ..paths import cache_root
 from .console import console as make_console
-from .options import (add_download_option, add_extraction_options, add_location_options, add_method_options,
-                      add_search_options, apply_locations, extraction_settings, method_options, parse_ks,
-                      search_settings)
-from .run import add_sweep_options, run_matrix
-
-
-def progress_bar(console: Console) -> Progress:
-    return Progress(TextColumn("{task.description}", markup=False), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-                    console=console, transient=True)
+from .options import (add_location_options, add_method_options, add_run_options, add_spec_options, add_sweep_options,
+                      method_options, progress, resolve_locations, run_settings, spec_overrides)
 
 
 def add_parsers(commands) -> None:
     p = commands.add_parser("evaluate", help="evaluate methods on datasets (Recall@K, PR); several of each run as a "
                                              "sweep; under torchrun, one evaluation sharded over the ranks")
     add_method_options(p, several=True)
-    add_extraction_options(p)
     p.add_argument("--dataset", required=True, nargs="+", help="dataset names ('vprbench datasets list') or folders of your own")
     p.add_argument("--protocol", help="the dataset's protocol ('vprbench datasets info NAME'; default: its first)")
+    add_spec_options(p)
+    add_run_options(p)
     add_sweep_options(p)
-    add_search_options(p)
     add_location_options(p)
-    add_download_option(p)
-    p.add_argument("--k", nargs="+", help="K values for Recall@K (default 1 5 10 20)")
-    p.add_argument("--strict", action="store_true", help="fail when image counts differ from the manifest")
-    p.add_argument("--json", action="store_true", help="print the result record as JSON on stdout")
+    p.add_argument("--json", action="store_true", help="print the result record as JSON on stdout (one run only)")
     p.set_defaults(run=run_evaluate)
 
     p = commands.add_parser("describe", help="write global descriptors of images to a .npy file, in input order")
     add_method_options(p)
-    add_extraction_options(p)
-    add_search_options(p)
+    p.add_argument("--store-dtype", choices=("float32", "float16"), default="float32",
+                   help="descriptor store precision (default: float32)")
+    add_run_options(p, download=False)
     p.add_argument("images", nargs="+", type=Path, help="image files")
     p.add_argument("--out", required=True, type=Path, help="output .npy file")
     p.add_argument("--fit-on", type=Path,
@@ -62,51 +45,86 @@ def add_parsers(commands) -> None:
     p.set_defaults(run=run_describe)
 
 
+def explicit_run_options(args) -> dict:
+    """Run settings given on the command line that a plan entry could also set (they win over
+    the entry; a flag wins over the same name given with -o)."""
+    from ..spec import RUN_SETTINGS
+
+    given = {k: v for k, v in method_options(args).items() if k in RUN_SETTINGS}
+    found = {"batch_size": getattr(args, "batch_size", None),
+             "device": None if getattr(args, "device", "auto") == "auto" else args.device}
+    return {**given, **{k: v for k, v in found.items() if v is not None}}
+
+
 def run_evaluate(args) -> int:
-    apply_locations(args)
-    options = method_options(args)
-    if len(args.method) > 1 or len(args.dataset) > 1 or args.protocol:
-        return run_matrix(args, options)  # the sweep: resumable, shared across processes
-    args.method, args.dataset = args.method[0], args.dataset[0]
-    ks = parse_ks(args.k)
-    ranks = Ranks.from_environment(options["device"])
+    from ..distributed import Ranks
+
+    resolve_locations(args)
+    settings = run_settings(args)
+    options, overrides = method_options(args), spec_overrides(args)
+    runs = len(args.method) * len(args.dataset)
+    ranks = Ranks.from_environment(settings.device)
     try:
-        options["device"] = ranks.device(options["device"])
-        method = create_method(args.method, **options)  # method and options are checked before any data is touched
-        ranks.agree({"method": args.method, "options": {k: v for k, v in options.items() if k != "device"},
-                     "dataset": args.dataset, "data_dir": os.environ.get("VPRBENCH_DATA"), "k": ks,
-                     "cache": str(cache_root().resolve()), "store_dtype": args.store_dtype,
-                     "search": search_settings(args)}, "options")
-        # loaded (and fetched, on first use) by rank 0 alone, then handed to the other ranks
-        dataset = ranks.on_zero(lambda: load_dataset(args.dataset, args.data_dir, strict=args.strict,
-                                                     fetch=args.download or None))
-        with progress_bar(make_console(stderr=True)) if ranks.rank == 0 else nullcontext() as progress:
-            record = evaluate(method, dataset, ks=ks, cache_dir=args.cache_dir, progress=progress, ranks=ranks,
-                              **extraction_settings(args, options["device"]), **search_settings(args))
+        if runs > 1:
+            if ranks.distributed:
+                raise VPRBenchError(f"torchrun shards one evaluation over its ranks; this command names {runs} "
+                                    "(methods x datasets): give one method and one dataset per torchrun.")
+            if args.json:
+                raise VPRBenchError(f"--json prints one run's record, but this command makes {runs} runs (methods x "
+                                    "datasets): give one method and one dataset, or read the records with "
+                                    "'vprbench leaderboard --format csv'.")
+            return run_matrix(args, settings, options, overrides)
+        return run_one(args, settings, options, overrides, ranks)
     finally:
         ranks.close()
+
+
+def run_one(args, settings, options, overrides, ranks) -> int:
+    from ..evaluation import evaluate, save_result
+    from ..spec import resolve_spec
+
+    spec = resolve_spec(args.method[0], args.dataset[0], options={**options, **explicit_run_options(args)},
+                        protocol=args.protocol, search=overrides["search"], ks=overrides["k"],
+                        store_dtype=overrides["store_dtype"] or "float32", data_dir=settings.data_dir,
+                        cache_dir=settings.cache_dir)
+    with progress(args, ranks.rank == 0) as shown:
+        record = evaluate(spec, settings, progress=shown, ranks=ranks)
     if record is None:  # another rank than 0: its shard is written, rank 0 reports
         return 0
     if args.json:  # shown first: a result that cannot be saved (full or read-only disk) is still seen
         print(json.dumps(record, indent=2, sort_keys=True))
     else:
         make_console().print(results_table(record))
-    append_result(record, args.cache_dir)
+    save_result(record, settings.cache_dir)
     return 0
 
 
-def results_table(record: dict) -> Table:
+def run_matrix(args, settings, options, overrides) -> int:
+    """`vprbench evaluate --method A B --dataset X Y [--protocol P]`: a plan from the command line."""
+    from ..sweep import build_plan, run_cells
+    from .run import report
+
+    data = {"methods": [{"name": m} for m in args.method],
+            "datasets": [{"name": d, **({"protocol": args.protocol} if args.protocol else {})} for d in args.dataset]}
+    plan = build_plan(data, "the command line", overrides={**overrides, "options": {**options, **explicit_run_options(args)}},
+                      data_dir=settings.data_dir, cache_dir=settings.cache_dir)
+    return report("evaluate", run_cells(plan.cells, settings, lease_s=args.lease, plan="evaluate", progress=progress(args)))
+
+
+def results_table(record: dict):
+    from rich.table import Table
+
     counts, timings = record["counts"], record["timings"]
-    table = Table(title=f"{record['method']} on {record['dataset']}", show_header=True)
+    table = Table(title=f"{record.get('label') or record['method']} on {record['protocol']['id']}", show_header=True)
     for k in record["recall"]:
         table.add_column(f"R@{k}", justify="right")
     table.add_column("AUC-PR", justify="right")
     table.add_column("R@100%P", justify="right")
     table.add_row(*[f"{v:.1f}" for v in record["recall"].values()],
-                  f"{record['auc_pr']:.3f}", f"{record['recall_at_100_precision']:.3f}")
+                  f"{record['auc_pr']:.3f}", f"{100 * record['recall_at_100_precision']:.1f}")
     computed = record["descriptors_computed"]
     table.caption = (
-        f"{counts['database']} database, {counts['queries']} queries "
+        f"Recall in percent; {counts['database']} database, {counts['queries']} queries "
         f"({counts['queries_without_positives']} without positives, counted as failures); "
         f"dim {record['descriptor_dim']}; descriptors computed now: {computed['database'] + computed['queries']}; "
         f"{timings['total_s']:.1f} s total"
@@ -117,13 +135,19 @@ def results_table(record: dict) -> Table:
 def run_describe(args) -> int:
     """The evaluation's describe path without the search: the --fit-on images are the database
     (what the method fits on, and what PCA-whitening is fitted on), the images the queries."""
-    from ..evaluation.search import postprocessed
+    import numpy as np
 
-    apply_locations(args)
+    from ..evaluation.extract import describe_splits
+    from ..evaluation.pipeline import create_run_method, loader_workers
+    from ..evaluation.search import postprocessed
+    from ..fsutil import atomic_write
+    from ..rows import DEFAULT_MEMORY_BUDGET
+
+    resolve_locations(args)
+    settings = run_settings(args)
     if args.out.suffix != ".npy":
         raise VPRBenchError(f"--out must be a .npy file, got {args.out}")
-    options = method_options(args)
-    method = create_method(args.method, **options)
+    method = create_run_method(args.method, method_options(args), settings)
     for image in args.images:
         if not image.is_file():
             raise VPRBenchError(f"Image not found: {image}")
@@ -140,13 +164,13 @@ def run_describe(args) -> int:
     splits["queries"] = list(args.images)
     if args.dataset:
         method.use_dataset(args.dataset)
-    with progress_bar(make_console(stderr=True)) as progress:
+    with progress(args) as shown:
         described = describe_splits(method, splits, label=f"describe-{args.dataset or 'images'}",
-                                    cache_dir=args.cache_dir, progress=progress,
-                                    **extraction_settings(args, options["device"]))
+                                    cache_dir=settings.cache_dir, progress=shown, store_dtype=args.store_dtype,
+                                    workers=loader_workers(settings, method), lock_timeout=settings.lock_timeout)
     queries = described.stores["queries"]
     database = described.stores.get("database", queries)
-    _, queries, _ = postprocessed(method, database, queries, search_settings(args)["memory_budget"])
+    _, queries, _ = postprocessed(method, database, queries, settings.memory_budget or DEFAULT_MEMORY_BUDGET)
     descriptors = np.ascontiguousarray(queries.read_rows(0, queries.row_count), dtype=np.float32)
     buffer = io.BytesIO()
     np.save(buffer, descriptors)

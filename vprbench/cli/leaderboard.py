@@ -3,13 +3,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from rich.table import Table
-
 from ..errors import VPRBenchError
-from ..evaluation import read_results
-from ..leaderboard import FORMATS, build_board, grid, publish, render
 from .console import console
-from .options import apply_locations
+from .options import resolve_locations
+
+FORMATS = ("table", "markdown", "csv")
 
 NO_RESULTS = "No results yet: run 'vprbench evaluate --method M --dataset D' first."
 
@@ -29,7 +27,12 @@ def add_parsers(commands) -> None:
 
 
 def run(args) -> int:
-    apply_locations(args)
+    from rich.table import Table
+
+    from ..evaluation import read_results
+    from ..leaderboard import build_board, grid, publish, render
+
+    resolve_locations(args)
     if args.action == "publish":
         if args.to is None:
             raise VPRBenchError("leaderboard publish needs --to FOLDER (e.g. --to docs/)")

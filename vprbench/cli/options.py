@@ -1,13 +1,37 @@
-"""Options shared by several commands: data/cache locations and method knobs."""
+"""Options shared by the commands, each meaning the same in every route.
+
+Three kinds, kept apart because only the first two can change a result:
+- method options (--backbone, --layer, ..., -o KEY=VALUE): part of the run's spec;
+- spec options (--index, --index-option, --k, --store-dtype): part of the run's spec;
+- run settings (--device, --batch-size, --workers, --search-memory, --lock-timeout, --download,
+  --strict, --quiet): how it runs, never what it computes (`vprbench.spec.RunSettings`).
+Locations (--data-dir, --cache-dir) default to $VPRBENCH_DATA / $VPRBENCH_CACHE here, and are
+passed explicitly from here on. Nothing heavy is imported at module level: `vprbench --help`
+answers at once.
+"""
 from __future__ import annotations
 
 import argparse
-import os
+import math
 
-from ..errors import VPRBenchError
-from ..evaluation.metrics import DEFAULT_KS
-from ..evaluation.search import INDEXES
-from ..rows import DEFAULT_MEMORY_BUDGET, format_bytes, parse_memory
+from ..errors import VPRBenchError, name_roots
+
+#: method options with a flag of their own (the rest go through -o KEY=VALUE)
+METHOD_FLAGS = ("backbone", "weights", "layer", "facet", "aggregation", "clusters", "vocabulary", "resize", "pca_dim",
+                "precision")
+INDEXES = ("exact", "ivf-pq", "hnsw")
+DEFAULT_LEASE_S = 120.0
+
+
+def resolve_locations(args) -> None:
+    """--data-dir / --cache-dir as given, else from the environment; error messages learn them."""
+    from ..paths import CACHE_ENV, DATA_ENV, environment_folder
+
+    if hasattr(args, "data_dir"):
+        args.data_dir = environment_folder(args.data_dir, DATA_ENV)
+    if hasattr(args, "cache_dir"):
+        args.cache_dir = environment_folder(args.cache_dir, CACHE_ENV)
+    name_roots(cache_dir=getattr(args, "cache_dir", None), data_dir=getattr(args, "data_dir", None))
 
 
 def add_location_options(parser: argparse.ArgumentParser) -> None:
@@ -15,27 +39,17 @@ def add_location_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cache-dir", help="where descriptor stores, vocabularies and results live (default: $VPRBENCH_CACHE or the user cache)")
 
 
-def add_download_option(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--download", action="store_true",
-                        help="fetch a missing dataset into --data-dir (without it, only the default data root is downloaded into)")
-
-
-def apply_locations(args) -> None:
-    """Every part of vprbench (vocabularies fitted on other datasets, stores) then sees the same folders."""
-    if getattr(args, "data_dir", None):
-        os.environ["VPRBENCH_DATA"] = args.data_dir
-    if getattr(args, "cache_dir", None):
-        os.environ["VPRBENCH_CACHE"] = args.cache_dir
-
-
+# ---------------------------------------------------------------- method options
 def add_method_options(parser: argparse.ArgumentParser, several: bool = False) -> None:
     if several:
         parser.add_argument("--method", required=True, nargs="+", help="method or preset names ('vprbench methods list')")
     else:
         parser.add_argument("--method", required=True, help="method or preset name ('vprbench methods list')")
+    add_method_flags(parser)
+
+
+def add_method_flags(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("method options (override the preset; a method rejects those it does not use)")
-    group.add_argument("--device", default="auto",
-                       help="torch device: auto (cuda when available, else cpu), cpu, cuda, cuda:1 (default: auto)")
     group.add_argument("--backbone", help="backbone, e.g. dinov2_vitg14, dino_vits8, resnet101")
     group.add_argument("--weights", help="local weights file in the official checkpoint format")
     group.add_argument("--layer", type=int, help="0-based index of the block the features come from")
@@ -45,12 +59,68 @@ def add_method_options(parser: argparse.ArgumentParser, several: bool = False) -
     group.add_argument("--vocabulary", help="vocabulary name (map, indoor, urban, ...) or file (e.g. c_centers.pt)")
     group.add_argument("--resize", type=int, nargs=2, metavar=("H", "W"), help="resize images to H x W")
     group.add_argument("--pca-dim", type=int, help="PCA-whitening output dimension")
-    group.add_argument("--batch-size", type=int, help="images per forward pass (>= 1)")
     group.add_argument("--precision", choices=("fp32", "fp16", "bf16"), help="autocast precision on GPU (default fp32)")
     group.add_argument("-o", "--option", action="append", default=[], metavar="KEY=VALUE",
                        help="any other method option (repeatable)")
 
 
+def _value(text: str):
+    for cast in (int, float):
+        try:
+            value = cast(text)
+        except ValueError:
+            continue
+        if isinstance(value, float) and not math.isfinite(value):
+            return text  # 'nan', 'inf' stay words: the method's check names them
+        return value
+    return {"true": True, "false": False}.get(text.lower(), text)
+
+
+def key_values(items: list[str], flag: str) -> dict:
+    """['key=value', ...] -> {key: value}, values read as int, float or bool where they are one."""
+    found = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise VPRBenchError(f"{flag} expects KEY=VALUE, got {item!r}")
+        found[key.strip().replace("-", "_")] = _value(value.strip())
+    return found
+
+
+def method_options(args) -> dict:
+    """The method options the user gave (None = use the preset's)."""
+    options = {name: getattr(args, name, None) for name in METHOD_FLAGS}
+    options["resize"] = list(args.resize) if getattr(args, "resize", None) else None
+    options.update(key_values(getattr(args, "option", []), "-o"))
+    return {k: v for k, v in options.items() if v is not None}
+
+
+# ---------------------------------------------------------------- spec options
+def add_spec_options(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("what is computed besides the method (part of the run's identity)")
+    group.add_argument("--k", nargs="+", help="K values for Recall@K (default 1 5 10 20)")
+    group.add_argument("--index", choices=INDEXES, default=None,
+                       help="exact (default): streamed exact search; ivf-pq or hnsw: approximate faiss index, "
+                            "shortlist re-scored exactly, recall loss against exact reported (its own leaderboard row)")
+    group.add_argument("--index-option", action="append", default=[], metavar="KEY=VALUE",
+                       help="an approximate index's option, e.g. nprobe=64 (repeatable; docs/evaluation.md)")
+    group.add_argument("--store-dtype", choices=("float32", "float16"), default=None,
+                       help="descriptor store precision; float16 halves the disk, reading gives float32 (default: float32)")
+
+
+def spec_overrides(args) -> dict:
+    """What the spec options set, for every run of the command (None = the plan's or the default)."""
+    search = None
+    options = key_values(getattr(args, "index_option", []), "--index-option")
+    if getattr(args, "index", None) or options:
+        search = {"index": args.index or "exact", "options": options}
+    from ..spec import check_ks
+
+    ks = check_ks(args.k) if getattr(args, "k", None) else None
+    return {"search": search, "k": list(ks) if ks else None, "store_dtype": getattr(args, "store_dtype", None)}
+
+
+# ---------------------------------------------------------------- run settings
 def whole_number(minimum: int):
     """argparse type: an integer >= minimum."""
     def parse(text: str) -> int:
@@ -66,72 +136,67 @@ def whole_number(minimum: int):
     return parse
 
 
-def add_extraction_options(parser: argparse.ArgumentParser) -> None:
-    """How descriptors are computed and kept (not part of the method: they never change a descriptor's value,
-    except --store-dtype, which is part of the store key)."""
-    group = parser.add_argument_group("extraction")
+def seconds(text: str) -> float:
+    """argparse type: a finite number of seconds >= 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
+    if not math.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"must be a finite number of seconds >= 0, got {text}")
+    return value
+
+
+def positive_seconds(text: str) -> float:
+    value = seconds(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be more than 0 seconds, got {text}")
+    return value
+
+
+def add_run_options(parser: argparse.ArgumentParser, *, download: bool = True, quiet: bool = True) -> None:
+    group = parser.add_argument_group("how it runs (never changes a result)")
+    group.add_argument("--device", default="auto",
+                       help="torch device: auto (cuda when available, else cpu), cpu, cuda, cuda:1 (default: auto)")
+    group.add_argument("--batch-size", type=int, help="images per forward pass (>= 1)")
     group.add_argument("--workers", type=whole_number(0),
                        help="data-loader worker processes reading images (default: 0 on cpu, up to 4 on cuda)")
-    group.add_argument("--store-dtype", choices=("float32", "float16"), default="float32",
-                       help="descriptor store precision; float16 halves the disk, reading gives float32 (default: float32)")
-    group.add_argument("--lock-timeout", type=float, metavar="SECONDS",
-                       help="give up waiting for another run's store lock after this long (default: wait)")
-
-
-def extraction_settings(args, device: str) -> dict:
-    """Keyword arguments of evaluate / describe_splits from the extraction options."""
-    from ..loader import default_workers
-
-    workers = args.workers if args.workers is not None else default_workers(device)
-    return {"workers": workers, "store_dtype": args.store_dtype, "lock_timeout": args.lock_timeout}
-
-
-def _value(text: str):
-    for cast in (int, float):
-        try:
-            return cast(text)
-        except ValueError:
-            pass
-    return {"true": True, "false": False}.get(text.lower(), text)
-
-
-def method_options(args) -> dict:
-    """The options the user gave; None means 'use the preset's'."""
-    options = {name: getattr(args, name) for name in
-               ("device", "backbone", "weights", "layer", "facet", "aggregation", "clusters", "vocabulary",
-                "pca_dim", "batch_size", "precision")}
-    from ..loader import resolve_device
-
-    options["device"] = resolve_device(options["device"])
-    options["resize"] = tuple(args.resize) if args.resize else None
-    for item in args.option:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise VPRBenchError(f"-o expects KEY=VALUE, got {item!r}")
-        options[key.strip().replace("-", "_")] = _value(value.strip())
-    return options
-
-
-def parse_ks(values) -> tuple[int, ...]:
-    if not values:
-        return DEFAULT_KS
-    try:
-        return tuple(int(v) for text in values for v in str(text).split(","))
-    except ValueError:
-        raise VPRBenchError(f"--k takes positive whole numbers, got {' '.join(map(str, values))}") from None
-
-
-def add_search_options(parser: argparse.ArgumentParser) -> None:
-    group = parser.add_argument_group("search (docs/evaluation.md)")
-    group.add_argument("--index", choices=INDEXES, default="exact",
-                       help="exact (default): streamed exact search; ivf-pq or hnsw: approximate faiss index, "
-                            "shortlist re-scored exactly, recall loss against exact reported")
     group.add_argument("--search-memory", metavar="SIZE",
-                       help=f"memory budget of search and PCA fitting, e.g. 1GB, 512MB, 4GiB "
-                            f"(default {format_bytes(DEFAULT_MEMORY_BUDGET)})")
+                       help="memory budget of search and PCA fitting, e.g. 1GB, 512MB, 4GiB (default 1.0 GB)")
+    group.add_argument("--lock-timeout", type=seconds, metavar="SECONDS",
+                       help="give up waiting for another run's store lock after this long (default: wait)")
+    group.add_argument("--strict", action="store_true", help="fail when image counts differ from the manifest")
+    if download:
+        group.add_argument("--download", action="store_true",
+                           help="fetch a missing dataset into --data-dir (without it, only the default data root is downloaded into)")
+    if quiet:
+        group.add_argument("--quiet", action="store_true",
+                           help="no progress (without a terminal, progress is a line to stderr at most every 30 s)")
 
 
-def search_settings(args) -> dict:
-    """Keyword options of `retrieve` (and `evaluate`) from the search options."""
-    memory = DEFAULT_MEMORY_BUDGET if args.search_memory is None else parse_memory(args.search_memory)
-    return {"memory_budget": memory, "index": args.index}
+def add_sweep_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--lease", type=positive_seconds, default=DEFAULT_LEASE_S, metavar="SECONDS",
+                        help="a claim without heartbeat for this long belonged to a dead process and is taken over "
+                             f"(default {DEFAULT_LEASE_S:g})")
+
+
+def run_settings(args):
+    """The run settings of the command line (locations resolved first); -o device=... and
+    -o batch_size=... count as the flags do."""
+    from ..spec import RunSettings
+
+    given = {k: v for k, v in method_options(args).items() if k in ("device", "batch_size")}
+    device = getattr(args, "device", None)
+    return RunSettings(cache_dir=args.cache_dir, data_dir=args.data_dir,
+                       device=(device if device not in (None, "auto") else given.get("device")) or "auto",
+                       batch_size=getattr(args, "batch_size", None) if getattr(args, "batch_size", None) is not None
+                       else given.get("batch_size"), workers=getattr(args, "workers", None),
+                       memory_budget=getattr(args, "search_memory", None), lock_timeout=getattr(args, "lock_timeout", None),
+                       download=True if getattr(args, "download", False) else None, strict=getattr(args, "strict", False))
+
+
+def progress(args, stderr_is_rank_zero: bool = True):
+    """The progress display this command shows (a terminal's bars, a log's lines, or nothing)."""
+    from ..progress import Silent, progress_for
+
+    return progress_for(quiet=getattr(args, "quiet", False)) if stderr_is_rank_zero else Silent()

@@ -3,15 +3,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from rich.table import Table
-from rich.text import Text
-
-from ..sweep import find_record, run_cells, summary_table
-from ..sweep.reproduce import measured, missing_for, reported_value, table_cells
-from ..sweep.runner import FAILED
 from .console import console as make_console
-from .options import add_location_options, apply_locations
-from .run import add_sweep_options
+from .options import add_location_options, add_run_options, add_sweep_options, progress, resolve_locations, run_settings
 
 
 def add_parsers(commands) -> None:
@@ -20,7 +13,7 @@ def add_parsers(commands) -> None:
     p.add_argument("--table", required=True, help="2, 3, 4, 5, 6, 7, layer or facet")
     p.add_argument("--dry-run", action="store_true", help="list the cells and what each needs; run nothing")
     p.add_argument("--publish", type=Path, metavar="DIR", help="also write the table (Markdown) and the leaderboard into DIR")
-    p.add_argument("--device", help="torch device for every method that takes one")
+    add_run_options(p)
     add_sweep_options(p)
     add_location_options(p)
     p.set_defaults(run=run_reproduce)
@@ -31,15 +24,23 @@ def _row_weights(spec: dict) -> dict:
 
 
 def run_reproduce(args) -> int:
-    apply_locations(args)
-    spec, table_cells_ = table_cells(args.paper, args.table)
+    from rich.table import Table
+    from rich.text import Text
+
+    from ..evaluation.results import find_result
+    from ..sweep import run_cells, summary_table
+    from ..sweep.reproduce import missing_for, table_cells
+    from ..sweep.runner import FAILED
+    from .evaluate import explicit_run_options
+
+    resolve_locations(args)
+    settings = run_settings(args)
+    spec, table_cells_ = table_cells(args.paper, args.table, settings=explicit_run_options(args),
+                                     data_dir=settings.data_dir, cache_dir=settings.cache_dir)
     weights = _row_weights(spec)
     cells = {c.key: (c, tc) for tc in table_cells_ for c in tc.cells}
-    if args.device:
-        for key, (c, tc) in list(cells.items()):
-            c.options.setdefault("device", args.device)
     console = make_console()
-    missing = {key: missing_for(c, weights.get(tc.row), args.data_dir) for key, (c, tc) in cells.items()}
+    missing = {key: missing_for(c, weights.get(tc.row), settings.data_dir) for key, (c, tc) in cells.items()}
     unrunnable = [tc for tc in table_cells_ if not tc.cells]
     no_method = f"{len(unrunnable)} with no vprbench method ({', '.join(sorted({tc.row for tc in unrunnable}))})"
     if args.dry_run:
@@ -52,28 +53,33 @@ def run_reproduce(args) -> int:
                 if c is None:
                     listing.add_row(tc.row, tc.column, "", Text.assemble(("not runnable", "yellow"), f": {tc.reason}"))
                     continue
-                record = find_record(c, args.cache_dir)
+                record = find_result(c.spec, settings.cache_dir)
                 status = (Text.assemble(("complete", "cyan"), f" (record of {record.get('created')})") if record else
                           Text.assemble(("missing", "yellow"), f": {missing[c.key]}") if missing[c.key] else
                           Text("would run", style="green"))
-                listing.add_row(tc.row, tc.column, c.protocol_id, status)
+                listing.add_row(tc.row, tc.column, c.spec.dataset.protocol_id, status)
         console.print(listing)
         return 0
-    outcomes = run_cells([c for c, _ in cells.values()], data_dir=args.data_dir, cache_dir=args.cache_dir,
-                         lease_s=args.lease, plan=f"{args.paper} table {args.table}",
-                         runnable=lambda c: missing[c.key])
+    outcomes = run_cells([c for c, _ in cells.values()], settings, lease_s=args.lease,
+                         plan=f"{args.paper} table {args.table}", runnable=lambda c: missing[c.key],
+                         progress=progress(args))
     console.print(summary_table(outcomes, f"{args.paper} table {args.table}"))
     if unrunnable:
         console.print(f"Not evaluated: {no_method}; the paper's values stand alone there.", markup=False)
-    rendered = paper_table(spec, table_cells_, args.cache_dir)
+    rendered = paper_table(spec, table_cells_, settings.cache_dir)
     console.print(rendered)
     if args.publish:
-        publish(args, spec, rendered)
+        publish(args, spec, rendered, settings)
     return 1 if any(o.status == FAILED for o in outcomes) else 0
 
 
-def paper_table(spec: dict, table_cells_, cache_dir=None) -> Table:
-    table = Table(title=f"{spec['title']} — reported (paper) / measured here (delta) [95% CI]")
+def paper_table(spec: dict, table_cells_, cache_dir=None):
+    from rich.table import Table
+
+    from ..evaluation.results import find_result
+    from ..sweep.reproduce import measured, reported_value
+
+    table = Table(title=f"{spec['title']} — reported (paper) / measured here (delta) [95% bootstrap CI]")
     table.add_column("row")
     columns = list(dict.fromkeys(tc.column for tc in table_cells_))
     for column in columns:
@@ -86,7 +92,7 @@ def paper_table(spec: dict, table_cells_, cache_dir=None) -> Table:
         values = []
         for column in columns:
             tc = cells.get(column)
-            records = [find_record(c, cache_dir) for c in tc.cells] if tc else []
+            records = [find_result(c.spec, cache_dir) for c in tc.cells] if tc else []
             for metric in spec["metrics"]:
                 reported = reported_value(spec, row, column, metric)
                 shown = "-" if reported is None else f"{reported:.1f}"
@@ -102,7 +108,7 @@ def paper_table(spec: dict, table_cells_, cache_dir=None) -> Table:
     return table
 
 
-def publish(args, spec: dict, rendered: Table) -> None:
+def publish(args, spec: dict, rendered, settings) -> None:
     """The table as Markdown beside the leaderboard page (through the leaderboard's publish)."""
     from rich.console import Console as RichConsole
 
@@ -116,9 +122,7 @@ def publish(args, spec: dict, rendered: Table) -> None:
     page.write_text(f"# {spec['title']}\n\nReported by the paper / measured by vprbench here.\n\n```\n{capture.export_text()}```\n",
                     encoding="utf-8")
     try:
-        leaderboard.publish(args.publish, args.cache_dir)
+        leaderboard.publish(args.publish, settings.cache_dir)
     except VPRBenchError:
         pass  # no results yet: the table page alone
     make_console(stderr=True).print(f"wrote {page}")
-
-

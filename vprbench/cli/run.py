@@ -1,52 +1,36 @@
-"""vprbench run PLAN.toml, and the matrix form of vprbench evaluate (several methods/datasets)."""
+"""vprbench run PLAN.toml: a plan's cells, each a run spec, shared by the processes on one cache."""
 from __future__ import annotations
 
-from ..sweep import build_plan, read_plan, run_cells, summary_table
-from ..sweep.runner import FAILED
 from .console import console
-from .options import add_location_options, apply_locations
-
-DEFAULT_LEASE_S = 120.0
-
-
-def add_sweep_options(parser) -> None:
-    parser.add_argument("--lease", type=float, default=DEFAULT_LEASE_S, metavar="SECONDS",
-                        help="a claim without heartbeat for this long belonged to a dead process and is taken over "
-                             f"(default {DEFAULT_LEASE_S:g})")
+from .options import (add_location_options, add_method_flags, add_run_options, add_spec_options, add_sweep_options,
+                      method_options, progress, resolve_locations, run_settings, spec_overrides)
 
 
 def add_parsers(commands) -> None:
     p = commands.add_parser("run", help="run a plan: methods x datasets (protocols) x K; several processes share the cells")
     p.add_argument("plan", help="plan file (TOML; see docs/sweeps.md)")
-    p.add_argument("--device", help="torch device for every method that takes one (e.g. cuda:1)")
-    p.add_argument("--strict", action="store_true", help="fail cells whose image counts differ from the manifest")
+    add_method_flags(p)
+    add_spec_options(p)
+    add_run_options(p)
     add_sweep_options(p)
     add_location_options(p)
     p.set_defaults(run=run_plan)
 
 
 def run_plan(args) -> int:
-    apply_locations(args)
-    plan = read_plan(args.plan, device=args.device)  # every problem listed before anything runs
-    return report(plan.name, run_cells(plan.cells, data_dir=args.data_dir, cache_dir=args.cache_dir, strict=args.strict,
-                                       lease_s=args.lease, plan=plan.name))
+    from ..sweep import read_plan, run_cells
+    from .evaluate import explicit_run_options
 
-
-def run_matrix(args, options: dict) -> int:
-    """`vprbench evaluate --method A B --dataset X Y [--protocol P]`: the same, from the command line."""
-    options = dict(options)
-    device = options.pop("device", None)  # given only to methods that take one
-    data = {"methods": [{"name": m, "options": {k: v for k, v in options.items() if v is not None}} for m in args.method],
-            "datasets": [{"name": d, **({"protocol": args.protocol} if args.protocol else {})} for d in args.dataset]}
-    if args.k:
-        from .options import parse_ks
-
-        data["k"] = list(parse_ks(args.k))
-    plan = build_plan(data, "the command line", device=device)
-    return report("evaluate", run_cells(plan.cells, data_dir=args.data_dir, cache_dir=args.cache_dir, strict=args.strict,
-                                        lease_s=args.lease, plan="evaluate"))
+    resolve_locations(args)
+    settings = run_settings(args)
+    overrides = {**spec_overrides(args), "options": {**method_options(args), **explicit_run_options(args)}}
+    plan = read_plan(args.plan, overrides=overrides, data_dir=settings.data_dir, cache_dir=settings.cache_dir)
+    return report(plan.name, run_cells(plan.cells, settings, lease_s=args.lease, plan=plan.name, progress=progress(args)))
 
 
 def report(title: str, outcomes) -> int:
+    from ..sweep import summary_table
+    from ..sweep.runner import FAILED
+
     console().print(summary_table(outcomes, title))
     return 1 if any(o.status == FAILED for o in outcomes) else 0

@@ -14,7 +14,7 @@ from ..aggregation.policies import (
 )
 from ..aggregation.vocabulary import DEFAULT_BUDGET
 from ..errors import VPRBenchError
-from .options import add_location_options, add_method_options, apply_locations, method_options
+from .options import add_location_options, add_method_options, method_options, resolve_locations
 
 
 def add_parsers(commands) -> None:
@@ -58,8 +58,8 @@ def add_parsers(commands) -> None:
 def run_fit(args) -> int:
     from ..methods import create_method
 
-    apply_locations(args)
-    method = create_method(args.method, **method_options(args))
+    resolve_locations(args)
+    method = create_method(args.method, **method_options(args), cache_dir=args.cache_dir)
     if not hasattr(method, "iter_patch_features"):
         raise VPRBenchError(f"Method {args.method!r} does not expose patch features, so it cannot fit a vocabulary.")
     clusters = int(method.clusters)
@@ -77,7 +77,7 @@ def run_fit(args) -> int:
             args.dataset, lambda paths: method.iter_patch_features(paths, resize=None), clusters,
             data_dir=data_dir, **common)
         source = f"{MAP_PREFIX}{args.dataset}"
-    path = save_to_cache(vocabulary, source=source, **setting)
+    path = save_to_cache(vocabulary, source=source, **setting, cache_dir=args.cache_dir)
     print(f"Vocabulary {source}: {vocabulary.clusters} x {vocabulary.dim}, "
           f"{vocabulary.meta['features_used']} of {vocabulary.meta['features_seen']} features -> {path}")
     if args.output:
@@ -86,10 +86,10 @@ def run_fit(args) -> int:
 
 
 def run_import(args) -> int:
-    apply_locations(args)
+    resolve_locations(args)
     vocabulary = load_vocabulary(args.path)
     vocabulary.meta["imported_from"] = vocabulary.meta.pop("path")
-    path = save_to_cache(vocabulary, args.backbone, args.layer, args.facet, args.source)
+    path = save_to_cache(vocabulary, args.backbone, args.layer, args.facet, args.source, args.cache_dir)
     print(f"Imported {vocabulary.clusters} x {vocabulary.dim} centres as {args.source!r} -> {path}")
     return 0
 
@@ -105,12 +105,12 @@ def run_show(args) -> int:
 def run_download(args) -> int:
     from ..aggregation.policies import fetch_released, release, released_name, released_sources
 
-    apply_locations(args)
+    resolve_locations(args)
     r = release()
     print(f"The authors' released centres ({r['backbone']} layer {r['layer']} {r['facet']}, {r['clusters']} clusters; "
           f"{r['repository']} at {r['commit'][:12]}):")
     for source in released_sources():
-        path = fetch_released(source)
+        path = fetch_released(source, args.cache_dir)
         print(f"  {source:<22} {released_name(source):<15} sha256 {r['sha256'][released_name(source)][:16]}  {path}")
     return 0
 

@@ -33,13 +33,14 @@ def is_on_disk(name: str, data_dir=None) -> bool:
 
 
 def load_dataset(name: str, data_dir=None, *, fetch: bool | None = None, strict: bool = False,
-                 protocol: str | None = None) -> Dataset:
+                 protocol: str | None = None, cache_dir=None) -> Dataset:
     """A dataset by manifest name, or a folder of the user's own (see layouts/own_data.py),
     under one of its protocols (None: the default; see datasets/protocol.py).
 
     A missing dataset with a direct source is downloaded when `fetch` is True; with None (the
     default) only into the default data root, never into a data root the user named
     (--data-dir, $VPRBENCH_DATA) nor to an imported copy's place; with False never.
+    `cache_dir` is where image identities are remembered (a folder's own protocol names them).
     """
     if is_path(name):
         root = Path(name).expanduser()
@@ -48,7 +49,7 @@ def load_dataset(name: str, data_dir=None, *, fetch: bool | None = None, strict:
         if protocol not in (None, "default", "own"):
             raise VPRBenchError(f"A folder of your own has one protocol, 'own' (its positions and radius); got {protocol!r}.")
         dataset = read_layout(root, own_manifest(root))
-        dataset.kind, dataset.protocol = "own", own_protocol(dataset)
+        dataset.kind, dataset.protocol = "own", own_protocol(dataset, cache_dir)
         return dataset
     manifest = dataset_manifest(name)
     chosen = find_protocol(manifest, protocol)  # an unknown protocol fails before any reading

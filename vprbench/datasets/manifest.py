@@ -1,15 +1,12 @@
 """Dataset manifests: one TOML file per dataset under manifests/datasets/."""
 from __future__ import annotations
 
-import os
 import tomllib
 from dataclasses import dataclass, field
 from importlib.resources import files
 from pathlib import Path
 
 from ..errors import VPRBenchError, closest_names
-
-DATA_ENV = "VPRBENCH_DATA"
 
 
 @dataclass(frozen=True)
@@ -83,15 +80,11 @@ def default_data_root() -> Path:
 
 
 def data_root(data_dir: str | Path | None = None) -> Path:
-    """--data-dir, else $VPRBENCH_DATA, else the default data root."""
-    if data_dir is None:
-        data_dir = os.environ.get(DATA_ENV)
-    if data_dir is None:
-        return default_data_root()
-    return Path(data_dir).expanduser()
+    """`data_dir`, else the default data root (the command line reads $VPRBENCH_DATA for it)."""
+    return default_data_root() if data_dir is None else Path(data_dir).expanduser()
 
 
 def is_default_data_root(data_dir: str | Path | None = None) -> bool:
-    """True unless the user named a data root (--data-dir or $VPRBENCH_DATA): only the default
-    one is downloaded into without being asked."""
-    return data_dir is None and os.environ.get(DATA_ENV) is None
+    """True unless a data root was named (--data-dir or $VPRBENCH_DATA): only the default one is
+    downloaded into without being asked."""
+    return data_dir is None

@@ -132,9 +132,9 @@ class Dataset:
             h.update(np.ascontiguousarray(positives, dtype="<i8").tobytes())
         return h.hexdigest()
 
-    def fingerprint(self) -> str:
+    def fingerprint(self, cache_dir=None) -> str:
         """Images (content) and ground truth together: what a result was computed on."""
-        h = hashlib.sha256(self.name.encode())
-        h.update(json.dumps(self.images_fingerprint(), sort_keys=True).encode())
-        h.update(self.ground_truth_fingerprint().encode())
-        return h.hexdigest()[:16]
+        from ..spec import canonical_hash
+
+        return canonical_hash({"name": self.name, "images": self.images_fingerprint(cache_dir),
+                               "ground_truth": self.ground_truth_fingerprint()})

@@ -18,8 +18,6 @@ with the same hash evaluate the same thing.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -77,8 +75,9 @@ class Protocol:
 
     @property
     def hash(self) -> str:
-        text = json.dumps(self.definition(), sort_keys=True, separators=(",", ":"))
-        return hashlib.sha256(text.encode()).hexdigest()[:16]
+        from ..spec import canonical_hash
+
+        return canonical_hash(self.definition())
 
     def record(self) -> dict:
         """`dataset.protocol` and the result record's "protocol" section."""
@@ -135,13 +134,20 @@ def find_protocol(manifest, name: str | None) -> Protocol:
     return known[name]
 
 
-def own_protocol(dataset: Dataset) -> dict:
-    """The protocol of a folder of the user's own: its positions and radius, as read."""
+def own_protocol(dataset: Dataset, cache_dir=None) -> dict:
+    """The protocol of a folder of the user's own: its positions and radius, as read, and the
+    content of its images and ground truth (two folders that share a name, counts and radius
+    but not their images are two protocols)."""
     gt = dataset.ground_truth
     protocol = Protocol(dataset=dataset.name, name="own", description="the folder's own positions and radius",
                         database_count=len(dataset.database), query_count=len(dataset.queries),
                         base={"unit": gt.unit, "radius": gt.radius, "radius_unit": dataset.radius_unit})
-    return protocol.record()
+    record = protocol.record()
+    record["content"] = dataset.fingerprint(cache_dir)
+    from ..spec import canonical_hash
+
+    record["hash"] = canonical_hash({**protocol.definition(), "content": record["content"]})
+    return record
 
 
 # ---------------------------------------------------------------- applying a protocol

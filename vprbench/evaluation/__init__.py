@@ -1,9 +1,7 @@
-"""Evaluation: positives from ground truth, faiss search, Recall@K and PR metrics, result records."""
-from .metrics import DEFAULT_KS, recall_at_k, top1_precision_recall
-from .search import search
-from .extract import describe_splits
+"""Evaluation: `evaluate(spec)` (the one entry point), stores, search, Recall@K and PR metrics, records."""
+from .metrics import recall_at_k, successes, top1_precision_recall
 from .pipeline import evaluate
-from .record import append_result, per_query, read_results, results_dir, results_path, save_result
+from .results import find_result, per_query, read_results, results_dir, save_result
 
-__all__ = ["DEFAULT_KS", "append_result", "describe_splits", "evaluate", "per_query", "read_results", "recall_at_k",
-           "results_dir", "results_path", "save_result", "search", "top1_precision_recall"]
+__all__ = ["evaluate", "find_result", "per_query", "read_results", "recall_at_k", "results_dir", "save_result",
+           "successes", "top1_precision_recall"]

@@ -5,10 +5,9 @@ import numpy as np
 
 from ..errors import VPRBenchError
 
-DEFAULT_KS = (1, 5, 10, 20)
-
 
 def check_ks(ks, n_database: int) -> tuple[int, ...]:
+    """K values within the database: the largest must not exceed it."""
     ks = tuple(sorted(set(int(k) for k in ks)))
     if not ks or ks[0] < 1:
         raise VPRBenchError(f"Recall@K needs K >= 1, got {list(ks)}")
@@ -22,10 +21,22 @@ def correct_at(indices: np.ndarray, positives: list[np.ndarray]) -> np.ndarray:
     return np.stack([np.isin(row, pos) for row, pos in zip(indices, positives)])
 
 
-def recall_at_k(indices: np.ndarray, positives: list[np.ndarray], ks) -> dict[int, float]:
-    """Percent of ALL queries with a positive among the top K (queries without positives fail)."""
-    hits = np.cumsum(correct_at(indices, positives), axis=1) > 0
-    return {k: float(100.0 * hits[:, k - 1].mean()) for k in ks}
+def first_positive_rank(correct: np.ndarray) -> np.ndarray:
+    """Per query, the 1-based rank of the first positive among the retrieved (0 = none)."""
+    correct = np.asarray(correct, dtype=bool)
+    return np.where(correct.any(axis=1), correct.argmax(axis=1) + 1, 0)
+
+
+def successes(first_rank: np.ndarray, k: int) -> np.ndarray:
+    """Per query: is a positive among the top k (ranks are 1-based, 0 = none in the top K)?"""
+    first = np.asarray(first_rank)
+    return (first >= 1) & (first <= k)
+
+
+def recall_at_k(first_rank: np.ndarray, ks) -> dict[int, float]:
+    """Recall@K in percent over ALL queries (queries without positives count as failures), from
+    each query's first-positive rank: the one Recall@K of vprbench (records, cells, figures)."""
+    return {int(k): float(100.0 * successes(first_rank, k).mean()) if len(first_rank) else 0.0 for k in ks}
 
 
 def top1_precision_recall(top1_scores: np.ndarray, top1_correct: np.ndarray) -> dict:

@@ -1,51 +1,109 @@
-"""One evaluation, top to bottom: describe both splits (through the store), post-process, search, score."""
+"""The one entry point: `evaluate(spec)` runs every evaluation, top to bottom.
+
+    load the dataset (its protocol)  ->  create the method  ->  describe both splits (stores)
+    ->  retrieve (post-process, search)  ->  score  ->  the record
+
+A single command, a matrix, a plan, `reproduce` and torchrun are loops over specs that call it.
+"""
 from __future__ import annotations
 
 import time
 
-from ..datasets import Dataset
 from ..distributed import Ranks
-from ..methods import Method
-from ..rows import DEFAULT_MEMORY_BUDGET
+from ..errors import VPRBenchError
+from ..spec import RunSettings, RunSpec
 from .extract import describe_splits
-from .metrics import DEFAULT_KS, check_ks
+from .identity import protocol_of
+from .metrics import check_ks
 from .record import result_record
 from .search import retrieve
 
 
-def evaluate(method: Method, dataset: Dataset, *, ks=DEFAULT_KS, cache_dir=None, progress=None, workers: int = 0,
-             store_dtype: str = "float32", lock_timeout: float | None = None, ranks: Ranks | None = None,
-             memory_budget=DEFAULT_MEMORY_BUDGET, index: str = "exact", index_options: dict | None = None) -> dict | None:
-    """Recall@K and PR metrics of `method` on `dataset`, with a full result record.
+def load_data(spec: RunSpec, settings: RunSettings):
+    """The spec's dataset under its protocol, checked to be the one the spec names."""
+    from ..datasets import load_dataset
 
-    Descriptors come from the stores (computed where missing: `describe_splits`); retrieval
-    streams them within `memory_budget` (`retrieve`: post-processing, exact or approximate
-    `index`). Under torchrun (`ranks` from `Ranks.from_environment()`) every rank describes
-    its shard; rank 0 returns the record, the other ranks None.
+    name = spec.dataset.path if spec.dataset.kind == "own" else spec.dataset.name
+    dataset = load_dataset(name, settings.data_dir, strict=settings.strict, fetch=settings.download,
+                           protocol=None if spec.dataset.kind == "own" else spec.dataset.protocol,
+                           cache_dir=settings.cache_dir)
+    if dataset.protocol.get("hash") != spec.dataset.protocol_hash:
+        raise VPRBenchError(f"Dataset {name} now has protocol hash {dataset.protocol.get('hash')}, but the spec was "
+                            f"made for {spec.dataset.protocol_hash} ({spec.dataset.protocol_id}): its images or "
+                            "ground truth changed since; build the spec again.")
+    return dataset
+
+
+def create_run_method(name: str, given: dict, settings: RunSettings):
+    """A method with the options given, and the run's device, batch size and cache folder."""
+    from ..loader import resolve_device
+    from ..methods import create_method
+    from ..spec import RUN_SETTINGS
+
+    options = {k: v for k, v in given.items() if k not in RUN_SETTINGS}
+    return create_method(name, **options, device=resolve_device(settings.device), batch_size=settings.batch_size,
+                         cache_dir=settings.cache_dir)
+
+
+def loader_workers(settings: RunSettings, method) -> int:
+    """--workers, else the loader's default for the method's device."""
+    from ..loader import default_workers
+
+    return settings.workers if settings.workers is not None else default_workers(str(getattr(method, "device", "cpu")))
+
+
+def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None, method=None, progress=None,
+             ranks: Ranks | None = None) -> dict | None:
+    """Recall@K and PR metrics of the run `spec` names, with a full result record (not saved:
+    `vprbench.evaluation.save_result` stores it).
+
+    `settings` say how it runs and where the data and cache are (default: the user cache and the
+    default data root). `dataset`/`method` may be given already built (e.g. a dataset made by
+    hand); they must be the spec's. Under torchrun (`ranks` from `Ranks.from_environment()`)
+    every rank describes its shard; rank 0 returns the record, the other ranks None.
     """
     started = time.perf_counter()
+    settings = settings or RunSettings()
     ranks = ranks or Ranks()
-    ks = check_ks(ks, len(dataset.database))
+    if spec.stages:
+        raise VPRBenchError("This vprbench has no post-retrieval stages yet.")
+    if method is None:
+        method = create_run_method(spec.method, spec.given, settings)  # options are checked before any data is touched
+    elif method.name != spec.method:
+        raise VPRBenchError(f"The method given is {method.name!r}, the spec's {spec.method!r}.")
+    ranks.agree({"spec": spec.key, "cache": str(settings.cache_dir.resolve()) if settings.cache_dir else None,
+                 "data": str(settings.data_dir) if settings.data_dir else None,
+                 "memory_budget": settings.memory_budget}, "the run (spec, cache folder, data root)")
+    if dataset is None:
+        dataset = ranks.on_zero(lambda: load_data(spec, settings))  # fetched on first use by rank 0 alone
+    elif protocol_of(dataset)["hash"] != spec.dataset.protocol_hash:
+        raise VPRBenchError(f"The dataset given is {protocol_of(dataset)['id']}, not the spec's {spec.dataset.protocol_id}.")
+    ks = check_ks(spec.ks, len(dataset.database))
     positives = dataset.positives
     method.use_dataset(dataset.name)
+    workers = loader_workers(settings, method)
     described = describe_splits(
         method, {"database": dataset.database, "queries": dataset.queries}, root=dataset.root, label=dataset.name,
-        image_keys=dataset.images_fingerprint(cache_dir), cache_dir=cache_dir, store_dtype=store_dtype,
-        workers=workers, lock_timeout=lock_timeout, ranks=ranks, progress=progress)
+        image_keys=dataset.images_fingerprint(settings.cache_dir), cache_dir=settings.cache_dir,
+        store_dtype=spec.store_dtype, workers=workers, lock_timeout=settings.lock_timeout, ranks=ranks,
+        progress=progress)
     if described.stores is None:  # not rank 0: its shard is written; rank 0 evaluates
         return None
     timings = {"fit_s": described.timings["fit_s"], "database_s": described.timings["database_s"],
                "queries_s": described.timings["queries_s"]}
     t = time.perf_counter()
+    memory = {} if settings.memory_budget is None else {"memory_budget": settings.memory_budget}
     found = retrieve(method, described.stores["database"], described.stores["queries"], ks[-1],
-                     memory_budget=memory_budget, index=index, index_options=index_options)
+                     index=spec.search.index, index_options=spec.search.options or None, **memory)
     timings["search_s"] = time.perf_counter() - t
     timings["total_s"] = time.perf_counter() - started
     context = {"store": {"folder": described.folder.key}}  # where the descriptors are (vprbench.store.run_store)
     if ranks.distributed:
         context["distributed"] = {**ranks.describe(), "computed_per_rank": described.per_rank}
     return result_record(
-        method=method, fingerprint=described.fingerprint, dataset=dataset, dataset_key=dataset.fingerprint(), ks=ks,
+        spec=spec, method=method, fingerprint=described.fingerprint, dataset=dataset,
+        dataset_key=dataset.fingerprint(settings.cache_dir), ks=ks,
         scores=found.scores, indices=found.indices, positives=positives, descriptor_dim=int(found.info["dim"]),
-        computed=described.computed, timings=timings, search=found.info, context=context,
+        computed=described.computed, timings=timings, search=found.info, context=context, settings=settings,
+        cache_dir=settings.cache_dir,
     )

@@ -1,14 +1,15 @@
 """Records -> a board of cells: which run fills which (row, dataset) cell, and which runs are left out.
 
 The rules (stated on every published page, CELL_RULE):
-- a row is a method label (the method and the options set on top of its preset) with its
-  weights: official weights (or a method without learnt weights) and every other weights source
-  get rows of their own, so a user's or random weights never overwrite an official row;
+- a row is a run spec without its dataset and K (`RunSpec.row_key`): a method with its options,
+  its weights (files by content), search and store; rows whose weights are not the authors'
+  release (or nothing learnt), whose search is approximate or whose store is reduced get marks
+  of their own, so they never overwrite an official row;
 - a benchmark column is one of the benchmark's protocols (datasets/protocol.py; the default one
   carries the dataset's name, a variant is "name [protocol]"): it takes only runs whose protocol
   hash is that protocol's, whose image counts are the protocol's, and on one copy of its data (the
-  dataset fingerprint most runs share, the newest on a tie); own datasets get columns of their own,
-  even one named like a benchmark;
+  dataset fingerprint most runs share, the newest on a tie); own datasets get a column per
+  protocol (their positions, radius and content), even one named like a benchmark;
 - a cell is exactly one run: the newest eligible run that reports R@1 and R@5 (read from its
   per-query ranks when its search went deep enough), else the newest eligible run.
 """
@@ -20,10 +21,10 @@ from functools import cached_property
 
 import numpy as np
 
-from ..evaluation.record import benchmark_protocols, per_query
+from ..evaluation.identity import benchmark_protocols
+from ..evaluation.metrics import recall_at_k
+from ..evaluation.results import per_query
 
-#: options that change how a run is computed, not what it computes
-UNLABELLED_OPTIONS = {"device", "batch_size", "weights"}
 #: weights sources that make a row official: the authors' release, or nothing learnt at all
 OFFICIAL_WEIGHTS = {"official", "none"}
 #: the K a cell reports
@@ -32,27 +33,25 @@ STRUCTURED = ("indoor", "urban", "outdoor")
 UNSTRUCTURED = ("aerial", "subt", "degraded", "underwater")
 
 CELL_RULE = (
-    "Each cell is exactly one run: the newest run of that method (with those options and weights) on that "
-    "dataset that reports R@1 and R@5, else its newest run. A benchmark's column is one of its protocols "
-    "(which images, which ground truth: its id and hash are on the dataset's page) and takes only runs on "
-    "that protocol, with its image counts, and on one copy of its data (the dataset fingerprint most runs "
-    "share; the newest on a tie). Runs on your own data get their own "
-    "columns, even when named like a benchmark; runs with weights other than the authors' release get their "
-    "own rows, marked, and never replace an official row."
+    "Each cell is exactly one run: the newest run of that row (a method with its options, weights, search and "
+    "store) on that dataset that reports R@1 and R@5, else its newest run. A benchmark's column is one of its "
+    "protocols (which images, which ground truth: its id and hash are on the dataset's page) and takes only runs "
+    "on that protocol, with its image counts, and on one copy of its data (the dataset fingerprint most runs "
+    "share; the newest on a tie). Runs on your own data get a column per protocol (positions, radius and images), "
+    "even when named like a benchmark. Runs with weights other than the authors' release, with approximate "
+    "search (IVF-PQ, HNSW) or with a float16 store get their own rows, marked †, and never replace an official row."
 )
 
 
 def method_label(record: dict) -> str:
     """The method name, with the options the user set on top of its preset: ablations get rows of their own."""
-    options = {k: v for k, v in (record.get("method_options") or {}).items() if k not in UNLABELLED_OPTIONS}
-    if not options:
-        return record["method"]
-    shown = " ".join(f"{k}={'x'.join(map(str, v)) if isinstance(v, list) else v}" for k, v in sorted(options.items()))
-    return f"{record['method']} [{shown}]"
+    from ..spec import RunSpec
+
+    return RunSpec.model_validate(record["spec"]).label()
 
 
 def weights_of(record: dict) -> tuple[str, str]:
-    """(key, mark): key 'official' for official rows, else one key per weights source;
+    """(key, mark): key 'official' for official weights, else one key per weights source;
     mark is the label shown beside a non-official row ('' for official)."""
     weights = (record.get("provenance") or {}).get("weights") or {}
     source = weights.get("source", "undeclared")
@@ -66,15 +65,25 @@ def weights_of(record: dict) -> tuple[str, str]:
     return source, f"weights {source}"
 
 
+def weights_shown(row: "Row", record: dict) -> str:
+    """The Weights column, the same on every table, page and download: the row's marks, else
+    'official', or 'none (nothing learnt)' for a method with nothing learnt."""
+    if row.mark:
+        return row.mark
+    source = ((record.get("provenance") or {}).get("weights") or {}).get("source")
+    return "none (nothing learnt)" if source == "none" else "official"
+
+
 @dataclass(frozen=True)
 class Row:
+    key: str       # the spec's row key
     label: str
-    weights: str
-    mark: str
+    weights: str   # 'official' or the weights source key
+    mark: str      # what sets the row apart ('' for an official row)
 
     @property
     def official(self) -> bool:
-        return self.weights == "official"
+        return not self.mark
 
     @property
     def name(self) -> str:
@@ -83,7 +92,7 @@ class Row:
 
 @dataclass(frozen=True)
 class Column:
-    key: str       # unique: the dataset name, "<name> [<protocol>]" or "<name> (own <fingerprint>)"
+    key: str       # unique: the dataset name, "<name> [<protocol>]" or "<name> (own <protocol hash>)"
     dataset: str
     kind: str      # "benchmark" or "own"
     domain: str
@@ -91,17 +100,22 @@ class Column:
     protocol: str = ""
     #: the benchmark's default protocol (the one the paper's tables use)
     default: bool = True
+    #: what tells an own column apart: e.g. "own, ±1 frame"
+    detail: str = ""
+    protocol_hash: str = ""
 
     @property
     def title(self) -> str:
         if self.kind != "benchmark":
-            return f"{self.dataset} (own data)"
+            return f"{self.dataset} ({self.detail or 'own data'})"
         return self.dataset if self.default else f"{self.dataset} [{self.protocol}]"
 
     @property
     def slug(self) -> str:
         if self.kind != "benchmark":
-            return f"own-{self.dataset}-{self.fingerprint[:8]}"
+            from ..paths import safe_name
+
+            return f"own-{safe_name(self.dataset, 40)}-{self.protocol_hash[:8]}"
         return self.dataset if self.default else f"{self.dataset}-{self.protocol}"
 
 
@@ -124,8 +138,7 @@ class Cell:
             return float(found)
         section = self.record.get("per_query") or {}
         if section.get("k", 0) >= k and self.arrays is not None:
-            first = self.arrays["first_positive_rank"]
-            return float(100.0 * np.mean((first >= 1) & (first <= k)))
+            return recall_at_k(self.arrays["first_positive_rank"], [k])[k]
         return None
 
 
@@ -143,13 +156,13 @@ class Board:
         return [c for r in self.rows if (c := self.cell(r, column))]
 
     def find_row(self, label: str) -> list[Row]:
-        return [r for r in self.rows if label in (r.label, r.name)]
+        return [r for r in self.rows if label in (r.label, r.name, r.key)]
 
     @property
     def marked(self) -> dict[str, int]:
         """How many cells are not on official weights, or not on a benchmark: shown on every page."""
         cells = list(self.cells.values())
-        return {"non_official_weights": sum(not c.row.official for c in cells),
+        return {"marked_rows": sum(not c.row.official for c in cells),
                 "own_data": sum(c.column.kind == "own" for c in cells), "excluded": len(self.excluded)}
 
 
@@ -160,12 +173,11 @@ def _max_k(record: dict) -> int:
 
 def _column_of(record: dict) -> tuple[str, str, bool] | str:
     """(kind, protocol name, is the default protocol), or the reason the run fills no cell."""
-    if int(record.get("schema_version", 1)) < 2:
-        return ("recorded by vprbench 0.1, without protocol, dataset kind or weights provenance; "
-                "rerun it to include it (its descriptors are served from the store)")
     found = record.get("protocol") or {}
-    if record.get("dataset_kind", "own") != "benchmark":
+    if record.get("dataset_kind") == "own":
         return "own", str(found.get("name", "own")), True
+    if record.get("dataset_kind") != "benchmark":
+        return f"dataset {record['dataset']!r} was built by hand (protocol {found.get('id', '?')}): it fills no cell"
     known = benchmark_protocols(record["dataset"])
     if not known:
         return f"no benchmark is named {record['dataset']!r} in this vprbench"
@@ -183,6 +195,27 @@ def _column_of(record: dict) -> tuple[str, str, bool] | str:
     return "benchmark", protocol["name"], found["hash"] == next(iter(known))
 
 
+def _own_detail(record: dict) -> str:
+    """'own, ±1 frame' / 'own, 25 m': what an own column's protocol is, in its heading."""
+    gt = record.get("ground_truth") or {}
+    radius, unit = gt.get("radius"), gt.get("radius_unit") or gt.get("unit") or ""
+    if radius is None:
+        return "own data"
+    value = f"{radius:g}" if isinstance(radius, (int, float)) else str(radius)
+    if unit == "frames":
+        return f"own, ±{value} frame{'' if value == '1' else 's'}"
+    return f"own, {value} {'m' if unit == 'metres' else unit}".rstrip()
+
+
+def _row_of(record: dict) -> Row:
+    from ..spec import RunSpec
+
+    spec = RunSpec.model_validate(record["spec"])
+    weights, mark = weights_of(record)
+    marks = [m for m in (mark, *spec.marks()) if m]
+    return Row(spec.row_key, spec.label(), weights, "; ".join(marks))
+
+
 def build_board(records: list[dict]) -> Board:
     """Apply the rules above to every record (oldest first, as read_results gives them)."""
     excluded: list[tuple[dict, str]] = []
@@ -194,13 +227,14 @@ def build_board(records: list[dict]) -> Board:
             continue
         kind, protocol, default = found
         name, fingerprint = record["dataset"], str(record.get("dataset_fingerprint", ""))
+        protocol_hash = str((record.get("protocol") or {}).get("hash", ""))
         if kind == "benchmark":
-            key = name if default else f"{name} [{protocol}]"
+            key, detail = (name if default else f"{name} [{protocol}]"), ""
         else:
-            key = f"{name} (own {fingerprint[:8]})"
-        column = Column(key, name, kind, str(record.get("domain") or ""), fingerprint, protocol, default)
-        key_, mark = weights_of(record)
-        placed.append((record, Row(method_label(record), key_, mark), column))
+            key, detail = f"{name} (own {protocol_hash[:8]})", _own_detail(record)
+        column = Column(key, name, kind, str(record.get("domain") or ""), fingerprint, protocol, default, detail,
+                        protocol_hash)
+        placed.append((record, _row_of(record), column))
 
     # one copy of each benchmark column's data: the fingerprint most runs share (the newest on a tie)
     chosen: dict[str, str] = {}
@@ -220,14 +254,32 @@ def build_board(records: list[dict]) -> Board:
         columns.setdefault(column.key, column)
         candidates.setdefault((row, column.key), []).append(record)
 
+    rows = _distinct(sorted({row for row, _ in candidates}, key=lambda r: (not r.official, r.label, r.mark, r.key)))
+    columns = _distinct_titles(columns)
     cells = {}
     for (row, key), runs in candidates.items():
         complete = [r for r in runs if _max_k(r) >= max(CELL_KS)]
         pick = (complete or runs)[-1]
-        cells[(row, key)] = Cell(row, columns[key], pick, passed_over=len(runs) - 1)
-    rows = sorted({row for row, _ in cells}, key=lambda r: (not r.official, r.label, r.weights))
+        final = rows[row]
+        cells[(final, key)] = Cell(final, columns[key], pick, passed_over=len(runs) - 1)
     ordered = sorted(columns.values(), key=lambda c: (c.kind != "benchmark", _domain_order(c.domain), c.dataset, c.key))
-    return Board(rows, ordered, cells, excluded)
+    return Board(list(rows.values()), ordered, cells, excluded)
+
+
+def _distinct(rows: list[Row]) -> dict[Row, Row]:
+    """Each row as shown: rows whose names would read alike (another version of a preset) are told
+    apart by their key."""
+    names = Counter(r.name for r in rows)
+    return {r: r if names[r.name] == 1 else Row(r.key, f"{r.label} #{r.key[:6]}", r.weights, r.mark) for r in rows}
+
+
+def _distinct_titles(columns: dict[str, Column]) -> dict[str, Column]:
+    """Own columns whose headings would read alike are told apart by their protocol hash."""
+    import dataclasses
+
+    titles = Counter(c.title for c in columns.values())
+    return {key: c if titles[c.title] == 1 or c.kind == "benchmark" else
+            dataclasses.replace(c, detail=f"{c.detail or 'own'}, {c.protocol_hash[:8]}") for key, c in columns.items()}
 
 
 def _domain_order(domain: str) -> int:

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 from ..errors import VPRBenchError, closest_names
 from .cells import Board, Cell
-from .stats import RESAMPLES, bootstrap_ci, format_p, overlaps, paired_test, successes
+from ..evaluation.metrics import successes
+from .stats import RESAMPLES, bootstrap_ci, format_p, overlaps, paired_test
 
 
 def _cell(board: Board, method: str, dataset: str) -> Cell:

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..errors import VPRBenchError
 from .cells import STRUCTURED, UNSTRUCTURED, Board, Cell
-from .stats import successes
+from ..evaluation.metrics import successes
 
 DOMAIN_COLOURS = {"indoor": "#1f77b4", "urban": "#ff7f0e", "outdoor": "#2ca02c", "aerial": "#d62728",
                   "subt": "#9467bd", "degraded": "#8c564b", "underwater": "#17becf"}
@@ -248,12 +248,12 @@ def stored_descriptors(record: dict, split: str = "database", cache_dir=None) ->
 def pca_map(records: list[dict], path: Path, *, cache_dir=None, seed: int = 0, per_dataset: int = 400) -> Path:
     """Database descriptors of one GeM method on every dataset it was run on, projected on their
     first two principal components and coloured by domain (AnyLoc Fig. 1, middle)."""
-    from ..store import fingerprint_key
+    from ..spec import canonical_hash
 
     gem = [r for r in records if (r.get("method_fingerprint") or {}).get("aggregation") == "gem"]
     by_method: dict[str, dict[str, dict]] = {}
     for record in gem:
-        by_method.setdefault(fingerprint_key(record["method_fingerprint"]), {})[record["dataset"]] = record
+        by_method.setdefault(canonical_hash(record["method_fingerprint"]), {})[record["dataset"]] = record
     found = {}
     for key, runs in sorted(by_method.items(), key=lambda kv: -len(kv[1])):
         loaded = {name: (r, d) for name, r in runs.items() if (d := stored_descriptors(r, cache_dir=cache_dir)) is not None}

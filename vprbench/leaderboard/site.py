@@ -19,11 +19,12 @@ import pandas as pd
 from .. import __version__
 from ..errors import VPRBenchError
 from ..fsutil import LockTimeout, lock
-from ..evaluation.record import read_results
+from ..evaluation.results import read_results
 from ..reference import paper_results
 from . import figures
-from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board
-from .stats import RESAMPLES, format_p, overlaps, paired_test, successes
+from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board, weights_shown
+from ..evaluation.metrics import successes
+from .stats import RESAMPLES, format_p, overlaps, paired_test
 from .tables import GROUPS, TOLERANCE_PP, cell_stats, comparisons, fmt, group_table, other_rows
 
 SECTION = "leaderboard"
@@ -69,15 +70,6 @@ def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0) -> Pa
         warnings.warn(f"{folder / f'{SECTION}.md'} (written by vprbench 0.1) and {target}/index.md are the same page "
                       "for MkDocs: delete the old file.", stacklevel=2)
     return target
-
-
-def _weights_shown(row, record: dict) -> str:
-    """The Weights column: the mark of a non-official row, else 'official', or 'none' for a
-    method with nothing learnt (HOG, DenseVLAD)."""
-    if row.mark:
-        return row.mark
-    source = ((record.get("provenance") or {}).get("weights") or {}).get("source")
-    return "none (nothing learnt)" if source == "none" else "official"
 
 
 def _swap(staging: Path, target: Path) -> None:
@@ -132,9 +124,9 @@ def _plain(value):
 def _marks(board: Board) -> str:
     found = board.marked
     parts = []
-    if found["non_official_weights"]:
-        parts.append(f"{found['non_official_weights']} cell(s) use weights other than the authors' release "
-                     "(user files or random initialisation), marked †")
+    if found["marked_rows"]:
+        parts.append(f"{found['marked_rows']} cell(s) are on rows marked † (weights other than the authors' release, "
+                     "approximate search or a float16 store: the mark says which)")
     if found["own_data"]:
         parts.append(f"{found['own_data']} cell(s) are on the user's own data, marked *(own data)*")
     if found["excluded"]:
@@ -183,7 +175,7 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
         lines += ["| Method | Weights | Dataset | R@1 [95 % CI] | R@5 [95 % CI] | Run |", "|:--|:--|:--|--:|--:|:--|"]
         for row, column, cell in others:
             s = stats[(row, column.key)]
-            lines.append(f"| {row.label}{' †' if not row.official else ''} | {_weights_shown(row, cell.record)} | "
+            lines.append(f"| {row.label}{' †' if not row.official else ''} | {weights_shown(row, cell.record)} | "
                          f"[{column.title}]({column.slug}.md) | {_ci(s[1])} | {_ci(s[5])} | `{cell.record.get('run_id')}` |")
     else:
         lines.append("None.")
@@ -237,7 +229,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
     for cell in cells:
         s, r = stats[(cell.row, column.key)], cell.record
         name = f"{cell.row.label}{' †' if not cell.row.official else ''}"
-        lines.append(f"| {name} | {_weights_shown(cell.row, r)} | "
+        lines.append(f"| {name} | {weights_shown(cell.row, r)} | "
                      f"{_ci(s[1])} | {_ci(s[5])} | {fmt(cell.recall(10))} | {fmt(cell.recall(20))} | "
                      f"{_num(r.get('auc_pr'), 3)} | {_num(r.get('recall_at_100_precision'), 3)} | {r.get('descriptor_dim')} | "
                      f"{r.get('descriptor_bytes') or 4 * int(r.get('descriptor_dim') or 0)} | {_num(r.get('images_per_second'), 1)} |")
@@ -295,7 +287,7 @@ def _file_slug(text: str) -> str:
 
 def _summary(cell: Cell, stats: dict) -> dict:
     r = cell.record
-    entry = {"method": cell.row.label, "weights": cell.row.mark or "official", "dataset": cell.column.dataset,
+    entry = {"method": cell.row.label, "weights": weights_shown(cell.row, r), "dataset": cell.column.dataset,
              "dataset_kind": cell.column.kind, "domain": cell.column.domain}
     for k in CELL_KS:
         entry[f"r{k}"] = stats[k]["value"]

@@ -12,15 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 
+
 RESAMPLES = 10_000
 LEVEL = 0.95
 SEED = 0
-
-
-def successes(first_positive_rank: np.ndarray, k: int) -> np.ndarray:
-    """Per query: is a positive among the top k (ranks are 1-based, 0 = none in the top K)?"""
-    first = np.asarray(first_positive_rank)
-    return (first >= 1) & (first <= k)
 
 
 def bootstrap_ci(success: np.ndarray, *, seed: int = SEED, resamples: int = RESAMPLES, level: float = LEVEL) -> tuple[float, float]:
@@ -31,6 +26,22 @@ def bootstrap_ci(success: np.ndarray, *, seed: int = SEED, resamples: int = RESA
         return (float("nan"), float("nan"))
     rng = np.random.default_rng(seed)
     draws = rng.binomial(n, success.mean(), size=resamples) / n
+    low, high = np.quantile(draws, [(1 - level) / 2, (1 + level) / 2])
+    return (float(100 * low), float(100 * high))
+
+
+def bootstrap_mean_ci(successes_per_dataset: list[np.ndarray], *, seed: int = SEED, resamples: int = RESAMPLES,
+                      level: float = LEVEL) -> tuple[float, float]:
+    """Percentile bootstrap interval of the mean recall (percent) over several datasets, each
+    dataset's queries resampled on their own (a paper table's per-domain average)."""
+    rng = np.random.default_rng(seed)
+    draws = np.zeros(resamples)
+    for success in successes_per_dataset:
+        success = np.asarray(success, dtype=bool)
+        if len(success) == 0:
+            return (float("nan"), float("nan"))
+        draws += rng.binomial(len(success), success.mean(), size=resamples) / len(success)
+    draws /= len(successes_per_dataset)
     low, high = np.quantile(draws, [(1 - level) / 2, (1 + level) / 2])
     return (float(100 * low), float(100 * high))
 

@@ -7,10 +7,10 @@ import pandas as pd
 
 from ..errors import VPRBenchError
 from ..reference import paper_results
-from .cells import CELL_KS, STRUCTURED, UNSTRUCTURED, Board, Cell, Column, Row  # noqa: F401
-from .stats import bootstrap_ci, successes
+from .cells import CELL_KS, STRUCTURED, UNSTRUCTURED, Board, Cell, Column, Row, weights_shown  # noqa: F401
+from ..evaluation.metrics import successes
+from .stats import bootstrap_ci
 
-FORMATS = ("table", "markdown", "csv")
 #: a measured cell reproduces the paper when |measured - reported| is within this many
 #: percentage points, or within its own 95 % interval's half-width when that is wider
 TOLERANCE_PP = 1.0
@@ -25,7 +25,8 @@ def grid(board: Board) -> pd.DataFrame:
     """Rows x dataset columns of 'R@1 / R@5', with each row's weights: the terminal and CSV view."""
     data = []
     for row in board.rows:
-        entry = {"method": row.label, "weights": row.mark or "official"}
+        shown = next((weights_shown(row, c.record) for column in board.columns if (c := board.cell(row, column))), "")
+        entry = {"method": row.name if not row.official else row.label, "weights": shown}
         for column in board.columns:
             cell = board.cell(row, column)
             entry[column.title] = f"{fmt(cell.recall(1))} / {fmt(cell.recall(5))}" if cell else "-"
@@ -34,8 +35,8 @@ def grid(board: Board) -> pd.DataFrame:
 
 
 def render(table: pd.DataFrame, fmt_name: str) -> str:
-    if fmt_name not in FORMATS:
-        raise VPRBenchError(f"Unknown leaderboard format {fmt_name!r}; use one of {', '.join(FORMATS)}")
+    if fmt_name not in ("markdown", "csv"):
+        raise VPRBenchError(f"Unknown leaderboard format {fmt_name!r}; use markdown or csv")
     return table.to_csv() if fmt_name == "csv" else table.to_markdown()
 
 

@@ -1,4 +1,5 @@
-"""Name -> method factory. Core methods register on import; others through entry points.
+"""Name -> method factory. Core methods and the baselines register by name (their code is
+imported only when a method is built); other packages through entry points.
 
 A separate package adds methods without touching vprbench by declaring, in its
 pyproject.toml::
@@ -6,29 +7,42 @@ pyproject.toml::
     [project.entry-points."vprbench.methods"]
     my-methods = "my_package:register"
 
-where `my_package.register()` calls `vprbench.register_method(...)`.
+where `my_package.register()` calls `vprbench.register_method(...)` with a factory, or with
+the factory's import path ("my_package.model:MyMethod") so listing methods stays instant.
 """
 from __future__ import annotations
 
+import importlib
 import inspect
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
 
 from ..errors import VPRBenchError, closest_names
-from .base import Method
-from .checks import device, whole
+from .checks import whole
 
 ENTRY_POINT_GROUP = "vprbench.methods"
+#: what the registry hands a factory that takes it, never an option a user sets
+LOCATIONS = ("cache_dir",)
 
 
 @dataclass(frozen=True)
 class MethodEntry:
     name: str
-    factory: Callable[..., Method]
+    target: Callable | str  # the factory, or its import path "module:attribute"
     defaults: dict = field(default_factory=dict)
     description: str = ""
     source: str = "vprbench"
+
+    @property
+    def factory(self) -> Callable:
+        if not isinstance(self.target, str):
+            return self.target
+        module, _, attribute = self.target.partition(":")
+        try:
+            return getattr(importlib.import_module(module), attribute)
+        except (ImportError, AttributeError) as error:
+            raise VPRBenchError(f"Method {self.name!r} ({self.source}) cannot be loaded from {self.target}: {error}") from None
 
     def factory_options(self) -> list[str]:
         """Keyword options the factory itself accepts."""
@@ -36,8 +50,8 @@ class MethodEntry:
         return [p.name for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)]
 
     def options(self) -> list[str]:
-        """Options the method takes: the factory's, and batch_size, which every method takes."""
-        own = self.factory_options()
+        """Options the method takes: the factory's (but the locations), and batch_size, which every method takes."""
+        own = [o for o in self.factory_options() if o not in LOCATIONS]
         return own + ([] if "batch_size" in own else ["batch_size"])
 
 
@@ -47,7 +61,7 @@ _plugins_loaded = False
 
 def register_method(
     name: str,
-    factory: Callable[..., Method],
+    factory: Callable[..., "Method"] | str,  # noqa: F821
     *,
     defaults: dict | None = None,
     description: str = "",
@@ -55,13 +69,13 @@ def register_method(
 ) -> None:
     """Make `name` available to `vprbench evaluate --method name`.
 
-    `factory(**options)` returns a `Method`; `defaults` are the preset's options,
-    which the user's options override.
+    `factory(**options)` returns a `Method` (or give its import path, "module:attribute");
+    `defaults` are the preset's options, which the user's options override.
     """
     if not name or name != name.strip().lower() or " " in name:
         raise ValueError(f"Method names are lower-case without spaces, got {name!r}")
     if source is None:
-        module = getattr(factory, "__module__", "") or ""
+        module = factory.partition(":")[0] if isinstance(factory, str) else getattr(factory, "__module__", "") or ""
         source = module.split(".")[0] or "unknown"
     _REGISTRY[name] = MethodEntry(name, factory, dict(defaults or {}), description, source)
 
@@ -71,8 +85,9 @@ def _load_plugins() -> None:
     if _plugins_loaded:
         return
     _plugins_loaded = True
-    from . import builtin  # noqa: F401  core methods register themselves
+    from .builtin import register_core
 
+    register_core()
     for ep in entry_points(group=ENTRY_POINT_GROUP):
         try:
             register = ep.load()
@@ -98,30 +113,40 @@ def method_entry(name: str) -> MethodEntry:
     return methods[name]
 
 
-def create_method(name: str, **options) -> Method:
+def create_method(name: str, *, cache_dir=None, **options) -> "Method":  # noqa: F821
     """Build the method `name` with its preset defaults overridden by `options` (None = unset).
 
     Every option is checked here or by the method's constructor, before anything is loaded.
     The registry handles `batch_size` for every method (a whole number >= 1; passed to the
-    factory when it takes it, else set on the method) and checks `device` for those taking it. The method gets `name`, `options`
-    (what the user gave) and `settings` (preset + user options, what the store is keyed on).
+    factory when it takes it, else set on the method), checks `device` for those taking it and
+    hands `cache_dir` to factories that take it. The method gets `name`, `options` (what the
+    user gave) and `settings` (preset + user options, what the store is keyed on).
     """
+    from .base import Method
+    from .checks import device
+
     entry = method_entry(name)
     given = {k: v for k, v in options.items() if v is not None}
     merged = {**entry.defaults, **given}
     accepted = entry.options()
-    unknown = sorted(set(merged) - set(accepted))
+    unknown = sorted(set(merged) - set(accepted) - ({"device"} if "device" not in accepted else set()))
     if unknown:
         raise VPRBenchError(
-            f"Method {name!r} does not take option(s) {', '.join(unknown)}; "
-            f"it accepts: {', '.join(accepted) or 'none'}."
+            f"Method {name!r} does not take option(s) {', '.join(unknown)}.{closest_names(unknown[0], accepted)} "
+            f"It accepts: {', '.join(accepted) or 'none'}."
         )
+    if "device" not in accepted:  # a method without a device runs where it runs
+        merged.pop("device", None)
+        given.pop("device", None)
     if "batch_size" in merged:
         merged["batch_size"] = whole(name, "batch_size", merged["batch_size"], 1, what="images per batch")
-    if merged.get("device") is not None and "device" in accepted:  # before a plugin loads its weights
+    if merged.get("device") is not None:  # before a plugin loads its weights
         merged["device"] = device(name, merged["device"])
-    takes_batch_size = "batch_size" in entry.factory_options()
-    method = entry.factory(**{k: v for k, v in merged.items() if takes_batch_size or k != "batch_size"})
+    takes = entry.factory_options()
+    arguments = {k: v for k, v in merged.items() if k in takes}
+    if "cache_dir" in takes and cache_dir is not None:
+        arguments["cache_dir"] = cache_dir
+    method = entry.factory(**arguments)
     if not isinstance(method, Method):
         raise VPRBenchError(f"Method {name!r} ({entry.source}) did not return a vprbench.Method")
     if "batch_size" in merged:
@@ -130,6 +155,6 @@ def create_method(name: str, **options) -> Method:
         raise VPRBenchError(f"Method {name!r} ({entry.source}) has batch_size {method.batch_size!r}; "
                             "it must be a whole number >= 1 (fix the plugin, or pass --batch-size).")
     method.name = name
-    method.options = given
-    method.settings = merged
+    method.options = {k: v for k, v in given.items() if k not in ("device", "batch_size")}
+    method.settings = {k: v for k, v in merged.items() if k not in ("device", "batch_size")}
     return method

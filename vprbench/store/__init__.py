@@ -1,6 +1,6 @@
 """HDF5 descriptor stores keyed by method and image fingerprints (see `folder` and `rows`)."""
-from .folder import NO_FIT, RUN_OPTIONS, StoreFolder, fingerprint_key, method_fingerprint, run_store, shard_range
+from .folder import NO_FIT, StoreFolder, method_fingerprint, run_store, shard_range
 from .rows import DTYPES, DescriptorStore, RowsIdentity, RowWriter, create_rows_file, inspect_rows_file
 
-__all__ = ["DTYPES", "NO_FIT", "RUN_OPTIONS", "DescriptorStore", "RowWriter", "RowsIdentity", "StoreFolder",
-           "create_rows_file", "fingerprint_key", "inspect_rows_file", "method_fingerprint", "run_store", "shard_range"]
+__all__ = ["DTYPES", "NO_FIT", "DescriptorStore", "RowWriter", "RowsIdentity", "StoreFolder", "create_rows_file",
+           "inspect_rows_file", "method_fingerprint", "run_store", "shard_range"]

@@ -25,11 +25,10 @@ import numpy as np
 
 from ..errors import VPRBenchError
 from ..fsutil import atomic_path, cache_error, is_temporary, lock
-from ..paths import cache_root
-from .rows import DescriptorStore, RowsIdentity, fingerprint_json, hdf5_written, inspect_rows_file
+from ..paths import cache_root, safe_name
+from ..spec import RUN_SETTINGS, canonical_hash, canonical_json
+from .rows import DescriptorStore, RowsIdentity, hdf5_written, inspect_rows_file
 
-#: options that change how a run goes, not the descriptors (left out of the store key)
-RUN_OPTIONS = frozenset({"device", "batch_size", "workers"})
 #: fit id of methods that fit nothing
 NO_FIT = "none"
 
@@ -40,9 +39,9 @@ def method_fingerprint(method, store_dtype: str = "float32") -> dict:
     settings = getattr(method, "settings", None)
     if not isinstance(settings, dict):  # until the registry sets `settings`, the user's options
         settings = method.options
-    settings = {k: v for k, v in sorted(settings.items()) if k not in RUN_OPTIONS}
-    return {"method": method.name, "settings": json.loads(fingerprint_json(settings)),
-            **method.fingerprint(), "store_dtype": store_dtype}
+    settings = {k: v for k, v in sorted(settings.items()) if k not in RUN_SETTINGS}
+    return json.loads(json.dumps({"method": method.name, "settings": settings, **method.fingerprint(),
+                                  "store_dtype": store_dtype}, default=str))
 
 
 def run_store(record: dict, split: str = "database", cache_dir=None) -> DescriptorStore | None:
@@ -53,10 +52,6 @@ def run_store(record: dict, split: str = "database", cache_dir=None) -> Descript
         return None
     return DescriptorStore.recorded(cache_root(cache_dir) / "stores" / folder / f"{split}.h5", f"{folder}/{split}")
 
-
-def fingerprint_key(fingerprint: dict | str) -> str:
-    text = fingerprint if isinstance(fingerprint, str) else fingerprint_json(fingerprint)
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 def shard_range(total: int, rank: int, world: int) -> tuple[int, int]:
@@ -80,10 +75,10 @@ def unsaved_fit_id() -> str:
 
 class StoreFolder:
     def __init__(self, method_name: str, fingerprint: dict, label: str, image_keys: dict[str, str], cache_dir=None):
-        images = hashlib.sha256(json.dumps(image_keys, sort_keys=True).encode()).hexdigest()[:16]
         self.fingerprint = fingerprint
-        self.fingerprint_json = fingerprint_json(fingerprint)
-        self.key = f"{method_name}-{fingerprint_key(self.fingerprint_json)}/{label}-{images}"
+        self.fingerprint_json = canonical_json(fingerprint)
+        # names from data made safe; the hashes keep two stores apart
+        self.key = f"{safe_name(method_name)}-{canonical_hash(fingerprint)}/{safe_name(label)}-{canonical_hash(image_keys)}"
         self.path = cache_root(cache_dir) / "stores" / self.key
         self.fit_path = self.path / "fit_state.h5"
 

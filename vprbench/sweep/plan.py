@@ -1,9 +1,11 @@
-"""Plans: methods (with options) x datasets (with protocols) x K values, as cells.
+"""Plans: methods (with options) x datasets (with protocols) x K values, as cells, each a run spec.
 
 A plan file (TOML):
 
     name = "corridor-check"          # optional
     k = [1, 5, 10]                   # optional (default 1 5 10 20)
+    search = { index = "hnsw" }      # optional (default exact)
+    store_dtype = "float16"          # optional (default float32)
 
     [[methods]]
     name = "hog"
@@ -18,57 +20,39 @@ A plan file (TOML):
 
 `methods = ["hog", "dense-vlad"]` and `datasets = ["corridor"]` are accepted too. Every
 problem (unknown key, method, option, dataset or protocol) is listed at once, with its line,
-before anything runs.
+before anything runs. Each cell is resolved by `vprbench.spec.resolve_spec`, as a single
+evaluation is; options given on the command line override the plan's.
 """
 from __future__ import annotations
 
-import hashlib
-import json
 import re
 import tomllib
 from dataclasses import dataclass, field
-from functools import cache
 from pathlib import Path
 
 from ..errors import VPRBenchError, closest_names
-from ..evaluation.metrics import DEFAULT_KS
+from ..spec import RUN_SETTINGS, RunSpec, resolve_spec
 
-PLAN_KEYS = {"name", "description", "k", "methods", "datasets"}
+PLAN_KEYS = {"name", "description", "k", "methods", "datasets", "search", "store_dtype"}
 METHOD_KEYS = {"name", "options", "label"}
 DATASET_KEYS = {"name", "protocols", "protocol"}
-#: options that change where or how fast a cell runs, not what it computes
-RUN_OPTIONS = {"device", "batch_size"}
 
 
 @dataclass(frozen=True, eq=False)
 class Cell:
-    method: str
-    dataset: str
-    options: dict = field(default_factory=dict)
-    protocol: str | None = None
-    ks: tuple[int, ...] = DEFAULT_KS
+    """One run of a sweep: its spec, the run settings its plan entry sets (e.g. batch_size),
+    and the row label a paper's table gives it."""
+
+    spec: RunSpec
+    settings: dict = field(default_factory=dict)
     label: str = ""
 
     @property
-    def protocol_id(self) -> str:
-        """`dataset:protocol` (the default's name filled in); a folder of one's own has 'own'."""
-        return _protocol_id(self.dataset, self.protocol)
-
-    def identity(self) -> dict:
-        """What the cell computes: the claim key and the match against stored records."""
-        options = {k: list(v) if isinstance(v, tuple) else v for k, v in self.options.items()
-                   if v is not None and k not in RUN_OPTIONS}
-        return {"method": self.method, "options": options, "dataset": self.dataset,
-                "protocol": self.protocol_id, "ks": list(self.ks)}
-
-    @property
     def key(self) -> str:
-        return hashlib.sha256(json.dumps(self.identity(), sort_keys=True).encode()).hexdigest()[:16]
+        return self.spec.key
 
     def title(self) -> str:
-        shown = " ".join(f"{k}={v}" for k, v in sorted(self.identity()["options"].items()))
-        method = self.label or (f"{self.method} [{shown}]" if shown else self.method)
-        return f"{method} | {self.protocol_id}"
+        return f"{self.label} | {self.spec.dataset.protocol_id}" if self.label else self.spec.title()
 
 
 @dataclass
@@ -76,24 +60,6 @@ class Plan:
     name: str
     cells: list[Cell]
     description: str = ""
-
-
-@cache
-def _manifests() -> dict:
-    """The shipped manifests, read once per process (a plan of many cells asks often)."""
-    from ..datasets import dataset_manifests
-
-    return dataset_manifests()
-
-
-@cache
-def _protocol_id(dataset: str, protocol: str | None) -> str:
-    from ..datasets import is_path
-    from ..datasets.protocol import find_protocol
-
-    if is_path(dataset):
-        return f"{Path(dataset).expanduser().resolve().name}:own"
-    return find_protocol(_manifests()[dataset], protocol).id
 
 
 def _line_index(text: str) -> dict[tuple[str, int, str], int]:
@@ -112,27 +78,34 @@ def _line_index(text: str) -> dict[tuple[str, int, str], int]:
     return found
 
 
-def read_plan(path: str | Path, *, device: str | None = None) -> Plan:
+def read_plan(path: str | Path, *, overrides: dict | None = None, data_dir=None, cache_dir=None) -> Plan:
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as error:
-        raise VPRBenchError(f"Cannot read plan {path}: {error}") from None
+        raise VPRBenchError(f"Cannot read plan {path}: {error.strerror or error}.") from None
+    except UnicodeDecodeError:
+        raise VPRBenchError(f"Plan {path} is not a UTF-8 text file.") from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise VPRBenchError(f"Plan {path} is not valid TOML: {error}") from None
-    return build_plan(data, str(path), _line_index(text), device=device, default_name=path.stem)
+    return build_plan(data, str(path), _line_index(text), overrides=overrides, data_dir=data_dir,
+                      cache_dir=cache_dir, default_name=path.stem)
 
 
-def build_plan(data: dict, origin: str, lines: dict | None = None, *, device: str | None = None,
-               default_name: str = "plan") -> Plan:
-    """Cells of a plan given as a dict; raises one error listing every problem."""
-    from ..datasets import is_path
+def build_plan(data: dict, origin: str, lines: dict | None = None, *, overrides: dict | None = None,
+               data_dir=None, cache_dir=None, default_name: str = "plan") -> Plan:
+    """Cells of a plan given as a dict; raises one error listing every problem.
+
+    `overrides` are what the command line sets on top of every entry: `options` (method options,
+    run settings among them), `search`, `store_dtype`, `k`.
+    """
+    from ..datasets import dataset_manifests, is_path
     from ..datasets.protocol import protocols
     from ..methods import available_methods
 
-    lines = lines or {}
+    lines, overrides = lines or {}, dict(overrides or {})
     problems: list[str] = []
 
     def where(section: str, index: int, key: str) -> str:
@@ -141,10 +114,8 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, device: st
 
     for key in sorted(set(data) - PLAN_KEYS):
         problems.append(f"{where('', 0, key)}: unknown key {key!r}{closest_names(key, PLAN_KEYS)} (allowed: {', '.join(sorted(PLAN_KEYS))})")
-    ks = data.get("k", list(DEFAULT_KS))
-    if not isinstance(ks, list) or not ks or not all(isinstance(k, int) and k > 0 for k in ks):
-        problems.append(f"{where('', 0, 'k')}: k must be a list of positive whole numbers, got {ks!r}")
-        ks = list(DEFAULT_KS)
+    shared = {"ks": overrides.get("k") or data.get("k"), "search": overrides.get("search") or data.get("search"),
+              "store_dtype": overrides.get("store_dtype") or data.get("store_dtype", "float32")}
 
     methods, known_methods = [], available_methods()
     for i, entry in enumerate(_entries(data, "methods", problems, where)):
@@ -156,24 +127,28 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, device: st
             problems.append(f"{where('methods', i, 'name')}: unknown method {name!r}.{closest_names(str(name), known_methods)}"
                             " Run 'vprbench methods list'.")
             continue
-        options = dict(entry.get("options", {}))
+        options = entry.get("options", {})
+        if not isinstance(options, dict):
+            problems.append(f"{where('methods', i, 'options')}: options of method {name!r} must be a table, got {options!r}")
+            continue
+        options = {**options, **{k: v for k, v in (overrides.get("options") or {}).items() if v is not None}}
         accepted = known_methods[name].options()
-        if device is not None and "device" in accepted:
-            options.setdefault("device", device)
-        for option in sorted(set(options) - set(accepted)):
+        if "device" not in accepted:  # given to methods that take one
+            options.pop("device", None)
+        for option in sorted(set(options) - set(accepted) - set(RUN_SETTINGS)):
             problems.append(f"{where('methods', i, 'options')}: method {name!r} does not take option {option!r}."
                             f"{closest_names(option, accepted)} (It accepts: {', '.join(accepted) or 'none'}.)")
-        methods.append((name, {k: tuple(v) if isinstance(v, list) else v for k, v in options.items()}, entry.get("label", "")))
+        methods.append((i, name, options, str(entry.get("label", ""))))
 
-    datasets, manifests = [], _manifests()
+    datasets, manifests = [], dataset_manifests()
     for i, entry in enumerate(_entries(data, "datasets", problems, where)):
         entry = {"name": entry} if isinstance(entry, str) else entry
         for key in sorted(set(entry) - DATASET_KEYS):
             problems.append(f"{where('datasets', i, key)}: dataset entry {i + 1} has unknown key {key!r} (allowed: {', '.join(sorted(DATASET_KEYS))})")
         name = str(entry.get("name"))
-        wanted = entry.get("protocols", [entry["protocol"]] if "protocol" in entry else [None])
+        wanted = entry.get("protocols", [entry["protocol"]] if "protocol" in entry else [overrides.get("protocol")])
         if is_path(name):
-            datasets += [(name, None)]
+            datasets.append((i, name, overrides.get("protocol")))
             continue
         if name not in manifests:
             problems.append(f"{where('datasets', i, 'name')}: unknown dataset {name!r}.{closest_names(name, manifests)}"
@@ -185,12 +160,22 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, device: st
                 problems.append(f"{where('datasets', i, 'protocols' if 'protocols' in entry else 'protocol')}: dataset {name!r} "
                                 f"has no protocol {protocol!r}; its protocols: {', '.join(known)}")
             else:
-                datasets.append((name, protocol))
+                datasets.append((i, name, protocol))
+
+    cells = []
+    if not problems:
+        for m, method, options, label in methods:
+            for d, dataset, protocol in datasets:
+                try:
+                    spec = resolve_spec(method, dataset, options=options, protocol=protocol, data_dir=data_dir,
+                                        cache_dir=cache_dir, **shared)
+                except VPRBenchError as error:
+                    problems.append(f"{where('methods', m, 'options')}: {error}")
+                    continue
+                cells.append(Cell(spec, {k: v for k, v in options.items() if k in RUN_SETTINGS}, label))
     if problems:
         what = "The command line" if origin == "the command line" else f"Plan {origin}"
-        raise VPRBenchError(f"{what} has {len(problems)} problem(s); nothing was run:\n  " + "\n  ".join(problems))
-    cells = [Cell(method=m, options=o, label=label, dataset=d, protocol=p, ks=tuple(sorted(set(ks))))
-             for m, o, label in methods for d, p in datasets]
+        raise VPRBenchError(f"{what} has {len(problems)} problem(s); nothing was run:\n  " + "\n  ".join(dict.fromkeys(problems)))
     return Plan(name=str(data.get("name", default_name)), cells=cells, description=str(data.get("description", "")))
 
 

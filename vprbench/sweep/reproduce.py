@@ -5,7 +5,6 @@ Reported values come from `vprbench.reference.paper_results()`; nothing is copie
 """
 from __future__ import annotations
 
-import math
 import tomllib
 from dataclasses import dataclass, field
 from importlib.resources import files
@@ -52,7 +51,10 @@ def _rows(spec: dict) -> list[dict]:
     return spec["rows"]
 
 
-def table_cells(paper: str, table: str, ks=(1, 5)) -> tuple[dict, list[TableCell]]:
+def table_cells(paper: str, table: str, ks=(1, 5), *, settings: dict | None = None, data_dir=None,
+                cache_dir=None) -> tuple[dict, list[TableCell]]:
+    """The table's cells as run specs (the paper's settings; `settings` are run settings such as
+    device or batch_size, which change no result)."""
     spec = table_spec(paper, table)
     out = []
     for row in _rows(spec):
@@ -64,8 +66,9 @@ def table_cells(paper: str, table: str, ks=(1, 5)) -> tuple[dict, list[TableCell
             options = {**row.get("options", {}), **where.get("options", {})}
             datasets = where.get("datasets") or [where["dataset"]]
             plan = build_plan({"methods": [{"name": row["method"], "options": options}], "datasets": datasets, "k": list(ks)},
-                              f"{paper} table {table}")
-            cells = [Cell(c.method, c.dataset, c.options, c.protocol, c.ks, label=row["row"]) for c in plan.cells]
+                              f"{paper} table {table}", overrides={"options": dict(settings or {})}, data_dir=data_dir,
+                              cache_dir=cache_dir)
+            cells = [Cell(c.spec, c.settings, label=row["row"]) for c in plan.cells]
             out.append(TableCell(row["row"], column, cells))
     return spec, out
 
@@ -77,8 +80,8 @@ def weights_for(row_weights: dict | None, cell: Cell) -> str | None:
     from ..methods.registry import method_entry
     from ..paths import cache_root
 
-    entry = method_entry(cell.method)
-    merged = {**entry.defaults, **cell.options}
+    entry = method_entry(cell.spec.method)
+    merged = {**entry.defaults, **cell.spec.given}
     if entry.factory is AnyLoc:
         spec = backbone_spec(merged.get("backbone", "dinov2_vitg14"))
         path = local_weights_path(spec, merged["weights"]) if merged.get("weights") else hub_checkpoint_dir() / spec.file_name
@@ -95,54 +98,50 @@ def vocabulary_for(cell: Cell) -> str | None:
     from ..aggregation.policies import domain_names, find_vocabulary, released_path
     from ..methods.registry import method_entry
 
-    merged = {**method_entry(cell.method).defaults, **cell.options}
+    merged = {**method_entry(cell.spec.method).defaults, **cell.spec.given}
     name = merged.get("vocabulary")
     if name not in domain_names() or released_path(name) is not None or not str(merged.get("aggregation", "")).startswith("vlad"):
         return None
     layer = merged.get("layer") or int(str(merged.get("layer_for", ":31")).partition(":")[2])
     if find_vocabulary(name, merged.get("backbone", "dinov2_vitg14"), layer, merged.get("facet", "value"), merged.get("clusters", 32)):
         return None
-    return f"vocabulary {name!r} (run 'vprbench vocabulary fit --domain {name} --method {cell.method}')"
+    return f"vocabulary {name!r} (run 'vprbench vocabulary fit --domain {name} --method {cell.spec.method}')"
 
 
 def missing_for(cell: Cell, row_weights, data_dir=None) -> str:
     """Everything the cell lacks on this machine, '' when it can run."""
-    from ..datasets import dataset_location, dataset_manifest, is_path
+    from ..datasets import dataset_location, dataset_manifest
     from ..datasets.download import how_to_get
 
     problems = []
-    if not is_path(cell.dataset):
-        manifest = dataset_manifest(cell.dataset)
+    if cell.spec.dataset.kind == "benchmark":
+        manifest = dataset_manifest(cell.spec.dataset.name)
         root = dataset_location(manifest, data_dir)
         if not root.is_dir():
-            problems.append(f"dataset {cell.dataset} ({how_to_get(manifest, root)})")
+            problems.append(f"dataset {cell.spec.dataset.name} ({how_to_get(manifest, root)})")
     for check in (weights_for(row_weights, cell), vocabulary_for(cell)):
         if check:
             problems.append(check)
     return "; ".join(problems)
 
 
-def _interval(recall: float, n: int) -> tuple[float, float]:
-    """95% Wilson interval of a recall (percent) over n queries."""
-    p, z = recall / 100, 1.96
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return 100 * (centre - half), 100 * (centre + half)
+def measured(records: list[dict | None], metric: str, seed: int = 0) -> tuple[float, float, float] | None:
+    """(value, low, high): one dataset's recall, or the mean over a domain's datasets, with the
+    seeded bootstrap interval the leaderboard uses; None unless every dataset was measured."""
+    from ..evaluation.metrics import successes
+    from ..evaluation.results import per_query
+    from ..leaderboard.stats import bootstrap_mean_ci
 
-
-def measured(records: list[dict | None], metric: str) -> tuple[float, float, float] | None:
-    """(value, low, high): one dataset's recall with its Wilson interval, or the mean over a domain's
-    datasets with a normal-approximation interval; None unless every dataset was measured."""
     if not records or any(r is None for r in records):
         return None
-    k = metric.removeprefix("r")
-    values = [(r["recall"][k], r["counts"]["queries"]) for r in records]
-    if len(values) == 1:
-        value, n = values[0]
-        return (value, *_interval(value, n))
-    mean = sum(v for v, _ in values) / len(values)
-    sd = math.sqrt(sum((v / 100) * (1 - v / 100) / n for v, n in values)) / len(values) * 100
-    return mean, mean - 1.96 * sd, mean + 1.96 * sd
+    k = int(metric.removeprefix("r"))
+    values = [r["recall"][str(k)] for r in records]
+    arrays = [per_query(r) for r in records]
+    mean = sum(values) / len(values)
+    if any(a is None for a in arrays):
+        return mean, float("nan"), float("nan")
+    low, high = bootstrap_mean_ci([successes(a["first_positive_rank"], k) for a in arrays], seed=seed)
+    return mean, low, high
 
 
 def reported_value(spec: dict, row: str, column: str, metric: str) -> float | None:

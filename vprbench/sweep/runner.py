@@ -10,15 +10,14 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 from rich.text import Text
 
 from ..errors import VPRBenchError
-from ..evaluation.record import save_result
+from ..evaluation.results import find_result, save_result
+from ..spec import RunSettings
 from .claims import Claims
-from .plan import RUN_OPTIONS, Cell
+from .plan import Cell
 
 RAN, SKIPPED, ELSEWHERE, FAILED, MISSING = "ran", "skipped", "done elsewhere", "failed", "missing"
 
@@ -33,33 +32,11 @@ class Outcome:
     extra: dict = field(default_factory=dict)
 
 
-def record_matches(record: dict, cell: Cell, identity: dict) -> bool:
-    """A stored record that answers the cell: same method, options, protocol, and every K."""
-    if record.get("context", {}).get("sweep", {}).get("cell") == cell.key:
-        return True
-    options = {k: v for k, v in record.get("method_options", {}).items() if k not in RUN_OPTIONS}
-    return (record.get("method") == identity["method"] and options == identity["options"]
-            and (record.get("protocol") or {}).get("id") == identity["protocol"]
-            and {str(k) for k in identity["ks"]} <= set(record.get("recall", {})))
-
-
-def find_record(cell: Cell, cache_dir=None) -> dict | None:
-    from ..evaluation.record import read_results
-
-    identity = cell.identity()
-    found = [r for r in read_results(cache_dir) if record_matches(r, cell, identity)]
-    return found[-1] if found else None
-
-
-def evaluate_cell(cell: Cell, *, data_dir=None, cache_dir=None, strict=False, progress=None, context=None) -> dict:
-    """The public API, in order: load_dataset (with the protocol), create_method, evaluate."""
-    from ..datasets import load_dataset
+def evaluate_cell(cell: Cell, settings: RunSettings, *, progress=None, context=None) -> dict:
+    """The one entry point, with the cell's own run settings."""
     from ..evaluation import evaluate
-    from ..methods import create_method
 
-    dataset = load_dataset(cell.dataset, data_dir, strict=strict, protocol=cell.protocol)
-    method = create_method(cell.method, **cell.options)
-    record = evaluate(method, dataset, ks=cell.ks, cache_dir=cache_dir, progress=progress)
+    record = evaluate(cell.spec, settings.with_options(cell.settings), progress=progress)
     record.setdefault("context", {})["sweep"] = {"cell": cell.key, **(context or {})}
     return record
 
@@ -69,18 +46,23 @@ def _one_line(error: BaseException) -> str:
     return f"{type(error).__name__}: {text}" if not isinstance(error, VPRBenchError) else text
 
 
-def run_cells(cells: list[Cell], *, data_dir=None, cache_dir=None, strict=False, lease_s: float = 120.0,
-              poll_s: float = 2.0, console: Console | None = None, plan: str = "", runnable=None) -> list[Outcome]:
+def run_cells(cells: list[Cell], settings: RunSettings | None = None, *, lease_s: float = 120.0, poll_s: float = 2.0,
+              progress=None, plan: str = "", runnable=None) -> list[Outcome]:
     """Evaluate every cell once across all processes sharing the cache. `runnable(cell)` may
-    return a reason not to run a cell here (reproduce: the dataset or weights are missing)."""
-    console = console or Console(stderr=True, markup=False)  # names and reasons print as they are
+    return a reason not to run a cell here (reproduce: the dataset or weights are missing).
+    `progress` is a rich-style progress display (cli.progress makes one for terminals and for logs)."""
+    settings = settings or RunSettings()
+    cache_dir = settings.cache_dir
+    if progress is None:
+        from ..progress import Silent
+
+        progress = Silent()
     claims = Claims(cache_dir, lease_s=lease_s)
     outcomes: dict[str, Outcome] = {}
     pending = list({c.key: c for c in cells}.values())  # a plan may list a cell twice
     first_look = True
     try:
-        with Progress(TextColumn("{task.description}", markup=False), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                      console=console, transient=True) as progress:
+        with progress:
             overall = progress.add_task(f"cells of {plan or 'the sweep'}", total=len(pending))
             while pending:
                 waiting = []
@@ -90,9 +72,9 @@ def run_cells(cells: list[Cell], *, data_dir=None, cache_dir=None, strict=False,
                         outcomes[cell.key] = Outcome(cell, MISSING, reason)
                         progress.advance(overall)
                         continue
-                    state, detail = claims.claim(cell.key, lambda c=cell: find_record(c, cache_dir) is not None)
+                    state, detail = claims.claim(cell.key, lambda c=cell: find_result(c.spec, cache_dir) is not None)
                     if state == "complete":
-                        record = find_record(cell, cache_dir)
+                        record = find_result(cell.spec, cache_dir)
                         status, why = (SKIPPED, f"already complete (record of {record.get('created', '?')})") if first_look \
                             else (ELSEWHERE, "evaluated by another process")
                         outcomes[cell.key] = Outcome(cell, status, why, record)
@@ -102,7 +84,7 @@ def run_cells(cells: list[Cell], *, data_dir=None, cache_dir=None, strict=False,
                         waiting.append(cell)
                         continue
                     else:
-                        outcomes[cell.key] = _run_claimed(cell, claims, detail, data_dir, cache_dir, strict, progress, plan)
+                        outcomes[cell.key] = _run_claimed(cell, claims, detail, settings, progress, plan)
                     progress.advance(overall)
                 pending, first_look = waiting, False
                 if pending:
@@ -113,15 +95,15 @@ def run_cells(cells: list[Cell], *, data_dir=None, cache_dir=None, strict=False,
     return [outcomes[c.key] for c in {c.key: c for c in cells}.values()]
 
 
-def _run_claimed(cell, claims, taken_over, data_dir, cache_dir, strict, progress, plan) -> Outcome:
+def _run_claimed(cell, claims, taken_over, settings, progress, plan) -> Outcome:
     started = time.perf_counter()
     try:
-        record = evaluate_cell(cell, data_dir=data_dir, cache_dir=cache_dir, strict=strict, progress=progress,
+        record = evaluate_cell(cell, settings, progress=progress,
                                context={"plan": plan, "worker": claims.worker, **({"resumed": taken_over} if taken_over else {})})
         if not claims.still_mine(cell.key):  # this process stalled past its lease and the cell was taken over
             claims.held.discard(cell.key)
             return Outcome(cell, ELSEWHERE, "lease lost while running; the other process's result counts")
-        save_result(record, cache_dir)
+        save_result(record, settings.cache_dir)
     except (Exception, KeyboardInterrupt) as error:  # a failing cell must not stop the sweep
         if isinstance(error, KeyboardInterrupt):
             claims.release(cell.key)

@@ -1,0 +1,212 @@
+"""The results store: one record per run, found by identity.
+
+    <cache>/results/<protocol hash>/<row key>/<run id>.json    the record (typed, validated on read)
+                                              <run id>.npz     its per-query arrays (numpy, no pickle)
+    <cache>/results/methods/<row key>.json                     the method card: what the row's method is
+
+A spec's records are a directory listing away (`find_result`), never a scan of every record.
+Every file is written to a temporary name and renamed, so concurrent writers, kills and full
+disks never leave a partial or mixed record. Records of vprbench 0.2 (flat files in
+<cache>/results/) are moved, unchanged, into their identity folder the first time the store is
+read, and upgraded in memory on every read (`record.upgrade`).
+"""
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import re
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import VPRBenchError, os_error_message
+from ..fsutil import CacheError, atomic_write, lock
+from ..paths import cache_root
+from .record import PER_QUERY_FIELDS, validated
+
+CARDS = "methods"
+_HEX = re.compile(r"^[0-9a-f]{16}$")
+
+
+def results_dir(cache_dir=None) -> Path:
+    return cache_root(cache_dir) / "results"
+
+
+def run_folder(protocol_hash: str, row_key: str, cache_dir=None) -> Path:
+    """Where the runs of one row on one protocol live (both names are hex digests, never data)."""
+    for name in (protocol_hash, row_key):
+        if not _HEX.match(str(name)):
+            raise VPRBenchError(f"{name!r} is not a protocol hash or row key (16 hex digits).")
+    return results_dir(cache_dir) / protocol_hash / row_key
+
+
+# ---------------------------------------------------------------- writing
+def save_result(record: dict, cache_dir=None) -> Path:
+    """Store one record (per-query arrays in an .npz beside it) in its identity folder, and the
+    method card of its row; returns the JSON path. Safe with any number of concurrent writers."""
+    record = {k: v for k, v in record.items() if not k.startswith("_")}
+    checked = validated(record, f"the record of run {record.get('run_id')!r}")
+    folder = run_folder(checked["protocol"]["hash"], checked["row_key"], cache_dir)
+    stem = checked["run_id"]
+    try:
+        section = record.get("per_query")
+        if section and "file" not in section:
+            arrays = _per_query_arrays(section)
+            buffer = io.BytesIO()
+            np.savez_compressed(buffer, **arrays)
+            data = buffer.getvalue()
+            atomic_write(folder / f"{stem}.npz", data)
+            record["per_query"] = {"file": f"{stem}.npz", "sha256": hashlib.sha256(data).hexdigest(),
+                                   "k": section["k"], "queries": len(section["first_positive_rank"]),
+                                   "fields": list(PER_QUERY_FIELDS)}
+        atomic_write(folder / f"{stem}.json", json.dumps(record, sort_keys=True, indent=1).encode())
+        _write_card(record, cache_dir)
+    except OSError as error:
+        raise VPRBenchError(f"{os_error_message(error, folder)} The result was not stored.") from None
+    except CacheError as error:
+        raise VPRBenchError(f"{error} The result was not stored.") from None
+    return folder / f"{stem}.json"
+
+
+def _write_card(record: dict, cache_dir) -> None:
+    """What the row's method is, kept apart from its results (written once per row)."""
+    path = results_dir(cache_dir) / CARDS / f"{record['row_key']}.json"
+    if path.is_file():
+        return
+    from ..methods.registry import available_methods
+
+    entry = available_methods().get(record["method"])
+    spec = record["spec"]
+    card = {"row_key": record["row_key"], "method": record["method"], "label": record.get("label"),
+            "options": spec["options"], "given": spec["given"], "files": spec["files"], "search": spec["search"],
+            "stages": spec["stages"], "store_dtype": spec["store_dtype"],
+            "weights": (record.get("provenance") or {}).get("weights"),
+            "description": entry.description if entry else "", "source": entry.source if entry else "unknown"}
+    atomic_write(path, json.dumps(card, sort_keys=True, indent=1).encode())
+
+
+def _per_query_arrays(section: dict) -> dict[str, np.ndarray]:
+    return {
+        "database_indices": np.asarray(section["database_indices"], dtype=np.int32).reshape(-1, section["k"]),
+        "similarities": np.asarray(section["similarities"], dtype=np.float32).reshape(-1, section["k"]),
+        "first_positive_rank": np.asarray(section["first_positive_rank"], dtype=np.int32),
+        "positives": np.asarray(section["positives"], dtype=np.int32),
+    }
+
+
+# ---------------------------------------------------------------- reading
+def read_record(path: Path) -> dict:
+    """One record file, upgraded and validated; a VPRBenchError naming the file otherwise."""
+    try:
+        data = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise VPRBenchError(f"{path} is not a readable JSON record ({type(error).__name__}).") from None
+    record = validated(data, str(path))
+    record["_source"] = str(path)
+    return record
+
+
+def _records_in(folder: Path) -> list[dict]:
+    found = []
+    for path in sorted(folder.glob("*.json")) if folder.is_dir() else []:
+        try:
+            found.append(read_record(path))
+        except VPRBenchError as error:
+            warnings.warn(f"{error} Skipped (nothing was deleted).", stacklevel=3)
+    return found
+
+
+def _order(records: list[dict]) -> list[dict]:
+    return sorted(records, key=lambda r: (str(r.get("created", "")), str(r.get("run_id", ""))))
+
+
+def find_result(spec, cache_dir=None) -> dict | None:
+    """The newest stored record that answers `spec` (same row, same protocol, every K asked), or None."""
+    migrate_legacy(cache_dir)
+    wanted = {str(k) for k in spec.ks}
+    found = [r for r in _records_in(run_folder(spec.dataset.protocol_hash, spec.row_key, cache_dir))
+             if r["row_key"] == spec.row_key and wanted <= set(r["recall"])]
+    return _order(found)[-1] if found else None
+
+
+def read_results(cache_dir=None) -> list[dict]:
+    """Every stored record, oldest first. A file that is not a whole record this version reads is
+    named in a warning and skipped (never deleted)."""
+    migrate_legacy(cache_dir)
+    root = results_dir(cache_dir)
+    legacy = cache_root(cache_dir) / "results.jsonl"
+    if legacy.is_file():
+        warnings.warn(f"{legacy} holds vprbench 0.1 records, which carry no protocol or weights provenance and are "
+                      "no longer read; rerun those evaluations (the file is left as it is).", stacklevel=2)
+    records = []
+    for folder in sorted(root.glob("*/*")) if root.is_dir() else []:
+        if folder.is_dir() and folder.parent.name != CARDS:
+            records += _records_in(folder)
+    return _order(records)
+
+
+def method_card(row_key: str, cache_dir=None) -> dict | None:
+    path = results_dir(cache_dir) / CARDS / f"{row_key}.json"
+    try:
+        return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else None
+    except (OSError, ValueError):
+        return None
+
+
+def per_query(record: dict) -> dict[str, np.ndarray] | None:
+    """The record's per-query arrays (from the record itself or its .npz), or None when the
+    record has none or its file is missing or damaged (with a warning)."""
+    section = record.get("per_query")
+    if not section:
+        return None
+    if "file" not in section:
+        return _per_query_arrays(section)
+    source = record.get("_source")
+    name = str(section["file"])
+    path = Path(source).parent / name if source else None
+    try:
+        if Path(name).name != name or not name.endswith(".npz"):
+            raise ValueError(f"its file {name!r} is not a file name beside the record")
+        data = path.read_bytes()
+        if hashlib.sha256(data).hexdigest() != section.get("sha256"):
+            raise ValueError("its content does not match the record's sha256")
+        with np.load(io.BytesIO(data), allow_pickle=False) as found:
+            arrays = {field: found[field] for field in PER_QUERY_FIELDS}
+    except (OSError, ValueError, KeyError, AttributeError, TypeError) as error:
+        warnings.warn(f"Per-query data {path} of run {record.get('run_id')} is unreadable ({error}); "
+                      "its statistics and figures are skipped.", stacklevel=2)
+        return None
+    return arrays
+
+
+# ---------------------------------------------------------------- records of vprbench 0.2
+def migrate_legacy(cache_dir=None) -> int:
+    """Move 0.2's flat records (results/*.json and their .npz) into their identity folders,
+    unchanged; returns how many moved. A file that cannot be upgraded stays where it is (named
+    in a warning)."""
+    root = results_dir(cache_dir)
+    flat = sorted(root.glob("*.json")) if root.is_dir() else []
+    if not flat:
+        return 0
+    moved = 0
+    with lock(root / ".migrate.lock", timeout=120, what=f"the results store {root}", announce=False):
+        for path in flat:
+            if not path.is_file():  # moved by another process meanwhile
+                continue
+            try:
+                record = validated(json.loads(path.read_text(encoding="utf-8")), str(path))
+            except (OSError, ValueError, VPRBenchError) as error:
+                warnings.warn(f"{path} stays where it is: {error}", stacklevel=3)
+                continue
+            folder = run_folder(record["protocol"]["hash"], record["row_key"], cache_dir)
+            folder.mkdir(parents=True, exist_ok=True)
+            section = record.get("per_query") or {}
+            npz = section.get("file")
+            if npz and Path(npz).name == npz and (root / npz).is_file():
+                os.replace(root / npz, folder / npz)
+            os.replace(path, folder / path.name)
+            moved += 1
+    return moved

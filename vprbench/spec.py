@@ -1,0 +1,360 @@
+"""What a run is: the one specification every route evaluates, and the one hash that names it.
+
+A single `vprbench evaluate`, a matrix, a plan, `reproduce`, torchrun and the Python API all
+build a `RunSpec` with `resolve_spec` and hand it to `vprbench.evaluate`. The spec holds
+everything that decides a result:
+
+    method + its resolved options    (preset defaults overridden by the options given)
+    dataset + protocol (its hash)    (a benchmark's protocol, or a folder's own)
+    search                           (exact / ivf-pq / hnsw and their options)
+    stages                           (post-retrieval stages, in order; none yet)
+    ks, store_dtype
+
+and nothing that cannot change one: `RUN_SETTINGS` (device, batch size, workers, memory
+budget, lock timeout) travel beside it in `RunSettings`, as do the data and cache folders.
+
+`canonical_hash` is the one rule that turns a value into a name (JSON with sorted keys and
+no spaces, sha256, 16 hex digits); protocols, stores, claims, results and leaderboard rows
+are all named by it. `RunSpec.key` is the claim key of a sweep's cell; `RunSpec.row_key`
+(the spec without its dataset and K) is the leaderboard's row and, with the protocol hash,
+the results folder of a run: results/<protocol hash>/<row key>/<run id>.json.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
+
+from .errors import VPRBenchError, closest_names
+
+#: version of the spec's shape; a spec from a newer vprbench is refused
+SPEC_VERSION = 1
+#: options that change how a run goes, never what it computes: in no hash, no label
+RUN_SETTINGS = ("device", "batch_size", "workers", "memory_budget", "lock_timeout")
+INDEXES = ("exact", "ivf-pq", "hnsw")
+STORE_DTYPES = ("float32", "float16")
+DEFAULT_KS = (1, 5, 10, 20)
+
+
+# ---------------------------------------------------------------- the one canonical hash
+def canonical_json(value: Any) -> str:
+    """JSON with sorted keys and no spaces; tuples become lists. Anything that is not plain
+    data (numbers, strings, bools, None, lists, dicts with string keys) is refused."""
+    return json.dumps(value, sort_keys=True, separators=(",", ":"), allow_nan=False, default=_refuse)
+
+
+def _refuse(value):
+    raise TypeError(f"{type(value).__name__} {value!r} is not plain data (numbers, text, lists, tables)")
+
+
+def canonical_hash(value: Any, length: int = 16) -> str:
+    """sha256 of `canonical_json(value)`, hex, the first `length` digits."""
+    return hashlib.sha256(canonical_json(value).encode()).hexdigest()[:length]
+
+
+def plain(value: Any) -> Any:
+    """`value` as plain data: tuples become lists (so a spec read back equals the one written)."""
+    return json.loads(canonical_json(value))
+
+
+# ---------------------------------------------------------------- the specification
+class _Frozen(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class SearchSpec(_Frozen):
+    """How the top K are found: exact, or an approximate faiss index whose shortlist is re-scored exactly."""
+
+    index: Literal["exact", "ivf-pq", "hnsw"] = "exact"
+    options: dict[str, Any] = {}
+
+    @property
+    def approximate(self) -> bool:
+        return self.index != "exact"
+
+
+class StageSpec(_Frozen):
+    """A post-retrieval stage (re-ranking, sequence matching) with its options."""
+
+    name: str
+    options: dict[str, Any] = {}
+
+
+class DatasetSpec(_Frozen):
+    """Which data: a benchmark by name and protocol, or a folder of one's own (its protocol
+    hash covers its images and positions, so the folder's path is not part of the identity)."""
+
+    name: str
+    kind: Literal["benchmark", "own", "given"]
+    protocol: str
+    protocol_id: str
+    protocol_hash: str
+    #: the folder of one's own data (absolute); None for a benchmark
+    path: str | None = None
+
+
+class RunSpec(_Frozen):
+    version: int = SPEC_VERSION
+    method: str
+    #: the method's options: preset defaults overridden by those given (run settings left out)
+    options: dict[str, Any]
+    #: the options given on top of the preset (what a leaderboard label shows)
+    given: dict[str, Any] = {}
+    #: option -> "sha256:<hex>" for options that name a file (a file is identified by its bytes)
+    files: dict[str, str] = {}
+    dataset: DatasetSpec
+    search: SearchSpec = SearchSpec()
+    stages: tuple[StageSpec, ...] = ()
+    ks: tuple[int, ...] = DEFAULT_KS
+    store_dtype: Literal["float32", "float16"] = "float32"
+
+    @field_validator("version")
+    @classmethod
+    def _known_version(cls, version: int) -> int:
+        if version > SPEC_VERSION:
+            raise ValueError(f"spec version {version} is from a newer vprbench (this one reads up to {SPEC_VERSION}); "
+                             "upgrade vprbench")
+        return version
+
+    # ------------------------------------------------------------ identity
+    def method_identity(self) -> dict:
+        """What the method computes: name and options, files by content."""
+        return {"method": self.method, "options": {k: self.files.get(k, v) for k, v in self.options.items()}}
+
+    def row_identity(self) -> dict:
+        """Everything but the dataset and K: a leaderboard row."""
+        return {"version": self.version, **self.method_identity(), "search": self.search.model_dump(),
+                "stages": [s.model_dump() for s in self.stages], "store_dtype": self.store_dtype}
+
+    def identity(self) -> dict:
+        return {**self.row_identity(), "protocol": self.dataset.protocol_hash, "ks": list(self.ks)}
+
+    @property
+    def key(self) -> str:
+        """The run's name: a sweep's claim key; two specs with one key compute the same thing."""
+        return canonical_hash(self.identity())
+
+    @property
+    def row_key(self) -> str:
+        return canonical_hash(self.row_identity())
+
+    # ------------------------------------------------------------ for people
+    def label(self) -> str:
+        """The method and the options given on top of its preset, e.g. 'hog [resize=64x64]'."""
+        shown = {k: v for k, v in self.given.items() if k != "weights"}  # weights have a mark of their own
+        if not shown:
+            return self.method
+        return f"{self.method} [{' '.join(f'{k}={_show(v)}' for k, v in sorted(shown.items()))}]"
+
+    def title(self) -> str:
+        marks = self.marks()
+        shown = f"{self.label()} ({', '.join(marks)})" if marks else self.label()
+        return f"{shown} | {self.dataset.protocol_id}"
+
+    def marks(self) -> list[str]:
+        """What sets the run apart from an exact float32 one (a row of its own on the board)."""
+        return ([f"{self.search.index} search"] if self.search.approximate else []) + \
+            ([f"{self.store_dtype} store"] if self.store_dtype != "float32" else [])
+
+    def to_json(self) -> dict:
+        return plain(self.model_dump())
+
+    @classmethod
+    def from_json(cls, data, origin: str = "the spec") -> "RunSpec":
+        try:
+            return cls.model_validate(data)
+        except ValidationError as error:
+            problem = error.errors()[0]
+            where = ".".join(str(p) for p in problem["loc"]) or "it"
+            raise VPRBenchError(f"{origin} is not a vprbench run specification ({where}: {problem['msg']}).") from None
+
+
+def _show(value) -> str:
+    return "x".join(map(str, value)) if isinstance(value, (list, tuple)) else str(value)
+
+
+# ---------------------------------------------------------------- run settings
+@dataclasses.dataclass(frozen=True)
+class RunSettings:
+    """How a run goes, not what it computes; also where its data and cache are. Library code
+    gets both folders from here (None: the user cache, the default data root), never from the
+    environment. The batch size is checked, with the method's name, when the method is created."""
+
+    cache_dir: Path | None = None
+    data_dir: Path | None = None
+    device: str = "auto"
+    batch_size: int | None = None
+    workers: int | None = None
+    memory_budget: int | str | None = None
+    lock_timeout: float | None = None
+    #: fetch a missing dataset: None = only into the default data root
+    download: bool | None = None
+    strict: bool = False
+
+    def __post_init__(self):
+        from .methods.checks import number, whole
+        from .rows import parse_memory
+
+        for name in ("cache_dir", "data_dir"):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, Path):
+                object.__setattr__(self, name, Path(value).expanduser())
+        if self.workers is not None:
+            object.__setattr__(self, "workers", whole("run", "workers", self.workers, 0, what="loader processes"))
+        if self.memory_budget is not None:
+            object.__setattr__(self, "memory_budget", parse_memory(self.memory_budget))
+        if self.lock_timeout is not None:
+            object.__setattr__(self, "lock_timeout", number("run", "lock_timeout", self.lock_timeout, minimum=0,
+                                                            what="seconds to wait for another run's lock"))
+
+    def with_options(self, options: dict) -> "RunSettings":
+        """These settings with the run settings found among a method's options (a plan entry's
+        `batch_size = 4`) taking their place."""
+        found = {k: v for k, v in options.items() if k in RUN_SETTINGS and v is not None}
+        return dataclasses.replace(self, **found) if found else self
+
+    def describe(self) -> dict:
+        """For the record: how the run went (never part of its identity)."""
+        return {"device": self.device, "batch_size": self.batch_size, "workers": self.workers,
+                "memory_budget": self.memory_budget, "lock_timeout": self.lock_timeout}
+
+
+# ---------------------------------------------------------------- the resolver
+def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol: str | None = None,
+                 search: SearchSpec | dict | str | None = None, stages=(), ks=None, store_dtype: str = "float32",
+                 data_dir=None, cache_dir=None) -> RunSpec:
+    """The spec of one run, every part checked now (not when it runs).
+
+    `options` are the method options given, already layered by the caller (command line over
+    plan entry); the method's preset fills in the rest (explicit option > preset > default).
+    Run settings among them (device, batch size, ...) are not part of the spec: pass them in
+    `RunSettings` (`RunSettings.with_options` picks them out of a plan entry). `dataset` is a
+    benchmark name, a folder of one's own, or a `Dataset` already loaded (its protocol is used).
+    """
+    from .methods.registry import method_entry
+
+    entry = method_entry(method)
+    given = {k: v for k, v in (options or {}).items() if v is not None and k not in RUN_SETTINGS}
+    accepted = [o for o in entry.options() if o not in RUN_SETTINGS]
+    unknown = sorted(set(given) - set(accepted))
+    if unknown:
+        hint = closest_names(unknown[0], accepted)
+        raise VPRBenchError(f"Method {method!r} does not take option(s) {', '.join(unknown)}.{hint} "
+                            f"It accepts: {', '.join(accepted) or 'none'}.")
+    try:
+        given = plain(given)
+        merged = plain({**{k: v for k, v in entry.defaults.items() if k not in RUN_SETTINGS}, **given})
+    except (TypeError, ValueError) as error:
+        raise VPRBenchError(f"Method {method!r}: an option is not plain data ({error}).") from None
+    return RunSpec(method=method, options=merged, given=given, files=_file_identities(method, given),
+                   dataset=resolve_dataset(dataset, protocol, data_dir, cache_dir), search=resolve_search(search),
+                   stages=tuple(resolve_stage(s) for s in stages), ks=check_ks(ks),
+                   store_dtype=_choice("--store-dtype", store_dtype, STORE_DTYPES))
+
+
+def spec_for(method, dataset, **parts) -> RunSpec:
+    """The spec of evaluating an already created method (its name and the options it was given)
+    on `dataset` (a name, a folder or a `Dataset`): the Python API's way to `resolve_spec`."""
+    return resolve_spec(method.name, dataset, options=dict(getattr(method, "options", {}) or {}), **parts)
+
+
+def _file_identities(method: str, given: dict) -> dict[str, str]:
+    """Options whose value names an existing file are identified by its content."""
+    from .weights import file_sha256
+
+    found = {}
+    for name, value in given.items():
+        if isinstance(value, str) and value and Path(value).expanduser().is_file():
+            try:
+                found[name] = "sha256:" + file_sha256(Path(value).expanduser())
+            except OSError as error:
+                raise VPRBenchError(f"Method {method!r}: cannot read the file of option {name}, {value} "
+                                    f"({error.strerror or error}).") from None
+    return found
+
+
+def resolve_dataset(dataset, protocol: str | None = None, data_dir=None, cache_dir=None) -> DatasetSpec:
+    """A benchmark's protocol comes from its manifest (no data needed); a folder of one's own is
+    read (positions, radius, image identities) to name its protocol."""
+    from .datasets import Dataset, dataset_manifest, find_protocol, is_path, load_dataset
+
+    if isinstance(dataset, Dataset):
+        from .evaluation.identity import protocol_of
+
+        found = protocol_of(dataset)
+        return DatasetSpec(name=dataset.name, kind="own" if found["name"] == "own" else
+                           ("benchmark" if dataset.kind == "benchmark" and not found.get("provisional") else "given"),
+                           protocol=found["name"], protocol_id=found["id"], protocol_hash=found["hash"],
+                           path=str(Path(dataset.root).resolve()) if dataset.root and found["name"] == "own" else None)
+    name = str(dataset)
+    if is_path(name):
+        own = load_dataset(name, data_dir, protocol=protocol, cache_dir=cache_dir)
+        return DatasetSpec(name=own.name, kind="own", protocol=own.protocol["name"], protocol_id=own.protocol["id"],
+                           protocol_hash=own.protocol["hash"], path=str(Path(name).expanduser().resolve()))
+    chosen = find_protocol(dataset_manifest(name), protocol)
+    return DatasetSpec(name=name, kind="benchmark", protocol=chosen.name, protocol_id=chosen.id,
+                       protocol_hash=chosen.hash)
+
+
+def resolve_search(search) -> SearchSpec:
+    if isinstance(search, SearchSpec):
+        return search
+    if search is None or isinstance(search, str):
+        search = {"index": search or "exact"}
+    if not isinstance(search, dict):
+        raise VPRBenchError(f"search must be a table such as {{index = \"hnsw\"}}, got {search!r}.")
+    unknown = sorted(set(search) - {"index", "options"})
+    if unknown:
+        raise VPRBenchError(f"search takes index and options, not {', '.join(unknown)}.")
+    index = _choice("--index", search.get("index", "exact"), INDEXES)
+    options = search.get("options") or {}
+    if not isinstance(options, dict):
+        raise VPRBenchError(f"Search options must be a table of name = value, got {options!r}.")
+    if index == "exact" and options:
+        raise VPRBenchError(f"Exact search takes no index options; got {', '.join(sorted(options))}.")
+    if index != "exact":
+        from .evaluation.approximate import OPTIONS
+
+        unknown = sorted(set(options) - set(OPTIONS[index]))
+        if unknown:
+            raise VPRBenchError(f"--index {index} does not take {', '.join(unknown)}; its options: "
+                                f"{', '.join(OPTIONS[index])}.")
+    return SearchSpec(index=index, options=plain(options))
+
+
+def resolve_stage(stage) -> StageSpec:
+    if isinstance(stage, StageSpec):
+        return stage
+    raise VPRBenchError(f"Unknown post-retrieval stage {stage!r}: this vprbench has none yet.")
+
+
+def check_ks(ks) -> tuple[int, ...]:
+    """K values for Recall@K: whole numbers >= 1, sorted, each once (their upper bound is the
+    database size, checked when the data is read)."""
+    if ks is None:
+        return DEFAULT_KS
+    values = [ks] if isinstance(ks, (int, str)) else list(ks)
+    found = []
+    for value in values:
+        for part in str(value).split(","):
+            try:
+                number = float(part)
+            except ValueError:
+                number = math.nan
+            if not math.isfinite(number) or number != int(number) or number < 1 or isinstance(value, bool):
+                raise VPRBenchError(f"--k takes whole numbers >= 1 (e.g. --k 1 5 10), got {' '.join(map(str, values))}.")
+            found.append(int(number))
+    if not found:
+        raise VPRBenchError("--k needs at least one value, e.g. --k 1 5 10.")
+    return tuple(sorted(set(found)))
+
+
+def _choice(option: str, value, choices) -> str:
+    if value not in choices:
+        raise VPRBenchError(f"{option} takes one of {', '.join(choices)}; got {value!r}.")
+    return value
