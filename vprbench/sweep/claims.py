@@ -81,7 +81,12 @@ def _read_claim(path: Path) -> dict | None:
                 raise ValueError(f"its {name!r} is {reprlib.repr(value)}, not a text")
         return data
     except (ValueError, RecursionError) as error:  # JSON and UTF-8 errors are ValueErrors
-        reason = "it is empty" if not raw.strip() else str(error)
+        if not raw.strip():
+            reason = "it is empty"
+        elif isinstance(error, json.JSONDecodeError):
+            reason = f"it is not JSON: {error.msg.lower()} at byte {error.pos}"
+        else:
+            reason = str(error)
     aside = path.with_name(path.name + ".damaged")
     try:
         os.replace(path, aside)
@@ -135,7 +140,7 @@ class Claims:
             self._seen[key] = (stat.st_mtime_ns, time.monotonic())
             return ""
         unchanged = time.monotonic() - seen[1]
-        return f"no heartbeat for {unchanged:.0f} s (its date stayed ahead of now)" if unchanged >= self.lease_s else ""
+        return f"its date, ahead of this host's clock, unchanged for {unchanged:.0f} s" if unchanged >= self.lease_s else ""
 
     def claim(self, key: str, is_complete) -> tuple[str, str]:
         """(state, detail): "complete", "busy" (a live process holds it), "failed" (failed in a process
