@@ -3,16 +3,20 @@
 Only the formats of IMAGE_SUFFIXES are decoded, whatever a file's content claims: Pillow
 would otherwise open, say, a PostScript file named .jpg and hand it to Ghostscript.
 High-bit-depth images (16-bit PNG and TIFF, 32-bit integer or float TIFF) are scaled to
-8 bits, not clipped.
+8 bits, not clipped. An image's size is read from its header and checked against the decode
+budget (DECODE_BUDGET_PIXELS) before any pixel is decoded: a small file can declare a huge
+image. EXIF orientation is applied (ORIENTATION): a photo stored sideways with an orientation
+tag, as phones write them, is seen upright, as a person viewing it sees it.
 """
 from __future__ import annotations
 
 import re
-
+import struct
+import warnings
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
+from PIL import Image, ImageOps, UnidentifiedImageError
 
 from .errors import VPRBenchError
 
@@ -23,34 +27,74 @@ IMAGE_FORMATS = ("JPEG", "PNG", "BMP", "TIFF", "PPM", "WEBP")
 #: 16-bit files), float images in [0, 1]
 _FULL_SCALE = {"I;16": 65535, "I;16B": 65535, "I;16L": 65535, "I;16N": 65535, "I": 65535, "F": 1.0}
 
+#: The most pixels (width x height) an image may have to be decoded: 89,478,485, Pillow's own
+#: decompression-bomb limit (2**30 / 12). It admits every camera image of the benchmarks (a
+#: Tokyo 24/7 query, among the largest, is 3264 x 2448 = 8 M pixels) and phone photos up to 64 MP
+#: (9248 x 6936); a larger image is refused, naming its size, before it is decoded. Decoding
+#: takes about DECODE_BYTES_PER_PIXEL bytes a pixel at peak (the growth of load_rgb's peak resident
+#: memory on 6000 x 6000 images, 8-bit JPEG and 16-bit PNG alike): 0.83 GiB at the budget.
+DECODE_BUDGET_PIXELS = 89_478_485
+DECODE_BYTES_PER_PIXEL = 10
+#: How images are oriented for every method; the result record says so.
+ORIENTATION = "exif-applied"
+
+def check_decode_budget(width: int, height: int, what: str,
+                        advice: str = "Downscale it (e.g. to 8000 pixels on its longer side) or remove it.") -> None:
+    """Refuse (VPRBenchError, naming `what` and saying `advice`) width x height pixels above the budget."""
+    pixels = int(width) * int(height)
+    if pixels > DECODE_BUDGET_PIXELS:
+        raise VPRBenchError(
+            f"{what} is {width} x {height} = {pixels:,} pixels, above the decode budget of "
+            f"{DECODE_BUDGET_PIXELS:,} pixels (vprbench.images.DECODE_BUDGET_PIXELS; decoding it would need about "
+            f"{pixels * DECODE_BYTES_PER_PIXEL / 2**30:.1f} GiB). {advice}"
+        )
+
 
 def to_8bit(image: Image.Image) -> Image.Image:
-    """An "L" image with a high-bit-depth image's values scaled from its full range to 0..255."""
-    scale = _FULL_SCALE[image.mode]
-    values = np.asarray(image, dtype=np.float64)
-    return Image.fromarray(np.clip(np.rint(values * (255 / scale)), 0, 255).astype(np.uint8), "L")
+    """An "L" image with a high-bit-depth image's values scaled from its full range to 0..255
+    (rounded to the nearest; in integers for 16-bit images, 4 bytes a pixel at most)."""
+    values = np.asarray(image)
+    if image.mode == "F":
+        scaled = np.clip(np.rint(values.astype(np.float32) * np.float32(255)), 0, 255)
+    else:  # round(v * 255 / 65535) = (2v + 257) // 514 exactly, as v / 257 is never a half
+        scaled = np.clip(values, 0, 65535).astype(np.int32)
+        scaled *= 2
+        scaled += 257
+        scaled //= 514
+    return Image.fromarray(scaled.astype(np.uint8), "L")
 
 
 def load_image(path: str | Path, mode: str = "RGB") -> Image.Image:
-    """Open an image fully decoded in `mode` ("RGB" or "L")."""
+    """Open an image fully decoded in `mode` ("RGB" or "L"), upright (EXIF orientation applied)."""
     path = Path(path)
     try:
-        with Image.open(path, formats=IMAGE_FORMATS) as image:
+        with warnings.catch_warnings():  # Pillow warns of what check_decode_budget refuses, naming the file
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            image = Image.open(path, formats=IMAGE_FORMATS)
+        with image:
+            check_decode_budget(*image.size, f"Image {path}")  # from the header: nothing decoded yet
             image.load()
+            ImageOps.exif_transpose(image, in_place=True)
             return (to_8bit(image) if image.mode in _FULL_SCALE else image).convert(mode)
     except FileNotFoundError:
         raise VPRBenchError(f"Image not found: {path}") from None
     except PermissionError:
         raise  # not a corrupt image: the CLI names the path and what to do
-    except Image.DecompressionBombError as error:
-        raise VPRBenchError(f"Image {path} is too large to decode safely ({error}).") from None
+    except Image.DecompressionBombError as error:  # Pillow's own check, at twice the budget, as it opens
+        found = re.search(r"\((\d+) pixels\)", str(error))
+        size = f"{int(found.group(1)):,} pixels" if found else "more than twice that many pixels"
+        raise VPRBenchError(
+            f"Image {path} has {size}, above the decode budget of {DECODE_BUDGET_PIXELS:,} pixels "
+            "(vprbench.images.DECODE_BUDGET_PIXELS). Downscale it (e.g. to 8000 pixels on its longer side) or remove it."
+        ) from None
     except UnidentifiedImageError:
         raise VPRBenchError(
             f"Cannot read image {path}: it is not a {', '.join(IMAGE_FORMATS)} image. Replace or remove the file."
         ) from None
-    except (OSError, SyntaxError, ValueError) as error:
+    except (OSError, SyntaxError, ValueError, TypeError, KeyError, IndexError, EOFError, struct.error) as error:
+        # damaged pixels or a damaged EXIF block (whose orientation cannot then be trusted)
         raise VPRBenchError(
-            f"Cannot read image {path}: {error}. Replace or remove the corrupt file."
+            f"Cannot read image {path}: {error or type(error).__name__}. Replace or remove the corrupt file."
         ) from None
 
 

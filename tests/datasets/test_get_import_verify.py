@@ -105,7 +105,7 @@ def test_verify_netvlad_mat_with_missing_images(tmp_path, make_images):
     for k, value in enumerate((np.array(["a.png", "b.png"]), np.zeros((2, 2)), np.array(["c.png"]), np.zeros((1, 2)), 2, 1, 25, 625)):
         struct[0, k] = value
     savemat(root / "oxdatapart.mat", {"dbStruct": struct})
-    with pytest.raises(VPRBenchError, match=r"2 image\(s\) named in oxdatapart.mat are missing .* e.g. b.png"):
+    with pytest.raises(VPRBenchError, match=r"2 image\(s\) named in oxdatapart.mat are missing .* e.g. 'b.png'"):
         load_dataset("oxford", tmp_path)
 
 

@@ -80,3 +80,42 @@ def tiny_images(folder: Path, names) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     for name in names:
         Image.new("RGB", (8, 8), (90, 90, 90)).save(folder / name)
+
+
+def oxford_copy(data_root: Path, database: list[str], queries: list[str]) -> Path:
+    """<data_root>/Oxford_Robotcar: a NetVLAD dbStruct .mat (the release's 1x8 cell array) naming
+    `database` and `queries` under oxDataPart/, which holds a.png and b.png."""
+    from scipy.io import savemat
+
+    root = data_root / "Oxford_Robotcar"
+    tiny_images(root / "oxDataPart", ["a.png", "b.png"])
+    cell = np.empty((1, 8), dtype=object)
+    names = []
+    for listed in (database, queries):
+        column = np.empty((len(listed), 1), dtype=object)
+        for i, name in enumerate(listed):
+            column[i, 0] = name
+        names.append(column)
+    values = (names[0], np.zeros((len(database), 2)), names[1], np.zeros((len(queries), 2)), len(database),
+              len(queries), 25, 625)
+    for k, value in enumerate(values):
+        cell[0, k] = value
+    savemat(root / "oxdatapart.mat", {"dbStruct": cell})
+    return root
+
+
+def big_png(path: Path, width: int, height: int, bit_depth: int = 16) -> Path:
+    """A valid grey PNG of width x height black pixels: a few hundred KB however large (zlib
+    squeezes the zero rows about 1000:1)."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    row = bytes(1 + width * bit_depth // 8)  # filter byte 0, then the row's samples
+    packer = zlib.compressobj(9)
+    body = b"".join(packer.compress(row) for _ in range(height)) + packer.flush()
+    header = struct.pack(">IIBBBBB", width, height, bit_depth, 0, 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", body) + chunk(b"IEND", b""))
+    return path

@@ -12,11 +12,12 @@ from __future__ import annotations
 import hashlib
 import os
 import sqlite3
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
 from ..errors import VPRBenchError
-from ..fsutil import file_sha256
+from ..fsutil import file_sha256, lock
 from ..paths import cache_root
 
 MEMO_NAME = "image-hashes.sqlite"
@@ -34,41 +35,107 @@ def _file_sha256(path: str) -> str:
         raise VPRBenchError(f"Cannot read image {path}: {error.strerror or error}.") from None
 
 
+def _damaged(error: sqlite3.Error) -> bool:
+    """A file that is not (or no longer) a whole SQLite database, rather than one that is locked,
+    read-only or on a full disk."""
+    return (getattr(error, "sqlite_errorcode", 0) & 0xFF) in (sqlite3.SQLITE_CORRUPT, sqlite3.SQLITE_NOTADB)
+
+
 class _Memo:
-    """(path, size, mtime_ns) -> sha256, shared by every process using the cache."""
+    """(path, size, mtime_ns) -> sha256, shared by every process using the cache.
+
+    The memo is only a cache of hashes: a damaged file (not a database, or malformed pages) is
+    renamed to `image-hashes.sqlite.damaged`, with one warning naming it, and rebuilt; a cache
+    that cannot be written is not remembered in (every run hashes the images: slower, still right).
+    """
 
     def __init__(self, cache_dir=None):
-        self.db = None
-        path = cache_root(cache_dir) / MEMO_NAME
+        self.path = cache_root(cache_dir) / MEMO_NAME
+        self.db: sqlite3.Connection | None = None
+        self.db = self._open()
+
+    def _open(self) -> sqlite3.Connection | None:
+        db = None
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            self.db = sqlite3.connect(path, timeout=60)
-            self.db.execute("CREATE TABLE IF NOT EXISTS hashes "
-                            "(path TEXT PRIMARY KEY, size INTEGER, mtime_ns INTEGER, sha256 TEXT)")
-        except (OSError, sqlite3.Error):  # a read-only cache: hash without remembering (slower, still right)
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            db = sqlite3.connect(self.path, timeout=60)
+            db.execute("CREATE TABLE IF NOT EXISTS hashes "
+                       "(path TEXT PRIMARY KEY, size INTEGER, mtime_ns INTEGER, sha256 TEXT)")
+            return db
+        except sqlite3.Error as error:
+            if db is not None:
+                db.close()
+            return self._set_aside(error) if _damaged(error) else None
+        except OSError:
+            return None
+
+    def _set_aside(self, error: sqlite3.Error) -> sqlite3.Connection | None:
+        """Rename the damaged file and start a new one, under a lock so that a process meeting the
+        damage after another has rebuilt the memo does not set the new one aside too."""
+        if self.db is not None:
+            self.db.close()
             self.db = None
+        aside = self.path.with_name(self.path.name + ".damaged")
+        try:
+            with lock(self.path.with_name(self.path.name + ".lock"), timeout=120.0, announce=False,
+                      what=f"the image-hash memo {self.path}"):
+                if self.path.exists() and not self._whole():
+                    os.replace(self.path, aside)
+                    for side in ("-journal", "-wal", "-shm"):  # belong to the damaged file
+                        self.path.with_name(self.path.name + side).unlink(missing_ok=True)
+                    warnings.warn(f"The image-hash memo {self.path} is damaged ({error}); it is set aside as {aside} "
+                                  "and rebuilt (images are hashed again once). Delete the set-aside file when you like.",
+                                  stacklevel=4)
+                db = sqlite3.connect(self.path, timeout=60)
+                db.execute("CREATE TABLE IF NOT EXISTS hashes "
+                           "(path TEXT PRIMARY KEY, size INTEGER, mtime_ns INTEGER, sha256 TEXT)")
+                return db
+        except (OSError, sqlite3.Error, VPRBenchError):  # cannot rebuild here: hash without remembering
+            return None
+
+    def _whole(self) -> bool:
+        """Whether the memo file is (now) an undamaged database."""
+        try:
+            db = sqlite3.connect(self.path.absolute().as_uri() + "?mode=ro", uri=True, timeout=60)
+        except sqlite3.Error:
+            return False
+        try:
+            return db.execute("PRAGMA quick_check").fetchone()[0] == "ok"
+        except sqlite3.Error:
+            return False
+        finally:
+            db.close()
 
     def lookup(self, keys: dict[str, tuple[int, int]]) -> dict[str, str]:
         """The remembered hashes of the paths whose size and mtime are unchanged."""
         if self.db is None:
             return {}
         found, paths = {}, list(keys)
-        for start in range(0, len(paths), 500):
-            part = paths[start:start + 500]
-            query = f"SELECT path, size, mtime_ns, sha256 FROM hashes WHERE path IN ({','.join('?' * len(part))})"
-            for path, size, mtime, digest in self.db.execute(query, part):
-                if keys[path] == (size, mtime):
-                    found[path] = digest
+        try:
+            for start in range(0, len(paths), 500):
+                part = paths[start:start + 500]
+                query = f"SELECT path, size, mtime_ns, sha256 FROM hashes WHERE path IN ({','.join('?' * len(part))})"
+                for path, size, mtime, digest in self.db.execute(query, part):
+                    if keys.get(path) == (size, mtime) and isinstance(digest, str):
+                        found[path] = digest
+        except sqlite3.Error as error:
+            if _damaged(error):
+                self.db = self._set_aside(error)
+            return {}  # nothing trusted from a file that fails: every image is hashed
         return found
 
     def remember(self, rows: list[tuple[str, int, int, str]]) -> None:
-        if self.db is None or not rows:
-            return
-        try:
-            with self.db:
-                self.db.executemany("INSERT OR REPLACE INTO hashes VALUES (?, ?, ?, ?)", rows)
-        except sqlite3.Error:  # read-only or full: the hashes are right, only not remembered
-            pass
+        for attempt in range(2):  # a second time in a rebuilt memo, if this one proves damaged
+            if self.db is None or not rows:
+                return
+            try:
+                with self.db:
+                    self.db.executemany("INSERT OR REPLACE INTO hashes VALUES (?, ?, ?, ?)", rows)
+                return
+            except sqlite3.Error as error:  # read-only or full: the hashes are right, only not remembered
+                if not _damaged(error) or attempt:
+                    return
+                self.db = self._set_aside(error)
 
     def close(self) -> None:
         if self.db is not None:

@@ -78,7 +78,14 @@ class Dataset:
 
     @cached_property
     def positives(self) -> list[np.ndarray]:
-        positives = self.ground_truth.positives()
+        gt = self.ground_truth
+        if gt.unit != "positives" and not all(np.isfinite(np.asarray(p, dtype=np.float64)).all()
+                                               for p in (gt.database_positions, gt.query_positions)):
+            from ..errors import VPRBenchError  # the readers name the file; this guards any other source
+
+            raise VPRBenchError(f"Dataset {self.name!r}: its positions under {self.root} hold non-finite numbers "
+                                "(NaN or infinity); fix or replace its ground truth.")
+        positives = gt.positives()
         if len(positives) != len(self.queries):
             from ..errors import VPRBenchError
 

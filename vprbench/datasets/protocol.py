@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import VPRBenchError, closest_names
+from .layouts import climbs_out
 from .model import Dataset, GroundTruth
 
 DEFAULT = "default"
@@ -245,7 +246,11 @@ def _query_subset(dataset: Dataset, queries: list[Path], protocol: Protocol) -> 
     the listed path's stem equals the query's stem or one of its '@' fields (UTM-named copies)."""
     spec = protocol.select_queries
     root = dataset.root or Path(".")
-    files = [root / spec[k] for k in ("names", "index") if k in spec]
+    named = [str(spec[k]) for k in ("names", "index") if k in spec]
+    if any(climbs_out(name) for name in named):
+        raise VPRBenchError(f"Dataset {dataset.name!r}, protocol {protocol.name!r} selects its queries from {named}, "
+                            "which are not all paths inside the dataset folder; fix the manifest.")
+    files = [root / name for name in named]
     missing = [str(f) for f in files if not f.is_file()]
     if missing:
         raise VPRBenchError(
@@ -256,6 +261,8 @@ def _query_subset(dataset: Dataset, queries: list[Path], protocol: Protocol) -> 
         names = _read_names(files[0])
         if "index" in spec:
             index = np.load(files[1], allow_pickle=False).astype(np.int64).reshape(-1)
+            if len(index) and not (0 <= index.min() and index.max() < len(names)):  # a negative index would wrap
+                raise IndexError(f"its indices must lie in 0..{len(names) - 1}")
             names = [names[i] for i in index]
     except (OSError, ValueError, IndexError) as error:
         raise VPRBenchError(f"Cannot read the query subset of protocol {protocol.name!r} from {files}: {error}.") from None

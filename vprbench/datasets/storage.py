@@ -2,7 +2,8 @@
 
 `vprbench datasets import NAME PATH` records NAME -> PATH in `datasets.json` in the data
 root, after the copy at PATH has been read completely (layout, images, ground truth), so a
-failed import leaves nothing behind.
+failed import leaves nothing behind. The registry is read, changed and rewritten (atomically)
+under one lock, `datasets.json.lock` beside it, so imports running at once all stay recorded.
 """
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import warnings
 from pathlib import Path
 
 from ..errors import VPRBenchError
-from ..fsutil import atomic_write
+from ..fsutil import atomic_write, lock
 from .download import how_to_get
 from .layouts import candidates, missing_paths, read_layout
 from .manifest import DatasetManifest, data_root, dataset_manifest, is_default_data_root
@@ -32,9 +33,12 @@ def read_registry(data_dir=None) -> dict[str, str]:
         entries = json.loads(path.read_text())
         if not isinstance(entries, dict):
             raise ValueError("expected a JSON object of name -> path")
-    except (OSError, ValueError) as error:
+        for name, where in entries.items():  # import writes absolute paths; anything else was not written by it
+            if not isinstance(where, str) or not Path(where).is_absolute():
+                raise ValueError(f"the entry {name!r} is {where!r}, not the absolute path of a folder")
+    except (OSError, ValueError, RecursionError) as error:
         raise VPRBenchError(f"Cannot read the dataset registry {path}: {error}. Fix or delete it, then import again.") from None
-    return {str(k): str(v) for k, v in entries.items()}
+    return entries
 
 
 def write_registry(entries: dict[str, str], data_dir=None) -> Path:
@@ -115,7 +119,11 @@ def import_dataset(name: str, path: str | Path, data_dir=None, strict: bool = Fa
     dataset = read_layout(root, manifest)  # raises, naming what is missing, before anything is written
     dataset.positives  # ground truth must match the images  # noqa: B018
     check_counts(dataset, manifest, strict)
-    entries = read_registry(data_dir)
-    entries[name] = str(root)
-    write_registry(entries, data_dir)
+    registry = registry_path(data_dir)
+    # held for the moment of a read and a write; 120 s is ample even on a slow network disk
+    with lock(registry.with_name(registry.name + ".lock"), timeout=120.0, what=f"the dataset registry {registry}",
+              announce=False):
+        entries = read_registry(data_dir)
+        entries[name] = str(root)
+        write_registry(entries, data_dir)
     return dataset

@@ -9,6 +9,7 @@ folders and files are present, and otherwise says what each layout expects.
 from __future__ import annotations
 
 import dataclasses
+import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -97,8 +98,40 @@ def read_layout(root: Path, manifest: DatasetManifest) -> Dataset:
     return dataset
 
 
+def climbs_out(entry: str) -> bool:
+    """Whether a relative path written in a file leaves the folder it is relative to, by its
+    text alone: absolute, or more '..' than folders (a NUL byte counts, as no file has one)."""
+    text = str(entry)
+    if "\0" in text or os.path.isabs(text):
+        return True
+    normal = os.path.normpath(text)
+    return normal == ".." or normal.startswith(".." + os.sep)
+
+
+def inside(folder: Path, entry: str, source: Path | str) -> Path:
+    """folder/entry for a path named in a data file (`source`: a ground-truth file, say), if it
+    lies inside `folder` with symlinks resolved; refused otherwise, naming the file and the entry,
+    so a hostile file cannot make vprbench read (and describe) a file elsewhere on the machine."""
+    path = folder / entry
+    try:
+        outside = climbs_out(entry) or not path.resolve().is_relative_to(folder.resolve())
+    except (OSError, RuntimeError):  # a symlink loop: it leads nowhere inside either
+        outside = True
+    if outside:
+        raise VPRBenchError(
+            f"{source} names {entry!r}, which lies outside {folder} (an absolute path, a '..' that "
+            "climbs out, or a symlink leading out). A dataset's files name only files inside it: fix or "
+            "replace the file (re-download the dataset)."
+        )
+    return path
+
+
 def require(root: Path, relative: str, manifest: DatasetManifest, kind: str = "folder") -> Path:
-    """root/relative, or an error naming the missing folder or file and the layout."""
+    """root/relative, or an error naming the missing folder or file and the layout. A manifest
+    names paths inside the dataset folder (the file itself may be a symlink the user made)."""
+    if climbs_out(relative):
+        raise VPRBenchError(f"Dataset {manifest.name!r}: its manifest names {relative!r}, which is not a path "
+                            "inside the dataset folder; fix the manifest.")
     path = root / relative
     exists = path.is_dir() if kind == "folder" else path.is_file()
     if not exists:
@@ -108,8 +141,6 @@ def require(root: Path, relative: str, manifest: DatasetManifest, kind: str = "f
             f"or see 'vprbench datasets info {manifest.name}' for how to get the data."
         )
     return path
-
-
 
 
 def from_manifest(manifest: DatasetManifest, root: Path, database, queries, ground_truth) -> Dataset:

@@ -14,6 +14,8 @@ an image that is not in database/ or queries/ a warning.
 """
 from __future__ import annotations
 
+import math
+import re
 import tomllib
 import warnings
 from pathlib import Path
@@ -25,16 +27,37 @@ from ...errors import VPRBenchError
 from ...images import list_images
 from ..manifest import DatasetManifest
 from ..model import GroundTruth
-from . import from_manifest, layout, require
+from . import climbs_out, from_manifest, layout, require
 
 DEFAULT_RADIUS_M = 25.0
+
+
+#: a dataset's name becomes part of file names (stores, records) and is shown: a plain file name
+NAME_RULE = "1 to 100 letters, digits, '.', '_', '+' or '-', starting with a letter or digit, without '..'"
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]{0,99}")
+#: characters a terminal acts on (escape sequences, carriage returns...); tabs and newlines are text
+CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f-\x9f]")
+
+
+def is_safe_name(name: str) -> bool:
+    return bool(_NAME.fullmatch(name)) and ".." not in name
+
+
+def safe_name(folder_name: str) -> str:
+    """The default name of a folder of one's own: its name, with each run of other characters
+    (spaces, '<', controls...) made one '-' ("Lab photos" -> "Lab-photos")."""
+    name = re.sub(r"\.{2,}", ".", re.sub(r"[^A-Za-z0-9._+-]+", "-", folder_name)).lstrip("._+-")[:100]
+    return name if is_safe_name(name) else "own-data"
 
 
 def utm_from_name(path: Path) -> tuple[float, float]:
     """(easting, northing) from a name like @0551234.5@4178910.2@10@S@....jpg"""
     parts = path.name.split("@")
     try:
-        return float(parts[1]), float(parts[2])
+        easting, northing = float(parts[1]), float(parts[2])
+        if not (math.isfinite(easting) and math.isfinite(northing)):
+            raise ValueError("not finite")
+        return easting, northing
     except (IndexError, ValueError):
         raise VPRBenchError(
             f"Cannot read UTM coordinates from the file name {path.name!r}: expected "
@@ -73,6 +96,14 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
         )
     names, unit = chosen
     listed = [str(Path(str(name))) for name in table["image"]]
+    # rows are matched to the images found by name and never opened; one naming a file outside
+    # the folder is still refused, as everything a data file names must lie inside its dataset
+    outside = [name for name in listed if climbs_out(name)]
+    if outside:
+        raise VPRBenchError(
+            f"{csv} names {len(outside)} image(s) outside {root}, e.g. {outside[:3]}; the column 'image' holds "
+            "paths relative to the folder (database/0001.jpg): fix those rows."
+        )
     names_column = pd.Series(listed)
     repeated = sorted(set(names_column[names_column.duplicated()]))
     if repeated:
@@ -144,8 +175,12 @@ def own_manifest(root: Path) -> DatasetManifest:
                 raise VPRBenchError(f"{toml}: radius must be a number of metres or frames, 0 or more; got {value!r}.")
         elif not isinstance(value, str) or (key == "name" and not value.strip()):
             raise VPRBenchError(f"{toml}: {key} must be {'a non-empty' if key == 'name' else 'a'} string; got {value!r}.")
+        elif CONTROL.search(value):
+            raise VPRBenchError(f"{toml}: {key} holds the control character {CONTROL.search(value).group()!r}; remove it.")
+        elif key == "name" and not is_safe_name(value):
+            raise VPRBenchError(f"{toml}: name {value!r} is not a safe dataset name ({NAME_RULE}); choose another.")
     return DatasetManifest(
-        name=settings.get("name", root.resolve().name),
+        name=settings.get("name", safe_name(root.resolve().name)),
         title=settings.get("title", root.resolve().name),
         layout="own",
         directory=str(root),

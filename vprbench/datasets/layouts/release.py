@@ -71,6 +71,8 @@ def pose_rows(path: Path, gt: dict, n_database: int, n_queries: int) -> tuple[np
         raise VPRBenchError(f"Cannot read poses {path}: {error}. Expected {expected}.") from None
     if poses.shape[1] < dims:
         raise VPRBenchError(f"Cannot read poses {path}: {poses.shape[1]} columns. Expected {expected}.")
+    if not np.isfinite(poses).all():
+        raise VPRBenchError(f"Cannot read poses {path}: they hold non-finite numbers (NaN or infinity). Expected {expected}.")
     parts = []
     for split, (start, stop), count in (("database", gt["database_rows"], n_database), ("query", gt["query_rows"], n_queries)):
         if stop > len(poses):
@@ -89,8 +91,8 @@ def camera_centre(path: Path) -> np.ndarray:
     try:
         lines = path.read_text().strip().splitlines()
         centre = np.array(lines[-2].split(), dtype=np.float64)
-        if centre.shape != (3,):
-            raise ValueError(f"second-to-last line has {centre.size} numbers, expected 3")
+        if centre.shape != (3,) or not np.isfinite(centre).all():
+            raise ValueError(f"its second-to-last line holds {centre.size} numbers, expected 3 finite ones")
     except (OSError, ValueError, IndexError) as error:
         raise VPRBenchError(f"Cannot read camera pose {path}: {error}.") from None
     return centre

@@ -1,0 +1,84 @@
+"""Leases of a sweep's claims cannot make a run wait or steal: a lease dated ahead of now (a
+clock set ahead, a file touched by hand) is judged by a clock nobody can set and goes stale
+after one lease period; a lease that is not a finite number of seconds is refused; processes
+with different leases never judge each other's live claims dead."""
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from vprbench import VPRBenchError
+from vprbench.evaluation import read_results
+from vprbench.sweep.claims import MIN_LEASE_S, Claims
+from vprbench.sweep.plan import read_plan
+
+from hostile_files import assert_refused
+
+DAY = 86400
+
+
+@pytest.fixture
+def plan(tmp_path) -> Path:
+    path = tmp_path / "plan.toml"
+    path.write_text('[[methods]]\nname = "hog"\noptions = { resize = [32, 32] }\n\n[[datasets]]\nname = "corridor"\n')
+    return path
+
+
+def test_a_lease_dated_a_day_ahead_goes_stale_after_one_lease_period(plan, tmp_path, shared_data):
+    cache = tmp_path / "cache"
+    (cell,) = read_plan(plan).cells
+    lease = cache / "sweeps" / "claims" / f"{cell.key}.lease"
+    lease.parent.mkdir(parents=True)
+    lease.write_text(json.dumps({"worker": "clock-ahead:7", "token": "t"}))
+    os.utime(lease, (time.time() + DAY, time.time() + DAY))
+    # the attack is real: by its date the lease is a day younger than now, so "age < lease" holds for a day
+    assert time.time() - lease.stat().st_mtime < -DAY + 60
+    env = {**os.environ, "VPRBENCH_CACHE": str(cache), "VPRBENCH_DATA": str(shared_data)}
+    started = time.monotonic()
+    done = subprocess.run([sys.executable, "-m", "vprbench.cli.main", "run", str(plan), "--lease", "2"], env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert f"warning: The claim {lease} is dated" in done.stderr and "ahead of this host's clock" in done.stderr
+    (record,) = read_results(cache)
+    assert record["context"]["sweep"]["resumed"].startswith("taken over from clock-ahead:7 (its date, ahead of this host's clock, unchanged for")
+    assert time.monotonic() - started < 200  # minutes at most, not a day (the lease is 2 s; the rest is the run)
+
+
+@pytest.mark.parametrize("lease", [math.nan, math.inf, -math.inf, 0, -1, 0.5, "abc", None, True])
+def test_a_lease_that_is_not_a_finite_number_of_seconds_is_refused(lease, tmp_path):
+    if lease is math.nan:  # the attack is real: no age is below a NaN lease, so every live claim looks stale
+        assert not any(age < lease for age in (0.0, 0.1, 1.0))
+    with pytest.raises(VPRBenchError, match=rf"The lease must be a finite number of seconds, at least "
+                                            rf"{MIN_LEASE_S:g} .*; got {lease!r}"):
+        Claims(tmp_path, lease_s=lease)
+
+
+def test_a_nan_lease_on_the_command_line_is_one_line(plan, shared_data, cli):
+    code, _, err = cli("run", plan, "--lease", "nan", "--data-dir", shared_data)
+    assert_refused(code, err, None, "lease")
+
+
+def test_a_short_lease_never_takes_a_long_leased_live_claim(tmp_path):
+    holder = Claims(tmp_path, lease_s=600)
+    judge = Claims(tmp_path, lease_s=MIN_LEASE_S)
+    try:
+        assert holder.claim("cell", lambda: False) == ("claimed", "")
+        deadline = time.monotonic() + 3 * MIN_LEASE_S
+        while time.monotonic() < deadline:  # three of the judge's lease periods
+            assert judge.claim("cell", lambda: False) == ("busy", holder.worker)
+            time.sleep(0.1)
+        assert holder.still_mine("cell")
+        holder.close()  # the holder dies: no more heartbeats
+        time.sleep(2 * MIN_LEASE_S)
+        state, detail = judge.claim("cell", lambda: False)
+        assert state == "claimed" and detail.startswith(f"taken over from {holder.worker} (no heartbeat for")
+    finally:
+        holder.close()
+        judge.close()
