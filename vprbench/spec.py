@@ -209,8 +209,12 @@ class RunSettings:
         if self.memory_budget is not None:
             object.__setattr__(self, "memory_budget", parse_memory(self.memory_budget))
         if self.lock_timeout is not None:
-            object.__setattr__(self, "lock_timeout", number("run", "lock_timeout", self.lock_timeout, minimum=0,
-                                                            what="seconds to wait for another run's lock"))
+            try:
+                timeout = number("run", "lock_timeout", self.lock_timeout, minimum=0)
+            except VPRBenchError:
+                raise VPRBenchError(f"--lock-timeout (lock_timeout) takes a finite number of seconds >= 0, the longest "
+                                    f"to wait for another run's lock; got {self.lock_timeout!r}.") from None
+            object.__setattr__(self, "lock_timeout", timeout)
 
     def with_options(self, options: dict) -> "RunSettings":
         """These settings with the run settings found among a method's options (a plan entry's

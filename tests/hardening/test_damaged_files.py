@@ -20,7 +20,7 @@ from scipy.io import loadmat, savemat
 
 from vprbench.datasets.identity import MEMO_NAME
 from vprbench.evaluation import read_results
-from vprbench.evaluation.record import results_dir
+from vprbench.evaluation.results import results_dir
 from vprbench.paths import cache_root
 from vprbench.sweep.plan import read_plan
 

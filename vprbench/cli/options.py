@@ -136,24 +136,6 @@ def whole_number(minimum: int):
     return parse
 
 
-def seconds(text: str) -> float:
-    """argparse type: a finite number of seconds >= 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
-    if not math.isfinite(value) or value < 0:
-        raise argparse.ArgumentTypeError(f"must be a finite number of seconds >= 0, got {text}")
-    return value
-
-
-def positive_seconds(text: str) -> float:
-    value = seconds(text)
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"must be more than 0 seconds, got {text}")
-    return value
-
-
 def add_run_options(parser: argparse.ArgumentParser, *, download: bool = True, quiet: bool = True) -> None:
     group = parser.add_argument_group("how it runs (never changes a result)")
     group.add_argument("--device", default="auto",
@@ -163,7 +145,7 @@ def add_run_options(parser: argparse.ArgumentParser, *, download: bool = True, q
                        help="data-loader worker processes reading images (default: 0 on cpu, up to 4 on cuda)")
     group.add_argument("--search-memory", metavar="SIZE",
                        help="memory budget of search and PCA fitting, e.g. 1GB, 512MB, 4GiB (default 1.0 GB)")
-    group.add_argument("--lock-timeout", type=seconds, metavar="SECONDS",
+    group.add_argument("--lock-timeout", type=float, metavar="SECONDS",
                        help="give up waiting for another run's store lock after this long (default: wait)")
     group.add_argument("--strict", action="store_true", help="fail when image counts differ from the manifest")
     if download:
@@ -175,7 +157,8 @@ def add_run_options(parser: argparse.ArgumentParser, *, download: bool = True, q
 
 
 def add_sweep_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--lease", type=positive_seconds, default=DEFAULT_LEASE_S, metavar="SECONDS",
+    """--lease, checked where claims are made (sweep/claims.py: finite, at least 1 s)."""
+    parser.add_argument("--lease", type=float, default=DEFAULT_LEASE_S, metavar="SECONDS",
                         help="a claim without heartbeat for this long belonged to a dead process and is taken over "
                              f"(default {DEFAULT_LEASE_S:g})")
 
