@@ -10,11 +10,40 @@ import pitts30k_tree as pitts30k_tree_module  # tests/ is on sys.path (pytest's 
 SHARED_DATA = Path(os.environ.get("VPRBENCH_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 
 
+#: set by .ci/run: the real data must be there, and every real-data test that skips is named
+IN_CI = os.environ.get("VPRBENCH_CI") == "1"
+
+
+def pytest_sessionstart(session):
+    if IN_CI and not SHARED_DATA.is_dir():
+        raise pytest.UsageError(
+            f"CI needs the real data folder {SHARED_DATA} (../shared/data beside the repo, or $VPRBENCH_SHARED_DATA): "
+            "without it the real-data tests would be skipped and the run would prove nothing. Put the data there.")
+
+
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real data folder {SHARED_DATA} is absent (it sits beside the repo as ../shared/data)")
     return SHARED_DATA
+
+
+def pytest_terminal_summary(terminalreporter):
+    """In CI, a real-data test that skipped (for any reason: no browser, no mount permission...) is named."""
+    if not IN_CI:
+        return
+    skipped = [r for r in terminalreporter.stats.get("skipped", []) if "shared_data" in getattr(r, "fixturenames", ())]
+    if skipped:
+        terminalreporter.section("real-data tests that skipped")
+        for report in skipped:
+            reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else str(report.longrepr)
+            terminalreporter.write_line(f"{report.nodeid}: {reason}")
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    outcome.get_result().fixturenames = tuple(item.fixturenames)  # for the summary above
 
 
 @pytest.fixture(scope="session")
