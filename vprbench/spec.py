@@ -225,7 +225,8 @@ class RunSettings:
     def describe(self) -> dict:
         """For the record: how the run went (never part of its identity)."""
         return {"device": self.device, "batch_size": self.batch_size, "workers": self.workers,
-                "memory_budget": self.memory_budget, "lock_timeout": self.lock_timeout}
+                "memory_budget": self.memory_budget, "lock_timeout": self.lock_timeout, "download": self.download,
+                "strict": self.strict}
 
 
 # ---------------------------------------------------------------- the resolver

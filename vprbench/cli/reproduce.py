@@ -4,7 +4,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from .console import console as make_console
-from .options import add_location_options, add_run_options, add_sweep_options, progress, resolve_locations, run_settings
+from .options import (add_location_options, add_method_flags, add_run_options, add_spec_options, add_sweep_options,
+                      method_options, progress, resolve_locations, run_settings, spec_overrides)
 
 
 def add_parsers(commands) -> None:
@@ -13,10 +14,25 @@ def add_parsers(commands) -> None:
     p.add_argument("--table", required=True, help="2, 3, 4, 5, 6, 7, layer or facet")
     p.add_argument("--dry-run", action="store_true", help="list the cells and what each needs; run nothing")
     p.add_argument("--publish", type=Path, metavar="DIR", help="also write the table (Markdown) and the leaderboard into DIR")
+    add_method_flags(p)
+    add_spec_options(p)
     add_run_options(p)
     add_sweep_options(p)
     add_location_options(p)
     p.set_defaults(run=run_reproduce)
+
+
+def refuse_changes(args) -> None:
+    """Options that change what is computed would make the table another one: named, refused."""
+    from ..errors import VPRBenchError
+    from ..spec import RUN_SETTINGS
+
+    given = [f"{k}={v}" for k, v in method_options(args).items() if k not in RUN_SETTINGS]
+    given += [f"{k}={v}" for k, v in spec_overrides(args).items() if v is not None]
+    if given:
+        raise VPRBenchError(f"reproduce evaluates the paper's settings; {', '.join(given)} would change what is "
+                            "computed, so the table would not be the paper's. Run those settings as a plan "
+                            "('vprbench run PLAN.toml', docs/sweeps.md) or with 'vprbench evaluate'.")
 
 
 def _row_weights(spec: dict) -> dict:
@@ -34,6 +50,7 @@ def run_reproduce(args) -> int:
     from .evaluate import explicit_run_options
 
     resolve_locations(args)
+    refuse_changes(args)
     settings = run_settings(args)
     spec, table_cells_ = table_cells(args.paper, args.table, settings=explicit_run_options(args),
                                      data_dir=settings.data_dir, cache_dir=settings.cache_dir)

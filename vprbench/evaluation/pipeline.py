@@ -104,6 +104,8 @@ def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None
         spec=spec, method=method, fingerprint=described.fingerprint, dataset=dataset,
         dataset_key=dataset.fingerprint(settings.cache_dir), ks=ks,
         scores=found.scores, indices=found.indices, positives=positives, descriptor_dim=int(found.info["dim"]),
-        computed=described.computed, timings=timings, search=found.info, context=context, settings=settings,
+        computed=described.computed, timings=timings, search=found.info, context=context,
+        run={**settings.describe(), "device": str(getattr(method, "device", settings.device)), "workers": workers,
+             "batch_size": method.batch_size},
         cache_dir=settings.cache_dir,
     )

@@ -1,0 +1,162 @@
+"""Every option means the same in every route: a single evaluation, --protocol, a matrix, a plan,
+reproduce and torchrun with 2 gloo ranks each build the same run spec and the same record.
+
+One command per route carries every option at once (the table's columns); each option is then
+checked in each route's record (the table's rows). Options that change what is computed are
+refused by reproduce, with the reason, and never dropped."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from vprbench.cli.main import main
+from vprbench.evaluation import read_results
+
+METHOD = ["--method", "hog", "--resize", "32", "32"]
+SPEC = ["--index", "hnsw", "--index-option", "hnsw_m=16", "--k", "1", "3", "--store-dtype", "float16"]
+RUN = ["--search-memory", "200MB", "--workers", "2", "--lock-timeout", "30", "--batch-size", "7", "--device", "cpu",
+       "--strict", "--download", "--quiet"]
+#: option -> (where in the record, the value every route must give)
+TABLE = {
+    "--resize": (lambda r: r["spec"]["options"]["resize"], [32, 32]),
+    "--index": (lambda r: (r["spec"]["search"]["index"], r["search"]["index"]), ("hnsw", "hnsw")),
+    "--index-option": (lambda r: r["spec"]["search"]["options"], {"hnsw_m": 16}),
+    "--k": (lambda r: (r["spec"]["ks"], sorted(r["recall"])), ([1, 3], ["1", "3"])),
+    "--store-dtype": (lambda r: (r["spec"]["store_dtype"], r["method_fingerprint"]["store_dtype"]), ("float16", "float16")),
+    "--search-memory": (lambda r: (r["run"]["memory_budget"], r["search"]["memory_budget"]), (200_000_000, 200_000_000)),
+    "--workers": (lambda r: r["run"]["workers"], 2),
+    "--lock-timeout": (lambda r: r["run"]["lock_timeout"], 30.0),
+    "--batch-size": (lambda r: r["run"]["batch_size"], 7),
+    "--device": (lambda r: r["run"]["device"], "cpu"),
+    "--strict": (lambda r: r["run"]["strict"], True),
+    "--download": (lambda r: r["run"]["download"], True),
+}
+ROUTES = ("single", "protocol", "matrix", "plan", "torchrun")
+
+
+def cli(capsys, *args) -> str:
+    code = main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    return out
+
+
+def the_record(cache, dataset="corridor") -> dict:
+    [record] = [r for r in read_results(cache) if r["dataset"] == dataset]
+    return record
+
+
+@pytest.fixture(scope="module")
+def records(shared_data, tmp_path_factory):
+    """The record of the same run through every route (each with its own cache)."""
+    base = tmp_path_factory.mktemp("routes")
+    where = lambda route: ["--data-dir", shared_data, "--cache-dir", base / route]  # noqa: E731
+    own = base / "own"
+    rows = ["image,frame"]
+    for split, folder in (("database", "ref"), ("queries", "query")):
+        (own / split).mkdir(parents=True)
+        for i in range(12):
+            shutil.copyfile(shared_data / "corridor" / folder / f"{i:07d}.jpg", own / split / f"{i:07d}.jpg")
+            rows.append(f"{split}/{i:07d}.jpg,{i}")
+    (own / "positions.csv").write_text("\n".join(rows) + "\n")
+    (own / "dataset.toml").write_text('radius = 2\nname = "corridor-own"\n')
+    plan = base / "plan.toml"
+    plan.write_text('[[methods]]\nname = "hog"\noptions = { resize = [32, 32] }\n\n[[datasets]]\nname = "corridor"\n')
+    found = {}
+    with pytest.MonkeyPatch.context() as patch, _capture() as capsys:
+        patch.setenv("COLUMNS", "200")
+        found["single"] = json.loads(cli(capsys, "evaluate", *METHOD, "--dataset", "corridor", *SPEC, *RUN,
+                                         *where("single"), "--json"))
+        found["protocol"] = json.loads(cli(capsys, "evaluate", *METHOD, "--dataset", "corridor", "--protocol",
+                                           "vpr-bench", *SPEC, *RUN, *where("protocol"), "--json"))
+        cli(capsys, "evaluate", *METHOD, "--dataset", "corridor", own, *SPEC, *RUN, *where("matrix"))
+        found["matrix"] = the_record(base / "matrix")
+        cli(capsys, "run", plan, *SPEC, *RUN, *where("plan"))
+        found["plan"] = the_record(base / "plan")
+    command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node=2", "-m", "vprbench",
+               "evaluate", *METHOD, "--dataset", "corridor", *SPEC, *RUN, *where("torchrun"), "--json"]
+    done = subprocess.run([str(c) for c in command], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert done.returncode == 0, done.stderr[-3000:]
+    found["torchrun"] = json.loads(done.stdout)
+    return found
+
+
+class _capture:
+    """capsys for a module fixture: stdout and stderr of in-process CLI calls."""
+
+    def __enter__(self):
+        import io
+        from contextlib import redirect_stderr, redirect_stdout
+
+        self.out, self.err = io.StringIO(), io.StringIO()
+        self._stack = [redirect_stdout(self.out), redirect_stderr(self.err)]
+        for c in self._stack:
+            c.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        for c in reversed(self._stack):
+            c.__exit__(*exc)
+
+    def readouterr(self):
+        out, err = self.out.getvalue(), self.err.getvalue()
+        self.out.seek(0), self.out.truncate(0), self.err.seek(0), self.err.truncate(0)
+        return out, err
+
+
+@pytest.mark.parametrize("route", ROUTES)
+@pytest.mark.parametrize("option", TABLE)
+def test_every_option_means_the_same_in_every_route(records, option, route):
+    where, expected = TABLE[option]
+    assert where(records[route]) == expected, f"{option} in the {route} route"
+
+
+@pytest.mark.parametrize("route", ROUTES[1:])
+def test_every_route_gives_the_single_runs_spec_and_results(records, route):
+    single, other = records["single"], records[route]
+    assert other["spec"] == single["spec"] and other["spec_key"] == single["spec_key"]
+    assert other["recall"] == single["recall"] and other["top_predictions"] == single["top_predictions"]
+
+
+def test_torchrun_really_ran_two_ranks(records):
+    assert records["torchrun"]["context"]["distributed"]["world_size"] == 2
+
+
+def test_reproduce_takes_the_run_settings_and_refuses_what_would_change_the_table(shared_data, tmp_path, capsys,
+                                                                                  monkeypatch):
+    import vprbench.sweep.reproduce as reproduce
+
+    table = {"t": {"paper": "II", "title": "a table of hog on Corridor", "metrics": ["r1", "r5"],
+                   "columns": {"corridor": ["corridor"]},
+                   "rows": [{"row": "HOG", "method": "hog", "options": {"resize": [32, 32]}}]}}
+    monkeypatch.setattr(reproduce, "reproduce_tables", lambda paper: table)
+    monkeypatch.setenv("COLUMNS", "200")
+    where = ["--data-dir", shared_data, "--cache-dir", tmp_path / "r"]
+    cli(capsys, "reproduce", "anyloc", "--table", "t", *RUN, *where)
+    record = the_record(tmp_path / "r")
+    for option in ("--search-memory", "--workers", "--lock-timeout", "--batch-size", "--device", "--strict", "--download"):
+        where_, expected = TABLE[option]
+        assert where_(record) == expected, option
+    single = json.loads(cli(capsys, "evaluate", *METHOD, "--dataset", "corridor", "--k", "1", "5",
+                            "--data-dir", shared_data, "--cache-dir", tmp_path / "s", "--json"))
+    assert record["spec"] == single["spec"] and record["recall"] == single["recall"]
+    for changes in (["--index", "hnsw"], ["--k", "1"], ["--store-dtype", "float16"], ["--layer", "3"], ["-o", "cell=8"]):
+        code = main([str(a) for a in ("reproduce", "anyloc", "--table", "t", *changes, *where)])
+        err = capsys.readouterr().err
+        assert code == 1 and "would change what is computed" in err and "Traceback" not in err, changes
+
+
+def test_options_a_route_cannot_use_are_refused_with_the_reason(shared_data, capsys):
+    for args, reason in (
+        (["--method", "hog", "dense-vlad", "--dataset", "corridor", "--json"], "--json prints one run's record"),
+        (["--method", "hog", "--dataset", "corridor", "hawkins", "--json"], "this command makes 2 runs"),
+    ):
+        code = main(["evaluate", *args, "--data-dir", str(shared_data)])
+        err = capsys.readouterr().err
+        assert code == 1 and reason in err, err
