@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from vprbench.datasets import load_dataset
+from vprbench.errors import VPRBenchError
 from runs import evaluate_method as evaluate
 from vprbench.evaluation import per_query, read_results, results_dir, save_result
 from vprbench.evaluation.identity import benchmark_protocol, fingerprint_of
@@ -178,3 +179,23 @@ def test_damaged_per_query_file_is_named_and_only_statistics_are_lost(make_recor
     with pytest.warns(UserWarning, match=r"Per-query data .*\.npz of run .* is unreadable"):
         assert per_query(record) is None
     assert record["recall"]["1"] >= 0
+
+
+def test_a_results_folder_of_another_layout_and_unreadable_records_fail_the_command(make_record, capsys):
+    from vprbench.cli.main import main
+
+    path = save_result(make_record("hog"))
+    assert main(["leaderboard"]) == 0
+    capsys.readouterr()
+    (path.parent / "torn.json").write_text("{")
+    with pytest.warns(UserWarning, match="torn.json"):
+        assert main(["leaderboard"]) == 1  # the board is shown, the unread file named, exit 1
+    out, err = capsys.readouterr()
+    assert "hog" in out and "1 stored file(s) could not be read" in err and (path.parent / "torn.json").exists()
+    (results_dir() / "LAYOUT").write_text(json.dumps({"layout": "vprbench-results", "version": 9}))
+    assert main(["leaderboard"]) == 1
+    err = capsys.readouterr().err
+    assert "was written by another vprbench (vprbench-results version 9" in err and "Traceback" not in err
+    with pytest.raises(VPRBenchError, match="another vprbench"):
+        save_result(make_record("hog", seed=3))
+    assert sorted(p.name for p in path.parent.iterdir()) == sorted([path.name, path.with_suffix(".npz").name, "torn.json"])

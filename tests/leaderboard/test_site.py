@@ -106,6 +106,29 @@ def test_publish_writes_every_page_figure_and_download(capsys, tmp_path, shared_
     assert {len(r["per_query"]["first_positive_rank"]) for r in records} == {111}
     summary = json.loads((section / "downloads" / "leaderboard.json").read_text())
     assert len(summary) == 8 and all(0 <= e["r1_ci_low"] <= e["r1"] <= e["r1_ci_high"] <= 100 for e in summary)
+    downloads_say_what_the_pages_say(section, summary)
+
+
+def page_rows(page: str) -> dict[str, list[str]]:
+    """The Results table of a dataset page: row name (without †) -> its cells."""
+    text = page.split("## Results", 1)[1].split("The runs in the cells above", 1)[0]
+    rows = [[c.strip() for c in line.strip().strip("|").split("|")] for line in text.splitlines()
+            if line.startswith("| ") and not line.startswith("| Method")]
+    return {cells[0].removesuffix(" †"): cells for cells in rows}
+
+
+def downloads_say_what_the_pages_say(section, summary):
+    """Every download entry (CSV and JSON) has the weights, R@1 and interval its page shows."""
+    csv = pd.read_csv(section / "downloads" / "leaderboard.csv").to_dict("records")
+    assert len(csv) == len(summary)
+    pages = {}
+    for entry, row in zip(summary, csv):
+        assert row["weights"] == entry["weights"] and row["method"] == entry["method"]
+        slug = entry["page"].removesuffix(".md")
+        pages.setdefault(slug, page_rows((section / entry["page"]).read_text()))
+        cells = pages[slug][entry["method"]]
+        assert cells[1] == entry["weights"], (entry["method"], slug)
+        assert cells[2] == f"{entry['r1']:.1f} [{entry['r1_ci_low']:.1f}, {entry['r1_ci_high']:.1f}]"
 
 
 def test_publish_again_replaces_the_section_and_leaves_no_temporary_folder(capsys, tmp_path, shared_data):

@@ -36,9 +36,11 @@ def run(args) -> int:
     if args.action == "publish":
         if args.to is None:
             raise VPRBenchError("leaderboard publish needs --to FOLDER (e.g. --to docs/)")
-        print(f"Wrote {publish(args.to, args.cache_dir, data_dir=args.data_dir, seed=args.seed)}")
-        return 0
-    records = read_results(args.cache_dir)
+        skipped: list = []
+        print(f"Wrote {publish(args.to, args.cache_dir, data_dir=args.data_dir, seed=args.seed, skipped=skipped)}")
+        return unread(skipped)
+    skipped = []
+    records = read_results(args.cache_dir, skipped=skipped)
     if not records:
         raise VPRBenchError(NO_RESULTS)
     board = build_board(records)
@@ -49,7 +51,7 @@ def run(args) -> int:
             raise VPRBenchError("leaderboard compare needs two methods and a dataset: "
                                 "vprbench leaderboard compare A B --dataset D")
         print(describe(compare(board, *args.methods, args.dataset, k=args.k, seed=args.seed)))
-        return 0
+        return unread(skipped)
     if args.methods:
         raise VPRBenchError(f"'leaderboard {args.action}' takes no method names (got {' '.join(args.methods)}); "
                             "did you mean 'leaderboard compare A B --dataset D'?")
@@ -59,7 +61,7 @@ def run(args) -> int:
     table = grid(board)
     if args.format != "table":
         print(render(table, args.format))
-        return 0
+        return unread(skipped)
     view = Table(title="R@1 / R@5 (%): one run per cell")
     view.add_column("method")
     for column in table.columns:
@@ -70,4 +72,13 @@ def run(args) -> int:
     out.print(view)
     if board.excluded:
         out.print(f"{len(board.excluded)} run(s) left out of every cell, e.g.: {board.excluded[0][1]}", highlight=False)
-    return 0
+    return unread(skipped)
+
+
+def unread(skipped: list) -> int:
+    """Exit 1 when stored files could not be read (each named in a warning above); they are kept."""
+    if not skipped:
+        return 0
+    console(stderr=True).print(f"error: {len(skipped)} stored file(s) could not be read (named above) and are left out; "
+                               "nothing was deleted. Fix or move them, or rerun those evaluations.", highlight=False)
+    return 1

@@ -28,6 +28,9 @@ from ..paths import cache_root
 from .record import PER_QUERY_FIELDS, validated
 
 CARDS = "methods"
+#: how this folder is laid out (a newer vprbench that lays it out otherwise bumps the version)
+LAYOUT = {"layout": "vprbench-results", "version": 1}
+LAYOUT_FILE = "LAYOUT"  # JSON; not *.json, which would be a record
 _HEX = re.compile(r"^[0-9a-f]{16}$")
 
 
@@ -44,6 +47,23 @@ def run_folder(protocol_hash: str, row_key: str, cache_dir=None) -> Path:
 
 
 # ---------------------------------------------------------------- writing
+def check_layout(root: Path) -> None:
+    """A results folder laid out by another vprbench (its LAYOUT file) is refused, never rewritten."""
+    path = root / LAYOUT_FILE
+    if not path.is_file():
+        return
+    try:
+        found = json.loads(path.read_text(encoding="utf-8"))
+        layout, version = found["layout"], int(found["version"])
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        raise VPRBenchError(f"{path} is not a vprbench results layout file ({type(error).__name__}); fix it, or use "
+                            "another --cache-dir. Nothing was changed.") from None
+    if layout != LAYOUT["layout"] or version > LAYOUT["version"]:
+        raise VPRBenchError(f"The results folder {root} was written by another vprbench ({layout} version {version}; "
+                            f"this one reads {LAYOUT['layout']} up to {LAYOUT['version']}): upgrade vprbench, or use "
+                            "another --cache-dir. Nothing was changed.")
+
+
 def save_result(record: dict, cache_dir=None) -> Path:
     """Store one record (per-query arrays in an .npz beside it) in its identity folder, and the
     method card of its row; returns the JSON path. Safe with any number of concurrent writers."""
@@ -51,7 +71,10 @@ def save_result(record: dict, cache_dir=None) -> Path:
     checked = validated(record, f"the record of run {record.get('run_id')!r}")
     folder = run_folder(checked["protocol"]["hash"], checked["row_key"], cache_dir)
     stem = checked["run_id"]
+    check_layout(results_dir(cache_dir))
     try:
+        if not (results_dir(cache_dir) / LAYOUT_FILE).is_file():
+            atomic_write(results_dir(cache_dir) / LAYOUT_FILE, json.dumps(LAYOUT))
         section = record.get("per_query")
         if section and "file" not in section:
             arrays = _per_query_arrays(section)
@@ -109,13 +132,15 @@ def read_record(path: Path) -> dict:
     return record
 
 
-def _records_in(folder: Path) -> list[dict]:
+def _records_in(folder: Path, skipped: list | None = None) -> list[dict]:
     found = []
     for path in sorted(folder.glob("*.json")) if folder.is_dir() else []:
         try:
             found.append(read_record(path))
         except VPRBenchError as error:
             warnings.warn(f"{error} Skipped (nothing was deleted).", stacklevel=3)
+            if skipped is not None:
+                skipped.append(path)
     return found
 
 
@@ -126,17 +151,19 @@ def _order(records: list[dict]) -> list[dict]:
 def find_result(spec, cache_dir=None) -> dict | None:
     """The newest stored record that answers `spec` (same row, same protocol, every K asked), or None."""
     migrate_legacy(cache_dir)
+    check_layout(results_dir(cache_dir))
     wanted = {str(k) for k in spec.ks}
     found = [r for r in _records_in(run_folder(spec.dataset.protocol_hash, spec.row_key, cache_dir))
              if r["row_key"] == spec.row_key and wanted <= set(r["recall"])]
     return _order(found)[-1] if found else None
 
 
-def read_results(cache_dir=None) -> list[dict]:
+def read_results(cache_dir=None, skipped: list | None = None) -> list[dict]:
     """Every stored record, oldest first. A file that is not a whole record this version reads is
-    named in a warning and skipped (never deleted)."""
+    named in a warning and skipped (never deleted), its path appended to `skipped` when given."""
     migrate_legacy(cache_dir)
     root = results_dir(cache_dir)
+    check_layout(root)
     legacy = cache_root(cache_dir) / "results.jsonl"
     if legacy.is_file():
         warnings.warn(f"{legacy} holds vprbench 0.1 records, which carry no protocol or weights provenance and are "
@@ -144,7 +171,7 @@ def read_results(cache_dir=None) -> list[dict]:
     records = []
     for folder in sorted(root.glob("*/*")) if root.is_dir() else []:
         if folder.is_dir() and folder.parent.name != CARDS:
-            records += _records_in(folder)
+            records += _records_in(folder, skipped)
     return _order(records)
 
 

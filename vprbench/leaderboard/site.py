@@ -34,7 +34,7 @@ PAGE_HEAD = "---\nhide:\n  - toc\n---\n"
 MOSAIC_ROWS = 4
 
 
-def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0) -> Path:
+def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0, skipped: list | None = None) -> Path:
     """Write <folder>/leaderboard/ (overview, one page per dataset, figures, downloads) from the
     results store; returns that folder. Nothing is changed when anything fails."""
     folder = Path(folder)
@@ -42,7 +42,7 @@ def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0) -> Pa
         raise VPRBenchError(f"--to {folder} is a file, not a folder: give the docs folder, e.g. --to docs/")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        records = read_results(cache_dir)
+        records = read_results(cache_dir, skipped=skipped)
     for warning in caught:  # corrupt or foreign records: named, then left out
         warnings.warn(str(warning.message), stacklevel=2)
     if not records:
@@ -288,7 +288,8 @@ def _file_slug(text: str) -> str:
 def _summary(cell: Cell, stats: dict) -> dict:
     r = cell.record
     entry = {"method": cell.row.label, "weights": weights_shown(cell.row, r), "dataset": cell.column.dataset,
-             "dataset_kind": cell.column.kind, "domain": cell.column.domain}
+             "column": cell.column.title, "page": f"{cell.column.slug}.md", "dataset_kind": cell.column.kind,
+             "domain": cell.column.domain, "row_key": cell.row.key}
     for k in CELL_KS:
         entry[f"r{k}"] = stats[k]["value"]
         entry[f"r{k}_ci_low"], entry[f"r{k}_ci_high"] = stats[k]["ci"] or (None, None)
