@@ -1,15 +1,10 @@
-"""vprbench datasets list / info / download / import / verify."""
+"""vprbench datasets list / info / download / import / verify (their imports are made when they run:
+`vprbench --help` answers at once)."""
 from __future__ import annotations
 
 import json
 import warnings
 
-from rich.table import Table
-
-from ..datasets import (
-    dataset_location, dataset_manifest, dataset_manifests, download_dataset, import_dataset, load_dataset, protocols,
-    verify_dataset,
-)
 from ..errors import VPRBenchError
 from .console import console, styled
 from .options import add_location_options, resolve_locations
@@ -51,6 +46,10 @@ def add_parsers(commands) -> None:
 
 
 def run_list(args) -> int:
+    from rich.table import Table
+
+    from ..datasets import dataset_location, dataset_manifests
+
     resolve_locations(args)
     rows = []
     for manifest in dataset_manifests().values():
@@ -76,6 +75,10 @@ def run_list(args) -> int:
 
 
 def run_info(args) -> int:
+    from rich.table import Table
+
+    from ..datasets import dataset_location, dataset_manifest, dataset_manifests, load_dataset, protocols
+
     resolve_locations(args)
     if args.protocols:
         listed = [p.record() for p in protocols(dataset_manifest(args.name)).values()]
@@ -105,9 +108,16 @@ def run_info(args) -> int:
     return 0
 
 
-def protocol_table(name: str, listed: list[dict]) -> Table:
+def protocol_table(name: str, listed: list[dict]):
+    """The protocols, readable at 80 columns: names and hashes never wrap, sources follow the table."""
+    from rich.console import Group
+    from rich.table import Table
+    from rich.text import Text
+
     table = Table(title=f"Protocols of {name} (the first is the default; choose with --protocol NAME)")
-    for column in ("name", "hash", "database", "queries", "positive if", "source"):
+    for column in ("name", "hash"):
+        table.add_column(column, no_wrap=True)
+    for column in ("database", "queries", "positive if"):
         table.add_column(column, overflow="fold")
     for p in listed:
         gt = p["ground_truth"]
@@ -115,13 +125,14 @@ def protocol_table(name: str, listed: list[dict]) -> Table:
         db, q = p["database"], p["queries"]
         table.add_row(p["name"], p["hash"],
                       f"{db['count'] or '?'} ({db['split']}{', without ' + ', '.join(db['exclude_folders']) if db['exclude_folders'] else ''})",
-                      f"{q['count'] or 'all'} ({q['split']}{', listed subset' if q['subset'] else ''})", within,
-                      p["source"])
-    return table
-
+                      f"{q['count'] or 'all'} ({q['split']}{', listed subset' if q['subset'] else ''})", within)
+    sources = [Text.assemble((f"{p['name']}: ", "bold"), p["source"]) for p in listed if p.get("source")]
+    return Group(table, *sources)
 
 
 def run_download(args) -> int:
+    from ..datasets import download_dataset
+
     resolve_locations(args)
     dataset = download_dataset(args.name, args.data_dir, strict=args.strict)
     print(f"{args.name}: {len(dataset.database)} database and {len(dataset.queries)} query images at {dataset.root}")
@@ -129,6 +140,8 @@ def run_download(args) -> int:
 
 
 def run_import(args) -> int:
+    from ..datasets import import_dataset
+
     resolve_locations(args)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -143,6 +156,8 @@ def run_import(args) -> int:
 
 
 def run_verify(args) -> int:
+    from ..datasets import verify_dataset
+
     resolve_locations(args)
     report = verify_dataset(args.name, args.data_dir, strict=args.strict, sample=None if args.all_images else args.sample)
     if args.json:

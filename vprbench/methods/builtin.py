@@ -1,10 +1,8 @@
-"""The core methods, registered by import path: listing them imports no model code."""
+"""The core methods, by import path: listing them imports no model code."""
 from __future__ import annotations
 
 import tomllib
 from importlib.resources import files
-
-from .registry import register_method
 
 ANYLOC = "vprbench.methods.anyloc:AnyLoc"
 
@@ -14,13 +12,16 @@ def anyloc_presets() -> dict[str, dict]:
     return tomllib.loads((files("vprbench.manifests") / "methods" / "anyloc.toml").read_text())["presets"]
 
 
-def register_core() -> None:
-    register_method("hog", "vprbench.methods.hog:HOG", source="vprbench",
-                    description="HOG of the resized whole image (VPR-Bench settings); no training")
-    register_method("dense-vlad", "vprbench.methods.dense_vlad:DenseVLAD", source="vprbench",
-                    description="DenseVLAD: dense multi-scale RootSIFT + VLAD (128 words fitted on the database)")
-    for name, preset in anyloc_presets().items():
-        register_method(name, ANYLOC, defaults=preset.get("options", {}), description=preset.get("description", ""),
-                        source="vprbench")
-    register_method("anyloc", ANYLOC, source="vprbench",
-                    description="AnyLoc composition; every option settable (see docs/anyloc.md)")
+def core_methods() -> list[dict]:
+    """register_method's keywords for each core method and AnyLoc preset."""
+    found = [
+        {"name": "hog", "factory": "vprbench.methods.hog:HOG",
+         "description": "HOG of the resized whole image (VPR-Bench settings); no training"},
+        {"name": "dense-vlad", "factory": "vprbench.methods.dense_vlad:DenseVLAD",
+         "description": "DenseVLAD: dense multi-scale RootSIFT + VLAD (128 words fitted on the database)"},
+    ]
+    found += [{"name": name, "factory": ANYLOC, "defaults": preset.get("options", {}),
+               "description": preset.get("description", "")} for name, preset in anyloc_presets().items()]
+    found.append({"name": "anyloc", "factory": ANYLOC,
+                  "description": "AnyLoc composition; every option settable (see docs/anyloc.md)"})
+    return [{**entry, "source": "vprbench"} for entry in found]

@@ -85,9 +85,10 @@ def _load_plugins() -> None:
     if _plugins_loaded:
         return
     _plugins_loaded = True
-    from .builtin import register_core
+    from .builtin import core_methods
 
-    register_core()
+    for entry in core_methods():
+        register_method(**entry)
     for ep in entry_points(group=ENTRY_POINT_GROUP):
         try:
             register = ep.load()

@@ -21,7 +21,6 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
 from ...errors import VPRBenchError
 from ...images import list_images
@@ -77,6 +76,8 @@ def latlon_to_metres(lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
 
 
 def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.ndarray, str]:
+    import pandas as pd
+
     try:
         table = pd.read_csv(csv)
     except (OSError, ValueError) as error:
