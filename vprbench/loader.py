@@ -4,6 +4,11 @@ Workers decode and preprocess (`load`) while the main process describes the prev
 batch, so an accelerator is not left waiting for JPEG decoding. Batches keep input order
 and a row never depends on its batch (the `Method` contract), so descriptors are the same
 for any number of workers and any batch size.
+
+Given the images' identities (sha256 of their bytes, datasets/identity.py), each image is
+hashed just before and just after it is read: a row is described only when both equal the
+identity the store is keyed by, so a file that changes while it is read (a sync tool, a
+second copy being written) never ends in a store that claims the original bytes.
 """
 from __future__ import annotations
 
@@ -47,19 +52,43 @@ class _Failed:
 
 
 class _Images:
-    """A torch map-style dataset: item i is `method.load(paths[i])`."""
+    """A torch map-style dataset: item i is `method.load(paths[i])`, checked against its identity."""
 
-    def __init__(self, method, paths: Sequence[Path]):
+    def __init__(self, method, paths: Sequence[Path], digests: Sequence[str] | None = None):
         self.method, self.paths = method, list(paths)
+        self.digests = list(digests) if digests is not None else None
 
     def __len__(self) -> int:
         return len(self.paths)
 
     def __getitem__(self, i: int):
         try:
-            return self.method.load(self.paths[i])
+            if self.digests is None:
+                return self.method.load(self.paths[i])
+            before = _digest(self.paths[i])
+            item = self.method.load(self.paths[i])
+            after = _digest(self.paths[i])
+            if not before == after == self.digests[i]:
+                return _Failed(changed_message(self.paths[i], self.digests[i], before, after))
+            return item
         except VPRBenchError as error:
             return _Failed(str(error))
+
+
+def _digest(path: Path) -> str:
+    from .fsutil import file_sha256
+
+    try:
+        return file_sha256(path)
+    except OSError as error:
+        raise VPRBenchError(f"Cannot read image {path}: {error.strerror or error}.") from None
+
+
+def changed_message(path: Path, expected: str, before: str, after: str) -> str:
+    when = "while vprbench read it" if before != after else "since its identity was taken at the start of this run"
+    return (f"Image {path} changed {when} (sha256 {expected[:12]}… expected, {after[:12]}… now): its row is not "
+            "described, so no store holds descriptors of other bytes than its key names; the rows already "
+            "described are kept. Let whatever is writing the images finish, then run again.")
 
 
 def _as_batch(items: list) -> list:
@@ -85,8 +114,10 @@ def checked(method, descriptors, n: int, dim: int | None = None) -> np.ndarray:
     return out
 
 
-def describe_batches(method, paths: Sequence[Path], *, workers: int = 0, device: str = "cpu") -> Iterator[tuple[int, np.ndarray]]:
-    """(offset, descriptors) for consecutive batches of `paths`, in input order."""
+def describe_batches(method, paths: Sequence[Path], *, workers: int = 0, device: str = "cpu",
+                     digests: Sequence[str] | None = None) -> Iterator[tuple[int, np.ndarray]]:
+    """(offset, descriptors) for consecutive batches of `paths`, in input order; with `digests`
+    (the sha256 each image must have), an image whose bytes differ stops the loop before its batch."""
     size = check_batch_size(method)
     if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 0:
         raise VPRBenchError(f"--workers must be a whole number >= 0, got {workers!r}.")
@@ -95,7 +126,7 @@ def describe_batches(method, paths: Sequence[Path], *, workers: int = 0, device:
     from torch.utils.data import DataLoader
 
     batches = -(-len(paths) // size)
-    loader = DataLoader(_Images(method, paths), batch_size=size, shuffle=False, collate_fn=_as_batch,
+    loader = DataLoader(_Images(method, paths, digests), batch_size=size, shuffle=False, collate_fn=_as_batch,
                         num_workers=min(int(workers), batches), pin_memory=str(device).startswith("cuda"))
     offset, dim = 0, None
     for items in loader:

@@ -94,7 +94,7 @@ def test_damaged_image_hash_memo_is_set_aside_and_rebuilt(damage, shared_data, c
         damage_pages(memo)
     with pytest.raises(sqlite3.DatabaseError):  # the damage is real: reading the hashes fails
         with sqlite3.connect(memo) as db:
-            db.execute("SELECT * FROM hashes").fetchall()
+            db.execute("SELECT * FROM hashes_v2").fetchall()
     with pytest.warns(UserWarning, match=rf"The image-hash memo {memo} is damaged \(.*\); it is set aside as "
                                          rf"{memo}.damaged and rebuilt"):
         code, _, err = cli(*HOG, "--data-dir", shared_data)
@@ -104,7 +104,7 @@ def test_damaged_image_hash_memo_is_set_aside_and_rebuilt(damage, shared_data, c
     assert (cache_root() / (MEMO_NAME + ".damaged")).is_file()
     with sqlite3.connect(memo) as db:  # rebuilt: every image remembered again
         assert db.execute("PRAGMA quick_check").fetchone() == ("ok",)
-        assert db.execute("SELECT count(*) FROM hashes").fetchone() == (222,)
+        assert db.execute("SELECT count(*) FROM hashes_v2").fetchone() == (222,)
 
 
 # ---------------------------------------------------------------- claim files of a sweep

@@ -1,11 +1,14 @@
 """Content identity of image lists: what descriptor stores are keyed by.
 
 An image is identified by its name (relative to the dataset root) and the sha256 of its
-bytes. Hashing a million files on every run would read the whole dataset, so each hash is
-remembered in a small SQLite table in the cache keyed by (absolute path, size, mtime_ns):
-a warm run only stats the files (where the cache cannot be written, every run hashes the
-files). A file rewritten in place with the same size within one mtime tick is not noticed
-(as with make or git); rename or touch it.
+bytes: "the same image" means the same bytes, never the same size and modification time.
+Hashing a million files on every run would read the whole dataset, so each hash is remembered
+in a small SQLite table in the cache, reused only while the file's inode, size, mtime and
+ctime are all unchanged. The ctime (inode change time) is set by the kernel on every write or
+metadata change and cannot be set back by a user (`touch -d`, `os.utime` and `cp -p` restore
+the mtime, not the ctime), so an edit that keeps the size and restores the mtime is still
+hashed again. Where the cache cannot be written, every run hashes the files. The loader then
+checks, image by image, that the bytes it decodes are the ones so identified (loader.py).
 """
 from __future__ import annotations
 
@@ -41,8 +44,17 @@ def _damaged(error: sqlite3.Error) -> bool:
     return (getattr(error, "sqlite_errorcode", 0) & 0xFF) in (sqlite3.SQLITE_CORRUPT, sqlite3.SQLITE_NOTADB)
 
 
+#: the memo's table: a path's hash and the stamp (inode, size, mtime, ctime) it was taken at
+TABLE = "CREATE TABLE IF NOT EXISTS hashes_v2 (path TEXT PRIMARY KEY, stamp TEXT, sha256 TEXT)"
+
+
+def stamp(st: os.stat_result) -> str:
+    """What must stay unchanged for a remembered hash to be reused (see the module's docstring)."""
+    return f"{st.st_ino}:{st.st_size}:{st.st_mtime_ns}:{st.st_ctime_ns}"
+
+
 class _Memo:
-    """(path, size, mtime_ns) -> sha256, shared by every process using the cache.
+    """path -> (stamp, sha256), shared by every process using the cache.
 
     The memo is only a cache of hashes: a damaged file (not a database, or malformed pages) is
     renamed to `image-hashes.sqlite.damaged`, with one warning naming it, and rebuilt; a cache
@@ -59,8 +71,7 @@ class _Memo:
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             db = sqlite3.connect(self.path, timeout=60)
-            db.execute("CREATE TABLE IF NOT EXISTS hashes "
-                       "(path TEXT PRIMARY KEY, size INTEGER, mtime_ns INTEGER, sha256 TEXT)")
+            db.execute(TABLE)
             return db
         except sqlite3.Error as error:
             if db is not None:
@@ -87,8 +98,7 @@ class _Memo:
                                   "and rebuilt (images are hashed again once). Delete the set-aside file when you like.",
                                   stacklevel=4)
                 db = sqlite3.connect(self.path, timeout=60)
-                db.execute("CREATE TABLE IF NOT EXISTS hashes "
-                           "(path TEXT PRIMARY KEY, size INTEGER, mtime_ns INTEGER, sha256 TEXT)")
+                db.execute(TABLE)
                 return db
         except (OSError, sqlite3.Error, VPRBenchError):  # cannot rebuild here: hash without remembering
             return None
@@ -106,17 +116,17 @@ class _Memo:
         finally:
             db.close()
 
-    def lookup(self, keys: dict[str, tuple[int, int]]) -> dict[str, str]:
-        """The remembered hashes of the paths whose size and mtime are unchanged."""
+    def lookup(self, keys: dict[str, str]) -> dict[str, str]:
+        """The remembered hashes of the paths whose stamp is unchanged."""
         if self.db is None:
             return {}
         found, paths = {}, list(keys)
         try:
             for start in range(0, len(paths), 500):
                 part = paths[start:start + 500]
-                query = f"SELECT path, size, mtime_ns, sha256 FROM hashes WHERE path IN ({','.join('?' * len(part))})"
-                for path, size, mtime, digest in self.db.execute(query, part):
-                    if keys.get(path) == (size, mtime) and isinstance(digest, str):
+                query = f"SELECT path, stamp, sha256 FROM hashes_v2 WHERE path IN ({','.join('?' * len(part))})"
+                for path, found_stamp, digest in self.db.execute(query, part):
+                    if keys.get(path) == found_stamp and isinstance(digest, str):
                         found[path] = digest
         except sqlite3.Error as error:
             if _damaged(error):
@@ -124,13 +134,13 @@ class _Memo:
             return {}  # nothing trusted from a file that fails: every image is hashed
         return found
 
-    def remember(self, rows: list[tuple[str, int, int, str]]) -> None:
+    def remember(self, rows: list[tuple[str, str, str]]) -> None:
         for attempt in range(2):  # a second time in a rebuilt memo, if this one proves damaged
             if self.db is None or not rows:
                 return
             try:
                 with self.db:
-                    self.db.executemany("INSERT OR REPLACE INTO hashes VALUES (?, ?, ?, ?)", rows)
+                    self.db.executemany("INSERT OR REPLACE INTO hashes_v2 VALUES (?, ?, ?)", rows)
                 return
             except sqlite3.Error as error:  # read-only or full: the hashes are right, only not remembered
                 if not _damaged(error) or attempt:
@@ -151,24 +161,25 @@ def content_hashes(paths: Sequence[Path], cache_dir=None) -> list[str]:
             st = os.stat(name)
         except FileNotFoundError:
             continue
-        keys[name] = (st.st_size, st.st_mtime_ns)
+        keys[name] = stamp(st)
     memo = _Memo(cache_dir)
     try:
         known = memo.lookup(keys)
         new = []
-        for name, (size, mtime) in keys.items():
+        for name, taken in keys.items():
             if name not in known:
                 known[name] = _file_sha256(name)
-                new.append((name, size, mtime, known[name]))
+                new.append((name, taken, known[name]))
         memo.remember(new)
     finally:
         memo.close()
     return [known.get(name, "missing") for name in names]
 
 
-def images_key(paths: Sequence[Path], root: Path | None, cache_dir=None) -> str:
-    """sha256 over the images' names and contents, in order."""
+def images_key(paths: Sequence[Path], root: Path | None, cache_dir=None, digests: Sequence[str] | None = None) -> str:
+    """sha256 over the images' names and contents (`digests`, else hashed now), in order."""
     h = hashlib.sha256()
-    for name, digest in zip(image_names(paths, root), content_hashes(paths, cache_dir)):
+    digests = content_hashes(paths, cache_dir) if digests is None else digests
+    for name, digest in zip(image_names(paths, root), digests):
         h.update(f"{name}\0{digest}\n".encode())
     return h.hexdigest()

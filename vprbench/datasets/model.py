@@ -126,9 +126,19 @@ class Dataset:
         if "_images_fingerprint" not in self.__dict__:
             from .identity import images_key
 
-            self._images_fingerprint = {split: images_key(getattr(self, split), self.root, cache_dir)
+            digests = self.image_digests(cache_dir)
+            self._images_fingerprint = {split: images_key(getattr(self, split), self.root, digests=digests[split])
                                         for split in ("database", "queries")}
         return dict(self._images_fingerprint)
+
+    def image_digests(self, cache_dir=None) -> dict[str, list[str]]:
+        """sha256 of every image's bytes, per split, taken once per Dataset (memoised in the cache)."""
+        if "_image_digests" not in self.__dict__:
+            from .identity import content_hashes
+
+            self._image_digests = {split: content_hashes(getattr(self, split), cache_dir)
+                                   for split in ("database", "queries")}
+        return self._image_digests
 
     def ground_truth_fingerprint(self) -> str:
         """Identity of what counts as a positive: a change re-scores stored descriptors."""

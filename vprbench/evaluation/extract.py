@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..datasets.identity import image_names, images_key
+from ..datasets.identity import content_hashes, image_names, images_key
 from ..distributed import Ranks
 from ..errors import VPRBenchError
 from ..fsutil import cache_error
@@ -47,10 +47,12 @@ class Described:
 
 
 def describe_splits(method, splits: dict[str, list[Path]], *, root: Path | None = None, label: str = "images",
-                    image_keys: dict[str, str] | None = None, cache_dir=None, store_dtype: str = "float32",
+                    digests: dict[str, list[str]] | None = None, cache_dir=None, store_dtype: str = "float32",
                     workers: int = 0, lock_timeout: float | None = None, ranks: Ranks | None = None,
                     progress=None) -> Described:
-    """Complete stores for every split of `splits` (name -> image paths), computing what is missing."""
+    """Complete stores for every split of `splits` (name -> image paths), computing what is missing.
+    `digests` are the images' sha256 per split (hashed now when not given): the store is keyed by
+    them, and every image described is checked to still have them (loader.py)."""
     ranks = ranks or Ranks()
     if store_dtype not in DTYPES:
         raise VPRBenchError(f"--store-dtype must be one of {', '.join(DTYPES)}, got {store_dtype!r}.")
@@ -59,12 +61,13 @@ def describe_splits(method, splits: dict[str, list[Path]], *, root: Path | None 
         if not paths:
             raise VPRBenchError(f"No images to describe in the {split} split.")
     names = {split: image_names(paths, root) for split, paths in splits.items()}
-    image_keys = image_keys or {split: images_key(paths, root, cache_dir) for split, paths in splits.items()}
+    digests = digests or {split: content_hashes(paths, cache_dir) for split, paths in splits.items()}
+    image_keys = {split: images_key(paths, root, digests=digests[split]) for split, paths in splits.items()}
     fingerprint = method_fingerprint(method, store_dtype)
     folder = StoreFolder(method.name, fingerprint, label, {s: image_keys[s] for s in splits}, cache_dir)
     ranks.agree({"fingerprint": fingerprint, "images": image_keys, "store": str(folder.path.resolve())},
                 "the method, the images or the cache folder")
-    job = _Job(method, splits, names, folder, store_dtype, workers, ranks, progress, label)
+    job = _Job(method, splits, names, folder, store_dtype, workers, ranks, progress, label, digests)
     computed = {split: 0 for split in splits}
     timings = {"fit_s": 0.0, **{f"{split}_s": 0.0 for split in splits}}
 
@@ -98,8 +101,9 @@ def describe_splits(method, splits: dict[str, list[Path]], *, root: Path | None 
 
 
 class _Job:
-    def __init__(self, method, splits, names, folder: StoreFolder, dtype, workers, ranks: Ranks, progress, label):
-        self.method, self.splits, self.names, self.folder = method, splits, names, folder
+    def __init__(self, method, splits, names, folder: StoreFolder, dtype, workers, ranks: Ranks, progress, label,
+                 digests):
+        self.method, self.splits, self.names, self.folder, self.digests = method, splits, names, folder, digests
         self.dtype, self.workers, self.ranks, self.progress, self.label = dtype, workers, ranks, progress, label
 
     # ---------------------------------------------------------------- rank 0
@@ -222,6 +226,7 @@ class _Job:
         device = str(getattr(self.method, "device", "cpu"))
         try:
             for offset, descriptors in describe_batches(self.method, [paths[i] for i in todo], workers=self.workers,
+                                                        digests=[self.digests[split][i] for i in todo],
                                                         device=device):
                 rows = todo[offset:offset + len(descriptors)]
                 if writer is None:

@@ -84,7 +84,7 @@ def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None
     workers = loader_workers(settings, method)
     described = describe_splits(
         method, {"database": dataset.database, "queries": dataset.queries}, root=dataset.root, label=dataset.name,
-        image_keys=dataset.images_fingerprint(settings.cache_dir), cache_dir=settings.cache_dir,
+        digests=dataset.image_digests(settings.cache_dir), cache_dir=settings.cache_dir,
         store_dtype=spec.store_dtype, workers=workers, lock_timeout=settings.lock_timeout, ranks=ranks,
         progress=progress)
     if described.stores is None:  # not rank 0: its shard is written; rank 0 evaluates
