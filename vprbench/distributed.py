@@ -99,12 +99,6 @@ class Ranks:
                 "Start every rank with the same command, options, --cache-dir and data."
             )
 
-    def barrier(self) -> None:
-        if self.distributed:
-            import torch.distributed as dist
-
-            dist.barrier()
-
     def close(self) -> None:
         if self.distributed:
             import torch.distributed as dist

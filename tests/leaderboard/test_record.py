@@ -9,7 +9,7 @@ from vprbench.datasets import load_dataset
 from vprbench.errors import VPRBenchError
 from runs import evaluate_method as evaluate
 from vprbench.evaluation import per_query, read_results, results_dir, save_result
-from vprbench.evaluation.identity import benchmark_protocol, fingerprint_of
+from vprbench.evaluation.identity import benchmark_protocols, fingerprint_of
 from vprbench.evaluation.record import method_provenance
 from vprbench.leaderboard import build_board
 from vprbench.evaluation.metrics import successes
@@ -26,7 +26,7 @@ def test_real_run_record_has_provenance_and_recomputable_metrics(shared_data):
     assert set(CONTRACT) <= set(record)
     assert record["schema_version"] == 3 and record["dataset_kind"] == "benchmark"
     assert record["spec"]["method"] == "hog" and record["spec"]["ks"] == [1, 5, 10] and len(record["spec_key"]) == 16
-    assert record["protocol"] == benchmark_protocol("corridor")
+    assert record["protocol"] == next(iter(benchmark_protocols("corridor").values()))  # the default protocol
     assert record["provenance"]["weights"] == {"source": "none"} and record["needs_fit"] is False
     assert record["method_options"] == {"resize": [64, 64]}
     assert {"torch", "faiss", "vprbench", "git"} <= set(record["versions"]) and record["hardware"]["cpu_count"] >= 1

@@ -32,11 +32,6 @@ def benchmark_protocols(name: str) -> dict[str, dict]:
     return {} if manifest is None else {p.hash: p.record() for p in protocols(manifest).values()}
 
 
-def benchmark_protocol(name: str) -> dict | None:
-    """A benchmark's default protocol (the one its manifest names first), or None."""
-    return next(iter(benchmark_protocols(name).values()), None)
-
-
 def dataset_kind(dataset) -> str:
     """'benchmark' (read through a shipped manifest) or 'own' (a folder of the user's own, even
     one whose dataset.toml borrows a benchmark's name)."""
