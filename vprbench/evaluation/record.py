@@ -266,6 +266,7 @@ def result_record(*, spec: RunSpec, method, fingerprint, dataset, dataset_key: s
             "positive_pairs": summary["positive_pairs"],
         },
         "ground_truth": {"unit": summary["unit"], "radius": summary["radius"], "radius_unit": summary["radius_unit"]},
+        "decoding": {"orientation": _orientation()},  # how images were turned into pixels
         "descriptor_dim": descriptor_dim,
         "descriptor_bytes": int(descriptor_dim) * 4,  # float32, as stored and searched
         "recall": {str(k): round(v, 4) for k, v in recalls.items()},
@@ -287,6 +288,12 @@ def result_record(*, spec: RunSpec, method, fingerprint, dataset, dataset_key: s
         raise VPRBenchError(f"Dataset {dataset.name!r} is a folder of one's own but its spec says "
                             f"{record['dataset_kind']}.")
     return record
+
+
+def _orientation() -> str:
+    from ..images import ORIENTATION
+
+    return ORIENTATION
 
 
 def _jsonable(value):

@@ -39,9 +39,11 @@ def method_fingerprint(method, store_dtype: str = "float32") -> dict:
     settings = getattr(method, "settings", None)
     if not isinstance(settings, dict):  # until the registry sets `settings`, the user's options
         settings = method.options
+    from ..images import ORIENTATION
+
     settings = {k: v for k, v in sorted(settings.items()) if k not in RUN_SETTINGS}
     return json.loads(json.dumps({"method": method.name, "settings": settings, **method.fingerprint(),
-                                  "store_dtype": store_dtype}, default=str))
+                                  "store_dtype": store_dtype, "decoding": {"orientation": ORIENTATION}}, default=str))
 
 
 def run_store(record: dict, split: str = "database", cache_dir=None) -> DescriptorStore | None:
