@@ -9,7 +9,7 @@ import pytest
 from vprbench.aggregation import PCAWhitening
 from vprbench.errors import VPRBenchError
 from vprbench.evaluation.search import (SCORE_TOLERANCE, ArrayRows, TransformedRows, _plan, exact_search, retrieve,
-                                        search, tile_rows)
+                                        search, tile_rows, transform_rows)
 from vprbench.methods import Method
 from vprbench.rows import as_rows, parse_memory
 
@@ -22,6 +22,16 @@ def one_thread():
 
     with threadpool_limits(1):
         yield
+
+
+@pytest.fixture
+def tiles_of_1024(monkeypatch):
+    """Tiles of 1,024 rows (at these small dimensions the grid has 4,096), so that a few
+    thousand rows cross several tile and chunk borders."""
+    import vprbench.evaluation.search as search_module
+
+    assert tile_rows(8) == tile_rows(1024) == 4096 and tile_rows(35_721) == 1792 and tile_rows(49_152) == 1280
+    monkeypatch.setattr(search_module, "tile_rows", lambda dim: 1024)
 
 
 class H5Rows:
@@ -76,24 +86,25 @@ def reference_topk(database, queries, k):
     return np.take_along_axis(scores, order, 1), order
 
 
-def test_tie_order_is_score_then_lower_index_across_chunk_and_query_borders():
+def test_tie_order_is_score_then_lower_index_across_chunk_and_query_borders(tiles_of_1024):
     # small integers: every kernel computes the scores exactly, and ties are everywhere,
     # so every chunk border (multiples of 1,024 rows here) cuts through tied groups
     rng = np.random.default_rng(0)
     db = rng.integers(-2, 3, size=(5000, 8)).astype(np.float32)
     q = rng.integers(-2, 3, size=(2500, 8)).astype(np.float32)
     ref_scores, ref_indices = reference_topk(db, q, 20)
-    assert tile_rows(8) == 1024
     for budget in (10**9, budget_for(db, q, 20, chunks=2, query_chunks=2), budget_for(db, q, 20, chunks=5, query_chunks=3)):
         result = exact_search(db, q, 20, memory_budget=budget)
         np.testing.assert_array_equal(result.indices, ref_indices)
         np.testing.assert_array_equal(result.scores, ref_scores.astype(np.float32))
         assert result.indices.dtype == np.int64 and result.scores.dtype == np.float32
-    assert result.info["chunks"] == 5 and result.info["query_chunks"] == 3 and result.info["chunk_rows"] == 1024
+    assert result.info["chunks"] == 5 and result.info["query_chunks"] == 2 and result.info["chunk_rows"] == 1024
+    # small integers: some queries tie more rows at their K-th score than there are candidates
+    assert 0 < result.info["queries_searched_again_for_ties"] < 2500
     assert result.info["tie_order"] == "score rounded to 2^-16 descending, then database index ascending"
 
 
-def test_identical_for_every_budget_with_duplicated_rows_on_tile_borders(tmp_path):
+def test_identical_for_every_budget_with_duplicated_rows_on_tile_borders(tmp_path, tiles_of_1024):
     # 12 x 1,024 rows + 1: with small budgets the last chunk is a single row, where BLAS
     # switches kernels (a product of one row differs from a large one by a few ulps)
     db = unit(12_289, 64, 1)
@@ -139,7 +150,7 @@ def test_matches_faiss_flat_index_at_pitts250k_database_size():
     assert apart.mean() > 0.5 and np.array_equal(result.indices[apart], indices[apart])
 
 
-def test_queries_chunked_at_pitts250k_query_count():
+def test_queries_chunked_at_pitts250k_query_count(tiles_of_1024):
     db, q = unit(10_000, 32, 5), unit(8193, 32, 6)  # Pitts-250k has 8,280 queries; 8 x 1,024 + 1 ends on one
     q[8192] = q[5]
     whole = exact_search(db, q, 5)
@@ -161,11 +172,14 @@ def lattice(n, d, seed, noise=0.0):
     return x + rng.normal(scale=noise, size=(n, d)).astype(np.float32) if noise else x
 
 
-def torch_products(queries, rows):
+def torch_products(queries, rows, out=None):
     """The same product through torch's own BLAS (another set of kernels, as another CPU has)."""
     import torch
 
-    return (torch.from_numpy(np.ascontiguousarray(queries)) @ torch.from_numpy(np.ascontiguousarray(rows)).T).numpy()
+    product = torch.from_numpy(np.ascontiguousarray(queries)) @ torch.from_numpy(np.ascontiguousarray(rows)).T
+    if out is None:
+        return product.numpy()
+    out[...] = product.numpy()
 
 
 def ranked(scores, k):
@@ -203,18 +217,19 @@ def test_results_are_the_same_along_every_arithmetic_path(monkeypatch, torch_thr
     assert not np.array_equal(ranked(raw_numpy, 10)[1], ranked(raw_torch, 10)[1])
     assert not np.array_equal(ranked(raw_numpy, 10)[1], expected)
 
-    def run(threads=1, product=None, tile=None, budget=10**9):
+    def run(threads=1, product=None, tile=None, chunks=None):
         with monkeypatch.context() as patch, threadpool_limits(threads):
             torch_threads(threads)
             if product is not None:
                 patch.setattr(search_module, "inner_products", product)
             if tile is not None:
                 patch.setattr(search_module, "tile_rows", lambda dim: tile)
+            budget = budget_for(db, q, 10, chunks=chunks) if chunks else 10**9
             return exact_search(db, q, 10, memory_budget=budget)
 
     paths = {"numpy, 1 thread": run(), "numpy, 2 threads": run(threads=2), "torch, 1 thread": run(product=torch_products),
              "torch, 2 threads": run(threads=2, product=torch_products), "tiles of 64 rows": run(tile=64),
-             "tiles of 1,000 rows": run(tile=1000), "3 chunks": run(budget=budget_for(db, q, 10, chunks=3))}
+             "tiles of 1,000 rows": run(tile=1000), "3 chunks": run(tile=1024, chunks=3)}
     assert paths["tiles of 64 rows"].info["tile_rows"] == 64 and paths["3 chunks"].info["chunks"] == 3
     for name, result in paths.items():
         assert np.array_equal(result.indices, expected), name
@@ -241,8 +256,9 @@ def test_search_keeps_its_tuple_form():
 def test_budget_too_small_names_what_it_must_hold_and_the_option():
     db, q = unit(5000, 128, 9), unit(3000, 128, 10)
     with pytest.raises(VPRBenchError, match=r"memory budget of 1\.0 MB is too small for this search: it must hold "
-                                             r"the top-20 results of 3,000 queries \(720\.0 kB\).*1024 database rows.*"
-                                             r"Raise --search-memory \(memory_budget\) to at least"):
+                                             r"the top-36 candidates of 3,000 queries \(1\.3 MB\) plus a tile of 3000 "
+                                             r"query rows, two tiles of 4096 database rows of 128 dims.*"
+                                             r"Raise --search-memory \(memory_budget\) to at least 105\.3 MB"):
         exact_search(db, q, 20, memory_budget="1MB")
     with pytest.raises(VPRBenchError, match="K = 6000 must be between 1 and the 5000 database rows"):
         exact_search(db, q, 6000)
@@ -284,7 +300,7 @@ def spectrum(n, d, seed):
     return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
 
 
-def test_retrieve_fits_pca_once_and_is_identical_for_every_budget(tmp_path, monkeypatch):
+def test_retrieve_fits_pca_once_and_is_identical_for_every_budget(tmp_path, monkeypatch, tiles_of_1024):
     db, q = spectrum(4097, 96, 11), spectrum(400, 96, 12)
     db[4096] = db[10]  # the copy is the last tile of the transform, a single row
     q[0] = db[10]
@@ -348,9 +364,9 @@ def test_a_rows_transform_is_the_same_along_every_arithmetic_path(monkeypatch, t
     for threads, tile in ((2, None), (1, 64), (2, 1000)):
         with monkeypatch.context() as patch, threadpool_limits(threads):
             if tile is not None:
-                patch.setattr(search_module, "tile_rows", lambda dim: tile)
+                patch.setattr(search_module, "transform_rows", lambda dim: tile)
             rows = TransformedRows(ArrayRows(db), pca)
-            assert rows.tile == (tile or tile_rows(1024))
+            assert rows.tile == (tile or transform_rows(1024))
             np.testing.assert_array_equal(rows.read_rows(0, 2000), whole)
 
 

@@ -31,18 +31,26 @@ import numpy as np
 
 from ..errors import VPRBenchError
 from ..fsutil import atomic_path
-from ..rows import (DEFAULT_MEMORY_BUDGET, READ_BYTES, ArrayRows, RowSource, as_rows, chunks, format_bytes,
+from ..rows import (DEFAULT_MEMORY_BUDGET, READ_BYTES, ArrayRows, RowSource, as_rows, format_bytes,
                     parse_memory, read_bytes_per_row)
 
 INDEXES = ("exact", "ivf-pq", "hnsw")
 #: scores are rounded to multiples of this before they are ranked (a power of two: exact in float32)
 SCORE_TOLERANCE = 2.0 ** -16
 TIE_ORDER = "score rounded to 2^-16 descending, then database index ascending"
-#: a tile of rows is at most this large (and 64..1024 rows, a power of two)
-TILE_BYTES = 32 * 2**20
+#: a tile of rows is at most this large (and 256..4,096 rows, a multiple of 256): tiles this
+#: big keep BLAS near its peak (a 1,024-row tile of 35,721 dims reaches 86 % of a whole product, 1,792 rows 90 %)
+TILE_BYTES = 256 * 2**20
+#: a post-processor transforms tiles of at most this many input bytes (see transform_rows)
+TRANSFORM_BYTES = 128 * 2**20
+#: candidates kept per query beyond K while merging raw scores: ties on the grid are settled among them
+EXTRA_CANDIDATES = 16
+#: queries are scaled by this before their products: exact (a power of two), and the products
+#: are then the negated grid units the heaps keep, with no pass over the scores
+_UNITS = np.float32(-1 / SCORE_TOLERANCE)
 
-__all__ = ["ArrayRows", "DEFAULT_MEMORY_BUDGET", "INDEXES", "SCORE_TOLERANCE", "SearchResult", "TransformedRows", "exact_search",
-           "retrieve", "search", "tile_rows"]
+__all__ = ["ArrayRows", "DEFAULT_MEMORY_BUDGET", "INDEXES", "SCORE_TOLERANCE", "SearchResult", "TransformedRows",
+           "exact_search", "retrieve", "search", "tile_rows"]
 
 
 @dataclass
@@ -54,8 +62,8 @@ class SearchResult:
 
 def tile_rows(dim: int) -> int:
     """Rows per tile of the grid scores are computed on; depends on the dimension only."""
-    rows = max(1, TILE_BYTES // (4 * int(dim)))
-    return int(min(1024, max(64, 1 << (rows.bit_length() - 1))))
+    rows = TILE_BYTES // (4 * int(dim))
+    return int(min(4096, max(256, rows // 256 * 256)))
 
 
 def read_cost(rows) -> tuple[int, int]:
@@ -71,9 +79,9 @@ def rounded_scores(scores: np.ndarray) -> np.ndarray:
             * np.float32(SCORE_TOLERANCE)).astype(np.float32)
 
 
-def inner_products(queries: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """(Q, D) x (N, D) -> (Q, N) float32: the one place scores are computed."""
-    return queries @ rows.T
+def inner_products(queries: np.ndarray, rows: np.ndarray, out: np.ndarray) -> None:
+    """out[:] = queries @ rows.T, (Q, D) x (N, D) -> (Q, N) float32: the one place scores are computed."""
+    np.matmul(queries, rows.T, out=out)
 
 
 def order_results(scores: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -92,49 +100,83 @@ def check_pair(database: RowSource, queries: RowSource, k: int) -> None:
 
 
 def _plan(database, queries, k: int, budget: int) -> dict:
-    """Query and database chunk rows (whole tiles) for the budget; a clear error when too small."""
+    """Chunk rows (whole tiles) for the budget, or a clear error when it is too small. The
+    budget holds the candidates, one tile of scores, a chunk of queries and two chunks of the
+    database (one searched while the next is read); queries get the most, as every chunk of
+    queries is one more pass over the database."""
     tile, dim = tile_rows(database.dim), database.dim
     (db_row, db_fixed), (q_row, q_fixed) = read_cost(database), read_cost(queries)
     n, q = int(database.row_count), int(queries.row_count)
-    results = q * k * 12  # float32 score + int64 index per result
-    db_min, q_min = min(n, tile), min(q, tile)
-    # + a score tile (and its trimmed copy), a negated database tile, a padded query tile
-    fixed = results + db_fixed + q_fixed + 2 * q_min * db_min * 4 + (db_min + q_min) * dim * 4
-    need = fixed + db_min * db_row + q_min * q_row
+    keep = min(n, k + EXTRA_CANDIDATES)
+    results = q * keep * 12  # float32 score + int64 index per candidate
+    d_tile, q_tile = min(n, tile), min(q, tile)
+    fixed = results + db_fixed + q_fixed + 2 * q_tile * d_tile * 4  # a score tile and a trimmed copy of it
+    need = fixed + 2 * d_tile * db_row + q_tile * q_row
     if budget < need:
         raise VPRBenchError(
-            f"A memory budget of {format_bytes(budget)} is too small for this search: it must hold the top-{k} "
-            f"results of {q:,} queries ({format_bytes(results)}) plus one tile of {db_min} database rows and {q_min} "
-            f"query rows of {dim:,} dims with their scores ({format_bytes(need - results)}), {format_bytes(need)} in "
-            f"all. Raise --search-memory (memory_budget) to at least {format_bytes(need)}.")
+            f"A memory budget of {format_bytes(budget)} is too small for this search: it must hold the top-{keep} "
+            f"candidates of {q:,} queries ({format_bytes(results)}) plus a tile of {q_tile} query rows, two tiles of "
+            f"{d_tile} database rows of {dim:,} dims and their scores ({format_bytes(need - results)}), "
+            f"{format_bytes(need)} in all. Raise --search-memory (memory_budget) to at least {format_bytes(need)}.")
     avail = budget - fixed
-
-    def whole_tiles(rows: int, total: int, least: int) -> int:
-        return total if rows >= total else max(least, rows // tile * tile)
-
-    db_chunk = whole_tiles(min(READ_BYTES, avail - q_min * q_row) // db_row, n, db_min)
-    q_chunk = whole_tiles((avail - db_chunk * db_row) // q_row, q, q_min)
-    return {"tile_rows": int(tile), "chunk_rows": int(db_chunk), "chunks": int(-(-n // db_chunk)),
-            "query_chunk_rows": int(q_chunk), "query_chunks": int(-(-q // q_chunk))}
-
-
-def padded(block: np.ndarray, rows: int) -> np.ndarray:
-    """`block` with zero rows appended up to `rows` (itself when it has them)."""
-    if len(block) == rows:
-        return block
-    out = np.zeros((rows, block.shape[1]), dtype=np.float32)
-    out[:len(block)] = block
-    return out
+    q_tiles = max(1, (avail - 2 * d_tile * db_row) // (q_tile * q_row))
+    q_chunk = min(q, q_tiles * q_tile)
+    q_held = -(-q_chunk // q_tile) * q_tile
+    d_tiles = max(1, min(READ_BYTES // (d_tile * db_row), (avail - q_held * q_row) // (2 * d_tile * db_row)))
+    d_chunk = min(n, d_tiles * d_tile)
+    return {"tile_rows": int(tile), "chunk_rows": int(d_chunk), "chunks": int(-(-n // d_chunk)),
+            "query_chunk_rows": int(q_chunk), "query_chunks": int(-(-q // q_chunk)), "candidates": int(keep)}
 
 
-def grid_distances(scores: np.ndarray) -> np.ndarray:
-    """Scores as negated whole numbers of SCORE_TOLERANCE steps (what the heaps keep: the
-    smallest distance is the best score), C-contiguous float32, computed in place when it can."""
-    out = np.ascontiguousarray(scores, dtype=np.float32)
-    if out is scores and not out.flags.writeable:
-        out = out.copy()
-    np.multiply(out, np.float32(-1 / SCORE_TOLERANCE), out=out)  # a power of two: exact
-    return np.rint(out, out=out)
+def read_into(rows, start: int, stop: int, out: np.ndarray) -> None:
+    """Rows start:stop of a row source into `out` (float32, stop - start rows): straight into
+    it when the source can (`read_rows_into`), else through a fresh array."""
+    reader = getattr(rows, "read_rows_into", None)
+    if reader is not None:
+        reader(start, stop, out)
+        return
+    block = np.asarray(rows.read_rows(start, stop), dtype=np.float32)
+    if block.shape != (stop - start, rows.dim):
+        raise VPRBenchError(f"Row source returned shape {block.shape} for rows {start}:{stop}; expected "
+                            f"({stop - start}, {rows.dim}).")
+    out[...] = block
+
+
+class ChunkReader:
+    """A row source read chunk by chunk into two buffers, the next chunk in a thread while the
+    caller computes on the current one. Buffers are whole tiles; rows past the source's end
+    are zeros (the padding of the last tile). One chunk is read once and kept."""
+
+    def __init__(self, rows, chunk_rows: int, tile: int):
+        self.rows, self.chunk_rows = rows, int(chunk_rows)
+        self.starts = list(range(0, rows.row_count, self.chunk_rows))
+        held = -(-self.chunk_rows // tile) * tile
+        self.buffers = [np.zeros((held, rows.dim), dtype=np.float32) for _ in range(min(2, len(self.starts)))]
+        self.loaded = None  # (start, count) in buffers[0] when there is one chunk
+
+    def _fill(self, i: int) -> tuple[int, int, np.ndarray]:
+        start = self.starts[i]
+        count = min(self.chunk_rows, self.rows.row_count - start)
+        buffer = self.buffers[i % len(self.buffers)]
+        read_into(self.rows, start, start + count, buffer[:count])
+        buffer[count:] = 0
+        return start, count, buffer
+
+    def __iter__(self):
+        if len(self.starts) == 1:
+            if self.loaded is None:
+                self.loaded = self._fill(0)
+            yield self.loaded
+            return
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(1, thread_name_prefix="vprbench-read") as pool:
+            future = pool.submit(self._fill, 0)
+            for i in range(len(self.starts)):
+                chunk = future.result()
+                if i + 1 < len(self.starts):
+                    future = pool.submit(self._fill, i + 1)  # into the buffer the caller finished with
+                yield chunk
 
 
 def _heap(distances: np.ndarray, ids: np.ndarray):
@@ -149,37 +191,62 @@ def _heap(distances: np.ndarray, ids: np.ndarray):
     return heap
 
 
-def exact_search(database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDGET) -> SearchResult:
-    """Exact top-k by inner product, streamed from row sources (or arrays) within the budget."""
+def _scan(database, queries, keep: int, plan: dict, on_grid: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(negated grid units, indices) of the `keep` best rows per query, unordered: queries a
+    chunk at a time, the database streamed past each, every product one tile of fixed shape.
+    `on_grid` rounds each tile of scores before it is merged (the tie rule exactly, at the
+    cost of a pass over the scores); otherwise raw units are merged."""
     import faiss
 
+    tile, q_chunk = plan["tile_rows"], plan["query_chunk_rows"]
+    n_queries = queries.row_count
+    q_tile, d_tile = min(n_queries, tile), min(database.row_count, tile)
+    distances = np.empty((n_queries, keep), dtype=np.float32)
+    indices = np.empty((n_queries, keep), dtype=np.int64)
+    heap = _heap(distances, indices)
+    scores = np.empty((q_tile, d_tile), dtype=np.float32)
+    block = np.zeros((-(-q_chunk // q_tile) * q_tile, queries.dim), dtype=np.float32)
+    reader = ChunkReader(database, plan["chunk_rows"], d_tile)
+    for q0 in range(0, n_queries, q_chunk):
+        m_chunk = min(q_chunk, n_queries - q0)
+        read_into(queries, q0, q0 + m_chunk, block[:m_chunk])
+        block[m_chunk:] = 0
+        block *= _UNITS
+        for d0, count, rows in reader:
+            for t0 in range(0, count, d_tile):
+                n = min(d_tile, count - t0)
+                for a in range(0, m_chunk, q_tile):
+                    m = min(q_tile, m_chunk - a)
+                    inner_products(block[a:a + q_tile], rows[t0:t0 + d_tile], scores)
+                    if on_grid:
+                        np.rint(scores, out=scores)
+                    merged = scores if n == d_tile else np.ascontiguousarray(scores[:m, :n])
+                    heap.addn(n, faiss.swig_ptr(merged), d0 + t0, q0 + a, m)
+    return distances, indices
+
+
+def exact_search(database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDGET) -> SearchResult:
+    """Exact top-k by inner product, streamed from row sources (or arrays) within the budget.
+    Raw scores are merged keeping EXTRA_CANDIDATES more than k per query, then put on the grid
+    and ordered by the tie rule; a query whose last candidate ties with its k-th (more tied
+    rows than candidates) is searched again with every tile rounded before it is merged."""
     database, queries = as_rows(database, "database"), as_rows(queries, "queries")
     k, budget = int(k), parse_memory(memory_budget)
     check_pair(database, queries, k)
     plan = _plan(database, queries, k, budget)
-    tile, q_chunk = plan["tile_rows"], plan["query_chunk_rows"]
-    n_queries = queries.row_count
-    q_tile, d_tile = min(n_queries, tile), min(database.row_count, tile)  # the one product shape
-    distances = np.empty((n_queries, k), dtype=np.float32)  # negated scores while merging
-    indices = np.empty((n_queries, k), dtype=np.int64)
-    for q0, block in chunks(queries, q_chunk):
-        q1 = q0 + len(block)
-        heap = _heap(distances[q0:q1], indices[q0:q1])
-        q_tiles = [padded(block[a:a + tile], q_tile) for a in range(0, len(block), tile)]
-        for d0, rows in chunks(database, plan["chunk_rows"]):
-            for t0 in range(0, len(rows), tile):
-                n = min(tile, len(rows) - t0)
-                d_rows = padded(rows[t0:t0 + n], d_tile)
-                for a, q_rows in zip(range(0, len(block), tile), q_tiles):
-                    m = min(tile, len(block) - a)
-                    tile_distances = grid_distances(inner_products(q_rows, d_rows)[:m, :n])
-                    heap.addn(n, faiss.swig_ptr(tile_distances), d0 + t0, a, m)
-            del rows, d_rows, tile_distances  # before the next chunk is read: the budget holds one
-        heap.reorder()
-        del block, q_tiles
-    scores = (distances * np.float32(-SCORE_TOLERANCE)).astype(np.float32)
-    scores, indices = order_results(scores, indices)
-    return SearchResult(scores, indices, {"index": "exact", "memory_budget": budget, **plan, "tie_order": TIE_ORDER})
+    keep = plan["candidates"]
+    distances, indices = _scan(database, queries, keep, plan, on_grid=False)
+    units, indices = order_results(-np.rint(distances), indices)  # units: rounded scores in grid steps
+    ambiguous = np.flatnonzero(units[:, keep - 1] == units[:, k - 1]) if keep < database.row_count else []
+    units, indices = units[:, :k], indices[:, :k]
+    if len(ambiguous):
+        subset = ArrayRows(queries.read_rows_at(ambiguous))
+        again = _plan(database, subset, k, budget)
+        exact, exact_indices = _scan(database, subset, k, {**again, "candidates": k}, on_grid=True)
+        units[ambiguous], indices[ambiguous] = order_results(-exact, exact_indices)
+    scores = (units * np.float32(SCORE_TOLERANCE)).astype(np.float32)
+    return SearchResult(scores, indices, {"index": "exact", "memory_budget": budget, **plan,
+                                          "queries_searched_again_for_ties": len(ambiguous), "tie_order": TIE_ORDER})
 
 
 def search(database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDGET) -> tuple[np.ndarray, np.ndarray]:
@@ -189,15 +256,31 @@ def search(database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDGET) ->
     return result.scores, result.indices
 
 
+def padded(block: np.ndarray, rows: int) -> np.ndarray:
+    """`block` with zero rows appended up to `rows` (itself when it has them)."""
+    if len(block) == rows:
+        return block
+    out = np.zeros((rows, block.shape[1]), dtype=np.float32)
+    out[:len(block)] = block
+    return out
+
+
+def transform_rows(dim: int) -> int:
+    """Rows per tile a post-processor transforms at once (TRANSFORM_BYTES at 16 bytes per
+    input value: float32 and float64 copies); depends on the dimension only."""
+    rows = max(1, TRANSFORM_BYTES // (16 * int(dim)))
+    return int(min(1024, max(16, 1 << (rows.bit_length() - 1))))
+
+
 class TransformedRows:
     """A row source seen through a fitted post-processor, transformed tile by tile on the grid
-    of `tile_rows(source.dim)` (aligned to row 0, short tiles padded with zero rows), so a
+    of `transform_rows(source.dim)` (aligned to row 0, short tiles padded with zero rows), so a
     row's values depend neither on how a caller chunks its reads nor on its neighbours."""
 
     def __init__(self, source: RowSource, postprocessor):
         self.source, self.postprocessor = source, postprocessor
         self.row_count, self.folder, self.dtype = int(source.row_count), source.folder, np.dtype(np.float32)
-        self.tile = tile_rows(source.dim)
+        self.tile = transform_rows(source.dim)
         self.dim = int(self._transform(source.read_rows(0, 1)).shape[1])
 
     def _transform(self, block: np.ndarray) -> np.ndarray:
@@ -216,12 +299,15 @@ class TransformedRows:
 
     def read_rows(self, start: int, stop: int) -> np.ndarray:
         out = np.empty((stop - start, self.dim), dtype=np.float32)
+        self.read_rows_into(start, stop, out)
+        return out
+
+    def read_rows_into(self, start: int, stop: int, out: np.ndarray) -> None:
         for a in range(start - start % self.tile, stop, self.tile):
             b = min(a + self.tile, self.row_count)
             part = self._transform(self.source.read_rows(a, b))
             lo, hi = max(start, a), min(stop, b)
             out[lo - start:hi - start] = part[lo - a:hi - a]
-        return out
 
     def read_rows_at(self, indices) -> np.ndarray:
         rows = self.source.read_rows_at(indices)
