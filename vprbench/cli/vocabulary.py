@@ -8,11 +8,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..aggregation import domain_datasets, domain_image_size, load_vocabulary
-from ..aggregation.policies import (
-    MAP_PREFIX, domain_names, fit_domain_vocabulary, fit_map_vocabulary, save_to_cache,
-)
+from ..aggregation import load_vocabulary
 from ..aggregation.vocabulary import DEFAULT_BUDGET
+from ..methods.anyloc_vocabulary import (
+    MAP_PREFIX, domain_datasets, domain_image_size, domain_names, fit_domain_vocabulary, fit_map_vocabulary,
+    save_to_cache,
+)
 from ..errors import VPRBenchError
 from .options import add_location_options, add_method_options, method_options, resolve_locations
 
@@ -103,7 +104,7 @@ def run_show(args) -> int:
 
 
 def run_download(args) -> int:
-    from ..aggregation.policies import fetch_released, release, released_name, released_sources
+    from ..methods.anyloc_vocabulary import fetch_released, release, released_name, released_sources
 
     resolve_locations(args)
     r = release()

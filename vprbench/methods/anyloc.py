@@ -18,7 +18,7 @@ import torch.nn.functional as F
 
 from ..aggregation import pooling, vlad
 from ..aggregation.pca import PCAWhitening
-from ..aggregation.policies import MAP_PREFIX, paper_choice, released_provenance, resolve_vocabulary, vocabulary_images
+from .anyloc_vocabulary import MAP_PREFIX, paper_choice, released_provenance, resolve_vocabulary, vocabulary_images
 from ..aggregation.vlad import vlad_hard
 from ..aggregation.vocabulary import fit_vocabulary
 from ..errors import VPRBenchError

@@ -95,7 +95,7 @@ def weights_for(row_weights: dict | None, cell: Cell) -> str | None:
 
 def vocabulary_for(cell: Cell) -> str | None:
     """A domain or union vocabulary that is neither cached nor released must be fitted first."""
-    from ..aggregation.policies import domain_names, find_vocabulary, released_path
+    from ..methods.anyloc_vocabulary import domain_names, find_vocabulary, released_path
     from ..methods.registry import method_entry
 
     merged = {**method_entry(cell.spec.method).defaults, **cell.spec.given}
