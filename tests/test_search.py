@@ -1,6 +1,5 @@
 """Memory-bounded retrieval: exact search streamed from row sources, its tie order and its
 identity across budgets, approximate indexes, post-processing fitted once and reused."""
-import argparse
 import json
 
 import h5py

@@ -22,7 +22,6 @@ the results folder of a run: results/<protocol hash>/<row key>/<run id>.json.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import math
 from pathlib import Path
@@ -31,6 +30,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
 
 from .errors import VPRBenchError, closest_names
+from .hashing import canonical_hash, canonical_json
 
 #: version of the spec's shape; a spec from a newer vprbench is refused
 SPEC_VERSION = 1
@@ -39,22 +39,6 @@ RUN_SETTINGS = ("device", "batch_size", "workers", "memory_budget", "lock_timeou
 INDEXES = ("exact", "ivf-pq", "hnsw")
 STORE_DTYPES = ("float32", "float16")
 DEFAULT_KS = (1, 5, 10, 20)
-
-
-# ---------------------------------------------------------------- the one canonical hash
-def canonical_json(value: Any) -> str:
-    """JSON with sorted keys and no spaces; tuples become lists. Anything that is not plain
-    data (numbers, strings, bools, None, lists, dicts with string keys) is refused."""
-    return json.dumps(value, sort_keys=True, separators=(",", ":"), allow_nan=False, default=_refuse)
-
-
-def _refuse(value):
-    raise TypeError(f"{type(value).__name__} {value!r} is not plain data (numbers, text, lists, tables)")
-
-
-def canonical_hash(value: Any, length: int = 16) -> str:
-    """sha256 of `canonical_json(value)`, hex, the first `length` digits."""
-    return hashlib.sha256(canonical_json(value).encode()).hexdigest()[:length]
 
 
 def plain(value: Any) -> Any:

@@ -14,7 +14,8 @@ from pathlib import Path
 from ..errors import VPRBenchError
 from .console import console as make_console
 from .options import (add_location_options, add_method_options, add_run_options, add_spec_options, add_sweep_options,
-                      method_options, progress, resolve_locations, run_settings, spec_overrides)
+                      explicit_run_options, method_options, progress, resolve_locations, run_settings,
+                      spec_overrides)
 
 
 def add_parsers(commands) -> None:
@@ -43,17 +44,6 @@ def add_parsers(commands) -> None:
     p.add_argument("--dataset", help="apply this dataset's per-method settings (e.g. AnyLoc's resize and vocabulary)")
     add_location_options(p)
     p.set_defaults(run=run_describe)
-
-
-def explicit_run_options(args) -> dict:
-    """Run settings given on the command line that a plan entry could also set (they win over
-    the entry; a flag wins over the same name given with -o)."""
-    from ..spec import RUN_SETTINGS
-
-    given = {k: v for k, v in method_options(args).items() if k in RUN_SETTINGS}
-    found = {"batch_size": getattr(args, "batch_size", None),
-             "device": None if getattr(args, "device", "auto") == "auto" else args.device}
-    return {**given, **{k: v for k, v in found.items() if v is not None}}
 
 
 def run_evaluate(args) -> int:

@@ -183,3 +183,14 @@ def progress(args, stderr_is_rank_zero: bool = True):
     from ..progress import Silent, progress_for
 
     return progress_for(quiet=getattr(args, "quiet", False)) if stderr_is_rank_zero else Silent()
+
+
+def explicit_run_options(args) -> dict:
+    """Run settings given on the command line that a plan entry could also set (they win over
+    the entry; a flag wins over the same name given with -o)."""
+    from ..spec import RUN_SETTINGS
+
+    given = {k: v for k, v in method_options(args).items() if k in RUN_SETTINGS}
+    found = {"batch_size": getattr(args, "batch_size", None),
+             "device": None if getattr(args, "device", "auto") == "auto" else args.device}
+    return {**given, **{k: v for k, v in found.items() if v is not None}}

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 from .console import console
 from .options import (add_location_options, add_method_flags, add_run_options, add_spec_options, add_sweep_options,
-                      method_options, progress, resolve_locations, run_settings, spec_overrides)
+                      explicit_run_options, method_options, progress, resolve_locations, run_settings,
+                      spec_overrides)
 
 
 def add_parsers(commands) -> None:
@@ -19,7 +20,6 @@ def add_parsers(commands) -> None:
 
 def run_plan(args) -> int:
     from ..sweep import read_plan, run_cells
-    from .evaluate import explicit_run_options
 
     resolve_locations(args)
     settings = run_settings(args)

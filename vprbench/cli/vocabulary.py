@@ -8,12 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..aggregation import load_vocabulary
-from ..aggregation.vocabulary import DEFAULT_BUDGET
-from ..methods.anyloc_vocabulary import (
-    MAP_PREFIX, domain_datasets, domain_image_size, domain_names, fit_domain_vocabulary, fit_map_vocabulary,
-    save_to_cache,
-)
+# The vocabulary machinery (torch) is imported by each subcommand, so `vprbench --help` answers at once.
 from ..errors import VPRBenchError
 from .options import add_location_options, add_method_options, method_options, resolve_locations
 
@@ -24,10 +19,9 @@ def add_parsers(commands) -> None:
 
     p = sub.add_parser("fit", help="fit a domain or map-specific vocabulary with a method's features")
     which = p.add_mutually_exclusive_group(required=True)
-    which.add_argument("--domain", help=f"one of: {', '.join(domain_names())}")
+    which.add_argument("--domain", help="a domain or group of domains (`vprbench vocabulary domains` lists them)")
     which.add_argument("--dataset", help="map-specific: the dataset's own database")
-    p.add_argument("--budget", type=int, default=DEFAULT_BUDGET,
-                   help=f"features kept by the seeded sampler (default {DEFAULT_BUDGET:,})")
+    p.add_argument("--budget", type=int, help="features kept by the seeded sampler (default: its standard budget)")
     p.add_argument("--exact", action="store_true", help="the authors' fit on every patch (memory grows with the data)")
     p.add_argument("--seed", type=int, default=42)
     p.add_argument("--output", type=Path, help="also write the vocabulary file here")
@@ -57,6 +51,8 @@ def add_parsers(commands) -> None:
 
 
 def run_fit(args) -> int:
+    from ..methods.anyloc_vocabulary import MAP_PREFIX, domain_image_size, fit_domain_vocabulary, fit_map_vocabulary, save_to_cache
+    from ..aggregation.vocabulary import DEFAULT_BUDGET
     from ..methods import create_method
 
     resolve_locations(args)
@@ -65,7 +61,7 @@ def run_fit(args) -> int:
         raise VPRBenchError(f"Method {args.method!r} does not expose patch features, so it cannot fit a vocabulary.")
     clusters = int(method.clusters)
     setting = {"backbone": method.backbone, "layer": method.layer, "facet": method.facet}
-    common = {"exact": args.exact, "budget": args.budget, "seed": args.seed, "meta": dict(setting)}
+    common = {"exact": args.exact, "budget": DEFAULT_BUDGET if args.budget is None else args.budget, "seed": args.seed, "meta": dict(setting)}
     data_dir = args.data_dir
     if args.domain:
         size = domain_image_size()
@@ -87,6 +83,9 @@ def run_fit(args) -> int:
 
 
 def run_import(args) -> int:
+    from ..methods.anyloc_vocabulary import save_to_cache
+    from ..aggregation.vocabulary import load_vocabulary
+
     resolve_locations(args)
     vocabulary = load_vocabulary(args.path)
     vocabulary.meta["imported_from"] = vocabulary.meta.pop("path")
@@ -96,6 +95,8 @@ def run_import(args) -> int:
 
 
 def run_show(args) -> int:
+    from ..aggregation.vocabulary import load_vocabulary
+
     vocabulary = load_vocabulary(args.path)
     print(f"{vocabulary.meta['path']}: {vocabulary.clusters} clusters x {vocabulary.dim} dims")
     for key, value in sorted(vocabulary.meta.items()):
@@ -117,6 +118,8 @@ def run_download(args) -> int:
 
 
 def run_domains(args) -> int:
+    from ..methods.anyloc_vocabulary import domain_datasets, domain_image_size, domain_names
+
     height, width = domain_image_size()
     print(f"Domain vocabularies (images resized to {height}x{width}; dataset:stride):")
     for domain in domain_names():

@@ -9,7 +9,7 @@ from .layouts import read_layout
 from .layouts.own_data import own_manifest
 from .manifest import DatasetManifest, data_root, dataset_manifest, dataset_manifests, is_default_data_root
 from .model import Dataset, GroundTruth
-from .protocol import Protocol, apply_protocol, find_protocol, own_protocol, protocols
+from .protocol import apply_protocol, find_protocol, own_protocol, protocols
 from .storage import check_counts, dataset_location, import_dataset, missing_dataset_message, nearest_existing, read_registry
 from .verify import VerifyReport, verify_dataset
 

@@ -151,7 +151,7 @@ class Dataset:
 
     def fingerprint(self, cache_dir=None) -> str:
         """Images (content) and ground truth together: what a result was computed on."""
-        from ..spec import canonical_hash
+        from ..hashing import canonical_hash
 
         return canonical_hash({"name": self.name, "images": self.images_fingerprint(cache_dir),
                                "ground_truth": self.ground_truth_fingerprint()})

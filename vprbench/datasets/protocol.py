@@ -76,7 +76,7 @@ class Protocol:
 
     @property
     def hash(self) -> str:
-        from ..spec import canonical_hash
+        from ..hashing import canonical_hash
 
         return canonical_hash(self.definition())
 
@@ -145,7 +145,7 @@ def own_protocol(dataset: Dataset, cache_dir=None) -> dict:
                         base={"unit": gt.unit, "radius": gt.radius, "radius_unit": dataset.radius_unit})
     record = protocol.record()
     record["content"] = dataset.fingerprint(cache_dir)
-    from ..spec import canonical_hash
+    from ..hashing import canonical_hash
 
     record["hash"] = canonical_hash({**protocol.definition(), "content": record["content"]})
     return record

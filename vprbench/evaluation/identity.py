@@ -2,7 +2,7 @@
 dataset (a benchmark or a folder of one's own) and the content fingerprints of its data."""
 from __future__ import annotations
 
-from ..spec import canonical_hash
+from ..hashing import canonical_hash
 
 
 def provisional_protocol(name: str, database: int, queries: int, unit: str, radius) -> dict:
