@@ -137,15 +137,31 @@ def upgrade(data: dict, where: str = "the record") -> dict:
 # ---------------------------------------------------------------- provenance and environment
 def method_provenance(method) -> dict:
     """`method.provenance()`, completed: a method that does not say where its weights came from
-    is 'undeclared' (never official); a method that fits on the database says so."""
+    is 'undeclared' (never official); a method that fits on the database says so, and so does
+    one whose post-processor (e.g. PCA-whitening) is fitted on the database's descriptors.
+
+    Summaries for tables: `learnt` names every fitted part (vocabulary, pca, ...), so a method
+    with learnt parts is never "nothing learnt" even when its weights source is "none";
+    `fitted_on_evaluated_database` is true when any part was fitted on the evaluated database
+    (transductive), null when a part does not say, else false."""
     from ..methods import Method
 
     found = {k: dict(v) if isinstance(v, dict) else v for k, v in (method.provenance() or {}).items()}
     declared = type(method).provenance is not Method.provenance
     found.setdefault("weights", {"source": "none" if declared else "undeclared"})
     if method.needs_fit:
-        found.setdefault("vocabulary", {"source": "map"})
+        found.setdefault("vocabulary", {"source": "map", "fitted_on": "the evaluated database"})
         found["vocabulary"].setdefault("fitted_on_evaluated_database", True)
+    if method.postprocessor() is not None and not any(k in found for k in ("pca", "postprocessor")):
+        found["postprocessor"] = {"source": "fitted", "fitted_on": "the evaluated database's descriptors",
+                                  "fitted_on_evaluated_database": True}
+    parts = {k: v for k, v in found.items() if isinstance(v, dict) and "fitted_on_evaluated_database" in v}
+    for part in parts.values():  # a file says what it is by its bytes when nothing else is known
+        if "fitted_on" not in part and part.get("sha256"):
+            part["fitted_on"] = f"{part.get('released_as') or 'file'} sha256:{part['sha256']}"
+    found["learnt"] = sorted(parts)
+    leaks = [v["fitted_on_evaluated_database"] for v in parts.values()]
+    found["fitted_on_evaluated_database"] = True if True in leaks else (None if None in leaks else False)
     return found
 
 
