@@ -94,3 +94,13 @@ def test_dataset_vocabulary_fits_on_that_database_and_is_transductive_only_there
     missing = create_method("dense-vlad", vocabulary="17places", cache_dir=tmp_path, data_dir=tmp_path, **SMALL)
     with pytest.raises(VPRBenchError, match="cannot fit the '17places' vocabulary: missing 17places"):
         missing.fingerprint()
+
+
+def test_spec_names_a_benchmark_vocabulary_by_its_protocol_hash(shared_data):
+    from vprbench.datasets import dataset_manifest, find_protocol
+    from vprbench.spec import resolve_spec
+
+    spec = resolve_spec("dense-vlad", "corridor", options={"vocabulary": "17places"})
+    assert spec.files == {"vocabulary": f"protocol:{find_protocol(dataset_manifest('17places'), None).hash}"}
+    assert spec.method_identity()["options"]["vocabulary"] == spec.files["vocabulary"]
+    assert spec.row_key != resolve_spec("dense-vlad", "corridor").row_key
