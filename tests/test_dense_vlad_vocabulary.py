@@ -104,3 +104,20 @@ def test_spec_names_a_benchmark_vocabulary_by_its_protocol_hash(shared_data):
     assert spec.files == {"vocabulary": f"protocol:{find_protocol(dataset_manifest('17places'), None).hash}"}
     assert spec.method_identity()["options"]["vocabulary"] == spec.files["vocabulary"]
     assert spec.row_key != resolve_spec("dense-vlad", "corridor").row_key
+
+
+def test_folder_of_the_evaluated_images_is_marked_transductive_by_content(shared_data, tmp_path):
+    from vprbench.datasets import load_dataset
+
+    corridor = load_dataset("corridor", shared_data)
+    folder = tmp_path / "copied"  # a copy elsewhere: found by content, not by path
+    folder.mkdir()
+    for path in corridor.database[:3]:
+        (folder / path.name).write_bytes(path.read_bytes())
+    method = create_method("dense-vlad", vocabulary=str(folder), cache_dir=tmp_path, sample=600, **SMALL)
+    method.use_dataset("corridor")
+    method.vocabulary_centres()
+    assert method.provenance()["vocabulary"]["fitted_on_evaluated_database"] is False  # the method cannot tell
+    found = method_provenance(method, corridor, tmp_path)
+    assert found["vocabulary"]["fitted_on_evaluated_database"] is True
+    assert found["vocabulary"]["evaluated_images_fitted_on"] == 3 and found["fitted_on_evaluated_database"] is True

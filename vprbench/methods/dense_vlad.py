@@ -54,6 +54,8 @@ class DenseVLAD(Method):
         self.vocabulary_info: dict = {}
         self.sift = cv2.SIFT_create()
         self.centres: np.ndarray | None = None
+        #: sha256 of the images of a folder vocabulary (the record checks them against the evaluated dataset)
+        self.folder_digests: set[str] = set()
         self._grids: dict[tuple[int, int], list] = {}
 
     def use_dataset(self, name: str) -> None:
@@ -87,6 +89,9 @@ class DenseVLAD(Method):
         if self.centres is not None:
             info["centres_sha256"] = _sha256(self.centres)
         return info
+
+    def fitted_image_digests(self) -> dict[str, set[str]]:
+        return {"vocabulary": self.folder_digests} if self.folder_digests else {}
 
     # ------------------------------------------------------------ local features
     def load(self, path: Path) -> np.ndarray:

@@ -93,7 +93,11 @@ def _fit_images(method, source: VocabularySource) -> tuple[dict, dict[str, int],
         images = list_images(source.path, recursive=True)
         if not images:
             raise VPRBenchError(f"dense-vlad: vocabulary folder {source.path} holds no images to fit on.")
-        return ({"images": images_key(images, source.path, method.cache_dir)}, {}, images)
+        from ..datasets.identity import content_hashes
+
+        digests = content_hashes(images, method.cache_dir)
+        method.folder_digests = set(digests)
+        return ({"images": images_key(images, source.path, digests=digests)}, {}, images)
     if source.kind == "dataset":
         pairs = [(source.option, 1)]
     else:
