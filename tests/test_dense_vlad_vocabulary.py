@@ -121,3 +121,12 @@ def test_folder_of_the_evaluated_images_is_marked_transductive_by_content(shared
     found = method_provenance(method, corridor, tmp_path)
     assert found["vocabulary"]["fitted_on_evaluated_database"] is True
     assert found["vocabulary"]["evaluated_images_fitted_on"] == 3 and found["fitted_on_evaluated_database"] is True
+
+
+def test_a_dense_vlad_vocabulary_given_to_anyloc_is_refused_naming_both(foreign_images, tmp_path):
+    method = create_method("dense-vlad", vocabulary=str(foreign_images), cache_dir=tmp_path, **SMALL)
+    method.vocabulary_centres()
+    (fitted,) = (tmp_path / "vocabularies" / "dense-vlad").glob("*/vocabulary.pt")
+    with pytest.raises(VPRBenchError, match=r"has 128-dimensional centres but the features are 384-dimensional: "
+                                            r"it was fitted for other features .*: dense-vlad\)"):
+        create_method("anyloc", backbone="dinov2_vits14", layer=9, vocabulary=str(fitted), clusters=8)
