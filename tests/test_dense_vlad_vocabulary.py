@@ -130,3 +130,25 @@ def test_a_dense_vlad_vocabulary_given_to_anyloc_is_refused_naming_both(foreign_
     with pytest.raises(VPRBenchError, match=r"has 128-dimensional centres but the features are 384-dimensional: "
                                             r"it was fitted for other features .*: dense-vlad\)"):
         create_method("anyloc", backbone="dinov2_vits14", layer=9, vocabulary=str(fitted), clusters=8)
+
+
+def test_evaluate_hands_the_data_folder_to_the_vocabulary_and_records_it(shared_data, tmp_path):
+    from vprbench.evaluation.pipeline import evaluate
+    from vprbench.spec import RunSettings, resolve_spec
+
+    options = {"vocabulary": "corridor", "sample": 600, "clusters": 8, "bin_sizes": [6], "step": 8}
+    spec = resolve_spec("dense-vlad", "corridor", options=options)
+    record = evaluate(spec, RunSettings(cache_dir=tmp_path, data_dir=shared_data, workers=0))
+    provenance = record["provenance"]
+    assert provenance["learnt"] == ["vocabulary"] and provenance["fitted_on_evaluated_database"] is True
+    assert provenance["vocabulary"]["datasets"] == {"corridor": 111}
+    assert record["method_fingerprint"]["vocabulary"] == "sha256:" + provenance["vocabulary"]["centres_sha256"]
+    assert record["descriptor_dim"] == 8 * 128 and 0 <= record["recall"]["1"] <= 100
+
+
+def test_domain_vocabulary_names_every_missing_dataset(tmp_path):
+    method = create_method("dense-vlad", vocabulary="indoor", cache_dir=tmp_path, data_dir=tmp_path, **SMALL)
+    with pytest.raises(VPRBenchError) as info:
+        method.fingerprint()
+    assert all(name in str(info.value) for name in ("gardens-point", "17places", "baidu-mall"))
+    assert str(info.value).startswith("dense-vlad: cannot fit the 'indoor' vocabulary: missing")
