@@ -14,7 +14,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..errors import VPRBenchError
-from .backbones import BackboneSpec
+from .catalogue import BackboneEntry
 
 FACETS = ("query", "key", "value", "token")
 
@@ -60,7 +60,7 @@ class DenseExtractor(nn.Module):
     j*heads + h, i.e. dims within a head vary slowest); otherwise the natural [q|k|v] thirds.
     """
 
-    def __init__(self, model: nn.Module, spec: BackboneSpec, layer: int, facet: str, *,
+    def __init__(self, model: nn.Module, spec: BackboneEntry, layer: int, facet: str, *,
                  stride: int | None = None, head_interleaved: bool = False):
         super().__init__()
         depth = len(model.blocks)
