@@ -1,0 +1,240 @@
+"""Bundles: exported from a real results store, re-scored against the real Corridor ground truth,
+and every kind of tampering or hostile archive refused with a line naming the file and the record."""
+from __future__ import annotations
+
+import gzip
+import io
+import json
+import tarfile
+
+import numpy as np
+import pytest
+from bundle_files import read_bundle, record_names, write_bundle
+
+from vprbench.bundles import export_bundle, select_records, verify_bundle
+from vprbench.bundles.export import MANIFEST
+from vprbench.bundles.verify import DataGroundTruth
+from vprbench.cli.main import main
+from vprbench.errors import VPRBenchError
+
+
+@pytest.fixture
+def truth(shared_data):
+    return DataGroundTruth(shared_data)
+
+
+@pytest.fixture
+def bundle(records, tmp_path):
+    return export_bundle(records, tmp_path / "runs.tar.gz", contributor="alice")
+
+
+def test_export_holds_records_arrays_cards_and_sums_only(bundle, records):
+    members = read_bundle(bundle)
+    manifest = json.loads(members[MANIFEST])
+    assert manifest["contributor"] == "alice" and sorted(manifest["runs"]) == sorted(r["run_id"] for r in records)
+    assert set(manifest["files"]) == set(members) - {MANIFEST}
+    assert len(record_names(members)) == 2
+    assert sum(n.endswith(".npz") for n in members) == 2 and sum(n.startswith("methods/") for n in members) == 2
+    assert not [n for n in members if n.endswith((".jpg", ".png", ".h5", ".npy"))]  # no images, no descriptors
+    for record in records:  # byte for byte what the store holds
+        folder = f"{record['protocol']['hash']}/{record['row_key']}"
+        assert members[f"{folder}/{record['run_id']}.json"] == open(record["_source"], "rb").read()
+
+
+def test_select_by_run_or_by_method_and_dataset(records):
+    assert [r["run_id"] for r in select_records(records, run_ids=[records[1]["run_id"]])] == [records[1]["run_id"]]
+    assert len(select_records(records, method="hog", dataset="corridor")) == 2
+    assert len(select_records(records, method="hog [resize=96x128]", dataset="corridor")) == 1
+    with pytest.raises(VPRBenchError, match="No stored run of 'hog' on 'nordland'"):
+        select_records(records, method="hog", dataset="nordland")
+    with pytest.raises(VPRBenchError, match="No stored run 'nope'"):
+        select_records(records, run_ids=["nope"])
+    with pytest.raises(VPRBenchError, match="not both"):
+        select_records(records, run_ids=["x"], method="hog", dataset="corridor")
+
+
+def test_verify_rescores_each_record_against_the_shipped_ground_truth(bundle, records, truth):
+    report = verify_bundle(bundle, truth)
+    assert report.ok, report.lines()
+    by_id = {r["run_id"]: r for r in records}
+    assert len(report.verdicts) == 2
+    for verdict in report.verdicts:
+        assert verdict.recall == pytest.approx(by_id[verdict.run_id]["recall"], abs=1e-4)
+        assert set(verdict.recall) == {"1", "5", "10", "20"}
+    assert all(": ok, re-scored from its arrays: R@1 " in line for line in report.lines())
+
+
+def _edit_record(members, edit, which=0):
+    name = record_names(members)[which]
+    record = json.loads(members[name])
+    edit(record)
+    members[name] = json.dumps(record).encode()
+    return name
+
+
+def _edit_arrays(members, edit, which=0):
+    """Change a record's per-query arrays, and its sha256 to match (a careful forger)."""
+    import hashlib
+
+    name = record_names(members)[which]
+    record = json.loads(members[name])
+    npz = name.rsplit("/", 1)[0] + "/" + record["per_query"]["file"]
+    with np.load(io.BytesIO(members[npz])) as found:
+        arrays = {k: found[k] for k in found.files}
+    edit(arrays)
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **arrays)
+    members[npz] = buffer.getvalue()
+    record["per_query"]["sha256"] = hashlib.sha256(members[npz]).hexdigest()
+    members[name] = json.dumps(record).encode()
+    return name
+
+
+def _only_failure(report, name):
+    failed = [v for v in report.verdicts if not v.ok]
+    assert not report.ok and len(failed) == 1 and failed[0].member == name
+    return failed[0].problems
+
+
+def test_an_edited_recall_is_caught(bundle, truth, tmp_path):
+    members = read_bundle(bundle)
+    name = _edit_record(members, lambda r: r["recall"].update({"1": r["recall"]["1"] + 10}))
+    report = verify_bundle(write_bundle(tmp_path / "tampered.tar.gz", members), truth)
+    problems = _only_failure(report, name)
+    assert len(problems) == 1 and "R@1 is 58.6" in problems[0] and "but 48.6" in problems[0]
+    line = next(line for line in report.lines() if "R@1 is" in line)
+    assert str(tmp_path / "tampered.tar.gz") in line and name in line and "run " in line
+
+
+def test_edited_arrays_are_rescored_not_trusted(bundle, truth, tmp_path):
+    members = read_bundle(bundle)
+
+    def better(arrays):  # claim every query's first positive at rank 1
+        arrays["first_positive_rank"][:] = 1
+
+    name = _edit_arrays(members, better)
+    problems = _only_failure(verify_bundle(write_bundle(tmp_path / "b.tar.gz", members), truth), name)
+    assert any("its first positive is at rank" in p for p in problems)
+
+
+def test_missing_queries_and_indices_out_of_range(bundle, truth, tmp_path):
+    members = read_bundle(bundle)
+    name = _edit_arrays(members, lambda a: a.update({k: v[:-1] for k, v in a.items()}))
+    problems = _only_failure(verify_bundle(write_bundle(tmp_path / "short.tar.gz", members), truth), name)
+    assert problems == ["it has top-K lists for 110 queries; protocol corridor:vpr-bench has 111 (missing queries)"]
+
+    members = read_bundle(bundle)
+    name = _edit_arrays(members, lambda a: a["database_indices"].__setitem__((7, 3), 111))
+    problems = _only_failure(verify_bundle(write_bundle(tmp_path / "range.tar.gz", members), truth), name)
+    assert problems == ["query 7 lists database index 111, outside the 111 database images"]
+
+
+def test_unknown_protocol_hash_is_refused(bundle, truth, tmp_path):
+    members = read_bundle(bundle)
+    name = record_names(members)[0]
+    record = json.loads(members[name])
+    wrong = "0123456789abcdef"
+    record["protocol"]["hash"] = wrong
+    record["spec"]["dataset"]["protocol_hash"] = wrong
+    from vprbench.spec import RunSpec
+
+    record["spec_key"] = RunSpec.from_json(record["spec"]).key
+    moved = f"{wrong}/{name.split('/', 1)[1]}"
+    npz = name.rsplit("/", 1)[0] + "/" + record["per_query"]["file"]
+    members[f"{wrong}/{npz.split('/', 1)[1]}"] = members.pop(npz)
+    del members[name]
+    members[moved] = json.dumps(record).encode()
+    problems = _only_failure(verify_bundle(write_bundle(tmp_path / "p.tar.gz", members), truth), moved)
+    assert len(problems) == 1 and "protocol hash 0123456789abcdef is none of the protocols vprbench ships" in problems[0]
+
+
+def test_newer_schema_is_refused_by_name(bundle, truth, tmp_path):
+    members = read_bundle(bundle)
+    name = _edit_record(members, lambda r: r.update(schema_version=9))
+    problems = _only_failure(verify_bundle(write_bundle(tmp_path / "s.tar.gz", members), truth), name)
+    assert len(problems) == 1 and "schema version 9 is from a newer vprbench" in problems[0]
+
+
+def test_manifest_sum_mismatch(bundle, truth, tmp_path):
+    members = read_bundle(bundle)
+    name = _edit_record(members, lambda r: r.update(method_options={"x": 1}))
+    report = verify_bundle(write_bundle(tmp_path / "m.tar.gz", members, resum=False), truth)
+    assert not report.ok and not report.verdicts
+    assert report.problems == [f"{tmp_path / 'm.tar.gz'}: {name} does not match its sha256 sum in MANIFEST.json "
+                               "(changed after export)."]
+
+
+def test_extra_and_missing_files(bundle, truth, tmp_path):
+    members = read_bundle(bundle)
+    members["methods/0123456789abcdef.json"] = b"{}"
+    report = verify_bundle(write_bundle(tmp_path / "x.tar.gz", members, resum=False), truth)
+    assert "methods/0123456789abcdef.json is not listed in MANIFEST.json" in report.problems[0]
+
+
+def _raw_tar(path, entries, compress=True):
+    with tarfile.open(path, "w:gz" if compress else "w") as archive:
+        for info, data in entries:
+            archive.addfile(info, io.BytesIO(data) if data is not None else None)
+    return path
+
+
+@pytest.mark.parametrize("name", ["../evil.json", "/etc/evil.json", "ab/../../evil.json"])
+def test_paths_escaping_the_folder_are_refused(truth, tmp_path, name):
+    info = tarfile.TarInfo(name)
+    info.size = 2
+    report = verify_bundle(_raw_tar(tmp_path / "e.tar.gz", [(info, b"{}")]), truth)
+    assert not report.ok and "escapes the folder it would be written to" in report.problems[0]
+    assert not (tmp_path.parent / "evil.json").exists()
+
+
+def test_links_are_refused(truth, tmp_path):
+    info = tarfile.TarInfo("methods/0123456789abcdef.json")
+    info.type, info.linkname = tarfile.SYMTYPE, "/etc/passwd"
+    report = verify_bundle(_raw_tar(tmp_path / "l.tar.gz", [(info, None)]), truth)
+    assert "is a link, not a regular file" in report.problems[0]
+
+
+def test_an_archive_bomb_stops_at_the_bound(bundle, truth, tmp_path):
+    """4 MiB of zeros gzip to ~4 KiB (a 1000:1 bomb); members under the bound but over it together stop too."""
+    big = tarfile.TarInfo("methods/0123456789abcdef.json")
+    big.size = 4 << 20
+    path = _raw_tar(tmp_path / "bomb.tar.gz", [(big, bytes(big.size))])
+    assert path.stat().st_size < 64 << 10
+    report = verify_bundle(path, truth, max_bytes=1 << 20)
+    assert not report.ok and "claims 4194304 bytes, over the bound" in report.problems[0]
+    parts = []
+    for i in range(3):
+        info = tarfile.TarInfo(f"methods/{i:016x}.json")
+        info.size = 600 << 10
+        parts.append((info, bytes(info.size)))
+    report = verify_bundle(_raw_tar(tmp_path / "bomb2.tar.gz", parts), truth, max_bytes=1 << 20)
+    assert "unpacks to more than the bound of 1 MiB (an archive bomb" in report.problems[0]
+    assert verify_bundle(bundle, truth, max_bytes=1 << 20).ok  # a real bundle is far under it
+
+
+def test_not_an_archive(truth, tmp_path):
+    path = tmp_path / "junk.tar.gz"
+    path.write_bytes(gzip.compress(b"not a tar at all" * 10))
+    report = verify_bundle(path, truth)
+    assert not report.ok and "is not a readable bundle archive" in report.problems[0]
+
+
+def test_without_the_dataset_nothing_can_be_checked(bundle, tmp_path):
+    report = verify_bundle(bundle, DataGroundTruth(tmp_path / "no-data"))
+    assert not report.ok and all(p.startswith("cannot be checked: ") for v in report.verdicts for p in v.problems)
+
+
+def test_cli_export_and_verify(store, records, shared_data, tmp_path, capsys):
+    out = tmp_path / "cli.tar.gz"
+    assert main(["results", "export", "--method", "hog", "--dataset", "corridor", "--to", str(out),
+                 "--cache-dir", str(store)]) == 0
+    assert main(["results", "verify", str(out), "--data-dir", str(shared_data)]) == 0
+    assert capsys.readouterr().out.count(": ok, re-scored") == 2
+    members = read_bundle(out)
+    _edit_record(members, lambda r: r["recall"].update({"5": 99.0}))
+    write_bundle(tmp_path / "bad.tar.gz", members)
+    assert main(["results", "verify", str(out), str(tmp_path / "bad.tar.gz"), "--data-dir", str(shared_data)]) == 1
+    text = capsys.readouterr().out
+    assert text.count(": ok, re-scored") == 3 and text.count("R@5 is 99.0 in the record") == 1
+    assert main(["results", "export", "--to", str(out), "--cache-dir", str(store)]) == 1
+    assert "needs --run ID, or --method M --dataset D" in capsys.readouterr().err

@@ -1,0 +1,96 @@
+"""`vprbench results export`: the chosen runs of a results store as one bundle.
+
+A bundle is a gzipped tar archive laid out like the results store itself:
+
+    MANIFEST.json                                   format, contributor, date, sha256 of every file
+    <protocol hash>/<row key>/<run id>.json         the record, byte for byte as stored
+    <protocol hash>/<row key>/<run id>.npz          its per-query arrays (top-K indices, similarities)
+    methods/<row key>.json                          the method card of the row
+
+It holds no images and no descriptors: what the verifier needs is the top K of every query,
+and the ground truth it already has.
+"""
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import tarfile
+from datetime import datetime, timezone
+from pathlib import Path
+
+from .. import __version__
+from ..errors import VPRBenchError, os_error_message
+from ..fsutil import CacheError, atomic_write
+
+#: the bundle's format; a bundle of a newer version is refused by older verifiers
+FORMAT = "vprbench-bundle"
+FORMAT_VERSION = 1
+MANIFEST = "MANIFEST.json"
+CARDS = "methods"
+
+
+def select_records(records: list[dict], *, run_ids=(), method: str | None = None, dataset: str | None = None) -> list[dict]:
+    """The stored records asked for: by run id, or every run of a method (name or label) on a dataset."""
+    if run_ids and (method or dataset):
+        raise VPRBenchError("results export takes --run ID, or --method M --dataset D, not both.")
+    if run_ids:
+        by_id = {r["run_id"]: r for r in records}
+        missing = [r for r in run_ids if r not in by_id]
+        if missing:
+            raise VPRBenchError(f"No stored run {missing[0]!r}; 'vprbench leaderboard' and the results folder list "
+                                "the runs there are.")
+        return [by_id[r] for r in dict.fromkeys(run_ids)]
+    if not (method and dataset):
+        raise VPRBenchError("results export needs --run ID, or --method M --dataset D.")
+    chosen = [r for r in records if dataset == r["dataset"] and method in (r["method"], r.get("label"))]
+    if not chosen:
+        raise VPRBenchError(f"No stored run of {method!r} on {dataset!r}; run 'vprbench evaluate --method {method} "
+                            f"--dataset {dataset}' first.")
+    return chosen
+
+
+def _record_files(record: dict) -> dict[str, bytes]:
+    """The record's file, its per-query arrays and its method card, as the store has them."""
+    source = Path(record["_source"])
+    folder = f"{record['protocol']['hash']}/{record['row_key']}"
+    section = record.get("per_query") or {}
+    if "file" not in section:
+        raise VPRBenchError(f"Run {record['run_id']} ({source}) keeps no per-query arrays, which a bundle needs to be "
+                            "checked; rerun that evaluation.")
+    card = source.parents[2] / CARDS / f"{record['row_key']}.json"
+    try:
+        return {f"{folder}/{source.name}": source.read_bytes(),
+                f"{folder}/{section['file']}": (source.parent / str(section["file"])).read_bytes(),
+                f"{CARDS}/{card.name}": card.read_bytes()}
+    except OSError as error:
+        raise VPRBenchError(f"Run {record['run_id']}: {os_error_message(error)} Nothing was exported.") from None
+
+
+def bundle_bytes(records: list[dict], contributor: str | None = None) -> bytes:
+    """The bundle of `records` (read from a results store) as bytes."""
+    files: dict[str, bytes] = {}
+    for record in records:
+        files.update(_record_files(record))
+    created = datetime.now(timezone.utc)
+    manifest = {"format": FORMAT, "version": FORMAT_VERSION, "created": created.isoformat(timespec="seconds"),
+                "contributor": contributor or "anonymous", "vprbench": __version__,
+                "runs": [r["run_id"] for r in records],
+                "files": {name: {"sha256": hashlib.sha256(data).hexdigest(), "bytes": len(data)}
+                          for name, data in sorted(files.items())}}
+    buffer = io.BytesIO()
+    with tarfile.open(fileobj=buffer, mode="w:gz", format=tarfile.PAX_FORMAT) as archive:
+        for name, data in [(MANIFEST, json.dumps(manifest, indent=1, sort_keys=True).encode()), *sorted(files.items())]:
+            info = tarfile.TarInfo(name)
+            info.size, info.mtime, info.mode = len(data), int(created.timestamp()), 0o644
+            archive.addfile(info, io.BytesIO(data))
+    return buffer.getvalue()
+
+
+def export_bundle(records: list[dict], to: Path, contributor: str | None = None) -> Path:
+    """Write the bundle of `records` to `to` (atomically: a kill leaves no half archive)."""
+    data = bundle_bytes(records, contributor)
+    try:
+        return atomic_write(Path(to), data)
+    except CacheError as error:
+        raise VPRBenchError(f"{error} No bundle was written.") from None

@@ -1,0 +1,163 @@
+"""A results repository: verified bundles merged into one folder laid out by identity.
+
+    <DIR>/LAYOUT                                        the results layout (as a results store)
+    <DIR>/<protocol hash>/<row key>/<run id>.json       the record, byte for byte as exported
+                                   <run id>.npz         its per-query arrays
+                                   <run id>.contribution  who sent it, when, in which bundle (JSON)
+    <DIR>/methods/<row key>.json                        the method card
+
+The folder is fit to be a git repository that people send pull requests to: files are only
+ever added, each under a name that is its identity. A run already there (same run id and the
+same bytes, or another run id with the same spec and the same per-query arrays) is recognised
+as a duplicate and skipped; a different record under a run id already there is a conflict,
+and its bundle is refused. A bundle that fails verification is refused with its reasons and
+nothing of it is written. Imports hold the repository's lock, so two at once both land whole.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+from ..errors import VPRBenchError
+from ..evaluation.results import LAYOUT, LAYOUT_FILE, check_layout, read_record
+from ..fsutil import CacheError, atomic_write, lock
+from .export import CARDS
+from .verify import MAX_BYTES, verify_bundle
+
+CONTRIBUTION = ".contribution"
+
+
+@dataclass
+class ImportReport:
+    bundle: Path
+    added: list[str] = field(default_factory=list)
+    duplicates: list[str] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+    def lines(self) -> list[str]:
+        if self.problems:
+            return [*self.problems, f"{self.bundle}: refused; nothing of it was written."]
+        return [f"{self.bundle}: {len(self.added)} run(s) added"
+                + (f", {len(self.duplicates)} already there ({', '.join(self.duplicates)})" if self.duplicates else "")]
+
+
+def import_bundles(bundles, into: Path, truth=None, *, max_bytes: int = MAX_BYTES,
+                   lock_timeout: float | None = None) -> list[ImportReport]:
+    """Verify each bundle and merge the sound ones into the repository `into`; one report per bundle."""
+    into = Path(into)
+    if into.exists() and not into.is_dir():
+        raise VPRBenchError(f"--into {into} is a file, not a folder.")
+    check_layout(into)
+    reports = []
+    for bundle in bundles:
+        verified = verify_bundle(Path(bundle), truth, max_bytes=max_bytes)
+        report = ImportReport(Path(bundle))
+        if not verified.ok:
+            report.problems = [line for line in verified.lines() if ": ok, re-scored" not in line]
+        else:
+            with lock(into / ".import.lock", lock_timeout, what=f"the results repository {into}"):
+                _merge(verified, into, report)
+        reports.append(report)
+    return reports
+
+
+def _merge(verified, into: Path, report: ImportReport) -> None:
+    """Under the lock: every record checked against the repository first, then written."""
+    check_layout(into)
+    members, manifest = verified.members, verified.manifest
+    bundle_sha = hashlib.sha256(b"".join(members[n] for n in sorted(members))).hexdigest()
+    writes: dict[Path, bytes] = {}
+    for verdict in verified.verdicts:
+        folder = verdict.member.rsplit("/", 1)[0]
+        record = json.loads(members[verdict.member])
+        target = into / verdict.member
+        npz = f"{folder}/{record['per_query']['file']}"
+        if target.exists():
+            if target.read_bytes() == members[verdict.member]:
+                report.duplicates.append(verdict.run_id)
+                continue
+            report.problems.append(f"{verified.path}: {verdict.member} (run {verdict.run_id}): another record with this "
+                                   f"run id is already in {into}; a run id names one run.")
+            continue
+        same = _same_result(into / folder, record)
+        if same:
+            report.duplicates.append(f"{verdict.run_id} = {same}")
+            continue
+        contribution = {"contributor": str(manifest.get("contributor") or "anonymous")[:200],
+                        "bundle_created": str(manifest.get("created", ""))[:40], "bundle_sha256": bundle_sha,
+                        "imported": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+        writes[into / npz] = members[npz]
+        writes[target.with_suffix(CONTRIBUTION)] = json.dumps(contribution, indent=1, sort_keys=True).encode()
+        writes[target] = members[verdict.member]  # last: a record is there only with its arrays
+        card = f"{CARDS}/{record['row_key']}.json"
+        if not (into / card).exists():
+            writes[into / card] = members[card]
+        report.added.append(verdict.run_id)
+    if report.problems:
+        report.added = []
+        return
+    try:
+        if not (into / LAYOUT_FILE).is_file():
+            atomic_write(into / LAYOUT_FILE, json.dumps(LAYOUT))
+        for path, data in writes.items():
+            atomic_write(path, data)
+    except CacheError as error:
+        raise VPRBenchError(f"{error} The import of {verified.path} stopped; the runs written are whole.") from None
+
+
+def _same_result(folder: Path, record: dict) -> str | None:
+    """The run id of a record in `folder` with the same spec and the same per-query arrays."""
+    for path in sorted(folder.glob("*.json")) if folder.is_dir() else []:
+        try:
+            other = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            continue
+        if (isinstance(other, dict) and other.get("spec_key") == record.get("spec_key")
+                and (other.get("per_query") or {}).get("sha256") == record["per_query"].get("sha256")):
+            return str(other.get("run_id"))
+    return None
+
+
+def read_repository(root: Path, skipped: list | None = None) -> list[dict]:
+    """Every record of the repository, oldest first, each with `_contribution`: contributor,
+    date, hardware and vprbench version (for the site). Unreadable files are named in a warning
+    and skipped (their paths appended to `skipped`)."""
+    import warnings
+
+    root = Path(root)
+    if not root.is_dir():
+        raise VPRBenchError(f"The results repository {root} does not exist.")
+    check_layout(root)
+    records = []
+    for path in sorted(root.glob("*/*/*.json")):
+        if path.parts[-3] == CARDS:
+            continue
+        try:
+            record = read_record(path)
+        except VPRBenchError as error:
+            warnings.warn(f"{error} Skipped.", stacklevel=2)
+            if skipped is not None:
+                skipped.append(path)
+            continue
+        sent = _contribution(path.with_suffix(CONTRIBUTION))
+        record["_contribution"] = {"contributor": sent.get("contributor", "unknown"),
+                                   "date": record.get("created"), "imported": sent.get("imported"),
+                                   "hardware": record.get("hardware") or {},
+                                   "version": (record.get("versions") or {}).get("vprbench")}
+        records.append(record)
+    return sorted(records, key=lambda r: (str(r.get("created", "")), str(r.get("run_id", ""))))
+
+
+def _contribution(path: Path) -> dict:
+    try:
+        found = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return {k: str(v) for k, v in found.items()} if isinstance(found, dict) else {}

@@ -1,0 +1,339 @@
+"""`vprbench results verify`: nothing in a bundle is trusted that can be recomputed.
+
+The archive is read into memory member by member, never extracted: a member must be a regular
+file whose name is one of the bundle's own (a protocol hash, a row key and a run id, or a method
+card), so no path can climb out of a folder; the bytes read are bounded (an archive bomb stops at
+the bound); the manifest's sha256 sums must match every file, and list every file.
+
+Each record is then validated (a record of a newer schema is refused), its protocol hash must be
+one vprbench ships for its dataset, and its metrics are recomputed from its per-query arrays
+against that protocol's ground truth, read from the dataset on this machine: query and database
+counts, indices in range, every query present, first-positive ranks, and Recall@K (records keep
+4 decimals) and the top-1 PR metrics (6 decimals; similarities are kept to 6 decimals, so
+near-ties may reorder: tolerance 1e-3).
+"""
+from __future__ import annotations
+
+import gzip
+import hashlib
+import io
+import json
+import re
+import tarfile
+from dataclasses import dataclass, field
+from pathlib import Path, PurePosixPath
+
+import numpy as np
+
+from ..errors import VPRBenchError
+from ..evaluation.record import PER_QUERY_FIELDS, validated
+from .export import CARDS, FORMAT, FORMAT_VERSION, MANIFEST
+
+#: the most bytes a bundle may unpack to (an MSLS-size run is ~10 MB); `--max-size` raises it
+MAX_BYTES = 1 << 30
+MAX_MEMBERS = 200_000
+RECALL_TOLERANCE = 1e-4
+PR_TOLERANCE = 1e-3
+_HEX = r"[0-9a-f]{16}"
+_RUN = r"[A-Za-z0-9][A-Za-z0-9_.-]{0,80}"
+_RECORD = re.compile(rf"^({_HEX})/({_HEX})/({_RUN})\.(json|npz)$")
+_CARD = re.compile(rf"^{CARDS}/({_HEX})\.json$")
+
+
+class BundleError(VPRBenchError):
+    """The archive as a whole cannot be read as a bundle (no record of it can be trusted)."""
+
+
+# ---------------------------------------------------------------- the archive
+class _Bounded(io.RawIOBase):
+    """A reader that fails once more than `limit` bytes came out of it (a bomb stops here)."""
+
+    def __init__(self, inner, limit: int, where: str):
+        self.inner, self.left, self.limit, self.where = inner, limit, limit, where
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, buffer) -> int:
+        data = self.inner.read(min(len(buffer), self.left + 1))
+        self.left -= len(data)
+        if self.left < 0:
+            raise BundleError(f"{self.where}: it unpacks to more than the bound of {self.limit / 2**20:g} MiB "
+                              "(an archive bomb, or a bundle too big: raise --max-size).")
+        buffer[: len(data)] = data
+        return len(data)
+
+
+def read_members(path: Path, max_bytes: int = MAX_BYTES) -> dict[str, bytes]:
+    """Every member of the bundle at `path`, by name, read within `max_bytes`; a BundleError
+    naming the archive and the member at fault otherwise."""
+    where = str(path)
+    try:
+        raw = open(path, "rb")
+    except OSError as error:
+        raise BundleError(f"Cannot read the bundle {path} ({error.strerror or error}).") from None
+    with raw:
+        magic = raw.read(2)
+        raw.seek(0)
+        inner = gzip.GzipFile(fileobj=raw) if magic == b"\x1f\x8b" else raw
+        stream = _Bounded(inner, max_bytes, where)
+        members: dict[str, bytes] = {}
+        try:
+            with tarfile.open(fileobj=io.BufferedReader(stream), mode="r|") as archive:
+                for info in archive:
+                    name = _member_name(info, where)
+                    if name in members:
+                        raise BundleError(f"{where}: member {name} appears twice.")
+                    if len(members) >= MAX_MEMBERS:
+                        raise BundleError(f"{where}: more than {MAX_MEMBERS} members.")
+                    if info.size > max_bytes:
+                        raise BundleError(f"{where}: member {name} claims {info.size} bytes, over the bound.")
+                    handle = archive.extractfile(info)
+                    members[name] = handle.read() if handle else b""
+        except (tarfile.TarError, EOFError, OSError, gzip.BadGzipFile, ValueError) as error:
+            raise BundleError(f"{where} is not a readable bundle archive ({type(error).__name__}: {error}).") from None
+    return members
+
+
+def _member_name(info: tarfile.TarInfo, where: str) -> str:
+    name = info.name
+    parts = PurePosixPath(name).parts
+    if name.startswith(("/", "\\")) or ".." in parts or "\\" in name or re.match(r"^[A-Za-z]:", name):
+        raise BundleError(f"{where}: member {name!r} escapes the folder it would be written to; refused.")
+    if not info.isreg():
+        raise BundleError(f"{where}: member {name!r} is a {'link' if info.issym() or info.islnk() else 'special file'}, "
+                          "not a regular file; refused.")
+    if name != MANIFEST and not (_RECORD.match(name) or _CARD.match(name)):
+        raise BundleError(f"{where}: member {name!r} is no file a bundle holds (records, per-query arrays, method "
+                          "cards, the manifest); refused.")
+    return name
+
+
+def check_manifest(members: dict[str, bytes], where: str) -> dict:
+    """The manifest, checked: format and version known, every file listed with its sha256 sum."""
+    if MANIFEST not in members:
+        raise BundleError(f"{where}: it has no {MANIFEST}; it is not a vprbench bundle.")
+    try:
+        manifest = json.loads(members[MANIFEST])
+        files = manifest["files"]
+        if not isinstance(files, dict):
+            raise TypeError("files is not a table")
+    except (ValueError, KeyError, TypeError) as error:
+        raise BundleError(f"{where}: {MANIFEST} is not a bundle manifest ({type(error).__name__}: {error}).") from None
+    if manifest.get("format") != FORMAT:
+        raise BundleError(f"{where}: {MANIFEST} says format {manifest.get('format')!r}, not {FORMAT}.")
+    version = manifest.get("version")
+    if not isinstance(version, int) or version > FORMAT_VERSION:
+        raise BundleError(f"{where}: bundle format version {version!r} is from a newer vprbench (this one reads up to "
+                          f"{FORMAT_VERSION}); upgrade vprbench.")
+    problems = []
+    for name in sorted(set(members) - {MANIFEST} - set(files)):
+        problems.append(f"{where}: {name} is not listed in {MANIFEST}.")
+    for name, entry in sorted(files.items()):
+        if name not in members:
+            problems.append(f"{where}: {name} is listed in {MANIFEST} but missing.")
+        elif not isinstance(entry, dict) or hashlib.sha256(members[name]).hexdigest() != entry.get("sha256"):
+            problems.append(f"{where}: {name} does not match its sha256 sum in {MANIFEST} (changed after export).")
+    if problems:
+        raise BundleError(" ".join(problems))
+    return manifest
+
+
+# ---------------------------------------------------------------- the ground truth
+@dataclass(frozen=True)
+class Truth:
+    protocol_id: str
+    database: int
+    positives: list
+
+
+class DataGroundTruth:
+    """Ground truth of a protocol vprbench ships, read from the dataset on this machine (once per protocol)."""
+
+    def __init__(self, data_dir=None, cache_dir=None):
+        self.data_dir, self.cache_dir, self._found = data_dir, cache_dir, {}
+
+    def __call__(self, dataset: str, protocol_hash: str) -> Truth:
+        if (dataset, protocol_hash) not in self._found:
+            self._found[dataset, protocol_hash] = self._read(dataset, protocol_hash)
+        return self._found[dataset, protocol_hash]
+
+    def _read(self, dataset: str, protocol_hash: str) -> Truth:
+        from ..datasets import load_dataset
+        from ..evaluation.identity import benchmark_protocols
+
+        known = benchmark_protocols(dataset)
+        if not known:
+            raise VPRBenchError(f"dataset {dataset!r} is no benchmark vprbench ships, so its ground truth is unknown here")
+        if protocol_hash not in known:
+            raise VPRBenchError(f"protocol hash {protocol_hash} is none of the protocols vprbench ships for {dataset} "
+                                "(" + ", ".join(f"{p['id']} {h}" for h, p in known.items()) + ")")
+        protocol = known[protocol_hash]
+        data = load_dataset(dataset, self.data_dir, fetch=False, protocol=protocol["name"], cache_dir=self.cache_dir)
+        if data.protocol.get("hash") != protocol_hash:
+            raise VPRBenchError(f"the copy of {dataset} on this machine ({data.root}) gives protocol hash "
+                                f"{data.protocol.get('hash')}, not {protocol_hash}")
+        return Truth(protocol["id"], len(data.database), data.positives)
+
+
+# ---------------------------------------------------------------- the records
+@dataclass
+class Verdict:
+    """What was found about one record of a bundle."""
+
+    member: str
+    run_id: str
+    label: str = ""
+    problems: list[str] = field(default_factory=list)
+    recall: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+
+@dataclass
+class BundleReport:
+    path: Path
+    manifest: dict = field(default_factory=dict)
+    members: dict[str, bytes] = field(default_factory=dict)
+    verdicts: list[Verdict] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems and bool(self.verdicts) and all(v.ok for v in self.verdicts)
+
+    def lines(self) -> list[str]:
+        """One line per problem (naming the file and the record), or per record found sound."""
+        out = list(self.problems)
+        for verdict in self.verdicts:
+            head = f"{self.path}: {verdict.member} (run {verdict.run_id}{', ' + verdict.label if verdict.label else ''})"
+            if verdict.ok:
+                shown = " ".join(f"R@{k} {v:.2f}" for k, v in verdict.recall.items())
+                out.append(f"{head}: ok, re-scored from its arrays: {shown}")
+            out += [f"{head}: {problem}" for problem in verdict.problems]
+        if not self.problems and not self.verdicts:
+            out.append(f"{self.path}: it holds no records.")
+        return out
+
+
+def verify_bundle(path: Path, truth=None, *, max_bytes: int = MAX_BYTES) -> BundleReport:
+    """Every record of the bundle at `path` checked and re-scored; `truth(dataset, protocol_hash)`
+    gives the ground truth (default: `DataGroundTruth()`, the datasets on this machine)."""
+    report = BundleReport(Path(path))
+    truth = truth or DataGroundTruth()
+    try:
+        report.members = read_members(Path(path), max_bytes)
+        report.manifest = check_manifest(report.members, str(path))
+    except BundleError as error:
+        report.problems.append(str(error))
+        return report
+    cards = {m.group(1) for m in map(_CARD.match, report.members) if m}
+    for name in sorted(report.members):
+        match = _RECORD.match(name)
+        if match and match.group(4) == "json":
+            report.verdicts.append(check_record(name, match.groups()[:3], report.members, cards, truth))
+    return report
+
+
+def check_record(name: str, place: tuple, members: dict[str, bytes], cards: set, truth) -> Verdict:
+    protocol_hash, row_key, run_id = place
+    verdict = Verdict(name, run_id)
+    problems = verdict.problems
+    try:
+        record = validated(json.loads(members[name]), name)
+    except ValueError as error:
+        problems.append(f"not JSON ({error})")
+        return verdict
+    except VPRBenchError as error:
+        problems.append(str(error).removeprefix(f"{name} ").removeprefix(f"{name}: "))
+        return verdict
+    verdict.label = f"{record.get('label') or record['method']} on {record['protocol']['id']}"
+    found = (record["protocol"]["hash"], record["row_key"], record["run_id"])
+    if found != place or record["spec"]["dataset"]["protocol_hash"] != protocol_hash:
+        problems.append(f"its protocol hash, row key and run id {'/'.join(found)} are not its place in the bundle")
+        return verdict
+    if row_key not in cards:
+        problems.append(f"its method card {CARDS}/{row_key}.json is missing")
+    if record["dataset_kind"] != "benchmark":
+        problems.append(f"it was run on a {record['dataset_kind']} dataset, whose ground truth vprbench does not ship; "
+                        "only benchmark runs can be checked")
+        return verdict
+    arrays = _arrays(record, members, f"{protocol_hash}/{row_key}", problems)
+    if arrays is None:
+        return verdict
+    try:
+        gt = truth(record["dataset"], protocol_hash)
+    except VPRBenchError as error:
+        problems.append(f"cannot be checked: {error}")
+        return verdict
+    verdict.recall = rescore(record, arrays, gt, problems)
+    return verdict
+
+
+def _arrays(record: dict, members: dict[str, bytes], folder: str, problems: list) -> dict | None:
+    section = record.get("per_query") or {}
+    file = f"{folder}/{section.get('file')}"
+    if section.get("file") != f"{record['run_id']}.npz" or file not in members:
+        problems.append("its per-query arrays are missing (a bundle record must keep them)")
+        return None
+    data = members[file]
+    if hashlib.sha256(data).hexdigest() != section.get("sha256"):
+        problems.append(f"{file} does not match the sha256 its record gives")
+        return None
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as found:
+            arrays = {f: found[f] for f in PER_QUERY_FIELDS}
+    except (ValueError, KeyError, OSError, EOFError) as error:
+        problems.append(f"{file} is not readable per-query arrays ({type(error).__name__}: {error})")
+        return None
+    indices = arrays["database_indices"]
+    if indices.ndim != 2 or indices.dtype.kind not in "iu" or arrays["similarities"].shape != indices.shape:
+        problems.append(f"{file}: its top-K indices are {indices.dtype} {indices.shape}, with similarities "
+                        f"{arrays['similarities'].shape}; expected (queries, K) whole numbers and as many similarities")
+        return None
+    return arrays
+
+
+def rescore(record: dict, arrays: dict, gt: Truth, problems: list) -> dict[str, float]:
+    """The record's metrics recomputed from its arrays against `gt`; each disagreement appended to `problems`."""
+    from ..evaluation.metrics import correct_at, first_positive_rank, recall_at_k, top1_precision_recall
+
+    indices, scores = arrays["database_indices"].astype(np.int64), arrays["similarities"].astype(np.float64)
+    queries, k = indices.shape
+    counts = record["counts"]
+    if queries != len(gt.positives):
+        problems.append(f"it has top-K lists for {queries} queries; protocol {gt.protocol_id} has {len(gt.positives)} "
+                        f"({'missing' if queries < len(gt.positives) else 'extra'} queries)")
+    if counts.get("queries") != len(gt.positives) or counts.get("database") != gt.database:
+        problems.append(f"its counts ({counts.get('queries')} queries, {counts.get('database')} database) are not "
+                        f"protocol {gt.protocol_id}'s ({len(gt.positives)}, {gt.database})")
+    if indices.size and (indices.min() < 0 or indices.max() >= gt.database):
+        bad = int(np.argmax((indices < 0).any(axis=1) | (indices >= gt.database).any(axis=1)))
+        problems.append(f"query {bad} lists database index {int(indices[bad][(indices[bad] < 0) | (indices[bad] >= gt.database)][0])}, "
+                        f"outside the {gt.database} database images")
+    if problems:
+        return {}
+    repeated = np.flatnonzero([len(np.unique(row)) != k for row in indices])
+    if len(repeated):
+        problems.append(f"query {int(repeated[0])} lists a database image twice in its top {k}")
+    ks = sorted(int(x) for x in record["recall"])
+    if ks and ks[-1] > k:
+        problems.append(f"it reports R@{ks[-1]} but keeps only the top {k} per query")
+        return {}
+    first = first_positive_rank(correct_at(indices, gt.positives))
+    if not np.array_equal(first, arrays["first_positive_rank"]):
+        q = int(np.flatnonzero(first != arrays["first_positive_rank"])[0])
+        problems.append(f"query {q}: its first positive is at rank {int(first[q])} of its top K, the record says "
+                        f"{int(arrays['first_positive_rank'][q])}")
+    recall = {str(k): round(v, 4) for k, v in recall_at_k(first, ks).items()}
+    for key, value in recall.items():
+        if abs(float(record["recall"][key]) - value) > RECALL_TOLERANCE:
+            problems.append(f"R@{key} is {record['recall'][key]} in the record but {value:.4f} from its arrays")
+    if queries and "auc_pr" in record:
+        pr = top1_precision_recall(scores[:, 0], first == 1)
+        for name in ("auc_pr", "recall_at_100_precision"):
+            if name in record and abs(float(record[name]) - pr[name]) > PR_TOLERANCE:
+                problems.append(f"{name} is {record[name]} in the record but {pr[name]:.6f} from its arrays")
+    return {k: v for k, v in recall.items()}
