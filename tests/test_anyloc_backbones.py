@@ -48,3 +48,49 @@ def test_bad_manifest_entry_is_named():
     text = '[family]\nfamily = "X"\n[[backbone]]\nname = "x"\ntimm = "vit_small_patch16_224"\n'
     with pytest.raises(VPRBenchError, match=r"Backbone manifest bad.toml, entry 'x': patch: Field required"):
         _entries(text, "bad.toml")
+
+
+TINY = {"depth": 3, "embed_dim": 64, "num_heads": 2}
+
+
+@pytest.mark.parametrize("name", ["dinov3_vits16", "pe_spatial_s16", "radio_v3_b16", "siglip2_b16",
+                                  "dinov2_vits14_reg"])
+def test_dense_features_of_every_new_family(name):
+    """Shapes, every prefix token dropped, and q/k/v equal to a manual computation from the block's
+    input (RoPE applied to the query and key of patch tokens where the family has it)."""
+    from timm.layers import apply_rot_embed_cat
+
+    from vprbench.features.dense import DenseExtractor
+
+    spec = backbone_spec(name)
+    torch.manual_seed(0)
+    model = create_model(spec, **TINY)
+    images = torch.randn(2, 3, 2 * spec.patch, 3 * spec.patch)
+    seen = {}
+    hook = model.blocks[1].attn.register_forward_pre_hook(
+        lambda attn, args, kwargs: seen.update(x=args[0], rope=kwargs.get("rope")), with_kwargs=True)
+    with torch.no_grad():
+        tokens = DenseExtractor(model, spec, 1, "token")(images)
+    hook.remove()
+    assert tokens.shape == (2, 6, 64)
+    x, rope = seen["x"], seen["rope"]
+    assert x.shape[1] == 6 + spec.prefix_tokens
+    assert (rope is not None) == (spec.position == "rope")
+    attn = model.blocks[1].attn
+    bias = torch.cat((attn.q_bias, attn.k_bias, attn.v_bias)) if getattr(attn, "q_bias", None) is not None \
+        else attn.qkv.bias
+    q, k, v = torch.nn.functional.linear(x, attn.qkv.weight, bias).reshape(2, x.shape[1], 3, 2, 32).unbind(2)
+    q, k, v = (t[:, spec.prefix_tokens:] for t in (q, k, v))  # (B, patches, heads, head_dim)
+    if rope is not None:
+        half = getattr(attn, "rotate_half", False)  # DINOv3 rotates half-split pairs
+        q, k = (apply_rot_embed_cat(t.transpose(1, 2), rope, half=half).transpose(1, 2) for t in (q, k))
+    for facet, manual in (("query", q), ("key", k), ("value", v)):
+        with torch.no_grad():
+            got = DenseExtractor(model, spec, 1, facet)(images)
+        assert got.shape == (2, 6, 64)
+        torch.testing.assert_close(got, manual.reshape(2, 6, 64), rtol=0, atol=1e-5)
+    if spec.position_interpolation == "timm":  # the official DINO path floors to whole patches, as the release
+        with pytest.raises(VPRBenchError, match="not a multiple of the patch"):
+                DenseExtractor(model, spec, 1, "value")(torch.randn(1, 3, spec.patch + 1, spec.patch))
+    with pytest.raises(VPRBenchError, match="Layer 3 is out of range"):
+        DenseExtractor(model, spec, 3, "value")
