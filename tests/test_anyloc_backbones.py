@@ -94,3 +94,18 @@ def test_dense_features_of_every_new_family(name):
                 DenseExtractor(model, spec, 1, "value")(torch.randn(1, 3, spec.patch + 1, spec.patch))
     with pytest.raises(VPRBenchError, match="Layer 3 is out of range"):
         DenseExtractor(model, spec, 3, "value")
+
+
+def test_anyloc_on_a_new_backbone_records_it_and_refuses_a_missing_cls(shared_data):
+    from vprbench import create_method
+
+    images = sorted((shared_data / "corridor" / "ref").glob("*.jpg"))[:2]
+    method = create_method("anyloc", backbone="dinov3_vits16", weights="random", layer=1, aggregation="gem",
+                           resize="64x64")
+    assert method.describe(images).shape == (2, 384)
+    assert method.provenance()["weights"] == {"source": "random"}
+    assert method.provenance()["backbone"] == {"name": "dinov3_vits16", "family": "DINOv3",
+                                               "timm": "vit_small_patch16_dinov3.lvd1689m", "licence": "DINOv3 License",
+                                               "gated": True, "access": "https://github.com/facebookresearch/dinov3"}
+    with pytest.raises(VPRBenchError, match="backbone siglip2_b16 has no CLS token"):
+        create_method("anyloc", backbone="siglip2_b16", weights="random", aggregation="cls")

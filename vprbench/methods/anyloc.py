@@ -86,6 +86,9 @@ class AnyLoc(Method):
         self.stride = whole("anyloc", "stride", stride, 1, self.spec.patch, f"pixels, at most the patch size {self.spec.patch}") \
             if stride is not None else (self.spec.stride or self.spec.patch)
         self.gem_p = number("anyloc", "gem_p", gem_p, above=0, what="GeM's power, e.g. 3")
+        if aggregation == "cls" and self.spec.cls == "none":
+            raise VPRBenchError(f"aggregation=cls: backbone {backbone} has no CLS token (its prefix tokens: "
+                                f"{self.spec.prefix_tokens}); use gem, vlad or another pooling.")
         if layer is not None:
             self.layer = whole("anyloc", "layer", layer, 0, self.spec.depth - 1, f"0-based block of {backbone}")
         elif aggregation == "cls" and self.spec.cls == "final-norm":
@@ -185,7 +188,7 @@ class AnyLoc(Method):
         return fp
 
     def provenance(self) -> dict:
-        found = {"weights": weights_provenance(self.weights_identity())}
+        found = {"weights": weights_provenance(self.weights_identity()), "backbone": self.spec.card()}
         if self.aggregation in VLADS:
             found["vocabulary"] = self.vocabulary_provenance()
         if self.pca_dim:
