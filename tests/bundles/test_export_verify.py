@@ -9,7 +9,7 @@ import tarfile
 
 import numpy as np
 import pytest
-from conftest import read_bundle, record_names, write_bundle
+from bundle_files import read_bundle, record_names, write_bundle
 
 from vprbench.bundles import export_bundle, select_records, verify_bundle
 from vprbench.bundles.export import MANIFEST

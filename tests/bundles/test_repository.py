@@ -7,7 +7,7 @@ import subprocess
 import sys
 
 import pytest
-from conftest import read_bundle, record_names, write_bundle
+from bundle_files import read_bundle, record_names, write_bundle
 
 from vprbench.bundles import export_bundle, import_bundles, read_repository
 from vprbench.bundles.verify import DataGroundTruth
