@@ -131,7 +131,7 @@ class BoQ(nn.Module):
 
 
 def build(
-    config: BoQConfig, *, weights=None, resize=None, batch_size=None, precision="fp32", device="cpu"
+    config: BoQConfig, *, weights=None, resize=None, batch_size=None, precision="fp32", device="cpu", cache_dir=None
 ) -> TorchMethod:
     """A BoQ method for `config` (a released one, or a reduced one in tests)."""
     resize = as_resize(resize) or config.resize
@@ -140,7 +140,7 @@ def build(
     source = WeightSource(
         config.file_name, url=_RELEASE + config.file_name, page="https://github.com/amaralibey/Bag-of-Queries"
     )
-    checkpoint, identity = load_checkpoint(weights, source, METHOD)
+    checkpoint, identity = load_checkpoint(weights, source, METHOD, cache_dir)
     model = BoQ(config)
     load_exact(model, official_to_model(state_dict_of(checkpoint), "backbone.dino."), METHOD)
     released = config in RELEASED.values()
@@ -152,7 +152,8 @@ def build(
     )
 
 
-def boq(backbone="dinov2", dim=None, weights=None, resize=None, batch_size=None, precision="fp32", device="cpu"):
+def boq(backbone="dinov2", dim=None, weights=None, resize=None, batch_size=None, precision="fp32", device="cpu",
+        cache_dir=None):
     valid = ", ".join(f"{b} -> {d}" for b, d in RELEASED)
     name = str(backbone).lower()
     dims = [d for b, d in RELEASED if b == name]
@@ -162,7 +163,8 @@ def boq(backbone="dinov2", dim=None, weights=None, resize=None, batch_size=None,
     if (name, dim) not in RELEASED:
         raise VPRBenchError(f"{METHOD}: no released model for backbone {name} with dimension {dim}; valid: {valid}.")
     return build(
-        RELEASED[name, dim], weights=weights, resize=resize, batch_size=batch_size, precision=precision, device=device
+        RELEASED[name, dim], weights=weights, resize=resize, batch_size=batch_size, precision=precision, device=device,
+        cache_dir=cache_dir,
     )
 
 

@@ -14,6 +14,7 @@ OpenCLIP's own transform (shorter side 224 bicubic, centre crop 224, CLIP mean/s
 from __future__ import annotations
 
 import logging
+import posixpath
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,14 +28,25 @@ from torch import nn
 from vprbench import VPRBenchError, register_method
 from vprbench.errors import closest_names
 from vprbench.images import load_image
-from vprbench.paths import cache_root
-from vprbench.weights import read_torch_file
 
-from .common import IMAGENET_MEAN, IMAGENET_STD, TorchMethod, as_resize, choose, file_sha256, load_exact, state_dict_of
+from .common import (
+    IMAGENET_MEAN,
+    IMAGENET_STD,
+    TorchMethod,
+    WeightSource,
+    as_resize,
+    choose,
+    file_sha256,  # noqa: F401  (tests name a file's identity through the baseline)
+    load_exact,
+    read_weights_file,
+    resolve_weights,
+    state_dict_of,
+    weights_fields,
+)
 
 METHOD = "clip-cls"
 PREPROCESSING = ("anyloc", "openclip")
-_FILES = "open_clip_pytorch_model.bin or open_clip_model.safetensors"
+DEFAULT_FILE = "open_clip_pytorch_model.bin"  # OpenCLIP's file in a hub repository
 
 
 @dataclass(frozen=True)
@@ -112,49 +124,30 @@ def _check_backbone(backbone: str, pretrained: str | None, weights) -> None:
             )
 
 
-def resolve_weights(backbone: str, pretrained: str, weights) -> tuple[Path, dict]:
-    """(checkpoint file, identity): the user's file, or OpenCLIP's published one (downloaded once)."""
-    import open_clip
-
-    if weights is not None:
-        path = Path(weights).expanduser()
-        if not path.is_file():
-            raise VPRBenchError(f"{METHOD}: weights file {path} does not exist; {_how_to_get(backbone, pretrained)}.")
-        return path, {"weights_sha256": file_sha256(path)}
-    cfg = open_clip.get_pretrained_cfg(backbone, pretrained)
-    try:
-        path = open_clip.download_pretrained(cfg, cache_dir=str(cache_root() / "open_clip"))
-    except (OSError, RuntimeError, ValueError) as error:  # huggingface_hub's offline errors are OSErrors
-        raise VPRBenchError(
-            f"{METHOD}: could not download the {backbone} {pretrained} weights ({error}). "
-            f"Offline? {_how_to_get(backbone, pretrained)}."
-        ) from None
-    if not path:
-        raise VPRBenchError(f"{METHOD}: OpenCLIP has no download for {backbone} {pretrained}; pass --weights PATH.")
-    return Path(path), {"weights": f"open_clip:{backbone}/{pretrained}", "hf_hub": cfg.get("hf_hub") or cfg.get("url")}
-
-
-def _how_to_get(backbone: str, pretrained: str | None) -> str:
+def weight_source(backbone: str, pretrained: str | None) -> WeightSource:
+    """Where OpenCLIP publishes `backbone`'s `pretrained` weights: a hub file (its 'org/repo/'
+    entries mean the default file name) or a URL."""
     import open_clip
 
     cfg = open_clip.get_pretrained_cfg(backbone, pretrained) if pretrained else {}
     if cfg.get("hf_hub"):
-        where = f"https://huggingface.co/{cfg['hf_hub'].rstrip('/')}"
-    else:
-        where = cfg.get("url") or "the OpenCLIP release"
-    return f"download {_FILES} from {where} and pass it with --weights PATH"
+        repo, name = posixpath.split(cfg["hf_hub"])  # as OpenCLIP splits it
+        return WeightSource(name or DEFAULT_FILE, hub=repo)
+    if cfg.get("url"):
+        return WeightSource(cfg["url"].rsplit("/", 1)[-1], url=cfg["url"])
+    return WeightSource(DEFAULT_FILE, page="the OpenCLIP release")
+
+
+def resolve_clip_weights(backbone: str, pretrained: str, weights, cache_dir=None) -> tuple[Path, dict]:
+    """(checkpoint file, identity): the user's file, or OpenCLIP's published one (downloaded once)."""
+    source = weight_source(backbone, pretrained)
+    resolved = resolve_weights(source, weights, METHOD, cache_dir=cache_dir)
+    return resolved.path, weights_fields(resolved, source)
 
 
 def _read(path: Path) -> dict:
-    if path.suffix == ".safetensors":
-        from safetensors.torch import load_file
-
-        try:
-            return load_file(str(path))
-        except (OSError, ValueError, RuntimeError) as error:  # safetensors' error is a RuntimeError-like
-            raise VPRBenchError(f"{METHOD}: cannot read checkpoint {path}: {error}") from None
     # mmap: the 10 GB ViT-bigG-14 file is not copied into memory a second time
-    return state_dict_of(read_torch_file(path, f"{METHOD} checkpoint", mmap=True))
+    return state_dict_of(read_weights_file(path, f"{METHOD} checkpoint"))
 
 
 def load_image_tower(backbone: str, path: Path) -> nn.Module:
@@ -181,13 +174,13 @@ def load_image_tower(backbone: str, path: Path) -> nn.Module:
 
 
 def clip_cls(backbone="ViT-bigG-14", pretrained="laion2b_s39b_b160k", weights=None, resize=None, preprocess="anyloc",
-             batch_size=None, precision="fp32", device="cpu"):
+             batch_size=None, precision="fp32", device="cpu", cache_dir=None):
     import open_clip
 
     mode = choose("preprocess", preprocess, PREPROCESSING, METHOD)
     resize = as_resize(resize)
     _check_backbone(backbone, pretrained, weights)
-    path, identity = resolve_weights(backbone, pretrained, weights)
+    path, identity = resolve_clip_weights(backbone, pretrained, weights, cache_dir)
     visual = load_image_tower(backbone, path)
     pp = dict(getattr(visual, "preprocess_cfg", {}))
     if pretrained in open_clip.list_pretrained_tags_by_model(backbone):  # the published weights' own settings

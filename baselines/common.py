@@ -18,8 +18,15 @@ from vprbench import Method, VPRBenchError
 from vprbench.images import load_image
 from vprbench.loader import loaded
 from vprbench.methods import l2_normalise
-from vprbench.paths import cache_root
-from vprbench.weights import file_sha256, read_torch_file, weights_provenance  # noqa: F401  (baselines import file_sha256 from here)
+from vprbench.features.resize import parse_size as as_resize  # noqa: F401  (the one resize parser)
+from vprbench.weights import (  # noqa: F401  (baselines import these from here)
+    ResolvedWeights,
+    WeightSource,
+    file_sha256,
+    read_weights_file,
+    resolve_weights,
+    weights_provenance,
+)
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -34,25 +41,6 @@ def as_int(value, name: str) -> int:
         raise VPRBenchError(f"Option {name} must be an integer, got {value!r}.") from None
 
 
-def as_resize(value, name: str = "resize") -> tuple[int, int] | None:
-    """(H, W) from a tuple, "HxW", "H,W" or a single int for a square."""
-    if value is None:
-        return None
-    if isinstance(value, str):
-        parts = value.lower().replace("x", ",").split(",")
-        value = tuple(p.strip() for p in parts if p.strip())
-    if isinstance(value, int):
-        value = (value, value)
-    if len(value) == 1:
-        value = (value[0], value[0])
-    if len(value) != 2:
-        raise VPRBenchError(f"Option {name} takes height and width (e.g. 480 640), got {value!r}.")
-    height, width = (as_int(v, name) for v in value)
-    if height <= 0 or width <= 0:
-        raise VPRBenchError(f"Option {name} must be positive, got {height}x{width}.")
-    return height, width
-
-
 def choose(kind: str, value: str, valid: Sequence[str], method: str) -> str:
     """Case-insensitive pick from `valid`, or an error that lists them."""
     by_lower = {v.lower(): v for v in valid}
@@ -62,32 +50,6 @@ def choose(kind: str, value: str, valid: Sequence[str], method: str) -> str:
 
 
 # ---------------------------------------------------------------- weights
-@dataclass(frozen=True)
-class WeightSource:
-    """Where the authors publish a checkpoint.
-
-    `url` is a direct download (None when it is only on a page that needs a browser,
-    such as Google Drive); `page` is where a person gets it; `sha256` only when the
-    authors publish one.
-    """
-
-    file_name: str
-    url: str | None = None
-    page: str | None = None
-    sha256: str | None = None
-
-    def how_to_get(self) -> str:
-        where = self.url or self.page or "the authors' release page"
-        return f"download {self.file_name} from {where} and pass it with --weights PATH"
-
-
-def weights_dir() -> Path:
-    """torch hub checkpoint folder: $TORCH_HOME when set, else under the vprbench cache."""
-    if os.environ.get("TORCH_HOME"):
-        return Path(torch.hub.get_dir()) / "checkpoints"
-    return cache_root() / "torch" / "hub" / "checkpoints"
-
-
 def check_dim(method: str, dim, valid, what: str) -> int | None:
     """`dim` as an int if one of the released `valid` dimensions for `what`; None stays None."""
     if dim is None:
@@ -98,35 +60,22 @@ def check_dim(method: str, dim, valid, what: str) -> int | None:
     return dim
 
 
-def load_checkpoint(weights: str | os.PathLike | None, source: WeightSource, method: str):
-    """The checkpoint object and the weights identity for the fingerprint.
+def weights_fields(resolved: ResolvedWeights, source: WeightSource) -> dict:
+    """The fingerprint's weights fields: the user's file by its sha256, a release by its URL
+    (and published sha256), a hub file by 'hf:<repo>/<file>'."""
+    if resolved.identity.startswith("sha256:"):
+        return {"weights_sha256": resolved.identity.removeprefix("sha256:")}
+    if resolved.identity.startswith("hf:"):
+        return {"weights": resolved.identity}
+    return {"weights_url": resolved.identity, "weights_sha256": source.sha256}
 
-    `weights` is a local file (the user's `--weights PATH`); without it the published
-    URL is downloaded once into the torch hub cache (hash-checked when a sha256 is
-    published). Offline, or when there is no direct URL, the error says how to supply it.
-    """
-    if weights is not None:
-        path = Path(weights).expanduser()
-        if not path.is_file():
-            raise VPRBenchError(f"{method}: weights file {path} does not exist; {source.how_to_get()}.")
-        return read_torch_file(path), {"weights_sha256": file_sha256(path)}
-    if source.url is None:
-        raise VPRBenchError(
-            f"{method}: the authors publish {source.file_name} only at {source.page}, which cannot be "
-            f"downloaded automatically; download it there and pass it with --weights PATH."
-        )
-    identity = {"weights_url": source.url, "weights_sha256": source.sha256}
-    target = weights_dir() / source.file_name
-    if not target.is_file():
-        target.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            torch.hub.download_url_to_file(source.url, str(target), hash_prefix=source.sha256, progress=False)
-        except (OSError, RuntimeError) as error:  # URLError is an OSError; RuntimeError = hash mismatch
-            raise VPRBenchError(
-                f"{method}: could not download {source.file_name} from {source.url} ({error}). "
-                f"Offline? {source.how_to_get()}."
-            ) from None
-    return read_torch_file(target), identity
+
+def load_checkpoint(weights: str | os.PathLike | None, source: WeightSource, method: str, cache_dir=None):
+    """The checkpoint object and the weights identity for the fingerprint, from the one
+    resolver (`vprbench.weights.resolve_weights`): the user's `--weights PATH`, else the
+    published file downloaded once into the cache."""
+    resolved = resolve_weights(source, weights, method, cache_dir=cache_dir)
+    return read_weights_file(resolved.path, "checkpoint"), weights_fields(resolved, source)
 
 
 def state_dict_of(checkpoint, keys: Sequence[str] = ("state_dict", "model_state_dict")) -> dict:
@@ -266,7 +215,7 @@ class TorchMethod(Method):
 
     def provenance(self) -> dict:
         """The weights' source, read from the identity `load_checkpoint` (or a baseline's own
-        resolver) put in the fingerprint: a release URL, a release name ('open_clip:...'), or the
+        resolver) put in the fingerprint: a release URL, a hub file ('hf:<repo>/<file>'), or the
         sha256 of the user's file. Every layer (PCA and vocabulary included) comes from the checkpoint."""
         fp = self._fingerprint
         if fp.get("weights_url"):

@@ -88,7 +88,8 @@ def check_release(method: str, released: dict, backbone, dim) -> tuple[str, int]
 
 
 def build_gem_fc_method(
-    method: str, released: dict, url: str, backbone, dim, weights, resize, batch_size, device, precision, training: str
+    method: str, released: dict, url: str, backbone, dim, weights, resize, batch_size, device, precision, training: str,
+    cache_dir=None,
 ) -> TorchMethod:
     """Shared by CosPlace and EigenPlaces: same network, different release."""
     backbone, dim = check_release(method, released, backbone, dim)
@@ -96,7 +97,7 @@ def build_gem_fc_method(
     source = WeightSource(file_name=file_url.rsplit("/", 1)[1], url=file_url)
     # The authors evaluate at full resolution (ToTensor + ImageNet normalisation, no resize).
     preprocess = Preprocess(resize=as_resize(resize))  # checked before the weights load
-    checkpoint, identity = load_checkpoint(weights, source, method)
+    checkpoint, identity = load_checkpoint(weights, source, method, cache_dir)
     net = build_loaded(lambda: GeoLocalizationNet(backbone, dim), state_dict_of(checkpoint), method)
     fingerprint = {"architecture": method, "backbone": backbone, "dim": dim, "training": training, **identity}
     return TorchMethod(net, preprocess, fingerprint, batch_size=batch_size, device=device, precision=precision, dim=dim)
@@ -110,10 +111,12 @@ def cosplace(
     batch_size: int | None = None,
     device: str = "cpu",
     precision: str = "fp32",
+    cache_dir=None,
 ) -> TorchMethod:
     """CosPlace trained on SF-XL; `backbone`/`dim` pick one of the released models."""
     return build_gem_fc_method(
-        "cosplace", RELEASED, RELEASE_URL, backbone, dim, weights, resize, batch_size, device, precision, "SF-XL CosPlace"
+        "cosplace", RELEASED, RELEASE_URL, backbone, dim, weights, resize, batch_size, device, precision, "SF-XL CosPlace",
+        cache_dir,
     )
 
 

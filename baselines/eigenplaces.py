@@ -28,11 +28,12 @@ def eigenplaces(
     batch_size: int | None = None,
     device: str = "cpu",
     precision: str = "fp32",
+    cache_dir=None,
 ) -> TorchMethod:
     """EigenPlaces trained on SF-XL; `backbone`/`dim` pick one of the released models."""
     return build_gem_fc_method(
         "eigenplaces", RELEASED, RELEASE_URL, backbone, dim, weights, resize, batch_size, device, precision,
-        "SF-XL EigenPlaces",
+        "SF-XL EigenPlaces", cache_dir,
     )
 
 

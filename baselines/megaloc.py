@@ -8,14 +8,13 @@ antialiased) to the nearest multiple of 14.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 import torchvision.transforms.functional as TF
 from torch import nn
 
-from vprbench import VPRBenchError, register_method
+from vprbench import register_method
 
 from .common import (
     Preprocess,
@@ -24,11 +23,9 @@ from .common import (
     as_resize,
     check_dim,
     choose,
-    file_sha256,
     load_checkpoint,
     load_exact,
     state_dict_of,
-    weights_dir,
 )
 from .salad import SaladAggregator
 from .vit import DINOV2_VITB14, ViTConfig, dinov2_vit, patch_map, vit_tokens
@@ -81,43 +78,19 @@ class MegaLoc(nn.Module):
         return F.normalize(self.aggregator(patch_map(tokens, height, width, self.patch), tokens[:, 0]), dim=-1)
 
 
-def read_weights(weights) -> tuple[dict, dict]:
+def read_weights(weights, cache_dir=None) -> tuple[dict, dict]:
     """(state dict, identity) from a local .safetensors/.pth file or the released file."""
-    if weights is not None and Path(weights).suffix == ".safetensors" and Path(weights).expanduser().is_file():
-        path = Path(weights).expanduser()
-        return _read_safetensors(path), {"weights_sha256": file_sha256(path)}
-    if weights is None:
-        cached = weights_dir() / WEIGHTS.file_name
-        if not cached.is_file():
-            try:
-                cached.parent.mkdir(parents=True, exist_ok=True)
-                torch.hub.download_url_to_file(WEIGHTS.url, str(cached), progress=False)
-            except (OSError, RuntimeError) as error:  # URLError is an OSError
-                raise VPRBenchError(
-                    f"{METHOD}: could not download model.safetensors from {WEIGHTS.url} ({error}). "
-                    f"Offline? Download model.safetensors from {WEIGHTS.page} and pass it with --weights PATH."
-                ) from None
-        return _read_safetensors(cached), {"weights_url": WEIGHTS.url}
-    checkpoint, identity = load_checkpoint(weights, WEIGHTS, METHOD)  # a converted .pth, or a clear error
+    checkpoint, identity = load_checkpoint(weights, WEIGHTS, METHOD, cache_dir)
     return state_dict_of(checkpoint), identity
 
 
-def _read_safetensors(path: Path) -> dict:
-    from safetensors import SafetensorError
-    from safetensors.torch import load_file
-
-    try:
-        return load_file(str(path))
-    except (SafetensorError, OSError) as error:
-        raise VPRBenchError(f"{METHOD}: cannot read {path}: {error}. Is it the complete model.safetensors?") from None
-
-
 def build(
-    config: MegaLocConfig, *, weights=None, resize=None, batch_size=None, precision="fp32", device="cpu"
+    config: MegaLocConfig, *, weights=None, resize=None, batch_size=None, precision="fp32", device="cpu",
+    cache_dir=None,
 ) -> TorchMethod:
     """A MegaLoc method for `config` (the published one, or a reduced one in tests)."""
     resize = as_resize(resize)
-    state, identity = read_weights(weights)
+    state, identity = read_weights(weights, cache_dir)
     model = MegaLoc(config)
     load_exact(model, state, METHOD)
     fingerprint = {
@@ -134,12 +107,14 @@ def build(
 
 
 def megaloc(
-    backbone="dinov2_vitb14", weights=None, resize=None, batch_size=None, precision="fp32", device="cpu", dim=None
+    backbone="dinov2_vitb14", weights=None, resize=None, batch_size=None, precision="fp32", device="cpu", dim=None,
+    cache_dir=None,
 ):
     choose("backbone", backbone, list(BACKBONES), METHOD)
     config = MegaLocConfig()
     check_dim(METHOD, dim, [config.dim], "dinov2_vitb14")
-    return build(config, weights=weights, resize=resize, batch_size=batch_size, precision=precision, device=device)
+    return build(config, weights=weights, resize=resize, batch_size=batch_size, precision=precision, device=device,
+                 cache_dir=cache_dir)
 
 
 def register() -> None:

@@ -89,6 +89,7 @@ def mixvpr(
     batch_size: int | None = None,
     device: str = "cpu",
     precision: str = "fp32",
+    cache_dir=None,
 ) -> TorchMethod:
     """MixVPR trained on GSV-Cities; images resized to 320x320 (bicubic) as the authors do."""
     backbone = choose("backbone", backbone, ["resnet50"], "mixvpr")
@@ -101,7 +102,7 @@ def mixvpr(
             f"mixvpr: resize {resize} does not fit the aggregator's {config['in_h']}x{config['in_w']} "
             f"feature map; valid: {config['in_h'] * 16} {config['in_w'] * 16}."
         )
-    checkpoint, identity = load_checkpoint(weights, WEIGHTS[dim], "mixvpr")
+    checkpoint, identity = load_checkpoint(weights, WEIGHTS[dim], "mixvpr", cache_dir)
     net = build_loaded(lambda: MixVPRNet(config), state_dict_of(checkpoint), "mixvpr")
     preprocess = Preprocess(resize=resize, interpolation="bicubic")
     fingerprint = {"architecture": "mixvpr", "backbone": backbone, "dim": dim, "training": "GSV-Cities",

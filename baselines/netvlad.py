@@ -80,6 +80,7 @@ def netvlad(
     batch_size: int | None = None,
     device: str = "cpu",
     precision: str = "fp32",
+    cache_dir=None,
 ) -> TorchMethod:
     """Benchmark NetVLAD; the descriptor has 64 x backbone-channels dimensions."""
     name = "netvlad"
@@ -99,7 +100,7 @@ def netvlad(
     # The benchmark normalises the full image, then resizes the tensor to 480x640 ("hard_resize");
     # its torchvision (0.8) resized tensors without antialiasing. Checked before the weights load.
     preprocess = Preprocess(resize=as_resize(resize), normalise_first=True, antialias=False)
-    checkpoint, identity = load_checkpoint(weights, source, name)
+    checkpoint, identity = load_checkpoint(weights, source, name, cache_dir)
     net = build_loaded(lambda: DVGLNetVLAD(backbone), state_dict_of(checkpoint), name)
     fingerprint = {"architecture": "netvlad-dvgl", "backbone": backbone, "dim": CLUSTERS * channels,
                    "clusters": CLUSTERS, "training": train_set, **identity}
@@ -141,6 +142,7 @@ def netvlad_vgg16(
     batch_size: int | None = None,
     device: str = "cpu",
     precision: str = "fp32",
+    cache_dir=None,
 ) -> TorchMethod:
     """Original VGG16 NetVLAD: WPCA 4096/512/128-d (Patch-NetVLAD release) or full 32768-d (pytorch-NetVlad)."""
     name = "netvlad-vgg16"
@@ -157,7 +159,7 @@ def netvlad_vgg16(
         source = WeightSource(f"{prefix}_WPCA{dim}.pth.tar", url=url)
         default_resize = (480, 640)  # Patch-NetVLAD's feature-extraction configs
     resize = as_resize(resize) if resize is not None else default_resize
-    checkpoint, identity = load_checkpoint(weights, source, name)
+    checkpoint, identity = load_checkpoint(weights, source, name, cache_dir)
     pca_dim = None if dim == FULL_DIM else dim
     net = build_loaded(lambda: VGG16NetVLAD(pca_dim), state_dict_of(checkpoint), name)
     preprocess = Preprocess(resize=resize)  # torchvision Resize on the PIL image, then ImageNet normalisation

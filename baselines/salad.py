@@ -145,13 +145,14 @@ def official_to_model(state: dict, prefix: str) -> dict:
 
 
 def build(
-    config: SaladConfig, *, weights=None, resize=(322, 322), batch_size=None, precision="fp32", device="cpu"
+    config: SaladConfig, *, weights=None, resize=(322, 322), batch_size=None, precision="fp32", device="cpu",
+    cache_dir=None,
 ) -> TorchMethod:
     """A SALAD method for `config` (the published one, or a reduced one in tests)."""
     resize = as_resize(resize)
     if resize is not None:
         check_patch_multiple(*resize, config.vit.patch, METHOD)
-    checkpoint, identity = load_checkpoint(weights, WEIGHTS, METHOD)
+    checkpoint, identity = load_checkpoint(weights, WEIGHTS, METHOD, cache_dir)
     model = Salad(config)
     load_exact(model, official_to_model(state_dict_of(checkpoint), "backbone.model."), METHOD)
     fingerprint = {
@@ -167,12 +168,14 @@ def build(
 
 
 def salad(
-    backbone="dinov2_vitb14", weights=None, resize=(322, 322), batch_size=None, precision="fp32", device="cpu", dim=None
+    backbone="dinov2_vitb14", weights=None, resize=(322, 322), batch_size=None, precision="fp32", device="cpu", dim=None,
+    cache_dir=None,
 ):
     choose("backbone", backbone, list(BACKBONES), METHOD)
     config = SaladConfig()
     check_dim(METHOD, dim, [config.dim], "dinov2_vitb14")
-    return build(config, weights=weights, resize=resize, batch_size=batch_size, precision=precision, device=device)
+    return build(config, weights=weights, resize=resize, batch_size=batch_size, precision=precision, device=device,
+                 cache_dir=cache_dir)
 
 
 def register() -> None:

@@ -14,21 +14,26 @@ import numpy as np
 from PIL import Image
 
 
-def place_image(easting: float, northing: float) -> np.ndarray:
-    """64x48 RGB gratings whose phases and angles drift with position (nearby places look alike)."""
-    y, x = np.mgrid[0:48, 0:64] / 48.0
+def place_image(easting: float, northing: float, size=(64, 48), grain: float = 0.0) -> np.ndarray:
+    """RGB gratings (64x48 by default) whose phases and angles drift with position (nearby places
+    look alike); `grain` adds seeded noise so a JPEG is as large as a photo's."""
+    width, height = size
+    y, x = np.mgrid[0:height, 0:width] / float(height)
     angle = (easting + northing) / 400.0
     a = np.sin(2 * np.pi * (3 * (x * np.cos(angle) + y * np.sin(angle)) + easting / 150.0))
     b = np.sin(2 * np.pi * (2 * (x * np.sin(angle) - y * np.cos(angle)) + northing / 170.0))
     grey = 127 + 60 * a + 50 * b
+    if grain:
+        grey = grey + np.random.default_rng(int(abs(easting * 10 + northing))).normal(0, grain, grey.shape)
     return np.stack([grey, np.roll(grey, 7, axis=1), 255 - grey], axis=-1).clip(0, 255).astype(np.uint8)
 
 
-def build(shared_data: Path, data: Path) -> SimpleNamespace:
+def build(shared_data: Path, data: Path, size=(64, 48), grain: float = 0.0) -> SimpleNamespace:
     """<data>/pitts30k in the original NetVLAD packaging: the 10,000 database and 6,816 query
     images under their real names (000/..., queries_real/...) with their real UTM positions in
     datasets/pitts30k_test.mat. One small generated image per distinct position, hard-linked
-    to every name taken there. `data` becomes the data root (it holds pitts30k/)."""
+    to every name taken there (`size`, `grain`: see place_image; 640x480 with grain 8 makes
+    JPEGs of about 86 KB). `data` becomes the data root (it holds pitts30k/)."""
     from scipy.io import savemat
 
     base = shared_data / "ground-truth" / "patchnetvlad"
@@ -46,7 +51,7 @@ def build(shared_data: Path, data: Path) -> SimpleNamespace:
             key = (float(easting), float(northing))
             if key not in pooled:
                 pooled[key] = pool / f"{len(pooled)}.jpg"
-                Image.fromarray(place_image(*key)).save(pooled[key], quality=90)
+                Image.fromarray(place_image(*key, size, grain)).save(pooled[key], quality=90)
             path = root / name
             if path.parent not in made_folders:
                 path.parent.mkdir(parents=True, exist_ok=True)

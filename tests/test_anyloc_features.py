@@ -1,14 +1,16 @@
 """AnyLoc feature side: weights loading, preprocessing, pos-embed interpolation, dense facets."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
 
 from vprbench import VPRBenchError
-from vprbench.features import backbones
 from vprbench.features.backbones import backbone_spec, create_model, load_backbone, official_state_dict
 from vprbench.features.dense import DenseExtractor, interpolate_pos_embed
-from vprbench.features.preprocess import crop_offsets, dataset_resize, parse_size, resize_tensor
+from vprbench.features.preprocess import crop_offsets, resize_tensor
+from vprbench.features.resize import dataset_resize, parse_size
 
 
 @pytest.fixture(scope="module")
@@ -50,12 +52,12 @@ def test_wrong_architecture_names_keys(tmp_path, vits14_file):
 
 
 def test_missing_weights_offline_says_how_to_supply(tmp_path, monkeypatch):
-    def offline(url, destination):
+    def offline(*args, **kwargs):
         raise OSError("network unreachable")
 
-    monkeypatch.setattr(backbones, "_download", offline)
+    monkeypatch.setattr(torch.hub, "download_url_to_file", offline)
     with pytest.raises(VPRBenchError) as error:
-        load_backbone("dinov2_vitg14")
+        load_backbone("dinov2_vitg14", cache_dir=tmp_path)
     message = str(error.value)
     assert "--weights" in message and "dinov2_vitg14_pretrain.pth" in message
     assert "https://dl.fbaipublicfiles.com/dinov2/dinov2_vitg14/dinov2_vitg14_pretrain.pth" in message
@@ -65,19 +67,18 @@ def test_missing_weights_offline_says_how_to_supply(tmp_path, monkeypatch):
         backbone_spec("dinov2_vits16")
 
 
-def test_downloaded_file_is_found_in_hub_cache(tmp_path, monkeypatch, vits14_file):
+def test_downloaded_file_is_kept_in_the_cache_folder_given(tmp_path, monkeypatch, vits14_file):
     calls = []
 
-    def fake_download(url, destination):
+    def fake_download(url, destination, hash_prefix=None, progress=True):
         calls.append(url)
-        destination.parent.mkdir(parents=True, exist_ok=True)
-        destination.write_bytes(vits14_file[0].read_bytes())
+        Path(destination).write_bytes(vits14_file[0].read_bytes())
 
-    monkeypatch.setattr(backbones, "_download", fake_download)
-    _, _, identity = load_backbone("dinov2_vits14")
-    _, _, again = load_backbone("dinov2_vits14")
+    monkeypatch.setattr(torch.hub, "download_url_to_file", fake_download)
+    _, _, identity = load_backbone("dinov2_vits14", cache_dir=tmp_path / "cache")
+    _, _, again = load_backbone("dinov2_vits14", cache_dir=tmp_path / "cache")
     assert identity == again == backbone_spec("dinov2_vits14").url and len(calls) == 1
-    assert (tmp_path / "torch-home" / "hub" / "checkpoints" / "dinov2_vits14_pretrain.pth").is_file()
+    assert (tmp_path / "cache" / "torch" / "hub" / "checkpoints" / "dinov2_vits14_pretrain.pth").is_file()
 
 
 def test_crop_offsets_round_half_to_even():

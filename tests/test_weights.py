@@ -28,3 +28,109 @@ def test_numpy_scores_beside_weights_load_and_hash_is_stable(tmp_path):
     torch.save({"state_dict": {"w": torch.ones(2)}, "best_score": np.float64(0.9)}, path)
     assert read_torch_file(path)["best_score"] == 0.9
     assert file_sha256(path) == file_sha256(path) and len(file_sha256(path)) == 64
+
+
+# ---------------------------------------------------------------- the one resolver
+from pathlib import Path  # noqa: E402
+
+from vprbench.weights import WeightSource, resolve_weights, weights_identity, weights_provenance  # noqa: E402
+
+
+def _refuse_network(monkeypatch):
+    import huggingface_hub
+
+    def refuse(*args, **kwargs):
+        raise OSError("no network in tests")
+
+    monkeypatch.setattr(torch.hub, "download_url_to_file", refuse)
+    monkeypatch.setattr(huggingface_hub, "hf_hub_download", refuse)
+
+
+def test_local_file_or_folder_is_identified_by_its_sha256(tmp_path):
+    path = tmp_path / "w.pth"
+    torch.save({"a": torch.ones(1)}, path)
+    source = WeightSource("w.pth", url="https://example.org/w.pth")
+    for given in (path, tmp_path, str(path)):  # a folder holding the release's file name gives that file
+        found = resolve_weights(source, given, "toy")
+        assert found.path == path and found.identity == "sha256:" + file_sha256(path)
+    assert weights_identity(source, tmp_path, "toy") == "sha256:" + file_sha256(path)
+    with pytest.raises(VPRBenchError, match=r"toy: weights file .*nope\.pth does not exist; download w\.pth from "
+                                            r"https://example\.org/w\.pth and pass it with --weights PATH"):
+        resolve_weights(source, tmp_path / "nope.pth", "toy")
+
+
+def test_release_url_downloads_once_into_the_cache_given_checked_by_its_sha256(tmp_path, monkeypatch):
+    calls = []
+
+    def fake(url, destination, hash_prefix=None, progress=True):
+        calls.append((url, hash_prefix))
+        torch.save({"a": torch.ones(1)}, destination)
+
+    monkeypatch.setattr(torch.hub, "download_url_to_file", fake)
+    source = WeightSource("w.pth", url="https://example.org/w.pth", sha256="cd" * 32)
+    first = resolve_weights(source, None, "toy", cache_dir=tmp_path / "c")
+    again = resolve_weights(source, None, "toy", cache_dir=tmp_path / "c")
+    assert first == again and first.identity == "https://example.org/w.pth"
+    assert first.path == tmp_path / "c" / "torch" / "hub" / "checkpoints" / "w.pth"
+    assert calls == [("https://example.org/w.pth", "cd" * 32)]  # torch checks the published sha256 prefix
+
+
+def test_hub_file_downloads_into_the_cache_given(tmp_path, monkeypatch):
+    import huggingface_hub
+
+    calls = []
+
+    def fake(repo_id, filename, cache_dir=None, **kwargs):
+        calls.append((repo_id, filename, cache_dir))
+        path = Path(cache_dir) / "x" / filename
+        path.parent.mkdir(parents=True, exist_ok=True)
+        torch.save({"a": torch.ones(1)}, path)
+        return str(path)
+
+    monkeypatch.setattr(huggingface_hub, "hf_hub_download", fake)
+    source = WeightSource("model.safetensors", hub="org/model")
+    found = resolve_weights(source, None, "toy", cache_dir=tmp_path / "c")
+    assert found.identity == "hf:org/model/model.safetensors" == weights_identity(source, None, "toy")
+    assert calls == [("org/model", "model.safetensors", str(tmp_path / "c" / "huggingface"))]
+    assert weights_provenance(found.identity) == {"source": "official", "hub": "org/model", "file": "model.safetensors",
+                                                  "recognised_by": "download"}
+
+
+def test_offline_or_page_only_says_how_to_supply(tmp_path, monkeypatch):
+    _refuse_network(monkeypatch)
+    with pytest.raises(VPRBenchError, match=r"toy: could not download w\.pth from https://example\.org/w\.pth "
+                                            r"\(no network in tests\)\. Offline\? download w\.pth"):
+        resolve_weights(WeightSource("w.pth", url="https://example.org/w.pth"), None, "toy", cache_dir=tmp_path)
+    with pytest.raises(VPRBenchError, match=r"could not download m\.bin from https://huggingface\.co/org/m"):
+        resolve_weights(WeightSource("m.bin", hub="org/m"), None, "toy", cache_dir=tmp_path)
+    with pytest.raises(VPRBenchError, match=r"toy: the authors publish m\.ckpt only at https://drive\.example/m, "
+                                            r"which cannot be downloaded automatically"):
+        resolve_weights(WeightSource("m.ckpt", page="https://drive.example/m"), None, "toy", cache_dir=tmp_path)
+
+
+def test_evaluate_reads_weights_from_the_run_settings_cache(shared_data, tmp_path, monkeypatch):
+    """`evaluate(spec, RunSettings(cache_dir=X))` finds the backbone's release file in X, not in
+    the default cache (which stays empty), and downloads nothing."""
+    from vprbench.datasets import load_dataset
+    from vprbench.evaluation import evaluate
+    from vprbench.features.backbones import backbone_spec, create_model, official_state_dict
+    from vprbench.paths import default_cache
+    from vprbench.spec import RunSettings, resolve_spec
+
+    _refuse_network(monkeypatch)
+    torch.manual_seed(0)
+    backbone = backbone_spec("dinov2_vits14")
+    cache = tmp_path / "X"
+    release = cache / "torch" / "hub" / "checkpoints" / backbone.file_name
+    release.parent.mkdir(parents=True)
+    torch.save(official_state_dict(create_model(backbone), backbone), release)
+    dataset = load_dataset("corridor", shared_data)
+    spec = resolve_spec("anyloc", dataset, options={"backbone": "dinov2_vits14", "layer": 0, "aggregation": "gem",
+                                                    "resize": "28x28"})
+    record = evaluate(spec, RunSettings(cache_dir=cache), dataset=dataset)
+    assert record["provenance"]["weights"] == {"source": "official", "url": backbone.url, "recognised_by": "download",
+                                               "release": "dinov2"}
+    assert record["descriptor_dim"] == 384
+    assert not list(default_cache().rglob(backbone.file_name))
+    with pytest.raises(VPRBenchError, match=r"could not download dinov2_vits14_pretrain\.pth .*no network"):
+        evaluate(spec, RunSettings(cache_dir=tmp_path / "empty"), dataset=dataset)

@@ -7,12 +7,21 @@ High-bit-depth images (16-bit PNG and TIFF, 32-bit integer or float TIFF) are sc
 budget (DECODE_BUDGET_PIXELS) before any pixel is decoded: a small file can declare a huge
 image. EXIF orientation is applied (ORIENTATION): a photo stored sideways with an orientation
 tag, as phones write them, is seen upright, as a person viewing it sees it.
+
+An image is read into memory once and decoded from those bytes; inside `reads_seen()` the
+sha256 of exactly the bytes decoded is recorded, so the loader can prove a row describes the
+image its store is keyed by (not a copy that changed before or while it was read).
 """
 from __future__ import annotations
 
+import hashlib
+import io
+import os
 import re
 import struct
+import threading
 import warnings
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -35,8 +44,38 @@ _FULL_SCALE = {"I;16": 65535, "I;16B": 65535, "I;16L": 65535, "I;16N": 65535, "I
 #: memory on 6000 x 6000 images, 8-bit JPEG and 16-bit PNG alike): 0.83 GiB at the budget.
 DECODE_BUDGET_PIXELS = 89_478_485
 DECODE_BYTES_PER_PIXEL = 10
+#: The largest image file read: 8 bytes a pixel of the budget (uncompressed 16-bit RGBA); any
+#: real image within the decode budget is smaller.
+MAX_FILE_BYTES = DECODE_BUDGET_PIXELS * 8
 #: How images are oriented for every method; the result record says so.
 ORIENTATION = "exif-applied"
+
+_watch = threading.local()
+
+
+@contextmanager
+def reads_seen():
+    """While open, `load_image` records {absolute path: sha256 of the bytes it decoded}."""
+    seen: dict[str, str] = {}
+    previous, _watch.seen = getattr(_watch, "seen", None), seen
+    try:
+        yield seen
+    finally:
+        _watch.seen = previous
+
+
+def _read_bytes(path: Path) -> bytes:
+    with open(path, "rb") as f:
+        size = os.fstat(f.fileno()).st_size
+        if size > MAX_FILE_BYTES:
+            raise VPRBenchError(f"Image {path} is a {size / 2**30:.1f} GiB file, larger than any image within the "
+                                f"decode budget ({MAX_FILE_BYTES / 2**30:.1f} GiB, vprbench.images.MAX_FILE_BYTES). "
+                                "Downscale or recompress it, or remove it.")
+        data = f.read()
+    seen = getattr(_watch, "seen", None)
+    if seen is not None:
+        seen[os.path.abspath(path)] = hashlib.sha256(data).hexdigest()
+    return data
 
 def check_decode_budget(width: int, height: int, what: str,
                         advice: str = "Downscale it (e.g. to 8000 pixels on its longer side) or remove it.") -> None:
@@ -70,7 +109,7 @@ def load_image(path: str | Path, mode: str = "RGB") -> Image.Image:
     try:
         with warnings.catch_warnings():  # Pillow warns of what check_decode_budget refuses, naming the file
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
-            image = Image.open(path, formats=IMAGE_FORMATS)
+            image = Image.open(io.BytesIO(_read_bytes(path)), formats=IMAGE_FORMATS)
         with image:
             check_decode_budget(*image.size, f"Image {path}")  # from the header: nothing decoded yet
             image.load()

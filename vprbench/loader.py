@@ -5,10 +5,11 @@ batch, so an accelerator is not left waiting for JPEG decoding. Batches keep inp
 and a row never depends on its batch (the `Method` contract), so descriptors are the same
 for any number of workers and any batch size.
 
-Given the images' identities (sha256 of their bytes, datasets/identity.py), each image is
-hashed just before and just after it is read: a row is described only when both equal the
-identity the store is keyed by, so a file that changes while it is read (a sync tool, a
-second copy being written) never ends in a store that claims the original bytes.
+Given the images' identities (sha256 of their bytes, datasets/identity.py), a row is described
+only when the very bytes decoded (`images.reads_seen`) have the identity the store is keyed
+by, so a file that changed since (a sync tool, a second copy being written) never ends in a
+store that claims the original bytes. A method that reads its files without `load_image` is
+checked by hashing each file just before and just after its `load`.
 """
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import VPRBenchError
+from .images import reads_seen
 
 
 def resolve_device(device: str | None) -> str:
@@ -65,11 +67,17 @@ class _Images:
         try:
             if self.digests is None:
                 return self.method.load(self.paths[i])
-            before = _digest(self.paths[i])
-            item = self.method.load(self.paths[i])
-            after = _digest(self.paths[i])
-            if not before == after == self.digests[i]:
-                return _Failed(changed_message(self.paths[i], self.digests[i], before, after))
+            path, expected = self.paths[i], self.digests[i]
+            with reads_seen() as seen:
+                item = self.method.load(path)
+            decoded = seen.get(os.path.abspath(path))
+            if decoded is not None:
+                return item if decoded == expected else _Failed(changed_message(path, expected, decoded, decoded))
+            before = _digest(path)  # the method read the file itself: hashed around a second load
+            item = self.method.load(path)
+            after = _digest(path)
+            if not before == after == expected:
+                return _Failed(changed_message(path, expected, before, after))
             return item
         except VPRBenchError as error:
             return _Failed(str(error))

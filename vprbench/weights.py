@@ -1,17 +1,19 @@
-"""Weight files, for every method that loads them: read safely, named by their content."""
+"""Weight files, for every method that loads them: where they come from (the one resolver:
+a local file, the authors' release URL checked against a published sha256, or a Hugging Face
+hub file), read safely, named by their content."""
 from __future__ import annotations
 
 import pickle
 import struct
 import tomllib
+from dataclasses import dataclass
 from functools import cache
 from importlib.resources import files
 from pathlib import Path
 
-import numpy as np
-
 from . import fsutil
 from .errors import VPRBenchError
+from .paths import cache_root
 
 _SHA256: dict[tuple, str] = {}
 
@@ -29,6 +31,8 @@ def file_sha256(path: str | Path) -> str:
 def _numpy_globals() -> list:
     """numpy scalars/arrays that training checkpoints pickle beside the tensors (scores, recalls),
     under their numpy 1.x and 2.x module names."""
+    import numpy as np
+
     try:
         from numpy._core import multiarray
     except ImportError:  # numpy 1.x
@@ -76,6 +80,135 @@ def read_torch_file(path: str | Path, what: str = "checkpoint", *, mmap: bool = 
         ) from None
 
 
+# ---------------------------------------------------------------- the one resolver
+@dataclass(frozen=True)
+class WeightSource:
+    """Where the authors publish a checkpoint.
+
+    `url` is a direct download of the release; `hub` a Hugging Face hub repository holding
+    `file_name` (used when there is no `url`); `page` is where a person gets the file when
+    neither can be downloaded (Google Drive, a gated model); `sha256` only when the authors
+    publish one (a download that does not match it is refused).
+    """
+
+    file_name: str
+    url: str | None = None
+    hub: str | None = None
+    page: str | None = None
+    sha256: str | None = None
+
+    @property
+    def where(self) -> str:
+        if self.url:
+            return self.url
+        if self.hub:
+            return f"https://huggingface.co/{self.hub}"
+        return self.page or "the authors' release page"
+
+    def how_to_get(self) -> str:
+        return f"download {self.file_name} from {self.where} and pass it with --weights PATH"
+
+
+@dataclass(frozen=True)
+class ResolvedWeights:
+    """A weight file on disk and its identity for fingerprints: the release URL, 'hf:<repo>/<file>'
+    for a hub download, or 'sha256:<hex>' of a local file."""
+
+    path: Path
+    identity: str
+
+
+def weights_folder(cache_dir=None) -> Path:
+    """Where downloaded weight files are kept: torch hub's layout under the cache folder."""
+    return cache_root(cache_dir) / "torch" / "hub" / "checkpoints"
+
+
+def hub_folder(cache_dir=None) -> Path:
+    """The Hugging Face hub cache used for hub downloads, under the cache folder."""
+    return cache_root(cache_dir) / "huggingface"
+
+
+def local_weights(source: WeightSource, weights: str | Path, what: str) -> Path:
+    """The file `weights` names (a folder of release files gives `source`'s file), checked to exist."""
+    path = Path(weights).expanduser()
+    if path.is_dir():
+        path = path / source.file_name
+    if not path.is_file():
+        raise VPRBenchError(f"{what}: weights file {path} does not exist; {source.how_to_get()}.")
+    return path
+
+
+def cached_weights(source: WeightSource, cache_dir=None) -> Path | None:
+    """The downloaded release file if it is already in the cache (nothing is downloaded)."""
+    if source.url:
+        path = weights_folder(cache_dir) / source.file_name
+        return path if path.is_file() else None
+    if source.hub:
+        from huggingface_hub import try_to_load_from_cache
+
+        found = try_to_load_from_cache(source.hub, source.file_name, cache_dir=str(hub_folder(cache_dir)))
+        return Path(found) if isinstance(found, str) else None
+    return None
+
+
+def weights_identity(source: WeightSource, weights: str | Path | None, what: str) -> str:
+    """The identity `resolve_weights` gives, without downloading anything."""
+    if weights is not None:
+        return "sha256:" + file_sha256(local_weights(source, weights, what))
+    if source.url:
+        return source.url
+    if source.hub:
+        return f"hf:{source.hub}/{source.file_name}"
+    raise VPRBenchError(_no_download(source, what))
+
+
+def _no_download(source: WeightSource, what: str) -> str:
+    return (f"{what}: the authors publish {source.file_name} only at {source.where}, which cannot be downloaded "
+            "automatically; download it there and pass it with --weights PATH.")
+
+
+def resolve_weights(source: WeightSource, weights: str | Path | None, what: str, *, cache_dir=None) -> ResolvedWeights:
+    """The file a method loads: the user's `weights` (a file, or a folder holding the release's
+    file name), else the release downloaded once into `cache_dir` (checked against the published
+    sha256 when there is one). Offline, or without a download, the error says how to supply it."""
+    if weights is not None:
+        path = local_weights(source, weights, what)
+        return ResolvedWeights(path, "sha256:" + file_sha256(path))
+    identity = weights_identity(source, None, what)
+    found = cached_weights(source, cache_dir)
+    if found is not None:
+        return ResolvedWeights(found, identity)
+    try:
+        if source.url:
+            import torch
+
+            found = weights_folder(cache_dir) / source.file_name
+            found.parent.mkdir(parents=True, exist_ok=True)
+            torch.hub.download_url_to_file(source.url, str(found), hash_prefix=source.sha256, progress=False)
+        else:
+            from huggingface_hub import hf_hub_download
+
+            found = Path(hf_hub_download(source.hub, source.file_name, cache_dir=str(hub_folder(cache_dir))))
+    except (OSError, RuntimeError, ValueError) as error:  # URLError and hub errors are OSErrors; hash mismatch
+        raise VPRBenchError(f"{what}: could not download {source.file_name} from {source.where} ({error}). "
+                            f"Offline? {source.how_to_get()}.") from None
+    return ResolvedWeights(found, identity)
+
+
+def read_weights_file(path: str | Path, what: str = "weights file"):
+    """A checkpoint's content: a .safetensors file's tensors, else `read_torch_file`."""
+    path = Path(path)
+    if path.suffix == ".safetensors":
+        from safetensors import SafetensorError
+        from safetensors.torch import load_file
+
+        try:
+            return load_file(str(path))
+        except (SafetensorError, OSError, ValueError, RuntimeError) as error:
+            raise VPRBenchError(f"Cannot read {what} {path}: {error}. Is it the complete .safetensors file?") from None
+    return read_torch_file(path, what, mmap=True)
+
+
 @cache
 def official_releases() -> tuple[dict, ...]:
     """The official weight releases vprbench knows (manifests/weights.toml)."""
@@ -86,14 +219,17 @@ def official_releases() -> tuple[dict, ...]:
 def weights_provenance(identity: str | None) -> dict:
     """Where a method's weights came from, for result records and the leaderboard.
 
-    `identity` is what fingerprints hold: the official URL (or 'open_clip:<arch>/<tag>') of a
-    file vprbench downloaded from the authors' release, 'sha256:<hex>' for a local file, None
+    `identity` is what fingerprints hold: the official URL (or 'hf:<repo>/<file>') of a file
+    vprbench downloaded from the authors' release, 'sha256:<hex>' for a local file, None
     for a model run without weights (random initialisation). A local file is official only when
     its sha256 equals one the authors publish (manifests/weights.toml); otherwise it is the
     user's file, identified by its sha256.
     """
     if identity is None:
         return {"source": "random"}
+    if identity.startswith("hf:"):
+        repo, _, name = identity.removeprefix("hf:").rpartition("/")
+        return {"source": "official", "hub": repo, "file": name, "recognised_by": "download"}
     if not identity.startswith("sha256:"):
         release = next((r for r in official_releases() if identity.startswith(r["url_prefix"])), None)
         return {"source": "official", "url": identity, "recognised_by": "download",

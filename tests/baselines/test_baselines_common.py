@@ -21,7 +21,7 @@ def test_as_resize_forms():
     assert common.as_resize((480, 640)) == (480, 640)
     assert common.as_resize(224) == (224, 224)
     assert common.as_resize(None) is None
-    with pytest.raises(VPRBenchError, match="height and width"):
+    with pytest.raises(VPRBenchError, match="Option resize takes HEIGHT WIDTH"):
         common.as_resize((1, 2, 3))
     with pytest.raises(VPRBenchError, match="integer"):
         common.as_int("twelve", "dim")
@@ -83,7 +83,7 @@ def test_drive_only_weights_need_a_local_file():
         common.load_checkpoint(None, source, "toy")
 
 
-def test_downloaded_file_is_cached_under_torch_home(monkeypatch, tmp_path):
+def test_downloaded_file_is_cached_in_the_cache_folder_given(monkeypatch, tmp_path):
     calls = []
 
     def fake_download(url, dst, hash_prefix=None, progress=True):
@@ -92,10 +92,10 @@ def test_downloaded_file_is_cached_under_torch_home(monkeypatch, tmp_path):
 
     monkeypatch.setattr(torch.hub, "download_url_to_file", fake_download)
     source = common.WeightSource("w.pth", url="https://example.org/w.pth", sha256="ab" * 32)
-    _, identity = common.load_checkpoint(None, source, "toy")
-    common.load_checkpoint(None, source, "toy")  # second time from the cache
+    _, identity = common.load_checkpoint(None, source, "toy", tmp_path / "cache")
+    common.load_checkpoint(None, source, "toy", tmp_path / "cache")  # second time from the cache
     assert calls == [("https://example.org/w.pth", "ab" * 32)]
-    assert (tmp_path / "torch-home" / "hub" / "checkpoints" / "w.pth").is_file()
+    assert (tmp_path / "cache" / "torch" / "hub" / "checkpoints" / "w.pth").is_file()
     assert identity == {"weights_url": "https://example.org/w.pth", "weights_sha256": "ab" * 32}
 
 

@@ -1,4 +1,5 @@
-"""Bundles rebuilt with edits (a careful forger re-sums the manifest)."""
+"""Reading and writing bundle archives by hand, to tamper with them in tests (a module of its
+own: test modules import it by name, and every test folder has a conftest)."""
 from __future__ import annotations
 
 import hashlib

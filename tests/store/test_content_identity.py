@@ -69,16 +69,52 @@ def test_an_image_changed_while_read_never_completes_a_store(corridor_copy, tmp_
     poisoned_rows = served["top_predictions"][7] != read_results(clean_cache)[-1]["top_predictions"][7]
     assert poisoned_rows or served["recall"] != clean, "the changed image really changed what the store holds"
 
-    # checked: the run stops naming the image; the store is not complete; a later run is right
-    for when, how in ((queries[2], "since its identity was taken"), (victim, "while vprbench read it")):
-        with monkeypatch.context() as patch:
-            rewrite_during_the_run(patch, victim, other.read_bytes(), when=when)
-            code, _, err = evaluate(capsys, corridor_copy, tmp_path / "checked")
-        assert code == 1 and f"Image {victim} changed {how}" in err and "Traceback" not in err, err
-        assert not list((tmp_path / "checked" / "stores").rglob("queries.h5")), "no complete store"
-        victim.write_bytes(original_bytes)
+    # checked: an image changed since its identity was taken stops the run, naming it; no store
+    # completes; a later run is right
+    with monkeypatch.context() as patch:
+        rewrite_during_the_run(patch, victim, other.read_bytes(), when=queries[2])
+        code, _, err = evaluate(capsys, corridor_copy, tmp_path / "checked")
+    assert code == 1 and f"Image {victim} changed since its identity was taken" in err and "Traceback" not in err, err
+    assert not list((tmp_path / "checked" / "stores").rglob("queries.h5")), "no complete store"
+    victim.write_bytes(original_bytes)
     assert evaluate(capsys, corridor_copy, tmp_path / "checked")[0] == 0
     assert recall(tmp_path / "checked") == clean
+
+    # rewritten right after it was decoded: the row describes the very bytes decoded, which are
+    # the ones the key names, so the store is right (and the next run sees the new bytes)
+    with monkeypatch.context() as patch:
+        rewrite_during_the_run(patch, victim, other.read_bytes())
+        assert evaluate(capsys, corridor_copy, tmp_path / "after")[0] == 0
+    after = read_results(tmp_path / "after")[-1]
+    assert after["recall"] == clean and after["top_predictions"] == read_results(clean_cache)[-1]["top_predictions"]
+    assert read_results(tmp_path / "after")[-1]["descriptors_computed"]["queries"] > 0
+    victim.write_bytes(original_bytes)
+
+
+def test_a_method_reading_files_itself_is_checked_around_its_load(corridor_copy, tmp_path, capsys, monkeypatch):
+    """A plugin whose `load` opens files without vprbench.images: each image is hashed just before
+    and just after that load, so a change while it reads is still caught."""
+    import numpy as np
+    from PIL import Image
+
+    from vprbench.methods.hog import HOG as Hog
+
+    queries = sorted((corridor_copy / "corridor" / "query").glob("*.jpg"))
+    victim, other = queries[7], queries[90]
+    original_bytes, replacement = victim.read_bytes(), other.read_bytes()
+
+    def own_reader(self, path):
+        with Image.open(path) as image:  # not vprbench.images.load_image
+            pixels = np.ascontiguousarray(np.asarray(image.convert("RGB").resize(self.size))[:, :, ::-1])
+        if path == victim and victim.read_bytes() == original_bytes:
+            victim.write_bytes(replacement)  # changed while this load reads it
+        return pixels
+
+    monkeypatch.setattr(Hog, "load", own_reader)
+    code, _, err = evaluate(capsys, corridor_copy, tmp_path / "cache")
+    assert code == 1 and f"Image {victim} changed " in err and "Traceback" not in err, err
+    assert not list((tmp_path / "cache" / "stores").rglob("queries.h5")), "no complete store"
+    victim.write_bytes(original_bytes)
 
 
 def test_a_same_size_edit_with_its_mtime_restored_is_seen(corridor_copy, tmp_path, capsys):

@@ -6,7 +6,6 @@ downloaded once from the official release URL into the torch hub cache.
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,8 +13,8 @@ import torch
 from torch import nn
 
 from ..errors import VPRBenchError, closest_names
-from ..paths import cache_root
-from ..weights import file_sha256, read_torch_file
+from ..weights import WeightSource, read_weights_file, resolve_weights
+from ..weights import weights_identity as resolver_identity
 
 
 @dataclass(frozen=True)
@@ -31,6 +30,10 @@ class BackboneSpec:
     @property
     def file_name(self) -> str:
         return self.url.rsplit("/", 1)[-1]
+
+    @property
+    def source(self) -> WeightSource:
+        return WeightSource(self.file_name, url=self.url)
 
 
 _DINOV2 = "https://dl.fbaipublicfiles.com/dinov2/{0}/{0}_pretrain.pth"
@@ -72,60 +75,13 @@ def create_model(spec: BackboneSpec, *, empty: bool = False) -> nn.Module:
 
 
 # ---------------------------------------------------------------- weight files
-def hub_checkpoint_dir() -> Path:
-    """$TORCH_HOME/hub/checkpoints when TORCH_HOME is set, else under the vprbench cache."""
-    if os.environ.get("TORCH_HOME"):
-        return Path(torch.hub.get_dir()) / "checkpoints"
-    return cache_root() / "torch" / "hub" / "checkpoints"
-
-
-def _download(url: str, destination: Path) -> None:
-    """torch.hub's downloader (atomic: writes a temporary file, then renames)."""
-    destination.parent.mkdir(parents=True, exist_ok=True)
-    torch.hub.download_url_to_file(url, str(destination), progress=True)
-
-
-def local_weights_path(spec: BackboneSpec, weights: str | Path) -> Path:
-    """The file `weights` names; a folder of official files gives this backbone's file."""
-    path = Path(weights).expanduser()
-    return path / spec.file_name if path.is_dir() else path
-
-
 def weights_identity(spec: BackboneSpec, weights: str | Path | None) -> str:
     """'sha256:<hex>' of a local file, else the official URL (nothing is downloaded)."""
-    if weights is None:
-        return spec.url
-    path = local_weights_path(spec, weights)
-    if not path.is_file():
-        raise VPRBenchError(f"Weights file {path} does not exist (backbone {spec.name} expects {spec.file_name}).")
-    return "sha256:" + file_sha256(path)
-
-
-def resolve_weights(spec: BackboneSpec, weights: str | Path | None) -> tuple[Path, str]:
-    """(local file, identity). Identity is the official URL for downloaded files, else 'sha256:...'."""
-    if weights is not None:
-        path = local_weights_path(spec, weights)
-        if not path.is_file():
-            raise VPRBenchError(
-                f"Weights file {path} does not exist. Pass --weights with the path of the official "
-                f"checkpoint {spec.file_name} for backbone {spec.name} (from {spec.url})."
-            )
-        return path, "sha256:" + file_sha256(path)
-    path = hub_checkpoint_dir() / spec.file_name
-    if not path.is_file():
-        try:
-            _download(spec.url, path)
-        except (OSError, RuntimeError, ValueError) as error:  # URLError is an OSError
-            raise VPRBenchError(
-                f"Cannot download the {spec.name} weights from {spec.url} ({error}). "
-                f"Download {spec.file_name} on a machine with internet access and either pass "
-                f"--weights /path/to/{spec.file_name}, or put it in {path.parent}."
-            ) from None
-    return path, spec.url
+    return resolver_identity(spec.source, weights, f"backbone {spec.name}")
 
 
 def read_checkpoint(path: Path) -> dict[str, torch.Tensor]:
-    state = read_torch_file(path, "weights file")
+    state = read_weights_file(path, "weights file")
     # DINO v1 training checkpoints wrap the weights; the released *_pretrain.pth are flat
     for key in ("teacher", "model", "state_dict"):
         if isinstance(state, dict) and isinstance(state.get(key), dict):
@@ -174,11 +130,13 @@ def convert_official(state: dict[str, torch.Tensor], model: nn.Module) -> dict[s
 _LOADED: dict[tuple, tuple[nn.Module, str]] = {}
 
 
-def load_backbone(name: str, weights: str | Path | None = None,
-                  device: str | torch.device = "cpu") -> tuple[nn.Module, BackboneSpec, str]:
-    """(timm model in eval mode with official weights on `device`, spec, weights identity)."""
+def load_backbone(name: str, weights: str | Path | None = None, device: str | torch.device = "cpu",
+                  cache_dir=None) -> tuple[nn.Module, BackboneSpec, str]:
+    """(timm model in eval mode with official weights on `device`, spec, weights identity);
+    the release is downloaded once into `cache_dir` unless `weights` names a local file."""
     spec = backbone_spec(name)
-    path, identity = resolve_weights(spec, weights)
+    resolved = resolve_weights(spec.source, weights, f"backbone {spec.name}", cache_dir=cache_dir)
+    path, identity = resolved.path, resolved.identity
     stat = path.stat()
     key = (name, str(path.resolve()), stat.st_mtime_ns, stat.st_size, str(device))
     if key not in _LOADED:

@@ -23,49 +23,6 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 #: the DINO v1 extractor's fixed input size (AnyLoc-VLAD-DINO), height x width
 DINO_V1_INPUT = (224, 298)
 
-#: AnyLoc's per-dataset resize (height, width) before the crop; datasets not listed keep
-#: their native size (Oxford, Gardens Point, Hawkins, Laurel Caverns, Nardo-Air, VP-Air).
-#: Keys are vprbench dataset names; aliases map the other common spellings.
-DATASET_RESIZE: dict[str, tuple[int, int]] = {
-    "pitts30k": (480, 640),
-    "st-lucia": (480, 640),
-    "17places": (480, 640),
-    "baidu-mall": (480, 640),
-    "mid-atlantic-ridge": (405, 720),
-}
-_ALIASES = {
-    "pitts30k-test": "pitts30k", "pittsburgh30k": "pitts30k", "pitts-30k": "pitts30k",
-    "stlucia": "st-lucia", "st_lucia": "st-lucia",
-    "17-places": "17places", "seventeen-places": "17places",
-    "baidu": "baidu-mall", "baidu_mall": "baidu-mall", "baidumall": "baidu-mall",
-    "mid-atlantic": "mid-atlantic-ridge", "eiffel": "mid-atlantic-ridge",
-}
-
-
-def dataset_resize(dataset: str | None) -> tuple[int, int] | None:
-    """AnyLoc's resize for `dataset` (None = native size)."""
-    if not dataset:
-        return None
-    key = dataset.strip().lower()
-    return DATASET_RESIZE.get(_ALIASES.get(key, key))
-
-
-def parse_size(size) -> tuple[int, int] | None:
-    """(H, W) from a tuple, "HxW" / "H,W" string, or None/"native"."""
-    if size is None or (isinstance(size, str) and size.strip().lower() in ("", "none", "native")):
-        return None
-    if isinstance(size, str):
-        parts = size.lower().replace("x", ",").split(",")
-    else:
-        parts = list(size)
-    try:
-        h, w = (int(p) for p in parts)
-    except (TypeError, ValueError):
-        raise VPRBenchError(f"resize must be two integers HEIGHT WIDTH (e.g. 480x640), got {size!r}") from None
-    if h <= 0 or w <= 0:
-        raise VPRBenchError(f"resize must be positive, got {h}x{w}")
-    return h, w
-
 
 def to_normalised_tensor(rgb: np.ndarray, mean=IMAGENET_MEAN, std=IMAGENET_STD) -> torch.Tensor:
     """HxWx3 uint8 -> 3xHxW float32, as ToTensor() then Normalize(mean, std)."""

@@ -25,7 +25,8 @@ from ..errors import VPRBenchError
 from ..features.backbones import backbone_spec, load_backbone, weights_identity
 from ..weights import weights_provenance
 from ..features.dense import FACETS, DenseExtractor
-from ..features.preprocess import dataset_resize, parse_size, preprocess
+from ..features.preprocess import preprocess
+from ..features.resize import dataset_resize, parse_size
 from ..loader import loaded
 from .base import Method, l2_normalise
 from .checks import choice, number, text, whole
@@ -59,8 +60,9 @@ class AnyLoc(Method):
                  facet: str = "value", aggregation: str = "vlad", clusters: int = 32,
                  vocabulary: str = "map", resize=None, pca_dim: int | None = None, batch_size: int = 8,
                  precision: str = "fp32", device: str = "cpu", dataset: str | None = None,
-                 stride: int | None = None, gem_p: float = 3.0):
+                 stride: int | None = None, gem_p: float = 3.0, cache_dir=None):
         # every option is checked here, before weights or vocabularies are touched
+        self.cache_dir = cache_dir  # where weights and vocabularies are found (not an option: no identity)
         self.spec = backbone_spec(text("anyloc", "backbone", backbone))
         self.family = self.spec.family
         aggregation = choice("anyloc", "aggregation", aggregation, AGGREGATIONS)
@@ -120,7 +122,8 @@ class AnyLoc(Method):
         """Tell the method which dataset it runs on (AnyLoc's per-dataset resize, domain vocabularies)."""
         self.dataset = name
         if self.aggregation in VLADS and self.vocabulary == "domain":
-            found, source, note = paper_choice(name, self.backbone, self.layer, self.facet, self.clusters)
+            found, source, note = paper_choice(name, self.backbone, self.layer, self.facet, self.clusters,
+                                               self.cache_dir)
             self.needs_fit = found is None
             self.centres = None if found is None else found.centres.float()
             self.vocabulary_info = {"name": source, **({"note": note} if note else {}),
@@ -141,7 +144,8 @@ class AnyLoc(Method):
         """Centres for a vocabulary option other than "map"/"domain": a file/folder path or a
         cached source name (a domain such as "indoor", or "map-<dataset>"); the authors'
         released centres are downloaded on first use where they fit these features."""
-        found = resolve_vocabulary(self.vocabulary, self.backbone, self.layer, self.facet, self.clusters)
+        found = resolve_vocabulary(self.vocabulary, self.backbone, self.layer, self.facet, self.clusters,
+                                   self.cache_dir)
         found.check_dim(self.spec.dim)  # before the model loads, naming the file
         self.vocabulary_info = {"name": self.vocabulary, **self._file_info(found)}
         return found.centres.float()
@@ -206,7 +210,7 @@ class AnyLoc(Method):
     @property
     def extractor(self) -> DenseExtractor:
         if self._extractor is None:
-            model, spec, identity = load_backbone(self.backbone, self.weights, self.device)
+            model, spec, identity = load_backbone(self.backbone, self.weights, self.device, self.cache_dir)
             self._weights_id = identity
             layer, facet = self.layer, self.facet
             if self.aggregation == "cls" and self.family == "dinov2":

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 
 from ..errors import VPRBenchError
-from ..features.preprocess import parse_size
+from ..features.resize import parse_size
 from ..images import load_rgb
 from ..loader import loaded
 from .base import Method, l2_normalise

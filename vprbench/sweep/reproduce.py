@@ -73,22 +73,30 @@ def table_cells(paper: str, table: str, ks=(1, 5), *, settings: dict | None = No
     return spec, out
 
 
-def weights_for(row_weights: dict | None, cell: Cell) -> str | None:
+def weights_for(row_weights: dict | None, cell: Cell, cache_dir=None) -> str | None:
     """What is missing of the cell's weights (None: present, or not knowable before running)."""
-    from ..features.backbones import backbone_spec, hub_checkpoint_dir, local_weights_path
+    from ..features.backbones import backbone_spec
     from ..methods.anyloc import AnyLoc
     from ..methods.registry import method_entry
     from ..paths import cache_root
+    from ..weights import cached_weights, local_weights, weights_folder
 
     entry = method_entry(cell.spec.method)
     merged = {**entry.defaults, **cell.spec.given}
     if entry.factory is AnyLoc:
         spec = backbone_spec(merged.get("backbone", "dinov2_vitg14"))
-        path = local_weights_path(spec, merged["weights"]) if merged.get("weights") else hub_checkpoint_dir() / spec.file_name
-        return None if path.is_file() else f"weights {spec.file_name} (download {spec.url} into {path.parent})"
+        if merged.get("weights"):
+            try:
+                local_weights(spec.source, merged["weights"], f"backbone {spec.name}")
+                return None
+            except VPRBenchError as error:
+                return str(error)
+        if cached_weights(spec.source, cache_dir) is not None:
+            return None
+        return f"weights {spec.file_name} (download {spec.url} into {weights_folder(cache_dir)})"
     if merged.get("weights") or not row_weights:
         return None
-    folder = cache_root() / row_weights["folder"] if "folder" in row_weights else hub_checkpoint_dir()
+    folder = cache_root(cache_dir) / row_weights["folder"] if "folder" in row_weights else weights_folder(cache_dir)
     found = list(folder.rglob(row_weights["file"])) if folder.is_dir() else []
     return None if found else f"weights {row_weights['file']} (from {row_weights['url']}, into {folder}, or pass weights=PATH)"
 
@@ -108,7 +116,7 @@ def vocabulary_for(cell: Cell) -> str | None:
     return f"vocabulary {name!r} (run 'vprbench vocabulary fit --domain {name} --method {cell.spec.method}')"
 
 
-def missing_for(cell: Cell, row_weights, data_dir=None) -> str:
+def missing_for(cell: Cell, row_weights, data_dir=None, cache_dir=None) -> str:
     """Everything the cell lacks on this machine, '' when it can run."""
     from ..datasets import dataset_location, dataset_manifest
     from ..datasets.download import how_to_get
@@ -119,7 +127,7 @@ def missing_for(cell: Cell, row_weights, data_dir=None) -> str:
         root = dataset_location(manifest, data_dir)
         if not root.is_dir():
             problems.append(f"dataset {cell.spec.dataset.name} ({how_to_get(manifest, root)})")
-    for check in (weights_for(row_weights, cell), vocabulary_for(cell)):
+    for check in (weights_for(row_weights, cell, cache_dir), vocabulary_for(cell)):
         if check:
             problems.append(check)
     return "; ".join(problems)
