@@ -64,6 +64,7 @@ class PCAWhitening:
         self.dim, self.seed = int(dim), int(seed)
         self.mean: np.ndarray | None = None
         self.projection: np.ndarray | None = None  # (dim, D): components / sqrt(explained variance)
+        self._projection64: np.ndarray | None = None  # its float64 copy, made when first applied
 
     # ------------------------------------------------------------ planning
     def solver(self, rows, memory_budget: int) -> str:
@@ -110,20 +111,29 @@ class PCAWhitening:
                                 f"dims would divide by zero: choose pca_dim <= {rank}.")
         self.mean = mean.astype(np.float32)
         self.projection = (_flip(components) / np.sqrt(variances)[:, None]).astype(np.float32)
+        self._projection64 = None
         return self
 
     # ------------------------------------------------------------ applying
     def transform(self, descriptors: np.ndarray) -> np.ndarray:
-        """(N, D) -> (N, dim) float32, whitened and L2-normalised, row by row."""
+        """(N, D) -> (N, dim) float32, whitened and L2-normalised, row by row. Computed in
+        float64 and rounded to float32 once: BLAS sums a row differently by its place in the
+        matrix and by CPU (float32 results differ in the last bit), and float64's differences
+        are 2^29 times smaller, so the rounded rows are the same wherever a row falls."""
         if self.projection is None:
             raise VPRBenchError("PCA-whitening was used before being fitted on database descriptors.")
-        descriptors = np.asarray(descriptors, dtype=np.float32)
+        descriptors = np.asarray(descriptors)
         if descriptors.ndim != 2 or descriptors.shape[1] != self.projection.shape[1]:
             raise VPRBenchError(
                 f"PCA was fitted on {self.projection.shape[1]}-dimensional descriptors, got shape {descriptors.shape}.")
-        out = (descriptors - self.mean) @ self.projection.T
-        norms = np.linalg.norm(out, axis=1, keepdims=True)
-        return (out / np.maximum(norms, 1e-12)).astype(np.float32)
+        if self._projection64 is None:
+            self._projection64 = self.projection.astype(np.float64)
+        centred = descriptors.astype(np.float64)
+        centred -= self.mean
+        out = centred @ self._projection64.T
+        del centred
+        out /= np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
+        return out.astype(np.float32)
 
     def state(self) -> dict[str, np.ndarray]:
         if self.projection is None:
@@ -135,6 +145,7 @@ class PCAWhitening:
         if projection.shape[0] != self.dim:
             raise VPRBenchError(f"Saved PCA state has {projection.shape[0]} dims, this PCA {self.dim}.")
         self.mean, self.projection = np.asarray(state["pca_mean"], dtype=np.float32), projection
+        self._projection64 = None
 
 
 def _shifted(rows, chunk_rows: int):

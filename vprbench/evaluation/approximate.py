@@ -11,7 +11,7 @@ import numpy as np
 
 from ..errors import VPRBenchError
 from ..rows import READ_BYTES, ArrayRows, RowSource, chunks, format_bytes
-from .search import SearchResult, TIE_ORDER, check_pair, exact_search, order_results, read_cost
+from .search import SearchResult, TIE_ORDER, check_pair, exact_search, order_results, read_cost, rounded_scores
 
 APPROXIMATE = ("ivf-pq", "hnsw")
 #: faiss's k-means wants at least 39 training points per centroid
@@ -131,7 +131,7 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
             if len(candidates) < k:
                 short.append(q0 + i)
                 continue
-            exact = rows[np.searchsorted(rows_ids, candidates)] @ block[i]
+            exact = rounded_scores(rows[np.searchsorted(rows_ids, candidates)] @ block[i])  # as exact search
             s, c = order_results(exact[None], candidates[None])
             scores[q0 + i], indices[q0 + i] = s[0, :k], c[0, :k]
     del index

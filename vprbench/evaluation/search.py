@@ -2,14 +2,20 @@
 applied chunk by chunk, then exact top-K search streamed from row sources (or an approximate
 index, see approximate.py). Peak memory is set by a budget in bytes, not by the data size.
 
-Exact search computes inner products tile by tile and merges each tile into faiss heaps.
-BLAS gives different last bits for different matrix shapes (OpenBLAS's gemv and
-small-matrix kernels differ from its blocked gemm by a few ulps), which would let the
-budget, or a row's place in the file, decide near-ties. So every product has one shape: a
-fixed grid of rows (aligned to row 0, its size a function of the dimension only), the last
-tile padded with zero rows. Results are then identical whatever the budget (one chunk or
-thousands), duplicated rows score alike, and ties go to the lower database index: results
-are ordered by score descending, then database index ascending.
+What is promised, on every CPU:
+
+- Scores are float32 inner products rounded to the grid of SCORE_TOLERANCE (2^-16, about
+  1.5e-5), and results are ordered by rounded score descending, then by the lower database
+  index: rows within rounding of each other are a tie, and a tie goes to the lower index.
+- On one machine and BLAS configuration, results are bitwise identical for every memory
+  budget: every product has one shape, a fixed grid of rows (aligned to row 0, its size a
+  function of the dimension only) with the last tile padded with zero rows, so neither the
+  budget nor a row's place in a read decides anything.
+- Across arithmetic paths (BLAS thread counts, numpy or torch, CPUs with other kernels, a
+  row at a tile's edge or in its middle) float32 products differ in their last bits (up to
+  about 1e-7 for unit descriptors of 49,152 dims). Rounded to the grid they agree, except
+  where a score lies within that error of a grid boundary: there it differs by one step,
+  and the order can change only between rows within one step of each other.
 """
 from __future__ import annotations
 
@@ -29,11 +35,13 @@ from ..rows import (DEFAULT_MEMORY_BUDGET, READ_BYTES, ArrayRows, RowSource, as_
                     parse_memory, read_bytes_per_row)
 
 INDEXES = ("exact", "ivf-pq", "hnsw")
-TIE_ORDER = "score descending, then database index ascending"
+#: scores are rounded to multiples of this before they are ranked (a power of two: exact in float32)
+SCORE_TOLERANCE = 2.0 ** -16
+TIE_ORDER = "score rounded to 2^-16 descending, then database index ascending"
 #: a tile of rows is at most this large (and 64..1024 rows, a power of two)
 TILE_BYTES = 32 * 2**20
 
-__all__ = ["ArrayRows", "DEFAULT_MEMORY_BUDGET", "INDEXES", "SearchResult", "TransformedRows", "exact_search",
+__all__ = ["ArrayRows", "DEFAULT_MEMORY_BUDGET", "INDEXES", "SCORE_TOLERANCE", "SearchResult", "TransformedRows", "exact_search",
            "retrieve", "search", "tile_rows"]
 
 
@@ -55,6 +63,17 @@ def read_cost(rows) -> tuple[int, int]:
     if isinstance(rows, TransformedRows):
         return rows.read_cost()
     return read_bytes_per_row(rows), 0
+
+
+def rounded_scores(scores: np.ndarray) -> np.ndarray:
+    """Scores on the grid of SCORE_TOLERANCE (round half to even), float32."""
+    return (np.rint(np.asarray(scores, dtype=np.float32) / np.float32(SCORE_TOLERANCE))
+            * np.float32(SCORE_TOLERANCE)).astype(np.float32)
+
+
+def inner_products(queries: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(Q, D) x (N, D) -> (Q, N) float32: the one place scores are computed."""
+    return queries @ rows.T
 
 
 def order_results(scores: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -108,6 +127,16 @@ def padded(block: np.ndarray, rows: int) -> np.ndarray:
     return out
 
 
+def grid_distances(scores: np.ndarray) -> np.ndarray:
+    """Scores as negated whole numbers of SCORE_TOLERANCE steps (what the heaps keep: the
+    smallest distance is the best score), C-contiguous float32, computed in place when it can."""
+    out = np.ascontiguousarray(scores, dtype=np.float32)
+    if out is scores and not out.flags.writeable:
+        out = out.copy()
+    np.multiply(out, np.float32(-1 / SCORE_TOLERANCE), out=out)  # a power of two: exact
+    return np.rint(out, out=out)
+
+
 def _heap(distances: np.ndarray, ids: np.ndarray):
     """faiss max-heaps over rows of (negated) scores: they keep the k smallest distances and,
     fed in ascending id order, the lower id on ties (faiss's min-heaps would keep the higher)."""
@@ -140,15 +169,16 @@ def exact_search(database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDG
         for d0, rows in chunks(database, plan["chunk_rows"]):
             for t0 in range(0, len(rows), tile):
                 n = min(tile, len(rows) - t0)
-                negated = padded(np.negative(rows[t0:t0 + n]), d_tile)  # q @ (-d) is exactly -(q @ d)
+                d_rows = padded(rows[t0:t0 + n], d_tile)
                 for a, q_rows in zip(range(0, len(block), tile), q_tiles):
                     m = min(tile, len(block) - a)
-                    tile_distances = np.ascontiguousarray((q_rows @ negated.T)[:m, :n])
+                    tile_distances = grid_distances(inner_products(q_rows, d_rows)[:m, :n])
                     heap.addn(n, faiss.swig_ptr(tile_distances), d0 + t0, a, m)
-            del rows, negated, tile_distances  # before the next chunk is read: the budget holds one
+            del rows, d_rows, tile_distances  # before the next chunk is read: the budget holds one
         heap.reorder()
         del block, q_tiles
-    scores, indices = order_results(np.negative(distances), indices)
+    scores = (distances * np.float32(-SCORE_TOLERANCE)).astype(np.float32)
+    scores, indices = order_results(scores, indices)
     return SearchResult(scores, indices, {"index": "exact", "memory_budget": budget, **plan, "tie_order": TIE_ORDER})
 
 
@@ -181,7 +211,8 @@ class TransformedRows:
         return out[:len(block)]
 
     def read_cost(self) -> tuple[int, int]:
-        return self.dim * 4, self.tile * (read_bytes_per_row(self.source) + 4 * self.source.dim + 2 * 4 * self.dim)
+        # a tile read, padded, and computed in float64 (PCA-whitening does), with its output
+        return self.dim * 4, self.tile * (read_bytes_per_row(self.source) + 12 * self.source.dim + 20 * self.dim)
 
     def read_rows(self, start: int, stop: int) -> np.ndarray:
         out = np.empty((stop - start, self.dim), dtype=np.float32)
