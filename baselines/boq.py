@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from vprbench import VPRBenchError, register_method
+from vprbench import VPRBenchError
 
 from .common import Preprocess, TorchMethod, WeightSource, as_int, as_resize, load_checkpoint, load_exact, state_dict_of
 from .salad import official_to_model
@@ -165,19 +165,4 @@ def boq(backbone="dinov2", dim=None, weights=None, resize=None, batch_size=None,
     return build(
         RELEASED[name, dim], weights=weights, resize=resize, batch_size=batch_size, precision=precision, device=device,
         cache_dir=cache_dir,
-    )
-
-
-def register() -> None:
-    register_method(
-        "boq-dinov2",
-        boq,
-        defaults={"backbone": "dinov2"},
-        description="BoQ (CVPR 2024) on DINOv2 ViT-B/14: 12288-D, 322x322 input.",
-    )
-    register_method(
-        "boq-resnet50",
-        boq,
-        defaults={"backbone": "resnet50"},
-        description="BoQ (CVPR 2024) on ResNet-50: 16384-D, 384x384 input.",
     )

@@ -25,7 +25,7 @@ import torchvision.transforms.functional as TF
 from PIL import Image
 from torch import nn
 
-from vprbench import VPRBenchError, register_method
+from vprbench import VPRBenchError
 from vprbench.errors import closest_names
 from vprbench.images import load_image
 
@@ -201,12 +201,3 @@ def clip_cls(backbone="ViT-bigG-14", pretrained="laion2b_s39b_b160k", weights=No
     fingerprint = {"method": METHOD, **identity, "backbone": backbone, "pretrained": tag, "dim": dim}
     return TorchMethod(ClipImageEncoder(visual), preprocessing, fingerprint, batch_size=batch_size, device=device,
                        precision=precision, dim=dim)
-
-
-def register() -> None:
-    register_method(
-        "clip-cls",
-        clip_cls,
-        defaults={"backbone": "ViT-bigG-14", "pretrained": "laion2b_s39b_b160k"},
-        description="CLIP baseline of AnyLoc: OpenCLIP ViT-bigG-14 (LAION-2B) image embedding, 1280-D.",
-    )

@@ -9,7 +9,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from vprbench import VPRBenchError, register_method
+from vprbench import VPRBenchError
 
 from .common import Preprocess, TorchMethod, WeightSource, as_int, as_resize, choose, build_loaded, load_checkpoint, state_dict_of
 
@@ -117,15 +117,4 @@ def cosplace(
     return build_gem_fc_method(
         "cosplace", RELEASED, RELEASE_URL, backbone, dim, weights, resize, batch_size, device, precision, "SF-XL CosPlace",
         cache_dir,
-    )
-
-
-def register() -> None:
-    """Entry point of the `vprbench.methods` group."""
-    register_method(
-        "cosplace",
-        cosplace,
-        defaults={"backbone": "ResNet101", "dim": 2048},
-        description="CosPlace (CVPR 2022), ResNet-101 GeM+FC 2048-d trained on SF-XL; "
-        "-o dim=N and --backbone pick other released models.",
     )

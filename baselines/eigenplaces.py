@@ -5,7 +5,6 @@ CosPlace's `GeoLocalizationNet`, so the network is shared.
 """
 from __future__ import annotations
 
-from vprbench import register_method
 
 from .common import TorchMethod
 from .cosplace import build_gem_fc_method
@@ -34,15 +33,4 @@ def eigenplaces(
     return build_gem_fc_method(
         "eigenplaces", RELEASED, RELEASE_URL, backbone, dim, weights, resize, batch_size, device, precision,
         "SF-XL EigenPlaces", cache_dir,
-    )
-
-
-def register() -> None:
-    """Entry point of the `vprbench.methods` group."""
-    register_method(
-        "eigenplaces",
-        eigenplaces,
-        defaults={"backbone": "ResNet50", "dim": 2048},
-        description="EigenPlaces (ICCV 2023), ResNet-50 GeM+FC 2048-d trained on SF-XL; "
-        "-o dim=N and --backbone pick other released models.",
     )

@@ -14,7 +14,6 @@ import torch.nn.functional as F
 import torchvision.transforms.functional as TF
 from torch import nn
 
-from vprbench import register_method
 
 from .common import (
     Preprocess,
@@ -115,12 +114,3 @@ def megaloc(
     check_dim(METHOD, dim, [config.dim], "dinov2_vitb14")
     return build(config, weights=weights, resize=resize, batch_size=batch_size, precision=precision, device=device,
                  cache_dir=cache_dir)
-
-
-def register() -> None:
-    register_method(
-        "megaloc",
-        megaloc,
-        defaults={"backbone": "dinov2_vitb14"},
-        description="MegaLoc (CVPRW 2025): DINOv2 ViT-B/14 + SALAD-style aggregation, 8448-D, full-resolution input.",
-    )

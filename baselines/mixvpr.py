@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch.nn.functional as F
 from torch import nn
 
-from vprbench import VPRBenchError, register_method
+from vprbench import VPRBenchError
 
 from .common import Preprocess, TorchMethod, WeightSource, as_resize, check_dim, choose, build_loaded, load_checkpoint, state_dict_of
 
@@ -108,13 +108,3 @@ def mixvpr(
     fingerprint = {"architecture": "mixvpr", "backbone": backbone, "dim": dim, "training": "GSV-Cities",
                    "config": config, **identity}
     return TorchMethod(net, preprocess, fingerprint, batch_size=batch_size, device=device, precision=precision, dim=dim)
-
-
-def register() -> None:
-    """Entry point of the `vprbench.methods` group."""
-    register_method(
-        "mixvpr",
-        mixvpr,
-        defaults={"backbone": "resnet50", "dim": 4096},
-        description="MixVPR (WACV 2023), ResNet-50 + feature mixer, 4096-d, 320x320 input, trained on GSV-Cities.",
-    )

@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from vprbench import VPRBenchError, register_method
+from vprbench import VPRBenchError
 
 from .common import Preprocess, TorchMethod, WeightSource, as_resize, check_dim, choose, build_loaded, load_checkpoint, state_dict_of
 from .cosplace import Flatten, L2Norm
@@ -166,21 +166,3 @@ def netvlad_vgg16(
     fingerprint = {"architecture": name, "backbone": "vgg16", "dim": dim, "clusters": CLUSTERS,
                    "training": train_set, **identity}
     return TorchMethod(net, preprocess, fingerprint, batch_size=batch_size, device=device, precision=precision, dim=dim)
-
-
-def register() -> None:
-    """Entry point of the `vprbench.methods` group."""
-    register_method(
-        "netvlad",
-        netvlad,
-        defaults={"backbone": "resnet18conv4", "train_set": "pitts30k"},
-        description="NetVLAD, ResNet-18 (to conv4) + 64 clusters, 16384-d, trained on Pitts30k "
-        "(deep-visual-geo-localization benchmark); --backbone resnet50conv4|resnet101conv4|vgg16, -o train_set=msls.",
-    )
-    register_method(
-        "netvlad-vgg16",
-        netvlad_vgg16,
-        defaults={"train_set": "pittsburgh", "dim": 4096},
-        description="Original VGG16 NetVLAD + whitening PCA 4096-d (Patch-NetVLAD release, Pitts30k); "
-        "-o dim=512|128|32768, -o train_set=mapillary.",
-    )

@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from vprbench import VPRBenchError, register_method
+from vprbench import VPRBenchError
 from vprbench.images import load_image
 
 from .common import (
@@ -176,12 +176,3 @@ def salad(
     check_dim(METHOD, dim, [config.dim], "dinov2_vitb14")
     return build(config, weights=weights, resize=resize, batch_size=batch_size, precision=precision, device=device,
                  cache_dir=cache_dir)
-
-
-def register() -> None:
-    register_method(
-        "salad",
-        salad,
-        defaults={"backbone": "dinov2_vitb14", "resize": (322, 322)},
-        description="SALAD (CVPR 2024): DINOv2 ViT-B/14 + optimal-transport aggregation, 8448-D, 322x322 input.",
-    )

@@ -167,3 +167,20 @@ def test_ablations_get_their_own_leaderboard_rows(capsys, shared_data):
     code, out, _ = run(capsys, "leaderboard", "--format", "csv")
     rows = {line.split(",")[0] for line in out.splitlines()[1:] if line}
     assert code == 0 and rows == {"hog [resize=64x64]", "hog [resize=128x128]"}
+
+
+def test_the_cli_answers_without_importing_heavy_libraries():
+    """--help, methods list, datasets list and datasets info parse and answer with torch, timm, faiss,
+    h5py, pandas and matplotlib not imported (they are imported where they are used)."""
+    import subprocess
+    import sys
+
+    probe = ("import sys, io, contextlib\nfrom vprbench.cli.main import main\n"
+             "for argv in (['methods', 'list'], ['datasets', 'list'], ['datasets', 'info', 'nordland', '--protocols']):\n"
+             "    with contextlib.redirect_stdout(io.StringIO()):\n"
+             "        assert main(argv) == 0, argv\n"
+             "heavy = {'torch', 'timm', 'faiss', 'h5py', 'pandas', 'matplotlib', 'torchvision'}\n"
+             "print(sorted(heavy & set(sys.modules)))\n")
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]", done.stdout

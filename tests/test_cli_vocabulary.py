@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from vprbench.aggregation import Vocabulary, resolve_vocabulary
+from vprbench.aggregation import Vocabulary
+from vprbench.methods.anyloc_vocabulary import resolve_vocabulary
 from vprbench.cli import vocabulary as cli
 from vprbench.errors import VPRBenchError
 

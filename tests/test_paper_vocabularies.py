@@ -9,7 +9,7 @@ import socket
 import pytest
 
 from vprbench import VPRBenchError, create_method
-from vprbench.aggregation.policies import fetch_released, paper_choice, release, released_path, released_sources
+from vprbench.methods.anyloc_vocabulary import fetch_released, paper_choice, release, released_path, released_sources
 from vprbench.cli.main import main
 from vprbench.weights import file_sha256
 

@@ -3,9 +3,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from vprbench.aggregation import (
-    FeatureSampler, Vocabulary, domain_datasets, fit_domain_vocabulary, fit_vocabulary, kmeans_cosine,
-    load_vocabulary, paper_vocabulary, resolve_vocabulary, save_to_cache, vlad_hard,
+from vprbench.aggregation import FeatureSampler, Vocabulary, fit_vocabulary, kmeans_cosine, load_vocabulary, vlad_hard
+from vprbench.methods.anyloc_vocabulary import (
+    domain_datasets, fit_domain_vocabulary, paper_vocabulary, resolve_vocabulary, save_to_cache,
 )
 from vprbench.errors import VPRBenchError
 
@@ -206,7 +206,7 @@ def test_domain_fit_order_strides_and_metadata(monkeypatch):
 def test_vocabulary_images_leave_out_distractors_and_stride():
     from pathlib import Path
 
-    from vprbench.aggregation import vocabulary_images
+    from vprbench.methods.anyloc_vocabulary import vocabulary_images
 
     refs = [Path(f"VPAir/reference_views/{i:05d}.png") for i in range(6)]
     distractors = [Path(f"VPAir/distractors/{i:05d}.png") for i in range(4)]

@@ -89,7 +89,8 @@ class RunSpec(_Frozen):
     options: dict[str, Any]
     #: the options given on top of the preset (what a leaderboard label shows)
     given: dict[str, Any] = {}
-    #: option -> "sha256:<hex>" for options that name a file (a file is identified by its bytes)
+    #: option -> "sha256:<hex>" for options that name a file (a file is identified by its bytes), or
+    #: "protocol:<hash>" for a vocabulary fitted on a benchmark
     files: dict[str, str] = {}
     dataset: DatasetSpec
     search: SearchSpec = SearchSpec()
@@ -253,11 +254,16 @@ def spec_for(method, dataset, **parts) -> RunSpec:
 
 
 def _file_identities(method: str, given: dict) -> dict[str, str]:
-    """Options whose value names an existing file are identified by its content."""
+    """Options whose value names an existing file are identified by its content; a vocabulary
+    fitted on a benchmark (dense-vlad's `vocabulary = "17places"`) by that benchmark's protocol hash."""
+    from .datasets import dataset_manifest, dataset_manifests, find_protocol
     from .weights import file_sha256
 
     found = {}
     for name, value in given.items():
+        if name == "vocabulary" and isinstance(value, str) and value in dataset_manifests():
+            found[name] = f"protocol:{find_protocol(dataset_manifest(value), None).hash}"
+            continue
         if isinstance(value, str) and value and Path(value).expanduser().is_file():
             try:
                 found[name] = "sha256:" + file_sha256(Path(value).expanduser())

@@ -1,4 +1,4 @@
-"""Real runs on the real Corridor (hog, two rows) in a results store, and bundles rebuilt with edits."""
+"""Real runs on the real Corridor (hog, two rows) in a results store."""
 from __future__ import annotations
 
 import shutil

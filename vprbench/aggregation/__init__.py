@@ -1,20 +1,10 @@
 """Aggregation: local features (patches, keypoints) -> one global descriptor.
 
 pooling (GAP/GMP/GeM), VLAD (hard, AnyLoc soft, textbook soft), the VLAD vocabulary
-(cosine k-means, bounded sampler, released centres, domain policies) and PCA-whitening.
+(cosine k-means, bounded sampler, storage) and PCA-whitening. AnyLoc's vocabulary policy
+(domains, released centres) is `vprbench.methods.anyloc_vocabulary`.
 """
 from .pca import PCAWhitening, pca_whiten
-from .policies import (
-    domain_datasets,
-    domain_image_size,
-    fit_database_vocabulary,
-    fit_domain_vocabulary,
-    fit_map_vocabulary,
-    paper_vocabulary,
-    resolve_vocabulary,
-    save_to_cache,
-    vocabulary_images,
-)
 from .pooling import POOLINGS, gap, gem, gmp
 from .vlad import vlad_hard, vlad_soft, vlad_soft_official
 from .vocabulary import (
@@ -26,8 +16,6 @@ from .vocabulary import (
 )
 
 __all__ = [
-    "POOLINGS", "FeatureSampler", "PCAWhitening", "Vocabulary", "domain_datasets", "domain_image_size",
-    "fit_database_vocabulary", "fit_domain_vocabulary", "fit_map_vocabulary", "fit_vocabulary",
-    "gap", "gem", "gmp", "kmeans_cosine", "load_vocabulary", "paper_vocabulary", "pca_whiten",
-    "resolve_vocabulary", "save_to_cache", "vlad_hard", "vocabulary_images", "vlad_soft", "vlad_soft_official",
+    "POOLINGS", "FeatureSampler", "PCAWhitening", "Vocabulary", "fit_vocabulary", "gap", "gem", "gmp",
+    "kmeans_cosine", "load_vocabulary", "pca_whiten", "vlad_hard", "vlad_soft", "vlad_soft_official",
 ]

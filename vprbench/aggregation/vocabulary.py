@@ -151,7 +151,8 @@ class Vocabulary:
     def check_dim(self, feature_dim: int) -> None:
         if feature_dim != self.dim:
             source = self.meta.get("path") or self.meta.get("source") or "the vocabulary"
-            fitted = "/".join(str(self.meta[k]) for k in ("backbone", "layer", "facet") if k in self.meta)
+            fitted = self.meta.get("method") or "/".join(str(self.meta[k]) for k in ("backbone", "layer", "facet")
+                                                          if k in self.meta)
             raise VPRBenchError(
                 f"Vocabulary {source} has {self.dim}-dimensional centres but the features are "
                 f"{feature_dim}-dimensional: it was fitted for other features (another backbone, layer or facet"
@@ -211,7 +212,7 @@ def vocabulary_dir(backbone: str, layer: int, facet: str, clusters: int, source:
 
     `source` is a domain name (indoor, urban, ...) or `map-<dataset>` for a map-specific
     vocabulary. The authors' released folders (with c_centers.pt) can be copied here under
-    their own names: they are found too (see RELEASED_SOURCES in policies.py)."""
+    their own names: they are found too (see vprbench.methods.anyloc_vocabulary)."""
     return cache_root(cache_dir) / "vocabularies" / vocabulary_key(backbone, layer, facet, clusters) / source
 
 

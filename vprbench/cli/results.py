@@ -31,6 +31,7 @@ def add_parsers(commands) -> None:
     i.add_argument("--lock-timeout", type=float, help="seconds to wait for another import into DIR (default: as long as it takes)")
     _check_options(i)
     i.set_defaults(run=run_import)
+    add_vpr_bench_parser(actions)
 
 
 def _check_options(parser) -> None:
@@ -86,3 +87,27 @@ def run_import(args) -> int:
         for line in report.lines():
             print(line)
     return 0 if all(r.ok for r in reports) else 1
+
+
+def add_vpr_bench_parser(actions) -> None:
+    p = actions.add_parser("import-vpr-bench", help="VPR-Bench's precomputed matches as records, re-scored here")
+    p.add_argument("folder", type=Path, metavar="FOLDER",
+                   help="precomputed_matches/<dataset> (one folder per method) or one method's folder")
+    p.add_argument("--dataset", required=True, help="the vprbench dataset they were computed on, e.g. corridor")
+    p.add_argument("--data-dir", help="where the dataset is (its ground truth scores the matches)")
+    p.add_argument("--cache-dir", help="the results store the records go to")
+    p.set_defaults(run=run_import_vpr_bench)
+
+
+def run_import_vpr_bench(args) -> int:
+    from ..bundles.vpr_bench import import_vpr_bench
+    from ..evaluation import save_result
+
+    resolve_locations(args)
+    records = import_vpr_bench(args.folder, args.dataset, data_dir=args.data_dir, cache_dir=args.cache_dir)
+    for record in records:
+        path = save_result(record, args.cache_dir)
+        shown = " ".join(f"R@{k} {v:.2f}" for k, v in record["recall"].items())
+        print(f"{record['imported']['method']} on {record['protocol']['id']}: {shown} (imported from VPR-Bench, "
+              f"re-scored) -> {path}")
+    return 0

@@ -51,7 +51,7 @@ def add_parsers(commands) -> None:
 
 
 def run_fit(args) -> int:
-    from ..aggregation.policies import MAP_PREFIX, domain_image_size, fit_domain_vocabulary, fit_map_vocabulary, save_to_cache
+    from ..methods.anyloc_vocabulary import MAP_PREFIX, domain_image_size, fit_domain_vocabulary, fit_map_vocabulary, save_to_cache
     from ..aggregation.vocabulary import DEFAULT_BUDGET
     from ..methods import create_method
 
@@ -83,7 +83,7 @@ def run_fit(args) -> int:
 
 
 def run_import(args) -> int:
-    from ..aggregation.policies import save_to_cache
+    from ..methods.anyloc_vocabulary import save_to_cache
     from ..aggregation.vocabulary import load_vocabulary
 
     resolve_locations(args)
@@ -105,7 +105,7 @@ def run_show(args) -> int:
 
 
 def run_download(args) -> int:
-    from ..aggregation.policies import fetch_released, release, released_name, released_sources
+    from ..methods.anyloc_vocabulary import fetch_released, release, released_name, released_sources
 
     resolve_locations(args)
     r = release()
@@ -118,7 +118,7 @@ def run_download(args) -> int:
 
 
 def run_domains(args) -> int:
-    from ..aggregation.policies import domain_datasets, domain_image_size, domain_names
+    from ..methods.anyloc_vocabulary import domain_datasets, domain_image_size, domain_names
 
     height, width = domain_image_size()
     print(f"Domain vocabularies (images resized to {height}x{width}; dataset:stride):")

@@ -35,14 +35,14 @@ def load_data(spec: RunSpec, settings: RunSettings):
 
 
 def create_run_method(name: str, given: dict, settings: RunSettings):
-    """A method with the options given, and the run's device, batch size and cache folder."""
+    """A method with the options given, and the run's device, batch size, cache and data folders."""
     from ..loader import resolve_device
     from ..methods import create_method
     from ..spec import RUN_SETTINGS
 
     options = {k: v for k, v in given.items() if k not in RUN_SETTINGS}
     return create_method(name, **options, device=resolve_device(settings.device), batch_size=settings.batch_size,
-                         cache_dir=settings.cache_dir)
+                         cache_dir=settings.cache_dir, data_dir=settings.data_dir)
 
 
 def loader_workers(settings: RunSettings, method) -> int:

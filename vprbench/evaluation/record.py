@@ -135,17 +135,42 @@ def upgrade(data: dict, where: str = "the record") -> dict:
 
 
 # ---------------------------------------------------------------- provenance and environment
-def method_provenance(method) -> dict:
+def method_provenance(method, dataset=None, cache_dir=None) -> dict:
     """`method.provenance()`, completed: a method that does not say where its weights came from
-    is 'undeclared' (never official); a method that fits on the database says so."""
+    is 'undeclared' (never official); a method that fits on the database says so, and so does
+    one whose post-processor (e.g. PCA-whitening) is fitted on the database's descriptors.
+
+    Summaries for tables: `learnt` names every fitted part (vocabulary, pca, ...), so a method
+    with learnt parts is never "nothing learnt" even when its weights source is "none";
+    `fitted_on_evaluated_database` is true when any part was fitted on the evaluated database
+    (transductive), null when a part does not say, else false. A part fitted on images the method
+    names by content (`fitted_image_digests()`, sha256 of each file) is transductive when any of
+    them is an image of the evaluated `dataset`, whatever the method says."""
     from ..methods import Method
 
     found = {k: dict(v) if isinstance(v, dict) else v for k, v in (method.provenance() or {}).items()}
     declared = type(method).provenance is not Method.provenance
     found.setdefault("weights", {"source": "none" if declared else "undeclared"})
     if method.needs_fit:
-        found.setdefault("vocabulary", {"source": "map"})
+        found.setdefault("vocabulary", {"source": "map", "fitted_on": "the evaluated database"})
         found["vocabulary"].setdefault("fitted_on_evaluated_database", True)
+    if method.postprocessor() is not None and not any(k in found for k in ("pca", "postprocessor")):
+        found["postprocessor"] = {"source": "fitted", "fitted_on": "the evaluated database's descriptors",
+                                  "fitted_on_evaluated_database": True}
+    parts = {k: v for k, v in found.items() if isinstance(v, dict) and "fitted_on_evaluated_database" in v}
+    fitted_images = getattr(method, "fitted_image_digests", lambda: {})()  # part -> set of sha256
+    if fitted_images and dataset is not None:
+        evaluated = {d for split in dataset.image_digests(cache_dir).values() for d in split}
+        for part, digests in fitted_images.items():
+            shared = len(set(digests) & evaluated)
+            if shared and part in parts:
+                parts[part].update(fitted_on_evaluated_database=True, evaluated_images_fitted_on=shared)
+    for part in parts.values():  # a file says what it is by its bytes when nothing else is known
+        if "fitted_on" not in part and part.get("sha256"):
+            part["fitted_on"] = f"{part.get('released_as') or 'file'} sha256:{part['sha256']}"
+    found["learnt"] = sorted(parts)
+    leaks = [v["fitted_on_evaluated_database"] for v in parts.values()]
+    found["fitted_on_evaluated_database"] = True if True in leaks else (None if None in leaks else False)
     return found
 
 
@@ -277,7 +302,7 @@ def result_record(*, spec: RunSpec, method, fingerprint, dataset, dataset_key: s
         "timings": {k: round(v, 4) for k, v in timings.items()},
         "images_per_second": round(described / extract_s, 3) if described and extract_s > 0 else None,
         "top_predictions": np.asarray(indices)[:, : min(ks[-1], 5)].tolist(),  # 0.1's key; per_query has the whole top K
-        "provenance": method_provenance(method),
+        "provenance": method_provenance(method, dataset, cache_dir),
         "search": search or {"index": "exact"},
         "run": run or {},  # how it ran (device, batch size, workers, budget, ...): never part of its identity
         **({"context": context} if context else {}),

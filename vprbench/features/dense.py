@@ -14,7 +14,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..errors import VPRBenchError
-from .backbones import BackboneSpec
+from .catalogue import BackboneEntry
 
 FACETS = ("query", "key", "value", "token")
 
@@ -60,7 +60,7 @@ class DenseExtractor(nn.Module):
     j*heads + h, i.e. dims within a head vary slowest); otherwise the natural [q|k|v] thirds.
     """
 
-    def __init__(self, model: nn.Module, spec: BackboneSpec, layer: int, facet: str, *,
+    def __init__(self, model: nn.Module, spec: BackboneEntry, layer: int, facet: str, *,
                  stride: int | None = None, head_interleaved: bool = False):
         super().__init__()
         depth = len(model.blocks)
@@ -105,6 +105,8 @@ class DenseExtractor(nn.Module):
     def forward(self, images: torch.Tensor, keep_prefix: bool = False) -> torch.Tensor:
         """(B, 3, H, W) -> (B, patches, D) raw facet features (CLS/register tokens dropped
         unless `keep_prefix`)."""
+        if self.spec.position_interpolation == "timm":
+            return self._intermediate(images, keep_prefix)
         x = self._tokens(images)
         block = self.model.blocks[self.layer]
         for blk in self.model.blocks[: self.layer]:
@@ -139,10 +141,76 @@ class DenseExtractor(nn.Module):
         # (B, T, heads, d_head) -> (B, T, d_head, heads): channel j*heads + h
         return part.reshape(b, t, heads, d // heads).transpose(2, 3).reshape(b, t, d)
 
+    # ------------------------------------------------ timm's own embedding (RoPE, registers, ...)
+    def _check_size(self, images: torch.Tensor) -> None:
+        height, width = images.shape[-2:]
+        if height % self.spec.patch or width % self.spec.patch:
+            raise VPRBenchError(f"Input of {height}x{width} pixels is not a multiple of the patch {self.spec.patch} "
+                                f"of {self.spec.name}; resize or crop it to a multiple of {self.spec.patch}.")
+
+    def _intermediate(self, images: torch.Tensor, keep_prefix: bool) -> torch.Tensor:
+        """timm's `forward_intermediates` up to block `layer` (later blocks never run); a q/k/v
+        facet is computed by a pre-hook on that block's attention, which then ends the pass."""
+        self._check_size(images)
+        if self.stride != self.spec.patch:
+            raise VPRBenchError(f"{self.spec.name} runs at its patch stride {self.spec.patch} only.")
+        if self.facet == "token":
+            found = self.model.forward_intermediates(images, indices=[self.layer], stop_early=True, norm=False,
+                                                     output_fmt="NLC", intermediates_only=True,
+                                                     return_prefix_tokens=True)[0]
+            patches, prefix = found if isinstance(found, tuple) else (found, None)
+            return torch.cat([prefix, patches], dim=1) if keep_prefix and prefix is not None else patches
+        captured = {}
+
+        def hook(attn, args, kwargs):
+            captured.update(attention_qkv(attn, args[0], kwargs.get("rope")))
+            raise _Stop
+
+        handle = self.model.blocks[self.layer].attn.register_forward_pre_hook(hook, with_kwargs=True)
+        try:
+            self.model.forward_intermediates(images, indices=[self.layer], stop_early=True, intermediates_only=True,
+                                             output_fmt="NLC")
+        except _Stop:
+            pass
+        finally:
+            handle.remove()
+        out = captured[self.facet]
+        return out if keep_prefix else out[:, self.num_prefix:]
+
     @torch.no_grad()
     def cls_token(self, images: torch.Tensor) -> torch.Tensor:
         """The final-norm CLS token (the backbone's global output), unnormalised."""
+        if self.spec.position_interpolation == "timm":
+            self._check_size(images)
+            _, prefix = self.model.forward_intermediates(images, indices=[len(self.model.blocks) - 1], norm=True,
+                                                         output_fmt="NLC", intermediates_only=True,
+                                                         return_prefix_tokens=True)[0]
+            return prefix[:, 0]
         x = self._tokens(images)
         for blk in self.model.blocks:
             x = blk(x)
         return self.model.norm(x)[:, 0]
+
+
+def attention_qkv(attn: nn.Module, x: torch.Tensor, rope: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """{"query", "key", "value"}: (B, N, heads * head_dim) as timm's attention computes them
+    before the product: fused qkv (with EVA/DINOv3's separate q/v biases) or separate
+    projections, q/k norms, and RoPE on the query and key of the patch tokens (not the prefix)."""
+    b, n, _ = x.shape
+    heads = attn.num_heads
+    if getattr(attn, "qkv", None) is not None:
+        if getattr(attn, "q_bias", None) is not None:
+            qkv = F.linear(x, attn.qkv.weight, torch.cat((attn.q_bias, attn.k_bias, attn.v_bias)))
+        else:
+            qkv = attn.qkv(x)
+        q, k, v = qkv.reshape(b, n, 3, heads, -1).permute(2, 0, 3, 1, 4).unbind(0)
+    else:
+        q, k, v = (proj(x).reshape(b, n, heads, -1).transpose(1, 2) for proj in (attn.q_proj, attn.k_proj, attn.v_proj))
+    q, k = attn.q_norm(q), attn.k_norm(k)
+    if rope is not None:
+        from timm.layers import apply_rot_embed_cat
+
+        npt, half = attn.num_prefix_tokens, getattr(attn, "rotate_half", False)
+        q = torch.cat([q[:, :, :npt], apply_rot_embed_cat(q[:, :, npt:], rope, half=half)], dim=2).type_as(v)
+        k = torch.cat([k[:, :, :npt], apply_rot_embed_cat(k[:, :, npt:], rope, half=half)], dim=2).type_as(v)
+    return {name: t.transpose(1, 2).reshape(b, n, -1) for name, t in (("query", q), ("key", k), ("value", v))}

@@ -20,10 +20,6 @@ from ..images import load_rgb
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
-#: the DINO v1 extractor's fixed input size (AnyLoc-VLAD-DINO), height x width
-DINO_V1_INPUT = (224, 298)
-
-
 def to_normalised_tensor(rgb: np.ndarray, mean=IMAGENET_MEAN, std=IMAGENET_STD) -> torch.Tensor:
     """HxWx3 uint8 -> 3xHxW float32, as ToTensor() then Normalize(mean, std)."""
     x = torch.from_numpy(np.array(rgb, copy=True)).permute(2, 0, 1).float().div(255.0)
@@ -55,18 +51,12 @@ def centre_crop_to_patches(x: torch.Tensor, patch: int) -> torch.Tensor:
     return x[..., top:top + h, left:left + w]
 
 
-def preprocess(
-    path: str | Path,
-    *,
-    family: str,
-    patch: int,
-    resize: tuple[int, int] | None = None,
-) -> torch.Tensor:
-    """One image file -> the (3, H, W) tensor the backbone sees."""
-    x = to_normalised_tensor(load_rgb(path))
+def preprocess(path: str | Path, spec, *, resize: tuple[int, int] | None = None) -> torch.Tensor:
+    """One image file -> the (3, H, W) tensor the backbone `spec` (a manifest entry) sees."""
+    x = to_normalised_tensor(load_rgb(path), spec.mean, spec.std)
     if resize is not None:
         x = resize_tensor(x, resize)
-    if family == "dino":
-        # F.interpolate's default mode (nearest), as the official DINO v1 script calls it
-        return F.interpolate(x[None], size=DINO_V1_INPUT)[0]
-    return centre_crop_to_patches(x, patch)
+    if spec.resize == "fixed":
+        # F.interpolate with the entry's mode (nearest for DINO v1, as the official script calls it)
+        return F.interpolate(x[None], size=tuple(spec.input_size), mode=spec.interpolation)[0]
+    return centre_crop_to_patches(x, spec.patch)

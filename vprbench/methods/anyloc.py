@@ -18,7 +18,7 @@ import torch.nn.functional as F
 
 from ..aggregation import pooling, vlad
 from ..aggregation.pca import PCAWhitening
-from ..aggregation.policies import MAP_PREFIX, paper_choice, released_provenance, resolve_vocabulary, vocabulary_images
+from .anyloc_vocabulary import MAP_PREFIX, paper_choice, released_provenance, resolve_vocabulary, vocabulary_images
 from ..aggregation.vlad import vlad_hard
 from ..aggregation.vocabulary import fit_vocabulary
 from ..errors import VPRBenchError
@@ -64,7 +64,6 @@ class AnyLoc(Method):
         # every option is checked here, before weights or vocabularies are touched
         self.cache_dir = cache_dir  # where weights and vocabularies are found (not an option: no identity)
         self.spec = backbone_spec(text("anyloc", "backbone", backbone))
-        self.family = self.spec.family
         aggregation = choice("anyloc", "aggregation", aggregation, AGGREGATIONS)
         facet = choice("anyloc", "facet", facet, FACETS)
         precision = choice("anyloc", "precision", precision, tuple(PRECISIONS))
@@ -85,11 +84,14 @@ class AnyLoc(Method):
         self.dataset = None if dataset is None else text("anyloc", "dataset", dataset)
         # DINO v1 follows the official dino extractor: stride 4, interleaved heads, raw features
         self.stride = whole("anyloc", "stride", stride, 1, self.spec.patch, f"pixels, at most the patch size {self.spec.patch}") \
-            if stride is not None else (4 if self.family == "dino" else self.spec.patch)
+            if stride is not None else (self.spec.stride or self.spec.patch)
         self.gem_p = number("anyloc", "gem_p", gem_p, above=0, what="GeM's power, e.g. 3")
+        if aggregation == "cls" and self.spec.cls == "none":
+            raise VPRBenchError(f"aggregation=cls: backbone {backbone} has no CLS token (its prefix tokens: "
+                                f"{self.spec.prefix_tokens}); use gem, vlad or another pooling.")
         if layer is not None:
             self.layer = whole("anyloc", "layer", layer, 0, self.spec.depth - 1, f"0-based block of {backbone}")
-        elif aggregation == "cls" and self.family == "dinov2":
+        elif aggregation == "cls" and self.spec.cls == "final-norm":
             self.layer = self.spec.depth - 1  # the CLS comes from the final norm: no layer to choose
         else:
             self.layer = self._preset_layer(text("anyloc", "layer_for", layer_for, "BACKBONE:LAYER"))
@@ -138,7 +140,7 @@ class AnyLoc(Method):
     @property
     def normalise_patches(self) -> bool:
         # DINOv2 extractor normalises every patch; for DINO v1 only the official VLAD does
-        return self.family == "dinov2" or self.aggregation in VLADS
+        return self.spec.normalise_patches == "always" or self.aggregation in VLADS
 
     def _resolve_vocabulary(self) -> torch.Tensor:
         """Centres for a vocabulary option other than "map"/"domain": a file/folder path or a
@@ -146,7 +148,7 @@ class AnyLoc(Method):
         released centres are downloaded on first use where they fit these features."""
         found = resolve_vocabulary(self.vocabulary, self.backbone, self.layer, self.facet, self.clusters,
                                    self.cache_dir)
-        found.check_dim(self.spec.dim)  # before the model loads, naming the file
+        found.check_dim(self.spec.width)  # before the model loads, naming the file
         self.vocabulary_info = {"name": self.vocabulary, **self._file_info(found)}
         return found.centres.float()
 
@@ -168,10 +170,10 @@ class AnyLoc(Method):
             "method": "anyloc", "descriptor_version": DESCRIPTOR_VERSION,
             "backbone": self.backbone, "weights": self.weights_identity(),
             "layer": self.layer, "facet": self.facet, "aggregation": self.aggregation,
-            "preprocess": f"{self.family}-official", "stride": self.stride,
+            "preprocess": self.spec.preprocess, "stride": self.stride,
             "resize": list(self.resize) if self.resize else "native", "precision": self.precision,
         }
-        if self.aggregation == "cls" and self.family == "dinov2":
+        if self.aggregation == "cls" and self.spec.cls == "final-norm":
             fp["layer"], fp["facet"] = "final-norm", "cls"  # layer/facet options do not apply
         if self.aggregation in VLADS:
             fp["clusters"] = self.clusters
@@ -186,7 +188,7 @@ class AnyLoc(Method):
         return fp
 
     def provenance(self) -> dict:
-        found = {"weights": weights_provenance(self.weights_identity())}
+        found = {"weights": weights_provenance(self.weights_identity()), "backbone": self.spec.card()}
         if self.aggregation in VLADS:
             found["vocabulary"] = self.vocabulary_provenance()
         if self.pca_dim:
@@ -213,15 +215,15 @@ class AnyLoc(Method):
             model, spec, identity = load_backbone(self.backbone, self.weights, self.device, self.cache_dir)
             self._weights_id = identity
             layer, facet = self.layer, self.facet
-            if self.aggregation == "cls" and self.family == "dinov2":
+            if self.aggregation == "cls" and self.spec.cls == "final-norm":
                 layer, facet = len(model.blocks) - 1, "token"  # CLS comes from the final norm
             self._extractor = DenseExtractor(model, spec, layer, facet, stride=self.stride,
-                                             head_interleaved=self.family == "dino")
+                                             head_interleaved=self.spec.channels == "head-interleaved")
         return self._extractor
 
     def load(self, path: Path, resize: tuple[int, int] | None = None) -> torch.Tensor:
         """One image file -> the (3, H, W) tensor the backbone sees (runs in loader workers)."""
-        return preprocess(path, family=self.family, patch=self.spec.patch, resize=parse_size(resize) or self.resize)
+        return preprocess(path, self.spec, resize=parse_size(resize) or self.resize)
 
     def _batches(self, tensors):
         """(indices, batch tensor): runs of consecutive same-sized preprocessed images, at most
@@ -249,7 +251,7 @@ class AnyLoc(Method):
     def _global(self, batch: torch.Tensor) -> torch.Tensor:
         if self.aggregation == "cls":
             with self._autocast():
-                if self.family == "dinov2":
+                if self.spec.cls == "final-norm":
                     return self.extractor.cls_token(batch.to(self.device)).float()
                 return self.extractor(batch.to(self.device), keep_prefix=True)[:, 0].float()
         feats = self.patch_features(batch)

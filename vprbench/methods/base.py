@@ -81,8 +81,13 @@ class Method(ABC):
     def provenance(self) -> dict:
         """Where what shapes the descriptors came from, for the result record:
         {"weights": {"source": "official"|"user"|"random"|"none", ...},
-         "vocabulary": {"source": ..., "fitted_on_evaluated_database": bool, ...}, "pca": {...}}.
-        Keys that do not apply are left out."""
+         "vocabulary": {"source": ..., "fitted_on": ..., "fitted_on_evaluated_database": bool, ...},
+         "pca": {...}}.
+        Every part that is fitted (a vocabulary, PCA, whitening, ...) names the data it was fitted
+        on (`fitted_on`: a dataset and protocol, a folder's content, a file's sha256) and whether
+        that is the evaluated database (`fitted_on_evaluated_database`, the field's "transductive";
+        null when unknown). "none" weights with a fitted part is not "nothing learnt": the record
+        lists the fitted parts in `provenance.learnt`. Keys that do not apply are left out."""
         return {}
 
     def postprocessor(self) -> PostProcessor | None:

@@ -1,12 +1,18 @@
-"""DenseVLAD (Torii et al., CVPR 2015): dense multi-scale RootSIFT, VLAD over a database vocabulary.
+"""DenseVLAD (Torii et al., CVPR 2015): dense multi-scale RootSIFT, VLAD over a 128-word vocabulary.
 
 SIFT is computed upright on a regular grid (2-pixel step) at four bin sizes (4, 6, 8, 10
 pixels), RootSIFT-normalised, hard-assigned to the nearest of 128 words (k-means on a
-bounded, seeded sample of database descriptors) and aggregated with intra-normalised VLAD.
+bounded, seeded sample of descriptors) and aggregated with intra-normalised VLAD.
 The paper's final PCA-whitening to 4096 dimensions is not applied.
+
+Every bin size gives 128-dimensional descriptors of its own keypoints (scales are pooled, not
+concatenated), so a vocabulary is (clusters, 128) and the descriptor clusters x 128.
+Where the words come from is the `vocabulary` option (see `vprbench.methods.dense_vlad_vocabulary`):
+the evaluated database ("map"), another dataset or domain, a folder of images, or a file.
 """
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -19,18 +25,19 @@ from ..errors import VPRBenchError
 from ..images import load_rgb
 from ..loader import loaded
 from .base import Method
-from .checks import whole, wholes
+from .checks import text, whole, wholes
+from .dense_vlad_vocabulary import SIFT_DIM, VocabularySource, cached_vocabulary, parse_vocabulary
 
 #: OpenCV's descriptor bin width is 1.5 x keypoint size
 _CV_BIN_PER_SIZE = 1.5
 
 
 class DenseVLAD(Method):
-    needs_fit = True
     batch_size = 8
 
     def __init__(self, clusters: int = 128, bin_sizes: tuple[int, ...] = (4, 6, 8, 10), step: int = 2,
-                 max_side: int = 640, sample: int = 200_000, seed: int = 0, device: str = "cpu"):
+                 max_side: int = 640, sample: int = 200_000, seed: int = 0, vocabulary: str = "map",
+                 device: str = "cpu", cache_dir=None, data_dir=None):
         self.clusters = whole("dense-vlad", "clusters", clusters, 2, what="vocabulary size")
         self.bin_sizes = wholes("dense-vlad", "bin_sizes", bin_sizes, what="SIFT bin widths in pixels")
         self.step = whole("dense-vlad", "step", step, what="pixels between grid points")
@@ -38,20 +45,55 @@ class DenseVLAD(Method):
                               what="longest image side in pixels, at least 4 x the largest bin size")
         self.sample = whole("dense-vlad", "sample", sample, self.clusters, what="descriptors sampled for k-means, at least clusters")
         self.seed = whole("dense-vlad", "seed", seed, 0)
+        self.source: VocabularySource = parse_vocabulary(
+            text("dense-vlad", "vocabulary", vocabulary, "map, a dataset, a domain, a folder of images or a file"))
+        self.cache_dir, self.data_dir = cache_dir, data_dir
+        #: "map" fits on the evaluated database; any other source is fitted (or read) before describing
+        self.needs_fit = self.source.kind == "map"
+        self.dataset: str | None = None
+        self.vocabulary_info: dict = {}
         self.sift = cv2.SIFT_create()
         self.centres: np.ndarray | None = None
+        #: sha256 of the images of a folder vocabulary (the record checks them against the evaluated dataset)
+        self.folder_digests: set[str] = set()
         self._grids: dict[tuple[int, int], list] = {}
 
-    def fingerprint(self) -> dict:
-        return {"clusters": self.clusters, "bin_sizes": list(self.bin_sizes), "step": self.step,
+    def use_dataset(self, name: str) -> None:
+        self.dataset = name
+
+    # ------------------------------------------------------------ identity
+    def fit_recipe(self) -> dict:
+        """What a fitted vocabulary depends on besides the images it is fitted on."""
+        return {"method": "dense-vlad", "clusters": self.clusters, "bin_sizes": list(self.bin_sizes), "step": self.step,
                 "max_side": self.max_side, "sample": self.sample, "seed": self.seed,
                 "opencv": cv2.__version__.split(".")[0], "descriptor_version": 1}
 
-    def provenance(self) -> dict:
-        return {"weights": {"source": "none"},  # SIFT: nothing learnt but the vocabulary
-                "vocabulary": {"source": "map", "fitted_on_evaluated_database": True, "clusters": self.clusters,
-                               "seed": self.seed}}
+    def fingerprint(self) -> dict:
+        found = {k: v for k, v in self.fit_recipe().items() if k != "method"}
+        if not self.needs_fit:  # a vocabulary from elsewhere is identified by its centres' bytes
+            found["vocabulary"] = "sha256:" + _sha256(self.vocabulary_centres())
+        return found
 
+    def provenance(self) -> dict:
+        # SIFT has no learnt weights; the vocabulary is learnt, and says from what
+        return {"weights": {"source": "none"}, "vocabulary": self.vocabulary_provenance()}
+
+    def vocabulary_provenance(self) -> dict:
+        info = {"option": self.source.option, "clusters": self.clusters, "seed": self.seed, "sample": self.sample}
+        if self.needs_fit:
+            info.update(source="fitted", fitted_on=f"the database of {self.dataset}" if self.dataset else
+                        "the database given to fit()", fitted_on_evaluated_database=True)
+        else:
+            info.update(self.vocabulary_info)
+            info["fitted_on_evaluated_database"] = self.source.includes(self.dataset, self.vocabulary_info)
+        if self.centres is not None:
+            info["centres_sha256"] = _sha256(self.centres)
+        return info
+
+    def fitted_image_digests(self) -> dict[str, set[str]]:
+        return {"vocabulary": self.folder_digests} if self.folder_digests else {}
+
+    # ------------------------------------------------------------ local features
     def load(self, path: Path) -> np.ndarray:
         """The grey image at the working size (at most max_side pixels)."""
         gray = cv2.cvtColor(load_rgb(path), cv2.COLOR_RGB2GRAY)
@@ -84,29 +126,47 @@ class DenseVLAD(Method):
             self._grids[(height, width)] = keypoints
         return self._grids[(height, width)]
 
-    def fit(self, database: Sequence[Path]) -> None:
+    # ------------------------------------------------------------ vocabulary
+    def fit_centres(self, images: Sequence[Path]) -> np.ndarray:
+        """k-means words of a seeded sample of the images' descriptors (the same quota per image)."""
         rng = np.random.default_rng(self.seed)
-        per_image = max(1, self.sample // max(1, len(database)))
+        per_image = max(1, self.sample // max(1, len(images)))
         chunks = []
-        for path in database:
+        for path in images:
             features = self.local_features(path)
             keep = rng.choice(len(features), size=min(per_image, len(features)), replace=False)
             chunks.append(features[np.sort(keep)])
-        sample = np.concatenate(chunks)
+        sample = np.concatenate(chunks) if chunks else np.zeros((0, SIFT_DIM), np.float32)
         if len(sample) < self.clusters:
             raise VPRBenchError(f"dense-vlad: {len(sample)} sampled descriptors cannot make {self.clusters} clusters")
         kmeans = faiss.Kmeans(sample.shape[1], self.clusters, niter=25, seed=self.seed, verbose=False)
         kmeans.train(sample)
-        self.centres = kmeans.centroids.astype(np.float32)
+        return kmeans.centroids.astype(np.float32)
+
+    def fit(self, database: Sequence[Path]) -> None:
+        if self.needs_fit:
+            self.centres = self.fit_centres(database)
+
+    def vocabulary_centres(self) -> np.ndarray:
+        """The centres of a vocabulary from elsewhere: read, or fitted once and cached in cache_dir."""
+        if self.centres is None:
+            self.centres, self.vocabulary_info = cached_vocabulary(self, self.source)
+        return self.centres
 
     def fit_state(self) -> dict[str, np.ndarray]:
-        return {"centres": self.centres}
+        return {"centres": self.centres} if self.needs_fit else {}
 
     def load_fit_state(self, state: dict[str, np.ndarray]) -> None:
-        self.centres = np.asarray(state["centres"], dtype=np.float32)
+        if "centres" in state:
+            self.centres = np.asarray(state["centres"], dtype=np.float32)
 
     def describe(self, images: Sequence) -> np.ndarray:
-        if self.centres is None:
+        if self.centres is None and self.needs_fit:
             raise VPRBenchError("dense-vlad: the vocabulary is not fitted; evaluate fits it on the database first.")
-        return np.stack([vlad_hard(self.rootsift(gray), self.centres, metric="euclidean").numpy()
+        centres = self.vocabulary_centres()
+        return np.stack([vlad_hard(self.rootsift(gray), centres, metric="euclidean").numpy()
                          for gray in loaded(self, images)])
+
+
+def _sha256(centres: np.ndarray) -> str:
+    return hashlib.sha256(np.ascontiguousarray(centres, dtype=np.float32).tobytes()).hexdigest()

@@ -23,7 +23,7 @@ from .checks import whole
 
 ENTRY_POINT_GROUP = "vprbench.methods"
 #: what the registry hands a factory that takes it, never an option a user sets
-LOCATIONS = ("cache_dir",)
+LOCATIONS = ("cache_dir", "data_dir")
 
 
 @dataclass(frozen=True)
@@ -114,13 +114,13 @@ def method_entry(name: str) -> MethodEntry:
     return methods[name]
 
 
-def create_method(name: str, *, cache_dir=None, **options) -> "Method":  # noqa: F821
+def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Method":  # noqa: F821
     """Build the method `name` with its preset defaults overridden by `options` (None = unset).
 
     Every option is checked here or by the method's constructor, before anything is loaded.
     The registry handles `batch_size` for every method (a whole number >= 1; passed to the
     factory when it takes it, else set on the method), checks `device` for those taking it and
-    hands `cache_dir` to factories that take it. The method gets `name`, `options` (what the
+    hands `cache_dir` and `data_dir` to factories that take them. The method gets `name`, `options` (what the
     user gave) and `settings` (preset + user options, what the store is keyed on).
     """
     from .base import Method
@@ -145,8 +145,9 @@ def create_method(name: str, *, cache_dir=None, **options) -> "Method":  # noqa:
         merged["device"] = device(name, merged["device"])
     takes = entry.factory_options()
     arguments = {k: v for k, v in merged.items() if k in takes}
-    if "cache_dir" in takes and cache_dir is not None:
-        arguments["cache_dir"] = cache_dir
+    for location, folder in (("cache_dir", cache_dir), ("data_dir", data_dir)):
+        if location in takes and folder is not None:
+            arguments[location] = folder
     method = entry.factory(**arguments)
     if not isinstance(method, Method):
         raise VPRBenchError(f"Method {name!r} ({entry.source}) did not return a vprbench.Method")

@@ -75,7 +75,7 @@ def table_cells(paper: str, table: str, ks=(1, 5), *, settings: dict | None = No
 
 def weights_for(row_weights: dict | None, cell: Cell, cache_dir=None) -> str | None:
     """What is missing of the cell's weights (None: present, or not knowable before running)."""
-    from ..features.backbones import backbone_spec
+    from ..features.catalogue import backbone_spec
     from ..methods.anyloc import AnyLoc
     from ..methods.registry import method_entry
     from ..paths import cache_root
@@ -93,7 +93,7 @@ def weights_for(row_weights: dict | None, cell: Cell, cache_dir=None) -> str | N
                 return str(error)
         if cached_weights(spec.source, cache_dir) is not None:
             return None
-        return f"weights {spec.file_name} (download {spec.url} into {weights_folder(cache_dir)})"
+        return f"weights {spec.file_name} (download {spec.source.where} into {weights_folder(cache_dir)})"
     if merged.get("weights") or not row_weights:
         return None
     folder = cache_root(cache_dir) / row_weights["folder"] if "folder" in row_weights else weights_folder(cache_dir)
@@ -103,7 +103,7 @@ def weights_for(row_weights: dict | None, cell: Cell, cache_dir=None) -> str | N
 
 def vocabulary_for(cell: Cell) -> str | None:
     """A domain or union vocabulary that is neither cached nor released must be fitted first."""
-    from ..aggregation.policies import domain_names, find_vocabulary, released_path
+    from ..methods.anyloc_vocabulary import domain_names, find_vocabulary, released_path
     from ..methods.registry import method_entry
 
     merged = {**method_entry(cell.spec.method).defaults, **cell.spec.given}

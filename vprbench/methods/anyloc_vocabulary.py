@@ -1,4 +1,5 @@
-"""Which images a VLAD vocabulary is fitted on: map-specific and AnyLoc's domain vocabularies.
+"""AnyLoc's vocabulary policy: which images a VLAD vocabulary is fitted on (map-specific
+and domain vocabularies), the authors' released centres, and the `vocabulary` option.
 
 Domain membership is data (manifests/vocabularies.toml). Fitting takes a feature
 extractor from the caller, so this module knows nothing about backbones:
@@ -16,11 +17,11 @@ from importlib.resources import files
 from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
-from ..errors import VPRBenchError, closest_names
-from .vocabulary import (
+from ..aggregation.vocabulary import (
     DEFAULT_BUDGET, KMEANS_SEED, RELEASED_FILE, VOCABULARY_FILE, Vocabulary, fit_vocabulary, load_vocabulary,
     vocabulary_dir,
 )
+from ..errors import VPRBenchError, closest_names
 
 Extractor = Callable[[Sequence[Path]], Iterable]
 MAP_PREFIX = "map-"
@@ -210,15 +211,6 @@ def fit_map_vocabulary(
     (name, images), = _load_all([(dataset, map_stride(dataset))], data_dir)
     info = {**(meta or {}), "source": f"{MAP_PREFIX}{name}", "datasets": {name: len(images)}}
     return fit_vocabulary(extract(images), clusters, exact=exact, budget=budget, seed=seed, meta=info)
-
-
-def fit_database_vocabulary(
-    paths: Sequence[Path], extract: Extractor, clusters: int, *, exact: bool = False,
-    budget: int = DEFAULT_BUDGET, seed: int = KMEANS_SEED, meta: dict | None = None,
-) -> Vocabulary:
-    """Map-specific vocabulary from database paths already at hand (e.g. `Method.fit(database)`)."""
-    info = {**(meta or {}), "images": len(paths)}
-    return fit_vocabulary(extract(list(paths)), clusters, exact=exact, budget=budget, seed=seed, meta=info)
 
 
 def find_vocabulary(source: str, backbone: str, layer: int, facet: str, clusters: int, cache_dir=None) -> Vocabulary | None:

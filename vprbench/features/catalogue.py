@@ -1,0 +1,176 @@
+"""Backbones as data: manifests/backbones/*.toml, validated (pydantic) into `BackboneEntry`.
+
+An entry says everything the dense extractor, the preprocessing, the weights resolver and
+the records need (timm architecture and weights tag, patch, prefix tokens, position kind,
+mean/std, resize rule, depth and width, facets, weight sources, licence, gating), so no code
+branches on a family name. Any other timm ViT is reachable as `timm:ARCH.TAG` (read from
+timm's own pretrained config when it is asked for). No torch here: listing backbones is cheap.
+"""
+from __future__ import annotations
+
+import tomllib
+from functools import cache
+from importlib.resources import files
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from ..errors import VPRBenchError, closest_names
+from ..weights import WeightSource
+
+TIMM_PREFIX = "timm:"
+IMAGENET = ((0.485, 0.456, 0.406), (0.229, 0.224, 0.225))
+
+
+class BackboneEntry(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    name: str = Field(pattern=r"^[A-Za-z0-9_.:-]+$")
+    family: str
+    timm: str                         # timm architecture
+    tag: str = ""                     # timm weights tag (the pretrained config)
+    patch: int = Field(gt=0)
+    cls_token: bool
+    registers: int = Field(ge=0)
+    position: Literal["learned", "rope"]
+    #: "dino": the official DINO/DINOv2 bicubic resampling of learned embeddings ((grid + 0.1) / M);
+    #: "timm": the model's own (timm's `_pos_embed`, run through `forward_intermediates`)
+    position_interpolation: Literal["dino", "timm"]
+    depth: int = Field(gt=0)
+    width: int = Field(gt=0)
+    mean: tuple[float, float, float]
+    std: tuple[float, float, float]
+    #: "crop": centre crop to a multiple of the patch; "fixed": interpolate to `input_size`
+    resize: Literal["crop", "fixed"]
+    input_size: tuple[int, int] | None = None
+    interpolation: Literal["bilinear", "nearest", "bicubic"]
+    facets: tuple[Literal["token", "query", "key", "value"], ...]
+    preprocess: str                   # the preprocessing's name in fingerprints
+    stride: int | None = None         # default stride of the patch embedding (None: the patch)
+    channels: Literal["thirds", "head-interleaved"] = "thirds"
+    cls: Literal["final-norm", "layer", "none"]
+    normalise_patches: Literal["always", "vlad"]
+    licence: str
+    gated: bool
+    page: str
+    url: str | None = None            # the authors' release file (official format)
+    sha256: str | None = None         # only when the authors publish one
+    hub: str | None = None            # Hugging Face hub repository (timm format, model.safetensors)
+    official_rename: dict[str, str] = Field(default_factory=dict)  # timm key part -> official key part
+    official_extra: tuple[str, ...] = ()  # keys the release holds that inference does not use
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        if self.resize == "fixed" and self.input_size is None:
+            raise ValueError("resize = 'fixed' needs input_size = [HEIGHT, WIDTH]")
+        if self.cls == "final-norm" and not self.cls_token:
+            raise ValueError("cls = 'final-norm' needs a CLS token")
+        if self.url is None and self.hub is None:
+            raise ValueError("give a weight source: url (the release) or hub (a Hugging Face repository)")
+        return self
+
+    @property
+    def prefix_tokens(self) -> int:
+        return int(self.cls_token) + self.registers
+
+    @property
+    def file_name(self) -> str:
+        return self.url.rsplit("/", 1)[-1] if self.url else "model.safetensors"
+
+    @property
+    def source(self) -> WeightSource:
+        """The release URL when there is one, else the hub file."""
+        if self.url:
+            return WeightSource(self.file_name, url=self.url, page=self.page, sha256=self.sha256)
+        return WeightSource(self.file_name, hub=self.hub, page=self.page)
+
+    @property
+    def timm_name(self) -> str:
+        return f"{self.timm}.{self.tag}" if self.tag else self.timm
+
+    def card(self) -> dict:
+        """What records say about the backbone: its entry, weights tag, licence and gating."""
+        return {"name": self.name, "family": self.family, "timm": self.timm_name, "licence": self.licence,
+                "gated": self.gated, **({"access": self.page} if self.gated else {})}
+
+
+def _entries(text: str, origin: str) -> list[BackboneEntry]:
+    data = tomllib.loads(text)
+    defaults = data.get("family", {})
+    found = []
+    for raw in data.get("backbone", []):
+        try:
+            found.append(BackboneEntry(**{**defaults, **raw}))
+        except ValidationError as error:
+            first = error.errors()[0]
+            raise VPRBenchError(f"Backbone manifest {origin}, entry {raw.get('name', '?')!r}: "
+                                f"{'.'.join(map(str, first['loc'])) or 'entry'}: {first['msg']}.") from None
+    return found
+
+
+@cache
+def backbones() -> dict[str, BackboneEntry]:
+    """Every backbone vprbench ships, by name (manifests/backbones/*.toml)."""
+    folder = files("vprbench.manifests") / "backbones"
+    found: dict[str, BackboneEntry] = {}
+    for path in sorted(folder.iterdir(), key=lambda p: p.name):
+        if path.name.endswith(".toml"):
+            for entry in _entries(path.read_text(), path.name):
+                if entry.name in found:
+                    raise VPRBenchError(f"Backbone {entry.name!r} is listed twice in manifests/backbones.")
+                found[entry.name] = entry
+    return found
+
+
+def backbone_spec(name: str) -> BackboneEntry:
+    """The manifest entry `name`, or, for `timm:ARCH.TAG`, one built from timm's pretrained config."""
+    if not isinstance(name, str):
+        raise VPRBenchError(f"backbone takes a name, got {name!r}.")
+    if name.startswith(TIMM_PREFIX):
+        return timm_entry(name.removeprefix(TIMM_PREFIX))
+    known = backbones()
+    if name not in known:
+        raise VPRBenchError(f"Unknown backbone {name!r}.{closest_names(name, known)} Available: {', '.join(known)}, "
+                            "or timm:ARCH.TAG for another timm ViT.")
+    return known[name]
+
+
+@cache
+def timm_entry(arch_tag: str) -> BackboneEntry:
+    """A timm ViT by name: its patch, prefix tokens and position kind read from the architecture
+    (built on the meta device, nothing downloaded), mean/std and hub file from its pretrained config."""
+    import timm
+    import torch
+
+    arch, _, tag = arch_tag.partition(".")
+    if arch not in timm.list_models():
+        raise VPRBenchError(f"timm has no architecture {arch!r}.{closest_names(arch, timm.list_models())}")
+    try:
+        cfg = timm.models.get_pretrained_cfg(arch_tag) if tag else timm.models.get_pretrained_cfg(arch)
+    except (RuntimeError, ValueError, KeyError):
+        cfg = None
+    if tag and cfg is None:
+        raise VPRBenchError(f"timm has no weights {tag!r} for {arch}; tags: "
+                            f"{', '.join(n.partition('.')[2] for n in timm.list_pretrained(arch + '.*')) or 'none'}.")
+    with torch.device("meta"):
+        model = timm.create_model(arch, pretrained=False, num_classes=0)
+    embed = getattr(model, "patch_embed", None)
+    if embed is None or not hasattr(model, "blocks") or not hasattr(model, "forward_intermediates"):
+        raise VPRBenchError(f"timm:{arch_tag} has no patch tokens (it is not a ViT with a patch embedding and "
+                            "blocks, e.g. a CNN or a hybrid); AnyLoc aggregates per-patch ViT features.")
+    cfg = cfg.to_dict() if cfg is not None else {}
+    has_cls = getattr(model, "cls_token", None) is not None
+    prefix = int(getattr(model, "num_prefix_tokens", int(has_cls)))
+    hub = cfg.get("hf_hub_id") or None
+    return BackboneEntry(
+        name=TIMM_PREFIX + arch_tag, family="timm", timm=arch, tag=tag, patch=int(embed.patch_size[0]),
+        cls_token=has_cls, registers=prefix - int(has_cls),
+        position="rope" if getattr(model, "rope", None) is not None else "learned", position_interpolation="timm",
+        depth=len(model.blocks), width=int(model.embed_dim),
+        mean=tuple(cfg.get("mean", IMAGENET[0])), std=tuple(cfg.get("std", IMAGENET[1])),
+        resize="crop", interpolation="bilinear", facets=("token", "query", "key", "value"),
+        preprocess="crop-to-patch", cls="final-norm" if has_cls else "none", normalise_patches="always",
+        licence=str(cfg.get("license") or "see the model card"), gated=False,
+        page=f"https://huggingface.co/{hub}" if hub else "https://github.com/huggingface/pytorch-image-models",
+        url=None if hub else (cfg.get("url") or None), hub=hub or (None if cfg.get("url") else f"timm/{arch_tag}"),
+    )
