@@ -7,7 +7,7 @@ from vprbench.aggregation import PCAWhitening, pca_whiten
 from vprbench.aggregation.pca import ROW_COPIES
 from vprbench.errors import VPRBenchError
 from vprbench.methods import create_method
-from vprbench.rows import ArrayRows
+from vprbench.row_sources import ArrayRows
 
 @pytest.fixture(autouse=True)
 def one_thread():

@@ -8,10 +8,11 @@ import pytest
 
 from vprbench.aggregation import PCAWhitening
 from vprbench.errors import VPRBenchError
-from vprbench.evaluation.search import (SCORE_TOLERANCE, ArrayRows, TransformedRows, _plan, exact_search, retrieve,
+from vprbench.evaluation.search import (SCORE_TOLERANCE, ArrayRows, TransformedRows, _plan, exact_search,
                                         search, tile_rows, transform_rows)
+from vprbench.evaluation.retrieve import retrieve
 from vprbench.methods import Method
-from vprbench.rows import as_rows, parse_memory
+from vprbench.row_sources import as_rows, parse_memory
 
 
 @pytest.fixture(autouse=True)
@@ -399,7 +400,7 @@ def test_a_crash_while_saving_the_state_leaves_nothing_behind(tmp_path, monkeypa
 CENTRING = """
 import numpy as np
 from vprbench.methods import Method
-from vprbench.rows import chunks
+from vprbench.row_sources import chunks
 
 
 class Centre:
@@ -435,7 +436,7 @@ def test_two_processes_fitting_one_state_at_once(tmp_path):
 
     np.save(tmp_path / "db.npy", unit(5000, 32, 19))
     script = CENTRING + (
-        "import sys\nfrom vprbench.evaluation.search import ArrayRows, retrieve\n"
+        "import sys\nfrom vprbench.evaluation.search import ArrayRows\nfrom vprbench.evaluation.retrieve import retrieve\n"
         f"db = ArrayRows(np.load({str(tmp_path / 'db.npy')!r}), folder={str(tmp_path)!r})\n"
         "np.save(sys.argv[1], retrieve(Centred(), db, db, 5).indices)\n")
     runs = [subprocess.Popen([sys.executable, "-c", script, str(tmp_path / f"out{i}.npy")]) for i in range(2)]

@@ -183,7 +183,7 @@ class RunSettings:
 
     def __post_init__(self):
         from .methods.checks import number, whole
-        from .rows import parse_memory
+        from .row_sources import parse_memory
 
         for name in ("cache_dir", "data_dir"):
             value = getattr(self, name)

@@ -106,7 +106,7 @@ def _flat_full(folder: Path):
 
 
 def _ivf_pq(folder: Path):
-    from vprbench.evaluation.search import retrieve
+    from vprbench.evaluation.retrieve import retrieve
 
     database, queries = H5Rows(folder / "database.h5"), H5Rows(folder / "queries.h5")
 

@@ -15,7 +15,7 @@ from vprbench.distributed import Ranks
 from vprbench.errors import VPRBenchError
 from runs import evaluate_method as evaluate
 from vprbench.store import StoreFolder, create_rows_file, method_fingerprint
-from vprbench.store.rows import RowsIdentity
+from vprbench.store.rows_file import RowsIdentity
 
 DRIVER = Path(__file__).with_name("dist_driver.py")
 

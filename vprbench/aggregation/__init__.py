@@ -5,7 +5,7 @@ pooling (GAP/GMP/GeM), VLAD (hard, AnyLoc soft, textbook soft), the VLAD vocabul
 (domains, released centres) is `vprbench.methods.anyloc_vocabulary`.
 """
 from .pca import PCAWhitening, pca_whiten
-from .pooling import POOLINGS, gap, gem, gmp
+from .pooling import gap, gem, gmp
 from .vlad import vlad_hard, vlad_soft, vlad_soft_official
 from .vocabulary import (
     FeatureSampler,
@@ -16,6 +16,6 @@ from .vocabulary import (
 )
 
 __all__ = [
-    "POOLINGS", "FeatureSampler", "PCAWhitening", "Vocabulary", "fit_vocabulary", "gap", "gem", "gmp",
+    "FeatureSampler", "PCAWhitening", "Vocabulary", "fit_vocabulary", "gap", "gem", "gmp",
     "kmeans_cosine", "load_vocabulary", "pca_whiten", "vlad_hard", "vlad_soft", "vlad_soft_official",
 ]

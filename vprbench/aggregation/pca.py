@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import VPRBenchError
-from ..rows import DEFAULT_MEMORY_BUDGET, READ_BYTES, as_rows, chunks, format_bytes, parse_memory, read_bytes_per_row
+from ..row_sources import DEFAULT_MEMORY_BUDGET, READ_BYTES, as_rows, chunks, format_bytes, parse_memory, read_bytes_per_row
 
 DEFAULT_PCA_DIM = 512
 PASSES = 10

@@ -58,6 +58,3 @@ def gem(features, p: float = 3.0, *, normalise: bool = True) -> torch.Tensor:
     m = (x.double() ** p).mean(dim=-2)  # double: p-th powers of small values lose float32 digits
     root = m.abs() ** (1.0 / p) * torch.sign(m)
     return _finish(root, single, normalise)
-
-
-POOLINGS = {"gap": gap, "gmp": gmp, "gem": gem}

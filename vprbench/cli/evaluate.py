@@ -131,7 +131,7 @@ def run_describe(args) -> int:
     from ..evaluation.pipeline import create_run_method, loader_workers
     from ..evaluation.search import postprocessed
     from ..fsutil import atomic_write
-    from ..rows import DEFAULT_MEMORY_BUDGET
+    from ..row_sources import DEFAULT_MEMORY_BUDGET
 
     resolve_locations(args)
     settings = run_settings(args)

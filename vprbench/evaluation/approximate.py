@@ -10,7 +10,7 @@ import time
 import numpy as np
 
 from ..errors import VPRBenchError
-from ..rows import READ_BYTES, ArrayRows, RowSource, chunks, format_bytes
+from ..row_sources import READ_BYTES, ArrayRows, RowSource, chunks, format_bytes
 from .search import SearchResult, TIE_ORDER, check_pair, exact_search, order_results, read_cost, rounded_scores
 
 APPROXIMATE = ("ivf-pq", "hnsw")

@@ -28,7 +28,7 @@ from ..loader import check_batch_size, describe_batches
 from ..store import (DTYPES, NO_FIT, DescriptorStore, RowWriter, StoreFolder, create_rows_file, inspect_rows_file,
                      method_fingerprint, shard_range)
 from ..store.folder import unsaved_fit_id
-from ..store.rows import merge_rows_files
+from ..store.rows_file import merge_rows_files
 
 #: the split a method fits on (and PCA-whitening is fitted on)
 FIT_SPLIT = "database"

@@ -16,7 +16,7 @@ from .extract import describe_splits
 from .identity import protocol_of
 from .metrics import check_ks
 from .record import result_record
-from .search import retrieve
+from .retrieve import retrieve
 
 
 def load_data(spec: RunSpec, settings: RunSettings):

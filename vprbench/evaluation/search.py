@@ -31,7 +31,7 @@ import numpy as np
 
 from ..errors import VPRBenchError
 from ..fsutil import atomic_path
-from ..rows import (DEFAULT_MEMORY_BUDGET, READ_BYTES, ArrayRows, RowSource, as_rows, format_bytes,
+from ..row_sources import (DEFAULT_MEMORY_BUDGET, READ_BYTES, ArrayRows, RowSource, as_rows, format_bytes,
                     parse_memory, read_bytes_per_row)
 
 INDEXES = ("exact", "ivf-pq", "hnsw")
@@ -50,7 +50,7 @@ EXTRA_CANDIDATES = 16
 _UNITS = np.float32(-1 / SCORE_TOLERANCE)
 
 __all__ = ["ArrayRows", "DEFAULT_MEMORY_BUDGET", "INDEXES", "SCORE_TOLERANCE", "SearchResult", "TransformedRows",
-           "exact_search", "retrieve", "search", "tile_rows"]
+           "exact_search", "search", "tile_rows"]
 
 
 @dataclass
@@ -360,29 +360,3 @@ def postprocessed(method, database: RowSource, queries: RowSource, memory_budget
         info = fit_postprocessor(postprocessor, database, memory_budget, state_folder)
         return TransformedRows(database, postprocessor), TransformedRows(queries, postprocessor), info
     return database, queries, None
-
-
-def retrieve(method, database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDGET, index: str = "exact",
-             state_folder=None, index_options: dict | None = None) -> SearchResult:
-    """Top-k database rows per query for `method`'s descriptors, within `memory_budget` bytes
-    (or "1GB"): its post-processor fitted on the database (or loaded from `state_folder`,
-    default the database's folder), applied chunk by chunk, then searched with `index`
-    ("exact", "ivf-pq" or "hnsw"; `index_options` tune the approximate ones, see
-    approximate.py). `method` None searches the rows as they are. The result's info is the
-    result record's "search" section."""
-    budget = parse_memory(memory_budget)
-    if index not in INDEXES:
-        raise VPRBenchError(f"Unknown index {index!r}: use one of {', '.join(INDEXES)}.")
-    database, queries = as_rows(database, "database"), as_rows(queries, "queries")
-    database, queries, postprocess = postprocessed(method, database, queries, budget, state_folder)
-    started = time.perf_counter()
-    if index == "exact":
-        if index_options:
-            raise VPRBenchError(f"index='exact' takes no index options, got {sorted(index_options)}.")
-        result = exact_search(database, queries, k, memory_budget=budget)
-    else:
-        from .approximate import approximate_search
-
-        result = approximate_search(database, queries, k, kind=index, memory_budget=budget, options=index_options)
-    result.info.update(dim=database.dim, postprocess=postprocess, search_s=round(time.perf_counter() - started, 3))
-    return result

@@ -11,7 +11,7 @@ import numpy as np
 
 class PostProcessor(Protocol):
     """A transform of stored descriptors learnt from the database (never the queries), e.g.
-    PCA-whitening. The evaluation fits it on the database's row source (`vprbench.rows`)
+    PCA-whitening. The evaluation fits it on the database's row source (`vprbench.row_sources`)
     within a memory budget, saves `state()` in the store's folder under a name made from
     `key(...)`, and applies `transform` chunk by chunk, so no split is ever whole in memory.
     """
@@ -102,7 +102,7 @@ class Method(ABC):
         post = self.postprocessor()
         if post is None:
             return database, queries
-        from ..rows import DEFAULT_MEMORY_BUDGET, ArrayRows
+        from ..row_sources import DEFAULT_MEMORY_BUDGET, ArrayRows
 
         post.fit(ArrayRows(database), DEFAULT_MEMORY_BUDGET)
         return post.transform(database), post.transform(queries)

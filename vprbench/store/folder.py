@@ -27,7 +27,7 @@ from ..errors import VPRBenchError
 from ..fsutil import atomic_path, cache_error, is_temporary, lock
 from ..paths import cache_root, safe_name
 from ..spec import RUN_SETTINGS, canonical_hash, canonical_json
-from .rows import DescriptorStore, RowsIdentity, hdf5_written, inspect_rows_file
+from .rows_file import DescriptorStore, RowsIdentity, hdf5_written, inspect_rows_file
 
 #: fit id of methods that fit nothing
 NO_FIT = "none"

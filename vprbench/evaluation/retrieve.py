@@ -1,0 +1,34 @@
+"""Retrieval: a method's stored descriptors post-processed (search.py) and searched, exactly
+(search.py) or with an approximate index (approximate.py): the top K per query."""
+from __future__ import annotations
+
+import time
+
+from ..errors import VPRBenchError
+from ..row_sources import DEFAULT_MEMORY_BUDGET, as_rows, parse_memory
+from .approximate import approximate_search
+from .search import INDEXES, SearchResult, exact_search, postprocessed
+
+
+def retrieve(method, database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDGET, index: str = "exact",
+             state_folder=None, index_options: dict | None = None) -> SearchResult:
+    """Top-k database rows per query for `method`'s descriptors, within `memory_budget` bytes
+    (or "1GB"): its post-processor fitted on the database (or loaded from `state_folder`,
+    default the database's folder), applied chunk by chunk, then searched with `index`
+    ("exact", "ivf-pq" or "hnsw"; `index_options` tune the approximate ones, see
+    approximate.py). `method` None searches the rows as they are. The result's info is the
+    result record's "search" section."""
+    budget = parse_memory(memory_budget)
+    if index not in INDEXES:
+        raise VPRBenchError(f"Unknown index {index!r}: use one of {', '.join(INDEXES)}.")
+    database, queries = as_rows(database, "database"), as_rows(queries, "queries")
+    database, queries, postprocess = postprocessed(method, database, queries, budget, state_folder)
+    started = time.perf_counter()
+    if index == "exact":
+        if index_options:
+            raise VPRBenchError(f"index='exact' takes no index options, got {sorted(index_options)}.")
+        result = exact_search(database, queries, k, memory_budget=budget)
+    else:
+        result = approximate_search(database, queries, k, kind=index, memory_budget=budget, options=index_options)
+    result.info.update(dim=database.dim, postprocess=postprocess, search_s=round(time.perf_counter() - started, 3))
+    return result
