@@ -99,3 +99,13 @@ def test_a_phone_jpeg_and_a_16_bit_image_are_turned_too(tmp_path):
     rgb = np.stack([np.asarray(grey)] * 3, axis=-1)
     Image.fromarray(np.rot90(rgb, 1).copy()).save(tmp_path / "phone.jpg", exif=exif, quality=95)
     assert load_rgb(tmp_path / "phone.jpg").shape == (96, 64, 3)
+
+
+@pytest.mark.parametrize("method", [["hog"], ["anyloc", "--backbone", "dinov2_vits14", "--weights", "random"]])
+def test_a_resize_target_above_the_decode_budget_is_refused_before_any_work(method, capsys):
+    """`--resize 60000 60000` once grew to 21 GB before the system killed it: it is refused at once."""
+    from vprbench.cli.main import main
+
+    code = main(["evaluate", "--method", *method, "--resize", "60000", "60000", "--dataset", "corridor"])
+    err = capsys.readouterr().err
+    assert code == 1 and "60000 x 60000 = 3,600,000,000 pixels, above the decode budget" in err and "Traceback" not in err

@@ -57,4 +57,7 @@ def parse_size(size, name: str = "resize") -> tuple[int, int] | None:
                             f"got {size!r}.") from None
     if h <= 0 or w <= 0:
         raise VPRBenchError(f"Option {name} must be positive, got {h}x{w}.")
+    from ..images import check_decode_budget  # images are resized to this: the same bound as decoding
+
+    check_decode_budget(w, h, f"Option {name} {h}x{w}", advice="Choose a smaller size.")
     return h, w
