@@ -140,3 +140,23 @@ def test_many_records_each_cell_is_the_newest_complete_one(make_record, tmp_path
     assert len(records) == 2000 and len(board.cells) == 200 and len(board.columns) == 5
     assert {c.recall(1) for c in board.cells.values()} == {9.0}
     assert {c.passed_over for c in board.cells.values()} == {9}
+
+
+def test_a_vocabulary_fitted_on_the_evaluated_database_is_marked_and_never_nothing_learnt(make_record):
+    """dense-vlad with its vocabulary fitted on the database it is evaluated on (transductive) and
+    with one fitted elsewhere: two rows, the first marked, neither labelled 'nothing learnt'."""
+    from vprbench.leaderboard.cells import weights_shown
+
+    own = make_record("dense-vlad", options={"vocabulary": "map"}, quality=0.9, seed=1)
+    foreign = make_record("dense-vlad", options={"vocabulary": "tokyo-pair"}, quality=0.7, seed=2)
+    for record, where, leaks in ((own, "the database of corridor", True), (foreign, "2 images in tokyo-pair", False)):
+        record["provenance"].update(vocabulary={"source": "fitted", "fitted_on": where, "fitted_on_evaluated_database": leaks},
+                                    learnt=["vocabulary"], fitted_on_evaluated_database=leaks)
+    hog = make_record("hog", seed=3)
+    board = board_of(own, foreign, hog)
+    shown = {c.row.name: weights_shown(c.row, c.record) for c in board.cells.values()}
+    assert shown == {"dense-vlad [vocabulary=map] † fitted on the evaluated database": "fitted on the evaluated database",
+                     "dense-vlad [vocabulary=tokyo-pair]": "vocabulary fitted on 2 images in tokyo-pair",
+                     "hog": "none (nothing learnt)"}
+    assert board.marked["marked_rows"] == 1
+    assert only_cell(board, "dense-vlad [vocabulary=tokyo-pair]").record["run_id"] == foreign["run_id"]

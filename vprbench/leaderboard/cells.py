@@ -39,7 +39,8 @@ CELL_RULE = (
     "on that protocol, with its image counts, and on one copy of its data (the dataset fingerprint most runs "
     "share; the newest on a tie). Runs on your own data get a column per protocol (positions, radius and images), "
     "even when named like a benchmark. Runs with weights other than the authors' release, with approximate "
-    "search (IVF-PQ, HNSW) or with a float16 store get their own rows, marked †, and never replace an official row."
+    "search (IVF-PQ, HNSW), with a float16 store or with anything fitted on the evaluated database (transductive) get "
+    "their own rows, marked †, and never replace an official row."
 )
 
 
@@ -65,13 +66,22 @@ def weights_of(record: dict) -> tuple[str, str]:
     return source, f"weights {source}"
 
 
+#: the mark of a run with a part fitted on the database it is evaluated on (the field's "transductive")
+TRANSDUCTIVE = "fitted on the evaluated database"
+
+
 def weights_shown(row: "Row", record: dict) -> str:
     """The Weights column, the same on every table, page and download: the row's marks, else
-    'official', or 'none (nothing learnt)' for a method with nothing learnt."""
+    'official', 'none (nothing learnt)' for a method with nothing learnt, or what it learnt
+    (e.g. 'vocabulary fitted on 2 images in ...') when its only learnt parts were fitted elsewhere."""
     if row.mark:
         return row.mark
-    source = ((record.get("provenance") or {}).get("weights") or {}).get("source")
-    return "none (nothing learnt)" if source == "none" else "official"
+    provenance = record.get("provenance") or {}
+    learnt = [part for part in provenance.get("learnt") or [] if isinstance(provenance.get(part), dict)]
+    if learnt:
+        return "; ".join(f"{part} fitted on {provenance[part].get('fitted_on') or 'data it does not name'}"
+                         for part in learnt)
+    return "none (nothing learnt)" if (provenance.get("weights") or {}).get("source") == "none" else "official"
 
 
 @dataclass(frozen=True)
@@ -212,7 +222,8 @@ def _row_of(record: dict) -> Row:
 
     spec = RunSpec.model_validate(record["spec"])
     weights, mark = weights_of(record)
-    marks = [m for m in (mark, *spec.marks()) if m]
+    transductive = (record.get("provenance") or {}).get("fitted_on_evaluated_database") is True
+    marks = [m for m in (mark, *spec.marks(), TRANSDUCTIVE if transductive else "") if m]
     return Row(spec.row_key, spec.label(), weights, "; ".join(marks))
 
 
