@@ -22,6 +22,7 @@ from ..fsutil import LockTimeout, lock
 from ..evaluation.results import read_results
 from ..reference import paper_results
 from . import figures
+from .escape import text
 from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board, weights_shown
 from ..evaluation.metrics import successes
 from .stats import RESAMPLES, format_p, overlaps, paired_test
@@ -156,7 +157,7 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
                   "|:--|:--|:--|--:|--:|--:|--:|:--|"]
         for c in found:
             ci = f" [{c['ci'][0]:.1f}, {c['ci'][1]:.1f}]" if c["ci"] else ""
-            lines.append(f"| {c['method']} | {c['dataset']} | {c['metric']} | {c['measured']:.1f}{ci} | *{c['reported']:.1f}* "
+            lines.append(f"| {text(c['method'])} | {text(c['dataset'])} | {c['metric']} | {c['measured']:.1f}{ci} | *{c['reported']:.1f}* "
                          f"(Table {c['table']}) | {c['delta']:+.1f} | ±{c['tolerance']:.1f} | {'yes' if c['reproduced'] else '**no**'} |")
     else:
         lines.append("No measured cell has a counterpart in the paper yet (the paper reports none of the "
@@ -175,18 +176,18 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
         lines += ["| Method | Weights | Dataset | R@1 [95 % CI] | R@5 [95 % CI] | Run |", "|:--|:--|:--|--:|--:|:--|"]
         for row, column, cell in others:
             s = stats[(row, column.key)]
-            lines.append(f"| {row.label}{' †' if not row.official else ''} | {weights_shown(row, cell.record)} | "
-                         f"[{column.title}]({column.slug}.md) | {_ci(s[1])} | {_ci(s[5])} | `{cell.record.get('run_id')}` |")
+            lines.append(f"| {text(row.label)}{' †' if not row.official else ''} | {text(weights_shown(row, cell.record))} | "
+                         f"[{text(column.title)}]({column.slug}.md) | {_ci(s[1])} | {_ci(s[5])} | `{cell.record.get('run_id')}` |")
     else:
         lines.append("None.")
     lines += ["", "## Runs left out", ""]
     if board.excluded:
         lines += ["| Run | Method | Dataset | Why |", "|:--|:--|:--|:--|"]
-        lines += [f"| `{r.get('run_id')}` | {r.get('method')} | {r.get('dataset')} | {why} |" for r, why in board.excluded]
+        lines += [f"| `{text(r.get('run_id'))}` | {text(r.get('method'))} | {text(r.get('dataset'))} | {text(why)} |" for r, why in board.excluded]
     else:
         lines.append("None.")
     lines += ["", "## Datasets", ""]
-    lines += [f"- [{c.title}]({c.slug}.md): {c.domain or 'no domain'}, {len(board.column_cells(c))} row(s)" for c in board.columns]
+    lines += [f"- [{text(c.title)}]({c.slug}.md): {text(c.domain or 'no domain')}, {len(board.column_cells(c))} row(s)" for c in board.columns]
     lines += ["", "The paper's reported tables (II–VII), as reported: [reported numbers](reported.md).", "",
               "Downloads: [leaderboard.csv](downloads/leaderboard.csv), [leaderboard.json](downloads/leaderboard.json) "
               "(one entry per cell: values, intervals, run and provenance).", ""]
@@ -197,8 +198,8 @@ def _figure(draw, out: Path, name: str, caption: str, what: str | None = None) -
     try:
         draw(out / "figures" / name)
     except figures.Skipped as why:
-        return [f"*{what or caption}: not drawn, {why}.*", ""]
-    return [f"![{caption}](figures/{name})", "", f"*{caption}*", ""]
+        return [f"*{text(what or caption)}: not drawn, {text(why)}.*", ""]
+    return [f"![{text(caption)}](figures/{name})", "", f"*{text(caption)}*", ""]
 
 
 def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=None, seed: int = 0) -> str:
@@ -207,8 +208,8 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
     counts, gt, protocol = first["counts"], first.get("ground_truth", {}), first.get("protocol", {})
     positives = np.asarray((first.get("per_query") or {}).get("positives") or
                            (cells[0].arrays["positives"] if cells[0].arrays is not None else []))
-    lines = [PAGE_HEAD, f"# {column.title}", "", _marks(board),
-             f"Domain: {column.domain or '–'}. Kind: {'benchmark' if column.kind == 'benchmark' else 'own data (not a benchmark)'}.", "",
+    lines = [PAGE_HEAD, f"# {text(column.title)}", "", _marks(board),
+             f"Domain: {text(column.domain or '–')}. Kind: {'benchmark' if column.kind == 'benchmark' else 'own data (not a benchmark)'}.", "",
              "## Data and ground truth", "",
              "| Database | Queries | Queries without positives | Positive pairs | Positives per query (min / median / max) | Ground truth | Protocol | Dataset fingerprint |",
              "|--:|--:|--:|--:|:--|:--|:--|:--|",
@@ -228,8 +229,8 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
             "|:--|:--|:--|:--|:--|--:|--:|"]
     for cell in cells:
         s, r = stats[(cell.row, column.key)], cell.record
-        name = f"{cell.row.label}{' †' if not cell.row.official else ''}"
-        lines.append(f"| {name} | {weights_shown(cell.row, r)} | "
+        name = f"{text(cell.row.label)}{' †' if not cell.row.official else ''}"
+        lines.append(f"| {name} | {text(weights_shown(cell.row, r))} | "
                      f"{_ci(s[1])} | {_ci(s[5])} | {fmt(cell.recall(10))} | {fmt(cell.recall(20))} | "
                      f"{_num(r.get('auc_pr'), 3)} | {_num(r.get('recall_at_100_precision'), 3)} | {r.get('descriptor_dim')} | "
                      f"{r.get('descriptor_bytes') or 4 * int(r.get('descriptor_dim') or 0)} | {_num(r.get('images_per_second'), 1)} |")
@@ -266,7 +267,7 @@ def _paired(cells: list[Cell], seed: int) -> list[str]:
         if not overlaps(ci_a, ci_b):
             continue
         t = paired_test(successes(a.arrays["first_positive_rank"], 1), successes(b.arrays["first_positive_rank"], 1), seed=seed)
-        lines.append(f"| {a.row.name} − {b.row.name} | {t['difference']:+.1f} [{t['ci'][0]:+.1f}, {t['ci'][1]:+.1f}] | "
+        lines.append(f"| {text(a.row.name)} − {text(b.row.name)} | {t['difference']:+.1f} [{t['ci'][0]:+.1f}, {t['ci'][1]:+.1f}] | "
                      f"{format_p(t['p_bootstrap']).lstrip('= ')} | {t['only_a']} / {t['only_b']} | {t['p_mcnemar']:.3g} |")
     if not lines:
         return []

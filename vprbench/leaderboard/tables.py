@@ -8,6 +8,7 @@ import pandas as pd
 from ..errors import VPRBenchError
 from ..reference import paper_results
 from .cells import CELL_KS, STRUCTURED, UNSTRUCTURED, Board, Cell, Column, Row, weights_shown  # noqa: F401
+from .escape import text
 from ..evaluation.metrics import successes
 from .stats import bootstrap_ci
 
@@ -115,7 +116,7 @@ def group_table(board: Board, table: str, link=lambda column: column.dataset) ->
                 paper_value = _reported_value(paper, row.label, name, f"r{k}")
                 values[(name, k)] = (measured, False) if measured is not None else (paper_value, paper_value is not None)
         if any(v is not None and not rep for v, rep in values.values()):
-            lines.append((row.label, "measured", values))
+            lines.append((text(row.label), "measured", values))
     for label, part in paper.groupby("row", sort=False):
         values = {(name, k): (_value(part, name, f"r{k}"), True)
                   for name in datasets for k in CELL_KS}
