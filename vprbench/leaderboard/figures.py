@@ -97,7 +97,7 @@ def efficiency(cells: list[Cell], path: Path) -> Path:
         size = cell.record.get("descriptor_bytes") or 4 * int(cell.record.get("descriptor_dim") or 0)
         left.scatter([size], [r1])
         left.annotate(cell.row.label, (size, r1), fontsize=7, xytext=(3, 3), textcoords="offset points")
-        speed = cell.record.get("images_per_second")
+        speed = cell.images_per_second  # from a run that computed its descriptors
         if speed:
             right.scatter([speed], [r1])
             right.annotate(cell.row.label, (speed, r1), fontsize=7, xytext=(3, 3), textcoords="offset points")
