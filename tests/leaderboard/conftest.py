@@ -74,15 +74,17 @@ def synthetic_spec(method: str, options: dict, weights: dict, data: Dataset, ks,
 
 @pytest.fixture
 def make_record(tmp_path):
-    """make_record(method="hog", dataset="corridor", ...) -> a record dict of the current schema."""
+    """make_record(method="hog", dataset="corridor", ...) -> a record dict of the current schema
+    (own data, kind="own", with unit="frames" and a radius: a traverse with that tolerance)."""
 
     def make(method="hog", dataset="corridor", *, k=20, ks=(1, 5, 10, 20), quality=0.5, seed=0, options=None,
              weights=None, kind="benchmark", n_database=None, n_queries=None, root=None, fingerprint=None,
-             domain=None, created=None, descriptor_dim=64, protocol=None, search=None):
+             domain=None, created=None, descriptor_dim=64, protocol=None, search=None, unit=None, radius=None):
         manifest = dataset_manifest(dataset) if kind == "benchmark" else None
         n_database = n_database or manifest.database_count
         n_queries = n_queries or manifest.query_count
-        gt = synthetic_ground_truth(n_database, n_queries, *((manifest.unit, manifest.radius) if manifest else ()))
+        rule = (manifest.unit, manifest.radius) if manifest else ((unit, radius) if unit else ())  # own: any rule
+        gt = synthetic_ground_truth(n_database, n_queries, *rule)
         positives = gt.positives()
         scores, indices, positives = synthetic_search(positives, n_database, k, quality, seed)
         images = Path(root) if root else tmp_path / "no-images" / dataset

@@ -7,7 +7,7 @@ from ..errors import VPRBenchError
 from .console import console
 from .options import resolve_locations
 
-FORMATS = ("table", "markdown", "csv")
+FORMATS = ("table", "markdown", "csv", "json")
 
 NO_RESULTS = "No results yet: run 'vprbench evaluate --method M --dataset D' first."
 
@@ -60,7 +60,7 @@ def run(args) -> int:
                             f"{board.excluded[0][1]}." if board.excluded else NO_RESULTS)
     table = grid(board)
     if args.format != "table":
-        print(render(table, args.format))
+        print(render(table, args.format, board))
         return unread(skipped)
     view = Table(title="R@1 / R@5 (%): one run per cell")
     view.add_column("method")

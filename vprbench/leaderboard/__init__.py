@@ -8,7 +8,7 @@
 """
 from .cells import CELL_RULE, Board, Cell, build_board, method_label
 from .site import publish
-from .tables import grid, render
+from .tables import Shown, computed, grid, render
 
 
 def leaderboard(records: list[dict]):
@@ -16,5 +16,5 @@ def leaderboard(records: list[dict]):
     return grid(build_board(records))
 
 
-__all__ = ["CELL_RULE", "Board", "Cell", "build_board", "grid", "leaderboard", "method_label", "publish",
-           "render"]
+__all__ = ["CELL_RULE", "Board", "Cell", "Shown", "build_board", "computed", "grid", "leaderboard", "method_label",
+           "publish", "render"]

@@ -141,6 +141,8 @@ class Cell:
     #: the newest run of the row and column that computed its descriptors (its images/s and
     #: hardware are the cell's): a run served from stores measured no speed
     timed: dict | None = None
+    #: where the cell's number comes from (SOURCES)
+    source: str = "measured here"
 
     @property
     def images_per_second(self) -> float | None:
@@ -316,9 +318,39 @@ def build_board(records: list[dict]) -> Board:
         final = rows[row]
         timed = [r for r in runs if not r.get("served_from_store") and r.get("images_per_second")]
         cells[(final, key)] = Cell(final, columns[key], pick, passed_over=len(runs) - 1,
-                                   timed=timed[-1] if timed else None)
+                                   timed=timed[-1] if timed else None, source=_source(pick, runs))
     ordered = sorted(columns.values(), key=lambda c: (c.kind != "benchmark", _domain_order(c.domain), c.dataset, c.key))
     return Board(list(rows.values()), ordered, cells, excluded)
+
+
+#: the marks of a cell's source: every cell has one of them (a paper's values are in the group tables, in italics)
+MEASURED, CONTRIBUTED, IMPORTED = "measured here", "contributed, re-scored", "imported from VPR-Bench, re-scored"
+AGREES = "contributed, re-run here and agreeing within its interval"
+
+
+def _source(pick: dict, runs: list[dict]) -> str:
+    """How the cell's number is known: measured on this machine, contributed to a results repository
+    (re-scored from its arrays), both (agreeing within the contributed run's 95 % interval, or not)."""
+    from .stats import bootstrap_ci
+    from ..evaluation.metrics import successes
+
+    if pick.get("imported"):
+        return IMPORTED
+    contributed = [r for r in runs if r.get("_contribution")]
+    local = [r for r in runs if not r.get("_contribution")]
+    if not contributed:
+        return MEASURED
+    if not local:
+        return CONTRIBUTED
+    theirs, ours = contributed[-1], local[-1]
+    arrays = per_query(theirs)
+    if arrays is None or "1" not in theirs["recall"] or "1" not in ours["recall"]:
+        return f"contributed, re-run here (R@1 {ours['recall'].get('1', '–')}; the contributed run has no interval)"
+    low, high = bootstrap_ci(successes(arrays["first_positive_rank"], 1))
+    mine = float(ours["recall"]["1"])
+    if low <= mine <= high:
+        return AGREES
+    return f"contributed, re-run here and disagreeing: R@1 {mine:.1f} here, outside its interval [{low:.1f}, {high:.1f}]"
 
 
 def _distinct(rows: list[Row]) -> dict[Row, Row]:

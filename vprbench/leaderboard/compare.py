@@ -8,23 +8,28 @@ from .stats import RESAMPLES, bootstrap_ci, format_p, overlaps, paired_test
 
 
 def _cell(board: Board, method: str, dataset: str) -> Cell:
-    columns = [c for c in board.columns if dataset in (c.key, c.dataset)]
+    """The cell of `method` in the column `dataset` names: its heading as every table shows it
+    (e.g. 'my-traverse (own, ±10 frames)'), its key, or a dataset name that only one column has."""
+    known = ", ".join(repr(c.title) for c in board.columns) or "none"
+    columns = [c for c in board.columns if dataset in (c.title, c.key)] or \
+        [c for c in board.columns if c.dataset == dataset]
     benchmark = [c for c in columns if c.kind == "benchmark"]
     if not columns:
-        names = [c.key for c in board.columns]
-        raise VPRBenchError(f"No run on dataset {dataset!r} fills a cell.{closest_names(dataset, names)} "
-                            f"Datasets on the leaderboard: {', '.join(names) or 'none'}.")
+        titles = [c.title for c in board.columns]
+        raise VPRBenchError(f"No run on dataset {dataset!r} fills a cell.{closest_names(dataset, titles)} "
+                            f"Datasets on the leaderboard: {known}.")
     if len(columns) > 1 and not benchmark:
-        raise VPRBenchError(f"Several own datasets are named {dataset!r}: give one of {', '.join(repr(c.key) for c in columns)}.")
-    column = ([c for c in benchmark if c.key == dataset or c.default] or benchmark or columns)[0]
+        raise VPRBenchError(f"Several columns are datasets named {dataset!r}: give one of "
+                            f"{', '.join(repr(c.title) for c in columns)}. Datasets on the leaderboard: {known}.")
+    column = ([c for c in benchmark if dataset in (c.title, c.key) or c.default] or benchmark or columns)[0]
     rows = [r for r in board.find_row(method) if board.cell(r, column)]
     if not rows:
         names = [r.name for r in board.rows if board.cell(r, column)]
-        raise VPRBenchError(f"No run of {method!r} on {column.key}.{closest_names(method, names)} "
-                            f"Rows on {column.key}: {', '.join(names)}.")
+        raise VPRBenchError(f"No run of {method!r} on {column.title}.{closest_names(method, names)} "
+                            f"Rows on {column.title}: {', '.join(names)}.")
     official = [r for r in rows if r.official]
     if len(rows) > 1 and len(official) != 1:
-        raise VPRBenchError(f"{method!r} has several rows on {column.key}: give one of {', '.join(repr(r.name) for r in rows)}.")
+        raise VPRBenchError(f"{method!r} has several rows on {column.title}: give one of {', '.join(repr(r.name) for r in rows)}.")
     return board.cell((official or rows)[0], column)
 
 
@@ -44,7 +49,7 @@ def compare(board: Board, a: str, b: str, dataset: str, *, k: int = 1, seed: int
                             f"{first.record.get('dataset_fingerprint')} and {second.record.get('dataset_fingerprint')}).")
     wins = [successes(r, k) for r in ranks]
     intervals = [bootstrap_ci(w, seed=seed) for w in wins]
-    return {"dataset": first.column.key, "k": k, "cells": (first, second), "intervals": intervals,
+    return {"dataset": first.column.title, "k": k, "cells": (first, second), "intervals": intervals,
             "overlap": overlaps(*intervals), "test": paired_test(*wins, seed=seed)}
 
 

@@ -1,7 +1,9 @@
 """Boards -> tables: the terminal/CSV grid, the paper-style group tables, measured vs reported."""
 from __future__ import annotations
 
+import json
 import math
+from dataclasses import asdict, dataclass
 
 import pandas as pd
 
@@ -22,22 +24,42 @@ def fmt(value) -> str:
     return "–" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.1f}"
 
 
+@dataclass(frozen=True)
+class Shown:
+    """One cell as every format shows it (CLI table, Markdown, CSV, JSON, the site's tables)."""
+    row: str       # the row's name: its label, and after † what sets it apart
+    label: str
+    weights: str
+    column: str    # the column's title, e.g. "my-traverse (own, ±1 frame)"
+    r1: float | None
+    r5: float | None
+    source: str    # where the cell's number comes from (Cell.source)
+    run_id: str
+
+
+def computed(board: Board) -> list[Shown]:
+    """The board's cells, row by row in the board's order: what every format renders."""
+    return [Shown(row.name, row.label, weights_shown(row, cell.record), column.title, cell.recall(1), cell.recall(5),
+                  cell.source, str(cell.record.get("run_id")))
+            for row in board.rows for column in board.columns if (cell := board.cell(row, column))]
+
+
 def grid(board: Board) -> pd.DataFrame:
-    """Rows x dataset columns of 'R@1 / R@5', with each row's weights: the terminal and CSV view."""
-    data = []
-    for row in board.rows:
-        shown = next((weights_shown(row, c.record) for column in board.columns if (c := board.cell(row, column))), "")
-        entry = {"method": row.name if not row.official else row.label, "weights": shown}
-        for column in board.columns:
-            cell = board.cell(row, column)
-            entry[column.title] = f"{fmt(cell.recall(1))} / {fmt(cell.recall(5))}" if cell else "-"
-        data.append(entry)
-    return pd.DataFrame(data, columns=["method", "weights", *[c.title for c in board.columns]]).set_index("method")
+    """Rows x dataset columns of 'R@1 / R@5', with each row's weights: the terminal, Markdown and CSV view."""
+    data: dict[str, dict] = {}
+    for shown in computed(board):
+        entry = data.setdefault(shown.row, {"method": shown.row, "weights": shown.weights})
+        entry[shown.column] = f"{fmt(shown.r1)} / {fmt(shown.r5)}"
+    columns = [c.title for c in board.columns]
+    frame = pd.DataFrame(list(data.values()), columns=["method", "weights", *columns]).set_index("method")
+    return frame.fillna("-")
 
 
-def render(table: pd.DataFrame, fmt_name: str) -> str:
+def render(table: pd.DataFrame, fmt_name: str, board: Board | None = None) -> str:
+    if fmt_name == "json" and board is not None:
+        return json.dumps([asdict(s) for s in computed(board)], indent=1, ensure_ascii=False)
     if fmt_name not in ("markdown", "csv"):
-        raise VPRBenchError(f"Unknown leaderboard format {fmt_name!r}; use markdown or csv")
+        raise VPRBenchError(f"Unknown leaderboard format {fmt_name!r}; use markdown, csv or json")
     return table.to_csv() if fmt_name == "csv" else table.to_markdown()
 
 
