@@ -24,7 +24,9 @@ from ..reference import paper_results
 from . import figures
 from .escape import text
 from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board, weights_shown
+from ..evaluation.blocks import RULE, for_record
 from ..evaluation.metrics import successes
+from .compare import shared_resampling
 from .stats import RESAMPLES, format_p, overlaps, paired_test
 from .tables import GROUPS, TOLERANCE_PP, cell_stats, comparisons, fmt, group_table, other_rows
 
@@ -222,7 +224,8 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
              + (f" (source: {protocol['source']})" if protocol.get("source") else "") + ".", "",
              "Queries without positives count as failures. " + CELL_RULE, "",
              "## Results", "",
-             f"Seeded 95 % bootstrap intervals over queries ({RESAMPLES:,} resamples, seed {seed}).", "",
+             f"Seeded 95 % bootstrap intervals ({RESAMPLES:,} resamples, seed {seed}), resampling "
+             f"{_units(cells)}.", "",
              "| Method | Weights | R@1 [95 % CI] | R@5 [95 % CI] | R@10 | R@20 | AUC-PR | R@100%P | Dim | Bytes | Images/s |",
              "|:--|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|"]
     runs = ["| Method | Run | Created | vprbench | Commit | Descriptors computed | Older runs of the row |",
@@ -257,6 +260,13 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
     return "\n".join(lines)
 
 
+def _units(cells: list[Cell]) -> str:
+    """Which queries the column's intervals draw together, and by what rule (evaluation/blocks.py)."""
+    found = for_record(cells[0].record, cells[0].arrays)
+    return f"{text(found.text())}: {text(RULE[found.scheme])}" + \
+        (f" (n = {found.queries}, r = {found.radius:g})" if found.scheme == "blocks" else "")
+
+
 def _paired(cells: list[Cell], seed: int) -> list[str]:
     """Paired tests between neighbours in the ranking whose R@1 intervals overlap."""
     lines = []
@@ -266,14 +276,16 @@ def _paired(cells: list[Cell], seed: int) -> list[str]:
         ci_a, ci_b = cell_stats(a, ks=(1,), seed=seed)[1]["ci"], cell_stats(b, ks=(1,), seed=seed)[1]["ci"]
         if not overlaps(ci_a, ci_b):
             continue
-        t = paired_test(successes(a.arrays["first_positive_rank"], 1), successes(b.arrays["first_positive_rank"], 1), seed=seed)
+        t = paired_test(successes(a.arrays["first_positive_rank"], 1), successes(b.arrays["first_positive_rank"], 1),
+                        shared_resampling(a, b), seed=seed)
         lines.append(f"| {text(a.row.name)} − {text(b.row.name)} | {t['difference']:+.1f} [{t['ci'][0]:+.1f}, {t['ci'][1]:+.1f}] | "
                      f"{format_p(t['p_bootstrap']).lstrip('= ')} | {t['only_a']} / {t['only_b']} | {t['p_mcnemar']:.3g} |")
     if not lines:
         return []
     return ["### Paired tests where R@1 intervals overlap", "",
-            "Over the same queries: paired-bootstrap difference of R@1 (percentage points) and McNemar's exact test "
-            "on the queries only one of the two gets right.", "",
+            "Over the same queries: paired-bootstrap difference of R@1 (percentage points; the same units drawn "
+            "for both) and McNemar's exact test on the queries only one of the two gets right (which takes the "
+            "queries as independent).", "",
             "| Pair | Δ R@1 [95 % CI] | p (bootstrap) | only first / only second | p (McNemar) |", "|:--|--:|--:|--:|--:|",
             *lines, ""]
 
@@ -299,6 +311,7 @@ def _summary(cell: Cell, stats: dict) -> dict:
     entry.update({key: r.get(key) for key in ("auc_pr", "recall_at_100_precision", "descriptor_dim", "descriptor_bytes",
                                               "images_per_second", "run_id", "created", "dataset_fingerprint")})
     entry["protocol"] = (r.get("protocol") or {}).get("id")
+    entry["ci_resampling"] = for_record(r, cell.arrays).text()  # which queries the intervals draw together
     entry["vprbench"] = (r.get("versions") or {}).get("vprbench")
     entry["provenance"] = json.dumps(r.get("provenance") or {}, sort_keys=True)
     return entry
