@@ -103,13 +103,41 @@ def write_section(out: Path, board: Board, records: list[dict], *, cache_dir=Non
     (out / "figures").mkdir()
     (out / "downloads").mkdir()
     stats = {key: cell_stats(cell, seed=seed) for key, cell in board.cells.items()}
-    _write(out / "index.md", overview(out, board, records, stats, cache_dir=cache_dir, seed=seed))
+    colours = site_colours(board)
+    _write(out / "index.md", overview(out, board, records, stats, cache_dir=cache_dir, seed=seed, colours=colours))
     for column in board.columns:
-        _write(out / f"{column.slug}.md", dataset_page(out, board, column, stats, data_dir=data_dir, seed=seed))
+        _write(out / f"{column.slug}.md", dataset_page(out, board, column, stats, data_dir=data_dir, seed=seed,
+                                                       cache_dir=cache_dir, colours=colours))
     _write(out / "reported.md", reported_page())
+    _write(out / NAV_FILE, navigation(board))
     rows = [_summary(cell, stats[key]) for key, cell in board.cells.items()]
     pd.DataFrame(rows).to_csv(out / "downloads" / "leaderboard.csv", index=False)
     _write(out / "downloads" / "leaderboard.json", json.dumps(rows, indent=1, sort_keys=True, default=_plain))
+
+
+def site_colours(board: Board) -> dict[str, str]:
+    """Every method's colour on every figure of this publish, computed once from all of them."""
+    return figures.method_colours([r.name for r in board.rows] + [figures.paper_key(r) for r in figures.RADAR_PAPER_ROWS])
+
+
+#: the section's navigation, read by the mkdocs-literate-nav plugin (mkdocs.yml: `Results: leaderboard/`)
+NAV_FILE = "SUMMARY.md"
+
+
+def navigation(board: Board) -> str:
+    """The overview, every dataset page and the paper's tables, in the site's navigation."""
+    lines = ["* [Overview](index.md)", "* Datasets"]
+    lines += [f"    * [{text(c.title)}]({c.slug}.md)" for c in board.columns]
+    return "\n".join([*lines, "* [Reported by the paper](reported.md)", ""])
+
+
+#: where each page explains the cell rule (below its tables), linked from its top
+RULE_HEADING = "How a cell is chosen"
+RULE_LINK = "[How a cell is chosen](#how-a-cell-is-chosen)"
+
+
+def _rule(extra: str = "") -> list[str]:
+    return [f"## {RULE_HEADING}", "", extra + CELL_RULE, ""]
 
 
 def _write(path: Path, text: str) -> None:
@@ -142,12 +170,12 @@ def _ci(entry) -> str:
     return f"{fmt(entry['value'])} [{entry['ci'][0]:.1f}, {entry['ci'][1]:.1f}]" if entry["ci"] else fmt(entry["value"])
 
 
-def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: int = 0) -> str:
+def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: int = 0, colours=None) -> str:
     written = datetime.now(timezone.utc).date().isoformat()
     lines = [PAGE_HEAD, "# Leaderboard", "",
              f"Measured by `vprbench evaluate` ({len(records)} stored run(s); vprbench {__version__}; written {written}). "
-             "Regenerate with `vprbench leaderboard publish --to docs/`.", "", _marks(board),
-             "**How a cell is chosen.** " + CELL_RULE, ""]
+             "Regenerate with `vprbench leaderboard publish --to docs/`. Each cell is one run: "
+             f"{RULE_LINK} (below the tables).", "", _marks(board)]
     for table in GROUPS:
         lines += [group_table(board, table, link=lambda c: f"{c.slug}.md"), ""]
     lines += ["## Measured against reported", "",
@@ -165,9 +193,13 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
         lines.append("No measured cell has a counterpart in the paper yet (the paper reports none of the "
                      "datasets measured here, or none of the methods).")
     lines += ["", "## Figures", ""]
-    lines += _figure(lambda p: figures.radar(board, p), out, "radar.svg",
+    axes = figures.domain_datasets()
+    lines += _figure(lambda p: figures.radar(board, p, colours), out, "radar.svg",
                      "Average R@1 per domain (AnyLoc Fig. 1, right): measured rows solid; the paper's "
-                     f"{', '.join(figures.RADAR_PAPER_ROWS)} dashed (reported).", "Radar chart")
+                     f"{', '.join(figures.RADAR_PAPER_ROWS)} dashed (reported). Each axis averages the paper's datasets "
+                     "of its domain (" + "; ".join(f"{d}: {', '.join(axes[d])}" for d in figures.radar_domains(board, axes))
+                     + "); a filled point has all of them, a hollow one only the datasets written beside it.",
+                     "Radar chart")
     lines += _figure(lambda p: figures.pca_map(records, p, cache_dir=cache_dir, seed=seed), out, "pca-gem.png",
                      "Database GeM descriptors of one method on every dataset it was run on, first two principal "
                      "components, coloured by domain (AnyLoc Fig. 1, middle).", "PCA map of GeM descriptors")
@@ -192,7 +224,7 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
     lines += [f"- [{text(c.title)}]({c.slug}.md): {text(c.domain or 'no domain')}, {len(board.column_cells(c))} row(s)" for c in board.columns]
     lines += ["", "The paper's reported tables (II–VII), as reported: [reported numbers](reported.md).", "",
               "Downloads: [leaderboard.csv](downloads/leaderboard.csv), [leaderboard.json](downloads/leaderboard.json) "
-              "(one entry per cell: values, intervals, run and provenance).", ""]
+              "(one entry per cell: values, intervals, run and provenance).", "", *_rule()]
     return "\n".join(lines)
 
 
@@ -204,13 +236,16 @@ def _figure(draw, out: Path, name: str, caption: str, what: str | None = None) -
     return [f"![{text(caption)}](figures/{name})", "", f"*{text(caption)}*", ""]
 
 
-def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=None, seed: int = 0) -> str:
+def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=None, seed: int = 0, cache_dir=None,
+                 colours=None) -> str:
     cells = sorted(board.column_cells(column), key=lambda c: -(c.recall(1) or -1))
     first = cells[0].record
     counts, gt, protocol = first["counts"], first.get("ground_truth", {}), first.get("protocol", {})
     positives = np.asarray((first.get("per_query") or {}).get("positives") or
                            (cells[0].arrays["positives"] if cells[0].arrays is not None else []))
-    lines = [PAGE_HEAD, f"# {text(column.title)}", "", _marks(board),
+    colours = colours if colours is not None else site_colours(board)
+    lines = [PAGE_HEAD, f"# {text(column.title)}", "", f"Each cell is one run: {RULE_LINK} (below the tables).", "",
+             _marks(board),
              f"Domain: {text(column.domain or '–')}. Kind: {'benchmark' if column.kind == 'benchmark' else 'own data (not a benchmark)'}.", "",
              "## Data and ground truth", "",
              "| Database | Queries | Queries without positives | Positive pairs | Positives per query (min / median / max) | Ground truth | Protocol | Dataset fingerprint |",
@@ -222,7 +257,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
              f"`{protocol.get('id', '–')}` (`{protocol.get('hash', '–')}`) | `{column.fingerprint}` |", "",
              f"Protocol `{protocol.get('id', '–')}`: {protocol.get('description') or 'no description'}"
              + (f" (source: {protocol['source']})" if protocol.get("source") else "") + ".", "",
-             "Queries without positives count as failures. " + CELL_RULE, "",
+             "Queries without positives count as failures.", "",
              "## Results", "",
              f"Seeded 95 % bootstrap intervals ({RESAMPLES:,} resamples, seed {seed}), resampling "
              f"{_units(cells)}.", "",
@@ -242,21 +277,22 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
                     f"`{str(versions.get('git') or '–')[:10]}` | {sum(computed.values()) if computed else '–'} | {cell.passed_over} |")
     lines += ["", "The runs in the cells above:", "", *runs, "", *_paired(cells, seed), "## Figures", ""]
     slug = column.slug
-    lines += _figure(lambda p: figures.recall_curves(cells, p), out, f"{slug}-recall.svg", "Recall@K per run")
-    lines += _figure(lambda p: figures.pr_curves(cells, p), out, f"{slug}-pr.svg",
+    lines += _figure(lambda p: figures.recall_curves(cells, p, colours), out, f"{slug}-recall.svg", "Recall@K per run")
+    lines += _figure(lambda p: figures.pr_curves(cells, p, colours), out, f"{slug}-pr.svg",
                      "Precision-recall of the top-1 matches ranked by similarity (VPR-Bench)")
-    lines += _figure(lambda p: figures.efficiency(cells, p), out, f"{slug}-efficiency.svg",
+    lines += _figure(lambda p: figures.efficiency(cells, p, colours), out, f"{slug}-efficiency.svg",
                      "Efficiency: R@1 against descriptor bytes and images described per second (this machine)")
     lines += ["### Retrieval mosaics", "", f"Seeded queries (seed {seed}) and their top 5: green frame = positive, red = not.", ""]
     for cell in cells[:MOSAIC_ROWS]:
         name = f"{slug}-mosaic-{_file_slug(cell.row.name)}.png"
-        lines += _figure(lambda p, c=cell: figures.mosaic(c, p, data_dir=data_dir, seed=seed), out, name,
+        lines += _figure(lambda p, c=cell: figures.mosaic(c, p, data_dir=data_dir, seed=seed, cache_dir=cache_dir), out, name,
                          f"{cell.row.name}: queries and their top 5", f"Mosaic of {cell.row.name}")
     download = [_record_download(c) for c in cells]
     _write(out / "downloads" / f"{slug}.json", json.dumps(download, sort_keys=True, default=_plain))  # compact: per-query arrays
     pd.DataFrame([_summary(c, stats[(c.row, column.key)]) for c in cells]).to_csv(out / "downloads" / f"{slug}.csv", index=False)
     lines += ["## Downloads", "", f"[{slug}.csv](downloads/{slug}.csv) (one row per cell), "
-              f"[{slug}.json](downloads/{slug}.json) (the cells' full records, per-query predictions included).", ""]
+              f"[{slug}.json](downloads/{slug}.json) (the cells' full records, per-query predictions included).", "",
+              *_rule()]
     return "\n".join(lines)
 
 
