@@ -263,18 +263,19 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
              f"{_units(cells)}.", "",
              "| Method | Weights | R@1 [95 % CI] | R@5 [95 % CI] | R@10 | R@20 | AUC-PR | R@100%P | Dim | Bytes | Images/s |",
              "|:--|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|"]
-    runs = ["| Method | Run | Created | vprbench | Commit | Descriptors computed | Older runs of the row |",
-            "|:--|:--|:--|:--|:--|--:|--:|"]
+    runs = ["| Method | Run | Created | vprbench | Commit | Descriptors computed | Older runs of the row | Images/s measured by |",
+            "|:--|:--|:--|:--|:--|--:|--:|:--|"]
     for cell in cells:
         s, r = stats[(cell.row, column.key)], cell.record
         name = f"{text(cell.row.label)}{' †' if not cell.row.official else ''}"
         lines.append(f"| {name} | {text(weights_shown(cell.row, r))} | "
                      f"{_ci(s[1])} | {_ci(s[5])} | {fmt(cell.recall(10))} | {fmt(cell.recall(20))} | "
                      f"{_num(r.get('auc_pr'), 3)} | {_num(r.get('recall_at_100_precision'), 3)} | {r.get('descriptor_dim')} | "
-                     f"{r.get('descriptor_bytes') or 4 * int(r.get('descriptor_dim') or 0)} | {_num(r.get('images_per_second'), 1)} |")
+                     f"{r.get('descriptor_bytes') or 4 * int(r.get('descriptor_dim') or 0)} | {_num(cell.images_per_second, 1)} |")
         versions, computed = r.get("versions") or {}, r.get("descriptors_computed") or {}
         runs.append(f"| {name} | `{r.get('run_id')}` | {r.get('created', '–')} | {versions.get('vprbench', '–')} | "
-                    f"`{str(versions.get('git') or '–')[:10]}` | {sum(computed.values()) if computed else '–'} | {cell.passed_over} |")
+                    f"`{str(versions.get('git') or '–')[:10]}` | {sum(computed.values()) if computed else '–'} | {cell.passed_over} | "
+                    + (f"`{text(cell.timed.get('run_id'))}` on {text(cell.hardware)} |" if cell.timed else "no run computed its descriptors |"))
     lines += ["", "The runs in the cells above:", "", *runs, "", *_paired(cells, seed), "## Figures", ""]
     slug = column.slug
     lines += _figure(lambda p: figures.recall_curves(cells, p, colours), out, f"{slug}-recall.svg", "Recall@K per run")
@@ -307,6 +308,8 @@ def _paired(cells: list[Cell], seed: int) -> list[str]:
     """Paired tests between neighbours in the ranking whose R@1 intervals overlap."""
     lines = []
     for a, b in zip(cells, cells[1:]):
+        if a.row.key == b.row.key:  # one method's two rows (e.g. before and after a mark): never tested against itself
+            continue
         if a.arrays is None or b.arrays is None or len(a.arrays["first_positive_rank"]) != len(b.arrays["first_positive_rank"]):
             continue
         ci_a, ci_b = cell_stats(a, ks=(1,), seed=seed)[1]["ci"], cell_stats(b, ks=(1,), seed=seed)[1]["ci"]
@@ -345,7 +348,9 @@ def _summary(cell: Cell, stats: dict) -> dict:
     for k in (10, 20):
         entry[f"r{k}"] = cell.recall(k)
     entry.update({key: r.get(key) for key in ("auc_pr", "recall_at_100_precision", "descriptor_dim", "descriptor_bytes",
-                                              "images_per_second", "run_id", "created", "dataset_fingerprint")})
+                                              "run_id", "created", "dataset_fingerprint")})
+    entry["images_per_second"], entry["speed_hardware"] = cell.images_per_second, cell.hardware
+    entry["speed_run_id"] = (cell.timed or {}).get("run_id")
     entry["protocol"] = (r.get("protocol") or {}).get("id")
     entry["ci_resampling"] = for_record(r, cell.arrays).text()  # which queries the intervals draw together
     entry["vprbench"] = (r.get("versions") or {}).get("vprbench")

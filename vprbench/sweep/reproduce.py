@@ -138,10 +138,12 @@ def measured(records: list[dict | None], metric: str, seed: int = 0) -> tuple[fl
     seeded bootstrap interval the leaderboard uses; None unless every dataset was measured."""
     from ..evaluation.blocks import for_record
     from ..evaluation.metrics import successes
+    from ..evaluation.proof import proven
     from ..evaluation.results import per_query
     from ..leaderboard.stats import bootstrap_mean_ci
 
-    if not records or any(r is None for r in records):
+    records = [proven(r) if r is not None else None for r in records]  # metrics from the runs' arrays
+    if not records or any(r is None or isinstance(r, str) for r in records):
         return None
     k = int(metric.removeprefix("r"))
     values = [r["recall"][str(k)] for r in records]
