@@ -68,8 +68,9 @@ def test_velocities_and_trajectories_are_exact():
 
 def test_enhancement_matches_its_definition():
     d = np.random.default_rng(1).random((4, 23)).astype(np.float32)
-    for columns in (23, 11, 7, 1):  # windows cut at both ends, and rows shorter than a window
+    for columns in (23, 11, 7, 2):  # windows cut at both ends, and rows shorter than a window
         np.testing.assert_allclose(enhance(d[:, :columns], 10), naive_enhance(d[:, :columns], 10), atol=TOLERANCE)
+    assert enhance(d[:, :1], 10).tolist() == [[0.0]] * 4  # one database image: no contrast, not NaN
     flat = np.ones((1, 12), dtype=np.float32)
     assert np.isfinite(enhance(flat, 10)).all() and np.abs(enhance(flat, 10)).max() == 0
 

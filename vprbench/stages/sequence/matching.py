@@ -77,10 +77,10 @@ def enhance(differences: np.ndarray, window: int) -> np.ndarray:
     low = np.maximum(np.arange(n) - half, 0)
     high = np.minimum(np.arange(n) + half + 1, n)
     count = (high - low).astype(np.float64)
-    inner = slice(half, n - half) if n > 2 * half else slice(0, 0)
     edges = np.r_[0:min(half, n), max(n - half, min(half, n)):n]
     for out, running in ((mean, sums), (deviation, squares)):
-        np.subtract(running[:, 2 * half + 1:], running[:, :n - 2 * half], out=out[:, inner])
+        if n > 2 * half:  # the full windows, by slices
+            np.subtract(running[:, 2 * half + 1:], running[:, :n - 2 * half], out=out[:, half:n - half])
         out[:, edges] = running[:, high[edges]] - running[:, low[edges]]
     # deviation holds the sums of squares, mean the sums: variance = (sq - sum * mean) / (count - 1)
     np.divide(mean, count, out=mean)
