@@ -90,7 +90,8 @@ def sequence_search(database, queries, k: int, *, score: str = "seqslam", compar
     the mean similarity (minus the mean distance for sad)."""
     database, queries = as_rows(database, "database"), as_rows(queries, "queries")
     if score not in SCORES or compare not in COMPARES:
-        raise ValueError(f"score must be one of {SCORES} and compare one of {COMPARES}")
+        raise VPRBenchError(f"Sequence matching scores by one of {SCORES} and compares descriptors by one of "
+                            f"{COMPARES}; got {score!r} and {compare!r}.")
     if database.dim != queries.dim:
         raise VPRBenchError(f"Database descriptors have {database.dim} dims, queries {queries.dim}.")
     n, q = database.row_count, queries.row_count
