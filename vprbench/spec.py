@@ -7,7 +7,7 @@ everything that decides a result:
     method + its resolved options    (preset defaults overridden by the options given)
     dataset + protocol (its hash)    (a benchmark's protocol, or a folder's own)
     search                           (exact / ivf-pq / hnsw and their options)
-    stages                           (post-retrieval stages, in order; none yet)
+    stages                           (post-retrieval stages, in order: re-ranking, sequence matching)
     ks, store_dtype
 
 and nothing that cannot change one: `RUN_SETTINGS` (device, batch size, workers, memory
@@ -241,10 +241,11 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
         merged = plain({**{k: v for k, v in entry.defaults.items() if k not in RUN_SETTINGS}, **given})
     except (TypeError, ValueError) as error:
         raise VPRBenchError(f"Method {method!r}: an option is not plain data ({error}).") from None
+    ks, stages = check_ks(ks), tuple(resolve_stage(s) for s in stages or ())
+    check_stage_depths(stages, ks)
     return RunSpec(method=method, options=merged, given=given, files=_file_identities(method, given),
                    dataset=resolve_dataset(dataset, protocol, data_dir, cache_dir), search=resolve_search(search),
-                   stages=tuple(resolve_stage(s) for s in stages), ks=check_ks(ks),
-                   store_dtype=_choice("--store-dtype", store_dtype, STORE_DTYPES))
+                   stages=stages, ks=ks, store_dtype=_choice("--store-dtype", store_dtype, STORE_DTYPES))
 
 
 def spec_for(method, dataset, **parts) -> RunSpec:
@@ -323,9 +324,33 @@ def resolve_search(search) -> SearchSpec:
 
 
 def resolve_stage(stage) -> StageSpec:
+    """A stage by name (`"aqe"`), as a table (`{name = "sift-ransac", options = {k = 100}}` or with
+    the options beside the name), or a StageSpec: its options validated by the stage's own
+    Options model and stored resolved (defaults filled in), so one stage has one identity."""
+    from .stages.registry import stage_options
+
     if isinstance(stage, StageSpec):
-        return stage
-    raise VPRBenchError(f"Unknown post-retrieval stage {stage!r}: this vprbench has none yet.")
+        name, options = stage.name, dict(stage.options)
+    elif isinstance(stage, str):
+        name, options = stage, {}
+    elif isinstance(stage, dict):
+        name = stage.get("name")
+        options = dict(stage.get("options") or {})
+        options.update({k: v for k, v in stage.items() if k not in ("name", "options")})
+        if not isinstance(name, str):
+            raise VPRBenchError(f"A stage needs a name, e.g. {{name = \"sift-ransac\", k = 100}}; got {stage!r}.")
+    else:
+        raise VPRBenchError(f"A stage is a name or a table with a name, got {stage!r}.")
+    return StageSpec(name=name, options=plain(stage_options(name, options).model_dump(mode="json")))
+
+
+def check_stage_depths(stages: tuple[StageSpec, ...], ks: tuple[int, ...]) -> None:
+    """A re-ranker re-orders its top K: a K reported above it would be scored on candidates it never saw."""
+    for stage in stages:
+        depth = stage.options.get("k")
+        if isinstance(depth, int) and depth < ks[-1]:
+            raise VPRBenchError(f"Stage {stage.name!r} re-ranks the top {depth} (--rerank-k), fewer than the largest "
+                                f"K reported ({ks[-1]}): give --rerank-k >= {ks[-1]} or lower --k.")
 
 
 def check_ks(ks) -> tuple[int, ...]:

@@ -251,7 +251,8 @@ def new_run_id() -> tuple[str, datetime]:
 
 
 def result_record(*, spec: RunSpec, method, fingerprint, dataset, dataset_key: str, ks, scores, indices, positives,
-                  descriptor_dim, computed, timings, search=None, context=None, run=None, cache_dir=None) -> dict:
+                  descriptor_dim, computed, timings, search=None, context=None, run=None, cache_dir=None,
+                  track: str = "single-image", stages: list[dict] | None = None) -> dict:
     """The record of one run, from the search's top-K (scores and database indices per query):
     every metric is computed here, from what the record keeps."""
     from .metrics import correct_at, recall_at_k, top1_precision_recall
@@ -304,6 +305,8 @@ def result_record(*, spec: RunSpec, method, fingerprint, dataset, dataset_key: s
         "top_predictions": np.asarray(indices)[:, : min(ks[-1], 5)].tolist(),  # 0.1's key; per_query has the whole top K
         "provenance": method_provenance(method, dataset, cache_dir),
         "search": search or {"index": "exact"},
+        "track": track,  # single-image, re-ranked or sequence: the leaderboard table it belongs to
+        "stages": stages or [],  # each stage's options and cost (ms per query, bytes per database image, memory)
         "run": run or {},  # how it ran (device, batch size, workers, budget, ...): never part of its identity
         **({"context": context} if context else {}),
         **environment(),
