@@ -304,6 +304,7 @@ def result_record(*, spec: RunSpec, method, fingerprint, dataset, dataset_key: s
         "descriptor_bytes": int(descriptor_dim) * 4,  # float32, as stored and searched
         "recall": {str(k): round(v, 4) for k, v in recalls.items()},
         "auc_pr": round(pr["auc_pr"], 6),
+        "max_f1": round(pr["max_f1"], 6),
         "recall_at_100_precision": round(pr["recall_at_100_precision"], 6),
         "descriptors_computed": computed,
         "served_from_store": described == 0,
