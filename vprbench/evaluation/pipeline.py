@@ -17,6 +17,8 @@ from .identity import protocol_of
 from .metrics import check_ks
 from .record import result_record
 from .retrieve import retrieve
+from ..stages.base import Candidates, StageContext
+from ..stages.run import create_stages, retrieval_depth, run_stages, track_of
 
 
 def load_data(spec: RunSpec, settings: RunSettings):
@@ -52,6 +54,19 @@ def loader_workers(settings: RunSettings, method) -> int:
     return settings.workers if settings.workers is not None else default_workers(str(getattr(method, "device", "cpu")))
 
 
+def stage_context(spec: RunSpec, settings: RunSettings, method, dataset, described, progress) -> StageContext:
+    """What stages see: the dataset and the retriever's descriptors as its search saw them."""
+    from ..row_sources import DEFAULT_MEMORY_BUDGET
+    from .search import postprocessed
+
+    budget = settings.memory_budget or DEFAULT_MEMORY_BUDGET
+    database, queries, _ = postprocessed(method, described.stores["database"], described.stores["queries"], budget)
+    prefix = {**spec.row_identity(), "stages": [], "protocol": spec.dataset.protocol_hash}
+    return StageContext(dataset=dataset, database=database, queries=queries, spec=spec, prefix=prefix,
+                        cache_dir=settings.cache_dir, memory_budget=budget, lock_timeout=settings.lock_timeout,
+                        progress=progress, compare=getattr(method, "compare", "cosine"))
+
+
 def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None, method=None, progress=None,
              ranks: Ranks | None = None) -> dict | None:
     """Recall@K and PR metrics of the run `spec` names, with a full result record (not saved:
@@ -65,8 +80,7 @@ def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None
     started = time.perf_counter()
     settings = settings or RunSettings()
     ranks = ranks or Ranks()
-    if spec.stages:
-        raise VPRBenchError("This vprbench has no post-retrieval stages yet.")
+    stages = create_stages(spec)  # their options are checked before any data is touched
     if method is None:
         method = create_run_method(spec.method, spec.given, settings)  # options are checked before any data is touched
     elif method.name != spec.method:
@@ -79,6 +93,9 @@ def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None
     elif protocol_of(dataset)["hash"] != spec.dataset.protocol_hash:
         raise VPRBenchError(f"The dataset given is {protocol_of(dataset)['id']}, not the spec's {spec.dataset.protocol_id}.")
     ks = check_ks(spec.ks, len(dataset.database))
+    for stage in stages:
+        stage.check(dataset)
+    depth = retrieval_depth(stages, ks, len(dataset.database), dataset.name)
     positives = dataset.positives
     method.use_dataset(dataset.name)
     workers = loader_workers(settings, method)
@@ -93,9 +110,16 @@ def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None
                "queries_s": described.timings["queries_s"]}
     t = time.perf_counter()
     memory = {} if settings.memory_budget is None else {"memory_budget": settings.memory_budget}
-    found = retrieve(method, described.stores["database"], described.stores["queries"], ks[-1],
+    found = retrieve(method, described.stores["database"], described.stores["queries"], depth,
                      index=spec.search.index, index_options=spec.search.options or None, **memory)
     timings["search_s"] = time.perf_counter() - t
+    candidates, stage_costs = Candidates(found.indices, found.scores), []
+    if stages:
+        t = time.perf_counter()
+        candidates, stage_costs = run_stages(stages, candidates, stage_context(spec, settings, method, dataset,
+                                                                               described, progress), ks)
+        timings["stages_s"] = time.perf_counter() - t
+    candidates = candidates.top(ks[-1])
     timings["total_s"] = time.perf_counter() - started
     context = {"store": {"folder": described.folder.key}}  # where the descriptors are (vprbench.store.run_store)
     if ranks.distributed:
@@ -103,9 +127,9 @@ def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None
     return result_record(
         spec=spec, method=method, fingerprint=described.fingerprint, dataset=dataset,
         dataset_key=dataset.fingerprint(settings.cache_dir), ks=ks,
-        scores=found.scores, indices=found.indices, positives=positives, descriptor_dim=int(found.info["dim"]),
+        scores=candidates.scores, indices=candidates.indices, positives=positives, descriptor_dim=int(found.info["dim"]),
         computed=described.computed, timings=timings, search=found.info, context=context,
         run={**settings.describe(), "device": str(getattr(method, "device", settings.device)), "workers": workers,
              "batch_size": method.batch_size},
-        cache_dir=settings.cache_dir,
+        cache_dir=settings.cache_dir, track=track_of(stages), stages=stage_costs,
     )

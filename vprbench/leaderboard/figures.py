@@ -139,7 +139,7 @@ def efficiency(cells: list[Cell], path: Path, colours: dict[str, str] | None = N
         size = cell.record.get("descriptor_bytes") or 4 * int(cell.record.get("descriptor_dim") or 0)
         colour = colours[cell.row.name]
         left.scatter([size], [r1], color=colour, label=_label(cell.row.name))
-        speed = cell.record.get("images_per_second")
+        speed = cell.images_per_second  # from a run that computed its descriptors
         if speed:
             right.scatter([speed], [r1], color=colour)
             speeds += 1

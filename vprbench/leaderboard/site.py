@@ -24,7 +24,9 @@ from ..reference import paper_results
 from . import figures
 from .escape import text
 from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board, weights_shown
+from ..evaluation.blocks import RULE, for_record
 from ..evaluation.metrics import successes
+from .compare import shared_resampling
 from .stats import RESAMPLES, format_p, overlaps, paired_test
 from .tables import GROUPS, TOLERANCE_PP, cell_stats, comparisons, fmt, group_table, other_rows
 
@@ -266,21 +268,23 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
              + (f" (source: {protocol['source']})" if protocol.get("source") else "") + ".", "",
              "Queries without positives count as failures.", "",
              "## Results", "",
-             f"Seeded 95 % bootstrap intervals over queries ({RESAMPLES:,} resamples, seed {seed}).", "",
+             f"Seeded 95 % bootstrap intervals ({RESAMPLES:,} resamples, seed {seed}), resampling "
+             f"{_units(cells)}.", "",
              "| Method | Weights | R@1 [95 % CI] | R@5 [95 % CI] | R@10 | R@20 | AUC-PR | R@100%P | Dim | Bytes | Images/s |",
              "|:--|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|"]
-    runs = ["| Method | Run | Created | vprbench | Commit | Descriptors computed | Older runs of the row |",
-            "|:--|:--|:--|:--|:--|--:|--:|"]
+    runs = ["| Method | Run | Created | vprbench | Commit | Descriptors computed | Older runs of the row | Images/s measured by |",
+            "|:--|:--|:--|:--|:--|--:|--:|:--|"]
     for cell in cells:
         s, r = stats[(cell.row, column.key)], cell.record
         name = f"{text(cell.row.label)}{' †' if not cell.row.official else ''}"
         lines.append(f"| {name} | {text(weights_shown(cell.row, r))} | "
                      f"{_ci(s[1])} | {_ci(s[5])} | {fmt(cell.recall(10))} | {fmt(cell.recall(20))} | "
                      f"{_num(r.get('auc_pr'), 3)} | {_num(r.get('recall_at_100_precision'), 3)} | {r.get('descriptor_dim')} | "
-                     f"{r.get('descriptor_bytes') or 4 * int(r.get('descriptor_dim') or 0)} | {_num(r.get('images_per_second'), 1)} |")
+                     f"{r.get('descriptor_bytes') or 4 * int(r.get('descriptor_dim') or 0)} | {_num(cell.images_per_second, 1)} |")
         versions, computed = r.get("versions") or {}, r.get("descriptors_computed") or {}
         runs.append(f"| {name} | `{r.get('run_id')}` | {r.get('created', '–')} | {versions.get('vprbench', '–')} | "
-                    f"`{str(versions.get('git') or '–')[:10]}` | {sum(computed.values()) if computed else '–'} | {cell.passed_over} |")
+                    f"`{str(versions.get('git') or '–')[:10]}` | {sum(computed.values()) if computed else '–'} | {cell.passed_over} | "
+                    + (f"`{text(cell.timed.get('run_id'))}` on {text(cell.hardware)} |" if cell.timed else "no run computed its descriptors |"))
     lines += ["", "The runs in the cells above:", "", *runs, "", *_paired(cells, seed), "## Figures", ""]
     slug = column.slug
     lines += _figure(lambda p: figures.recall_curves(cells, p, colours), out, f"{slug}-recall.svg", "Recall@K per run")
@@ -302,23 +306,34 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
     return "\n".join(lines)
 
 
+def _units(cells: list[Cell]) -> str:
+    """Which queries the column's intervals draw together, and by what rule (evaluation/blocks.py)."""
+    found = for_record(cells[0].record, cells[0].arrays)
+    return f"{text(found.text())}: {text(RULE[found.scheme])}" + \
+        (f" (n = {found.queries}, r = {found.radius:g})" if found.scheme == "blocks" else "")
+
+
 def _paired(cells: list[Cell], seed: int) -> list[str]:
     """Paired tests between neighbours in the ranking whose R@1 intervals overlap."""
     lines = []
     for a, b in zip(cells, cells[1:]):
+        if a.row.key == b.row.key:  # one method's two rows (e.g. before and after a mark): never tested against itself
+            continue
         if a.arrays is None or b.arrays is None or len(a.arrays["first_positive_rank"]) != len(b.arrays["first_positive_rank"]):
             continue
         ci_a, ci_b = cell_stats(a, ks=(1,), seed=seed)[1]["ci"], cell_stats(b, ks=(1,), seed=seed)[1]["ci"]
         if not overlaps(ci_a, ci_b):
             continue
-        t = paired_test(successes(a.arrays["first_positive_rank"], 1), successes(b.arrays["first_positive_rank"], 1), seed=seed)
+        t = paired_test(successes(a.arrays["first_positive_rank"], 1), successes(b.arrays["first_positive_rank"], 1),
+                        shared_resampling(a, b), seed=seed)
         lines.append(f"| {text(a.row.name)} − {text(b.row.name)} | {t['difference']:+.1f} [{t['ci'][0]:+.1f}, {t['ci'][1]:+.1f}] | "
                      f"{format_p(t['p_bootstrap']).lstrip('= ')} | {t['only_a']} / {t['only_b']} | {t['p_mcnemar']:.3g} |")
     if not lines:
         return []
     return ["### Paired tests where R@1 intervals overlap", "",
-            "Over the same queries: paired-bootstrap difference of R@1 (percentage points) and McNemar's exact test "
-            "on the queries only one of the two gets right.", "",
+            "Over the same queries: paired-bootstrap difference of R@1 (percentage points; the same units drawn "
+            "for both) and McNemar's exact test on the queries only one of the two gets right (which takes the "
+            "queries as independent).", "",
             "| Pair | Δ R@1 [95 % CI] | p (bootstrap) | only first / only second | p (McNemar) |", "|:--|--:|--:|--:|--:|",
             *lines, ""]
 
@@ -342,8 +357,11 @@ def _summary(cell: Cell, stats: dict) -> dict:
     for k in (10, 20):
         entry[f"r{k}"] = cell.recall(k)
     entry.update({key: r.get(key) for key in ("auc_pr", "recall_at_100_precision", "descriptor_dim", "descriptor_bytes",
-                                              "images_per_second", "run_id", "created", "dataset_fingerprint")})
+                                              "run_id", "created", "dataset_fingerprint")})
+    entry["images_per_second"], entry["speed_hardware"] = cell.images_per_second, cell.hardware
+    entry["speed_run_id"] = (cell.timed or {}).get("run_id")
     entry["protocol"] = (r.get("protocol") or {}).get("id")
+    entry["ci_resampling"] = for_record(r, cell.arrays).text()  # which queries the intervals draw together
     entry["vprbench"] = (r.get("versions") or {}).get("vprbench")
     entry["provenance"] = json.dumps(r.get("provenance") or {}, sort_keys=True)
     return entry

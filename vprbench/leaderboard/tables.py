@@ -9,6 +9,7 @@ from ..errors import VPRBenchError
 from ..reference import paper_results
 from .cells import CELL_KS, STRUCTURED, UNSTRUCTURED, Board, Cell, Column, Row, weights_shown  # noqa: F401
 from .escape import text
+from ..evaluation.blocks import for_record
 from ..evaluation.metrics import successes
 from .stats import bootstrap_ci
 
@@ -42,13 +43,15 @@ def render(table: pd.DataFrame, fmt_name: str) -> str:
 
 
 def cell_stats(cell: Cell, ks=CELL_KS, seed: int = 0) -> dict[int, dict]:
-    """{k: {"value", "ci"}} for a cell: the recall and its bootstrap interval (None without per-query data)."""
+    """{k: {"value", "ci"}} for a cell: the recall and its bootstrap interval (None without per-query data),
+    drawn by the units of its dataset (blocks, places or queries: evaluation/blocks.py)."""
     found = {}
     for k in ks:
         value = cell.recall(k)
         ci = None
         if cell.arrays is not None and (cell.record.get("per_query") or {}).get("k", 0) >= k:
-            ci = bootstrap_ci(successes(cell.arrays["first_positive_rank"], k), seed=seed)
+            ci = bootstrap_ci(successes(cell.arrays["first_positive_rank"], k), for_record(cell.record, cell.arrays),
+                              seed=seed)
         found[k] = {"value": value, "ci": ci}
     return found
 
