@@ -33,6 +33,15 @@ from .tables import GROUPS, TOLERANCE_PP, cell_stats, comparisons, fmt, group_ta
 SECTION = "leaderboard"
 #: MkDocs Material front matter: the wide tables get the table-of-contents column
 PAGE_HEAD = "---\nhide:\n  - toc\n---\n"
+
+
+def page_head(title: str) -> str:
+    """PAGE_HEAD with the page's title set, HTML-escaped: without it MkDocs Material writes the
+    title it takes from the heading with its entities decoded (`striptags`) into <title>, where a
+    name holding '</title><img ...>' would become a live element."""
+    import html
+
+    return PAGE_HEAD.replace("---\n", f"---\ntitle: {json.dumps(html.escape(str(title), quote=True))}\n", 1)
 #: mosaics drawn per dataset page (the best rows by R@1)
 MOSAIC_ROWS = 4
 
@@ -244,7 +253,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
     positives = np.asarray((first.get("per_query") or {}).get("positives") or
                            (cells[0].arrays["positives"] if cells[0].arrays is not None else []))
     colours = colours if colours is not None else site_colours(board)
-    lines = [PAGE_HEAD, f"# {text(column.title)}", "", f"Each cell is one run: {RULE_LINK} (below the tables).", "",
+    lines = [page_head(column.title), f"# {text(column.title)}", "", f"Each cell is one run: {RULE_LINK} (below the tables).", "",
              _marks(board),
              f"Domain: {text(column.domain or '–')}. Kind: {'benchmark' if column.kind == 'benchmark' else 'own data (not a benchmark)'}.", "",
              "## Data and ground truth", "",
