@@ -68,6 +68,18 @@ class StageSpec(_Frozen):
     name: str
     options: dict[str, Any] = {}
 
+    def label(self) -> str:
+        """'sift-ransac@100', with the options that differ from the stage's defaults: 'aqe@20 [n=3]'."""
+        from .stages.registry import stage_entry
+
+        try:
+            defaults = stage_entry(self.name).cls.Options().model_dump(mode="json")
+        except (VPRBenchError, ValidationError):  # a plugin gone, or without defaults: its record still reads
+            defaults = {}
+        depth = f"@{self.options['k']}" if "k" in self.options else ""
+        other = {k: v for k, v in sorted(self.options.items()) if k != "k" and defaults.get(k, object()) != v}
+        return f"{self.name}{depth}" + (f" [{' '.join(f'{k}={_show(v)}' for k, v in other.items())}]" if other else "")
+
 
 class DatasetSpec(_Frozen):
     """Which data: a benchmark by name and protocol, or a folder of one's own (its protocol
@@ -132,9 +144,8 @@ class RunSpec(_Frozen):
     def label(self) -> str:
         """The method and the options given on top of its preset, e.g. 'hog [resize=64x64]'."""
         shown = {k: v for k, v in self.given.items() if k != "weights"}  # weights have a mark of their own
-        if not shown:
-            return self.method
-        return f"{self.method} [{' '.join(f'{k}={_show(v)}' for k, v in sorted(shown.items()))}]"
+        label = f"{self.method} [{' '.join(f'{k}={_show(v)}' for k, v in sorted(shown.items()))}]" if shown else self.method
+        return " + ".join([label, *(stage.label() for stage in self.stages)])
 
     def title(self) -> str:
         marks = self.marks()

@@ -106,3 +106,25 @@ def test_feature_store_resumes_and_refuses_another_extractors_file(tmp_path):
                                             r"not sift as this run computes them: delete that file"):
         with other.opened("database", compute):
             pass
+
+
+def test_flags_and_plans_make_the_same_stage_list(shared_data):
+    import argparse
+
+    from vprbench.cli.options import add_spec_options, spec_overrides
+    from vprbench.sweep import build_plan
+
+    parser = argparse.ArgumentParser()
+    add_spec_options(parser)
+    args = parser.parse_args(["--rerank", "sift-ransac", "--rerank-k", "50", "--rerank-option", "model=homography",
+                              "--k", "1", "5"])
+    stages = spec_overrides(args)["stages"]
+    assert stages == [{"name": "sift-ransac", "model": "homography", "k": 50}]
+    flag = spec_of(shared_data, stages)
+    plan = build_plan({"methods": [{"name": "hog", "stages": [{"name": "sift-ransac", "k": 50, "model": "homography"}]}],
+                       "datasets": ["corridor"], "k": [1, 5]}, "plan", data_dir=shared_data)
+    assert plan.cells[0].spec.key == flag.key and flag.label() == "hog + sift-ransac@50 [model=homography]"
+    with pytest.raises(VPRBenchError, match="stages of method 'hog' must be a list of tables"):
+        build_plan({"methods": [{"name": "hog", "stages": "aqe"}], "datasets": ["corridor"]}, "plan", data_dir=shared_data)
+    with pytest.raises(VPRBenchError, match="--sequence-length and --sequence-option need --sequence STAGE"):
+        spec_overrides(parser.parse_args(["--sequence-length", "5"]))

@@ -75,6 +75,7 @@ def run_one(args, settings, options, overrides, ranks) -> int:
 
     spec = resolve_spec(args.method[0], args.dataset[0], options={**options, **explicit_run_options(args)},
                         protocol=args.protocol, search=overrides["search"], ks=overrides["k"],
+                        stages=overrides["stages"] or (),
                         store_dtype=overrides["store_dtype"] or "float32", data_dir=settings.data_dir,
                         cache_dir=settings.cache_dir)
     with progress(args, ranks.rank == 0) as shown:
