@@ -102,3 +102,20 @@ def test_importing_a_vocabulary_under_another_setting_is_refused_and_writes_noth
     code, _, err = cli(capsys, "vocabulary", "import", tmp_path / "v.pt", "--source", "indoor",
                        "--backbone", "dinov3_vits16", "--layer", "9", "--facet", "value")
     assert code == 0, err
+
+
+def test_reproduce_backbones_plan_lists_what_each_row_needs(capsys, monkeypatch, tmp_path):
+    monkeypatch.setenv("COLUMNS", "1000")  # one line per row
+    code, out, err = cli(capsys, "reproduce", "anyloc", "--table", "backbones", "--dry-run",
+                         "--data-dir", tmp_path / "no-data")
+    assert code == 0, err
+    assert "192 cells to evaluate" in out  # 16 rows x the 12 datasets of Tables II and III
+    rows = {line.split("│")[1].strip(): line for line in out.splitlines() if line.startswith("│ ")}
+    assert len(rows) == 16 and all(" 12 " in line and "12 datasets (below)" in line for line in rows.values())
+    # the paper's setting has released centres; another backbone needs its domain vocabularies fitted
+    assert "vocabularies" not in rows["VLAD DINOv2 ViT-G/14 (paper)"] and "vocabularies" not in rows["GeM SigLIP 2 B/16"]
+    assert ("vocabularies D = indoor, urban, hawkins, laurel-caverns, aerial (vprbench vocabulary fit --domain D "
+            "--method anyloc-vlad-dinov3 --backbone dinov3_vitl16 --layer 18)") in rows["VLAD DINOv3 ViT-L/16"]
+    assert "gated, DINOv3 License: request access at https://github.com/facebookresearch/dinov3" in rows["GeM DINOv3 ViT-B/16"]
+    assert "huggingface.co/timm/vit_pe_spatial_base_patch16_512.fb" in rows["VLAD PE-spatial B/16"]
+    assert "Missing datasets: 17places, baidu-mall," in out
