@@ -11,7 +11,7 @@ from .options import (add_location_options, add_method_flags, add_run_options, a
 def add_parsers(commands) -> None:
     p = commands.add_parser("reproduce", help="run a paper's table as a plan and print it with measured values")
     p.add_argument("paper", help="the paper (anyloc)")
-    p.add_argument("--table", required=True, help="2, 3, 4, 5, 6, 7, layer or facet")
+    p.add_argument("--table", required=True, help="2, 3, 4, 5, 6, 7, layer, facet or backbones")
     p.add_argument("--dry-run", action="store_true", help="list the cells and what each needs; run nothing")
     p.add_argument("--publish", type=Path, metavar="DIR", help="also write the table (Markdown) and the leaderboard into DIR")
     add_method_flags(p)
@@ -40,9 +40,6 @@ def _row_weights(spec: dict) -> dict:
 
 
 def run_reproduce(args) -> int:
-    from rich.table import Table
-    from rich.text import Text
-
     from ..evaluation.results import find_result
     from ..sweep import run_cells, summary_table
     from ..sweep.reproduce import missing_for, table_cells
@@ -61,21 +58,12 @@ def run_reproduce(args) -> int:
     unrunnable = [tc for tc in table_cells_ if not tc.cells]
     no_method = f"{len(unrunnable)} with no vprbench method ({', '.join(sorted({tc.row for tc in unrunnable}))})"
     if args.dry_run:
-        listing = Table(title=f"{spec['title']}: {len(cells)} cells to evaluate"
-                        f"{f', {no_method}' if unrunnable else ''} (dry run, nothing runs)")
-        for column in ("row", "column", "dataset:protocol", "status"):
-            listing.add_column(column, overflow="fold")
-        for tc in table_cells_:
-            for c in tc.cells or [None]:
-                if c is None:
-                    listing.add_row(tc.row, tc.column, "", Text.assemble(("not runnable", "yellow"), f": {tc.reason}"))
-                    continue
-                record = find_result(c.spec, settings.cache_dir)
-                status = (Text.assemble(("complete", "cyan"), f" (record of {record.get('created')})") if record else
-                          Text.assemble(("missing", "yellow"), f": {missing[c.key]}") if missing[c.key] else
-                          Text("would run", style="green"))
-                listing.add_row(tc.row, tc.column, c.spec.dataset.protocol_id, status)
-        console.print(listing)
+        records = {key: find_result(c.spec, settings.cache_dir) for key, (c, _) in cells.items()}
+        status = {key: ("complete", records[key]) if records[key] else ("missing", missing[key]) if missing[key]
+                  else ("would run", None) for key in cells}
+        title = f"{spec['title']}: {len(cells)} cells to evaluate{f', {no_method}' if unrunnable else ''} (dry run, nothing runs)"
+        console.print(by_row(table_cells_, status, title) if spec.get("dry_run") == "by-row"
+                      else by_cell(table_cells_, status, title))
         return 0
     outcomes = run_cells([c for c, _ in cells.values()], settings, lease_s=args.lease,
                          plan=f"{args.paper} table {args.table}", runnable=lambda c: missing[c.key],
@@ -88,6 +76,68 @@ def run_reproduce(args) -> int:
     if args.publish:
         publish(args, spec, rendered, settings)
     return 1 if any(o.status == FAILED for o in outcomes) else 0
+
+
+def by_cell(table_cells_, status, title):
+    """One line per cell: its dataset and protocol, and whether it is complete, would run or what it lacks."""
+    from rich.table import Table
+    from rich.text import Text
+
+    listing = Table(title=title)
+    for column in ("row", "column", "dataset:protocol", "status"):
+        listing.add_column(column, overflow="fold")
+    for tc in table_cells_:
+        for c in tc.cells or [None]:
+            if c is None:
+                listing.add_row(tc.row, tc.column, "", Text.assemble(("not runnable", "yellow"), f": {tc.reason}"))
+                continue
+            kind, detail = status[c.key]
+            shown = (Text.assemble(("complete", "cyan"), f" (record of {detail.get('created')})") if kind == "complete"
+                     else Text.assemble(("missing", "yellow"), f": {detail}") if kind == "missing"
+                     else Text("would run", style="green"))
+            listing.add_row(tc.row, tc.column, c.spec.dataset.protocol_id, shown)
+    return listing
+
+
+def by_row(table_cells_, status, title):
+    """One line per row (a wide table): how many cells are complete or would run, and what the
+    others lack, each need once (domain vocabularies in one command); the missing datasets are
+    listed once under the table."""
+    from rich.console import Group
+    from rich.table import Table
+    from rich.text import Text
+
+    listing = Table(title=title)
+    for column in ("row", "complete", "would run", "missing", "needs"):
+        listing.add_column(column, overflow="fold")
+    rows: dict[str, list] = {}
+    for tc in table_cells_:
+        rows.setdefault(tc.row, []).extend(tc.cells)
+    datasets: set[str] = set()
+    for row, cells in rows.items():
+        kinds = [status[c.key][0] for c in cells]
+        needs = dict.fromkeys(need for c in cells if status[c.key][0] == "missing" for need in status[c.key][1].split("; "))
+        shown, vocabularies, fit = [], [], ""
+        for need in needs:
+            if need.startswith("dataset "):
+                datasets.add(need.split()[1])
+            elif need.startswith("vocabulary '"):
+                name = need.split("'")[1]
+                vocabularies.append(name)
+                fit = need.split("(run '", 1)[-1].rstrip("')").replace(f"--domain {name} ", "--domain D ")
+            else:
+                shown.append(need)
+        if vocabularies:
+            shown.append(f"vocabularies D = {', '.join(vocabularies)} ({fit})")
+        count = sum(need.startswith("dataset ") for need in needs)
+        if count:
+            shown.append(f"{count} datasets (below)")
+        listing.add_row(row, str(kinds.count("complete")), str(kinds.count("would run")), str(kinds.count("missing")),
+                        "; ".join(shown))
+    if not datasets:
+        return listing
+    return Group(listing, Text(f"Missing datasets: {', '.join(sorted(datasets))} "
+                               "('vprbench datasets info NAME' says how to get each)."))
 
 
 def paper_table(spec: dict, table_cells_, cache_dir=None):
