@@ -40,12 +40,8 @@ def _row_weights(spec: dict) -> dict:
 
 
 def run_reproduce(args) -> int:
-    from rich.table import Table
-    from rich.text import Text
-
-    from ..evaluation.results import find_result
     from ..sweep import run_cells, summary_table
-    from ..sweep.reproduce import missing_for, table_cells
+    from ..sweep.reproduce import missing_for, needs_text, table_cells
     from ..sweep.runner import FAILED
     from .evaluate import explicit_run_options
 
@@ -61,24 +57,11 @@ def run_reproduce(args) -> int:
     unrunnable = [tc for tc in table_cells_ if not tc.cells]
     no_method = f"{len(unrunnable)} with no vprbench method ({', '.join(sorted({tc.row for tc in unrunnable}))})"
     if args.dry_run:
-        listing = Table(title=f"{spec['title']}: {len(cells)} cells to evaluate"
-                        f"{f', {no_method}' if unrunnable else ''} (dry run, nothing runs)")
-        for column in ("row", "column", "dataset:protocol", "status"):
-            listing.add_column(column, overflow="fold")
-        for tc in table_cells_:
-            for c in tc.cells or [None]:
-                if c is None:
-                    listing.add_row(tc.row, tc.column, "", Text.assemble(("not runnable", "yellow"), f": {tc.reason}"))
-                    continue
-                record = find_result(c.spec, settings.cache_dir)
-                status = (Text.assemble(("complete", "cyan"), f" (record of {record.get('created')})") if record else
-                          Text.assemble(("missing", "yellow"), f": {missing[c.key]}") if missing[c.key] else
-                          Text("would run", style="green"))
-                listing.add_row(tc.row, tc.column, c.spec.dataset.protocol_id, status)
-        console.print(listing)
+        console.print(dry_run_listing(spec, table_cells_, missing, settings.cache_dir,
+                                      f"{len(cells)} cells to evaluate{f', {no_method}' if unrunnable else ''}"))
         return 0
     outcomes = run_cells([c for c, _ in cells.values()], settings, lease_s=args.lease,
-                         plan=f"{args.paper} table {args.table}", runnable=lambda c: missing[c.key],
+                         plan=f"{args.paper} table {args.table}", runnable=lambda c: needs_text(missing[c.key]),
                          progress=progress(args))
     console.print(summary_table(outcomes, f"{args.paper} table {args.table}"))
     if unrunnable:
@@ -88,6 +71,34 @@ def run_reproduce(args) -> int:
     if args.publish:
         publish(args, spec, rendered, settings)
     return 1 if any(o.status == FAILED for o in outcomes) else 0
+
+
+def dry_run_listing(spec: dict, table_cells_, missing: dict, cache_dir, counted: str):
+    """One line per cell (at 80 columns too): each need's instructions once, below the table, the
+    cells referring to them by number."""
+    from rich.table import Table
+    from rich.text import Text
+
+    from ..evaluation.results import find_result
+    from ..notes import Notes
+    from ..sweep.runner import _minute
+
+    notes = Notes()
+    listing = Table(title=f"{spec['title']}: {counted} (dry run, nothing runs)")
+    listing.add_column("row", overflow="fold")
+    listing.add_column("column: dataset:protocol", overflow="fold")
+    listing.add_column("status", no_wrap=True)  # short: the long part is a note
+    for tc in table_cells_:
+        if not tc.cells:
+            listing.add_row(tc.row, tc.column, Text.assemble(("not runnable", "yellow"), f" {notes.refer(tc.reason)}"))
+        for c in tc.cells:
+            record = find_result(c.spec, cache_dir)
+            needs = " ".join(notes.refer(f"{thing}: {how}") for thing, how in missing[c.key])
+            status = (Text.assemble(("complete", "cyan"), f" ({_minute(record.get('created'))})") if record else
+                      Text.assemble(("missing", "yellow"), f" {needs}") if needs else Text("would run", style="green"))
+            where = c.spec.dataset.protocol_id
+            listing.add_row(tc.row, where if where.startswith(f"{tc.column}:") else f"{tc.column}: {where}", status)
+    return notes.below(listing)
 
 
 def paper_table(spec: dict, table_cells_, cache_dir=None):

@@ -73,7 +73,11 @@ def table_cells(paper: str, table: str, ks=(1, 5), *, settings: dict | None = No
     return spec, out
 
 
-def weights_for(row_weights: dict | None, cell: Cell, cache_dir=None) -> str | None:
+#: what a cell lacks: (the thing, how to get it), e.g. ("dataset hawkins", "Download ...")
+Need = tuple[str, str]
+
+
+def weights_for(row_weights: dict | None, cell: Cell, cache_dir=None) -> Need | None:
     """What is missing of the cell's weights (None: present, or not knowable before running)."""
     from ..features.catalogue import backbone_spec
     from ..methods.anyloc import AnyLoc
@@ -90,18 +94,18 @@ def weights_for(row_weights: dict | None, cell: Cell, cache_dir=None) -> str | N
                 local_weights(spec.source, merged["weights"], f"backbone {spec.name}")
                 return None
             except VPRBenchError as error:
-                return str(error)
+                return f"weights {merged['weights']}", str(error)
         if cached_weights(spec.source, cache_dir) is not None:
             return None
-        return f"weights {spec.file_name} (download {spec.source.where} into {weights_folder(cache_dir)})"
+        return f"weights {spec.file_name}", f"download {spec.source.where} into {weights_folder(cache_dir)}"
     if merged.get("weights") or not row_weights:
         return None
     folder = cache_root(cache_dir) / row_weights["folder"] if "folder" in row_weights else weights_folder(cache_dir)
     found = list(folder.rglob(row_weights["file"])) if folder.is_dir() else []
-    return None if found else f"weights {row_weights['file']} (from {row_weights['url']}, into {folder}, or pass weights=PATH)"
+    return None if found else (f"weights {row_weights['file']}", f"from {row_weights['url']}, into {folder}, or pass weights=PATH")
 
 
-def vocabulary_for(cell: Cell) -> str | None:
+def vocabulary_for(cell: Cell) -> Need | None:
     """A domain or union vocabulary that is neither cached nor released must be fitted first."""
     from ..methods.anyloc_vocabulary import domain_names, find_vocabulary, released_path
     from ..methods.registry import method_entry
@@ -113,24 +117,26 @@ def vocabulary_for(cell: Cell) -> str | None:
     layer = merged.get("layer") or int(str(merged.get("layer_for", ":31")).partition(":")[2])
     if find_vocabulary(name, merged.get("backbone", "dinov2_vitg14"), layer, merged.get("facet", "value"), merged.get("clusters", 32)):
         return None
-    return f"vocabulary {name!r} (run 'vprbench vocabulary fit --domain {name} --method {cell.spec.method}')"
+    return f"vocabulary {name!r}", f"run 'vprbench vocabulary fit --domain {name} --method {cell.spec.method}'"
 
 
-def missing_for(cell: Cell, row_weights, data_dir=None, cache_dir=None) -> str:
-    """Everything the cell lacks on this machine, '' when it can run."""
+def missing_for(cell: Cell, row_weights, data_dir=None, cache_dir=None) -> list[Need]:
+    """Everything the cell lacks on this machine, none when it can run."""
     from ..datasets import dataset_location, dataset_manifest
     from ..datasets.download import how_to_get
 
-    problems = []
+    needs = []
     if cell.spec.dataset.kind == "benchmark":
         manifest = dataset_manifest(cell.spec.dataset.name)
         root = dataset_location(manifest, data_dir)
         if not root.is_dir():
-            problems.append(f"dataset {cell.spec.dataset.name} ({how_to_get(manifest, root)})")
-    for check in (weights_for(row_weights, cell, cache_dir), vocabulary_for(cell)):
-        if check:
-            problems.append(check)
-    return "; ".join(problems)
+            needs.append((f"dataset {cell.spec.dataset.name}", how_to_get(manifest, root)))
+    return needs + [need for need in (weights_for(row_weights, cell, cache_dir), vocabulary_for(cell)) if need]
+
+
+def needs_text(needs: list[Need]) -> str:
+    """The needs in one line, each with how to get it."""
+    return "; ".join(f"{thing} ({how})" for thing, how in needs)
 
 
 def measured(records: list[dict | None], metric: str, seed: int = 0) -> tuple[float, float, float] | None:
