@@ -21,6 +21,7 @@ from ..errors import VPRBenchError
 from ..fsutil import LockTimeout, lock
 from ..evaluation.results import read_results
 from ..reference import paper_results
+from ..text import quantity
 from . import figures
 from .escape import text
 from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board, weights_shown
@@ -216,7 +217,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
              f"| {counts['database']} | {counts['queries']} | {counts.get('queries_without_positives', '–')} | "
              f"{counts.get('positive_pairs', '–')} | "
              + (f"{positives.min()} / {np.median(positives):g} / {positives.max()}" if len(positives) else "–")
-             + f" | {gt.get('unit', '–')}, radius {gt.get('radius', '–')} {gt.get('radius_unit') or ''} | "
+             + f" | {gt.get('unit', '–')}, radius {quantity(gt.get('radius'), gt.get('radius_unit'))} | "
              f"`{protocol.get('id', '–')}` (`{protocol.get('hash', '–')}`) | `{column.fingerprint}` |", "",
              f"Protocol `{protocol.get('id', '–')}`: {protocol.get('description') or 'no description'}"
              + (f" (source: {protocol['source']})" if protocol.get("source") else "") + ".", "",
