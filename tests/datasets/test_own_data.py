@@ -102,6 +102,7 @@ def test_counts_and_radii_read_in_the_singular_and_plural(mydata, capsys):
     (mydata / "dataset.toml").write_text('name = "mine"\nradius = 1\n')
     assert main(["datasets", "verify", str(mydata)]) == 0
     out = capsys.readouterr().out
+    assert out.startswith(f"mine: OK at {mydata} (layout own)")  # the dataset's name, then where it is
     assert "2 queries, 2 with a positive, 4 positive pairs (frames, radius 1 frame); 7 images decoded" in out, out
     assert main(["datasets", "info", str(mydata)]) == 0
     assert "within 1 frame " in capsys.readouterr().out

@@ -69,7 +69,7 @@ def verify_dataset(name: str, data_dir=None, strict: bool = False, sample: int |
     else:
         manifest = dataset_manifest(name)
         root = dataset_location(manifest, data_dir)
-    report = VerifyReport(name=name, root=root)
+    report = VerifyReport(name=manifest.name, root=root)  # own data: its dataset.toml name, not the path given
     if not root.is_dir():
         report.problems.append(f"folder {root} does not exist. {how_to_get(manifest, root)}")
         return report
