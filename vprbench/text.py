@@ -11,6 +11,11 @@ def plural(count, word: str) -> str:
     return f"{shown} {word if shown == '1' else IRREGULAR.get(word, word + 's')}"
 
 
+def percent(fraction: float | None) -> str:
+    """A fraction (recall at 100 % precision) shown like Recall@K, in percent with one decimal."""
+    return "–" if fraction is None else f"{100 * fraction:.1f}"
+
+
 def quantity(value, unit: str | None) -> str:
     """A radius in its unit, named in the plural as stored ('frames', 'metres'): '1 frame', '25 metres';
     the value alone without a unit, '–' without a value."""

@@ -104,6 +104,8 @@ def run_matrix(args, settings, options, overrides) -> int:
 def results_table(record: dict):
     from rich.table import Table
 
+    from ..text import percent
+
     counts, timings = record["counts"], record["timings"]
     table = Table(title=f"{record.get('label') or record['method']} on {record['protocol']['id']}", show_header=True)
     for k in record["recall"]:
@@ -111,7 +113,7 @@ def results_table(record: dict):
     table.add_column("AUC-PR", justify="right")
     table.add_column("R@100%P", justify="right")
     table.add_row(*[f"{v:.1f}" for v in record["recall"].values()],
-                  f"{record['auc_pr']:.3f}", f"{100 * record['recall_at_100_precision']:.1f}")
+                  f"{record['auc_pr']:.3f}", percent(record["recall_at_100_precision"]))
     computed = record["descriptors_computed"]
     table.caption = (
         f"Recall in percent; {counts['database']} database, {counts['queries']} queries "
