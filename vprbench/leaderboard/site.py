@@ -21,7 +21,7 @@ from ..errors import VPRBenchError
 from ..fsutil import LockTimeout, lock
 from ..evaluation.results import read_results
 from ..reference import paper_results
-from ..text import quantity
+from ..text import percent, quantity
 from . import figures
 from .escape import text
 from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board, weights_shown
@@ -233,7 +233,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
         name = f"{text(cell.row.label)}{' †' if not cell.row.official else ''}"
         lines.append(f"| {name} | {text(weights_shown(cell.row, r))} | "
                      f"{_ci(s[1])} | {_ci(s[5])} | {fmt(cell.recall(10))} | {fmt(cell.recall(20))} | "
-                     f"{_num(r.get('auc_pr'), 3)} | {_num(r.get('recall_at_100_precision'), 3)} | {r.get('descriptor_dim')} | "
+                     f"{_num(r.get('auc_pr'), 3)} | {percent(r.get('recall_at_100_precision'))} | {r.get('descriptor_dim')} | "
                      f"{r.get('descriptor_bytes') or 4 * int(r.get('descriptor_dim') or 0)} | {_num(r.get('images_per_second'), 1)} |")
         versions, computed = r.get("versions") or {}, r.get("descriptors_computed") or {}
         runs.append(f"| {name} | `{r.get('run_id')}` | {r.get('created', '–')} | {versions.get('vprbench', '–')} | "
