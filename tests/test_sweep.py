@@ -142,6 +142,20 @@ def test_evaluate_matrix_continues_past_a_failing_cell(shared_data, tmp_path, ca
     assert code == 1 and "has no protocol 'swapped'" in capsys.readouterr().err
 
 
+def test_missing_benchmarks_of_a_sweep_are_said_once_below_the_table(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "80")
+    code = main(["evaluate", "--method", "hog", "dense-vlad", "--dataset", "hawkins", "nordland", "--data-dir", str(tmp_path)])
+    out = capsys.readouterr().out
+    assert code == 1 and "4 failed" in out
+    table, notes = out[:out.index("\n[1] ")], out[out.index("\n[1] "):]
+    assert table.count("[1]") == 2 and table.count("[2]") == 2 and "not in the data root" not in table
+    assert "│" not in notes  # plain text, not a paragraph folded into a column
+    text = " ".join(notes.split())
+    assert text.startswith("[1] Dataset 'hawkins' is not in the data root") and "[2] Dataset 'nordland' is not" in text
+    assert "[3]" not in text and text.lower().count("place it") == 2  # once per dataset
+    assert f"Place it at {tmp_path / 'Nordland'}, or run 'vprbench datasets import nordland PATH'" in text
+
+
 def test_reproduce_dry_run_and_bad_table(shared_data, capsys, monkeypatch):
     monkeypatch.setenv("COLUMNS", "400")
     assert main(["reproduce", "anyloc", "--table", "2", "--dry-run", "--data-dir", str(shared_data)]) == 0

@@ -75,7 +75,9 @@ def test_publish_writes_every_page_figure_and_download(capsys, tmp_path, shared_
     section = docs / "leaderboard"
     pages = {p.name for p in section.glob("*.md")}
     assert pages == {"index.md", "reported.md", "corridor.md", "hawkins.md", "laurel-caverns.md", "baidu-mall.md",
-                     full_board.own_page}
+                     full_board.own_page, "SUMMARY.md"}
+    navigation = (section / "SUMMARY.md").read_text()  # every page in the site's navigation
+    assert all(f"]({page})" in navigation for page in pages - {"SUMMARY.md"}), navigation
     overview = (section / "index.md").read_text()
     assert "### Table II: Structured environments" in overview and "### Table III: Unstructured environments" in overview
     assert "| hog [resize=64x64] |" in overview and "*AnyLoc-VLAD-DINOv2* (paper)" in overview
@@ -83,7 +85,7 @@ def test_publish_writes_every_page_figure_and_download(capsys, tmp_path, shared_
     assert "hog † user weights sha256:abababababab" not in overview.split("## Other runs")[0], "never in a paper table"
     assert "| hog † | user weights sha256:abababababab | [corridor](corridor.md)" in overview
     assert f"[corridor (own data)]({full_board.own_page})" in overview
-    for page in pages - {"reported.md"}:
+    for page in pages - {"reported.md", "SUMMARY.md"}:
         assert '!!! note "Marks"' in (section / page).read_text(), page
     assert "1 cell(s) are on rows marked †" in overview
     corridor = (section / "corridor.md").read_text()

@@ -117,8 +117,11 @@ def results_table(record: dict):
         table.add_column(f"R@{k}", justify="right")
     table.add_column("AUC-PR", justify="right")
     table.add_column("R@100%P", justify="right")
+    table.add_column("max F1", justify="right")
+    max_f1 = record.get("max_f1")  # older records lack it
     table.add_row(*[f"{v:.1f}" for v in record["recall"].values()],
-                  f"{record['auc_pr']:.3f}", f"{100 * record['recall_at_100_precision']:.1f}")
+                  f"{record['auc_pr']:.3f}", f"{100 * record['recall_at_100_precision']:.1f}",
+                  "-" if max_f1 is None else f"{max_f1:.3f}")
     computed = record["descriptors_computed"]
     table.caption = (
         f"Recall in percent; {counts['database']} database, {counts['queries']} queries "

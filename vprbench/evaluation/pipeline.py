@@ -65,7 +65,7 @@ def stage_context(spec: RunSpec, settings: RunSettings, method, dataset, describ
     prefix = {**spec.row_identity(), "stages": [], "protocol": spec.dataset.protocol_hash}
     return StageContext(dataset=dataset, database=database, queries=queries, spec=spec, prefix=prefix,
                         cache_dir=settings.cache_dir, memory_budget=budget, lock_timeout=settings.lock_timeout,
-                        progress=progress)
+                        progress=progress, compare=getattr(method, "compare", "cosine"))
 
 
 @dataclass

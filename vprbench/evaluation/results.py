@@ -25,7 +25,7 @@ import numpy as np
 from ..errors import VPRBenchError, os_error_message
 from ..fsutil import CacheError, atomic_write, lock
 from ..paths import cache_root
-from .record import PER_QUERY_FIELDS, validated
+from .record import OPTIONAL_FIELDS, PER_QUERY_FIELDS, validated
 
 CARDS = "methods"
 #: how this folder is laid out (a newer vprbench that lays it out otherwise bumps the version)
@@ -84,7 +84,7 @@ def save_result(record: dict, cache_dir=None) -> Path:
             atomic_write(folder / f"{stem}.npz", data)
             record["per_query"] = {"file": f"{stem}.npz", "sha256": hashlib.sha256(data).hexdigest(),
                                    "k": section["k"], "queries": len(section["first_positive_rank"]),
-                                   "fields": list(PER_QUERY_FIELDS)}
+                                   "fields": list(arrays)}
         atomic_write(folder / f"{stem}.json", json.dumps(record, sort_keys=True, indent=1).encode())
         _write_card(record, cache_dir)
     except OSError as error:
@@ -117,6 +117,7 @@ def _per_query_arrays(section: dict) -> dict[str, np.ndarray]:
         "similarities": np.asarray(section["similarities"], dtype=np.float32).reshape(-1, section["k"]),
         "first_positive_rank": np.asarray(section["first_positive_rank"], dtype=np.int32),
         "positives": np.asarray(section["positives"], dtype=np.int32),
+        **{name: np.asarray(section[name], dtype=np.int32) for name in OPTIONAL_FIELDS if name in section},
     }
 
 
@@ -202,6 +203,7 @@ def per_query(record: dict) -> dict[str, np.ndarray] | None:
             raise ValueError("its content does not match the record's sha256")
         with np.load(io.BytesIO(data), allow_pickle=False) as found:
             arrays = {field: found[field] for field in PER_QUERY_FIELDS}
+            arrays.update({field: found[field] for field in OPTIONAL_FIELDS if field in found.files})
     except (OSError, ValueError, KeyError, AttributeError, TypeError) as error:
         warnings.warn(f"Per-query data {path} of run {record.get('run_id')} is unreadable ({error}); "
                       "its statistics and figures are skipped.", stacklevel=2)

@@ -80,6 +80,9 @@ class StageContext:
     memory_budget: int = 1_000_000_000
     lock_timeout: float | None = None
     progress: Any = None
+    #: how the method compares its descriptors (`Method.compare`): "cosine" or a distance such as
+    #: "mean-absolute-difference" (sad), for stages that compute scores of their own
+    compare: str = "cosine"
 
     def features(self, name: str, identity: dict):
         """The store of per-image data `name` (e.g. "sift") computed as `identity` says (its options,

@@ -67,6 +67,10 @@ def core_stages() -> list[dict]:
          "description": "alpha query expansion on the global descriptors (re-ranks the top K)"},
         {"name": "dba", "target": "vprbench.stages.expansion:DatabaseAugmentation",
          "description": "database-side augmentation (alpha-weighted) on the global descriptors"},
+        {"name": "seqslam", "target": "vprbench.stages.sequence:SeqSLAM",
+         "description": "SeqSLAM over the stored descriptors (enhancement, velocity search; OpenSeqSLAM's defaults)"},
+        {"name": "diagonal", "target": "vprbench.stages.sequence:DiagonalSequence",
+         "description": "descriptor-sequence score: similarities along the matching diagonal over a window"},
     ]
 
 

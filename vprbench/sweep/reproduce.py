@@ -136,11 +136,14 @@ def missing_for(cell: Cell, row_weights, data_dir=None, cache_dir=None) -> str:
 def measured(records: list[dict | None], metric: str, seed: int = 0) -> tuple[float, float, float] | None:
     """(value, low, high): one dataset's recall, or the mean over a domain's datasets, with the
     seeded bootstrap interval the leaderboard uses; None unless every dataset was measured."""
+    from ..evaluation.blocks import for_record
     from ..evaluation.metrics import successes
+    from ..evaluation.proof import proven
     from ..evaluation.results import per_query
     from ..leaderboard.stats import bootstrap_mean_ci
 
-    if not records or any(r is None for r in records):
+    records = [proven(r) if r is not None else None for r in records]  # metrics from the runs' arrays
+    if not records or any(r is None or isinstance(r, str) for r in records):
         return None
     k = int(metric.removeprefix("r"))
     values = [r["recall"][str(k)] for r in records]
@@ -148,7 +151,8 @@ def measured(records: list[dict | None], metric: str, seed: int = 0) -> tuple[fl
     mean = sum(values) / len(values)
     if any(a is None for a in arrays):
         return mean, float("nan"), float("nan")
-    low, high = bootstrap_mean_ci([successes(a["first_positive_rank"], k) for a in arrays], seed=seed)
+    low, high = bootstrap_mean_ci([successes(a["first_positive_rank"], k) for a in arrays],
+                                  [for_record(r, a) for r, a in zip(records, arrays)], seed=seed)
     return mean, low, high
 
 
