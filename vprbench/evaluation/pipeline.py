@@ -158,7 +158,8 @@ def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None
     if stages:
         t = time.perf_counter()
         candidates, stage_costs = run_stages(stages, candidates, stage_context(spec, settings, method, dataset,
-                                                                               described, progress), run.ks)
+                                                                               described, progress), run.ks,
+                                              dataset.positives)
         timings["stages_s"] = time.perf_counter() - t
     candidates = candidates.top(run.ks[-1])
     timings["total_s"] = time.perf_counter() - started
