@@ -44,11 +44,13 @@ def test_a_third_party_stage_is_listed_and_run(site, shared_data, stage_cache):
     record = json.loads(run.stdout)
     assert record["track"] == "re-ranked" and record["stages"][0]["name"] == "consensus"
     assert record["spec"]["stages"] == [{"name": "consensus", "options": {"k": 20, "n": 2, "weight": 1.0}}]
+    saved = sorted((stage_cache / "results").glob("**/*.json"))
     bad = cli(["evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", shared_data,
                "--rerank", "consensus", "--rerank-option", "weight=heavy"], site, stage_cache)
     assert bad.returncode == 1 and bad.stderr.strip().splitlines() == [
         "error: Stage 'consensus' option weight: Input should be a valid number, unable to parse string as a number "
         "(got 'heavy')."]
+    assert sorted((stage_cache / "results").glob("**/*.json")) == saved  # nothing written as a result
 
 
 def test_without_the_package_the_stage_is_unknown(tmp_path, shared_data):
