@@ -191,12 +191,14 @@ class RunSettings:
     #: fetch a missing dataset: None = only into the default data root
     download: bool | None = None
     strict: bool = False
+    #: an exported candidates file a re-ranking run starts from instead of searching (vprbench candidates export)
+    candidates: Path | None = None
 
     def __post_init__(self):
         from .methods.checks import number, whole
         from .row_sources import parse_memory
 
-        for name in ("cache_dir", "data_dir"):
+        for name in ("cache_dir", "data_dir", "candidates"):
             value = getattr(self, name)
             if value is not None and not isinstance(value, Path):
                 object.__setattr__(self, name, Path(value).expanduser())
@@ -222,7 +224,7 @@ class RunSettings:
         """For the record: how the run went (never part of its identity)."""
         return {"device": self.device, "batch_size": self.batch_size, "workers": self.workers,
                 "memory_budget": self.memory_budget, "lock_timeout": self.lock_timeout, "download": self.download,
-                "strict": self.strict}
+                "strict": self.strict, **({"candidates": str(self.candidates)} if self.candidates else {})}
 
 
 # ---------------------------------------------------------------- the resolver

@@ -28,6 +28,8 @@ def add_parsers(commands) -> None:
     add_run_options(p)
     add_sweep_options(p)
     add_location_options(p)
+    p.add_argument("--candidates", type=Path, metavar="FILE",
+                   help="start the re-ranking from candidates exported by 'vprbench candidates export' (named in the record)")
     p.add_argument("--json", action="store_true", help="print the result record as JSON on stdout (one run only)")
     p.set_defaults(run=run_evaluate)
 
@@ -51,6 +53,10 @@ def run_evaluate(args) -> int:
 
     resolve_locations(args)
     settings = run_settings(args)
+    if args.candidates is not None:
+        import dataclasses
+
+        settings = dataclasses.replace(settings, candidates=args.candidates)
     options, overrides = method_options(args), spec_overrides(args)
     runs = len(args.method) * len(args.dataset)
     ranks = Ranks.from_environment(settings.device)

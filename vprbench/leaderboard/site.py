@@ -112,15 +112,24 @@ def _remove_stale(folder: Path, age_s: float = 3600) -> None:
 def write_section(out: Path, board: Board, records: list[dict], *, cache_dir=None, data_dir=None, seed: int = 0) -> None:
     (out / "figures").mkdir()
     (out / "downloads").mkdir()
+    from .tracks import TITLES, track_file, track_page
+
     stats = {key: cell_stats(cell, seed=seed) for key, cell in board.cells.items()}
+    full, board = board, board.of_track("single-image")  # every page below but the track pages: single-image only
+    for track in [t for t in full.tracks if t != "single-image"]:
+        _write(out / track_file(track), track_page(full, track, stats, PAGE_HEAD))
     colours = site_colours(board)
-    _write(out / "index.md", overview(out, board, records, stats, cache_dir=cache_dir, seed=seed, colours=colours))
+    others = [t for t in full.tracks if t != "single-image"]
+    tracks = ["## Other tracks", "", "Re-ranked and sequence runs have tables of their own and never appear above: "
+              + (", ".join(f"[{TITLES[t]}]({track_file(t)})" for t in others) if others else "none yet") + ".", ""]
+    _write(out / "index.md", overview(out, board, records, stats, cache_dir=cache_dir, seed=seed, colours=colours)
+           + "\n" + "\n".join(tracks))
     for column in board.columns:
         _write(out / f"{column.slug}.md", dataset_page(out, board, column, stats, data_dir=data_dir, seed=seed,
                                                        cache_dir=cache_dir, colours=colours))
     _write(out / "reported.md", reported_page())
-    _write(out / NAV_FILE, navigation(board))
-    rows = [_summary(cell, stats[key]) for key, cell in board.cells.items()]
+    _write(out / NAV_FILE, navigation(board, [t for t in full.tracks if t != "single-image"]))
+    rows = [_summary(cell, stats[key]) for key, cell in full.cells.items()]
     pd.DataFrame(rows).to_csv(out / "downloads" / "leaderboard.csv", index=False)
     _write(out / "downloads" / "leaderboard.json", json.dumps(rows, indent=1, sort_keys=True, default=_plain))
 
@@ -134,10 +143,13 @@ def site_colours(board: Board) -> dict[str, str]:
 NAV_FILE = "SUMMARY.md"
 
 
-def navigation(board: Board) -> str:
-    """The overview, every dataset page and the paper's tables, in the site's navigation."""
+def navigation(board: Board, tracks: list[str] = ()) -> str:
+    """The overview, every dataset page, the other tracks' pages and the paper's tables, in the site's navigation."""
+    from .tracks import TITLES, track_file
+
     lines = ["* [Overview](index.md)", "* Datasets"]
     lines += [f"    * [{text(c.title)}]({c.slug}.md)" for c in board.columns]
+    lines += [f"* [{TITLES[t]} track]({track_file(t)})" for t in tracks]
     return "\n".join([*lines, "* [Reported by the paper](reported.md)", ""])
 
 
@@ -351,7 +363,7 @@ def _summary(cell: Cell, stats: dict) -> dict:
     r = cell.record
     entry = {"method": cell.row.label, "weights": weights_shown(cell.row, r), "dataset": cell.column.dataset,
              "column": cell.column.title, "page": f"{cell.column.slug}.md", "dataset_kind": cell.column.kind,
-             "domain": cell.column.domain, "row_key": cell.row.key}
+             "domain": cell.column.domain, "row_key": cell.row.key, "track": cell.row.track}
     for k in CELL_KS:
         entry[f"r{k}"] = stats[k]["value"]
         entry[f"r{k}_ci_low"], entry[f"r{k}_ci_high"] = stats[k]["ci"] or (None, None)
