@@ -1,6 +1,8 @@
 """Dataset manifests: one TOML file per dataset under manifests/datasets/."""
 from __future__ import annotations
 
+import copy
+import functools
 import tomllib
 from dataclasses import dataclass, field
 from importlib.resources import files
@@ -35,6 +37,9 @@ class DatasetManifest:
     protocol: dict = field(default_factory=dict)
     #: named variants of the protocol (swapped splits, another tolerance, a query subset...)
     protocols: list = field(default_factory=list)
+    #: how the capture order of a traverse is known, for sequence matching: "listing",
+    #: "file-name-frame", or "" (not a traverse; see datasets/traverse.py)
+    sequence_order: str = ""
 
     @classmethod
     def from_toml(cls, text: str, origin: str) -> "DatasetManifest":
@@ -43,6 +48,10 @@ class DatasetManifest:
         unknown = set(data) - known
         if unknown:
             raise VPRBenchError(f"Manifest {origin}: unknown field(s) {sorted(unknown)}")
+        from .traverse import ORDERS
+
+        if data.get("sequence_order", "") not in ORDERS:
+            raise VPRBenchError(f"Manifest {origin}: sequence_order must be one of {ORDERS}, got {data['sequence_order']!r}")
         try:
             return cls(**data)
         except TypeError as error:
@@ -57,9 +66,15 @@ def dataset_manifests() -> dict[str, DatasetManifest]:
     manifests = {}
     for entry in sorted(_manifest_dir().iterdir(), key=lambda e: e.name):
         if entry.name.endswith(".toml"):
-            manifest = DatasetManifest.from_toml(entry.read_text(), entry.name)
+            manifest = copy.deepcopy(_parsed(entry.read_text(), entry.name))  # a copy: callers may change theirs
             manifests[manifest.name] = manifest
     return manifests
+
+
+@functools.lru_cache(maxsize=256)
+def _parsed(text: str, origin: str) -> DatasetManifest:
+    """A manifest's text parsed once per process (publishing a board asks for every manifest per record)."""
+    return DatasetManifest.from_toml(text, origin)
 
 
 def dataset_manifest(name: str) -> DatasetManifest:

@@ -32,9 +32,14 @@ def proven(record: dict) -> dict | str:
     section = record.get("per_query") or {}
     if not section:
         return "it keeps no per-query arrays, so its metrics cannot be recomputed; rerun it"
-    arrays = per_query(record)  # checks the .npz against the sha256 the record names (a warning if not)
+    with warnings.catch_warnings(record=True) as caught:  # per_query checks the arrays (sha256, ranges)
+        warnings.simplefilter("always")
+        arrays = per_query(record)
+    for warning in caught:
+        warnings.warn(str(warning.message), stacklevel=2)
     if arrays is None:
-        return "its per-query arrays are missing or damaged (named in a warning), so its metrics cannot be recomputed"
+        why = f": {caught[0].message}" if caught else ""
+        return f"its per-query arrays are missing or damaged, so its metrics cannot be recomputed{why}"
     ks = sorted(int(k) for k in record.get("recall") or {} if str(k).isdigit())
     key = (_digest(section, arrays), tuple(ks))
     if key not in _CACHE:

@@ -25,7 +25,7 @@ import numpy as np
 from ..errors import VPRBenchError, os_error_message
 from ..fsutil import CacheError, atomic_write, lock
 from ..paths import cache_root
-from .record import PER_QUERY_FIELDS, validated
+from .record import OPTIONAL_FIELDS, PER_QUERY_FIELDS, validated
 
 CARDS = "methods"
 #: how this folder is laid out (a newer vprbench that lays it out otherwise bumps the version)
@@ -84,7 +84,7 @@ def save_result(record: dict, cache_dir=None) -> Path:
             atomic_write(folder / f"{stem}.npz", data)
             record["per_query"] = {"file": f"{stem}.npz", "sha256": hashlib.sha256(data).hexdigest(),
                                    "k": section["k"], "queries": len(section["first_positive_rank"]),
-                                   "fields": list(PER_QUERY_FIELDS)}
+                                   "fields": list(arrays)}
         atomic_write(folder / f"{stem}.json", json.dumps(record, sort_keys=True, indent=1).encode())
         _write_card(record, cache_dir)
     except OSError as error:
@@ -117,6 +117,7 @@ def _per_query_arrays(section: dict) -> dict[str, np.ndarray]:
         "similarities": np.asarray(section["similarities"], dtype=np.float32).reshape(-1, section["k"]),
         "first_positive_rank": np.asarray(section["first_positive_rank"], dtype=np.int32),
         "positives": np.asarray(section["positives"], dtype=np.int32),
+        **{name: np.asarray(section[name], dtype=np.int32) for name in OPTIONAL_FIELDS if name in section},
     }
 
 
@@ -190,7 +191,12 @@ def per_query(record: dict) -> dict[str, np.ndarray] | None:
     if not section:
         return None
     if "file" not in section:
-        return _per_query_arrays(section)
+        try:
+            return _in_range(record, _per_query_arrays(section))
+        except (ValueError, TypeError, KeyError) as error:
+            warnings.warn(f"The per-query data of run {record.get('run_id')} is unusable ({error}); its statistics "
+                          "and figures are skipped.", stacklevel=2)
+            return None
     source = record.get("_source")
     name = str(section["file"])
     path = Path(source).parent / name if source else None
@@ -202,10 +208,32 @@ def per_query(record: dict) -> dict[str, np.ndarray] | None:
             raise ValueError("its content does not match the record's sha256")
         with np.load(io.BytesIO(data), allow_pickle=False) as found:
             arrays = {field: found[field] for field in PER_QUERY_FIELDS}
+            arrays.update({field: found[field] for field in OPTIONAL_FIELDS if field in found.files})
+        _in_range(record, arrays)
     except (OSError, ValueError, KeyError, AttributeError, TypeError) as error:
         warnings.warn(f"Per-query data {path} of run {record.get('run_id')} is unreadable ({error}); "
                       "its statistics and figures are skipped.", stacklevel=2)
         return None
+    return arrays
+
+
+def _in_range(record: dict, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The arrays, if they fit the record: (queries, K) top lists of database indices in range,
+    first-positive ranks within 0..K; a ValueError naming the first misfit otherwise (an index
+    past the database would reach an image list at publish)."""
+    counts = record.get("counts") or {}
+    queries, database = counts.get("queries"), counts.get("database")
+    indices, first = arrays["database_indices"], arrays["first_positive_rank"]
+    if indices.ndim != 2 or indices.dtype.kind not in "iu" or indices.shape[0] != queries or \
+            arrays["similarities"].shape != indices.shape or first.shape != (queries,) or \
+            arrays["positives"].shape != (queries,):
+        raise ValueError(f"its arrays have shapes {indices.shape}, {arrays['similarities'].shape}, {first.shape}, "
+                         f"not those of the record's {queries} queries")
+    if indices.size and (indices.min() < 0 or not isinstance(database, int) or indices.max() >= database):
+        bad = int(np.flatnonzero((indices < 0).any(axis=1) | (indices >= (database or 0)).any(axis=1))[0])
+        raise ValueError(f"query {bad} lists a database index outside the record's {database} database images")
+    if first.size and (first.min() < 0 or first.max() > indices.shape[1]):
+        raise ValueError(f"a first-positive rank lies outside 0..{indices.shape[1]}")
     return arrays
 
 

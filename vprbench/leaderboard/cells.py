@@ -92,6 +92,8 @@ class Row:
     label: str
     weights: str   # 'official' or the weights source key
     mark: str      # what sets the row apart ('' for an official row)
+    #: single-image, re-ranked or sequence: each track is a table of its own, never mixed
+    track: str = "single-image"
 
     @property
     def official(self) -> bool:
@@ -190,6 +192,21 @@ class Board:
         return [r for r in self.rows if label in (r.label, r.name, r.key)]
 
     @property
+    def tracks(self) -> list[str]:
+        from ..stages.base import TRACKS
+
+        return [t for t in TRACKS if any(r.track == t for r in self.rows)]
+
+    def of_track(self, track: str) -> "Board":
+        """The board of one track only (its rows, their cells, the columns they fill): a run never
+        appears in another track's table."""
+        rows = [r for r in self.rows if r.track == track]
+        cells = {key: cell for key, cell in self.cells.items() if key[0].track == track}
+        filled = {key for _, key in cells}
+        excluded = self.excluded if track == "single-image" else []
+        return Board(rows, [c for c in self.columns if c.key in filled], cells, excluded)
+
+    @property
     def marked(self) -> dict[str, int]:
         """How many cells are not on official weights, or not on a benchmark: shown on every page."""
         cells = list(self.cells.values())
@@ -255,7 +272,8 @@ def _row_of(record: dict) -> Row:
     weights, mark = weights_of(record)
     transductive = (record.get("provenance") or {}).get("fitted_on_evaluated_database") is True
     marks = [m for m in (mark, *spec.marks(), TRANSDUCTIVE if transductive else "") if m]
-    return Row(spec.row_key, spec.label(), weights, "; ".join(marks))
+    track = record.get("track") or "single-image"  # records before stages had none
+    return Row(spec.row_key, spec.label(), weights, "; ".join(marks), track)
 
 
 def build_board(records: list[dict]) -> Board:
@@ -357,7 +375,7 @@ def _distinct(rows: list[Row]) -> dict[Row, Row]:
     """Each row as shown: rows whose names would read alike (another version of a preset) are told
     apart by their key."""
     names = Counter(r.name for r in rows)
-    return {r: r if names[r.name] == 1 else Row(r.key, f"{r.label} #{r.key[:6]}", r.weights, r.mark) for r in rows}
+    return {r: r if names[r.name] == 1 else Row(r.key, f"{r.label} #{r.key[:6]}", r.weights, r.mark, r.track) for r in rows}
 
 
 def _distinct_titles(columns: dict[str, Column]) -> dict[str, Column]:

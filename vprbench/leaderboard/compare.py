@@ -1,8 +1,10 @@
-"""`vprbench leaderboard compare A B --dataset D`: two cells, paired over the same queries."""
+"""`vprbench leaderboard compare A B --dataset D`: two cells, paired over the same queries (and the
+same blocks or places of them)."""
 from __future__ import annotations
 
 from ..errors import VPRBenchError, closest_names
 from .cells import Board, Cell
+from ..evaluation.blocks import for_record
 from ..evaluation.metrics import successes
 from .stats import RESAMPLES, bootstrap_ci, format_p, overlaps, paired_test
 
@@ -33,8 +35,23 @@ def _cell(board: Board, method: str, dataset: str) -> Cell:
     return board.cell((official or rows)[0], column)
 
 
+def shared_resampling(first: Cell, second: Cell):
+    """The units both runs are drawn by: their dataset's (the same queries, so the same units); a
+    run that keeps no places (recorded before them) takes the other's."""
+    found = [for_record(c.record, c.arrays) for c in (first, second)]
+    if found[0].same_as(found[1]):
+        return found[0]
+    richer = [r for r in found if r.scheme != "queries"]
+    if len(richer) == 1:
+        return richer[0]
+    raise VPRBenchError(f"Runs {first.record.get('run_id')} and {second.record.get('run_id')} state different "
+                        f"resampling units ({found[0].text()} and {found[1].text()}) for the same queries; "
+                        "rerun one of them.")
+
+
 def compare(board: Board, a: str, b: str, dataset: str, *, k: int = 1, seed: int = 0) -> dict:
-    """Both cells' R@k with intervals, and the paired tests of A against B."""
+    """Both cells' R@k with intervals, and the paired tests of A against B: the bootstrap draws the
+    dataset's units (blocks, places) for both; per-query intervals are given beside them."""
     first, second = _cell(board, a, dataset), _cell(board, b, dataset)
     for cell in (first, second):
         if cell.arrays is None:
@@ -48,26 +65,36 @@ def compare(board: Board, a: str, b: str, dataset: str, *, k: int = 1, seed: int
         raise VPRBenchError(f"The two runs were not on the same queries of {dataset} (dataset fingerprints "
                             f"{first.record.get('dataset_fingerprint')} and {second.record.get('dataset_fingerprint')}).")
     wins = [successes(r, k) for r in ranks]
-    intervals = [bootstrap_ci(w, seed=seed) for w in wins]
+    resampling = shared_resampling(first, second)
+    intervals = [bootstrap_ci(w, resampling, seed=seed) for w in wins]
     return {"dataset": first.column.title, "k": k, "cells": (first, second), "intervals": intervals,
-            "overlap": overlaps(*intervals), "test": paired_test(*wins, seed=seed)}
+            "overlap": overlaps(*intervals), "test": paired_test(*wins, resampling, seed=seed),
+            "resampling": resampling, "per_query": {"intervals": [bootstrap_ci(w, seed=seed) for w in wins],
+                                                    "test": paired_test(*wins, seed=seed)}}
 
 
 def describe(result: dict) -> str:
     first, second = result["cells"]
-    t, k = result["test"], result["k"]
+    t, k, units = result["test"], result["k"], result["resampling"]
+    plain = result["per_query"]
     width = max(len(first.row.name), len(second.row.name))
+    per = units.scheme != "queries"  # per-query intervals beside the dataset's, for comparison
     lines = [f"{result['dataset']}: R@{k} of two runs over the same {t['queries']} queries "
-             f"(seeded bootstrap, {RESAMPLES:,} resamples, seed {t['seed']})"]
-    for cell, (low, high), value in zip((first, second), result["intervals"], (t["a"], t["b"])):
+             f"(seeded bootstrap, {RESAMPLES:,} resamples, seed {t['seed']}; resampled {units.text()}"
+             + (", the same units for both" if per else "") + ")"]
+    for cell, (low, high), value, (p_low, p_high) in zip((first, second), result["intervals"], (t["a"], t["b"]),
+                                                          plain["intervals"]):
         lines.append(f"  {cell.row.name:<{width}}  R@{k} {value:5.1f} %  95 % CI [{low:.1f}, {high:.1f}]  "
-                     f"run {cell.record.get('run_id')}")
+                     + (f"(per query [{p_low:.1f}, {p_high:.1f}])  " if per else "") + f"run {cell.record.get('run_id')}")
+    q = plain["test"]["ci"]
     lines += [
         f"  intervals overlap: {'yes' if result['overlap'] else 'no'}",
         f"  difference ({first.row.name} - {second.row.name}): {t['difference']:+.1f} pp, 95 % CI "
-        f"[{t['ci'][0]:+.1f}, {t['ci'][1]:+.1f}], paired bootstrap p {format_p(t['p_bootstrap'], t['resamples'])}",
-        f"  McNemar exact test: {t['only_a']} queries only {first.row.name} gets right, {t['only_b']} only "
-        f"{second.row.name}; p = {t['p_mcnemar']:.3g}",
-        f"  {'A difference at the 5 % level' if t['p_mcnemar'] < 0.05 else 'No difference at the 5 % level'} (McNemar).",
+        f"[{t['ci'][0]:+.1f}, {t['ci'][1]:+.1f}]" + (f" (per query [{q[0]:+.1f}, {q[1]:+.1f}])" if per else "")
+        + f", paired bootstrap p {format_p(t['p_bootstrap'], t['resamples'])}",
+        f"  McNemar exact test (takes the queries as independent): {t['only_a']} queries only {first.row.name} gets "
+        f"right, {t['only_b']} only {second.row.name}; p = {t['p_mcnemar']:.3g}",
+        f"  {'A difference at the 5 % level' if t['p_bootstrap'] < 0.05 else 'No difference at the 5 % level'} "
+        f"(paired bootstrap over {units.text()}).",
     ]
     return "\n".join(lines)
