@@ -24,6 +24,8 @@ def add_parsers(commands) -> None:
     p.add_argument("--track", choices=("single-image", "re-ranked", "sequence"), default="single-image",
                    help="with 'show': which track's table (default single-image; each track is a table of its own)")
     p.add_argument("--cache-dir", help="where the results store lives")
+    p.add_argument("--results", type=Path, metavar="DIR",
+                   help="with 'publish': a results repository (vprbench results import) whose runs join this cache's")
     p.add_argument("--data-dir", help="with 'publish': where the datasets' images are, for the retrieval mosaics")
     p.set_defaults(run=run)
 
@@ -35,11 +37,13 @@ def run(args) -> int:
     from ..leaderboard import build_board, grid, publish, render
 
     resolve_locations(args)
+    if args.results is not None and args.action != "publish":
+        raise VPRBenchError("--results DIR is for 'leaderboard publish' (it builds the site from a results repository).")
     if args.action == "publish":
         if args.to is None:
             raise VPRBenchError("leaderboard publish needs --to FOLDER (e.g. --to docs/)")
         skipped: list = []
-        print(f"Wrote {publish(args.to, args.cache_dir, data_dir=args.data_dir, seed=args.seed, skipped=skipped)}")
+        print(f"Wrote {publish(args.to, args.cache_dir, data_dir=args.data_dir, seed=args.seed, skipped=skipped, results=args.results)}")
         return unread(skipped)
     skipped = []
     records = read_results(args.cache_dir, skipped=skipped)

@@ -133,6 +133,18 @@ class Column:
         return self.dataset if self.default else f"{self.dataset}-{self.protocol}"
 
 
+def hardware_of(record: dict) -> str:
+    """The machine a run was on, as its record names it."""
+    found = record.get("hardware") or {}
+    if not isinstance(found, dict) or not found:
+        return "unknown"
+    if "cpu" not in found and "cpu_count" not in found:
+        return str(found.get("note") or "unknown")
+    gpu = found.get("cuda")
+    return (f"{found.get('cpu') or found.get('machine') or 'unknown CPU'} ({found.get('cpu_count', '?')} cores), "
+            f"{gpu if gpu else 'no GPU'}")
+
+
 @dataclass
 class Cell:
     row: Row
@@ -143,7 +155,7 @@ class Cell:
     #: the newest run of the row and column that computed its descriptors (its images/s and
     #: hardware are the cell's): a run served from stores measured no speed
     timed: dict | None = None
-    #: where the cell's number comes from (SOURCES)
+    #: where the cell's number comes from (MEASURED, CONTRIBUTED, AGREES, IMPORTED or a disagreement)
     source: str = "measured here"
 
     @property
@@ -153,12 +165,7 @@ class Cell:
     @property
     def hardware(self) -> str:
         """The machine the cell's speed was measured on, e.g. 'Intel Xeon (2 cores), no GPU'."""
-        found = (self.timed or {}).get("hardware") or {}
-        if not self.timed or not found:
-            return ""
-        gpu = found.get("cuda")
-        return (f"{found.get('cpu') or found.get('machine') or 'unknown CPU'} ({found.get('cpu_count', '?')} cores), "
-                f"{gpu if gpu else 'no GPU'}")
+        return hardware_of(self.timed) if self.timed else ""
 
     @cached_property
     def arrays(self) -> dict[str, np.ndarray] | None:

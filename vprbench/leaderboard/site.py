@@ -24,7 +24,7 @@ from ..reference import paper_results
 from ..text import percent, quantity
 from . import figures
 from .escape import text
-from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board, weights_shown
+from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board, hardware_of, weights_shown
 from ..evaluation.blocks import RULE, for_record
 from ..evaluation.metrics import successes
 from .compare import shared_resampling
@@ -47,15 +47,23 @@ def page_head(title: str) -> str:
 MOSAIC_ROWS = 4
 
 
-def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0, skipped: list | None = None) -> Path:
+def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0, skipped: list | None = None,
+            results=None) -> Path:
     """Write <folder>/leaderboard/ (overview, one page per dataset, figures, downloads) from the
-    results store; returns that folder. Nothing is changed when anything fails."""
+    results store, and from the results repository `results` when given (each cell marked by where
+    its number comes from); returns that folder. Nothing is changed when anything fails."""
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise VPRBenchError(f"--to {folder} is a file, not a folder: give the docs folder, e.g. --to docs/")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         records = read_results(cache_dir, skipped=skipped)
+        if results is not None:  # a run both here and in the repository is this machine's
+            from ..bundles.repository import read_repository
+
+            here = {r["run_id"] for r in records}
+            records = sorted(records + [r for r in read_repository(results, skipped) if r["run_id"] not in here],
+                             key=lambda r: (str(r.get("created", "")), str(r.get("run_id", ""))))
     for warning in caught:  # corrupt or foreign records: named, then left out
         warnings.warn(str(warning.message), stacklevel=2)
     if not records:
@@ -285,8 +293,8 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
              f"{_units(cells)}.", "",
              "| Method | Weights | R@1 [95 % CI] | R@5 [95 % CI] | R@10 | R@20 | AUC-PR | R@100%P | Dim | Bytes | Images/s |",
              "|:--|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|"]
-    runs = ["| Method | Run | Created | vprbench | Commit | Descriptors computed | Older runs of the row | Images/s measured by |",
-            "|:--|:--|:--|:--|:--|--:|--:|:--|"]
+    runs = ["| Method | Source | Contributor | Run | Created | Hardware | vprbench | Commit | Descriptors computed | "
+            "Older runs of the row | Images/s measured by |", "|:--|:--|:--|:--|:--|:--|:--|:--|--:|--:|:--|"]
     for cell in cells:
         s, r = stats[(cell.row, column.key)], cell.record
         name = f"{text(cell.row.label)}{' †' if not cell.row.official else ''}"
@@ -295,9 +303,11 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
                      f"{_num(r.get('auc_pr'), 3)} | {percent(r.get('recall_at_100_precision'))} | {r.get('descriptor_dim')} | "
                      f"{r.get('descriptor_bytes') or 4 * int(r.get('descriptor_dim') or 0)} | {_num(cell.images_per_second, 1)} |")
         versions, computed = r.get("versions") or {}, r.get("descriptors_computed") or {}
-        runs.append(f"| {name} | `{r.get('run_id')}` | {r.get('created', '–')} | {versions.get('vprbench', '–')} | "
+        sent = (r.get("_contribution") or {}).get("contributor") or "this machine"
+        runs.append(f"| {name} | {text(cell.source)} | {text(sent)} | `{r.get('run_id')}` | {text(r.get('created', '–'))} | "
+                    f"{text(hardware_of(r))} | {text(versions.get('vprbench', '–'))} | "
                     f"`{str(versions.get('git') or '–')[:10]}` | {sum(computed.values()) if computed else '–'} | {cell.passed_over} | "
-                    + (f"`{text(cell.timed.get('run_id'))}` on {text(cell.hardware)} |" if cell.timed else "no run computed its descriptors |"))
+                    + (f"`{cell.timed.get('run_id')}` on {text(cell.hardware)} |" if cell.timed else "no run computed its descriptors |"))
     lines += ["", "The runs in the cells above:", "", *runs, "", *_paired(cells, seed), "## Figures", ""]
     slug = column.slug
     lines += _figure(lambda p: figures.recall_curves(cells, p, colours), out, f"{slug}-recall.svg", "Recall@K per run")
@@ -372,6 +382,8 @@ def _summary(cell: Cell, stats: dict) -> dict:
     entry.update({key: r.get(key) for key in ("auc_pr", "recall_at_100_precision", "descriptor_dim", "descriptor_bytes",
                                               "run_id", "created", "dataset_fingerprint")})
     entry["images_per_second"], entry["speed_hardware"] = cell.images_per_second, cell.hardware
+    entry["source"], entry["hardware"] = cell.source, hardware_of(r)
+    entry["contributor"] = (r.get("_contribution") or {}).get("contributor") or "this machine"
     entry["speed_run_id"] = (cell.timed or {}).get("run_id")
     entry["protocol"] = (r.get("protocol") or {}).get("id")
     entry["ci_resampling"] = for_record(r, cell.arrays).text()  # which queries the intervals draw together
