@@ -72,7 +72,8 @@ for (const page of pages) {
     const doc = frame.contentDocument;
     const images = [...doc.querySelectorAll("article img")];
     found[page] = {title: (doc.querySelector("article h1") || {}).textContent, tables: doc.querySelectorAll("article table").length,
-                   images: images.map(i => [i.getAttribute("src"), i.complete && i.naturalWidth > 0])};
+                   images: images.map(i => [i.getAttribute("src"), i.complete && i.naturalWidth > 0]),
+                   nav: [...doc.querySelectorAll(".md-nav--primary a.md-nav__link")].map(a => a.href)};
     if (--left === 0) document.getElementById("result").textContent = JSON.stringify(found);
   };
   frame.src = page;
@@ -106,6 +107,7 @@ def test_pages_render_in_headless_chromium_with_their_figures(built_site):
     overview = dict(found["/leaderboard/"]["images"])
     assert "figures/radar.svg" in overview
     corridor = dict(found["/leaderboard/corridor/"]["images"])
+    assert any(href.endswith("/leaderboard/corridor/") for href in found["/"]["nav"])  # dataset pages in the navigation
     assert {"../figures/corridor-recall.svg", "../figures/corridor-pr.svg", "../figures/corridor-efficiency.svg"} <= set(corridor)
     assert any("mosaic" in src for src in corridor)
     for page, entry in found.items():
