@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import errno
 import hashlib
+import math
 import os
 import re
 import socket
@@ -119,6 +120,15 @@ def _describe_holder(path: Path) -> str:
         return "another process"
 
 
+def check_lock_timeout(timeout, what: str = "a lock") -> None:
+    """None (wait as long as it takes) or a finite number of seconds >= 0: filelock waits forever
+    for a negative timeout, and a NaN one never runs out."""
+    if timeout is not None and (isinstance(timeout, bool) or not isinstance(timeout, (int, float))
+                                or not math.isfinite(timeout) or timeout < 0):
+        raise VPRBenchError(f"A lock timeout (--lock-timeout) is a finite number of seconds >= 0, the longest to wait "
+                            f"for {what}; got {timeout!r}.")
+
+
 @contextmanager
 def lock(path: str | os.PathLike, timeout: float | None = None, *, what: str | None = None,
          announce: bool = True) -> Iterator[None]:
@@ -132,6 +142,7 @@ def lock(path: str | os.PathLike, timeout: float | None = None, *, what: str | N
 
     path = Path(path)
     what = what or str(path)
+    check_lock_timeout(timeout, what)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         held = FileLock(path, is_singleton=True)

@@ -256,8 +256,16 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
         raise VPRBenchError(f"Method {method!r}: an option is not plain data ({error}).") from None
     ks, stages = check_ks(ks), tuple(resolve_stage(s) for s in stages or ())
     check_stage_depths(stages, ks)
+    data = resolve_dataset(dataset, protocol, data_dir, cache_dir)
+    if data.kind == "benchmark":  # a benchmark that is no traverse is refused before its data is needed
+        from .datasets.traverse import require_traverse_manifest
+        from .stages.registry import stage_entry
+
+        for stage in stages:
+            if stage_entry(stage.name).cls.track == "sequence":
+                require_traverse_manifest(data.name, f"Sequence stage {stage.name!r}")
     return RunSpec(method=method, options=merged, given=given, files=_file_identities(method, given),
-                   dataset=resolve_dataset(dataset, protocol, data_dir, cache_dir), search=resolve_search(search),
+                   dataset=data, search=resolve_search(search),
                    stages=stages, ks=ks, store_dtype=_choice("--store-dtype", store_dtype, STORE_DTYPES))
 
 

@@ -161,3 +161,23 @@ def test_compare_pairs_the_same_blocks_and_shows_per_query_beside(make_record, t
     assert result["per_query"]["test"]["ci"] == paired_test(*wins)["ci"]
     text = describe(result)
     assert "blocks of 5 consecutive queries" in text and "per query [" in text
+
+
+def test_verify_refuses_units_that_are_not_the_protocols(make_record):
+    from conftest import synthetic_ground_truth
+
+    from vprbench.bundles.verify import Truth, rescore
+
+    record = make_record("a", "st-lucia")
+    gt = synthetic_ground_truth(1549, 1464, "metres", 25)  # the fixture's ground truth
+    truth = Truth("st-lucia:vg-benchmark", 1549, gt.positives(),
+                  Resampling("places", 1464, places=place_groups(gt.query_positions, 25), radius=25))
+    arrays = per_query(record)
+    problems = []
+    rescore(record, arrays, truth, problems)
+    assert problems == []
+    narrowed = {**arrays, "place": np.arange(1464, dtype=np.int32)}  # every query its own place: narrower intervals
+    assert for_record(record, narrowed).place_count == 1464
+    rescore(record, narrowed, truth, problems)
+    assert len(problems) == 1 and "its bootstrap units (by place (1,464 places" in problems[0] \
+        and "are not those of protocol st-lucia:vg-benchmark" in problems[0]

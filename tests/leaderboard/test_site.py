@@ -131,6 +131,8 @@ def downloads_say_what_the_pages_say(section, summary):
         cells = pages[slug][entry["method"]]
         assert cells[1] == entry["weights"], (entry["method"], slug)
         assert cells[2] == f"{entry['r1']:.1f} [{entry['r1_ci_low']:.1f}, {entry['r1_ci_high']:.1f}]"
+        # R@100%P in percent like the R@K beside it, not a fraction
+        assert cells[7] == f"{100 * entry['recall_at_100_precision']:.1f}", (entry["method"], cells)
 
 
 def test_publish_again_replaces_the_section_and_leaves_no_temporary_folder(capsys, tmp_path, shared_data):

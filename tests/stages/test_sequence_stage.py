@@ -2,6 +2,8 @@
 options, sad + SeqSLAM, and the refusals (an unordered dataset, bad options)."""
 import pytest
 
+from vprbench.cli.main import main
+from vprbench.datasets import load_dataset
 from vprbench.errors import VPRBenchError
 from vprbench.evaluation import evaluate
 from vprbench.spec import RunSettings, resolve_spec
@@ -58,13 +60,24 @@ def test_a_sequence_longer_than_the_queries_is_refused(shared_data, tmp_path):
     assert not list(tmp_path.rglob("*.h5"))  # refused before any descriptor is computed
 
 
-def test_pitts30k_is_refused_before_any_descriptor(pitts30k_tree, tmp_path):
-    spec = resolve_spec("hog", "pitts30k", stages=["seqslam"])
-    with pytest.raises(VPRBenchError) as error:
-        evaluate(spec, RunSettings(data_dir=pitts30k_tree.data, cache_dir=tmp_path))
-    assert str(error.value).startswith("Sequence stage 'seqslam' needs a dataset whose database and queries are "
-                                       "ordered traverses")
-    assert "'pitts30k' is not one" in str(error.value)
+@pytest.mark.parametrize("dataset", ["pitts30k", "tokyo247"])
+def test_unordered_benchmarks_are_refused_from_their_manifest(dataset, capsys, tmp_path):
+    code = main(["evaluate", "--method", "hog", "--dataset", dataset, "--sequence", "seqslam",
+                 "--data-dir", str(tmp_path / "no-data"), "--cache-dir", str(tmp_path)])
+    err = capsys.readouterr().err.strip()
+    assert code != 0 and "Traceback" not in err and len(err.splitlines()) == 1
+    assert "Sequence stage 'seqslam' needs a dataset whose database and queries are ordered traverses" in err
+    assert f"{dataset!r} is not one: its images are separate photographs of places" in err
+    assert not list(tmp_path.rglob("*.h5")) and not list(tmp_path.rglob("*.json"))
+
+
+def test_pitts30k_on_disk_is_refused_before_any_descriptor(pitts30k_tree, tmp_path):
+    # a Dataset given directly (no manifest check in the spec): the stage's own check refuses it
+    dataset = load_dataset("pitts30k", pitts30k_tree.data)
+    spec = resolve_spec("hog", dataset)
+    staged = spec.model_copy(update={"stages": resolve_spec("hog", "corridor", stages=["seqslam"]).stages})
+    with pytest.raises(VPRBenchError, match="'pitts30k' is not one"):
+        evaluate(staged, RunSettings(cache_dir=tmp_path), dataset=dataset)
     assert not list(tmp_path.rglob("*.h5"))
 
 

@@ -23,7 +23,7 @@ from pathlib import Path
 
 from ..errors import VPRBenchError
 from ..evaluation.results import LAYOUT, LAYOUT_FILE, check_layout, read_record
-from ..fsutil import CacheError, atomic_write, lock
+from ..fsutil import CacheError, atomic_write, check_lock_timeout, lock
 from .export import CARDS
 from .verify import MAX_BYTES, verify_bundle
 
@@ -52,6 +52,7 @@ def import_bundles(bundles, into: Path, truth=None, *, max_bytes: int = MAX_BYTE
                    lock_timeout: float | None = None) -> list[ImportReport]:
     """Verify each bundle and merge the sound ones into the repository `into`; one report per bundle."""
     into = Path(into)
+    check_lock_timeout(lock_timeout, f"the results repository {into}")  # before any work
     if into.exists() and not into.is_dir():
         raise VPRBenchError(f"--into {into} is a file, not a folder.")
     check_layout(into)

@@ -10,7 +10,8 @@ one vprbench ships for its dataset, and its metrics are recomputed from its per-
 against that protocol's ground truth, read from the dataset on this machine: query and database
 counts, indices in range, every query present, first-positive ranks, and Recall@K (records keep
 4 decimals) and the top-1 PR metrics (6 decimals; similarities are kept to 6 decimals, so
-near-ties may reorder: tolerance 1e-3).
+near-ties may reorder: tolerance 1e-3). Units of the bootstrap a record keeps (each query's place,
+the traverse order) must be the protocol's, or its intervals would be drawn from the wrong ones.
 """
 from __future__ import annotations
 
@@ -26,7 +27,8 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from ..errors import VPRBenchError
-from ..evaluation.record import PER_QUERY_FIELDS, validated
+from ..evaluation.blocks import Resampling, for_dataset, for_record
+from ..evaluation.record import OPTIONAL_FIELDS, PER_QUERY_FIELDS, validated
 from .export import CARDS, FORMAT, FORMAT_VERSION, MANIFEST
 
 #: the most bytes a bundle may unpack to (an MSLS-size run is ~10 MB); `--max-size` raises it
@@ -145,6 +147,8 @@ class Truth:
     protocol_id: str
     database: int
     positives: list
+    #: the units the protocol's bootstrap draws (evaluation/blocks.py); None: not checked
+    resampling: Resampling | None = None
 
 
 class DataGroundTruth:
@@ -173,7 +177,7 @@ class DataGroundTruth:
         if data.protocol.get("hash") != protocol_hash:
             raise VPRBenchError(f"the copy of {dataset} on this machine ({data.root}) gives protocol hash "
                                 f"{data.protocol.get('hash')}, not {protocol_hash}")
-        return Truth(protocol["id"], len(data.database), data.positives)
+        return Truth(protocol["id"], len(data.database), data.positives, for_dataset(data))
 
 
 # ---------------------------------------------------------------- the records
@@ -285,6 +289,7 @@ def _arrays(record: dict, members: dict[str, bytes], folder: str, problems: list
     try:
         with np.load(io.BytesIO(data), allow_pickle=False) as found:
             arrays = {f: found[f] for f in PER_QUERY_FIELDS}
+            arrays.update({f: found[f] for f in OPTIONAL_FIELDS if f in found.files})
     except (ValueError, KeyError, OSError, EOFError) as error:
         problems.append(f"{file} is not readable per-query arrays ({type(error).__name__}: {error})")
         return None
@@ -336,4 +341,8 @@ def rescore(record: dict, arrays: dict, gt: Truth, problems: list) -> dict[str, 
         for name in ("auc_pr", "recall_at_100_precision"):
             if name in record and abs(float(record[name]) - pr[name]) > PR_TOLERANCE:
                 problems.append(f"{name} is {record[name]} in the record but {pr[name]:.6f} from its arrays")
+    stated = for_record(record, arrays)
+    if gt.resampling is not None and set(OPTIONAL_FIELDS) & set(arrays) and not stated.same_as(gt.resampling):
+        problems.append(f"its bootstrap units ({stated.text()}) are not those of protocol {gt.protocol_id} "
+                        f"({gt.resampling.text()}); its intervals would be drawn from the wrong units")
     return {k: v for k, v in recall.items()}

@@ -111,6 +111,8 @@ def run_matrix(args, settings, options, overrides) -> int:
 def results_table(record: dict):
     from rich.table import Table
 
+    from ..text import percent
+
     counts, timings = record["counts"], record["timings"]
     table = Table(title=f"{record.get('label') or record['method']} on {record['protocol']['id']}", show_header=True)
     for k in record["recall"]:
@@ -120,7 +122,7 @@ def results_table(record: dict):
     table.add_column("max F1", justify="right")
     max_f1 = record.get("max_f1")  # older records lack it
     table.add_row(*[f"{v:.1f}" for v in record["recall"].values()],
-                  f"{record['auc_pr']:.3f}", f"{100 * record['recall_at_100_precision']:.1f}",
+                  f"{record['auc_pr']:.3f}", percent(record["recall_at_100_precision"]),
                   "-" if max_f1 is None else f"{max_f1:.3f}")
     computed = record["descriptors_computed"]
     table.caption = (

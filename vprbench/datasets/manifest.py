@@ -1,6 +1,8 @@
 """Dataset manifests: one TOML file per dataset under manifests/datasets/."""
 from __future__ import annotations
 
+import copy
+import functools
 import tomllib
 from dataclasses import dataclass, field
 from importlib.resources import files
@@ -64,9 +66,15 @@ def dataset_manifests() -> dict[str, DatasetManifest]:
     manifests = {}
     for entry in sorted(_manifest_dir().iterdir(), key=lambda e: e.name):
         if entry.name.endswith(".toml"):
-            manifest = DatasetManifest.from_toml(entry.read_text(), entry.name)
+            manifest = copy.deepcopy(_parsed(entry.read_text(), entry.name))  # a copy: callers may change theirs
             manifests[manifest.name] = manifest
     return manifests
+
+
+@functools.lru_cache(maxsize=256)
+def _parsed(text: str, origin: str) -> DatasetManifest:
+    """A manifest's text parsed once per process (publishing a board asks for every manifest per record)."""
+    return DatasetManifest.from_toml(text, origin)
 
 
 def dataset_manifest(name: str) -> DatasetManifest:

@@ -32,12 +32,23 @@ def traverse_orders(dataset, stage: str = "Sequence matching") -> dict[str, np.n
         return {split: np.arange(len(getattr(dataset, split)), dtype=np.int64) for split in ("database", "queries")}
     if how == "file-name-frame":
         return {split: _by_name_frame(getattr(dataset, split), dataset.name) for split in ("database", "queries")}
-    own = " (its positions are not frame numbers)" if dataset.kind == "own" else ""
-    raise VPRBenchError(
-        f"{stage} needs a dataset whose database and queries are ordered traverses (frames in capture order); "
-        f"{dataset.name!r} is not one{own}: its images are separate photographs of places, so a query has no "
-        "neighbours in time to match. Use Nordland, St Lucia, Corridor or Gardens Point, or a folder of your own "
-        "whose positions.csv gives a frame column.")
+    raise VPRBenchError(_not_a_traverse(stage, dataset.name, " (its positions are not frame numbers)"
+                                        if dataset.kind == "own" else ""))
+
+
+def require_traverse_manifest(name: str, stage: str = "Sequence matching") -> None:
+    """Refuse a benchmark that is no traverse from its manifest alone (before its data is read)."""
+    from .manifest import dataset_manifest
+
+    if not dataset_manifest(name).sequence_order:
+        raise VPRBenchError(_not_a_traverse(stage, name, ""))
+
+
+def _not_a_traverse(stage: str, name: str, why: str) -> str:
+    return (f"{stage} needs a dataset whose database and queries are ordered traverses (frames in capture order); "
+            f"{name!r} is not one{why}: its images are separate photographs of places, so a query has no "
+            "neighbours in time to match. Use Nordland, St Lucia, Corridor or Gardens Point, or a folder of your own "
+            "whose positions.csv gives a frame column.")
 
 
 def _by_frame(positions) -> np.ndarray:

@@ -191,7 +191,12 @@ def per_query(record: dict) -> dict[str, np.ndarray] | None:
     if not section:
         return None
     if "file" not in section:
-        return _per_query_arrays(section)
+        try:
+            return _in_range(record, _per_query_arrays(section))
+        except (ValueError, TypeError, KeyError) as error:
+            warnings.warn(f"The per-query data of run {record.get('run_id')} is unusable ({error}); its statistics "
+                          "and figures are skipped.", stacklevel=2)
+            return None
     source = record.get("_source")
     name = str(section["file"])
     path = Path(source).parent / name if source else None
@@ -204,10 +209,31 @@ def per_query(record: dict) -> dict[str, np.ndarray] | None:
         with np.load(io.BytesIO(data), allow_pickle=False) as found:
             arrays = {field: found[field] for field in PER_QUERY_FIELDS}
             arrays.update({field: found[field] for field in OPTIONAL_FIELDS if field in found.files})
+        _in_range(record, arrays)
     except (OSError, ValueError, KeyError, AttributeError, TypeError) as error:
         warnings.warn(f"Per-query data {path} of run {record.get('run_id')} is unreadable ({error}); "
                       "its statistics and figures are skipped.", stacklevel=2)
         return None
+    return arrays
+
+
+def _in_range(record: dict, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The arrays, if they fit the record: (queries, K) top lists of database indices in range,
+    first-positive ranks within 0..K; a ValueError naming the first misfit otherwise (an index
+    past the database would reach an image list at publish)."""
+    counts = record.get("counts") or {}
+    queries, database = counts.get("queries"), counts.get("database")
+    indices, first = arrays["database_indices"], arrays["first_positive_rank"]
+    if indices.ndim != 2 or indices.dtype.kind not in "iu" or indices.shape[0] != queries or \
+            arrays["similarities"].shape != indices.shape or first.shape != (queries,) or \
+            arrays["positives"].shape != (queries,):
+        raise ValueError(f"its arrays have shapes {indices.shape}, {arrays['similarities'].shape}, {first.shape}, "
+                         f"not those of the record's {queries} queries")
+    if indices.size and (indices.min() < 0 or not isinstance(database, int) or indices.max() >= database):
+        bad = int(np.flatnonzero((indices < 0).any(axis=1) | (indices >= (database or 0)).any(axis=1))[0])
+        raise ValueError(f"query {bad} lists a database index outside the record's {database} database images")
+    if first.size and (first.min() < 0 or first.max() > indices.shape[1]):
+        raise ValueError(f"a first-positive rank lies outside 0..{indices.shape[1]}")
     return arrays
 
 

@@ -262,6 +262,7 @@ def radar(board: Board, path: Path, colours: dict[str, str] | None = None) -> Pa
     domains = radar_domains(board, axes)
     angles = np.linspace(0, 2 * np.pi, len(domains), endpoint=False)
     fig, ax = plt.subplots(figsize=(5.6, 5.6), subplot_kw={"projection": "polar"})
+    notes: dict[str, int] = {}  # partial points already written beside each axis: stack the next below
     for name, means, style in series:
         colour = colours[name]
         full = np.array([means[d].value if d in means and means[d].complete else np.nan for d in domains])
@@ -272,8 +273,9 @@ def radar(board: Board, path: Path, colours: dict[str, str] | None = None) -> Pa
             if part is not None and not part.complete:
                 ax.scatter([angle], [part.value], s=55, facecolors="white", edgecolors=colour, linewidths=2, zorder=3)
                 shown = ", ".join(part.datasets) if len(part.datasets) <= 2 else f"{len(part.datasets)} datasets"
+                below = notes[domain] = notes.get(domain, -1) + 1
                 ax.annotate(_label(f"{shown} only"), (angle, part.value), fontsize=7.5, color=colour, weight="bold",
-                            xytext=(6, -12), textcoords="offset points", zorder=4,
+                            xytext=(-7, -12 - 11 * below), textcoords="offset points", ha="right", zorder=4,
                             bbox={"boxstyle": "round,pad=0.15", "facecolor": "white", "edgecolor": "none", "alpha": 0.8})
     ax.set_xticks(angles, [f"{DOMAIN_LABELS.get(d, d.capitalize())}\n({len(axes[d])} dataset{'s' * (len(axes[d]) > 1)})"
                            for d in domains])

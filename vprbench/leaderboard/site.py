@@ -21,6 +21,7 @@ from ..errors import VPRBenchError
 from ..fsutil import LockTimeout, lock
 from ..evaluation.results import read_results
 from ..reference import paper_results
+from ..text import percent, quantity
 from . import figures
 from .escape import text
 from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board, weights_shown
@@ -33,6 +34,15 @@ from .tables import GROUPS, TOLERANCE_PP, cell_stats, comparisons, fmt, group_ta
 SECTION = "leaderboard"
 #: MkDocs Material front matter: the wide tables get the table-of-contents column
 PAGE_HEAD = "---\nhide:\n  - toc\n---\n"
+
+
+def page_head(title: str) -> str:
+    """PAGE_HEAD with the page's title set, HTML-escaped: without it MkDocs Material writes the
+    title it takes from the heading with its entities decoded (`striptags`) into <title>, where a
+    name holding '</title><img ...>' would become a live element."""
+    import html
+
+    return PAGE_HEAD.replace("---\n", f"---\ntitle: {json.dumps(html.escape(str(title), quote=True))}\n", 1)
 #: mosaics drawn per dataset page (the best rows by R@1)
 MOSAIC_ROWS = 4
 
@@ -256,7 +266,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
     positives = np.asarray((first.get("per_query") or {}).get("positives") or
                            (cells[0].arrays["positives"] if cells[0].arrays is not None else []))
     colours = colours if colours is not None else site_colours(board)
-    lines = [PAGE_HEAD, f"# {text(column.title)}", "", f"Each cell is one run: {RULE_LINK} (below the tables).", "",
+    lines = [page_head(column.title), f"# {text(column.title)}", "", f"Each cell is one run: {RULE_LINK} (below the tables).", "",
              _marks(board),
              f"Domain: {text(column.domain or '–')}. Kind: {'benchmark' if column.kind == 'benchmark' else 'own data (not a benchmark)'}.", "",
              "## Data and ground truth", "",
@@ -265,7 +275,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
              f"| {counts['database']} | {counts['queries']} | {counts.get('queries_without_positives', '–')} | "
              f"{counts.get('positive_pairs', '–')} | "
              + (f"{positives.min()} / {np.median(positives):g} / {positives.max()}" if len(positives) else "–")
-             + f" | {gt.get('unit', '–')}, radius {gt.get('radius', '–')} {gt.get('radius_unit') or ''} | "
+             + f" | {gt.get('unit', '–')}, radius {quantity(gt.get('radius'), gt.get('radius_unit'))} | "
              f"`{protocol.get('id', '–')}` (`{protocol.get('hash', '–')}`) | `{column.fingerprint}` |", "",
              f"Protocol `{protocol.get('id', '–')}`: {protocol.get('description') or 'no description'}"
              + (f" (source: {protocol['source']})" if protocol.get("source") else "") + ".", "",
@@ -282,7 +292,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
         name = f"{text(cell.row.label)}{' †' if not cell.row.official else ''}"
         lines.append(f"| {name} | {text(weights_shown(cell.row, r))} | "
                      f"{_ci(s[1])} | {_ci(s[5])} | {fmt(cell.recall(10))} | {fmt(cell.recall(20))} | "
-                     f"{_num(r.get('auc_pr'), 3)} | {_num(r.get('recall_at_100_precision'), 3)} | {r.get('descriptor_dim')} | "
+                     f"{_num(r.get('auc_pr'), 3)} | {percent(r.get('recall_at_100_precision'))} | {r.get('descriptor_dim')} | "
                      f"{r.get('descriptor_bytes') or 4 * int(r.get('descriptor_dim') or 0)} | {_num(cell.images_per_second, 1)} |")
         versions, computed = r.get("versions") or {}, r.get("descriptors_computed") or {}
         runs.append(f"| {name} | `{r.get('run_id')}` | {r.get('created', '–')} | {versions.get('vprbench', '–')} | "
