@@ -160,3 +160,14 @@ def test_release_format_file_of_a_new_family_loads_exactly(name, release, tmp_pa
     wrong = create_model(backbone_spec("dinov3_vits16"), empty=True, **TINY)
     with pytest.raises(VPRBenchError, match="does not fit this backbone"):
         convert_official(read_checkpoint(path), wrong)
+
+
+def test_a_facet_the_attention_cannot_give_is_refused_naming_both(monkeypatch):
+    from vprbench import create_method
+
+    entry = backbone_spec("siglip2_b16").model_copy(update={"name": "tokens_only", "facets": ("token",)})
+    monkeypatch.setitem(backbones(), "tokens_only", entry)
+    with pytest.raises(VPRBenchError, match=r"facet=value: backbone tokens_only gives token only"):
+        create_method("anyloc", backbone="tokens_only", facet="value", weights="random", aggregation="gem")
+    assert create_method("anyloc", backbone="tokens_only", facet="token", weights="random", aggregation="gem",
+                         layer=3).facet == "token"
