@@ -109,3 +109,65 @@ def test_anyloc_on_a_new_backbone_records_it_and_refuses_a_missing_cls(shared_da
                                                "gated": True, "access": "https://github.com/facebookresearch/dinov3"}
     with pytest.raises(VPRBenchError, match="backbone siglip2_b16 has no CLS token"):
         create_method("anyloc", backbone="siglip2_b16", weights="random", aggregation="cls")
+
+
+def _pe_release(state):
+    """timm's PE keys -> the perception_models release's (conv1, class_embedding, positional_embedding,
+    transformer.resblocks.N.{ln_1,attn.in_proj_*,attn.out_proj,ln_2,mlp.c_fc,mlp.c_proj}), shapes as released."""
+    swaps = [("patch_embed.proj", "conv1"), ("pos_embed", "positional_embedding"), ("blocks.", "transformer.resblocks."),
+             ("norm_pre", "ln_pre"), (".norm1.", ".ln_1."), (".norm2.", ".ln_2."), ("attn.qkv.", "attn.in_proj_"),
+             ("attn.proj", "attn.out_proj"), ("mlp.fc1", "mlp.c_fc"), ("mlp.fc2", "mlp.c_proj")]
+    out = {}
+    for key, value in state.items():
+        if key == "cls_token":
+            out["class_embedding"] = value.reshape(-1)
+            continue
+        for timm_part, release_part in swaps:
+            key = key.replace(timm_part, release_part)
+        out[key] = value[0] if key == "positional_embedding" else value
+    return out
+
+
+def _radio_release(state):
+    """timm's RADIO keys -> the C-RADIO checkpoint's ({"state_dict": radio_model.model.*}: a bias-free
+    patch_generator.embedder linear, one cls_token.token holding CLS and registers, blocks as timm)."""
+    p = "radio_model.model."
+    out = {f"{p}patch_generator.embedder.weight": state["patch_embed.proj.weight"].flatten(1),
+           f"{p}patch_generator.pos_embed": state["pos_embed"],
+           f"{p}patch_generator.cls_token.token": torch.cat([state["cls_token"][0], state["reg_token"][0]]),
+           "radio_model.input_conditioner.norm_mean": torch.zeros(3, 1, 1)}  # dropped by the converter
+    out.update({p + k.replace(".gamma", ".grandma"): v for k, v in state.items() if k.startswith("blocks.")})
+    return {"state_dict": out, "args": {"model": "vit_base_patch16_224"}}
+
+
+@pytest.mark.parametrize("name, release", [("pe_spatial_s16", _pe_release), ("radio_v3_b16", _radio_release)])
+def test_release_format_file_of_a_new_family_loads_exactly(name, release, tmp_path):
+    """A random tiny model written with the release's own key names and shapes, read back through
+    the loader's file reader and converter: every tensor equal, nothing missing or left over."""
+    from vprbench.features.backbones import read_checkpoint
+
+    spec = backbone_spec(name)
+    torch.manual_seed(0)
+    model = create_model(spec, **TINY)
+    if "patch_embed.proj.bias" in model.state_dict():
+        torch.nn.init.zeros_(model.patch_embed.proj.bias)  # RADIO's patch embedding has no bias
+    path = tmp_path / "release.pth"
+    torch.save(release(model.state_dict()), path)
+    converted = convert_official(read_checkpoint(path), create_model(spec, empty=True, **TINY))
+    assert set(converted) == set(model.state_dict())
+    for key, value in model.state_dict().items():
+        assert torch.equal(converted[key], value), key
+    wrong = create_model(backbone_spec("dinov3_vits16"), empty=True, **TINY)
+    with pytest.raises(VPRBenchError, match="does not fit this backbone"):
+        convert_official(read_checkpoint(path), wrong)
+
+
+def test_a_facet_the_attention_cannot_give_is_refused_naming_both(monkeypatch):
+    from vprbench import create_method
+
+    entry = backbone_spec("siglip2_b16").model_copy(update={"name": "tokens_only", "facets": ("token",)})
+    monkeypatch.setitem(backbones(), "tokens_only", entry)
+    with pytest.raises(VPRBenchError, match=r"facet=value: backbone tokens_only gives token only"):
+        create_method("anyloc", backbone="tokens_only", facet="value", weights="random", aggregation="gem")
+    assert create_method("anyloc", backbone="tokens_only", facet="token", weights="random", aggregation="gem",
+                         layer=3).facet == "token"

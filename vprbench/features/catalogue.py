@@ -158,6 +158,8 @@ def timm_entry(arch_tag: str) -> BackboneEntry:
     if embed is None or not hasattr(model, "blocks") or not hasattr(model, "forward_intermediates"):
         raise VPRBenchError(f"timm:{arch_tag} has no patch tokens (it is not a ViT with a patch embedding and "
                             "blocks, e.g. a CNN or a hybrid); AnyLoc aggregates per-patch ViT features.")
+    attn = getattr(model.blocks[0], "attn", None)
+    has_qkv = attn is not None and (getattr(attn, "qkv", None) is not None or getattr(attn, "q_proj", None) is not None)
     cfg = cfg.to_dict() if cfg is not None else {}
     has_cls = getattr(model, "cls_token", None) is not None
     prefix = int(getattr(model, "num_prefix_tokens", int(has_cls)))
@@ -168,7 +170,7 @@ def timm_entry(arch_tag: str) -> BackboneEntry:
         position="rope" if getattr(model, "rope", None) is not None else "learned", position_interpolation="timm",
         depth=len(model.blocks), width=int(model.embed_dim),
         mean=tuple(cfg.get("mean", IMAGENET[0])), std=tuple(cfg.get("std", IMAGENET[1])),
-        resize="crop", interpolation="bilinear", facets=("token", "query", "key", "value"),
+        resize="crop", interpolation="bilinear", facets=("token", "query", "key", "value") if has_qkv else ("token",),
         preprocess="crop-to-patch", cls="final-norm" if has_cls else "none", normalise_patches="always",
         licence=str(cfg.get("license") or "see the model card"), gated=False,
         page=f"https://huggingface.co/{hub}" if hub else "https://github.com/huggingface/pytorch-image-models",

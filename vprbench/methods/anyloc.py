@@ -86,6 +86,9 @@ class AnyLoc(Method):
         self.stride = whole("anyloc", "stride", stride, 1, self.spec.patch, f"pixels, at most the patch size {self.spec.patch}") \
             if stride is not None else (self.spec.stride or self.spec.patch)
         self.gem_p = number("anyloc", "gem_p", gem_p, above=0, what="GeM's power, e.g. 3")
+        if facet not in self.spec.facets and aggregation != "cls":
+            raise VPRBenchError(f"facet={facet}: backbone {backbone} gives {', '.join(self.spec.facets)} only (its attention "
+                                "has no separate query/key/value); choose one of those.")
         if aggregation == "cls" and self.spec.cls == "none":
             raise VPRBenchError(f"aggregation=cls: backbone {backbone} has no CLS token (its prefix tokens: "
                                 f"{self.spec.prefix_tokens}); use gem, vlad or another pooling.")

@@ -1,0 +1,112 @@
+"""Dense extraction per backbone against the GEMM bound, on CPU (random weights).
+
+    python tests/benchmarks/backbone_speed.py [--rounds 5] [--batch 4] [--size 224]
+
+For each entry at ViT-S/B size: the FLOPs of one extraction (value facet of the last block,
+counted by torch's FlopCounterMode: every matmul, convolution and attention product up to the
+point where the extractor stops), the time of one extraction, and the bound
+FLOPs / (measured fp32 GEMM rate at that backbone's own matrix shapes). Rounds are interleaved
+(every backbone once per round, in one order) so load on the machine hits all alike; medians
+are reported. Also: the DINOv2 path as it is (official position resampling, hand-written token
+path) against timm's forward_intermediates path on the same model and layer.
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import torch
+from torch.utils.flop_counter import FlopCounterMode
+
+from vprbench.features.backbones import create_model
+from vprbench.features.catalogue import backbone_spec
+from vprbench.features.dense import DenseExtractor
+
+ENTRIES = ["dinov2_vits14", "dinov2_vitb14", "dinov2_vits14_reg", "dinov2_vitb14_reg", "dinov3_vits16",
+           "dinov3_vitb16", "pe_spatial_s16", "pe_spatial_b16", "radio_v3_b16", "siglip2_b16", "dino_vitb16"]
+#: (entry, layer) of the issue's comparison with today's DINOv2 path
+DINOV2_PATHS = [("dinov2_vits14", 11), ("dinov2_vitb14", 8)]
+
+
+def timed(fn, repeat: int = 1) -> float:
+    start = time.perf_counter()
+    for _ in range(repeat):
+        fn()
+    return (time.perf_counter() - start) / repeat
+
+
+def gemm_rate(rows: int, width: int, hidden: int) -> float:
+    """FLOP/s of the backbone's largest GEMM shape: (tokens x width) @ (width x hidden)."""
+    a, b = torch.randn(rows, width), torch.randn(width, hidden)
+    torch.mm(a, b)
+    repeat = max(1, int(2e9 / (2 * rows * width * hidden)))
+    return 2 * rows * width * hidden / timed(lambda: torch.mm(a, b), repeat)
+
+
+def extractor(name: str, layer: int | None = None, facet: str = "value", path: str | None = None):
+    spec = backbone_spec(name)
+    if path is not None:
+        spec = spec.model_copy(update={"position_interpolation": path})
+    torch.manual_seed(0)
+    model = create_model(spec)
+    return DenseExtractor(model, spec, spec.depth - 1 if layer is None else layer, facet), spec
+
+
+def flops(run) -> int:
+    with FlopCounterMode(display=False) as counter:
+        run()
+    return counter.get_total_flops()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--batch", type=int, default=4)
+    parser.add_argument("--size", type=int, default=224)
+    parser.add_argument("--threads", type=int, nargs="+", default=[1, torch.get_num_threads()])
+    args = parser.parse_args()
+
+    cases = {}
+    for name in ENTRIES:
+        ex, spec = extractor(name)
+        side = args.size // spec.patch * spec.patch
+        images = torch.randn(args.batch, 3, side, side)
+        tokens = args.batch * ((side // spec.patch) ** 2 + spec.prefix_tokens)
+        hidden = ex.model.blocks[0].mlp.fc1.out_features
+        cases[name] = (ex, images, flops(lambda: ex(images)), (tokens, spec.width, hidden))
+    for name, layer in DINOV2_PATHS:
+        for path in ("dino", "timm"):
+            ex, spec = extractor(name, layer, path=path)
+            side = args.size // spec.patch * spec.patch
+            images = torch.randn(args.batch, 3, side, side)
+            cases[f"{name} L{layer} {path}"] = (ex, images, flops(lambda: ex(images)), None)
+
+    for threads in args.threads:
+        torch.set_num_threads(threads)
+        times = {key: [] for key in cases}
+        rates = {key: [] for key, case in cases.items() if case[3]}
+        for _ in range(args.rounds):
+            for key, (ex, images, _, shape) in cases.items():
+                with torch.no_grad():
+                    ex(images)  # warm
+                    times[key].append(timed(lambda: ex(images)))
+                if shape:
+                    rates[key].append(gemm_rate(*shape))
+        print(f"\n## {threads} thread(s), batch {args.batch} at {args.size}px, medians of {args.rounds} interleaved rounds")
+        print("| backbone | GFLOP per image | ms per image | GEMM GFLOP/s | bound ms per image | of bound |")
+        print("|---|---|---|---|---|---|")
+        for key, (ex, images, count, shape) in cases.items():
+            per_image = statistics.median(times[key]) / len(images)
+            gflop = count / len(images) / 1e9
+            if shape:
+                rate = statistics.median(rates[key])
+                bound = count / len(images) / rate
+                print(f"| {key} | {gflop:.2f} | {per_image * 1e3:.1f} | {rate / 1e9:.1f} | {bound * 1e3:.1f} | "
+                      f"{bound / per_image:.0%} |")
+            else:
+                print(f"| {key} | {gflop:.2f} | {per_image * 1e3:.1f} | | | |")
+
+
+if __name__ == "__main__":
+    main()
