@@ -21,9 +21,11 @@ def test_plugin_is_listed_and_evaluated(example_plugin_site, shared_data, tmp_pa
     record = json.loads(run.stdout)
     assert record["method"] == "thumbnail" and record["descriptor_dim"] == 256
     assert record["counts"]["queries"] == 111 and 0 <= record["recall"]["1"] <= 100
+    assert record["provenance"]["weights"] == {"source": "none"}  # declared, as the guide shows
 
     board = vprbench_cli(["leaderboard", "--format", "csv"], example_plugin_site, tmp_path)
     assert board.returncode == 0 and "thumbnail" in board.stdout
+    assert "undeclared" not in board.stdout and "†" not in board.stdout, board.stdout
 
 
 def test_plugin_absent_without_the_package(tmp_path):

@@ -75,9 +75,11 @@ def test_plugin_and_baseline_share_the_leaderboard(with_plugin, capsys, tmp_path
     assert len(fingerprint["weights_sha256"]) == 64
     assert baseline["counts"]["queries"] == 111 and 0 <= baseline["recall"]["1"] <= 100
 
-    rows = {line.split(" †")[0]: line for line in run(capsys, "leaderboard", "--format", "csv").splitlines()[1:]}
+    rows = {line.split(" †")[0].split(",")[0]: line for line in run(capsys, "leaderboard", "--format", "csv").splitlines()[1:]}
     cosplace = "cosplace [backbone=ResNet18 dim=32 resize=32x32]"  # options on top of the preset label the row
     assert {"thumbnail", cosplace} <= set(rows)
-    assert "user weights sha256:" in rows[cosplace] and "weights undeclared" in rows["thumbnail"]  # marked rows
+    assert "user weights sha256:" in rows[cosplace] and " †" in rows[cosplace]  # a user's file: a marked row
+    # the plugin declares provenance as the guide shows (nothing learnt): its official row, unmarked
+    assert "none (nothing learnt)" in rows["thumbnail"] and "†" not in rows["thumbnail"]
     assert f"{baseline['recall']['1']:.1f} / {baseline['recall']['5']:.1f}" in rows[cosplace]
     assert f"{plugin['recall']['1']:.1f} / {plugin['recall']['5']:.1f}" in rows["thumbnail"]

@@ -12,6 +12,9 @@ class Thumbnail(vprbench.Method):
     def fingerprint(self) -> dict:
         return {"size": self.size}
 
+    def provenance(self) -> dict:
+        return {"weights": {"source": "none"}}  # nothing learnt: the official row, not "† weights undeclared"
+
     def describe(self, images):
         rows = []
         for path in images:
