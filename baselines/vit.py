@@ -2,8 +2,9 @@
 
 The VPR methods fine-tune DINOv2 and ship the backbone inside their own checkpoint, so
 only the architecture is needed here: timm's VisionTransformer has the official DINOv2
-parameter names (minus the unused `mask_token`). Position embeddings are resampled with
-vprbench's official DINOv2 interpolation (timm's own resampling does not match it).
+parameter names (minus the unused `mask_token`). Tokens come from vprbench's one dense
+extractor (features/dense.py), which resamples position embeddings with the official DINOv2
+interpolation (timm's own resampling does not match it).
 """
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ import torch
 from torch import nn
 
 from vprbench import VPRBenchError
-from vprbench.features.dense import interpolate_pos_embed  # the official DINOv2 resampling
+from vprbench.features.catalogue import backbone_spec
+from vprbench.features.dense import DenseExtractor
 
 
 @dataclass(frozen=True)
@@ -57,16 +59,10 @@ def check_patch_multiple(height: int, width: int, patch: int, method: str) -> No
 
 def vit_tokens(vit: nn.Module, images: torch.Tensor, final_norm: bool) -> torch.Tensor:
     """(B, 1 + rows*cols, C) tokens after every block: [CLS, patches in row-major order]."""
-    batch, _, height, width = images.shape
-    patch = vit.patch_embed.patch_size[0]
-    x = vit.patch_embed(images)
-    if x.ndim == 4:  # timm's dynamic-size patch embedding returns B, rows, cols, C
-        x = x.flatten(1, 2)
-    x = torch.cat((vit.cls_token.expand(batch, -1, -1), x), dim=1)
-    x = x + interpolate_pos_embed(vit.pos_embed, (height // patch, width // patch))
-    for block in vit.blocks:
-        x = block(x)
-    return vit.norm(x) if final_norm else x
+    # the DINOv2 entry's token path, at this trunk's patch size (tests build tiny trunks)
+    spec = backbone_spec("dinov2_vitb14").model_copy(update={"patch": vit.patch_embed.patch_size[0]})
+    tokens = DenseExtractor(vit, spec, len(vit.blocks) - 1, "token")(images, keep_prefix=True)
+    return vit.norm(tokens) if final_norm else tokens
 
 
 def patch_map(tokens: torch.Tensor, height: int, width: int, patch: int) -> torch.Tensor:

@@ -67,7 +67,6 @@ def isolated_cache(tmp_path, monkeypatch):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "user-cache"))
     monkeypatch.setenv("VPRBENCH_CACHE", str(tmp_path / "user-cache" / "vprbench"))
     monkeypatch.delenv("VPRBENCH_DATA", raising=False)
-    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch-home"))
 
 
 def pytest_collection_modifyitems(config, items):

@@ -32,11 +32,14 @@ def test_precision_recall_follows_vpr_bench():
     assert pr["recall_at_100_precision"] == pytest.approx(2 / 3)
     # trapezoids over recall 0 -> 1/3 -> 2/3 at precision 1, then 2/3 -> 1 from 2/3 to 3/4
     assert pr["auc_pr"] == pytest.approx(2 / 3 + (2 / 3 + 3 / 4) / 2 / 3, abs=1e-9)
+    # F1 is 0.8 at (P 1, R 2/3) and 6/7 at (P 3/4, R 1): the largest is taken
+    assert pr["max_f1"] == pytest.approx(6 / 7, abs=1e-9)
 
 
 def test_most_confident_match_wrong_gives_zero_recall_at_full_precision():
     pr = top1_precision_recall(np.array([0.9, 0.5]), np.array([False, True]))
     assert pr["recall_at_100_precision"] == 0.0
+    assert pr["max_f1"] == pytest.approx(2 / 3)  # everything accepted: P 1/2, R 1
 
 
 @pytest.mark.parametrize("ks", [(0,), (-1, 5), (), (200,)])

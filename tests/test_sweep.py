@@ -142,15 +142,37 @@ def test_evaluate_matrix_continues_past_a_failing_cell(shared_data, tmp_path, ca
     assert code == 1 and "has no protocol 'swapped'" in capsys.readouterr().err
 
 
+def test_missing_benchmarks_of_a_sweep_are_said_once_below_the_table(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "80")
+    code = main(["evaluate", "--method", "hog", "dense-vlad", "--dataset", "hawkins", "nordland", "--data-dir", str(tmp_path)])
+    out = capsys.readouterr().out
+    assert code == 1 and "4 failed" in out
+    table, notes = out[:out.index("\n[1] ")], out[out.index("\n[1] "):]
+    assert table.count("[1]") == 2 and table.count("[2]") == 2 and "not in the data root" not in table
+    assert "│" not in notes  # plain text, not a paragraph folded into a column
+    text = " ".join(notes.split())
+    assert text.startswith("[1] Dataset 'hawkins' is not in the data root") and "[2] Dataset 'nordland' is not" in text
+    assert "[3]" not in text and text.lower().count("place it") == 2  # once per dataset
+    assert f"Place it at {tmp_path / 'Nordland'}, or run 'vprbench datasets import nordland PATH'" in text
+
+
 def test_reproduce_dry_run_and_bad_table(shared_data, capsys, monkeypatch):
-    monkeypatch.setenv("COLUMNS", "400")
+    monkeypatch.setenv("COLUMNS", "80")
     assert main(["reproduce", "anyloc", "--table", "2", "--dry-run", "--data-dir", str(shared_data)]) == 0
     out = capsys.readouterr().out
-    assert "60 cells to evaluate, 6 with no vprbench method (NetVLAD)" in out
-    assert out.count("not runnable: no vprbench method") == 6
-    assert "dataset baidu-mall (Download baidu_datasets.tar.gz" in out
-    assert "weights dinov2_vitg14_pretrain.pth (download https://dl.fbaipublicfiles.com/dinov2/dinov2_vitg14/" in out
-    assert "weights ResNet101_2048_cosplace.pth (from https://github.com/gmberton/CosPlace/" in out
+    lines = out.splitlines()
+    # one line per cell (66) and each need said once below the table: it printed 2,707 lines when
+    # every cell repeated its needs' instructions
+    assert len(lines) < 150 and sum("│ CosPlace " in line for line in lines) == 6, out
+    text = " ".join(out.split())
+    assert "60 cells to evaluate, 6 with no vprbench method (NetVLAD)" in text
+    assert text.count("not runnable [1]") == 6 and text.count("[1] no vprbench method matches this row") == 1
+    for need in ("dataset baidu-mall: Download baidu_datasets.tar.gz",
+                 "weights dinov2_vitg14_pretrain.pth: download https://dl.fbaipublicfiles.com/dinov2/dinov2_vitg14/",
+                 "weights ResNet101_2048_cosplace.pth: from https://github.com/gmberton/CosPlace/"):
+        assert text.count(need) == 1, need
+    number = re.search(r"\[(\d+)\] dataset baidu-mall:", text).group(1)
+    assert text.count(f"missing [{number}] ") == 10  # the ten runnable rows on baidu-mall refer to it
     assert not (shared_data.parent / "cache").exists()
     assert main(["reproduce", "anyloc", "--table", "9"]) == 1
     assert "no table '9' here; tables: 2, 3, 4, 5, 6, 7, layer, facet" in capsys.readouterr().err

@@ -7,7 +7,7 @@ everything that decides a result:
     method + its resolved options    (preset defaults overridden by the options given)
     dataset + protocol (its hash)    (a benchmark's protocol, or a folder's own)
     search                           (exact / ivf-pq / hnsw and their options)
-    stages                           (post-retrieval stages, in order; none yet)
+    stages                           (post-retrieval stages, in order: re-ranking, sequence matching)
     ks, store_dtype
 
 and nothing that cannot change one: `RUN_SETTINGS` (device, batch size, workers, memory
@@ -67,6 +67,18 @@ class StageSpec(_Frozen):
 
     name: str
     options: dict[str, Any] = {}
+
+    def label(self) -> str:
+        """'sift-ransac@100', with the options that differ from the stage's defaults: 'aqe@20 [n=3]'."""
+        from .stages.registry import stage_entry
+
+        try:
+            defaults = stage_entry(self.name).cls.Options().model_dump(mode="json")
+        except (VPRBenchError, ValidationError):  # a plugin gone, or without defaults: its record still reads
+            defaults = {}
+        depth = f"@{self.options['k']}" if "k" in self.options else ""
+        other = {k: v for k, v in sorted(self.options.items()) if k != "k" and defaults.get(k, object()) != v}
+        return f"{self.name}{depth}" + (f" [{' '.join(f'{k}={_show(v)}' for k, v in other.items())}]" if other else "")
 
 
 class DatasetSpec(_Frozen):
@@ -132,9 +144,8 @@ class RunSpec(_Frozen):
     def label(self) -> str:
         """The method and the options given on top of its preset, e.g. 'hog [resize=64x64]'."""
         shown = {k: v for k, v in self.given.items() if k != "weights"}  # weights have a mark of their own
-        if not shown:
-            return self.method
-        return f"{self.method} [{' '.join(f'{k}={_show(v)}' for k, v in sorted(shown.items()))}]"
+        label = f"{self.method} [{' '.join(f'{k}={_show(v)}' for k, v in sorted(shown.items()))}]" if shown else self.method
+        return " + ".join([label, *(stage.label() for stage in self.stages)])
 
     def title(self) -> str:
         marks = self.marks()
@@ -180,12 +191,14 @@ class RunSettings:
     #: fetch a missing dataset: None = only into the default data root
     download: bool | None = None
     strict: bool = False
+    #: an exported candidates file a re-ranking run starts from instead of searching (vprbench candidates export)
+    candidates: Path | None = None
 
     def __post_init__(self):
         from .methods.checks import number, whole
         from .row_sources import parse_memory
 
-        for name in ("cache_dir", "data_dir"):
+        for name in ("cache_dir", "data_dir", "candidates"):
             value = getattr(self, name)
             if value is not None and not isinstance(value, Path):
                 object.__setattr__(self, name, Path(value).expanduser())
@@ -211,7 +224,7 @@ class RunSettings:
         """For the record: how the run went (never part of its identity)."""
         return {"device": self.device, "batch_size": self.batch_size, "workers": self.workers,
                 "memory_budget": self.memory_budget, "lock_timeout": self.lock_timeout, "download": self.download,
-                "strict": self.strict}
+                "strict": self.strict, **({"candidates": str(self.candidates)} if self.candidates else {})}
 
 
 # ---------------------------------------------------------------- the resolver
@@ -241,10 +254,19 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
         merged = plain({**{k: v for k, v in entry.defaults.items() if k not in RUN_SETTINGS}, **given})
     except (TypeError, ValueError) as error:
         raise VPRBenchError(f"Method {method!r}: an option is not plain data ({error}).") from None
+    ks, stages = check_ks(ks), tuple(resolve_stage(s) for s in stages or ())
+    check_stage_depths(stages, ks)
+    data = resolve_dataset(dataset, protocol, data_dir, cache_dir)
+    if data.kind == "benchmark":  # a benchmark that is no traverse is refused before its data is needed
+        from .datasets.traverse import require_traverse_manifest
+        from .stages.registry import stage_entry
+
+        for stage in stages:
+            if stage_entry(stage.name).cls.track == "sequence":
+                require_traverse_manifest(data.name, f"Sequence stage {stage.name!r}")
     return RunSpec(method=method, options=merged, given=given, files=_file_identities(method, given),
-                   dataset=resolve_dataset(dataset, protocol, data_dir, cache_dir), search=resolve_search(search),
-                   stages=tuple(resolve_stage(s) for s in stages), ks=check_ks(ks),
-                   store_dtype=_choice("--store-dtype", store_dtype, STORE_DTYPES))
+                   dataset=data, search=resolve_search(search),
+                   stages=stages, ks=ks, store_dtype=_choice("--store-dtype", store_dtype, STORE_DTYPES))
 
 
 def spec_for(method, dataset, **parts) -> RunSpec:
@@ -323,9 +345,33 @@ def resolve_search(search) -> SearchSpec:
 
 
 def resolve_stage(stage) -> StageSpec:
+    """A stage by name (`"aqe"`), as a table (`{name = "sift-ransac", options = {k = 100}}` or with
+    the options beside the name), or a StageSpec: its options validated by the stage's own
+    Options model and stored resolved (defaults filled in), so one stage has one identity."""
+    from .stages.registry import stage_options
+
     if isinstance(stage, StageSpec):
-        return stage
-    raise VPRBenchError(f"Unknown post-retrieval stage {stage!r}: this vprbench has none yet.")
+        name, options = stage.name, dict(stage.options)
+    elif isinstance(stage, str):
+        name, options = stage, {}
+    elif isinstance(stage, dict):
+        name = stage.get("name")
+        options = dict(stage.get("options") or {})
+        options.update({k: v for k, v in stage.items() if k not in ("name", "options")})
+        if not isinstance(name, str):
+            raise VPRBenchError(f"A stage needs a name, e.g. {{name = \"sift-ransac\", k = 100}}; got {stage!r}.")
+    else:
+        raise VPRBenchError(f"A stage is a name or a table with a name, got {stage!r}.")
+    return StageSpec(name=name, options=plain(stage_options(name, options).model_dump(mode="json")))
+
+
+def check_stage_depths(stages: tuple[StageSpec, ...], ks: tuple[int, ...]) -> None:
+    """A re-ranker re-orders its top K: a K reported above it would be scored on candidates it never saw."""
+    for stage in stages:
+        depth = stage.options.get("k")
+        if isinstance(depth, int) and depth < ks[-1]:
+            raise VPRBenchError(f"Stage {stage.name!r} re-ranks the top {depth} (--rerank-k), fewer than the largest "
+                                f"K reported ({ks[-1]}): give --rerank-k >= {ks[-1]} or lower --k.")
 
 
 def check_ks(ks) -> tuple[int, ...]:

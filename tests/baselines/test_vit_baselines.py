@@ -15,7 +15,8 @@ from PIL import Image
 import vprbench
 from vprbench import VPRBenchError, create_method
 from vprbench_baselines import boq, megaloc, salad
-from vprbench_baselines.vit import ViTConfig, interpolate_pos_embed
+from vprbench.features.dense import interpolate_pos_embed
+from vprbench_baselines.vit import ViTConfig
 
 CHECKPOINTS = Path(__file__).resolve().parents[1] / "data" / "checkpoints"
 TINY_VIT = ViTConfig(embed_dim=32, depth=2, heads=2)
@@ -99,6 +100,24 @@ def test_pos_embed_interpolation_follows_official_scale_factor():
     grid = pos[:, 1:].reshape(1, 37, 37, 8).permute(0, 3, 1, 2)
     plain = torch.nn.functional.interpolate(grid, size=(23, 23), mode="bicubic").permute(0, 2, 3, 1).reshape(1, -1, 8)
     assert (out[:, 1:] - plain).abs().max() > 1e-3  # the +0.1 offset moves the sampling grid
+
+
+def test_trunk_tokens_equal_timms_forward_with_the_official_position_embedding():
+    """vit_tokens (the one dense extractor) is timm's own forward pass once the position embedding
+    is resampled the official way: bit for bit at the trained grid, and at a smaller one."""
+    from vprbench_baselines.vit import dinov2_vit, vit_tokens
+
+    torch.manual_seed(0)
+    trunk = dinov2_vit(TINY_VIT).eval()
+    images = torch.randn(2, 3, 518, 518)
+    with torch.no_grad():
+        assert torch.equal(vit_tokens(trunk, images, final_norm=True), trunk.forward_features(images))
+        small = dinov2_vit(ViTConfig(embed_dim=32, depth=2, heads=2, img_size=224)).eval()
+        state = trunk.state_dict()
+        small.load_state_dict({**state, "pos_embed": interpolate_pos_embed(state["pos_embed"], (16, 16))})
+        small.norm = torch.nn.Identity()  # the raw tokens (BoQ's input)
+        images = images[..., :224, :224]
+        assert torch.equal(vit_tokens(trunk, images, final_norm=False), small.forward_features(images))
 
 
 # ---------------------------------------------------------------- reduced models end to end

@@ -1,9 +1,11 @@
 """Every shipped manifest is complete enough for list/info/verify and points at a known layout."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
-from vprbench.datasets import dataset_manifests
+from vprbench.datasets import dataset_manifests, how_to_get
 from vprbench.datasets.layouts import EXPECTS, LAYOUTS, candidates
 
 ANYLOC = {
@@ -36,7 +38,10 @@ def test_manifest_is_complete(name):
     m = dataset_manifests()[name]
     assert m.title and m.domain and m.citation and m.source and m.notes
     assert m.database_count and m.query_count and m.radius is not None
-    assert m.download or "data root" in m.instructions  # says where to put it
+    # how to get it from the manifest, where it goes said once by how_to_get
+    assert m.download or (m.instructions and "place it" not in m.instructions.lower())
+    told = how_to_get(m, Path("/data") / m.directory)
+    assert f"/data/{m.directory}" in told and told.lower().count("place it") == (0 if m.download else 1)
     for candidate in candidates(m):
         assert candidate.layout in LAYOUTS
         assert EXPECTS[candidate.layout](candidate.options), f"{name}: layout {candidate.layout} expects nothing"

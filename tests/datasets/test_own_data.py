@@ -82,7 +82,27 @@ def test_verify_own_data(mydata):
     pd.DataFrame({"image": images(mydata), "x": [0, 10, 20, 30, 40, 0, 400], "y": 0}).to_csv(mydata / "positions.csv", index=False)
     report = verify_dataset(str(mydata))
     assert report.ok and report.layout == "own" and report.images_checked == 7
-    assert report.warnings == ["1 queries have no positive (they count as failures in Recall@K)"]
+    assert report.warnings == ["1 query without a positive (counted as failures in Recall@K)"]
+    assert "7 images decoded" in report.lines()[-1] and "radius 25 metres" in report.lines()[-1]
     assert report.summary["positive_pairs"] == 3
     missing = verify_dataset(str(mydata / "nope"))
     assert not missing.ok and "does not exist" in missing.problems[0]
+
+
+def test_counts_and_radii_read_in_the_singular_and_plural(mydata, capsys):
+    from vprbench.cli.main import main
+    from vprbench.text import plural, quantity
+
+    assert [plural(n, "frame") for n in (0, 1, 2, 1.0, 2.5)] == ["0 frames", "1 frame", "2 frames", "1 frame", "2.5 frames"]
+    assert (plural(1, "query"), plural(3, "query")) == ("1 query", "3 queries")
+    assert (quantity(1, "frames"), quantity(0, "frames"), quantity(1, "metres"), quantity(25, "metres")) == \
+        ("1 frame", "0 frames", "1 metre", "25 metres")
+    assert (quantity(None, "frames"), quantity(3, None)) == ("–", "3")
+    pd.DataFrame({"image": images(mydata), "frame": [0, 1, 2, 3, 4, 0, 4]}).to_csv(mydata / "positions.csv", index=False)
+    (mydata / "dataset.toml").write_text('name = "mine"\nradius = 1\n')
+    assert main(["datasets", "verify", str(mydata)]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"mine: OK at {mydata} (layout own)")  # the dataset's name, then where it is
+    assert "2 queries, 2 with a positive, 4 positive pairs (frames, radius 1 frame); 7 images decoded" in out, out
+    assert main(["datasets", "info", str(mydata)]) == 0
+    assert "within 1 frame " in capsys.readouterr().out

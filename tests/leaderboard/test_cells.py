@@ -86,21 +86,25 @@ def test_each_protocol_of_a_benchmark_is_its_own_column_and_unknown_ones_none(ma
     assert "recorded before protocols existed" in reasons[hand_made["run_id"]]
 
 
-def test_user_and_random_weights_get_marked_rows_and_never_replace_the_official_one(make_record):
+def test_user_weights_get_a_marked_row_and_random_weights_fill_no_cell(make_record):
     official = make_record("cosplace", weights={"source": "official", "url": "https://x"}, seed=1,
                            created="2026-01-01T00:00:00+00:00")
     user = make_record("cosplace", weights={"source": "user", "sha256": "ab" * 32}, quality=1.0, seed=2,
                        created="2026-02-01T00:00:00+00:00")
     random = make_record("cosplace", weights={"source": "random"}, quality=0.0, seed=3,
                          created="2026-03-01T00:00:00+00:00")
-    board = board_of(official, user, random)
+    random_option = make_record("anyloc", options={"weights": "random"}, seed=4)
+    board = board_of(official, user, random, random_option)
     assert only_cell(board, "cosplace").record["run_id"] == official["run_id"]
     names = {r.name for r in board.rows}
-    assert names == {"cosplace", "cosplace † user weights sha256:abababababab", "cosplace † random weights"}
-    assert board.marked["marked_rows"] == 2
+    assert names == {"cosplace", "cosplace † user weights sha256:abababababab"}
+    assert board.marked["marked_rows"] == 1
+    reasons = {r["run_id"]: why for r, why in board.excluded}
+    assert set(reasons) == {random["run_id"], random_option["run_id"]}
+    assert all("numbers from random initialisation never fill a cell" in why for why in reasons.values())
     table = grid(board).reset_index()
     assert table.set_index("weights").loc["official", "corridor"].startswith(f"{official['recall']['1']:.1f} /")
-    assert set(table["weights"]) == {"official", "user weights sha256:abababababab", "random weights"}
+    assert set(table["weights"]) == {"official", "user weights sha256:abababababab"}
 
 
 def test_options_label_rows_and_device_does_not(make_record):
@@ -117,8 +121,7 @@ def test_many_records_each_cell_is_the_newest_complete_one(make_record, tmp_path
     from vprbench.evaluation.results import run_folder
     from vprbench.spec import RunSpec
 
-    base = make_record(k=5, ks=(1, 5), n_database=50, n_queries=40, kind="own")
-    base.pop("per_query")
+    base = make_record(k=5, ks=(1, 5), n_database=50, n_queries=40, kind="own")  # per-query arrays inline
     template = RunSpec.model_validate(base["spec"])
     for m in range(40):
         for d in range(5):
@@ -132,13 +135,13 @@ def test_many_records_each_cell_is_the_newest_complete_one(make_record, tmp_path
                 run = f"2026{repeat:02d}01T000000Z-m{m}d{d}"
                 record = {**base, "method": f"m{m}", "dataset": f"own{d}", "dataset_fingerprint": f"fp{d}",
                           "protocol": protocol, "spec": spec.to_json(), "spec_key": spec.key, "row_key": spec.row_key,
-                          "run_id": run, "created": f"2026-{repeat + 1:02d}-01T00:00:00+00:00",
-                          "recall": {"1": float(repeat), "5": float(repeat + 1)}}
+                          "run_id": run, "created": f"2026-{repeat + 1:02d}-01T00:00:00+00:00"}
                 (folder / f"{run}.json").write_text(json.dumps(record))
     records = read_results()
     board = build_board(records)
     assert len(records) == 2000 and len(board.cells) == 200 and len(board.columns) == 5
-    assert {c.recall(1) for c in board.cells.values()} == {9.0}
+    assert {c.record["run_id"][:8] for c in board.cells.values()} == {"20260901"}
+    assert {c.recall(1) for c in board.cells.values()} == {base["recall"]["1"]}
     assert {c.passed_over for c in board.cells.values()} == {9}
 
 

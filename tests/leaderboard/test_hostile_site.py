@@ -1,5 +1,6 @@
 """Names from records reach the published pages as text: no element, attribute or link of theirs
-survives into the HTML (the Markdown is rendered as mkdocs renders it, then parsed)."""
+survives into the HTML (the Markdown rendered by python-markdown, and the whole site built by
+mkdocs with the project's theme and navigation; the HTML is parsed, not grepped)."""
 from html.parser import HTMLParser
 
 import markdown
@@ -46,3 +47,77 @@ def test_hostile_option_values_publish_as_text(make_record, tmp_path, capsys):
     for page in pages:
         assert not hostile(elements(page.read_text())), page
     assert "&lt;img" in text(HOSTILE) and "\\(" in text(LINK)
+
+
+class Parsed(HTMLParser):
+    """Every element and every run of text of an HTML page."""
+
+    def __init__(self):
+        super().__init__()
+        self.found, self.text, self.scripts, self.tag = [], [], [], None
+
+    def handle_starttag(self, tag, attrs):
+        self.found.append((tag, dict(attrs)))
+        self.tag = tag
+
+    def handle_data(self, data):
+        (self.scripts if self.tag == "script" else self.text).append(data)
+
+
+def live(parsed: Parsed) -> list:
+    """What came alive from the hostile names: their image, an event handler, a javascript: link,
+    a script that calls alert."""
+    found = [(tag, attrs) for tag, attrs in parsed.found if hostile([(tag, attrs)])
+             or any(name.startswith("on") for name in attrs)
+             or any(str(attrs.get(a) or "").strip().lower().startswith("javascript:") for a in ("href", "src"))]
+    return found + [("script", s) for s in parsed.scripts if "alert(" in s]
+
+
+def mkdocs_site(docs, site):
+    """The project's mkdocs.yml (theme, Markdown extensions, navigation plugin) over `docs`, which
+    holds only the published section: the API reference (mkdocstrings) is left out, for speed."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import yaml
+
+    root = Path(__file__).resolve().parents[2]
+    config = yaml.safe_load((root / "mkdocs.yml").read_text())
+    config.update(docs_dir=str(docs), strict=False,
+                  nav=[{"Home": "index.md"}, {"Leaderboard": [{"Results": "leaderboard/"}]}],
+                  plugins=[p for p in config["plugins"] if not isinstance(p, dict) or "mkdocstrings" not in p])
+    config["markdown_extensions"] = [e for e in config["markdown_extensions"]
+                                     if not (isinstance(e, dict) and "pymdownx.snippets" in e)]
+    (docs / "index.md").write_text("# Home\n")
+    (docs.parent / "mkdocs.yml").write_text(yaml.safe_dump(config))
+    return subprocess.run([sys.executable, "-m", "mkdocs", "build", "-f", str(docs.parent / "mkdocs.yml"), "-d", str(site)],
+                          capture_output=True, text=True, env={**os.environ, "NO_MKDOCS_2_WARNING": "1"}, timeout=300)
+
+
+def test_hostile_names_build_with_mkdocs_into_no_live_element(make_record, tmp_path, capsys):
+    import importlib.util
+
+    import pytest
+
+    if importlib.util.find_spec("mkdocs") is None or importlib.util.find_spec("mkdocs_literate_nav") is None:
+        pytest.skip("mkdocs or mkdocs-literate-nav is not installed (pip install -e '.[docs]')")
+    save_result(make_record("hog", options={"note": HOSTILE, "other": LINK}, seed=1))
+    save_result(make_record(HOSTILE, seed=2))  # a method name from a record
+    for seed, name in enumerate((HOSTILE, f"</title>{HOSTILE}"), 3):  # dataset names (the second one once went live)
+        save_result(make_record("hog", name, kind="own", n_database=40, n_queries=30, seed=seed))
+    docs = tmp_path / "docs"
+    assert main(["leaderboard", "publish", "--to", str(docs)]) == 0, capsys.readouterr().err
+    assert HOSTILE in (docs / "leaderboard" / "downloads" / "leaderboard.csv").read_text()  # the attack is in the input
+    done = mkdocs_site(docs, tmp_path / "site")
+    assert done.returncode == 0, done.stdout + done.stderr
+    pages = sorted((tmp_path / "site").rglob("*.html"))
+    assert len([p for p in pages if "leaderboard" in p.parts]) >= 3  # overview, the own page, the paper's
+    shown = 0
+    for page in pages:
+        parsed = Parsed()
+        parsed.feed(page.read_text())
+        assert not live(parsed), (page, live(parsed))
+        shown += sum(HOSTILE in text for text in parsed.text)
+    assert shown >= 3, "the hostile names are on the built pages, as text"

@@ -168,8 +168,10 @@ def test_a_0_2_record_is_moved_into_its_identity_folder_and_upgraded(make_record
     assert not list(folder.glob("*.json"))  # moved, unchanged
     moved = folder / new["protocol"]["hash"] / new["row_key"] / f"{old['run_id']}-hog-corridor.json"
     assert json.loads(moved.read_text()) == old
-    board = build_board(records)
-    assert len(board.rows) == 1 and next(iter(board.cells.values())).passed_over == 1
+    board = build_board(records)  # the old run kept no per-query arrays: nothing of it can be recomputed
+    assert len(board.rows) == 1 and next(iter(board.cells.values())).record["run_id"] == new["run_id"]
+    assert [(r["run_id"], why) for r, why in board.excluded] == [
+        (old["run_id"], "it keeps no per-query arrays, so its metrics cannot be recomputed; rerun it")]
 
 
 def test_damaged_per_query_file_is_named_and_only_statistics_are_lost(make_record):

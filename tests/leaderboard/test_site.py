@@ -75,7 +75,9 @@ def test_publish_writes_every_page_figure_and_download(capsys, tmp_path, shared_
     section = docs / "leaderboard"
     pages = {p.name for p in section.glob("*.md")}
     assert pages == {"index.md", "reported.md", "corridor.md", "hawkins.md", "laurel-caverns.md", "baidu-mall.md",
-                     full_board.own_page}
+                     full_board.own_page, "SUMMARY.md"}
+    navigation = (section / "SUMMARY.md").read_text()  # every page in the site's navigation
+    assert all(f"]({page})" in navigation for page in pages - {"SUMMARY.md"}), navigation
     overview = (section / "index.md").read_text()
     assert "### Table II: Structured environments" in overview and "### Table III: Unstructured environments" in overview
     assert "| hog [resize=64x64] |" in overview and "*AnyLoc-VLAD-DINOv2* (paper)" in overview
@@ -83,7 +85,7 @@ def test_publish_writes_every_page_figure_and_download(capsys, tmp_path, shared_
     assert "hog † user weights sha256:abababababab" not in overview.split("## Other runs")[0], "never in a paper table"
     assert "| hog † | user weights sha256:abababababab | [corridor](corridor.md)" in overview
     assert f"[corridor (own data)]({full_board.own_page})" in overview
-    for page in pages - {"reported.md"}:
+    for page in pages - {"reported.md", "SUMMARY.md"}:
         assert '!!! note "Marks"' in (section / page).read_text(), page
     assert "1 cell(s) are on rows marked †" in overview
     corridor = (section / "corridor.md").read_text()
@@ -129,6 +131,8 @@ def downloads_say_what_the_pages_say(section, summary):
         cells = pages[slug][entry["method"]]
         assert cells[1] == entry["weights"], (entry["method"], slug)
         assert cells[2] == f"{entry['r1']:.1f} [{entry['r1_ci_low']:.1f}, {entry['r1_ci_high']:.1f}]"
+        # R@100%P in percent like the R@K beside it, not a fraction
+        assert cells[7] == f"{100 * entry['recall_at_100_precision']:.1f}", (entry["method"], cells)
 
 
 def test_publish_again_replaces_the_section_and_leaves_no_temporary_folder(capsys, tmp_path, shared_data):

@@ -159,6 +159,17 @@ class Vocabulary:
                 f"{f': {fitted}' if fitted else ''}). Use a vocabulary fitted for these features."
             )
 
+    def check_setting(self, backbone: str, layer: int, facet: str) -> None:
+        """Refuse centres whose metadata names other features (a bare released tensor names none)."""
+        asked = {"backbone": backbone, "layer": layer, "facet": facet}
+        made = {key: self.meta[key] for key in asked if self.meta.get(key) is not None}
+        if any(str(value) != str(asked[key]) for key, value in made.items()):
+            source = self.meta.get("path") or self.meta.get("imported_from") or self.meta.get("source") or "the vocabulary"
+            shown = " ".join(f"{key} {value}" for key, value in made.items())
+            raise VPRBenchError(
+                f"Vocabulary {source} was fitted on {shown}, but these features are backbone {backbone} "
+                f"layer {layer} facet {facet}: use a vocabulary fitted on them (`vprbench vocabulary fit`).")
+
     def save(self, path: str | Path) -> Path:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)

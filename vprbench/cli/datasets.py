@@ -6,6 +6,7 @@ import json
 import warnings
 
 from ..errors import VPRBenchError
+from ..text import quantity
 from .console import console, styled
 from .options import add_location_options, resolve_locations
 
@@ -66,7 +67,7 @@ def run_list(args) -> int:
     for column in ("name", "domain", "database", "queries", "radius", "on disk"):
         table.add_column(column)
     for r in rows:
-        radius = f"{r['radius']:g} {r['radius_unit'] or ''}".strip()
+        radius = quantity(r["radius"], r["radius_unit"])
         radius += " (lists)" if r["unit"] == "positives" else ""
         table.add_row(r["name"], r["domain"], str(r["database"] or "?"), str(r["queries"] or "?"), radius,
                       styled("yes", "green") if r["on_disk"] else "no")
@@ -121,7 +122,7 @@ def protocol_table(name: str, listed: list[dict]):
         table.add_column(column, overflow="fold")
     for p in listed:
         gt = p["ground_truth"]
-        within = f"within {gt['radius']:g} {gt['radius_unit'] or ''}".strip() + (" (lists)" if gt["unit"] == "positives" else "")
+        within = f"within {quantity(gt['radius'], gt['radius_unit'])}" + (" (lists)" if gt["unit"] == "positives" else "")
         db, q = p["database"], p["queries"]
         table.add_row(p["name"], p["hash"],
                       f"{db['count'] or '?'} ({db['split']}{', without ' + ', '.join(db['exclude_folders']) if db['exclude_folders'] else ''})",

@@ -28,6 +28,8 @@ def add_parsers(commands) -> None:
     add_run_options(p)
     add_sweep_options(p)
     add_location_options(p)
+    p.add_argument("--candidates", type=Path, metavar="FILE",
+                   help="start the re-ranking from candidates exported by 'vprbench candidates export' (named in the record)")
     p.add_argument("--json", action="store_true", help="print the result record as JSON on stdout (one run only)")
     p.set_defaults(run=run_evaluate)
 
@@ -51,6 +53,10 @@ def run_evaluate(args) -> int:
 
     resolve_locations(args)
     settings = run_settings(args)
+    if args.candidates is not None:
+        import dataclasses
+
+        settings = dataclasses.replace(settings, candidates=args.candidates)
     options, overrides = method_options(args), spec_overrides(args)
     runs = len(args.method) * len(args.dataset)
     ranks = Ranks.from_environment(settings.device)
@@ -75,6 +81,7 @@ def run_one(args, settings, options, overrides, ranks) -> int:
 
     spec = resolve_spec(args.method[0], args.dataset[0], options={**options, **explicit_run_options(args)},
                         protocol=args.protocol, search=overrides["search"], ks=overrides["k"],
+                        stages=overrides["stages"] or (),
                         store_dtype=overrides["store_dtype"] or "float32", data_dir=settings.data_dir,
                         cache_dir=settings.cache_dir)
     with progress(args, ranks.rank == 0) as shown:
@@ -104,14 +111,19 @@ def run_matrix(args, settings, options, overrides) -> int:
 def results_table(record: dict):
     from rich.table import Table
 
+    from ..text import percent
+
     counts, timings = record["counts"], record["timings"]
     table = Table(title=f"{record.get('label') or record['method']} on {record['protocol']['id']}", show_header=True)
     for k in record["recall"]:
         table.add_column(f"R@{k}", justify="right")
     table.add_column("AUC-PR", justify="right")
     table.add_column("R@100%P", justify="right")
+    table.add_column("max F1", justify="right")
+    max_f1 = record.get("max_f1")  # older records lack it
     table.add_row(*[f"{v:.1f}" for v in record["recall"].values()],
-                  f"{record['auc_pr']:.3f}", f"{100 * record['recall_at_100_precision']:.1f}")
+                  f"{record['auc_pr']:.3f}", percent(record["recall_at_100_precision"]),
+                  "-" if max_f1 is None else f"{max_f1:.3f}")
     computed = record["descriptors_computed"]
     table.caption = (
         f"Recall in percent; {counts['database']} database, {counts['queries']} queries "

@@ -21,6 +21,8 @@ def add_parsers(commands) -> None:
     p.add_argument("--dataset", help="with 'compare': the dataset both were run on")
     p.add_argument("--k", type=int, default=1, help="with 'compare': the K of Recall@K compared (default 1)")
     p.add_argument("--seed", type=int, default=0, help="seed of the bootstrap (default 0)")
+    p.add_argument("--track", choices=("single-image", "re-ranked", "sequence"), default="single-image",
+                   help="with 'show': which track's table (default single-image; each track is a table of its own)")
     p.add_argument("--cache-dir", help="where the results store lives")
     p.add_argument("--data-dir", help="with 'publish': where the datasets' images are, for the retrieval mosaics")
     p.set_defaults(run=run)
@@ -55,6 +57,10 @@ def run(args) -> int:
     if args.methods:
         raise VPRBenchError(f"'leaderboard {args.action}' takes no method names (got {' '.join(args.methods)}); "
                             "did you mean 'leaderboard compare A B --dataset D'?")
+    everything, board = board, board.of_track(args.track)
+    if not board.cells and everything.cells:
+        raise VPRBenchError(f"No run in the {args.track} track yet; the stored runs are in: {', '.join(everything.tracks)} "
+                            "(--track).")
     if not board.cells:
         raise VPRBenchError(f"None of the {len(records)} stored run(s) can fill a cell: "
                             f"{board.excluded[0][1]}." if board.excluded else NO_RESULTS)
@@ -62,7 +68,7 @@ def run(args) -> int:
     if args.format != "table":
         print(render(table, args.format))
         return unread(skipped)
-    view = Table(title="R@1 / R@5 (%): one run per cell")
+    view = Table(title=f"R@1 / R@5 (%), {args.track} track: one run per cell")
     view.add_column("method")
     for column in table.columns:
         view.add_column(str(column), justify="right" if column != "weights" else "left")

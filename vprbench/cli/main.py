@@ -8,7 +8,7 @@ import warnings
 
 from .. import __version__
 from ..errors import VPRBenchError, os_error_message
-from . import datasets, evaluate, leaderboard, methods, reproduce, results, run, vocabulary
+from . import datasets, evaluate, leaderboard, methods, reproduce, results, run, stages, vocabulary
 from .console import console, styled
 
 
@@ -16,7 +16,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vprbench", description="Benchmark suite for visual place recognition.")
     parser.add_argument("--version", action="version", version=f"vprbench {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for module in (evaluate, run, reproduce, datasets, methods, vocabulary, leaderboard, results):
+    for module in (evaluate, run, reproduce, datasets, methods, stages, vocabulary, leaderboard, results):
         module.add_parsers(commands)
     return parser
 

@@ -15,6 +15,9 @@ def add_parsers(commands) -> None:
     p = sub.add_parser("list", help="every method and preset, with where it comes from")
     p.add_argument("--json", action="store_true")
     p.set_defaults(run=run_list)
+    p = sub.add_parser("backbones", help="the ViT backbones AnyLoc and vocabulary fit can use")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(run=run_backbones)
 
 
 def run_list(args) -> int:
@@ -28,5 +31,24 @@ def run_list(args) -> int:
         table.add_column(column)
     for e in entries:
         table.add_row(e.name, e.source, e.description)
+    console().print(table)
+    return 0
+
+
+def run_backbones(args) -> int:
+    from ..features.catalogue import backbones
+
+    entries = backbones().values()
+    if args.json:
+        print(json.dumps([e.model_dump(mode="json") for e in entries], indent=2))
+        return 0
+    table = Table(title="Backbones (manifests/backbones; or --backbone timm:ARCH.TAG)")
+    for column in ("name", "family", "timm", "patch", "prefix", "position", "blocks x width", "licence"):
+        table.add_column(column)
+    for e in entries:
+        prefix = " + ".join(filter(None, ["CLS" if e.cls_token else "", f"{e.registers} reg" if e.registers else ""]))
+        cells = (e.name, e.family, e.timm_name, str(e.patch), prefix or "none", e.position,
+                 f"{e.depth} x {e.width}", e.licence + (" (gated)" if e.gated else ""))
+        table.add_row(*cells)
     console().print(table)
     return 0

@@ -106,6 +106,15 @@ def add_spec_options(parser: argparse.ArgumentParser) -> None:
                        help="an approximate index's option, e.g. nprobe=64 (repeatable; docs/evaluation.md)")
     group.add_argument("--store-dtype", choices=("float32", "float16"), default=None,
                        help="descriptor store precision; float16 halves the disk, reading gives float32 (default: float32)")
+    group = parser.add_argument_group("post-retrieval stages (part of the run's identity; docs/stages.md)")
+    group.add_argument("--rerank", metavar="STAGE", help="re-rank the candidates: sift-ransac, aqe, dba or a plugin's")
+    group.add_argument("--rerank-k", type=int, metavar="K", help="how many candidates the re-ranker re-orders (default 100)")
+    group.add_argument("--rerank-option", action="append", default=[], metavar="KEY=VALUE",
+                       help="a re-ranker's option, e.g. model=homography (repeatable)")
+    group.add_argument("--sequence", metavar="STAGE", help="sequence matching over the traverse (e.g. seqslam)")
+    group.add_argument("--sequence-length", type=int, metavar="N", help="frames in a sequence")
+    group.add_argument("--sequence-option", action="append", default=[], metavar="KEY=VALUE",
+                       help="a sequence stage's option (repeatable)")
 
 
 def spec_overrides(args) -> dict:
@@ -117,7 +126,25 @@ def spec_overrides(args) -> dict:
     from ..spec import check_ks
 
     ks = check_ks(args.k) if getattr(args, "k", None) else None
-    return {"search": search, "k": list(ks) if ks else None, "store_dtype": getattr(args, "store_dtype", None)}
+    return {"search": search, "k": list(ks) if ks else None, "store_dtype": getattr(args, "store_dtype", None),
+            "stages": stage_flags(args)}
+
+
+def stage_flags(args) -> list[dict] | None:
+    """--rerank / --sequence and their options as the spec's stage list (re-ranking first), None when none."""
+    stages = []
+    for kind, size, name in (("rerank", "rerank_k", "k"), ("sequence", "sequence_length", "length")):
+        stage = getattr(args, kind, None)
+        options = key_values(getattr(args, f"{kind}_option", None) or [], f"--{kind}-option")
+        if getattr(args, size, None) is not None:
+            options[name] = getattr(args, size)
+        if stage is None:
+            if options:
+                raise VPRBenchError(f"--{kind}-{'k' if kind == 'rerank' else 'length'} and --{kind}-option need "
+                                    f"--{kind} STAGE (e.g. --{kind} {'sift-ransac' if kind == 'rerank' else 'seqslam'}).")
+            continue
+        stages.append({"name": stage, **options})
+    return stages or None
 
 
 # ---------------------------------------------------------------- run settings

@@ -11,7 +11,7 @@ from .options import (add_location_options, add_method_flags, add_run_options, a
 def add_parsers(commands) -> None:
     p = commands.add_parser("reproduce", help="run a paper's table as a plan and print it with measured values")
     p.add_argument("paper", help="the paper (anyloc)")
-    p.add_argument("--table", required=True, help="2, 3, 4, 5, 6, 7, layer or facet")
+    p.add_argument("--table", required=True, help="2, 3, 4, 5, 6, 7, layer, facet or backbones")
     p.add_argument("--dry-run", action="store_true", help="list the cells and what each needs; run nothing")
     p.add_argument("--publish", type=Path, metavar="DIR", help="also write the table (Markdown) and the leaderboard into DIR")
     add_method_flags(p)
@@ -40,12 +40,9 @@ def _row_weights(spec: dict) -> dict:
 
 
 def run_reproduce(args) -> int:
-    from rich.table import Table
-    from rich.text import Text
-
     from ..evaluation.results import find_result
     from ..sweep import run_cells, summary_table
-    from ..sweep.reproduce import missing_for, table_cells
+    from ..sweep.reproduce import missing_for, needs_text, table_cells
     from ..sweep.runner import FAILED
     from .evaluate import explicit_run_options
 
@@ -61,24 +58,16 @@ def run_reproduce(args) -> int:
     unrunnable = [tc for tc in table_cells_ if not tc.cells]
     no_method = f"{len(unrunnable)} with no vprbench method ({', '.join(sorted({tc.row for tc in unrunnable}))})"
     if args.dry_run:
-        listing = Table(title=f"{spec['title']}: {len(cells)} cells to evaluate"
-                        f"{f', {no_method}' if unrunnable else ''} (dry run, nothing runs)")
-        for column in ("row", "column", "dataset:protocol", "status"):
-            listing.add_column(column, overflow="fold")
-        for tc in table_cells_:
-            for c in tc.cells or [None]:
-                if c is None:
-                    listing.add_row(tc.row, tc.column, "", Text.assemble(("not runnable", "yellow"), f": {tc.reason}"))
-                    continue
-                record = find_result(c.spec, settings.cache_dir)
-                status = (Text.assemble(("complete", "cyan"), f" (record of {record.get('created')})") if record else
-                          Text.assemble(("missing", "yellow"), f": {missing[c.key]}") if missing[c.key] else
-                          Text("would run", style="green"))
-                listing.add_row(tc.row, tc.column, c.spec.dataset.protocol_id, status)
-        console.print(listing)
+        counted = f"{len(cells)} cells to evaluate{f', {no_method}' if unrunnable else ''}"
+        if spec.get("dry_run") == "by-row":
+            records = {key: find_result(c.spec, settings.cache_dir) for key, (c, _) in cells.items()}
+            status = {key: "complete" if records[key] else "missing" if missing[key] else "would run" for key in cells}
+            console.print(by_row(table_cells_, status, missing, f"{spec['title']}: {counted} (dry run, nothing runs)"))
+        else:
+            console.print(dry_run_listing(spec, table_cells_, missing, settings.cache_dir, counted))
         return 0
     outcomes = run_cells([c for c, _ in cells.values()], settings, lease_s=args.lease,
-                         plan=f"{args.paper} table {args.table}", runnable=lambda c: missing[c.key],
+                         plan=f"{args.paper} table {args.table}", runnable=lambda c: needs_text(missing[c.key]),
                          progress=progress(args))
     console.print(summary_table(outcomes, f"{args.paper} table {args.table}"))
     if unrunnable:
@@ -88,6 +77,72 @@ def run_reproduce(args) -> int:
     if args.publish:
         publish(args, spec, rendered, settings)
     return 1 if any(o.status == FAILED for o in outcomes) else 0
+
+
+def by_row(table_cells_, status, missing, title):
+    """One line per row (a wide table): how many cells are complete or would run, and what the
+    others lack, each need once (domain vocabularies in one command); each need's instructions
+    once below the table."""
+    from rich.table import Table
+
+    from ..notes import Notes
+
+    notes = Notes()
+    listing = Table(title=title)
+    for column in ("row", "complete", "would run", "missing", "needs"):
+        listing.add_column(column, overflow="fold")
+    rows: dict[str, list] = {}
+    for tc in table_cells_:
+        rows.setdefault(tc.row, []).extend(tc.cells)
+    for row, cells in rows.items():
+        kinds = [status[c.key] for c in cells]
+        needs = dict.fromkeys(need for c in cells for need in missing[c.key])
+        shown, vocabularies, fit, datasets = [], [], "", 0
+        for thing, how in needs:
+            if thing.startswith("dataset "):
+                datasets += 1
+                notes.refer(f"{thing}: {how}")
+            elif thing.startswith("vocabulary '"):
+                name = thing.split("'")[1]
+                vocabularies.append(name)
+                fit = how.replace(f"--domain {name} ", "--domain D ")
+            else:
+                shown.append(notes.short(f"{thing}: {how}"))
+        if vocabularies:
+            shown.append(notes.short(f"vocabularies D = {', '.join(vocabularies)}: {fit}"))
+        if datasets:
+            shown.append(f"{datasets} datasets (notes below)")
+        listing.add_row(row, str(kinds.count("complete")), str(kinds.count("would run")), str(kinds.count("missing")),
+                        "; ".join(shown))
+    return notes.below(listing)
+
+
+def dry_run_listing(spec: dict, table_cells_, missing: dict, cache_dir, counted: str):
+    """One line per cell (at 80 columns too): each need's instructions once, below the table, the
+    cells referring to them by number."""
+    from rich.table import Table
+    from rich.text import Text
+
+    from ..evaluation.results import find_result
+    from ..notes import Notes
+    from ..sweep.runner import _minute
+
+    notes = Notes()
+    listing = Table(title=f"{spec['title']}: {counted} (dry run, nothing runs)")
+    listing.add_column("row", overflow="fold")
+    listing.add_column("column: dataset:protocol", overflow="fold")
+    listing.add_column("status", no_wrap=True)  # short: the long part is a note
+    for tc in table_cells_:
+        if not tc.cells:
+            listing.add_row(tc.row, tc.column, Text.assemble(("not runnable", "yellow"), f" {notes.refer(tc.reason)}"))
+        for c in tc.cells:
+            record = find_result(c.spec, cache_dir)
+            needs = " ".join(notes.refer(f"{thing}: {how}") for thing, how in missing[c.key])
+            status = (Text.assemble(("complete", "cyan"), f" ({_minute(record.get('created'))})") if record else
+                      Text.assemble(("missing", "yellow"), f" {needs}") if needs else Text("would run", style="green"))
+            where = c.spec.dataset.protocol_id
+            listing.add_row(tc.row, where if where.startswith(f"{tc.column}:") else f"{tc.column}: {where}", status)
+    return notes.below(listing)
 
 
 def paper_table(spec: dict, table_cells_, cache_dir=None):

@@ -60,7 +60,8 @@ def run_fit(args) -> int:
     if not hasattr(method, "iter_patch_features"):
         raise VPRBenchError(f"Method {args.method!r} does not expose patch features, so it cannot fit a vocabulary.")
     clusters = int(method.clusters)
-    setting = {"backbone": method.backbone, "layer": method.layer, "facet": method.facet}
+    backbone = getattr(method, "vocabulary_backbone", method.backbone)  # random weights have their own key
+    setting = {"backbone": backbone, "layer": method.layer, "facet": method.facet}
     common = {"exact": args.exact, "budget": DEFAULT_BUDGET if args.budget is None else args.budget, "seed": args.seed, "meta": dict(setting)}
     data_dir = args.data_dir
     if args.domain:

@@ -16,11 +16,13 @@ def read_registry(name: str) -> dict[str, str]:
 
 
 def how_to_get(manifest: DatasetManifest, root: Path) -> str:
+    """What to do to have the dataset at root. Manifests' instructions say how to get the data,
+    never where it goes: that is said here, once."""
     if manifest.download:
         named = "" if root.parent == default_data_root() else f" --data-dir {root.parent}"
         return f"Run 'vprbench datasets download {manifest.name}{named}' to fetch it into {root}."
     text = manifest.instructions.strip() or f"Get it from {manifest.source or 'its authors'}."
-    return f"{text} Then place it at {root} or run 'vprbench datasets import {manifest.name} PATH'."
+    return f"{text} Place it at {root}, or run 'vprbench datasets import {manifest.name} PATH' on a copy elsewhere."
 
 
 def download(manifest: DatasetManifest, root: Path, progress: bool = True) -> Path:

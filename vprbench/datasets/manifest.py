@@ -37,6 +37,9 @@ class DatasetManifest:
     protocol: dict = field(default_factory=dict)
     #: named variants of the protocol (swapped splits, another tolerance, a query subset...)
     protocols: list = field(default_factory=list)
+    #: how the capture order of a traverse is known, for sequence matching: "listing",
+    #: "file-name-frame", or "" (not a traverse; see datasets/traverse.py)
+    sequence_order: str = ""
 
     @classmethod
     def from_toml(cls, text: str, origin: str) -> "DatasetManifest":
@@ -45,6 +48,10 @@ class DatasetManifest:
         unknown = set(data) - known
         if unknown:
             raise VPRBenchError(f"Manifest {origin}: unknown field(s) {sorted(unknown)}")
+        from .traverse import ORDERS
+
+        if data.get("sequence_order", "") not in ORDERS:
+            raise VPRBenchError(f"Manifest {origin}: sequence_order must be one of {ORDERS}, got {data['sequence_order']!r}")
         try:
             return cls(**data)
         except TypeError as error:

@@ -75,6 +75,8 @@ class Dataset:
     protocol: dict = field(default_factory=dict)
     #: "benchmark" (a shipped manifest) or "own" (a folder of the user's own)
     kind: str = "benchmark"
+    #: how the splits' capture order is known, for sequence matching (datasets/traverse.py)
+    sequence_order: str = ""
 
     @cached_property
     def positives(self) -> list[np.ndarray]:

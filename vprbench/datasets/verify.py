@@ -14,6 +14,7 @@ import numpy as np
 
 from ..errors import VPRBenchError
 from ..images import load_image
+from ..text import plural, quantity
 from .download import how_to_get
 from .layouts import candidates, describe_layout, detect_layout, missing_paths, read_layout
 from .manifest import dataset_manifest
@@ -40,8 +41,9 @@ class VerifyReport:
         if self.summary:
             s = self.summary
             body.append(
-                f"  {s['database']} database, {s['queries']} queries, {s['queries_with_positives']} queries with a positive, "
-                f"{s['positive_pairs']} positive pairs ({s['unit']}, radius {s['radius']} {s.get('radius_unit') or ''}); {self.images_checked} images decoded"
+                f"  {s['database']} database, {plural(s['queries'], 'query')}, {s['queries_with_positives']} with a positive, "
+                f"{plural(s['positive_pairs'], 'positive pair')} ({s['unit']}, radius {quantity(s['radius'], s.get('radius_unit'))}); "
+                f"{plural(self.images_checked, 'image')} decoded"
             )
         return [head, *body]
 
@@ -67,7 +69,7 @@ def verify_dataset(name: str, data_dir=None, strict: bool = False, sample: int |
     else:
         manifest = dataset_manifest(name)
         root = dataset_location(manifest, data_dir)
-    report = VerifyReport(name=name, root=root)
+    report = VerifyReport(name=manifest.name, root=root)  # own data: its dataset.toml name, not the path given
     if not root.is_dir():
         report.problems.append(f"folder {root} does not exist. {how_to_get(manifest, root)}")
         return report
@@ -97,7 +99,7 @@ def verify_dataset(name: str, data_dir=None, strict: bool = False, sample: int |
     else:
         without = report.summary["queries"] - report.summary["queries_with_positives"]
         if without:
-            report.warnings.append(f"{without} queries have no positive (they count as failures in Recall@K)")
+            report.warnings.append(f"{plural(without, 'query')} without a positive (counted as failures in Recall@K)")
     for path in sample_paths(dataset.database, sample) + sample_paths(dataset.queries, sample):
         if path.is_file():
             try:

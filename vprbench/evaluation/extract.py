@@ -25,7 +25,7 @@ from ..distributed import Ranks
 from ..errors import VPRBenchError
 from ..fsutil import cache_error
 from ..loader import check_batch_size, describe_batches
-from ..store import (DTYPES, NO_FIT, DescriptorStore, RowWriter, StoreFolder, create_rows_file, inspect_rows_file,
+from ..store import (DTYPES, NO_FIT, DamagedRows, DescriptorStore, RowWriter, StoreFolder, create_rows_file, inspect_rows_file,
                      method_fingerprint, shard_range)
 from ..store.folder import unsaved_fit_id
 from ..store.rows_file import merge_rows_files
@@ -195,6 +195,10 @@ class _Job:
                 merge_rows_files(parts, final, self.folder.identity(split, names, fit_id, self.dtype), dims.pop())
         except OSError as error:
             raise cache_error(error, final) from None
+        except DamagedRows as damage:
+            self.folder.discard(damage.path, damage.detail)
+            raise VPRBenchError(f"Shard {damage.path} was damaged ({damage.detail}); it was discarded: run again "
+                                "to recompute it.") from None
         self.folder.tidy(split)
 
     # ---------------------------------------------------------------- every rank

@@ -43,16 +43,19 @@ def top1_precision_recall(top1_scores: np.ndarray, top1_correct: np.ndarray) -> 
     """VPR-Bench's PR metrics: sklearn's curve over top-1 matches ranked by their similarity.
 
     auc_pr is the area under that curve; recall_at_100_precision the largest recall whose
-    precision is 1 (0 when even the most confident match is wrong).
+    precision is 1 (0 when even the most confident match is wrong); max_f1 the largest
+    2PR / (P + R) over its thresholds (robotics' summary of a sequence matcher).
     """
     from sklearn.metrics import auc, precision_recall_curve
 
     correct = np.asarray(top1_correct, dtype=bool)
     if not correct.any():
-        return {"auc_pr": 0.0, "recall_at_100_precision": 0.0, "curve": {"precision": [], "recall": []}}
+        return {"auc_pr": 0.0, "recall_at_100_precision": 0.0, "max_f1": 0.0, "curve": {"precision": [], "recall": []}}
     precision, recall, _ = precision_recall_curve(correct, top1_scores)
     exact = precision[:-1] == 1.0  # the last point (precision 1, recall 0) has no threshold
+    f1 = 2 * precision * recall / np.maximum(precision + recall, 1e-12)
     return {
+        "max_f1": float(f1.max()),
         "auc_pr": float(auc(recall, precision)),
         "recall_at_100_precision": float(recall[:-1][exact].max()) if exact.any() else 0.0,
         "curve": {"precision": precision.round(6).tolist(), "recall": recall.round(6).tolist()},

@@ -8,6 +8,7 @@ A single command, a matrix, a plan, `reproduce` and torchrun are loops over spec
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 from ..distributed import Ranks
 from ..errors import VPRBenchError
@@ -17,6 +18,8 @@ from .identity import protocol_of
 from .metrics import check_ks
 from .record import result_record
 from .retrieve import retrieve
+from ..stages.base import Candidates, StageContext
+from ..stages.run import create_stages, retrieval_depth, run_stages, track_of
 
 
 def load_data(spec: RunSpec, settings: RunSettings):
@@ -52,21 +55,38 @@ def loader_workers(settings: RunSettings, method) -> int:
     return settings.workers if settings.workers is not None else default_workers(str(getattr(method, "device", "cpu")))
 
 
-def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None, method=None, progress=None,
-             ranks: Ranks | None = None) -> dict | None:
-    """Recall@K and PR metrics of the run `spec` names, with a full result record (not saved:
-    `vprbench.evaluation.save_result` stores it).
+def stage_context(spec: RunSpec, settings: RunSettings, method, dataset, described, progress) -> StageContext:
+    """What stages see: the dataset and the retriever's descriptors as its search saw them."""
+    from ..row_sources import DEFAULT_MEMORY_BUDGET
+    from .search import postprocessed
 
-    `settings` say how it runs and where the data and cache are (default: the user cache and the
-    default data root). `dataset`/`method` may be given already built (e.g. a dataset made by
-    hand); they must be the spec's. Under torchrun (`ranks` from `Ranks.from_environment()`)
-    every rank describes its shard; rank 0 returns the record, the other ranks None.
-    """
-    started = time.perf_counter()
-    settings = settings or RunSettings()
+    budget = settings.memory_budget or DEFAULT_MEMORY_BUDGET
+    database, queries, _ = postprocessed(method, described.stores["database"], described.stores["queries"], budget)
+    prefix = {**spec.row_identity(), "stages": [], "protocol": spec.dataset.protocol_hash}
+    return StageContext(dataset=dataset, database=database, queries=queries, spec=spec, prefix=prefix,
+                        cache_dir=settings.cache_dir, memory_budget=budget, lock_timeout=settings.lock_timeout,
+                        progress=progress, compare=getattr(method, "compare", "cosine"))
+
+
+@dataclass
+class Retrieved:
+    """A run up to its candidates: what evaluate and `candidates export` share."""
+
+    method: object
+    dataset: object
+    ks: tuple[int, ...]
+    described: object
+    found: object  # SearchResult: scores, indices, info
+    timings: dict
+    workers: int
+    frozen: dict | None = None  # the candidates file the run started from
+
+
+def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, method=None, progress=None,
+              ranks: Ranks | None = None, depth: int | None = None) -> Retrieved | None:
+    """Load, describe (stores) and search (or read `settings.candidates`): the top candidates of
+    `spec`'s retriever, as deep as its stages need (or `depth`). None on ranks other than 0."""
     ranks = ranks or Ranks()
-    if spec.stages:
-        raise VPRBenchError("This vprbench has no post-retrieval stages yet.")
     if method is None:
         method = create_run_method(spec.method, spec.given, settings)  # options are checked before any data is touched
     elif method.name != spec.method:
@@ -79,7 +99,17 @@ def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None
     elif protocol_of(dataset)["hash"] != spec.dataset.protocol_hash:
         raise VPRBenchError(f"The dataset given is {protocol_of(dataset)['id']}, not the spec's {spec.dataset.protocol_id}.")
     ks = check_ks(spec.ks, len(dataset.database))
-    positives = dataset.positives
+    for stage in stages:
+        stage.check(dataset)
+    depth = depth or retrieval_depth(stages, ks, len(dataset.database), dataset.name)
+    if depth > len(dataset.database):
+        raise VPRBenchError(f"{depth} candidates per query asked for, but the database of {dataset.name} holds "
+                            f"{len(dataset.database)} images: ask for at most {len(dataset.database)}.")
+    frozen = None
+    if settings.candidates is not None:  # checked before any descriptor is computed
+        from ..stages.candidates import read_candidates
+
+        frozen = read_candidates(settings.candidates, spec, len(dataset.queries), len(dataset.database), depth)
     method.use_dataset(dataset.name)
     workers = loader_workers(settings, method)
     described = describe_splits(
@@ -92,20 +122,58 @@ def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None
     timings = {"fit_s": described.timings["fit_s"], "database_s": described.timings["database_s"],
                "queries_s": described.timings["queries_s"]}
     t = time.perf_counter()
-    memory = {} if settings.memory_budget is None else {"memory_budget": settings.memory_budget}
-    found = retrieve(method, described.stores["database"], described.stores["queries"], ks[-1],
-                     index=spec.search.index, index_options=spec.search.options or None, **memory)
+    if frozen is not None:
+        found = frozen.pop("found")
+    else:
+        memory = {} if settings.memory_budget is None else {"memory_budget": settings.memory_budget}
+        found = retrieve(method, described.stores["database"], described.stores["queries"], depth,
+                         index=spec.search.index, index_options=spec.search.options or None, **memory)
     timings["search_s"] = time.perf_counter() - t
+    return Retrieved(method, dataset, ks, described, found, timings, workers, frozen)
+
+
+def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None, method=None, progress=None,
+             ranks: Ranks | None = None) -> dict | None:
+    """Recall@K and PR metrics of the run `spec` names, with a full result record (not saved:
+    `vprbench.evaluation.save_result` stores it).
+
+    `settings` say how it runs and where the data and cache are (default: the user cache and the
+    default data root). `dataset`/`method` may be given already built (e.g. a dataset made by
+    hand); they must be the spec's. Under torchrun (`ranks` from `Ranks.from_environment()`)
+    every rank describes its shard; rank 0 returns the record, the other ranks None. A run with
+    stages may start from exported candidates (`settings.candidates`, vprbench/stages/candidates.py).
+    """
+    started = time.perf_counter()
+    settings = settings or RunSettings()
+    ranks = ranks or Ranks()
+    stages = create_stages(spec)  # their options are checked before any data is touched
+    if settings.candidates is not None and not stages:
+        raise VPRBenchError(f"--candidates {settings.candidates} gives the candidates a re-ranking starts from, but "
+                            "this run has no stage: add --rerank STAGE (or drop --candidates).")
+    run = retrieved(spec, settings, stages, dataset=dataset, method=method, progress=progress, ranks=ranks)
+    if run is None:
+        return None
+    method, dataset, described, found, timings = run.method, run.dataset, run.described, run.found, run.timings
+    candidates, stage_costs = Candidates(found.indices, found.scores), []
+    if stages:
+        t = time.perf_counter()
+        candidates, stage_costs = run_stages(stages, candidates, stage_context(spec, settings, method, dataset,
+                                                                               described, progress), run.ks,
+                                              dataset.positives)
+        timings["stages_s"] = time.perf_counter() - t
+    candidates = candidates.top(run.ks[-1])
     timings["total_s"] = time.perf_counter() - started
     context = {"store": {"folder": described.folder.key}}  # where the descriptors are (vprbench.store.run_store)
     if ranks.distributed:
         context["distributed"] = {**ranks.describe(), "computed_per_rank": described.per_rank}
+    if run.frozen is not None:
+        context["candidates"] = run.frozen  # the file the re-ranking started from
     return result_record(
         spec=spec, method=method, fingerprint=described.fingerprint, dataset=dataset,
-        dataset_key=dataset.fingerprint(settings.cache_dir), ks=ks,
-        scores=found.scores, indices=found.indices, positives=positives, descriptor_dim=int(found.info["dim"]),
-        computed=described.computed, timings=timings, search=found.info, context=context,
-        run={**settings.describe(), "device": str(getattr(method, "device", settings.device)), "workers": workers,
-             "batch_size": method.batch_size},
-        cache_dir=settings.cache_dir,
+        dataset_key=dataset.fingerprint(settings.cache_dir), ks=run.ks,
+        scores=candidates.scores, indices=candidates.indices, positives=dataset.positives,
+        descriptor_dim=int(found.info["dim"]), computed=described.computed, timings=timings, search=found.info,
+        context=context, run={**settings.describe(), "device": str(getattr(method, "device", settings.device)),
+                              "workers": run.workers, "batch_size": method.batch_size},
+        cache_dir=settings.cache_dir, track=track_of(stages), stages=stage_costs,
     )

@@ -253,7 +253,8 @@ def new_run_id() -> tuple[str, datetime]:
 
 
 def result_record(*, spec: RunSpec, method, fingerprint, dataset, dataset_key: str, ks, scores, indices, positives,
-                  descriptor_dim, computed, timings, search=None, context=None, run=None, cache_dir=None) -> dict:
+                  descriptor_dim, computed, timings, search=None, context=None, run=None, cache_dir=None,
+                  track: str = "single-image", stages: list[dict] | None = None) -> dict:
     """The record of one run, from the search's top-K (scores and database indices per query):
     every metric is computed here, from what the record keeps."""
     from .metrics import correct_at, recall_at_k, top1_precision_recall
@@ -303,6 +304,7 @@ def result_record(*, spec: RunSpec, method, fingerprint, dataset, dataset_key: s
         "descriptor_bytes": int(descriptor_dim) * 4,  # float32, as stored and searched
         "recall": {str(k): round(v, 4) for k, v in recalls.items()},
         "auc_pr": round(pr["auc_pr"], 6),
+        "max_f1": round(pr["max_f1"], 6),
         "recall_at_100_precision": round(pr["recall_at_100_precision"], 6),
         "descriptors_computed": computed,
         "served_from_store": described == 0,
@@ -311,6 +313,8 @@ def result_record(*, spec: RunSpec, method, fingerprint, dataset, dataset_key: s
         "top_predictions": np.asarray(indices)[:, : min(ks[-1], 5)].tolist(),  # 0.1's key; per_query has the whole top K
         "provenance": method_provenance(method, dataset, cache_dir),
         "search": search or {"index": "exact"},
+        "track": track,  # single-image, re-ranked or sequence: the leaderboard table it belongs to
+        "stages": stages or [],  # each stage's options and cost (ms per query, bytes per database image, memory)
         "run": run or {},  # how it ran (device, batch size, workers, budget, ...): never part of its identity
         **({"context": context} if context else {}),
         **environment(),

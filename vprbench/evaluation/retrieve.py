@@ -7,7 +7,7 @@ import time
 from ..errors import VPRBenchError
 from ..row_sources import DEFAULT_MEMORY_BUDGET, as_rows, parse_memory
 from .approximate import approximate_search
-from .search import INDEXES, SearchResult, exact_search, postprocessed
+from .search import INDEXES, SearchResult, check_pair, exact_search, postprocessed
 
 
 def retrieve(method, database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDGET, index: str = "exact",
@@ -22,6 +22,8 @@ def retrieve(method, database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_
     if index not in INDEXES:
         raise VPRBenchError(f"Unknown index {index!r}: use one of {', '.join(INDEXES)}.")
     database, queries = as_rows(database, "database"), as_rows(queries, "queries")
+    if getattr(method, "compare", "cosine") != "cosine":
+        return compared_search(method, database, queries, k, index, index_options, budget)
     database, queries, postprocess = postprocessed(method, database, queries, budget, state_folder)
     started = time.perf_counter()
     if index == "exact":
@@ -32,3 +34,22 @@ def retrieve(method, database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_
         result = approximate_search(database, queries, k, kind=index, memory_budget=budget, options=index_options)
     result.info.update(dim=database.dim, postprocess=postprocess, search_s=round(time.perf_counter() - started, 3))
     return result
+
+
+def compared_search(method, database, queries, k: int, index: str, index_options, budget: int) -> SearchResult:
+    """Exact top-k for a method whose descriptors are compared by a distance (the mean absolute
+    difference of `sad`): the sequence search with sequences of one frame; scores are minus the
+    distance, so higher is still better."""
+    from ..stages.sequence.search import sequence_search
+
+    if index != "exact" or index_options:
+        raise VPRBenchError(f"Method {method.name!r} compares descriptors by {method.compare}, which only exact "
+                            f"search does; drop --index {index} (and its options).")
+    started = time.perf_counter()
+    check_pair(database, queries, k)
+    found = sequence_search(database, queries, k, score="diagonal", compare=method.compare, length=1,
+                            memory_budget=budget)
+    return SearchResult(found.scores, found.indices, {
+        "index": "exact", "compare": method.compare, "memory_budget": budget, "block_rows": found.info["block_rows"],
+        "dim": database.dim, "postprocess": None, "search_s": round(time.perf_counter() - started, 3),
+        "tie_order": "distance ascending, then database index ascending"})

@@ -143,40 +143,47 @@ def read_into(rows, start: int, stop: int, out: np.ndarray) -> None:
 
 
 class ChunkReader:
-    """A row source read chunk by chunk into two buffers, the next chunk in a thread while the
-    caller computes on the current one. Buffers are whole tiles; rows past the source's end
-    are zeros (the padding of the last tile). One chunk is read once and kept."""
+    """A row source read chunk by chunk into two buffers, `passes` times over, the next chunk
+    always read in a thread while the caller computes on the current one (the first chunk of
+    the next pass too). Buffers are whole tiles; rows past the source's end are zeros (the
+    padding of the last tile). A source of one chunk is read once and kept."""
 
-    def __init__(self, rows, chunk_rows: int, tile: int):
+    def __init__(self, rows, chunk_rows: int, tile: int, passes: int):
+        from concurrent.futures import ThreadPoolExecutor
+
         self.rows, self.chunk_rows = rows, int(chunk_rows)
         self.starts = list(range(0, rows.row_count, self.chunk_rows))
         held = -(-self.chunk_rows // tile) * tile
         self.buffers = [np.zeros((held, rows.dim), dtype=np.float32) for _ in range(min(2, len(self.starts)))]
-        self.loaded = None  # (start, count) in buffers[0] when there is one chunk
+        self.loaded = None  # (start, count, buffer) when there is one chunk
+        self.reads = len(self.starts) * int(passes)  # chunk reads in all, in order 0, 1, .., 0, 1, ..
+        self.step, self.next = 0, None
+        self.pool = ThreadPoolExecutor(1, thread_name_prefix="vprbench-read") if len(self.starts) > 1 else None
 
-    def _fill(self, i: int) -> tuple[int, int, np.ndarray]:
-        start = self.starts[i]
+    def _fill(self, step: int) -> tuple[int, int, np.ndarray]:
+        start = self.starts[step % len(self.starts)]
         count = min(self.chunk_rows, self.rows.row_count - start)
-        buffer = self.buffers[i % len(self.buffers)]
+        buffer = self.buffers[step % len(self.buffers)]  # not the one the caller computes on
         read_into(self.rows, start, start + count, buffer[:count])
         buffer[count:] = 0
         return start, count, buffer
 
     def __iter__(self):
-        if len(self.starts) == 1:
+        """One pass over the source: (first row, rows, buffer) per chunk."""
+        if self.pool is None:
             if self.loaded is None:
                 self.loaded = self._fill(0)
             yield self.loaded
             return
-        from concurrent.futures import ThreadPoolExecutor
+        for _ in self.starts:
+            chunk = (self.next or self.pool.submit(self._fill, self.step)).result()
+            self.step += 1
+            self.next = self.pool.submit(self._fill, self.step) if self.step < self.reads else None
+            yield chunk
 
-        with ThreadPoolExecutor(1, thread_name_prefix="vprbench-read") as pool:
-            future = pool.submit(self._fill, 0)
-            for i in range(len(self.starts)):
-                chunk = future.result()
-                if i + 1 < len(self.starts):
-                    future = pool.submit(self._fill, i + 1)  # into the buffer the caller finished with
-                yield chunk
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _heap(distances: np.ndarray, ids: np.ndarray):
@@ -196,8 +203,6 @@ def _scan(database, queries, keep: int, plan: dict, on_grid: bool) -> tuple[np.n
     chunk at a time, the database streamed past each, every product one tile of fixed shape.
     `on_grid` rounds each tile of scores before it is merged (the tie rule exactly, at the
     cost of a pass over the scores); otherwise raw units are merged."""
-    import faiss
-
     tile, q_chunk = plan["tile_rows"], plan["query_chunk_rows"]
     n_queries = queries.row_count
     q_tile, d_tile = min(n_queries, tile), min(database.row_count, tile)
@@ -206,7 +211,19 @@ def _scan(database, queries, keep: int, plan: dict, on_grid: bool) -> tuple[np.n
     heap = _heap(distances, indices)
     scores = np.empty((q_tile, d_tile), dtype=np.float32)
     block = np.zeros((-(-q_chunk // q_tile) * q_tile, queries.dim), dtype=np.float32)
-    reader = ChunkReader(database, plan["chunk_rows"], d_tile)
+    reader = ChunkReader(database, plan["chunk_rows"], d_tile, passes=-(-n_queries // q_chunk))
+    try:
+        _scan_passes(reader, queries, heap, block, scores, q_tile, d_tile, q_chunk, on_grid)
+    finally:
+        reader.close()
+    return distances, indices
+
+
+def _scan_passes(reader, queries, heap, block, scores, q_tile: int, d_tile: int, q_chunk: int, on_grid: bool) -> None:
+    """Each chunk of queries against one pass of the database (see `_scan`)."""
+    import faiss
+
+    n_queries = queries.row_count
     for q0 in range(0, n_queries, q_chunk):
         m_chunk = min(q_chunk, n_queries - q0)
         read_into(queries, q0, q0 + m_chunk, block[:m_chunk])
@@ -222,7 +239,6 @@ def _scan(database, queries, keep: int, plan: dict, on_grid: bool) -> tuple[np.n
                         np.rint(scores, out=scores)
                     merged = scores if n == d_tile else np.ascontiguousarray(scores[:m, :n])
                     heap.addn(n, faiss.swig_ptr(merged), d0 + t0, q0 + a, m)
-    return distances, indices
 
 
 def exact_search(database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDGET) -> SearchResult:

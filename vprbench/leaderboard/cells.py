@@ -23,6 +23,7 @@ import numpy as np
 
 from ..evaluation.identity import benchmark_protocols
 from ..evaluation.metrics import recall_at_k
+from ..evaluation.proof import proven
 from ..evaluation.results import per_query
 
 #: weights sources that make a row official: the authors' release, or nothing learnt at all
@@ -40,7 +41,10 @@ CELL_RULE = (
     "share; the newest on a tie). Runs on your own data get a column per protocol (positions, radius and images), "
     "even when named like a benchmark. Runs with weights other than the authors' release, with approximate "
     "search (IVF-PQ, HNSW), with a float16 store or with anything fitted on the evaluated database (transductive) get "
-    "their own rows, marked †, and never replace an official row."
+    "their own rows, marked †, and never replace an official row; runs on random weights fill no cell at all. Every "
+    "metric is recomputed from the run's per-query arrays (a record whose stored numbers disagree is named). Images/s "
+    "comes from the newest run of the cell that computed its descriptors (one served from stores measured no speed), "
+    "with the machine it ran on."
 )
 
 
@@ -61,8 +65,6 @@ def weights_of(record: dict) -> tuple[str, str]:
     if source == "user":
         digest = str(weights.get("sha256", ""))[:12]
         return f"user:{digest}", f"user weights sha256:{digest}"
-    if source == "random":
-        return "random", "random weights"
     return source, f"weights {source}"
 
 
@@ -90,6 +92,8 @@ class Row:
     label: str
     weights: str   # 'official' or the weights source key
     mark: str      # what sets the row apart ('' for an official row)
+    #: single-image, re-ranked or sequence: each track is a table of its own, never mixed
+    track: str = "single-image"
 
     @property
     def official(self) -> bool:
@@ -136,6 +140,23 @@ class Cell:
     record: dict
     #: other eligible runs of the same row and column (older, or without R@5)
     passed_over: int = 0
+    #: the newest run of the row and column that computed its descriptors (its images/s and
+    #: hardware are the cell's): a run served from stores measured no speed
+    timed: dict | None = None
+
+    @property
+    def images_per_second(self) -> float | None:
+        return (self.timed or {}).get("images_per_second")
+
+    @property
+    def hardware(self) -> str:
+        """The machine the cell's speed was measured on, e.g. 'Intel Xeon (2 cores), no GPU'."""
+        found = (self.timed or {}).get("hardware") or {}
+        if not self.timed or not found:
+            return ""
+        gpu = found.get("cuda")
+        return (f"{found.get('cpu') or found.get('machine') or 'unknown CPU'} ({found.get('cpu_count', '?')} cores), "
+                f"{gpu if gpu else 'no GPU'}")
 
     @cached_property
     def arrays(self) -> dict[str, np.ndarray] | None:
@@ -169,11 +190,36 @@ class Board:
         return [r for r in self.rows if label in (r.label, r.name, r.key)]
 
     @property
+    def tracks(self) -> list[str]:
+        from ..stages.base import TRACKS
+
+        return [t for t in TRACKS if any(r.track == t for r in self.rows)]
+
+    def of_track(self, track: str) -> "Board":
+        """The board of one track only (its rows, their cells, the columns they fill): a run never
+        appears in another track's table."""
+        rows = [r for r in self.rows if r.track == track]
+        cells = {key: cell for key, cell in self.cells.items() if key[0].track == track}
+        filled = {key for _, key in cells}
+        excluded = self.excluded if track == "single-image" else []
+        return Board(rows, [c for c in self.columns if c.key in filled], cells, excluded)
+
+    @property
     def marked(self) -> dict[str, int]:
         """How many cells are not on official weights, or not on a benchmark: shown on every page."""
         cells = list(self.cells.values())
         return {"marked_rows": sum(not c.row.official for c in cells),
                 "own_data": sum(c.column.kind == "own" for c in cells), "excluded": len(self.excluded)}
+
+
+#: why a run on random weights fills no cell
+RANDOM = ("random weights (a pipeline check, e.g. without access to gated weights): numbers from random "
+          "initialisation never fill a cell")
+
+
+def _random(record: dict) -> bool:
+    weights = (record.get("provenance") or {}).get("weights") or {}
+    return weights.get("source") == "random" or (record.get("spec") or {}).get("options", {}).get("weights") == "random"
 
 
 def _max_k(record: dict) -> int:
@@ -224,7 +270,8 @@ def _row_of(record: dict) -> Row:
     weights, mark = weights_of(record)
     transductive = (record.get("provenance") or {}).get("fitted_on_evaluated_database") is True
     marks = [m for m in (mark, *spec.marks(), TRANSDUCTIVE if transductive else "") if m]
-    return Row(spec.row_key, spec.label(), weights, "; ".join(marks))
+    track = record.get("track") or "single-image"  # records before stages had none
+    return Row(spec.row_key, spec.label(), weights, "; ".join(marks), track)
 
 
 def build_board(records: list[dict]) -> Board:
@@ -232,6 +279,14 @@ def build_board(records: list[dict]) -> Board:
     excluded: list[tuple[dict, str]] = []
     placed: list[tuple[dict, Row, Column]] = []
     for record in records:
+        checked = proven(record)  # every metric from the run's per-query arrays
+        if isinstance(checked, str):
+            excluded.append((record, checked))
+            continue
+        record = checked
+        if _random(record):
+            excluded.append((record, RANDOM))
+            continue
         found = _column_of(record)
         if isinstance(found, str):
             excluded.append((record, found))
@@ -257,7 +312,12 @@ def build_board(records: list[dict]) -> Board:
 
     columns: dict[str, Column] = {}
     candidates: dict[tuple[Row, str], list[dict]] = {}
+    declared = {row.key for _, row, _ in placed if row.weights != "undeclared"}
     for record, row, column in placed:
+        if row.weights == "undeclared" and row.key in declared:
+            excluded.append((record, "its method did not declare its weights then; a later run of the same method "
+                                     "declares them (provenance()) and replaces this row"))
+            continue
         if column.kind == "benchmark" and column.fingerprint != chosen[column.key]:
             excluded.append((record, f"dataset fingerprint {column.fingerprint} differs from the {chosen[column.key]} "
                                      f"the other {column.key} runs share (another copy of its images or ground truth)"))
@@ -272,7 +332,9 @@ def build_board(records: list[dict]) -> Board:
         complete = [r for r in runs if _max_k(r) >= max(CELL_KS)]
         pick = (complete or runs)[-1]
         final = rows[row]
-        cells[(final, key)] = Cell(final, columns[key], pick, passed_over=len(runs) - 1)
+        timed = [r for r in runs if not r.get("served_from_store") and r.get("images_per_second")]
+        cells[(final, key)] = Cell(final, columns[key], pick, passed_over=len(runs) - 1,
+                                   timed=timed[-1] if timed else None)
     ordered = sorted(columns.values(), key=lambda c: (c.kind != "benchmark", _domain_order(c.domain), c.dataset, c.key))
     return Board(list(rows.values()), ordered, cells, excluded)
 
@@ -281,7 +343,7 @@ def _distinct(rows: list[Row]) -> dict[Row, Row]:
     """Each row as shown: rows whose names would read alike (another version of a preset) are told
     apart by their key."""
     names = Counter(r.name for r in rows)
-    return {r: r if names[r.name] == 1 else Row(r.key, f"{r.label} #{r.key[:6]}", r.weights, r.mark) for r in rows}
+    return {r: r if names[r.name] == 1 else Row(r.key, f"{r.label} #{r.key[:6]}", r.weights, r.mark, r.track) for r in rows}
 
 
 def _distinct_titles(columns: dict[str, Column]) -> dict[str, Column]:

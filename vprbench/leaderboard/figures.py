@@ -4,6 +4,8 @@ the PCA map of GeM descriptors. A figure that cannot be drawn raises Skipped wit
 which the page prints in its place."""
 from __future__ import annotations
 
+import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -11,11 +13,45 @@ import numpy as np
 from ..errors import VPRBenchError
 from .cells import STRUCTURED, UNSTRUCTURED, Board, Cell
 from ..evaluation.metrics import successes
+from ..hashing import canonical_hash
 
 DOMAIN_COLOURS = {"indoor": "#1f77b4", "urban": "#ff7f0e", "outdoor": "#2ca02c", "aerial": "#d62728",
                   "subt": "#9467bd", "degraded": "#8c564b", "underwater": "#17becf"}
 #: the paper rows drawn on the radar beside ours: the paper's headline method
 RADAR_PAPER_ROWS = ("AnyLoc-VLAD-DINOv2",)
+
+
+#: method colours: tab10, then the lighter halves of tab20 (distinct before they are similar)
+PALETTE = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22",
+           "#17becf", "#aec7e8", "#ffbb78", "#98df8a", "#ff9896", "#c5b0d5", "#c49c94", "#f7b6d2", "#c7c7c7",
+           "#dbdb8d", "#9edae5")
+
+
+def method_colours(names) -> dict[str, str]:
+    """One colour per method name for every figure of a site: each name's hash picks its palette
+    slot, a taken slot passes to the next free one (names placed in sorted order, so the same set
+    of methods always gets the same colours). Up to ten methods use only the strong first ten
+    colours; past twenty, colours repeat."""
+    names = sorted(set(names))
+    size = 10 if len(names) <= 10 else len(PALETTE)
+    taken: set[int] = set()
+    found = {}
+    for name in names:
+        slot = int(canonical_hash(name), 16) % size
+        free = [(slot + step) % size for step in range(size) if (slot + step) % size not in taken]
+        slot = free[0] if free else slot
+        taken.add(slot)
+        found[name] = PALETTE[slot]
+    return found
+
+
+def _colours(colours, names) -> dict[str, str]:
+    return colours if colours is not None else method_colours(names)
+
+
+def _label(value: str) -> str:
+    """A name as literal matplotlib text: a '$' from data would start mathtext."""
+    return str(value).replace("$", r"\$")
 
 
 class Skipped(Exception):
@@ -39,8 +75,9 @@ def _save(fig, path: Path, dpi: int = 110) -> Path:
     return path
 
 
-def recall_curves(cells: list[Cell], path: Path) -> Path:
+def recall_curves(cells: list[Cell], path: Path, colours: dict[str, str] | None = None) -> Path:
     """Recall@K for K = 1 .. the search depth, one line per run (from its per-query ranks)."""
+    colours = _colours(colours, [c.row.name for c in cells])
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(5.5, 3.6))
     drawn = 0
@@ -48,10 +85,12 @@ def recall_curves(cells: list[Cell], path: Path) -> Path:
         if cell.arrays is not None:
             first, depth = cell.arrays["first_positive_rank"], cell.record["per_query"]["k"]
             ks = np.arange(1, depth + 1)
-            ax.plot(ks, [100 * successes(first, k).mean() for k in ks], marker=".", label=cell.row.name)
+            ax.plot(ks, [100 * successes(first, k).mean() for k in ks], marker=".", label=_label(cell.row.name),
+                    color=colours[cell.row.name])
         else:
             points = sorted((int(k), v) for k, v in cell.record["recall"].items())
-            ax.plot(*zip(*points), marker="o", linestyle="--", label=f"{cell.row.name} (recorded K only)")
+            ax.plot(*zip(*points), marker="o", linestyle="--", label=_label(f"{cell.row.name} (recorded K only)"),
+                    color=colours[cell.row.name])
         drawn += 1
     if not drawn:
         plt.close(fig)
@@ -62,10 +101,11 @@ def recall_curves(cells: list[Cell], path: Path) -> Path:
     return _save(fig, path)
 
 
-def pr_curves(cells: list[Cell], path: Path) -> Path:
+def pr_curves(cells: list[Cell], path: Path, colours: dict[str, str] | None = None) -> Path:
     """VPR-Bench's precision-recall curve of the top-1 matches ranked by similarity, per run."""
     from sklearn.metrics import precision_recall_curve
 
+    colours = _colours(colours, [c.row.name for c in cells])
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(5.5, 3.6))
     drawn = 0
@@ -76,7 +116,8 @@ def pr_curves(cells: list[Cell], path: Path) -> Path:
         if not correct.any():
             continue
         precision, recall, _ = precision_recall_curve(correct, cell.arrays["similarities"][:, 0])
-        ax.plot(recall, precision, label=f"{cell.row.name} (AUC {cell.record.get('auc_pr', float('nan')):.2f})")
+        ax.plot(recall, precision, color=colours[cell.row.name],
+                label=_label(f"{cell.row.name} (AUC {cell.record.get('auc_pr', float('nan')):.2f})"))
         drawn += 1
     if not drawn:
         plt.close(fig)
@@ -87,20 +128,20 @@ def pr_curves(cells: list[Cell], path: Path) -> Path:
     return _save(fig, path)
 
 
-def efficiency(cells: list[Cell], path: Path) -> Path:
+def efficiency(cells: list[Cell], path: Path, colours: dict[str, str] | None = None) -> Path:
     """R@1 against descriptor bytes and against images described per second."""
+    colours = _colours(colours, [c.row.name for c in cells])
     plt = _pyplot()
     fig, (left, right) = plt.subplots(1, 2, figsize=(7.5, 3.2), sharey=True)
     speeds = 0
     for cell in cells:
         r1 = cell.recall(1)
         size = cell.record.get("descriptor_bytes") or 4 * int(cell.record.get("descriptor_dim") or 0)
-        left.scatter([size], [r1])
-        left.annotate(cell.row.label, (size, r1), fontsize=7, xytext=(3, 3), textcoords="offset points")
-        speed = cell.record.get("images_per_second")
+        colour = colours[cell.row.name]
+        left.scatter([size], [r1], color=colour, label=_label(cell.row.name))
+        speed = cell.images_per_second  # from a run that computed its descriptors
         if speed:
-            right.scatter([speed], [r1])
-            right.annotate(cell.row.label, (speed, r1), fontsize=7, xytext=(3, 3), textcoords="offset points")
+            right.scatter([speed], [r1], color=colour)
             speeds += 1
     left.set(xscale="log", xlabel="descriptor size (bytes, float32)", ylabel="R@1 (%)", ylim=(0, 101))
     right.set(xscale="log", xlabel="images described per second (this run's machine)")
@@ -110,6 +151,7 @@ def efficiency(cells: list[Cell], path: Path) -> Path:
     for ax in (left, right):
         ax.grid(alpha=0.3)
         _decades(ax)
+    fig.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=2, frameon=False)
     return _save(fig, path)
 
 
@@ -124,60 +166,131 @@ def _decades(ax) -> None:
     ax.xaxis.set_minor_formatter(NullFormatter())
 
 
-def domain_averages(board: Board) -> dict[str, dict[str, float]]:
-    """Measured official rows: average R@1 per domain over the benchmarks measured in it."""
-    found: dict[str, dict[str, list[float]]] = {}
-    for row in board.rows:
-        if not row.official:
-            continue
-        for column in board.columns:
-            cell = board.cell(row, column)
-            if cell and column.kind == "benchmark" and column.default and cell.recall(1) is not None:
-                found.setdefault(row.label, {}).setdefault(column.domain, []).append(cell.recall(1))
-    return {label: {d: float(np.mean(v)) for d, v in domains.items()} for label, domains in found.items()}
-
-
-def paper_domain_averages() -> dict[str, dict[str, float]]:
+def domain_datasets() -> dict[str, list[str]]:
+    """The datasets each radar axis averages: the paper's in that domain (AnyLoc Fig. 1's axes),
+    or, for a domain the paper has none of, every benchmark of that domain in this vprbench."""
     from ..datasets import dataset_manifests
     from .tables import reported
 
-    domains = {name: m.domain for name, m in dataset_manifests().items()}
+    paper = set(reported()["column"])
+    found: dict[str, list[str]] = {}
+    for name, manifest in sorted(dataset_manifests().items()):
+        found.setdefault(manifest.domain, []).append(name)
+    return {domain: [n for n in names if n in paper] or names for domain, names in found.items()}
+
+
+@dataclass(frozen=True)
+class DomainMean:
+    """A row's R@1 on a radar axis: over all the axis's datasets (complete), else over those it has."""
+    value: float
+    datasets: tuple[str, ...]
+    complete: bool
+
+
+def domain_means(values: dict[str, float], axes: dict[str, list[str]]) -> dict[str, DomainMean]:
+    """{domain: DomainMean} from {dataset: R@1}; a domain the row has no dataset of is absent."""
+    found = {}
+    for domain, names in axes.items():
+        used = names if all(n in values for n in names) else [n for n in values if _domain_of(n) == domain]
+        if used:
+            found[domain] = DomainMean(float(np.mean([values[n] for n in used])), tuple(used), used == names)
+    return found
+
+
+def _domain_of(name: str) -> str | None:
+    from ..datasets import dataset_manifests
+
+    manifest = dataset_manifests().get(name)
+    return manifest.domain if manifest else None
+
+
+def domain_averages(board: Board, axes: dict[str, list[str]] | None = None) -> dict[str, dict[str, DomainMean]]:
+    """Measured official rows on the benchmarks' default protocols: R@1 per radar axis."""
+    axes = domain_datasets() if axes is None else axes
+    found = {}
+    for row in board.rows:
+        values = {column.dataset: cell.recall(1) for column in board.columns
+                  if row.official and column.kind == "benchmark" and column.default
+                  and (cell := board.cell(row, column)) and cell.recall(1) is not None}
+        if values:
+            found[row.name] = domain_means(values, axes)
+    return found
+
+
+def paper_domain_averages(axes: dict[str, list[str]] | None = None) -> dict[str, dict[str, DomainMean]]:
+    from .tables import reported
+
+    axes = domain_datasets() if axes is None else axes
     frame = reported()
-    frame = frame[frame["metric"] == "r1"].assign(domain=lambda f: f["column"].map(domains))
-    return {row: part.groupby("domain")["value"].mean().to_dict() for row, part in frame.groupby("row", sort=False)}
+    frame = frame[frame["metric"] == "r1"]
+    return {row: domain_means(dict(zip(part["column"], part["value"])), axes)
+            for row, part in frame.groupby("row", sort=False)}
 
 
 #: the paper's names for domains whose short names are not words
 DOMAIN_LABELS = {"subt": "Subterranean"}
 
 
-def radar(board: Board, path: Path) -> Path:
-    """Average R@1 per domain (AnyLoc Fig. 1, right): measured rows solid, the paper's dashed."""
+def paper_key(row: str) -> str:
+    """A paper row's name on the figures (and in the colour map)."""
+    return f"{row} (paper, reported)"
+
+
+def _radar_series(board: Board, axes) -> list[tuple[str, dict[str, DomainMean], str]]:
+    """(name, means, line style) of every row on the radar: measured official rows, the paper's shown."""
+    paper = paper_domain_averages(axes)
+    return [*((name, means, "-") for name, means in domain_averages(board, axes).items()),
+            *((paper_key(r), paper[r], "--") for r in RADAR_PAPER_ROWS if r in paper)]
+
+
+def radar_domains(board: Board, axes: dict[str, list[str]]) -> list[str]:
+    """The radar's axes, in the paper's order: every domain some row on it has a dataset of."""
+    series = _radar_series(board, axes)
+    return [d for d in STRUCTURED + UNSTRUCTURED if any(d in means for _, means, _ in series)]
+
+
+def radar(board: Board, path: Path, colours: dict[str, str] | None = None) -> Path:
+    """Average R@1 per domain (AnyLoc Fig. 1, right): measured rows solid, the paper's dashed. A
+    point is filled only where the row has every dataset of that axis; a row with some of them
+    gets a hollow point, with the datasets it averages written beside it, and no line through it."""
     plt = _pyplot()
-    measured = domain_averages(board)
-    if not measured:
+    axes = domain_datasets()
+    if not domain_averages(board, axes):
         raise Skipped("no official run on a benchmark yet")
-    paper = paper_domain_averages()
-    shown_paper = {f"{r} (paper, reported)": paper[r] for r in RADAR_PAPER_ROWS if r in paper}
-    domains = [d for d in STRUCTURED + UNSTRUCTURED
-               if any(d in v for v in [*measured.values(), *shown_paper.values()])]
+    series = _radar_series(board, axes)
+    colours = _colours(colours, [name for name, _, _ in series])
+    domains = radar_domains(board, axes)
     angles = np.linspace(0, 2 * np.pi, len(domains), endpoint=False)
-    fig, ax = plt.subplots(figsize=(5.2, 5.2), subplot_kw={"projection": "polar"})
-    for label, values, style in [*((k, v, "-") for k, v in measured.items()),
-                                 *((k, v, "--") for k, v in shown_paper.items())]:
-        r = np.array([values.get(d, np.nan) for d in domains])
-        closed = np.append(r, r[0]), np.append(angles, angles[0])
-        ax.plot(closed[1], closed[0], style, marker="o", label=label)
-    ax.set_xticks(angles, [DOMAIN_LABELS.get(d, d.capitalize()) for d in domains])
-    ax.tick_params(axis="x", pad=8)  # keep the labels off the outer ring
+    fig, ax = plt.subplots(figsize=(5.6, 5.6), subplot_kw={"projection": "polar"})
+    notes: dict[str, int] = {}  # partial points already written beside each axis: stack the next below
+    for name, means, style in series:
+        colour = colours[name]
+        full = np.array([means[d].value if d in means and means[d].complete else np.nan for d in domains])
+        ax.plot(np.append(angles, angles[0]), np.append(full, full[0]), style, marker="o", color=colour,
+                label=_label(name))
+        for angle, domain in zip(angles, domains):
+            part = means.get(domain)
+            if part is not None and not part.complete:
+                ax.scatter([angle], [part.value], s=55, facecolors="white", edgecolors=colour, linewidths=2, zorder=3)
+                shown = ", ".join(part.datasets) if len(part.datasets) <= 2 else f"{len(part.datasets)} datasets"
+                below = notes[domain] = notes.get(domain, -1) + 1
+                ax.annotate(_label(f"{shown} only"), (angle, part.value), fontsize=7.5, color=colour, weight="bold",
+                            xytext=(-7, -12 - 11 * below), textcoords="offset points", ha="right", zorder=4,
+                            bbox={"boxstyle": "round,pad=0.15", "facecolor": "white", "edgecolor": "none", "alpha": 0.8})
+    ax.set_xticks(angles, [f"{DOMAIN_LABELS.get(d, d.capitalize())}\n({len(axes[d])} dataset{'s' * (len(axes[d]) > 1)})"
+                           for d in domains])
+    ax.tick_params(axis="x", pad=10)  # keep the labels off the outer ring
     ax.set_ylim(0, 100)
-    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.08), ncol=2, frameon=False)
-    ax.set_title("Average R@1 (%) per domain\n(no point where a row was not measured)", fontsize=8)
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=2, frameon=False)
+    ax.set_title("Average R@1 (%) per domain\nfilled: over every dataset of the axis; hollow: only the datasets named",
+                 fontsize=8)
     return _save(fig, path)
 
 
-def _dataset_of(record: dict, data_dir=None):
-    """The run's dataset loaded again, or Skipped when its images are gone or are not the run's."""
+def _dataset_of(record: dict, data_dir=None, cache_dir=None):
+    """The run's dataset loaded again, or Skipped when its images are gone or are not the run's:
+    the same counts and positives, and the same content (the record's dataset fingerprint: every
+    image's name and sha256, and the ground truth)."""
     from ..datasets import apply_protocol, dataset_manifest, find_protocol, load_dataset
     from ..datasets.layouts import read_layout
     from ..datasets.layouts.own_data import own_manifest
@@ -202,16 +315,40 @@ def _dataset_of(record: dict, data_dir=None):
     if (len(dataset.database), len(dataset.queries)) != (counts["database"], counts["queries"]) or \
             (expected is not None and list(expected) != positives):
         raise Skipped(f"the {record['dataset']} found on disk is not the copy this run evaluated")
+    try:
+        same = dataset.fingerprint(cache_dir) == record.get("dataset_fingerprint")
+        images = dataset.images_fingerprint(cache_dir)
+    except VPRBenchError as error:
+        raise Skipped(f"the images of {record['dataset']} cannot be read here ({error})") from None
+    if not same:
+        recorded = (record.get("dataset_fingerprints") or {}).get("images")
+        changed = [split for split in ("database", "queries") if recorded and images.get(split) != recorded.get(split)]
+        what = f"the {' and '.join(changed)} images" if changed or not recorded else "the images or ground truth"
+        raise Skipped(f"{what} of {record['dataset']} at {dataset.root} differ from the ones this run evaluated "
+                      "(by content: names and sha256)")
     return dataset
 
 
-def mosaic(cell: Cell, path: Path, *, data_dir=None, seed: int = 0, queries: int = 4, top: int = 5) -> Path:
-    """Seeded queries and their top matches: a green frame is a positive, a red one is not."""
-    from ..images import load_image
+def _run_image(dataset, split: str, index: int, cache_dir=None):
+    """An image of the run, decoded from bytes whose sha256 is the one its dataset fingerprint holds
+    (a file replaced after the check is refused, not shown)."""
+    from ..images import load_image, reads_seen
 
+    path = getattr(dataset, split)[index]
+    with reads_seen() as seen:
+        image = load_image(path)
+    if seen.get(os.path.abspath(path)) != dataset.image_digests(cache_dir)[split][index]:
+        raise Skipped(f"image {path} changed after its content was checked")
+    return image
+
+
+def mosaic(cell: Cell, path: Path, *, data_dir=None, seed: int = 0, queries: int = 4, top: int = 5,
+           cache_dir=None) -> Path:
+    """Seeded queries and their top matches: a green frame is a positive, a red one is not. Only
+    images whose content is the run's are read (_dataset_of, _run_image)."""
     if cell.arrays is None:
         raise Skipped("the run has no per-query predictions")
-    dataset = _dataset_of(cell.record, data_dir)
+    dataset = _dataset_of(cell.record, data_dir, cache_dir)
     rng = np.random.default_rng(seed)
     chosen = np.sort(rng.choice(len(dataset.queries), size=min(queries, len(dataset.queries)), replace=False))
     top = min(top, cell.arrays["database_indices"].shape[1])
@@ -219,18 +356,21 @@ def mosaic(cell: Cell, path: Path, *, data_dir=None, seed: int = 0, queries: int
     fig, axes = plt.subplots(len(chosen), top + 1, figsize=(1.6 * (top + 1), 1.35 * len(chosen)), squeeze=False)
     try:
         for row, q in zip(axes, chosen):
-            shown = [(dataset.queries[q], f"query {q}", "black")]
+            shown = [(("queries", int(q)), f"query {q}", "black")]
             for rank, d in enumerate(cell.arrays["database_indices"][q, :top], 1):
                 right = int(d) in set(dataset.positives[q].tolist())
-                shown.append((dataset.database[d], f"#{rank} db {d}", "#1a9e3a" if right else "#d62728"))
-            for ax, (image_path, title, colour) in zip(row, shown):
-                image = load_image(image_path)
+                shown.append((("database", int(d)), f"#{rank} db {d}", "#1a9e3a" if right else "#d62728"))
+            for ax, ((split, index), title, colour) in zip(row, shown):
+                image = _run_image(dataset, split, index, cache_dir)
                 image.thumbnail((200, 150))
                 ax.imshow(image)
                 ax.set_title(title, fontsize=7)
                 ax.set_xticks([]), ax.set_yticks([])
                 for spine in ax.spines.values():
                     spine.set(edgecolor=colour, linewidth=3)
+    except Skipped:
+        plt.close(fig)
+        raise
     except VPRBenchError as error:
         plt.close(fig)
         raise Skipped(f"an image of {cell.record['dataset']} is unreadable ({error})") from None

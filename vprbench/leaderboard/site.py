@@ -21,6 +21,7 @@ from ..errors import VPRBenchError
 from ..fsutil import LockTimeout, lock
 from ..evaluation.results import read_results
 from ..reference import paper_results
+from ..text import percent, quantity
 from . import figures
 from .escape import text
 from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board, weights_shown
@@ -33,6 +34,15 @@ from .tables import GROUPS, TOLERANCE_PP, cell_stats, comparisons, fmt, group_ta
 SECTION = "leaderboard"
 #: MkDocs Material front matter: the wide tables get the table-of-contents column
 PAGE_HEAD = "---\nhide:\n  - toc\n---\n"
+
+
+def page_head(title: str) -> str:
+    """PAGE_HEAD with the page's title set, HTML-escaped: without it MkDocs Material writes the
+    title it takes from the heading with its entities decoded (`striptags`) into <title>, where a
+    name holding '</title><img ...>' would become a live element."""
+    import html
+
+    return PAGE_HEAD.replace("---\n", f"---\ntitle: {json.dumps(html.escape(str(title), quote=True))}\n", 1)
 #: mosaics drawn per dataset page (the best rows by R@1)
 MOSAIC_ROWS = 4
 
@@ -102,14 +112,54 @@ def _remove_stale(folder: Path, age_s: float = 3600) -> None:
 def write_section(out: Path, board: Board, records: list[dict], *, cache_dir=None, data_dir=None, seed: int = 0) -> None:
     (out / "figures").mkdir()
     (out / "downloads").mkdir()
+    from .tracks import TITLES, track_file, track_page
+
     stats = {key: cell_stats(cell, seed=seed) for key, cell in board.cells.items()}
-    _write(out / "index.md", overview(out, board, records, stats, cache_dir=cache_dir, seed=seed))
+    full, board = board, board.of_track("single-image")  # every page below but the track pages: single-image only
+    for track in [t for t in full.tracks if t != "single-image"]:
+        _write(out / track_file(track), track_page(full, track, stats, PAGE_HEAD))
+    colours = site_colours(board)
+    others = [t for t in full.tracks if t != "single-image"]
+    tracks = ["## Other tracks", "", "Re-ranked and sequence runs have tables of their own and never appear above: "
+              + (", ".join(f"[{TITLES[t]}]({track_file(t)})" for t in others) if others else "none yet") + ".", ""]
+    _write(out / "index.md", overview(out, board, records, stats, cache_dir=cache_dir, seed=seed, colours=colours)
+           + "\n" + "\n".join(tracks))
     for column in board.columns:
-        _write(out / f"{column.slug}.md", dataset_page(out, board, column, stats, data_dir=data_dir, seed=seed))
+        _write(out / f"{column.slug}.md", dataset_page(out, board, column, stats, data_dir=data_dir, seed=seed,
+                                                       cache_dir=cache_dir, colours=colours))
     _write(out / "reported.md", reported_page())
-    rows = [_summary(cell, stats[key]) for key, cell in board.cells.items()]
+    _write(out / NAV_FILE, navigation(board, [t for t in full.tracks if t != "single-image"]))
+    rows = [_summary(cell, stats[key]) for key, cell in full.cells.items()]
     pd.DataFrame(rows).to_csv(out / "downloads" / "leaderboard.csv", index=False)
     _write(out / "downloads" / "leaderboard.json", json.dumps(rows, indent=1, sort_keys=True, default=_plain))
+
+
+def site_colours(board: Board) -> dict[str, str]:
+    """Every method's colour on every figure of this publish, computed once from all of them."""
+    return figures.method_colours([r.name for r in board.rows] + [figures.paper_key(r) for r in figures.RADAR_PAPER_ROWS])
+
+
+#: the section's navigation, read by the mkdocs-literate-nav plugin (mkdocs.yml: `Results: leaderboard/`)
+NAV_FILE = "SUMMARY.md"
+
+
+def navigation(board: Board, tracks: list[str] = ()) -> str:
+    """The overview, every dataset page, the other tracks' pages and the paper's tables, in the site's navigation."""
+    from .tracks import TITLES, track_file
+
+    lines = ["* [Overview](index.md)", "* Datasets"]
+    lines += [f"    * [{text(c.title)}]({c.slug}.md)" for c in board.columns]
+    lines += [f"* [{TITLES[t]} track]({track_file(t)})" for t in tracks]
+    return "\n".join([*lines, "* [Reported by the paper](reported.md)", ""])
+
+
+#: where each page explains the cell rule (below its tables), linked from its top
+RULE_HEADING = "How a cell is chosen"
+RULE_LINK = "[How a cell is chosen](#how-a-cell-is-chosen)"
+
+
+def _rule(extra: str = "") -> list[str]:
+    return [f"## {RULE_HEADING}", "", extra + CELL_RULE, ""]
 
 
 def _write(path: Path, text: str) -> None:
@@ -142,12 +192,12 @@ def _ci(entry) -> str:
     return f"{fmt(entry['value'])} [{entry['ci'][0]:.1f}, {entry['ci'][1]:.1f}]" if entry["ci"] else fmt(entry["value"])
 
 
-def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: int = 0) -> str:
+def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: int = 0, colours=None) -> str:
     written = datetime.now(timezone.utc).date().isoformat()
     lines = [PAGE_HEAD, "# Leaderboard", "",
              f"Measured by `vprbench evaluate` ({len(records)} stored run(s); vprbench {__version__}; written {written}). "
-             "Regenerate with `vprbench leaderboard publish --to docs/`.", "", _marks(board),
-             "**How a cell is chosen.** " + CELL_RULE, ""]
+             "Regenerate with `vprbench leaderboard publish --to docs/`. Each cell is one run: "
+             f"{RULE_LINK} (below the tables).", "", _marks(board)]
     for table in GROUPS:
         lines += [group_table(board, table, link=lambda c: f"{c.slug}.md"), ""]
     lines += ["## Measured against reported", "",
@@ -165,9 +215,13 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
         lines.append("No measured cell has a counterpart in the paper yet (the paper reports none of the "
                      "datasets measured here, or none of the methods).")
     lines += ["", "## Figures", ""]
-    lines += _figure(lambda p: figures.radar(board, p), out, "radar.svg",
+    axes = figures.domain_datasets()
+    lines += _figure(lambda p: figures.radar(board, p, colours), out, "radar.svg",
                      "Average R@1 per domain (AnyLoc Fig. 1, right): measured rows solid; the paper's "
-                     f"{', '.join(figures.RADAR_PAPER_ROWS)} dashed (reported).", "Radar chart")
+                     f"{', '.join(figures.RADAR_PAPER_ROWS)} dashed (reported). Each axis averages the paper's datasets "
+                     "of its domain (" + "; ".join(f"{d}: {', '.join(axes[d])}" for d in figures.radar_domains(board, axes))
+                     + "); a filled point has all of them, a hollow one only the datasets written beside it.",
+                     "Radar chart")
     lines += _figure(lambda p: figures.pca_map(records, p, cache_dir=cache_dir, seed=seed), out, "pca-gem.png",
                      "Database GeM descriptors of one method on every dataset it was run on, first two principal "
                      "components, coloured by domain (AnyLoc Fig. 1, middle).", "PCA map of GeM descriptors")
@@ -192,7 +246,7 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
     lines += [f"- [{text(c.title)}]({c.slug}.md): {text(c.domain or 'no domain')}, {len(board.column_cells(c))} row(s)" for c in board.columns]
     lines += ["", "The paper's reported tables (II–VII), as reported: [reported numbers](reported.md).", "",
               "Downloads: [leaderboard.csv](downloads/leaderboard.csv), [leaderboard.json](downloads/leaderboard.json) "
-              "(one entry per cell: values, intervals, run and provenance).", ""]
+              "(one entry per cell: values, intervals, run and provenance).", "", *_rule()]
     return "\n".join(lines)
 
 
@@ -204,13 +258,16 @@ def _figure(draw, out: Path, name: str, caption: str, what: str | None = None) -
     return [f"![{text(caption)}](figures/{name})", "", f"*{text(caption)}*", ""]
 
 
-def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=None, seed: int = 0) -> str:
+def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=None, seed: int = 0, cache_dir=None,
+                 colours=None) -> str:
     cells = sorted(board.column_cells(column), key=lambda c: -(c.recall(1) or -1))
     first = cells[0].record
     counts, gt, protocol = first["counts"], first.get("ground_truth", {}), first.get("protocol", {})
     positives = np.asarray((first.get("per_query") or {}).get("positives") or
                            (cells[0].arrays["positives"] if cells[0].arrays is not None else []))
-    lines = [PAGE_HEAD, f"# {text(column.title)}", "", _marks(board),
+    colours = colours if colours is not None else site_colours(board)
+    lines = [page_head(column.title), f"# {text(column.title)}", "", f"Each cell is one run: {RULE_LINK} (below the tables).", "",
+             _marks(board),
              f"Domain: {text(column.domain or '–')}. Kind: {'benchmark' if column.kind == 'benchmark' else 'own data (not a benchmark)'}.", "",
              "## Data and ground truth", "",
              "| Database | Queries | Queries without positives | Positive pairs | Positives per query (min / median / max) | Ground truth | Protocol | Dataset fingerprint |",
@@ -218,45 +275,47 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
              f"| {counts['database']} | {counts['queries']} | {counts.get('queries_without_positives', '–')} | "
              f"{counts.get('positive_pairs', '–')} | "
              + (f"{positives.min()} / {np.median(positives):g} / {positives.max()}" if len(positives) else "–")
-             + f" | {gt.get('unit', '–')}, radius {gt.get('radius', '–')} {gt.get('radius_unit') or ''} | "
+             + f" | {gt.get('unit', '–')}, radius {quantity(gt.get('radius'), gt.get('radius_unit'))} | "
              f"`{protocol.get('id', '–')}` (`{protocol.get('hash', '–')}`) | `{column.fingerprint}` |", "",
              f"Protocol `{protocol.get('id', '–')}`: {protocol.get('description') or 'no description'}"
              + (f" (source: {protocol['source']})" if protocol.get("source") else "") + ".", "",
-             "Queries without positives count as failures. " + CELL_RULE, "",
+             "Queries without positives count as failures.", "",
              "## Results", "",
              f"Seeded 95 % bootstrap intervals ({RESAMPLES:,} resamples, seed {seed}), resampling "
              f"{_units(cells)}.", "",
              "| Method | Weights | R@1 [95 % CI] | R@5 [95 % CI] | R@10 | R@20 | AUC-PR | R@100%P | Dim | Bytes | Images/s |",
              "|:--|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|"]
-    runs = ["| Method | Run | Created | vprbench | Commit | Descriptors computed | Older runs of the row |",
-            "|:--|:--|:--|:--|:--|--:|--:|"]
+    runs = ["| Method | Run | Created | vprbench | Commit | Descriptors computed | Older runs of the row | Images/s measured by |",
+            "|:--|:--|:--|:--|:--|--:|--:|:--|"]
     for cell in cells:
         s, r = stats[(cell.row, column.key)], cell.record
         name = f"{text(cell.row.label)}{' †' if not cell.row.official else ''}"
         lines.append(f"| {name} | {text(weights_shown(cell.row, r))} | "
                      f"{_ci(s[1])} | {_ci(s[5])} | {fmt(cell.recall(10))} | {fmt(cell.recall(20))} | "
-                     f"{_num(r.get('auc_pr'), 3)} | {_num(r.get('recall_at_100_precision'), 3)} | {r.get('descriptor_dim')} | "
-                     f"{r.get('descriptor_bytes') or 4 * int(r.get('descriptor_dim') or 0)} | {_num(r.get('images_per_second'), 1)} |")
+                     f"{_num(r.get('auc_pr'), 3)} | {percent(r.get('recall_at_100_precision'))} | {r.get('descriptor_dim')} | "
+                     f"{r.get('descriptor_bytes') or 4 * int(r.get('descriptor_dim') or 0)} | {_num(cell.images_per_second, 1)} |")
         versions, computed = r.get("versions") or {}, r.get("descriptors_computed") or {}
         runs.append(f"| {name} | `{r.get('run_id')}` | {r.get('created', '–')} | {versions.get('vprbench', '–')} | "
-                    f"`{str(versions.get('git') or '–')[:10]}` | {sum(computed.values()) if computed else '–'} | {cell.passed_over} |")
+                    f"`{str(versions.get('git') or '–')[:10]}` | {sum(computed.values()) if computed else '–'} | {cell.passed_over} | "
+                    + (f"`{text(cell.timed.get('run_id'))}` on {text(cell.hardware)} |" if cell.timed else "no run computed its descriptors |"))
     lines += ["", "The runs in the cells above:", "", *runs, "", *_paired(cells, seed), "## Figures", ""]
     slug = column.slug
-    lines += _figure(lambda p: figures.recall_curves(cells, p), out, f"{slug}-recall.svg", "Recall@K per run")
-    lines += _figure(lambda p: figures.pr_curves(cells, p), out, f"{slug}-pr.svg",
+    lines += _figure(lambda p: figures.recall_curves(cells, p, colours), out, f"{slug}-recall.svg", "Recall@K per run")
+    lines += _figure(lambda p: figures.pr_curves(cells, p, colours), out, f"{slug}-pr.svg",
                      "Precision-recall of the top-1 matches ranked by similarity (VPR-Bench)")
-    lines += _figure(lambda p: figures.efficiency(cells, p), out, f"{slug}-efficiency.svg",
+    lines += _figure(lambda p: figures.efficiency(cells, p, colours), out, f"{slug}-efficiency.svg",
                      "Efficiency: R@1 against descriptor bytes and images described per second (this machine)")
     lines += ["### Retrieval mosaics", "", f"Seeded queries (seed {seed}) and their top 5: green frame = positive, red = not.", ""]
     for cell in cells[:MOSAIC_ROWS]:
         name = f"{slug}-mosaic-{_file_slug(cell.row.name)}.png"
-        lines += _figure(lambda p, c=cell: figures.mosaic(c, p, data_dir=data_dir, seed=seed), out, name,
+        lines += _figure(lambda p, c=cell: figures.mosaic(c, p, data_dir=data_dir, seed=seed, cache_dir=cache_dir), out, name,
                          f"{cell.row.name}: queries and their top 5", f"Mosaic of {cell.row.name}")
     download = [_record_download(c) for c in cells]
     _write(out / "downloads" / f"{slug}.json", json.dumps(download, sort_keys=True, default=_plain))  # compact: per-query arrays
     pd.DataFrame([_summary(c, stats[(c.row, column.key)]) for c in cells]).to_csv(out / "downloads" / f"{slug}.csv", index=False)
     lines += ["## Downloads", "", f"[{slug}.csv](downloads/{slug}.csv) (one row per cell), "
-              f"[{slug}.json](downloads/{slug}.json) (the cells' full records, per-query predictions included).", ""]
+              f"[{slug}.json](downloads/{slug}.json) (the cells' full records, per-query predictions included).", "",
+              *_rule()]
     return "\n".join(lines)
 
 
@@ -271,6 +330,8 @@ def _paired(cells: list[Cell], seed: int) -> list[str]:
     """Paired tests between neighbours in the ranking whose R@1 intervals overlap."""
     lines = []
     for a, b in zip(cells, cells[1:]):
+        if a.row.key == b.row.key:  # one method's two rows (e.g. before and after a mark): never tested against itself
+            continue
         if a.arrays is None or b.arrays is None or len(a.arrays["first_positive_rank"]) != len(b.arrays["first_positive_rank"]):
             continue
         ci_a, ci_b = cell_stats(a, ks=(1,), seed=seed)[1]["ci"], cell_stats(b, ks=(1,), seed=seed)[1]["ci"]
@@ -302,14 +363,16 @@ def _summary(cell: Cell, stats: dict) -> dict:
     r = cell.record
     entry = {"method": cell.row.label, "weights": weights_shown(cell.row, r), "dataset": cell.column.dataset,
              "column": cell.column.title, "page": f"{cell.column.slug}.md", "dataset_kind": cell.column.kind,
-             "domain": cell.column.domain, "row_key": cell.row.key}
+             "domain": cell.column.domain, "row_key": cell.row.key, "track": cell.row.track}
     for k in CELL_KS:
         entry[f"r{k}"] = stats[k]["value"]
         entry[f"r{k}_ci_low"], entry[f"r{k}_ci_high"] = stats[k]["ci"] or (None, None)
     for k in (10, 20):
         entry[f"r{k}"] = cell.recall(k)
     entry.update({key: r.get(key) for key in ("auc_pr", "recall_at_100_precision", "descriptor_dim", "descriptor_bytes",
-                                              "images_per_second", "run_id", "created", "dataset_fingerprint")})
+                                              "run_id", "created", "dataset_fingerprint")})
+    entry["images_per_second"], entry["speed_hardware"] = cell.images_per_second, cell.hardware
+    entry["speed_run_id"] = (cell.timed or {}).get("run_id")
     entry["protocol"] = (r.get("protocol") or {}).get("id")
     entry["ci_resampling"] = for_record(r, cell.arrays).text()  # which queries the intervals draw together
     entry["vprbench"] = (r.get("versions") or {}).get("vprbench")

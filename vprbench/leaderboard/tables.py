@@ -100,11 +100,13 @@ def comparisons(board: Board, seed: int = 0) -> list[dict]:
 
 def group_table(board: Board, table: str, link=lambda column: column.dataset) -> str:
     """A paper-style table (II structured, III unstructured) in Markdown: our official measured rows
-    and the paper's rows; R@1 / R@5 per dataset; averages over the datasets shown; best in bold.
-    Reported values are in italics, never presented as measured."""
+    and the paper's rows; R@1 / R@5 per dataset; best in bold. The Average is over the paper's
+    datasets of the table, for rows that have them all; a measured row with fewer has its mean in a
+    column of its own, "Measured so far". Reported values are in italics, never presented as measured."""
     title, domains = GROUPS[table]
     paper = paper_results(table=table)
     datasets = list(dict.fromkeys(paper["column"]))
+    averaged = list(datasets)  # what the paper's averages are over
     ours = [c for c in board.columns if c.kind == "benchmark" and c.default and c.domain in domains]
     datasets += [c.dataset for c in ours if c.dataset not in datasets]
     by_name = {c.dataset: c for c in ours}
@@ -140,33 +142,42 @@ def group_table(board: Board, table: str, link=lambda column: column.dataset) ->
         text = f"*{text}*" if is_reported else text
         return f"**{text}**" if best.get((name, k)) is not None and abs(value - best[(name, k)]) < 1e-9 else text
 
-    header = ["Method", *[f"[{n}]({link(by_name[n])})" if n in by_name else n for n in datasets], "Average"]
+    averages = {name: _average(values, averaged, source) for name, source, values in lines}
+    partial = {name: _average(values, datasets, source, partial=True) for name, source, values in lines
+               if averages[name] is None and source == "measured"}
+    header = ["Method", *[f"[{n}]({link(by_name[n])})" if n in by_name else n for n in datasets],
+              f"Average ({len(averaged)})", *(["Measured so far"] if partial else [])]
     note = "" if measured_any else " No official run measured in this group yet: every value below is reported."
-    out = [f"### Table {table}: {title}", "", "R@1 / R@5 (%) per dataset. " + LEGEND + note, "",
-           "| " + " | ".join(header) + " |", "|" + "|".join([":--"] + ["--:"] * (len(datasets) + 1)) + "|"]
+    legend = LEGEND.format(n=len(averaged)) + (PARTIAL_LEGEND if partial else "")
+    out = [f"### Table {table}: {title}", "", "R@1 / R@5 (%) per dataset. " + legend + note, "",
+           "| " + " | ".join(header) + " |", "|" + "|".join([":--"] + ["--:"] * (len(header) - 1)) + "|"]
     for name, source, values in lines:
         cells = [f"{show(*values[(n, 1)], n, 1)} / {show(*values[(n, 5)], n, 5)}" for n in datasets]
-        out.append("| " + " | ".join([name, *cells, _average(values, datasets, source)]) + " |")
+        out.append("| " + " | ".join([name, *cells, averages[name] or "–", *([partial.get(name) or ""] if partial else [])])
+                   + " |")
     return "\n".join(out) + "\n"
 
 
-def _average(values: dict, datasets: list[str], source: str) -> str:
-    """The mean over the datasets shown, of values of the row's own kind (a measured row's average
-    never mixes in reported numbers); '(n/m)' when the row has fewer than all of them."""
-    parts = []
+def _average(values: dict, datasets: list[str], source: str, partial: bool = False) -> str | None:
+    """The R@1 / R@5 means over `datasets`, of values of the row's own kind (a measured row's never
+    mix in reported numbers): None unless the row has every one of them. With `partial`, the means
+    over those it has, with how many ('(n of m)'); None when it has none."""
+    parts, have = [], 0
     for k in CELL_KS:
         own = [values[(n, k)][0] for n in datasets
                if values[(n, k)][0] is not None and (source != "measured" or not values[(n, k)][1])]
-        text = fmt(sum(own) / len(own)) if own else "–"
-        if own and len(own) < len(datasets):
-            text += f" ({len(own)}/{len(datasets)})"
-        parts.append(text if source == "measured" or not own else f"*{text}*")
-    return " / ".join(parts)
+        if not own or (len(own) < len(datasets) and not partial):
+            return None
+        have = max(have, len(own))
+        parts.append(fmt(sum(own) / len(own)) if source == "measured" else f"*{fmt(sum(own) / len(own))}*")
+    return " / ".join(parts) + (f" ({have} of {len(datasets)})" if partial else "")
 
 
 LEGEND = ("Upright: measured here (one run per cell). *Italic*: reported by the AnyLoc paper, not measured here. "
-          "**Bold**: best in its column. Averages are over the datasets shown, each of the row's own kind; "
-          "(n/m) = over n of the m datasets.")
+          "**Bold**: best in its column. Average ({n}): over the paper's {n} datasets of this table, each value of "
+          "the row's own kind, only for a row that has all of them.")
+PARTIAL_LEGEND = (" Measured so far: a measured row's mean over the datasets it has been run on, of all those "
+                  "shown (n of m); not comparable with the averages.")
 
 
 def other_rows(board: Board) -> list[tuple[Row, Column, Cell]]:

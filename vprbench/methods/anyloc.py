@@ -22,7 +22,7 @@ from .anyloc_vocabulary import MAP_PREFIX, paper_choice, released_provenance, re
 from ..aggregation.vlad import vlad_hard
 from ..aggregation.vocabulary import fit_vocabulary
 from ..errors import VPRBenchError
-from ..features.backbones import backbone_spec, load_backbone, weights_identity
+from ..features.backbones import RANDOM, backbone_spec, load_backbone, weights_identity
 from ..weights import weights_provenance
 from ..features.dense import FACETS, DenseExtractor
 from ..features.preprocess import preprocess
@@ -124,14 +124,22 @@ class AnyLoc(Method):
         """Tell the method which dataset it runs on (AnyLoc's per-dataset resize, domain vocabularies)."""
         self.dataset = name
         if self.aggregation in VLADS and self.vocabulary == "domain":
-            found, source, note = paper_choice(name, self.backbone, self.layer, self.facet, self.clusters,
+            found, source, note = paper_choice(name, self.vocabulary_backbone, self.layer, self.facet, self.clusters,
                                                self.cache_dir)
+            if found is not None:
+                found.check_setting(self.vocabulary_backbone, self.layer, self.facet)
             self.needs_fit = found is None
             self.centres = None if found is None else found.centres.float()
             self.vocabulary_info = {"name": source, **({"note": note} if note else {}),
                                     **(self._file_info(found) if found is not None else {})}
             if note:
                 warnings.warn(note, stacklevel=2)
+
+    @property
+    def vocabulary_backbone(self) -> str:
+        """The backbone name vocabularies are keyed by: random weights get their own, so centres
+        fitted on them never serve the real weights (nor the other way round)."""
+        return f"{self.backbone}@{RANDOM}" if self.weights == RANDOM else self.backbone
 
     @property
     def resize(self) -> tuple[int, int] | None:
@@ -146,9 +154,10 @@ class AnyLoc(Method):
         """Centres for a vocabulary option other than "map"/"domain": a file/folder path or a
         cached source name (a domain such as "indoor", or "map-<dataset>"); the authors'
         released centres are downloaded on first use where they fit these features."""
-        found = resolve_vocabulary(self.vocabulary, self.backbone, self.layer, self.facet, self.clusters,
+        found = resolve_vocabulary(self.vocabulary, self.vocabulary_backbone, self.layer, self.facet, self.clusters,
                                    self.cache_dir)
         found.check_dim(self.spec.width)  # before the model loads, naming the file
+        found.check_setting(self.vocabulary_backbone, self.layer, self.facet)
         self.vocabulary_info = {"name": self.vocabulary, **self._file_info(found)}
         return found.centres.float()
 

@@ -232,6 +232,7 @@ def find_vocabulary(source: str, backbone: str, layer: int, facet: str, clusters
 
 
 def save_to_cache(vocabulary: Vocabulary, backbone: str, layer: int, facet: str, source: str, cache_dir=None) -> Path:
+    vocabulary.check_setting(backbone, layer, facet)  # never cached under another setting's key
     meta = {**vocabulary.meta, "backbone": backbone, "layer": layer, "facet": facet, "source": source}
     vocabulary.meta = meta
     folder = vocabulary_dir(backbone, layer, facet, vocabulary.clusters, source, cache_dir)

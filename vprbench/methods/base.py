@@ -51,6 +51,10 @@ class Method(ABC):
     needs_fit: bool = False
     #: images handed to one `describe` call by the pipeline
     batch_size: int = 16
+    #: how descriptors are compared: "cosine" (inner product of L2-normalised rows, the contract
+    #: above) or "mean-absolute-difference" (a distance over rows as they are, e.g. `sad`; searched
+    #: exactly, without post-processing)
+    compare: str = "cosine"
 
     def use_dataset(self, name: str) -> None:  # pragma: no cover - default no-op
         """Called first by an evaluation with the dataset's name: per-dataset settings

@@ -19,6 +19,8 @@ def core_methods() -> list[dict]:
          "description": "HOG of the resized whole image (VPR-Bench settings); no training"},
         {"name": "dense-vlad", "factory": "vprbench.methods.dense_vlad:DenseVLAD",
          "description": "DenseVLAD: dense multi-scale RootSIFT + VLAD (128 words fitted on the database)"},
+        {"name": "sad", "factory": "vprbench.methods.sad:SAD",
+         "description": "SeqSLAM's front end: 64x32 grey, 8x8 patch-normalised, mean absolute difference; no training"},
     ]
     found += [{"name": name, "factory": ANYLOC, "defaults": preset.get("options", {}),
                "description": preset.get("description", "")} for name, preset in anyloc_presets().items()]

@@ -8,7 +8,8 @@
 
 Only the lock holder creates, discards or renames files here (ranks of a distributed run
 write their own shards while their rank 0 holds it). Complete stores are never changed
-after they appear, so readers need no lock. The images key is the content identity of the
+after they appear, so readers need no lock; a reader that finds one damaged (a row that
+fails its checksum) discards it under the lock. The images key is the content identity of the
 images, not of the ground truth: a new radius re-scores the same stores.
 """
 from __future__ import annotations
@@ -24,10 +25,11 @@ import h5py
 import numpy as np
 
 from ..errors import VPRBenchError
-from ..fsutil import atomic_path, cache_error, is_temporary, lock
+from ..fsutil import atomic_path, cache_error, is_temporary
 from ..paths import cache_root, safe_name
 from ..spec import RUN_SETTINGS, canonical_hash, canonical_json
-from .rows_file import DescriptorStore, RowsIdentity, hdf5_written, inspect_rows_file
+from .reader import DescriptorStore
+from .rows_file import DamagedRows, RowsIdentity, folder_lock, hdf5_written, inspect_rows_file
 
 #: fit id of methods that fit nothing
 NO_FIT = "none"
@@ -100,19 +102,29 @@ class StoreFolder:
     # ------------------------------------------------------------ the lock
     @contextmanager
     def locked(self, timeout: float | None = None):
-        with lock(self.path / ".lock", timeout, what=f"descriptor store {self.path}"):
+        with folder_lock(self.path, timeout):
             yield
 
     # ------------------------------------------------------------ complete stores
     def complete(self, split: str, names: list[str], fit_id: str, dtype: str) -> DescriptorStore | None:
-        """The split's complete store, or None (absent, partial, stale or torn)."""
+        """The split's complete store, every row checked against its checksum, or None (absent,
+        partial, stale, torn, or damaged: then it is discarded under the lock and said so)."""
         path = self.store_path(split)
         identity = self.identity(split, names, fit_id, dtype)
         found = inspect_rows_file(path, identity)
         if found.status == "foreign":
             raise VPRBenchError(f"Descriptor store {path} does not belong to this store: {found.reason}. "
                                 "Delete it (it is recomputed).")
-        return DescriptorStore(path, identity) if found.status == "complete" else None
+        if found.status != "complete":
+            return None
+        store = DescriptorStore(path, identity)
+        try:
+            store.verify()
+        except DamagedRows as damage:
+            warnings.warn(f"Descriptor store {path} was damaged ({damage.detail}); it was discarded and is "
+                          "recomputed.", stacklevel=2)
+            return None
+        return store
 
     def recorded_fit_id(self, split: str) -> str | None:
         """The fit id a split's complete store says it was computed with."""

@@ -1,20 +1,24 @@
 """One HDF5 file of descriptor rows: a whole split (a store) or a rank's shard of it.
 
-Layout: `descriptors` (rows x dim, float32 or float16), `done` (one flag per row),
-`names` (the images, variable-length UTF-8), `complete` (one byte, set last) and attributes
-saying what the file is (`RowsIdentity`). Every dataset is contiguous and allocated when
+Layout: `descriptors` (rows x dim, float32 or float16), `checksums` (the crc32 of each row's
+stored bytes, written with the row), `done` (one flag per row), `names` (the images,
+variable-length UTF-8), `complete` (one byte, set last) and attributes saying what the file
+is (`RowsIdentity`). A checksum block is one row: rows are written in batches of any size
+and resumed anywhere, and a row is the one block every write covers whole. Every dataset is contiguous and allocated when
 the file is created, and the file is created whole under a temporary name and renamed into
 place: after that only raw bytes change (rows, then their flags, then the completion byte),
 never HDF5's metadata, so a kill at any moment leaves a readable file whose flagged rows
 are all on disk. A file is complete only when its content says so: completion byte set,
 every row done, names, row range, fit and dtype as expected. That is checked whenever a
-file is opened for reading and again when it has changed since.
+file is opened for reading and again when it has changed since; the rows' content is
+checked against their checksums as they are read (reader.py).
 """
 from __future__ import annotations
 
 import errno
 import json
 import os
+import zlib
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,9 +27,11 @@ import h5py
 import numpy as np
 
 from ..errors import VPRBenchError
-from ..fsutil import atomic_path, cache_error
+from ..fsutil import atomic_path, cache_error, lock
 
-FORMAT = "vprbench-rows-2"
+FORMAT = "vprbench-rows-3"
+#: the format before rows carried checksums: such a file is stale (recomputed), never trusted
+UNCHECKED_FORMAT = "vprbench-rows-2"
 DTYPES = ("float32", "float16")
 #: bytes read or copied at a time when a whole file is read or merged
 BLOCK_BYTES = 64 * 2**20
@@ -66,6 +72,39 @@ class Inspection:
     dim: int | None = None
 
 
+class DamagedRows(VPRBenchError):
+    """Rows of a file whose bytes no longer match the checksums written with them."""
+
+    def __init__(self, path: Path, rows: np.ndarray):
+        self.path, self.rows = Path(path), np.unique(rows)
+        rows = self.rows
+        if len(rows) == 1:
+            self.detail = f"row {int(rows[0]):,} no longer matches the checksum written with it"
+        else:
+            self.detail = f"rows {int(rows[0]):,} and {len(rows) - 1:,} more no longer match the checksums written with them"
+        super().__init__(f"Descriptor store {path} is damaged: {self.detail}.")
+
+
+def row_checksums(rows: np.ndarray) -> np.ndarray:
+    """crc32 of each row's bytes as stored (little-endian), uint32."""
+    rows = np.ascontiguousarray(rows, dtype=rows.dtype.newbyteorder("<"))
+    return np.fromiter((zlib.crc32(row) for row in rows), dtype=np.uint32, count=len(rows))
+
+
+def check_rows(path: Path, start: int, rows: np.ndarray, expected: np.ndarray) -> None:
+    """Raise `DamagedRows` unless rows start.. (as stored) have the checksums `expected`."""
+    bad = np.flatnonzero(row_checksums(rows) != expected)
+    if len(bad):
+        raise DamagedRows(path, bad + start)
+
+
+@contextmanager
+def folder_lock(folder: Path, timeout: float | None = None):
+    """The lock of a store folder: held by the one process that creates, discards or renames its files."""
+    with lock(Path(folder) / ".lock", timeout, what=f"descriptor store {folder}"):
+        yield
+
+
 def _early_contiguous() -> h5py.h5p.PropDCID:
     dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
     dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)
@@ -82,6 +121,7 @@ def create_rows_file(path: Path, identity: RowsIdentity, dim: int) -> None:
             reserve(temporary, path, identity, dim)
             f.create_dataset("descriptors", shape=(n, dim), dtype=identity.dtype, dcpl=_early_contiguous(),
                              fill_time="never")
+            f.create_dataset("checksums", shape=(n,), dtype="<u4", dcpl=_early_contiguous(), fillvalue=0)
             f.create_dataset("done", shape=(n,), dtype="uint8", dcpl=_early_contiguous(), fillvalue=0)
             f.create_dataset("complete", shape=(), dtype="uint8", dcpl=_early_contiguous(), fillvalue=0)
             identity.write_into(f)
@@ -92,7 +132,7 @@ def reserve(path: Path, shown: Path, identity: RowsIdentity, dim: int) -> None:
     descriptor is computed, and writing rows later never needs a new block. (Instant on
     ext4, XFS, btrfs; where the filesystem cannot, the C library writes the zeros.)"""
     rows = identity.stop - identity.start
-    size = rows * (dim * np.dtype(identity.dtype).itemsize + 1) + sum(len(n.encode()) + 32 for n in identity.names)
+    size = rows * (dim * np.dtype(identity.dtype).itemsize + 5) + sum(len(n.encode()) + 32 for n in identity.names)
     if not hasattr(os, "posix_fallocate"):
         return
     fd = os.open(path, os.O_RDWR)
@@ -141,6 +181,8 @@ def inspect_rows_file(path: Path, identity: RowsIdentity) -> Inspection:
     try:
         with h5py.File(path, "r") as f:
             attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+            if attrs.get("format") == UNCHECKED_FORMAT:
+                return Inspection("stale", "it was written by an earlier vprbench, without row checksums")
             if attrs.get("format") != FORMAT:
                 return Inspection("foreign", f"it is not a vprbench {FORMAT} file (format {attrs.get('format')!r})")
             expected = identity.attrs()
@@ -149,7 +191,8 @@ def inspect_rows_file(path: Path, identity: RowsIdentity) -> Inspection:
                     return Inspection("foreign", f"it holds {key} {_plain(attrs.get(key))!r}, this store needs {expected[key]!r}")
             n = identity.stop - identity.start
             descriptors = f["descriptors"]
-            if descriptors.ndim != 2 or descriptors.shape[0] != n or len(f["names"]) != n or f["done"].shape != (n,):
+            if (descriptors.ndim != 2 or descriptors.shape[0] != n or len(f["names"]) != n or f["done"].shape != (n,)
+                    or f["checksums"].shape != (n,)):
                 return Inspection("foreign", f"it holds {descriptors.shape[0]} rows and {len(f['names'])} names, expected {n}")
             names = f["names"].asstr()[...].tolist()
             if names != identity.names:
@@ -173,8 +216,8 @@ def _plain(value):
 
 
 class RowWriter:
-    """Rows written into an existing rows file: rows first, then their flags, each flushed,
-    so a row flagged done is always fully on disk."""
+    """Rows written into an existing rows file: rows and their checksums first, then their
+    flags, each flushed, so a row flagged done is always fully on disk."""
 
     def __init__(self, path: Path, identity: RowsIdentity):
         self.path, self.identity = path, identity
@@ -182,7 +225,7 @@ class RowWriter:
             self.file = h5py.File(path, "r+")
         except (OSError, RuntimeError) as error:
             raise cache_error(error, path) from None
-        self.descriptors, self.done = self.file["descriptors"], self.file["done"]
+        self.descriptors, self.done, self.checksums = self.file["descriptors"], self.file["done"], self.file["checksums"]
         self.dim = int(self.descriptors.shape[1])
 
     def write(self, rows: np.ndarray, descriptors: np.ndarray) -> None:
@@ -204,6 +247,9 @@ class RowWriter:
                 for start, stop in runs:
                     at = int(np.searchsorted(local, start))
                     self.descriptors[start:stop] = values[at:at + stop - start]
+            sums = self.checksums[first:last]
+            sums[local - first] = row_checksums(values)
+            self.checksums[first:last] = sums
             self.file.flush()
             flags = self.done[first:last]
             flags[local - first] = 1
@@ -240,95 +286,10 @@ def _runs(local: np.ndarray) -> list[tuple[int, int]]:
     return [(int(local[s]), int(local[e - 1]) + 1) for s, e in zip(starts, ends)]
 
 
-class DescriptorStore:
-    """A complete store, read as a "row source": `row_count`, `dim`, `dtype`, `folder`,
-    `read_rows(start, stop)` and `read_rows_at(indices)` return float32 rows."""
-
-    def __init__(self, path: Path, identity: RowsIdentity):
-        self.path, self.identity = Path(path), identity
-        self.folder = self.path.parent
-        self._verified = None
-        self._verify()
-
-    @classmethod
-    def recorded(cls, path: Path, store: str) -> "DescriptorStore | None":
-        """The complete store at `path` as its own content describes it (for readers that do
-        not know the images, e.g. the leaderboard), or None when it is absent or incomplete."""
-        try:
-            with h5py.File(path, "r") as f:
-                attrs = {k: _plain(v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
-                names = f["names"].asstr()[...].tolist()
-                fingerprint = f["fingerprint"].asstr()[()]
-            identity = RowsIdentity(store=store, start=attrs["start"], stop=attrs["stop"], total=attrs["total"],
-                                    fit_id=attrs["fit_id"], dtype=attrs["dtype"], fingerprint=fingerprint, names=names)
-            return cls(path, identity)
-        except (OSError, KeyError, ValueError, TypeError, VPRBenchError):
-            return None
-
-    def _verify(self) -> None:
-        try:
-            stat = os.stat(self.path)
-        except OSError as error:
-            raise VPRBenchError(f"Descriptor store {self.path} has gone ({error.strerror}); run again to recompute it.") from None
-        signature = (stat.st_ino, stat.st_size, stat.st_mtime_ns)
-        if signature == self._verified:
-            return
-        found = inspect_rows_file(self.path, self.identity)
-        if found.status != "complete":
-            raise VPRBenchError(f"Descriptor store {self.path} is not complete: "
-                                f"{found.reason or found.status}. Run the evaluation again to recompute it.")
-        self.row_count = self.identity.stop - self.identity.start
-        self.dim = found.dim
-        self.dtype = np.dtype(self.identity.dtype)
-        self._verified = signature
-
-    @property
-    def names(self) -> list[str]:
-        return list(self.identity.names)
-
-    def read_rows(self, start: int = 0, stop: int | None = None) -> np.ndarray:
-        self._verify()
-        stop = self.row_count if stop is None else stop
-        if not 0 <= start <= stop <= self.row_count:
-            raise ValueError(f"rows {start}:{stop} outside 0:{self.row_count}")
-        with self._open() as f:
-            return np.asarray(f["descriptors"][start:stop], dtype=np.float32)
-
-    def read_rows_at(self, indices) -> np.ndarray:
-        """Rows at ascending `indices` (repeats allowed), in that order."""
-        self._verify()
-        indices = np.asarray(indices, dtype=np.int64)
-        if len(indices) and (np.any(np.diff(indices) < 0) or indices[0] < 0 or indices[-1] >= self.row_count):
-            raise ValueError("indices must be ascending and inside the store")
-        out = np.empty((len(indices), self.dim), dtype=np.float32)
-        block = max(1, BLOCK_BYTES // max(1, self.dim * np.dtype(self.dtype).itemsize))
-        with self._open() as f:
-            data = f["descriptors"]
-            i = 0
-            while i < len(indices):
-                # rows close together are read as one slice; far apart ones one by one
-                j = int(np.searchsorted(indices, indices[i] + block, side="left"))
-                first, last = int(indices[i]), int(indices[j - 1]) + 1
-                if (j - i) * 4 >= last - first:
-                    out[i:j] = data[first:last][indices[i:j] - first]
-                else:
-                    for k in range(i, j):
-                        out[k] = data[int(indices[k])]
-                i = j
-        return out
-
-    def read(self) -> np.ndarray:
-        return self.read_rows(0, self.row_count)
-
-    def _open(self) -> h5py.File:
-        try:
-            return h5py.File(self.path, "r")
-        except OSError as error:
-            raise cache_error(error, self.path) from None
-
-
 def merge_rows_files(parts: list[tuple[Path, RowsIdentity]], path: Path, identity: RowsIdentity, dim: int) -> None:
-    """Copy complete shards, in row order, into one new complete file at `path` (atomically)."""
+    """Copy complete shards, in row order, into one new complete file at `path` (atomically),
+    each row with the checksum its writer gave it, checked as it is copied (a damaged shard
+    raises `DamagedRows` naming it)."""
     n = identity.stop - identity.start
     block = max(1, BLOCK_BYTES // max(1, dim * np.dtype(identity.dtype).itemsize))
     with atomic_path(path) as temporary:
@@ -336,12 +297,16 @@ def merge_rows_files(parts: list[tuple[Path, RowsIdentity]], path: Path, identit
             reserve(temporary, path, identity, dim)
             target = out.create_dataset("descriptors", shape=(n, dim), dtype=identity.dtype,
                                         dcpl=_early_contiguous(), fill_time="never")
+            sums = out.create_dataset("checksums", shape=(n,), dtype="<u4", dcpl=_early_contiguous())
             for part_path, part in parts:
                 with h5py.File(part_path, "r") as f:
-                    source = f["descriptors"]
+                    source, written = f["descriptors"], f["checksums"]
                     for first in range(0, part.stop - part.start, block):
                         last = min(part.stop - part.start, first + block)
-                        target[part.start + first:part.start + last] = source[first:last]
+                        rows, expected = source[first:last], written[first:last]
+                        check_rows(part_path, part.start + first, rows, expected)
+                        target[part.start + first:part.start + last] = rows
+                        sums[part.start + first:part.start + last] = expected
             out.create_dataset("done", data=np.ones(n, np.uint8), dcpl=_early_contiguous())
             out.create_dataset("complete", data=np.uint8(1), dcpl=_early_contiguous())
             identity.write_into(out)

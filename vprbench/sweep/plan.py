@@ -6,6 +6,7 @@ A plan file (TOML):
     k = [1, 5, 10]                   # optional (default 1 5 10 20)
     search = { index = "hnsw" }      # optional (default exact)
     store_dtype = "float16"          # optional (default float32)
+    stages = [{ name = "sift-ransac", k = 100 }]   # optional: post-retrieval stages of every cell
 
     [[methods]]
     name = "hog"
@@ -13,6 +14,7 @@ A plan file (TOML):
 
     [[methods]]
     name = "dense-vlad"
+    stages = [{ name = "aqe", k = 20 }]   # optional: this entry's stages (over the plan's)
 
     [[datasets]]
     name = "corridor"
@@ -33,8 +35,8 @@ from pathlib import Path
 from ..errors import VPRBenchError, closest_names
 from ..spec import RUN_SETTINGS, RunSpec, resolve_spec
 
-PLAN_KEYS = {"name", "description", "k", "methods", "datasets", "search", "store_dtype"}
-METHOD_KEYS = {"name", "options", "label"}
+PLAN_KEYS = {"name", "description", "k", "methods", "datasets", "search", "store_dtype", "stages"}
+METHOD_KEYS = {"name", "options", "label", "stages"}
 DATASET_KEYS = {"name", "protocols", "protocol"}
 
 
@@ -99,7 +101,7 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, overrides:
     """Cells of a plan given as a dict; raises one error listing every problem.
 
     `overrides` are what the command line sets on top of every entry: `options` (method options,
-    run settings among them), `search`, `store_dtype`, `k`.
+    run settings among them), `search`, `store_dtype`, `k`, `stages` (replacing every entry's).
     """
     from ..datasets import dataset_manifests, is_path
     from ..datasets.protocol import protocols
@@ -138,7 +140,12 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, overrides:
         for option in sorted(set(options) - set(accepted) - set(RUN_SETTINGS)):
             problems.append(f"{where('methods', i, 'options')}: method {name!r} does not take option {option!r}."
                             f"{closest_names(option, accepted)} (It accepts: {', '.join(accepted) or 'none'}.)")
-        methods.append((i, name, options, str(entry.get("label", ""))))
+        stages = overrides.get("stages") or entry.get("stages", data.get("stages", []))
+        if not isinstance(stages, list):
+            problems.append(f"{where('methods', i, 'stages')}: stages of method {name!r} must be a list of tables, "
+                            f"e.g. [{{ name = \"aqe\", k = 20 }}]; got {stages!r}")
+            continue
+        methods.append((i, name, options, str(entry.get("label", "")), stages))
 
     datasets, manifests = [], dataset_manifests()
     for i, entry in enumerate(_entries(data, "datasets", problems, where)):
@@ -164,11 +171,11 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, overrides:
 
     cells = []
     if not problems:
-        for m, method, options, label in methods:
+        for m, method, options, label, stages in methods:
             for d, dataset, protocol in datasets:
                 try:
                     spec = resolve_spec(method, dataset, options=options, protocol=protocol, data_dir=data_dir,
-                                        cache_dir=cache_dir, **shared)
+                                        cache_dir=cache_dir, stages=stages, **shared)
                 except VPRBenchError as error:
                     problems.append(f"{where('methods', m, 'options')}: {error}")
                     continue

@@ -73,13 +73,17 @@ def table_cells(paper: str, table: str, ks=(1, 5), *, settings: dict | None = No
     return spec, out
 
 
-def weights_for(row_weights: dict | None, cell: Cell, cache_dir=None) -> str | None:
+#: what a cell lacks: (the thing, how to get it), e.g. ("dataset hawkins", "Download ...")
+Need = tuple[str, str]
+
+
+def weights_for(row_weights: dict | None, cell: Cell, cache_dir=None) -> Need | None:
     """What is missing of the cell's weights (None: present, or not knowable before running)."""
     from ..features.catalogue import backbone_spec
     from ..methods.anyloc import AnyLoc
     from ..methods.registry import method_entry
     from ..paths import cache_root
-    from ..weights import cached_weights, local_weights, weights_folder
+    from ..weights import cached_weights, hub_folder, local_weights, weights_folder
 
     entry = method_entry(cell.spec.method)
     merged = {**entry.defaults, **cell.spec.given}
@@ -90,47 +94,66 @@ def weights_for(row_weights: dict | None, cell: Cell, cache_dir=None) -> str | N
                 local_weights(spec.source, merged["weights"], f"backbone {spec.name}")
                 return None
             except VPRBenchError as error:
-                return str(error)
+                return f"weights {merged['weights']}", str(error)
         if cached_weights(spec.source, cache_dir) is not None:
             return None
-        return f"weights {spec.file_name} (download {spec.source.where} into {weights_folder(cache_dir)})"
+        if spec.gated:
+            return (f"weights of {spec.name}", f"gated, {spec.licence}: request access at {spec.page}; "
+                    f"then downloaded from {spec.source.where} on first use")
+        into = hub_folder(cache_dir) if spec.source.hub else weights_folder(cache_dir)
+        return f"weights {spec.file_name}", f"download {spec.source.where} into {into}"
     if merged.get("weights") or not row_weights:
         return None
     folder = cache_root(cache_dir) / row_weights["folder"] if "folder" in row_weights else weights_folder(cache_dir)
     found = list(folder.rglob(row_weights["file"])) if folder.is_dir() else []
-    return None if found else f"weights {row_weights['file']} (from {row_weights['url']}, into {folder}, or pass weights=PATH)"
+    return None if found else (f"weights {row_weights['file']}", f"from {row_weights['url']}, into {folder}, or pass weights=PATH")
 
 
-def vocabulary_for(cell: Cell) -> str | None:
-    """A domain or union vocabulary that is neither cached nor released must be fitted first."""
-    from ..methods.anyloc_vocabulary import domain_names, find_vocabulary, released_path
+def vocabulary_for(cell: Cell, cache_dir=None) -> Need | None:
+    """A domain or union vocabulary (`domain`: the paper's choice for the cell's dataset) that is
+    neither cached nor released for the cell's features must be fitted first."""
+    import warnings
+
+    from ..methods.anyloc import VLADS, AnyLoc
+    from ..methods.anyloc_vocabulary import domain_names, find_vocabulary, paper_vocabulary, released_path, released_setting
     from ..methods.registry import method_entry
 
-    merged = {**method_entry(cell.spec.method).defaults, **cell.spec.given}
-    name = merged.get("vocabulary")
-    if name not in domain_names() or released_path(name) is not None or not str(merged.get("aggregation", "")).startswith("vlad"):
+    options = dict(cell.spec.options)
+    name = options.get("vocabulary")
+    if method_entry(cell.spec.method).factory is not AnyLoc or options.get("aggregation") not in VLADS:
         return None
-    layer = merged.get("layer") or int(str(merged.get("layer_for", ":31")).partition(":")[2])
-    if find_vocabulary(name, merged.get("backbone", "dinov2_vitg14"), layer, merged.get("facet", "value"), merged.get("clusters", 32)):
+    if name == "domain":
+        name = paper_vocabulary(cell.spec.dataset.name)
+    if name not in domain_names():
         return None
-    return f"vocabulary {name!r} (run 'vprbench vocabulary fit --domain {name} --method {cell.spec.method}')"
+    with warnings.catch_warnings():  # a preset's layer on another backbone: the same relative depth
+        warnings.simplefilter("ignore")
+        method = AnyLoc(**{**options, "vocabulary": "map"})  # the cell's features; nothing loads
+    setting = (method.vocabulary_backbone, method.layer, method.facet, method.clusters)
+    if find_vocabulary(name, *setting, cache_dir) or (setting == released_setting() and released_path(name)):
+        return None  # cached, or the authors' release (downloaded on first use)
+    return (f"vocabulary {name!r} for {method.backbone} layer {method.layer} {method.facet} c{method.clusters}",
+            f"run 'vprbench vocabulary fit --domain {name} --method {cell.spec.method} --backbone {method.backbone} "
+            f"--layer {method.layer}'")
 
 
-def missing_for(cell: Cell, row_weights, data_dir=None, cache_dir=None) -> str:
-    """Everything the cell lacks on this machine, '' when it can run."""
+def missing_for(cell: Cell, row_weights, data_dir=None, cache_dir=None) -> list[Need]:
+    """Everything the cell lacks on this machine, none when it can run."""
     from ..datasets import dataset_location, dataset_manifest
     from ..datasets.download import how_to_get
 
-    problems = []
+    needs = []
     if cell.spec.dataset.kind == "benchmark":
         manifest = dataset_manifest(cell.spec.dataset.name)
         root = dataset_location(manifest, data_dir)
         if not root.is_dir():
-            problems.append(f"dataset {cell.spec.dataset.name} ({how_to_get(manifest, root)})")
-    for check in (weights_for(row_weights, cell, cache_dir), vocabulary_for(cell)):
-        if check:
-            problems.append(check)
-    return "; ".join(problems)
+            needs.append((f"dataset {cell.spec.dataset.name}", how_to_get(manifest, root)))
+    return needs + [need for need in (weights_for(row_weights, cell, cache_dir), vocabulary_for(cell, cache_dir)) if need]
+
+
+def needs_text(needs: list[Need]) -> str:
+    """The needs in one line, each with how to get it."""
+    return "; ".join(f"{thing} ({how})" for thing, how in needs)
 
 
 def measured(records: list[dict | None], metric: str, seed: int = 0) -> tuple[float, float, float] | None:
@@ -138,10 +161,12 @@ def measured(records: list[dict | None], metric: str, seed: int = 0) -> tuple[fl
     seeded bootstrap interval the leaderboard uses; None unless every dataset was measured."""
     from ..evaluation.blocks import for_record
     from ..evaluation.metrics import successes
+    from ..evaluation.proof import proven
     from ..evaluation.results import per_query
     from ..leaderboard.stats import bootstrap_mean_ci
 
-    if not records or any(r is None for r in records):
+    records = [proven(r) if r is not None else None for r in records]  # metrics from the runs' arrays
+    if not records or any(r is None or isinstance(r, str) for r in records):
         return None
     k = int(metric.removeprefix("r"))
     values = [r["recall"][str(k)] for r in records]

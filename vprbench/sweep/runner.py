@@ -46,6 +46,11 @@ def _one_line(error: BaseException) -> str:
     return f"{type(error).__name__}: {text}" if not isinstance(error, VPRBenchError) else text
 
 
+def _minute(created: str | None) -> str:
+    """'2026-12-03 00:25' of a record's ISO time (UTC), short enough for a table cell."""
+    return (created or "?")[:16].replace("T", " ")
+
+
 def run_cells(cells: list[Cell], settings: RunSettings | None = None, *, lease_s: float = 120.0, poll_s: float = 2.0,
               progress=None, plan: str = "", runnable=None) -> list[Outcome]:
     """Evaluate every cell once across all processes sharing the cache. `runnable(cell)` may
@@ -75,7 +80,7 @@ def run_cells(cells: list[Cell], settings: RunSettings | None = None, *, lease_s
                     state, detail = claims.claim(cell.key, lambda c=cell: find_result(c.spec, cache_dir) is not None)
                     if state == "complete":
                         record = find_result(cell.spec, cache_dir)
-                        status, why = (SKIPPED, f"already complete (record of {record.get('created', '?')})") if first_look \
+                        status, why = (SKIPPED, f"already complete ({_minute(record.get('created'))})") if first_look \
                             else (ELSEWHERE, "evaluated by another process")
                         outcomes[cell.key] = Outcome(cell, status, why, record)
                     elif state == "failed":
@@ -116,7 +121,11 @@ def _run_claimed(cell, claims, taken_over, settings, progress, plan) -> Outcome:
     return Outcome(cell, RAN, detail, record, time.perf_counter() - started)
 
 
-def summary_table(outcomes: list[Outcome], title: str = "Sweep") -> Table:
+def summary_table(outcomes: list[Outcome], title: str = "Sweep"):
+    """One line per cell; long details (a missing dataset's instructions, an error) follow the table once."""
+    from ..notes import Notes
+
+    notes = Notes()
     counts = {s: sum(o.status == s for o in outcomes) for s in (RAN, SKIPPED, ELSEWHERE, MISSING, FAILED)}
     table = Table(title=f"{title}: " + ", ".join(f"{n} {s}" for s, n in counts.items() if n))
     for column in ("method | dataset:protocol", "status", "R@1", "R@5", "computed", "detail"):
@@ -127,5 +136,5 @@ def summary_table(outcomes: list[Outcome], title: str = "Sweep") -> Table:
         computed = (o.record or {}).get("descriptors_computed") if o.status == RAN else None
         table.add_row(o.cell.title(), Text(o.status, style=colour[o.status]),
                       f"{recall['1']:.1f}" if "1" in recall else "", f"{recall['5']:.1f}" if "5" in recall else "",
-                      f"{computed['database'] + computed['queries']}" if computed else "", o.detail)
-    return table
+                      f"{computed['database'] + computed['queries']}" if computed else "", notes.short(o.detail))
+    return notes.below(table)

@@ -157,6 +157,7 @@ def from_manifest(manifest: DatasetManifest, root: Path, database, queries, grou
         root=root,
         notes=[manifest.notes] if manifest.notes else [],
         radius_unit=manifest.radius_unit or (manifest.unit if manifest.unit != "positives" else ""),
+        sequence_order=manifest.sequence_order,
     )
 
 

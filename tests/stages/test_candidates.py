@@ -1,0 +1,73 @@
+"""Frozen candidates: exported once, re-rankers start from them; a file of another protocol or retriever is refused."""
+import dataclasses
+
+import h5py
+import pytest
+
+from vprbench.errors import VPRBenchError
+from vprbench.evaluation import evaluate
+from vprbench.spec import RunSettings, resolve_spec
+from vprbench.stages.candidates import export_candidates
+
+RERANK = [{"name": "aqe", "k": 20, "n": 2}]
+
+
+@pytest.fixture(scope="module")
+def exported(shared_data, stage_cache, tmp_path_factory):
+    path = tmp_path_factory.mktemp("candidates") / "hog.h5"
+    settings = RunSettings(data_dir=shared_data, cache_dir=stage_cache)
+    written = export_candidates(resolve_spec("hog", "corridor", data_dir=shared_data), settings, path, k=30)
+    assert written == {"file": str(path), "queries": 111, "k": 30}
+    return path, settings
+
+
+def test_a_rerank_from_the_file_is_the_rerank_from_a_search(shared_data, exported):
+    path, settings = exported
+    spec = resolve_spec("hog", "corridor", stages=RERANK, ks=(1, 5), data_dir=shared_data)
+    searched = evaluate(spec, settings)
+    frozen = evaluate(spec, dataclasses.replace(settings, candidates=path))
+    assert frozen["per_query"]["database_indices"] == searched["per_query"]["database_indices"]
+    assert frozen["spec_key"] == searched["spec_key"]  # the same run, started from the same candidates
+    assert frozen["context"]["candidates"]["file"] == str(path.resolve()) and frozen["context"]["candidates"]["k"] == 30
+    assert len(frozen["context"]["candidates"]["sha256"]) == 64 and "candidates" not in searched["context"]
+    with h5py.File(path) as f:
+        assert f["indices"].shape == (111, 30) and f.attrs["protocol_id"] == "corridor:vpr-bench"
+
+
+def edited(path, tmp_path, **attrs):
+    copy = tmp_path / "edited.h5"
+    copy.write_bytes(path.read_bytes())
+    with h5py.File(copy, "a") as f:
+        for key, value in attrs.items():
+            if key == "indices":
+                f["indices"][0, 0] = value
+            else:
+                f.attrs[key] = value
+    return copy
+
+
+@pytest.mark.parametrize("spec_parts, attrs, message", [
+    ({}, {"protocol_hash": "0" * 16, "protocol_id": "corridor:other"},
+     r"was exported under protocol corridor:other \(0000000000000000\), not this run's corridor:vpr-bench"),
+    ({"options": {"resize": [32, 32]}}, {}, r"was exported by another retriever \(hog \{\}\), not this run's hog"),
+    ({"stages": [{"name": "aqe", "k": 50}]}, {}, r"holds the top 30 per query, but this run needs 50"),
+    ({}, {"indices": 5000}, "holds indices outside the 111 database images"),
+    ({}, {"format": "something"}, "is not a vprbench candidates file"),
+    ({"stages": []}, {}, "this run has no stage: add --rerank STAGE"),
+])
+def test_a_file_that_does_not_fit_the_run_is_refused(shared_data, exported, tmp_path, spec_parts, attrs, message):
+    path, settings = exported
+    parts = {"stages": RERANK, "ks": (1, 5), **spec_parts}
+    spec = resolve_spec("hog", "corridor", data_dir=shared_data, **parts)
+    with pytest.raises(VPRBenchError, match=message):
+        evaluate(spec, dataclasses.replace(settings, candidates=edited(path, tmp_path, **attrs)))
+
+
+def test_export_needs_a_retriever_without_stages(shared_data, exported, tmp_path):
+    _, settings = exported
+    with pytest.raises(VPRBenchError, match="candidates export writes a retriever's candidates"):
+        export_candidates(resolve_spec("hog", "corridor", stages=RERANK, ks=(1,), data_dir=shared_data), settings,
+                          tmp_path / "x.h5")
+    with pytest.raises(VPRBenchError, match="500 candidates per query asked for, but the database of corridor holds 111"):
+        export_candidates(resolve_spec("hog", "corridor", data_dir=shared_data), settings, tmp_path / "x.h5", k=500)
+    assert not (tmp_path / "x.h5").exists()

@@ -1,0 +1,49 @@
+"""SIFT-RANSAC on real Corridor images: inlier counts, repeatable, features kept and reused."""
+import numpy as np
+import pytest
+
+from vprbench.errors import VPRBenchError
+from vprbench.evaluation import evaluate
+from vprbench.spec import RunSettings, resolve_spec
+from vprbench.stages.geometric import SiftRansacOptions, inliers, matchable, ratio_matches, sift_features
+
+
+def test_an_image_matches_itself_better_than_another(corridor):
+    options = SiftRansacOptions(model="homography")
+    first, other = sift_features(corridor.queries[0], 2000), sift_features(corridor.queries[60], 2000)
+    assert first["descriptors"].dtype == np.uint8 and first["points"].shape == (len(first["descriptors"]), 2)
+    same = ratio_matches(matchable(first["descriptors"], "rootsift"), matchable(first["descriptors"], "rootsift"), 0.8)
+    assert len(same) > 20 and (same[:, 0] == same[:, 1]).all()  # itself: every kept match is a keypoint with itself
+    different = ratio_matches(matchable(first["descriptors"], "rootsift"), matchable(other["descriptors"], "rootsift"), 0.8)
+    assert len(different) < len(same)
+    rng = np.random.default_rng(0)
+    points = rng.uniform(0, 160, (50, 2)).astype(np.float32)
+    moved = points + 5
+    moved[:20] = rng.uniform(0, 160, (20, 2))  # 20 outliers
+    assert inliers(points, points + 5, options) == 50  # a pure translation: all inliers
+    assert inliers(points, moved, options) == 30
+    assert inliers(first["points"][:3], first["points"][:3], options) == 0  # too few for a homography
+    assert len(other["descriptors"]) > 20
+
+
+def test_sift_ransac_run_is_repeatable_and_reuses_its_features(shared_data, stage_cache, tmp_path):
+    spec = resolve_spec("hog", "corridor", stages=[{"name": "sift-ransac", "k": 5}], ks=(1, 5), data_dir=shared_data)
+    settings = RunSettings(data_dir=shared_data, cache_dir=stage_cache)
+    first, again = evaluate(spec, settings), evaluate(spec, settings)
+    assert first["per_query"]["database_indices"] == again["per_query"]["database_indices"]
+    scores = np.array(first["per_query"]["similarities"])
+    assert (scores == np.rint(scores)).all() and (np.diff(scores, axis=1) <= 0).all()  # inlier counts, best first
+    assert first["stages"][0]["stored_bytes_per_database_image"] > 1000
+    stored = list((stage_cache / "features").glob("sift-*/corridor-*/database.h5"))
+    assert len(stored) == 1
+    assert again["stages"][0]["ms_per_query"] < first["stages"][0]["ms_per_query"]  # no SIFT computed the second time
+
+
+def test_root_sift_is_the_hellinger_map():
+    found = matchable(np.array([[4, 0, 0, 12]], np.uint8), "rootsift")
+    assert np.allclose(found, [[0.5, 0, 0, np.sqrt(0.75)]]) and np.isclose(np.linalg.norm(found), 1)
+
+
+def test_a_wrong_model_is_refused(shared_data):
+    with pytest.raises(VPRBenchError, match="Stage 'sift-ransac' option model: Input should be 'fundamental' or 'homography'"):
+        resolve_spec("hog", "corridor", stages=[{"name": "sift-ransac", "model": "affine"}], data_dir=shared_data)

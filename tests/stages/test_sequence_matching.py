@@ -1,0 +1,166 @@
+"""SeqSLAM and the descriptor-sequence score: against plain loops over their definitions,
+blocks against one block, traverse orders, and memory within the budget."""
+import tracemalloc
+from fractions import Fraction
+
+import numpy as np
+import pytest
+
+from vprbench.errors import VPRBenchError
+from vprbench.stages.sequence.matching import (enhance, query_offsets, second_best, top_k, trajectories,
+                                               trajectory_costs, velocities)
+from vprbench.stages.sequence.search import sequence_search
+
+TOLERANCE = 1e-4  # float32 sums of a few terms, and BLAS products, on any CPU
+
+
+def traverse(n_places=120, dim=32, noise=0.9, seed=0):
+    """Two traverses of one route: smoothly changing unit descriptors, the query traverse's noisy."""
+    rng = np.random.default_rng(seed)
+    route = np.cumsum(rng.standard_normal((n_places, dim)), axis=0)
+    route += 3 * rng.standard_normal((n_places, dim))
+    database = route / np.linalg.norm(route, axis=1, keepdims=True)
+    queries = route + noise * np.linalg.norm(route, axis=1, keepdims=True) / np.sqrt(dim) * rng.standard_normal(route.shape)
+    queries /= np.linalg.norm(queries, axis=1, keepdims=True)
+    return database.astype(np.float32), queries.astype(np.float32)
+
+
+def naive_enhance(d, window):
+    out = np.empty_like(d, dtype=np.float64)
+    for i in range(d.shape[0]):
+        for j in range(d.shape[1]):
+            part = d[i, max(0, j - window // 2):j + window // 2 + 1].astype(np.float64)
+            out[i, j] = (d[i, j] - part.mean()) / max(part.std(ddof=1), 1e-6)
+    return out
+
+
+def naive_costs(c, offsets, paths):
+    q, n = c.shape
+    out = np.full((q, n), np.inf)
+    for t in range(q):
+        for d in range(n):
+            for path in paths:
+                terms = [c[t + k, d + o] for k, o in zip(offsets, path) if 0 <= t + k < q and 0 <= d + o < n]
+                out[t, d] = min(out[t, d], np.mean(terms))
+    return out
+
+
+def test_windows_offline_centred_and_causal_past_only():
+    assert query_offsets(3, "offline").tolist() == [-1, 0, 1]
+    assert query_offsets(10, "offline").tolist() == list(range(-4, 6))
+    assert query_offsets(5, "causal").tolist() == [-4, -3, -2, -1, 0]
+    assert query_offsets(1, "causal").tolist() == [0]
+    with pytest.raises(ValueError):
+        query_offsets(3, "future")
+
+
+def test_velocities_and_trajectories_are_exact():
+    speeds = velocities(0.8, 1.2, 0.1)
+    assert speeds == [Fraction(8, 10), Fraction(9, 10), Fraction(1), Fraction(11, 10), Fraction(12, 10)]
+    paths = trajectories(query_offsets(5, "offline"), speeds)
+    # -2..2 at 0.8..1.2 (e.g. 0.8 x -2 = -1.6 -> -2): one distinct path
+    assert paths.tolist() == [[-2, -1, 0, 1, 2]]
+    paths = trajectories(query_offsets(10, "causal"), speeds)
+    assert paths[:, -1].tolist() == [0] * len(paths)  # the query is always matched with d itself
+    assert paths[-1].tolist() == [-7, -6, -6, -5, -4, -3, -2, -2, -1, 0]  # v = 0.8: -7.2, -6.4, -5.6, -4.8...
+    assert len(paths) == 5
+
+
+def test_enhancement_matches_its_definition():
+    d = np.random.default_rng(1).random((4, 23)).astype(np.float32)
+    for columns in (23, 11, 7, 2):  # windows cut at both ends, and rows shorter than a window
+        np.testing.assert_allclose(enhance(d[:, :columns], 10), naive_enhance(d[:, :columns], 10), atol=TOLERANCE)
+    assert enhance(d[:, :1], 10).tolist() == [[0.0]] * 4  # one database image: no contrast, not NaN
+    flat = np.ones((1, 12), dtype=np.float32)
+    assert np.isfinite(enhance(flat, 10)).all() and np.abs(enhance(flat, 10)).max() == 0
+
+
+def test_trajectory_costs_match_plain_loops_in_blocks():
+    rng = np.random.default_rng(2)
+    c = rng.random((17, 19)).astype(np.float32)
+    for length, mode in ((4, "offline"), (5, "causal"), (1, "offline")):
+        offsets = query_offsets(length, mode)
+        paths = trajectories(offsets, velocities(0.8, 1.2, 0.1))
+        expected = naive_costs(c, offsets, paths)
+        for start, stop in ((0, 17), (0, 6), (6, 11), (11, 17)):
+            first, last = max(0, start + offsets[0]), min(17, stop + offsets[-1])
+            got = trajectory_costs(c[first:last], first, start, stop, 17, offsets, paths)
+            np.testing.assert_allclose(got, expected[start:stop], atol=TOLERANCE)
+
+
+def test_top_k_ties_go_to_the_lower_index_and_second_best_skips_the_window():
+    costs = np.array([[3, 1, 2, 1, 0, 1, 5]], dtype=np.float32)
+    indices, values = top_k(costs, 3)
+    assert indices.tolist() == [[4, 1, 3]] and values.tolist() == [[0, 1, 1]]
+    assert second_best(costs, np.array([4]), 2).tolist() == [1.0]  # 3..5 skipped: index 1
+    assert second_best(costs, np.array([4]), 20).tolist() == [np.inf]
+
+
+@pytest.mark.parametrize("score", ["seqslam", "diagonal"])
+def test_sequences_beat_single_frames_on_a_noisy_traverse(score):
+    database, queries = traverse()
+    single = np.argmax(queries @ database.T, axis=1)
+    truth = np.arange(len(queries))
+    alone = np.mean(np.abs(single - truth) <= 1)
+    found = sequence_search(database, queries, 5, score=score, length=10, mode="offline")
+    matched = np.mean(np.abs(found.indices[:, 0] - truth) <= 1)
+    assert alone < 0.7 and matched > alone + 0.2, (alone, matched)
+    assert found.indices.shape == (120, 5) and found.scores.dtype == np.float32
+    assert (np.diff(found.scores, axis=1) <= 0).all()  # best first
+    causal = sequence_search(database, queries, 5, score=score, length=10, mode="causal")
+    assert causal.info["mode"] == "causal" and causal.info["query_offsets"] == [-9, 0]
+    assert not np.array_equal(causal.indices, found.indices)
+
+
+def test_seqslam_top1_score_is_minus_openseqslams_quality_ratio():
+    database, queries = traverse(60)
+    found = sequence_search(database, queries, 60, score="seqslam", length=5)
+    # the whole ranking is returned (k = N): recompute the ratio from the returned scores' order
+    m = found.info["enhanced_minimum"]
+    assert m < 0  # enhanced differences are z-scores
+    top = found.scores[:, 0]
+    assert (top <= 0).all() and (top >= -1).all()  # cost over the second-best outside the window
+
+
+def test_blocks_and_orders_do_not_change_results():
+    database, queries = traverse(90, dim=16)
+    whole = sequence_search(database, queries, 4, length=6, memory_budget="1GB")
+    blocked = sequence_search(database, queries, 4, length=6, memory_budget=200_000)
+    assert whole.info["blocks"] == 1 and blocked.info["blocks"] >= 5
+    np.testing.assert_array_equal(whole.indices, blocked.indices)
+    np.testing.assert_allclose(whole.scores, blocked.scores, atol=TOLERANCE)
+    # the same traverses stored shuffled, with their orders: the same matches, as stored
+    rng = np.random.default_rng(3)
+    db_perm, q_perm = rng.permutation(90), rng.permutation(90)
+    shuffled = sequence_search(database[db_perm], queries[q_perm], 4, length=6,
+                               database_order=np.argsort(db_perm), query_order=np.argsort(q_perm))
+    np.testing.assert_array_equal(db_perm[shuffled.indices], whole.indices[q_perm])
+
+
+def test_memory_stays_within_the_budget_never_the_whole_matrix():
+    database, queries = traverse(2000, dim=8)
+    budget = 8_000_000  # the whole 2,000 x 2,000 matrix and its temporaries would need ~200 MB
+    tracemalloc.start()
+    found = sequence_search(database, queries, 5, length=10, memory_budget=budget)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert found.info["blocks"] > 10
+    assert peak < budget, peak
+
+
+def test_too_small_a_budget_and_bad_orders_are_refused():
+    database, queries = traverse(50, dim=8)
+    with pytest.raises(VPRBenchError, match="too small for sequence matching.*Raise --search-memory"):
+        sequence_search(database, queries, 1, memory_budget=10_000)
+    with pytest.raises(VPRBenchError, match="query traverse order must name each of its 50"):
+        sequence_search(database, queries, 1, query_order=np.zeros(50, dtype=int))
+
+
+def test_mean_absolute_difference_compare():
+    rng = np.random.default_rng(4)
+    database = rng.standard_normal((40, 24)).astype(np.float32)
+    queries = database + 0.1 * rng.standard_normal(database.shape).astype(np.float32)
+    found = sequence_search(database, queries, 3, score="diagonal", compare="mean-absolute-difference", length=1)
+    mad = np.abs(queries[:, None, :] - database[None, :, :]).mean(axis=2)
+    np.testing.assert_array_equal(found.indices[:, 0], mad.argmin(axis=1))
+    np.testing.assert_allclose(found.scores[:, 0], -mad.min(axis=1), atol=TOLERANCE)

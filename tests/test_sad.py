@@ -1,0 +1,81 @@
+"""The `sad` method (SeqSLAM's front end): patch normalisation, its descriptors on real images,
+retrieval by the mean absolute difference, and its bad options."""
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from vprbench.cli.main import main
+from vprbench.errors import VPRBenchError
+from vprbench.evaluation import evaluate
+from vprbench.evaluation.retrieve import retrieve
+from vprbench.methods import create_method
+from vprbench.methods.sad import patch_normalise
+from vprbench.spec import RunSettings, resolve_spec
+
+TOLERANCE = 1e-5  # float32 means and deviations of 64 pixels
+
+
+def test_patches_are_normalised_one_by_one_and_flat_ones_become_zero():
+    rng = np.random.default_rng(0)
+    image = np.zeros((1, 16, 24), dtype=np.float32)
+    image[0, :8, :8] = 50 + 10 * rng.standard_normal((8, 8))
+    image[0, 8:, 8:16] = 200.0  # flat: no contrast
+    image[0, :8, 16:] = np.arange(64).reshape(8, 8)
+    out = patch_normalise(image, 8)[0]
+    for rows, cols in ((slice(0, 8), slice(0, 8)), (slice(0, 8), slice(16, 24))):
+        assert abs(out[rows, cols].mean()) < TOLERANCE
+        assert abs(out[rows, cols].std(ddof=1) - 1) < TOLERANCE
+    assert (out[8:, 8:16] == 0).all() and (out[8:, :8] == 0).all()
+    ramp = np.arange(64, dtype=np.float64)
+    np.testing.assert_allclose(out[:8, 16:].ravel(), (ramp - ramp.mean()) / ramp.std(ddof=1), atol=TOLERANCE)
+
+
+def test_descriptors_of_real_images(shared_data):
+    method = create_method("sad")
+    assert method.compare == "mean-absolute-difference" and method.provenance() == {"weights": {"source": "none"}}
+    paths = sorted((shared_data / "corridor" / "ref").glob("*.jpg"))[:3]
+    rows = method.describe(paths)
+    assert rows.shape == (3, 32 * 64) and rows.dtype == np.float32
+    grey = cv2.cvtColor(cv2.imread(str(paths[1]))[:, :, ::-1], cv2.COLOR_RGB2GRAY)
+    small = cv2.resize(grey, (64, 32), interpolation=cv2.INTER_AREA).astype(np.float32)
+    np.testing.assert_allclose(rows[1], patch_normalise(small[None], 8).ravel(), atol=TOLERANCE)
+    assert create_method("sad", resize=[16, 32], patch=4).describe(paths[:1]).shape == (1, 512)
+
+
+@pytest.mark.parametrize("options, message", [
+    ({"patch": 0}, "option patch takes a whole number >= 2"),
+    ({"resize": [30, 64]}, "must be a whole number of 8-pixel patches"),
+    ({"resize": "native"}, "option resize takes the size images are downsampled to"),
+])
+def test_bad_options_are_refused(options, message):
+    with pytest.raises(VPRBenchError, match=message):
+        create_method("sad", **options)
+
+
+def test_retrieval_is_by_mean_absolute_difference_and_exact_only():
+    method = create_method("sad")
+    rng = np.random.default_rng(1)
+    database = rng.standard_normal((30, 2048)).astype(np.float32)
+    queries = database[::-1] + 0.3 * rng.standard_normal((30, 2048)).astype(np.float32)
+    found = retrieve(method, database, queries, 3)
+    distance = np.abs(queries[:, None] - database[None]).mean(axis=2)
+    np.testing.assert_array_equal(found.indices, np.argsort(distance, axis=1)[:, :3])
+    np.testing.assert_allclose(found.scores, -np.sort(distance, axis=1)[:, :3], atol=TOLERANCE)
+    assert found.info["compare"] == "mean-absolute-difference"
+    with pytest.raises(VPRBenchError, match="only exact search does; drop --index hnsw"):
+        retrieve(method, database, queries, 3, index="hnsw")
+
+
+def test_sad_on_corridor_end_to_end(shared_data, tmp_path, capsys):
+    spec = resolve_spec("sad", "corridor", ks=(1, 5))
+    record = evaluate(spec, RunSettings(data_dir=shared_data, cache_dir=tmp_path))
+    assert record["search"]["compare"] == "mean-absolute-difference"
+    assert record["descriptor_dim"] == 2048
+    assert 0 < record["recall"]["1"] <= record["recall"]["5"] <= 100
+    code = main(["evaluate", "--method", "sad", "--dataset", "corridor", "--data-dir", str(shared_data),
+                 "--index", "hnsw", "--cache-dir", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert code != 0 and "only exact search does" in err and "Traceback" not in err
+    assert json.loads(json.dumps(record["recall"]))  # plain data

@@ -1,0 +1,70 @@
+"""vprbench stages list / vprbench candidates export."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from .console import console
+from .options import (add_location_options, add_method_options, add_run_options, method_options, progress,
+                      resolve_locations, run_settings)
+
+
+def add_parsers(commands) -> None:
+    stages = commands.add_parser("stages", help="list the post-retrieval stages (re-ranking, sequence matching)")
+    sub = stages.add_subparsers(dest="stages_command", required=True, metavar="COMMAND")
+    p = sub.add_parser("list", help="every stage, its track, options and where it comes from")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(run=run_list)
+
+    candidates = commands.add_parser("candidates", help="freeze a retriever's candidates for re-rankers to share")
+    sub = candidates.add_subparsers(dest="candidates_command", required=True, metavar="COMMAND")
+    p = sub.add_parser("export", help="write a retrieval run's top K per query (HDF5, with its protocol and spec)")
+    add_method_options(p)
+    p.add_argument("--dataset", required=True, help="dataset name or folder of your own")
+    p.add_argument("--protocol", help="the dataset's protocol (default: its first)")
+    p.add_argument("--index", choices=("exact", "ivf-pq", "hnsw"), default=None, help="search (default exact)")
+    p.add_argument("--store-dtype", choices=("float32", "float16"), default="float32")
+    p.add_argument("--k", type=int, default=100, help="candidates per query (default 100)")
+    p.add_argument("--out", required=True, type=Path, help="output .h5 file")
+    add_run_options(p)
+    add_location_options(p)
+    p.set_defaults(run=run_export)
+
+
+def run_list(args) -> int:
+    from rich.table import Table
+
+    from ..stages import available_stages
+
+    entries = [(e, e.cls) for e in available_stages().values()]
+    if args.json:
+        print(json.dumps([{"name": e.name, "track": cls.track, "description": e.description or cls.description,
+                           "source": e.source, "options": cls.Options().model_dump(mode="json")}
+                          for e, cls in entries], indent=2))
+        return 0
+    table = Table(title="Stages")
+    for column in ("name", "track", "from", "options (defaults)", "description"):
+        table.add_column(column)
+    for e, cls in entries:
+        options = " ".join(f"{k}={v}" for k, v in cls.Options().model_dump(mode="json").items())
+        table.add_row(e.name, cls.track, e.source, options, e.description or cls.description)
+    console().print(table)
+    return 0
+
+
+def run_export(args) -> int:
+    import sys
+
+    from ..spec import resolve_spec
+    from ..stages.candidates import export_candidates
+
+    resolve_locations(args)
+    settings = run_settings(args)
+    spec = resolve_spec(args.method, args.dataset, options=method_options(args), protocol=args.protocol,
+                        search=args.index, store_dtype=args.store_dtype, data_dir=settings.data_dir,
+                        cache_dir=settings.cache_dir)
+    with progress(args) as shown:
+        written = export_candidates(spec, settings, args.out, k=args.k, progress=shown)
+    print(f"Wrote the top {written['k']} candidates of {written['queries']} queries ({spec.title()}) to {args.out}",
+          file=sys.stderr)
+    return 0

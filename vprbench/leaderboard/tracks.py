@@ -1,0 +1,72 @@
+"""The re-ranked and sequence tracks: one page each, one table per dataset, never mixed with
+single-image retrieval (a re-ranker is compared beside its retriever, not among retrievers)."""
+from __future__ import annotations
+
+from .cells import Board, Cell
+from .escape import text
+from .tables import fmt
+
+TITLES = {"single-image": "Single-image retrieval", "re-ranked": "Re-ranked", "sequence": "Sequence matching"}
+INTRO = {
+    "re-ranked": "Runs whose retrieval's top K was re-ordered by a stage (geometric verification, query expansion, "
+                 "...). Each row sits beside its retriever alone (the single-image run of the same method, options "
+                 "and search) and the ceiling its re-ranker could reach: the share of queries with a positive among "
+                 "the K candidates it was given.",
+    "sequence": "Runs matched over sequences of frames of an ordered traverse; the robotics convention's AUC-PR, "
+                "R@100%P and the largest F1 beside Recall@K.",
+}
+
+
+def track_file(track: str) -> str:
+    return f"track-{track}.md"
+
+
+def retriever_key(cell: Cell) -> str:
+    from ..spec import RunSpec
+
+    return RunSpec.model_validate(cell.record["spec"]).model_copy(update={"stages": ()}).row_key
+
+
+def _ci(entry) -> str:
+    return f"{fmt(entry['value'])} [{entry['ci'][0]:.1f}, {entry['ci'][1]:.1f}]" if entry["ci"] else fmt(entry["value"])
+
+
+def _cost(cell: Cell, key: str, digits: int = 1) -> str:
+    values = [s.get(key) for s in cell.record.get("stages") or [] if isinstance(s.get(key), (int, float))]
+    return " + ".join(f"{v:,.{digits}f}" for v in values) if values else "–"
+
+
+def track_page(full: Board, track: str, stats: dict, head: str = "") -> str:
+    """The page of `track` (re-ranked or sequence): per dataset, its runs with intervals and costs."""
+    board = full.of_track(track)
+    alone = {(row.key, key): cell for (row, key), cell in full.cells.items() if row.track == "single-image"}
+    lines = [head, f"# {TITLES[track]}", "", INTRO[track], ""]
+    for column in board.columns:
+        lines += [f"## {text(column.title)}", ""]
+        if track == "re-ranked":
+            lines += ["| Method | R@1 [95 % CI] | R@5 [95 % CI] | Ceiling (R@K of its candidates) | Retriever alone R@1 "
+                      "| Stage ms / query | Stored bytes / database image | Run |",
+                      "|:--|--:|--:|--:|--:|--:|--:|:--|"]
+        else:
+            lines += ["| Method | R@1 [95 % CI] | R@5 [95 % CI] | AUC-PR | R@100%P | max F1 | Stage ms / query | Run |",
+                      "|:--|--:|--:|--:|--:|--:|--:|:--|"]
+        for row in board.rows:
+            cell = board.cell(row, column)
+            if cell is None:
+                continue
+            s, r = stats[(row, column.key)], cell.record
+            name = f"{text(row.label)}{' †' if not row.official else ''}"
+            if track == "re-ranked":
+                base = alone.get((retriever_key(cell), column.key))
+                lines.append(f"| {name} | {_ci(s[1])} | {_ci(s[5])} | {_cost(cell, 'ceiling_recall')} | "
+                             f"{fmt(base.recall(1)) if base else '–'} | {_cost(cell, 'ms_per_query')} | "
+                             f"{_cost(cell, 'stored_bytes_per_database_image', 0)} | `{text(r.get('run_id'))}` |")
+            else:
+                pr = [r.get(k) for k in ("auc_pr", "recall_at_100_precision", "max_f1")]
+                shown = [f"{v:.3f}" if isinstance(v, (int, float)) else "–" for v in pr]
+                lines.append(f"| {name} | {_ci(s[1])} | {_ci(s[5])} | {' | '.join(shown)} | "
+                             f"{_cost(cell, 'ms_per_query')} | `{text(r.get('run_id'))}` |")
+        lines.append("")
+    if not board.columns:
+        lines.append("No run in this track yet.")
+    return "\n".join(lines)

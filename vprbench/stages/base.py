@@ -1,0 +1,169 @@
+"""The interface every post-retrieval stage implements (re-ranking, sequence matching), core
+and third-party alike.
+
+    retrieval -> Candidates (top-K per query) -> stage 1 -> stage 2 ... -> Recall@K, PR
+
+A stage gets what came before it as `Candidates` and a `StageContext` (the dataset, the
+retriever's descriptors of both splits, a per-image feature store, the memory budget and a
+progress reporter) and returns new `Candidates`. The pipeline checks what it returns
+(`check_candidates`) and refuses, naming the stage, rather than score a broken list.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from ..errors import VPRBenchError
+
+TRACKS = ("single-image", "re-ranked", "sequence")
+
+
+@dataclass(frozen=True)
+class Candidates:
+    """Per query, database indices and their scores, best first: `indices` int64 (Q, K),
+    `scores` float32 (Q, K), higher is better (a stage working with distances negates them)."""
+
+    indices: np.ndarray
+    scores: np.ndarray
+
+    @property
+    def k(self) -> int:
+        return int(self.indices.shape[1])
+
+    @property
+    def query_count(self) -> int:
+        return int(self.indices.shape[0])
+
+    def top(self, k: int) -> "Candidates":
+        return Candidates(self.indices[:, :k], self.scores[:, :k])
+
+
+class StageOptions(BaseModel):
+    """A stage's options: subclass it with typed fields and defaults. Unknown options and
+    values of the wrong type are refused when the spec is made."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class RerankOptions(StageOptions):
+    """What every re-ranker takes: how many candidates it re-orders (`--rerank-k`)."""
+
+    k: int = Field(100, ge=1)
+
+
+@dataclass
+class StageContext:
+    """What a stage may use besides the candidates.
+
+    - `dataset`: the `vprbench.datasets.Dataset` (its `database`/`queries` image paths in ground-truth
+      order, `root`, `ground_truth` with positions and unit, `protocol`).
+    - `database`, `queries`: the retriever's descriptors as its search saw them (post-processed,
+      e.g. PCA-whitened) as row sources (`vprbench.row_sources`: `row_count`, `dim`,
+      `read_rows(start, stop)`, `read_rows_at(sorted indices)`); float32 rows, never re-extracted.
+    - `features(name, identity)`: a `FeatureStore` for per-image data (local features), kept in the
+      cache beside descriptor stores, resumable and lock-safe (vprbench/stages/features.py).
+    - `memory_budget` (bytes), `progress` (rich-like: add_task/advance), `cache_dir`, `lock_timeout`.
+    - `spec`: the run's spec; `prefix`: the identity of everything before this stage (the
+      retriever and earlier stages), e.g. to key what a stage caches on what produced its input.
+    """
+
+    dataset: Any
+    database: Any
+    queries: Any
+    spec: Any = None
+    prefix: dict = field(default_factory=dict)
+    cache_dir: Path | None = None
+    memory_budget: int = 1_000_000_000
+    lock_timeout: float | None = None
+    progress: Any = None
+    #: how the method compares its descriptors (`Method.compare`): "cosine" or a distance such as
+    #: "mean-absolute-difference" (sad), for stages that compute scores of their own
+    compare: str = "cosine"
+
+    def features(self, name: str, identity: dict):
+        """The store of per-image data `name` (e.g. "sift") computed as `identity` says (its options,
+        the library version): one per dataset image set, resumable, lock-safe."""
+        from .features import FeatureStore
+
+        return FeatureStore.for_images(name, identity, self.dataset, self.cache_dir, self.lock_timeout)
+
+
+class Stage:
+    """A post-retrieval stage. Subclass it, set `track` and `Options`, implement `apply`.
+
+    - `name`: set by the registry to the name the stage was created under.
+    - `options`: the validated `Options` instance (`self.options.k` ...).
+    - `apply(candidates, context)` returns new `Candidates` for every query, in query order, with
+      at least as many columns as the largest K reported; indices are database rows.
+    - `candidates_needed()`: how many candidates retrieval must hand it (None: the run's largest K).
+    - `check(dataset)`: refuse a dataset the stage cannot run on (VPRBenchError), before any work.
+    - `stored_bytes(context)`: bytes it keeps per database image (for the record's cost), 0 if none.
+    """
+
+    name: str = ""
+    track: ClassVar[Literal["re-ranked", "sequence"]] = "re-ranked"
+    Options: ClassVar[type[StageOptions]] = StageOptions
+    description: ClassVar[str] = ""
+
+    def __init__(self, options: StageOptions | None = None):
+        self.options = options if options is not None else self.Options()
+
+    def candidates_needed(self) -> int | None:
+        return getattr(self.options, "k", None)
+
+    def check(self, dataset) -> None:
+        """Refuse `dataset` before any work (e.g. a sequence stage on unordered images)."""
+
+    def apply(self, candidates: Candidates, context: StageContext) -> Candidates:
+        raise NotImplementedError
+
+    def stored_bytes(self, context: StageContext) -> int:
+        return 0
+
+
+def check_candidates(found, stage: str, queries: int, database: int, k: int) -> Candidates:
+    """What stage `stage` returned, checked: Candidates of `queries` rows, >= `k` columns, indices in
+    [0, database) and each once per row, finite scores. Anything else is refused naming the stage."""
+    where = f"Stage {stage!r} returned"
+    if not isinstance(found, Candidates):
+        raise VPRBenchError(f"{where} {type(found).__name__}, not Candidates; fix the stage.")
+    indices, scores = np.asarray(found.indices), np.asarray(found.scores)
+    if indices.ndim != 2 or indices.shape != scores.shape:
+        raise VPRBenchError(f"{where} indices {indices.shape} and scores {scores.shape}; both must be "
+                            "(queries, K) alike; fix the stage.")
+    if indices.shape[0] != queries:
+        raise VPRBenchError(f"{where} candidates for {indices.shape[0]} queries, but there are {queries}: "
+                            "every query must be present, in order; fix the stage.")
+    if indices.shape[1] < k:
+        raise VPRBenchError(f"{where} {indices.shape[1]} candidates per query, fewer than the largest K "
+                            f"reported ({k}); fix the stage or lower --k.")
+    if not np.issubdtype(indices.dtype, np.integer):
+        raise VPRBenchError(f"{where} indices of type {indices.dtype}, not integers; fix the stage.")
+    if indices.size and (indices.min() < 0 or indices.max() >= database):
+        bad = int(np.flatnonzero((indices < 0).any(1) | (indices >= database).any(1))[0])
+        raise VPRBenchError(f"{where} database indices out of range for query {bad} (the database has "
+                            f"{database} images, 0..{database - 1}); fix the stage.")
+    ordered = np.sort(indices, axis=1)
+    if indices.shape[1] > 1 and (ordered[:, 1:] == ordered[:, :-1]).any():
+        bad = int(np.flatnonzero((ordered[:, 1:] == ordered[:, :-1]).any(1))[0])
+        raise VPRBenchError(f"{where} one database image twice among the candidates of query {bad}; fix the stage.")
+    if not np.issubdtype(scores.dtype, np.number) or not np.isfinite(scores).all():
+        raise VPRBenchError(f"{where} scores that are not finite numbers; fix the stage.")
+    return Candidates(indices.astype(np.int64, copy=False), scores.astype(np.float32, copy=False))
+
+
+def reordered(indices: np.ndarray, scores: np.ndarray, grid: float | None = None) -> Candidates:
+    """Candidates sorted by score descending, ties by database index ascending (the search's tie
+    rule). `grid`: scores rounded to multiples of it first, so a last-bit difference between CPUs
+    cannot swap two candidates."""
+    from ..evaluation.search import order_results
+
+    scores = np.asarray(scores, dtype=np.float64)
+    if grid:
+        scores = np.rint(scores / grid) * grid
+    scores, indices = order_results(scores, np.asarray(indices, dtype=np.int64))
+    return Candidates(indices, scores.astype(np.float32))

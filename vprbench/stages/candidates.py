@@ -1,0 +1,123 @@
+"""Frozen candidates: a retrieval run's top K per query in one HDF5 file, so re-rankers can be
+compared on exactly the same candidates.
+
+    indices  int64 (queries, K)    database rows, best first
+    scores   float32 (queries, K)  the retriever's similarities
+    attrs    format, version, protocol hash and id, the retriever's spec (JSON) and its identity,
+             the search's info, K
+
+A re-ranking run started from a file (`--candidates FILE`) refuses one exported under another
+protocol or by another retriever (method, options, weights, search, store), and names the file
+and its sha256 in its record.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from ..errors import VPRBenchError
+from ..fsutil import atomic_path, file_sha256
+from ..hashing import canonical_hash, canonical_json
+
+FORMAT = "vprbench-candidates"
+VERSION = 1
+DEFAULT_K = 100
+
+
+def retriever_identity(spec) -> dict:
+    """What decides the candidates: the spec's retrieval (method, files, search, store), not its stages or K."""
+    return {**spec.row_identity(), "stages": []}
+
+
+def write_candidates(path: Path, spec, found) -> Path:
+    """`found` (a SearchResult) of `spec`'s retriever, written whole or not at all."""
+    from ..store.rows_file import hdf5_written
+
+    path = Path(path)
+    retriever = spec.model_copy(update={"stages": ()})
+    with atomic_path(path) as temporary:
+        with hdf5_written(temporary, path) as f:
+            f.create_dataset("indices", data=np.asarray(found.indices, dtype=np.int64))
+            f.create_dataset("scores", data=np.asarray(found.scores, dtype=np.float32))
+            f.attrs.update({"format": FORMAT, "version": VERSION, "protocol_hash": spec.dataset.protocol_hash,
+                            "protocol_id": spec.dataset.protocol_id, "retriever_spec": canonical_json(retriever.to_json()),
+                            "retriever_key": canonical_hash(retriever_identity(spec)), "k": int(found.indices.shape[1]),
+                            "search": json.dumps(found.info, default=str, sort_keys=True)})
+    return path
+
+
+def read_candidates(path, spec, queries: int, database: int, depth: int) -> dict:
+    """The file's candidates for `spec` ({"found": SearchResult, "file", "sha256", "k"}), after checking it
+    is a candidates file of this protocol and retriever, with every query and at least `depth` columns."""
+    from ..evaluation.search import SearchResult
+
+    path = Path(path)
+    try:
+        with h5py.File(path, "r") as f:
+            attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+            if attrs.get("format") != FORMAT:
+                raise VPRBenchError(f"{path} is not a vprbench candidates file (make one with 'vprbench candidates "
+                                    "export').")
+            if int(attrs.get("version", 0)) > VERSION:
+                raise VPRBenchError(f"Candidates file {path} is from a newer vprbench (version {attrs['version']}); "
+                                    "upgrade vprbench.")
+            indices, scores = f["indices"][...], f["scores"][...]
+    except FileNotFoundError:
+        raise VPRBenchError(f"Candidates file not found: {path}") from None
+    except (OSError, KeyError) as error:
+        raise VPRBenchError(f"Cannot read candidates file {path} ({error}); export it again.") from None
+    if attrs.get("protocol_hash") != spec.dataset.protocol_hash:
+        raise VPRBenchError(f"Candidates file {path} was exported under protocol {attrs.get('protocol_id')} "
+                            f"({attrs.get('protocol_hash')}), not this run's {spec.dataset.protocol_id} "
+                            f"({spec.dataset.protocol_hash}): export candidates on this dataset and protocol.")
+    if attrs.get("retriever_key") != canonical_hash(retriever_identity(spec)):
+        try:
+            theirs = json.loads(attrs.get("retriever_spec", "{}"))
+            shown = f"{theirs.get('method')} {theirs.get('options')}"
+        except ValueError:
+            shown = "an unreadable spec"
+        raise VPRBenchError(f"Candidates file {path} was exported by another retriever ({shown}), not this run's "
+                            f"{spec.method} {spec.options} (with its search and store): export candidates with "
+                            "this method and options.")
+    if indices.ndim != 2 or indices.shape != scores.shape or indices.shape[0] != queries:
+        raise VPRBenchError(f"Candidates file {path} holds {indices.shape} candidates for {queries} queries; export "
+                            "it again.")
+    if indices.shape[1] < depth:
+        raise VPRBenchError(f"Candidates file {path} holds the top {indices.shape[1]} per query, but this run "
+                            f"needs {depth} (--rerank-k): give --rerank-k <= {indices.shape[1]} or export with "
+                            f"--k {depth}.")
+    if not np.issubdtype(indices.dtype, np.integer) or indices.min() < 0 or indices.max() >= database \
+            or not np.isfinite(scores).all():
+        raise VPRBenchError(f"Candidates file {path} holds indices outside the {database} database images or "
+                            "scores that are not finite; export it again.")
+    try:
+        info = json.loads(attrs.get("search", "{}"))
+    except ValueError:
+        info = {}
+    info["from_candidates"] = str(path)
+    found = SearchResult(scores[:, :depth].astype(np.float32), indices[:, :depth].astype(np.int64), info)
+    return {"found": found, "file": str(path.resolve()), "sha256": file_sha256(path), "k": int(indices.shape[1])}
+
+
+def export_candidates(spec, settings, path, k: int = DEFAULT_K, progress=None) -> dict:
+    """Search with `spec`'s retriever (its stores described as evaluate would) and write the top `k`
+    per query to `path`. Returns what was written (path, queries, k)."""
+    from ..evaluation.pipeline import retrieved
+
+    if spec.stages:
+        raise VPRBenchError("candidates export writes a retriever's candidates: give the method without stages "
+                            "(no --rerank or --sequence).")
+    if settings.candidates is not None:
+        raise VPRBenchError("candidates export searches; it does not start from --candidates.")
+    run = retrieved(spec, settings, [], progress=progress, depth=_depth(k))
+    write_candidates(path, spec, run.found)
+    return {"file": str(path), "queries": int(run.found.indices.shape[0]), "k": int(run.found.indices.shape[1])}
+
+
+def _depth(k) -> int:
+    if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+        raise VPRBenchError(f"--k takes a whole number >= 1 of candidates per query, got {k!r}.")
+    return k

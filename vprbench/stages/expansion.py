@@ -1,0 +1,79 @@
+"""Query expansion and database-side augmentation on the retriever's global descriptors.
+
+alpha-QE (Radenovic et al., "Fine-tuning CNN image retrieval with no human annotation", TPAMI
+2018): a query becomes the normalised sum of itself and its top `n` candidates, each weighted by
+its similarity to the query raised to `alpha`. DBA does the same to every database image with
+its own top `n` database neighbours. Both then re-score the top K with the new descriptors.
+Rows are read a query at a time (or a block of database rows at a time): nothing is held whole.
+"""
+from __future__ import annotations
+
+import numpy as np
+from pydantic import Field
+
+from ..evaluation.search import SCORE_TOLERANCE, exact_search
+from ..row_sources import ArrayRows
+from .base import Candidates, RerankOptions, Stage, StageContext, reordered
+
+
+class ExpansionOptions(RerankOptions):
+    #: neighbours summed in (the candidate list's first n, or a database image's n nearest)
+    n: int = Field(10, ge=1)
+    alpha: float = Field(3.0, ge=0)
+
+
+def _normalised(rows: np.ndarray) -> np.ndarray:
+    norms = np.linalg.norm(rows, axis=-1, keepdims=True)
+    return rows / np.maximum(norms, 1e-12)
+
+
+def _weighted(base: np.ndarray, neighbours: np.ndarray, alpha: float) -> np.ndarray:
+    """base + sum of neighbours weighted by max(similarity, 0)^alpha, L2-normalised (one row)."""
+    weights = np.maximum(neighbours @ base, 0.0) ** alpha
+    return _normalised(base + weights @ neighbours)
+
+
+def _rows_at(source, indices: np.ndarray) -> np.ndarray:
+    """Rows of `source` in the order of `indices` (a row source reads sorted indices)."""
+    unique, inverse = np.unique(indices, return_inverse=True)
+    return source.read_rows_at(unique)[inverse]
+
+
+class AlphaQE(Stage):
+    track = "re-ranked"
+    Options = ExpansionOptions
+    description = "alpha query expansion: the query with its top n candidates, re-scoring the top K"
+
+    def apply(self, candidates: Candidates, context: StageContext) -> Candidates:
+        n, alpha = min(self.options.n, candidates.k), self.options.alpha
+        scores = np.empty(candidates.indices.shape, dtype=np.float64)
+        for q in range(candidates.query_count):
+            query = context.queries.read_rows(q, q + 1)[0]
+            rows = _rows_at(context.database, candidates.indices[q])
+            expanded = _weighted(query, rows[:n], alpha)
+            scores[q] = rows @ expanded
+        return reordered(candidates.indices, scores, SCORE_TOLERANCE)
+
+
+class DatabaseAugmentation(Stage):
+    track = "re-ranked"
+    Options = ExpansionOptions
+    description = "database-side augmentation: each database image with its n nearest database images"
+
+    def apply(self, candidates: Candidates, context: StageContext) -> Candidates:
+        n, alpha, database = self.options.n, self.options.alpha, context.database
+        needed = np.unique(candidates.indices)
+        n = min(n + 1, database.row_count)  # an image is its own nearest neighbour
+        augmented = np.empty((len(needed), database.dim), dtype=np.float32)
+        block = max(1, min(len(needed), context.memory_budget // (8 * database.dim * (n + 1))))
+        for start in range(0, len(needed), block):
+            rows = database.read_rows_at(needed[start:start + block])
+            found = exact_search(database, ArrayRows(rows), n, memory_budget=context.memory_budget)
+            for i, (row, neighbours) in enumerate(zip(rows, found.indices)):
+                others = _rows_at(database, neighbours[neighbours != needed[start + i]][: n - 1])
+                augmented[start + i] = _weighted(row, others, alpha)
+        position = np.searchsorted(needed, candidates.indices)
+        scores = np.empty(candidates.indices.shape, dtype=np.float64)
+        for q in range(candidates.query_count):
+            scores[q] = augmented[position[q]] @ context.queries.read_rows(q, q + 1)[0]
+        return reordered(candidates.indices, scores, SCORE_TOLERANCE)

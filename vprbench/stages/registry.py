@@ -1,0 +1,126 @@
+"""Name -> stage class. Core stages register by import path (their code, e.g. OpenCV, is
+imported only when a stage is built); other packages through entry points, as methods do.
+
+A separate package adds a stage without touching vprbench by declaring, in its pyproject.toml::
+
+    [project.entry-points."vprbench.stages"]
+    my-stage = "my_package:register"
+
+where `my_package.register()` calls `vprbench.stages.register_stage("my-stage", "my_package.stage:MyStage")`.
+"""
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from importlib.metadata import entry_points
+
+from pydantic import ValidationError
+
+from ..errors import VPRBenchError, closest_names
+
+ENTRY_POINT_GROUP = "vprbench.stages"
+
+
+@dataclass(frozen=True)
+class StageEntry:
+    name: str
+    target: type | str  # the Stage subclass, or its import path "module:attribute"
+    description: str = ""
+    source: str = "vprbench"
+
+    @property
+    def cls(self) -> type:
+        from .base import Stage
+
+        found = self.target
+        if isinstance(found, str):
+            module, _, attribute = found.partition(":")
+            try:
+                found = getattr(importlib.import_module(module), attribute)
+            except (ImportError, AttributeError) as error:
+                raise VPRBenchError(f"Stage {self.name!r} ({self.source}) cannot be loaded from {self.target}: "
+                                    f"{error}") from None
+        if not (isinstance(found, type) and issubclass(found, Stage)):
+            raise VPRBenchError(f"Stage {self.name!r} ({self.source}) is not a vprbench Stage class; fix the plugin.")
+        return found
+
+
+_REGISTRY: dict[str, StageEntry] = {}
+_plugins_loaded = False
+
+
+def register_stage(name: str, target: type | str, *, description: str = "", source: str | None = None) -> None:
+    """Make `name` available to `--rerank name` / `--sequence name` and plans' `stages`."""
+    if not name or name != name.strip().lower() or " " in name:
+        raise ValueError(f"Stage names are lower-case without spaces, got {name!r}")
+    if source is None:
+        module = target.partition(":")[0] if isinstance(target, str) else target.__module__
+        source = module.split(".")[0] or "unknown"
+    _REGISTRY[name] = StageEntry(name, target, description, source)
+
+
+def core_stages() -> list[dict]:
+    return [
+        {"name": "sift-ransac", "target": "vprbench.stages.geometric:SiftRansac",
+         "description": "SIFT/RootSIFT, ratio test, USAC on a fundamental matrix or homography; score = inliers"},
+        {"name": "aqe", "target": "vprbench.stages.expansion:AlphaQE",
+         "description": "alpha query expansion on the global descriptors (re-ranks the top K)"},
+        {"name": "dba", "target": "vprbench.stages.expansion:DatabaseAugmentation",
+         "description": "database-side augmentation (alpha-weighted) on the global descriptors"},
+        {"name": "seqslam", "target": "vprbench.stages.sequence:SeqSLAM",
+         "description": "SeqSLAM over the stored descriptors (enhancement, velocity search; OpenSeqSLAM's defaults)"},
+        {"name": "diagonal", "target": "vprbench.stages.sequence:DiagonalSequence",
+         "description": "descriptor-sequence score: similarities along the matching diagonal over a window"},
+    ]
+
+
+def _load_plugins() -> None:
+    global _plugins_loaded
+    if _plugins_loaded:
+        return
+    _plugins_loaded = True
+    for entry in core_stages():
+        register_stage(**entry, source="vprbench")
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        try:
+            ep.load()()
+        except Exception as error:  # a broken plugin must not take the others down
+            import warnings
+
+            warnings.warn(f"Stage plugin {ep.name!r} ({ep.value}) failed to load: {error}", stacklevel=2)
+
+
+def available_stages() -> dict[str, StageEntry]:
+    _load_plugins()
+    return dict(sorted(_REGISTRY.items()))
+
+
+def stage_entry(name: str) -> StageEntry:
+    stages = available_stages()
+    if name not in stages:
+        raise VPRBenchError(f"Unknown stage {name!r}.{closest_names(str(name), stages)} "
+                            f"Stages: {', '.join(stages) or 'none'}.")
+    return stages[name]
+
+
+def stage_options(name: str, options: dict):
+    """`options` validated by stage `name`'s Options model (unknown names and wrong types refused)."""
+    cls = stage_entry(name).cls
+    try:
+        return cls.Options(**options)
+    except ValidationError as error:
+        problem = error.errors()[0]
+        option = ".".join(str(p) for p in problem["loc"]) or "its options"
+        accepted = ", ".join(cls.Options.model_fields) or "none"
+        if problem["type"] == "extra_forbidden":
+            raise VPRBenchError(f"Stage {name!r} does not take option {option}.{closest_names(option, cls.Options.model_fields)} "
+                                f"It accepts: {accepted}.") from None
+        raise VPRBenchError(f"Stage {name!r} option {option}: {problem['msg']} (got {problem.get('input')!r}).") from None
+
+
+def create_stage(name: str, options: dict | None = None):
+    """The stage `name` with its options validated; its `name` set."""
+    cls = stage_entry(name).cls
+    stage = cls(stage_options(name, options or {}))
+    stage.name = name
+    return stage

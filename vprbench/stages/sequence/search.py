@@ -1,0 +1,151 @@
+"""Sequence matching over stored descriptors, a block of queries at a time (no re-extraction).
+
+The query-by-database matrix is never whole: each block of queries (its rows widened by the
+sequence window, so a block's trajectories see the frames they need) is computed against the
+database streamed in chunks, enhanced, searched, and reduced to its top K before the next.
+Memory is set by a budget in bytes (block rows follow from it), not by the traverse's length.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ...errors import VPRBenchError
+from ...row_sources import DEFAULT_MEMORY_BUDGET, READ_BYTES, as_rows, chunks, format_bytes, parse_memory
+from .matching import (SEQSLAM_DEFAULTS, enhance, query_offsets, second_best, top_k, trajectories,
+                       trajectory_costs, velocities)
+
+SCORES = ("seqslam", "diagonal")
+#: how two descriptors are compared: inner product of unit rows, or the mean absolute difference (sad)
+COMPARES = ("cosine", "mean-absolute-difference")
+#: bytes per database column held for each query row of a block: cost row, enhancement's float64
+#: temporaries, the trajectory sums, their mean and the best (measured peak about 60 N per row)
+BYTES_PER_CELL = 96
+
+
+@dataclass
+class SequenceResult:
+    indices: np.ndarray   # (Q, K) int64 database indices, best first
+    scores: np.ndarray    # (Q, K) float32, higher is better
+    info: dict = field(default_factory=dict)
+
+
+def similarities_or_distances(queries: np.ndarray, database: np.ndarray, compare: str) -> np.ndarray:
+    """(q, n) float32: inner products (cosine) or mean absolute differences (sad)."""
+    if compare == "cosine":
+        return queries @ database.T
+    import faiss
+
+    return faiss.pairwise_distances(np.ascontiguousarray(queries), np.ascontiguousarray(database),
+                                    metric=faiss.METRIC_L1) / np.float32(queries.shape[1])
+
+
+def cost_rows(queries: np.ndarray, database, database_order: np.ndarray, score: str, compare: str,
+              chunk_rows: int, enhance_window: int) -> np.ndarray:
+    """(q, N) float32 costs (lower is better) of query rows against every database image, in
+    database traverse order: SeqSLAM's enhanced difference (distance = sqrt(2 - 2 cos) for unit
+    descriptors, the mean absolute difference for sad); the diagonal's -similarity (the distance
+    for sad)."""
+    out = np.empty((len(queries), database.row_count), dtype=np.float32)
+    for start, block in chunks(database, chunk_rows):
+        out[:, start:start + len(block)] = similarities_or_distances(queries, block, compare)
+    out = out[:, database_order]
+    if compare == "cosine":
+        if score == "diagonal":
+            return np.negative(out, out=out)
+        out = np.sqrt(np.maximum(2 - 2 * out, 0, out=out), out=out)
+    return enhance(out, enhance_window) if score == "seqslam" else out
+
+
+def plan_blocks(n_queries: int, n_database: int, dim: int, span: int, budget: int) -> int:
+    """Query rows per block within `budget`: each costs BYTES_PER_CELL per database image, the
+    window's extra rows one cost row each; one chunk of database rows is read at a time."""
+    reading = min(READ_BYTES, n_database * dim * 4)
+    fixed = reading + n_queries * 64 * 2  # the reduced results (top K, a little per query)
+    per_row = BYTES_PER_CELL * n_database
+    rows = (budget - fixed - span * 4 * n_database) // per_row
+    if rows < 1:
+        need = fixed + (span * 4 + BYTES_PER_CELL) * n_database
+        raise VPRBenchError(f"A memory budget of {format_bytes(budget)} is too small for sequence matching against "
+                            f"{n_database:,} database images: one block needs {format_bytes(need)}. Raise "
+                            f"--search-memory (memory_budget) to at least {format_bytes(need)}.")
+    return int(min(rows, n_queries))
+
+
+def sequence_search(database, queries, k: int, *, score: str = "seqslam", compare: str = "cosine",
+                    length: int = SEQSLAM_DEFAULTS["length"], mode: str = "offline", database_order=None,
+                    query_order=None, enhance_window: int = SEQSLAM_DEFAULTS["enhance_window"],
+                    v_min: float = SEQSLAM_DEFAULTS["v_min"], v_max: float = SEQSLAM_DEFAULTS["v_max"],
+                    v_step: float = SEQSLAM_DEFAULTS["v_step"],
+                    uniqueness_window: int = SEQSLAM_DEFAULTS["uniqueness_window"],
+                    memory_budget=DEFAULT_MEMORY_BUDGET) -> SequenceResult:
+    """Top-k database images per query by sequence matching (see matching.py for the scores).
+
+    `database_order`/`query_order` are each split's row indices in traverse (capture) order
+    (default: the rows' own order); results are per query row, database indices as stored.
+    SeqSLAM's scores are -(cost - m) / (second - m): the top-1 score is minus OpenSeqSLAM's match
+    quality (its cost over the best cost outside the uniqueness window, m the enhanced matrix's
+    minimum), so a PR curve over top-1 scores thresholds that ratio. The diagonal's scores are
+    the mean similarity (minus the mean distance for sad)."""
+    database, queries = as_rows(database, "database"), as_rows(queries, "queries")
+    if score not in SCORES or compare not in COMPARES:
+        raise VPRBenchError(f"Sequence matching scores by one of {SCORES} and compares descriptors by one of "
+                            f"{COMPARES}; got {score!r} and {compare!r}.")
+    if database.dim != queries.dim:
+        raise VPRBenchError(f"Database descriptors have {database.dim} dims, queries {queries.dim}.")
+    n, q = database.row_count, queries.row_count
+    database_order = _order(database_order, n, "database")
+    query_order = _order(query_order, q, "query")
+    offsets = query_offsets(length, mode)
+    speeds = velocities(v_min, v_max, v_step) if score == "seqslam" else velocities(1, 1, 1)
+    paths = trajectories(offsets, speeds)
+    budget = parse_memory(memory_budget)
+    block = plan_blocks(q, n, database.dim, len(offsets) - 1, budget)
+    chunk_rows = max(1, min(n, READ_BYTES // (4 * database.dim)))
+    k = min(int(k), n)
+    indices = np.empty((q, k), dtype=np.int64)
+    costs = np.empty((q, k), dtype=np.float32)
+    second = np.full(q, np.inf, dtype=np.float32)
+    lowest = np.inf
+    for start in range(0, q, block):
+        stop = min(q, start + block)
+        first, last = max(0, start + int(offsets[0])), min(q, stop + int(offsets[-1]))
+        wanted = query_order[first:last]
+        sorted_rows = np.unique(wanted)
+        rows = queries.read_rows_at(sorted_rows)[np.searchsorted(sorted_rows, wanted)]
+        matrix = cost_rows(rows, database, database_order, score, compare, chunk_rows, enhance_window)
+        lowest = min(lowest, float(matrix.min()))
+        best = trajectory_costs(matrix, first, start, stop, q, offsets, paths)
+        del matrix
+        places, values = top_k(best, k)
+        indices[start:stop], costs[start:stop] = places, values
+        if score == "seqslam":
+            second[start:stop] = second_best(best, places[:, 0], uniqueness_window)
+        del best
+    if score == "seqslam":
+        spread = second - np.float32(lowest)
+        spread = np.where(np.isfinite(spread), np.maximum(spread, np.float32(1e-12)), np.float32(1))
+        scores = -(costs - np.float32(lowest)) / spread[:, None]
+    else:
+        scores = -costs
+    result_indices, result_scores = np.empty_like(indices), np.empty_like(scores, dtype=np.float32)
+    result_indices[query_order] = database_order[indices]
+    result_scores[query_order] = scores
+    info = {"score": score, "compare": compare, "length": int(length), "mode": mode,
+            "query_offsets": [int(offsets[0]), int(offsets[-1])], "trajectories": int(len(paths)),
+            "velocities": [str(v) for v in speeds], "block_rows": int(block), "blocks": -(-q // block),
+            "memory_budget": budget}
+    if score == "seqslam":
+        info.update(enhance_window=int(enhance_window), uniqueness_window=int(uniqueness_window),
+                    enhanced_minimum=round(lowest, 6))
+    return SequenceResult(result_indices, result_scores.astype(np.float32), info)
+
+
+def _order(order, count: int, split: str) -> np.ndarray:
+    if order is None:
+        return np.arange(count, dtype=np.int64)
+    order = np.asarray(order, dtype=np.int64)
+    if order.shape != (count,) or not np.array_equal(np.sort(order), np.arange(count)):
+        raise VPRBenchError(f"The {split} traverse order must name each of its {count} images once.")
+    return order
