@@ -2,6 +2,7 @@
 cluster count (and random weights) for any backbone: fitted with `vocabulary fit --domain`
 on the real Corridor images, used by name, refused for other features."""
 import json
+import re
 
 import numpy as np
 import pytest
@@ -111,11 +112,17 @@ def test_reproduce_backbones_plan_lists_what_each_row_needs(capsys, monkeypatch,
     assert code == 0, err
     assert "192 cells to evaluate" in out  # 16 rows x the 12 datasets of Tables II and III
     rows = {line.split("│")[1].strip(): line for line in out.splitlines() if line.startswith("│ ")}
-    assert len(rows) == 16 and all(" 12 " in line and "12 datasets (below)" in line for line in rows.values())
+    assert len(rows) == 16 and all(" 12 " in line and "12 datasets (notes below)" in line for line in rows.values())
+    notes = dict(re.findall(r"^\[(\d+)\] (.*)$", out, re.MULTILINE))
+
+    def needs(row):  # the notes a row refers to, each said once below the table
+        return " | ".join(notes[n] for n in re.findall(r"\[(\d+)\]", rows[row].split("│")[5]))
+
     # the paper's setting has released centres; another backbone needs its domain vocabularies fitted
-    assert "vocabularies" not in rows["VLAD DINOv2 ViT-G/14 (paper)"] and "vocabularies" not in rows["GeM SigLIP 2 B/16"]
-    assert ("vocabularies D = indoor, urban, hawkins, laurel-caverns, aerial (vprbench vocabulary fit --domain D "
-            "--method anyloc-vlad-dinov3 --backbone dinov3_vitl16 --layer 18)") in rows["VLAD DINOv3 ViT-L/16"]
-    assert "gated, DINOv3 License: request access at https://github.com/facebookresearch/dinov3" in rows["GeM DINOv3 ViT-B/16"]
-    assert "huggingface.co/timm/vit_pe_spatial_base_patch16_512.fb" in rows["VLAD PE-spatial B/16"]
-    assert "Missing datasets: 17places, baidu-mall," in out
+    assert "vocabularies" not in needs("VLAD DINOv2 ViT-G/14 (paper)") and "vocabularies" not in needs("GeM SigLIP 2 B/16")
+    assert ("vocabularies D = indoor, urban, hawkins, laurel-caverns, aerial: run 'vprbench vocabulary fit --domain D "
+            "--method anyloc-vlad-dinov3 --backbone dinov3_vitl16 --layer 18'") in needs("VLAD DINOv3 ViT-L/16")
+    assert "gated, DINOv3 License: request access at https://github.com/facebookresearch/dinov3" in needs("GeM DINOv3 ViT-B/16")
+    assert "huggingface.co/timm/vit_pe_spatial_base_patch16_512.fb" in needs("VLAD PE-spatial B/16")
+    missing = sorted(re.findall(r"^dataset (\S+): ", "\n".join(notes.values()), re.MULTILINE))
+    assert len(missing) == 12 and missing[:2] == ["17places", "baidu-mall"]

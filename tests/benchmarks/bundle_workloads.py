@@ -6,7 +6,7 @@
 - board/: a results store of 200 runs over 17 benchmarks at their real image counts (12 methods,
   the last on 13 of them; top-20), laid out as a results repository is.
 Records are built by the real record builder from a synthetic search on synthetic ground truth
-(the helpers of tests/leaderboard/conftest.py); the ground truth the verifier checks against is
+(the helpers of tests/leaderboard/synthetic_runs.py); the ground truth the verifier checks against is
 the same synthetic one, passed as `truth` (nothing of a real dataset is needed).
 
 `... NAME DATA_DIR` runs one workload and prints one JSON line: its seconds, and the peak RSS of
@@ -23,7 +23,7 @@ from pathlib import Path
 from memory import rss_kb  # this folder is on sys.path (as a script and under pytest)
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "leaderboard"))
-from conftest import FakeMethod, synthetic_ground_truth, synthetic_search, synthetic_spec  # noqa: E402
+from synthetic_runs import FakeMethod, synthetic_ground_truth, synthetic_search, synthetic_spec  # noqa: E402
 
 MSLS = {"dataset": "msls-val", "database": 18_871, "queries": 11_000, "k": 100}
 #: 17 benchmarks (their default protocols and image counts; MSLS with GSV-Cities' 740 queries)

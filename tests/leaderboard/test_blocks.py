@@ -164,7 +164,7 @@ def test_compare_pairs_the_same_blocks_and_shows_per_query_beside(make_record, t
 
 
 def test_verify_refuses_units_that_are_not_the_protocols(make_record):
-    from conftest import synthetic_ground_truth
+    from synthetic_runs import synthetic_ground_truth
 
     from vprbench.bundles.verify import Truth, rescore
 

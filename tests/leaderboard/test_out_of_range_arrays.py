@@ -1,6 +1,6 @@
 """A record whose per-query arrays do not fit it (a database index past the database, a negative
-one, shapes of another run) is never used: its statistics and mosaics are skipped with a warning
-naming the run, and publish still writes every page (it once ended in an IndexError traceback from
+one, shapes of another run) is never used: it is left out of every cell with a warning naming
+the run (its metrics cannot be recomputed), and publish still writes every page (it once ended in an IndexError traceback from
 the mosaic, and a negative index showed the wrong image without a word)."""
 import io
 import json
@@ -42,19 +42,28 @@ def forged(make_record, shared_data):
 
 
 def test_the_attack_is_real(forged, tmp_path, shared_data, monkeypatch, capsys):
+    """Without the range check, and with the run's images on disk (the content check passed), the
+    mosaic indexes past Corridor's database list."""
+    from vprbench.datasets import load_dataset
+    from vprbench.leaderboard import figures
+
     monkeypatch.setattr(results, "_in_range", lambda record, arrays: arrays)
+    corridor = load_dataset("corridor", shared_data, fetch=False)
+    monkeypatch.setattr(figures, "_dataset_of", lambda *args, **kwargs: corridor)
     with pytest.raises(IndexError):
         main(["leaderboard", "publish", "--to", str(tmp_path / "docs"), "--data-dir", str(shared_data)])
 
 
-def test_publish_skips_what_the_arrays_would_draw_and_names_the_run(forged, tmp_path, shared_data, capsys):
+def test_publish_leaves_the_run_out_and_names_it(forged, tmp_path, shared_data, capsys):
     docs = tmp_path / "docs"
     [record] = read_results()
     with pytest.warns(UserWarning, match=rf"run {record['run_id']} .*query 0 lists a database index outside the "
                                          "record's 111 database images"):
         assert main(["leaderboard", "publish", "--to", str(docs), "--data-dir", str(shared_data)]) == 0
-    page = (docs / "leaderboard" / "corridor.md").read_text()
-    assert "Mosaic of hog: not drawn, the run has no per-query predictions" in page
+    assert not (docs / "leaderboard" / "corridor.md").exists()  # no cell: its metrics cannot be proven
+    left_out = (docs / "leaderboard" / "index.md").read_text().split("## Runs left out")[1].split("\n## ")[0]
+    assert f"`{record['run_id']}` | hog | corridor | its per-query arrays are missing or damaged" in left_out
+    assert "outside the record&#x27;s 111 database images" in left_out
     assert "Traceback" not in capsys.readouterr().err
 
 
