@@ -8,9 +8,10 @@ What is promised, on every CPU:
   1.5e-5), and results are ordered by rounded score descending, then by the lower database
   index: rows within rounding of each other are a tie, and a tie goes to the lower index.
 - On one machine and BLAS configuration, results are bitwise identical for every memory
-  budget: every product has one shape, a fixed grid of rows (aligned to row 0, its size a
-  function of the dimension only) with the last tile padded with zero rows, so neither the
-  budget nor a row's place in a read decides anything.
+  budget: products are tiles of a fixed grid of rows (aligned to row 0, the tile size a
+  function of the dimension only), the last tile of each side cut to a multiple of
+  TILE_STEP rows (padded with zero rows), so a row's product has a shape set by the data's
+  size, never by the budget or by the row's place in a read.
 - Across arithmetic paths (BLAS thread counts, numpy or torch, CPUs with other kernels, a
   row at a tile's edge or in its middle) float32 products differ in their last bits (up to
   about 1e-7 for unit descriptors of 49,152 dims). Rounded to the grid they agree, except
@@ -43,6 +44,9 @@ TIE_ORDER = "score rounded to 2^-16 descending, then database index ascending"
 TILE_BYTES = 256 * 2**20
 #: a post-processor transforms tiles of at most this many input bytes (see transform_rows)
 TRANSFORM_BYTES = 128 * 2**20
+#: tiles are multiples of this many rows, a short last tile too (padded): never the one-row
+#: or tiny products where BLAS switches kernels, and at most TILE_STEP - 1 rows computed in vain
+TILE_STEP = 256
 #: candidates kept per query beyond K while merging raw scores: ties on the grid are settled among them
 EXTRA_CANDIDATES = 16
 #: queries are scaled by this before their products: exact (a power of two), and the products
@@ -63,7 +67,13 @@ class SearchResult:
 def tile_rows(dim: int) -> int:
     """Rows per tile of the grid scores are computed on; depends on the dimension only."""
     rows = TILE_BYTES // (4 * int(dim))
-    return int(min(4096, max(256, rows // 256 * 256)))
+    return int(min(4096, max(TILE_STEP, rows // TILE_STEP * TILE_STEP)))
+
+
+def product_rows(rows: int, tile: int) -> int:
+    """Rows a tile holding `rows` rows is computed with: a whole tile, or a short last tile
+    rounded up to a multiple of TILE_STEP (within the tile)."""
+    return min(tile, -(-int(rows) // TILE_STEP) * TILE_STEP)
 
 
 def read_cost(rows) -> tuple[int, int]:
@@ -209,7 +219,7 @@ def _scan(database, queries, keep: int, plan: dict, on_grid: bool) -> tuple[np.n
     distances = np.empty((n_queries, keep), dtype=np.float32)
     indices = np.empty((n_queries, keep), dtype=np.int64)
     heap = _heap(distances, indices)
-    scores = np.empty((q_tile, d_tile), dtype=np.float32)
+    scores = np.empty(q_tile * d_tile, dtype=np.float32)  # every product's output, as its shape needs
     block = np.zeros((-(-q_chunk // q_tile) * q_tile, queries.dim), dtype=np.float32)
     reader = ChunkReader(database, plan["chunk_rows"], d_tile, passes=-(-n_queries // q_chunk))
     try:
@@ -232,12 +242,15 @@ def _scan_passes(reader, queries, heap, block, scores, q_tile: int, d_tile: int,
         for d0, count, rows in reader:
             for t0 in range(0, count, d_tile):
                 n = min(d_tile, count - t0)
+                n_held = product_rows(n, d_tile)
                 for a in range(0, m_chunk, q_tile):
                     m = min(q_tile, m_chunk - a)
-                    inner_products(block[a:a + q_tile], rows[t0:t0 + d_tile], scores)
+                    m_held = product_rows(m, q_tile)
+                    out = scores[:m_held * n_held].reshape(m_held, n_held)
+                    inner_products(block[a:a + m_held], rows[t0:t0 + n_held], out)
                     if on_grid:
-                        np.rint(scores, out=scores)
-                    merged = scores if n == d_tile else np.ascontiguousarray(scores[:m, :n])
+                        np.rint(out, out=out)
+                    merged = out if n == n_held else np.ascontiguousarray(out[:m, :n])
                     heap.addn(n, faiss.swig_ptr(merged), d0 + t0, q0 + a, m)
 
 
