@@ -4,12 +4,16 @@ Every long loop (extraction, a sweep's cells) reports through the small interfac
 `Progress`: `add_task(description, total=, completed=)`, `advance(task, n)`, `update(task, ...)`,
 used as a context manager. `progress_for(stream)` picks how it is shown: rich's live bars on a
 terminal; without one (nohup, SLURM, CI) one plain line per task at most every `interval`
-seconds, with phase, done/total, rate and time left; `quiet` shows nothing.
+seconds, with phase, done/total, rate and time left; `quiet` shows nothing. A phase that
+cannot count its work (fitting a vocabulary, a search) runs inside `phase(progress, what)`:
+a spinner on a terminal, a line with the time elapsed every `interval` seconds in a log.
 """
 from __future__ import annotations
 
 import sys
+import threading
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 #: at most one line per task this often, in a log
@@ -51,8 +55,9 @@ class LogProgress(Silent):
     printed ends: `progress: <phase> 1,200/3,576 (34 %), 41.2/s, about 58 s left`. A task done
     within `interval` prints nothing (short runs stay quiet)."""
 
-    def __init__(self, stream=None, interval: float = LOG_INTERVAL_S, clock=time.monotonic):
-        self.stream, self.interval, self.clock = stream or sys.stderr, float(interval), clock
+    def __init__(self, stream=None, interval: float | None = None, clock=time.monotonic):
+        self.stream, self.clock = stream or sys.stderr, clock
+        self.interval = float(LOG_INTERVAL_S if interval is None else interval)
         self.tasks: dict[int, _Task] = {}
 
     def add_task(self, description: str, total: float | None = None, completed: float = 0, **_) -> int:
@@ -103,6 +108,40 @@ class LogProgress(Silent):
             left = f", about {_duration((task.total - task.completed) * elapsed / moved)} left"
         what = " done" if state == "done" else ""
         print(f"progress: {task.description}{what} {count}{rate}{left}", file=self.stream, flush=True)
+
+
+@contextmanager
+def phase(progress, description: str):
+    """Work that reports no counts, shown as alive: rich shows a spinner; a log gets
+    `progress: <description>, 1 min elapsed` every interval (and `done in ...` if it printed)."""
+    if progress is None or type(progress) is Silent:
+        yield
+        return
+    if not isinstance(progress, LogProgress):  # rich: a task without a total is an indeterminate bar
+        task = progress.add_task(description, total=None)
+        try:
+            yield
+        finally:
+            progress.update(task, total=1, completed=1)
+        return
+    stop, started, printed = threading.Event(), progress.clock(), []
+
+    def beat():
+        while not stop.wait(progress.interval):
+            printed.append(True)
+            print(f"progress: {description}, {_duration(progress.clock() - started)} elapsed", file=progress.stream,
+                  flush=True)
+
+    beater = threading.Thread(target=beat, name="vprbench-progress", daemon=True)
+    beater.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        beater.join()
+        if printed:
+            print(f"progress: {description} done in {_duration(progress.clock() - started)}", file=progress.stream,
+                  flush=True)
 
 
 def _duration(seconds: float) -> str:

@@ -29,6 +29,7 @@ from ..store import (DTYPES, NO_FIT, DamagedRows, DescriptorStore, RowWriter, St
                      method_fingerprint, shard_range)
 from ..store.folder import unsaved_fit_id
 from ..store.rows_file import merge_rows_files
+from ..progress import phase
 
 #: the split a method fits on (and PCA-whitening is fitted on)
 FIT_SPLIT = "database"
@@ -140,7 +141,9 @@ class _Job:
                 self.method.load_fit_state(state)
             else:
                 started = time.perf_counter()
-                self.method.fit(self.splits[FIT_SPLIT])
+                with phase(self.progress if self.ranks.rank == 0 else None,
+                           f"{self.method.name} {self.label} fitting on {len(self.splits[FIT_SPLIT]):,} database images"):
+                    self.method.fit(self.splits[FIT_SPLIT])
                 timings["fit_s"] = time.perf_counter() - started
                 state = {k: np.asarray(v) for k, v in (self.method.fit_state() or {}).items()}
                 if state:

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 from ..distributed import Ranks
 from ..errors import VPRBenchError
+from ..progress import phase
 from ..spec import RunSettings, RunSpec
 from .extract import describe_splits
 from .identity import protocol_of
@@ -126,8 +127,11 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
         found = frozen.pop("found")
     else:
         memory = {} if settings.memory_budget is None else {"memory_budget": settings.memory_budget}
-        found = retrieve(method, described.stores["database"], described.stores["queries"], depth,
-                         index=spec.search.index, index_options=spec.search.options or None, **memory)
+        database, queries = described.stores["database"], described.stores["queries"]
+        with phase(progress, f"{method.name} {dataset.name} search ({spec.search.index}, {queries.row_count:,} queries "
+                             f"x {database.row_count:,} database)"):
+            found = retrieve(method, database, queries, depth, index=spec.search.index,
+                             index_options=spec.search.options or None, **memory)
     timings["search_s"] = time.perf_counter() - t
     return Retrieved(method, dataset, ks, described, found, timings, workers, frozen)
 
