@@ -139,3 +139,27 @@ def test_recomputing_is_cached_by_the_arrays_sha256(make_record, monkeypatch):
     sha = json.loads(path.read_text())["per_query"]["sha256"]
     assert any(key[0] == sha for key in proof._CACHE)
     assert np.isfinite(next(iter(proof._CACHE.values()))["auc_pr"])
+
+
+def test_a_speed_measured_under_one_protocol_serves_the_same_images_under_another(make_record):
+    """Own data judged with +-1 and +-10 frames: the second run describes nothing (the store
+    holds the images' descriptors), and its cell shows the first run's speed, naming that run."""
+    measured_run = make_record(kind="own", unit="frames", radius=1, n_database=60, n_queries=50, seed=1,
+                               created="2026-01-01T00:00:00+00:00")
+    measured_run["images_per_second"] = 211.0
+    served = make_record(kind="own", unit="frames", radius=10, n_database=60, n_queries=50, seed=1,
+                         created="2026-02-01T00:00:00+00:00")
+    served.update(served_from_store=True, images_per_second=None, descriptors_computed={"database": 0, "queries": 0})
+    assert measured_run["dataset_fingerprints"]["images"] == served["dataset_fingerprints"]["images"]
+    other_images = make_record(kind="own", unit="frames", radius=1, n_database=60, n_queries=50, seed=1,
+                               created="2026-03-01T00:00:00+00:00")
+    other_images["images_per_second"] = 99.0  # another copy whose images differ in content
+    other_images["dataset_fingerprints"]["images"] = {"database": "0" * 64, "queries": "1" * 64}
+    for record in (measured_run, served):
+        save_result(record)
+    board = build_board(read_results())
+    speeds = {cell.column.detail: (cell.images_per_second, cell.timed["run_id"]) for cell in board.cells.values()}
+    assert speeds == {"own, ±1 frame": (211.0, measured_run["run_id"]), "own, ±10 frames": (211.0, measured_run["run_id"])}
+    alone = build_board([served, other_images])  # a speed measured on other images is not this cell's
+    assert {cell.column.detail: cell.images_per_second for cell in alone.cells.values()} == \
+        {"own, ±1 frame": 99.0, "own, ±10 frames": None}

@@ -15,6 +15,7 @@ The rules (stated on every published page, CELL_RULE):
 """
 from __future__ import annotations
 
+import json
 from collections import Counter
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -43,7 +44,8 @@ CELL_RULE = (
     "search (IVF-PQ, HNSW), with a float16 store or with anything fitted on the evaluated database (transductive) get "
     "their own rows, marked †, and never replace an official row; runs on random weights fill no cell at all. Every "
     "metric is recomputed from the run's per-query arrays (a record whose stored numbers disagree is named). Images/s "
-    "comes from the newest run of the cell that computed its descriptors (one served from stores measured no speed), "
+    "comes from the newest run of the cell that computed its descriptors (one served from stores measured no speed; "
+    "without one, from the newest such run of the row on the same images under another protocol), "
     "with the machine it ran on."
 )
 
@@ -336,16 +338,34 @@ def build_board(records: list[dict]) -> Board:
 
     rows = _distinct(sorted({row for row, _ in candidates}, key=lambda r: (not r.official, r.label, r.mark, r.key)))
     columns = _distinct_titles(columns)
+    # a speed belongs to a row and the images it described, whichever protocol judged the run
+    timed_on: dict[tuple[str, str], list[dict]] = {}
+    for (row, _), runs in candidates.items():
+        for r in runs:
+            if _timed(r):
+                timed_on.setdefault((row.key, _images(r)), []).append(r)
     cells = {}
     for (row, key), runs in candidates.items():
         complete = [r for r in runs if _max_k(r) >= max(CELL_KS)]
         pick = (complete or runs)[-1]
         final = rows[row]
-        timed = [r for r in runs if not r.get("served_from_store") and r.get("images_per_second")]
+        timed = [r for r in runs if _timed(r)] or sorted(timed_on.get((row.key, _images(pick)), []),
+                                                         key=lambda r: str(r.get("created")))
         cells[(final, key)] = Cell(final, columns[key], pick, passed_over=len(runs) - 1,
                                    timed=timed[-1] if timed else None, source=_source(pick, runs))
     ordered = sorted(columns.values(), key=lambda c: (c.kind != "benchmark", _domain_order(c.domain), c.dataset, c.key))
     return Board(list(rows.values()), ordered, cells, excluded)
+
+
+def _timed(record: dict) -> bool:
+    """The run computed its descriptors and measured their speed (one served from stores did not)."""
+    return not record.get("served_from_store") and bool(record.get("images_per_second"))
+
+
+def _images(record: dict) -> str:
+    """The identity of the images a run described (its dataset fingerprint without the ground truth)."""
+    images = (record.get("dataset_fingerprints") or {}).get("images")
+    return json.dumps(images, sort_keys=True) if images else f"dataset {record.get('dataset_fingerprint')}"
 
 
 #: the marks of a cell's source: every cell has one of them (a paper's values are in the group tables, in italics)

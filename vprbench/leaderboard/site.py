@@ -187,7 +187,7 @@ def _marks(board: Board) -> str:
     parts = []
     if found["marked_rows"]:
         parts.append(f"{found['marked_rows']} cell(s) are on rows marked † (weights other than the authors' release, "
-                     "approximate search or a float16 store: the mark says which)")
+                     "approximate search, a float16 store or anything fitted on the evaluated database: the mark says which)")
     if found["own_data"]:
         parts.append(f"{found['own_data']} cell(s) are on the user's own data, marked *(own data)*")
     if found["excluded"]:
