@@ -149,6 +149,34 @@ def test_a_short_last_tile_is_computed_at_a_multiple_of_256_rows(monkeypatch, ti
     assert np.mean(result.indices[:, 0] == best) > 0.99  # the top-1 (up to ties on the grid)
 
 
+def test_threads_take_slices_of_each_query_tile_and_change_nothing(monkeypatch, tmp_path, tiles_of_1024):
+    """With 2 threads each computes its half of every query tile (one-thread BLAS, its own heap
+    rows): bitwise the same for every budget, and the same ranking as one thread."""
+    from threadpoolctl import threadpool_limits
+
+    import vprbench.evaluation.search as search_module
+
+    db, q = unit(3 * 1024 + 300, 48, 5), unit(1024 + 300, 48, 6)
+    db[1030:1040] = db[1029]  # ties across a tile's rows
+    q[700] = db[1029]
+    database = h5_rows(tmp_path, "db", db)
+    with threadpool_limits(1):
+        alone = exact_search(database, q, 20)
+    shapes = []
+    real = search_module.inner_products
+    monkeypatch.setattr(search_module, "inner_products", lambda a, b, out: (shapes.append(out.shape), real(a, b, out)))
+    with threadpool_limits(2):
+        assert search_module.search_threads() == 2
+        runs = [exact_search(database, q, 20, memory_budget=budget_for(db, q, 20, chunks=c)) for c in (1, 2, 4)]
+    assert {m for m, _ in shapes} == {512, 256}  # halves of the 1,024-row tile and of the 512-row last tile
+    for found in runs[1:]:
+        np.testing.assert_array_equal(found.scores, runs[0].scores)
+        np.testing.assert_array_equal(found.indices, runs[0].indices)
+    np.testing.assert_array_equal(runs[0].indices, alone.indices)
+    np.testing.assert_allclose(runs[0].scores, alone.scores, atol=SCORE_TOLERANCE)
+    assert runs[0].indices[700, :11].tolist() == list(range(1029, 1040))
+
+
 def test_matches_faiss_flat_index_at_pitts250k_database_size():
     import faiss
 

@@ -25,6 +25,7 @@ import json
 import time
 import warnings
 import zipfile
+from contextlib import nullcontext as _nothing
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -47,6 +48,8 @@ TRANSFORM_BYTES = 128 * 2**20
 #: tiles are multiples of this many rows, a short last tile too (padded): never the one-row
 #: or tiny products where BLAS switches kernels, and at most TILE_STEP - 1 rows computed in vain
 TILE_STEP = 256
+#: a thread's slice of a query tile is at least this many rows (see `slices`)
+MIN_SLICE_ROWS = 64
 #: candidates kept per query beyond K while merging raw scores: ties on the grid are settled among them
 EXTRA_CANDIDATES = 16
 #: queries are scaled by this before their products: exact (a power of two), and the products
@@ -208,50 +211,96 @@ def _heap(distances: np.ndarray, ids: np.ndarray):
     return heap
 
 
+def search_threads() -> int:
+    """Threads a search computes on: as many as the BLAS would use (threadpoolctl sees its
+    setting, e.g. OMP_NUM_THREADS or threadpool_limits)."""
+    from threadpoolctl import threadpool_info
+
+    found = [int(lib["num_threads"]) for lib in threadpool_info() if lib.get("user_api") == "blas"]
+    return max(1, min(found) if found else 1)
+
+
+def slices(rows: int, threads: int) -> list[tuple[int, int]]:
+    """A query tile of `rows` rows cut among `threads` threads: equal slices of at least
+    MIN_SLICE_ROWS rows (a tiny product would switch BLAS kernels), fixed by the tile and the
+    thread count, never by the budget."""
+    count = max(1, min(int(threads), int(rows) // MIN_SLICE_ROWS))
+    bounds = [rows * i // count for i in range(count + 1)]
+    return list(zip(bounds[:-1], bounds[1:]))
+
+
+def _one_openmp_thread() -> None:
+    import faiss
+
+    faiss.omp_set_num_threads(1)  # per thread: each search thread merges its own slice alone
+
+
 def _scan(database, queries, keep: int, plan: dict, on_grid: bool) -> tuple[np.ndarray, np.ndarray]:
     """(negated grid units, indices) of the `keep` best rows per query, unordered: queries a
-    chunk at a time, the database streamed past each, every product one tile of fixed shape.
-    `on_grid` rounds each tile of scores before it is merged (the tie rule exactly, at the
-    cost of a pass over the scores); otherwise raw units are merged."""
+    chunk at a time, the database streamed past each, every product one tile of the grid.
+    With several threads, each takes its own slice of every query tile, with one-thread BLAS
+    and its own heap rows: products and merges run side by side and no thread waits on another
+    within a chunk. `on_grid` rounds each tile of scores before it is merged (the tie rule
+    exactly, at the cost of a pass over the scores); otherwise raw units are merged."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from threadpoolctl import threadpool_limits
+
     tile, q_chunk = plan["tile_rows"], plan["query_chunk_rows"]
     n_queries = queries.row_count
     q_tile, d_tile = min(n_queries, tile), min(database.row_count, tile)
     distances = np.empty((n_queries, keep), dtype=np.float32)
     indices = np.empty((n_queries, keep), dtype=np.int64)
-    heap = _heap(distances, indices)
-    scores = np.empty(q_tile * d_tile, dtype=np.float32)  # every product's output, as its shape needs
+    threads = len(slices(q_tile, search_threads()))
+    scan = _Scan(_heap(distances, indices), q_tile, d_tile, threads, on_grid)
     block = np.zeros((-(-q_chunk // q_tile) * q_tile, queries.dim), dtype=np.float32)
     reader = ChunkReader(database, plan["chunk_rows"], d_tile, passes=-(-n_queries // q_chunk))
+    pool = ThreadPoolExecutor(threads, "vprbench-search", _one_openmp_thread) if threads > 1 else None
     try:
-        _scan_passes(reader, queries, heap, block, scores, q_tile, d_tile, q_chunk, on_grid)
+        with threadpool_limits(1, user_api="blas") if pool else _nothing():
+            for q0 in range(0, n_queries, q_chunk):
+                m_chunk = min(q_chunk, n_queries - q0)
+                read_into(queries, q0, q0 + m_chunk, block[:m_chunk])
+                block[m_chunk:] = 0
+                block *= _UNITS
+                for d0, count, rows in reader:
+                    work = [(w, block, q0, m_chunk, rows, d0, count) for w in range(threads)]
+                    list(pool.map(scan.chunk, *zip(*work))) if pool else scan.chunk(*work[0])
     finally:
         reader.close()
+        if pool is not None:
+            pool.shutdown(wait=True)
     return distances, indices
 
 
-def _scan_passes(reader, queries, heap, block, scores, q_tile: int, d_tile: int, q_chunk: int, on_grid: bool) -> None:
-    """Each chunk of queries against one pass of the database (see `_scan`)."""
-    import faiss
+class _Scan:
+    """What one search thread does with a chunk of the database: its slice of every query
+    tile against every database tile of the chunk, merged into its heap rows."""
 
-    n_queries = queries.row_count
-    for q0 in range(0, n_queries, q_chunk):
-        m_chunk = min(q_chunk, n_queries - q0)
-        read_into(queries, q0, q0 + m_chunk, block[:m_chunk])
-        block[m_chunk:] = 0
-        block *= _UNITS
-        for d0, count, rows in reader:
-            for t0 in range(0, count, d_tile):
-                n = min(d_tile, count - t0)
-                n_held = product_rows(n, d_tile)
-                for a in range(0, m_chunk, q_tile):
-                    m = min(q_tile, m_chunk - a)
-                    m_held = product_rows(m, q_tile)
-                    out = scores[:m_held * n_held].reshape(m_held, n_held)
-                    inner_products(block[a:a + m_held], rows[t0:t0 + n_held], out)
-                    if on_grid:
-                        np.rint(out, out=out)
-                    merged = out if n == n_held else np.ascontiguousarray(out[:m, :n])
-                    heap.addn(n, faiss.swig_ptr(merged), d0 + t0, q0 + a, m)
+    def __init__(self, heap, q_tile: int, d_tile: int, threads: int, on_grid: bool):
+        self.heap, self.q_tile, self.d_tile, self.threads, self.on_grid = heap, q_tile, d_tile, threads, on_grid
+        tallest = max(hi - lo for lo, hi in slices(q_tile, threads))
+        self.scores = [np.empty(tallest * d_tile, dtype=np.float32) for _ in range(threads)]  # each thread's output
+
+    def chunk(self, worker: int, block, q0: int, m_chunk: int, rows, d0: int, count: int) -> None:
+        import faiss
+
+        for t0 in range(0, count, self.d_tile):
+            n = min(self.d_tile, count - t0)
+            n_held = product_rows(n, self.d_tile)
+            for a in range(0, m_chunk, self.q_tile):
+                m = min(self.q_tile, m_chunk - a)
+                cut = slices(product_rows(m, self.q_tile), self.threads)
+                if worker >= len(cut) or cut[worker][0] >= m:
+                    continue
+                lo, hi = cut[worker]
+                real = min(hi, m) - lo  # rows past m are the tile's zero padding
+                out = self.scores[worker][:(hi - lo) * n_held].reshape(hi - lo, n_held)
+                inner_products(block[a + lo:a + hi], rows[t0:t0 + n_held], out)
+                if self.on_grid:
+                    np.rint(out, out=out)
+                merged = out if n == n_held else np.ascontiguousarray(out[:real, :n])
+                self.heap.addn(n, faiss.swig_ptr(merged), d0 + t0, q0 + a + lo, real)
 
 
 def exact_search(database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDGET) -> SearchResult:
