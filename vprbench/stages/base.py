@@ -102,6 +102,8 @@ class Stage:
     - `candidates_needed()`: how many candidates retrieval must hand it (None: the run's largest K).
     - `check(dataset)`: refuse a dataset the stage cannot run on (VPRBenchError), before any work.
     - `stored_bytes(context)`: bytes it keeps per database image (for the record's cost), 0 if none.
+    - `file_identities(options)`: the options that name files, by content (part of the run's identity).
+    - `provenance()`: where what it learnt came from (its weights), for the record and the board.
     """
 
     name: str = ""
@@ -123,6 +125,29 @@ class Stage:
 
     def stored_bytes(self, context: StageContext) -> int:
         return 0
+
+    @classmethod
+    def file_identities(cls, options: StageOptions) -> dict:
+        """Option -> the content of the file it names ("sha256:<hex>"), in the run's identity instead of
+        the path: a file moved is the same run, a file edited another. Called when the spec is made, so a
+        stage may refuse here a file it cannot use. Default: every option whose value is an existing file."""
+        from ..spec import file_identity
+
+        found = {}
+        for name, value in options.model_dump(mode="json").items():
+            try:
+                identity = file_identity(value)
+            except OSError as error:
+                raise VPRBenchError(f"Stage option {name}: cannot read {value} ({error.strerror or error}).") from None
+            if identity is not None:
+                found[name] = identity
+        return found
+
+    def provenance(self) -> dict:
+        """Where what the stage learnt came from, as `Method.provenance` says it: {"weights": {"source":
+        "official"|"user"|"random", ...}}. The board keeps a run whose stage ran on random weights out of
+        every cell and marks one on the user's weights, as for methods. {} when nothing is learnt."""
+        return {}
 
 
 def check_candidates(found, stage: str, queries: int, database: int, k: int) -> Candidates:
