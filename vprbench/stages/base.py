@@ -66,7 +66,8 @@ class StageContext:
       `read_rows(start, stop)`, `read_rows_at(sorted indices)`); float32 rows, never re-extracted.
     - `features(name, identity)`: a `FeatureStore` for per-image data (local features), kept in the
       cache beside descriptor stores, resumable and lock-safe (vprbench/stages/features.py).
-    - `memory_budget` (bytes), `progress` (rich-like: add_task/advance), `cache_dir`, `lock_timeout`.
+    - `memory_budget` (bytes), `progress` (rich-like: add_task/advance), `cache_dir`, `lock_timeout`,
+      `device` (the run's torch device, for a stage that runs a network).
     - `spec`: the run's spec; `prefix`: the identity of everything before this stage (the
       retriever and earlier stages), e.g. to key what a stage caches on what produced its input.
     """
@@ -83,6 +84,8 @@ class StageContext:
     #: how the method compares its descriptors (`Method.compare`): "cosine" or a distance such as
     #: "mean-absolute-difference" (sad), for stages that compute scores of their own
     compare: str = "cosine"
+    #: the torch device the run uses (the method's: "cpu", "cuda", ...), for stages that run networks
+    device: str = "cpu"
 
     def features(self, name: str, identity: dict):
         """The store of per-image data `name` (e.g. "sift") computed as `identity` says (its options,
