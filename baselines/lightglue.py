@@ -169,6 +169,10 @@ def weights_identities(options: SuperPointLightGlueOptions) -> dict[str, str | N
 
 
 # ---------------------------------------------------------------- the stage
+#: weights (by content) this process has loaded once already: a plan's cells do not load them again
+_CHECKED: set[tuple] = set()
+
+
 class SuperPointLightGlue(Stage):
     track = "re-ranked"
     Options = SuperPointLightGlueOptions
@@ -180,8 +184,11 @@ class SuperPointLightGlue(Stage):
         architecture is refused before any work."""
         if options.weights in (None, RANDOM):
             return {}
-        load_models(options)
-        return {"weights": weights_identities(options)}
+        identities = weights_identities(options)
+        if tuple(sorted(identities.items())) not in _CHECKED:
+            load_models(options)
+            _CHECKED.add(tuple(sorted(identities.items())))
+        return {"weights": identities}
 
     def feature_identity(self) -> dict:
         import kornia

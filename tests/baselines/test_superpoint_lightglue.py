@@ -7,6 +7,7 @@ import hashlib
 import json
 import re
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -31,14 +32,12 @@ TINY = {**SMALL, "resize": 32, "depth_confidence": -1, "width_confidence": -1}
 
 
 @pytest.fixture(scope="module")
-def release(tmp_path_factory):
+def release(tmp_path_factory, official_checkpoint):
     """A folder of the two release files in the official format: Magic Leap's 2018 file is a legacy
     (pre-zip) torch file, LightGlue's a zip one; random tensors with the released names and shapes."""
-    from conftest import official_state_dict
-
     folder = tmp_path_factory.mktemp("release")
-    superpoint = official_state_dict("superpoint", "superpoint_v1", seed=1)
-    lightglue = official_state_dict("lightglue", "superpoint_lightglue", seed=2)
+    superpoint = official_checkpoint("superpoint", "superpoint_v1", seed=1)
+    lightglue = official_checkpoint("lightglue", "superpoint_lightglue", seed=2)
     torch.save(superpoint, folder / "superpoint_v1.pth", _use_new_zipfile_serialization=False)
     torch.save(lightglue, folder / "superpoint_lightglue.pth")
     return folder, superpoint, lightglue
@@ -62,7 +61,7 @@ def test_listed_with_where_it_comes_from(capsys):
     assert listed[NAME]["options"]["weights"] is None and listed[NAME]["options"]["resize"] == 1024
 
 
-def test_release_files_load_exactly(release):
+def test_release_files_load_exactly(release, tmp_path):
     from vprbench_baselines.lightglue import SuperPointLightGlueOptions, load_models
 
     folder, superpoint, lightglue = release
@@ -73,6 +72,41 @@ def test_release_files_load_exactly(release):
     assert torch.equal(loaded["transformers.0.self_attn.Wqkv.bias"], lightglue["self_attn.0.Wqkv.bias"])
     assert all(torch.equal(loaded[k], v) for k, v in lightglue.items() if not k.startswith(("self_attn", "cross_attn")))
     assert len(loaded) == len(lightglue) + 1  # + kornia's early-stopping thresholds, computed, not loaded
+    kornia_saved = shutil.copytree(folder, tmp_path / "kornia")  # a LightGlue saved from kornia loads too
+    torch.save(loaded, kornia_saved / "superpoint_lightglue.pth")
+    _, again = load_models(SuperPointLightGlueOptions(weights=str(kornia_saved)))
+    assert all(torch.equal(again.state_dict()[k], v) for k, v in loaded.items())
+
+
+def test_without_weights_the_releases_are_downloaded_once(release, tmp_path, monkeypatch):
+    """The download (here a copy of the release-format files, no network) lands in the cache once; the stage
+    is then on the official weights, named by their URLs. Offline, the error says how to give them."""
+    from vprbench_baselines.lightglue import LIGHTGLUE, SUPERPOINT, SuperPointLightGlueOptions, load_models
+
+    def offline(url, destination, hash_prefix=None, progress=True):
+        raise OSError("no network in tests")
+
+    monkeypatch.setattr(torch.hub, "download_url_to_file", offline)
+    with pytest.raises(VPRBenchError, match=r"could not download superpoint_v1.pth from https://github.com/magicleap/"
+                                            r".*pass it with --rerank-option weights=FOLDER"):
+        load_models(SuperPointLightGlueOptions(), cache_dir=tmp_path)
+
+    downloads = []
+
+    def download(url, destination, hash_prefix=None, progress=True):
+        downloads.append((url, hash_prefix))
+        shutil.copy(release[0] / Path(url).name, destination)
+
+    monkeypatch.setattr(torch.hub, "download_url_to_file", download)
+    for _ in range(2):
+        superpoint, _ = load_models(SuperPointLightGlueOptions(), cache_dir=tmp_path)
+    assert torch.equal(superpoint.state_dict()["convDb.bias"], release[1]["convDb.bias"])
+    assert downloads == [(SUPERPOINT.url, None), (LIGHTGLUE.url, None)]  # no sha256 published: none checked
+    weights = create_stage(NAME).provenance()["weights"]
+    assert weights["source"] == "official"
+    assert {name: (part["source"], part["url"], part["release"]) for name, part in weights["files"].items()} == {
+        "superpoint_v1.pth": ("official", SUPERPOINT.url, "superpoint"),
+        "superpoint_lightglue.pth": ("official", LIGHTGLUE.url, "lightglue")}
 
 
 def test_the_weights_folder_is_identified_by_content(release, shared_data, tmp_path):
@@ -89,6 +123,9 @@ def test_the_weights_folder_is_identified_by_content(release, shared_data, tmp_p
         "superpoint_v1.pth": "sha256:" + hashlib.sha256((folder / "superpoint_v1.pth").read_bytes()).hexdigest(),
         "superpoint_lightglue.pth": first.stages[0].files["weights"]["superpoint_lightglue.pth"]}
     assert spec(moved).row_key == first.row_key and first.label() == "hog + superpoint-lightglue@5"
+    weights = create_stage(NAME, {"weights": str(moved)}).provenance()["weights"]
+    assert weights["source"] == "user" and weights["files"]["superpoint_v1.pth"] == {
+        "source": "user", "sha256": first.stages[0].files["weights"]["superpoint_v1.pth"].removeprefix("sha256:")}
     torch.save(release[2] | {"posenc.Wr.weight": torch.zeros(32, 2)}, moved / "superpoint_lightglue.pth")
     assert spec(moved).row_key != first.row_key
 
