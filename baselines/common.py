@@ -91,9 +91,10 @@ def state_dict_of(checkpoint, keys: Sequence[str] = ("state_dict", "model_state_
     return {".".join(part for part in k.split(".") if part != "module"): v for k, v in checkpoint.items()}
 
 
-def load_exact(model: nn.Module, state_dict: Mapping, method: str, limit: int = 8) -> None:
+def load_exact(model: nn.Module, state_dict: Mapping, method: str, limit: int = 8,
+               hint: str = "Check that the weights belong to the chosen backbone and dimension.") -> None:
     """Load every parameter (taking the checkpoint's tensors), or name the missing, unexpected
-    and mis-shaped keys."""
+    and mis-shaped keys, then `hint` (what to do)."""
     expected = model.state_dict()
     missing = [k for k in expected if k not in state_dict]
     unexpected = [k for k in state_dict if k not in expected]
@@ -108,10 +109,7 @@ def load_exact(model: nn.Module, state_dict: Mapping, method: str, limit: int = 
             shown = ", ".join(keys[:limit]) + (f" and {len(keys) - limit} more" if len(keys) > limit else "")
             problems.append(f"{label}: {shown}")
     if problems:
-        raise VPRBenchError(
-            f"{method}: the checkpoint does not match this architecture ({'; '.join(problems)}). "
-            "Check that the weights belong to the chosen backbone and dimension."
-        )
+        raise VPRBenchError(f"{method}: the checkpoint does not match this architecture ({'; '.join(problems)}). {hint}")
     model.load_state_dict(state_dict, strict=True, assign=True)
 
 

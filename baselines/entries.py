@@ -1,5 +1,6 @@
-"""Entry points of the `vprbench.methods` group: each baseline registered by the import path of
-its factory, so listing methods imports no baseline (nor torch) until one is built."""
+"""Entry points of the `vprbench.methods` and `vprbench.stages` groups: each baseline registered by the
+import path of its factory or stage class, so listing methods or stages imports no baseline (nor torch)
+until one is built."""
 from __future__ import annotations
 
 from vprbench import register_method
@@ -94,4 +95,16 @@ def megaloc() -> None:
         "vprbench_baselines.megaloc:megaloc",
         defaults={"backbone": "dinov2_vitb14"},
         description="MegaLoc (CVPRW 2025): DINOv2 ViT-B/14 + SALAD-style aggregation, 8448-D, full-resolution input.",
+    )
+
+
+def superpoint_lightglue() -> None:
+    """Entry point of the `vprbench.stages` group: a learned re-ranker, registered as a third-party stage is."""
+    from vprbench.stages import register_stage
+
+    register_stage(
+        "superpoint-lightglue",
+        "vprbench_baselines.lightglue:SuperPointLightGlue",
+        description="SuperPoint keypoints matched by LightGlue (kornia); score = matches, or their RANSAC inliers "
+        "(model=fundamental|homography); the authors' weights, a folder of them, or weights=random",
     )

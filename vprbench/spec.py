@@ -27,7 +27,7 @@ import math
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, ValidationError, field_validator, model_serializer
 
 from .errors import VPRBenchError, closest_names
 from .hashing import canonical_hash, canonical_json
@@ -67,9 +67,23 @@ class StageSpec(_Frozen):
 
     name: str
     options: dict[str, Any] = {}
+    #: option -> the content of the file it names (`Stage.file_identities`); written only when there is one
+    files: dict[str, Any] = {}
+
+    @model_serializer(mode="wrap")
+    def _files_when_any(self, handler):
+        found = handler(self)
+        if not self.files:  # a stage without files is written (and hashed) as before files existed
+            found.pop("files", None)
+        return found
+
+    def identity(self) -> dict:
+        """What the stage computes: its name and options, files by content instead of their paths."""
+        return {"name": self.name, "options": {k: self.files.get(k, v) for k, v in self.options.items()}}
 
     def label(self) -> str:
-        """'sift-ransac@100', with the options that differ from the stage's defaults: 'aqe@20 [n=3]'."""
+        """'sift-ransac@100', with the options that differ from the stage's defaults: 'aqe@20 [n=3]'. Files
+        show by content; weights not at all (they have a mark of their own, as a method's)."""
         from .stages.registry import stage_entry
 
         try:
@@ -77,7 +91,8 @@ class StageSpec(_Frozen):
         except (VPRBenchError, ValidationError):  # a plugin gone, or without defaults: its record still reads
             defaults = {}
         depth = f"@{self.options['k']}" if "k" in self.options else ""
-        other = {k: v for k, v in sorted(self.options.items()) if k != "k" and defaults.get(k, object()) != v}
+        other = {k: _short(self.files.get(k, v)) for k, v in sorted(self.options.items())
+                 if k not in ("k", "weights") and defaults.get(k, object()) != v}
         return f"{self.name}{depth}" + (f" [{' '.join(f'{k}={_show(v)}' for k, v in other.items())}]" if other else "")
 
 
@@ -126,7 +141,7 @@ class RunSpec(_Frozen):
     def row_identity(self) -> dict:
         """Everything but the dataset and K: a leaderboard row."""
         return {"version": self.version, **self.method_identity(), "search": self.search.model_dump(),
-                "stages": [s.model_dump() for s in self.stages], "store_dtype": self.store_dtype}
+                "stages": [s.identity() for s in self.stages], "store_dtype": self.store_dtype}
 
     def identity(self) -> dict:
         return {**self.row_identity(), "protocol": self.dataset.protocol_hash, "ks": list(self.ks)}
@@ -168,6 +183,11 @@ class RunSpec(_Frozen):
             problem = error.errors()[0]
             where = ".".join(str(p) for p in problem["loc"]) or "it"
             raise VPRBenchError(f"{origin} is not a vprbench run specification ({where}: {problem['msg']}).") from None
+
+
+def _short(value):
+    """A file's content identity, shortened for a label: 'sha256:1a2b3c4d'."""
+    return value[:15] if isinstance(value, str) and value.startswith("sha256:") else value
 
 
 def _show(value) -> str:
@@ -279,20 +299,29 @@ def _file_identities(method: str, given: dict) -> dict[str, str]:
     """Options whose value names an existing file are identified by its content; a vocabulary
     fitted on a benchmark (dense-vlad's `vocabulary = "17places"`) by that benchmark's protocol hash."""
     from .datasets import dataset_manifest, dataset_manifests, find_protocol
-    from .weights import file_sha256
 
     found = {}
     for name, value in given.items():
         if name == "vocabulary" and isinstance(value, str) and value in dataset_manifests():
             found[name] = f"protocol:{find_protocol(dataset_manifest(value), None).hash}"
             continue
-        if isinstance(value, str) and value and Path(value).expanduser().is_file():
-            try:
-                found[name] = "sha256:" + file_sha256(Path(value).expanduser())
-            except OSError as error:
-                raise VPRBenchError(f"Method {method!r}: cannot read the file of option {name}, {value} "
-                                    f"({error.strerror or error}).") from None
+        try:
+            identity = file_identity(value)
+        except OSError as error:
+            raise VPRBenchError(f"Method {method!r}: cannot read the file of option {name}, {value} "
+                                f"({error.strerror or error}).") from None
+        if identity is not None:
+            found[name] = identity
     return found
+
+
+def file_identity(value) -> str | None:
+    """'sha256:<hex>' of the file `value` names (a file is identified by its bytes); None when it names none."""
+    from .weights import file_sha256
+
+    if isinstance(value, str) and value and Path(value).expanduser().is_file():
+        return "sha256:" + file_sha256(Path(value).expanduser())
+    return None
 
 
 def resolve_dataset(dataset, protocol: str | None = None, data_dir=None, cache_dir=None) -> DatasetSpec:
@@ -348,7 +377,7 @@ def resolve_stage(stage) -> StageSpec:
     """A stage by name (`"aqe"`), as a table (`{name = "sift-ransac", options = {k = 100}}` or with
     the options beside the name), or a StageSpec: its options validated by the stage's own
     Options model and stored resolved (defaults filled in), so one stage has one identity."""
-    from .stages.registry import stage_options
+    from .stages.registry import stage_entry, stage_options
 
     if isinstance(stage, StageSpec):
         name, options = stage.name, dict(stage.options)
@@ -362,7 +391,9 @@ def resolve_stage(stage) -> StageSpec:
             raise VPRBenchError(f"A stage needs a name, e.g. {{name = \"sift-ransac\", k = 100}}; got {stage!r}.")
     else:
         raise VPRBenchError(f"A stage is a name or a table with a name, got {stage!r}.")
-    return StageSpec(name=name, options=plain(stage_options(name, options).model_dump(mode="json")))
+    validated = stage_options(name, options)
+    return StageSpec(name=name, options=plain(validated.model_dump(mode="json")),
+                     files=plain(stage_entry(name).cls.file_identities(validated)))
 
 
 def check_stage_depths(stages: tuple[StageSpec, ...], ks: tuple[int, ...]) -> None:

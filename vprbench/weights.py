@@ -96,6 +96,8 @@ class WeightSource:
     hub: str | None = None
     page: str | None = None
     sha256: str | None = None
+    #: how a local copy is given, in messages (a stage takes it as an option)
+    pass_with: str = "--weights PATH"
 
     @property
     def where(self) -> str:
@@ -106,7 +108,7 @@ class WeightSource:
         return self.page or "the authors' release page"
 
     def how_to_get(self) -> str:
-        return f"download {self.file_name} from {self.where} and pass it with --weights PATH"
+        return f"download {self.file_name} from {self.where} and pass it with {self.pass_with}"
 
 
 @dataclass(frozen=True)
@@ -164,7 +166,7 @@ def weights_identity(source: WeightSource, weights: str | Path | None, what: str
 
 def _no_download(source: WeightSource, what: str) -> str:
     return (f"{what}: the authors publish {source.file_name} only at {source.where}, which cannot be downloaded "
-            "automatically; download it there and pass it with --weights PATH.")
+            f"automatically; download it there and pass it with {source.pass_with}.")
 
 
 def resolve_weights(source: WeightSource, weights: str | Path | None, what: str, *, cache_dir=None) -> ResolvedWeights:

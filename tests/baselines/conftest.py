@@ -22,7 +22,7 @@ def official_state_dict(name: str, variant: str, seed: int = 0) -> dict:
     return state
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def official_checkpoint():
     """official_checkpoint(layout file, variant) -> a random state dict in the authors' layout."""
     return official_state_dict

@@ -229,8 +229,37 @@ RANDOM = ("random weights (a pipeline check, e.g. without access to gated weight
 
 
 def _random(record: dict) -> bool:
+    """The method or any stage ran on random weights (as recorded, or as its options asked)."""
     weights = (record.get("provenance") or {}).get("weights") or {}
-    return weights.get("source") == "random" or (record.get("spec") or {}).get("options", {}).get("weights") == "random"
+    spec = record.get("spec") or {}
+    stage_options = [s.get("options") or {} for s in spec.get("stages") or [] if isinstance(s, dict)]
+    return (weights.get("source") == "random" or spec.get("options", {}).get("weights") == "random"
+            or any(w.get("source") == "random" for _, w in _stage_weights(record))
+            or any(options.get("weights") == "random" for options in stage_options))
+
+
+def _stage_weights(record: dict) -> list[tuple[str, dict]]:
+    """(name, weights provenance) of each stage of the run that has weights (`Stage.provenance`)."""
+    found = []
+    for stage in record.get("stages") or []:
+        weights = (stage.get("provenance") or {}).get("weights") if isinstance(stage, dict) else None
+        if isinstance(weights, dict):
+            found.append((str(stage.get("name", "stage")), weights))
+    return found
+
+
+def _stage_marks(record: dict) -> list[str]:
+    """A stage whose weights are not its authors' release marks the row, as a method's do:
+    'superpoint-lightglue user weights sha256:1a2b3c4d5e6f'."""
+    marks = []
+    for name, weights in _stage_weights(record):
+        source = weights.get("source", "undeclared")
+        if source in OFFICIAL_WEIGHTS:
+            continue
+        parts = [w for w in (weights.get("files") or {}).values() if isinstance(w, dict)] or [weights]
+        digests = [f"sha256:{str(w['sha256'])[:12]}" for w in parts if w.get("source") == source and w.get("sha256")]
+        marks.append(" ".join([name, f"{source} weights", ", ".join(digests)]).strip())
+    return marks
 
 
 def _max_k(record: dict) -> int:
@@ -280,7 +309,7 @@ def _row_of(record: dict) -> Row:
     spec = RunSpec.model_validate(record["spec"])
     weights, mark = weights_of(record)
     transductive = (record.get("provenance") or {}).get("fitted_on_evaluated_database") is True
-    marks = [m for m in (mark, *spec.marks(), TRANSDUCTIVE if transductive else "") if m]
+    marks = [m for m in (mark, *_stage_marks(record), *spec.marks(), TRANSDUCTIVE if transductive else "") if m]
     track = record.get("track") or "single-image"  # records before stages had none
     return Row(spec.row_key, spec.label(), weights, "; ".join(marks), track)
 

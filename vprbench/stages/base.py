@@ -66,7 +66,8 @@ class StageContext:
       `read_rows(start, stop)`, `read_rows_at(sorted indices)`); float32 rows, never re-extracted.
     - `features(name, identity)`: a `FeatureStore` for per-image data (local features), kept in the
       cache beside descriptor stores, resumable and lock-safe (vprbench/stages/features.py).
-    - `memory_budget` (bytes), `progress` (rich-like: add_task/advance), `cache_dir`, `lock_timeout`.
+    - `memory_budget` (bytes), `progress` (rich-like: add_task/advance), `cache_dir`, `lock_timeout`,
+      `device` (the run's torch device, for a stage that runs a network).
     - `spec`: the run's spec; `prefix`: the identity of everything before this stage (the
       retriever and earlier stages), e.g. to key what a stage caches on what produced its input.
     """
@@ -83,6 +84,8 @@ class StageContext:
     #: how the method compares its descriptors (`Method.compare`): "cosine" or a distance such as
     #: "mean-absolute-difference" (sad), for stages that compute scores of their own
     compare: str = "cosine"
+    #: the torch device the run uses (the method's: "cpu", "cuda", ...), for stages that run networks
+    device: str = "cpu"
 
     def features(self, name: str, identity: dict):
         """The store of per-image data `name` (e.g. "sift") computed as `identity` says (its options,
@@ -102,6 +105,8 @@ class Stage:
     - `candidates_needed()`: how many candidates retrieval must hand it (None: the run's largest K).
     - `check(dataset)`: refuse a dataset the stage cannot run on (VPRBenchError), before any work.
     - `stored_bytes(context)`: bytes it keeps per database image (for the record's cost), 0 if none.
+    - `file_identities(options)`: the options that name files, by content (part of the run's identity).
+    - `provenance()`: where what it learnt came from (its weights), for the record and the board.
     """
 
     name: str = ""
@@ -123,6 +128,29 @@ class Stage:
 
     def stored_bytes(self, context: StageContext) -> int:
         return 0
+
+    @classmethod
+    def file_identities(cls, options: StageOptions) -> dict:
+        """Option -> the content of the file it names ("sha256:<hex>"), in the run's identity instead of
+        the path: a file moved is the same run, a file edited another. Called when the spec is made, so a
+        stage may refuse here a file it cannot use. Default: every option whose value is an existing file."""
+        from ..spec import file_identity
+
+        found = {}
+        for name, value in options.model_dump(mode="json").items():
+            try:
+                identity = file_identity(value)
+            except OSError as error:
+                raise VPRBenchError(f"Stage option {name}: cannot read {value} ({error.strerror or error}).") from None
+            if identity is not None:
+                found[name] = identity
+        return found
+
+    def provenance(self) -> dict:
+        """Where what the stage learnt came from, as `Method.provenance` says it: {"weights": {"source":
+        "official"|"user"|"random", ...}}. The board keeps a run whose stage ran on random weights out of
+        every cell and marks one on the user's weights, as for methods. {} when nothing is learnt."""
+        return {}
 
 
 def check_candidates(found, stage: str, queries: int, database: int, k: int) -> Candidates:

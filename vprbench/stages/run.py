@@ -45,7 +45,8 @@ def _peak_rss_bytes() -> int:
 def run_stages(stages, candidates: Candidates, context: StageContext, ks, positives=None) -> tuple[Candidates, list[dict]]:
     """The candidates after every stage, in order, and each stage's cost: ms per query for the stage
     alone, bytes it stores per database image, the process's peak RSS after it and how far the stage
-    raised it (0 when it stayed under an earlier peak; no tracer, so the timing is the stage's own).
+    raised it (0 when it stayed under an earlier peak; no tracer, so the timing is the stage's own), and
+    where its weights came from (`provenance`, for a stage that has any).
     With `positives`, each cost has the stage's ceiling: the % of queries with a positive among the
     candidates it was given (a re-ranker of them can reach no higher recall)."""
     queries, database = candidates.query_count, context.database.row_count
@@ -60,6 +61,7 @@ def run_stages(stages, candidates: Candidates, context: StageContext, ks, positi
         after = _peak_rss_bytes()
         candidates = check_candidates(found, stage.name, queries, database, ks[-1])
         stored = int(stage.stored_bytes(context))
+        provenance = stage.provenance()  # where its weights came from, when it has any
         ceiling = {}
         if positives is not None:
             from ..evaluation.metrics import correct_at
@@ -68,5 +70,6 @@ def run_stages(stages, candidates: Candidates, context: StageContext, ks, positi
         costs.append({**ceiling, "name": stage.name, "track": stage.track, "options": stage.options.model_dump(mode="json"),
                       "candidates_in": given.k, "ms_per_query": round(1000 * seconds / max(queries, 1), 3),
                       "seconds": round(seconds, 3), "stored_bytes_per_database_image": round(stored / max(database, 1), 1),
-                      "peak_rss_bytes": after, "peak_rss_growth_bytes": after - before})
+                      "peak_rss_bytes": after, "peak_rss_growth_bytes": after - before,
+                      **({"provenance": provenance} if provenance else {})})
     return candidates, costs
