@@ -47,3 +47,29 @@ def test_hog_dimension_and_settings(corridor_images):
     assert descriptors.shape == (2, 7 * 7 * 9)
     with pytest.raises(VPRBenchError, match=r"multiple of block_stride \(8\)"):
         create_method("hog", resize=(60, 64))
+
+
+def test_hog_says_once_when_it_upsamples_thumbnails(tmp_path, recwarn):
+    """64 x 32 frames go to the protocol's 512 x 512 window (128 times their area): said once,
+    with the --resize that keeps them near their size; that run says nothing."""
+    from PIL import Image
+
+    from vprbench.cli.main import main
+
+    rng = np.random.default_rng(0)
+    rows = ["image,frame"]
+    for split in ("database", "queries"):
+        (tmp_path / "thumbs" / split).mkdir(parents=True)
+        for i in range(4):
+            Image.fromarray(rng.integers(0, 255, (32, 64, 3), dtype=np.uint8)).save(tmp_path / "thumbs" / split / f"{i}.png")
+            rows.append(f"{split}/{i}.png,{i}")
+    (tmp_path / "thumbs" / "positions.csv").write_text("\n".join(rows) + "\n")
+    (tmp_path / "thumbs" / "dataset.toml").write_text("radius = 1\n")
+    args = ["evaluate", "--method", "hog", "--dataset", str(tmp_path / "thumbs"), "--k", "1", "--quiet"]
+    assert main(args) == 0
+    said = [str(w.message) for w in recwarn if "resized to its" in str(w.message)]
+    assert len(said) == 1 and said[0].startswith("hog: the images of thumbs (64 x 32) are resized to its 512 x 512")
+    assert "128 times their area, 143 kB a descriptor" in said[0] and "--resize 32 64" in said[0]
+    recwarn.clear()
+    assert main(args + ["--resize", "32", "64"]) == 0
+    assert not [w for w in recwarn if "resized to its" in str(w.message)]

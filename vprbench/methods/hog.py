@@ -1,6 +1,7 @@
 """HOG of the whole resized image (VPR-Bench's HOG baseline settings), compared by cosine."""
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -16,6 +17,8 @@ from .checks import whole
 
 #: OpenCV's HOG crashes (SIGSEGV) with fewer orientation bins
 MIN_BINS = 4
+#: a window this many times an image's area is said once per run (the protocol's 512 x 512 on thumbnails)
+UPSAMPLED_AREA = 16
 
 
 class HOG(Method):
@@ -39,6 +42,10 @@ class HOG(Method):
         self.size = (width, height)
         self.parameters = {"resize": [height, width], "cell": cell, "block": block, "block_stride": block_stride, "bins": bins}
         self.hog = cv2.HOGDescriptor(self.size, (block, block), (block_stride, block_stride), (cell, cell), bins)
+        self.dataset, self.upsampling_said = None, False
+
+    def use_dataset(self, name: str) -> None:
+        self.dataset = name
 
     def fingerprint(self) -> dict:
         return {**self.parameters, "opencv": cv2.__version__.split(".")[0]}
@@ -48,7 +55,27 @@ class HOG(Method):
 
     def load(self, path: Path) -> np.ndarray:
         # OpenCV order (BGR) as VPR-Bench reads images; HOG takes the strongest channel gradient
-        return np.ascontiguousarray(cv2.resize(load_rgb(path)[:, :, ::-1], self.size, interpolation=cv2.INTER_LINEAR))
+        image = load_rgb(path)
+        self._say_upsampling(image.shape[1], image.shape[0])
+        return np.ascontiguousarray(cv2.resize(image[:, :, ::-1], self.size, interpolation=cv2.INTER_LINEAR))
+
+    def _say_upsampling(self, width: int, height: int) -> None:
+        """Once per run: images far smaller than the window are upsampled to it (the protocol's rule)."""
+        (w, h), descriptor = self.size, 4 * self.hog.getDescriptorSize()
+        if self.upsampling_said or w * h < UPSAMPLED_AREA * width * height:
+            return
+        self.upsampling_said = True
+        where = f" of {self.dataset}" if self.dataset else ""
+        warnings.warn(f"hog: the images{where} ({width} x {height}) are resized to its {w} x {h} window, VPR-Bench's "
+                      f"rule: {w * h / (width * height):.0f} times their area, {descriptor / 1e3:.0f} kB a descriptor. "
+                      f"To describe them near their own size, give --resize (e.g. --resize {self._fit(height)} "
+                      f"{self._fit(width)}); its own leaderboard row (docs/methods.md).", stacklevel=2)
+
+    def _fit(self, side: int) -> int:
+        """The window side nearest `side` that exceeds the block by a multiple of the block stride."""
+        block, stride = self.parameters["block"], self.parameters["block_stride"]
+        return block + max(0, round((side - block) / stride)) * stride
 
     def describe(self, images: Sequence) -> np.ndarray:
         return l2_normalise(np.stack([self.hog.compute(bgr).reshape(-1) for bgr in loaded(self, images)]))
+
