@@ -76,6 +76,9 @@ def validated(data, where: str) -> dict:
     if data.get("schema", SCHEMA) != SCHEMA:
         raise VPRBenchError(f"{where} is not a vprbench result record (schema {data.get('schema')!r}).")
     version = data.get("schema_version", 1)
+    if isinstance(version, int) and not isinstance(version, bool) and version > SCHEMA_VERSION:
+        raise VPRBenchError(f"{where}: schema version {version} is from a newer vprbench (this one reads up to "
+                            f"{SCHEMA_VERSION}); upgrade vprbench to read it.")
     if isinstance(version, int) and version == 2:
         data = upgrade(data, where)
     try:
