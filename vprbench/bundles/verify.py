@@ -39,7 +39,8 @@ RECALL_TOLERANCE = 1e-4
 PR_TOLERANCE = 1e-3
 _HEX = r"[0-9a-f]{16}"
 _RUN = r"[A-Za-z0-9][A-Za-z0-9_.-]{0,80}"
-_RECORD = re.compile(rf"^({_HEX})/({_HEX})/({_RUN})\.(json|npz)$")
+#: where a record or its arrays lie: <protocol hash>/<row key>/<run id>.json or .npz (in a bundle and a repository)
+RECORD_NAME = re.compile(rf"^({_HEX})/({_HEX})/({_RUN})\.(json|npz)$")
 _CARD = re.compile(rf"^{CARDS}/({_HEX})\.json$")
 
 
@@ -106,7 +107,7 @@ def _member_name(info: tarfile.TarInfo, where: str) -> str:
     if not info.isreg():
         raise BundleError(f"{where}: member {name!r} is a {'link' if info.issym() or info.islnk() else 'special file'}, "
                           "not a regular file; refused.")
-    if name != MANIFEST and not (_RECORD.match(name) or _CARD.match(name)):
+    if name != MANIFEST and not (RECORD_NAME.match(name) or _CARD.match(name)):
         raise BundleError(f"{where}: member {name!r} is no file a bundle holds (records, per-query arrays, method "
                           "cards, the manifest); refused.")
     return name
@@ -244,7 +245,7 @@ def verify_bundle(path: Path, truth=None, *, max_bytes: int = MAX_BYTES) -> Bund
         return report
     cards = {m.group(1) for m in map(_CARD.match, report.members) if m}
     for name in sorted(report.members):
-        match = _RECORD.match(name)
+        match = RECORD_NAME.match(name)
         if match and match.group(4) == "json":
             report.verdicts.append(check_record(name, match.groups()[:3], report.members, cards, truth, max_bytes))
     return report
