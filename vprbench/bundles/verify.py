@@ -9,8 +9,8 @@ Each record is then validated (a record of a newer schema is refused), its proto
 one vprbench ships for its dataset, and its metrics are recomputed from its per-query arrays
 against that protocol's ground truth, read from the dataset on this machine: query and database
 counts, indices in range, every query present, first-positive ranks, and Recall@K (records keep
-4 decimals) and the top-1 PR metrics (6 decimals; similarities are kept to 6 decimals, so
-near-ties may reorder: tolerance 1e-3). Units of the bootstrap a record keeps (each query's place,
+4 decimals) and the top-1 PR metrics (6 decimals, computed from the similarities the record keeps;
+tolerance 1e-3 for records of earlier versions, computed before rounding). Units of the bootstrap a record keeps (each query's place,
 the traverse order) must be the protocol's, or its intervals would be drawn from the wrong ones.
 """
 from __future__ import annotations
