@@ -4,7 +4,8 @@
 - msls/: a results store with one run of MSLS-val size (11,000 queries, 18,871 database images,
   top-100 kept), and its bundle msls.tar.gz;
 - board/: a results store of 200 runs over 17 benchmarks at their real image counts (12 methods,
-  the last on 13 of them; top-20), laid out as a results repository is.
+  the last on 13 of them; top-20); its results/ folder is laid out as a results repository is, and
+  is published as one (`leaderboard publish --results`).
 Records are built by the real record builder from a synthetic search on synthetic ground truth
 (the helpers of tests/leaderboard/synthetic_runs.py); the ground truth the verifier checks against is
 the same synthetic one, passed as `truth` (nothing of a real dataset is needed).
@@ -92,13 +93,14 @@ def make_inputs(folder: Path) -> None:
 def msls_truth():
     """The synthetic ground truth the MSLS-size run was scored on, as `verify_bundle`'s truth."""
     from vprbench.bundles.verify import Truth
+    from vprbench.evaluation.blocks import for_dataset
 
     data = msls_data()
-    positives = data.positives
+    found = Truth(data.protocol["id"], len(data.database), data.positives, for_dataset(data))  # as DataGroundTruth
 
     def truth(dataset, protocol_hash):
         assert (dataset, protocol_hash) == (data.name, data.protocol["hash"])
-        return Truth(data.protocol["id"], len(data.database), positives)
+        return found
 
     return truth
 
@@ -122,11 +124,12 @@ def import_into_repository(folder: Path) -> dict:
 
 
 def publish_board(folder: Path) -> dict:
+    """`leaderboard publish --results DIR`: the 200 runs read as a results repository (an empty cache beside it)."""
     from vprbench.leaderboard.site import publish
 
-    docs = folder / "docs"
+    docs, cache = folder / "docs", folder / "empty-cache"
     shutil.rmtree(docs, ignore_errors=True)
-    section = publish(docs, folder / "board")
+    section = publish(docs, cache, results=folder / "board" / "results")
     return {"pages": len(list(section.glob("*.md"))), "figures": len(list((section / "figures").glob("*")))}
 
 

@@ -151,8 +151,73 @@ def test_unknown_protocol_hash_is_refused(bundle, truth, tmp_path):
 def test_newer_schema_is_refused_by_name(bundle, truth, tmp_path):
     members = read_bundle(bundle)
     name = _edit_record(members, lambda r: r.update(schema_version=9))
-    problems = _only_failure(verify_bundle(write_bundle(tmp_path / "s.tar.gz", members), truth), name)
-    assert len(problems) == 1 and "schema version 9 is from a newer vprbench" in problems[0]
+    report = verify_bundle(write_bundle(tmp_path / "s.tar.gz", members), truth)
+    problems = _only_failure(report, name)
+    assert problems == ["schema version 9 is from a newer vprbench (this one reads up to 3); upgrade vprbench to "
+                        "read it."]
+    assert any(line.startswith(f"{tmp_path / 's.tar.gz'}: {name} (run ") and "schema version 9" in line
+               for line in report.lines())
+
+
+def test_every_count_that_can_be_recomputed_is(bundle, truth, tmp_path):
+    """Positives per query, the record's ground-truth counts, max F1 and the top predictions of
+    vprbench 0.1's key are recomputed too: each edit is named."""
+    edits = {
+        "arrays": (lambda a: a["positives"].__setitem__(3, 40), "query 3: its arrays give it 40 positives, "
+                                                                "protocol corridor:vpr-bench 5"),
+        "pairs": (lambda r: r["counts"].update(positive_pairs=1), "its counts say 1 positive pairs; protocol "
+                                                                  "corridor:vpr-bench has 549"),
+        "f1": (lambda r: r.update(max_f1=0.99), "max_f1 is 0.99 in the record but"),
+        "top": (lambda r: r["top_predictions"][5].reverse(), "its top_predictions are not the first columns"),
+    }
+    for what, (edit, message) in edits.items():
+        members = read_bundle(bundle)
+        name = (_edit_arrays if what == "arrays" else _edit_record)(members, edit)
+        problems = _only_failure(verify_bundle(write_bundle(tmp_path / f"{what}.tar.gz", members), truth), name)
+        assert len(problems) == 1 and problems[0].startswith(message), (what, problems)
+
+
+def test_an_archive_bomb_inside_the_arrays_stops_at_the_bound(bundle, truth, tmp_path):
+    """An .npz is a zip of its own: first-positive ranks of 64 MiB of zeros (64 kB deflated) are refused
+    by the sizes the zip declares, before numpy would allocate and fill them (at 16 GiB, a machine's memory)."""
+    import hashlib
+    import zipfile
+
+    members = read_bundle(bundle)
+    name = record_names(members)[0]
+    record = json.loads(members[name])
+    npz = name.rsplit("/", 1)[0] + "/" + record["per_query"]["file"]
+    with np.load(io.BytesIO(members[npz])) as found:
+        kept = {k: found[k] for k in found.files if k != "first_positive_rank"}
+    packed = io.BytesIO()
+    with zipfile.ZipFile(packed, "w", zipfile.ZIP_DEFLATED) as archive:
+        for key, array in kept.items():
+            with archive.open(f"{key}.npy", "w") as handle:
+                np.save(handle, array)
+        with archive.open("first_positive_rank.npy", "w") as handle:
+            np.lib.format.write_array_header_1_0(handle, {"descr": "<i8", "fortran_order": False, "shape": (8 << 20,)})
+            handle.write(bytes(64 << 20))
+    members[npz] = packed.getvalue()
+    assert len(members[npz]) < 1 << 20
+    record["per_query"]["sha256"] = hashlib.sha256(members[npz]).hexdigest()
+    members[name] = json.dumps(record).encode()
+    report = verify_bundle(write_bundle(tmp_path / "inner-bomb.tar.gz", members), truth, max_bytes=16 << 20)
+    assert _only_failure(report, name) == [f"{npz} unpacks to 64 MiB, more than the bound of 16 MiB (an archive "
+                                           "bomb, or a bundle too big: raise --max-size)"]
+
+
+def test_json_nested_too_deeply_is_named_not_a_crash(bundle, truth, tmp_path):
+    deep = b"[" * 100_000 + b"]" * 100_000
+    members = read_bundle(bundle)
+    name = record_names(members)[0]
+    members[name] = deep
+    problems = _only_failure(verify_bundle(write_bundle(tmp_path / "deep.tar.gz", members), truth), name)
+    assert problems == ["not JSON (nested too deeply)"]
+    members = read_bundle(bundle)
+    members[MANIFEST] = deep
+    report = verify_bundle(write_bundle(tmp_path / "deep-manifest.tar.gz", members, resum=False), truth)
+    assert report.problems == [f"{tmp_path / 'deep-manifest.tar.gz'}: MANIFEST.json is not a bundle manifest "
+                               "(ValueError: nested too deeply)."]
 
 
 def test_manifest_sum_mismatch(bundle, truth, tmp_path):

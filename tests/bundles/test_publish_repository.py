@@ -39,6 +39,16 @@ def rerun(record: dict, run_id: str, ranks=None) -> dict:
     return again
 
 
+def overview_cells(docs) -> dict:
+    """Row name -> its Corridor cell in the overview's Table II, as Markdown."""
+    page = (docs / "leaderboard" / "index.md").read_text()
+    table = page[page.index("### Table II"):page.index("### Table III")]
+    header = next(line for line in table.splitlines() if line.startswith("| Method"))
+    at = [c.strip() for c in header.split("|")].index("[corridor](corridor.md)")
+    return {cells[1].strip(): cells[at].strip() for line in table.splitlines()
+            if line.startswith("| hog") and (cells := line.split("|"))}
+
+
 def entries(docs) -> dict:
     return {d["method"]: d for d in json.loads((docs / "leaderboard" / "downloads" / "leaderboard.json").read_text())}
 
@@ -55,6 +65,12 @@ def test_a_site_from_a_repository_marks_each_cell(repository, records, tmp_path,
         [line] = [row for row in page.splitlines() if f"`{record['run_id']}`" in row and row.startswith("| hog")]
         assert f"| {CONTRIBUTED} | {who} |" in line and record["created"] in line
         assert record["hardware"]["cpu"] in line and f"| {record['versions']['vprbench']} |" in line
+    # the overview marks each contributed cell, and says what the mark means
+    assert overview_cells(docs) == {"hog": "**48.6** / **75.7**<sup>c</sup>", "hog [resize=96x128]": "42.3 / 66.7<sup>c</sup>"}
+    overview = (docs / "leaderboard" / "index.md").read_text()
+    assert "2 cell(s) have runs contributed to a results repository or imported" in overview
+    assert "<sup>c</sup> contributed to the results repository, re-scored here from its per-query arrays" in overview
+    assert "| hog<sup>c</sup> | none (nothing learnt) |" in page
 
     # this machine re-runs both: one agrees within the contributed run's interval, one does not
     local = tmp_path / "local-cache"
@@ -66,10 +82,12 @@ def test_a_site_from_a_repository_marks_each_cell(repository, records, tmp_path,
     assert found["hog"]["source"] == AGREES and found["hog"]["contributor"] == "this machine"
     assert found["hog [resize=96x128]"]["source"].startswith("contributed, re-run here and disagreeing: R@1 0.0 here")
     assert found["hog [resize=96x128]"]["r1"] == 0.0  # the newest run fills the cell; the mark says it disagrees
+    assert overview_cells(docs) == {"hog": "**48.6** / **75.7**<sup>c✓</sup>", "hog [resize=96x128]": "0.0 / 0.0<sup>c≠</sup>"}
 
     # only this machine's runs: measured here
     assert main(["leaderboard", "publish", "--to", str(docs), "--cache-dir", str(local)]) == 0
     assert {d["source"] for d in entries(docs).values()} == {MEASURED}
+    assert "<sup>" not in (docs / "leaderboard" / "index.md").read_text()
 
 
 def test_results_is_refused_outside_publish_and_a_missing_repository_is_named(tmp_path, capsys):

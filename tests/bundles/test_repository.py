@@ -141,3 +141,31 @@ def test_cli_import_exit_codes(bundles, shared_data, tmp_path, capsys):
     assert "0 run(s) added, 1 already there" in capsys.readouterr().out
     assert main(["results", "verify", str(bundles[0]), "--max-size", "0"]) == 1
     assert "--max-size takes a positive number" in capsys.readouterr().err
+
+
+def test_verify_a_repository_rescores_every_run_however_it_got_there(bundles, records, shared_data, tmp_path, capsys):
+    """What a repository's CI runs on a pull request: a record edited by hand in the folder (not
+    through an import) is caught, as are links and files out of place."""
+    repo = tmp_path / "repo"
+    assert all(r.ok for r in import_bundles(bundles, repo, DataGroundTruth(shared_data)))
+    command = ["results", "verify", str(repo), "--data-dir", str(shared_data)]
+    assert main(command) == 0
+    assert capsys.readouterr().out.count(": ok, re-scored from its arrays") == 2
+    r = records[0]
+    path = repo / r["protocol"]["hash"] / r["row_key"] / f"{r['run_id']}.json"
+    edited = json.loads(path.read_text())
+    edited["recall"]["1"] = 99.0
+    path.write_text(json.dumps(edited))
+    (repo / "notes" / "misc").mkdir(parents=True)
+    (repo / "notes" / "misc" / "stray.json").write_text("{}")
+    link = repo / r["protocol"]["hash"] / r["row_key"] / "20300101T000000Z-link.json"
+    link.symlink_to(path)
+    assert main(command) == 1
+    lines = capsys.readouterr().out.splitlines()
+    member = path.relative_to(repo).as_posix()
+    assert f"{repo}: {member} (run {r['run_id']}, hog on corridor:vpr-bench): R@1 is 99.0 in the record but " \
+           f"{records[0]['recall']['1']:.4f} from its arrays" in lines
+    assert f"{repo}: {link.relative_to(repo).as_posix()} is a link, not a regular file; refused." in lines
+    assert f"{repo}: notes/misc/stray.json is not where a results repository keeps a record (<protocol hash>/" \
+           "<row key>/<run id>.json); move or remove it." in lines
+    assert sum(": ok, re-scored" in line for line in lines) == 1

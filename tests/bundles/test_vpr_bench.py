@@ -3,7 +3,6 @@ the real Corridor ground truth; hostile and malformed files refused without runn
 from __future__ import annotations
 
 import os
-import pickle
 import pickletools
 import re
 
@@ -97,12 +96,13 @@ def test_a_gadget_in_the_file_is_refused_and_never_runs(similarity, shared_data,
     parts = precomputed(similarity[:3, :3])
     parts[4] = Payload(os.system, f"touch {marker}")
     payload = python2_pickle(parts, hostile=True)  # the Python 2 format, os.system in part 4
-    pickle.loads(payload, encoding="latin1")  # the gadget is real: unpickled as numpy would, it runs
-    assert marker.exists()
-    marker.unlink()
     folder = tmp_path / "Corridor" / "Evil"
     folder.mkdir(parents=True)
     npy_with_pickle(folder / FILE, payload, shape=(6,))
+    # the gadget is real: the very file, loaded the way VPR-Bench's files are (numpy, pickles allowed), runs it
+    loaded = np.load(folder / FILE, allow_pickle=True, encoding="latin1")
+    assert marker.exists() and loaded.shape == (6,)
+    marker.unlink()
     with pytest.raises(VPRBenchError, match=r"Cannot read VPR-Bench precomputed matches .*Evil/precomputed_data_corrected"
                                             r"\.npy: it asks to load posix\.system"):
         import_vpr_bench(folder, "corridor", data_dir=shared_data)

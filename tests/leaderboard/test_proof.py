@@ -163,3 +163,22 @@ def test_a_speed_measured_under_one_protocol_serves_the_same_images_under_anothe
     alone = build_board([served, other_images])  # a speed measured on other images is not this cell's
     assert {cell.column.detail: cell.images_per_second for cell in alone.cells.values()} == \
         {"own, ±1 frame": 99.0, "own, ±10 frames": None}
+
+
+def test_pr_metrics_come_from_the_similarities_the_record_keeps(make_record):
+    """A record keeps similarities to 6 decimals, which merges near-ties; its PR metrics are computed
+    from those kept values, so whoever recomputes them from the record (the leaderboard, `results
+    verify`) finds the same. Here the second and third most confident top-1 matches tie once rounded
+    (one right, one wrong): from the unrounded scores R@100%P was 2/48, from the record's arrays 1/48."""
+    from vprbench.evaluation.metrics import top1_precision_recall
+    from vprbench.evaluation.results import per_query
+
+    record = make_record("method-02", "mid-atlantic-ridge", quality=0.4, seed=2)
+    arrays = per_query(record)
+    top1, correct = arrays["similarities"][:, 0], arrays["first_positive_rank"] == 1
+    order = np.argsort(-top1, kind="stable")
+    assert correct[order[0]] and top1[order[1]] == top1[order[2]] and correct[order[1]] != correct[order[2]]
+    again = top1_precision_recall(top1, correct)
+    assert record["recall_at_100_precision"] == round(again["recall_at_100_precision"], 6) == 0.020833
+    assert record["auc_pr"] == round(again["auc_pr"], 6) and record["max_f1"] == round(again["max_f1"], 6)
+    assert not proven(record)["_proof"]["disagreed"]

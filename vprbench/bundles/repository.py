@@ -12,6 +12,9 @@ same bytes, or another run id with the same spec and the same per-query arrays) 
 as a duplicate and skipped; a different record under a run id already there is a conflict,
 and its bundle is refused. A bundle that fails verification is refused with its reasons and
 nothing of it is written. Imports hold the repository's lock, so two at once both land whole.
+
+`verify_repository` re-scores every run already in the folder, as a bundle's: a pull request that
+adds or edits a record by hand, without an import, is caught however its files got there.
 """
 from __future__ import annotations
 
@@ -25,7 +28,7 @@ from ..errors import VPRBenchError
 from ..evaluation.results import LAYOUT, LAYOUT_FILE, check_layout, read_record
 from ..fsutil import CacheError, atomic_write, check_lock_timeout, lock
 from .export import CARDS
-from .verify import MAX_BYTES, verify_bundle
+from .verify import MAX_BYTES, RECORD_NAME, BundleReport, check_record, verify_bundle
 
 CONTRIBUTION = ".contribution"
 
@@ -124,6 +127,46 @@ def _same_result(folder: Path, record: dict) -> str | None:
                 and (other.get("per_query") or {}).get("sha256") == record["per_query"].get("sha256")):
             return str(other.get("run_id"))
     return None
+
+
+def verify_repository(root: Path, truth=None, *, max_bytes: int = MAX_BYTES) -> BundleReport:
+    """Every run of the repository `root` checked and re-scored as `verify_bundle` does a bundle's;
+    files are read one run at a time, each within `max_bytes`."""
+    from .verify import DataGroundTruth
+
+    root, truth = Path(root), truth or DataGroundTruth()
+    report = BundleReport(root)
+    try:
+        check_layout(root)
+    except VPRBenchError as error:
+        report.problems.append(str(error))
+        return report
+    cards = {p.stem for p in (root / CARDS).glob("*.json")}
+    for path in sorted(root.glob("*/*/*.json")):
+        name = path.relative_to(root).as_posix()
+        if path.parts[-3] == CARDS:
+            continue
+        match = RECORD_NAME.match(name)
+        if not match:
+            report.problems.append(f"{root}: {name} is not where a results repository keeps a record "
+                                   "(<protocol hash>/<row key>/<run id>.json); move or remove it.")
+            continue
+        members = {}
+        for member in (name, f"{name[:-len('.json')]}.npz"):
+            file = root / member
+            if file.is_symlink() or (file.exists() and file.resolve() != root.resolve() / member):
+                report.problems.append(f"{root}: {member} is a link, not a regular file; refused.")
+            elif file.is_file() and file.stat().st_size > max_bytes:
+                report.problems.append(f"{root}: {member} is over the bound of {max_bytes / 2**20:g} MiB "
+                                       "(raise --max-size).")
+            elif file.is_file():
+                try:
+                    members[member] = file.read_bytes()
+                except OSError as error:
+                    report.problems.append(f"{root}: cannot read {member} ({error.strerror or error}).")
+        if name in members:
+            report.verdicts.append(check_record(name, match.groups()[:3], members, cards, truth, max_bytes))
+    return report
 
 
 def read_repository(root: Path, skipped: list | None = None) -> list[dict]:

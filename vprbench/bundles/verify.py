@@ -9,8 +9,8 @@ Each record is then validated (a record of a newer schema is refused), its proto
 one vprbench ships for its dataset, and its metrics are recomputed from its per-query arrays
 against that protocol's ground truth, read from the dataset on this machine: query and database
 counts, indices in range, every query present, first-positive ranks, and Recall@K (records keep
-4 decimals) and the top-1 PR metrics (6 decimals; similarities are kept to 6 decimals, so
-near-ties may reorder: tolerance 1e-3). Units of the bootstrap a record keeps (each query's place,
+4 decimals) and the top-1 PR metrics (6 decimals, computed from the similarities the record keeps;
+tolerance 1e-3 for records of earlier versions, computed before rounding). Units of the bootstrap a record keeps (each query's place,
 the traverse order) must be the protocol's, or its intervals would be drawn from the wrong ones.
 """
 from __future__ import annotations
@@ -21,6 +21,7 @@ import io
 import json
 import re
 import tarfile
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 
@@ -38,7 +39,8 @@ RECALL_TOLERANCE = 1e-4
 PR_TOLERANCE = 1e-3
 _HEX = r"[0-9a-f]{16}"
 _RUN = r"[A-Za-z0-9][A-Za-z0-9_.-]{0,80}"
-_RECORD = re.compile(rf"^({_HEX})/({_HEX})/({_RUN})\.(json|npz)$")
+#: where a record or its arrays lie: <protocol hash>/<row key>/<run id>.json or .npz (in a bundle and a repository)
+RECORD_NAME = re.compile(rf"^({_HEX})/({_HEX})/({_RUN})\.(json|npz)$")
 _CARD = re.compile(rf"^{CARDS}/({_HEX})\.json$")
 
 
@@ -105,10 +107,18 @@ def _member_name(info: tarfile.TarInfo, where: str) -> str:
     if not info.isreg():
         raise BundleError(f"{where}: member {name!r} is a {'link' if info.issym() or info.islnk() else 'special file'}, "
                           "not a regular file; refused.")
-    if name != MANIFEST and not (_RECORD.match(name) or _CARD.match(name)):
+    if name != MANIFEST and not (RECORD_NAME.match(name) or _CARD.match(name)):
         raise BundleError(f"{where}: member {name!r} is no file a bundle holds (records, per-query arrays, method "
                           "cards, the manifest); refused.")
     return name
+
+
+def _json(data: bytes):
+    """JSON from a bundle; nesting too deep to parse (a hostile file) is a ValueError like any other."""
+    try:
+        return json.loads(data)
+    except RecursionError:
+        raise ValueError("nested too deeply") from None
 
 
 def check_manifest(members: dict[str, bytes], where: str) -> dict:
@@ -116,7 +126,7 @@ def check_manifest(members: dict[str, bytes], where: str) -> dict:
     if MANIFEST not in members:
         raise BundleError(f"{where}: it has no {MANIFEST}; it is not a vprbench bundle.")
     try:
-        manifest = json.loads(members[MANIFEST])
+        manifest = _json(members[MANIFEST])
         files = manifest["files"]
         if not isinstance(files, dict):
             raise TypeError("files is not a table")
@@ -235,18 +245,19 @@ def verify_bundle(path: Path, truth=None, *, max_bytes: int = MAX_BYTES) -> Bund
         return report
     cards = {m.group(1) for m in map(_CARD.match, report.members) if m}
     for name in sorted(report.members):
-        match = _RECORD.match(name)
+        match = RECORD_NAME.match(name)
         if match and match.group(4) == "json":
-            report.verdicts.append(check_record(name, match.groups()[:3], report.members, cards, truth))
+            report.verdicts.append(check_record(name, match.groups()[:3], report.members, cards, truth, max_bytes))
     return report
 
 
-def check_record(name: str, place: tuple, members: dict[str, bytes], cards: set, truth) -> Verdict:
+def check_record(name: str, place: tuple, members: dict[str, bytes], cards: set, truth,
+                 max_bytes: int = MAX_BYTES) -> Verdict:
     protocol_hash, row_key, run_id = place
     verdict = Verdict(name, run_id)
     problems = verdict.problems
     try:
-        record = validated(json.loads(members[name]), name)
+        record = validated(_json(members[name]), name)
     except ValueError as error:
         problems.append(f"not JSON ({error})")
         return verdict
@@ -264,7 +275,7 @@ def check_record(name: str, place: tuple, members: dict[str, bytes], cards: set,
         problems.append(f"it was run on a {record['dataset_kind']} dataset, whose ground truth vprbench does not ship; "
                         "only benchmark runs can be checked")
         return verdict
-    arrays = _arrays(record, members, f"{protocol_hash}/{row_key}", problems)
+    arrays = _arrays(record, members, f"{protocol_hash}/{row_key}", problems, max_bytes)
     if arrays is None:
         return verdict
     try:
@@ -276,7 +287,7 @@ def check_record(name: str, place: tuple, members: dict[str, bytes], cards: set,
     return verdict
 
 
-def _arrays(record: dict, members: dict[str, bytes], folder: str, problems: list) -> dict | None:
+def _arrays(record: dict, members: dict[str, bytes], folder: str, problems: list, max_bytes: int) -> dict | None:
     section = record.get("per_query") or {}
     file = f"{folder}/{section.get('file')}"
     if section.get("file") != f"{record['run_id']}.npz" or file not in members:
@@ -287,10 +298,18 @@ def _arrays(record: dict, members: dict[str, bytes], folder: str, problems: list
         problems.append(f"{file} does not match the sha256 its record gives")
         return None
     try:
+        # an .npz is a zip of its own: a few kB may claim gigabytes (a bomb inside the bundle);
+        # the sizes its members declare bound what they unpack to
+        with zipfile.ZipFile(io.BytesIO(data)) as inner:
+            unpacked = sum(info.file_size for info in inner.infolist())
+        if unpacked > max_bytes:
+            problems.append(f"{file} unpacks to {unpacked / 2**20:,.0f} MiB, more than the bound of "
+                            f"{max_bytes / 2**20:g} MiB (an archive bomb, or a bundle too big: raise --max-size)")
+            return None
         with np.load(io.BytesIO(data), allow_pickle=False) as found:
             arrays = {f: found[f] for f in PER_QUERY_FIELDS}
             arrays.update({f: found[f] for f in OPTIONAL_FIELDS if f in found.files})
-    except (ValueError, KeyError, OSError, EOFError) as error:
+    except (ValueError, KeyError, OSError, EOFError, zipfile.BadZipFile, MemoryError) as error:
         problems.append(f"{file} is not readable per-query arrays ({type(error).__name__}: {error})")
         return None
     indices = arrays["database_indices"]
@@ -332,13 +351,15 @@ def rescore(record: dict, arrays: dict, gt: Truth, problems: list) -> dict[str, 
         q = int(np.flatnonzero(first != arrays["first_positive_rank"])[0])
         problems.append(f"query {q}: its first positive is at rank {int(first[q])} of its top K, the record says "
                         f"{int(arrays['first_positive_rank'][q])}")
+    _check_positives(record, arrays["positives"], gt, problems)
+    _check_top_predictions(record.get("top_predictions"), indices, problems)
     recall = {str(k): round(v, 4) for k, v in recall_at_k(first, ks).items()}
     for key, value in recall.items():
         if abs(float(record["recall"][key]) - value) > RECALL_TOLERANCE:
             problems.append(f"R@{key} is {record['recall'][key]} in the record but {value:.4f} from its arrays")
     if queries and "auc_pr" in record:
         pr = top1_precision_recall(scores[:, 0], first == 1)
-        for name in ("auc_pr", "recall_at_100_precision"):
+        for name in ("auc_pr", "recall_at_100_precision", "max_f1"):
             if name in record and abs(float(record[name]) - pr[name]) > PR_TOLERANCE:
                 problems.append(f"{name} is {record[name]} in the record but {pr[name]:.6f} from its arrays")
     stated = for_record(record, arrays)
@@ -346,3 +367,32 @@ def rescore(record: dict, arrays: dict, gt: Truth, problems: list) -> dict[str, 
         problems.append(f"its bootstrap units ({stated.text()}) are not those of protocol {gt.protocol_id} "
                         f"({gt.resampling.text()}); its intervals would be drawn from the wrong units")
     return {k: v for k, v in recall.items()}
+
+
+def _check_positives(record: dict, stored: np.ndarray, gt: Truth, problems: list) -> None:
+    """The positives per query its arrays keep, and the counts the record gives, are the protocol's."""
+    expected = np.array([len(p) for p in gt.positives], dtype=np.int64)
+    stored = np.asarray(stored)
+    if stored.shape != expected.shape:
+        problems.append(f"its positives per query cover {stored.shape} queries, not the protocol's {len(expected)}")
+    elif not np.array_equal(stored, expected):
+        q = int(np.flatnonzero(stored != expected)[0])
+        problems.append(f"query {q}: its arrays give it {int(stored[q])} positives, protocol {gt.protocol_id} "
+                        f"{int(expected[q])}")
+    counts = record["counts"]
+    for name, value in (("positive_pairs", int(expected.sum())), ("queries_without_positives", int((expected == 0).sum()))):
+        if name in counts and counts[name] != value:
+            problems.append(f"its counts say {counts[name]} {name.replace('_', ' ')}; protocol {gt.protocol_id} has {value}")
+
+
+def _check_top_predictions(shown, indices: np.ndarray, problems: list) -> None:
+    """`top_predictions` (the first columns of the top K, kept for vprbench 0.1's readers) match the arrays."""
+    if shown is None:
+        return
+    try:
+        shown = np.asarray(shown, dtype=np.int64)
+    except (ValueError, TypeError, OverflowError):
+        shown = None
+    if shown is None or shown.ndim != 2 or len(shown) != len(indices) or not 1 <= shown.shape[1] <= indices.shape[1] \
+            or not np.array_equal(shown, indices[:, :shown.shape[1]]):
+        problems.append("its top_predictions are not the first columns of its per-query top-K indices")

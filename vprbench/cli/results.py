@@ -20,8 +20,10 @@ def add_parsers(commands) -> None:
     e.add_argument("--cache-dir", help="the results store to export from")
     e.set_defaults(run=run_export)
 
-    v = actions.add_parser("verify", help="re-score every record of bundles against the ground truth vprbench ships")
-    v.add_argument("bundles", nargs="+", type=Path, metavar="FILE")
+    v = actions.add_parser("verify", help="re-score every record of bundles, or of results repositories, against the "
+                                          "ground truth vprbench ships")
+    v.add_argument("bundles", nargs="+", type=Path, metavar="FILE|DIR",
+                   help="bundles (.tar.gz), or results repositories (every run in them is re-scored)")
     _check_options(v)
     v.set_defaults(run=run_verify)
 
@@ -65,12 +67,13 @@ def run_export(args) -> int:
 
 
 def run_verify(args) -> int:
-    from ..bundles import verify_bundle
+    from ..bundles import verify_bundle, verify_repository
 
     resolve_locations(args)
     truth, ok = _truth(args), True
     for bundle in args.bundles:
-        report = verify_bundle(bundle, truth, max_bytes=_max_bytes(args))
+        verify = verify_repository if bundle.is_dir() else verify_bundle
+        report = verify(bundle, truth, max_bytes=_max_bytes(args))
         for line in report.lines():
             print(line)
         ok &= report.ok

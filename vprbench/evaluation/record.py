@@ -76,6 +76,9 @@ def validated(data, where: str) -> dict:
     if data.get("schema", SCHEMA) != SCHEMA:
         raise VPRBenchError(f"{where} is not a vprbench result record (schema {data.get('schema')!r}).")
     version = data.get("schema_version", 1)
+    if isinstance(version, int) and not isinstance(version, bool) and version > SCHEMA_VERSION:
+        raise VPRBenchError(f"{where}: schema version {version} is from a newer vprbench (this one reads up to "
+                            f"{SCHEMA_VERSION}); upgrade vprbench to read it.")
     if isinstance(version, int) and version == 2:
         data = upgrade(data, where)
     try:
@@ -230,6 +233,13 @@ def _memory_gib() -> float | None:
 
 
 # ---------------------------------------------------------------- the record
+def kept_similarities(scores) -> np.ndarray:
+    """The similarities a record keeps (6 decimals), from which its PR metrics are computed too: a
+    checker recomputes them from the record alone (near-ties that rounding merges would otherwise
+    move R@100%P by a whole query on a small dataset)."""
+    return np.round(np.asarray(scores, dtype=np.float64), 6)
+
+
 def per_query_section(scores: np.ndarray, indices: np.ndarray, correct: np.ndarray, positives) -> dict:
     """What any retrieval metric needs, per query, without descriptors: the top-K database
     indices and similarities, the 1-based rank of the first positive among them (0 = none in the
@@ -241,7 +251,7 @@ def per_query_section(scores: np.ndarray, indices: np.ndarray, correct: np.ndarr
     return {
         "k": int(indices.shape[1]) if indices.ndim == 2 else 0,
         "database_indices": indices.tolist(),
-        "similarities": np.round(np.asarray(scores, dtype=np.float64), 6).tolist(),
+        "similarities": kept_similarities(scores).tolist(),
         "first_positive_rank": first.tolist(),
         "positives": [int(len(p)) for p in positives],
     }
@@ -266,7 +276,7 @@ def result_record(*, spec: RunSpec, method, fingerprint, dataset, dataset_key: s
     resampling = for_dataset(dataset)  # which queries the bootstrap draws together
     section.update({name: array.tolist() for name, array in resampling.arrays().items()})
     recalls = recall_at_k(np.asarray(section["first_positive_rank"]), ks)
-    pr = top1_precision_recall(scores[:, 0], correct[:, 0])
+    pr = top1_precision_recall(kept_similarities(scores)[:, 0], correct[:, 0])
     summary = dataset.summary()
     described = computed["database"] + computed["queries"]
     extract_s = timings["database_s"] + timings["queries_s"]

@@ -3,6 +3,7 @@ same blocks or places of them)."""
 from __future__ import annotations
 
 from ..errors import VPRBenchError, closest_names
+from ..text import plural
 from .cells import Board, Cell
 from ..evaluation.blocks import for_record
 from ..evaluation.metrics import successes
@@ -92,8 +93,8 @@ def describe(result: dict) -> str:
         f"  difference ({first.row.name} - {second.row.name}): {t['difference']:+.1f} pp, 95 % CI "
         f"[{t['ci'][0]:+.1f}, {t['ci'][1]:+.1f}]" + (f" (per query [{q[0]:+.1f}, {q[1]:+.1f}])" if per else "")
         + f", paired bootstrap p {format_p(t['p_bootstrap'], t['resamples'])}",
-        f"  McNemar exact test (takes the queries as independent): {t['only_a']} queries only {first.row.name} gets "
-        f"right, {t['only_b']} only {second.row.name}; p = {t['p_mcnemar']:.3g}",
+        f"  McNemar exact test (takes the queries as independent): {plural(t['only_a'], 'query')} only {first.row.name} "
+        f"gets right, {t['only_b']} only {second.row.name}; p = {t['p_mcnemar']:.3g}",
         f"  {'A difference at the 5 % level' if t['p_bootstrap'] < 0.05 else 'No difference at the 5 % level'} "
         f"(paired bootstrap over {units.text()}).",
     ]

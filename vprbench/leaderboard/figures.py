@@ -4,6 +4,8 @@ the PCA map of GeM descriptors. A figure that cannot be drawn raises Skipped wit
 which the page prints in its place."""
 from __future__ import annotations
 
+import functools
+
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -198,10 +200,15 @@ def domain_means(values: dict[str, float], axes: dict[str, list[str]]) -> dict[s
 
 
 def _domain_of(name: str) -> str | None:
+    return _domains().get(name)
+
+
+@functools.lru_cache(maxsize=1)
+def _domains() -> dict[str, str]:
+    """Each benchmark's domain (the manifests ship with the package: once per process; a board asks per cell)."""
     from ..datasets import dataset_manifests
 
-    manifest = dataset_manifests().get(name)
-    return manifest.domain if manifest else None
+    return {name: manifest.domain for name, manifest in dataset_manifests().items()}
 
 
 def domain_averages(board: Board, axes: dict[str, list[str]] | None = None) -> dict[str, dict[str, DomainMean]]:

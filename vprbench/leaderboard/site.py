@@ -29,7 +29,8 @@ from ..evaluation.blocks import RULE, for_record
 from ..evaluation.metrics import successes
 from .compare import shared_resampling
 from .stats import RESAMPLES, format_p, overlaps, paired_test
-from .tables import GROUPS, TOLERANCE_PP, cell_stats, comparisons, fmt, group_table, other_rows
+from .tables import (GROUPS, TOLERANCE_PP, cell_stats, comparisons, fmt, group_table, marks_note, other_rows,
+                     source_mark)
 
 SECTION = "leaderboard"
 #: MkDocs Material front matter: the wide tables get the table-of-contents column
@@ -182,18 +183,9 @@ def _plain(value):
     raise TypeError(type(value).__name__)
 
 
-def _marks(board: Board) -> str:
-    found = board.marked
-    parts = []
-    if found["marked_rows"]:
-        parts.append(f"{found['marked_rows']} cell(s) are on rows marked † (weights other than the authors' release, "
-                     "approximate search, a float16 store or anything fitted on the evaluated database: the mark says which)")
-    if found["own_data"]:
-        parts.append(f"{found['own_data']} cell(s) are on the user's own data, marked *(own data)*")
-    if found["excluded"]:
-        parts.append(f"{found['excluded']} run(s) are left out of every cell (see [Runs left out](index.md#runs-left-out))")
-    text = "; ".join(parts) if parts else "every cell is an official run on a benchmark's protocol"
-    return f"!!! note \"Marks\"\n    {text[0].upper() + text[1:]}. Nothing here is presented as measured unless it was measured.\n"
+def _from_repository(records) -> str:
+    sent = sum(bool(r.get("_contribution")) for r in records)
+    return f", {sent} of them contributed to a results repository and re-scored here" if sent else ""
 
 
 def _ci(entry) -> str:
@@ -203,9 +195,9 @@ def _ci(entry) -> str:
 def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: int = 0, colours=None) -> str:
     written = datetime.now(timezone.utc).date().isoformat()
     lines = [PAGE_HEAD, "# Leaderboard", "",
-             f"Measured by `vprbench evaluate` ({len(records)} stored run(s); vprbench {__version__}; written {written}). "
-             "Regenerate with `vprbench leaderboard publish --to docs/`. Each cell is one run: "
-             f"{RULE_LINK} (below the tables).", "", _marks(board)]
+             f"Measured by `vprbench evaluate` ({len(records)} stored run(s){_from_repository(records)}; vprbench "
+             f"{__version__}; written {written}). Regenerate with `vprbench leaderboard publish --to docs/`. Each cell is one run: "
+             f"{RULE_LINK} (below the tables).", "", marks_note(board)]
     for table in GROUPS:
         lines += [group_table(board, table, link=lambda c: f"{c.slug}.md"), ""]
     lines += ["## Measured against reported", "",
@@ -237,11 +229,13 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
     lines += ["## Other runs", "", "Runs that are not official runs on a benchmark: weights other than the authors' "
               "release (†) or the user's own data. They never fill a cell above.", ""]
     if others:
-        lines += ["| Method | Weights | Dataset | R@1 [95 % CI] | R@5 [95 % CI] | Run |", "|:--|:--|:--|--:|--:|:--|"]
+        lines += ["| Method | Weights | Dataset | R@1 [95 % CI] | R@5 [95 % CI] | Source | Run |",
+                  "|:--|:--|:--|--:|--:|:--|:--|"]
         for row, column, cell in others:
             s = stats[(row, column.key)]
             lines.append(f"| {text(row.label)}{' †' if not row.official else ''} | {text(weights_shown(row, cell.record))} | "
-                         f"[{text(column.title)}]({column.slug}.md) | {_ci(s[1])} | {_ci(s[5])} | `{cell.record.get('run_id')}` |")
+                         f"[{text(column.title)}]({column.slug}.md) | {_ci(s[1])} | {_ci(s[5])} | {text(cell.source)} | "
+                         f"`{cell.record.get('run_id')}` |")
     else:
         lines.append("None.")
     lines += ["", "## Runs left out", ""]
@@ -275,7 +269,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
                            (cells[0].arrays["positives"] if cells[0].arrays is not None else []))
     colours = colours if colours is not None else site_colours(board)
     lines = [page_head(column.title), f"# {text(column.title)}", "", f"Each cell is one run: {RULE_LINK} (below the tables).", "",
-             _marks(board),
+             marks_note(board),
              f"Domain: {text(column.domain or '–')}. Kind: {'benchmark' if column.kind == 'benchmark' else 'own data (not a benchmark)'}.", "",
              "## Data and ground truth", "",
              "| Database | Queries | Queries without positives | Positive pairs | Positives per query (min / median / max) | Ground truth | Protocol | Dataset fingerprint |",
@@ -298,10 +292,10 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
     for cell in cells:
         s, r = stats[(cell.row, column.key)], cell.record
         name = f"{text(cell.row.label)}{' †' if not cell.row.official else ''}"
-        lines.append(f"| {name} | {text(weights_shown(cell.row, r))} | "
+        lines.append(f"| {name}{source_mark(cell.source)} | {text(weights_shown(cell.row, r))} | "
                      f"{_ci(s[1])} | {_ci(s[5])} | {fmt(cell.recall(10))} | {fmt(cell.recall(20))} | "
-                     f"{_num(r.get('auc_pr'), 3)} | {percent(r.get('recall_at_100_precision'))} | {r.get('descriptor_dim')} | "
-                     f"{r.get('descriptor_bytes') or 4 * int(r.get('descriptor_dim') or 0)} | {_num(cell.images_per_second, 1)} |")
+                     f"{_num(r.get('auc_pr'), 3)} | {percent(r.get('recall_at_100_precision'))} | {r.get('descriptor_dim') or '–'} | "
+                     f"{r.get('descriptor_bytes') or 4 * int(r.get('descriptor_dim') or 0) or '–'} | {_num(cell.images_per_second, 1)} |")
         versions, computed = r.get("versions") or {}, r.get("descriptors_computed") or {}
         sent = (r.get("_contribution") or {}).get("contributor") or "this machine"
         runs.append(f"| {name} | {text(cell.source)} | {text(sent)} | `{r.get('run_id')}` | {text(r.get('created', '–'))} | "

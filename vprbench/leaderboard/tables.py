@@ -9,7 +9,8 @@ import pandas as pd
 
 from ..errors import VPRBenchError
 from ..reference import paper_results
-from .cells import CELL_KS, STRUCTURED, UNSTRUCTURED, Board, Cell, Column, Row, weights_shown  # noqa: F401
+from .cells import (AGREES, CELL_KS, CONTRIBUTED, IMPORTED, STRUCTURED, UNSTRUCTURED, Board, Cell, Column, Row,  # noqa: F401
+                    weights_shown)
 from .escape import text
 from ..evaluation.blocks import for_record
 from ..evaluation.metrics import successes
@@ -36,6 +37,27 @@ class Shown:
     r5: float | None
     source: str    # where the cell's number comes from (Cell.source)
     run_id: str
+
+
+#: the mark after a cell's numbers in the site's tables, by where they come from (measured here: none;
+#: reported by a paper: italics), first match of the source's beginning
+SOURCE_MARKS = ((AGREES, "c✓", "contributed, and re-run here agreeing within the contributed run's 95 % interval"),
+                ("contributed, re-run here and disagreeing", "c≠",
+                 "contributed, and re-run here outside its interval (the dataset page gives both numbers)"),
+                ("contributed", "c", "contributed to the results repository, re-scored here from its per-query arrays"),
+                (IMPORTED, "v", "VPR-Bench's matches, imported and re-scored here"))
+
+
+def source_mark(source: str) -> str:
+    """`<sup>mark</sup>` for a cell's source (Cell.source), or "" when it was measured here."""
+    return next((f"<sup>{mark}</sup>" for start, mark, _ in SOURCE_MARKS if source.startswith(start)), "")
+
+
+def marks_legend(sources) -> str:
+    """What each source mark among `sources` means, for a table's legend ("" when none is there)."""
+    shown = [f"<sup>{mark}</sup> {meaning}" for start, mark, meaning in SOURCE_MARKS
+             if any(source_mark(s) == f"<sup>{mark}</sup>" for s in sources)]
+    return (" " + "; ".join(shown) + ".") if shown else ""
 
 
 def computed(board: Board) -> list[Shown]:
@@ -134,10 +156,13 @@ def group_table(board: Board, table: str, link=lambda column: column.dataset) ->
     by_name = {c.dataset: c for c in ours}
 
     lines: list[tuple[str, str, dict]] = []  # (name, source, {(dataset, k): (value, is_reported)})
+    marks: dict[tuple[str, str], str] = {}  # (row name, dataset): where a measured cell's number comes from
     for row in [r for r in board.rows if r.official]:
         values = {}
         for name in datasets:
             cell = board.cell(row, by_name[name]) if name in by_name else None
+            if cell is not None and cell.recall(1) is not None:
+                marks[(text(row.label), name)] = cell.source
             for k in CELL_KS:
                 measured = cell.recall(k) if cell else None
                 paper_value = _reported_value(paper, row.label, name, f"r{k}")
@@ -170,11 +195,12 @@ def group_table(board: Board, table: str, link=lambda column: column.dataset) ->
     header = ["Method", *[f"[{n}]({link(by_name[n])})" if n in by_name else n for n in datasets],
               f"Average ({len(averaged)})", *(["Measured so far"] if partial else [])]
     note = "" if measured_any else " No official run measured in this group yet: every value below is reported."
-    legend = LEGEND.format(n=len(averaged)) + (PARTIAL_LEGEND if partial else "")
+    legend = LEGEND.format(n=len(averaged)) + marks_legend(marks.values()) + (PARTIAL_LEGEND if partial else "")
     out = [f"### Table {table}: {title}", "", "R@1 / R@5 (%) per dataset. " + legend + note, "",
            "| " + " | ".join(header) + " |", "|" + "|".join([":--"] + ["--:"] * (len(header) - 1)) + "|"]
     for name, source, values in lines:
-        cells = [f"{show(*values[(n, 1)], n, 1)} / {show(*values[(n, 5)], n, 5)}" for n in datasets]
+        cells = [f"{show(*values[(n, 1)], n, 1)} / {show(*values[(n, 5)], n, 5)}{source_mark(marks.get((name, n), ''))}"
+                 for n in datasets]
         out.append("| " + " | ".join([name, *cells, averages[name] or "–", *([partial.get(name) or ""] if partial else [])])
                    + " |")
     return "\n".join(out) + "\n"
@@ -195,9 +221,28 @@ def _average(values: dict, datasets: list[str], source: str, partial: bool = Fal
     return " / ".join(parts) + (f" ({have} of {len(datasets)})" if partial else "")
 
 
-LEGEND = ("Upright: measured here (one run per cell). *Italic*: reported by the AnyLoc paper, not measured here. "
+LEGEND = ("Upright: measured (one run per cell), here unless marked. *Italic*: reported by the AnyLoc paper, not measured. "
           "**Bold**: best in its column. Average ({n}): over the paper's {n} datasets of this table, each value of "
           "the row's own kind, only for a row that has all of them.")
+
+
+def marks_note(board: Board) -> str:
+    """The note at the top of every page: which cells are marked, and why."""
+    found = board.marked
+    parts = []
+    if found["marked_rows"]:
+        parts.append(f"{found['marked_rows']} cell(s) are on rows marked † (weights other than the authors' release, "
+                     "approximate search, a float16 store or anything fitted on the evaluated database: the mark says which)")
+    if found["own_data"]:
+        parts.append(f"{found['own_data']} cell(s) are on the user's own data, marked *(own data)*")
+    elsewhere = [c.source for c in board.cells.values() if source_mark(c.source)]
+    if elsewhere:
+        parts.append(f"{len(elsewhere)} cell(s) have runs contributed to a results repository or imported, each "
+                     "re-scored here from its per-query arrays:" + marks_legend(elsewhere).rstrip("."))
+    if found["excluded"]:
+        parts.append(f"{found['excluded']} run(s) are left out of every cell (see [Runs left out](index.md#runs-left-out))")
+    note = "; ".join(parts) if parts else "every cell is an official run on a benchmark's protocol"
+    return f"!!! note \"Marks\"\n    {note[0].upper() + note[1:]}. Nothing here is presented as measured unless it was measured.\n"
 PARTIAL_LEGEND = (" Measured so far: a measured row's mean over the datasets it has been run on, of all those "
                   "shown (n of m); not comparable with the averages.")
 
