@@ -12,6 +12,8 @@ import sys
 import time
 from dataclasses import dataclass, field
 
+from .text import literal
+
 #: at most one line per task this often, in a log
 LOG_INTERVAL_S = 30.0
 
@@ -102,7 +104,7 @@ class LogProgress(Silent):
         if task.total is not None and moved > 0 and task.completed < task.total:
             left = f", about {_duration((task.total - task.completed) * elapsed / moved)} left"
         what = " done" if state == "done" else ""
-        print(f"progress: {task.description}{what} {count}{rate}{left}", file=self.stream, flush=True)
+        print(literal(f"progress: {task.description}{what} {count}{rate}{left}"), file=self.stream, flush=True)
 
 
 def _duration(seconds: float) -> str:
@@ -122,7 +124,12 @@ def progress_for(stream=None, *, quiet: bool = False):
     if stream.isatty():
         from rich.console import Console
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+        from rich.text import Text
 
-        return Progress(TextColumn("{task.description}", markup=False), BarColumn(), MofNCompleteColumn(),
-                        TimeRemainingColumn(), console=Console(file=stream, markup=False), transient=True)
+        class Literal(TextColumn):  # descriptions name methods and datasets: text, not markup or controls
+            def render(self, task):
+                return Text(literal(task.description))
+
+        return Progress(Literal("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+                        console=Console(file=stream, markup=False, emoji=False), transient=True)
     return LogProgress(stream)
