@@ -76,6 +76,11 @@ OPTIONS = [
     (["--method", "cosplace", "--resize", "-1", "3"], "Option resize must be positive"),
     (["--method", "mixvpr", "-o", "dim=abc"], "Option dim must be an integer, got 'abc'"),
     (["--method", "netvlad", "-o", "backbone=resnet7"], "unknown backbone 'resnet7'"),
+    # approximate search: checked when the run is specified (a 'nan' was once a traceback after every image was described)
+    (HOG + ["--index", "ivf-pq", "--index-option", "nlist=nan"], "--index ivf-pq option nlist takes a whole number >= 1; got 'nan'"),
+    (HOG + ["--index", "ivf-pq", "--index-option", "nprobe=0"], "--index ivf-pq option nprobe takes a whole number >= 1; got 0"),
+    (HOG + ["--index", "hnsw", "--index-option", "ef_search=x"], "--index hnsw option ef_search takes a whole number >= 1"),
+    (HOG + ["--index", "hnsw", "--index-option", "seed=-1"], "--index hnsw option seed takes a whole number >= 0; got -1"),
 ]
 
 
