@@ -37,6 +37,9 @@ def run(args) -> int:
     from ..leaderboard import build_board, grid, publish, render
 
     resolve_locations(args)
+    if args.k < 1 or args.seed < 0:
+        raise VPRBenchError(f"--k takes a whole number >= 1 (the K of Recall@K compared) and --seed one >= 0 (the "
+                            f"bootstrap's); got --k {args.k} --seed {args.seed}.")
     if args.results is not None and args.action != "publish":
         raise VPRBenchError("--results DIR is for 'leaderboard publish' (it builds the site from a results repository).")
     if args.action == "publish":
