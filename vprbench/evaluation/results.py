@@ -161,9 +161,14 @@ def find_result(spec, cache_dir=None) -> dict | None:
     found = [r for r in _records_in(run_folder(spec.dataset.protocol_hash, spec.row_key, cache_dir))
              if r["row_key"] == spec.row_key and wanted <= set(r["recall"])]
     for record in reversed(_order(found)):
-        checked = proven(record)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            checked = proven(record)
         if not isinstance(checked, str):
+            for warning in caught:  # stored metrics that disagree with the arrays
+                warnings.warn(str(warning.message), stacklevel=2)
             return checked
+        # the reason holds what the arrays' own warning said: one line, not two
         warnings.warn(f"{record.get('_source')} does not count as a result: {checked}", stacklevel=2)
     return None
 
