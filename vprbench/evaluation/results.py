@@ -129,7 +129,7 @@ def read_record(path: Path) -> dict:
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
         raise VPRBenchError(f"{path} is not a readable JSON record ({type(error).__name__}).") from None
     record = validated(data, str(path))
-    record["_source"] = str(path)
+    record["_source"] = os.path.abspath(path)  # absolute: messages name it whole, pages cut it (escape.public)
     return record
 
 
