@@ -27,6 +27,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from .errors import VPRBenchError, os_error_message
+from .text import literal
 
 
 class CacheError(VPRBenchError):
@@ -115,7 +116,7 @@ def _holder_path(path: Path) -> Path:
 
 def _describe_holder(path: Path) -> str:
     try:
-        return _holder_path(path).read_text(encoding="utf-8").strip() or "another process"
+        return literal(_holder_path(path).read_text(encoding="utf-8", errors="replace").strip()) or "another process"
     except OSError:
         return "another process"
 

@@ -6,6 +6,8 @@ from __future__ import annotations
 from rich.console import Group
 from rich.text import Text
 
+from .text import literal
+
 #: a cell text longer than this goes into a note
 SHORT = 40
 
@@ -24,4 +26,4 @@ class Notes:
 
     def below(self, table) -> Group:
         """The table followed by its notes."""
-        return Group(table, *(Text(f"[{n}] {text}") for text, n in self.numbers.items()))
+        return Group(table, *(Text(literal(f"[{n}] {text}")) for text, n in self.numbers.items()))

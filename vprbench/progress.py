@@ -16,6 +16,8 @@ import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
+from .text import literal
+
 #: at most one line per task this often, in a log
 LOG_INTERVAL_S = 30.0
 
@@ -107,7 +109,7 @@ class LogProgress(Silent):
         if task.total is not None and moved > 0 and task.completed < task.total:
             left = f", about {_duration((task.total - task.completed) * elapsed / moved)} left"
         what = " done" if state == "done" else ""
-        print(f"progress: {task.description}{what} {count}{rate}{left}", file=self.stream, flush=True)
+        print(literal(f"progress: {task.description}{what} {count}{rate}{left}"), file=self.stream, flush=True)
 
 
 @contextmanager
@@ -129,8 +131,8 @@ def phase(progress, description: str):
     def beat():
         while not stop.wait(progress.interval):
             printed.append(True)
-            print(f"progress: {description}, {_duration(progress.clock() - started)} elapsed", file=progress.stream,
-                  flush=True)
+            print(literal(f"progress: {description}, {_duration(progress.clock() - started)} elapsed"),
+                  file=progress.stream, flush=True)
 
     beater = threading.Thread(target=beat, name="vprbench-progress", daemon=True)
     beater.start()
@@ -140,8 +142,8 @@ def phase(progress, description: str):
         stop.set()
         beater.join()
         if printed:
-            print(f"progress: {description} done in {_duration(progress.clock() - started)}", file=progress.stream,
-                  flush=True)
+            print(literal(f"progress: {description} done in {_duration(progress.clock() - started)}"),
+                  file=progress.stream, flush=True)
 
 
 def _duration(seconds: float) -> str:
@@ -161,7 +163,12 @@ def progress_for(stream=None, *, quiet: bool = False):
     if stream.isatty():
         from rich.console import Console
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+        from rich.text import Text
 
-        return Progress(TextColumn("{task.description}", markup=False), BarColumn(), MofNCompleteColumn(),
-                        TimeRemainingColumn(), console=Console(file=stream, markup=False), transient=True)
+        class Literal(TextColumn):  # descriptions name methods and datasets: text, not markup or controls
+            def render(self, task):
+                return Text(literal(task.description))
+
+        return Progress(Literal("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+                        console=Console(file=stream, markup=False, emoji=False), transient=True)
     return LogProgress(stream)

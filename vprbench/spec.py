@@ -364,12 +364,9 @@ def resolve_search(search) -> SearchSpec:
     if index == "exact" and options:
         raise VPRBenchError(f"Exact search takes no index options; got {', '.join(sorted(options))}.")
     if index != "exact":
-        from .evaluation.approximate import OPTIONS
+        from .evaluation.approximate import check_options
 
-        unknown = sorted(set(options) - set(OPTIONS[index]))
-        if unknown:
-            raise VPRBenchError(f"--index {index} does not take {', '.join(unknown)}; its options: "
-                                f"{', '.join(OPTIONS[index])}.")
+        check_options(index, options)
     return SearchSpec(index=index, options=plain(options))
 
 

@@ -1,5 +1,8 @@
-"""Counts and quantities in words: '1 frame', '0 frames', '2 queries', '25 metres'."""
+"""Counts and quantities in words: '1 frame', '0 frames', '2 queries', '25 metres'; text from data
+made safe for a terminal."""
 from __future__ import annotations
+
+import re
 
 #: plurals that are not the word + "s"
 IRREGULAR = {"query": "queries"}
@@ -24,3 +27,15 @@ def quantity(value, unit: str | None) -> str:
     if not unit:
         return f"{value:g}" if isinstance(value, (int, float)) else str(value)
     return plural(value, unit[:-1] if unit.endswith("s") else unit)
+
+
+#: characters a terminal acts on (escape sequences, bells, carriage returns, backspaces); tabs and
+#: newlines are text
+CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f-\x9f]")
+
+
+def literal(text) -> str:
+    """Text from data as a terminal should show it: each control character written out as its
+    escape ('\\x1b'), so a name or path holding one is seen, never acted on (a title set, a
+    screen cleared, a line overwritten)."""
+    return CONTROL.sub(lambda found: f"\\x{ord(found.group()):02x}", str(text))

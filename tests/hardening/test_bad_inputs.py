@@ -76,6 +76,11 @@ OPTIONS = [
     (["--method", "cosplace", "--resize", "-1", "3"], "Option resize must be positive"),
     (["--method", "mixvpr", "-o", "dim=abc"], "Option dim must be an integer, got 'abc'"),
     (["--method", "netvlad", "-o", "backbone=resnet7"], "unknown backbone 'resnet7'"),
+    # approximate search: checked when the run is specified (a 'nan' was once a traceback after every image was described)
+    (HOG + ["--index", "ivf-pq", "--index-option", "nlist=nan"], "--index ivf-pq option nlist takes a whole number >= 1; got 'nan'"),
+    (HOG + ["--index", "ivf-pq", "--index-option", "nprobe=0"], "--index ivf-pq option nprobe takes a whole number >= 1; got 0"),
+    (HOG + ["--index", "hnsw", "--index-option", "ef_search=x"], "--index hnsw option ef_search takes a whole number >= 1"),
+    (HOG + ["--index", "hnsw", "--index-option", "seed=-1"], "--index hnsw option seed takes a whole number >= 0; got -1"),
 ]
 
 
@@ -253,3 +258,18 @@ def test_own_dataset_title_with_markup_prints_whole(own, cli):
     (own / "dataset.toml").write_text('title = "Lab [red]corridor[/red]"\n')
     code, out, _ = cli("datasets", "info", own)
     assert code == 0 and "Lab [red]corridor[/red]" in out
+
+
+# ---------------------------------------------------------------- seeds and K of the other commands
+def test_negative_seeds_and_k_are_one_line(shared_data, cli, tmp_path):
+    """A negative seed was a numpy traceback in compare, publish and vocabulary fit; --k 0 compared 'R@0'."""
+    for args in (["compare", "hog", "dense-vlad", "--dataset", "corridor", "--seed", "-1"],
+                 ["compare", "hog", "dense-vlad", "--dataset", "corridor", "--k", "0"],
+                 ["publish", "--to", tmp_path / "docs", "--seed", "-1"]):
+        code, _, err = cli("leaderboard", *args)
+        assert_refused(code, err, None, "--k takes a whole number >= 1", "--seed one >= 0")
+    assert not (tmp_path / "docs").exists()
+    code, _, err = cli("vocabulary", "fit", "--dataset", "corridor", "--method", "anyloc", "--backbone", "dinov2_vits14",
+                       "--weights", "random", "--layer", 1, "--clusters", 2, "--resize", 28, 28, "--seed", -1,
+                       "--data-dir", shared_data)
+    assert_refused(code, err, None, "The vocabulary's seed (--seed) must be a whole number >= 0, got -1")

@@ -63,6 +63,9 @@ def test_a_lease_that_is_not_a_finite_number_of_seconds_is_refused(lease, tmp_pa
 def test_a_nan_lease_on_the_command_line_is_one_line(plan, shared_data, cli):
     code, _, err = cli("run", plan, "--lease", "nan", "--data-dir", shared_data)
     assert_refused(code, err, None, "lease")
+    # one evaluation makes no claim, but its --lease is checked all the same (it once ran with 'nan')
+    code, _, err = cli("evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", shared_data, "--lease", "nan")
+    assert_refused(code, err, None, "The lease must be a finite number of seconds, at least 1")
 
 
 def test_a_short_lease_never_takes_a_long_leased_live_claim(tmp_path):

@@ -121,3 +121,39 @@ def test_hostile_names_build_with_mkdocs_into_no_live_element(make_record, tmp_p
         assert not live(parsed), (page, live(parsed))
         shown += sum(HOSTILE in text for text in parsed.text)
     assert shown >= 3, "the hostile names are on the built pages, as text"
+
+
+def test_pages_name_files_never_the_publishers_paths(make_record, tmp_path, capsys):
+    """A row's vocabulary folder, a run's dataset folder and the cache file of a run left out are
+    absolute paths of this machine: the pages, figures and downloads name them by their last name."""
+    import json
+
+    import pytest
+
+    from vprbench.leaderboard.escape import public
+
+    private = tmp_path / "home" / "me" / "images" / "tokyo247-pair"
+    save_result(make_record("hog", options={"vocabulary": str(private)}, seed=1))
+    damaged = save_result(make_record("hog", options={"resize": [64, 64]}, seed=2)).with_suffix(".npz")
+    damaged.write_bytes(b"not an npz")
+    docs = tmp_path / "docs"
+    with pytest.warns(UserWarning) as caught:
+        assert main(["leaderboard", "publish", "--to", str(docs)]) == 0
+    # the attack is real: the records and the warning (for the person publishing) hold this machine's paths
+    stored = "".join(p.read_text() for p in (tmp_path / "user-cache").rglob("*.json"))
+    assert str(private) in stored and str(tmp_path / "no-images" / "corridor") in stored
+    assert any(str(damaged) in str(w.message) for w in caught)
+
+    written = [p for p in (docs / "leaderboard").rglob("*") if p.is_file()]
+    assert len(written) > 10
+    for path in written:
+        assert str(tmp_path) not in path.name and str(tmp_path) not in path.read_text(errors="replace"), path
+        assert "/home/me/" not in path.read_text(errors="replace"), path
+    overview = (docs / "leaderboard" / "index.md").read_text()
+    assert "| hog [vocabulary=tokyo247-pair] |" in overview  # the folder by its name
+    assert f"Per-query data {damaged.name} of run" in overview  # the run left out, its file by its name
+    assert "| hog [vocabulary=tokyo247-pair] |" in (docs / "leaderboard" / "corridor.md").read_text()
+    download = json.loads((docs / "leaderboard" / "downloads" / "corridor.json").read_text())[0]
+    assert download["dataset_root"] == "corridor" and download["spec"]["given"]["vocabulary"] == "tokyo247-pair"
+    assert public("see https://example.org/a/b, 48.6 / 75.7, [bold]x[/bold]") == \
+        "see https://example.org/a/b, 48.6 / 75.7, [bold]x[/bold]"  # no URL, number or markup is cut

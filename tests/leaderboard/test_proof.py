@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -64,6 +65,26 @@ def test_compare_and_reproduce_read_the_recomputed_values(make_record, capsys):
     with pytest.warns(UserWarning, match="disagree"):
         value, _, _ = measured([read_record(path)], "r1")
     assert value == pytest.approx(a["recall"]["1"], abs=1e-4)
+
+
+def test_a_sweep_shows_a_complete_cell_recomputed_and_reruns_one_without_arrays(make_record):
+    """`vprbench run` and `reproduce` find a cell's record with find_result: it shows the values
+    recomputed from the arrays (the stored 100.0 was shown as it was), and a record whose arrays are
+    gone counts as no result, so the cell is evaluated again rather than shown from its JSON."""
+    from vprbench.evaluation import find_result
+    from vprbench.spec import RunSpec
+
+    record = make_record(quality=0.6, seed=1)
+    _, path = edited(record, 100.0)
+    spec = RunSpec.model_validate(record["spec"])
+    assert json.loads(open(path).read())["recall"]["1"] == 100.0  # the attack is real: the record says 100
+    with pytest.warns(UserWarning, match="disagree"):
+        found = find_result(spec)
+    assert found["recall"]["1"] == pytest.approx(record["recall"]["1"], abs=1e-4) != 100.0
+    Path(path).with_suffix(".npz").unlink()
+    with pytest.warns(UserWarning) as caught:
+        assert find_result(spec) is None
+    assert any(f"{path} does not count as a result: its per-query arrays are missing" in str(w.message) for w in caught)
 
 
 def test_arrays_that_do_not_fit_leave_the_run_out_with_the_reason(make_record):

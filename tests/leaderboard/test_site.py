@@ -93,7 +93,7 @@ def test_publish_writes_every_page_figure_and_download(capsys, tmp_path, shared_
     assert "| hog [resize=64x64] | none (nothing learnt) |" in corridor  # HOG has no weights to call official
     figures = section / "figures"
     for name in ("radar.svg", "pca-gem.png", "corridor-recall.svg", "corridor-pr.svg", "corridor-efficiency.svg",
-                 "corridor-mosaic-hog-resize-64x64.png", "corridor-mosaic-hog-user-weights-sha256-abababababab.png"):
+                 "corridor-mosaic-hog_resize_64x64_.png", "corridor-mosaic-hog_user_weights_sha256_abababababab.png"):
         assert (figures / name).stat().st_size > 1000, name
     assert corridor.count("queries and their top 5](figures/corridor-mosaic-") == 3
     own = (section / full_board.own_page).read_text()

@@ -1,15 +1,35 @@
-"""Terminal output: rich with markup off, so names, paths and messages print exactly as they are
-(a row `colorhist [bins=4]` or a method called `hog[x]` would otherwise lose their brackets)."""
+"""Terminal output: every string from data prints as it is. Rich's markup and emoji codes are off
+(a row `colorhist [bins=4]` keeps its brackets, a name `[link=javascript:...]x[/link]` or
+`:pile_of_poo:` is not interpreted), and control characters are written out as escapes
+(text.literal), so a name or path from a record or a dataset cannot drive the terminal."""
 from __future__ import annotations
+
+import sys
 
 from rich.console import Console
 from rich.text import Text
 
+from ..text import literal
+
+
+class _Literal(Console):
+    """A console for which every string is text: strings given to print, table cells and titles
+    all pass through render_str."""
+
+    def render_str(self, text: str, **options) -> Text:
+        return super().render_str(literal(text), **options)
+
 
 def console(stderr: bool = False) -> Console:
-    return Console(stderr=stderr, markup=False)
+    return _Literal(stderr=stderr, markup=False, emoji=False)
 
 
 def styled(text: str, style: str) -> Text:
-    """A piece of text in a style (markup being off)."""
-    return Text(text, style=style)
+    """A piece of text in a style (a Text is not a string: it is made literal here)."""
+    return Text(literal(text), style=style)
+
+
+def say(text: str, stderr: bool = False) -> None:
+    """One plain line (or several) on stdout or stderr, made literal: for output meant for files and
+    pipes as well (CSV, Markdown), which rich would wrap."""
+    print(literal(text), file=sys.stderr if stderr else sys.stdout)

@@ -6,8 +6,8 @@ import json
 import warnings
 
 from ..errors import VPRBenchError
-from ..text import quantity
-from .console import console, styled
+from ..text import literal, quantity
+from .console import console, say, styled
 from .options import add_location_options, resolve_locations
 
 
@@ -127,7 +127,7 @@ def protocol_table(name: str, listed: list[dict]):
         table.add_row(p["name"], p["hash"],
                       f"{db['count'] or '?'} ({db['split']}{', without ' + ', '.join(db['exclude_folders']) if db['exclude_folders'] else ''})",
                       f"{q['count'] or 'all'} ({q['split']}{', listed subset' if q['subset'] else ''})", within)
-    sources = [Text.assemble((f"{p['name']}: ", "bold"), p["source"]) for p in listed if p.get("source")]
+    sources = [Text.assemble(styled(f"{p['name']}: ", "bold"), literal(p["source"])) for p in listed if p.get("source")]
     return Group(table, *sources)
 
 
@@ -136,7 +136,7 @@ def run_download(args) -> int:
 
     resolve_locations(args)
     dataset = download_dataset(args.name, args.data_dir, strict=args.strict)
-    print(f"{args.name}: {len(dataset.database)} database and {len(dataset.queries)} query images at {dataset.root}")
+    say(f"{args.name}: {len(dataset.database)} database and {len(dataset.queries)} query images at {dataset.root}")
     return 0
 
 
@@ -148,8 +148,8 @@ def run_import(args) -> int:
         warnings.simplefilter("always")
         dataset = import_dataset(args.name, args.path, args.data_dir, strict=args.strict)
     for warning in caught:
-        print(f"warning: {warning.message}")
-    print(
+        say(f"warning: {warning.message}")
+    say(
         f"Imported {args.name!r} from {dataset.root} (layout {dataset.layout}): "
         f"{len(dataset.database)} database and {len(dataset.queries)} query images."
     )
@@ -168,5 +168,5 @@ def run_verify(args) -> int:
             "images_checked": report.images_checked,
         }, indent=2))
     else:
-        print("\n".join(report.lines()))
+        say("\n".join(report.lines()))
     return 0 if report.ok else 1

@@ -4,7 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import VPRBenchError
-from .console import console
+from .console import console, say
 from .options import resolve_locations
 
 FORMATS = ("table", "markdown", "csv", "json")
@@ -37,13 +37,16 @@ def run(args) -> int:
     from ..leaderboard import build_board, grid, publish, render
 
     resolve_locations(args)
+    if args.k < 1 or args.seed < 0:
+        raise VPRBenchError(f"--k takes a whole number >= 1 (the K of Recall@K compared) and --seed one >= 0 (the "
+                            f"bootstrap's); got --k {args.k} --seed {args.seed}.")
     if args.results is not None and args.action != "publish":
         raise VPRBenchError("--results DIR is for 'leaderboard publish' (it builds the site from a results repository).")
     if args.action == "publish":
         if args.to is None:
             raise VPRBenchError("leaderboard publish needs --to FOLDER (e.g. --to docs/)")
         skipped: list = []
-        print(f"Wrote {publish(args.to, args.cache_dir, data_dir=args.data_dir, seed=args.seed, skipped=skipped, results=args.results)}")
+        say(f"Wrote {publish(args.to, args.cache_dir, data_dir=args.data_dir, seed=args.seed, skipped=skipped, results=args.results)}")
         return unread(skipped)
     skipped = []
     records = read_results(args.cache_dir, skipped=skipped)
@@ -56,7 +59,7 @@ def run(args) -> int:
         if len(args.methods) != 2 or not args.dataset:
             raise VPRBenchError("leaderboard compare needs two methods and a dataset: "
                                 "vprbench leaderboard compare A B --dataset D")
-        print(describe(compare(board, *args.methods, args.dataset, k=args.k, seed=args.seed)))
+        say(describe(compare(board, *args.methods, args.dataset, k=args.k, seed=args.seed)))
         return unread(skipped)
     if args.methods:
         raise VPRBenchError(f"'leaderboard {args.action}' takes no method names (got {' '.join(args.methods)}); "
@@ -70,7 +73,7 @@ def run(args) -> int:
                             f"{board.excluded[0][1]}." if board.excluded else NO_RESULTS)
     table = grid(board)
     if args.format != "table":
-        print(render(table, args.format, board))
+        say(render(table, args.format, board))
         return unread(skipped)
     view = Table(title=f"R@1 / R@5 (%), {args.track} track: one run per cell")
     view.add_column("method")

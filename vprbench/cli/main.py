@@ -9,6 +9,7 @@ import warnings
 from .. import __version__
 from ..errors import VPRBenchError, os_error_message
 from . import datasets, evaluate, leaderboard, methods, reproduce, results, run, stages, vocabulary
+from ..text import literal
 from .console import console, styled
 
 
@@ -23,7 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def format_warning(message, category, filename, lineno, line=None) -> str:
     """Warnings are for people: one line, no source location."""
-    return f"warning: {message}\n"
+    return f"warning: {literal(message)}\n"
 
 
 def print_error(message: str) -> None:

@@ -184,7 +184,7 @@ def add_run_options(parser: argparse.ArgumentParser, *, download: bool = True, q
 
 
 def add_sweep_options(parser: argparse.ArgumentParser) -> None:
-    """--lease, checked where claims are made (sweep/claims.py: finite, at least 1 s)."""
+    """--lease, checked with the run settings (sweep/claims.py: finite, at least 1 s)."""
     parser.add_argument("--lease", type=float, default=DEFAULT_LEASE_S, metavar="SECONDS",
                         help="a claim without heartbeat for this long belonged to a dead process and is taken over "
                              f"(default {DEFAULT_LEASE_S:g})")
@@ -194,7 +194,10 @@ def run_settings(args):
     """The run settings of the command line (locations resolved first); -o device=... and
     -o batch_size=... count as the flags do."""
     from ..spec import RunSettings
+    from ..sweep.claims import checked_lease
 
+    if hasattr(args, "lease"):  # checked even when this run makes no claim (one evaluation)
+        checked_lease(args.lease)
     given = {k: v for k, v in method_options(args).items() if k in ("device", "batch_size")}
     device = getattr(args, "device", None)
     return RunSettings(cache_dir=args.cache_dir, data_dir=args.data_dir,

@@ -4,6 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import VPRBenchError
+from .console import say
 from .options import resolve_locations
 
 
@@ -62,7 +63,7 @@ def run_export(args) -> int:
     resolve_locations(args)
     chosen = select_records(read_results(args.cache_dir), run_ids=args.run_ids, method=args.method, dataset=args.dataset)
     path = export_bundle(chosen, args.to, args.contributor)
-    print(f"Wrote {path}: {len(chosen)} run(s), {path.stat().st_size / 1024:.1f} KiB")
+    say(f"Wrote {path}: {len(chosen)} run(s), {path.stat().st_size / 1024:.1f} KiB")
     return 0
 
 
@@ -75,7 +76,7 @@ def run_verify(args) -> int:
         verify = verify_repository if bundle.is_dir() else verify_bundle
         report = verify(bundle, truth, max_bytes=_max_bytes(args))
         for line in report.lines():
-            print(line)
+            say(line)
         ok &= report.ok
     return 0 if ok else 1
 
@@ -88,7 +89,7 @@ def run_import(args) -> int:
                              lock_timeout=args.lock_timeout)
     for report in reports:
         for line in report.lines():
-            print(line)
+            say(line)
     return 0 if all(r.ok for r in reports) else 1
 
 
@@ -111,6 +112,6 @@ def run_import_vpr_bench(args) -> int:
     for record in records:
         path = save_result(record, args.cache_dir)
         shown = " ".join(f"R@{k} {v:.2f}" for k, v in record["recall"].items())
-        print(f"{record['imported']['method']} on {record['protocol']['id']}: {shown} (imported from VPR-Bench, "
+        say(f"{record['imported']['method']} on {record['protocol']['id']}: {shown} (imported from VPR-Bench, "
               f"re-scored) -> {path}")
     return 0

@@ -10,6 +10,7 @@ from pathlib import Path
 
 # The vocabulary machinery (torch) is imported by each subcommand, so `vprbench --help` answers at once.
 from ..errors import VPRBenchError
+from .console import say
 from .options import add_location_options, add_method_options, method_options, resolve_locations
 
 
@@ -99,9 +100,9 @@ def run_show(args) -> int:
     from ..aggregation.vocabulary import load_vocabulary
 
     vocabulary = load_vocabulary(args.path)
-    print(f"{vocabulary.meta['path']}: {vocabulary.clusters} clusters x {vocabulary.dim} dims")
-    for key, value in sorted(vocabulary.meta.items()):
-        print(f"  {key}: {value}")
+    say(f"{vocabulary.meta['path']}: {vocabulary.clusters} clusters x {vocabulary.dim} dims")
+    for key, value in sorted(vocabulary.meta.items()):  # a file's metadata: text from data
+        say(f"  {key}: {value}")
     return 0
 
 

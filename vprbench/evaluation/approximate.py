@@ -23,12 +23,22 @@ OPTIONS = {"ivf-pq": ("nlist", "pq_m", "nprobe", "train_rows", "shortlist", "rec
            "hnsw": ("hnsw_m", "ef_construction", "ef_search", "train_rows", "shortlist", "recall_queries", "seed")}
 
 
+def check_options(kind: str, options: dict) -> None:
+    """Refuse (naming it) an option `kind` does not take, or a value that is not a whole number in
+    its range (seed >= 0, every other >= 1): checked when the run is specified, before any work."""
+    unknown = sorted(set(options) - set(OPTIONS[kind]))
+    if unknown:
+        raise VPRBenchError(f"--index {kind} does not take {', '.join(unknown)}; its options: {', '.join(OPTIONS[kind])}.")
+    for name, value in options.items():
+        least = 0 if name == "seed" else 1
+        if isinstance(value, bool) or not isinstance(value, int) or value < least:
+            raise VPRBenchError(f"--index {kind} option {name} takes a whole number >= {least}; got {value!r}.")
+
+
 def _resolve(kind: str, n: int, dim: int, k: int, given: dict | None) -> dict:
     """Every option of `kind`, defaults filled in for this database, checked against its size."""
     given = dict(given or {})
-    unknown = sorted(set(given) - set(OPTIONS[kind]))
-    if unknown:
-        raise VPRBenchError(f"index={kind!r} does not take {', '.join(unknown)}; its options: {', '.join(OPTIONS[kind])}.")
+    check_options(kind, given)
     o = {**{name: DEFAULTS[name] for name in OPTIONS[kind] if name in DEFAULTS}, **given}
     o["shortlist"] = int(given.get("shortlist", min(n, max(k, DEFAULTS["shortlist"]))))
     if o["shortlist"] < k:

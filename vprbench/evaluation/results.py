@@ -129,7 +129,7 @@ def read_record(path: Path) -> dict:
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
         raise VPRBenchError(f"{path} is not a readable JSON record ({type(error).__name__}).") from None
     record = validated(data, str(path))
-    record["_source"] = str(path)
+    record["_source"] = os.path.abspath(path)  # absolute: messages name it whole, pages cut it (escape.public)
     return record
 
 
@@ -150,13 +150,27 @@ def _order(records: list[dict]) -> list[dict]:
 
 
 def find_result(spec, cache_dir=None) -> dict | None:
-    """The newest stored record that answers `spec` (same row, same protocol, every K asked), or None."""
+    """The newest stored record that answers `spec` (same row, same protocol, every K asked), its
+    metrics recomputed from its per-query arrays (evaluation.proof), or None. A record whose arrays
+    are missing or damaged answers nothing (named in a warning): its cell is evaluated again."""
+    from .proof import proven
+
     migrate_legacy(cache_dir)
     check_layout(results_dir(cache_dir))
     wanted = {str(k) for k in spec.ks}
     found = [r for r in _records_in(run_folder(spec.dataset.protocol_hash, spec.row_key, cache_dir))
              if r["row_key"] == spec.row_key and wanted <= set(r["recall"])]
-    return _order(found)[-1] if found else None
+    for record in reversed(_order(found)):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            checked = proven(record)
+        if not isinstance(checked, str):
+            for warning in caught:  # stored metrics that disagree with the arrays
+                warnings.warn(str(warning.message), stacklevel=2)
+            return checked
+        # the reason holds what the arrays' own warning said: one line, not two
+        warnings.warn(f"{record.get('_source')} does not count as a result: {checked}", stacklevel=2)
+    return None
 
 
 def read_results(cache_dir=None, skipped: list | None = None) -> list[dict]:

@@ -26,6 +26,7 @@ from ..evaluation.identity import benchmark_protocols
 from ..evaluation.metrics import recall_at_k
 from ..evaluation.proof import proven
 from ..evaluation.results import per_query
+from .escape import public
 
 #: weights sources that make a row official: the authors' release, or nothing learnt at all
 OFFICIAL_WEIGHTS = {"official", "none"}
@@ -83,8 +84,8 @@ def weights_shown(row: "Row", record: dict) -> str:
     provenance = record.get("provenance") or {}
     learnt = [part for part in provenance.get("learnt") or [] if isinstance(provenance.get(part), dict)]
     if learnt:
-        return "; ".join(f"{part} fitted on {provenance[part].get('fitted_on') or 'data it does not name'}"
-                         for part in learnt)
+        return public("; ".join(f"{part} fitted on {provenance[part].get('fitted_on') or 'data it does not name'}"
+                                for part in learnt))
     return "none (nothing learnt)" if (provenance.get("weights") or {}).get("source") == "none" else "official"
 
 
@@ -311,7 +312,7 @@ def _row_of(record: dict) -> Row:
     transductive = (record.get("provenance") or {}).get("fitted_on_evaluated_database") is True
     marks = [m for m in (mark, *_stage_marks(record), *spec.marks(), TRANSDUCTIVE if transductive else "") if m]
     track = record.get("track") or "single-image"  # records before stages had none
-    return Row(spec.row_key, spec.label(), weights, "; ".join(marks), track)
+    return Row(spec.row_key, public(spec.label()), weights, "; ".join(marks), track)
 
 
 def build_board(records: list[dict]) -> Board:
@@ -383,7 +384,7 @@ def build_board(records: list[dict]) -> Board:
         cells[(final, key)] = Cell(final, columns[key], pick, passed_over=len(runs) - 1,
                                    timed=timed[-1] if timed else None, source=_source(pick, runs))
     ordered = sorted(columns.values(), key=lambda c: (c.kind != "benchmark", _domain_order(c.domain), c.dataset, c.key))
-    return Board(list(rows.values()), ordered, cells, excluded)
+    return Board(list(rows.values()), ordered, cells, [(record, public(why)) for record, why in excluded])
 
 
 def _timed(record: dict) -> bool:

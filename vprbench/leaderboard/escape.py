@@ -1,11 +1,45 @@
-"""Text from data on pages: the one escape every page writer uses."""
+"""Text from data on pages: what a published page may show of it, and the one escape every page
+writer uses.
+
+A page shows files and folders by name, never by the absolute path they had on the machine that
+ran or published (a vocabulary folder in a row's label, a vocabulary file in a run's provenance, the
+cache folder of a run left out): `public` cuts every absolute path in a text (and one
+starting with ./, ../ or ~/) to its last name. The
+board's labels, weights and reasons (cells.py), every Markdown string (`text`) and the downloads
+(`public_data`) go through it.
+"""
 from __future__ import annotations
 
 import html
+import re
+
+#: a path of the local machine: POSIX with two names or more ('/a/b'; one, '/b', is more often
+#: something else, such as Rich's '[/b]') or from a start ('~/a', './a', '../a'), not inside a URL
+#: or a fraction; or a Windows drive path ('C:\\a\\b'). Names end at white space and at the characters
+#: that close or separate them in text ('|', brackets, quotes, ',', ';').
+_NAME = r"[^\s/\\|\[\]()<>'\",;]+"
+_ABSOLUTE = re.compile(rf"(?<![\w.~:/\\-])(?:(?:~|\.\.?)(?:/{_NAME})+|(?:/{_NAME}){{2,}})/?|\b[A-Za-z]:\\(?:{_NAME}\\?)+")
+
+
+def public(value) -> str:
+    """`value` as text with each absolute path cut to its last name:
+    'dense-vlad [vocabulary=/home/me/images/tokyo]' -> 'dense-vlad [vocabulary=tokyo]'."""
+    return _ABSOLUTE.sub(lambda found: re.split(r"[/\\]", found.group().rstrip("/\\"))[-1], str(value))
+
+
+def public_data(value):
+    """A record or download entry with `public` applied to every string in it (keys included)."""
+    if isinstance(value, str):
+        return public(value)
+    if isinstance(value, dict):
+        return {public(k) if isinstance(k, str) else k: public_data(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [public_data(v) for v in value]
+    return value
 
 
 def text(value) -> str:
     """Text from data or records (names, labels, paths, reasons) as plain text in Markdown: no
-    HTML element, no link or image, no table cell break can come from it."""
-    out = html.escape(str(value), quote=True).replace("|", "\\|").replace("](", "]\\(")
+    HTML element, no link or image, no table cell break can come from it, no absolute path."""
+    out = html.escape(public(value), quote=True).replace("|", "\\|").replace("](", "]\\(")
     return out.replace("\n", " ")

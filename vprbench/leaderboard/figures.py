@@ -14,6 +14,7 @@ import numpy as np
 
 from ..errors import VPRBenchError
 from .cells import STRUCTURED, UNSTRUCTURED, Board, Cell
+from .escape import public
 from ..evaluation.metrics import successes
 from ..hashing import canonical_hash
 
@@ -52,8 +53,9 @@ def _colours(colours, names) -> dict[str, str]:
 
 
 def _label(value: str) -> str:
-    """A name as literal matplotlib text: a '$' from data would start mathtext."""
-    return str(value).replace("$", r"\$")
+    """A name as literal matplotlib text (a '$' from data would start mathtext), without absolute
+    paths (escape.public)."""
+    return public(value).replace("$", r"\$")
 
 
 class Skipped(Exception):
@@ -425,8 +427,8 @@ def pca_map(records: list[dict], path: Path, *, cache_dir=None, seed: int = 0, p
         mask = np.array([d == domain for d, _ in labels])
         names = sorted({n for d, n in labels if d == domain})
         ax.scatter(*projected[mask].T, s=6, alpha=0.6, color=DOMAIN_COLOURS.get(domain),
-                   label=f"{domain} ({', '.join(names)})")
+                   label=_label(f"{domain} ({', '.join(names)})"))
     weights = ((record.get("provenance") or {}).get("weights") or {}).get("source", "undeclared")
-    ax.set(xlabel="PC 1", ylabel="PC 2", title=f"{record['method']} GeM descriptors (weights: {weights})")
+    ax.set(xlabel="PC 1", ylabel="PC 2", title=_label(f"{record['method']} GeM descriptors (weights: {weights})"))
     ax.legend(fontsize=7)
     return _save(fig, path)

@@ -6,7 +6,6 @@ so a failure (full disk, a kill) leaves the previous section whole and no partia
 from __future__ import annotations
 
 import json
-import re
 import shutil
 import tempfile
 import warnings
@@ -19,11 +18,12 @@ import pandas as pd
 from .. import __version__
 from ..errors import VPRBenchError
 from ..fsutil import LockTimeout, lock
+from ..paths import safe_name
 from ..evaluation.results import read_results
 from ..reference import paper_results
 from ..text import percent, quantity
 from . import figures
-from .escape import text
+from .escape import public_data, text
 from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board, hardware_of, weights_shown
 from ..evaluation.blocks import RULE, for_record
 from ..evaluation.metrics import successes
@@ -311,7 +311,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
                      "Efficiency: R@1 against descriptor bytes and images described per second (this machine)")
     lines += ["### Retrieval mosaics", "", f"Seeded queries (seed {seed}) and their top 5: green frame = positive, red = not.", ""]
     for cell in cells[:MOSAIC_ROWS]:
-        name = f"{slug}-mosaic-{_file_slug(cell.row.name)}.png"
+        name = f"{slug}-mosaic-{safe_name(cell.row.name, 80)}.png"
         lines += _figure(lambda p, c=cell: figures.mosaic(c, p, data_dir=data_dir, seed=seed, cache_dir=cache_dir), out, name,
                          f"{cell.row.name}: queries and their top 5", f"Mosaic of {cell.row.name}")
     download = [_record_download(c) for c in cells]
@@ -359,10 +359,6 @@ def _num(value, digits: int) -> str:
     return "–" if value is None else f"{value:.{digits}f}"
 
 
-def _file_slug(text: str) -> str:
-    return re.sub("-+", "-", "".join(ch if ch.isalnum() or ch in "_." else "-" for ch in text)).strip("-")[:80]
-
-
 def _summary(cell: Cell, stats: dict) -> dict:
     r = cell.record
     entry = {"method": cell.row.label, "weights": weights_shown(cell.row, r), "dataset": cell.column.dataset,
@@ -383,12 +379,13 @@ def _summary(cell: Cell, stats: dict) -> dict:
     entry["ci_resampling"] = for_record(r, cell.arrays).text()  # which queries the intervals draw together
     entry["vprbench"] = (r.get("versions") or {}).get("vprbench")
     entry["provenance"] = json.dumps(r.get("provenance") or {}, sort_keys=True)
-    return entry
+    return public_data(entry)
 
 
 def _record_download(cell: Cell) -> dict:
-    record = {k: v for k, v in cell.record.items() if not k.startswith("_")}
-    if cell.arrays is not None:
+    arrays = cell.arrays is not None  # written from the arrays below, not walked by public_data
+    record = public_data({k: v for k, v in cell.record.items() if not k.startswith("_") and not (arrays and k == "per_query")})
+    if arrays:
         record["per_query"] = {"k": int(cell.arrays["database_indices"].shape[1]),
                                **{name: array.tolist() for name, array in cell.arrays.items()}}
     return record

@@ -9,6 +9,7 @@ import pandas as pd
 
 from ..errors import VPRBenchError
 from ..reference import paper_results
+from ..text import CONTROL, literal
 from .cells import (AGREES, CELL_KS, CONTRIBUTED, IMPORTED, STRUCTURED, UNSTRUCTURED, Board, Cell, Column, Row,  # noqa: F401
                     weights_shown)
 from .escape import text
@@ -79,10 +80,14 @@ def grid(board: Board) -> pd.DataFrame:
 
 
 def render(table: pd.DataFrame, fmt_name: str, board: Board | None = None) -> str:
+    """The grid as Markdown or CSV, or the cells as JSON; control characters of names from records
+    written out (text.literal; JSON escapes them its way), so none breaks a row or reaches a terminal."""
     if fmt_name == "json" and board is not None:
-        return json.dumps([asdict(s) for s in computed(board)], indent=1, ensure_ascii=False)
+        out = json.dumps([asdict(s) for s in computed(board)], indent=1, ensure_ascii=False)
+        return CONTROL.sub(lambda found: f"\\u{ord(found.group()):04x}", out)  # C1 controls, which json keeps
     if fmt_name not in ("markdown", "csv"):
         raise VPRBenchError(f"Unknown leaderboard format {fmt_name!r}; use markdown, csv or json")
+    table = table.rename(index=literal, columns=literal).map(literal)
     return table.to_csv() if fmt_name == "csv" else table.to_markdown()
 
 

@@ -77,9 +77,11 @@ def run_cells(cells: list[Cell], settings: RunSettings | None = None, *, lease_s
                         outcomes[cell.key] = Outcome(cell, MISSING, reason)
                         progress.advance(overall)
                         continue
-                    state, detail = claims.claim(cell.key, lambda c=cell: find_result(c.spec, cache_dir) is not None)
+                    found = []  # the record the claim found complete, looked up (and proven) once
+                    state, detail = claims.claim(
+                        cell.key, lambda c=cell: found.append(find_result(c.spec, cache_dir)) or found[-1] is not None)
                     if state == "complete":
-                        record = find_result(cell.spec, cache_dir)
+                        record = found[-1] if found else find_result(cell.spec, cache_dir)
                         status, why = (SKIPPED, f"already complete ({_minute(record.get('created'))})") if first_look \
                             else (ELSEWHERE, "evaluated by another process")
                         outcomes[cell.key] = Outcome(cell, status, why, record)

@@ -24,6 +24,7 @@ import numpy as np
 
 from ...errors import VPRBenchError
 from ...images import list_images
+from ...text import CONTROL
 from ..manifest import DatasetManifest
 from ..model import GroundTruth
 from . import climbs_out, from_manifest, layout, require
@@ -34,8 +35,6 @@ DEFAULT_RADIUS_M = 25.0
 #: a dataset's name becomes part of file names (stores, records) and is shown: a plain file name
 NAME_RULE = "1 to 100 letters, digits, '.', '_', '+' or '-', starting with a letter or digit, without '..'"
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]{0,99}")
-#: characters a terminal acts on (escape sequences, carriage returns...); tabs and newlines are text
-CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f-\x9f]")
 
 
 def is_safe_name(name: str) -> bool:
