@@ -57,6 +57,7 @@ def loader_workers(settings: RunSettings, method) -> int:
 
 def stage_context(spec: RunSpec, settings: RunSettings, method, dataset, described, progress) -> StageContext:
     """What stages see: the dataset and the retriever's descriptors as its search saw them."""
+    from ..loader import resolve_device
     from ..row_sources import DEFAULT_MEMORY_BUDGET
     from .search import postprocessed
 
@@ -65,7 +66,8 @@ def stage_context(spec: RunSpec, settings: RunSettings, method, dataset, describ
     prefix = {**spec.row_identity(), "stages": [], "protocol": spec.dataset.protocol_hash}
     return StageContext(dataset=dataset, database=database, queries=queries, spec=spec, prefix=prefix,
                         cache_dir=settings.cache_dir, memory_budget=budget, lock_timeout=settings.lock_timeout,
-                        progress=progress, compare=getattr(method, "compare", "cosine"))
+                        progress=progress, compare=getattr(method, "compare", "cosine"),
+                        device=str(getattr(method, "device", None) or resolve_device(settings.device)))
 
 
 @dataclass

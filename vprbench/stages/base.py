@@ -66,7 +66,8 @@ class StageContext:
       `read_rows(start, stop)`, `read_rows_at(sorted indices)`); float32 rows, never re-extracted.
     - `features(name, identity)`: a `FeatureStore` for per-image data (local features), kept in the
       cache beside descriptor stores, resumable and lock-safe (vprbench/stages/features.py).
-    - `memory_budget` (bytes), `progress` (rich-like: add_task/advance), `cache_dir`, `lock_timeout`.
+    - `memory_budget` (bytes), `progress` (rich-like: add_task/advance), `cache_dir`, `lock_timeout`,
+      `device` (the run's torch device, for stages that run a network).
     - `spec`: the run's spec; `prefix`: the identity of everything before this stage (the
       retriever and earlier stages), e.g. to key what a stage caches on what produced its input.
     """
@@ -83,13 +84,22 @@ class StageContext:
     #: how the method compares its descriptors (`Method.compare`): "cosine" or a distance such as
     #: "mean-absolute-difference" (sad), for stages that compute scores of their own
     compare: str = "cosine"
+    device: str = "cpu"
+    _stores: list = field(default_factory=list, repr=False)
 
     def features(self, name: str, identity: dict):
         """The store of per-image data `name` (e.g. "sift") computed as `identity` says (its options,
         the library version): one per dataset image set, resumable, lock-safe."""
         from .features import FeatureStore
 
-        return FeatureStore.for_images(name, identity, self.dataset, self.cache_dir, self.lock_timeout)
+        store = FeatureStore.for_images(name, identity, self.dataset, self.cache_dir, self.lock_timeout)
+        self._stores.append(store)
+        return store
+
+    @property
+    def features_computed(self) -> int:
+        """Images whose per-image data were computed (not read from a store) so far in this run."""
+        return sum(store.computed for store in self._stores)
 
 
 class Stage:
@@ -102,6 +112,8 @@ class Stage:
     - `candidates_needed()`: how many candidates retrieval must hand it (None: the run's largest K).
     - `check(dataset)`: refuse a dataset the stage cannot run on (VPRBenchError), before any work.
     - `stored_bytes(context)`: bytes it keeps per database image (for the record's cost), 0 if none.
+    - `provenance()`: where its learnt parts come from (e.g. {"weights": ...}), recorded with its cost;
+      {} for a stage that learns nothing.
     """
 
     name: str = ""
@@ -123,6 +135,9 @@ class Stage:
 
     def stored_bytes(self, context: StageContext) -> int:
         return 0
+
+    def provenance(self) -> dict:
+        return {}
 
 
 def check_candidates(found, stage: str, queries: int, database: int, k: int) -> Candidates:
@@ -167,3 +182,11 @@ def reordered(indices: np.ndarray, scores: np.ndarray, grid: float | None = None
         scores = np.rint(scores / grid) * grid
     scores, indices = order_results(scores, np.asarray(indices, dtype=np.int64))
     return Candidates(indices, scores.astype(np.float32))
+
+
+def by_count(candidates: Candidates, counts: np.ndarray) -> Candidates:
+    """The candidates re-ordered by `counts` (Q, K) descending (inliers, mutual matches); equal counts
+    keep their retrieval order. The counts become the scores."""
+    order = np.argsort(-np.asarray(counts), axis=1, kind="stable")
+    return Candidates(np.take_along_axis(candidates.indices, order, 1),
+                      np.take_along_axis(np.asarray(counts), order, 1).astype(np.float32))

@@ -15,7 +15,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from .base import Candidates, RerankOptions, Stage, StageContext
+from .base import Candidates, RerankOptions, Stage, StageContext, by_count
 
 #: fewest correspondences each model is estimated from
 MINIMUM = {"fundamental": 8, "homography": 4}
@@ -120,9 +120,7 @@ class SiftRansac(Stage):
                     counts[q, c] = inliers(query["points"][pairs[:, 0]], other["points"][pairs[:, 1]], options)
                 if task is not None:
                     context.progress.advance(task, 1)
-        order = np.lexsort((np.broadcast_to(np.arange(candidates.k), counts.shape), -counts), axis=1)
-        return Candidates(np.take_along_axis(candidates.indices, order, 1),
-                          np.take_along_axis(counts, order, 1).astype(np.float32))
+        return by_count(candidates, counts)
 
     def stored_bytes(self, context: StageContext) -> int:
         return int(self._store(context).bytes_per_image("database") * context.database.row_count)
