@@ -27,7 +27,7 @@ import math
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from .errors import VPRBenchError, closest_names
 from .hashing import canonical_hash, canonical_json
@@ -67,9 +67,16 @@ class StageSpec(_Frozen):
 
     name: str
     options: dict[str, Any] = {}
+    #: option -> "sha256:<hex>" for options that name a file (a stage's weights): identified by content;
+    #: left out of the JSON when empty, so a stage without files reads and writes as before
+    files: dict[str, str] = Field(default_factory=dict, exclude_if=lambda files: not files)
+
+    def identity(self) -> dict:
+        return {"name": self.name, "options": {k: self.files.get(k, v) for k, v in self.options.items()}}
 
     def label(self) -> str:
-        """'sift-ransac@100', with the options that differ from the stage's defaults: 'aqe@20 [n=3]'."""
+        """'sift-ransac@100', with the options that differ from the stage's defaults: 'aqe@20 [n=3]'
+        (weights have a mark of their own)."""
         from .stages.registry import stage_entry
 
         try:
@@ -77,7 +84,8 @@ class StageSpec(_Frozen):
         except (VPRBenchError, ValidationError):  # a plugin gone, or without defaults: its record still reads
             defaults = {}
         depth = f"@{self.options['k']}" if "k" in self.options else ""
-        other = {k: v for k, v in sorted(self.options.items()) if k != "k" and defaults.get(k, object()) != v}
+        other = {k: v for k, v in sorted(self.options.items())
+                 if k not in ("k", "weights") and defaults.get(k, object()) != v}
         return f"{self.name}{depth}" + (f" [{' '.join(f'{k}={_show(v)}' for k, v in other.items())}]" if other else "")
 
 
@@ -126,7 +134,7 @@ class RunSpec(_Frozen):
     def row_identity(self) -> dict:
         """Everything but the dataset and K: a leaderboard row."""
         return {"version": self.version, **self.method_identity(), "search": self.search.model_dump(),
-                "stages": [s.model_dump() for s in self.stages], "store_dtype": self.store_dtype}
+                "stages": [s.identity() for s in self.stages], "store_dtype": self.store_dtype}
 
     def identity(self) -> dict:
         return {**self.row_identity(), "protocol": self.dataset.protocol_hash, "ks": list(self.ks)}
@@ -275,9 +283,10 @@ def spec_for(method, dataset, **parts) -> RunSpec:
     return resolve_spec(method.name, dataset, options=dict(getattr(method, "options", {}) or {}), **parts)
 
 
-def _file_identities(method: str, given: dict) -> dict[str, str]:
+def _file_identities(method: str, given: dict, owner: str = "Method") -> dict[str, str]:
     """Options whose value names an existing file are identified by its content; a vocabulary
-    fitted on a benchmark (dense-vlad's `vocabulary = "17places"`) by that benchmark's protocol hash."""
+    fitted on a benchmark (dense-vlad's `vocabulary = "17places"`) by that benchmark's protocol hash.
+    `owner`: "Method" or "Stage", for the message."""
     from .datasets import dataset_manifest, dataset_manifests, find_protocol
     from .weights import file_sha256
 
@@ -290,7 +299,7 @@ def _file_identities(method: str, given: dict) -> dict[str, str]:
             try:
                 found[name] = "sha256:" + file_sha256(Path(value).expanduser())
             except OSError as error:
-                raise VPRBenchError(f"Method {method!r}: cannot read the file of option {name}, {value} "
+                raise VPRBenchError(f"{owner} {method!r}: cannot read the file of option {name}, {value} "
                                     f"({error.strerror or error}).") from None
     return found
 
@@ -347,7 +356,8 @@ def resolve_search(search) -> SearchSpec:
 def resolve_stage(stage) -> StageSpec:
     """A stage by name (`"aqe"`), as a table (`{name = "sift-ransac", options = {k = 100}}` or with
     the options beside the name), or a StageSpec: its options validated by the stage's own
-    Options model and stored resolved (defaults filled in), so one stage has one identity."""
+    Options model and stored resolved (defaults filled in), so one stage has one identity; an
+    option naming a file (patch-mnn's weights) is identified by the file's content."""
     from .stages.registry import stage_options
 
     if isinstance(stage, StageSpec):
@@ -362,7 +372,8 @@ def resolve_stage(stage) -> StageSpec:
             raise VPRBenchError(f"A stage needs a name, e.g. {{name = \"sift-ransac\", k = 100}}; got {stage!r}.")
     else:
         raise VPRBenchError(f"A stage is a name or a table with a name, got {stage!r}.")
-    return StageSpec(name=name, options=plain(stage_options(name, options).model_dump(mode="json")))
+    resolved = plain(stage_options(name, options).model_dump(mode="json"))
+    return StageSpec(name=name, options=resolved, files=_file_identities(name, resolved, "Stage"))
 
 
 def check_stage_depths(stages: tuple[StageSpec, ...], ks: tuple[int, ...]) -> None:
