@@ -226,9 +226,18 @@ RANDOM = ("random weights (a pipeline check, e.g. without access to gated weight
           "initialisation never fill a cell")
 
 
+def _stage_weights(record: dict) -> list[tuple[str, dict]]:
+    """(stage name, weights provenance) of every stage that runs a network (e.g. patch-mnn)."""
+    return [(str(stage.get("name")), stage["provenance"]["weights"]) for stage in record.get("stages") or []
+            if isinstance(stage, dict) and isinstance((stage.get("provenance") or {}).get("weights"), dict)]
+
+
 def _random(record: dict) -> bool:
     weights = (record.get("provenance") or {}).get("weights") or {}
-    return weights.get("source") == "random" or (record.get("spec") or {}).get("options", {}).get("weights") == "random"
+    stages = (record.get("spec") or {}).get("stages") or []
+    return weights.get("source") == "random" or (record.get("spec") or {}).get("options", {}).get("weights") == "random" \
+        or any(w.get("source") == "random" for _, w in _stage_weights(record)) \
+        or any(isinstance(s, dict) and (s.get("options") or {}).get("weights") == "random" for s in stages)
 
 
 def _max_k(record: dict) -> int:
@@ -278,7 +287,9 @@ def _row_of(record: dict) -> Row:
     spec = RunSpec.model_validate(record["spec"])
     weights, mark = weights_of(record)
     transductive = (record.get("provenance") or {}).get("fitted_on_evaluated_database") is True
-    marks = [m for m in (mark, *spec.marks(), TRANSDUCTIVE if transductive else "") if m]
+    stage_marks = [f"{name} {weights_of({'provenance': {'weights': w}})[1]}" for name, w in _stage_weights(record)
+                   if w.get("source") not in OFFICIAL_WEIGHTS]
+    marks = [m for m in (mark, *stage_marks, *spec.marks(), TRANSDUCTIVE if transductive else "") if m]
     track = record.get("track") or "single-image"  # records before stages had none
     return Row(spec.row_key, spec.label(), weights, "; ".join(marks), track)
 
