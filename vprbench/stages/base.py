@@ -85,7 +85,8 @@ class StageContext:
     #: "mean-absolute-difference" (sad), for stages that compute scores of their own
     compare: str = "cosine"
     device: str = "cpu"
-    _stores: list = field(default_factory=list, repr=False)
+    #: the feature stores handed out in this run (features_computed sums theirs)
+    stores: list = field(default_factory=list, repr=False)
 
     def features(self, name: str, identity: dict):
         """The store of per-image data `name` (e.g. "sift") computed as `identity` says (its options,
@@ -93,13 +94,13 @@ class StageContext:
         from .features import FeatureStore
 
         store = FeatureStore.for_images(name, identity, self.dataset, self.cache_dir, self.lock_timeout)
-        self._stores.append(store)
+        self.stores.append(store)
         return store
 
     @property
     def features_computed(self) -> int:
         """Images whose per-image data were computed (not read from a store) so far in this run."""
-        return sum(store.computed for store in self._stores)
+        return sum(store.computed for store in self.stores)
 
 
 class Stage:
