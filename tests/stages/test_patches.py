@@ -176,3 +176,21 @@ def test_the_command_line_refuses_a_bad_option_in_one_line(shared_data, tmp_path
     assert done.stderr.strip().splitlines() == [
         "error: Stage 'patch-mnn': layer 40 is out of range for dinov2_vits14: it has 12 blocks, 0..11 (0-based)."]
     assert not (tmp_path / "results").exists()
+
+
+def test_the_release_is_taken_through_the_weights_resolver(shared_data, tmp_path, monkeypatch):
+    def offline(url, *args, **kwargs):
+        raise OSError("no network")
+
+    monkeypatch.setattr(torch.hub, "download_url_to_file", offline)
+    settings, spec = RunSettings(data_dir=shared_data, cache_dir=tmp_path), spec_of(shared_data)
+    with pytest.raises(VPRBenchError, match=r"Stage 'patch-mnn': backbone dinov2_vits14: could not download "
+                                            r"dinov2_vits14_pretrain\.pth .*pass it with --rerank-option weights=PATH"):
+        evaluate(spec, settings)
+    backbone = backbone_spec("dinov2_vits14")
+    release = tmp_path / "torch" / "hub" / "checkpoints" / backbone.file_name  # as a download leaves it
+    release.parent.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(2)
+    torch.save(official_state_dict(create_model(backbone), backbone), release)
+    found = evaluate(spec, settings)["stages"][0]["provenance"]["weights"]
+    assert found == {"source": "official", "url": backbone.url, "recognised_by": "download", "release": "dinov2"}
