@@ -210,7 +210,8 @@ class SuperPointLightGlue(Stage):
         import torch
 
         from vprbench.images import load_rgb
-        from vprbench.stages.geometric import inliers, ranked_by_counts
+        from vprbench.stages.base import by_count
+        from vprbench.stages.geometric import inliers
 
         from .superpoint import superpoint_features
 
@@ -242,7 +243,7 @@ class SuperPointLightGlue(Stage):
                         inliers(query["points"][pairs[:, 0]], other["points"][pairs[:, 1]], options)
                 if task is not None:
                     context.progress.advance(task, 1)
-        return ranked_by_counts(candidates, counts)
+        return by_count(candidates, counts)
 
     def stored_bytes(self, context: StageContext) -> int:
         return int(self._store(context).bytes_per_image("database") * context.database.row_count)

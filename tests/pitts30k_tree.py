@@ -28,12 +28,13 @@ def place_image(easting: float, northing: float, size=(64, 48), grain: float = 0
     return np.stack([grey, np.roll(grey, 7, axis=1), 255 - grey], axis=-1).clip(0, 255).astype(np.uint8)
 
 
-def build(shared_data: Path, data: Path, size=(64, 48), grain: float = 0.0) -> SimpleNamespace:
+def build(shared_data: Path, data: Path, size=(64, 48), grain: float = 0.0, image=None) -> SimpleNamespace:
     """<data>/pitts30k in the original NetVLAD packaging: the 10,000 database and 6,816 query
     images under their real names (000/..., queries_real/...) with their real UTM positions in
     datasets/pitts30k_test.mat. One small generated image per distinct position, hard-linked
     to every name taken there (`size`, `grain`: see place_image; 640x480 with grain 8 makes
-    JPEGs of about 86 KB). `data` becomes the data root (it holds pitts30k/)."""
+    JPEGs of about 86 KB; `image(easting, northing)` -> RGB uint8 array replaces place_image).
+    `data` becomes the data root (it holds pitts30k/)."""
     from scipy.io import savemat
 
     base = shared_data / "ground-truth" / "patchnetvlad"
@@ -51,7 +52,8 @@ def build(shared_data: Path, data: Path, size=(64, 48), grain: float = 0.0) -> S
             key = (float(easting), float(northing))
             if key not in pooled:
                 pooled[key] = pool / f"{len(pooled)}.jpg"
-                Image.fromarray(place_image(*key, size, grain)).save(pooled[key], quality=90)
+                made = image(*key) if image is not None else place_image(*key, size, grain)
+                Image.fromarray(made).save(pooled[key], quality=90)
             path = root / name
             if path.parent not in made_folders:
                 path.parent.mkdir(parents=True, exist_ok=True)

@@ -102,8 +102,8 @@ def test_feature_store_resumes_and_refuses_another_extractors_file(tmp_path):
     other = FeatureStore("sift", {"options": {"n": 2}}, "set", {"database": "abc"}, tmp_path)
     other.file("database").parent.mkdir(parents=True)
     store.file("database").rename(other.file("database"))  # a file of another extractor where this one's belongs
-    with pytest.raises(VPRBenchError, match=r"Local features .*database.h5 were computed by another extractor \(sift\), "
-                                            r"not sift as this run computes them: delete that file"):
+    with pytest.raises(VPRBenchError, match=r"Local features .*database.h5 were computed by another extractor \('sift' with options=\{'n': 1\}\), "
+                                            r"not 'sift' with options=\{'n': 2\} as this run computes them: delete that file"):
         with other.opened("database", compute):
             pass
 

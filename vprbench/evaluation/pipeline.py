@@ -68,7 +68,7 @@ def stage_context(spec: RunSpec, settings: RunSettings, method, dataset, describ
     return StageContext(dataset=dataset, database=database, queries=queries, spec=spec, prefix=prefix,
                         cache_dir=settings.cache_dir, memory_budget=budget, lock_timeout=settings.lock_timeout,
                         progress=progress, compare=getattr(method, "compare", "cosine"),
-                        device=resolve_device(settings.device))
+                        device=str(getattr(method, "device", None) or resolve_device(settings.device)))
 
 
 @dataclass

@@ -84,15 +84,23 @@ class StageContext:
     #: how the method compares its descriptors (`Method.compare`): "cosine" or a distance such as
     #: "mean-absolute-difference" (sad), for stages that compute scores of their own
     compare: str = "cosine"
-    #: the torch device the run uses (the method's: "cpu", "cuda", ...), for stages that run networks
     device: str = "cpu"
+    #: the feature stores handed out in this run (features_computed sums theirs)
+    stores: list = field(default_factory=list, repr=False)
 
     def features(self, name: str, identity: dict):
         """The store of per-image data `name` (e.g. "sift") computed as `identity` says (its options,
         the library version): one per dataset image set, resumable, lock-safe."""
         from .features import FeatureStore
 
-        return FeatureStore.for_images(name, identity, self.dataset, self.cache_dir, self.lock_timeout)
+        store = FeatureStore.for_images(name, identity, self.dataset, self.cache_dir, self.lock_timeout)
+        self.stores.append(store)
+        return store
+
+    @property
+    def features_computed(self) -> int:
+        """Images whose per-image data were computed (not read from a store) so far in this run."""
+        return sum(store.computed for store in self.stores)
 
 
 class Stage:
@@ -195,3 +203,11 @@ def reordered(indices: np.ndarray, scores: np.ndarray, grid: float | None = None
         scores = np.rint(scores / grid) * grid
     scores, indices = order_results(scores, np.asarray(indices, dtype=np.int64))
     return Candidates(indices, scores.astype(np.float32))
+
+
+def by_count(candidates: Candidates, counts: np.ndarray) -> Candidates:
+    """The candidates re-ordered by `counts` (Q, K) descending (inliers, mutual matches); equal counts
+    keep their retrieval order. The counts become the scores."""
+    order = np.argsort(-np.asarray(counts), axis=1, kind="stable")
+    return Candidates(np.take_along_axis(candidates.indices, order, 1),
+                      np.take_along_axis(np.asarray(counts), order, 1).astype(np.float32))

@@ -25,8 +25,8 @@ from ..fsutil import cache_error, lock
 from ..hashing import canonical_hash, canonical_json
 from ..paths import cache_root, safe_name
 
-#: decoded images kept in memory per open split (database images recur across queries)
-KEPT = 512
+#: bytes of per-image arrays kept in memory per open split (database images recur across queries)
+KEPT_BYTES = 256 * 2**20
 
 
 class FeatureStore:
@@ -34,6 +34,8 @@ class FeatureStore:
                  lock_timeout: float | None = None):
         self.name, self.identity_json = name, canonical_json({"name": name, **identity})
         self.images_keys, self.lock_timeout = images_keys, lock_timeout
+        #: images computed (not read) through this store: 0 on a run served from the cache
+        self.computed = 0
         self.path = (cache_root(cache_dir) / "features" / f"{safe_name(name)}-{canonical_hash(json.loads(self.identity_json))}"
                      / f"{safe_name(label)}-{canonical_hash(images_keys)}")
 
@@ -52,8 +54,10 @@ class FeatureStore:
         with lock(self.path / ".lock", self.lock_timeout, what=f"local features {self.path}"):
             handle = self._open(path, split)
             kept: OrderedDict[int, dict] = OrderedDict()
+            held = 0
 
             def get(row: int) -> dict[str, np.ndarray]:
+                nonlocal held
                 if row in kept:
                     kept.move_to_end(row)
                     return kept[row]
@@ -63,9 +67,11 @@ class FeatureStore:
                 else:
                     found = {key: np.asarray(value) for key, value in compute(row).items()}
                     self._write(handle, row, found, path)
+                    self.computed += 1
                 kept[row] = found
-                if len(kept) > KEPT:
-                    kept.popitem(last=False)
+                held += sum(a.nbytes for a in found.values())
+                while held > KEPT_BYTES and len(kept) > 1:
+                    held -= sum(a.nbytes for a in kept.popitem(last=False)[1].values())
                 return found
 
             try:
@@ -90,8 +96,13 @@ class FeatureStore:
         found, images = handle.attrs.get("feature_identity"), handle.attrs.get("images_key")
         if found != self.identity_json or images != self.images_keys[split]:
             handle.close()
-            what = f"another extractor ({_shown(found)})" if found != self.identity_json else "other images"
-            raise VPRBenchError(f"Local features {path} were computed by {what}, not {self.name} as this run computes "
+            ours = self.name
+            if found != self.identity_json:
+                theirs, ours = _differing(found, self.identity_json)
+                what = f"another extractor ({theirs})"
+            else:
+                what = "other images"
+            raise VPRBenchError(f"Local features {path} were computed by {what}, not {ours} as this run computes "
                                 "them: delete that file (it is recomputed).")
         return handle
 
@@ -120,8 +131,19 @@ class FeatureStore:
         return total / len(groups) if groups else 0.0
 
 
-def _shown(value) -> str:
+def _differing(found, ours: str) -> tuple[str, str]:
+    """('sift with max_features=500', 'sift with max_features=2000'): each identity's name and the
+    entries where the two differ (shown escaped by repr; the file's attribute is data, not trusted)."""
+    mine = json.loads(ours)
     try:
-        return str(json.loads(value).get("name"))
-    except (TypeError, ValueError, AttributeError):
-        return "unknown"
+        theirs = json.loads(found)
+        theirs = theirs if isinstance(theirs, dict) else {}
+    except (TypeError, ValueError):
+        theirs = {}
+    keys = sorted(k for k in set(mine) | set(theirs) if k != "name" and mine.get(k) != theirs.get(k))
+
+    def shown(identity: dict) -> str:
+        name = identity.get("name", "unknown")
+        detail = ", ".join(f"{k}={identity.get(k)!r}" for k in keys[:4]) + (", ..." if len(keys) > 4 else "")
+        return f"{name!r} with {detail}" if detail else repr(name)
+    return shown(theirs), shown(mine)

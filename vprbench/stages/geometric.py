@@ -15,7 +15,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from .base import Candidates, RerankOptions, Stage, StageContext
+from .base import Candidates, RerankOptions, Stage, StageContext, by_count
 
 #: fewest correspondences each model is estimated from
 MINIMUM = {"fundamental": 8, "homography": 4}
@@ -86,14 +86,6 @@ def inliers(query_points: np.ndarray, database_points: np.ndarray, options: Sift
     return 0 if mask is None else int(np.count_nonzero(mask))
 
 
-def ranked_by_counts(candidates: Candidates, counts: np.ndarray) -> Candidates:
-    """The candidates re-ordered by `counts` (inliers, matches), most first; equal counts keep their
-    retrieval order. The counts are the new scores."""
-    order = np.lexsort((np.broadcast_to(np.arange(candidates.k), counts.shape), -counts), axis=1)
-    return Candidates(np.take_along_axis(candidates.indices, order, 1),
-                      np.take_along_axis(counts, order, 1).astype(np.float32))
-
-
 class SiftRansac(Stage):
     track = "re-ranked"
     Options = SiftRansacOptions
@@ -128,7 +120,7 @@ class SiftRansac(Stage):
                     counts[q, c] = inliers(query["points"][pairs[:, 0]], other["points"][pairs[:, 1]], options)
                 if task is not None:
                     context.progress.advance(task, 1)
-        return ranked_by_counts(candidates, counts)
+        return by_count(candidates, counts)
 
     def stored_bytes(self, context: StageContext) -> int:
         return int(self._store(context).bytes_per_image("database") * context.database.row_count)

@@ -63,6 +63,8 @@ def core_stages() -> list[dict]:
     return [
         {"name": "sift-ransac", "target": "vprbench.stages.geometric:SiftRansac",
          "description": "SIFT/RootSIFT, ratio test, USAC on a fundamental matrix or homography; score = inliers"},
+        {"name": "patch-mnn", "target": "vprbench.stages.patches:PatchMNN",
+         "description": "dense patch matching: mutual nearest neighbours of an AnyLoc backbone's per-patch features"},
         {"name": "aqe", "target": "vprbench.stages.expansion:AlphaQE",
          "description": "alpha query expansion on the global descriptors (re-ranks the top K)"},
         {"name": "dba", "target": "vprbench.stages.expansion:DatabaseAugmentation",
@@ -115,6 +117,10 @@ def stage_options(name: str, options: dict):
         if problem["type"] == "extra_forbidden":
             raise VPRBenchError(f"Stage {name!r} does not take option {option}.{closest_names(option, cls.Options.model_fields)} "
                                 f"It accepts: {accepted}.") from None
+        if problem["type"] == "value_error":  # a check of the stage's own: its message as written
+            message = str(problem["ctx"]["error"]).rstrip(".")
+            raise VPRBenchError(f"Stage {name!r} option {option}: {message}." if problem["loc"] else
+                                f"Stage {name!r}: {message}.") from None
         raise VPRBenchError(f"Stage {name!r} option {option}: {problem['msg']} (got {problem.get('input')!r}).") from None
 
 

@@ -45,8 +45,9 @@ def _peak_rss_bytes() -> int:
 def run_stages(stages, candidates: Candidates, context: StageContext, ks, positives=None) -> tuple[Candidates, list[dict]]:
     """The candidates after every stage, in order, and each stage's cost: ms per query for the stage
     alone, bytes it stores per database image, the process's peak RSS after it and how far the stage
-    raised it (0 when it stayed under an earlier peak; no tracer, so the timing is the stage's own), and
-    where its weights came from (`provenance`, for a stage that has any).
+    raised it (0 when it stayed under an earlier peak; no tracer, so the timing is the stage's own), how
+    many images' per-image data it computed rather than read from the cache, and where its weights
+    come from when it has any.
     With `positives`, each cost has the stage's ceiling: the % of queries with a positive among the
     candidates it was given (a re-ranker of them can reach no higher recall)."""
     queries, database = candidates.query_count, context.database.row_count
@@ -54,14 +55,13 @@ def run_stages(stages, candidates: Candidates, context: StageContext, ks, positi
     for stage in stages:
         needed = stage.candidates_needed()
         given = candidates.top(needed) if needed is not None else candidates
-        before = _peak_rss_bytes()
+        before, computed = _peak_rss_bytes(), context.features_computed
         started = time.perf_counter()
         found = stage.apply(given, context)
         seconds = time.perf_counter() - started
         after = _peak_rss_bytes()
         candidates = check_candidates(found, stage.name, queries, database, ks[-1])
-        stored = int(stage.stored_bytes(context))
-        provenance = stage.provenance()  # where its weights came from, when it has any
+        stored, provenance = int(stage.stored_bytes(context)), stage.provenance()
         ceiling = {}
         if positives is not None:
             from ..evaluation.metrics import correct_at
@@ -71,5 +71,6 @@ def run_stages(stages, candidates: Candidates, context: StageContext, ks, positi
                       "candidates_in": given.k, "ms_per_query": round(1000 * seconds / max(queries, 1), 3),
                       "seconds": round(seconds, 3), "stored_bytes_per_database_image": round(stored / max(database, 1), 1),
                       "peak_rss_bytes": after, "peak_rss_growth_bytes": after - before,
+                      "features_computed": context.features_computed - computed,
                       **({"provenance": provenance} if provenance else {})})
     return candidates, costs
