@@ -113,7 +113,8 @@ def test_evaluate_reads_weights_from_the_run_settings_cache(shared_data, tmp_pat
     the default cache (which stays empty), and downloads nothing."""
     from vprbench.datasets import load_dataset
     from vprbench.evaluation import evaluate
-    from vprbench.features.backbones import backbone_spec, create_model, official_state_dict
+    from vprbench.features.backbones import backbone_spec, create_model
+    from release_formats import official_state_dict
     from vprbench.paths import default_cache
     from vprbench.spec import RunSettings, resolve_spec
 
