@@ -83,8 +83,9 @@ class BackboneEntry(BaseModel):
     def source(self) -> WeightSource:
         """The release URL when there is one, else the hub file."""
         if self.url:
-            return WeightSource(self.file_name, url=self.url, page=self.page, sha256=self.sha256)
-        return WeightSource(self.file_name, hub=self.hub, page=self.page)
+            return WeightSource(self.file_name, url=self.url, page=self.page, sha256=self.sha256, gated=self.gated,
+                                licence=self.licence)
+        return WeightSource(self.file_name, hub=self.hub, page=self.page, gated=self.gated, licence=self.licence)
 
     @property
     def timm_name(self) -> str:
