@@ -65,6 +65,9 @@ class BackboneEntry(BaseModel):
     def _consistent(self):
         if self.resize == "fixed" and self.input_size is None:
             raise ValueError("resize = 'fixed' needs input_size = [HEIGHT, WIDTH]")
+        if self.input_size and self.position_interpolation == "timm" and any(s % self.patch for s in self.input_size):
+            raise ValueError(f"input_size {self.input_size[0]} x {self.input_size[1]} is not a multiple of the patch "
+                             f"{self.patch} (timm's embedding needs one); give multiples of {self.patch}")
         if self.cls == "final-norm" and not self.cls_token:
             raise ValueError("cls = 'final-norm' needs a CLS token")
         if self.url is None and self.hub is None:
