@@ -73,6 +73,18 @@ def _dinov3(state, model, spec):
 
 
 def _perception_encoder(state, model, spec):
+    """conv1, class_embedding, positional_embedding, transformer.resblocks.N, ln_pre/ln_post; a core
+    model's attention pool (probe, nn.MultiheadAttention's packed in_proj, layernorm) and its
+    projection `proj` (width x output dim), which timm converts to a head these models leave out."""
+    pool = {"attn_pool.latent": "attn_pool.probe", "attn_pool.proj.": "attn_pool.attn.out_proj.",
+            "attn_pool.norm.": "attn_pool.layernorm."}
+    if "attn_pool.q.weight" in state:
+        for part in ("weight", "bias"):
+            state[f"attn_pool.attn.in_proj_{part}"] = torch.cat([state.pop(f"attn_pool.q.{part}"),
+                                                                 state.pop(f"attn_pool.kv.{part}")])
+        state = {next((k.replace(a, b) for a, b in pool.items() if k.startswith(a)), k): v for k, v in state.items()}
+        state["proj"] = torch.randn(model.embed_dim, model.embed_dim)
+    state = {("ln_post." + k[5:] if k.startswith("norm.") else k): v for k, v in state.items()}
     swaps = [("patch_embed.proj", "conv1"), ("pos_embed", "positional_embedding"), ("blocks.", "transformer.resblocks."),
              ("norm_pre", "ln_pre"), (".norm1.", ".ln_1."), (".norm2.", ".ln_2."), ("attn.qkv.", "attn.in_proj_"),
              ("attn.proj", "attn.out_proj"), ("mlp.fc1", "mlp.c_fc"), ("mlp.fc2", "mlp.c_proj")]

@@ -33,7 +33,7 @@ def tiny(name: str, monkeypatch, **size) -> BackboneEntry:
 
 
 RELEASES = ["dino_vits8", "dinov2_vits14", "dinov2_vitg14", "dinov2_vits14_reg", "dinov2_vitg14_reg", "dinov3_vits16",
-            "dinov3_vitl16_sat", "pe_spatial_s16", "radio_v3_b16", "siglip2_b16"]
+            "dinov3_vitl16_sat", "pe_spatial_s16", "pe_core_s16", "radio_v3_b16", "siglip2_b16"]
 
 
 @pytest.mark.parametrize("name", RELEASES)

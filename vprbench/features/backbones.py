@@ -134,6 +134,9 @@ def convert_official(state: dict[str, torch.Tensor], model: nn.Module) -> dict[s
     mismatched = _grid_mismatches(state, expected)
     state = _drop_unplaced_biases(state, expected)
     converted = filter_fn(state, model) if filter_fn is not None and not mismatched else state
+    # a classifier or projection head beside the trunk (timm's head.*, e.g. Perception Encoder core's
+    # proj): these models are built without one, and AnyLoc reads the trunk
+    converted = {k: v for k, v in converted.items() if k in expected or not k.startswith("head.")}
     mismatched += [f"{k}: file {tuple(v.shape)} vs model {tuple(expected[k].shape)}" for k, v in converted.items()
                    if k in expected and v.shape != expected[k].shape and not any(m.startswith(k + ":") for m in mismatched)]
     missing, unexpected = set(expected) - set(converted), set(converted) - set(expected)
