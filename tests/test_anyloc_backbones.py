@@ -178,3 +178,24 @@ def test_a_facet_the_attention_cannot_give_is_refused_naming_both(monkeypatch):
         create_method("anyloc", backbone="tokens_only", facet="value", weights="random", aggregation="gem")
     assert create_method("anyloc", backbone="tokens_only", facet="token", weights="random", aggregation="gem",
                          layer=3).facet == "token"
+
+
+@pytest.mark.parametrize("name", ["dinov3_vits16", "pe_spatial_s16", "radio_v3_b16", "siglip2_b16", "dinov2_vits14_reg",
+                                  "dinov2_vits14", "dino_vits8"])
+def test_reduced_precision_flows_through_every_facet(name):
+    """bf16 autocast, what precision=bf16 runs on a GPU, here on CPU (dtype flow only; speed is a GPU
+    matter): q, k and v leave the hook in the autocast dtype (RoPE, computed in float32, cast back
+    as timm does), the token facet is the float32 residual stream, all within bf16's rounding of fp32."""
+    from vprbench.features.dense import FACETS
+
+    spec = backbone_spec(name)
+    torch.manual_seed(0)
+    model = create_model(spec, **TINY)
+    images = torch.randn(1, 3, 2 * spec.patch, 3 * spec.patch)
+    for facet in FACETS:
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            reduced = DenseExtractor(model, spec, 1, facet)(images)
+        full = DenseExtractor(model, spec, 1, facet)(images)
+        assert reduced.dtype == (torch.float32 if facet == "token" else torch.bfloat16) and full.dtype == torch.float32
+        cosine = torch.nn.functional.cosine_similarity(reduced.float(), full, dim=-1)
+        assert cosine.min() > 0.999, (facet, cosine.min())
