@@ -52,7 +52,7 @@ def dinov3_state(monkeypatch):
     (lambda s: {k.replace("blocks.", "layers."): v for k, v in s.items()},  # another architecture's names
      ["Missing keys: blocks.0.attn.proj.bias", "Unexpected keys: layers.0.attn.proj.bias"]),
     (lambda s: {k: v for k, v in s.items() if k != "norm.weight"}, ["Missing keys: norm.weight. Unexpected keys: none"]),
-    (lambda s: {**s, "head.weight": torch.zeros(10, 384)}, ["Missing keys: none. Unexpected keys: head.weight"]),
+    (lambda s: {**s, "blocks.0.attn.gate": torch.zeros(384)}, ["Missing keys: none. Unexpected keys: blocks.0.attn.gate"]),
     (lambda s: {**s, "cls_token": torch.zeros(1, 1, 768)}, ["Shape mismatches: cls_token: file (1, 1, 768) vs model "
                                                             "(1, 1, 384)"]),
 ])
