@@ -180,7 +180,7 @@ def test_evaluate_reads_weights_from_the_run_settings_cache(shared_data, tmp_pat
                                                     "resize": "28x28"})
     record = evaluate(spec, RunSettings(cache_dir=cache), dataset=dataset)
     assert record["provenance"]["weights"] == {"source": "official", "url": backbone.url, "recognised_by": "download",
-                                               "release": "dinov2"}
+                                               "release": "dinov2", "sha256": file_sha256(release)}
     assert record["descriptor_dim"] == 384
     assert not list(default_cache().rglob(backbone.file_name))
     with pytest.raises(VPRBenchError, match=r"could not download dinov2_vits14_pretrain\.pth .*no network"):
