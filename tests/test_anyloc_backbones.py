@@ -4,8 +4,10 @@ import pytest
 import torch
 
 from vprbench import VPRBenchError
-from vprbench.features.backbones import convert_official, create_model, official_state_dict
-from vprbench.features.catalogue import _entries, backbone_spec, backbones
+from vprbench.features.backbones import create_model, load_backbone
+from vprbench.features.catalogue import BackboneEntry, _entries, backbone_spec, backbones
+from vprbench.features.dense import DenseExtractor
+from release_formats import official_state_dict, siglip2_npz, write_release
 
 
 @pytest.mark.parametrize("name", sorted(backbones()))
@@ -13,25 +15,83 @@ def test_entry_matches_its_timm_architecture(name):
     spec = backbone_spec(name)
     model = create_model(spec, empty=True)
     assert (len(model.blocks), model.embed_dim) == (spec.depth, spec.width)
-    assert model.patch_embed.patch_size[0] == spec.patch
+    assert (getattr(model, "patch_embed", None) or model.embeds).patch_size[0] == spec.patch
     assert getattr(model, "num_prefix_tokens", 1) == spec.prefix_tokens
     assert (getattr(model, "rope", None) is not None) == (spec.position == "rope")
     assert spec.source.where.startswith("https://")
 
 
-@pytest.mark.parametrize("name", ["dinov2_vitg14", "dinov2_vits14_reg", "dinov3_vits16", "dino_vits8"])
-def test_official_format_file_of_a_tiny_model_loads_exactly(name):
-    spec = backbone_spec(name)
+def tiny(name: str, monkeypatch, **size) -> BackboneEntry:
+    """The entry `name` at a tiny size (2 blocks of width 96; its own timm architecture), listed
+    as `tiny-NAME` so the whole loader runs on it."""
+    size = {"depth": 2, "embed_dim": 96, "num_heads": 2, **size}  # 96: a SwiGLU hidden width stays even
+    entry = backbone_spec(name)
+    entry = entry.model_copy(update={"name": f"tiny-{name}", "depth": size["depth"], "width": size["embed_dim"],
+                                     "timm_kwargs": {**entry.timm_kwargs, **size}})
+    monkeypatch.setitem(backbones(), entry.name, entry)
+    return entry
+
+
+RELEASES = ["dino_vits8", "dinov2_vits14", "dinov2_vitg14", "dinov2_vits14_reg", "dinov2_vitg14_reg", "dinov3_vits16",
+            "dinov3_vitl16_sat", "pe_spatial_s16", "pe_core_s16", "radio_v3_b16", "siglip2_b16"]
+
+
+@pytest.mark.parametrize("name", RELEASES)
+def test_release_file_of_every_family_loads_exactly(name, tmp_path, monkeypatch):
+    """A random model written with its release's own keys, shapes and layout (tests/release_formats.py),
+    read through the loader: every tensor equal, no buffer left without storage, and the same
+    features as the model it was written from."""
+    spec = tiny(name, monkeypatch)
     torch.manual_seed(0)
-    tiny = dict(depth=2, embed_dim=96, num_heads=2)  # 96: the SwiGLU hidden width stays even
-    model = create_model(spec, **tiny)
-    official = official_state_dict(model, spec)
-    for timm_part, official_part in spec.official_rename.items():
-        assert not any(timm_part in k for k in official) and any(official_part in k for k in official)
-    converted = convert_official(official, create_model(spec, empty=True, **tiny))
-    assert set(converted) == set(model.state_dict())
-    for key, value in model.state_dict().items():
-        assert torch.equal(converted[key], value), key
+    model = create_model(spec)
+    path = write_release(model, spec, tmp_path)
+    loaded, _, identity = load_backbone(spec.name, path)
+    assert identity.startswith("sha256:")
+    assert not any(t.is_meta for t in [*loaded.parameters(), *loaded.buffers()])
+    expected = model.state_dict()
+    assert set(loaded.state_dict()) == set(expected)
+    for key, value in expected.items():
+        assert torch.equal(loaded.state_dict()[key], value), key
+    images = torch.randn(1, 3, 2 * spec.patch, 3 * spec.patch)
+    for facet in ("token", "value"):
+        assert torch.equal(DenseExtractor(loaded, spec, 1, facet)(images), DenseExtractor(model, spec, 1, facet)(images))
+
+
+def test_dinov3_biases_that_add_something_are_refused(tmp_path, monkeypatch):
+    """timm's DINOv3 has no q/k/v biases; the release's are zero (and k is masked): a file whose
+    biases are not is refused rather than silently changed."""
+    spec = tiny("dinov3_vits16", monkeypatch)
+    model = create_model(spec)
+    state = official_state_dict(model, spec)
+    state["blocks.1.attn.qkv.bias"][96 + 3] = 0.5  # a key bias, masked out by the release's bias_mask
+    torch.save(state, tmp_path / "masked.pth")
+    load_backbone(spec.name, tmp_path / "masked.pth")
+    state["blocks.1.attn.qkv.bias"][3] = 0.5  # a query bias
+    torch.save(state, tmp_path / "biased.pth")
+    with pytest.raises(VPRBenchError, match=r"non-zero attention biases \(blocks.1.attn.qkv.bias\)"):
+        load_backbone(spec.name, tmp_path / "biased.pth")
+
+
+def test_a_release_of_another_size_or_family_is_refused(tmp_path, monkeypatch):
+    import numpy as np
+
+    spec = tiny("siglip2_b16", monkeypatch)
+    arrays = siglip2_npz(create_model(spec))
+    wider = {k: np.repeat(v, 2, axis=1) if k.endswith("pos_embedding") else v for k, v in arrays.items()}
+    np.savez(tmp_path / "grid.npz", **wider)  # 392 positions: another input size
+    with pytest.raises(VPRBenchError, match=r"Shape mismatches: pos_embed: file \(1, 392, 96\) vs model \(1, 196, 96\)"):
+        load_backbone(spec.name, tmp_path / "grid.npz")
+    np.savez(tmp_path / "partial.npz", **{k: v for k, v in arrays.items() if "encoder_norm/scale" not in k})
+    with pytest.raises(VPRBenchError, match="Missing keys: .*encoder_norm/scale"):
+        load_backbone(spec.name, tmp_path / "partial.npz")
+    with pytest.raises(VPRBenchError, match=r"\.npz files are read for timm VisionTransformer architectures only"):
+        load_backbone(tiny("dinov3_vits16", monkeypatch).name, tmp_path / "partial.npz")
+    for name, other in (("pe_spatial_s16", "radio_v3_b16"), ("radio_v3_b16", "dinov3_vits16"),
+                        ("dinov2_vits14_reg", "dinov2_vitb14_reg")):
+        source = tiny(name, monkeypatch)
+        path = write_release(create_model(source), source, tmp_path)
+        with pytest.raises(VPRBenchError, match="does not fit this backbone"):
+            load_backbone(tiny(other, monkeypatch, embed_dim=192 if other.startswith("dinov2_vitb") else 96).name, path)
 
 
 def test_timm_names_any_vit_and_refuses_models_without_patch_tokens():
@@ -59,8 +119,6 @@ def test_dense_features_of_every_new_family(name):
     """Shapes, every prefix token dropped, and q/k/v equal to a manual computation from the block's
     input (RoPE applied to the query and key of patch tokens where the family has it)."""
     from timm.layers import apply_rot_embed_cat
-
-    from vprbench.features.dense import DenseExtractor
 
     spec = backbone_spec(name)
     torch.manual_seed(0)
@@ -111,57 +169,6 @@ def test_anyloc_on_a_new_backbone_records_it_and_refuses_a_missing_cls(shared_da
         create_method("anyloc", backbone="siglip2_b16", weights="random", aggregation="cls")
 
 
-def _pe_release(state):
-    """timm's PE keys -> the perception_models release's (conv1, class_embedding, positional_embedding,
-    transformer.resblocks.N.{ln_1,attn.in_proj_*,attn.out_proj,ln_2,mlp.c_fc,mlp.c_proj}), shapes as released."""
-    swaps = [("patch_embed.proj", "conv1"), ("pos_embed", "positional_embedding"), ("blocks.", "transformer.resblocks."),
-             ("norm_pre", "ln_pre"), (".norm1.", ".ln_1."), (".norm2.", ".ln_2."), ("attn.qkv.", "attn.in_proj_"),
-             ("attn.proj", "attn.out_proj"), ("mlp.fc1", "mlp.c_fc"), ("mlp.fc2", "mlp.c_proj")]
-    out = {}
-    for key, value in state.items():
-        if key == "cls_token":
-            out["class_embedding"] = value.reshape(-1)
-            continue
-        for timm_part, release_part in swaps:
-            key = key.replace(timm_part, release_part)
-        out[key] = value[0] if key == "positional_embedding" else value
-    return out
-
-
-def _radio_release(state):
-    """timm's RADIO keys -> the C-RADIO checkpoint's ({"state_dict": radio_model.model.*}: a bias-free
-    patch_generator.embedder linear, one cls_token.token holding CLS and registers, blocks as timm)."""
-    p = "radio_model.model."
-    out = {f"{p}patch_generator.embedder.weight": state["patch_embed.proj.weight"].flatten(1),
-           f"{p}patch_generator.pos_embed": state["pos_embed"],
-           f"{p}patch_generator.cls_token.token": torch.cat([state["cls_token"][0], state["reg_token"][0]]),
-           "radio_model.input_conditioner.norm_mean": torch.zeros(3, 1, 1)}  # dropped by the converter
-    out.update({p + k.replace(".gamma", ".grandma"): v for k, v in state.items() if k.startswith("blocks.")})
-    return {"state_dict": out, "args": {"model": "vit_base_patch16_224"}}
-
-
-@pytest.mark.parametrize("name, release", [("pe_spatial_s16", _pe_release), ("radio_v3_b16", _radio_release)])
-def test_release_format_file_of_a_new_family_loads_exactly(name, release, tmp_path):
-    """A random tiny model written with the release's own key names and shapes, read back through
-    the loader's file reader and converter: every tensor equal, nothing missing or left over."""
-    from vprbench.features.backbones import read_checkpoint
-
-    spec = backbone_spec(name)
-    torch.manual_seed(0)
-    model = create_model(spec, **TINY)
-    if "patch_embed.proj.bias" in model.state_dict():
-        torch.nn.init.zeros_(model.patch_embed.proj.bias)  # RADIO's patch embedding has no bias
-    path = tmp_path / "release.pth"
-    torch.save(release(model.state_dict()), path)
-    converted = convert_official(read_checkpoint(path), create_model(spec, empty=True, **TINY))
-    assert set(converted) == set(model.state_dict())
-    for key, value in model.state_dict().items():
-        assert torch.equal(converted[key], value), key
-    wrong = create_model(backbone_spec("dinov3_vits16"), empty=True, **TINY)
-    with pytest.raises(VPRBenchError, match="does not fit this backbone"):
-        convert_official(read_checkpoint(path), wrong)
-
-
 def test_a_facet_the_attention_cannot_give_is_refused_naming_both(monkeypatch):
     from vprbench import create_method
 
@@ -171,3 +178,24 @@ def test_a_facet_the_attention_cannot_give_is_refused_naming_both(monkeypatch):
         create_method("anyloc", backbone="tokens_only", facet="value", weights="random", aggregation="gem")
     assert create_method("anyloc", backbone="tokens_only", facet="token", weights="random", aggregation="gem",
                          layer=3).facet == "token"
+
+
+@pytest.mark.parametrize("name", ["dinov3_vits16", "pe_spatial_s16", "radio_v3_b16", "siglip2_b16", "dinov2_vits14_reg",
+                                  "dinov2_vits14", "dino_vits8"])
+def test_reduced_precision_flows_through_every_facet(name):
+    """bf16 autocast, what precision=bf16 runs on a GPU, here on CPU (dtype flow only; speed is a GPU
+    matter): q, k and v leave the hook in the autocast dtype (RoPE, computed in float32, cast back
+    as timm does), the token facet is the float32 residual stream, all within bf16's rounding of fp32."""
+    from vprbench.features.dense import FACETS
+
+    spec = backbone_spec(name)
+    torch.manual_seed(0)
+    model = create_model(spec, **TINY)
+    images = torch.randn(1, 3, 2 * spec.patch, 3 * spec.patch)
+    for facet in FACETS:
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            reduced = DenseExtractor(model, spec, 1, facet)(images)
+        full = DenseExtractor(model, spec, 1, facet)(images)
+        assert reduced.dtype == (torch.float32 if facet == "token" else torch.bfloat16) and full.dtype == torch.float32
+        cosine = torch.nn.functional.cosine_similarity(reduced.float(), full, dim=-1)
+        assert cosine.min() > 0.999, (facet, cosine.min())

@@ -7,7 +7,8 @@ import torch
 import torch.nn.functional as F
 
 from vprbench import VPRBenchError
-from vprbench.features.backbones import backbone_spec, create_model, load_backbone, official_state_dict
+from vprbench.features.backbones import backbone_spec, create_model, load_backbone
+from release_formats import official_state_dict
 from vprbench.features.dense import DenseExtractor, interpolate_pos_embed
 from vprbench.features.preprocess import crop_offsets, resize_tensor
 from vprbench.features.resize import dataset_resize, parse_size

@@ -4,7 +4,8 @@ import pytest
 import torch
 
 from vprbench import VPRBenchError, available_methods, create_method
-from vprbench.features.backbones import backbone_spec, create_model, official_state_dict
+from vprbench.features.backbones import backbone_spec, create_model
+from release_formats import official_state_dict
 from vprbench.methods.anyloc import AnyLoc, presets
 
 

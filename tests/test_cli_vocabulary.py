@@ -85,7 +85,8 @@ def test_fit_map_vocabulary_on_real_dataset(shared_data, monkeypatch, capsys, tm
 def test_fit_with_the_anyloc_method_then_use_by_name(shared_data, tmp_path, capsys):
     """The real AnyLoc features (random-initialised ViT-S/14, block 0) through the CLI."""
     from vprbench import create_method
-    from vprbench.features.backbones import backbone_spec, create_model, official_state_dict
+    from vprbench.features.backbones import backbone_spec, create_model
+    from release_formats import official_state_dict
 
     torch.manual_seed(0)
     spec = backbone_spec("dinov2_vits14")

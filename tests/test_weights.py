@@ -44,6 +44,7 @@ def _refuse_network(monkeypatch):
 
     monkeypatch.setattr(torch.hub, "download_url_to_file", refuse)
     monkeypatch.setattr(huggingface_hub, "hf_hub_download", refuse)
+    monkeypatch.setattr(huggingface_hub, "get_hf_file_metadata", refuse)
 
 
 def test_local_file_or_folder_is_identified_by_its_sha256(tmp_path):
@@ -88,6 +89,7 @@ def test_hub_file_downloads_into_the_cache_given(tmp_path, monkeypatch):
         return str(path)
 
     monkeypatch.setattr(huggingface_hub, "hf_hub_download", fake)
+    monkeypatch.setattr(huggingface_hub, "get_hf_file_metadata", lambda url, **kwargs: None)
     source = WeightSource("model.safetensors", hub="org/model")
     found = resolve_weights(source, None, "toy", cache_dir=tmp_path / "c")
     assert found.identity == "hf:org/model/model.safetensors" == weights_identity(source, None, "toy")
@@ -99,7 +101,7 @@ def test_hub_file_downloads_into_the_cache_given(tmp_path, monkeypatch):
 def test_offline_or_page_only_says_how_to_supply(tmp_path, monkeypatch):
     _refuse_network(monkeypatch)
     with pytest.raises(VPRBenchError, match=r"toy: could not download w\.pth from https://example\.org/w\.pth "
-                                            r"\(no network in tests\)\. Offline\? download w\.pth"):
+                                            r"\(OSError: no network in tests\)\. Offline\? download w\.pth"):
         resolve_weights(WeightSource("w.pth", url="https://example.org/w.pth"), None, "toy", cache_dir=tmp_path)
     with pytest.raises(VPRBenchError, match=r"could not download m\.bin from https://huggingface\.co/org/m"):
         resolve_weights(WeightSource("m.bin", hub="org/m"), None, "toy", cache_dir=tmp_path)
@@ -108,12 +110,61 @@ def test_offline_or_page_only_says_how_to_supply(tmp_path, monkeypatch):
         resolve_weights(WeightSource("m.ckpt", page="https://drive.example/m"), None, "toy", cache_dir=tmp_path)
 
 
+def test_gated_or_unreachable_hub_weights_are_one_line_at_once(shared_data, tmp_path, monkeypatch, capsys):
+    """Evaluating a gated backbone without access (or offline) fails on the hub's first answer, with
+    one line: where to request access and how to pass a local file. The hub client's retries never
+    run, and no result is stored."""
+    import time
+
+    import huggingface_hub
+    from huggingface_hub.errors import GatedRepoError
+
+    from vprbench.cli.main import main
+
+    def gated(url, **kwargs):  # what the hub answers a user without access
+        assert kwargs.get("retry_on_errors") is False
+        import httpx2
+
+        response = httpx2.Response(401, request=httpx2.Request("HEAD", url))
+        raise GatedRepoError("401 Client Error: access to model timm/x is restricted", response=response)
+
+    def never(*args, **kwargs):
+        raise AssertionError("downloaded after the first answer")
+
+    monkeypatch.setattr(huggingface_hub, "hf_hub_download", never)
+    args = ["evaluate", "--method", "anyloc", "--backbone", "dinov3_vits16", "--layer", "9", "--aggregation", "gem",
+            "--dataset", "corridor", "--data-dir", str(shared_data), "--cache-dir", str(tmp_path / "cache")]
+    for probe, said in ((gated, "the weights are gated (DINOv3 License): request access at "
+                                "https://huggingface.co/timm/vit_small_patch16_dinov3.lvd1689m and log in"),
+                        (huggingface_hub.get_hf_file_metadata, "Offline? download model.safetensors")):
+        if probe is gated:
+            monkeypatch.setattr(huggingface_hub, "get_hf_file_metadata", gated)
+        else:
+            monkeypatch.undo()
+            monkeypatch.setattr(huggingface_hub, "hf_hub_download", never)
+            monkeypatch.setattr(huggingface_hub, "get_hf_file_metadata", _unreachable)
+        start = time.perf_counter()
+        assert main(args) == 1
+        assert time.perf_counter() - start < 30  # no retries: seconds, as the run's own start-up
+        err = capsys.readouterr().err.strip().splitlines()
+        error = [line for line in err if line.startswith("error:")]
+        assert len(error) == 1 and said in error[0] and "--weights PATH" in error[0], err
+        assert "Traceback" not in "\n".join(err)
+    assert not list((tmp_path / "cache").rglob("*.json"))  # no result recorded
+
+
+def _unreachable(url, **kwargs):
+    assert kwargs.get("retry_on_errors") is False
+    raise OSError("[Errno -2] Name or service not known")
+
+
 def test_evaluate_reads_weights_from_the_run_settings_cache(shared_data, tmp_path, monkeypatch):
     """`evaluate(spec, RunSettings(cache_dir=X))` finds the backbone's release file in X, not in
     the default cache (which stays empty), and downloads nothing."""
     from vprbench.datasets import load_dataset
     from vprbench.evaluation import evaluate
-    from vprbench.features.backbones import backbone_spec, create_model, official_state_dict
+    from vprbench.features.backbones import backbone_spec, create_model
+    from release_formats import official_state_dict
     from vprbench.paths import default_cache
     from vprbench.spec import RunSettings, resolve_spec
 
@@ -129,7 +180,7 @@ def test_evaluate_reads_weights_from_the_run_settings_cache(shared_data, tmp_pat
                                                     "resize": "28x28"})
     record = evaluate(spec, RunSettings(cache_dir=cache), dataset=dataset)
     assert record["provenance"]["weights"] == {"source": "official", "url": backbone.url, "recognised_by": "download",
-                                               "release": "dinov2"}
+                                               "release": "dinov2", "sha256": file_sha256(release)}
     assert record["descriptor_dim"] == 384
     assert not list(default_cache().rglob(backbone.file_name))
     with pytest.raises(VPRBenchError, match=r"could not download dinov2_vits14_pretrain\.pth .*no network"):

@@ -88,7 +88,8 @@ class WeightSource:
     `url` is a direct download of the release; `hub` a Hugging Face hub repository holding
     `file_name` (used when there is no `url`); `page` is where a person gets the file when
     neither can be downloaded (Google Drive, a gated model); `sha256` only when the authors
-    publish one (a download that does not match it is refused).
+    publish one (a download that does not match it is refused). `gated`: access must be
+    requested first (under `licence`), so nothing is downloaded without being logged in.
     """
 
     file_name: str
@@ -98,6 +99,8 @@ class WeightSource:
     sha256: str | None = None
     #: how a local copy is given, in messages (a stage takes it as an option)
     pass_with: str = "--weights PATH"
+    gated: bool = False
+    licence: str | None = None
 
     @property
     def where(self) -> str:
@@ -164,6 +167,14 @@ def weights_identity(source: WeightSource, weights: str | Path | None, what: str
     raise VPRBenchError(_no_download(source, what))
 
 
+def _gated(source: WeightSource, what: str) -> VPRBenchError:
+    licence = f" ({source.licence})" if source.licence else ""
+    own = f" (the authors' release: {source.page})" if source.page and source.page != source.where else ""
+    return VPRBenchError(f"{what}: the weights are gated{licence}: request access at {source.where} and log in "
+                         f"('hf auth login'), or pass the file you have{own} with {source.pass_with}; "
+                         "--weights random runs a pipeline check without them.")
+
+
 def _no_download(source: WeightSource, what: str) -> str:
     return (f"{what}: the authors publish {source.file_name} only at {source.where}, which cannot be downloaded "
             f"automatically; download it there and pass it with {source.pass_with}.")
@@ -188,12 +199,19 @@ def resolve_weights(source: WeightSource, weights: str | Path | None, what: str,
             found.parent.mkdir(parents=True, exist_ok=True)
             torch.hub.download_url_to_file(source.url, str(found), hash_prefix=source.sha256, progress=False)
         else:
-            from huggingface_hub import hf_hub_download
+            from huggingface_hub import get_hf_file_metadata, hf_hub_download, hf_hub_url
 
+            # one request without the hub client's retries first: an offline machine or a gated
+            # repository is told at once, not after half a minute of retrying
+            get_hf_file_metadata(hf_hub_url(source.hub, source.file_name), retry_on_errors=False)
             found = Path(hf_hub_download(source.hub, source.file_name, cache_dir=str(hub_folder(cache_dir))))
-    except (OSError, RuntimeError, ValueError) as error:  # URLError and hub errors are OSErrors; hash mismatch
-        raise VPRBenchError(f"{what}: could not download {source.file_name} from {source.where} ({error}). "
-                            f"Offline? {source.how_to_get()}.") from None
+    except Exception as error:  # noqa: BLE001 - network clients raise their own types (urllib, httpx, hub errors)
+        if type(error).__name__ == "GatedRepoError":  # not logged in, or logged in without access
+            raise _gated(source, what) from None
+        gated = f" The model is gated ({source.licence}): access is requested at {source.page or source.where}." \
+            if source.gated else ""
+        raise VPRBenchError(f"{what}: could not download {source.file_name} from {source.where} "
+                            f"({type(error).__name__}: {error}). Offline? {source.how_to_get()}.{gated}") from None
     return ResolvedWeights(found, identity)
 
 

@@ -5,10 +5,13 @@
 For each entry at ViT-S/B size: the FLOPs of one extraction (value facet of the last block,
 counted by torch's FlopCounterMode: every matmul, convolution and attention product up to the
 point where the extractor stops), the time of one extraction, and the bound
-FLOPs / (measured fp32 GEMM rate at that backbone's own matrix shapes). Rounds are interleaved
-(every backbone once per round, in one order) so load on the machine hits all alike; medians
-are reported. Also: the DINOv2 path as it is (official position resampling, hand-written token
-path) against timm's forward_intermediates path on the same model and layer.
+FLOPs / (measured fp32 GEMM rate at that backbone's own largest matrix shape, measured just
+before and after each extraction). Rounds are interleaved (every backbone once per round, in one
+order) so load on the machine hits all alike; "of bound" is the median over rounds of bound /
+time. With one thread the clock is the process's CPU time (on a shared machine, the time it
+computed rather than the time it waited for a core); with several threads, wall time. Also:
+the DINOv2 path as it is (official position resampling, hand-written token path) against
+timm's forward_intermediates path (the one every other family takes) on the same model and layer.
 """
 from __future__ import annotations
 
@@ -29,11 +32,16 @@ ENTRIES = ["dinov2_vits14", "dinov2_vitb14", "dinov2_vits14_reg", "dinov2_vitb14
 DINOV2_PATHS = [("dinov2_vits14", 11), ("dinov2_vitb14", 8)]
 
 
+#: the clock: CPU time of this process with one thread (the time it computed, not the time it
+#: waited for a CPU other jobs held), wall time with several threads (CPU time would add them up)
+CLOCK = {"fn": time.process_time}
+
+
 def timed(fn, repeat: int = 1) -> float:
-    start = time.perf_counter()
+    start = CLOCK["fn"]()
     for _ in range(repeat):
         fn()
-    return (time.perf_counter() - start) / repeat
+    return (CLOCK["fn"]() - start) / repeat
 
 
 def gemm_rate(rows: int, width: int, hidden: int) -> float:
@@ -46,8 +54,9 @@ def gemm_rate(rows: int, width: int, hidden: int) -> float:
 
 def extractor(name: str, layer: int | None = None, facet: str = "value", path: str | None = None):
     spec = backbone_spec(name)
-    if path is not None:
-        spec = spec.model_copy(update={"position_interpolation": path})
+    if path == "timm":  # timm's own embedding, at any input size
+        spec = spec.model_copy(update={"position_interpolation": path,
+                                       "timm_kwargs": {**spec.timm_kwargs, "dynamic_img_size": True}})
     torch.manual_seed(0)
     model = create_model(spec)
     return DenseExtractor(model, spec, spec.depth - 1 if layer is None else layer, facet), spec
@@ -84,16 +93,22 @@ def main() -> None:
 
     for threads in args.threads:
         torch.set_num_threads(threads)
+        CLOCK["fn"] = time.process_time if threads == 1 else time.perf_counter
         times = {key: [] for key in cases}
-        rates = {key: [] for key, case in cases.items() if case[3]}
+        ratios = {key: [] for key, case in cases.items() if case[3]}  # bound / time, per round
+        rates = {key: [] for key in ratios}
         for _ in range(args.rounds):
-            for key, (ex, images, _, shape) in cases.items():
+            for key, (ex, images, count, shape) in cases.items():
                 with torch.no_grad():
                     ex(images)  # warm
+                    before = gemm_rate(*shape) if shape else None
                     times[key].append(timed(lambda: ex(images)))
-                if shape:
-                    rates[key].append(gemm_rate(*shape))
-        print(f"\n## {threads} thread(s), batch {args.batch} at {args.size}px, medians of {args.rounds} interleaved rounds")
+                if shape:  # the GEMM rate measured just before and after the extraction it bounds
+                    rates[key].append((before + gemm_rate(*shape)) / 2)
+                    ratios[key].append(count / rates[key][-1] / times[key][-1])
+        clock = "CPU time of the process" if threads == 1 else "wall time"
+        print(f"\n## {threads} thread(s), batch {args.batch} at {args.size}px, {clock}, medians of {args.rounds} "
+              "interleaved rounds")
         print("| backbone | GFLOP per image | ms per image | GEMM GFLOP/s | bound ms per image | of bound |")
         print("|---|---|---|---|---|---|")
         for key, (ex, images, count, shape) in cases.items():
@@ -101,11 +116,15 @@ def main() -> None:
             gflop = count / len(images) / 1e9
             if shape:
                 rate = statistics.median(rates[key])
-                bound = count / len(images) / rate
-                print(f"| {key} | {gflop:.2f} | {per_image * 1e3:.1f} | {rate / 1e9:.1f} | {bound * 1e3:.1f} | "
-                      f"{bound / per_image:.0%} |")
+                print(f"| {key} | {gflop:.2f} | {per_image * 1e3:.1f} | {rate / 1e9:.1f} | "
+                      f"{count / len(images) / rate * 1e3:.1f} | {statistics.median(ratios[key]):.0%} |")
             else:
                 print(f"| {key} | {gflop:.2f} | {per_image * 1e3:.1f} | | | |")
+        for name, layer in DINOV2_PATHS:
+            pair = [times[f"{name} L{layer} {path}"] for path in ("dino", "timm")]
+            ratio = statistics.median(t / d for d, t in zip(*pair))
+            print(f"\n{name} layer {layer}: timm's forward_intermediates path / the DINOv2 path, per round: "
+                  f"median {ratio:.2f}")
 
 
 if __name__ == "__main__":

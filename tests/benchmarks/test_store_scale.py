@@ -85,7 +85,8 @@ def test_anyloc_extraction_with_loader_workers(pitts30k_tree, workers, benchmark
     workers, the network in the main process."""
     import torch
 
-    from vprbench.features.backbones import backbone_spec, create_model, official_state_dict
+    from vprbench.features.backbones import backbone_spec, create_model
+    from release_formats import official_state_dict
 
     torch.manual_seed(0)
     spec = backbone_spec("dinov2_vits14")

@@ -23,7 +23,8 @@ from PIL import Image
 
 import vprbench
 from vprbench.aggregation import fit_vocabulary, vlad_hard
-from vprbench.features.backbones import backbone_spec, create_model, official_state_dict
+from vprbench.features.backbones import backbone_spec, create_model
+from release_formats import official_state_dict
 from memory import rss_kb  # this folder is on sys.path (as a script and under pytest)
 
 IMAGE_SIZE = 224          # ViT-S/14 at 224x224: 16x16 = 256 patches of 384 dims

@@ -14,8 +14,12 @@ import pytest
 from vprbench.cli.main import main
 from vprbench.evaluation import read_results, save_result
 from vprbench.leaderboard import build_board, computed, publish
+from vprbench.leaderboard.escape import text
 
 ONE, TEN = "my-traverse (own, ±1 frame)", "my-traverse (own, ±10 frames)"
+#: a licence as a record declares it (AnyLoc: its backbone's), hostile: escaped wherever it is shown
+LICENCE = "Licence <b>x</b> | [y](javascript:z)"
+LICENCES = {"hog": "–", "dense-vlad": f"{LICENCE} (gated)", "netvlad": "–"}
 
 
 @pytest.fixture
@@ -30,7 +34,9 @@ def runs(make_record, tmp_path):
              ("dense-vlad", TEN): make_record("dense-vlad", radius=10, quality=0.8, seed=4, **own),
              ("netvlad", ONE): make_record("netvlad", radius=1, quality=0.2, seed=5, **own),
              ("hog", "corridor"): make_record("hog", quality=0.5, seed=6)}
-    for record in found.values():
+    for (method, _), record in found.items():
+        if method == "dense-vlad":
+            record["provenance"]["backbone"] = {"name": "x", "licence": LICENCE, "gated": True}
         save_result(record)
     return found
 
@@ -49,7 +55,7 @@ def from_grid(header: list[str], rows: list[list[str]]) -> dict:
     found = {}
     for row in rows:
         label = row[0].split(" † ")[0]
-        for title, value in zip(header[2:], row[2:]):
+        for title, value in zip(header[3:], row[3:]):
             if value not in ("-", ""):
                 found[(label, title)] = tuple(v.strip() for v in value.split("/"))
     return found
@@ -68,23 +74,29 @@ def test_every_format_shows_the_same_board(runs, capsys, tmp_path, monkeypatch):
 
     # the computed board itself, and JSON
     assert {(s.label, s.column): (f"{s.r1:.1f}", f"{s.r5:.1f}") for s in computed(board)} == want
+    assert {s.label: s.licence for s in computed(board)} == LICENCES
     shown = json.loads(cli(capsys, "--format", "json"))
     assert {(s["label"], s["column"]): (f"{s['r1']:.1f}", f"{s['r5']:.1f}") for s in shown} == want
-    assert {s["source"] for s in shown} == {"measured here"}
+    assert {s["source"] for s in shown} == {"measured here"} and {s["label"]: s["licence"] for s in shown} == LICENCES
 
     # CSV and Markdown
     frame = pd.read_csv(io.StringIO(cli(capsys, "--format", "csv")), dtype=str).fillna("")
     assert from_grid(list(frame.columns), frame.values.tolist()) == want
     assert frame.set_index("method").loc["netvlad", TEN] == "-"  # run only on ±1: nothing under ±10
-    [header, *rows] = _pipe_table(cli(capsys, "--format", "markdown").splitlines())
+    assert dict(frame[["method", "licence"]].values) == LICENCES
+    markdown = cli(capsys, "--format", "markdown")
+    [header, *rows] = _pipe_table(markdown.splitlines())
     assert from_grid(header, rows) == want
+    assert header[2] == "licence" and {r[0]: r[2] for r in rows} == {k: text(v) for k, v in LICENCES.items()}
+    assert "<b>" not in markdown and "](javascript" not in markdown
 
     # the terminal table (wide enough not to wrap)
     monkeypatch.setenv("COLUMNS", "300")
-    text = cli(capsys)
-    lines = [line for line in text.splitlines() if "│" in line or "┃" in line]
+    terminal = cli(capsys)
+    lines = [line for line in terminal.splitlines() if "│" in line or "┃" in line]
     table = [[c.strip() for c in re.split("[│┃]", line)[1:-1]] for line in lines]
     assert from_grid(table[0], table[1:]) == want
+    assert table[0][2] == "licence" and {r[0]: r[2] for r in table[1:]} == LICENCES
 
     # the site: each column's page, the overview's tables, and the downloads
     out = publish(tmp_path / "docs")
@@ -94,14 +106,18 @@ def test_every_format_shows_the_same_board(runs, capsys, tmp_path, monkeypatch):
         assert next(line for line in page.splitlines() if line.startswith("# ")) == f"# {column.title}"
         results = page.split("## Results")[1].split("The runs in the cells above")[0].splitlines()
         for row in _pipe_table(results)[1:]:
-            site[(row[0].rstrip(" †"), column.title)] = tuple(v.split(" [")[0] for v in row[2:4])
+            site[(row[0].rstrip(" †"), column.title)] = tuple(v.split(" [")[0] for v in row[3:5])
+            assert row[2] == text(LICENCES[row[0].rstrip(" †")])
     assert site == want
     overview = (out / "index.md").read_text()
     others = _pipe_table(overview.split("## Other runs")[1].split("## Runs left out")[0].splitlines())
-    assert {(r[0], re.sub(r"^\[(.*)\]\(.*\)$", r"\1", r[2])): tuple(v.split(" [")[0] for v in r[3:5])
+    assert {(r[0], re.sub(r"^\[(.*)\]\(.*\)$", r"\1", r[3])): tuple(v.split(" [")[0] for v in r[4:6])
             for r in others[1:]} == {k: v for k, v in want.items() if k[1] != "corridor"}
+    assert {r[0]: r[2] for r in others[1:]} == {k: text(v) for k, v in LICENCES.items()}
+    assert "<b>" not in overview and "](javascript" not in overview
     download = json.loads((out / "downloads" / "leaderboard.json").read_text())
     assert {(d["method"], d["column"]): (f"{d['r1']:.1f}", f"{d['r5']:.1f}") for d in download} == want
+    assert {d["method"]: d["licence"] for d in download} == LICENCES
     csv = pd.read_csv(out / "downloads" / "leaderboard.csv")
     assert {(m, c): (f"{a:.1f}", f"{b:.1f}") for m, c, a, b in csv[["method", "column", "r1", "r5"]].values} == want
 

@@ -83,7 +83,7 @@ def test_publish_writes_every_page_figure_and_download(capsys, tmp_path, shared_
     assert "| hog [resize=64x64] |" in overview and "*AnyLoc-VLAD-DINOv2* (paper)" in overview
     assert "| anyloc-vlad-dinov2 | hawkins | R@1 |" in overview and "*65.2* (Table III)" in overview  # paper beside
     assert "hog † user weights sha256:abababababab" not in overview.split("## Other runs")[0], "never in a paper table"
-    assert "| hog † | user weights sha256:abababababab | [corridor](corridor.md)" in overview
+    assert "| hog † | user weights sha256:abababababab | – | [corridor](corridor.md)" in overview
     assert f"[corridor (own data)]({full_board.own_page})" in overview
     for page in pages - {"reported.md", "SUMMARY.md"}:
         assert '!!! note "Marks"' in (section / page).read_text(), page
@@ -129,10 +129,10 @@ def downloads_say_what_the_pages_say(section, summary):
         slug = entry["page"].removesuffix(".md")
         pages.setdefault(slug, page_rows((section / entry["page"]).read_text()))
         cells = pages[slug][entry["method"]]
-        assert cells[1] == entry["weights"], (entry["method"], slug)
-        assert cells[2] == f"{entry['r1']:.1f} [{entry['r1_ci_low']:.1f}, {entry['r1_ci_high']:.1f}]"
+        assert cells[1] == entry["weights"] and cells[2] == entry["licence"] == row["licence"], (entry["method"], slug)
+        assert cells[3] == f"{entry['r1']:.1f} [{entry['r1_ci_low']:.1f}, {entry['r1_ci_high']:.1f}]"
         # R@100%P in percent like the R@K beside it, not a fraction
-        assert cells[7] == f"{100 * entry['recall_at_100_precision']:.1f}", (entry["method"], cells)
+        assert cells[8] == f"{100 * entry['recall_at_100_precision']:.1f}", (entry["method"], cells)
 
 
 def test_publish_again_replaces_the_section_and_leaves_no_temporary_folder(capsys, tmp_path, shared_data):

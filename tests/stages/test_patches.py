@@ -10,7 +10,8 @@ import torch
 from vprbench import create_method
 from vprbench.errors import VPRBenchError
 from vprbench.evaluation import evaluate
-from vprbench.features.backbones import backbone_spec, create_model, official_state_dict
+from vprbench.features.backbones import backbone_spec, create_model
+from release_formats import official_state_dict
 from vprbench.leaderboard.cells import RANDOM, build_board
 from vprbench.spec import RunSettings, resolve_spec
 from vprbench.stages import StageContext, create_stage

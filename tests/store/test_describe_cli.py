@@ -6,7 +6,8 @@ import numpy as np
 import torch
 
 from vprbench.cli.main import main
-from vprbench.features.backbones import backbone_spec, create_model, official_state_dict
+from vprbench.features.backbones import backbone_spec, create_model
+from release_formats import official_state_dict
 
 
 def test_describe_gives_the_descriptors_evaluate_stores(shared_data, tmp_path, capsys):

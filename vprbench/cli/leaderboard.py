@@ -78,7 +78,7 @@ def run(args) -> int:
     view = Table(title=f"R@1 / R@5 (%), {args.track} track: one run per cell")
     view.add_column("method")
     for column in table.columns:
-        view.add_column(str(column), justify="right" if column != "weights" else "left")
+        view.add_column(str(column), justify="left" if column in ("weights", "licence") else "right")
     for method, row in table.iterrows():
         view.add_row(str(method), *[str(v) for v in row.tolist()])
     out = console()

@@ -1,11 +1,13 @@
 """ViT backbones built with timm from their manifest entries (features/catalogue.py).
 
-Weights come from a local file (`weights=PATH`, the official release format or timm's), from
-the entry's weight source through the one resolver (vprbench.weights), or, with
-`weights="random"`, from a seeded random initialisation (a pipeline check; recorded as random).
+Weights come from a local file (`weights=PATH`: the authors' release format or timm's; a JAX
+`.npz` release such as SigLIP 2's is read by timm's own loader), from the entry's weight source
+through the one resolver (vprbench.weights), or, with `weights="random"`, from a seeded random
+initialisation (a pipeline check; recorded as random).
 """
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
@@ -28,13 +30,33 @@ def create_model(spec: BackboneEntry, *, empty: bool = False, **overrides) -> nn
     `overrides` are timm keyword arguments (tests build tiny models: depth=2, embed_dim=...)."""
     import timm
 
-    kwargs = {"pretrained": False, "num_classes": 0, **overrides}
-    if spec.position_interpolation == "timm":
-        kwargs.setdefault("dynamic_img_size", True)  # timm resamples its position embedding to any grid
+    kwargs = {"pretrained": False, "num_classes": 0, **spec.timm_kwargs, **overrides}
     if empty:
         with torch.device("meta"):  # skips the random initialisation of large models
             return timm.create_model(spec.timm, **kwargs).eval()
-    return timm.create_model(spec.timm, **kwargs).eval()
+    return _as_released(timm.create_model(spec.timm, **kwargs).eval(), spec)
+
+
+def _as_released(model: nn.Module, spec: BackboneEntry) -> nn.Module:
+    """RoPE periods in the release's precision: DINOv3 keeps them as a bfloat16 buffer where timm
+    computes float32; truncated, the outputs match the release's (timm's model card says so)."""
+    if spec.rope_periods == "bfloat16":
+        with torch.no_grad():
+            model.rope.periods.copy_(model.rope.periods.to(torch.bfloat16).float())
+    return model
+
+
+def _materialise(model: nn.Module, spec: BackboneEntry) -> nn.Module:
+    """A model built on the meta device and given its state dict still lacks the buffers no
+    checkpoint holds (RoPE periods and tables): timm computes them."""
+    from timm.models._manipulate import reinit_non_persistent_buffers
+
+    for module in model.modules():
+        for name, buffer in list(module.named_buffers(recurse=False)):
+            if buffer.is_meta:  # only non-persistent buffers are left out of a strict load
+                module.register_buffer(name, torch.empty_like(buffer, device="cpu"), persistent=False)
+    reinit_non_persistent_buffers(model)
+    return _as_released(model, spec)
 
 
 def weights_identity(spec: BackboneEntry, weights: str | Path | None) -> str | None:
@@ -60,33 +82,115 @@ def _show(keys: list[str]) -> str:
     return ", ".join(keys[:8]) + (f" (+{len(keys) - 8} more)" if len(keys) > 8 else "") if keys else "none"
 
 
+def _misfit(missing=(), unexpected=(), mismatched=()) -> VPRBenchError:
+    return VPRBenchError(
+        "The weights file does not fit this backbone (wrong architecture?). "
+        f"Missing keys: {_show(sorted(missing))}. Unexpected keys: {_show(sorted(unexpected))}. "
+        f"Shape mismatches: {_show(list(mismatched))}."
+    )
+
+
+def _grid_mismatches(state: dict, expected: dict) -> list[str]:
+    """A position embedding or patch kernel of another size: timm's filter would resample it
+    silently, but such a file is another architecture. Position embeddings are compared by their
+    grid (a release may hold one slot more for the CLS token, as DINOv2 with registers)."""
+    found = []
+    for key in ("pos_embed", "patch_embed.proj.weight"):
+        if key not in state or key not in expected:
+            continue
+        file, model = tuple(state[key].shape), tuple(expected[key].shape)
+        same = (file[-1] == model[-1] and math.isqrt(file[-2]) == math.isqrt(model[-2])) if key == "pos_embed" \
+            else file == model
+        if not same:
+            found.append(f"{key}: file {file} vs model {model}")
+    return found
+
+
+def _drop_unplaced_biases(state: dict, expected: dict) -> dict:
+    """Fused q/k/v biases the file holds but the architecture has no place for (DINOv3's release
+    keeps all-zero, masked ones: `qkv.bias` times `qkv.bias_mask`): dropped when they add
+    nothing, refused otherwise."""
+    state = dict(state)
+    for key in [k for k in state if k.endswith("attn.qkv.bias")]:
+        named_as_the_model = key.replace("qkv.bias", "qkv.weight") in expected
+        if not named_as_the_model or key in expected or key.replace("qkv.bias", "q_bias") in expected:
+            continue
+        bias, mask = state.pop(key), state.pop(key + "_mask", None)
+        if (bias if mask is None else bias * mask).any():
+            raise VPRBenchError(f"The weights file has non-zero attention biases ({key}) that this architecture has "
+                                "none of; choose the timm architecture with q/k/v biases (backbone=timm:ARCH.TAG, "
+                                "e.g. the *_qkvb DINOv3 variants).")
+    return state
+
+
 def convert_official(state: dict[str, torch.Tensor], model: nn.Module) -> dict[str, torch.Tensor]:
     """Official (or timm) checkpoint keys -> the model's, by the timm module's own checkpoint
-    filter (DINOv2 SwiGLU w12/w3 -> fc1/fc2, DINOv3 storage_tokens -> reg_token, ...), refusing
-    shape changes: timm's filter would silently resample a position embedding or patch kernel
-    of another size, so those are checked first (such a file is another architecture)."""
+    filter (DINOv2 SwiGLU w12/w3 -> fc1/fc2, DINOv2 register_tokens, DINOv3 storage_tokens and
+    ls1.gamma, Perception Encoder and C-RADIO releases, ...), refusing what does not fit: a
+    position embedding or patch kernel of another size (which the filter would resample), missing,
+    unexpected or misshapen keys."""
     filter_fn = getattr(sys.modules[type(model).__module__], "checkpoint_filter_fn", None)
     expected = model.state_dict()
-    mismatched = [
-        f"{k}: file {tuple(state[k].shape)} vs model {tuple(expected[k].shape)}"
-        for k in ("pos_embed", "patch_embed.proj.weight")
-        if k in state and k in expected and state[k].shape != expected[k].shape
-    ]
-    converted = filter_fn(dict(state), model) if filter_fn is not None and not mismatched else dict(state)
-    mismatched += [
-        f"{k}: file {tuple(v.shape)} vs model {tuple(expected[k].shape)}"
-        for k, v in converted.items()
-        if k in expected and v.shape != expected[k].shape and k not in ("pos_embed", "patch_embed.proj.weight")
-    ]
-    missing = sorted(set(expected) - set(converted))
-    unexpected = sorted(set(converted) - set(expected))
+    mismatched = _grid_mismatches(state, expected)
+    state = _drop_unplaced_biases(state, expected)
+    converted = filter_fn(state, model) if filter_fn is not None and not mismatched else state
+    # a classifier or projection head beside the trunk (timm's head.*, e.g. Perception Encoder core's
+    # proj): these models are built without one, and AnyLoc reads the trunk
+    converted = {k: v for k, v in converted.items() if k in expected or not k.startswith("head.")}
+    mismatched += [f"{k}: file {tuple(v.shape)} vs model {tuple(expected[k].shape)}" for k, v in converted.items()
+                   if k in expected and v.shape != expected[k].shape and not any(m.startswith(k + ":") for m in mismatched)]
+    missing, unexpected = set(expected) - set(converted), set(converted) - set(expected)
     if missing or unexpected or mismatched:
-        raise VPRBenchError(
-            "The weights file does not fit this backbone (wrong architecture?). "
-            f"Missing keys: {_show(missing)}. Unexpected keys: {_show(unexpected)}. "
-            f"Shape mismatches: {_show(mismatched)}."
-        )
+        raise _misfit(missing, unexpected, mismatched)
     return converted
+
+
+#: where timm's loader of JAX .npz checkpoints looks for the image tower (big_vision two-tower files: params/img/)
+NPZ_PREFIXES = ("params/img/", "params/", "opt/target/", "")
+
+
+def read_npz_release(spec: BackboneEntry, path: Path) -> nn.Module:
+    """A JAX/Flax `.npz` release (Google's big_vision format, e.g. SigLIP 2's two-tower file) read
+    by timm's own loader into the architecture. Every parameter starts as NaN, so one the file does
+    not fill is named; a patch kernel or position grid of another size is refused (timm would
+    resample it)."""
+    import numpy as np
+
+    model = create_model(spec)
+    if not hasattr(model, "load_pretrained"):
+        raise VPRBenchError(f"{path}: .npz files are read for timm VisionTransformer architectures only; backbone "
+                            f"{spec.name} ({spec.timm}) takes a PyTorch or .safetensors file.")
+    try:
+        with np.load(path, allow_pickle=False) as arrays:
+            keys = set(arrays.files)
+            prefix = next((p for p in NPZ_PREFIXES if p + "embedding/kernel" in keys), None)
+            if prefix is None:
+                raise _misfit(missing=["embedding/kernel (the patch embedding of a ViT image tower)"])
+            kernel = arrays[prefix + "embedding/kernel"].shape
+            grid = next((arrays[prefix + k].shape for k in ("pos_embedding", "Transformer/posembed_input/pos_embedding")
+                         if prefix + k in keys), None)
+    except (OSError, ValueError) as error:
+        raise VPRBenchError(f"Cannot read weights file {path}: {error}.") from None
+    expected = model.state_dict()
+    found = {"patch_embed.proj.weight": torch.empty(kernel[::-1][:2] + kernel[:2])}
+    if grid is not None:
+        found["pos_embed"] = torch.empty(grid)
+    mismatched = _grid_mismatches(found, expected)
+    if mismatched:
+        raise _misfit(mismatched=mismatched)
+    with torch.no_grad():
+        for parameter in model.parameters():
+            parameter.fill_(float("nan"))
+        try:
+            model.load_pretrained(str(path))
+        except KeyError as error:
+            raise _misfit(missing=[str(error).strip("'\"")]) from None
+        except (RuntimeError, ValueError) as error:
+            raise _misfit(mismatched=[str(error).splitlines()[0]]) from None
+    unfilled = [name for name, parameter in model.named_parameters() if parameter.isnan().any()]
+    if unfilled:
+        raise _misfit(missing=unfilled)
+    return _as_released(model, spec)
 
 
 #: loaded models, shared by methods in one process (they never modify a model)
@@ -113,10 +217,8 @@ def load_backbone(name: str, weights: str | Path | None = None, device: str | to
     stat = path.stat()
     key = (name, str(path.resolve()), stat.st_mtime_ns, stat.st_size, str(device))
     if key not in _LOADED:
-        model = create_model(spec, empty=True)
-        state = read_checkpoint(path)
         try:
-            model.load_state_dict(convert_official(state, model), strict=True, assign=True)
+            model = read_npz_release(spec, path) if path.suffix == ".npz" else _load_state(spec, path)
         except VPRBenchError as error:
             raise VPRBenchError(f"{path} for backbone {spec.name}: {error}") from None
         _LOADED.clear()  # keep one model: a ViT-G takes 4.5 GB
@@ -125,15 +227,7 @@ def load_backbone(name: str, weights: str | Path | None = None, device: str | to
     return model, spec, identity
 
 
-def official_state_dict(model: nn.Module, spec: BackboneEntry) -> dict[str, torch.Tensor]:
-    """The timm model's weights under the release's key names (the entry's `official_rename`
-    and `official_extra`; the inverse of `convert_official`, used to write official-format
-    files, e.g. for tests)."""
-    state = {}
-    for key, value in model.state_dict().items():
-        for timm_part, official_part in spec.official_rename.items():
-            key = key.replace(timm_part, official_part)
-        state[key] = value.detach().clone()
-    for extra in spec.official_extra:  # present in the release, unused by inference
-        state[extra] = torch.zeros(1, model.embed_dim) if extra == "mask_token" else torch.zeros(1)
-    return state
+def _load_state(spec: BackboneEntry, path: Path) -> nn.Module:
+    model = create_model(spec, empty=True)
+    model.load_state_dict(convert_official(read_checkpoint(path), model), strict=True, assign=True)
+    return _materialise(model, spec)

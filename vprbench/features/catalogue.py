@@ -56,13 +56,18 @@ class BackboneEntry(BaseModel):
     url: str | None = None            # the authors' release file (official format)
     sha256: str | None = None         # only when the authors publish one
     hub: str | None = None            # Hugging Face hub repository (timm format, model.safetensors)
-    official_rename: dict[str, str] = Field(default_factory=dict)  # timm key part -> official key part
-    official_extra: tuple[str, ...] = ()  # keys the release holds that inference does not use
+    #: keyword arguments timm's constructor needs (e.g. dynamic_img_size for any input size)
+    timm_kwargs: dict[str, bool | int | float | str] = Field(default_factory=dict)
+    #: the precision the release keeps its RoPE periods in (DINOv3: bfloat16; timm computes float32)
+    rope_periods: Literal["float32", "bfloat16"] = "float32"
 
     @model_validator(mode="after")
     def _consistent(self):
         if self.resize == "fixed" and self.input_size is None:
             raise ValueError("resize = 'fixed' needs input_size = [HEIGHT, WIDTH]")
+        if self.input_size and self.position_interpolation == "timm" and any(s % self.patch for s in self.input_size):
+            raise ValueError(f"input_size {self.input_size[0]} x {self.input_size[1]} is not a multiple of the patch "
+                             f"{self.patch} (timm's embedding needs one); give multiples of {self.patch}")
         if self.cls == "final-norm" and not self.cls_token:
             raise ValueError("cls = 'final-norm' needs a CLS token")
         if self.url is None and self.hub is None:
@@ -81,8 +86,9 @@ class BackboneEntry(BaseModel):
     def source(self) -> WeightSource:
         """The release URL when there is one, else the hub file."""
         if self.url:
-            return WeightSource(self.file_name, url=self.url, page=self.page, sha256=self.sha256)
-        return WeightSource(self.file_name, hub=self.hub, page=self.page)
+            return WeightSource(self.file_name, url=self.url, page=self.page, sha256=self.sha256, gated=self.gated,
+                                licence=self.licence)
+        return WeightSource(self.file_name, hub=self.hub, page=self.page, gated=self.gated, licence=self.licence)
 
     @property
     def timm_name(self) -> str:
@@ -154,7 +160,7 @@ def timm_entry(arch_tag: str) -> BackboneEntry:
                             f"{', '.join(n.partition('.')[2] for n in timm.list_pretrained(arch + '.*')) or 'none'}.")
     with torch.device("meta"):
         model = timm.create_model(arch, pretrained=False, num_classes=0)
-    embed = getattr(model, "patch_embed", None)
+    embed = getattr(model, "patch_embed", None) or getattr(model, "embeds", None)  # NaFlexVit: embeds
     if embed is None or not hasattr(model, "blocks") or not hasattr(model, "forward_intermediates"):
         raise VPRBenchError(f"timm:{arch_tag} has no patch tokens (it is not a ViT with a patch embedding and "
                             "blocks, e.g. a CNN or a hybrid); AnyLoc aggregates per-patch ViT features.")
@@ -172,6 +178,7 @@ def timm_entry(arch_tag: str) -> BackboneEntry:
         mean=tuple(cfg.get("mean", IMAGENET[0])), std=tuple(cfg.get("std", IMAGENET[1])),
         resize="crop", interpolation="bilinear", facets=("token", "query", "key", "value") if has_qkv else ("token",),
         preprocess="crop-to-patch", cls="final-norm" if has_cls else "none", normalise_patches="always",
+        timm_kwargs={"dynamic_img_size": True} if hasattr(model, "dynamic_img_size") else {},
         licence=str(cfg.get("license") or "see the model card"), gated=False,
         page=f"https://huggingface.co/{hub}" if hub else "https://github.com/huggingface/pytorch-image-models",
         url=None if hub else (cfg.get("url") or None), hub=hub or (None if cfg.get("url") else f"timm/{arch_tag}"),

@@ -89,6 +89,20 @@ def weights_shown(row: "Row", record: dict) -> str:
     return "none (nothing learnt)" if (provenance.get("weights") or {}).get("source") == "none" else "official"
 
 
+def licence_shown(record: dict) -> str:
+    """The Licence column, beside the row everywhere: the licence of the weights the run used, as
+    its record declares it (AnyLoc: the backbone's manifest entry), '(gated)' when access to them
+    must be requested; '–' when the record declares none or the weights were random."""
+    provenance = record.get("provenance") or {}
+    if (provenance.get("weights") or {}).get("source") == "random":
+        return "–"
+    card = next((c for c in (provenance.get("backbone"), provenance.get("weights")) if isinstance(c, dict)
+                 and c.get("licence")), None)
+    if card is None:
+        return "–"
+    return f"{card['licence']} (gated)" if card.get("gated") is True else str(card["licence"])
+
+
 @dataclass(frozen=True)
 class Row:
     key: str       # the spec's row key

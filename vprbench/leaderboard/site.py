@@ -24,7 +24,7 @@ from ..reference import paper_results
 from ..text import percent, quantity
 from . import figures
 from .escape import public_data, text
-from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board, hardware_of, weights_shown
+from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board, hardware_of, licence_shown, weights_shown
 from ..evaluation.blocks import RULE, for_record
 from ..evaluation.metrics import successes
 from .compare import shared_resampling
@@ -229,13 +229,13 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
     lines += ["## Other runs", "", "Runs that are not official runs on a benchmark: weights other than the authors' "
               "release (†) or the user's own data. They never fill a cell above.", ""]
     if others:
-        lines += ["| Method | Weights | Dataset | R@1 [95 % CI] | R@5 [95 % CI] | Source | Run |",
-                  "|:--|:--|:--|--:|--:|:--|:--|"]
+        lines += ["| Method | Weights | Licence | Dataset | R@1 [95 % CI] | R@5 [95 % CI] | Source | Run |",
+                  "|:--|:--|:--|:--|--:|--:|:--|:--|"]
         for row, column, cell in others:
             s = stats[(row, column.key)]
             lines.append(f"| {text(row.label)}{' †' if not row.official else ''} | {text(weights_shown(row, cell.record))} | "
-                         f"[{text(column.title)}]({column.slug}.md) | {_ci(s[1])} | {_ci(s[5])} | {text(cell.source)} | "
-                         f"`{cell.record.get('run_id')}` |")
+                         f"{text(licence_shown(cell.record))} | [{text(column.title)}]({column.slug}.md) | {_ci(s[1])} | "
+                         f"{_ci(s[5])} | {text(cell.source)} | `{cell.record.get('run_id')}` |")
     else:
         lines.append("None.")
     lines += ["", "## Runs left out", ""]
@@ -285,14 +285,14 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
              "## Results", "",
              f"Seeded 95 % bootstrap intervals ({RESAMPLES:,} resamples, seed {seed}), resampling "
              f"{_units(cells)}.", "",
-             "| Method | Weights | R@1 [95 % CI] | R@5 [95 % CI] | R@10 | R@20 | AUC-PR | R@100%P | Dim | Bytes | Images/s |",
-             "|:--|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|"]
+             "| Method | Weights | Licence | R@1 [95 % CI] | R@5 [95 % CI] | R@10 | R@20 | AUC-PR | R@100%P | Dim | Bytes "
+             "| Images/s |", "|:--|:--|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|"]
     runs = ["| Method | Source | Contributor | Run | Created | Hardware | vprbench | Commit | Descriptors computed | "
             "Older runs of the row | Images/s measured by |", "|:--|:--|:--|:--|:--|:--|:--|:--|--:|--:|:--|"]
     for cell in cells:
         s, r = stats[(cell.row, column.key)], cell.record
         name = f"{text(cell.row.label)}{' †' if not cell.row.official else ''}"
-        lines.append(f"| {name}{source_mark(cell.source)} | {text(weights_shown(cell.row, r))} | "
+        lines.append(f"| {name}{source_mark(cell.source)} | {text(weights_shown(cell.row, r))} | {text(licence_shown(r))} | "
                      f"{_ci(s[1])} | {_ci(s[5])} | {fmt(cell.recall(10))} | {fmt(cell.recall(20))} | "
                      f"{_num(r.get('auc_pr'), 3)} | {percent(r.get('recall_at_100_precision'))} | {r.get('descriptor_dim') or '–'} | "
                      f"{r.get('descriptor_bytes') or 4 * int(r.get('descriptor_dim') or 0) or '–'} | {_num(cell.images_per_second, 1)} |")
@@ -361,7 +361,8 @@ def _num(value, digits: int) -> str:
 
 def _summary(cell: Cell, stats: dict) -> dict:
     r = cell.record
-    entry = {"method": cell.row.label, "weights": weights_shown(cell.row, r), "dataset": cell.column.dataset,
+    entry = {"method": cell.row.label, "weights": weights_shown(cell.row, r), "licence": licence_shown(r),
+             "dataset": cell.column.dataset,
              "column": cell.column.title, "page": f"{cell.column.slug}.md", "dataset_kind": cell.column.kind,
              "domain": cell.column.domain, "row_key": cell.row.key, "track": cell.row.track}
     for k in CELL_KS:

@@ -11,7 +11,7 @@ from ..errors import VPRBenchError
 from ..reference import paper_results
 from ..text import CONTROL, literal
 from .cells import (AGREES, CELL_KS, CONTRIBUTED, IMPORTED, STRUCTURED, UNSTRUCTURED, Board, Cell, Column, Row,  # noqa: F401
-                    weights_shown)
+                    licence_shown, weights_shown)
 from .escape import text
 from ..evaluation.blocks import for_record
 from ..evaluation.metrics import successes
@@ -33,6 +33,7 @@ class Shown:
     row: str       # the row's name: its label, and after † what sets it apart
     label: str
     weights: str
+    licence: str   # the weights' licence (licence_shown)
     column: str    # the column's title, e.g. "my-traverse (own, ±1 frame)"
     r1: float | None
     r5: float | None
@@ -63,19 +64,20 @@ def marks_legend(sources) -> str:
 
 def computed(board: Board) -> list[Shown]:
     """The board's cells, row by row in the board's order: what every format renders."""
-    return [Shown(row.name, row.label, weights_shown(row, cell.record), column.title, cell.recall(1), cell.recall(5),
-                  cell.source, str(cell.record.get("run_id")))
+    return [Shown(row.name, row.label, weights_shown(row, cell.record), licence_shown(cell.record), column.title,
+                  cell.recall(1), cell.recall(5), cell.source, str(cell.record.get("run_id")))
             for row in board.rows for column in board.columns if (cell := board.cell(row, column))]
 
 
 def grid(board: Board) -> pd.DataFrame:
-    """Rows x dataset columns of 'R@1 / R@5', with each row's weights: the terminal, Markdown and CSV view."""
+    """Rows x dataset columns of 'R@1 / R@5', with each row's weights and licence: the terminal, Markdown
+    and CSV view."""
     data: dict[str, dict] = {}
     for shown in computed(board):
-        entry = data.setdefault(shown.row, {"method": shown.row, "weights": shown.weights})
+        entry = data.setdefault(shown.row, {"method": shown.row, "weights": shown.weights, "licence": shown.licence})
         entry[shown.column] = f"{fmt(shown.r1)} / {fmt(shown.r5)}"
     columns = [c.title for c in board.columns]
-    frame = pd.DataFrame(list(data.values()), columns=["method", "weights", *columns]).set_index("method")
+    frame = pd.DataFrame(list(data.values()), columns=["method", "weights", "licence", *columns]).set_index("method")
     return frame.fillna("-")
 
 
@@ -88,7 +90,9 @@ def render(table: pd.DataFrame, fmt_name: str, board: Board | None = None) -> st
     if fmt_name not in ("markdown", "csv"):
         raise VPRBenchError(f"Unknown leaderboard format {fmt_name!r}; use markdown, csv or json")
     table = table.rename(index=literal, columns=literal).map(literal)
-    return table.to_csv() if fmt_name == "csv" else table.to_markdown()
+    if fmt_name == "csv":
+        return table.to_csv()
+    return table.rename(index=text, columns=text).map(text).to_markdown()  # Markdown from records: escaped as on the site
 
 
 def cell_stats(cell: Cell, ks=CELL_KS, seed: int = 0) -> dict[int, dict]:

@@ -23,7 +23,7 @@ from ..aggregation.vlad import vlad_hard
 from ..aggregation.vocabulary import fit_vocabulary
 from ..errors import VPRBenchError
 from ..features.backbones import RANDOM, backbone_spec, load_backbone, weights_identity
-from ..weights import weights_provenance
+from ..weights import cached_weights, file_sha256, weights_provenance
 from ..features.dense import FACETS, DenseExtractor
 from ..features.preprocess import preprocess
 from ..features.resize import dataset_resize, parse_size
@@ -200,12 +200,22 @@ class AnyLoc(Method):
         return fp
 
     def provenance(self) -> dict:
-        found = {"weights": weights_provenance(self.weights_identity()), "backbone": self.spec.card()}
+        found = {"weights": self.weights_provenance(), "backbone": self.spec.card()}
         if self.aggregation in VLADS:
             found["vocabulary"] = self.vocabulary_provenance()
         if self.pca_dim:
             found["pca"] = {"dim": self.pca_dim, "fitted_on": "the evaluated database's descriptors",
                             "fitted_on_evaluated_database": True}
+        return found
+
+    def weights_provenance(self) -> dict:
+        """Where the weights came from; a downloaded release also by the sha256 of the file used
+        (a local file is identified by it already)."""
+        found = weights_provenance(self.weights_identity())
+        if found.get("source") == "official" and "sha256" not in found:
+            downloaded = cached_weights(self.spec.source, self.cache_dir)
+            if downloaded is not None:
+                found["sha256"] = file_sha256(downloaded)
         return found
 
     def vocabulary_provenance(self) -> dict:
