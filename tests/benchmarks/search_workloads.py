@@ -11,12 +11,11 @@ from __future__ import annotations
 
 import json
 import sys
-import time
 from pathlib import Path
 
 import h5py
 import numpy as np
-from memory import rss_kb  # this folder is on sys.path (as a script and under pytest)
+from memory import measured  # this folder is on sys.path (as a script and under pytest)
 
 DB_ROWS, DIM, QUERIES, K = 1_000_000, 512, 1000, 20
 PCA_ROWS, PCA_IN, PCA_OUT, EXACT_ROWS = 100_000, 4096, 512, 20_000
@@ -176,14 +175,7 @@ def tolerance(folder: Path, name: str, reference: str) -> dict:
 
 
 def probe(name: str, folder: Path) -> dict:
-    run = WORKLOADS[name](folder)
-    with open("/proc/self/clear_refs", "w") as refs:
-        refs.write("5")  # reset the peak-RSS counter (VmHWM) to the current RSS
-    base = rss_kb("VmRSS:")
-    start = time.perf_counter()
-    details = run()
-    seconds = time.perf_counter() - start
-    peak = rss_kb("VmHWM:")
+    details, seconds, base, peak = measured(WORKLOADS[name](folder))
     return {"workload": name, "seconds": round(seconds, 3), "baseline_mb": round(base / 1024, 1),
             "peak_mb": round(peak / 1024, 1), "peak_above_baseline_mb": round((peak - base) / 1024, 1), **details}
 

@@ -15,10 +15,9 @@ from __future__ import annotations
 
 import json
 import sys
-import time
 
 import numpy as np
-from memory import rss_kb  # this folder is on sys.path (as a script and under pytest)
+from memory import measured  # this folder is on sys.path (as a script and under pytest)
 
 FRAMES, STEP, DIM, K = 27_592, 10, 256, 5
 BUDGET = 1_000_000_000
@@ -63,14 +62,7 @@ def workload(name: str):
 
 
 def probe(name: str) -> dict:
-    run = workload(name)
-    with open("/proc/self/clear_refs", "w") as refs:
-        refs.write("5")  # reset the peak-RSS counter (VmHWM) to the current RSS
-    base = rss_kb("VmRSS:")
-    start = time.perf_counter()
-    details = run()
-    seconds = time.perf_counter() - start
-    peak = rss_kb("VmHWM:")
+    details, seconds, base, peak = measured(workload(name))
     return {"workload": name, "seconds": round(seconds, 3), "baseline_mb": round(base / 1024, 1),
             "peak_mb": round(peak / 1024, 1), "peak_above_baseline_mb": round((peak - base) / 1024, 1), **details}
 

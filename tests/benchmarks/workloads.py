@@ -13,7 +13,6 @@ import json
 import shutil
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -24,8 +23,10 @@ from PIL import Image
 import vprbench
 from vprbench.aggregation import fit_vocabulary, vlad_hard
 from vprbench.features.backbones import backbone_spec, create_model
-from release_formats import official_state_dict
-from memory import rss_kb  # this folder is on sys.path (as a script and under pytest)
+from memory import measured  # this folder is on sys.path (as a script and under pytest)
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/, for the release layouts
+from release_formats import official_state_dict  # noqa: E402
 
 IMAGE_SIZE = 224          # ViT-S/14 at 224x224: 16x16 = 256 patches of 384 dims
 LAYER = 9                 # value facet of block 9 of ViT-S/14
@@ -117,14 +118,8 @@ def workload(name: str):
 
 
 def probe(name: str) -> dict:
-    run = workload(name)
-    with open("/proc/self/clear_refs", "w") as refs:
-        refs.write("5")  # reset the peak-RSS counter (VmHWM) to the current RSS
-    base = rss_kb("VmRSS:")
-    start = time.perf_counter()
-    run()
-    seconds = time.perf_counter() - start
-    return {"workload": name, "peak_extra_mb": round((rss_kb("VmHWM:") - base) / 1024, 1),
+    _, seconds, base, peak = measured(workload(name))
+    return {"workload": name, "peak_extra_mb": round((peak - base) / 1024, 1),
             "baseline_mb": round(base / 1024, 1), "seconds_once": round(seconds, 3)}
 
 
