@@ -64,15 +64,17 @@ def run(data: Path, cache: Path, name: str, options: dict) -> dict:
     from vprbench.stages import Candidates, StageContext, create_stage
 
     dataset = load_dataset("pitts30k", data, cache_dir=cache)
-    chosen = np.linspace(0, len(dataset.queries) - 1, QUERIES).round().astype(int)[:FIRST]
+    every = np.linspace(0, len(dataset.queries) - 1, QUERIES).round().astype(int)
     truth = dataset.ground_truth
-    subset = dataclasses.replace(dataset, queries=[dataset.queries[i] for i in chosen],
-                                 ground_truth=dataclasses.replace(truth, query_positions=truth.query_positions[chosen]))
+    # the dataset keeps all the chosen queries (its identity keys the feature store), candidates the first FIRST
+    subset = dataclasses.replace(dataset, queries=[dataset.queries[i] for i in every],
+                                 ground_truth=dataclasses.replace(truth, query_positions=truth.query_positions[every]))
+    chosen = every[:FIRST]
     distances, nearest = cKDTree(truth.database_positions).query(truth.query_positions[chosen], DEPTH)
     candidates = Candidates(nearest.astype(np.int64), (-distances).astype(np.float32))
     stage = create_stage(name, {"k": DEPTH, **options})
     context = StageContext(dataset=subset, database=ArrayRows(np.zeros((len(dataset.database), 1), np.float32)),
-                           queries=ArrayRows(np.zeros((len(chosen), 1), np.float32)), cache_dir=cache)
+                           queries=ArrayRows(np.zeros((len(every), 1), np.float32)), cache_dir=cache)
     subset.images_fingerprint(cache)  # content identity (hashing every file) is not the stage's time
     with open("/proc/self/clear_refs", "w") as refs:
         refs.write("5")  # reset the peak-RSS counter (VmHWM) to the current RSS
