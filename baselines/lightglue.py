@@ -18,7 +18,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-import numpy as np
 from pydantic import Field, field_validator
 
 from vprbench import VPRBenchError
@@ -210,12 +209,12 @@ class SuperPointLightGlue(Stage):
         import torch
 
         from vprbench.images import load_rgb
-        from vprbench.stages.base import by_count
+        from vprbench.stages.base import rerank_by_counts
         from vprbench.stages.geometric import inliers
 
         from .superpoint import superpoint_features
 
-        options, dataset, device = self.options, context.dataset, context.device
+        options, device = self.options, context.device
         superpoint, lightglue = load_models(options, context.cache_dir, device)  # refused before anything is stored
 
         def extract(path):
@@ -228,22 +227,13 @@ class SuperPointLightGlue(Stage):
                     "descriptors": torch.from_numpy(found["descriptors"])[None].to(device),
                     "image_size": torch.from_numpy(found["size"])[None].to(device)}
 
-        store = self._store(context)
-        counts = np.zeros(candidates.indices.shape, dtype=np.int64)
-        task = context.progress.add_task(f"{self.name} re-ranking", total=candidates.query_count) \
-            if context.progress is not None else None
-        with store.opened("database", lambda row: extract(dataset.database[row])) as db, \
-                store.opened("queries", lambda row: extract(dataset.queries[row])) as qs, torch.inference_mode():
-            for q in range(candidates.query_count):
-                query = qs(q)
-                for c, row in enumerate(candidates.indices[q]):
-                    other = db(int(row))
-                    pairs = lightglue({"image0": side(query), "image1": side(other)})["matches"][0].cpu().numpy()
-                    counts[q, c] = len(pairs) if options.model == "none" else \
-                        inliers(query["points"][pairs[:, 0]], other["points"][pairs[:, 1]], options)
-                if task is not None:
-                    context.progress.advance(task, 1)
-        return by_count(candidates, counts)
+        def count(query, other) -> int:
+            pairs = lightglue({"image0": side(query), "image1": side(other)})["matches"][0].cpu().numpy()
+            return len(pairs) if options.model == "none" else \
+                inliers(query["points"][pairs[:, 0]], other["points"][pairs[:, 1]], options)
+
+        with torch.inference_mode():
+            return rerank_by_counts(self.name, candidates, context, self._store(context), extract, count)
 
     def stored_bytes(self, context: StageContext) -> int:
         return int(self._store(context).bytes_per_image("database") * context.database.row_count)

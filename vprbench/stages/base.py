@@ -211,3 +211,24 @@ def by_count(candidates: Candidates, counts: np.ndarray) -> Candidates:
     order = np.argsort(-np.asarray(counts), axis=1, kind="stable")
     return Candidates(np.take_along_axis(candidates.indices, order, 1),
                       np.take_along_axis(np.asarray(counts), order, 1).astype(np.float32))
+
+
+def rerank_by_counts(name: str, candidates: Candidates, context: StageContext, store, extract, count,
+                     prepare=lambda query: query) -> Candidates:
+    """What every count-based re-ranker does: each image's data from the feature store `store`
+    (`extract(path)` computes it once when missing), `count(prepare(query data), candidate data)`
+    for every query and candidate (matches, inliers), then the candidates re-ordered by those
+    counts (`by_count`). `prepare` runs once per query (e.g. descriptors made matchable)."""
+    dataset = context.dataset
+    counts = np.zeros(candidates.indices.shape, dtype=np.int64)
+    task = context.progress.add_task(f"{name} re-ranking", total=candidates.query_count) \
+        if context.progress is not None else None
+    with store.opened("database", lambda row: extract(dataset.database[row])) as db, \
+            store.opened("queries", lambda row: extract(dataset.queries[row])) as qs:
+        for q in range(candidates.query_count):
+            query = prepare(qs(q))
+            for c, row in enumerate(candidates.indices[q]):
+                counts[q, c] = count(query, db(int(row)))
+            if task is not None:
+                context.progress.advance(task, 1)
+    return by_count(candidates, counts)

@@ -15,7 +15,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from .base import Candidates, RerankOptions, Stage, StageContext, by_count
+from .base import Candidates, RerankOptions, Stage, StageContext, rerank_by_counts
 
 #: fewest correspondences each model is estimated from
 MINIMUM = {"fundamental": 8, "homography": 4}
@@ -103,24 +103,16 @@ class SiftRansac(Stage):
         return context.features("sift", self.feature_identity())
 
     def apply(self, candidates: Candidates, context: StageContext) -> Candidates:
-        options, dataset = self.options, context.dataset
-        store = self._store(context)
-        counts = np.zeros(candidates.indices.shape, dtype=np.int64)
-        task = context.progress.add_task(f"{self.name} re-ranking", total=candidates.query_count) \
-            if context.progress is not None else None
-        with store.opened("database", lambda row: sift_features(dataset.database[row], options.max_features)) as db, \
-                store.opened("queries", lambda row: sift_features(dataset.queries[row], options.max_features)) as qs:
-            for q in range(candidates.query_count):
-                query = qs(q)
-                query_descriptors = matchable(query["descriptors"], options.features)
-                for c, row in enumerate(candidates.indices[q]):
-                    other = db(int(row))
-                    pairs = ratio_matches(query_descriptors, matchable(other["descriptors"], options.features),
-                                          options.ratio)
-                    counts[q, c] = inliers(query["points"][pairs[:, 0]], other["points"][pairs[:, 1]], options)
-                if task is not None:
-                    context.progress.advance(task, 1)
-        return by_count(candidates, counts)
+        options = self.options
+
+        def count(query, other) -> int:
+            query, query_descriptors = query
+            pairs = ratio_matches(query_descriptors, matchable(other["descriptors"], options.features), options.ratio)
+            return inliers(query["points"][pairs[:, 0]], other["points"][pairs[:, 1]], options)
+
+        return rerank_by_counts(self.name, candidates, context, self._store(context),
+                                lambda path: sift_features(path, options.max_features), count,
+                                prepare=lambda query: (query, matchable(query["descriptors"], options.features)))
 
     def stored_bytes(self, context: StageContext) -> int:
         return int(self._store(context).bytes_per_image("database") * context.database.row_count)

@@ -17,7 +17,7 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from ..errors import VPRBenchError
-from .base import Candidates, RerankOptions, Stage, StageContext, by_count
+from .base import Candidates, RerankOptions, Stage, StageContext, rerank_by_counts
 
 #: AnyLoc's default: DINOv2 ViT-G/14, value facet of block 31; other backbones take the block at the
 #: same relative depth unless `layer` is given
@@ -163,20 +163,10 @@ class PatchMNN(Stage):
         return {"patches": F.normalize(found.float(), dim=-1).numpy().astype(np.float16)}
 
     def apply(self, candidates: Candidates, context: StageContext) -> Candidates:
-        dataset, threshold = context.dataset, self.options.min_similarity
-        store = self._store(context)
-        counts = np.zeros(candidates.indices.shape, dtype=np.int64)
-        task = context.progress.add_task(f"{self.name} re-ranking", total=candidates.query_count) \
-            if context.progress is not None else None
-        with store.opened("database", lambda row: self.patches(dataset.database[row])) as db, \
-                store.opened("queries", lambda row: self.patches(dataset.queries[row])) as qs:
-            for q in range(candidates.query_count):
-                query = qs(q)["patches"].astype(np.float64)
-                for c, row in enumerate(candidates.indices[q]):
-                    counts[q, c] = mutual_matches(query, db(int(row))["patches"], threshold)
-                if task is not None:
-                    context.progress.advance(task, 1)
-        return by_count(candidates, counts)
+        threshold = self.options.min_similarity
+        return rerank_by_counts(self.name, candidates, context, self._store(context), self.patches,
+                                lambda query, other: mutual_matches(query, other["patches"], threshold),
+                                prepare=lambda query: query["patches"].astype(np.float64))
 
     def stored_bytes(self, context: StageContext) -> int:
         return int(self._store(context).bytes_per_image("database") * context.database.row_count)
