@@ -39,6 +39,7 @@ def test_the_attack_is_real_unescaped():
 
 def test_hostile_option_values_publish_as_text(make_record, tmp_path, capsys):
     record = make_record("hog", options={"note": HOSTILE, "other": LINK}, seed=1)
+    record.setdefault("versions", {})["git"] = "`<b>x</b>"  # not a commit: a code span it could break out of
     save_result(record)
     docs = tmp_path / "docs"
     assert main(["leaderboard", "publish", "--to", str(docs)]) == 0, capsys.readouterr().err
@@ -46,6 +47,7 @@ def test_hostile_option_values_publish_as_text(make_record, tmp_path, capsys):
     assert pages and any("onerror" in p.read_text() for p in pages), "the hostile label is on the pages"
     for page in pages:
         assert not hostile(elements(page.read_text())), page
+    assert not any("<b>x" in page.read_text() for page in pages)
     assert "&lt;img" in text(HOSTILE) and "\\(" in text(LINK)
 
 

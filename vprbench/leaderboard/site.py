@@ -6,6 +6,7 @@ so a failure (full disk, a kill) leaves the previous section whole and no partia
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import tempfile
 import warnings
@@ -300,7 +301,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
         sent = (r.get("_contribution") or {}).get("contributor") or "this machine"
         runs.append(f"| {name} | {text(cell.source)} | {text(sent)} | `{r.get('run_id')}` | {text(r.get('created', '–'))} | "
                     f"{text(hardware_of(r))} | {text(versions.get('vprbench', '–'))} | "
-                    f"`{str(versions.get('git') or '–')[:10]}` | {sum(computed.values()) if computed else '–'} | {cell.passed_over} | "
+                    f"{_commit(versions.get('git'))} | {sum(computed.values()) if computed else '–'} | {cell.passed_over} | "
                     + (f"`{cell.timed.get('run_id')}` on {text(cell.hardware)} |" if cell.timed else "no run computed its descriptors |"))
     lines += ["", "The runs in the cells above:", "", *runs, "", *_paired(cells, seed), "## Figures", ""]
     slug = column.slug
@@ -353,6 +354,12 @@ def _paired(cells: list[Cell], seed: int) -> list[str]:
             "queries as independent).", "",
             "| Pair | Δ R@1 [95 % CI] | p (bootstrap) | only first / only second | p (McNemar) |", "|:--|--:|--:|--:|--:|",
             *lines, ""]
+
+
+def _commit(value) -> str:
+    """A record's git commit as a code span when it is one (hex), else '–': a record can say anything."""
+    found = str(value or "")
+    return f"`{found[:10]}`" if re.fullmatch(r"[0-9a-f]{7,40}", found) else "–"
 
 
 def _num(value, digits: int) -> str:
