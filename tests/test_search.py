@@ -8,8 +8,8 @@ import pytest
 
 from vprbench.aggregation import PCAWhitening
 from vprbench.errors import VPRBenchError
-from vprbench.evaluation.search import (SCORE_TOLERANCE, ArrayRows, TransformedRows, _plan, exact_search,
-                                        search, tile_rows, transform_rows)
+from vprbench.evaluation.postprocess import TransformedRows, transform_rows
+from vprbench.evaluation.search import SCORE_TOLERANCE, ArrayRows, _plan, exact_search, search, tile_rows
 from vprbench.evaluation.retrieve import retrieve
 from vprbench.methods import Method
 from vprbench.row_sources import as_rows, parse_memory
@@ -390,7 +390,7 @@ def test_a_rows_transform_is_the_same_along_every_arithmetic_path(monkeypatch, t
     import torch
     from threadpoolctl import threadpool_limits
 
-    import vprbench.evaluation.search as search_module
+    import vprbench.evaluation.postprocess as postprocess_module
 
     db = spectrum(2000, 1024, 23)
     db[1024] = db[700]  # a copy at a tile's edge of a row in a tile's middle
@@ -409,7 +409,7 @@ def test_a_rows_transform_is_the_same_along_every_arithmetic_path(monkeypatch, t
     for threads, tile in ((2, None), (1, 64), (2, 1000)):
         with monkeypatch.context() as patch, threadpool_limits(threads):
             if tile is not None:
-                patch.setattr(search_module, "transform_rows", lambda dim: tile)
+                patch.setattr(postprocess_module, "transform_rows", lambda dim: tile)
             rows = TransformedRows(ArrayRows(db), pca)
             assert rows.tile == (tile or transform_rows(1024))
             np.testing.assert_array_equal(rows.read_rows(0, 2000), whole)

@@ -141,7 +141,7 @@ def run_describe(args) -> int:
 
     from ..evaluation.extract import describe_splits
     from ..evaluation.pipeline import create_run_method, loader_workers
-    from ..evaluation.search import postprocessed
+    from ..evaluation.postprocess import postprocessed
     from ..fsutil import atomic_write
     from ..row_sources import DEFAULT_MEMORY_BUDGET
 

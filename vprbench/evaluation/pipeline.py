@@ -60,7 +60,7 @@ def stage_context(spec: RunSpec, settings: RunSettings, method, dataset, describ
     """What stages see: the dataset and the retriever's descriptors as its search saw them."""
     from ..loader import resolve_device
     from ..row_sources import DEFAULT_MEMORY_BUDGET
-    from .search import postprocessed
+    from .postprocess import postprocessed
 
     budget = settings.memory_budget or DEFAULT_MEMORY_BUDGET
     database, queries, _ = postprocessed(method, described.stores["database"], described.stores["queries"], budget)

@@ -1,0 +1,126 @@
+"""Post-processing (e.g. PCA-whitening) between the descriptor stores and the search: a
+post-processor fitted on the database rows (its state saved beside the stores, keyed by what
+defines it) and applied tile by tile on a fixed grid, so a row's values depend neither on how a
+caller chunks its reads nor on its neighbours."""
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+import warnings
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import VPRBenchError
+from ..fsutil import atomic_path
+from ..row_sources import ArrayRows, RowSource, read_bytes_per_row
+
+#: a post-processor transforms tiles of at most this many input bytes (see transform_rows)
+TRANSFORM_BYTES = 128 * 2**20
+
+
+def padded(block: np.ndarray, rows: int) -> np.ndarray:
+    """`block` with zero rows appended up to `rows` (itself when it has them)."""
+    if len(block) == rows:
+        return block
+    out = np.zeros((rows, block.shape[1]), dtype=np.float32)
+    out[:len(block)] = block
+    return out
+
+
+def transform_rows(dim: int) -> int:
+    """Rows per tile a post-processor transforms at once (TRANSFORM_BYTES at 16 bytes per
+    input value: float32 and float64 copies); depends on the dimension only."""
+    rows = max(1, TRANSFORM_BYTES // (16 * int(dim)))
+    return int(min(1024, max(16, 1 << (rows.bit_length() - 1))))
+
+
+class TransformedRows:
+    """A row source seen through a fitted post-processor, transformed tile by tile on the grid
+    of `transform_rows(source.dim)` (aligned to row 0, short tiles padded with zero rows), so a
+    row's values depend neither on how a caller chunks its reads nor on its neighbours."""
+
+    def __init__(self, source: RowSource, postprocessor):
+        self.source, self.postprocessor = source, postprocessor
+        self.row_count, self.folder, self.dtype = int(source.row_count), source.folder, np.dtype(np.float32)
+        self.tile = transform_rows(source.dim)
+        self.dim = int(self._transform(source.read_rows(0, 1)).shape[1])
+
+    def _transform(self, block: np.ndarray) -> np.ndarray:
+        """At most one tile of rows, transformed as one full tile."""
+        size = min(self.tile, self.row_count)
+        out = np.asarray(self.postprocessor.transform(padded(np.asarray(block, dtype=np.float32), size)),
+                         dtype=np.float32)
+        if out.ndim != 2 or out.shape[0] != size:
+            raise VPRBenchError(f"Post-processor {type(self.postprocessor).__name__} returned shape {out.shape} "
+                                f"for {size} rows; expected one row per row.")
+        return out[:len(block)]
+
+    def read_cost(self) -> tuple[int, int]:
+        # a tile read, padded, and computed in float64 (PCA-whitening does), with its output
+        return self.dim * 4, self.tile * (read_bytes_per_row(self.source) + 12 * self.source.dim + 20 * self.dim)
+
+    def read_rows(self, start: int, stop: int) -> np.ndarray:
+        out = np.empty((stop - start, self.dim), dtype=np.float32)
+        self.read_rows_into(start, stop, out)
+        return out
+
+    def read_rows_into(self, start: int, stop: int, out: np.ndarray) -> None:
+        for a in range(start - start % self.tile, stop, self.tile):
+            b = min(a + self.tile, self.row_count)
+            part = self._transform(self.source.read_rows(a, b))
+            lo, hi = max(start, a), min(stop, b)
+            out[lo - start:hi - start] = part[lo - a:hi - a]
+
+    def read_rows_at(self, indices) -> np.ndarray:
+        rows = self.source.read_rows_at(indices)
+        return np.concatenate([self._transform(rows[a:a + self.tile]) for a in range(0, len(rows), self.tile)]
+                              or [np.zeros((0, self.dim), dtype=np.float32)])
+
+
+def fit_postprocessor(postprocessor, database: RowSource, memory_budget: int, state_folder=None) -> dict:
+    """Fit on the database rows, or load the state a previous run saved in `state_folder`
+    (default: the database's folder) under a name keyed by what defines it."""
+    key = {"postprocessor": postprocessor.key(database, memory_budget),
+           "rows": {"count": database.row_count, "dim": database.dim, "dtype": str(np.dtype(database.dtype))}}
+    text = json.dumps(key, sort_keys=True, default=str)
+    folder = Path(state_folder) if state_folder is not None else database.folder
+    path = Path(folder) / f"postprocess-{hashlib.sha256(text.encode()).hexdigest()[:16]}.npz" if folder else None
+    info = {"key": key, "file": str(path) if path else None}
+    if path is not None and path.is_file():
+        try:
+            with np.load(path, allow_pickle=False) as saved:
+                postprocessor.load_state({name: saved[name] for name in saved.files if name != "key"})
+            return {**info, "state": "loaded"}
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as error:
+            warnings.warn(f"Refitting: the post-processing state {path} is unreadable ({error}).", stacklevel=2)
+    started = time.perf_counter()
+    postprocessor.fit(database, memory_budget)
+    info.update(state="fitted", fit_s=round(time.perf_counter() - started, 3))
+    if path is not None:
+        with atomic_path(path) as temporary, open(temporary, "wb") as file:
+            np.savez(file, **postprocessor.state(), key=np.array(text))
+    return info
+
+
+def _overrides_postprocess(method) -> bool:
+    from ..methods.base import Method
+
+    return getattr(type(method), "postprocess", Method.postprocess) is not Method.postprocess
+
+
+def postprocessed(method, database: RowSource, queries: RowSource, memory_budget: int, state_folder=None):
+    """(database, queries, info): both row sources as `method` post-processes them (its
+    post-processor fitted on the database, or a plugin's whole-matrix `postprocess`); info
+    None when there is nothing to do. `retrieve` and `vprbench describe` share it."""
+    postprocessor = method.postprocessor() if method is not None else None
+    if method is not None and _overrides_postprocess(method):  # a plugin's whole-matrix hook
+        db, q = method.postprocess(database.read_rows(0, database.row_count), queries.read_rows(0, queries.row_count))
+        database, queries = ArrayRows(np.asarray(db, dtype=np.float32)), ArrayRows(np.asarray(q, dtype=np.float32))
+        return database, queries, {"kind": f"{type(method).__name__}.postprocess", "in_memory": True}
+    if postprocessor is not None:
+        info = fit_postprocessor(postprocessor, database, memory_budget, state_folder)
+        return TransformedRows(database, postprocessor), TransformedRows(queries, postprocessor), info
+    return database, queries, None
