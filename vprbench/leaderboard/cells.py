@@ -27,9 +27,9 @@ from ..evaluation.metrics import recall_at_k
 from ..evaluation.proof import proven
 from ..evaluation.results import per_query
 from .escape import public
+from .shown import (OFFICIAL_WEIGHTS, RANDOM, TRANSDUCTIVE, hardware_of, licence_shown,  # noqa: F401
+                    method_label, random_weights, stage_marks, weights_of, weights_shown)
 
-#: weights sources that make a row official: the authors' release, or nothing learnt at all
-OFFICIAL_WEIGHTS = {"official", "none"}
 #: the K a cell reports
 CELL_KS = (1, 5)
 STRUCTURED = ("indoor", "urban", "outdoor")
@@ -49,58 +49,6 @@ CELL_RULE = (
     "without one, from the newest such run of the row on the same images under another protocol), "
     "with the machine it ran on."
 )
-
-
-def method_label(record: dict) -> str:
-    """The method name, with the options the user set on top of its preset: ablations get rows of their own."""
-    from ..spec import RunSpec
-
-    return RunSpec.model_validate(record["spec"]).label()
-
-
-def weights_of(record: dict) -> tuple[str, str]:
-    """(key, mark): key 'official' for official weights, else one key per weights source;
-    mark is the label shown beside a non-official row ('' for official)."""
-    weights = (record.get("provenance") or {}).get("weights") or {}
-    source = weights.get("source", "undeclared")
-    if source in OFFICIAL_WEIGHTS:
-        return "official", ""
-    if source == "user":
-        digest = str(weights.get("sha256", ""))[:12]
-        return f"user:{digest}", f"user weights sha256:{digest}"
-    return source, f"weights {source}"
-
-
-#: the mark of a run with a part fitted on the database it is evaluated on (the field's "transductive")
-TRANSDUCTIVE = "fitted on the evaluated database"
-
-
-def weights_shown(row: "Row", record: dict) -> str:
-    """The Weights column, the same on every table, page and download: the row's marks, else
-    'official', 'none (nothing learnt)' for a method with nothing learnt, or what it learnt
-    (e.g. 'vocabulary fitted on 2 images in ...') when its only learnt parts were fitted elsewhere."""
-    if row.mark:
-        return row.mark
-    provenance = record.get("provenance") or {}
-    learnt = [part for part in provenance.get("learnt") or [] if isinstance(provenance.get(part), dict)]
-    if learnt:
-        return public("; ".join(f"{part} fitted on {provenance[part].get('fitted_on') or 'data it does not name'}"
-                                for part in learnt))
-    return "none (nothing learnt)" if (provenance.get("weights") or {}).get("source") == "none" else "official"
-
-
-def licence_shown(record: dict) -> str:
-    """The Licence column, beside the row everywhere: the licence of the weights the run used, as
-    its record declares it (AnyLoc: the backbone's manifest entry), '(gated)' when access to them
-    must be requested; '–' when the record declares none or the weights were random."""
-    provenance = record.get("provenance") or {}
-    if (provenance.get("weights") or {}).get("source") == "random":
-        return "–"
-    card = next((c for c in (provenance.get("backbone"), provenance.get("weights")) if isinstance(c, dict)
-                 and c.get("licence")), None)
-    if card is None:
-        return "–"
-    return f"{card['licence']} (gated)" if card.get("gated") is True else str(card["licence"])
 
 
 @dataclass(frozen=True)
@@ -148,18 +96,6 @@ class Column:
 
             return f"own-{safe_name(self.dataset, 40)}-{self.protocol_hash[:8]}"
         return self.dataset if self.default else f"{self.dataset}-{self.protocol}"
-
-
-def hardware_of(record: dict) -> str:
-    """The machine a run was on, as its record names it."""
-    found = record.get("hardware") or {}
-    if not isinstance(found, dict) or not found:
-        return "unknown"
-    if "cpu" not in found and "cpu_count" not in found:
-        return str(found.get("note") or "unknown")
-    gpu = found.get("cuda")
-    return (f"{found.get('cpu') or found.get('machine') or 'unknown CPU'} ({found.get('cpu_count', '?')} cores), "
-            f"{gpu if gpu else 'no GPU'}")
 
 
 @dataclass
@@ -238,45 +174,6 @@ class Board:
                 "own_data": sum(c.column.kind == "own" for c in cells), "excluded": len(self.excluded)}
 
 
-#: why a run on random weights fills no cell
-RANDOM = ("random weights (a pipeline check, e.g. without access to gated weights): numbers from random "
-          "initialisation never fill a cell")
-
-
-def _random(record: dict) -> bool:
-    """The method or any stage ran on random weights (as recorded, or as its options asked)."""
-    weights = (record.get("provenance") or {}).get("weights") or {}
-    spec = record.get("spec") or {}
-    stage_options = [s.get("options") or {} for s in spec.get("stages") or [] if isinstance(s, dict)]
-    return (weights.get("source") == "random" or spec.get("options", {}).get("weights") == "random"
-            or any(w.get("source") == "random" for _, w in _stage_weights(record))
-            or any(options.get("weights") == "random" for options in stage_options))
-
-
-def _stage_weights(record: dict) -> list[tuple[str, dict]]:
-    """(name, weights provenance) of each stage of the run that has weights (`Stage.provenance`)."""
-    found = []
-    for stage in record.get("stages") or []:
-        weights = (stage.get("provenance") or {}).get("weights") if isinstance(stage, dict) else None
-        if isinstance(weights, dict):
-            found.append((str(stage.get("name", "stage")), weights))
-    return found
-
-
-def _stage_marks(record: dict) -> list[str]:
-    """A stage whose weights are not its authors' release marks the row, as a method's do:
-    'superpoint-lightglue user weights sha256:1a2b3c4d5e6f'."""
-    marks = []
-    for name, weights in _stage_weights(record):
-        source = weights.get("source", "undeclared")
-        if source in OFFICIAL_WEIGHTS:
-            continue
-        parts = [w for w in (weights.get("files") or {}).values() if isinstance(w, dict)] or [weights]
-        digests = [f"sha256:{str(w['sha256'])[:12]}" for w in parts if w.get("source") == source and w.get("sha256")]
-        marks.append(" ".join([name, f"{source} weights", ", ".join(digests)]).strip())
-    return marks
-
-
 def _max_k(record: dict) -> int:
     ks = [int(k) for k in (record.get("recall") or {}) if str(k).isdigit()]
     return max([(record.get("per_query") or {}).get("k", 0), *ks], default=0)
@@ -324,7 +221,7 @@ def _row_of(record: dict) -> Row:
     spec = RunSpec.model_validate(record["spec"])
     weights, mark = weights_of(record)
     transductive = (record.get("provenance") or {}).get("fitted_on_evaluated_database") is True
-    marks = [m for m in (mark, *_stage_marks(record), *spec.marks(), TRANSDUCTIVE if transductive else "") if m]
+    marks = [m for m in (mark, *stage_marks(record), *spec.marks(), TRANSDUCTIVE if transductive else "") if m]
     track = record.get("track") or "single-image"  # records before stages had none
     return Row(spec.row_key, public(spec.label()), weights, "; ".join(marks), track)
 
@@ -339,7 +236,7 @@ def build_board(records: list[dict]) -> Board:
             excluded.append((record, checked))
             continue
         record = checked
-        if _random(record):
+        if random_weights(record):
             excluded.append((record, RANDOM))
             continue
         found = _column_of(record)

@@ -1,0 +1,111 @@
+"""What a record's row shows beside its numbers, the same on every table, page and download:
+its label, its weights and the marks they earn, the licence of those weights, the machine."""
+from __future__ import annotations
+
+from .escape import public
+
+#: weights sources that make a row official: the authors' release, or nothing learnt at all
+OFFICIAL_WEIGHTS = {"official", "none"}
+
+
+def method_label(record: dict) -> str:
+    """The method name, with the options the user set on top of its preset: ablations get rows of their own."""
+    from ..spec import RunSpec
+
+    return RunSpec.model_validate(record["spec"]).label()
+
+
+def weights_of(record: dict) -> tuple[str, str]:
+    """(key, mark): key 'official' for official weights, else one key per weights source;
+    mark is the label shown beside a non-official row ('' for official)."""
+    weights = (record.get("provenance") or {}).get("weights") or {}
+    source = weights.get("source", "undeclared")
+    if source in OFFICIAL_WEIGHTS:
+        return "official", ""
+    if source == "user":
+        digest = str(weights.get("sha256", ""))[:12]
+        return f"user:{digest}", f"user weights sha256:{digest}"
+    return source, f"weights {source}"
+
+
+#: the mark of a run with a part fitted on the database it is evaluated on (the field's "transductive")
+TRANSDUCTIVE = "fitted on the evaluated database"
+
+
+def weights_shown(row, record: dict) -> str:
+    """The Weights column, the same on every table, page and download: the row's marks, else
+    'official', 'none (nothing learnt)' for a method with nothing learnt, or what it learnt
+    (e.g. 'vocabulary fitted on 2 images in ...') when its only learnt parts were fitted elsewhere."""
+    if row.mark:
+        return row.mark
+    provenance = record.get("provenance") or {}
+    learnt = [part for part in provenance.get("learnt") or [] if isinstance(provenance.get(part), dict)]
+    if learnt:
+        return public("; ".join(f"{part} fitted on {provenance[part].get('fitted_on') or 'data it does not name'}"
+                                for part in learnt))
+    return "none (nothing learnt)" if (provenance.get("weights") or {}).get("source") == "none" else "official"
+
+
+def licence_shown(record: dict) -> str:
+    """The Licence column, beside the row everywhere: the licence of the weights the run used, as
+    its record declares it (AnyLoc: the backbone's manifest entry), '(gated)' when access to them
+    must be requested; '–' when the record declares none or the weights were random."""
+    provenance = record.get("provenance") or {}
+    if (provenance.get("weights") or {}).get("source") == "random":
+        return "–"
+    card = next((c for c in (provenance.get("backbone"), provenance.get("weights")) if isinstance(c, dict)
+                 and c.get("licence")), None)
+    if card is None:
+        return "–"
+    return f"{card['licence']} (gated)" if card.get("gated") is True else str(card["licence"])
+
+
+def hardware_of(record: dict) -> str:
+    """The machine a run was on, as its record names it."""
+    found = record.get("hardware") or {}
+    if not isinstance(found, dict) or not found:
+        return "unknown"
+    if "cpu" not in found and "cpu_count" not in found:
+        return str(found.get("note") or "unknown")
+    gpu = found.get("cuda")
+    return (f"{found.get('cpu') or found.get('machine') or 'unknown CPU'} ({found.get('cpu_count', '?')} cores), "
+            f"{gpu if gpu else 'no GPU'}")
+
+
+#: why a run on random weights fills no cell
+RANDOM = ("random weights (a pipeline check, e.g. without access to gated weights): numbers from random "
+          "initialisation never fill a cell")
+
+
+def random_weights(record: dict) -> bool:
+    """The method or any stage ran on random weights (as recorded, or as its options asked)."""
+    weights = (record.get("provenance") or {}).get("weights") or {}
+    spec = record.get("spec") or {}
+    stage_options = [s.get("options") or {} for s in spec.get("stages") or [] if isinstance(s, dict)]
+    return (weights.get("source") == "random" or spec.get("options", {}).get("weights") == "random"
+            or any(w.get("source") == "random" for _, w in _stage_weights(record))
+            or any(options.get("weights") == "random" for options in stage_options))
+
+
+def _stage_weights(record: dict) -> list[tuple[str, dict]]:
+    """(name, weights provenance) of each stage of the run that has weights (`Stage.provenance`)."""
+    found = []
+    for stage in record.get("stages") or []:
+        weights = (stage.get("provenance") or {}).get("weights") if isinstance(stage, dict) else None
+        if isinstance(weights, dict):
+            found.append((str(stage.get("name", "stage")), weights))
+    return found
+
+
+def stage_marks(record: dict) -> list[str]:
+    """A stage whose weights are not its authors' release marks the row, as a method's do:
+    'superpoint-lightglue user weights sha256:1a2b3c4d5e6f'."""
+    marks = []
+    for name, weights in _stage_weights(record):
+        source = weights.get("source", "undeclared")
+        if source in OFFICIAL_WEIGHTS:
+            continue
+        parts = [w for w in (weights.get("files") or {}).values() if isinstance(w, dict)] or [weights]
+        digests = [f"sha256:{str(w['sha256'])[:12]}" for w in parts if w.get("source") == source and w.get("sha256")]
+        marks.append(" ".join([name, f"{source} weights", ", ".join(digests)]).strip())
+    return marks
