@@ -47,3 +47,25 @@ def test_root_sift_is_the_hellinger_map():
 def test_a_wrong_model_is_refused(shared_data):
     with pytest.raises(VPRBenchError, match="Stage 'sift-ransac' option model: Input should be 'fundamental' or 'homography'"):
         resolve_spec("hog", "corridor", stages=[{"name": "sift-ransac", "model": "affine"}], data_dir=shared_data)
+
+
+def test_two_processes_rerank_on_one_cache_and_compute_each_image_once(shared_data, tmp_path):
+    """Two evaluations with sift-ransac started together on one empty cache: both finish with the
+    same ranking, and the feature store holds every image once (one of them computed it, the other
+    read it under the folder's lock)."""
+    import json
+    import subprocess
+    import sys
+
+    command = [sys.executable, "-m", "vprbench", "evaluate", "--method", "hog", "--dataset", "corridor", "--k", "1", "5",
+               "--rerank", "sift-ransac", "--rerank-k", "5", "--rerank-option", "max_features=300",
+               "--data-dir", str(shared_data), "--cache-dir", str(tmp_path / "cache"), "--json"]
+    runs = [subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    outputs = [run.communicate(timeout=600) for run in runs]
+    assert [run.returncode for run in runs] == [0, 0], [err[-2000:] for _, err in outputs]
+    first, second = (json.loads(out) for out, _ in outputs)
+    assert first["per_query"]["database_indices"] == second["per_query"]["database_indices"]
+    computed = sorted(run["stages"][0]["features_computed"] for run in (first, second))
+    touched = len({i for row in first["per_query"]["database_indices"] for i in row})  # the top 5s, re-ordered
+    assert computed == [0, 111 + touched]  # the 111 queries and every candidate, computed once between the two
+    assert len(list((tmp_path / "cache" / "features").glob("sift-*/corridor-*/database.h5"))) == 1
