@@ -4,8 +4,10 @@ database in memory.
 A row source is anything with `row_count`, `dim`, `dtype`, `folder` (where state fitted on
 it may be kept, or None), `read_rows(start, stop)` and `read_rows_at(indices)` (indices
 sorted ascending); both reads return a fresh float32 array the caller may modify, whatever
-the stored dtype (float16 stores are widened). A complete descriptor store is one;
-`ArrayRows` wraps an in-memory array.
+the stored dtype (float16 stores are widened). A source may also lend rows where they
+are, read-only, with `view_rows(start, stop)` (None when it cannot): exact search then
+computes on them without a copy. A complete descriptor store is one; `ArrayRows` wraps an
+in-memory array.
 """
 from __future__ import annotations
 
@@ -59,6 +61,14 @@ class ArrayRows:
 
     def read_rows_at(self, indices) -> np.ndarray:
         return np.array(self.array[np.asarray(indices, dtype=np.int64)], dtype=np.float32)
+
+    def view_rows(self, start: int, stop: int) -> np.ndarray | None:
+        """Rows start:stop of the array itself, read-only, when it is C-ordered float32."""
+        if self.array.dtype != np.float32 or not self.array.flags.c_contiguous:
+            return None
+        view = self.array[start:stop].view()
+        view.flags.writeable = False
+        return view
 
 
 def as_rows(source, name: str = "descriptors") -> RowSource:

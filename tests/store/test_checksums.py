@@ -56,8 +56,10 @@ def test_checksums_are_the_crc32_of_the_stored_bytes_of_each_row(tmp_path):
 
 
 @pytest.mark.parametrize("dtype", ["float32", "float16"])
-@pytest.mark.parametrize("read", ["slice", "into", "at", "verify"])
+@pytest.mark.parametrize("read", ["slice", "into", "at", "verify", "view"])
 def test_a_flipped_byte_is_caught_on_read_and_the_store_discarded(tmp_path, dtype, read):
+    if read == "view" and dtype == "float16":
+        pytest.skip("a float16 store lends no rows (test_a_float32_store_lends_its_rows_from_its_file)")
     path, ident, x = tmp_path / "database.h5", identity(300, dtype), values()
     written(path, ident, x)
     store = DescriptorStore(path, ident)
@@ -66,7 +68,7 @@ def test_a_flipped_byte_is_caught_on_read_and_the_store_discarded(tmp_path, dtyp
     store = DescriptorStore(path, ident)  # a later reader: complete by its flags, damaged by content
     reads = {"slice": lambda: store.read_rows(100, 200), "into": lambda: store.read_rows_into(
         120, 130, np.empty((10, 24), np.float32)), "at": lambda: store.read_rows_at([5, 123, 123, 250]),
-        "verify": store.verify}
+        "verify": store.verify, "view": lambda: store.view_rows(100, 200)}
     with pytest.raises(DamagedRows, match=rf"Descriptor store {path} is damaged: row 123 no longer matches the "
                                           r"checksum written with it; it was discarded: run again to recompute it\.") as caught:
         reads[read]()
@@ -86,6 +88,45 @@ def test_rows_already_checked_are_not_checked_again_until_the_file_changes(tmp_p
         f["descriptors"][40] = -f["descriptors"][40]
     with pytest.raises(DamagedRows, match="row 40 no longer matches"):
         store.read_rows(0, 300)
+
+
+def test_a_float32_store_lends_its_rows_from_its_file(tmp_path):
+    """Search computes on a store's rows where they are: the file's pages, mapped read-only,
+    checked like a read. A float16 store (widened on read) lends none."""
+    import mmap
+
+    path, ident, x = tmp_path / "database.h5", identity(300), values()
+    written(path, ident, x)
+    store = DescriptorStore(path, ident)
+    view = store.view_rows(17, 290)
+    assert np.array_equal(view, x[17:290]) and not view.flags.writeable
+    assert isinstance(view.base.base.obj, mmap.mmap) and store._checked[17:290].all() and not store._checked[:17].any()
+    assert store.view_rows(5, 5) is None and store.view_rows(0, 300).shape == (300, 24)
+    with pytest.raises(ValueError, match="outside"):
+        store.view_rows(250, 301)
+    half = tmp_path / "half.h5"
+    written(half, identity(300, "float16"), x)
+    assert DescriptorStore(half, identity(300, "float16")).view_rows(0, 10) is None
+
+
+def test_search_on_lent_store_rows_equals_search_on_read_rows(tmp_path, monkeypatch):
+    """The same products whether rows are lent (a float32 store) or read into buffers (the
+    same values in float64): bit for bit, at one chunk and at several (tiles of 512 rows)."""
+    import vprbench.evaluation.search as search_module
+    from vprbench.evaluation.search import exact_search
+    from vprbench.row_sources import ArrayRows
+
+    monkeypatch.setattr(search_module, "tile_rows", lambda dim: 512)
+    db, q = values(3000, 64, 1), values(700, 64, 2)
+    path = tmp_path / "database.h5"
+    written(path, identity(3000), db)
+    store = DescriptorStore(path, identity(3000))
+    for budget in (10**9, 4 * 10**6):
+        lent = exact_search(store, q, 10, memory_budget=budget)
+        read = exact_search(ArrayRows(db.astype(np.float64)), q.astype(np.float64), 10, memory_budget=budget)
+        np.testing.assert_array_equal(lent.scores, read.scores)
+        np.testing.assert_array_equal(lent.indices, read.indices)
+    assert lent.info["chunks"] > 1 and read.info["chunks"] > 1
 
 
 def test_a_damaged_shard_is_refused_while_merging(tmp_path):

@@ -8,10 +8,8 @@ What is promised, on every CPU:
   1.5e-5), and results are ordered by rounded score descending, then by the lower database
   index: rows within rounding of each other are a tie, and a tie goes to the lower index.
 - On one machine and BLAS configuration, results are bitwise identical for every memory
-  budget: products are tiles of a fixed grid of rows (aligned to row 0, the tile size a
-  function of the dimension only), the last tile of each side cut to a multiple of
-  TILE_STEP rows (padded with zero rows), so a row's product has a shape set by the data's
-  size, never by the budget or by the row's place in a read.
+  budget: products are tiles of a fixed grid of rows (chunks.py), so a row's product has a
+  shape set by the data's size, never by the budget or by the row's place in a read.
 - Across arithmetic paths (BLAS thread counts, numpy or torch, CPUs with other kernels, a
   row at a tile's edge or in its middle) float32 products differ in their last bits (up to
   about 1e-7 for unit descriptors of 49,152 dims). Rounded to the grid they agree, except
@@ -28,23 +26,18 @@ import numpy as np
 from ..errors import VPRBenchError
 from ..row_sources import (DEFAULT_MEMORY_BUDGET, READ_BYTES, ArrayRows, RowSource, as_rows, format_bytes,
                     parse_memory, read_bytes_per_row)
+from .chunks import Chunk, ChunkReader, tile_rows
 
 INDEXES = ("exact", "ivf-pq", "hnsw")
 #: scores are rounded to multiples of this before they are ranked (a power of two: exact in float32)
 SCORE_TOLERANCE = 2.0 ** -16
 TIE_ORDER = "score rounded to 2^-16 descending, then database index ascending"
-#: a tile of rows is at most this large (and 256..4,096 rows, a multiple of 256): tiles this
-#: big keep BLAS near its peak (a 1,024-row tile of 35,721 dims reaches 86 % of a whole product, 1,792 rows 90 %)
-TILE_BYTES = 256 * 2**20
-#: tiles are multiples of this many rows, a short last tile too (padded): never the one-row
-#: or tiny products where BLAS switches kernels, and at most TILE_STEP - 1 rows computed in vain
-TILE_STEP = 256
 #: a thread's slice of a query tile is at least this many rows (see `slices`)
 MIN_SLICE_ROWS = 64
 #: candidates kept per query beyond K while merging raw scores: ties on the grid are settled among them
 EXTRA_CANDIDATES = 16
-#: queries are scaled by this before their products: exact (a power of two), and the products
-#: are then the negated grid units the heaps keep, with no pass over the scores
+#: scores are scaled by this after their products: exact (a power of two), giving the negated
+#: grid units the heaps keep
 _UNITS = np.float32(-1 / SCORE_TOLERANCE)
 
 __all__ = ["ArrayRows", "DEFAULT_MEMORY_BUDGET", "INDEXES", "SCORE_TOLERANCE", "SearchResult",
@@ -56,18 +49,6 @@ class SearchResult:
     scores: np.ndarray    # (Q, k) float32, best first
     indices: np.ndarray   # (Q, k) int64 database rows
     info: dict = field(default_factory=dict)  # how it ran: goes into the result record's "search"
-
-
-def tile_rows(dim: int) -> int:
-    """Rows per tile of the grid scores are computed on; depends on the dimension only."""
-    rows = TILE_BYTES // (4 * int(dim))
-    return int(min(4096, max(TILE_STEP, rows // TILE_STEP * TILE_STEP)))
-
-
-def product_rows(rows: int, tile: int) -> int:
-    """Rows a tile holding `rows` rows is computed with: a whole tile, or a short last tile
-    rounded up to a multiple of TILE_STEP (within the tile)."""
-    return min(tile, -(-int(rows) // TILE_STEP) * TILE_STEP)
 
 
 def read_cost(rows) -> tuple[int, int]:
@@ -132,64 +113,6 @@ def _plan(database, queries, k: int, budget: int) -> dict:
             "query_chunk_rows": int(q_chunk), "query_chunks": int(-(-q // q_chunk)), "candidates": int(keep)}
 
 
-def read_into(rows, start: int, stop: int, out: np.ndarray) -> None:
-    """Rows start:stop of a row source into `out` (float32, stop - start rows): straight into
-    it when the source can (`read_rows_into`), else through a fresh array."""
-    reader = getattr(rows, "read_rows_into", None)
-    if reader is not None:
-        reader(start, stop, out)
-        return
-    block = np.asarray(rows.read_rows(start, stop), dtype=np.float32)
-    if block.shape != (stop - start, rows.dim):
-        raise VPRBenchError(f"Row source returned shape {block.shape} for rows {start}:{stop}; expected "
-                            f"({stop - start}, {rows.dim}).")
-    out[...] = block
-
-
-class ChunkReader:
-    """A row source read chunk by chunk into two buffers, `passes` times over, the next chunk
-    always read in a thread while the caller computes on the current one (the first chunk of
-    the next pass too). Buffers are whole tiles; rows past the source's end are zeros (the
-    padding of the last tile). A source of one chunk is read once and kept."""
-
-    def __init__(self, rows, chunk_rows: int, tile: int, passes: int):
-        from concurrent.futures import ThreadPoolExecutor
-
-        self.rows, self.chunk_rows = rows, int(chunk_rows)
-        self.starts = list(range(0, rows.row_count, self.chunk_rows))
-        held = -(-self.chunk_rows // tile) * tile
-        self.buffers = [np.zeros((held, rows.dim), dtype=np.float32) for _ in range(min(2, len(self.starts)))]
-        self.loaded = None  # (start, count, buffer) when there is one chunk
-        self.reads = len(self.starts) * int(passes)  # chunk reads in all, in order 0, 1, .., 0, 1, ..
-        self.step, self.next = 0, None
-        self.pool = ThreadPoolExecutor(1, thread_name_prefix="vprbench-read") if len(self.starts) > 1 else None
-
-    def _fill(self, step: int) -> tuple[int, int, np.ndarray]:
-        start = self.starts[step % len(self.starts)]
-        count = min(self.chunk_rows, self.rows.row_count - start)
-        buffer = self.buffers[step % len(self.buffers)]  # not the one the caller computes on
-        read_into(self.rows, start, start + count, buffer[:count])
-        buffer[count:] = 0
-        return start, count, buffer
-
-    def __iter__(self):
-        """One pass over the source: (first row, rows, buffer) per chunk."""
-        if self.pool is None:
-            if self.loaded is None:
-                self.loaded = self._fill(0)
-            yield self.loaded
-            return
-        for _ in self.starts:
-            chunk = (self.next or self.pool.submit(self._fill, self.step)).result()
-            self.step += 1
-            self.next = self.pool.submit(self._fill, self.step) if self.step < self.reads else None
-            yield chunk
-
-    def close(self) -> None:
-        if self.pool is not None:
-            self.pool.shutdown(wait=True, cancel_futures=True)
-
-
 def _heap(distances: np.ndarray, ids: np.ndarray):
     """faiss max-heaps over rows of (negated) scores: they keep the k smallest distances and,
     fed in ascending id order, the lower id on ties (faiss's min-heaps would keep the higher)."""
@@ -232,7 +155,7 @@ def _scan(database, queries, keep: int, plan: dict, on_grid: bool) -> tuple[np.n
     With several threads, each takes its own slice of every query tile, with one-thread BLAS
     and its own heap rows: products and merges run side by side and no thread waits on another
     within a chunk. `on_grid` rounds each tile of scores before it is merged (the tie rule
-    exactly, at the cost of a pass over the scores); otherwise raw units are merged."""
+    exactly, at the cost of one more pass over the scores); otherwise raw units are merged."""
     from concurrent.futures import ThreadPoolExecutor
 
     from threadpoolctl import threadpool_limits
@@ -240,25 +163,26 @@ def _scan(database, queries, keep: int, plan: dict, on_grid: bool) -> tuple[np.n
     tile, q_chunk = plan["tile_rows"], plan["query_chunk_rows"]
     n_queries = queries.row_count
     q_tile, d_tile = min(n_queries, tile), min(database.row_count, tile)
-    distances = np.empty((n_queries, keep), dtype=np.float32)
-    indices = np.empty((n_queries, keep), dtype=np.int64)
-    threads = len(slices(q_tile, search_threads()))
-    scan = _Scan(_heap(distances, indices), q_tile, d_tile, threads, on_grid)
-    block = np.zeros((-(-q_chunk // q_tile) * q_tile, queries.dim), dtype=np.float32)
-    reader = ChunkReader(database, plan["chunk_rows"], d_tile, passes=-(-n_queries // q_chunk))
-    pool = ThreadPoolExecutor(threads, "vprbench-search", _one_openmp_thread) if threads > 1 else None
+    pool, readers = None, []
     try:
+        # both start reading now, side by side (the queries into one buffer: the plan holds one chunk)
+        readers.append(query_reader := ChunkReader(queries, q_chunk, q_tile, passes=1, buffers=1))
+        readers.append(reader := ChunkReader(database, plan["chunk_rows"], d_tile, passes=-(-n_queries // q_chunk)))
+        distances = np.empty((n_queries, keep), dtype=np.float32)
+        indices = np.empty((n_queries, keep), dtype=np.int64)
+        threads = len(slices(q_tile, search_threads()))
+        scan = _Scan(_heap(distances, indices), q_tile, d_tile, threads, on_grid)
+        pool = ThreadPoolExecutor(threads, "vprbench-search", _one_openmp_thread) if threads > 1 else None
         with threadpool_limits(1, user_api="blas") if pool else _nothing():
-            for q0 in range(0, n_queries, q_chunk):
-                m_chunk = min(q_chunk, n_queries - q0)
-                read_into(queries, q0, q0 + m_chunk, block[:m_chunk])
-                block[m_chunk:] = 0
-                block *= _UNITS
-                for d0, count, rows in reader:
-                    work = [(w, block, q0, m_chunk, rows, d0, count) for w in range(threads)]
+            for query_chunk in query_reader:
+                for chunk in reader:
+                    work = [(w, query_chunk, chunk) for w in range(threads)]
                     list(pool.map(scan.chunk, *zip(*work))) if pool else scan.chunk(*work[0])
+                    chunk = work = None  # let go before the next is read (ChunkReader)
+                query_chunk = None
     finally:
-        reader.close()
+        for opened in readers:
+            opened.close()
         if pool is not None:
             pool.shutdown(wait=True)
     return distances, indices
@@ -273,25 +197,24 @@ class _Scan:
         tallest = max(hi - lo for lo, hi in slices(q_tile, threads))
         self.scores = [np.empty(tallest * d_tile, dtype=np.float32) for _ in range(threads)]  # each thread's output
 
-    def chunk(self, worker: int, block, q0: int, m_chunk: int, rows, d0: int, count: int) -> None:
+    def chunk(self, worker: int, queries: Chunk, database: Chunk) -> None:
         import faiss
 
-        for t0 in range(0, count, self.d_tile):
-            n = min(self.d_tile, count - t0)
-            n_held = product_rows(n, self.d_tile)
-            for a in range(0, m_chunk, self.q_tile):
-                m = min(self.q_tile, m_chunk - a)
-                cut = slices(product_rows(m, self.q_tile), self.threads)
+        for t, (rows, n) in enumerate(zip(database.tiles, database.real)):
+            for a, (block, m) in enumerate(zip(queries.tiles, queries.real)):
+                cut = slices(len(block), self.threads)
                 if worker >= len(cut) or cut[worker][0] >= m:
                     continue
                 lo, hi = cut[worker]
                 real = min(hi, m) - lo  # rows past m are the tile's zero padding
-                out = self.scores[worker][:(hi - lo) * n_held].reshape(hi - lo, n_held)
-                inner_products(block[a + lo:a + hi], rows[t0:t0 + n_held], out)
+                out = self.scores[worker][:(hi - lo) * len(rows)].reshape(hi - lo, len(rows))
+                inner_products(block[lo:hi], rows, out)
+                np.multiply(out, _UNITS, out=out)
                 if self.on_grid:
                     np.rint(out, out=out)
-                merged = out if n == n_held else np.ascontiguousarray(out[:real, :n])
-                self.heap.addn(n, faiss.swig_ptr(merged), d0 + t0, q0 + a + lo, real)
+                merged = out if n == len(rows) else np.ascontiguousarray(out[:real, :n])
+                self.heap.addn(n, faiss.swig_ptr(merged), database.start + t * self.d_tile,
+                               queries.start + a * self.q_tile + lo, real)
 
 
 def exact_search(database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDGET) -> SearchResult:

@@ -1,5 +1,9 @@
 """A complete descriptor store read as a row source, every row checked against its checksum.
 
+Search computes on a store's rows where they are (`view_rows`: the file's pages, mapped
+read-only): a complete store is never written in place (stores are replaced by renaming and
+discarded by unlinking), so mapped rows stay the rows that were checked.
+
 Each row's crc32 is checked the first time this reader reads it (again after the file has
 changed on disk); `verify()` checks them all at once (an evaluation does before it
 searches). A row that fails is never returned: the file is discarded under its folder's
@@ -7,6 +11,7 @@ lock (if it is still the file that failed) and `DamagedRows` says so, naming the
 """
 from __future__ import annotations
 
+import mmap
 import os
 from pathlib import Path
 
@@ -27,6 +32,7 @@ class DescriptorStore:
         self.path, self.identity = Path(path), identity
         self.folder = self.path.parent
         self._signature = None
+        self._placed = (None, None)  # (signature, byte offset of the descriptors or None)
         self._check_file()
 
     @classmethod
@@ -138,6 +144,46 @@ class DescriptorStore:
         if raw is not out:
             out[...] = raw
 
+    def view_rows(self, start: int, stop: int) -> np.ndarray | None:
+        """Rows start:stop as a read-only view of the file's own pages (the system's file cache:
+        no copy, no new memory), checked like a read; None when the descriptors are not one
+        block of float32 inside the file, or the file was replaced since it was checked."""
+        self._check_file()
+        if not 0 <= start <= stop <= self.row_count:
+            raise ValueError(f"rows {start}:{stop} outside 0:{self.row_count}")
+        offset = self._offset()
+        if offset is None or stop == start:
+            return None
+        first = offset + start * 4 * self.dim
+        base = first - first % mmap.ALLOCATIONGRANULARITY
+        try:
+            with open(self.path, "rb") as file:
+                stat = os.fstat(file.fileno())
+                if (stat.st_ino, stat.st_size, stat.st_mtime_ns) != self._signature:
+                    return None
+                pages = _mapped(file.fileno(), first - base + (stop - start) * 4 * self.dim, base)
+        except (OSError, ValueError):
+            return None  # e.g. no address space: the rows are read instead
+        rows = np.frombuffer(pages, np.float32, (stop - start) * self.dim, first - base).reshape(stop - start, self.dim)
+        if not self._checked[start:stop].all():
+            with self._open() as f:
+                self._check(f, start, rows)
+        return rows
+
+    def _offset(self) -> int | None:
+        """Where the descriptors start in the file, when they are one block of little-endian
+        float32 inside it (not chunked, external or virtual)."""
+        if self._placed[0] != self._signature:
+            with self._open() as f:
+                data = f["descriptors"]
+                offset = data.id.get_offset()
+                plain = (data.dtype == np.dtype("<f4") and data.chunks is None and not data.is_virtual
+                         and data.id.get_create_plist().get_external_count() == 0)
+                size = self.row_count * self.dim * 4
+                inside = offset is not None and data.id.get_storage_size() == size and offset + size <= self._signature[1]
+            self._placed = (self._signature, int(offset) if plain and inside else None)
+        return self._placed[1]
+
     def read_rows_at(self, indices) -> np.ndarray:
         """Rows at ascending `indices` (repeats allowed), in that order."""
         self._check_file()
@@ -170,3 +216,9 @@ class DescriptorStore:
             return h5py.File(self.path, "r")
         except OSError as error:
             raise cache_error(error, self.path) from None
+
+
+def _mapped(fd: int, length: int, offset: int) -> mmap.mmap:
+    if hasattr(mmap, "MAP_POPULATE"):  # Linux: pages mapped now, by the reading thread, not at the first product
+        return mmap.mmap(fd, length, flags=mmap.MAP_SHARED | mmap.MAP_POPULATE, prot=mmap.PROT_READ, offset=offset)
+    return mmap.mmap(fd, length, access=mmap.ACCESS_READ, offset=offset)
