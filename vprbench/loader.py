@@ -133,6 +133,9 @@ def describe_batches(method, paths: Sequence[Path], *, workers: int = 0, device:
         return
     from torch.utils.data import DataLoader
 
+    from .features.allocator import keep_freed_memory
+
+    keep_freed_memory()  # each batch's tensors reuse the last one's memory
     batches = -(-len(paths) // size)
     loader = DataLoader(_Images(method, paths, digests), batch_size=size, shuffle=False, collate_fn=_as_batch,
                         num_workers=min(int(workers), batches), pin_memory=str(device).startswith("cuda"))

@@ -8,7 +8,10 @@ point where the extractor stops), the time of one extraction, and the bound
 FLOPs / (measured fp32 GEMM rate at that backbone's own largest matrix shape, measured just
 before and after each extraction). Rounds are interleaved (every backbone once per round, in one
 order) so load on the machine hits all alike; "of bound" is the median over rounds of bound /
-time. With one thread the clock is the process's CPU time (on a shared machine, the time it
+time. The same bound is also given against oneDNN's GEMM (torch.utils.mkldnn's prepacked linear)
+at that shape: on some CPUs (AMD Zen) it is far faster than the BLAS torch's linear layers call,
+so "of bound" there says how far eager PyTorch is from the hardware, not only from its own BLAS.
+With one thread the clock is the process's CPU time (on a shared machine, the time it
 computed rather than the time it waited for a core); with several threads, wall time. Also:
 the DINOv2 path as it is (official position resampling, hand-written token path) against
 timm's forward_intermediates path (the one every other family takes) on the same model and layer.
@@ -50,6 +53,16 @@ def gemm_rate(rows: int, width: int, hidden: int) -> float:
     torch.mm(a, b)
     repeat = max(1, int(2e9 / (2 * rows * width * hidden)))
     return 2 * rows * width * hidden / timed(lambda: torch.mm(a, b), repeat)
+
+
+def onednn_rate(rows: int, width: int, hidden: int) -> float:
+    """FLOP/s of oneDNN's prepacked linear (no bias) at the same shape."""
+    from torch.utils.mkldnn import MkldnnLinear
+
+    a, linear = torch.randn(rows, width), MkldnnLinear(torch.nn.Linear(width, hidden, bias=False), torch.float32)
+    linear(a)
+    repeat = max(1, int(2e9 / (2 * rows * width * hidden)))
+    return 2 * rows * width * hidden / timed(lambda: linear(a), repeat)
 
 
 def extractor(name: str, layer: int | None = None, facet: str = "value", path: str | None = None):
@@ -97,27 +110,32 @@ def main() -> None:
         times = {key: [] for key in cases}
         ratios = {key: [] for key, case in cases.items() if case[3]}  # bound / time, per round
         rates = {key: [] for key in ratios}
+        onednn = {key: [] for key in ratios}
         for _ in range(args.rounds):
             for key, (ex, images, count, shape) in cases.items():
                 with torch.no_grad():
                     ex(images)  # warm
                     before = gemm_rate(*shape) if shape else None
                     times[key].append(timed(lambda: ex(images)))
-                if shape:  # the GEMM rate measured just before and after the extraction it bounds
-                    rates[key].append((before + gemm_rate(*shape)) / 2)
-                    ratios[key].append(count / rates[key][-1] / times[key][-1])
+                    if shape:  # the GEMM rate measured just before and after the extraction it bounds
+                        rates[key].append((before + gemm_rate(*shape)) / 2)
+                        ratios[key].append(count / rates[key][-1] / times[key][-1])
+                        onednn[key].append(onednn_rate(*shape))
         clock = "CPU time of the process" if threads == 1 else "wall time"
         print(f"\n## {threads} thread(s), batch {args.batch} at {args.size}px, {clock}, medians of {args.rounds} "
               "interleaved rounds")
-        print("| backbone | GFLOP per image | ms per image | GEMM GFLOP/s | bound ms per image | of bound |")
-        print("|---|---|---|---|---|---|")
+        print("| backbone | GFLOP per image | ms per image | GEMM GFLOP/s | bound ms per image | of bound "
+              "| oneDNN GEMM GFLOP/s | of oneDNN bound |")
+        print("|---|---|---|---|---|---|---|---|")
         for key, (ex, images, count, shape) in cases.items():
             per_image = statistics.median(times[key]) / len(images)
             gflop = count / len(images) / 1e9
             if shape:
                 rate = statistics.median(rates[key])
+                best = statistics.median(onednn[key])
                 print(f"| {key} | {gflop:.2f} | {per_image * 1e3:.1f} | {rate / 1e9:.1f} | "
-                      f"{count / len(images) / rate * 1e3:.1f} | {statistics.median(ratios[key]):.0%} |")
+                      f"{count / len(images) / rate * 1e3:.1f} | {statistics.median(ratios[key]):.0%} | "
+                      f"{best / 1e9:.1f} | {count / len(images) / best / per_image:.0%} |")
             else:
                 print(f"| {key} | {gflop:.2f} | {per_image * 1e3:.1f} | | | |")
         for name, layer in DINOV2_PATHS:

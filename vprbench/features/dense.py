@@ -14,6 +14,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..errors import VPRBenchError
+from .allocator import keep_freed_memory
 from .catalogue import BackboneEntry
 
 FACETS = ("query", "key", "value", "token")
@@ -72,6 +73,7 @@ class DenseExtractor(nn.Module):
                 f"valid layers are 0..{depth - 1} (0-based)."
             )
         self.model, self.spec, self.layer, self.facet = model, spec, layer, facet
+        keep_freed_memory()  # every block's tensors reuse the last one's memory
         self.stride = stride or spec.patch
         if spec.patch % self.stride:
             raise VPRBenchError(f"stride {self.stride} must divide the patch size {spec.patch} of {spec.name}")

@@ -1,0 +1,38 @@
+"""glibc keeps the memory a forward pass frees for the next block's tensors (features/allocator.py)."""
+import subprocess
+import sys
+
+import pytest
+
+PASSES = """
+import resource, sys, torch
+torch.set_num_threads(1)
+from vprbench.features.backbones import create_model
+from vprbench.features.catalogue import backbone_spec
+from vprbench.features.dense import DenseExtractor
+spec = backbone_spec("dinov3_vits16")
+model = create_model(spec, depth=3)  # ViT-S width: a block's MLP makes tensors of 5 MB at batch 4
+images = torch.randn(4, 3, 224, 224)
+if sys.argv[1] == "extractor":  # sets the allocator
+    run = lambda: DenseExtractor(model, spec, 2, "token")(images)
+else:  # the same blocks by timm alone, in a process that never made an extractor
+    run = lambda: model.forward_intermediates(images, indices=[2], stop_early=True, norm=False, output_fmt="NLC",
+                                              intermediates_only=True, return_prefix_tokens=True)
+with torch.no_grad():
+    run(), run()
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    run(), run(), run()
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+
+
+def page_faults(route: str) -> int:
+    out = subprocess.run([sys.executable, "-c", PASSES, route], capture_output=True, text=True, check=True)
+    return int(out.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the setting is glibc's")
+def test_an_extractor_reuses_freed_memory_instead_of_touching_new_pages():
+    # three passes of three ViT-S blocks: thousands of pages touched anew by default, none once set
+    assert page_faults("timm") > 5_000
+    assert page_faults("extractor") < 500
