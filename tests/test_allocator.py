@@ -18,21 +18,25 @@ if sys.argv[1] == "extractor":  # sets the allocator
 else:  # the same blocks by timm alone, in a process that never made an extractor
     run = lambda: model.forward_intermediates(images, indices=[2], stop_early=True, norm=False, output_fmt="NLC",
                                               intermediates_only=True, return_prefix_tokens=True)
+faults = []
 with torch.no_grad():
     run(), run()
-    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-    run(), run(), run()
-print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+    for _ in range(7):
+        before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+        run()
+        faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+print(sorted(faults)[3])  # the median pass: an odd pass also touches pages for other reasons
 """
 
 
-def page_faults(route: str) -> int:
+def page_faults_per_pass(route: str) -> int:
     out = subprocess.run([sys.executable, "-c", PASSES, route], capture_output=True, text=True, check=True)
     return int(out.stdout.strip().splitlines()[-1])
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the setting is glibc's")
 def test_an_extractor_reuses_freed_memory_instead_of_touching_new_pages():
-    # three passes of three ViT-S blocks: thousands of pages touched anew by default, none once set
-    assert page_faults("timm") > 5_000
-    assert page_faults("extractor") < 500
+    # a pass of three ViT-S blocks: thousands of pages touched anew by default (2,000 to 12,000
+    # measured), almost none once set (0, and about 600 in an odd pass)
+    assert page_faults_per_pass("timm") > 1_000
+    assert page_faults_per_pass("extractor") < 100
