@@ -55,11 +55,10 @@ def test_checksums_are_the_crc32_of_the_stored_bytes_of_each_row(tmp_path):
         assert np.array_equal(stored, row_checksums(x.astype(dtype)))
 
 
-@pytest.mark.parametrize("dtype", ["float32", "float16"])
-@pytest.mark.parametrize("read", ["slice", "into", "at", "verify", "view"])
+@pytest.mark.parametrize("dtype, read", [(dtype, read) for dtype in ("float32", "float16")
+                                         for read in ("slice", "into", "at", "verify", "view")
+                                         if (dtype, read) != ("float16", "view")])  # float16 stores lend no rows
 def test_a_flipped_byte_is_caught_on_read_and_the_store_discarded(tmp_path, dtype, read):
-    if read == "view" and dtype == "float16":
-        pytest.skip("a float16 store lends no rows (test_a_float32_store_lends_its_rows_from_its_file)")
     path, ident, x = tmp_path / "database.h5", identity(300, dtype), values()
     written(path, ident, x)
     store = DescriptorStore(path, ident)
