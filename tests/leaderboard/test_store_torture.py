@@ -102,7 +102,8 @@ def template(make_record, tmp_path):
 
 def test_eight_writers_at_once_lose_nothing(tmp_path, template):
     go = tmp_path / "go"
-    procs = [writer(tmp_path, template(), f"w{w}", 15, go) for w in range(8)]
+    source = template()  # written once: rewriting it while an earlier writer reads it hands that one an empty file
+    procs = [writer(tmp_path, source, f"w{w}", 15, go) for w in range(8)]
     for p in procs:
         assert_ready(p)  # imported and waiting: now start all at once
     go.touch()
