@@ -47,12 +47,17 @@ def timed(fn, repeat: int = 1) -> float:
     return (CLOCK["fn"]() - start) / repeat
 
 
+def rate(product, rows: int, width: int, hidden: int) -> float:
+    """FLOP/s of `product`, a (rows x width) @ (width x hidden) GEMM."""
+    product()
+    flop = 2 * rows * width * hidden
+    return flop / timed(product, max(1, int(2e9 / flop)))
+
+
 def gemm_rate(rows: int, width: int, hidden: int) -> float:
-    """FLOP/s of the backbone's largest GEMM shape: (tokens x width) @ (width x hidden)."""
+    """FLOP/s of the backbone's largest GEMM shape: (tokens x width) @ (width x hidden), by torch.mm."""
     a, b = torch.randn(rows, width), torch.randn(width, hidden)
-    torch.mm(a, b)
-    repeat = max(1, int(2e9 / (2 * rows * width * hidden)))
-    return 2 * rows * width * hidden / timed(lambda: torch.mm(a, b), repeat)
+    return rate(lambda: torch.mm(a, b), rows, width, hidden)
 
 
 def onednn_rate(rows: int, width: int, hidden: int) -> float:
@@ -60,9 +65,7 @@ def onednn_rate(rows: int, width: int, hidden: int) -> float:
     from torch.utils.mkldnn import MkldnnLinear
 
     a, linear = torch.randn(rows, width), MkldnnLinear(torch.nn.Linear(width, hidden, bias=False), torch.float32)
-    linear(a)
-    repeat = max(1, int(2e9 / (2 * rows * width * hidden)))
-    return 2 * rows * width * hidden / timed(lambda: linear(a), repeat)
+    return rate(lambda: linear(a), rows, width, hidden)
 
 
 def extractor(name: str, layer: int | None = None, facet: str = "value", path: str | None = None):

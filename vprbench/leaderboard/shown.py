@@ -2,10 +2,15 @@
 its label, its weights and the marks they earn, the licence of those weights, the machine."""
 from __future__ import annotations
 
-from .escape import public
+from .escape import public, text
 
 #: weights sources that make a row official: the authors' release, or nothing learnt at all
 OFFICIAL_WEIGHTS = {"official", "none"}
+
+
+def row_name(row) -> str:
+    """A row's name in a page's table: its label (escaped), marked † when it is not official."""
+    return f"{text(row.label)}{' †' if not row.official else ''}"
 
 
 def method_label(record: dict) -> str:

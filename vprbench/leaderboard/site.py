@@ -26,6 +26,7 @@ from ..text import percent, quantity
 from . import figures
 from .escape import public_data, text
 from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board, hardware_of, licence_shown, weights_shown
+from .shown import row_name
 from ..evaluation.blocks import RULE, for_record
 from ..evaluation.metrics import successes
 from .compare import shared_resampling
@@ -234,7 +235,7 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
                   "|:--|:--|:--|:--|--:|--:|:--|:--|"]
         for row, column, cell in others:
             s = stats[(row, column.key)]
-            lines.append(f"| {text(row.label)}{' †' if not row.official else ''} | {text(weights_shown(row, cell.record))} | "
+            lines.append(f"| {row_name(row)} | {text(weights_shown(row, cell.record))} | "
                          f"{text(licence_shown(cell.record))} | [{text(column.title)}]({column.slug}.md) | {_ci(s[1])} | "
                          f"{_ci(s[5])} | {text(cell.source)} | `{cell.record.get('run_id')}` |")
     else:
@@ -292,7 +293,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
             "Older runs of the row | Images/s measured by |", "|:--|:--|:--|:--|:--|:--|:--|:--|--:|--:|:--|"]
     for cell in cells:
         s, r = stats[(cell.row, column.key)], cell.record
-        name = f"{text(cell.row.label)}{' †' if not cell.row.official else ''}"
+        name = row_name(cell.row)
         lines.append(f"| {name}{source_mark(cell.source)} | {text(weights_shown(cell.row, r))} | {text(licence_shown(r))} | "
                      f"{_ci(s[1])} | {_ci(s[5])} | {fmt(cell.recall(10))} | {fmt(cell.recall(20))} | "
                      f"{_num(r.get('auc_pr'), 3)} | {percent(r.get('recall_at_100_precision'))} | {r.get('descriptor_dim') or '–'} | "

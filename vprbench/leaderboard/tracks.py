@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from .cells import Board, Cell
 from .escape import text
+from .shown import row_name
 from .tables import fmt
 
 TITLES = {"single-image": "Single-image retrieval", "re-ranked": "Re-ranked", "sequence": "Sequence matching"}
@@ -55,7 +56,7 @@ def track_page(full: Board, track: str, stats: dict, head: str = "") -> str:
             if cell is None:
                 continue
             s, r = stats[(row, column.key)], cell.record
-            name = f"{text(row.label)}{' †' if not row.official else ''}"
+            name = row_name(row)
             if track == "re-ranked":
                 base = alone.get((retriever_key(cell), column.key))
                 lines.append(f"| {name} | {_ci(s[1])} | {_ci(s[5])} | {_cost(cell, 'ceiling_recall')} | "
