@@ -16,6 +16,7 @@ import vprbench
 from vprbench import VPRBenchError, create_method
 from vprbench_baselines import boq, megaloc, salad
 from vprbench.features.dense import interpolate_pos_embed
+from vprbench.features.linear import onednn_linear
 from vprbench_baselines.vit import ViTConfig
 
 CHECKPOINTS = Path(__file__).resolve().parents[1] / "data" / "checkpoints"
@@ -104,13 +105,14 @@ def test_pos_embed_interpolation_follows_official_scale_factor():
 
 def test_trunk_tokens_equal_timms_forward_with_the_official_position_embedding():
     """vit_tokens (the one dense extractor) is timm's own forward pass once the position embedding
-    is resampled the official way: bit for bit at the trained grid, and at a smaller one."""
+    is resampled the official way: bit for bit at the trained grid, and at a smaller one (timm's
+    pass computing its linear layers as the extractor does, on oneDNN)."""
     from vprbench_baselines.vit import dinov2_vit, vit_tokens
 
     torch.manual_seed(0)
     trunk = dinov2_vit(TINY_VIT).eval()
     images = torch.randn(2, 3, 518, 518)
-    with torch.no_grad():
+    with torch.no_grad(), onednn_linear():
         assert torch.equal(vit_tokens(trunk, images, final_norm=True), trunk.forward_features(images))
         small = dinov2_vit(ViTConfig(embed_dim=32, depth=2, heads=2, img_size=224)).eval()
         state = trunk.state_dict()

@@ -4,13 +4,13 @@
 
 For each entry at ViT-S/B size: the FLOPs of one extraction (value facet of the last block,
 counted by torch's FlopCounterMode: every matmul, convolution and attention product up to the
-point where the extractor stops), the time of one extraction, and the bound
-FLOPs / (measured fp32 GEMM rate at that backbone's own largest matrix shape, measured just
-before and after each extraction). Rounds are interleaved (every backbone once per round, in one
-order) so load on the machine hits all alike; "of bound" is the median over rounds of bound /
-time. The same bound is also given against oneDNN's GEMM (torch.utils.mkldnn's prepacked linear)
-at that shape: on some CPUs (AMD Zen) it is far faster than the BLAS torch's linear layers call,
-so "of bound" there says how far eager PyTorch is from the hardware, not only from its own BLAS.
+point where the extractor stops), the time of one extraction, and the bound FLOPs / (the
+machine's best measured fp32 GEMM rate at that backbone's own largest matrix shape, measured
+just before and after each extraction). Two GEMMs are measured: torch.mm (the BLAS torch was
+built with, MKL) and oneDNN's linear (which the extractor calls on CPU, features/linear.py);
+the bound takes the faster, whichever it is on the machine. Rounds are interleaved (every
+backbone once per round, in one order) so load on the machine hits all alike; "of bound" is the
+median over rounds of bound / time.
 With one thread the clock is the process's CPU time (on a shared machine, the time it
 computed rather than the time it waited for a core); with several threads, wall time. Also:
 the DINOv2 path as it is (official position resampling, hand-written token path) against
@@ -61,11 +61,14 @@ def gemm_rate(rows: int, width: int, hidden: int) -> float:
 
 
 def onednn_rate(rows: int, width: int, hidden: int) -> float:
-    """FLOP/s of oneDNN's prepacked linear (no bias) at the same shape."""
-    from torch.utils.mkldnn import MkldnnLinear
+    """FLOP/s of oneDNN's linear (no bias) at the same shape, called as the extractor calls it."""
+    a, weight = torch.randn(rows, width), torch.randn(hidden, width)
+    return rate(lambda: torch.ops.mkldnn._linear_pointwise(a, weight, None, "none", [], ""), rows, width, hidden)
 
-    a, linear = torch.randn(rows, width), MkldnnLinear(torch.nn.Linear(width, hidden, bias=False), torch.float32)
-    return rate(lambda: linear(a), rows, width, hidden)
+
+def gemm_rates(shape: tuple[int, int, int]) -> tuple[float, float]:
+    """(torch.mm, oneDNN) FLOP/s at the shape."""
+    return gemm_rate(*shape), onednn_rate(*shape)
 
 
 def extractor(name: str, layer: int | None = None, facet: str = "value", path: str | None = None):
@@ -79,7 +82,8 @@ def extractor(name: str, layer: int | None = None, facet: str = "value", path: s
 
 
 def flops(run) -> int:
-    with FlopCounterMode(display=False) as counter:
+    """FLOPs of `run` with torch's own linear layers (the counter knows no formula for oneDNN's)."""
+    with torch.backends.mkldnn.flags(enabled=False), FlopCounterMode(display=False) as counter:
         run()
     return counter.get_total_flops()
 
@@ -112,35 +116,32 @@ def main() -> None:
         CLOCK["fn"] = time.process_time if threads == 1 else time.perf_counter
         times = {key: [] for key in cases}
         ratios = {key: [] for key, case in cases.items() if case[3]}  # bound / time, per round
-        rates = {key: [] for key in ratios}
-        onednn = {key: [] for key in ratios}
+        rates = {key: [] for key in ratios}  # (torch.mm, oneDNN), per round
         for _ in range(args.rounds):
             for key, (ex, images, count, shape) in cases.items():
                 with torch.no_grad():
                     ex(images)  # warm
-                    before = gemm_rate(*shape) if shape else None
+                    before = gemm_rates(shape) if shape else None
                     times[key].append(timed(lambda: ex(images)))
-                    if shape:  # the GEMM rate measured just before and after the extraction it bounds
-                        rates[key].append((before + gemm_rate(*shape)) / 2)
-                        ratios[key].append(count / rates[key][-1] / times[key][-1])
-                        onednn[key].append(onednn_rate(*shape))
+                    if shape:  # the GEMM rates measured just before and after the extraction they bound
+                        after = gemm_rates(shape)
+                        rates[key].append([(b + a) / 2 for b, a in zip(before, after)])
+                        ratios[key].append(count / max(rates[key][-1]) / times[key][-1])
         clock = "CPU time of the process" if threads == 1 else "wall time"
         print(f"\n## {threads} thread(s), batch {args.batch} at {args.size}px, {clock}, medians of {args.rounds} "
               "interleaved rounds")
-        print("| backbone | GFLOP per image | ms per image | GEMM GFLOP/s | bound ms per image | of bound "
-              "| oneDNN GEMM GFLOP/s | of oneDNN bound |")
-        print("|---|---|---|---|---|---|---|---|")
+        print("| backbone | GFLOP per image | ms per image | torch.mm GFLOP/s | oneDNN GFLOP/s "
+              "| bound ms per image (faster GEMM) | of bound |")
+        print("|---|---|---|---|---|---|---|")
         for key, (ex, images, count, shape) in cases.items():
             per_image = statistics.median(times[key]) / len(images)
             gflop = count / len(images) / 1e9
             if shape:
-                rate = statistics.median(rates[key])
-                best = statistics.median(onednn[key])
-                print(f"| {key} | {gflop:.2f} | {per_image * 1e3:.1f} | {rate / 1e9:.1f} | "
-                      f"{count / len(images) / rate * 1e3:.1f} | {statistics.median(ratios[key]):.0%} | "
-                      f"{best / 1e9:.1f} | {count / len(images) / best / per_image:.0%} |")
+                mm, onednn = (statistics.median(r[i] for r in rates[key]) for i in (0, 1))
+                print(f"| {key} | {gflop:.2f} | {per_image * 1e3:.1f} | {mm / 1e9:.1f} | {onednn / 1e9:.1f} | "
+                      f"{gflop / max(mm, onednn) * 1e12:.1f} | {statistics.median(ratios[key]):.0%} |")
             else:
-                print(f"| {key} | {gflop:.2f} | {per_image * 1e3:.1f} | | | |")
+                print(f"| {key} | {gflop:.2f} | {per_image * 1e3:.1f} | | | | |")
         for name, layer in DINOV2_PATHS:
             pair = [times[f"{name} L{layer} {path}"] for path in ("dino", "timm")]
             ratio = statistics.median(t / d for d, t in zip(*pair))

@@ -1,0 +1,96 @@
+"""fp32 CPU linear layers on oneDNN inside the dense extractor (features/linear.py), and every case
+it must leave to torch's own linear."""
+import pytest
+import torch
+import torch.nn.functional as F
+from torch.utils._python_dispatch import TorchDispatchMode
+
+from vprbench.features.backbones import create_model
+from vprbench.features.catalogue import backbone_spec
+from vprbench.features.dense import DenseExtractor
+from vprbench.features.linear import onednn_linear
+
+pytestmark = [pytest.mark.skipif(not torch.backends.mkldnn.is_available(), reason="torch built without oneDNN"),
+              pytest.mark.filterwarnings("ignore:TF32 acceleration")]  # said by mkldnn.flags() on CPU builds
+
+ONEDNN = "mkldnn._linear_pointwise.default"
+
+
+class Ops(TorchDispatchMode):
+    """Names of the operators that ran."""
+
+    def __init__(self):
+        super().__init__()
+        self.names = set()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.names.add(str(func))
+        return func(*args, **(kwargs or {}))
+
+
+def ran(fn):
+    with Ops() as ops:
+        out = fn()
+    return out, ops.names
+
+
+@pytest.fixture(scope="module")
+def vits():
+    spec = backbone_spec("dinov3_vits16")  # RoPE, registers, separate q/v biases: timm's path
+    torch.manual_seed(0)
+    return create_model(spec, depth=3), spec
+
+
+@pytest.mark.parametrize("facet", ["value", "token"])
+def test_the_extractor_computes_its_linear_layers_on_onednn(vits, facet):
+    model, spec = vits
+    images = torch.randn(2, 3, 64, 48)
+    extractor = DenseExtractor(model, spec, 2, facet)
+    fast, names = ran(lambda: extractor(images))
+    assert ONEDNN in names and "aten.addmm.default" not in names and "aten.mm.default" not in names
+    with torch.backends.mkldnn.flags(enabled=False):  # the off switch: torch's own linear
+        plain, names = ran(lambda: extractor(images))
+    assert ONEDNN not in names and "aten.addmm.default" in names
+    # another order of summation only: float32 rounding, relative to the features' scale
+    assert (fast - plain).abs().max() <= 1e-5 * plain.abs().max()
+    assert torch.equal(extractor(images), fast)  # and deterministic
+
+
+def test_outside_the_extractor_a_linear_layer_is_untouched(vits):
+    model, _ = vits
+    x = torch.randn(5, 384)
+    _, names = ran(lambda: model.blocks[0].mlp.fc1(x))
+    assert ONEDNN not in names
+
+
+@pytest.mark.parametrize("case", ["float64", "grad", "bfloat16-autocast", "vector"])
+def test_what_onednn_does_not_take_runs_as_torch_would(case):
+    torch.manual_seed(0)
+    layer = torch.nn.Linear(16, 8)
+    x = torch.randn(3, 16)
+    if case == "float64":
+        layer, x = layer.double(), x.double()
+    if case == "vector":
+        x = x[0]
+    context = torch.autocast("cpu", dtype=torch.bfloat16) if case == "bfloat16-autocast" else torch.no_grad()
+    if case == "grad":
+        context = torch.enable_grad()
+    with context:
+        expected = layer(x)
+        with onednn_linear():
+            got, names = ran(lambda: layer(x))
+    assert ONEDNN not in names
+    assert got.dtype == expected.dtype and torch.equal(got, expected)
+    if case == "grad":  # autograd still reaches the weights
+        got.sum().backward()
+        assert layer.weight.grad is not None and layer.weight.grad.abs().sum() > 0
+
+
+def test_onednn_linear_takes_arguments_by_keyword_and_without_bias():
+    torch.manual_seed(0)
+    x, weight, bias = torch.randn(2, 7, 16), torch.randn(8, 16), torch.randn(8)
+    with torch.no_grad(), onednn_linear():
+        (with_bias, names), (without, _) = ran(lambda: F.linear(x, weight=weight, bias=bias)), ran(lambda: F.linear(x, weight))
+    assert ONEDNN in names and with_bias.shape == (2, 7, 8)
+    torch.testing.assert_close(with_bias, F.linear(x, weight, bias), rtol=0, atol=1e-5)
+    torch.testing.assert_close(without, F.linear(x, weight), rtol=0, atol=1e-5)
