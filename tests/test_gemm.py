@@ -1,4 +1,4 @@
-"""fp32 CPU linear layers on oneDNN inside the dense extractor (features/linear.py), and every case
+"""fp32 CPU linear layers on oneDNN inside the dense extractor (vprbench/gemm.py), and every case
 it must leave to torch's own linear."""
 import pytest
 import torch
@@ -8,7 +8,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from vprbench.features.backbones import create_model
 from vprbench.features.catalogue import backbone_spec
 from vprbench.features.dense import DenseExtractor
-from vprbench.features.linear import onednn_linear
+from vprbench.gemm import onednn_linear
 
 pytestmark = [pytest.mark.skipif(not torch.backends.mkldnn.is_available(), reason="torch built without oneDNN"),
               pytest.mark.filterwarnings("ignore:TF32 acceleration")]  # said by mkldnn.flags() on CPU builds
@@ -94,3 +94,24 @@ def test_onednn_linear_takes_arguments_by_keyword_and_without_bias():
     assert ONEDNN in names and with_bias.shape == (2, 7, 8)
     torch.testing.assert_close(with_bias, F.linear(x, weight, bias), rtol=0, atol=1e-5)
     torch.testing.assert_close(without, F.linear(x, weight), rtol=0, atol=1e-5)
+
+
+def test_products_of_rows_run_on_onednn_and_fall_back_to_numpy():
+    """gemm.products (exact search's scores): a @ b.T on oneDNN for C-contiguous float32 rows,
+    also read-only ones (a store's lent pages); numpy's matmul otherwise, bit for bit."""
+    import numpy as np
+
+    from vprbench.gemm import products
+
+    rng = np.random.default_rng(0)
+    a, b = rng.standard_normal((70, 300), dtype=np.float32), rng.standard_normal((90, 300), dtype=np.float32)
+    b.flags.writeable = False
+    got, names = ran(lambda: products(a, b))
+    assert ONEDNN in names and got.shape == (70, 90) and got.dtype == np.float32
+    np.testing.assert_allclose(got, a @ b.T, rtol=0, atol=1e-4)  # sums of 300 products of unit normals
+    for x, y in ((a.astype(np.float64), b.astype(np.float64)), (a[:, ::2], b[:, ::2])):
+        got, names = ran(lambda: products(x, y))
+        assert ONEDNN not in names and np.array_equal(got, x @ y.T)
+    with torch.backends.mkldnn.flags(enabled=False):
+        got, names = ran(lambda: products(a, b))
+    assert ONEDNN not in names and np.array_equal(got, a @ b.T)

@@ -142,7 +142,8 @@ def test_a_short_last_tile_is_computed_at_its_own_rows_or_padded_to_256(monkeypa
 
     shapes = []
     real = search_module.inner_products
-    monkeypatch.setattr(search_module, "inner_products", lambda q, d, out: (shapes.append(out.shape), real(q, d, out)))
+    monkeypatch.setattr(search_module, "inner_products",
+                        lambda q, d, out, scale: (shapes.append(out.shape), real(q, d, out, scale)))
     for tail, padded in ((300, 300), (100, 256)):
         db, q = unit(3 * 1024 + tail, 32, 1), unit(1024 + 5, 32, 2)
         runs = []
@@ -155,6 +156,31 @@ def test_a_short_last_tile_is_computed_at_its_own_rows_or_padded_to_256(monkeypa
         np.testing.assert_array_equal(runs[0].indices, runs[1].indices)
         best = np.argmax(q @ db.T, axis=1)
         assert np.mean(runs[0].indices[:, 0] == best) > 0.99  # the top-1 (up to ties on the grid)
+
+
+def test_search_threads_compute_on_one_thread_each_and_leave_torch_as_it_was():
+    """Each search thread runs oneDNN (and faiss) on one OpenMP thread, set for that thread
+    only: the caller's torch thread count, and a new thread's, are what they were."""
+    import threading
+
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    import vprbench.evaluation.search as search_module
+
+    def counts():
+        seen = []
+        thread = threading.Thread(target=lambda: seen.append(torch.get_num_threads()))
+        thread.start(), thread.join()
+        return torch.get_num_threads(), seen[0]
+
+    before, inside = counts(), []
+    real = search_module.products
+    with threadpool_limits(2), pytest.MonkeyPatch.context() as patch:
+        patch.setattr(search_module, "products", lambda a, b: (inside.append(torch.get_num_threads()), real(a, b))[1])
+        exact_search(unit(3000, 48, 5), unit(1300, 48, 6), 5)
+    assert inside and set(inside) == {1}
+    assert counts() == before
 
 
 def test_threads_take_slices_of_each_query_tile_and_change_nothing(monkeypatch, tmp_path, tiles_of_1024):
@@ -172,7 +198,8 @@ def test_threads_take_slices_of_each_query_tile_and_change_nothing(monkeypatch, 
         alone = exact_search(database, q, 20)
     shapes = []
     real = search_module.inner_products
-    monkeypatch.setattr(search_module, "inner_products", lambda a, b, out: (shapes.append(out.shape), real(a, b, out)))
+    monkeypatch.setattr(search_module, "inner_products",
+                        lambda a, b, out, scale: (shapes.append(out.shape), real(a, b, out, scale)))
     with threadpool_limits(2):
         assert search_module.search_threads() == 2
         runs = [exact_search(database, q, 20, memory_budget=budget_for(db, q, 20, chunks=c)) for c in (1, 2, 4)]
@@ -225,7 +252,7 @@ def lattice(n, d, seed, noise=0.0):
     return x + rng.normal(scale=noise, size=(n, d)).astype(np.float32) if noise else x
 
 
-def torch_products(queries, rows, out=None):
+def torch_products(queries, rows, out=None, scale=np.float32(1)):
     """The same product through torch's own BLAS (another set of kernels, as another CPU has)."""
     import torch
 
@@ -233,7 +260,7 @@ def torch_products(queries, rows, out=None):
     product = torch.from_numpy(writable[0]) @ torch.from_numpy(writable[1]).T
     if out is None:
         return product.numpy()
-    out[...] = product.numpy()
+    np.multiply(product.numpy(), scale, out=out)
 
 
 def ranked(scores, k):
@@ -251,7 +278,9 @@ def torch_threads():
     torch.set_num_threads(before)
 
 
+@pytest.mark.filterwarnings("ignore:TF32 acceleration")  # said by mkldnn.flags() on CPU builds
 def test_results_are_the_same_along_every_arithmetic_path(monkeypatch, torch_threads):
+    import torch
     from threadpoolctl import threadpool_limits
 
     import vprbench.evaluation.search as search_module
@@ -271,8 +300,9 @@ def test_results_are_the_same_along_every_arithmetic_path(monkeypatch, torch_thr
     assert not np.array_equal(ranked(raw_numpy, 10)[1], ranked(raw_torch, 10)[1])
     assert not np.array_equal(ranked(raw_numpy, 10)[1], expected)
 
-    def run(threads=1, product=None, tile=None, chunks=None):
-        with monkeypatch.context() as patch, threadpool_limits(threads):
+    def run(threads=1, product=None, tile=None, chunks=None, onednn=True):
+        with (monkeypatch.context() as patch, threadpool_limits(threads),
+              torch.backends.mkldnn.flags(enabled=onednn)):  # off: numpy's BLAS
             torch_threads(threads)
             if product is not None:
                 patch.setattr(search_module, "inner_products", product)
@@ -281,7 +311,8 @@ def test_results_are_the_same_along_every_arithmetic_path(monkeypatch, torch_thr
             budget = budget_for(db, q, 10, chunks=chunks) if chunks else 10**9
             return exact_search(db, q, 10, memory_budget=budget)
 
-    paths = {"numpy, 1 thread": run(), "numpy, 2 threads": run(threads=2), "torch, 1 thread": run(product=torch_products),
+    paths = {"oneDNN, 1 thread": run(), "oneDNN, 2 threads": run(threads=2), "numpy, 1 thread": run(onednn=False),
+             "numpy, 2 threads": run(threads=2, onednn=False), "torch, 1 thread": run(product=torch_products),
              "torch, 2 threads": run(threads=2, product=torch_products), "tiles of 64 rows": run(tile=64),
              "tiles of 1,000 rows": run(tile=1000), "3 chunks": run(tile=1024, chunks=3)}
     assert paths["tiles of 64 rows"].info["tile_rows"] == 64 and paths["3 chunks"].info["chunks"] == 3
@@ -309,10 +340,12 @@ def test_search_keeps_its_tuple_form():
 
 def test_budget_too_small_names_what_it_must_hold_and_the_option():
     db, q = unit(5000, 128, 9), unit(3000, 128, 10)
+    # candidates 1.3 MB, two database tiles 4.2 MB, a query tile 1.5 MB, a score tile, a trimmed
+    # copy and the products written into it 3 x 49.2 MB
     with pytest.raises(VPRBenchError, match=r"memory budget of 1\.0 MB is too small for this search: it must hold "
                                              r"the top-36 candidates of 3,000 queries \(1\.3 MB\) plus a tile of 3000 "
                                              r"query rows, two tiles of 4096 database rows of 128 dims.*"
-                                             r"Raise --search-memory \(memory_budget\) to at least 105\.3 MB"):
+                                             r"Raise --search-memory \(memory_budget\) to at least 154\.5 MB"):
         exact_search(db, q, 20, memory_budget="1MB")
     with pytest.raises(VPRBenchError, match="K = 6000 must be between 1 and the 5000 database rows"):
         exact_search(db, q, 6000)

@@ -16,7 +16,7 @@ import vprbench
 from vprbench import VPRBenchError, create_method
 from vprbench_baselines import boq, megaloc, salad
 from vprbench.features.dense import interpolate_pos_embed
-from vprbench.features.linear import onednn_linear
+from vprbench.gemm import onednn_linear
 from vprbench_baselines.vit import ViTConfig
 
 CHECKPOINTS = Path(__file__).resolve().parents[1] / "data" / "checkpoints"

@@ -7,7 +7,7 @@ counted by torch's FlopCounterMode: every matmul, convolution and attention prod
 point where the extractor stops), the time of one extraction, and the bound FLOPs / (the
 machine's best measured fp32 GEMM rate at that backbone's own largest matrix shape, measured
 just before and after each extraction). Two GEMMs are measured: torch.mm (the BLAS torch was
-built with, MKL) and oneDNN's linear (which the extractor calls on CPU, features/linear.py);
+built with, MKL) and oneDNN's linear (which the extractor calls on CPU, vprbench/gemm.py);
 the bound takes the faster, whichever it is on the machine. Rounds are interleaved (every
 backbone once per round, in one order) so load on the machine hits all alike; "of bound" is the
 median over rounds of bound / time.

@@ -120,7 +120,7 @@ def test_search_on_lent_store_rows_equals_search_on_read_rows(tmp_path, monkeypa
     path = tmp_path / "database.h5"
     written(path, identity(3000), db)
     store = DescriptorStore(path, identity(3000))
-    for budget in (10**9, 4 * 10**6):
+    for budget in (10**9, 5 * 10**6):
         lent = exact_search(store, q, 10, memory_budget=budget)
         read = exact_search(ArrayRows(db.astype(np.float64)), q.astype(np.float64), 10, memory_budget=budget)
         np.testing.assert_array_equal(lent.scores, read.scores)

@@ -7,11 +7,12 @@ What is promised, on every CPU:
 - Scores are float32 inner products rounded to the grid of SCORE_TOLERANCE (2^-16, about
   1.5e-5), and results are ordered by rounded score descending, then by the lower database
   index: rows within rounding of each other are a tie, and a tie goes to the lower index.
-- On one machine and BLAS configuration, results are bitwise identical for every memory
-  budget: products are tiles of a fixed grid of rows (chunks.py), so a row's product has a
-  shape set by the data's size, never by the budget or by the row's place in a read.
-- Across arithmetic paths (BLAS thread counts, numpy or torch, CPUs with other kernels, a
-  row at a tile's edge or in its middle) float32 products differ in their last bits (up to
+- On one machine and GEMM configuration (oneDNN or numpy's BLAS, gemm.py; thread count),
+  results are bitwise identical for every memory budget: products are tiles of a fixed grid
+  of rows (chunks.py), so a row's product has a shape set by the data's size, never by the
+  budget or by the row's place in a read.
+- Across arithmetic paths (thread counts, oneDNN, numpy or torch's BLAS, CPUs with other
+  kernels, a row at a tile's edge or in its middle) float32 products differ in their last bits (up to
   about 1e-7 for unit descriptors of 49,152 dims). Rounded to the grid they agree, except
   where a score lies within that error of a grid boundary: there it differs by one step,
   and the order can change only between rows within one step of each other.
@@ -24,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import VPRBenchError
+from ..features.allocator import keep_freed_memory
 from ..row_sources import (DEFAULT_MEMORY_BUDGET, READ_BYTES, ArrayRows, RowSource, as_rows, format_bytes,
                     parse_memory, read_bytes_per_row)
 from .chunks import Chunk, ChunkReader, tile_rows
@@ -39,6 +41,8 @@ EXTRA_CANDIDATES = 16
 #: scores are scaled by this after their products: exact (a power of two), giving the negated
 #: grid units the heaps keep
 _UNITS = np.float32(-1 / SCORE_TOLERANCE)
+#: the largest product computed at once (bytes of scores): below glibc's mmap threshold
+PRODUCT_BYTES = 16 * 2**20
 
 __all__ = ["ArrayRows", "DEFAULT_MEMORY_BUDGET", "INDEXES", "SCORE_TOLERANCE", "SearchResult",
            "exact_search", "search", "tile_rows"]
@@ -64,9 +68,21 @@ def rounded_scores(scores: np.ndarray) -> np.ndarray:
             * np.float32(SCORE_TOLERANCE)).astype(np.float32)
 
 
-def inner_products(queries: np.ndarray, rows: np.ndarray, out: np.ndarray) -> None:
-    """out[:] = queries @ rows.T, (Q, D) x (N, D) -> (Q, N) float32: the one place scores are computed."""
-    np.matmul(queries, rows.T, out=out)
+def products(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a @ b.T by gemm.products (imported when first used: it imports torch)."""
+    from ..gemm import products as onednn_or_numpy
+
+    return onednn_or_numpy(a, b)
+
+
+def inner_products(queries: np.ndarray, rows: np.ndarray, out: np.ndarray, scale: np.float32) -> None:
+    """out[:] = queries @ rows.T * scale, (Q, D) x (N, D) -> (Q, N) float32: the one place scores are
+    computed (on oneDNN where torch has it, gemm.py). Products come a few columns at a time so each
+    fresh product stays in memory the allocator reuses (features/allocator.py); the columns per
+    product are set by the tile's shape, never by the budget."""
+    step = max(1, PRODUCT_BYTES // (4 * len(queries)))
+    for lo in range(0, len(rows), step):
+        np.multiply(products(queries, rows[lo:lo + step]), scale, out=out[:, lo:lo + step])
 
 
 def order_results(scores: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -95,7 +111,8 @@ def _plan(database, queries, k: int, budget: int) -> dict:
     keep = min(n, k + EXTRA_CANDIDATES)
     results = q * keep * 12  # float32 score + int64 index per candidate
     d_tile, q_tile = min(n, tile), min(q, tile)
-    fixed = results + db_fixed + q_fixed + 2 * q_tile * d_tile * 4  # a score tile and a trimmed copy of it
+    # a score tile, a trimmed copy of it, and the products being written into it (at most a tile)
+    fixed = results + db_fixed + q_fixed + 3 * q_tile * d_tile * 4
     need = fixed + 2 * d_tile * db_row + q_tile * q_row
     if budget < need:
         raise VPRBenchError(
@@ -143,10 +160,16 @@ def slices(rows: int, threads: int) -> list[tuple[int, int]]:
     return list(zip(bounds[:-1], bounds[1:]))
 
 
-def _one_openmp_thread() -> None:
+def _one_thread_each() -> None:
+    """Each search thread computes and merges its own slice alone: one OpenMP thread for faiss
+    and oneDNN, set for this thread only (torch.set_num_threads would change every new thread's)."""
     import faiss
+    import torch
+    from threadpoolctl import threadpool_limits
 
-    faiss.omp_set_num_threads(1)  # per thread: each search thread merges its own slice alone
+    faiss.omp_set_num_threads(1)
+    torch.get_num_threads()  # torch sets a thread's OpenMP count at its first call there: before ours
+    threadpool_limits(1, user_api="openmp")
 
 
 def _scan(database, queries, keep: int, plan: dict, on_grid: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -160,6 +183,7 @@ def _scan(database, queries, keep: int, plan: dict, on_grid: bool) -> tuple[np.n
 
     from threadpoolctl import threadpool_limits
 
+    keep_freed_memory()  # every product's scores reuse the last one's memory
     tile, q_chunk = plan["tile_rows"], plan["query_chunk_rows"]
     n_queries = queries.row_count
     q_tile, d_tile = min(n_queries, tile), min(database.row_count, tile)
@@ -172,7 +196,7 @@ def _scan(database, queries, keep: int, plan: dict, on_grid: bool) -> tuple[np.n
         indices = np.empty((n_queries, keep), dtype=np.int64)
         threads = len(slices(q_tile, search_threads()))
         scan = _Scan(_heap(distances, indices), q_tile, d_tile, threads, on_grid)
-        pool = ThreadPoolExecutor(threads, "vprbench-search", _one_openmp_thread) if threads > 1 else None
+        pool = ThreadPoolExecutor(threads, "vprbench-search", _one_thread_each) if threads > 1 else None
         with threadpool_limits(1, user_api="blas") if pool else _nothing():
             for query_chunk in query_reader:
                 for chunk in reader:
@@ -208,8 +232,7 @@ class _Scan:
                 lo, hi = cut[worker]
                 real = min(hi, m) - lo  # rows past m are the tile's zero padding
                 out = self.scores[worker][:(hi - lo) * len(rows)].reshape(hi - lo, len(rows))
-                inner_products(block[lo:hi], rows, out)
-                np.multiply(out, _UNITS, out=out)
+                inner_products(block[lo:hi], rows, out, _UNITS)
                 if self.on_grid:
                     np.rint(out, out=out)
                 merged = out if n == len(rows) else np.ascontiguousarray(out[:real, :n])

@@ -16,7 +16,7 @@ from torch import nn
 from ..errors import VPRBenchError
 from .allocator import keep_freed_memory
 from .catalogue import BackboneEntry
-from .linear import onednn_linear
+from ..gemm import onednn_linear
 
 FACETS = ("query", "key", "value", "token")
 
