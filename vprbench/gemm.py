@@ -39,6 +39,13 @@ def onednn_on() -> bool:
     return _available() and torch.backends.mkldnn.enabled
 
 
+def _cpu_autocast() -> bool:
+    try:
+        return torch.is_autocast_enabled("cpu")
+    except TypeError:  # torch before 2.4
+        return torch.is_autocast_cpu_enabled()
+
+
 def _dense_fp32_cpu(t: torch.Tensor | None) -> bool:
     return t is None or (t.device.type == "cpu" and t.dtype == torch.float32 and t.layout == torch.strided)
 
@@ -51,7 +58,7 @@ def _onednn_can_take(x, weight, bias) -> bool:
         and x.dim() >= 2 and x.numel() > 0
         and all(_dense_fp32_cpu(t) for t in (x, weight, bias))
         and not (torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (x, weight, bias)))
-        and not torch.is_autocast_enabled("cpu")
+        and not _cpu_autocast()
     )
 
 
