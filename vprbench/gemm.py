@@ -31,7 +31,15 @@ warnings.filterwarnings("ignore", message="The given NumPy array is not writable
 
 @functools.cache
 def _available() -> bool:
-    return torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
+    """oneDNN's linear is in this torch and computes a small product right (tried once per process:
+    on a platform where it fails, everything runs on the BLAS)."""
+    if not (torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")):
+        return False
+    a, b = torch.arange(6.0).reshape(2, 3), torch.arange(12.0).reshape(4, 3)
+    try:
+        return torch.equal(_linear(a, b, None), torch.tensor([[5.0, 14.0, 23.0, 32.0], [14.0, 50.0, 86.0, 122.0]]))
+    except RuntimeError:
+        return False
 
 
 def onednn_on() -> bool:
