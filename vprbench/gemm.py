@@ -47,11 +47,11 @@ def onednn_on() -> bool:
     return _available() and torch.backends.mkldnn.enabled
 
 
-def _cpu_autocast() -> bool:
-    try:
-        return torch.is_autocast_enabled("cpu")
-    except TypeError:  # torch before 2.4
-        return torch.is_autocast_cpu_enabled()
+try:  # whether CPU autocast is on, asked once how: by device since torch 2.4, by its own function before
+    torch.is_autocast_enabled("cpu")
+    _cpu_autocast = functools.partial(torch.is_autocast_enabled, "cpu")
+except TypeError:
+    _cpu_autocast = torch.is_autocast_cpu_enabled
 
 
 def _dense_fp32_cpu(t: torch.Tensor | None) -> bool:

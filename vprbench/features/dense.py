@@ -14,9 +14,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..errors import VPRBenchError
+from ..gemm import onednn_linear
 from .allocator import keep_freed_memory
 from .catalogue import BackboneEntry
-from ..gemm import onednn_linear
 
 FACETS = ("query", "key", "value", "token")
 

@@ -237,7 +237,7 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
             s = stats[(row, column.key)]
             lines.append(f"| {row_name(row)} | {text(weights_shown(row, cell.record))} | "
                          f"{text(licence_shown(cell.record))} | [{text(column.title)}]({column.slug}.md) | {_ci(s[1])} | "
-                         f"{_ci(s[5])} | {text(cell.source)} | `{cell.record.get('run_id')}` |")
+                         f"{_ci(s[5])} | {text(cell.source)} | `{text(cell.record.get('run_id'))}` |")
     else:
         lines.append("None.")
     lines += ["", "## Runs left out", ""]
@@ -300,10 +300,10 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
                      f"{r.get('descriptor_bytes') or 4 * int(r.get('descriptor_dim') or 0) or '–'} | {_num(cell.images_per_second, 1)} |")
         versions, computed = r.get("versions") or {}, r.get("descriptors_computed") or {}
         sent = (r.get("_contribution") or {}).get("contributor") or "this machine"
-        runs.append(f"| {name} | {text(cell.source)} | {text(sent)} | `{r.get('run_id')}` | {text(r.get('created', '–'))} | "
+        runs.append(f"| {name} | {text(cell.source)} | {text(sent)} | `{text(r.get('run_id'))}` | {text(r.get('created', '–'))} | "
                     f"{text(hardware_of(r))} | {text(versions.get('vprbench', '–'))} | "
                     f"{_commit(versions.get('git'))} | {sum(computed.values()) if computed else '–'} | {cell.passed_over} | "
-                    + (f"`{cell.timed.get('run_id')}` on {text(cell.hardware)} |" if cell.timed else "no run computed its descriptors |"))
+                    + (f"`{text(cell.timed.get('run_id'))}` on {text(cell.hardware)} |" if cell.timed else "no run computed its descriptors |"))
     lines += ["", "The runs in the cells above:", "", *runs, "", *_paired(cells, seed), "## Figures", ""]
     slug = column.slug
     lines += _figure(lambda p: figures.recall_curves(cells, p, colours), out, f"{slug}-recall.svg", "Recall@K per run")
