@@ -1,5 +1,7 @@
-"""fp32 CPU linear layers on oneDNN inside the dense extractor (vprbench/gemm.py), and every case
-it must leave to torch's own linear."""
+"""fp32 CPU linear layers and attention products on oneDNN inside the dense extractor
+(vprbench/gemm.py), and every case it must leave to torch's own operators."""
+import contextlib
+
 import pytest
 import torch
 import torch.nn.functional as F
@@ -8,7 +10,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from vprbench.features.backbones import create_model
 from vprbench.features.catalogue import backbone_spec
 from vprbench.features.dense import DenseExtractor
-from vprbench.gemm import onednn_linear
+from vprbench.gemm import onednn_products
 
 pytestmark = [pytest.mark.skipif(not torch.backends.mkldnn.is_available(), reason="torch built without oneDNN"),
               pytest.mark.filterwarnings("ignore:TF32 acceleration")]  # said by mkldnn.flags() on CPU builds
@@ -77,7 +79,7 @@ def test_what_onednn_does_not_take_runs_as_torch_would(case):
         context = torch.enable_grad()
     with context:
         expected = layer(x)
-        with onednn_linear():
+        with onednn_products():
             got, names = ran(lambda: layer(x))
     assert ONEDNN not in names
     assert got.dtype == expected.dtype and torch.equal(got, expected)
@@ -86,10 +88,10 @@ def test_what_onednn_does_not_take_runs_as_torch_would(case):
         assert layer.weight.grad is not None and layer.weight.grad.abs().sum() > 0
 
 
-def test_onednn_linear_takes_arguments_by_keyword_and_without_bias():
+def test_onednn_linear_layers_take_arguments_by_keyword_and_without_bias():
     torch.manual_seed(0)
     x, weight, bias = torch.randn(2, 7, 16), torch.randn(8, 16), torch.randn(8)
-    with torch.no_grad(), onednn_linear():
+    with torch.no_grad(), onednn_products():
         (with_bias, names), (without, _) = ran(lambda: F.linear(x, weight=weight, bias=bias)), ran(lambda: F.linear(x, weight))
     assert ONEDNN in names and with_bias.shape == (2, 7, 8)
     torch.testing.assert_close(with_bias, F.linear(x, weight, bias), rtol=0, atol=1e-5)
@@ -115,3 +117,67 @@ def test_products_of_rows_run_on_onednn_and_fall_back_to_numpy():
     with torch.backends.mkldnn.flags(enabled=False):
         got, names = ran(lambda: products(a, b))
     assert ONEDNN not in names and np.array_equal(got, a @ b.T)
+
+
+def qkv(batch=2, heads=3, tokens=450, dim=16, seed=0):
+    """Query, key and value as a ViT's attention gets them: views into one fused qkv output."""
+    torch.manual_seed(seed)
+    return torch.randn(batch, tokens, 3, heads, dim).permute(2, 0, 3, 1, 4).unbind(0)
+
+
+@pytest.mark.parametrize("scale", [None, 0.3])
+def test_attention_from_many_keys_runs_its_products_on_onednn(scale):
+    q, k, v = qkv()
+    expected = F.scaled_dot_product_attention(q, k, v, scale=scale)
+    with torch.no_grad(), onednn_products():
+        got, names = ran(lambda: F.scaled_dot_product_attention(q, k, v, scale=scale))
+    assert ONEDNN in names and not any("scaled_dot_product" in name for name in names)
+    assert got.shape == expected.shape == (2, 3, 450, 16)
+    torch.testing.assert_close(got, expected, rtol=0, atol=1e-5)  # softmax-weighted means of unit normals
+    assert got.transpose(1, 2).is_contiguous()  # (B, T, H, D) memory, as torch's CPU kernel gives it
+
+
+def test_attention_scores_computed_a_few_rows_at_a_time_give_the_same_output(monkeypatch):
+    import vprbench.gemm as gemm
+
+    q, k, v = qkv()
+    with torch.no_grad(), onednn_products():
+        whole = F.scaled_dot_product_attention(q, k, v)
+        monkeypatch.setattr(gemm, "SCORE_ELEMENTS", 7 * 450)  # 7 query rows at a time: 65 pieces per head
+        pieces = F.scaled_dot_product_attention(q, k, v)
+    torch.testing.assert_close(pieces, whole, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("case", ["few-keys", "mask", "dropout", "causal", "grad", "float64", "grouped", "off"])
+def test_attention_oneDNN_does_not_take_runs_as_torch_would(case):
+    q, k, v = qkv(tokens=60 if case == "few-keys" else 450)
+    kwargs = {"mask": {"attn_mask": torch.zeros(450, 450)}, "dropout": {"dropout_p": 0.5},
+              "causal": {"is_causal": True}}.get(case, {})
+    if case == "float64":
+        q, k, v = q.double(), k.double(), v.double()
+    if case == "grouped":  # one key/value head for three query heads
+        k, v, kwargs = k[:, :1], v[:, :1], {"enable_gqa": True}
+    if case == "grad":
+        q = q.detach().requires_grad_()
+    context = torch.enable_grad() if case == "grad" else torch.no_grad()
+    switch = torch.backends.mkldnn.flags(enabled=False) if case == "off" else contextlib.nullcontext()
+    with context:
+        torch.manual_seed(1)
+        expected = F.scaled_dot_product_attention(q, k, v, **kwargs)
+        with switch, onednn_products():
+            torch.manual_seed(1)  # dropout draws the same mask
+            got, names = ran(lambda: F.scaled_dot_product_attention(q, k, v, **kwargs))
+    assert ONEDNN not in names
+    assert torch.equal(got, expected)
+
+
+def test_the_extractor_computes_attention_on_onednn_from_many_tokens(vits):
+    model, spec = vits
+    images = torch.randn(1, 3, 320, 336)  # 420 patches and 5 prefix tokens
+    extractor = DenseExtractor(model, spec, 2, "value")
+    fast, names = ran(lambda: extractor(images))
+    assert not any("scaled_dot_product" in name for name in names)
+    with torch.backends.mkldnn.flags(enabled=False):
+        plain, names = ran(lambda: extractor(images))
+    assert any("scaled_dot_product" in name for name in names)
+    assert (fast - plain).abs().max() <= 1e-5 * plain.abs().max()

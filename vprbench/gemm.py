@@ -1,13 +1,15 @@
 """fp32 matrix products on CPU computed by oneDNN, the GEMM library inside torch, where it can.
 
-The BLAS libraries the products would otherwise call (MKL under torch's nn.Linear, OpenBLAS
-under numpy) are slower on some CPUs: on the AMD EPYC (AVX-512) this was measured on, one core
-reaches 84 to 100 GFLOP/s with MKL, 107 to 115 with OpenBLAS and 176 to 199 with oneDNN at a
-ViT's and a search's shapes. Two users:
+The BLAS libraries the products would otherwise call (MKL under torch's nn.Linear and its CPU
+attention kernel, OpenBLAS under numpy) are slower on some CPUs: on the AMD EPYC (AVX-512) this
+was measured on, one core reaches 84 to 100 GFLOP/s with MKL, 107 to 115 with OpenBLAS and 176
+to 199 with oneDNN at a ViT's and a search's shapes. Two users:
 
-- `onednn_linear()`: inside it, every fp32 `F.linear` on CPU without autograd or autocast goes
-  to oneDNN's linear with the layer's own weight (hooks and state dicts see nothing new);
-  anything else runs as it would. The dense extractor runs in it.
+- `onednn_products()`: inside it, without autograd or autocast, every fp32 CPU `F.linear` goes
+  to oneDNN's linear with the layer's own weight (hooks and state dicts see nothing new), and
+  so does each head's two products in `F.scaled_dot_product_attention` from
+  `ATTENTION_MIN_KEYS` keys on (plain attention: no mask, dropout or causality); anything else
+  runs as it would. The dense extractor runs in it.
 - `products(a, b)`: a @ b.T of two float32 row-major arrays (exact search's scores).
 
 Results differ from the BLAS's by float32 rounding only (another order of summation).
@@ -58,14 +60,14 @@ def _dense_fp32_cpu(t: torch.Tensor | None) -> bool:
     return t is None or (t.device.type == "cpu" and t.dtype == torch.float32 and t.layout == torch.strided)
 
 
-def _onednn_can_take(x, weight, bias) -> bool:
+def _onednn_can_take(*tensors) -> bool:
+    """oneDNN is on; every tensor (None: an absent bias) is a dense fp32 CPU tensor, none with a
+    gradient to track; CPU autocast is off."""
     return (
         onednn_on()
-        and isinstance(x, torch.Tensor) and isinstance(weight, torch.Tensor) and weight.dim() == 2
-        and (bias is None or isinstance(bias, torch.Tensor))
-        and x.dim() >= 2 and x.numel() > 0
-        and all(_dense_fp32_cpu(t) for t in (x, weight, bias))
-        and not (torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (x, weight, bias)))
+        and all(t is None or isinstance(t, torch.Tensor) for t in tensors)
+        and all(_dense_fp32_cpu(t) for t in tensors)
+        and not (torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in tensors))
         and not _cpu_autocast()
     )
 
@@ -74,24 +76,66 @@ def _linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) ->
     return torch.ops.mkldnn._linear_pointwise(x, weight, bias, "none", [], "")
 
 
-class _OneDNNLinear(TorchFunctionMode):
+#: from this many keys on, attention's products on oneDNN, head by head, beat torch's fused CPU
+#: kernel (which calls MKL). Attention alone, one thread: about equal at 257 keys, 1.2 to 1.6 times
+#: faster from 401 to 1,531; two threads: 1.0 to 1.4 (docs/performance.md)
+ATTENTION_MIN_KEYS = 400
+#: attention's scores are computed this many at a time (16 MB of float32), a few query rows at a time
+SCORE_ELEMENTS = 1 << 22
+
+
+def _plain_attention(query, key, value, attn_mask=None, dropout_p=0.0, is_causal=False, scale=None,
+                     enable_gqa=False, **other):
+    """(q, k, v, scale) when the call is plain attention that oneDNN takes, else None."""
+    plain = (not other and attn_mask is None and dropout_p == 0.0 and not is_causal and not enable_gqa
+             and all(isinstance(t, torch.Tensor) and t.dim() == 4 for t in (query, key, value))
+             and query.shape[:2] == key.shape[:2] == value.shape[:2] and key.shape[2] == value.shape[2]
+             and query.shape[3] == key.shape[3] and key.shape[2] >= ATTENTION_MIN_KEYS and query.numel() > 0
+             and _onednn_can_take(query, key, value))
+    return (query, key, value, query.shape[-1] ** -0.5 if scale is None else scale) if plain else None
+
+
+def _attention(query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, scale: float) -> torch.Tensor:
+    """softmax(scale q k^T) v, head by head, both products on oneDNN; (B, H, T, D) out with the
+    memory of (B, T, H, D), as torch's CPU kernel gives it (a ViT's next reshape copies nothing)."""
+    batch, heads, tokens, _ = query.shape
+    query, key = query * scale, key.contiguous()  # scaled before the product, as timm's own path
+    value_t = value.transpose(-1, -2).contiguous()  # oneDNN's weight: (D, keys)
+    out = query.new_empty(batch, tokens, heads, value.shape[-1])
+    rows = max(1, SCORE_ELEMENTS // key.shape[2])
+    for b in range(batch):
+        for h in range(heads):
+            q, k, v = query[b, h], key[b, h], value_t[b, h]
+            for start in range(0, tokens, rows):
+                scores = _linear(q[start:start + rows], k, None)
+                out[b, start:start + rows, h] = _linear(scores.softmax(-1), v, None)
+    return out.transpose(1, 2)
+
+
+class _OneDNNProducts(TorchFunctionMode):
     def __torch_function__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
         if func is F.linear:
             x, weight = args[0] if args else kwargs["input"], args[1] if len(args) > 1 else kwargs["weight"]
             bias = args[2] if len(args) > 2 else kwargs.get("bias")
-            if _onednn_can_take(x, weight, bias):
+            if (isinstance(x, torch.Tensor) and isinstance(weight, torch.Tensor) and weight.dim() == 2
+                    and x.dim() >= 2 and x.numel() > 0 and _onednn_can_take(x, weight, bias)):
                 return _linear(x, weight, bias)
+        elif func is F.scaled_dot_product_attention:
+            plain = _plain_attention(*args, **kwargs)
+            if plain is not None:
+                return _attention(*plain)
         return func(*args, **kwargs)
 
 
 @contextlib.contextmanager
-def onednn_linear() -> Iterator[None]:
-    """Within it (or a function it decorates), fp32 CPU linear layers run on oneDNN (see the module)."""
+def onednn_products() -> Iterator[None]:
+    """Within it (or a function it decorates), fp32 CPU linear layers and attention products run
+    on oneDNN (see the module)."""
     if not _available():
         yield
         return
-    with _OneDNNLinear():
+    with _OneDNNProducts():
         yield
 
 

@@ -16,7 +16,7 @@ import vprbench
 from vprbench import VPRBenchError, create_method
 from vprbench_baselines import boq, megaloc, salad
 from vprbench.features.dense import interpolate_pos_embed
-from vprbench.gemm import onednn_linear
+from vprbench.gemm import onednn_products
 from vprbench_baselines.vit import ViTConfig
 
 CHECKPOINTS = Path(__file__).resolve().parents[1] / "data" / "checkpoints"
@@ -112,7 +112,7 @@ def test_trunk_tokens_equal_timms_forward_with_the_official_position_embedding()
     torch.manual_seed(0)
     trunk = dinov2_vit(TINY_VIT).eval()
     images = torch.randn(2, 3, 518, 518)
-    with torch.no_grad(), onednn_linear():
+    with torch.no_grad(), onednn_products():
         assert torch.equal(vit_tokens(trunk, images, final_norm=True), trunk.forward_features(images))
         small = dinov2_vit(ViTConfig(embed_dim=32, depth=2, heads=2, img_size=224)).eval()
         state = trunk.state_dict()

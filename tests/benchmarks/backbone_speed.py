@@ -1,6 +1,6 @@
 """Dense extraction per backbone against the GEMM bound, on CPU (random weights).
 
-    python tests/benchmarks/backbone_speed.py [--rounds 5] [--batch 4] [--size 224]
+    python tests/benchmarks/backbone_speed.py [--rounds 5] [--batch 4] [--size 224 | --size 480 640]
 
 For each entry at ViT-S/B size: the FLOPs of one extraction (value facet of the last block,
 counted by torch's FlopCounterMode: every matmul, convolution and attention product up to the
@@ -23,6 +23,7 @@ import statistics
 import time
 
 import torch
+from torch.nn.attention import SDPBackend, sdpa_kernel
 from torch.utils.flop_counter import FlopCounterMode
 
 from vprbench.features.backbones import create_model
@@ -82,8 +83,11 @@ def extractor(name: str, layer: int | None = None, facet: str = "value", path: s
 
 
 def flops(run) -> int:
-    """FLOPs of `run` with torch's own linear layers (the counter knows no formula for oneDNN's)."""
-    with torch.backends.mkldnn.flags(enabled=False), FlopCounterMode(display=False) as counter:
+    """FLOPs of `run` with torch's own linear layers and attention's math kernel: the counter
+    knows no formula for oneDNN's linear nor for torch's fused CPU attention kernel (which it
+    counted as 0 FLOPs)."""
+    with (torch.backends.mkldnn.flags(enabled=False), sdpa_kernel(SDPBackend.MATH),
+          FlopCounterMode(display=False) as counter):
         run()
     return counter.get_total_flops()
 
@@ -92,23 +96,26 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--batch", type=int, default=4)
-    parser.add_argument("--size", type=int, default=224)
+    parser.add_argument("--size", type=int, nargs="+", default=[224], help="side, or height and width, in pixels")
     parser.add_argument("--threads", type=int, nargs="+", default=[1, torch.get_num_threads()])
     args = parser.parse_args()
+
+    height, width = (args.size * 2)[:2]
+
+    def images_for(spec):  # the largest multiple of the patch in each direction
+        return torch.randn(args.batch, 3, height // spec.patch * spec.patch, width // spec.patch * spec.patch)
 
     cases = {}
     for name in ENTRIES:
         ex, spec = extractor(name)
-        side = args.size // spec.patch * spec.patch
-        images = torch.randn(args.batch, 3, side, side)
-        tokens = args.batch * ((side // spec.patch) ** 2 + spec.prefix_tokens)
+        images = images_for(spec)
+        tokens = args.batch * ((height // spec.patch) * (width // spec.patch) + spec.prefix_tokens)
         hidden = ex.model.blocks[0].mlp.fc1.out_features
         cases[name] = (ex, images, flops(lambda: ex(images)), (tokens, spec.width, hidden))
     for name, layer in DINOV2_PATHS:
         for path in ("dino", "timm"):
             ex, spec = extractor(name, layer, path=path)
-            side = args.size // spec.patch * spec.patch
-            images = torch.randn(args.batch, 3, side, side)
+            images = images_for(spec)
             cases[f"{name} L{layer} {path}"] = (ex, images, flops(lambda: ex(images)), None)
 
     for threads in args.threads:
@@ -128,7 +135,7 @@ def main() -> None:
                         rates[key].append([(b + a) / 2 for b, a in zip(before, after)])
                         ratios[key].append(count / max(rates[key][-1]) / times[key][-1])
         clock = "CPU time of the process" if threads == 1 else "wall time"
-        print(f"\n## {threads} thread(s), batch {args.batch} at {args.size}px, {clock}, medians of {args.rounds} "
+        print(f"\n## {threads} thread(s), batch {args.batch} at {height}x{width}px, {clock}, medians of {args.rounds} "
               "interleaved rounds")
         print("| backbone | GFLOP per image | ms per image | torch.mm GFLOP/s | oneDNN GFLOP/s "
               "| bound ms per image (faster GEMM) | of bound |")

@@ -14,7 +14,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..errors import VPRBenchError
-from ..gemm import onednn_linear
+from ..gemm import onednn_products
 from .allocator import keep_freed_memory
 from .catalogue import BackboneEntry
 
@@ -105,7 +105,7 @@ class DenseExtractor(nn.Module):
         return m.norm_pre(m.pos_drop(x))
 
     @torch.no_grad()
-    @onednn_linear()
+    @onednn_products()
     def forward(self, images: torch.Tensor, keep_prefix: bool = False) -> torch.Tensor:
         """(B, 3, H, W) -> (B, patches, D) raw facet features (CLS/register tokens dropped
         unless `keep_prefix`)."""
@@ -182,7 +182,7 @@ class DenseExtractor(nn.Module):
         return out if keep_prefix else out[:, self.num_prefix:]
 
     @torch.no_grad()
-    @onednn_linear()
+    @onednn_products()
     def cls_token(self, images: torch.Tensor) -> torch.Tensor:
         """The final-norm CLS token (the backbone's global output), unnormalised."""
         if self.spec.position_interpolation == "timm":
