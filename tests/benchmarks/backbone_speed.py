@@ -99,7 +99,8 @@ def main() -> None:
     parser.add_argument("--size", type=int, nargs="+", default=[224], help="side, or height and width, in pixels")
     parser.add_argument("--threads", type=int, nargs="+", default=[1, torch.get_num_threads()])
     args = parser.parse_args()
-
+    if len(args.size) > 2:
+        parser.error("--size takes a side, or a height and a width")
     height, width = (args.size * 2)[:2]
 
     def images_for(spec):  # the largest multiple of the patch in each direction
