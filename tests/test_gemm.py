@@ -137,6 +137,17 @@ def test_attention_from_many_keys_runs_its_products_on_onednn(scale):
     assert got.transpose(1, 2).is_contiguous()  # (B, T, H, D) memory, as torch's CPU kernel gives it
 
 
+def test_attention_of_a_few_queries_over_many_keys_runs_on_onednn():
+    """Queries and keys of different lengths (an attention-pooling head: one latent query)."""
+    _, k, v = qkv()
+    q = torch.randn(2, 3, 1, 16)
+    expected = F.scaled_dot_product_attention(q, k, v)
+    with torch.no_grad(), onednn_products():
+        got, names = ran(lambda: F.scaled_dot_product_attention(q, k, v))
+    assert ONEDNN in names and got.shape == expected.shape == (2, 3, 1, 16)
+    torch.testing.assert_close(got, expected, rtol=0, atol=1e-5)
+
+
 def test_attention_scores_computed_a_few_rows_at_a_time_give_the_same_output(monkeypatch):
     import vprbench.gemm as gemm
 
