@@ -192,3 +192,14 @@ def test_the_extractor_computes_attention_on_onednn_from_many_tokens(vits):
         plain, names = ran(lambda: extractor(images))
     assert any("scaled_dot_product" in name for name in names)
     assert (fast - plain).abs().max() <= 1e-5 * plain.abs().max()
+
+
+def test_inner_products_of_no_queries_write_nothing():
+    """search.inner_products (the one place scores are computed) with an empty query slice."""
+    import numpy as np
+
+    from vprbench.evaluation.search import inner_products
+
+    out = np.empty((0, 5), dtype=np.float32)
+    inner_products(np.zeros((0, 3), np.float32), np.ones((5, 3), np.float32), out, np.float32(2))
+    assert out.shape == (0, 5)

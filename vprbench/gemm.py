@@ -76,6 +76,14 @@ def _linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) ->
     return torch.ops.mkldnn._linear_pointwise(x, weight, bias, "none", [], "")
 
 
+def _plain_linear(input, weight, bias=None, **other):
+    """(x, weight, bias) when the call is a linear layer that oneDNN takes, else None."""
+    plain = (not other and isinstance(input, torch.Tensor) and isinstance(weight, torch.Tensor)
+             and weight.dim() == 2 and input.dim() >= 2 and input.numel() > 0
+             and _onednn_can_take(input, weight, bias))
+    return (input, weight, bias) if plain else None
+
+
 #: from this many keys on, attention's products on oneDNN, head by head, beat torch's fused CPU
 #: kernel (which calls MKL). Attention alone, one thread: about equal at 257 keys, 1.2 to 1.6 times
 #: faster from 401 to 1,531; two threads: 1.0 to 1.4 (docs/performance.md)
@@ -112,20 +120,16 @@ def _attention(query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, scal
     return out.transpose(1, 2)
 
 
+#: the torch functions oneDNN takes: (what it takes of a call, what it runs instead)
+_TAKEN = {F.linear: (_plain_linear, _linear), F.scaled_dot_product_attention: (_plain_attention, _attention)}
+
+
 class _OneDNNProducts(TorchFunctionMode):
     def __torch_function__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
-        if func is F.linear:
-            x, weight = args[0] if args else kwargs["input"], args[1] if len(args) > 1 else kwargs["weight"]
-            bias = args[2] if len(args) > 2 else kwargs.get("bias")
-            if (isinstance(x, torch.Tensor) and isinstance(weight, torch.Tensor) and weight.dim() == 2
-                    and x.dim() >= 2 and x.numel() > 0 and _onednn_can_take(x, weight, bias)):
-                return _linear(x, weight, bias)
-        elif func is F.scaled_dot_product_attention:
-            plain = _plain_attention(*args, **kwargs)
-            if plain is not None:
-                return _attention(*plain)
-        return func(*args, **kwargs)
+        taken = _TAKEN.get(func)
+        plain = taken[0](*args, **kwargs) if taken else None
+        return taken[1](*plain) if plain is not None else func(*args, **kwargs)
 
 
 @contextlib.contextmanager

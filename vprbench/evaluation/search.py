@@ -80,7 +80,7 @@ def inner_products(queries: np.ndarray, rows: np.ndarray, out: np.ndarray, scale
     computed (on oneDNN where torch has it, gemm.py). Products come a few columns at a time so each
     fresh product stays in memory the allocator reuses (features/allocator.py); the columns per
     product are set by the tile's shape, never by the budget."""
-    step = max(1, PRODUCT_BYTES // (4 * len(queries)))
+    step = max(1, PRODUCT_BYTES // (4 * max(1, len(queries))))
     for lo in range(0, len(rows), step):
         np.multiply(products(queries, rows[lo:lo + step]), scale, out=out[:, lo:lo + step])
 
