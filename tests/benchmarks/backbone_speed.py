@@ -12,18 +12,25 @@ the bound takes the faster, whichever it is on the machine. Rounds are interleav
 backbone once per round, in one order) so load on the machine hits all alike; "of bound" is the
 median over rounds of bound / time.
 With one thread the clock is the process's CPU time (on a shared machine, the time it
-computed rather than the time it waited for a core); with several threads, wall time. Also:
+computed rather than the time it waited for a core); with several threads, wall time.
+"GEMMs alone" replays the extraction's own matrix products, nothing else: every oneDNN linear
+and convolution call with its recorded arguments, and torch's fused attention kernel (below
+gemm.ATTENTION_MIN_KEYS keys) as its two products per head on oneDNN. Its share of the bound is
+the most the extraction could reach with these GEMMs if everything else (softmax, GELU, norms,
+copies) took no time. Also:
 the DINOv2 path as it is (official position resampling, hand-written token path) against
 timm's forward_intermediates path (the one every other family takes) on the same model and layer.
 """
 from __future__ import annotations
 
 import argparse
+import functools
 import statistics
 import time
 
 import torch
 from torch.nn.attention import SDPBackend, sdpa_kernel
+from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils.flop_counter import FlopCounterMode
 
 from vprbench.features.backbones import create_model
@@ -92,6 +99,46 @@ def flops(run) -> int:
     return counter.get_total_flops()
 
 
+_LINEAR = torch.ops.mkldnn._linear_pointwise.default
+_PRODUCTS = (_LINEAR, torch.ops.aten.convolution.default)
+_FUSED_ATTENTION = torch.ops.aten._scaled_dot_product_flash_attention_for_cpu.default
+
+
+class _Products(TorchDispatchMode):
+    """Records the matrix products an extraction calls, to replay them alone."""
+
+    def __init__(self):
+        super().__init__()
+        self.calls = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        if func in _PRODUCTS:
+            self.calls.append((func, args, kwargs))
+        elif func == _FUSED_ATTENTION:  # its two products per head, as oneDNN computes them
+            query, key, value = args[:3]
+            key, value_t = key.contiguous(), value.transpose(-1, -2).contiguous()
+            for b in range(query.shape[0]):
+                for h in range(query.shape[1]):
+                    self.calls.append((_attention_products, (query[b, h], key[b, h], value_t[b, h]), {}))
+        return func(*args, **kwargs)
+
+
+def _attention_products(query, key, value_t):
+    return _LINEAR(_LINEAR(query, key, None, "none", [], ""), value_t, None, "none", [], "")
+
+
+def gemms_alone(run):
+    """A function that replays the matrix products `run` calls, and nothing else."""
+    with torch.no_grad(), _Products() as recorded:
+        run()
+
+    def replay():
+        for func, args, kwargs in recorded.calls:
+            func(*args, **kwargs)
+    return replay
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--rounds", type=int, default=5)
@@ -106,50 +153,55 @@ def main() -> None:
     def images_for(spec):  # the largest multiple of the patch in each direction
         return torch.randn(args.batch, 3, height // spec.patch * spec.patch, width // spec.patch * spec.patch)
 
-    cases = {}
+    cases = {}  # key: (extraction, images per call, FLOPs, largest GEMM shape or None, its GEMMs alone)
     for name in ENTRIES:
         ex, spec = extractor(name)
         images = images_for(spec)
         tokens = args.batch * ((height // spec.patch) * (width // spec.patch) + spec.prefix_tokens)
         hidden = ex.model.blocks[0].mlp.fc1.out_features
-        cases[name] = (ex, images, flops(lambda: ex(images)), (tokens, spec.width, hidden))
+        run = functools.partial(ex, images)
+        cases[name] = (run, args.batch, flops(run), (tokens, spec.width, hidden), gemms_alone(run))
     for name, layer in DINOV2_PATHS:
         for path in ("dino", "timm"):
             ex, spec = extractor(name, layer, path=path)
-            images = images_for(spec)
-            cases[f"{name} L{layer} {path}"] = (ex, images, flops(lambda: ex(images)), None)
+            run = functools.partial(ex, images_for(spec))
+            cases[f"{name} L{layer} {path}"] = (run, args.batch, flops(run), None, None)
 
     for threads in args.threads:
         torch.set_num_threads(threads)
         CLOCK["fn"] = time.process_time if threads == 1 else time.perf_counter
         times = {key: [] for key in cases}
-        ratios = {key: [] for key, case in cases.items() if case[3]}  # bound / time, per round
-        rates = {key: [] for key in ratios}  # (torch.mm, oneDNN), per round
+        alone = {key: [] for key, case in cases.items() if case[3]}  # time of its GEMMs alone, per round
+        rates = {key: [] for key in alone}  # (torch.mm, oneDNN), per round
         for _ in range(args.rounds):
-            for key, (ex, images, count, shape) in cases.items():
+            for key, (run, _, count, shape, replay) in cases.items():
                 with torch.no_grad():
-                    ex(images)  # warm
+                    run()  # warm
                     before = gemm_rates(shape) if shape else None
-                    times[key].append(timed(lambda: ex(images)))
+                    times[key].append(timed(run))
                     if shape:  # the GEMM rates measured just before and after the extraction they bound
+                        alone[key].append(timed(replay))
                         after = gemm_rates(shape)
                         rates[key].append([(b + a) / 2 for b, a in zip(before, after)])
-                        ratios[key].append(count / max(rates[key][-1]) / times[key][-1])
         clock = "CPU time of the process" if threads == 1 else "wall time"
         print(f"\n## {threads} thread(s), batch {args.batch} at {height}x{width}px, {clock}, medians of {args.rounds} "
               "interleaved rounds")
         print("| backbone | GFLOP per image | ms per image | torch.mm GFLOP/s | oneDNN GFLOP/s "
-              "| bound ms per image (faster GEMM) | of bound |")
-        print("|---|---|---|---|---|---|---|")
-        for key, (ex, images, count, shape) in cases.items():
-            per_image = statistics.median(times[key]) / len(images)
-            gflop = count / len(images) / 1e9
-            if shape:
-                mm, onednn = (statistics.median(r[i] for r in rates[key]) for i in (0, 1))
-                print(f"| {key} | {gflop:.2f} | {per_image * 1e3:.1f} | {mm / 1e9:.1f} | {onednn / 1e9:.1f} | "
-                      f"{gflop / max(mm, onednn) * 1e12:.1f} | {statistics.median(ratios[key]):.0%} |")
-            else:
-                print(f"| {key} | {gflop:.2f} | {per_image * 1e3:.1f} | | | | |")
+              "| bound ms per image (faster GEMM) | of bound | its GEMMs alone, ms per image | they, of bound |")
+        print("|---|---|---|---|---|---|---|---|---|")
+        for key, (run, batch, count, shape, replay) in cases.items():
+            per_image = statistics.median(times[key]) / batch
+            gflop = count / batch / 1e9
+            if not shape:
+                print(f"| {key} | {gflop:.2f} | {per_image * 1e3:.1f} | | | | | | |")
+                continue
+            mm, onednn = (statistics.median(r[i] for r in rates[key]) for i in (0, 1))
+            bounds = [count / max(r) for r in rates[key]]  # bound time per round
+            of_bound = statistics.median(b / t for b, t in zip(bounds, times[key]))
+            alone_of_bound = statistics.median(b / t for b, t in zip(bounds, alone[key]))
+            print(f"| {key} | {gflop:.2f} | {per_image * 1e3:.1f} | {mm / 1e9:.1f} | {onednn / 1e9:.1f} | "
+                  f"{gflop / max(mm, onednn) * 1e12:.1f} | {of_bound:.0%} | "
+                  f"{statistics.median(alone[key]) / batch * 1e3:.1f} | {alone_of_bound:.0%} |")
         for name, layer in DINOV2_PATHS:
             pair = [times[f"{name} L{layer} {path}"] for path in ("dino", "timm")]
             ratio = statistics.median(t / d for d, t in zip(*pair))
