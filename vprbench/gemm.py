@@ -11,6 +11,7 @@ to 199 with oneDNN at a ViT's and a search's shapes. Two users:
   `ATTENTION_MIN_KEYS` keys on (plain attention: no mask, dropout or causality); anything else
   runs as it would. The dense extractor runs in it.
 - `products(a, b)`: a @ b.T of two float32 row-major arrays (exact search's scores).
+- `linear(x, weight, bias)`: the one oneDNN call both make.
 
 Results differ from the BLAS's by float32 rounding only (another order of summation).
 `torch.backends.mkldnn.flags(enabled=False)` turns both off.
@@ -39,7 +40,7 @@ def _available() -> bool:
         return False
     a, b = torch.arange(6.0).reshape(2, 3), torch.arange(12.0).reshape(4, 3)
     try:
-        return torch.equal(_linear(a, b, None), torch.tensor([[5.0, 14.0, 23.0, 32.0], [14.0, 50.0, 86.0, 122.0]]))
+        return torch.equal(linear(a, b, None), torch.tensor([[5.0, 14.0, 23.0, 32.0], [14.0, 50.0, 86.0, 122.0]]))
     except RuntimeError:
         return False
 
@@ -72,7 +73,8 @@ def _onednn_can_take(*tensors) -> bool:
     )
 
 
-def _linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
+def linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
+    """x @ weight.T (+ bias) on oneDNN, as every product here is computed (check `onednn_on()` first)."""
     return torch.ops.mkldnn._linear_pointwise(x, weight, bias, "none", [], "")
 
 
@@ -115,13 +117,13 @@ def _attention(query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, scal
         for h in range(heads):
             q, k, v = query[b, h], key[b, h], value_t[b, h]
             for start in range(0, tokens, rows):
-                scores = _linear(q[start:start + rows], k, None)
-                out[b, start:start + rows, h] = _linear(scores.softmax(-1), v, None)
+                scores = linear(q[start:start + rows], k, None)
+                out[b, start:start + rows, h] = linear(scores.softmax(-1), v, None)
     return out.transpose(1, 2)
 
 
 #: the torch functions oneDNN takes: (what it takes of a call, what it runs instead)
-_TAKEN = {F.linear: (_plain_linear, _linear), F.scaled_dot_product_attention: (_plain_attention, _attention)}
+_TAKEN = {F.linear: (_plain_linear, linear), F.scaled_dot_product_attention: (_plain_attention, _attention)}
 
 
 class _OneDNNProducts(TorchFunctionMode):
@@ -148,5 +150,5 @@ def products(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     C-contiguous float32 and oneDNN is on, else numpy's (its BLAS's threads)."""
     if (onednn_on() and a.dtype == b.dtype == np.float32 and a.flags.c_contiguous and b.flags.c_contiguous
             and a.size and b.size):
-        return _linear(torch.from_numpy(a), torch.from_numpy(b), None).numpy()
+        return linear(torch.from_numpy(a), torch.from_numpy(b), None).numpy()
     return np.matmul(a, b.T)

@@ -36,6 +36,7 @@ from torch.utils.flop_counter import FlopCounterMode
 from vprbench.features.backbones import create_model
 from vprbench.features.catalogue import backbone_spec
 from vprbench.features.dense import DenseExtractor
+from vprbench.gemm import linear
 
 ENTRIES = ["dinov2_vits14", "dinov2_vitb14", "dinov2_vits14_reg", "dinov2_vitb14_reg", "dinov3_vits16",
            "dinov3_vitb16", "pe_spatial_s16", "pe_spatial_b16", "radio_v3_b16", "siglip2_b16", "dino_vitb16"]
@@ -71,7 +72,7 @@ def gemm_rate(rows: int, width: int, hidden: int) -> float:
 def onednn_rate(rows: int, width: int, hidden: int) -> float:
     """FLOP/s of oneDNN's linear (no bias) at the same shape, called as the extractor calls it."""
     a, weight = torch.randn(rows, width), torch.randn(hidden, width)
-    return rate(lambda: torch.ops.mkldnn._linear_pointwise(a, weight, None, "none", [], ""), rows, width, hidden)
+    return rate(lambda: linear(a, weight, None), rows, width, hidden)
 
 
 def gemm_rates(shape: tuple[int, int, int]) -> tuple[float, float]:
@@ -99,8 +100,7 @@ def flops(run) -> int:
     return counter.get_total_flops()
 
 
-_LINEAR = torch.ops.mkldnn._linear_pointwise.default
-_PRODUCTS = (_LINEAR, torch.ops.aten.convolution.default)
+_PRODUCTS = (torch.ops.mkldnn._linear_pointwise.default, torch.ops.aten.convolution.default)
 _FUSED_ATTENTION = torch.ops.aten._scaled_dot_product_flash_attention_for_cpu.default
 
 
@@ -125,7 +125,7 @@ class _Products(TorchDispatchMode):
 
 
 def _attention_products(query, key, value_t):
-    return _LINEAR(_LINEAR(query, key, None, "none", [], ""), value_t, None, "none", [], "")
+    return linear(linear(query, key, None), value_t, None)
 
 
 def gemms_alone(run):
@@ -153,19 +153,19 @@ def main() -> None:
     def images_for(spec):  # the largest multiple of the patch in each direction
         return torch.randn(args.batch, 3, height // spec.patch * spec.patch, width // spec.patch * spec.patch)
 
-    cases = {}  # key: (extraction, images per call, FLOPs, largest GEMM shape or None, its GEMMs alone)
+    cases = {}  # key: (extraction, FLOPs, largest GEMM shape or None, its GEMMs alone)
     for name in ENTRIES:
         ex, spec = extractor(name)
         images = images_for(spec)
         tokens = args.batch * ((height // spec.patch) * (width // spec.patch) + spec.prefix_tokens)
         hidden = ex.model.blocks[0].mlp.fc1.out_features
         run = functools.partial(ex, images)
-        cases[name] = (run, args.batch, flops(run), (tokens, spec.width, hidden), gemms_alone(run))
+        cases[name] = (run, flops(run), (tokens, spec.width, hidden), gemms_alone(run))
     for name, layer in DINOV2_PATHS:
         for path in ("dino", "timm"):
             ex, spec = extractor(name, layer, path=path)
             run = functools.partial(ex, images_for(spec))
-            cases[f"{name} L{layer} {path}"] = (run, args.batch, flops(run), None, None)
+            cases[f"{name} L{layer} {path}"] = (run, flops(run), None, None)
 
     for threads in args.threads:
         torch.set_num_threads(threads)
@@ -174,7 +174,7 @@ def main() -> None:
         alone = {key: [] for key, case in cases.items() if case[3]}  # time of its GEMMs alone, per round
         rates = {key: [] for key in alone}  # (torch.mm, oneDNN), per round
         for _ in range(args.rounds):
-            for key, (run, _, count, shape, replay) in cases.items():
+            for key, (run, count, shape, replay) in cases.items():
                 with torch.no_grad():
                     run()  # warm
                     before = gemm_rates(shape) if shape else None
@@ -189,9 +189,9 @@ def main() -> None:
         print("| backbone | GFLOP per image | ms per image | torch.mm GFLOP/s | oneDNN GFLOP/s "
               "| bound ms per image (faster GEMM) | of bound | its GEMMs alone, ms per image | they, of bound |")
         print("|---|---|---|---|---|---|---|---|---|")
-        for key, (run, batch, count, shape, replay) in cases.items():
-            per_image = statistics.median(times[key]) / batch
-            gflop = count / batch / 1e9
+        for key, (run, count, shape, replay) in cases.items():
+            per_image = statistics.median(times[key]) / args.batch
+            gflop = count / args.batch / 1e9
             if not shape:
                 print(f"| {key} | {gflop:.2f} | {per_image * 1e3:.1f} | | | | | | |")
                 continue
@@ -201,7 +201,7 @@ def main() -> None:
             alone_of_bound = statistics.median(b / t for b, t in zip(bounds, alone[key]))
             print(f"| {key} | {gflop:.2f} | {per_image * 1e3:.1f} | {mm / 1e9:.1f} | {onednn / 1e9:.1f} | "
                   f"{gflop / max(mm, onednn) * 1e12:.1f} | {of_bound:.0%} | "
-                  f"{statistics.median(alone[key]) / batch * 1e3:.1f} | {alone_of_bound:.0%} |")
+                  f"{statistics.median(alone[key]) / args.batch * 1e3:.1f} | {alone_of_bound:.0%} |")
         for name, layer in DINOV2_PATHS:
             pair = [times[f"{name} L{layer} {path}"] for path in ("dino", "timm")]
             ratio = statistics.median(t / d for d, t in zip(*pair))
