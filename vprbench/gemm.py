@@ -3,7 +3,8 @@
 The BLAS libraries the products would otherwise call (MKL under torch's nn.Linear and its CPU
 attention kernel, OpenBLAS under numpy) are slower on some CPUs: on the AMD EPYC (AVX-512) this
 was measured on, one core reaches 84 to 100 GFLOP/s with MKL, 107 to 115 with OpenBLAS and 176
-to 199 with oneDNN at a ViT's and a search's shapes. Two users:
+to 199 with oneDNN at a ViT's and a search's shapes (on another EPYC, cpu family 25, all three
+run at about 100: there oneDNN gains little, and costs nothing but attention's 0 to 7 %). Two users:
 
 - `onednn_products()`: inside it, without autograd or autocast, every fp32 CPU `F.linear` goes
   to oneDNN's linear with the layer's own weight (hooks and state dicts see nothing new), and
@@ -88,7 +89,8 @@ def _plain_linear(input, weight, bias=None, **other):
 
 #: from this many keys on, attention's products on oneDNN, head by head, beat torch's fused CPU
 #: kernel (which calls MKL). Attention alone, one thread: about equal at 257 keys, 1.2 to 1.6 times
-#: faster from 401 to 1,531; two threads: 1.0 to 1.4 (docs/performance.md)
+#: faster from 401 to 1,531; two threads: 1.0 to 1.4. On a CPU whose oneDNN is no faster than
+#: its BLAS it is 1.06 to 1.33 times slower, 0 to 7 % of an extraction (docs/performance.md)
 ATTENTION_MIN_KEYS = 400
 #: attention's scores are computed this many at a time (16 MB of float32), a few query rows at a time
 SCORE_ELEMENTS = 1 << 22
