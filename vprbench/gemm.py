@@ -3,8 +3,8 @@
 The BLAS libraries the products would otherwise call (MKL under torch's nn.Linear and its CPU
 attention kernel, OpenBLAS under numpy) are slower on some CPUs: on the AMD EPYC (AVX-512) this
 was measured on, one core reaches 84 to 100 GFLOP/s with MKL, 107 to 115 with OpenBLAS and 176
-to 199 with oneDNN at a ViT's and a search's shapes (on another EPYC, cpu family 25, all three
-run at about 100: there oneDNN gains little, and costs nothing but attention's 0 to 7 %). Two users:
+to 199 with oneDNN at a ViT's and a search's shapes. On another EPYC (cpu family 25) all three
+run at about 100: there oneDNN gains little, and attention by head costs 0 to 7 %. Two users:
 
 - `onednn_products()`: inside it, without autograd or autocast, every fp32 CPU `F.linear` goes
   to oneDNN's linear with the layer's own weight (hooks and state dicts see nothing new), and

@@ -9,8 +9,8 @@ machine's best measured fp32 GEMM rate at that backbone's own largest matrix sha
 just before and after each extraction). Three GEMMs are measured: torch.mm (the BLAS torch was
 built with, MKL), oneDNN's linear as the extractor calls it (vprbench/gemm.py), and oneDNN's
 linear with its weight reordered once into oneDNN's own blocked layout (as compilers prepare a
-frozen model's weights; 4 to 9 % faster than the plain weight at these shapes on the machine
-this was written on); the bound takes the fastest, whichever it is on the machine. Rounds are
+frozen model's weights; 4 to 9 % faster than the plain weight at these shapes on one CPU, 3 to
+7 % on another); the bound takes the fastest, whichever it is on the machine. Rounds are
 interleaved (every backbone once per round, in one order) so load on the machine hits all alike;
 "of bound" is the median over rounds of bound / time.
 With one thread the clock is the process's CPU time (on a shared machine, the time it
@@ -65,32 +65,22 @@ def rate(product, rows: int, width: int, hidden: int) -> float:
     return flop / timed(product, max(1, int(2e9 / flop)))
 
 
-def gemm_rate(rows: int, width: int, hidden: int) -> float:
-    """FLOP/s of the backbone's largest GEMM shape: (tokens x width) @ (width x hidden), by torch.mm."""
-    a, b = torch.randn(rows, width), torch.randn(width, hidden)
-    return rate(lambda: torch.mm(a, b), rows, width, hidden)
-
-
-def onednn_rate(rows: int, width: int, hidden: int) -> float:
-    """FLOP/s of oneDNN's linear (no bias) at the same shape, called as the extractor calls it."""
-    a, weight = torch.randn(rows, width), torch.randn(hidden, width)
-    return rate(lambda: linear(a, weight, None), rows, width, hidden)
-
-
-def onednn_packed_rate(rows: int, width: int, hidden: int) -> float:
-    """FLOP/s of oneDNN's linear at the same shape with its weight in oneDNN's blocked layout."""
-    a = torch.randn(rows, width)
-    weight = torch.ops.mkldnn._reorder_linear_weight(torch.randn(hidden, width), rows)
-    return rate(lambda: linear(a, weight, None), rows, width, hidden)
-
-
-#: the GEMMs whose rates are measured; the bound takes the fastest
-GEMMS = {"torch.mm": gemm_rate, "oneDNN": onednn_rate, "oneDNN, packed weight": onednn_packed_rate}
+#: each GEMM's product of a (rows x width) input and a (hidden x width) weight, set up once;
+#: the bound takes the fastest
+GEMMS = {
+    "torch.mm": lambda a, weight: functools.partial(torch.mm, a, weight.T.contiguous()),
+    "oneDNN": lambda a, weight: functools.partial(linear, a, weight, None),  # as the extractor calls it
+    "oneDNN, packed weight": lambda a, weight: functools.partial(
+        linear, a, torch.ops.mkldnn._reorder_linear_weight(weight, len(a)), None),
+}
 
 
 def gemm_rates(shape: tuple[int, int, int]) -> list[float]:
-    """FLOP/s of each of GEMMS at the shape, in its order."""
-    return [measure(*shape) for measure in GEMMS.values()]
+    """FLOP/s of each of GEMMS at the backbone's largest shape (tokens x width) @ (width x hidden),
+    in its order."""
+    rows, width, hidden = shape
+    a, weight = torch.randn(rows, width), torch.randn(hidden, width)
+    return [rate(product(a, weight), *shape) for product in GEMMS.values()]
 
 
 def extractor(name: str, layer: int | None = None, facet: str = "value", path: str | None = None):
