@@ -51,6 +51,21 @@ def test_hostile_option_values_publish_as_text(make_record, tmp_path, capsys):
     assert "&lt;img" in text(HOSTILE) and "\\(" in text(LINK)
 
 
+def test_a_records_protocol_and_ground_truth_publish_as_text(make_record, tmp_path, capsys):
+    """The dataset page's protocol and ground-truth lines come from a record too: its description,
+    source, id and units can say anything."""
+    record = make_record("hog", seed=1)
+    record["protocol"].update(description=HOSTILE, source=LINK, id=f"x`{HOSTILE}")
+    record["ground_truth"].update(unit=HOSTILE, radius_unit=HOSTILE)
+    save_result(record)
+    docs = tmp_path / "docs"
+    assert main(["leaderboard", "publish", "--to", str(docs)]) == 0, capsys.readouterr().err
+    pages = list((docs / "leaderboard").rglob("*.md"))
+    assert any("onerror" in p.read_text() and "javascript" in p.read_text() for p in pages), "the attack is on a page"
+    for page in pages:
+        assert not hostile(elements(page.read_text())), page
+
+
 class Parsed(HTMLParser):
     """Every element and every run of text of an HTML page."""
 

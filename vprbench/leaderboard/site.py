@@ -279,10 +279,10 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
              f"| {counts['database']} | {counts['queries']} | {counts.get('queries_without_positives', '–')} | "
              f"{counts.get('positive_pairs', '–')} | "
              + (f"{positives.min()} / {np.median(positives):g} / {positives.max()}" if len(positives) else "–")
-             + f" | {gt.get('unit', '–')}, radius {quantity(gt.get('radius'), gt.get('radius_unit'))} | "
-             f"`{protocol.get('id', '–')}` (`{protocol.get('hash', '–')}`) | `{column.fingerprint}` |", "",
-             f"Protocol `{protocol.get('id', '–')}`: {protocol.get('description') or 'no description'}"
-             + (f" (source: {protocol['source']})" if protocol.get("source") else "") + ".", "",
+             + f" | {text(gt.get('unit', '–'))}, radius {text(quantity(gt.get('radius'), gt.get('radius_unit')))} | "
+             f"`{text(protocol.get('id', '–'))}` (`{text(protocol.get('hash', '–'))}`) | `{text(column.fingerprint)}` |", "",
+             f"Protocol `{text(protocol.get('id', '–'))}`: {text(protocol.get('description') or 'no description')}"
+             + (f" (source: {text(protocol['source'])})" if protocol.get("source") else "") + ".", "",
              "Queries without positives count as failures.", "",
              "## Results", "",
              f"Seeded 95 % bootstrap intervals ({RESAMPLES:,} resamples, seed {seed}), resampling "
