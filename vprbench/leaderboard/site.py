@@ -32,7 +32,7 @@ from ..evaluation.metrics import successes
 from .compare import shared_resampling
 from .stats import RESAMPLES, format_p, overlaps, paired_test
 from .tables import (GROUPS, TOLERANCE_PP, cell_stats, comparisons, fmt, group_table, marks_note, other_rows,
-                     source_mark)
+                     source_mark, with_ci)
 
 SECTION = "leaderboard"
 #: MkDocs Material front matter: the wide tables get the table-of-contents column
@@ -190,10 +190,6 @@ def _from_repository(records) -> str:
     return f", {sent} of them contributed to a results repository and re-scored here" if sent else ""
 
 
-def _ci(entry) -> str:
-    return f"{fmt(entry['value'])} [{entry['ci'][0]:.1f}, {entry['ci'][1]:.1f}]" if entry["ci"] else fmt(entry["value"])
-
-
 def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: int = 0, colours=None) -> str:
     written = datetime.now(timezone.utc).date().isoformat()
     lines = [PAGE_HEAD, "# Leaderboard", "",
@@ -236,8 +232,8 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
         for row, column, cell in others:
             s = stats[(row, column.key)]
             lines.append(f"| {row_name(row)} | {text(weights_shown(row, cell.record))} | "
-                         f"{text(licence_shown(cell.record))} | [{text(column.title)}]({column.slug}.md) | {_ci(s[1])} | "
-                         f"{_ci(s[5])} | {text(cell.source)} | `{text(cell.record.get('run_id'))}` |")
+                         f"{text(licence_shown(cell.record))} | [{text(column.title)}]({column.slug}.md) | {with_ci(s[1])} | "
+                         f"{with_ci(s[5])} | {text(cell.source)} | `{text(cell.record.get('run_id'))}` |")
     else:
         lines.append("None.")
     lines += ["", "## Runs left out", ""]
@@ -295,7 +291,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
         s, r = stats[(cell.row, column.key)], cell.record
         name = row_name(cell.row)
         lines.append(f"| {name}{source_mark(cell.source)} | {text(weights_shown(cell.row, r))} | {text(licence_shown(r))} | "
-                     f"{_ci(s[1])} | {_ci(s[5])} | {fmt(cell.recall(10))} | {fmt(cell.recall(20))} | "
+                     f"{with_ci(s[1])} | {with_ci(s[5])} | {fmt(cell.recall(10))} | {fmt(cell.recall(20))} | "
                      f"{_num(r.get('auc_pr'), 3)} | {percent(r.get('recall_at_100_precision'))} | {r.get('descriptor_dim') or '–'} | "
                      f"{r.get('descriptor_bytes') or 4 * int(r.get('descriptor_dim') or 0) or '–'} | {_num(cell.images_per_second, 1)} |")
         versions, computed = r.get("versions") or {}, r.get("descriptors_computed") or {}

@@ -27,6 +27,11 @@ def fmt(value) -> str:
     return "–" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.1f}"
 
 
+def with_ci(entry) -> str:
+    """A recall (cell_stats' entry) with its 95 % interval when it has one: '71.2 [65.0, 77.1]'."""
+    return f"{fmt(entry['value'])} [{entry['ci'][0]:.1f}, {entry['ci'][1]:.1f}]" if entry["ci"] else fmt(entry["value"])
+
+
 @dataclass(frozen=True)
 class Shown:
     """One cell as every format shows it (CLI table, Markdown, CSV, JSON, the site's tables)."""

@@ -5,7 +5,7 @@ from __future__ import annotations
 from .cells import Board, Cell
 from .escape import text
 from .shown import row_name
-from .tables import fmt
+from .tables import fmt, with_ci
 
 TITLES = {"single-image": "Single-image retrieval", "re-ranked": "Re-ranked", "sequence": "Sequence matching"}
 INTRO = {
@@ -26,10 +26,6 @@ def retriever_key(cell: Cell) -> str:
     from ..spec import RunSpec
 
     return RunSpec.model_validate(cell.record["spec"]).model_copy(update={"stages": ()}).row_key
-
-
-def _ci(entry) -> str:
-    return f"{fmt(entry['value'])} [{entry['ci'][0]:.1f}, {entry['ci'][1]:.1f}]" if entry["ci"] else fmt(entry["value"])
 
 
 def _cost(cell: Cell, key: str, digits: int = 1) -> str:
@@ -59,13 +55,13 @@ def track_page(full: Board, track: str, stats: dict, head: str = "") -> str:
             name = row_name(row)
             if track == "re-ranked":
                 base = alone.get((retriever_key(cell), column.key))
-                lines.append(f"| {name} | {_ci(s[1])} | {_ci(s[5])} | {_cost(cell, 'ceiling_recall')} | "
+                lines.append(f"| {name} | {with_ci(s[1])} | {with_ci(s[5])} | {_cost(cell, 'ceiling_recall')} | "
                              f"{fmt(base.recall(1)) if base else '–'} | {_cost(cell, 'ms_per_query')} | "
                              f"{_cost(cell, 'stored_bytes_per_database_image', 0)} | `{text(r.get('run_id'))}` |")
             else:
                 pr = [r.get(k) for k in ("auc_pr", "recall_at_100_precision", "max_f1")]
                 shown = [f"{v:.3f}" if isinstance(v, (int, float)) else "–" for v in pr]
-                lines.append(f"| {name} | {_ci(s[1])} | {_ci(s[5])} | {' | '.join(shown)} | "
+                lines.append(f"| {name} | {with_ci(s[1])} | {with_ci(s[5])} | {' | '.join(shown)} | "
                              f"{_cost(cell, 'ms_per_query')} | `{text(r.get('run_id'))}` |")
         lines.append("")
     if not board.columns:
