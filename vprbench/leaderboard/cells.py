@@ -91,11 +91,13 @@ class Column:
 
     @property
     def slug(self) -> str:
-        if self.kind != "benchmark":
-            from ..paths import safe_name
+        """The column's page, figures and downloads are named by it (file names, link targets): a
+        safe name, an own dataset's by its last folder name (escape.public)."""
+        from ..paths import safe_name
 
-            return f"own-{safe_name(self.dataset, 40)}-{self.protocol_hash[:8]}"
-        return self.dataset if self.default else f"{self.dataset}-{self.protocol}"
+        if self.kind != "benchmark":
+            return f"own-{safe_name(public(self.dataset), 40)}-{self.protocol_hash[:8]}"
+        return safe_name(self.dataset if self.default else f"{self.dataset}-{self.protocol}")
 
 
 @dataclass

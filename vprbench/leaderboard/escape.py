@@ -40,6 +40,9 @@ def public_data(value):
 
 def text(value) -> str:
     """Text from data or records (names, labels, paths, reasons) as plain text in Markdown: no
-    HTML element, no link or image, no table cell break can come from it, no absolute path."""
-    out = html.escape(public(value), quote=True).replace("|", "\\|").replace("](", "]\\(")
-    return out.replace("\n", " ")
+    HTML element, no link or image, no table cell break can come from it, no absolute path. A pipe
+    and a backtick are written as character references (a backslash from data would cancel a
+    backslash escape; a backtick would pair with a code span further along the row), and a line
+    break of either kind as a space (a line of its own could define a link)."""
+    out = html.escape(public(value), quote=True).replace("|", "&#124;").replace("`", "&#96;").replace("](", "]\\(")
+    return out.replace("\r", " ").replace("\n", " ")

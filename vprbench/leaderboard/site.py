@@ -24,7 +24,7 @@ from ..evaluation.results import read_results
 from ..reference import paper_results
 from ..text import percent, quantity
 from . import figures
-from .escape import public_data, text
+from .escape import public, public_data, text
 from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board, hardware_of, licence_shown, weights_shown
 from .shown import row_name
 from ..evaluation.blocks import RULE, for_record
@@ -40,12 +40,12 @@ PAGE_HEAD = "---\nhide:\n  - toc\n---\n"
 
 
 def page_head(title: str) -> str:
-    """PAGE_HEAD with the page's title set, HTML-escaped: without it MkDocs Material writes the
-    title it takes from the heading with its entities decoded (`striptags`) into <title>, where a
-    name holding '</title><img ...>' would become a live element."""
+    """PAGE_HEAD with the page's title set, HTML-escaped and without absolute paths (escape.public):
+    without it MkDocs Material writes the title it takes from the heading with its entities decoded
+    (`striptags`) into <title>, where a name holding '</title><img ...>' would become a live element."""
     import html
 
-    return PAGE_HEAD.replace("---\n", f"---\ntitle: {json.dumps(html.escape(str(title), quote=True))}\n", 1)
+    return PAGE_HEAD.replace("---\n", f"---\ntitle: {json.dumps(html.escape(public(title), quote=True))}\n", 1)
 #: mosaics drawn per dataset page (the best rows by R@1)
 MOSAIC_ROWS = 4
 
@@ -292,8 +292,9 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
         name = row_name(cell.row)
         lines.append(f"| {name}{source_mark(cell.source)} | {text(weights_shown(cell.row, r))} | {text(licence_shown(r))} | "
                      f"{with_ci(s[1])} | {with_ci(s[5])} | {fmt(cell.recall(10))} | {fmt(cell.recall(20))} | "
-                     f"{_num(r.get('auc_pr'), 3)} | {percent(r.get('recall_at_100_precision'))} | {r.get('descriptor_dim') or '–'} | "
-                     f"{r.get('descriptor_bytes') or 4 * int(r.get('descriptor_dim') or 0) or '–'} | {_num(cell.images_per_second, 1)} |")
+                     f"{_num(r.get('auc_pr'), 3)} | {percent(r.get('recall_at_100_precision'))} | {text(r.get('descriptor_dim') or '–')} | "
+                     f"{text(r.get('descriptor_bytes') or 4 * int(r.get('descriptor_dim') or 0) or '–')} | "
+                     f"{_num(cell.images_per_second, 1)} |")
         versions, computed = r.get("versions") or {}, r.get("descriptors_computed") or {}
         sent = (r.get("_contribution") or {}).get("contributor") or "this machine"
         runs.append(f"| {name} | {text(cell.source)} | {text(sent)} | `{text(r.get('run_id'))}` | {text(r.get('created', '–'))} | "

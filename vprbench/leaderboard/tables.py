@@ -206,7 +206,7 @@ def group_table(board: Board, table: str, link=lambda column: column.dataset) ->
     averages = {name: _average(values, averaged, source) for name, source, values in lines}
     partial = {name: _average(values, datasets, source, partial=True) for name, source, values in lines
                if averages[name] is None and source == "measured"}
-    header = ["Method", *[f"[{n}]({link(by_name[n])})" if n in by_name else n for n in datasets],
+    header = ["Method", *[f"[{text(n)}]({link(by_name[n])})" if n in by_name else n for n in datasets],
               f"Average ({len(averaged)})", *(["Measured so far"] if partial else [])]
     note = "" if measured_any else " No official run measured in this group yet: every value below is reported."
     legend = LEGEND.format(n=len(averaged)) + marks_legend(marks.values()) + (PARTIAL_LEGEND if partial else "")
