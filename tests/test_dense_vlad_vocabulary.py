@@ -5,7 +5,7 @@ import torch
 
 from vprbench.aggregation import Vocabulary
 from vprbench.errors import VPRBenchError
-from vprbench.evaluation.record import method_provenance
+from vprbench.evaluation.provenance import method_provenance
 from vprbench.methods import create_method
 
 SMALL = {"clusters": 8, "bin_sizes": (6,), "step": 8}

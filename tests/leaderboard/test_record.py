@@ -10,7 +10,7 @@ from vprbench.errors import VPRBenchError
 from runs import evaluate_method as evaluate
 from vprbench.evaluation import per_query, read_results, results_dir, save_result
 from vprbench.evaluation.identity import benchmark_protocols, fingerprint_of
-from vprbench.evaluation.record import method_provenance
+from vprbench.evaluation.provenance import method_provenance
 from vprbench.leaderboard import build_board
 from vprbench.evaluation.metrics import successes
 from vprbench.methods import create_method

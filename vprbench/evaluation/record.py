@@ -6,20 +6,18 @@ file is never rewritten). Schema: docs/record-schema.md.
 """
 from __future__ import annotations
 
-import os
-import platform
 import uuid
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from .. import __version__
 from ..errors import VPRBenchError
 from ..spec import RUN_SETTINGS, RunSpec, plain
 from .identity import dataset_fingerprints, dataset_kind, fingerprint_of, protocol_of
+from .provenance import environment, method_provenance
 
 SCHEMA = "vprbench-result"
 SCHEMA_VERSION = 3  # 2 = vprbench 0.2 (no spec), 1 = the JSON lines of 0.1 (no longer read)
@@ -30,6 +28,54 @@ OPTIONAL_FIELDS = ("place", "order")
 
 
 # ---------------------------------------------------------------- the typed record
+# Numbers the leaderboard shows and computes with: strict, so a string, a bool or a list in a
+# record is refused at read (its file named) instead of failing a publish of every record.
+#: a count or a size: a whole number >= 0
+Count = Annotated[int, Field(strict=True, ge=0)]
+#: a measured amount (seconds, images per second, bytes per image): finite, >= 0; an int is one too
+Amount = Annotated[float, Field(strict=True, ge=0, allow_inf_nan=False)]
+Fraction = Annotated[float, Field(strict=True, ge=0, le=1, allow_inf_nan=False)]
+Percent = Annotated[float, Field(strict=True, ge=0, le=100, allow_inf_nan=False)]
+
+
+class StageCost(BaseModel):
+    """The numbers of one stage's cost (stages/run.py), each optional; other keys are kept."""
+
+    model_config = ConfigDict(extra="allow")
+
+    candidates_in: Count | None = None
+    ceiling_recall: Percent | None = None
+    ms_per_query: Amount | None = None
+    seconds: Amount | None = None
+    stored_bytes_per_database_image: Amount | None = None
+    peak_rss_bytes: Count | None = None
+    peak_rss_growth_bytes: Count | None = None
+    features_computed: Count | None = None
+
+
+class Hardware(BaseModel):
+    """The numbers of the machine a run was on (`environment`), each optional; other keys are kept."""
+
+    model_config = ConfigDict(extra="allow")
+
+    cpu_count: Count | None = None
+    memory_gib: Amount | None = None
+
+
+class PerQuerySummary(BaseModel):
+    """The sizes a record states of its per-query section (in the record or its .npz)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    k: Count | None = None
+    queries: Count | None = None
+
+
+#: optional numbers left out of a validated record when it does not have them (readers test `in`)
+OPTIONAL_NUMBERS = ("descriptor_dim", "descriptor_bytes", "images_per_second", "auc_pr", "max_f1",
+                    "recall_at_100_precision", "descriptors_computed", "timings", "stages", "hardware")
+
+
 class Record(BaseModel):
     """What every reader relies on; other keys are kept as they are."""
 
@@ -43,12 +89,23 @@ class Record(BaseModel):
     dataset: str
     dataset_kind: Literal["benchmark", "own", "given"]
     protocol: dict[str, Any]
-    counts: dict[str, int]
-    recall: dict[str, float]
+    counts: dict[str, Count]
+    recall: dict[str, Percent]
     spec: RunSpec
     spec_key: str
     row_key: str
     per_query: dict[str, Any] | None = None
+    # None where a writer leaves them out (an imported run has no descriptor size)
+    descriptor_dim: Count | None = None
+    descriptor_bytes: Count | None = None
+    images_per_second: Amount | None = None
+    auc_pr: Fraction | None = None
+    max_f1: Fraction | None = None
+    recall_at_100_precision: Fraction | None = None
+    descriptors_computed: dict[str, Count] | None = None
+    timings: dict[str, Amount] | None = None
+    stages: list[dict[str, Any]] | None = None
+    hardware: dict[str, Any] | None = None
 
     @field_validator("schema_version")
     @classmethod
@@ -66,6 +123,33 @@ class Record(BaseModel):
         if not isinstance(protocol.get("hash"), str) or not isinstance(protocol.get("id"), str):
             raise ValueError("the protocol has no id and hash")
         return protocol
+
+    @field_validator("stages")
+    @classmethod
+    def _stage_costs(cls, stages: list[dict] | None) -> list[dict] | None:
+        for i, stage in enumerate(stages or []):
+            _numbers(StageCost, stage, f"stage {i}")
+        return stages  # as written: the check adds no key
+
+    @field_validator("hardware")
+    @classmethod
+    def _hardware(cls, hardware: dict | None) -> dict | None:
+        return _numbers(Hardware, hardware, "hardware") if hardware is not None else None
+
+    @field_validator("per_query")
+    @classmethod
+    def _sizes(cls, section: dict | None) -> dict | None:
+        return _numbers(PerQuerySummary, section, "per_query") if section is not None else None
+
+
+def _numbers(model: type[BaseModel], data: dict, where: str) -> dict:
+    """`data` unchanged when the numbers `model` names are numbers; a ValueError naming the first one otherwise."""
+    try:
+        model.model_validate(data)
+    except ValidationError as error:
+        problem = error.errors()[0]
+        raise ValueError(f"{where}: {'.'.join(str(p) for p in problem['loc'])}: {problem['msg']}") from None
+    return data
 
 
 def validated(data, where: str) -> dict:
@@ -90,7 +174,7 @@ def validated(data, where: str) -> dict:
                             f"{problem['msg']}).") from None
     if record.spec.key != record.spec_key or record.spec.row_key != record.row_key:
         raise VPRBenchError(f"{where}: its spec_key/row_key do not match its spec (edited by hand?).")
-    out = record.model_dump(by_alias=True)
+    out = record.model_dump(by_alias=True, exclude={k for k in OPTIONAL_NUMBERS if k not in record.model_fields_set})
     out["spec"] = record.spec.to_json()
     return out
 
@@ -137,99 +221,6 @@ def upgrade(data: dict, where: str = "the record") -> dict:
     data.update(schema_version=SCHEMA_VERSION, protocol=protocol, dataset_kind=kind, spec=spec.to_json(),
                 spec_key=spec.key, row_key=spec.row_key, upgraded_from=2)
     return data
-
-
-# ---------------------------------------------------------------- provenance and environment
-def method_provenance(method, dataset=None, cache_dir=None) -> dict:
-    """`method.provenance()`, completed: a method that does not say where its weights came from
-    is 'undeclared' (never official); a method that fits on the database says so, and so does
-    one whose post-processor (e.g. PCA-whitening) is fitted on the database's descriptors.
-
-    Summaries for tables: `learnt` names every fitted part (vocabulary, pca, ...), so a method
-    with learnt parts is never "nothing learnt" even when its weights source is "none";
-    `fitted_on_evaluated_database` is true when any part was fitted on the evaluated database
-    (transductive), null when a part does not say, else false. A part fitted on images the method
-    names by content (`fitted_image_digests()`, sha256 of each file) is transductive when any of
-    them is an image of the evaluated `dataset`, whatever the method says."""
-    from ..methods import Method
-
-    found = {k: dict(v) if isinstance(v, dict) else v for k, v in (method.provenance() or {}).items()}
-    declared = type(method).provenance is not Method.provenance
-    found.setdefault("weights", {"source": "none" if declared else "undeclared"})
-    if method.needs_fit:
-        found.setdefault("vocabulary", {"source": "map", "fitted_on": "the evaluated database"})
-        found["vocabulary"].setdefault("fitted_on_evaluated_database", True)
-    if method.postprocessor() is not None and not any(k in found for k in ("pca", "postprocessor")):
-        found["postprocessor"] = {"source": "fitted", "fitted_on": "the evaluated database's descriptors",
-                                  "fitted_on_evaluated_database": True}
-    parts = {k: v for k, v in found.items() if isinstance(v, dict) and "fitted_on_evaluated_database" in v}
-    fitted_images = getattr(method, "fitted_image_digests", lambda: {})()  # part -> set of sha256
-    if fitted_images and dataset is not None:
-        evaluated = {d for split in dataset.image_digests(cache_dir).values() for d in split}
-        for part, digests in fitted_images.items():
-            shared = len(set(digests) & evaluated)
-            if shared and part in parts:
-                parts[part].update(fitted_on_evaluated_database=True, evaluated_images_fitted_on=shared)
-    for part in parts.values():  # a file says what it is by its bytes when nothing else is known
-        if "fitted_on" not in part and part.get("sha256"):
-            part["fitted_on"] = f"{part.get('released_as') or 'file'} sha256:{part['sha256']}"
-    found["learnt"] = sorted(parts)
-    leaks = [v["fitted_on_evaluated_database"] for v in parts.values()]
-    found["fitted_on_evaluated_database"] = True if True in leaks else (None if None in leaks else False)
-    return found
-
-
-def environment() -> dict:
-    import faiss
-    import h5py
-    import torch
-
-    versions = {"vprbench": __version__, "python": platform.python_version(), "numpy": np.__version__,
-                "torch": torch.__version__, "faiss": faiss.__version__, "h5py": h5py.__version__,
-                "git": _git_commit()}
-    hardware = {"platform": platform.platform(), "machine": platform.machine(), "cpu": _cpu_name(),
-                "cpu_count": os.cpu_count(), "memory_gib": _memory_gib(),
-                "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
-    return {"versions": versions, "hardware": hardware}
-
-
-def _git_commit() -> str | None:
-    """The commit of a vprbench source checkout (None for an installed wheel)."""
-    head = Path(__file__).resolve().parents[2] / ".git"
-    try:
-        if head.is_file():  # a worktree: "gitdir: <path>"
-            head = Path(head.read_text().split(":", 1)[1].strip())
-        ref = (head / "HEAD").read_text().strip()
-        if ref.startswith("ref: "):
-            name = ref[5:]
-            common = head / "commondir"
-            root = (head / common.read_text().strip()).resolve() if common.is_file() else head
-            for folder in (head, root):
-                if (folder / name).is_file():
-                    return (folder / name).read_text().strip()
-            packed = root / "packed-refs"
-            lines = packed.read_text().splitlines() if packed.is_file() else []
-            return next((line.split()[0] for line in lines if line.endswith(" " + name)), None)
-        return ref
-    except (OSError, IndexError):
-        return None
-
-
-def _cpu_name() -> str | None:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or None
-
-
-def _memory_gib() -> float | None:
-    try:
-        return round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30, 1)
-    except (ValueError, OSError, AttributeError):
-        return None
 
 
 # ---------------------------------------------------------------- the record

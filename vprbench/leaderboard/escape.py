@@ -6,7 +6,8 @@ ran or published (a vocabulary folder in a row's label, a vocabulary file in a r
 cache folder of a run left out): `public` cuts every absolute path in a text (and one
 starting with ./, ../ or ~/) to its last name. The
 board's labels, weights and reasons (cells.py), every Markdown string (`text`) and the downloads
-(`public_data`) go through it.
+(`public_data`) go through it. Every CSV the project writes goes through `to_csv`, so no cell
+from data runs as a formula in a spreadsheet.
 """
 from __future__ import annotations
 
@@ -46,3 +47,26 @@ def text(value) -> str:
     break of either kind as a space (a line of its own could define a link)."""
     out = html.escape(public(value), quote=True).replace("|", "&#124;").replace("`", "&#96;").replace("](", "]\\(")
     return out.replace("\r", " ").replace("\n", " ")
+
+
+#: how a cell that a spreadsheet runs as a formula begins (tab and carriage return are dropped
+#: before it reads the rest)
+FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+
+
+def csv_cell(value):
+    """A CSV cell: text beginning like a formula gets a leading quote, which spreadsheets read as
+    'this is text'; numbers (negative ones too) and other values stay as they are. A lone '-' (an
+    empty cell of the grid) is no formula."""
+    if isinstance(value, str) and value.startswith(FORMULA_START) and value != "-":
+        return "'" + value
+    return value
+
+
+def to_csv(frame, path=None, **options):
+    """`frame.to_csv(path, **options)` with every cell, row name and column name through `csv_cell`:
+    the one CSV writer of the project (the site's downloads, `vprbench leaderboard --format csv`).
+    Lines end in CR LF (RFC 4180), so a cell holding a line break of either kind is quoted whole: a
+    bare carriage return would otherwise end the row in a spreadsheet and start a cell after the guard."""
+    options.setdefault("lineterminator", "\r\n")
+    return frame.map(csv_cell).rename(index=csv_cell, columns=csv_cell).to_csv(path, **options)

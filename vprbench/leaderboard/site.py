@@ -24,7 +24,7 @@ from ..evaluation.results import read_results
 from ..reference import paper_results
 from ..text import percent, quantity
 from . import figures
-from .escape import public, public_data, text
+from .escape import public, public_data, text, to_csv
 from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board, hardware_of, licence_shown, weights_shown
 from .shown import row_name
 from ..evaluation.blocks import RULE, for_record
@@ -141,7 +141,7 @@ def write_section(out: Path, board: Board, records: list[dict], *, cache_dir=Non
     _write(out / "reported.md", reported_page())
     _write(out / NAV_FILE, navigation(board, [t for t in full.tracks if t != "single-image"]))
     rows = [_summary(cell, stats[key]) for key, cell in full.cells.items()]
-    pd.DataFrame(rows).to_csv(out / "downloads" / "leaderboard.csv", index=False)
+    to_csv(pd.DataFrame(rows), out / "downloads" / "leaderboard.csv", index=False)
     _write(out / "downloads" / "leaderboard.json", json.dumps(rows, indent=1, sort_keys=True, default=_plain))
 
 
@@ -315,7 +315,8 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
                          f"{cell.row.name}: queries and their top 5", f"Mosaic of {cell.row.name}")
     download = [_record_download(c) for c in cells]
     _write(out / "downloads" / f"{slug}.json", json.dumps(download, sort_keys=True, default=_plain))  # compact: per-query arrays
-    pd.DataFrame([_summary(c, stats[(c.row, column.key)]) for c in cells]).to_csv(out / "downloads" / f"{slug}.csv", index=False)
+    to_csv(pd.DataFrame([_summary(c, stats[(c.row, column.key)]) for c in cells]), out / "downloads" / f"{slug}.csv",
+           index=False)
     lines += ["## Downloads", "", f"[{slug}.csv](downloads/{slug}.csv) (one row per cell), "
               f"[{slug}.json](downloads/{slug}.json) (the cells' full records, per-query predictions included).", "",
               *_rule()]

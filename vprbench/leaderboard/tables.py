@@ -12,7 +12,7 @@ from ..reference import paper_results
 from ..text import CONTROL, literal
 from .cells import (AGREES, CELL_KS, CONTRIBUTED, IMPORTED, STRUCTURED, UNSTRUCTURED, Board, Cell, Column, Row,  # noqa: F401
                     licence_shown, weights_shown)
-from .escape import text
+from .escape import text, to_csv
 from ..evaluation.blocks import for_record
 from ..evaluation.metrics import successes
 from .stats import bootstrap_ci
@@ -96,7 +96,7 @@ def render(table: pd.DataFrame, fmt_name: str, board: Board | None = None) -> st
         raise VPRBenchError(f"Unknown leaderboard format {fmt_name!r}; use markdown, csv or json")
     table = table.rename(index=literal, columns=literal).map(literal)
     if fmt_name == "csv":
-        return table.to_csv()
+        return to_csv(table, lineterminator="\n")  # printed as lines; literal() wrote out every carriage return
     return table.rename(index=text, columns=text).map(text).to_markdown()  # Markdown from records: escaped as on the site
 
 

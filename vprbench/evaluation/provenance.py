@@ -1,0 +1,103 @@
+"""Where a run's parts came from (`method_provenance`) and what it ran on (`environment`): the
+provenance and hardware sections of a result record (record.py)."""
+from __future__ import annotations
+
+import os
+import platform
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+
+
+def method_provenance(method, dataset=None, cache_dir=None) -> dict:
+    """`method.provenance()`, completed: a method that does not say where its weights came from
+    is 'undeclared' (never official); a method that fits on the database says so, and so does
+    one whose post-processor (e.g. PCA-whitening) is fitted on the database's descriptors.
+
+    Summaries for tables: `learnt` names every fitted part (vocabulary, pca, ...), so a method
+    with learnt parts is never "nothing learnt" even when its weights source is "none";
+    `fitted_on_evaluated_database` is true when any part was fitted on the evaluated database
+    (transductive), null when a part does not say, else false. A part fitted on images the method
+    names by content (`fitted_image_digests()`, sha256 of each file) is transductive when any of
+    them is an image of the evaluated `dataset`, whatever the method says."""
+    from ..methods import Method
+
+    found = {k: dict(v) if isinstance(v, dict) else v for k, v in (method.provenance() or {}).items()}
+    declared = type(method).provenance is not Method.provenance
+    found.setdefault("weights", {"source": "none" if declared else "undeclared"})
+    if method.needs_fit:
+        found.setdefault("vocabulary", {"source": "map", "fitted_on": "the evaluated database"})
+        found["vocabulary"].setdefault("fitted_on_evaluated_database", True)
+    if method.postprocessor() is not None and not any(k in found for k in ("pca", "postprocessor")):
+        found["postprocessor"] = {"source": "fitted", "fitted_on": "the evaluated database's descriptors",
+                                  "fitted_on_evaluated_database": True}
+    parts = {k: v for k, v in found.items() if isinstance(v, dict) and "fitted_on_evaluated_database" in v}
+    fitted_images = getattr(method, "fitted_image_digests", lambda: {})()  # part -> set of sha256
+    if fitted_images and dataset is not None:
+        evaluated = {d for split in dataset.image_digests(cache_dir).values() for d in split}
+        for part, digests in fitted_images.items():
+            shared = len(set(digests) & evaluated)
+            if shared and part in parts:
+                parts[part].update(fitted_on_evaluated_database=True, evaluated_images_fitted_on=shared)
+    for part in parts.values():  # a file says what it is by its bytes when nothing else is known
+        if "fitted_on" not in part and part.get("sha256"):
+            part["fitted_on"] = f"{part.get('released_as') or 'file'} sha256:{part['sha256']}"
+    found["learnt"] = sorted(parts)
+    leaks = [v["fitted_on_evaluated_database"] for v in parts.values()]
+    found["fitted_on_evaluated_database"] = True if True in leaks else (None if None in leaks else False)
+    return found
+
+
+def environment() -> dict:
+    import faiss
+    import h5py
+    import torch
+
+    versions = {"vprbench": __version__, "python": platform.python_version(), "numpy": np.__version__,
+                "torch": torch.__version__, "faiss": faiss.__version__, "h5py": h5py.__version__,
+                "git": _git_commit()}
+    hardware = {"platform": platform.platform(), "machine": platform.machine(), "cpu": _cpu_name(),
+                "cpu_count": os.cpu_count(), "memory_gib": _memory_gib(),
+                "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
+    return {"versions": versions, "hardware": hardware}
+
+
+def _git_commit() -> str | None:
+    """The commit of a vprbench source checkout (None for an installed wheel)."""
+    head = Path(__file__).resolve().parents[2] / ".git"
+    try:
+        if head.is_file():  # a worktree: "gitdir: <path>"
+            head = Path(head.read_text().split(":", 1)[1].strip())
+        ref = (head / "HEAD").read_text().strip()
+        if ref.startswith("ref: "):
+            name = ref[5:]
+            common = head / "commondir"
+            root = (head / common.read_text().strip()).resolve() if common.is_file() else head
+            for folder in (head, root):
+                if (folder / name).is_file():
+                    return (folder / name).read_text().strip()
+            packed = root / "packed-refs"
+            lines = packed.read_text().splitlines() if packed.is_file() else []
+            return next((line.split()[0] for line in lines if line.endswith(" " + name)), None)
+        return ref
+    except (OSError, IndexError):
+        return None
+
+
+def _cpu_name() -> str | None:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or None
+
+
+def _memory_gib() -> float | None:
+    try:
+        return round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30, 1)
+    except (ValueError, OSError, AttributeError):
+        return None
