@@ -21,12 +21,12 @@ def parse(*argv):
 
 
 def test_import_then_resolve_by_name(tmp_path, capsys):
-    Vocabulary(torch.randn(3, 6)).save(tmp_path / "mine.pt")
+    Vocabulary(torch.randn(3, 384)).save(tmp_path / "mine.pt")  # dinov2_vits14's width: other centres are refused
     assert run(parse("vocabulary", "import", str(tmp_path / "mine.pt"), "--source", "urban",
                          "--backbone", "dinov2_vits14", "--layer", "9", "--facet", "key")) == 0
     found = resolve_vocabulary("urban", "dinov2_vits14", 9, "key", 3)
-    assert found.centres.shape == (3, 6) and found.meta["source"] == "urban"
-    assert "Imported 3 x 6 centres as 'urban'" in capsys.readouterr().out
+    assert found.centres.shape == (3, 384) and found.meta["source"] == "urban"
+    assert "Imported 3 x 384 centres as 'urban'" in capsys.readouterr().out
 
 
 def test_show_and_domains(tmp_path, capsys):

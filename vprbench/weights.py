@@ -4,8 +4,10 @@ hub file), read safely, named by their content."""
 from __future__ import annotations
 
 import pickle
+import re
 import struct
 import tomllib
+import warnings
 from dataclasses import dataclass
 from functools import cache
 from importlib.resources import files
@@ -54,18 +56,20 @@ def read_torch_file(path: str | Path, what: str = "checkpoint", *, mmap: bool = 
 
     path = Path(path)
     try:
-        with torch.serialization.safe_globals(_numpy_globals()):
+        # torch's notice on a pickle protocol it was not written with is for its developers, not a user
+        with torch.serialization.safe_globals(_numpy_globals()), warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="Detected pickle protocol")
             try:
                 return torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
             except RuntimeError:
                 if not mmap:
                     raise
                 return torch.load(path, map_location="cpu", weights_only=True)  # legacy format cannot be mapped
-    except pickle.UnpicklingError:
+    except pickle.UnpicklingError as error:
         try:
             extra = ", ".join(torch.serialization.get_unsafe_globals_in_checkpoint(path))
-        except (RuntimeError, ValueError, OSError):  # only zip-format files can be inspected
-            extra = ""
+        except (RuntimeError, ValueError, OSError):  # only zip-format files can be inspected: else the refusal names it
+            extra = ", ".join(dict.fromkeys(re.findall(r"GLOBAL ([\w.]+)", str(error))))
         if not extra:
             raise VPRBenchError(f"Cannot read {what} {path}: it is damaged or not a PyTorch file.") from None
         raise VPRBenchError(

@@ -6,6 +6,7 @@ Fitting needs a method whose `iter_patch_features(paths, resize)` yields each im
 """
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 # The vocabulary machinery (torch) is imported by each subcommand, so `vprbench --help` answers at once.
@@ -87,9 +88,20 @@ def run_fit(args) -> int:
 def run_import(args) -> int:
     from ..methods.anyloc_vocabulary import save_to_cache
     from ..aggregation.vocabulary import load_vocabulary
+    from ..features.backbones import RANDOM
+    from ..features.catalogue import backbone_spec
+    from ..methods.checks import choice, whole
 
     resolve_locations(args)
+    # the cache key names features that exist (random weights have their own, BACKBONE@random) and fit the centres
+    spec = backbone_spec(args.backbone.removesuffix(f"@{RANDOM}"))
+    whole("vocabulary import", "--layer", args.layer, 0, spec.depth - 1, f"0-based block of {spec.name}")
+    choice("vocabulary import", "--facet", args.facet, spec.facets)
+    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_-]*", args.source):
+        raise VPRBenchError(f"--source {args.source!r} is not a vocabulary name: give a domain (`vprbench vocabulary "
+                            "domains`), map-DATASET, or another name of letters, digits, '_' and '-'.")
     vocabulary = load_vocabulary(args.path)
+    vocabulary.check_dim(spec.width)
     vocabulary.meta["imported_from"] = vocabulary.meta.pop("path")
     path = save_to_cache(vocabulary, args.backbone, args.layer, args.facet, args.source, args.cache_dir)
     print(f"Imported {vocabulary.clusters} x {vocabulary.dim} centres as {args.source!r} -> {path}")

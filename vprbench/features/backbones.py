@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import sys
+import zipfile
 from pathlib import Path
 
 import torch
@@ -86,7 +87,8 @@ def _misfit(missing=(), unexpected=(), mismatched=()) -> VPRBenchError:
     return VPRBenchError(
         "The weights file does not fit this backbone (wrong architecture?). "
         f"Missing keys: {_show(sorted(missing))}. Unexpected keys: {_show(sorted(unexpected))}. "
-        f"Shape mismatches: {_show(list(mismatched))}."
+        f"Shape mismatches: {_show(list(mismatched))}. Pass a checkpoint of this backbone, or choose the backbone "
+        "the file was saved from."
     )
 
 
@@ -133,7 +135,10 @@ def convert_official(state: dict[str, torch.Tensor], model: nn.Module) -> dict[s
     expected = model.state_dict()
     mismatched = _grid_mismatches(state, expected)
     state = _drop_unplaced_biases(state, expected)
-    converted = filter_fn(state, model) if filter_fn is not None and not mismatched else state
+    try:
+        converted = filter_fn(dict(state), model) if filter_fn is not None and not mismatched else state
+    except RuntimeError:  # the filter cannot place a tensor (a position table with another count of prefix slots)
+        converted = state  # compared as they are below (the filter changed a copy), naming the keys at fault
     # a classifier or projection head beside the trunk (timm's head.*, e.g. Perception Encoder core's
     # proj): these models are built without one, and AnyLoc reads the trunk
     converted = {k: v for k, v in converted.items() if k in expected or not k.startswith("head.")}
@@ -169,8 +174,12 @@ def read_npz_release(spec: BackboneEntry, path: Path) -> nn.Module:
             kernel = arrays[prefix + "embedding/kernel"].shape
             grid = next((arrays[prefix + k].shape for k in ("pos_embedding", "Transformer/posembed_input/pos_embedding")
                          if prefix + k in keys), None)
-    except (OSError, ValueError) as error:
+    except OSError as error:
         raise VPRBenchError(f"Cannot read weights file {path}: {error}.") from None
+    except (ValueError, EOFError, zipfile.BadZipFile):  # numpy's message would advise unpickling the file
+        raise VPRBenchError(f"Cannot read weights file {path}: it is not a complete .npz archive of numeric arrays "
+                            "(empty, damaged, another format, or holding Python objects, which are never loaded); "
+                            "pass the release file as published.") from None
     expected = model.state_dict()
     found = {"patch_embed.proj.weight": torch.empty(kernel[::-1][:2] + kernel[:2])}
     if grid is not None:

@@ -8,6 +8,8 @@ timm's own pretrained config when it is asked for). No torch here: listing backb
 """
 from __future__ import annotations
 
+import inspect
+import re
 import tomllib
 from functools import cache
 from importlib.resources import files
@@ -19,6 +21,8 @@ from ..errors import VPRBenchError, closest_names
 from ..weights import WeightSource
 
 TIMM_PREFIX = "timm:"
+#: a timm model name: an architecture (letters, digits, '_'), then optionally '.' and a weights tag
+TIMM_NAME = re.compile(r"[A-Za-z0-9_]+(\.[A-Za-z0-9_-]+)?")
 IMAGENET = ((0.485, 0.456, 0.406), (0.229, 0.224, 0.225))
 
 
@@ -148,9 +152,14 @@ def timm_entry(arch_tag: str) -> BackboneEntry:
     import timm
     import torch
 
+    if not TIMM_NAME.fullmatch(arch_tag):
+        raise VPRBenchError(f"Backbone {TIMM_PREFIX + arch_tag!r} is not a timm model name: give timm:ARCH or "
+                            "timm:ARCH.TAG (an architecture of letters, digits and '_', and an optional weights tag), "
+                            "e.g. timm:vit_small_patch16_224.dino.")
     arch, _, tag = arch_tag.partition(".")
     if arch not in timm.list_models():
-        raise VPRBenchError(f"timm has no architecture {arch!r}.{closest_names(arch, timm.list_models())}")
+        raise VPRBenchError(f"timm has no architecture {arch!r}.{closest_names(arch, timm.list_models())} Give one "
+                            "that timm.list_models() names, as timm:ARCH or timm:ARCH.TAG.")
     try:
         cfg = timm.models.get_pretrained_cfg(arch_tag) if tag else timm.models.get_pretrained_cfg(arch)
     except (RuntimeError, ValueError, KeyError):
@@ -161,9 +170,22 @@ def timm_entry(arch_tag: str) -> BackboneEntry:
     with torch.device("meta"):
         model = timm.create_model(arch, pretrained=False, num_classes=0)
     embed = getattr(model, "patch_embed", None) or getattr(model, "embeds", None)  # NaFlexVit: embeds
-    if embed is None or not hasattr(model, "blocks") or not hasattr(model, "forward_intermediates"):
-        raise VPRBenchError(f"timm:{arch_tag} has no patch tokens (it is not a ViT with a patch embedding and "
-                            "blocks, e.g. a CNN or a hybrid); AnyLoc aggregates per-patch ViT features.")
+    patch = getattr(embed, "patch_size", None)
+    intermediates = getattr(model, "forward_intermediates", None)
+    # the dense extractor reads a block's tokens, prefix tokens apart, through forward_intermediates; a
+    # hybrid's embedding is a CNN stem (its `backbone`), whose stride is not the patch
+    if not (isinstance(patch, tuple) and len(patch) == 2 and getattr(embed, "backbone", None) is None
+            and hasattr(model, "blocks") and intermediates is not None
+            and "return_prefix_tokens" in inspect.signature(intermediates).parameters):
+        raise VPRBenchError(f"timm:{arch_tag} has no patch tokens vprbench can read (it is not a ViT with a patch "
+                            "embedding, blocks and per-block tokens, e.g. a CNN, a hybrid or a hierarchical model); "
+                            "AnyLoc aggregates per-patch ViT features: choose a plain ViT, e.g. "
+                            "timm:vit_small_patch16_224.dino.")
+    if not hasattr(model, "dynamic_img_size") and getattr(embed, "strict_img_size", False):
+        height, width = embed.img_size
+        raise VPRBenchError(f"timm:{arch_tag} takes {height}x{width} inputs only (its patch embedding has a fixed "
+                            "size), but AnyLoc reads each image at its own size cropped to a multiple of the patch: "
+                            "choose a timm ViT that takes any size, e.g. timm:vit_small_patch16_224.dino.")
     attn = getattr(model.blocks[0], "attn", None)
     has_qkv = attn is not None and (getattr(attn, "qkv", None) is not None or getattr(attn, "q_proj", None) is not None)
     cfg = cfg.to_dict() if cfg is not None else {}

@@ -161,7 +161,7 @@ class DenseExtractor(nn.Module):
         if self.facet == "token":
             found = self.model.forward_intermediates(images, indices=[self.layer], stop_early=True, norm=False,
                                                      output_fmt="NLC", intermediates_only=True,
-                                                     return_prefix_tokens=True)[0]
+                                                     return_prefix_tokens=self.num_prefix > 0)[0]
             patches, prefix = found if isinstance(found, tuple) else (found, None)
             return torch.cat([prefix, patches], dim=1) if keep_prefix and prefix is not None else patches
         captured = {}
