@@ -80,6 +80,7 @@ def test_domain_vocabulary_of_a_new_family_is_keyed_by_its_features(shared_data,
     assert method.provenance()["vocabulary"]["file"] == str(fitted)
 
     # centres fitted on random weights never serve real ones, nor another layer, facet or cluster count
+    (tmp_path / "pe.safetensors").write_bytes(b"a checkpoint of one's own")
     for other in ({"weights": str(tmp_path / "pe.safetensors")}, {"layer": 3}, {"facet": "key"}, {"clusters": 8}):
         options = {"backbone": "pe_spatial_s16", "weights": "random", "layer": 1, "clusters": 4, **other}
         with pytest.raises(VPRBenchError, match="No 'hallways' vocabulary for pe_spatial_s16"):
@@ -91,6 +92,30 @@ def test_domain_vocabulary_of_a_new_family_is_keyed_by_its_features(shared_data,
     with pytest.raises(VPRBenchError, match=r"fitted on backbone pe_spatial_s16@random .* but these features are "
                                             r"backbone dinov3_vits16@random layer 1"):
         create_method("anyloc", backbone="dinov3_vits16", weights="random", layer=1, clusters=4, vocabulary=str(fitted))
+
+
+def test_a_vocabulary_fitted_with_ones_own_checkpoint_serves_that_checkpoint_only(tmp_path):
+    """A user's checkpoint (not the authors' release) keys vocabularies by its sha256: centres fitted
+    on its features are found for it, never for another checkpoint or the official weights."""
+    import hashlib
+
+    mine, other = tmp_path / "mine.pth", tmp_path / "other.pth"
+    torch.save({"x": torch.zeros(1)}, mine)
+    torch.save({"x": torch.ones(1)}, other)
+    setting = {"backbone": "pe_spatial_s16", "layer": 1, "clusters": 4}
+    key = create_method("anyloc", weights=str(mine), **setting).vocabulary_backbone
+    assert key == "pe_spatial_s16@" + hashlib.sha256(mine.read_bytes()).hexdigest()[:16]
+    assert create_method("anyloc", **setting).vocabulary_backbone == "pe_spatial_s16"  # the authors' release
+    fitted = anyloc_vocabulary.save_to_cache(Vocabulary(torch.randn(4, 384), {"backbone": key, "layer": 1, "facet": "value"}),
+                                             key, 1, "value", "hallways")
+    found = create_method("anyloc", weights=str(mine), vocabulary="hallways", **setting)
+    assert found.provenance()["vocabulary"]["file"] == str(fitted)
+    for weights in (str(other), None):
+        with pytest.raises(VPRBenchError, match="No 'hallways' vocabulary for pe_spatial_s16"):
+            create_method("anyloc", weights=weights, vocabulary="hallways", **setting)
+    with pytest.raises(VPRBenchError, match=rf"fitted on backbone {key} layer 1 facet value, but these features are "
+                                            r"backbone pe_spatial_s16@[0-9a-f]{16} layer 1"):
+        create_method("anyloc", weights=str(other), vocabulary=str(fitted), **setting)
 
 
 def test_importing_a_vocabulary_under_another_setting_is_refused_and_writes_nothing(capsys, tmp_path):

@@ -29,6 +29,19 @@ def test_import_then_resolve_by_name(tmp_path, capsys):
     assert "Imported 3 x 384 centres as 'urban'" in capsys.readouterr().out
 
 
+def test_import_for_ones_own_checkpoint_takes_its_digest(tmp_path, capsys):
+    """Centres for a user's checkpoint go under BACKBONE@<16 hex of its sha256>; another suffix is refused."""
+    Vocabulary(torch.randn(3, 384)).save(tmp_path / "mine.pt")
+    digest = "0123456789abcdef"
+    assert run(parse("vocabulary", "import", str(tmp_path / "mine.pt"), "--source", "urban",
+                     "--backbone", f"dinov2_vits14@{digest}", "--layer", "9", "--facet", "key")) == 0
+    assert resolve_vocabulary("urban", f"dinov2_vits14@{digest}", 9, "key", 3).meta["backbone"] == f"dinov2_vits14@{digest}"
+    for suffix in ("mine", "0123456789ABCDEF", digest + "0"):
+        with pytest.raises(VPRBenchError, match="after '@' give 'random' or the first 16 hex digits"):
+            run(parse("vocabulary", "import", str(tmp_path / "mine.pt"), "--source", "rural",
+                      "--backbone", f"dinov2_vits14@{suffix}", "--layer", "9", "--facet", "key"))
+
+
 def test_show_and_domains(tmp_path, capsys):
     Vocabulary(torch.zeros(2, 4), {"backbone": "b"}).save(tmp_path / "v.pt")
     run(parse("vocabulary", "show", str(tmp_path / "v.pt")))

@@ -34,7 +34,8 @@ def add_parsers(commands) -> None:
     p = sub.add_parser("import", help="put a vocabulary file (e.g. the authors' c_centers.pt) in the cache by name")
     p.add_argument("path", type=Path)
     p.add_argument("--source", required=True, help="domain name or map-<dataset>")
-    p.add_argument("--backbone", default="dinov2_vitg14")
+    p.add_argument("--backbone", default="dinov2_vitg14",
+                   help="the features the centres fit: BACKBONE, BACKBONE@random, or BACKBONE@<16 hex of your checkpoint's sha256>")
     p.add_argument("--layer", type=int, default=31)
     p.add_argument("--facet", default="value")
     add_location_options(p)
@@ -93,8 +94,13 @@ def run_import(args) -> int:
     from ..methods.checks import choice, whole
 
     resolve_locations(args)
-    # the cache key names features that exist (random weights have their own, BACKBONE@random) and fit the centres
-    spec = backbone_spec(args.backbone.removesuffix(f"@{RANDOM}"))
+    # the cache key names features that exist and fit the centres: a backbone, or its random weights
+    # (BACKBONE@random) or a user's checkpoint (BACKBONE@<16 hex of its sha256>)
+    name, _, weights = args.backbone.partition("@")
+    if weights and not re.fullmatch(rf"{RANDOM}|[0-9a-f]{{16}}", weights):
+        raise VPRBenchError(f"--backbone {args.backbone!r}: after '@' give 'random' or the first 16 hex digits of "
+                            "your checkpoint's sha256 (`sha256sum FILE`), the weights the centres were fitted with.")
+    spec = backbone_spec(name)
     whole("vocabulary import", "--layer", args.layer, 0, spec.depth - 1, f"0-based block of {spec.name}")
     choice("vocabulary import", "--facet", args.facet, spec.facets)
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_-]*", args.source):

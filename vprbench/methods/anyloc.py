@@ -140,9 +140,15 @@ class AnyLoc(Method):
 
     @property
     def vocabulary_backbone(self) -> str:
-        """The backbone name vocabularies are keyed by: random weights get their own, so centres
-        fitted on them never serve the real weights (nor the other way round)."""
-        return f"{self.backbone}@{RANDOM}" if self.weights == RANDOM else self.backbone
+        """The backbone name vocabularies are keyed by. Random weights and a user's own checkpoint
+        (not the authors' release) get their own key, BACKBONE@random and BACKBONE@<16 hex of its
+        sha256>: centres fitted on their features never serve other weights' features."""
+        if self.weights == RANDOM:
+            return f"{self.backbone}@{RANDOM}"
+        identity = self.weights_identity() if self.weights is not None else None
+        if identity is not None and weights_provenance(identity)["source"] == "user":
+            return f"{self.backbone}@{identity.removeprefix('sha256:')[:16]}"
+        return self.backbone
 
     @property
     def resize(self) -> tuple[int, int] | None:
