@@ -116,6 +116,34 @@ def test_save_load_roundtrip_and_cache(tmp_path):
         resolve_vocabulary("map-baidu-mall", "dinov2_vits14", 11, "value", 4)
 
 
+def test_a_vocabulary_killed_while_saving_leaves_the_cached_one_whole(tmp_path):
+    """kill -9 halfway through writing the file: the vocabulary cached before stays, whole."""
+    import signal
+    import subprocess
+    import sys
+
+    from vprbench.fsutil import is_temporary
+
+    path = tmp_path / "vocabulary.pt"
+    Vocabulary(torch.ones(2, 3), {"source": "before"}).save(path)
+    script = """
+import os, signal, sys, torch
+from vprbench.aggregation import Vocabulary
+def half_then_killed(obj, target):
+    with open(target, "wb") as f:
+        f.write(b"PK" * 1000)
+        f.flush()
+    os.kill(os.getpid(), signal.SIGKILL)
+torch.save = half_then_killed
+Vocabulary(torch.zeros(2, 3), {"source": "after"}).save(sys.argv[1])
+"""
+    done = subprocess.run([sys.executable, "-c", script, str(path)], capture_output=True)
+    assert done.returncode == -signal.SIGKILL
+    found = load_vocabulary(path)
+    assert found.meta["source"] == "before" and torch.equal(found.centres, torch.ones(2, 3))
+    assert all(is_temporary(p) for p in tmp_path.iterdir() if p != path)  # at most the killed writer's leftover
+
+
 def test_load_errors(tmp_path):
     with pytest.raises(VPRBenchError, match="does not exist"):
         load_vocabulary(tmp_path / "missing.pt")

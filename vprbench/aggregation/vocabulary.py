@@ -26,6 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import VPRBenchError
+from ..fsutil import atomic_path
 from ..paths import cache_root
 from ..weights import read_torch_file
 
@@ -171,9 +172,11 @@ class Vocabulary:
                 f"layer {layer} facet {facet}: use a vocabulary fitted on them (`vprbench vocabulary fit`).")
 
     def save(self, path: str | Path) -> Path:
+        """Written whole or not at all (a process killed while writing, or a full disk, leaves the
+        file as it was): a cached vocabulary is read by other runs."""
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        torch.save({"centres": self.centres.float().cpu().contiguous(), "meta": dict(self.meta)}, path)
+        with atomic_path(path) as temporary:
+            torch.save({"centres": self.centres.float().cpu().contiguous(), "meta": dict(self.meta)}, temporary)
         return path
 
 
