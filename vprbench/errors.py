@@ -33,6 +33,7 @@ _WHAT_TO_DO = {
     codes.EAGAIN: "another process holds it open (another vprbench run?): wait for it to finish, then rerun",
     codes.EMFILE: "raise the limit (ulimit -n) or run fewer jobs at once",
     codes.EIO: "check the disk",
+    codes.ENAMETOOLONG: "use a shorter name",
 }
 
 
@@ -88,6 +89,8 @@ def os_error_message(error: OSError, path: str | os.PathLike | None = None) -> s
         return (f"Timed out waiting for the lock{where}: another vprbench process is working on the same "
                 "files; wait for it to finish, then rerun.")
     number = codes.EAGAIN if error.errno == codes.EWOULDBLOCK else error.errno
+    if number == codes.EEXIST and path and os.path.lexists(path) and not os.path.isdir(path):
+        number = codes.ENOTDIR  # making a folder where a file stands: the file is the problem, not a clash
     reason = os.strerror(number) if number else (str(error) or type(error).__name__)
     advice = _WHAT_TO_DO.get(number)
     return f"Cannot use{where}: {reason}" + (f"; {advice.format(move=_move(path))}." if advice else ".")

@@ -71,7 +71,8 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     except OSError as error:  # name the folder that refuses files, not a temporary name
-        raise CacheError(os_error_message(error, path.parent)) from None
+        too_long = error.errno == errno.ENAMETOOLONG  # then the fault is the file's own name
+        raise CacheError(os_error_message(error, path if too_long else path.parent)) from None
     os.close(fd)
     temporary = Path(name)
     try:

@@ -9,12 +9,11 @@ from __future__ import annotations
 import io
 import json
 import sys
-from pathlib import Path
 
 from ..errors import VPRBenchError
 from .console import console as make_console
 from .options import (add_location_options, add_method_options, add_run_options, add_spec_options, add_sweep_options,
-                      explicit_run_options, method_options, progress, resolve_locations, run_settings,
+                      explicit_run_options, method_options, path_argument, progress, resolve_locations, run_settings,
                       spec_overrides)
 
 
@@ -28,7 +27,7 @@ def add_parsers(commands) -> None:
     add_run_options(p)
     add_sweep_options(p)
     add_location_options(p)
-    p.add_argument("--candidates", type=Path, metavar="FILE",
+    p.add_argument("--candidates", type=path_argument, metavar="FILE",
                    help="start the re-ranking from candidates exported by 'vprbench candidates export' (named in the record)")
     p.add_argument("--json", action="store_true", help="print the result record as JSON on stdout (one run only)")
     p.set_defaults(run=run_evaluate)
@@ -38,9 +37,9 @@ def add_parsers(commands) -> None:
     p.add_argument("--store-dtype", choices=("float32", "float16"), default="float32",
                    help="descriptor store precision (default: float32)")
     add_run_options(p, download=False)
-    p.add_argument("images", nargs="+", type=Path, help="image files")
-    p.add_argument("--out", required=True, type=Path, help="output .npy file")
-    p.add_argument("--fit-on", type=Path,
+    p.add_argument("images", nargs="+", type=path_argument, help="image files")
+    p.add_argument("--out", required=True, type=path_argument, help="output .npy file")
+    p.add_argument("--fit-on", type=path_argument,
                    help="folder of database images: the method's vocabulary and PCA-whitening are fitted on them "
                         "(without it, PCA is fitted on the images described)")
     p.add_argument("--dataset", help="apply this dataset's per-method settings (e.g. AnyLoc's resize and vocabulary)")
@@ -149,6 +148,10 @@ def run_describe(args) -> int:
     settings = run_settings(args)
     if args.out.suffix != ".npy":
         raise VPRBenchError(f"--out must be a .npy file, got {args.out}")
+    if args.dataset:
+        from ..datasets import dataset_manifest
+
+        dataset_manifest(args.dataset)  # an unknown name would apply no settings, silently
     method = create_run_method(args.method, method_options(args), settings)
     for image in args.images:
         if not image.is_file():

@@ -1,11 +1,10 @@
 """vprbench leaderboard [show] / publish --to DIR / compare A B --dataset D."""
 from __future__ import annotations
 
-from pathlib import Path
 
 from ..errors import VPRBenchError
 from .console import console, say
-from .options import resolve_locations
+from .options import path_argument, resolve_locations
 
 FORMATS = ("table", "markdown", "csv", "json")
 
@@ -17,14 +16,14 @@ def add_parsers(commands) -> None:
     p.add_argument("action", nargs="?", choices=("show", "publish", "compare"), default="show")
     p.add_argument("methods", nargs="*", metavar="METHOD", help="with 'compare': the two method rows to compare")
     p.add_argument("--format", choices=FORMATS, default="table")
-    p.add_argument("--to", type=Path, help="with 'publish': the docs folder; the section goes to <folder>/leaderboard/")
+    p.add_argument("--to", type=path_argument, help="with 'publish': the docs folder; the section goes to <folder>/leaderboard/")
     p.add_argument("--dataset", help="with 'compare': the dataset both were run on")
-    p.add_argument("--k", type=int, default=1, help="with 'compare': the K of Recall@K compared (default 1)")
+    p.add_argument("--k", type=int, help="with 'compare': the K of Recall@K compared (default 1)")
     p.add_argument("--seed", type=int, default=0, help="seed of the bootstrap (default 0)")
     p.add_argument("--track", choices=("single-image", "re-ranked", "sequence"), default="single-image",
                    help="with 'show': which track's table (default single-image; each track is a table of its own)")
     p.add_argument("--cache-dir", help="where the results store lives")
-    p.add_argument("--results", type=Path, metavar="DIR",
+    p.add_argument("--results", type=path_argument, metavar="DIR",
                    help="with 'publish': a results repository (vprbench results import) whose runs join this cache's")
     p.add_argument("--data-dir", help="with 'publish': where the datasets' images are, for the retrieval mosaics")
     p.set_defaults(run=run)
@@ -37,6 +36,12 @@ def run(args) -> int:
     from ..leaderboard import build_board, grid, publish, render
 
     resolve_locations(args)
+    for flag, value, action in (("--to", args.to, "publish"), ("--dataset", args.dataset, "compare"),
+                                ("--k", args.k, "compare")):
+        if value is not None and args.action != action:  # ignored, it would let a user think it took effect
+            raise VPRBenchError(f"{flag} is for 'leaderboard {action}'; 'leaderboard {args.action}' does not use it: "
+                                "drop it.")
+    args.k = 1 if args.k is None else args.k
     if args.k < 1 or args.seed < 0:
         raise VPRBenchError(f"--k takes a whole number >= 1 (the K of Recall@K compared) and --seed one >= 0 (the "
                             f"bootstrap's); got --k {args.k} --seed {args.seed}.")

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from pathlib import Path
 
 from ..errors import VPRBenchError, name_roots
 
@@ -143,6 +144,12 @@ def stage_flags(args) -> list[dict] | None:
                 raise VPRBenchError(f"--{kind}-{'k' if kind == 'rerank' else 'length'} and --{kind}-option need "
                                     f"--{kind} STAGE (e.g. --{kind} {'sift-ransac' if kind == 'rerank' else 'seqslam'}).")
             continue
+        from ..stages.registry import stage_entry
+
+        rerank = stage_entry(stage).cls.track == "re-ranked"  # else the flag is ignored: it runs as its own kind
+        if rerank != (kind == "rerank"):
+            raise VPRBenchError(f"Stage {stage!r} is {'a re-ranker' if rerank else 'a sequence stage'}: give it with "
+                                f"--{'rerank' if rerank else 'sequence'} {stage}, not --{kind}.")
         stages.append({"name": stage, **options})
     return stages or None
 
@@ -161,6 +168,14 @@ def whole_number(minimum: int):
 
     parse.__name__ = f"whole number >= {minimum}"
     return parse
+
+
+def path_argument(text: str) -> Path:
+    """argparse type: a path; an empty one is refused (Path('') is the current folder, so an
+    unset shell variable would write or read there)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"expected a path, got {text!r}")
+    return Path(text)
 
 
 def add_run_options(parser: argparse.ArgumentParser, *, download: bool = True, quiet: bool = True) -> None:
@@ -201,7 +216,7 @@ def run_settings(args):
     given = {k: v for k, v in method_options(args).items() if k in ("device", "batch_size")}
     device = getattr(args, "device", None)
     return RunSettings(cache_dir=args.cache_dir, data_dir=args.data_dir,
-                       device=(device if device not in (None, "auto") else given.get("device")) or "auto",
+                       device=device if device not in (None, "auto") else given.get("device", "auto"),  # '' is checked, not auto
                        batch_size=getattr(args, "batch_size", None) if getattr(args, "batch_size", None) is not None
                        else given.get("batch_size"), workers=getattr(args, "workers", None),
                        memory_budget=getattr(args, "search_memory", None), lock_timeout=getattr(args, "lock_timeout", None),

@@ -1,11 +1,10 @@
 """vprbench reproduce PAPER --table N [--dry-run] [--publish DIR]."""
 from __future__ import annotations
 
-from pathlib import Path
 
 from .console import console as make_console
 from .options import (add_location_options, add_method_flags, add_run_options, add_spec_options, add_sweep_options,
-                      method_options, progress, resolve_locations, run_settings, spec_overrides)
+                      method_options, path_argument, progress, resolve_locations, run_settings, spec_overrides)
 
 
 def add_parsers(commands) -> None:
@@ -13,7 +12,7 @@ def add_parsers(commands) -> None:
     p.add_argument("paper", help="the paper (anyloc)")
     p.add_argument("--table", required=True, help="2, 3, 4, 5, 6, 7, layer, facet or backbones")
     p.add_argument("--dry-run", action="store_true", help="list the cells and what each needs; run nothing")
-    p.add_argument("--publish", type=Path, metavar="DIR", help="also write the table (Markdown) and the leaderboard into DIR")
+    p.add_argument("--publish", type=path_argument, metavar="DIR", help="also write the table (Markdown) and the leaderboard into DIR")
     add_method_flags(p)
     add_spec_options(p)
     add_run_options(p)

@@ -1,11 +1,11 @@
 """vprbench results export / verify / import / import-vpr-bench: result bundles and results repositories."""
 from __future__ import annotations
 
-from pathlib import Path
+import math
 
 from ..errors import VPRBenchError
 from .console import say
-from .options import resolve_locations
+from .options import path_argument, resolve_locations
 
 
 def add_parsers(commands) -> None:
@@ -16,21 +16,21 @@ def add_parsers(commands) -> None:
     e.add_argument("--run", dest="run_ids", nargs="+", default=[], metavar="ID", help="run ids to export")
     e.add_argument("--method", help="with --dataset: every run of this method (name or label) on the dataset")
     e.add_argument("--dataset", help="with --method: the dataset")
-    e.add_argument("--to", type=Path, required=True, metavar="FILE", help="the bundle to write (e.g. runs.tar.gz)")
+    e.add_argument("--to", type=path_argument, required=True, metavar="FILE", help="the bundle to write (e.g. runs.tar.gz)")
     e.add_argument("--contributor", help="who contributes the runs (shown beside them on the leaderboard)")
     e.add_argument("--cache-dir", help="the results store to export from")
     e.set_defaults(run=run_export)
 
     v = actions.add_parser("verify", help="re-score every record of bundles, or of results repositories, against the "
                                           "ground truth vprbench ships")
-    v.add_argument("bundles", nargs="+", type=Path, metavar="FILE|DIR",
+    v.add_argument("bundles", nargs="+", type=path_argument, metavar="FILE|DIR",
                    help="bundles (.tar.gz), or results repositories (every run in them is re-scored)")
     _check_options(v)
     v.set_defaults(run=run_verify)
 
     i = actions.add_parser("import", help="merge verified bundles into a results repository")
-    i.add_argument("bundles", nargs="+", type=Path, metavar="FILE")
-    i.add_argument("--into", type=Path, required=True, metavar="DIR", help="the results repository")
+    i.add_argument("bundles", nargs="+", type=path_argument, metavar="FILE")
+    i.add_argument("--into", type=path_argument, required=True, metavar="DIR", help="the results repository")
     i.add_argument("--lock-timeout", type=float, help="seconds to wait for another import into DIR (default: as long as it takes)")
     _check_options(i)
     i.set_defaults(run=run_import)
@@ -45,7 +45,7 @@ def _check_options(parser) -> None:
 
 
 def _max_bytes(args) -> int:
-    if not args.max_size > 0:
+    if not (args.max_size > 0 and math.isfinite(args.max_size)):
         raise VPRBenchError(f"--max-size takes a positive number of MiB, got {args.max_size:g}.")
     return int(args.max_size * 2**20)
 
@@ -95,7 +95,7 @@ def run_import(args) -> int:
 
 def add_vpr_bench_parser(actions) -> None:
     p = actions.add_parser("import-vpr-bench", help="VPR-Bench's precomputed matches as records, re-scored here")
-    p.add_argument("folder", type=Path, metavar="FOLDER",
+    p.add_argument("folder", type=path_argument, metavar="FOLDER",
                    help="precomputed_matches/<dataset> (one folder per method) or one method's folder")
     p.add_argument("--dataset", required=True, help="the vprbench dataset they were computed on, e.g. corridor")
     p.add_argument("--data-dir", help="where the dataset is (its ground truth scores the matches)")

@@ -6,13 +6,13 @@ Fitting needs a method whose `iter_patch_features(paths, resize)` yields each im
 """
 from __future__ import annotations
 
+import os
 import re
-from pathlib import Path
 
 # The vocabulary machinery (torch) is imported by each subcommand, so `vprbench --help` answers at once.
 from ..errors import VPRBenchError
 from .console import say
-from .options import add_location_options, add_method_options, method_options, resolve_locations
+from .options import add_location_options, add_method_options, method_options, path_argument, resolve_locations
 
 
 def add_parsers(commands) -> None:
@@ -26,13 +26,13 @@ def add_parsers(commands) -> None:
     p.add_argument("--budget", type=int, help="features kept by the seeded sampler (default: its standard budget)")
     p.add_argument("--exact", action="store_true", help="the authors' fit on every patch (memory grows with the data)")
     p.add_argument("--seed", type=int, default=42)
-    p.add_argument("--output", type=Path, help="also write the vocabulary file here")
+    p.add_argument("--output", type=path_argument, help="also write the vocabulary file here")
     add_location_options(p)
     add_method_options(p)
     p.set_defaults(run=run_fit)
 
     p = sub.add_parser("import", help="put a vocabulary file (e.g. the authors' c_centers.pt) in the cache by name")
-    p.add_argument("path", type=Path)
+    p.add_argument("path", type=path_argument)
     p.add_argument("--source", required=True, help="domain name or map-<dataset>")
     p.add_argument("--backbone", default="dinov2_vitg14",
                    help="the features the centres fit: BACKBONE, BACKBONE@random, or BACKBONE@<16 hex of your checkpoint's sha256>")
@@ -42,7 +42,7 @@ def add_parsers(commands) -> None:
     p.set_defaults(run=run_import)
 
     p = sub.add_parser("show", help="print a vocabulary file's shape and metadata")
-    p.add_argument("path", type=Path)
+    p.add_argument("path", type=path_argument)
     p.set_defaults(run=run_show)
 
     p = sub.add_parser("domains", help="list the domain vocabularies and their datasets")
@@ -62,6 +62,7 @@ def run_fit(args) -> int:
     method = create_method(args.method, **method_options(args), cache_dir=args.cache_dir)
     if not hasattr(method, "iter_patch_features"):
         raise VPRBenchError(f"Method {args.method!r} does not expose patch features, so it cannot fit a vocabulary.")
+    check_fit_sizes(args, getattr(getattr(method, "spec", None), "width", None))
     clusters = int(method.clusters)
     backbone = getattr(method, "vocabulary_backbone", method.backbone)  # random weights have their own key
     setting = {"backbone": backbone, "layer": method.layer, "facet": method.facet}
@@ -84,6 +85,28 @@ def run_fit(args) -> int:
     if args.output:
         print(f"Also written to {vocabulary.save(args.output)}")
     return 0
+
+
+def check_fit_sizes(args, width: int | None) -> None:
+    """--seed and --budget, before any image is read: past these bounds the fit failed only
+    after every feature had been extracted."""
+    from ..aggregation.vocabulary import DEFAULT_BUDGET
+    from ..row_sources import format_bytes
+
+    if not 0 <= args.seed < 2**32:  # numpy's seed range
+        raise VPRBenchError(f"The vocabulary's seed (--seed) must be a whole number >= 0, got {args.seed}; "
+                            f"the largest is {2**32 - 1}.")
+    if args.exact and args.budget is not None:
+        raise VPRBenchError("--budget bounds the sampled fit and --exact fits on every patch: give one of them.")
+    budget = DEFAULT_BUDGET if args.budget is None else args.budget
+    try:
+        memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        memory = None
+    if not args.exact and width and memory and budget * width * 4 > memory:  # the sample is budget x width float32
+        raise VPRBenchError(f"--budget {budget:,} keeps {budget:,} features of {width} floats "
+                            f"({format_bytes(budget * width * 4)}), more than this machine's memory "
+                            f"({format_bytes(memory)}): give a smaller --budget (default {DEFAULT_BUDGET:,}).")
 
 
 def run_import(args) -> int:

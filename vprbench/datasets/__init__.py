@@ -22,6 +22,8 @@ __all__ = [
 
 def is_path(name: str) -> bool:
     """A folder of the user's own: a path-like name, or an existing folder that is no manifest's name."""
+    if not name.strip():
+        return False  # Path('') is the current folder; an empty name is an unknown dataset
     if "/" in name or name.startswith((".", "~")):
         return True
     return name not in dataset_manifests() and Path(name).is_dir()
@@ -44,6 +46,9 @@ def load_dataset(name: str, data_dir=None, *, fetch: bool | None = None, strict:
     """
     if is_path(name):
         root = Path(name).expanduser()
+        if root.exists() and not root.is_dir():
+            raise VPRBenchError(f"Dataset folder {root} is a file, not a folder: give the folder holding database/ and "
+                                "queries/.")
         if not root.is_dir():
             raise VPRBenchError(f"Dataset folder {root} does not exist (closest existing folder: {nearest_existing(root)}).")
         if protocol not in (None, "default", "own"):

@@ -59,12 +59,15 @@ def verify_dataset(name: str, data_dir=None, strict: bool = False, sample: int |
     """`name` is a dataset name, or a folder of the user's own data (a path)."""
     if sample is not None and sample < 0:
         raise VPRBenchError(f"--sample must be 0 or more images per split, got {sample}")
-    if "/" in name or name.startswith(".") or Path(name).is_dir():
+    from . import is_path  # the rule every command reads a name by
+
+    if is_path(name):
         from .layouts.own_data import own_manifest
 
         root = Path(name).expanduser()
         if not root.is_dir():
-            return VerifyReport(name=name, root=root, problems=[f"folder {root} does not exist"])
+            problem = f"{root} is a file, not a folder" if root.exists() else f"folder {root} does not exist"
+            return VerifyReport(name=name, root=root, problems=[problem])
         manifest = own_manifest(root)
     else:
         manifest = dataset_manifest(name)

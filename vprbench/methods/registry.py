@@ -24,6 +24,8 @@ from .checks import whole
 ENTRY_POINT_GROUP = "vprbench.methods"
 #: what the registry hands a factory that takes it, never an option a user sets
 LOCATIONS = ("cache_dir", "data_dir")
+#: far above any real batch; the data loader crashes on one beyond sys.maxsize
+MAX_BATCH_SIZE = 2**31 - 1
 
 
 @dataclass(frozen=True)
@@ -141,6 +143,9 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
         given.pop("device", None)
     if "batch_size" in merged:
         merged["batch_size"] = whole(name, "batch_size", merged["batch_size"], 1, what="images per batch")
+        if merged["batch_size"] > MAX_BATCH_SIZE:
+            raise VPRBenchError(f"{name}: option batch_size takes at most {MAX_BATCH_SIZE} images per batch; "
+                                f"got {merged['batch_size']}.")
     if merged.get("device") is not None:  # before a plugin loads its weights
         merged["device"] = device(name, merged["device"])
     takes = entry.factory_options()

@@ -46,7 +46,7 @@ class StageOptions(BaseModel):
     """A stage's options: subclass it with typed fields and defaults. Unknown options and
     values of the wrong type are refused when the spec is made."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # inf cannot be hashed into the spec (JSON)
 
 
 class RerankOptions(StageOptions):

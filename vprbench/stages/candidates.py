@@ -55,6 +55,8 @@ def read_candidates(path, spec, queries: int, database: int, depth: int) -> dict
     from ..evaluation.search import SearchResult
 
     path = Path(path)
+    if path.is_dir():  # the HDF5 library's message for a folder runs over several lines
+        raise VPRBenchError(f"Candidates file {path} is a folder: give the .h5 file 'vprbench candidates export' wrote.")
     try:
         with h5py.File(path, "r") as f:
             attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}

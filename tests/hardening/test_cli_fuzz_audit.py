@@ -1,0 +1,141 @@
+"""Bad input found by an audit of every command and option: values past a library's range, empty
+paths and names, options the chosen action ignores, a stage given as the other kind, files where
+folders are needed and names too long. Each gets one clear line and a non-zero exit, with no
+traceback and nothing stored under a wrong name."""
+from __future__ import annotations
+
+import pytest
+
+from vprbench.cli.main import main
+from vprbench.paths import cache_root
+
+from hostile_files import assert_refused
+
+IMAGE = ["corridor", "query", "0000000.jpg"]
+HOG = ["evaluate", "--method", "hog", "--dataset", "corridor", "--quiet"]
+
+
+def image(shared_data):
+    return shared_data.joinpath(*IMAGE)
+
+
+# ---------------------------------------------------------------- numbers past what a library takes
+@pytest.mark.parametrize("args, message", [
+    # the data loader crashed on a batch beyond sys.maxsize after the store was opened
+    (["--batch-size", "99999999999999999999"], "hog: option batch_size takes at most 2147483647 images per batch"),
+    (["-o", "batch_size=99999999999999999999"], "hog: option batch_size takes at most 2147483647 images per batch"),
+    # an infinite stage option could not be hashed into the run's identity (JSON has no inf)
+    (["--rerank", "aqe", "--rerank-option", "alpha=inf"], "Stage 'aqe' option alpha: Input should be a finite number"),
+    (["--rerank", "sift-ransac", "--rerank-k", "3", "--rerank-option", "threshold=inf"],
+     "Stage 'sift-ransac' option threshold: Input should be a finite number"),
+])
+def test_values_past_a_librarys_range_are_one_line(args, message, shared_data, cli):
+    code, _, err = cli(*HOG, *args, "--data-dir", shared_data)
+    assert_refused(code, err, None, message)
+
+
+def test_an_infinite_bundle_size_is_one_line(tmp_path, cli):
+    code, _, err = cli("results", "verify", tmp_path / "runs.tar.gz", "--max-size", "inf")
+    assert_refused(code, err, None, "--max-size takes a positive number of MiB, got inf.")
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--seed", str(2**32)], f"seed (--seed) must be a whole number >= 0, got {2**32}; the largest is {2**32 - 1}"),
+    (["--budget", "99999999999999999999999"], "more than this machine's memory"),
+    (["--exact", "--budget", "5"], "--budget bounds the sampled fit and --exact fits on every patch: give one of them."),
+])
+def test_vocabulary_fit_sizes_are_checked_before_any_image(args, message, shared_data, cli):
+    code, _, err = cli("vocabulary", "fit", "--dataset", "corridor", "--method", "anyloc", "--backbone", "dinov2_vits14",
+                       "--weights", "random", "--layer", 1, "--clusters", 2, "--resize", 28, 28, *args,
+                       "--data-dir", shared_data)
+    assert_refused(code, err, None, message)
+    assert not (cache_root() / "vocabularies").exists()
+
+
+# ---------------------------------------------------------------- empty values
+@pytest.mark.parametrize("args, flag", [
+    (["describe", "--method", "hog", "--out", "", "x.jpg"], "--out"),
+    (["candidates", "export", "--method", "hog", "--dataset", "corridor", "--out", ""], "--out"),
+    (["results", "export", "--run", "x", "--to", ""], "--to"),
+    (["results", "import", "runs.tar.gz", "--into", ""], "--into"),
+    (["leaderboard", "publish", "--to", ""], "--to"),
+    (["reproduce", "anyloc", "--table", "2", "--publish", ""], "--publish"),
+])
+def test_an_empty_path_is_refused_not_read_as_the_current_folder(args, flag, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_:
+        main(args)
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and "Traceback" not in err
+    assert f"argument {flag}: expected a path, got ''" in err
+    assert not list(tmp_path.iterdir()), "something was written into the current folder"
+
+
+def test_an_empty_device_is_refused_not_taken_as_auto(shared_data, cli):
+    code, _, err = cli(*HOG, "--device", "", "--data-dir", shared_data)
+    assert_refused(code, err, None, "hog: option device takes a non-empty text (e.g. cpu or cuda); got ''.")
+
+
+@pytest.mark.parametrize("command", [HOG, ["datasets", "info"], ["datasets", "verify"]])
+def test_an_empty_dataset_name_is_unknown_not_the_current_folder(command, shared_data, cli, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    dataset = command.index("--dataset") + 1 if "--dataset" in command else None
+    args = [*command[:dataset], "", *command[dataset + 1:]] if dataset else [*command, ""]
+    code, _, err = cli(*args, "--data-dir", shared_data)
+    assert_refused(code, err, None, "Unknown dataset ''.")
+
+
+# ---------------------------------------------------------------- names the command ignored
+def test_describe_refuses_an_unknown_dataset(shared_data, cli, tmp_path):
+    code, _, err = cli("describe", "--method", "hog", "--dataset", "nosuch", "--out", tmp_path / "d.npy", image(shared_data))
+    assert_refused(code, err, None, "Unknown dataset 'nosuch'")
+    assert not (tmp_path / "d.npy").exists()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["show", "--format", "csv", "--to", "{tmp}/board.csv"], "--to is for 'leaderboard publish'; 'leaderboard show'"),
+    (["show", "--dataset", "corridor"], "--dataset is for 'leaderboard compare'; 'leaderboard show'"),
+    (["show", "--k", "5"], "--k is for 'leaderboard compare'; 'leaderboard show'"),
+    (["publish", "--to", "{tmp}/docs", "--k", "5"], "--k is for 'leaderboard compare'; 'leaderboard publish'"),
+])
+def test_leaderboard_options_of_another_action_are_refused(args, message, cli, tmp_path):
+    code, _, err = cli("leaderboard", *[a.format(tmp=tmp_path) for a in args])
+    assert_refused(code, err, None, message, "drop it.")
+    assert not (tmp_path / "board.csv").exists() and not (tmp_path / "docs").exists()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--rerank", "seqslam"], "Stage 'seqslam' is a sequence stage: give it with --sequence seqslam, not --rerank."),
+    (["--sequence", "aqe"], "Stage 'aqe' is a re-ranker: give it with --rerank aqe, not --sequence."),
+])
+def test_a_stage_given_as_the_other_kind_is_refused(args, message, shared_data, cli):
+    code, _, err = cli(*HOG, *args, "--data-dir", shared_data)
+    assert_refused(code, err, None, message)
+
+
+# ---------------------------------------------------------------- files, folders and names
+def test_a_dataset_path_that_is_a_file_is_named_as_one(cli, tmp_path):
+    plain = tmp_path / "plain.txt"
+    plain.write_text("x")
+    code, _, err = cli("datasets", "info", plain)
+    assert_refused(code, err, None, f"Dataset folder {plain} is a file, not a folder")
+
+
+def test_a_candidates_folder_is_one_line(shared_data, cli, tmp_path):
+    code, _, err = cli(*HOG, "--rerank", "aqe", "--candidates", tmp_path, "--data-dir", shared_data)
+    assert_refused(code, err, None, f"Candidates file {tmp_path} is a folder")
+
+
+def test_an_output_under_a_file_names_the_file_as_not_a_folder(shared_data, cli, tmp_path):
+    plain = tmp_path / "plain.txt"
+    plain.write_text("x")
+    code, _, err = cli("describe", "--method", "hog", "--out", plain / "d.npy", image(shared_data))
+    assert_refused(code, err, None, f"Cannot use {plain}: Not a directory; a part of the path is a file",
+                   stores_allowed=True)  # the descriptors are right; only the output path was wrong
+    assert "File exists" not in err
+
+
+def test_an_output_name_too_long_is_named_not_its_folder(shared_data, cli, tmp_path):
+    out = tmp_path / ("d" * 300 + ".npy")
+    code, _, err = cli("describe", "--method", "hog", "--out", out, image(shared_data))
+    assert_refused(code, err, None, f"Cannot use {out}: File name too long; use a shorter name.", stores_allowed=True)
