@@ -96,3 +96,16 @@ def pitts30k_places(pitts30k_tree) -> dict:
     places = {name: i for i, name in enumerate(tree.db_names)}
     places.update({name: int(j) for name, j in zip(tree.q_names, nearest)})
     return places
+
+
+@pytest.fixture
+def cli(capsys):
+    """cli(*args) -> (exit code, stdout, stderr) of the vprbench command, in process."""
+    from vprbench.cli.main import main
+
+    def run(*args) -> tuple[int, str, str]:
+        code = main([str(a) for a in args])
+        out, err = capsys.readouterr()
+        return code, out, err
+
+    return run

@@ -17,7 +17,6 @@ import torch
 
 from vprbench import VPRBenchError
 from vprbench.aggregation import Vocabulary
-from vprbench.cli.main import main
 from vprbench.evaluation import read_results
 from vprbench.features.backbones import create_model
 from vprbench.features.catalogue import BackboneEntry, backbone_spec, backbones
@@ -25,18 +24,6 @@ from vprbench.features.dense import DenseExtractor
 from vprbench.paths import cache_root
 
 from release_formats import official_state_dict
-
-
-@pytest.fixture
-def cli(capsys):
-    """cli(*args) -> (exit code, stdout, stderr) of the vprbench command, in process."""
-
-    def run(*args) -> tuple[int, str, str]:
-        code = main([str(a) for a in args])
-        out, err = capsys.readouterr()
-        return code, out, err
-
-    return run
 
 
 def assert_refused(code: int, err: str, *fragments: str) -> None:

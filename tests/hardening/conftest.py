@@ -7,25 +7,12 @@ from pathlib import Path
 
 import pytest
 
-from vprbench.cli.main import main
 
 
 @pytest.fixture
 def marker(tmp_path) -> Path:
     """The file a payload would create; tests assert it never exists."""
     return tmp_path / "payload-ran"
-
-
-@pytest.fixture
-def cli(capsys):
-    """cli(*args) -> (exit code, stdout, stderr) of the vprbench command, in process."""
-
-    def run(*args) -> tuple[int, str, str]:
-        code = main([str(a) for a in args])
-        out, err = capsys.readouterr()
-        return code, out, err
-
-    return run
 
 
 @pytest.fixture
