@@ -151,5 +151,14 @@ def list_images(folder: Path, *, recursive: bool = False, natural: bool = False)
     """The image files in `folder` (and below it when `recursive`), sorted by path, or in natural
     name order when `natural` (the order a released dataset's ground truth indexes)."""
     found = folder.rglob("*") if recursive else folder.iterdir()
-    images = (p for p in found if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    images = [p for p in found if p.suffix.lower() in IMAGE_SUFFIXES and (p.is_file() or _refuse_dead_link(p))]
     return sorted(images, key=natural_key if natural else None)
+
+
+def _refuse_dead_link(path: Path) -> bool:
+    """False for a folder named like an image; an error for a link named like one that leads
+    nowhere (or loops): skipping it would drop an image unseen."""
+    if path.is_symlink() and not path.exists():
+        raise VPRBenchError(f"Image {path} is a symbolic link to a missing file (or a link loop): "
+                            "point it at the image or remove it.")
+    return False

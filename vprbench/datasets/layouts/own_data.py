@@ -14,7 +14,6 @@ an image that is not in database/ or queries/ a warning.
 """
 from __future__ import annotations
 
-import math
 import re
 import tomllib
 import warnings
@@ -23,13 +22,15 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import VPRBenchError
-from ...images import list_images
+from ...images import IMAGE_SUFFIXES, list_images
 from ...text import CONTROL
 from ..manifest import DatasetManifest
 from ..model import GroundTruth
 from . import climbs_out, from_manifest, layout, require
 
 DEFAULT_RADIUS_M = 25.0
+#: the largest |coordinate| accepted: beyond it no real position lies, and distances overflow
+MAX_COORDINATE = 1e12
 
 
 #: a dataset's name becomes part of file names (stores, records) and is shown: a plain file name
@@ -53,8 +54,8 @@ def utm_from_name(path: Path) -> tuple[float, float]:
     parts = path.name.split("@")
     try:
         easting, northing = float(parts[1]), float(parts[2])
-        if not (math.isfinite(easting) and math.isfinite(northing)):
-            raise ValueError("not finite")
+        if not (abs(easting) <= MAX_COORDINATE and abs(northing) <= MAX_COORDINATE):
+            raise ValueError("not finite or out of range")
         return easting, northing
     except (IndexError, ValueError):
         raise VPRBenchError(
@@ -117,6 +118,12 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
             f"{csv} has missing or non-numeric positions in {len(bad)} row(s), e.g. for "
             f"{[str(table['image'].iloc[i]) for i in bad[:3]]}; every row needs a value."
         )
+    huge = np.flatnonzero((np.abs(values) > MAX_COORDINATE).any(axis=1))
+    if len(huge):
+        raise VPRBenchError(
+            f"{csv} has positions beyond +-{MAX_COORDINATE:.0e} in {len(huge)} row(s), e.g. for "
+            f"{[str(table['image'].iloc[i]) for i in huge[:3]]}; give metres, degrees or frame numbers."
+        )
     if unit == "degrees":
         if (np.abs(values[:, 0]) > 84).any() or (np.abs(values[:, 1]) > 180).any():
             raise VPRBenchError(f"{csv}: latitudes must lie within +-84 degrees (UTM) and longitudes within +-180.")
@@ -137,8 +144,10 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
 def read_own(root: Path, manifest: DatasetManifest):
     database = list_images(require(root, "database", manifest))
     queries = list_images(require(root, "queries", manifest))
-    if not database or not queries:
-        raise VPRBenchError(f"Dataset {manifest.name!r}: no images in {root}/database or {root}/queries.")
+    empty = [f"{root}/{name}" for name, images in (("database", database), ("queries", queries)) if not images]
+    if empty:
+        raise VPRBenchError(f"Dataset {manifest.name!r}: no images in {' or '.join(empty)}; put "
+                            f"{', '.join(s[1:] for s in IMAGE_SUFFIXES)} files there.")
     csv = root / "positions.csv"
     if csv.is_file():
         positions, unit = positions_from_csv(csv, root, database + queries)
@@ -155,6 +164,13 @@ def read_own(root: Path, manifest: DatasetManifest):
     )
     dataset = from_manifest(manifest, root, database, queries, ground_truth)
     dataset.radius_unit = unit  # the positions' unit (frames or metres), not the manifest's default
+    if not any(len(p) for p in dataset.positives):  # computed once: the evaluation reads the same
+        # every method would score Recall@K = 0: the positions or the radius are wrong
+        raise VPRBenchError(
+            f"Dataset {manifest.name!r}: no query in {root}/queries has a database image within "
+            f"{radius:g} {unit} of its position; check the positions' columns and units "
+            f"({csv.name if csv.is_file() else 'file names'}) or set radius in {root}/dataset.toml."
+        )
     return dataset
 
 

@@ -1,0 +1,90 @@
+"""A folder of one's own made hostile: positions, empty folders and links each refused in one line,
+and a good run after the refusal unaffected."""
+from __future__ import annotations
+
+import os
+import shutil
+
+import pytest
+
+from hostile_files import assert_refused
+
+ROWS = [("database/d0.jpg", 0), ("database/d1.jpg", 10), ("database/d2.jpg", 20), ("queries/q0.jpg", 1), ("queries/q1.jpg", 11)]
+
+
+@pytest.fixture
+def own(shared_data, tmp_path):
+    """<tmp>/own: three Corridor map images, two queries, positions in metres."""
+    root = tmp_path / "own"
+    for (name, _), source in zip(ROWS, ["ref/0000000.jpg", "ref/0000001.jpg", "ref/0000002.jpg", "query/0000000.jpg",
+                                           "query/0000001.jpg"]):
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(shared_data / "corridor" / source, root / name)
+    write_positions(root)
+    return root
+
+
+def write_positions(root, change=None):
+    rows = [(name, (change or {}).get(name, x)) for name, x in ROWS]
+    (root / "positions.csv").write_text("image,x,y\n" + "".join(f"{name},{x},0\n" for name, x in rows))
+
+
+def evaluate(cli, root):
+    return cli("evaluate", "--method", "hog", "--resize", 32, 32, "--dataset", root, "--k", 1)
+
+
+def good_run_after(cli, root):
+    code, _, err = evaluate(cli, root)
+    assert code == 0, err
+
+
+def test_positions_too_large_for_distances_are_refused(own, cli):
+    """1e308 is finite but its distances overflow: a traceback at search time (verify said OK)."""
+    write_positions(own, {"database/d1.jpg": 1e308, "queries/q0.jpg": -1e308})
+    code, _, err = evaluate(cli, own)
+    assert_refused(code, err, None, str(own / "positions.csv"), "positions beyond +-1e+12 in 2 row(s)",
+                   "database/d1.jpg")
+    assert cli("datasets", "verify", own)[0] == 1
+    write_positions(own)
+    good_run_after(cli, own)
+
+
+def test_utm_names_too_large_are_refused(own, cli):
+    (own / "positions.csv").unlink()
+    for i, (name, _) in enumerate(ROWS):
+        (own / name).rename(own / name.split("/")[0] / f"@{1e300 if i == 1 else 500000 + i}@4000000@31@U@.jpg")
+    code, out, err = cli("datasets", "verify", own)
+    assert code == 1 and "Cannot read UTM coordinates from the file name '@1e+300@" in out, out + err
+    code, _, err = evaluate(cli, own)
+    assert_refused(code, err, None, "Cannot read UTM coordinates from the file name '@1e+300@")
+
+
+def test_no_query_with_a_positive_is_refused(own, cli):
+    """Every method scored Recall@K = 0 with exit 0: positions in the wrong unit or a radius too small."""
+    write_positions(own, {"queries/q0.jpg": 1000, "queries/q1.jpg": 2000})
+    code, _, err = evaluate(cli, own)
+    assert_refused(code, err, None, "no query in", "has a database image within 25 metres",
+                   str(own / "dataset.toml"))
+    write_positions(own)
+    good_run_after(cli, own)
+
+
+@pytest.mark.parametrize("folder", ["database", "queries"])
+def test_the_empty_folder_is_named(own, folder, cli):
+    for image in (own / folder).iterdir():
+        image.unlink()
+    code, _, err = evaluate(cli, own)
+    other = "queries" if folder == "database" else "database"
+    assert_refused(code, err, None, f"no images in {own / folder}; put jpg")
+    assert str(own / other) not in err
+
+
+@pytest.mark.parametrize("link", ["dangling", "loop"])
+def test_a_dead_link_named_like_an_image_is_refused(own, link, cli):
+    """Skipped unseen before: the image the user put there silently left out of the benchmark."""
+    path = own / "database" / "d3.jpg"
+    os.symlink(own / "nowhere.jpg" if link == "dangling" else path, path)
+    code, _, err = evaluate(cli, own)
+    assert_refused(code, err, None, f"Image {path} is a symbolic link to a missing file")
+    path.unlink()
+    good_run_after(cli, own)
