@@ -88,3 +88,12 @@ def test_a_dead_link_named_like_an_image_is_refused(own, link, cli):
     assert_refused(code, err, None, f"Image {path} is a symbolic link to a missing file")
     path.unlink()
     good_run_after(cli, own)
+
+
+def test_verify_counts_an_image_that_does_not_decode_apart(own, cli):
+    """A truncated image is named, and not counted among the images decoded."""
+    data = (own / "queries/q1.jpg").read_bytes()
+    (own / "queries/q1.jpg").write_bytes(data[: len(data) // 3])
+    code, out, err = cli("datasets", "verify", own)
+    assert code == 1 and "q1.jpg" in out, out + err
+    assert "4 of 5 images decoded" in out, out

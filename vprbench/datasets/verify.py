@@ -30,6 +30,8 @@ class VerifyReport:
     warnings: list[str] = field(default_factory=list)
     summary: dict = field(default_factory=dict)
     images_checked: int = 0
+    #: of them, those that did not decode (each named in problems)
+    images_failed: int = 0
 
     @property
     def ok(self) -> bool:
@@ -43,7 +45,8 @@ class VerifyReport:
             body.append(
                 f"  {s['database']} database, {plural(s['queries'], 'query')}, {s['queries_with_positives']} with a positive, "
                 f"{plural(s['positive_pairs'], 'positive pair')} ({s['unit']}, radius {quantity(s['radius'], s.get('radius_unit'))}); "
-                f"{plural(self.images_checked, 'image')} decoded"
+                + (f"{plural(self.images_checked, 'image')} decoded" if not self.images_failed else
+                   f"{self.images_checked - self.images_failed} of {plural(self.images_checked, 'image')} decoded")
             )
         return [head, *body]
 
@@ -109,5 +112,6 @@ def verify_dataset(name: str, data_dir=None, strict: bool = False, sample: int |
                 load_image(path)
             except VPRBenchError as error:
                 report.problems.append(str(error))
+                report.images_failed += 1
             report.images_checked += 1
     return report
