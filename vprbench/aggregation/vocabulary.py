@@ -239,8 +239,9 @@ def fit_vocabulary(
     exact=True: AnyLoc's fit, k-means on every feature (memory grows with the dataset).
     exact=False: k-means on a seeded reservoir sample of at most `budget` features.
     """
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise VPRBenchError(f"The vocabulary's seed (--seed) must be a whole number >= 0, got {seed!r}.")
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**32:  # numpy's seed range
+        raise VPRBenchError(f"The vocabulary's seed (--seed) must be a whole number >= 0, got {seed!r}; "
+                            f"the largest is {2**32 - 1}.")
     if exact:
         chunks = [torch.as_tensor(f).float().reshape(-1, torch.as_tensor(f).shape[-1]) for f in features]
         if not chunks:

@@ -6,7 +6,6 @@ Fitting needs a method whose `iter_patch_features(paths, resize)` yields each im
 """
 from __future__ import annotations
 
-import os
 import re
 
 # The vocabulary machinery (torch) is imported by each subcommand, so `vprbench --help` answers at once.
@@ -88,21 +87,16 @@ def run_fit(args) -> int:
 
 
 def check_fit_sizes(args, width: int | None) -> None:
-    """--seed and --budget, before any image is read: past these bounds the fit failed only
-    after every feature had been extracted."""
+    """--budget against this machine's memory and --exact, before any image is read (the
+    sample is allocated at the first image; the seed is checked where the fit starts)."""
     from ..aggregation.vocabulary import DEFAULT_BUDGET
+    from ..evaluation.provenance import memory_bytes
     from ..row_sources import format_bytes
 
-    if not 0 <= args.seed < 2**32:  # numpy's seed range
-        raise VPRBenchError(f"The vocabulary's seed (--seed) must be a whole number >= 0, got {args.seed}; "
-                            f"the largest is {2**32 - 1}.")
     if args.exact and args.budget is not None:
         raise VPRBenchError("--budget bounds the sampled fit and --exact fits on every patch: give one of them.")
     budget = DEFAULT_BUDGET if args.budget is None else args.budget
-    try:
-        memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (ValueError, OSError, AttributeError):
-        memory = None
+    memory = memory_bytes()
     if not args.exact and width and memory and budget * width * 4 > memory:  # the sample is budget x width float32
         raise VPRBenchError(f"--budget {budget:,} keeps {budget:,} features of {width} floats "
                             f"({format_bytes(budget * width * 4)}), more than this machine's memory "

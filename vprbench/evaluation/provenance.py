@@ -96,8 +96,14 @@ def _cpu_name() -> str | None:
     return platform.processor() or None
 
 
-def _memory_gib() -> float | None:
+def memory_bytes() -> int | None:
+    """This machine's physical memory, None where the system does not say."""
     try:
-        return round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30, 1)
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     except (ValueError, OSError, AttributeError):
         return None
+
+
+def _memory_gib() -> float | None:
+    memory = memory_bytes()
+    return None if memory is None else round(memory / 2**30, 1)

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from ..errors import VPRBenchError
 from ..spec import RUN_SETTINGS, RunSpec, plain
@@ -36,6 +36,21 @@ Count = Annotated[int, Field(strict=True, ge=0)]
 Amount = Annotated[float, Field(strict=True, ge=0, allow_inf_nan=False)]
 Fraction = Annotated[float, Field(strict=True, ge=0, le=1, allow_inf_nan=False)]
 Percent = Annotated[float, Field(strict=True, ge=0, le=100, allow_inf_nan=False)]
+
+
+def _numbers(model: type[BaseModel]) -> AfterValidator:
+    """A section (a dict) whose numbers `model` names are checked, kept as written (no key added);
+    a ValueError naming the first number at fault otherwise."""
+
+    def check(data: dict) -> dict:
+        try:
+            model.model_validate(data)
+        except ValidationError as error:
+            problem = error.errors()[0]
+            raise ValueError(f"{'.'.join(str(p) for p in problem['loc'])}: {problem['msg']}") from None
+        return data
+
+    return AfterValidator(check)
 
 
 class StageCost(BaseModel):
@@ -94,7 +109,7 @@ class Record(BaseModel):
     spec: RunSpec
     spec_key: str
     row_key: str
-    per_query: dict[str, Any] | None = None
+    per_query: Annotated[dict[str, Any], _numbers(PerQuerySummary)] | None = None
     # None where a writer leaves them out (an imported run has no descriptor size)
     descriptor_dim: Count | None = None
     descriptor_bytes: Count | None = None
@@ -104,8 +119,8 @@ class Record(BaseModel):
     recall_at_100_precision: Fraction | None = None
     descriptors_computed: dict[str, Count] | None = None
     timings: dict[str, Amount] | None = None
-    stages: list[dict[str, Any]] | None = None
-    hardware: dict[str, Any] | None = None
+    stages: list[Annotated[dict[str, Any], _numbers(StageCost)]] | None = None
+    hardware: Annotated[dict[str, Any], _numbers(Hardware)] | None = None
 
     @field_validator("schema_version")
     @classmethod
@@ -123,33 +138,6 @@ class Record(BaseModel):
         if not isinstance(protocol.get("hash"), str) or not isinstance(protocol.get("id"), str):
             raise ValueError("the protocol has no id and hash")
         return protocol
-
-    @field_validator("stages")
-    @classmethod
-    def _stage_costs(cls, stages: list[dict] | None) -> list[dict] | None:
-        for i, stage in enumerate(stages or []):
-            _numbers(StageCost, stage, f"stage {i}")
-        return stages  # as written: the check adds no key
-
-    @field_validator("hardware")
-    @classmethod
-    def _hardware(cls, hardware: dict | None) -> dict | None:
-        return _numbers(Hardware, hardware, "hardware") if hardware is not None else None
-
-    @field_validator("per_query")
-    @classmethod
-    def _sizes(cls, section: dict | None) -> dict | None:
-        return _numbers(PerQuerySummary, section, "per_query") if section is not None else None
-
-
-def _numbers(model: type[BaseModel], data: dict, where: str) -> dict:
-    """`data` unchanged when the numbers `model` names are numbers; a ValueError naming the first one otherwise."""
-    try:
-        model.model_validate(data)
-    except ValidationError as error:
-        problem = error.errors()[0]
-        raise ValueError(f"{where}: {'.'.join(str(p) for p in problem['loc'])}: {problem['msg']}") from None
-    return data
 
 
 def validated(data, where: str) -> dict:
