@@ -97,3 +97,23 @@ def test_verify_counts_an_image_that_does_not_decode_apart(own, cli):
     code, out, err = cli("datasets", "verify", own)
     assert code == 1 and "q1.jpg" in out, out + err
     assert "4 of 5 images decoded" in out, out
+
+
+def test_the_default_k_beyond_a_small_map_says_which_k_to_give(own, cli):
+    """Three map images and the default --k 1 5 10 20: the message names the dataset and a --k that runs."""
+    code, _, err = cli("evaluate", "--method", "hog", "--resize", 32, 32, "--dataset", own)
+    assert_refused(code, err, None, "K = 20 exceeds the 3 database images of own: give --k with values up to 3, "
+                   "e.g. --k 1.")
+
+
+def test_a_row_for_an_absent_image_is_warned_of_once(own):
+    """The folder is read for the run's identity and again for the run: the same warning was printed twice."""
+    import subprocess
+    import sys
+
+    with (own / "positions.csv").open("a") as positions:
+        positions.write("database/ghost.jpg,5,0\n")
+    done = subprocess.run([sys.executable, "-m", "vprbench", "evaluate", "--method", "hog", "--resize", "32", "32",
+                           "--dataset", str(own), "--k", "1"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stderr.count("lists 1 image(s) that are not in") == 1, done.stderr

@@ -22,9 +22,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def format_warning(message, category, filename, lineno, line=None) -> str:
-    """Warnings are for people: one line, no source location."""
-    return f"warning: {literal(message)}\n"
+def warning_format():
+    """Warnings are for people: one line, no source location, each text once per command (a
+    dataset read for the run's identity and again for the run would otherwise say it twice)."""
+    shown = set()
+
+    def format_warning(message, category, filename, lineno, line=None) -> str:
+        text = f"warning: {literal(message)}\n"
+        if text in shown:
+            return ""
+        shown.add(text)
+        return text
+    return format_warning
 
 
 def print_error(message: str) -> None:
@@ -34,7 +43,7 @@ def print_error(message: str) -> None:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    warnings.formatwarning = format_warning
+    warnings.formatwarning = warning_format()
     try:
         return args.run(args)
     except VPRBenchError as error:

@@ -6,13 +6,15 @@ import numpy as np
 from ..errors import VPRBenchError
 
 
-def check_ks(ks, n_database: int) -> tuple[int, ...]:
+def check_ks(ks, n_database: int, dataset: str = "the dataset") -> tuple[int, ...]:
     """K values within the database: the largest must not exceed it."""
     ks = tuple(sorted(set(int(k) for k in ks)))
     if not ks or ks[0] < 1:
         raise VPRBenchError(f"Recall@K needs K >= 1, got {list(ks)}")
     if ks[-1] > n_database:
-        raise VPRBenchError(f"K = {ks[-1]} exceeds the {n_database} database images; use a smaller --k.")
+        within = " ".join(str(k) for k in ks if k <= n_database) or "1"
+        raise VPRBenchError(f"K = {ks[-1]} exceeds the {n_database} database images of {dataset}: give --k with "
+                            f"values up to {n_database}, e.g. --k {within}.")
     return ks
 
 

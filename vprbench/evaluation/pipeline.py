@@ -101,7 +101,7 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
         dataset = ranks.on_zero(lambda: load_data(spec, settings))  # fetched on first use by rank 0 alone
     elif protocol_of(dataset)["hash"] != spec.dataset.protocol_hash:
         raise VPRBenchError(f"The dataset given is {protocol_of(dataset)['id']}, not the spec's {spec.dataset.protocol_id}.")
-    ks = check_ks(spec.ks, len(dataset.database))
+    ks = check_ks(spec.ks, len(dataset.database), dataset.name)
     for stage in stages:
         stage.check(dataset)
     depth = depth or retrieval_depth(stages, ks, len(dataset.database), dataset.name)
