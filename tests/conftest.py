@@ -104,7 +104,10 @@ def cli(capsys):
     from vprbench.cli.main import main
 
     def run(*args) -> tuple[int, str, str]:
-        code = main([str(a) for a in args])
+        try:
+            code = main([str(a) for a in args])
+        except SystemExit as usage_error:  # argparse's: exit code 2
+            code = usage_error.code
         out, err = capsys.readouterr()
         return code, out, err
 

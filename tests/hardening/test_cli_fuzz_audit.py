@@ -130,12 +130,46 @@ def test_an_output_under_a_file_names_the_file_as_not_a_folder(shared_data, cli,
     plain = tmp_path / "plain.txt"
     plain.write_text("x")
     code, _, err = cli("describe", "--method", "hog", "--out", plain / "d.npy", image(shared_data))
-    assert_refused(code, err, None, f"Cannot use {plain}: Not a directory; a part of the path is a file",
-                   stores_allowed=True)  # the descriptors are right; only the output path was wrong
-    assert "File exists" not in err
+    assert code == 2 and err.strip() == (f"error: argument --out: {plain} is a file, not a folder: check the path; "
+                                         "see 'vprbench describe --help'"), err
+    assert not list(cache_root().rglob("*.h5")), "the output path is checked before any work"
+
+
+@pytest.mark.parametrize("args, flag", [
+    (["describe", "--method", "hog", "IMAGE", "--out", "OUT/d.npy"], "--out"),
+    (["candidates", "export", "--method", "hog", "--dataset", "corridor", "--out", "OUT/c.h5"], "--out"),
+    (["vocabulary", "fit", "--method", "dense-vlad", "--domain", "indoor", "--output", "OUT/v.pt"], "--output"),
+])
+def test_an_output_in_a_missing_folder_is_refused_before_any_work(args, flag, shared_data, cli, tmp_path):
+    """The folders were created (a typo wrote /nonexist/x.npy at the root), after all the work."""
+    missing = tmp_path / "no" / "such"
+    args = [str(image(shared_data)) if a == "IMAGE" else a.replace("OUT", str(missing)) for a in args]
+    code, _, err = cli(*args, "--data-dir", shared_data)
+    assert code == 2 and err.count("\n") == 1 and "usage:" not in err, err
+    assert f"argument {flag}: the folder {missing} does not exist" in err
+    assert not (tmp_path / "no").exists() and not list(cache_root().rglob("*.h5"))
+
+
+@pytest.mark.parametrize("args, expected", [
+    (["describe", "--method", "hog", "x.jpg", "--out", "d.txt"], "expected a .npy file, got d.txt"),
+    (["candidates", "export", "--method", "hog", "--dataset", "corridor", "--out", "c.txt"],
+     "expected a .h5 or .hdf5 file, got c.txt"),
+])
+def test_an_output_of_the_wrong_kind_is_refused_in_one_line(args, expected, cli):
+    code, _, err = cli(*args)
+    assert code == 2 and err.count("\n") == 1 and expected in err, err
 
 
 def test_an_output_name_too_long_is_named_not_its_folder(shared_data, cli, tmp_path):
     out = tmp_path / ("d" * 300 + ".npy")
     code, _, err = cli("describe", "--method", "hog", "--out", out, image(shared_data))
-    assert_refused(code, err, None, f"Cannot use {out}: File name too long; use a shorter name.", stores_allowed=True)
+    assert code == 2 and f"argument --out: Cannot use {out}: File name too long; use a shorter name; see" in err, err
+    assert not list(cache_root().rglob("*.h5")), "the output path is checked before any work"
+
+
+def test_describe_names_a_folder_given_as_an_image(shared_data, cli, tmp_path):
+    """'Image not found: .' said of a folder that is there."""
+    code, _, err = cli("describe", "--method", "hog", "--out", tmp_path / "d.npy", shared_data / "corridor" / "query")
+    assert_refused(code, err, None, f"{shared_data / 'corridor' / 'query'} is a folder: give its image files")
+    code, _, err = cli("describe", "--method", "hog", "--out", tmp_path / "d.npy", image(shared_data))
+    assert code == 0 and "Wrote 1 descriptor of dimension" in err, err

@@ -11,10 +11,11 @@ import json
 import sys
 
 from ..errors import VPRBenchError
+from ..text import plural
 from .console import console as make_console
 from .options import (add_location_options, add_method_options, add_run_options, add_spec_options, add_sweep_options,
-                      explicit_run_options, method_options, path_argument, progress, resolve_locations, run_settings,
-                      spec_overrides)
+                      explicit_run_options, method_options, output_file, path_argument, progress, resolve_locations,
+                      run_settings, spec_overrides)
 
 
 def add_parsers(commands) -> None:
@@ -38,7 +39,7 @@ def add_parsers(commands) -> None:
                    help="descriptor store precision (default: float32)")
     add_run_options(p, download=False)
     p.add_argument("images", nargs="+", type=path_argument, help="image files")
-    p.add_argument("--out", required=True, type=path_argument, help="output .npy file")
+    p.add_argument("--out", required=True, type=output_file(".npy"), help="output .npy file")
     p.add_argument("--fit-on", type=path_argument,
                    help="folder of database images: the method's vocabulary and PCA-whitening are fitted on them "
                         "(without it, PCA is fitted on the images described)")
@@ -146,14 +147,14 @@ def run_describe(args) -> int:
 
     resolve_locations(args)
     settings = run_settings(args)
-    if args.out.suffix != ".npy":
-        raise VPRBenchError(f"--out must be a .npy file, got {args.out}")
     if args.dataset:
         from ..datasets import dataset_manifest
 
         dataset_manifest(args.dataset)  # an unknown name would apply no settings, silently
     method = create_run_method(args.method, method_options(args), settings)
     for image in args.images:
+        if image.is_dir():
+            raise VPRBenchError(f"{image} is a folder: give its image files (e.g. {image / '*.jpg'}).")
         if not image.is_file():
             raise VPRBenchError(f"Image not found: {image}")
     splits = {}
@@ -180,5 +181,5 @@ def run_describe(args) -> int:
     buffer = io.BytesIO()
     np.save(buffer, descriptors)
     atomic_write(args.out, buffer.getvalue())
-    print(f"Wrote {descriptors.shape[0]} descriptors of dimension {descriptors.shape[1]} to {args.out}", file=sys.stderr)
+    print(f"Wrote {plural(descriptors.shape[0], 'descriptor')} of dimension {descriptors.shape[1]} to {args.out}", file=sys.stderr)
     return 0

@@ -13,8 +13,17 @@ from ..text import literal
 from .console import console, styled
 
 
+class Parser(argparse.ArgumentParser):
+    """A usage error is one line like every other error; the whole usage is one --help away. Each
+    subcommand's parser is of this class too (argparse makes them like their parent)."""
+
+    def error(self, message: str):
+        print_error(f"{message}; see '{self.prog} --help'")
+        sys.exit(2)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="vprbench", description="Benchmark suite for visual place recognition.")
+    parser = Parser(prog="vprbench", description="Benchmark suite for visual place recognition.")
     parser.add_argument("--version", action="version", version=f"vprbench {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for module in (evaluate, run, reproduce, datasets, methods, stages, vocabulary, leaderboard, results):

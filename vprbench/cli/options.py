@@ -15,7 +15,7 @@ import argparse
 import math
 from pathlib import Path
 
-from ..errors import VPRBenchError, name_roots
+from ..errors import VPRBenchError, name_roots, os_error_message
 
 #: method options with a flag of their own (the rest go through -o KEY=VALUE)
 METHOD_FLAGS = ("backbone", "weights", "layer", "facet", "aggregation", "clusters", "vocabulary", "resize", "pca_dim",
@@ -176,6 +176,28 @@ def path_argument(text: str) -> Path:
     if not text.strip():
         raise argparse.ArgumentTypeError(f"expected a path, got {text!r}")
     return Path(text)
+
+
+def output_file(*suffixes: str):
+    """argparse type: a file to write, checked before any work. Its folder must exist (a typo would
+    otherwise create folders anywhere, found only once the work is done); `suffixes`, when given,
+    are the endings it may have."""
+    def parse(text: str) -> Path:
+        path = path_argument(text)
+        if suffixes and path.suffix.lower() not in suffixes:
+            raise argparse.ArgumentTypeError(f"expected a {' or '.join(suffixes)} file, got {text}")
+        folder = path.expanduser().parent
+        try:
+            if path.expanduser().is_dir():
+                raise argparse.ArgumentTypeError(f"{text} is a folder: give a file name in it")
+            if folder.exists() and not folder.is_dir():
+                raise argparse.ArgumentTypeError(f"{folder} is a file, not a folder: check the path")
+        except OSError as error:  # a name too long, a folder not readable
+            raise argparse.ArgumentTypeError(os_error_message(error, path).rstrip(".")) from None
+        if not folder.is_dir():
+            raise argparse.ArgumentTypeError(f"the folder {folder} does not exist: create it first or write elsewhere")
+        return path
+    return parse
 
 
 def add_run_options(parser: argparse.ArgumentParser, *, download: bool = True, quiet: bool = True) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 
 from .console import console
-from .options import (add_location_options, add_method_options, add_run_options, method_options, path_argument,
+from .options import (add_location_options, add_method_options, add_run_options, method_options, output_file,
                       progress, resolve_locations, run_settings)
 
 
@@ -24,7 +24,7 @@ def add_parsers(commands) -> None:
     p.add_argument("--index", choices=("exact", "ivf-pq", "hnsw"), default=None, help="search (default exact)")
     p.add_argument("--store-dtype", choices=("float32", "float16"), default="float32")
     p.add_argument("--k", type=int, default=100, help="candidates per query (default 100)")
-    p.add_argument("--out", required=True, type=path_argument, help="output .h5 file")
+    p.add_argument("--out", required=True, type=output_file(".h5", ".hdf5"), help="output .h5 file")
     add_run_options(p)
     add_location_options(p)
     p.set_defaults(run=run_export)

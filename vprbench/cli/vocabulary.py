@@ -11,7 +11,7 @@ import re
 # The vocabulary machinery (torch) is imported by each subcommand, so `vprbench --help` answers at once.
 from ..errors import VPRBenchError
 from .console import say
-from .options import add_location_options, add_method_options, method_options, path_argument, resolve_locations
+from .options import add_location_options, add_method_options, method_options, output_file, path_argument, resolve_locations
 
 
 def add_parsers(commands) -> None:
@@ -25,7 +25,7 @@ def add_parsers(commands) -> None:
     p.add_argument("--budget", type=int, help="features kept by the seeded sampler (default: its standard budget)")
     p.add_argument("--exact", action="store_true", help="the authors' fit on every patch (memory grows with the data)")
     p.add_argument("--seed", type=int, default=42)
-    p.add_argument("--output", type=path_argument, help="also write the vocabulary file here")
+    p.add_argument("--output", type=output_file(), help="also write the vocabulary file here")
     add_location_options(p)
     add_method_options(p)
     p.set_defaults(run=run_fit)
