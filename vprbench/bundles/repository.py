@@ -28,6 +28,7 @@ from ..errors import VPRBenchError
 from ..evaluation.results import LAYOUT, LAYOUT_FILE, check_layout, read_record
 from ..fsutil import CacheError, atomic_write, check_lock_timeout, lock
 from .export import CARDS
+from .claims import one_record_per_run
 from .verify import MAX_BYTES, RECORD_NAME, BundleReport, check_record, verify_bundle
 
 CONTRIBUTION = ".contribution"
@@ -89,6 +90,14 @@ def _merge(verified, into: Path, report: ImportReport) -> None:
                 continue
             report.problems.append(f"{verified.path}: {verdict.member} (run {verdict.run_id}): another record with this "
                                    f"run id is already in {into}; a run id names one run.")
+            continue
+        # the same run id in another row or protocol folder is the same clash (pages and
+        # `results export --run` find a run by its id alone)
+        elsewhere = sorted(into.glob(f"*/*/{verdict.run_id}.json"))
+        if elsewhere:
+            report.problems.append(f"{verified.path}: {verdict.member} (run {verdict.run_id}): another record with this "
+                                   f"run id is already in {into} ({elsewhere[0].relative_to(into).as_posix()}); "
+                                   "a run id names one run.")
             continue
         same = _same_result(into / folder, record)
         if same:
@@ -152,7 +161,7 @@ def verify_repository(root: Path, truth=None, *, max_bytes: int = MAX_BYTES) -> 
                                    "(<protocol hash>/<row key>/<run id>.json); move or remove it.")
             continue
         members = {}
-        for member in (name, f"{name[:-len('.json')]}.npz"):
+        for member in (name, f"{name[:-len('.json')]}.npz", f"{CARDS}/{match.group(2)}.json"):
             file = root / member
             if file.is_symlink() or (file.exists() and file.resolve() != root.resolve() / member):
                 report.problems.append(f"{root}: {member} is a link, not a regular file; refused.")
@@ -166,6 +175,7 @@ def verify_repository(root: Path, truth=None, *, max_bytes: int = MAX_BYTES) -> 
                     report.problems.append(f"{root}: cannot read {member} ({error.strerror or error}).")
         if name in members:
             report.verdicts.append(check_record(name, match.groups()[:3], members, cards, truth, max_bytes))
+    one_record_per_run(report.verdicts)
     return report
 
 

@@ -5,9 +5,9 @@ file whose name is one of the bundle's own (a protocol hash, a row key and a run
 card), so no path can climb out of a folder; the bytes read are bounded (an archive bomb stops at
 the bound); the manifest's sha256 sums must match every file, and list every file.
 
-Each record is then validated (a record of a newer schema is refused), its protocol hash must be
-one vprbench ships for its dataset, and its metrics are recomputed from its per-query arrays
-against that protocol's ground truth, read from the dataset on this machine: query and database
+Each record is then validated (a record of a newer schema is refused), the names it gives must be
+its spec's and vprbench's (claims.py), its protocol hash must be one vprbench ships for its
+dataset, and its metrics are recomputed from its per-query arrays against that protocol's ground truth, read from the dataset on this machine: query and database
 counts, indices in range, every query present, first-positive ranks, and Recall@K (records keep
 4 decimals) and the top-1 PR metrics (6 decimals, computed from the similarities the record keeps;
 tolerance 1e-3 for records of earlier versions, computed before rounding). Units of the bootstrap a record keeps (each query's place,
@@ -30,6 +30,8 @@ import numpy as np
 from ..errors import VPRBenchError
 from ..evaluation.blocks import Resampling, for_dataset, for_record
 from ..evaluation.record import OPTIONAL_FIELDS, PER_QUERY_FIELDS, validated
+from ..evaluation.results import check_kinds
+from .claims import false_card, false_claims, one_record_per_run
 from .export import CARDS, FORMAT, FORMAT_VERSION, MANIFEST
 
 #: the most bytes a bundle may unpack to (an MSLS-size run is ~10 MB); `--max-size` raises it
@@ -91,7 +93,9 @@ def read_members(path: Path, max_bytes: int = MAX_BYTES) -> dict[str, bytes]:
                     if len(members) >= MAX_MEMBERS:
                         raise BundleError(f"{where}: more than {MAX_MEMBERS} members.")
                     if info.size > max_bytes:
-                        raise BundleError(f"{where}: member {name} claims {info.size} bytes, over the bound.")
+                        raise BundleError(f"{where}: member {name} claims {info.size} bytes, over the bound of "
+                                          f"{max_bytes / 2**20:g} MiB (an archive bomb, or a bundle too big: "
+                                          "raise --max-size).")
                     handle = archive.extractfile(info)
                     members[name] = handle.read() if handle else b""
         except (tarfile.TarError, EOFError, OSError, gzip.BadGzipFile, ValueError) as error:
@@ -135,7 +139,10 @@ def check_manifest(members: dict[str, bytes], where: str) -> dict:
     if manifest.get("format") != FORMAT:
         raise BundleError(f"{where}: {MANIFEST} says format {manifest.get('format')!r}, not {FORMAT}.")
     version = manifest.get("version")
-    if not isinstance(version, int) or version > FORMAT_VERSION:
+    if isinstance(version, bool) or not isinstance(version, int) or version < 1:  # JSON true is no version
+        raise BundleError(f"{where}: {MANIFEST} says format version {version!r}, which no vprbench writes; it is "
+                          "damaged or not a vprbench bundle: export it again.")
+    if version > FORMAT_VERSION:
         raise BundleError(f"{where}: bundle format version {version!r} is from a newer vprbench (this one reads up to "
                           f"{FORMAT_VERSION}); upgrade vprbench.")
     problems = []
@@ -248,6 +255,7 @@ def verify_bundle(path: Path, truth=None, *, max_bytes: int = MAX_BYTES) -> Bund
         match = RECORD_NAME.match(name)
         if match and match.group(4) == "json":
             report.verdicts.append(check_record(name, match.groups()[:3], report.members, cards, truth, max_bytes))
+    one_record_per_run(report.verdicts)
     return report
 
 
@@ -271,10 +279,13 @@ def check_record(name: str, place: tuple, members: dict[str, bytes], cards: set,
         return verdict
     if row_key not in cards:
         problems.append(f"its method card {CARDS}/{row_key}.json is missing")
+    elif f"{CARDS}/{row_key}.json" in members:
+        problems += false_card(members[f"{CARDS}/{row_key}.json"], record)
     if record["dataset_kind"] != "benchmark":
         problems.append(f"it was run on a {record['dataset_kind']} dataset, whose ground truth vprbench does not ship; "
                         "only benchmark runs can be checked")
         return verdict
+    problems += false_claims(record)
     arrays = _arrays(record, members, f"{protocol_hash}/{row_key}", problems, max_bytes)
     if arrays is None:
         return verdict
@@ -312,10 +323,10 @@ def _arrays(record: dict, members: dict[str, bytes], folder: str, problems: list
     except (ValueError, KeyError, OSError, EOFError, zipfile.BadZipFile, MemoryError) as error:
         problems.append(f"{file} is not readable per-query arrays ({type(error).__name__}: {error})")
         return None
-    indices = arrays["database_indices"]
-    if indices.ndim != 2 or indices.dtype.kind not in "iu" or arrays["similarities"].shape != indices.shape:
-        problems.append(f"{file}: its top-K indices are {indices.dtype} {indices.shape}, with similarities "
-                        f"{arrays['similarities'].shape}; expected (queries, K) whole numbers and as many similarities")
+    try:
+        check_kinds(arrays)  # the store's own test: what the metrics below compute with
+    except ValueError as error:
+        problems.append(f"{file}: {error}")
         return None
     return arrays
 
@@ -372,10 +383,8 @@ def rescore(record: dict, arrays: dict, gt: Truth, problems: list) -> dict[str, 
 def _check_positives(record: dict, stored: np.ndarray, gt: Truth, problems: list) -> None:
     """The positives per query its arrays keep, and the counts the record gives, are the protocol's."""
     expected = np.array([len(p) for p in gt.positives], dtype=np.int64)
-    stored = np.asarray(stored)
-    if stored.shape != expected.shape:
-        problems.append(f"its positives per query cover {stored.shape} queries, not the protocol's {len(expected)}")
-    elif not np.array_equal(stored, expected):
+    stored = np.asarray(stored)  # one per query, as many as the protocol's (checked before)
+    if not np.array_equal(stored, expected):
         q = int(np.flatnonzero(stored != expected)[0])
         problems.append(f"query {q}: its arrays give it {int(stored[q])} positives, protocol {gt.protocol_id} "
                         f"{int(expected[q])}")

@@ -102,13 +102,18 @@ def _write_card(record: dict, cache_dir) -> None:
     from ..methods.registry import available_methods
 
     entry = available_methods().get(record["method"])
+    card = {**card_of(record), "description": entry.description if entry else "",
+            "source": entry.source if entry else "unknown"}
+    atomic_write(path, json.dumps(card, sort_keys=True, indent=1).encode())
+
+
+def card_of(record: dict) -> dict:
+    """The part of a row's method card that its record decides (a contributed card is checked against it)."""
     spec = record["spec"]
-    card = {"row_key": record["row_key"], "method": record["method"], "label": record.get("label"),
+    return {"row_key": record["row_key"], "method": record["method"], "label": record.get("label"),
             "options": spec["options"], "given": spec["given"], "files": spec["files"], "search": spec["search"],
             "stages": spec["stages"], "store_dtype": spec["store_dtype"],
-            "weights": (record.get("provenance") or {}).get("weights"),
-            "description": entry.description if entry else "", "source": entry.source if entry else "unknown"}
-    atomic_write(path, json.dumps(card, sort_keys=True, indent=1).encode())
+            "weights": (record.get("provenance") or {}).get("weights")}
 
 
 def _per_query_arrays(section: dict) -> dict[str, np.ndarray]:
@@ -231,6 +236,25 @@ def per_query(record: dict) -> dict[str, np.ndarray] | None:
     return arrays
 
 
+def check_kinds(arrays: dict[str, np.ndarray]) -> None:
+    """The arrays hold what every reader computes with: (queries, K) whole-number indices, as
+    many finite similarities, one whole number per query in each other array; a ValueError
+    naming the first misfit otherwise (an .npz from elsewhere may hold strings, NaN or any shape,
+    which would fail deep in a metric instead of here)."""
+    indices, similarities = arrays["database_indices"], arrays["similarities"]
+    if indices.ndim != 2 or indices.dtype.kind not in "iu":
+        raise ValueError(f"its top-K indices are {indices.dtype} {indices.shape}, not (queries, K) whole numbers")
+    if similarities.shape != indices.shape or similarities.dtype.kind not in "iuf" or \
+            not np.isfinite(similarities).all():
+        raise ValueError(f"its similarities are {similarities.dtype} {similarities.shape}, not {indices.shape} "
+                         "finite numbers (one per top-K index)")
+    for name in (*PER_QUERY_FIELDS[2:], *OPTIONAL_FIELDS):
+        found = arrays.get(name)
+        if found is not None and (found.dtype.kind not in "iu" or found.shape != indices.shape[:1]):
+            raise ValueError(f"its {name} array is {found.dtype} {found.shape}, not one whole number per query "
+                             f"({indices.shape[0]})")
+
+
 def _in_range(record: dict, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """The arrays, if they fit the record: (queries, K) top lists of database indices in range,
     first-positive ranks within 0..K; a ValueError naming the first misfit otherwise (an index
@@ -238,11 +262,11 @@ def _in_range(record: dict, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarr
     counts = record.get("counts") or {}
     queries, database = counts.get("queries"), counts.get("database")
     indices, first = arrays["database_indices"], arrays["first_positive_rank"]
-    if indices.ndim != 2 or indices.dtype.kind not in "iu" or indices.shape[0] != queries or \
-            arrays["similarities"].shape != indices.shape or first.shape != (queries,) or \
-            arrays["positives"].shape != (queries,):
+    if indices.ndim != 2 or indices.shape[0] != queries or arrays["similarities"].shape != indices.shape or \
+            first.shape != (queries,) or arrays["positives"].shape != (queries,):
         raise ValueError(f"its arrays have shapes {indices.shape}, {arrays['similarities'].shape}, {first.shape}, "
                          f"not those of the record's {queries} queries")
+    check_kinds(arrays)
     if indices.size and (indices.min() < 0 or not isinstance(database, int) or indices.max() >= database):
         bad = int(np.flatnonzero((indices < 0).any(axis=1) | (indices >= (database or 0)).any(axis=1))[0])
         raise ValueError(f"query {bad} lists a database index outside the record's {database} database images")
