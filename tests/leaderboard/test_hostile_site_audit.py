@@ -132,3 +132,13 @@ def test_figure_labels_from_records_are_svg_text(make_record, tmp_path, capsys):
             assert not [a for a in element.attrib if a.lower().startswith("on")], (path, element.attrib)
             assert all(v.startswith("#") for a, v in element.attrib.items() if a.endswith("href")), (path, element.attrib)
 
+
+
+def test_control_characters_from_a_record_are_written_out_on_pages(make_record, tmp_path, capsys):
+    """An escape sequence in a licence reached the pages as it was (only line breaks were replaced)."""
+    record = make_record("hog", "my-traverse", kind="own", n_database=40, n_queries=30, seed=1, fingerprint="fp-x")
+    record["provenance"]["backbone"] = {"name": "x", "licence": "MIT\x1b[2J\x07"}
+    save_result(record)
+    pages = publish(tmp_path, capsys)
+    assert {cell for page in pages for cell in column(page.read_text(), "Licence")} == {"MIT\\x1b[2J\\x07"}
+    assert not any(c in page.read_text() for page in pages for c in "\x1b\x07")

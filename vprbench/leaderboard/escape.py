@@ -14,6 +14,8 @@ from __future__ import annotations
 import html
 import re
 
+from ..text import literal
+
 #: a path of the local machine: POSIX with two names or more ('/a/b'; one, '/b', is more often
 #: something else, such as Rich's '[/b]') or from a start ('~/a', './a', '../a'), not inside a URL
 #: or a fraction; or a Windows drive path ('C:\\a\\b'). Names end at white space and at the characters
@@ -44,9 +46,10 @@ def text(value) -> str:
     HTML element, no link or image, no table cell break can come from it, no absolute path. A pipe
     and a backtick are written as character references (a backslash from data would cancel a
     backslash escape; a backtick would pair with a code span further along the row), and a line
-    break of either kind as a space (a line of its own could define a link)."""
-    out = html.escape(public(value), quote=True).replace("|", "&#124;").replace("`", "&#96;").replace("](", "]\\(")
-    return out.replace("\r", " ").replace("\n", " ")
+    break of either kind as a space (a line of its own could define a link); other control
+    characters are written out as their escapes ('\\x1b'), as on the terminal."""
+    flat = public(value).replace("\r", " ").replace("\n", " ")
+    return html.escape(literal(flat), quote=True).replace("|", "&#124;").replace("`", "&#96;").replace("](", "]\\(")
 
 
 #: how a cell that a spreadsheet runs as a formula begins (tab and carriage return are dropped
