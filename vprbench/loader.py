@@ -14,6 +14,7 @@ checked by hashing each file just before and just after its `load`.
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
@@ -110,15 +111,51 @@ def check_batch_size(method) -> int:
     return int(size)
 
 
-def checked(method, descriptors, n: int, dim: int | None = None) -> np.ndarray:
-    """A batch's descriptors as (n, dim) finite float32, or an error naming the method."""
-    out = np.asarray(descriptors, dtype=np.float32)
+#: how far from 1 the length of a row compared by cosine may be (float16/bfloat16 arithmetic rounds it)
+UNIT_TOLERANCE = 1e-2
+#: a row shorter than this is an all-zero row (an image with nothing to describe): it matches nothing
+ZERO_LENGTH = 1e-6
+
+
+def _numbers(source: str, rows, n: int) -> np.ndarray:
+    """`rows` (an array, a torch tensor on any device, nested lists) as an array of real numbers."""
+    torch = sys.modules.get("torch")
+    if torch is not None and isinstance(rows, torch.Tensor):  # with grad, on a GPU, in bfloat16: all fine
+        rows = rows.detach().cpu()
+        rows = (rows.float() if rows.is_floating_point() else rows).numpy()
+    try:
+        out = np.asarray(rows)
+    except (TypeError, ValueError, RuntimeError) as error:
+        out, reason = None, f" ({error})"
+    else:
+        reason = f" of {out.dtype} values"
+    if out is None or out.dtype.kind not in "biuf":  # complex, text, objects, None: nothing to cast silently
+        shown = "None" if rows is None else f"{type(rows).__name__}{reason}"
+        raise VPRBenchError(f"{source} returned {shown}; expected a ({n}, dim) array of real numbers (float32).")
+    with np.errstate(over="ignore"):  # a float64 beyond float32's range becomes inf, reported below
+        return out.astype(np.float32)
+
+
+def checked(source: str, descriptors, n: int, dim: int | None = None, compare: str | None = None) -> np.ndarray:
+    """Rows a method (or its post-processing) hands to the store or the search, as (n, dim)
+    finite float32, or an error naming `source` ("Method 'x'"). A method's rows compared by cosine
+    (`compare`) must be L2-normalised (or all zero), as the search scores them by inner products."""
+    out = _numbers(source, descriptors, n)
     if out.ndim != 2 or out.shape[0] != n or out.shape[1] < 1:
-        raise VPRBenchError(f"Method {method.name!r} returned shape {out.shape} for {n} images; expected ({n}, dim).")
+        raise VPRBenchError(f"{source} returned shape {out.shape} for {n} images; expected ({n}, dim).")
     if dim is not None and out.shape[1] != dim:
-        raise VPRBenchError(f"Method {method.name!r} returned {out.shape[1]}-dimensional descriptors after {dim}-dimensional ones.")
+        raise VPRBenchError(f"{source} returned {out.shape[1]}-dimensional descriptors after {dim}-dimensional ones.")
     if not np.isfinite(out).all():
-        raise VPRBenchError(f"Method {method.name!r} returned non-finite descriptors.")
+        raise VPRBenchError(f"{source} returned non-finite descriptors (NaN, infinity, or beyond float32's range).")
+    if compare == "cosine":
+        lengths = np.sqrt(np.einsum("ij,ij->i", out, out, dtype=np.float64))
+        wrong = np.flatnonzero((lengths >= ZERO_LENGTH) & (np.abs(lengths - 1) > UNIT_TOLERANCE))
+        if wrong.size:
+            raise VPRBenchError(
+                f"{source} returned rows that are not L2-normalised (row {wrong[0]} has length "
+                f"{lengths[wrong[0]]:.4g}): "
+                "descriptors compared by cosine must have length 1 (or be all zero); normalise them, e.g. with "
+                "vprbench.methods.l2_normalise.")
     return out
 
 
@@ -144,7 +181,8 @@ def describe_batches(method, paths: Sequence[Path], *, workers: int = 0, device:
         for item in items:
             if isinstance(item, _Failed):
                 raise VPRBenchError(item.message)
-        descriptors = checked(method, method.describe(items), len(items), dim)
+        descriptors = checked(f"Method {method.name!r}", method.describe(items), len(items), dim,
+                              getattr(method, "compare", "cosine"))
         dim = descriptors.shape[1]
         yield offset, descriptors
         offset += len(items)

@@ -6,6 +6,7 @@ import vprbench
 from vprbench.cli.main import main
 from vprbench.errors import VPRBenchError
 from vprbench.loader import describe_batches, resolve_device
+from vprbench.methods import l2_normalise
 
 
 def collect(method, paths, workers):
@@ -39,14 +40,16 @@ class PathsOnly(vprbench.Method):
 
     def describe(self, images):
         assert all(hasattr(p, "suffix") for p in images)
-        return np.stack([[len(p.name), p.stat().st_size, 1.0] for p in images]).astype(np.float32)
+        return l2_normalise(np.stack([[len(p.name), p.stat().st_size, 1.0] for p in images]))
 
 
 def test_plugin_that_only_describes_paths_keeps_working(corridor_images):
     vprbench.register_method("paths-only-test", PathsOnly)
     method = vprbench.create_method("paths-only-test")
     rows = collect(method, corridor_images, workers=2)
-    assert rows.shape == (37, 3) and rows[0, 1] == corridor_images[0].stat().st_size
+    first = corridor_images[0]
+    assert rows.shape == (37, 3)
+    np.testing.assert_allclose(rows[0], l2_normalise(np.array([len(first.name), first.stat().st_size, 1.0])))
 
 
 def test_unreadable_image_in_a_worker_is_one_clear_error(corridor_images, tmp_path):

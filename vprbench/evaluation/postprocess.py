@@ -15,6 +15,7 @@ import numpy as np
 
 from ..errors import VPRBenchError
 from ..fsutil import atomic_path
+from ..loader import checked
 from ..row_sources import ArrayRows, RowSource, read_bytes_per_row
 
 #: a post-processor transforms tiles of at most this many input bytes (see transform_rows)
@@ -51,12 +52,12 @@ class TransformedRows:
     def _transform(self, block: np.ndarray) -> np.ndarray:
         """At most one tile of rows, transformed as one full tile."""
         size = min(self.tile, self.row_count)
-        out = np.asarray(self.postprocessor.transform(padded(np.asarray(block, dtype=np.float32), size)),
-                         dtype=np.float32)
-        if out.ndim != 2 or out.shape[0] != size:
-            raise VPRBenchError(f"Post-processor {type(self.postprocessor).__name__} returned shape {out.shape} "
+        out = self.postprocessor.transform(padded(np.asarray(block, dtype=np.float32), size))
+        if np.ndim(out) != 2 or np.shape(out)[0] != size:
+            raise VPRBenchError(f"Post-processor {type(self.postprocessor).__name__} returned shape {np.shape(out)} "
                                 f"for {size} rows; expected one row per row.")
-        return out[:len(block)]
+        # the rows kept must be finite numbers, as a method's own (the padding rows are dropped unseen)
+        return checked(f"Post-processor {type(self.postprocessor).__name__}", out[:len(block)], len(block))
 
     def read_cost(self) -> tuple[int, int]:
         # a tile read, padded, and computed in float64 (PCA-whitening does), with its output
@@ -118,7 +119,9 @@ def postprocessed(method, database: RowSource, queries: RowSource, memory_budget
     postprocessor = method.postprocessor() if method is not None else None
     if method is not None and _overrides_postprocess(method):  # a plugin's whole-matrix hook
         db, q = method.postprocess(database.read_rows(0, database.row_count), queries.read_rows(0, queries.row_count))
-        database, queries = ArrayRows(np.asarray(db, dtype=np.float32)), ArrayRows(np.asarray(q, dtype=np.float32))
+        hook = f"Method {method.name!r} (its postprocess)"
+        db = checked(hook, db, database.row_count)  # one finite row per image, as the method's own
+        database, queries = ArrayRows(db), ArrayRows(checked(hook, q, queries.row_count, db.shape[1]))
         return database, queries, {"kind": f"{type(method).__name__}.postprocess", "in_memory": True}
     if postprocessor is not None:
         info = fit_postprocessor(postprocessor, database, memory_budget, state_folder)

@@ -2,6 +2,7 @@
 provenance and hardware sections of a result record (record.py)."""
 from __future__ import annotations
 
+import json
 import os
 import platform
 from pathlib import Path
@@ -9,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
+from ..errors import VPRBenchError
 
 
 def method_provenance(method, dataset=None, cache_dir=None) -> dict:
@@ -24,7 +26,12 @@ def method_provenance(method, dataset=None, cache_dir=None) -> dict:
     them is an image of the evaluated `dataset`, whatever the method says."""
     from ..methods import Method
 
-    found = {k: dict(v) if isinstance(v, dict) else v for k, v in (method.provenance() or {}).items()}
+    own = method.provenance() or {}
+    if not isinstance(own, dict):
+        raise VPRBenchError(f"Method {method.name!r}: provenance() must return a dict such as "
+                            f"{{\"weights\": {{\"source\": \"none\"}}}}, got {type(own).__name__}.")
+    own = json.loads(json.dumps(own, default=str))  # the record is JSON: a value that is not is kept as its text
+    found = {k: dict(v) if isinstance(v, dict) else v for k, v in own.items()}
     declared = type(method).provenance is not Method.provenance
     found.setdefault("weights", {"source": "none" if declared else "undeclared"})
     if method.needs_fit:

@@ -38,13 +38,18 @@ class MethodEntry:
 
     @property
     def factory(self) -> Callable:
-        if not isinstance(self.target, str):
-            return self.target
-        module, _, attribute = self.target.partition(":")
-        try:
-            return getattr(importlib.import_module(module), attribute)
-        except (ImportError, AttributeError) as error:
-            raise VPRBenchError(f"Method {self.name!r} ({self.source}) cannot be loaded from {self.target}: {error}") from None
+        found = self.target
+        if isinstance(self.target, str):
+            module, _, attribute = self.target.partition(":")
+            try:
+                found = getattr(importlib.import_module(module), attribute)
+            except (ImportError, AttributeError) as error:
+                raise VPRBenchError(f"Method {self.name!r} ({self.source}) cannot be loaded from {self.target}: "
+                                    f"{error}") from None
+        if not callable(found):
+            raise VPRBenchError(f"Method {self.name!r} ({self.source}) is registered with {self.target!r}, which is "
+                                "not a class or function returning a vprbench.Method; fix the plugin.")
+        return found
 
     def factory_options(self) -> list[str]:
         """Keyword options the factory itself accepts."""
@@ -79,7 +84,13 @@ def register_method(
     if source is None:
         module = factory.partition(":")[0] if isinstance(factory, str) else getattr(factory, "__module__", "") or ""
         source = module.split(".")[0] or "unknown"
-    _REGISTRY[name] = MethodEntry(name, factory, dict(defaults or {}), description, source)
+    entry = MethodEntry(name, factory, dict(defaults or {}), description, source)
+    _load_plugins()  # the core's and installed plugins' names are taken before any other registers
+    taken = _REGISTRY.get(name)
+    if taken is not None and taken != entry:  # replacing it would record another method's results under its name
+        raise ValueError(f"Method name {name!r} is taken (registered by {taken.source}); register yours under "
+                         "another name")
+    _REGISTRY[name] = entry
 
 
 def _load_plugins() -> None:
@@ -95,7 +106,7 @@ def _load_plugins() -> None:
         try:
             register = ep.load()
             register()
-        except Exception as error:  # a broken plugin must not take the suite down
+        except (Exception, SystemExit) as error:  # a broken plugin (sys.exit too) must not take the suite down
             import warnings
 
             warnings.warn(f"Method plugin {ep.name!r} ({ep.value}) failed to load: {error}", stacklevel=2)
@@ -125,6 +136,7 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
     hands `cache_dir` and `data_dir` to factories that take them. The method gets `name`, `options` (what the
     user gave) and `settings` (preset + user options, what the store is keyed on).
     """
+    from ..stages.sequence.search import COMPARES
     from .base import Method
     from .checks import device
 
@@ -158,6 +170,9 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
         raise VPRBenchError(f"Method {name!r} ({entry.source}) did not return a vprbench.Method")
     if "batch_size" in merged:
         method.batch_size = merged["batch_size"]
+    if method.compare not in COMPARES:  # what the search can do, checked before any image is described
+        raise VPRBenchError(f"Method {name!r} ({entry.source}) has compare {method.compare!r}; it must be one of "
+                            f"{', '.join(COMPARES)} (fix the plugin).")
     if isinstance(method.batch_size, bool) or not isinstance(method.batch_size, int) or method.batch_size < 1:
         raise VPRBenchError(f"Method {name!r} ({entry.source}) has batch_size {method.batch_size!r}; "
                             "it must be a whole number >= 1 (fix the plugin, or pass --batch-size).")

@@ -33,6 +33,9 @@ from .rows_file import DamagedRows, RowsIdentity, folder_lock, hdf5_written, ins
 
 #: fit id of methods that fit nothing
 NO_FIT = "none"
+#: the store key's own entries beside a method's fingerprint() ("method" too, which AnyLoc's
+#: fingerprint sets to its family name: the folder is named after the method either way)
+RESERVED_KEYS = ("settings", "store_dtype", "decoding")
 
 
 def method_fingerprint(method, store_dtype: str = "float32") -> dict:
@@ -44,7 +47,15 @@ def method_fingerprint(method, store_dtype: str = "float32") -> dict:
     from ..images import ORIENTATION
 
     settings = {k: v for k, v in sorted(settings.items()) if k not in RUN_SETTINGS}
-    return json.loads(json.dumps({"method": method.name, "settings": settings, **method.fingerprint(),
+    own = method.fingerprint()
+    if not isinstance(own, dict):
+        raise VPRBenchError(f"Method {method.name!r}: fingerprint() must return a dict naming what changes its "
+                            f"descriptors, got {type(own).__name__}.")
+    clash = sorted(set(own) & set(RESERVED_KEYS))  # its own key would overwrite what keeps two stores apart
+    if clash:
+        raise VPRBenchError(f"Method {method.name!r}: fingerprint() uses the key(s) {', '.join(clash)}, which the "
+                            f"store's key sets itself ({', '.join(RESERVED_KEYS)}); rename them in the method.")
+    return json.loads(json.dumps({"method": method.name, "settings": settings, **own,
                                   "store_dtype": store_dtype, "decoding": {"orientation": ORIENTATION}}, default=str))
 
 

@@ -1,0 +1,277 @@
+"""A careless or hostile method plugin, run through `vprbench describe`, `vprbench evaluate` and
+the Python API: what it returns is checked before anything is stored or scored, its name cannot
+take another method's, and what keys its descriptors cannot be overwritten by its own fingerprint."""
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from hostile_files import assert_refused
+from vprbench import Method, VPRBenchError, register_method
+from vprbench.evaluation.provenance import method_provenance
+from vprbench.evaluation.results import read_results
+from vprbench.methods import registry
+from vprbench.paths import cache_root
+
+def unit_rows(images) -> np.ndarray:
+    """One unit row per image, set by its file name only (no batch statistics)."""
+    rows = np.stack([np.random.default_rng(int(Path(p).stem)).standard_normal(3) for p in images])
+    return (rows / np.linalg.norm(rows, axis=1, keepdims=True)).astype(np.float32)
+
+
+class Returns(Method):
+    """describe returns `shape(unit rows)`: what a careless plugin hands back."""
+
+    shape = staticmethod(lambda rows: rows)
+
+    def __init__(self, device: str = "cpu"):
+        pass
+
+    def provenance(self) -> dict:
+        return {"weights": {"source": "none"}}
+
+    def describe(self, images):
+        return type(self).shape(unit_rows(images))
+
+
+def plugin(name: str, shape=None, base=Returns, **attributes) -> str:
+    """Register a method whose describe returns `shape(rows)` (the registry is the test's own copy)."""
+    extra = {"shape": staticmethod(shape)} if shape is not None else {}
+    register_method(name, type(name.title().replace("-", ""), (base,), {**extra, **attributes}))
+    return name
+
+
+@pytest.fixture(autouse=True)
+def own_registry(monkeypatch):
+    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
+
+
+@pytest.fixture
+def images(shared_data) -> list:
+    return sorted((shared_data / "corridor" / "query").glob("*.jpg"))[:5]
+
+
+def describe(cli, tmp_path, method: str, images, *options):
+    return cli("describe", "--method", method, *images, "--batch-size", 2, "--out", tmp_path / "d.npy", *options)
+
+
+# ---------------------------------------------------------------- what describe returns
+@pytest.mark.parametrize("shape, length", [
+    (lambda rows: rows * 1000, "1000"),                      # not normalised: inner products are not cosines
+    (lambda rows: rows * np.float32(1e30), "1e+30"),         # products overflow: the PR curve crashed
+    (lambda rows: (rows * 10).astype(np.int64), None),       # whole numbers
+    (lambda rows: rows > 0, None),                           # booleans
+], ids=["scaled", "huge", "integers", "booleans"])
+def test_rows_compared_by_cosine_must_have_length_one(shape, length, cli, tmp_path, images):
+    code, _, err = describe(cli, tmp_path, plugin("careless", shape), images)
+    assert_refused(code, err, None, "Method 'careless' returned rows that are not L2-normalised",
+                   f"has length {length}" if length else "has length", "vprbench.methods.l2_normalise")
+    assert not (tmp_path / "d.npy").exists()
+
+
+@pytest.mark.parametrize("shape, fragment", [
+    (lambda rows: rows.astype(np.complex64), "ndarray of complex64 values"),  # its imaginary part was dropped
+    (lambda rows: [["a"] * 3] * len(rows), "list of <U1 values"),            # was a ValueError traceback
+    (lambda rows: np.array([object()] * len(rows)), "ndarray of object values"),
+    (lambda rows: {"rows": rows}, "dict of object values"),
+    (lambda rows: None, "returned None"),
+    (lambda rows: rows.astype(np.float64) * 1e300, "non-finite descriptors (NaN, infinity, or beyond float32's range)"),
+], ids=["complex", "text", "objects", "dict", "none", "beyond-float32"])
+def test_what_is_no_array_of_real_numbers_is_refused(shape, fragment, cli, tmp_path, images):
+    code, _, err = describe(cli, tmp_path, plugin("careless", shape), images)
+    assert_refused(code, err, None, "Method 'careless' ", fragment)
+
+
+def zero_first(rows):
+    return np.where(np.arange(len(rows))[:, None] == 0, 0, rows)  # an all-zero row, as for a blank image
+
+
+@pytest.mark.parametrize("shape", [
+    lambda rows: torch.from_numpy(rows).requires_grad_(),  # was a RuntimeError traceback ("requires grad")
+    lambda rows: torch.from_numpy(rows).to(torch.bfloat16),  # numpy has no bfloat16: was a TypeError traceback
+    lambda rows: torch.from_numpy(rows).double(),
+    lambda rows: rows.astype(np.float64),
+    lambda rows: rows.astype(np.float16),
+    lambda rows: np.asfortranarray(np.repeat(rows, 2, axis=1)[:, ::2]),  # not contiguous
+    lambda rows: rows.tolist(),
+    zero_first,
+], ids=["tensor-with-grad", "bfloat16-tensor", "float64-tensor", "float64", "float16", "strided", "list", "zero-row"])
+def test_the_forms_of_the_same_rows_are_taken(shape, cli, tmp_path, images):
+    code, _, err = describe(cli, tmp_path, plugin("lenient", shape), images)
+    assert code == 0, err
+    expected = unit_rows(images)
+    if shape is zero_first:
+        expected[[0, 2, 4]] = 0  # the first row of every batch of 2
+    np.testing.assert_allclose(np.load(tmp_path / "d.npy"), expected, atol=1e-2)
+
+
+# ---------------------------------------------------------------- what its post-processing returns
+class Hooked(Returns):
+    """A plugin overriding the whole-matrix `postprocess` hook with `self.post(db, q)`."""
+
+    def postprocess(self, database, queries):
+        return type(self).post(database, queries)
+
+
+class Transform:
+    def key(self, rows, memory_budget):
+        return {"transform": "nan"}
+
+    def fit(self, rows, memory_budget):
+        return self
+
+    def transform(self, rows):
+        out = np.array(rows, dtype=np.float32)
+        out[0, 0] = np.nan
+        return out
+
+    def state(self):
+        return {"nothing": np.zeros(1)}
+
+    def load_state(self, state):
+        pass
+
+
+@pytest.mark.parametrize("post, fragment", [
+    (lambda db, q: (db, q[:-5]), "returned shape (106, 3) for 111 images"),  # was scored over 106 of 111 queries
+    (lambda db, q: (db[:-5], q), "returned shape (106, 3) for 111 images"),
+    (lambda db, q: (np.where(db == db[0, 0], np.nan, db), q), "non-finite descriptors"),
+    (lambda db, q: (db, None), "returned None; expected a (111, dim) array"),
+], ids=["fewer-queries", "fewer-database", "nan", "none"])
+def test_a_postprocess_hook_cannot_change_what_is_scored(post, fragment, cli, shared_data):
+    name = plugin("hooked", base=Hooked, post=staticmethod(post))
+    code, _, err = cli("evaluate", "--method", name, "--dataset", "corridor", "--data-dir", shared_data)
+    assert_refused(code, err, None, "Method 'hooked' (its postprocess) returned", fragment, stores_allowed=True)
+
+
+def test_a_postprocessor_returning_nan_is_refused(cli, shared_data):
+    name = plugin("transformed", postprocessor=lambda self: Transform())
+    code, _, err = cli("evaluate", "--method", name, "--dataset", "corridor", "--data-dir", shared_data)
+    assert_refused(code, err, None, "Post-processor Transform returned non-finite descriptors", stores_allowed=True)
+
+
+# ---------------------------------------------------------------- names
+def test_a_plugin_cannot_take_a_core_method_name(monkeypatch):
+    class Hijack(Returns):
+        pass
+
+    def hijack():  # an installed plugin's entry point, registering HOG's name (its rows all ties: R@1 2.7 as HOG)
+        register_method("hog", Hijack, description="not HOG")
+
+    def fresh(*plugins):
+        monkeypatch.setattr(registry, "_REGISTRY", {})
+        monkeypatch.setattr(registry, "_plugins_loaded", False)
+        monkeypatch.setattr(registry, "entry_points", lambda group: list(plugins))
+
+    fresh()
+    with pytest.raises(ValueError, match=r"Method name 'hog' is taken \(registered by vprbench\); register yours "
+                                         "under another name"):
+        register_method("hog", Hijack)  # the Python API, before the registry was ever read: the core's name first
+    fresh(SimpleNamespace(name="hijack", value="x:hijack", load=lambda: hijack))
+    with pytest.warns(UserWarning, match=r"Method plugin 'hijack' \(x:hijack\) failed to load: Method name 'hog' is "
+                                         r"taken \(registered by vprbench\)"):
+        entry = registry.method_entry("hog")
+    assert entry.source == "vprbench" and entry.target == "vprbench.methods.hog:HOG"
+    register_method("thumb", Returns)
+    with pytest.raises(ValueError, match="Method name 'thumb' is taken"):  # a second plugin's, or a second factory
+        register_method("thumb", Hijack)
+    register_method("thumb", Returns)  # the same registration again is no clash
+    assert registry.method_entry("thumb").target is Returns
+
+
+def test_a_plugin_that_exits_while_loading_is_skipped(monkeypatch, cli):
+    def exits():  # e.g. a module that calls sys.exit when a dependency is missing: every command ended with it
+        raise SystemExit("please install superlib")
+
+    monkeypatch.setattr(registry, "_REGISTRY", {})
+    monkeypatch.setattr(registry, "_plugins_loaded", False)
+    monkeypatch.setattr(registry, "entry_points", lambda group: [SimpleNamespace(name="exits", value="x:exits",
+                                                                                 load=lambda: exits)])
+    with pytest.warns(UserWarning, match=r"Method plugin 'exits' \(x:exits\) failed to load: please install superlib"):
+        code, out, err = cli("methods", "list", "--json")
+    assert code == 0 and "hog" in out, err
+
+
+# ---------------------------------------------------------------- what keys its descriptors
+class Sized(Returns):
+    """A plugin with a `size` option whose fingerprint() returns `self.own`."""
+
+    def __init__(self, size: int = 3, device: str = "cpu"):
+        self.size = int(size)
+
+    def describe(self, images):
+        rows = np.zeros((len(images), self.size), np.float32)
+        rows[:, 0] = 1
+        return rows
+
+
+@pytest.mark.parametrize("own, fragment", [
+    ({"settings": {"network": "x"}}, "fingerprint() uses the key(s) settings, which the store's key sets itself"),
+    (None, "fingerprint() must return a dict naming what changes its descriptors, got NoneType"),
+])
+def test_a_fingerprint_cannot_hide_the_options_from_the_store(own, fragment, cli, tmp_path, images):
+    name = plugin("sized", base=Sized, fingerprint=lambda self: own)
+    code, _, err = describe(cli, tmp_path, name, images, "-o", "size=3")
+    # before: accepted, and '-o size=5' was then served the 3-dimensional rows stored for size=3
+    assert_refused(code, err, None, f"Method 'sized': {fragment}")
+
+
+def test_options_key_the_store_whatever_the_fingerprint_forgets(cli, tmp_path, images):
+    name = plugin("forgets", base=Sized, fingerprint=lambda self: {})
+    for size in (3, 5):
+        code, _, err = describe(cli, tmp_path, name, images, "-o", f"size={size}")
+        assert code == 0, err
+        assert np.load(tmp_path / "d.npy").shape == (5, size)
+
+
+# ---------------------------------------------------------------- what the registry is given
+def test_a_registration_that_is_no_factory_is_one_clear_line(cli, tmp_path, images):
+    register_method("not-callable", "os:sep")
+    code, _, err = describe(cli, tmp_path, "not-callable", images)  # was: TypeError: '/' is not a callable object
+    assert_refused(code, err, None, "Method 'not-callable' (os) is registered with 'os:sep', which is not a class "
+                                    "or function returning a vprbench.Method; fix the plugin.")
+
+
+def test_an_unknown_comparison_is_refused_before_anything_is_described(cli, tmp_path, images):
+    # before: every image described and stored, then an error about sequence matching
+    code, _, err = describe(cli, tmp_path, plugin("euclid", compare="euclidean"), images)
+    assert_refused(code, err, None, "Method 'euclid' (", ") has compare 'euclidean'; it must be one of cosine, "
+                                    "mean-absolute-difference (fix the plugin).")
+
+
+def test_provenance_must_be_a_dict_and_is_kept_as_json():
+    declared = {}
+    method = type("Declares", (Returns,), {"provenance": lambda self: declared["value"]})()
+    method.name, declared["value"] = "p", "official"
+    with pytest.raises(VPRBenchError, match=r"Method 'p': provenance\(\) must return a dict such as .*, got str"):
+        method_provenance(method)  # was: AttributeError traceback after every image was described
+    marker = object()
+    declared["value"] = {"weights": {"source": "none", "loaded_by": marker}}
+    assert method_provenance(method)["weights"] == {"source": "none", "loaded_by": str(marker)}  # was unsaveable
+
+
+# ---------------------------------------------------------------- a method that fails mid-run
+def test_a_method_that_fails_mid_run_resumes_with_the_rows_it_finished(cli, tmp_path, images):
+    calls = []
+
+    class Flaky(Returns):
+        def describe(self, batch):
+            calls.append(len(batch))
+            if len(calls) == 2 and fail:
+                raise VPRBenchError("the plugin's server went away")
+            return unit_rows(batch)
+
+    register_method("flaky", Flaky)
+    fail = True
+    code, _, err = describe(cli, tmp_path, "flaky", images)
+    assert code == 1 and "the plugin's server went away" in err and not read_results()
+    assert not list(cache_root().rglob("queries.h5")), "no complete store from a failed run"
+    fail, calls[:] = False, []
+    code, _, err = describe(cli, tmp_path, "flaky", images)
+    assert code == 0, err
+    assert calls == [2, 1]  # the first batch of 2 was kept, the 3 others described now
+    np.testing.assert_array_equal(np.load(tmp_path / "d.npy"), unit_rows(images))
