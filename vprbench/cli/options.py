@@ -52,10 +52,11 @@ def add_method_options(parser: argparse.ArgumentParser, several: bool = False) -
 def add_method_flags(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("method options (override the preset; a method rejects those it does not use)")
     group.add_argument("--backbone", help="backbone, e.g. dinov2_vitg14, dino_vits8, resnet101")
-    group.add_argument("--weights", help="local weights file in the official checkpoint format")
+    group.add_argument("--weights", help="local weights file in the official checkpoint format, or random (AnyLoc "
+                       "backbones: a seeded random initialisation, a pipeline check)")
     group.add_argument("--layer", type=int, help="0-based index of the block the features come from")
     group.add_argument("--facet", help="query, key, value or token")
-    group.add_argument("--aggregation", help="gap, gmp, gem, vlad, vlad-soft-official, vlad-soft")
+    group.add_argument("--aggregation", help="gap, gmp, gem, vlad, vlad-soft-official, vlad-soft, cls")  # = anyloc.AGGREGATIONS
     group.add_argument("--clusters", type=int, help="VLAD vocabulary size")
     group.add_argument("--vocabulary", help="vocabulary name (map, indoor, urban, ...) or file (e.g. c_centers.pt)")
     group.add_argument("--resize", type=int, nargs=2, metavar=("H", "W"), help="resize images to H x W")
