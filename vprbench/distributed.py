@@ -8,8 +8,10 @@ has one code path. See docs/distributed.md.
 from __future__ import annotations
 
 import json
+import math
 import os
 from collections.abc import Callable
+from contextlib import contextmanager
 from datetime import timedelta
 
 from .errors import VPRBenchError
@@ -31,21 +33,26 @@ class Ranks:
     @classmethod
     def from_environment(cls, device: str = "cpu") -> "Ranks":
         """The process group torchrun set up, or a single process when WORLD_SIZE is unset or 1."""
-        world = int(os.environ.get("WORLD_SIZE", "1"))
+        world = _whole_from_environment("WORLD_SIZE", "1")
         if world <= 1:
             return cls()
         import torch
         import torch.distributed as dist
 
-        rank, local_rank = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
+        rank, local_rank = _whole_from_environment("RANK"), _whole_from_environment("LOCAL_RANK", "0")
+        if rank >= world:
+            raise VPRBenchError(f"$RANK is {rank} but $WORLD_SIZE is {world}: start the ranks with torchrun, which sets both.")
         backend = "nccl" if str(device).startswith("cuda") else "gloo"
         if not dist.is_initialized():
             kwargs = {}
             if backend == "nccl":
                 torch.cuda.set_device(local_rank)
                 kwargs["device_id"] = torch.device("cuda", local_rank)
-            dist.init_process_group(backend, timeout=timedelta(seconds=float(os.environ.get(TIMEOUT_ENV, 86400))),
-                                    **kwargs)
+            try:
+                dist.init_process_group(backend, timeout=timedelta(seconds=_timeout_s()), **kwargs)
+            except (RuntimeError, ValueError) as error:  # no MASTER_ADDR, a rendezvous that timed out
+                raise VPRBenchError(f"torchrun rank {rank} could not join the other ranks ({_first_line(error)}). "
+                                    "Start every rank with torchrun and the same --rdzv-endpoint.") from None
         return cls(rank, world, local_rank, backend)
 
     def device(self, device: str) -> str:
@@ -58,7 +65,8 @@ class Ranks:
         import torch.distributed as dist
 
         found = [None] * self.world_size
-        dist.all_gather_object(found, value)
+        with self._talking():
+            dist.all_gather_object(found, value)
         return found
 
     def broadcast(self, value):
@@ -68,8 +76,22 @@ class Ranks:
         import torch.distributed as dist
 
         box = [value if self.rank == 0 else None]
-        dist.broadcast_object_list(box, src=0)
+        with self._talking():
+            dist.broadcast_object_list(box, src=0)
         return box[0]
+
+    @contextmanager
+    def _talking(self):
+        """A collective whose peer died (killed, or failed and exited) or never answered: one line
+        on this rank instead of the backend's traceback (close() still ends the group: a process
+        leaving a timed-out gloo group behind aborts on exit)."""
+        try:
+            yield
+        except RuntimeError as error:  # torch.distributed's errors (DistBackendError...) are RuntimeErrors
+            raise VPRBenchError(
+                f"torchrun rank {self.rank} lost the other ranks ({_first_line(error)}): one of them stopped (its own "
+                f"message says why) or did not answer within ${TIMEOUT_ENV} = {_timeout_s():g} s. Finished descriptors "
+                "are kept; fix that and run the same command again to resume.") from None
 
     def on_zero(self, work: Callable[[], object]):
         """`work()` on rank 0, its result on every rank; a `VPRBenchError` there is raised on all
@@ -108,3 +130,31 @@ class Ranks:
 
     def describe(self) -> dict:
         return {"world_size": self.world_size, "backend": self.backend}
+
+
+def _whole_from_environment(name: str, default: str | None = None) -> int:
+    """A whole number >= 0 torchrun puts in the environment; one line when it is missing or not one."""
+    value = os.environ.get(name, default)
+    if value is None or not (value.strip().isascii() and value.strip().isdigit()):
+        shown = "not set" if value is None else f"{value!r}, not a whole number >= 0"
+        raise VPRBenchError(f"${name} is {shown}: start the ranks with torchrun, "
+                            "which sets RANK, WORLD_SIZE and LOCAL_RANK (or unset WORLD_SIZE to run one process).")
+    return int(value)
+
+
+def _timeout_s() -> float:
+    value = os.environ.get(TIMEOUT_ENV, "86400")
+    try:
+        seconds = float(value)
+    except ValueError:
+        seconds = math.nan
+    if not (math.isfinite(seconds) and seconds > 0):
+        raise VPRBenchError(f"${TIMEOUT_ENV} is {value!r}; it takes the seconds ranks wait for each other, a number > 0.")
+    return seconds
+
+
+def _first_line(error: BaseException) -> str:
+    """The backend's first line, without its source location ('[.../pair.cc:561] ...') and advice."""
+    text = (str(error).strip().splitlines() or [type(error).__name__])[0]
+    text = text.split("] ", 1)[1] if text.startswith("[") and "] " in text else text
+    return text.split(". ", 1)[0].rstrip(".")

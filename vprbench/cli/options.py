@@ -138,7 +138,14 @@ def stage_flags(args) -> list[dict] | None:
     for kind, size, name in (("rerank", "rerank_k", "k"), ("sequence", "sequence_length", "length")):
         stage = getattr(args, kind, None)
         options = key_values(getattr(args, f"{kind}_option", None) or [], f"--{kind}-option")
+        if "name" in options:  # it would replace the stage named, past the track check
+            raise VPRBenchError(f"--{kind}-option name={options['name']} would replace the stage; give the stage "
+                                f"with --{kind} STAGE.")
         if getattr(args, size, None) is not None:
+            flag = f"--{size.replace('_', '-')}"
+            if name in options and options[name] != getattr(args, size):
+                raise VPRBenchError(f"{flag} {getattr(args, size)} and --{kind}-option {name}={options[name]} "
+                                    f"disagree; give {name} once.")
             options[name] = getattr(args, size)
         if stage is None:
             if options:

@@ -47,6 +47,8 @@ def run_reproduce(args) -> int:
 
     resolve_locations(args)
     refuse_changes(args)
+    if args.publish and not args.dry_run:  # a folder that cannot be made is said before the cells run, not after
+        args.publish.mkdir(parents=True, exist_ok=True)
     settings = run_settings(args)
     spec, table_cells_ = table_cells(args.paper, args.table, settings=explicit_run_options(args),
                                      data_dir=settings.data_dir, cache_dir=settings.cache_dir)
@@ -186,7 +188,6 @@ def publish(args, spec: dict, rendered, settings) -> None:
     from .. import leaderboard
     from ..errors import VPRBenchError
 
-    args.publish.mkdir(parents=True, exist_ok=True)
     capture = RichConsole(record=True, width=200, markup=False)
     capture.print(rendered)
     page = args.publish / f"{args.paper}-table-{args.table}.md"

@@ -138,7 +138,6 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
     """
     from ..stages.sequence.search import COMPARES
     from .base import Method
-    from .checks import device
 
     entry = method_entry(name)
     given = {k: v for k, v in options.items() if v is not None}
@@ -153,13 +152,7 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
     if "device" not in accepted:  # a method without a device runs where it runs
         merged.pop("device", None)
         given.pop("device", None)
-    if "batch_size" in merged:
-        merged["batch_size"] = whole(name, "batch_size", merged["batch_size"], 1, what="images per batch")
-        if merged["batch_size"] > MAX_BATCH_SIZE:
-            raise VPRBenchError(f"{name}: option batch_size takes at most {MAX_BATCH_SIZE} images per batch; "
-                                f"got {merged['batch_size']}.")
-    if merged.get("device") is not None:  # before a plugin loads its weights
-        merged["device"] = device(name, merged["device"])
+    merged = checked_run_options(name, merged)  # before a plugin loads its weights
     takes = entry.factory_options()
     arguments = {k: v for k, v in merged.items() if k in takes}
     for location, folder in (("cache_dir", cache_dir), ("data_dir", data_dir)):
@@ -180,3 +173,19 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
     method.options = {k: v for k, v in given.items() if k not in ("device", "batch_size")}
     method.settings = {k: v for k, v in merged.items() if k not in ("device", "batch_size")}
     return method
+
+
+def checked_run_options(name: str, options: dict) -> dict:
+    """`options` with the run settings every method takes, batch_size and device, checked (a plan
+    checks its entries with this before any cell runs)."""
+    from .checks import device
+
+    options = dict(options)
+    if "batch_size" in options:
+        options["batch_size"] = whole(name, "batch_size", options["batch_size"], 1, what="images per batch")
+        if options["batch_size"] > MAX_BATCH_SIZE:
+            raise VPRBenchError(f"{name}: option batch_size takes at most {MAX_BATCH_SIZE} images per batch; "
+                                f"got {options['batch_size']}.")
+    if options.get("device") is not None:
+        options["device"] = device(name, options["device"])
+    return options

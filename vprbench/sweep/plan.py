@@ -28,12 +28,13 @@ evaluation is; options given on the command line override the plan's.
 from __future__ import annotations
 
 import re
+import reprlib
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import VPRBenchError, closest_names
-from ..spec import RUN_SETTINGS, RunSpec, resolve_spec
+from ..spec import RUN_SETTINGS, RunSettings, RunSpec, resolve_spec
 
 PLAN_KEYS = {"name", "description", "k", "methods", "datasets", "search", "store_dtype", "stages"}
 METHOD_KEYS = {"name", "options", "label", "stages"}
@@ -92,6 +93,8 @@ def read_plan(path: str | Path, *, overrides: dict | None = None, data_dir=None,
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise VPRBenchError(f"Plan {path} is not valid TOML: {error}") from None
+    except RecursionError:  # tomllib parses nested arrays and tables recursively
+        raise VPRBenchError(f"Plan {path} nests arrays or tables too deeply to be read; check its brackets.") from None
     return build_plan(data, str(path), _line_index(text), overrides=overrides, data_dir=data_dir,
                       cache_dir=cache_dir, default_name=path.stem)
 
@@ -106,6 +109,7 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, overrides:
     from ..datasets import dataset_manifests, is_path
     from ..datasets.protocol import protocols
     from ..methods import available_methods
+    from ..methods.registry import checked_run_options
 
     lines, overrides = lines or {}, dict(overrides or {})
     problems: list[str] = []
@@ -125,8 +129,8 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, overrides:
         for key in sorted(set(entry) - METHOD_KEYS):
             problems.append(f"{where('methods', i, key)}: method entry {i + 1} has unknown key {key!r} (allowed: {', '.join(sorted(METHOD_KEYS))})")
         name = entry.get("name")
-        if name not in known_methods:
-            problems.append(f"{where('methods', i, 'name')}: unknown method {name!r}.{closest_names(str(name), known_methods)}"
+        if not isinstance(name, str) or name not in known_methods:
+            problems.append(f"{where('methods', i, 'name')}: unknown method {reprlib.repr(name)}.{closest_names(str(name), known_methods)}"
                             " Run 'vprbench methods list'.")
             continue
         options = entry.get("options", {})
@@ -140,6 +144,10 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, overrides:
         for option in sorted(set(options) - set(accepted) - set(RUN_SETTINGS)):
             problems.append(f"{where('methods', i, 'options')}: method {name!r} does not take option {option!r}."
                             f"{closest_names(option, accepted)} (It accepts: {', '.join(accepted) or 'none'}.)")
+        try:  # run settings' values too, so a bad batch_size stops the plan, not each of its cells
+            RunSettings().with_options(checked_run_options(name, options))
+        except VPRBenchError as error:
+            problems.append(f"{where('methods', i, 'options')}: {error}")
         stages = overrides.get("stages") or entry.get("stages", data.get("stages", []))
         if not isinstance(stages, list):
             problems.append(f"{where('methods', i, 'stages')}: stages of method {name!r} must be a list of tables, "
@@ -154,18 +162,23 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, overrides:
             problems.append(f"{where('datasets', i, key)}: dataset entry {i + 1} has unknown key {key!r} (allowed: {', '.join(sorted(DATASET_KEYS))})")
         name = str(entry.get("name"))
         wanted = entry.get("protocols", [entry["protocol"]] if "protocol" in entry else [overrides.get("protocol")])
-        if is_path(name):
-            datasets.append((i, name, overrides.get("protocol")))
+        if not isinstance(wanted, list) or not all(isinstance(p, str) or p is None for p in wanted):
+            key, kind = ("protocols", "a list of names, e.g. ['vpr-bench']") if "protocols" in entry else ("protocol", "a name")
+            problems.append(f"{where('datasets', i, key)}: {key} of dataset {reprlib.repr(name)} must be {kind}; "
+                            f"got {reprlib.repr(entry[key])}")
+            continue
+        if is_path(name):  # a folder's protocols are checked when it is read, making its cells
+            datasets.extend((i, name, protocol) for protocol in wanted)
             continue
         if name not in manifests:
-            problems.append(f"{where('datasets', i, 'name')}: unknown dataset {name!r}.{closest_names(name, manifests)}"
+            problems.append(f"{where('datasets', i, 'name')}: unknown dataset {reprlib.repr(name)}.{closest_names(name, manifests)}"
                             " Run 'vprbench datasets list'.")
             continue
         known = protocols(manifests[name])
         for protocol in wanted:
             if protocol is not None and protocol not in known and protocol != "default":
                 problems.append(f"{where('datasets', i, 'protocols' if 'protocols' in entry else 'protocol')}: dataset {name!r} "
-                                f"has no protocol {protocol!r}; its protocols: {', '.join(known)}")
+                                f"has no protocol {reprlib.repr(protocol)}; its protocols: {', '.join(known)}")
             else:
                 datasets.append((i, name, protocol))
 
