@@ -1,8 +1,11 @@
 """Counts and quantities in words: '1 frame', '0 frames', '2 queries', '25 metres'; text from data
-made safe for a terminal."""
+made safe for a terminal; a user's TOML text read with a one-line error."""
 from __future__ import annotations
 
 import re
+import tomllib
+
+from .errors import VPRBenchError
 
 #: plurals that are not the word + "s"
 IRREGULAR = {"query": "queries"}
@@ -39,3 +42,14 @@ def literal(text) -> str:
     escape ('\\x1b'), so a name or path holding one is seen, never acted on (a title set, a
     screen cleared, a line overwritten)."""
     return CONTROL.sub(lambda found: f"\\x{ord(found.group()):02x}", str(text))
+
+
+def toml_data(text: str, what: str) -> dict:
+    """A user's TOML text (a plan, a dataset.toml) parsed; invalid, or nested too deeply to parse,
+    it is a VPRBenchError naming `what` (e.g. "Plan p.toml"), never a traceback."""
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise VPRBenchError(f"{what} is not valid TOML: {error}") from None
+    except RecursionError:  # tomllib parses nested arrays and tables recursively
+        raise VPRBenchError(f"{what} nests arrays or tables too deeply to be read; check its brackets.") from None

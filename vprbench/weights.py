@@ -142,6 +142,10 @@ def local_weights(source: WeightSource, weights: str | Path, what: str) -> Path:
     path = Path(weights).expanduser()
     if path.is_dir():
         path = path / source.file_name
+    if not path.is_file() and str(weights) == "random":  # AnyLoc's backbones and some stages take it before here
+        raise VPRBenchError(f"{what}: weights 'random' (random initialisation) are only for AnyLoc backbones and "
+                            "the stages that take them; pass a weights file in the official format instead: "
+                            f"{source.how_to_get()}.")
     if not path.is_file():
         raise VPRBenchError(f"{what}: weights file {path} does not exist; {source.how_to_get()}.")
     return path

@@ -226,7 +226,7 @@ def test_frames_report_their_radius_in_frames(own, cli):
     ("name = 5", "name must be a non-empty string; got 5"),
     ('name = ""', "name must be a non-empty string"),
     ("title = [1]", "title must be a string; got [1]"),
-    ("radius = 1\nradius = 2", "Cannot read"),
+    ("radius = 1\nradius = 2", "is not valid TOML: Cannot overwrite a value (at line 2, column 11)"),
     ("colour = 'red'", "unknown key(s) ['colour']"),
 ])
 def test_bad_dataset_toml_is_named(own, toml, message, cli):

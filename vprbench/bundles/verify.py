@@ -2,7 +2,7 @@
 
 The archive is read into memory member by member, never extracted: a member must be a regular
 file whose name is one of the bundle's own (a protocol hash, a row key and a run id, or a method
-card), so no path can climb out of a folder; the bytes read are bounded (an archive bomb stops at
+card; folder entries are passed over), so no path can climb out of a folder; the bytes read are bounded (an archive bomb stops at
 the bound); the manifest's sha256 sums must match every file, and list every file.
 
 Each record is then validated (a record of a newer schema is refused), the names it gives must be
@@ -86,12 +86,14 @@ def read_members(path: Path, max_bytes: int = MAX_BYTES) -> dict[str, bytes]:
         members: dict[str, bytes] = {}
         try:
             with tarfile.open(fileobj=io.BufferedReader(stream), mode="r|") as archive:
-                for info in archive:
+                for count, info in enumerate(archive):
+                    if count >= MAX_MEMBERS:  # folder entries too: tarfile keeps every entry it reads
+                        raise BundleError(f"{where}: more than {MAX_MEMBERS} members.")
                     name = _member_name(info, where)
+                    if name is None:  # a folder entry ('tar czf' writes them): nothing to read or trust
+                        continue
                     if name in members:
                         raise BundleError(f"{where}: member {name} appears twice.")
-                    if len(members) >= MAX_MEMBERS:
-                        raise BundleError(f"{where}: more than {MAX_MEMBERS} members.")
                     if info.size > max_bytes:
                         raise BundleError(f"{where}: member {name} claims {info.size} bytes, over the bound of "
                                           f"{max_bytes / 2**20:g} MiB (an archive bomb, or a bundle too big: "
@@ -103,11 +105,15 @@ def read_members(path: Path, max_bytes: int = MAX_BYTES) -> dict[str, bytes]:
     return members
 
 
-def _member_name(info: tarfile.TarInfo, where: str) -> str:
+def _member_name(info: tarfile.TarInfo, where: str) -> str | None:
+    """A member's bundle name ('./' dropped), None for a folder entry; else a BundleError."""
     name = info.name
     parts = PurePosixPath(name).parts
     if name.startswith(("/", "\\")) or ".." in parts or "\\" in name or re.match(r"^[A-Za-z]:", name):
         raise BundleError(f"{where}: member {name!r} escapes the folder it would be written to; refused.")
+    if info.isdir():  # nothing is ever extracted: a folder entry inside the bundle is harmless, and ignored
+        return None
+    name = "/".join(parts)  # PurePosixPath drops '.' parts and repeated slashes
     if not info.isreg():
         raise BundleError(f"{where}: member {name!r} is a {'link' if info.issym() or info.islnk() else 'special file'}, "
                           "not a regular file; refused.")

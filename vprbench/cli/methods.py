@@ -5,6 +5,7 @@ import json
 
 from rich.table import Table
 
+from ..errors import VPRBenchError
 from ..methods import available_methods
 from .console import console
 
@@ -21,18 +22,28 @@ def add_parsers(commands) -> None:
 
 
 def run_list(args) -> int:
-    entries = available_methods().values()
+    entries = [(e, *_options(e)) for e in available_methods().values()]
     if args.json:
-        print(json.dumps([{"name": e.name, "description": e.description, "source": e.source,
-                           "defaults": e.defaults, "options": e.options()} for e in entries], indent=2, default=str))
+        print(json.dumps([{"name": e.name, "description": e.description, "source": e.source, "defaults": e.defaults,
+                           "options": options, **({"unloadable": problem} if problem else {})}
+                          for e, options, problem in entries], indent=2, default=str))
         return 0
     table = Table(title="Methods")
     for column in ("name", "from", "description"):
         table.add_column(column)
-    for e in entries:
-        table.add_row(e.name, e.source, e.description)
+    for e, _, problem in entries:
+        table.add_row(e.name, e.source, f"UNLOADABLE: {problem}" if problem else e.description)
     console().print(table)
     return 0
+
+
+def _options(entry) -> tuple[list | None, str | None]:
+    """(the method's options, None), or (None, why it cannot be loaded): one broken registration
+    is marked in the list, not the end of it."""
+    try:
+        return entry.options(), None
+    except VPRBenchError as error:
+        return None, str(error)
 
 
 def run_backbones(args) -> int:

@@ -35,20 +35,32 @@ def run_list(args) -> int:
 
     from ..stages import available_stages
 
-    entries = [(e, e.cls) for e in available_stages().values()]
+    entries = [_listed(e) for e in available_stages().values()]
     if args.json:
-        print(json.dumps([{"name": e.name, "track": cls.track, "description": e.description or cls.description,
-                           "source": e.source, "options": cls.Options().model_dump(mode="json")}
-                          for e, cls in entries], indent=2))
+        print(json.dumps(entries, indent=2))
         return 0
     table = Table(title="Stages")
     for column in ("name", "track", "from", "options (defaults)", "description"):
         table.add_column(column)
-    for e, cls in entries:
-        options = " ".join(f"{k}={v}" for k, v in cls.Options().model_dump(mode="json").items())
-        table.add_row(e.name, cls.track, e.source, options, e.description or cls.description)
+    for e in entries:
+        options = " ".join(f"{k}={v}" for k, v in (e["options"] or {}).items())
+        description = f"UNLOADABLE: {e['unloadable']}" if "unloadable" in e else e["description"]
+        table.add_row(e["name"], e["track"] or "?", e["source"], options, description)
     console().print(table)
     return 0
+
+
+def _listed(entry) -> dict:
+    """A stage as listed; one that cannot be loaded is marked with why, not the end of the list."""
+    from ..errors import VPRBenchError
+
+    try:
+        cls = entry.cls
+    except VPRBenchError as error:
+        return {"name": entry.name, "track": None, "description": entry.description, "source": entry.source,
+                "options": None, "unloadable": str(error)}
+    return {"name": entry.name, "track": cls.track, "description": entry.description or cls.description,
+            "source": entry.source, "options": cls.Options().model_dump(mode="json")}
 
 
 def run_export(args) -> int:

@@ -12,13 +12,13 @@ the factory's import path ("my_package.model:MyMethod") so listing methods stays
 """
 from __future__ import annotations
 
-import importlib
 import inspect
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
 
 from ..errors import VPRBenchError, closest_names
+from ..registration import check_name, claim, imported, run_plugins, source_of
 from .checks import whole
 
 ENTRY_POINT_GROUP = "vprbench.methods"
@@ -38,14 +38,7 @@ class MethodEntry:
 
     @property
     def factory(self) -> Callable:
-        found = self.target
-        if isinstance(self.target, str):
-            module, _, attribute = self.target.partition(":")
-            try:
-                found = getattr(importlib.import_module(module), attribute)
-            except (ImportError, AttributeError) as error:
-                raise VPRBenchError(f"Method {self.name!r} ({self.source}) cannot be loaded from {self.target}: "
-                                    f"{error}") from None
+        found = imported("Method", self.name, self.source, self.target)
         if not callable(found):
             raise VPRBenchError(f"Method {self.name!r} ({self.source}) is registered with {self.target!r}, which is "
                                 "not a class or function returning a vprbench.Method; fix the plugin.")
@@ -79,18 +72,10 @@ def register_method(
     `factory(**options)` returns a `Method` (or give its import path, "module:attribute");
     `defaults` are the preset's options, which the user's options override.
     """
-    if not name or name != name.strip().lower() or " " in name:
-        raise ValueError(f"Method names are lower-case without spaces, got {name!r}")
-    if source is None:
-        module = factory.partition(":")[0] if isinstance(factory, str) else getattr(factory, "__module__", "") or ""
-        source = module.split(".")[0] or "unknown"
-    entry = MethodEntry(name, factory, dict(defaults or {}), description, source)
+    check_name("Method", name)
+    entry = MethodEntry(name, factory, dict(defaults or {}), description, source or source_of(factory))
     _load_plugins()  # the core's and installed plugins' names are taken before any other registers
-    taken = _REGISTRY.get(name)
-    if taken is not None and taken != entry:  # replacing it would record another method's results under its name
-        raise ValueError(f"Method name {name!r} is taken (registered by {taken.source}); register yours under "
-                         "another name")
-    _REGISTRY[name] = entry
+    claim(_REGISTRY, "Method", entry)
 
 
 def _load_plugins() -> None:
@@ -102,14 +87,7 @@ def _load_plugins() -> None:
 
     for entry in core_methods():
         register_method(**entry)
-    for ep in entry_points(group=ENTRY_POINT_GROUP):
-        try:
-            register = ep.load()
-            register()
-        except (Exception, SystemExit) as error:  # a broken plugin (sys.exit too) must not take the suite down
-            import warnings
-
-            warnings.warn(f"Method plugin {ep.name!r} ({ep.value}) failed to load: {error}", stacklevel=2)
+    run_plugins("Method", entry_points(group=ENTRY_POINT_GROUP))
 
 
 def available_methods() -> dict[str, MethodEntry]:

@@ -10,13 +10,13 @@ where `my_package.register()` calls `vprbench.stages.register_stage("my-stage", 
 """
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass
 from importlib.metadata import entry_points
 
 from pydantic import ValidationError
 
 from ..errors import VPRBenchError, closest_names
+from ..registration import check_name, claim, imported, run_plugins, source_of
 
 ENTRY_POINT_GROUP = "vprbench.stages"
 
@@ -32,14 +32,7 @@ class StageEntry:
     def cls(self) -> type:
         from .base import Stage
 
-        found = self.target
-        if isinstance(found, str):
-            module, _, attribute = found.partition(":")
-            try:
-                found = getattr(importlib.import_module(module), attribute)
-            except (ImportError, AttributeError) as error:
-                raise VPRBenchError(f"Stage {self.name!r} ({self.source}) cannot be loaded from {self.target}: "
-                                    f"{error}") from None
+        found = imported("Stage", self.name, self.source, self.target)
         if not (isinstance(found, type) and issubclass(found, Stage)):
             raise VPRBenchError(f"Stage {self.name!r} ({self.source}) is not a vprbench Stage class; fix the plugin.")
         return found
@@ -50,13 +43,12 @@ _plugins_loaded = False
 
 
 def register_stage(name: str, target: type | str, *, description: str = "", source: str | None = None) -> None:
-    """Make `name` available to `--rerank name` / `--sequence name` and plans' `stages`."""
-    if not name or name != name.strip().lower() or " " in name:
-        raise ValueError(f"Stage names are lower-case without spaces, got {name!r}")
-    if source is None:
-        module = target.partition(":")[0] if isinstance(target, str) else target.__module__
-        source = module.split(".")[0] or "unknown"
-    _REGISTRY[name] = StageEntry(name, target, description, source)
+    """Make `name` available to `--rerank name` / `--sequence name` and plans' `stages`; a name
+    already taken by another stage is refused (ValueError naming who registered it)."""
+    check_name("Stage", name)
+    entry = StageEntry(name, target, description, source or source_of(target))
+    _load_plugins()  # the core's and installed plugins' names are taken before any other registers
+    claim(_REGISTRY, "Stage", entry)
 
 
 def core_stages() -> list[dict]:
@@ -83,13 +75,7 @@ def _load_plugins() -> None:
     _plugins_loaded = True
     for entry in core_stages():
         register_stage(**entry, source="vprbench")
-    for ep in entry_points(group=ENTRY_POINT_GROUP):
-        try:
-            ep.load()()
-        except Exception as error:  # a broken plugin must not take the others down
-            import warnings
-
-            warnings.warn(f"Stage plugin {ep.name!r} ({ep.value}) failed to load: {error}", stacklevel=2)
+    run_plugins("Stage", entry_points(group=ENTRY_POINT_GROUP))
 
 
 def available_stages() -> dict[str, StageEntry]:

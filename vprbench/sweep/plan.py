@@ -29,12 +29,12 @@ from __future__ import annotations
 
 import re
 import reprlib
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import VPRBenchError, closest_names
 from ..spec import RUN_SETTINGS, RunSettings, RunSpec, resolve_spec
+from ..text import toml_data
 
 PLAN_KEYS = {"name", "description", "k", "methods", "datasets", "search", "store_dtype", "stages"}
 METHOD_KEYS = {"name", "options", "label", "stages"}
@@ -89,12 +89,7 @@ def read_plan(path: str | Path, *, overrides: dict | None = None, data_dir=None,
         raise VPRBenchError(f"Cannot read plan {path}: {error.strerror or error}.") from None
     except UnicodeDecodeError:
         raise VPRBenchError(f"Plan {path} is not a UTF-8 text file.") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as error:
-        raise VPRBenchError(f"Plan {path} is not valid TOML: {error}") from None
-    except RecursionError:  # tomllib parses nested arrays and tables recursively
-        raise VPRBenchError(f"Plan {path} nests arrays or tables too deeply to be read; check its brackets.") from None
+    data = toml_data(text, f"Plan {path}")
     return build_plan(data, str(path), _line_index(text), overrides=overrides, data_dir=data_dir,
                       cache_dir=cache_dir, default_name=path.stem)
 

@@ -15,7 +15,6 @@ an image that is not in database/ or queries/ a warning.
 from __future__ import annotations
 
 import re
-import tomllib
 import warnings
 from pathlib import Path
 
@@ -23,7 +22,7 @@ import numpy as np
 
 from ...errors import VPRBenchError
 from ...images import IMAGE_SUFFIXES, list_images
-from ...text import CONTROL
+from ...text import CONTROL, toml_data
 from ..manifest import DatasetManifest
 from ..model import GroundTruth
 from . import climbs_out, from_manifest, layout, require
@@ -179,9 +178,10 @@ def own_manifest(root: Path) -> DatasetManifest:
     settings, toml = {}, root / "dataset.toml"
     if toml.is_file():
         try:
-            settings = tomllib.loads(toml.read_text(encoding="utf-8"))
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
+            text = toml.read_text(encoding="utf-8")
+        except UnicodeDecodeError as error:
             raise VPRBenchError(f"Cannot read {toml}: {error}. It must be a UTF-8 TOML file.") from None
+        settings = toml_data(text, str(toml))
     allowed = {"name", "title", "radius", "domain", "citation", "licence"}
     if set(settings) - allowed:
         raise VPRBenchError(f"{toml}: unknown key(s) {sorted(set(settings) - allowed)}; allowed: {sorted(allowed)}")

@@ -1,0 +1,52 @@
+"""What the method and stage registries share: the name rule, who registered an entry, loading
+an entry's import path, and the one rule for names and plugins: a taken name is never replaced
+(its results would be recorded under another's name), and an installed plugin that fails to
+load is a warning, skipped, never the end of the command."""
+from __future__ import annotations
+
+import importlib
+import warnings
+
+from .errors import VPRBenchError
+
+
+def check_name(kind: str, name) -> None:
+    """`name` is lower-case text without spaces; `kind` is "Method" or "Stage"."""
+    if not isinstance(name, str) or not name or name != name.strip().lower() or " " in name:
+        raise ValueError(f"{kind} names are lower-case without spaces, got {name!r}")
+
+
+def source_of(target) -> str:
+    """Who registers `target` (an object, or its import path "module:attribute"): its top package."""
+    module = target.partition(":")[0] if isinstance(target, str) else getattr(target, "__module__", "") or ""
+    return module.split(".")[0] or "unknown"
+
+
+def claim(registry: dict, kind: str, entry) -> None:
+    """`entry` put under its name in `registry`, unless a different entry holds that name."""
+    taken = registry.get(entry.name)
+    if taken is not None and taken != entry:
+        raise ValueError(f"{kind} name {entry.name!r} is taken (registered by {taken.source}); register yours under "
+                         "another name")
+    registry[entry.name] = entry
+
+
+def run_plugins(kind: str, found) -> None:
+    """Call the register function of every entry point in `found`; one that fails is skipped."""
+    for ep in found:
+        try:
+            ep.load()()
+        except (Exception, SystemExit) as error:  # a broken plugin (sys.exit too) must not take the suite down
+            warnings.warn(f"{kind} plugin {ep.name!r} ({ep.value}) failed to load: {error}", stacklevel=3)
+
+
+def imported(kind: str, name: str, source: str, target):
+    """`target` itself, or the object its import path "module:attribute" names."""
+    if not isinstance(target, str):
+        return target
+    module, _, attribute = target.partition(":")
+    try:
+        return getattr(importlib.import_module(module), attribute)
+    except (Exception, SystemExit) as error:  # a module that raises or exits when imported, as a plugin may
+        raise VPRBenchError(f"{kind} {name!r} ({source}) cannot be loaded from {target}: "
+                            f"{error or type(error).__name__}") from None
