@@ -15,8 +15,20 @@ def closest_names(name: str, choices, n: int = 3) -> str:
     """' Did you mean: a, b?' for the names closest to `name`, or '' when none is close."""
     import difflib
 
-    close = difflib.get_close_matches(name, list(choices), n=n, cutoff=0.5)
+    if not isinstance(name, str):  # a name of the wrong type (None, a number, a list) is simply unknown
+        return ""
+    close = difflib.get_close_matches(name, [c for c in choices if isinstance(c, str)], n=n, cutoff=0.5)
     return f" Did you mean: {', '.join(close)}?" if close else ""
+
+
+def require(value, kind, what: str) -> None:
+    """A VPRBenchError unless `value` is a `kind`: for the Python API's arguments, checked on entry
+    so a wrong type is one line naming the argument (`what` says which, and what to pass), not an
+    AttributeError from deep inside."""
+    if not isinstance(value, kind):
+        import reprlib
+
+        raise VPRBenchError(f"{what}; got {type(value).__name__} {reprlib.repr(value)}.")
 
 
 # ---------------------------------------------------------------- operating-system errors

@@ -20,9 +20,29 @@ def default_cache() -> Path:
     return Path(pooch.os_cache("vprbench"))
 
 
+def folder_path(value, option: str) -> Path | None:
+    """A folder argument of the Python API (`cache_dir`, `data_dir`, ...) as a Path; None stays None.
+    Anything but a non-empty str or path is refused: Path('') would be the current folder."""
+    if value is None or isinstance(value, Path):
+        return value if value is None else value.expanduser()
+    if not isinstance(value, (str, os.PathLike)) or not os.fspath(value):
+        from .errors import VPRBenchError
+
+        raise VPRBenchError(f"{option} takes a folder path (a str or pathlib.Path), or None for the default; "
+                            f"got {type(value).__name__} {value!r}.")
+    return Path(value).expanduser()
+
+
 def cache_root(cache_dir: str | Path | None = None) -> Path:
-    """`cache_dir`, else the user cache folder."""
-    return default_cache() if cache_dir is None else Path(cache_dir).expanduser()
+    """`cache_dir`, else the user cache folder; a cache folder that is a file is refused (reading
+    it would find nothing, silently)."""
+    root = default_cache() if cache_dir is None else folder_path(cache_dir, "cache_dir")
+    if root.exists() and not root.is_dir():
+        from .errors import VPRBenchError
+
+        raise VPRBenchError(f"The cache folder {root} (cache_dir) is a file, not a folder: give the folder "
+                            "vprbench keeps its stores and results in.")
+    return root
 
 
 def environment_folder(given: str | None, variable: str) -> str | None:

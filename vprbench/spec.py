@@ -1,7 +1,7 @@
 """What a run is: the one specification every route evaluates, and the one hash that names it.
 
 A single `vprbench evaluate`, a matrix, a plan, `reproduce`, torchrun and the Python API all
-build a `RunSpec` with `resolve_spec` and hand it to `vprbench.evaluate`. The spec holds
+build a `RunSpec` with `resolve_spec` and hand it to `vprbench.evaluation.evaluate`. The spec holds
 everything that decides a result:
 
     method + its resolved options    (preset defaults overridden by the options given)
@@ -24,12 +24,15 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
+from collections.abc import Iterable, Mapping
+from numbers import Real
 from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, ValidationError, field_validator, model_serializer
 
-from .errors import VPRBenchError, closest_names
+from .errors import VPRBenchError, closest_names, require
 from .hashing import canonical_hash, canonical_json
 
 #: version of the spec's shape; a spec from a newer vprbench is refused
@@ -199,7 +202,8 @@ def _show(value) -> str:
 class RunSettings:
     """How a run goes, not what it computes; also where its data and cache are. Library code
     gets both folders from here (None: the user cache, the default data root), never from the
-    environment. The batch size is checked, with the method's name, when the method is created."""
+    environment. The batch size and device are checked, with the method's name, when the method is
+    created (or, for a method given already built, when the run starts)."""
 
     cache_dir: Path | None = None
     data_dir: Path | None = None
@@ -215,13 +219,17 @@ class RunSettings:
     candidates: Path | None = None
 
     def __post_init__(self):
-        from .methods.checks import number, whole
+        from .methods.checks import flag, number, whole
+        from .paths import folder_path
         from .row_sources import parse_memory
 
-        for name in ("cache_dir", "data_dir", "candidates"):
-            value = getattr(self, name)
-            if value is not None and not isinstance(value, Path):
-                object.__setattr__(self, name, Path(value).expanduser())
+        for name in ("cache_dir", "data_dir"):
+            object.__setattr__(self, name, folder_path(getattr(self, name), name))
+        if self.candidates is not None:
+            require(self.candidates, (str, os.PathLike), "candidates takes the path of an exported candidates file")
+            object.__setattr__(self, "candidates", Path(self.candidates).expanduser())
+        object.__setattr__(self, "download", flag("run", "download", self.download, "only into the default data root"))
+        object.__setattr__(self, "strict", flag("run", "strict", self.strict))
         if self.workers is not None:
             object.__setattr__(self, "workers", whole("run", "workers", self.workers, 0, what="loader processes"))
         if self.memory_budget is not None:
@@ -259,10 +267,15 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
     `RunSettings` (`RunSettings.with_options` picks them out of a plan entry). `dataset` is a
     benchmark name, a folder of one's own, or a `Dataset` already loaded (its protocol is used).
     """
+    from .methods.base import Method
     from .methods.registry import method_entry
 
+    if isinstance(method, Method):
+        raise VPRBenchError(f"resolve_spec takes a method's name; for the method object {method.name or method!r} "
+                            "already created, use vprbench.spec.spec_for(method, dataset).")
+    require(method, str, "resolve_spec's method takes a method's name, e.g. 'hog' (see 'vprbench methods list')")
     entry = method_entry(method)
-    given = {k: v for k, v in (options or {}).items() if v is not None and k not in RUN_SETTINGS}
+    given = given_options(options)
     accepted = [o for o in entry.options() if o not in RUN_SETTINGS]
     unknown = sorted(set(given) - set(accepted))
     if unknown:
@@ -274,6 +287,9 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
         merged = plain({**{k: v for k, v in entry.defaults.items() if k not in RUN_SETTINGS}, **given})
     except (TypeError, ValueError) as error:
         raise VPRBenchError(f"Method {method!r}: an option is not plain data ({error}).") from None
+    if isinstance(stages, (str, dict, StageSpec)):  # one stage, not a list of its characters or keys
+        stages = [stages]
+    require(stages or (), (list, tuple), "stages takes a list of stages, e.g. ['aqe'] or [{'name': 'sift-ransac', 'k': 100}]")
     ks, stages = check_ks(ks), tuple(resolve_stage(s) for s in stages or ())
     check_stage_depths(stages, ks)
     data = resolve_dataset(dataset, protocol, data_dir, cache_dir)
@@ -289,10 +305,21 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
                    stages=stages, ks=ks, store_dtype=_choice("--store-dtype", store_dtype, STORE_DTYPES))
 
 
+def given_options(options) -> dict:
+    """The options given that are part of a spec: None (unset) and run settings left out."""
+    require(options or {}, dict, "options takes a dict of option name -> value, e.g. {'resize': [64, 64]}")
+    names = [k for k in options or {} if not isinstance(k, str)]
+    if names:
+        raise VPRBenchError(f"Option names are text, e.g. {{'resize': [64, 64]}}; got {names[0]!r}.")
+    return {k: v for k, v in (options or {}).items() if v is not None and k not in RUN_SETTINGS}
+
+
 def spec_for(method, dataset, **parts) -> RunSpec:
     """The spec of evaluating an already created method (its name and the options it was given)
     on `dataset` (a name, a folder or a `Dataset`): the Python API's way to `resolve_spec`."""
-    return resolve_spec(method.name, dataset, options=dict(getattr(method, "options", {}) or {}), **parts)
+    from .methods.objects import created_as
+
+    return resolve_spec(created_as(method), dataset, options=dict(getattr(method, "options", {}) or {}), **parts)
 
 
 def _file_identities(method: str, given: dict) -> dict[str, str]:
@@ -407,7 +434,9 @@ def check_ks(ks) -> tuple[int, ...]:
     database size, checked when the data is read)."""
     if ks is None:
         return DEFAULT_KS
-    values = [ks] if isinstance(ks, (int, str)) else list(ks)
+    if isinstance(ks, (Mapping, bytes)) or not isinstance(ks, (Real, str, Iterable)):
+        raise VPRBenchError(f"--k (ks) takes whole numbers >= 1 in a list, e.g. [1, 5, 10]; got {ks!r}.")
+    values = [ks] if isinstance(ks, (Real, str)) else list(ks)
     found = []
     for value in values:
         for part in str(value).split(","):

@@ -1,6 +1,6 @@
 """vprbench evaluate / describe.
 
-`evaluate` builds one run spec per method x dataset and calls `vprbench.evaluate` for each: one
+`evaluate` builds one run spec per method x dataset and calls `vprbench.evaluation.evaluate` for each: one
 spec runs (and prints) at once, under torchrun too; several are a sweep (claimed, resumable,
 shared by processes). Every option means the same either way.
 """

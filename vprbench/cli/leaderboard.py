@@ -34,6 +34,7 @@ def run(args) -> int:
 
     from ..evaluation import read_results
     from ..leaderboard import build_board, grid, publish, render
+    from ..leaderboard.stats import check_k_and_seed
 
     resolve_locations(args)
     for flag, value, action in (("--to", args.to, "publish"), ("--dataset", args.dataset, "compare"),
@@ -41,10 +42,7 @@ def run(args) -> int:
         if value is not None and args.action != action:  # ignored, it would let a user think it took effect
             raise VPRBenchError(f"{flag} is for 'leaderboard {action}'; 'leaderboard {args.action}' does not use it: "
                                 "drop it.")
-    args.k = 1 if args.k is None else args.k
-    if args.k < 1 or args.seed < 0:
-        raise VPRBenchError(f"--k takes a whole number >= 1 (the K of Recall@K compared) and --seed one >= 0 (the "
-                            f"bootstrap's); got --k {args.k} --seed {args.seed}.")
+    args.k, args.seed = check_k_and_seed(1 if args.k is None else args.k, args.seed)  # before any record is read
     if args.results is not None and args.action != "publish":
         raise VPRBenchError("--results DIR is for 'leaderboard publish' (it builds the site from a results repository).")
     if args.action == "publish":

@@ -1,9 +1,10 @@
 """Datasets: manifests + layout readers -> `Dataset` (images, ground truth, provenance)."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
-from ..errors import VPRBenchError
+from ..errors import VPRBenchError, require
 from .download import download, how_to_get
 from .layouts import read_layout
 from .layouts.own_data import own_manifest
@@ -44,6 +45,14 @@ def load_dataset(name: str, data_dir=None, *, fetch: bool | None = None, strict:
     (--data-dir, $VPRBENCH_DATA) nor to an imported copy's place; with False never.
     `cache_dir` is where image identities are remembered (a folder's own protocol names them).
     """
+    from ..methods.checks import flag
+
+    if isinstance(name, os.PathLike):  # a Path names a folder as its text does
+        name = os.fspath(name)
+    require(name, str, "load_dataset takes a dataset's name (see 'vprbench datasets list') or the path of a folder "
+                       "of your own")
+    fetch = flag("load_dataset", "fetch", fetch, "only into the default data root")  # 'no' would be truthy: a download
+    strict = flag("load_dataset", "strict", strict)
     if is_path(name):
         root = Path(name).expanduser()
         if root.exists() and not root.is_dir():

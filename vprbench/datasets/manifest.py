@@ -9,6 +9,7 @@ from importlib.resources import files
 from pathlib import Path
 
 from ..errors import VPRBenchError, closest_names
+from ..paths import folder_path
 
 
 @dataclass(frozen=True)
@@ -96,7 +97,7 @@ def default_data_root() -> Path:
 
 def data_root(data_dir: str | Path | None = None) -> Path:
     """`data_dir`, else the default data root (the command line reads $VPRBENCH_DATA for it)."""
-    return default_data_root() if data_dir is None else Path(data_dir).expanduser()
+    return default_data_root() if data_dir is None else folder_path(data_dir, "data_dir")
 
 
 def is_default_data_root(data_dir: str | Path | None = None) -> bool:

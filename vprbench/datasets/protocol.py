@@ -127,7 +127,7 @@ def find_protocol(manifest, name: str | None) -> Protocol:
     known = protocols(manifest)
     if name is None or name == DEFAULT:
         return next(iter(known.values()))
-    if name not in known:
+    if not isinstance(name, str) or name not in known:  # a list would be unhashable below
         raise VPRBenchError(
             f"Dataset {manifest.name!r} has no protocol {name!r}.{closest_names(name, known)} "
             f"Its protocols: {', '.join(known)} (see 'vprbench datasets info {manifest.name}')."

@@ -26,7 +26,7 @@ OPTIONS = {"ivf-pq": ("nlist", "pq_m", "nprobe", "train_rows", "shortlist", "rec
 def check_options(kind: str, options: dict) -> None:
     """Refuse (naming it) an option `kind` does not take, or a value that is not a whole number in
     its range (seed >= 0, every other >= 1): checked when the run is specified, before any work."""
-    unknown = sorted(set(options) - set(OPTIONS[kind]))
+    unknown = sorted(map(str, set(options) - set(OPTIONS[kind])))  # str: a name may be no text (5)
     if unknown:
         raise VPRBenchError(f"--index {kind} does not take {', '.join(unknown)}; its options: {', '.join(OPTIONS[kind])}.")
     for name, value in options.items():

@@ -11,8 +11,10 @@ import time
 from dataclasses import dataclass
 
 from ..distributed import Ranks
-from ..errors import VPRBenchError
+from ..errors import VPRBenchError, require
 from ..progress import phase
+from ..methods.objects import check_method
+from ..methods.registry import checked_run_options
 from ..spec import RunSettings, RunSpec
 from .extract import describe_splits
 from .identity import protocol_of
@@ -71,6 +73,16 @@ def stage_context(spec: RunSpec, settings: RunSettings, method, dataset, describ
                         device=str(getattr(method, "device", None) or resolve_device(settings.device)))
 
 
+def check_dataset(dataset, spec: RunSpec) -> None:
+    """A dataset given already built must be the spec's (its protocol)."""
+    from ..datasets import Dataset
+
+    require(dataset, Dataset, "dataset takes a vprbench Dataset (vprbench.datasets.load_dataset(name)), or None to "
+                              "load the spec's")
+    if protocol_of(dataset)["hash"] != spec.dataset.protocol_hash:
+        raise VPRBenchError(f"The dataset given is {protocol_of(dataset)['id']}, not the spec's {spec.dataset.protocol_id}.")
+
+
 @dataclass
 class Retrieved:
     """A run up to its candidates: what evaluate and `candidates export` share."""
@@ -90,17 +102,19 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
     """Load, describe (stores) and search (or read `settings.candidates`): the top candidates of
     `spec`'s retriever, as deep as its stages need (or `depth`). None on ranks other than 0."""
     ranks = ranks or Ranks()
+    if dataset is not None:  # before a method is built (it may load weights)
+        check_dataset(dataset, spec)
     if method is None:
         method = create_run_method(spec.method, spec.given, settings)  # options are checked before any data is touched
-    elif method.name != spec.method:
-        raise VPRBenchError(f"The method given is {method.name!r}, the spec's {spec.method!r}.")
+    else:
+        check_method(method, spec)
+        if settings.batch_size is not None:  # honoured (and checked) for a method given as for one created here
+            method.batch_size = checked_run_options(method.name, {"batch_size": settings.batch_size})["batch_size"]
     ranks.agree({"spec": spec.key, "cache": str(settings.cache_dir.resolve()) if settings.cache_dir else None,
                  "data": str(settings.data_dir) if settings.data_dir else None,
                  "memory_budget": settings.memory_budget}, "the run (spec, cache folder, data root)")
     if dataset is None:
         dataset = ranks.on_zero(lambda: load_data(spec, settings))  # fetched on first use by rank 0 alone
-    elif protocol_of(dataset)["hash"] != spec.dataset.protocol_hash:
-        raise VPRBenchError(f"The dataset given is {protocol_of(dataset)['id']}, not the spec's {spec.dataset.protocol_id}.")
     ks = check_ks(spec.ks, len(dataset.database), dataset.name)
     for stage in stages:
         stage.check(dataset)
@@ -145,12 +159,18 @@ def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None
 
     `settings` say how it runs and where the data and cache are (default: the user cache and the
     default data root). `dataset`/`method` may be given already built (e.g. a dataset made by
-    hand); they must be the spec's. Under torchrun (`ranks` from `Ranks.from_environment()`)
+    hand); they must be the spec's (a method its name, class and options: make the spec with
+    `spec_for(method, dataset)`; a dataset its protocol), and `settings.batch_size` applies to a
+    method given too. Under torchrun (`ranks` from `Ranks.from_environment()`)
     every rank describes its shard; rank 0 returns the record, the other ranks None. A run with
     stages may start from exported candidates (`settings.candidates`, vprbench/stages/candidates.py).
     """
     started = time.perf_counter()
-    settings = settings or RunSettings()
+    require(spec, RunSpec, "evaluate(spec) takes a RunSpec: make one with vprbench.spec.resolve_spec(name, dataset) "
+                           "or spec_for(method, dataset)")
+    settings = RunSettings() if settings is None else settings
+    require(settings, RunSettings, "evaluate's settings take a vprbench.spec.RunSettings(cache_dir=..., data_dir=...), "
+                                   "or None for the defaults")
     ranks = ranks or Ranks()
     stages = create_stages(spec)  # their options are checked before any data is touched
     if settings.candidates is not None and not stages:

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import VPRBenchError, os_error_message
+from ..errors import VPRBenchError, os_error_message, require
 from ..fsutil import CacheError, atomic_write, lock
 from ..paths import cache_root
 from .record import OPTIONAL_FIELDS, PER_QUERY_FIELDS, validated
@@ -35,7 +35,13 @@ _HEX = re.compile(r"^[0-9a-f]{16}$")
 
 
 def results_dir(cache_dir=None) -> Path:
-    return cache_root(cache_dir) / "results"
+    """<cache>/results. Given the results folder itself (it holds LAYOUT), reading would find
+    nothing and writing would nest a second store: both are refused, naming the cache folder."""
+    root = cache_root(cache_dir)
+    if (root / LAYOUT_FILE).is_file() and not (root / "results").exists():
+        raise VPRBenchError(f"{root} is a results folder, not a cache folder: pass the cache folder that holds it, "
+                            f"{root.parent}.")
+    return root / "results"
 
 
 def run_folder(protocol_hash: str, row_key: str, cache_dir=None) -> Path:
@@ -67,6 +73,7 @@ def check_layout(root: Path) -> None:
 def save_result(record: dict, cache_dir=None) -> Path:
     """Store one record (per-query arrays in an .npz beside it) in its identity folder, and the
     method card of its row; returns the JSON path. Safe with any number of concurrent writers."""
+    require(record, dict, "save_result takes a result record (the dict evaluate returns)")
     record = {k: v for k, v in record.items() if not k.startswith("_")}
     checked = validated(record, f"the record of run {record.get('run_id')!r}")
     folder = run_folder(checked["protocol"]["hash"], checked["row_key"], cache_dir)
@@ -158,8 +165,10 @@ def find_result(spec, cache_dir=None) -> dict | None:
     """The newest stored record that answers `spec` (same row, same protocol, every K asked), its
     metrics recomputed from its per-query arrays (evaluation.proof), or None. A record whose arrays
     are missing or damaged answers nothing (named in a warning): its cell is evaluated again."""
+    from ..spec import RunSpec
     from .proof import proven
 
+    require(spec, RunSpec, "find_result(spec) takes a RunSpec (vprbench.spec.resolve_spec or spec_for)")
     migrate_legacy(cache_dir)
     check_layout(results_dir(cache_dir))
     wanted = {str(k) for k in spec.ks}
@@ -181,6 +190,7 @@ def find_result(spec, cache_dir=None) -> dict | None:
 def read_results(cache_dir=None, skipped: list | None = None) -> list[dict]:
     """Every stored record, oldest first. A file that is not a whole record this version reads is
     named in a warning and skipped (never deleted), its path appended to `skipped` when given."""
+    require(skipped, (list, type(None)), "read_results' skipped takes a list to append skipped files to, or None")
     migrate_legacy(cache_dir)
     root = results_dir(cache_dir)
     check_layout(root)
@@ -206,8 +216,13 @@ def method_card(row_key: str, cache_dir=None) -> dict | None:
 def per_query(record: dict) -> dict[str, np.ndarray] | None:
     """The record's per-query arrays (from the record itself or its .npz), or None when the
     record has none or its file is missing or damaged (with a warning)."""
+    require(record, dict, "per_query takes a result record (from read_results, find_result or evaluate)")
     section = record.get("per_query")
     if not section:
+        return None
+    if not isinstance(section, dict):  # a record not validated (read by hand) may hold anything here
+        warnings.warn(f"The per-query section of run {record.get('run_id')} is {type(section).__name__}, not a table; "
+                      "its statistics and figures are skipped.", stacklevel=2)
         return None
     if "file" not in section:
         try:
@@ -218,7 +233,11 @@ def per_query(record: dict) -> dict[str, np.ndarray] | None:
             return None
     source = record.get("_source")
     name = str(section["file"])
-    path = Path(source).parent / name if source else None
+    if not source:  # the .npz lies beside the record file, which only a record read from the store knows
+        warnings.warn(f"Run {record.get('run_id')}'s per-query data is in {name} beside its record, but this record "
+                      "was not read from the store: read it with read_results or find_result.", stacklevel=2)
+        return None
+    path = Path(source).parent / name
     try:
         if Path(name).name != name or not name.endswith(".npz"):
             raise ValueError(f"its file {name!r} is not a file name beside the record")

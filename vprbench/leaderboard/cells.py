@@ -16,12 +16,14 @@ The rules (stated on every published page, CELL_RULE):
 from __future__ import annotations
 
 import json
+import reprlib
 from collections import Counter
 from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
 
+from ..errors import VPRBenchError
 from ..evaluation.identity import benchmark_protocols
 from ..evaluation.metrics import recall_at_k
 from ..evaluation.proof import proven
@@ -230,6 +232,10 @@ def _row_of(record: dict) -> Row:
 
 def build_board(records: list[dict]) -> Board:
     """Apply the rules above to every record (oldest first, as read_results gives them)."""
+    if not isinstance(records, (list, tuple)) or not all(isinstance(r, dict) for r in records):
+        raise VPRBenchError("The leaderboard is built from a list of result records: pass "
+                            f"vprbench.evaluation.read_results(cache_dir); got {type(records).__name__} "
+                            f"{reprlib.repr(records)}.")
     excluded: list[tuple[dict, str]] = []
     placed: list[tuple[dict, Row, Column]] = []
     for record in records:

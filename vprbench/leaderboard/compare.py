@@ -2,12 +2,12 @@
 same blocks or places of them)."""
 from __future__ import annotations
 
-from ..errors import VPRBenchError, closest_names
+from ..errors import VPRBenchError, closest_names, require
 from ..text import plural
 from .cells import Board, Cell
 from ..evaluation.blocks import for_record
 from ..evaluation.metrics import successes
-from .stats import RESAMPLES, bootstrap_ci, format_p, overlaps, paired_test
+from .stats import RESAMPLES, bootstrap_ci, check_k_and_seed, format_p, overlaps, paired_test
 
 
 def _cell(board: Board, method: str, dataset: str) -> Cell:
@@ -53,6 +53,8 @@ def shared_resampling(first: Cell, second: Cell):
 def compare(board: Board, a: str, b: str, dataset: str, *, k: int = 1, seed: int = 0) -> dict:
     """Both cells' R@k with intervals, and the paired tests of A against B: the bootstrap draws the
     dataset's units (blocks, places) for both; per-query intervals are given beside them."""
+    require(board, Board, "compare takes a Board: vprbench.leaderboard.build_board(read_results(cache_dir))")
+    k, seed = check_k_and_seed(k, seed)
     first, second = _cell(board, a, dataset), _cell(board, b, dataset)
     for cell in (first, second):
         if cell.arrays is None:

@@ -6,6 +6,7 @@ so a failure (full disk, a kill) leaves the previous section whole and no partia
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 import tempfile
@@ -17,7 +18,7 @@ import numpy as np
 import pandas as pd
 
 from .. import __version__
-from ..errors import VPRBenchError
+from ..errors import VPRBenchError, require
 from ..fsutil import LockTimeout, lock
 from ..paths import safe_name
 from ..evaluation.results import read_results
@@ -27,6 +28,7 @@ from . import figures
 from .escape import public, public_data, text, to_csv
 from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board, hardware_of, licence_shown, weights_shown
 from .shown import row_name
+from .stats import check_k_and_seed
 from ..evaluation.blocks import RULE, for_record
 from ..evaluation.metrics import successes
 from .compare import shared_resampling
@@ -55,7 +57,8 @@ def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0, skipp
     """Write <folder>/leaderboard/ (overview, one page per dataset, figures, downloads) from the
     results store, and from the results repository `results` when given (each cell marked by where
     its number comes from); returns that folder. Nothing is changed when anything fails."""
-    folder = Path(folder)
+    require(folder, (str, os.PathLike), "publish takes the docs folder to write the leaderboard into, e.g. 'docs'")
+    folder, (_, seed) = Path(folder), check_k_and_seed(1, seed)  # before any record is read
     if folder.exists() and not folder.is_dir():
         raise VPRBenchError(f"--to {folder} is a file, not a folder: give the docs folder, e.g. --to docs/")
     with warnings.catch_warnings(record=True) as caught:

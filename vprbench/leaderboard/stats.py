@@ -12,9 +12,11 @@ units for both methods.
 from __future__ import annotations
 
 import hashlib
+from numbers import Integral
 
 import numpy as np
 
+from ..errors import VPRBenchError
 from ..evaluation.blocks import Resampling
 
 RESAMPLES = 10_000
@@ -22,6 +24,15 @@ LEVEL = 0.95
 SEED = 0
 #: intervals already drawn, by the successes, the units, the seed and the resamples
 _INTERVALS: dict[tuple, tuple[float, float]] = {}
+
+
+def check_k_and_seed(k, seed) -> tuple[int, int]:
+    """The K of Recall@K compared (>= 1) and the bootstrap's seed (>= 0), as whole numbers: R@0,
+    R@-1 or R@1.5 would compare nothing without a word, and a bad seed was a numpy traceback."""
+    if not all(isinstance(v, Integral) and not isinstance(v, bool) for v in (k, seed)) or k < 1 or seed < 0:
+        raise VPRBenchError(f"--k takes a whole number >= 1 (the K of Recall@K compared) and --seed one >= 0 (the "
+                            f"bootstrap's); got --k {k!r} --seed {seed!r}.")
+    return int(k), int(seed)
 
 
 def per_query(n: int) -> Resampling:

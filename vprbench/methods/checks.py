@@ -69,6 +69,15 @@ def wholes(method: str, option: str, value, minimum: int | None = 1, what: str =
                             f"e.g. 4,6,8{f' ({what})' if what else ''}; got {value!r}.") from None
 
 
+def flag(method: str, option: str, value, none: str = "") -> bool | None:
+    """True, False (or None when `none` says what it means): a str such as 'no' is truthy, so it
+    is refused rather than read as True."""
+    if isinstance(value, bool) or value is None and none:
+        return value
+    allowed = f"True, False or None ({none})" if none else "True or False"
+    raise VPRBenchError(f"{method}: option {option} takes {allowed}; got {value!r}.")
+
+
 def choice(method: str, option: str, value, choices: Sequence[str]) -> str:
     """One of `choices` (exactly)."""
     if not isinstance(value, str) or value not in choices:

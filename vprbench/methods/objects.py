@@ -1,0 +1,41 @@
+"""A method object handed to the Python API (`spec_for`, `evaluate(..., method=...)`): is it the
+method its name and options say? The record labels its results with them."""
+from __future__ import annotations
+
+import inspect
+
+from ..errors import VPRBenchError, require
+from .base import Method
+from .registry import method_entry
+
+
+def created_as(method) -> str:
+    """The name a method object was created under (`vprbench.create_method`), checked: an object
+    renamed after creation (a HOG whose `name` was set to 'sad') would be recorded as another
+    method. Its class must be the one its name is registered with (when that is a class)."""
+    require(method, Method, "method takes a vprbench.Method object made by vprbench.create_method(name, ...)")
+    if not isinstance(method.name, str) or not method.name:
+        raise VPRBenchError(f"The method object {type(method).__name__} has no name: register its factory "
+                            "(vprbench.register_method(name, factory)) and create it with vprbench.create_method(name).")
+    factory = method_entry(method.name).factory
+    if inspect.isclass(factory) and not isinstance(method, factory):
+        raise VPRBenchError(f"The method object is a {type(method).__name__}, but its name says {method.name!r}, which "
+                            f"is a {factory.__name__}: a method cannot be renamed; create it with "
+                            f"vprbench.create_method({method.name!r}, ...).")
+    return method.name
+
+
+def check_method(method, spec) -> None:
+    """A method given already built to `evaluate` must be the one `spec` names: its name and the
+    options it was created with (else the record would label its results with the spec's)."""
+    from ..spec import given_options, plain
+
+    name = created_as(method)
+    try:
+        given = plain(given_options(dict(getattr(method, "options", {}) or {})))
+    except (TypeError, ValueError):
+        given = None
+    if name != spec.method or given != spec.given:
+        raise VPRBenchError(f"The method given is {name!r} with options {getattr(method, 'options', {})}, but the spec "
+                            f"is {spec.method!r} with options {spec.given}: make the spec with "
+                            "vprbench.spec.spec_for(method, dataset).")
