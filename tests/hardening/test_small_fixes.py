@@ -74,7 +74,9 @@ def test_a_list_marks_a_registration_that_cannot_be_loaded(monkeypatch, cli, kin
     assert shown["broken"]["unloadable"] == why and shown["broken"]["options"] is None
     assert not [e for e in shown.values() if e["name"] != "broken" and ("unloadable" in e or e["options"] is None)]
     code, out, err = cli(kind, "list")
-    assert code == 0 and "UNLOADABLE: " in out and "nosuchmodule" in out and "sift-ransac" in cli("stages", "list")[1]
+    assert code == 0 and "broken" in out, err
+    if kind == "stages":  # the methods table imports no factory (torch): it lists names, --json loads them
+        assert "UNLOADABLE: " in out and "nosuchmodule" in out and "sift-ransac" in out
 
 
 @pytest.mark.parametrize("module, why", [("raises", "needs a GPU"), ("exits", "please install superlib")])

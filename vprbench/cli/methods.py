@@ -22,17 +22,18 @@ def add_parsers(commands) -> None:
 
 
 def run_list(args) -> int:
-    entries = [(e, *_options(e)) for e in available_methods().values()]
-    if args.json:
+    entries = available_methods().values()
+    if args.json:  # the options need each factory imported (torch for most): only here, not for the table
+        found = [(e, *_options(e)) for e in entries]
         print(json.dumps([{"name": e.name, "description": e.description, "source": e.source, "defaults": e.defaults,
                            "options": options, **({"unloadable": problem} if problem else {})}
-                          for e, options, problem in entries], indent=2, default=str))
+                          for e, options, problem in found], indent=2, default=str))
         return 0
     table = Table(title="Methods")
     for column in ("name", "from", "description"):
         table.add_column(column)
-    for e, _, problem in entries:
-        table.add_row(e.name, e.source, f"UNLOADABLE: {problem}" if problem else e.description)
+    for e in entries:
+        table.add_row(e.name, e.source, e.description)
     console().print(table)
     return 0
 
