@@ -160,3 +160,20 @@ def test_options_a_route_cannot_use_are_refused_with_the_reason(shared_data, cap
         code = main(["evaluate", *args, "--data-dir", str(shared_data)])
         err = capsys.readouterr().err
         assert code == 1 and reason in err, err
+
+
+@pytest.mark.parametrize("written", [["-o", "resize=64,64"], ["-o", "resize=64x64"], ["-o", "resize=64"],
+                                     ["-o", "resize=64.0"]])
+def test_one_option_written_several_ways_is_one_spec(written, shared_data):
+    """`-o resize=64,64` and `--resize 64 64` made two leaderboard rows (and two stores) for one computation."""
+    from vprbench.cli.options import method_options
+    from vprbench.cli.main import build_parser
+    from vprbench.spec import resolve_spec
+
+    def spec(*flags):
+        args = build_parser().parse_args(["evaluate", "--method", "hog", "--dataset", "corridor", *flags])
+        return resolve_spec("hog", "corridor", options=method_options(args), data_dir=shared_data)
+
+    flagged = spec("--resize", "64", "64")
+    assert spec(*written).key == flagged.key and flagged.given == {"resize": [64, 64]}
+    assert resolve_spec("hog", "corridor", options={"resize": (64.0, "64")}, data_dir=shared_data).key == flagged.key

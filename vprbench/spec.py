@@ -306,12 +306,15 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
 
 
 def given_options(options) -> dict:
-    """The options given that are part of a spec: None (unset) and run settings left out."""
+    """The options given that are part of a spec, each in its one form (methods/checks.py
+    `canonical`): None (unset) and run settings left out."""
     require(options or {}, dict, "options takes a dict of option name -> value, e.g. {'resize': [64, 64]}")
     names = [k for k in options or {} if not isinstance(k, str)]
     if names:
         raise VPRBenchError(f"Option names are text, e.g. {{'resize': [64, 64]}}; got {names[0]!r}.")
-    return {k: v for k, v in (options or {}).items() if v is not None and k not in RUN_SETTINGS}
+    from .methods.checks import canonical
+
+    return {k: canonical(k, v) for k, v in (options or {}).items() if v is not None and k not in RUN_SETTINGS}
 
 
 def spec_for(method, dataset, **parts) -> RunSpec:

@@ -103,3 +103,27 @@ def device(method: str, value) -> str:
     if chosen.type == "cuda" and not torch.cuda.is_available():
         raise VPRBenchError(f"{method}: device {value!r} was asked for but no CUDA GPU is available; use --device cpu.")
     return str(chosen)
+
+
+def canonical(name: str, value):
+    """One form for the ways of writing one option value, so one computation has one identity (a
+    spec, a store, a leaderboard row): a whole float is an int (3.0 is 3), and `resize` is
+    [H, W] however it was written (`-o resize=64,64`, '64x64', `--resize 64 64`, (64, 64)) or
+    'native'. A value the method will refuse is left as it is, for the method to name."""
+    def whole(item):
+        if isinstance(item, float) and item.is_integer():
+            return int(item)
+        if isinstance(item, (list, tuple)):
+            return [whole(i) for i in item]
+        return {k: whole(v) for k, v in item.items()} if isinstance(item, dict) else item
+
+    value = whole(value)
+    if name == "resize":
+        from ..features.resize import parse_size
+
+        try:
+            size = parse_size(value)
+        except VPRBenchError:
+            return value
+        return list(size) if size else "native"
+    return value
