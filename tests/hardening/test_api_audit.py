@@ -195,3 +195,18 @@ def test_publish_refuses_a_bad_seed_before_writing(stored, tmp_path):
     refused(lambda: publish(tmp_path / "docs", cache, seed=-1), "--seed one >= 0")
     refused(lambda: publish(tmp_path / "docs", cache, seed=1.5), "--seed one >= 0")
     assert not (tmp_path / "docs").exists()
+
+
+def test_a_renamed_dataset_is_refused(shared_data, tmp_path):
+    """A Corridor whose name was set to 'other' was recorded as dataset 'other' under Corridor's protocol."""
+    dataset = load_dataset("corridor", shared_data)
+    dataset.name = "other"
+    spec = resolve_spec("hog", "corridor", options={"resize": [32, 32]}, ks=(1,), data_dir=shared_data)
+    refused(lambda: evaluate(spec, RunSettings(cache_dir=tmp_path / "cache"), dataset=dataset),
+            "The dataset given is named 'other'", "'corridor'")
+    assert not (tmp_path / "cache").exists()
+
+
+@pytest.mark.parametrize("name", [["hog"], 5, None])
+def test_a_method_name_that_is_no_text_is_unknown(name):
+    refused(lambda: create_method(name), f"Unknown method {name!r}.")

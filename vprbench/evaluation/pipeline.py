@@ -81,6 +81,9 @@ def check_dataset(dataset, spec: RunSpec) -> None:
                               "load the spec's")
     if protocol_of(dataset)["hash"] != spec.dataset.protocol_hash:
         raise VPRBenchError(f"The dataset given is {protocol_of(dataset)['id']}, not the spec's {spec.dataset.protocol_id}.")
+    if dataset.name != spec.dataset.name:  # the record names its dataset by this name
+        raise VPRBenchError(f"The dataset given is named {dataset.name!r}, but its protocol is the spec's dataset "
+                            f"{spec.dataset.name!r}: a dataset cannot be renamed; load it with load_dataset.")
 
 
 @dataclass

@@ -97,7 +97,7 @@ def available_methods() -> dict[str, MethodEntry]:
 
 def method_entry(name: str) -> MethodEntry:
     methods = available_methods()
-    if name not in methods:
+    if not isinstance(name, str) or name not in methods:  # a list would be unhashable here
         raise VPRBenchError(
             f"Unknown method {name!r}.{closest_names(name, methods)} "
             "Run 'vprbench methods list' to see all methods."
