@@ -8,6 +8,8 @@ import json
 import tarfile
 from pathlib import Path
 
+import numpy as np
+
 from vprbench.bundles.export import MANIFEST
 
 
@@ -34,3 +36,28 @@ def write_bundle(path: Path, members: dict[str, bytes], *, resum: bool = True) -
 
 def record_names(members) -> list[str]:
     return sorted(n for n in members if n.endswith(".json") and n.count("/") == 2)
+
+
+def edit_record(members, edit, which=0) -> str:
+    """Change a record of the bundle's members in place; returns its name."""
+    name = record_names(members)[which]
+    record = json.loads(members[name])
+    edit(record)
+    members[name] = json.dumps(record).encode()
+    return name
+
+
+def edit_arrays(members, edit, which=0) -> str:
+    """Change a record's per-query arrays, and its sha256 to match (a careful forger)."""
+    name = record_names(members)[which]
+    record = json.loads(members[name])
+    npz = name.rsplit("/", 1)[0] + "/" + record["per_query"]["file"]
+    with np.load(io.BytesIO(members[npz])) as found:
+        arrays = {k: found[k] for k in found.files}
+    edit(arrays)
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **arrays)
+    members[npz] = buffer.getvalue()
+    record["per_query"]["sha256"] = hashlib.sha256(members[npz]).hexdigest()
+    members[name] = json.dumps(record).encode()
+    return name

@@ -9,7 +9,7 @@ import tarfile
 
 import numpy as np
 import pytest
-from bundle_files import read_bundle, record_names, write_bundle
+from bundle_files import edit_arrays, edit_record, read_bundle, record_names, write_bundle
 
 from vprbench.bundles import export_bundle, select_records, verify_bundle
 from vprbench.bundles.export import MANIFEST
@@ -64,32 +64,6 @@ def test_verify_rescores_each_record_against_the_shipped_ground_truth(bundle, re
     assert all(": ok, re-scored from its arrays: R@1 " in line for line in report.lines())
 
 
-def _edit_record(members, edit, which=0):
-    name = record_names(members)[which]
-    record = json.loads(members[name])
-    edit(record)
-    members[name] = json.dumps(record).encode()
-    return name
-
-
-def _edit_arrays(members, edit, which=0):
-    """Change a record's per-query arrays, and its sha256 to match (a careful forger)."""
-    import hashlib
-
-    name = record_names(members)[which]
-    record = json.loads(members[name])
-    npz = name.rsplit("/", 1)[0] + "/" + record["per_query"]["file"]
-    with np.load(io.BytesIO(members[npz])) as found:
-        arrays = {k: found[k] for k in found.files}
-    edit(arrays)
-    buffer = io.BytesIO()
-    np.savez_compressed(buffer, **arrays)
-    members[npz] = buffer.getvalue()
-    record["per_query"]["sha256"] = hashlib.sha256(members[npz]).hexdigest()
-    members[name] = json.dumps(record).encode()
-    return name
-
-
 def _only_failure(report, name):
     failed = [v for v in report.verdicts if not v.ok]
     assert not report.ok and len(failed) == 1 and failed[0].member == name
@@ -98,7 +72,7 @@ def _only_failure(report, name):
 
 def test_an_edited_recall_is_caught(bundle, truth, tmp_path):
     members = read_bundle(bundle)
-    name = _edit_record(members, lambda r: r["recall"].update({"1": r["recall"]["1"] + 10}))
+    name = edit_record(members, lambda r: r["recall"].update({"1": r["recall"]["1"] + 10}))
     report = verify_bundle(write_bundle(tmp_path / "tampered.tar.gz", members), truth)
     problems = _only_failure(report, name)
     assert len(problems) == 1 and "R@1 is 58.6" in problems[0] and "but 48.6" in problems[0]
@@ -112,19 +86,19 @@ def test_edited_arrays_are_rescored_not_trusted(bundle, truth, tmp_path):
     def better(arrays):  # claim every query's first positive at rank 1
         arrays["first_positive_rank"][:] = 1
 
-    name = _edit_arrays(members, better)
+    name = edit_arrays(members, better)
     problems = _only_failure(verify_bundle(write_bundle(tmp_path / "b.tar.gz", members), truth), name)
     assert any("its first positive is at rank" in p for p in problems)
 
 
 def test_missing_queries_and_indices_out_of_range(bundle, truth, tmp_path):
     members = read_bundle(bundle)
-    name = _edit_arrays(members, lambda a: a.update({k: v[:-1] for k, v in a.items()}))
+    name = edit_arrays(members, lambda a: a.update({k: v[:-1] for k, v in a.items()}))
     problems = _only_failure(verify_bundle(write_bundle(tmp_path / "short.tar.gz", members), truth), name)
     assert problems == ["it has top-K lists for 110 queries; protocol corridor:vpr-bench has 111 (missing queries)"]
 
     members = read_bundle(bundle)
-    name = _edit_arrays(members, lambda a: a["database_indices"].__setitem__((7, 3), 111))
+    name = edit_arrays(members, lambda a: a["database_indices"].__setitem__((7, 3), 111))
     problems = _only_failure(verify_bundle(write_bundle(tmp_path / "range.tar.gz", members), truth), name)
     assert problems == ["query 7 lists database index 111, outside the 111 database images"]
 
@@ -150,7 +124,7 @@ def test_unknown_protocol_hash_is_refused(bundle, truth, tmp_path):
 
 def test_newer_schema_is_refused_by_name(bundle, truth, tmp_path):
     members = read_bundle(bundle)
-    name = _edit_record(members, lambda r: r.update(schema_version=9))
+    name = edit_record(members, lambda r: r.update(schema_version=9))
     report = verify_bundle(write_bundle(tmp_path / "s.tar.gz", members), truth)
     problems = _only_failure(report, name)
     assert problems == ["schema version 9 is from a newer vprbench (this one reads up to 3); upgrade vprbench to "
@@ -172,7 +146,7 @@ def test_every_count_that_can_be_recomputed_is(bundle, truth, tmp_path):
     }
     for what, (edit, message) in edits.items():
         members = read_bundle(bundle)
-        name = (_edit_arrays if what == "arrays" else _edit_record)(members, edit)
+        name = (edit_arrays if what == "arrays" else edit_record)(members, edit)
         problems = _only_failure(verify_bundle(write_bundle(tmp_path / f"{what}.tar.gz", members), truth), name)
         assert len(problems) == 1 and problems[0].startswith(message), (what, problems)
 
@@ -222,7 +196,7 @@ def test_json_nested_too_deeply_is_named_not_a_crash(bundle, truth, tmp_path):
 
 def test_manifest_sum_mismatch(bundle, truth, tmp_path):
     members = read_bundle(bundle)
-    name = _edit_record(members, lambda r: r.update(method_options={"x": 1}))
+    name = edit_record(members, lambda r: r.update(method_options={"x": 1}))
     report = verify_bundle(write_bundle(tmp_path / "m.tar.gz", members, resum=False), truth)
     assert not report.ok and not report.verdicts
     assert report.problems == [f"{tmp_path / 'm.tar.gz'}: {name} does not match its sha256 sum in MANIFEST.json "
@@ -296,7 +270,7 @@ def test_cli_export_and_verify(store, records, shared_data, tmp_path, capsys):
     assert main(["results", "verify", str(out), "--data-dir", str(shared_data)]) == 0
     assert capsys.readouterr().out.count(": ok, re-scored") == 2
     members = read_bundle(out)
-    _edit_record(members, lambda r: r["recall"].update({"5": 99.0}))
+    edit_record(members, lambda r: r["recall"].update({"5": 99.0}))
     write_bundle(tmp_path / "bad.tar.gz", members)
     assert main(["results", "verify", str(out), str(tmp_path / "bad.tar.gz"), "--data-dir", str(shared_data)]) == 1
     text = capsys.readouterr().out

@@ -5,13 +5,13 @@ into the repository and the runs already there untouched. What a record says bes
 from __future__ import annotations
 
 import gzip
-import hashlib
-import io
 import json
 import tarfile
 
 import numpy as np
 import pytest
+
+from bundles.bundle_files import edit_arrays, edit_record, read_bundle, record_names, write_bundle
 
 from vprbench.bundles import export_bundle
 from vprbench.bundles.export import MANIFEST
@@ -33,53 +33,6 @@ def runs(shared_data, tmp_path_factory) -> list[dict]:
 @pytest.fixture
 def bundle(runs, tmp_path):
     return export_bundle(runs, tmp_path / "runs.tar.gz", contributor="alice")
-
-
-def members_of(path) -> dict[str, bytes]:
-    with tarfile.open(path) as archive:
-        return {m.name: archive.extractfile(m).read() for m in archive.getmembers()}
-
-
-def rewrite(path, members: dict[str, bytes]):
-    """The bundle with the manifest's sums made to match (a careful forger)."""
-    manifest = json.loads(members[MANIFEST])
-    manifest["files"] = {n: {"sha256": hashlib.sha256(d).hexdigest(), "bytes": len(d)} for n, d in members.items()
-                         if n != MANIFEST}
-    members = {**members, MANIFEST: json.dumps(manifest).encode()}
-    with tarfile.open(path, "w:gz") as archive:
-        for name, data in members.items():
-            info = tarfile.TarInfo(name)
-            info.size = len(data)
-            archive.addfile(info, io.BytesIO(data))
-    return path
-
-
-def record_name(members, which=0) -> str:
-    return sorted(n for n in members if n.endswith(".json") and n.count("/") == 2)[which]
-
-
-def edit_record(members, edit, which=0) -> str:
-    name = record_name(members, which)
-    record = json.loads(members[name])
-    edit(record)
-    members[name] = json.dumps(record).encode()
-    return name
-
-
-def edit_arrays(members, edit, which=0) -> str:
-    """Change a record's per-query arrays and the sha256 its record gives (a careful forger)."""
-    name = record_name(members, which)
-    record = json.loads(members[name])
-    npz = name.rsplit("/", 1)[0] + "/" + record["per_query"]["file"]
-    with np.load(io.BytesIO(members[npz])) as found:
-        arrays = {k: found[k] for k in found.files}
-    edit(arrays)
-    buffer = io.BytesIO()
-    np.savez_compressed(buffer, **arrays)
-    members[npz] = buffer.getvalue()
-    record["per_query"]["sha256"] = hashlib.sha256(members[npz]).hexdigest()
-    members[name] = json.dumps(record).encode()
-    return name
 
 
 def snapshot(folder) -> dict:
@@ -119,9 +72,9 @@ NOT_FINITE = "its similarities are float64 (111, 20), not (111, 20) finite numbe
 def test_per_query_arrays_of_the_wrong_kind_are_named_not_a_traceback(bundle, cli, shared_data, tmp_path, edit, message):
     """Before: NaN or infinite similarities failed in the PR curve, strings in a float conversion,
     2-D ranks in an int(): a traceback from verify and import."""
-    members = members_of(bundle)
+    members = read_bundle(bundle)
     name = edit_arrays(members, edit)
-    path = rewrite(tmp_path / "kinds.tar.gz", members)
+    path = write_bundle(tmp_path / "kinds.tar.gz", members)
     refused(cli, shared_data, path, tmp_path / "repo", f"{name.removesuffix('.json')}.npz: {message}")
 
 
@@ -141,7 +94,7 @@ def test_the_stores_own_reader_refuses_non_finite_similarities(runs):
 # ---------------------------------------------------------------- one run id, one run
 def move_run(members, which: int, run_id: str) -> str:
     """Record `which` (and its arrays) renamed to `run_id`, in its own row folder."""
-    name = record_name(members, which)
+    name = record_names(members)[which]
     folder, old = name.rsplit("/", 1)[0], json.loads(members[name])["run_id"]
     record = json.loads(members.pop(name))
     record["run_id"], record["per_query"]["file"] = run_id, f"{run_id}.npz"
@@ -156,12 +109,12 @@ def test_a_run_id_already_in_the_repository_under_another_row_is_a_conflict(runs
     repo = tmp_path / "repo"
     first = export_bundle([runs[0]], tmp_path / "a.tar.gz")
     assert cli("results", "import", first, "--into", repo, "--data-dir", shared_data)[0] == 0
-    members = members_of(bundle)
-    a_name = record_name(members, 0)
+    members = read_bundle(bundle)
+    a_name = record_names(members)[0]
     for member in [m for m in members if m.startswith(a_name.rsplit("/", 1)[0] + "/")]:
         del members[member]  # only run B is sent, under run A's id
     clash = move_run(members, 0, runs[0]["run_id"])
-    path = rewrite(tmp_path / "clash.tar.gz", members)
+    path = write_bundle(tmp_path / "clash.tar.gz", members)
     before = snapshot(repo)
     code, out, err = cli("results", "import", path, "--into", repo, "--data-dir", shared_data)
     assert code == 1 and "Traceback" not in err
@@ -171,16 +124,16 @@ def test_a_run_id_already_in_the_repository_under_another_row_is_a_conflict(runs
 
 
 def test_two_records_under_one_run_id_are_refused_in_a_bundle_and_a_repository(runs, bundle, cli, shared_data, tmp_path):
-    members = members_of(bundle)
-    a_name = record_name(members, 0)
+    members = read_bundle(bundle)
+    a_name = record_names(members)[0]
     twin = move_run(members, 1, runs[0]["run_id"])
-    path = rewrite(tmp_path / "twins.tar.gz", members)
+    path = write_bundle(tmp_path / "twins.tar.gz", members)
     refused(cli, shared_data, path, tmp_path / "repo",
             f"its run id is also that of {a_name}; a run id names one run")
     # the same pair added to a repository by hand (a pull request, no import)
     repo = tmp_path / "repo"
     assert cli("results", "import", bundle, "--into", repo, "--data-dir", shared_data)[0] == 0
-    b_name = record_name(members_of(bundle), 1)
+    b_name = record_names(read_bundle(bundle))[1]
     for member in (twin, twin.replace(".json", ".npz")):
         (repo / member).write_bytes(members[member])
     for member in (b_name, b_name.replace(".json", ".npz")):
@@ -204,16 +157,16 @@ def test_two_records_under_one_run_id_are_refused_in_a_bundle_and_a_repository(r
 def test_a_record_naming_what_it_did_not_run_is_refused(bundle, cli, shared_data, tmp_path, edit, message):
     """Before: each was 'ok, re-scored' and imported; the protocol id reached the downloads, the
     domain moved Corridor out of its table on the site, the method and label the downloads."""
-    members = members_of(bundle)
+    members = read_bundle(bundle)
     edit_record(members, edit)
-    refused(cli, shared_data, rewrite(tmp_path / "named.tar.gz", members), tmp_path / "repo", message)
+    refused(cli, shared_data, write_bundle(tmp_path / "named.tar.gz", members), tmp_path / "repo", message)
 
 
 def test_a_run_on_a_weights_file_claiming_official_weights_is_refused(bundle, cli, shared_data, tmp_path):
     """The spec names the weights file by its sha256; a file vprbench does not know as a release is
     the user's, whatever the record's provenance says (an official row would be marked none)."""
-    members = members_of(bundle)
-    name = record_name(members)
+    members = read_bundle(bundle)
+    name = record_names(members)[0]
     record = json.loads(members.pop(name))
     old_folder = name.rsplit("/", 1)[0]
     digest = "sha256:" + "ab" * 32
@@ -229,20 +182,20 @@ def test_a_run_on_a_weights_file_claiming_official_weights_is_refused(bundle, cl
     card.update(row_key=spec.row_key, options=record["spec"]["options"], files=record["spec"]["files"],
                 weights=record["provenance"]["weights"])
     members[f"methods/{spec.row_key}.json"] = json.dumps(card).encode()
-    refused(cli, shared_data, rewrite(tmp_path / "weights.tar.gz", members), tmp_path / "repo",
+    refused(cli, shared_data, write_bundle(tmp_path / "weights.tar.gz", members), tmp_path / "repo",
             f"it says weights source 'official', but its weights file {digest[:19]} says 'user'")
 
 
 def test_a_method_card_describing_another_method_is_refused(runs, bundle, cli, shared_data, tmp_path):
     """Before: the card was written into the repository as sent, whatever it said."""
-    members = members_of(bundle)
+    members = read_bundle(bundle)
     card, other = f"methods/{runs[0]['row_key']}.json", f"methods/{runs[1]['row_key']}.json"
     forged = json.dumps({**json.loads(members[card]), "method": "netvlad", "label": "NetVLAD",
                          "weights": {"source": "official"}}).encode()
     message = f"its method card {card} disagrees with the record on method, label, weights"
-    refused(cli, shared_data, rewrite(tmp_path / "card.tar.gz", {**members, card: forged}), tmp_path / "repo", message)
+    refused(cli, shared_data, write_bundle(tmp_path / "card.tar.gz", {**members, card: forged}), tmp_path / "repo", message)
     # the two rows' cards swapped, each under the other's name
-    swapped = rewrite(tmp_path / "swapped.tar.gz", {**members, card: members[other], other: members[card]})
+    swapped = write_bundle(tmp_path / "swapped.tar.gz", {**members, card: members[other], other: members[card]})
     code, out, _ = cli("results", "verify", swapped, "--data-dir", shared_data)
     assert code == 1 and out.count("disagrees with the record on row_key, label, options, given") == 2
     # and in a repository, edited by hand
@@ -257,10 +210,10 @@ def test_a_method_card_describing_another_method_is_refused(runs, bundle, cli, s
 @pytest.mark.parametrize("version", [True, 0, "2"])
 def test_a_format_version_no_vprbench_writes_is_named(bundle, cli, tmp_path, version):
     """Before: version true (JSON) or 0 was read as a version-1 bundle; "2" was called newer."""
-    members = members_of(bundle)
+    members = read_bundle(bundle)
     manifest = json.loads(members[MANIFEST])
     members[MANIFEST] = json.dumps({**manifest, "version": version}).encode()
-    path = rewrite(tmp_path / "v.tar.gz", members)
+    path = write_bundle(tmp_path / "v.tar.gz", members)
     code, out, err = cli("results", "verify", path)
     assert code == 1 and out.splitlines() == [f"{path}: MANIFEST.json says format version {version!r}, which no "
                                               "vprbench writes; it is damaged or not a vprbench bundle: export it again."]
