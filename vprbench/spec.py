@@ -194,7 +194,10 @@ def _short(value):
 
 
 def _show(value) -> str:
-    return "x".join(map(str, value)) if isinstance(value, (list, tuple)) else str(value)
+    """An option's value in a label, on one line: a line break or tab from a value is written out
+    ('\\n'), so a label cannot print a line of its own (a forged 'ok' in `results verify`)."""
+    shown = "x".join(map(str, value)) if isinstance(value, (list, tuple)) else str(value)
+    return shown.replace("\r", "\\r").replace("\n", "\\n").replace("\t", "\\t")
 
 
 # ---------------------------------------------------------------- run settings

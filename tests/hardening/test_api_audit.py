@@ -210,3 +210,10 @@ def test_a_renamed_dataset_is_refused(shared_data, tmp_path):
 @pytest.mark.parametrize("name", [["hog"], 5, None])
 def test_a_method_name_that_is_no_text_is_unknown(name):
     refused(lambda: create_method(name), f"Unknown method {name!r}.")
+
+
+def test_a_label_is_one_line_whatever_its_options_hold(shared_data):
+    """A line break in an option's value printed a line of its own wherever the label is shown
+    (a forged 'ok' line in `results verify`)."""
+    spec = resolve_spec("dense-vlad", "corridor", options={"vocabulary": "a\nrun x: ok\tb\r"}, data_dir=shared_data)
+    assert spec.label() == "dense-vlad [vocabulary=a\\nrun x: ok\\tb\\r]"
