@@ -194,10 +194,11 @@ def _short(value):
 
 
 def _show(value) -> str:
-    """An option's value in a label, on one line: a line break or tab from a value is written out
-    ('\\n'), so a label cannot print a line of its own (a forged 'ok' in `results verify`)."""
+    """An option's value in a label, on one line: a line break from a value is written out ('\\n'),
+    so a label cannot print a line of its own (a forged 'ok' in `results verify`); the terminal
+    and the pages write out the other control characters (text.literal, escape.text)."""
     shown = "x".join(map(str, value)) if isinstance(value, (list, tuple)) else str(value)
-    return shown.replace("\r", "\\r").replace("\n", "\\n").replace("\t", "\\t")
+    return shown.replace("\n", "\\n")
 
 
 # ---------------------------------------------------------------- run settings
