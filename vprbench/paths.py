@@ -57,3 +57,18 @@ def safe_name(text: str, limit: int = 60) -> str:
     callers add a hash where two names must not collide."""
     name = re.sub(r"[^A-Za-z0-9_.-]+", "_", str(text)).lstrip(".")[:limit]
     return name or "_"
+
+
+def shipped_file(folder: str, name, suffix: str, what: str):
+    """The file `<folder>/<name><suffix>` of the manifests vprbench ships, found by name only
+    (never a path: '../x' would read any file); an unknown name is one line listing the shipped
+    ones, e.g. "No reproduction plans for paper 'anylo'. Did you mean: anyloc? Available: anyloc."."""
+    from importlib.resources import files
+
+    from .errors import VPRBenchError, closest_names
+
+    place = files("vprbench.manifests") / folder
+    names = sorted(f.name.removesuffix(suffix) for f in place.iterdir() if f.name.endswith(suffix))
+    if name not in names:
+        raise VPRBenchError(f"No {what} {name!r}.{closest_names(name, names)} Available: {', '.join(names)}.")
+    return place / f"{name}{suffix}"

@@ -10,7 +10,8 @@ from importlib.resources import files
 
 import pandas as pd
 
-from .errors import VPRBenchError, closest_names
+from .errors import VPRBenchError
+from .paths import shipped_file
 
 COLUMNS = ["table", "row", "method", "column", "metric", "value", "setting", "source"]
 
@@ -27,12 +28,7 @@ def paper_results(paper: str = "anyloc", table: str | None = None) -> pd.DataFra
     """One row per reported value: table (II..VII, ablation-facet, ablation-layer), row label,
     vprbench method name where one matches (else ""), column (dataset, domain or "dim"),
     metric (r1, r5, dim), value, setting and source (table and row, or the authors' file)."""
-    # a paper is one of the shipped files by name, never a path; an unknown table is no empty frame
-    folder = files("vprbench.manifests") / "reference"
-    papers = sorted(f.name.removesuffix("-paper.csv") for f in folder.iterdir() if f.name.endswith("-paper.csv"))
-    if paper not in papers:
-        raise VPRBenchError(f"No reported numbers for paper {paper!r}.{closest_names(paper, papers)} "
-                            f"Available: {', '.join(papers)}.")
+    shipped_file("reference", paper, "-paper.csv", "reported numbers for paper")  # a name, never a path
     frame = _read(f"{paper}-paper")
     tables = list(dict.fromkeys(frame["table"]))
     if table is not None and table not in tables:

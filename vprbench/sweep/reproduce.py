@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import tomllib
 from dataclasses import dataclass, field
-from importlib.resources import files
 
-from ..errors import VPRBenchError, closest_names
+from ..errors import VPRBenchError
+from ..paths import shipped_file
 from ..reference import paper_results
 from .plan import Cell, build_plan
 
@@ -23,13 +23,8 @@ class TableCell:
 
 
 def reproduce_tables(paper: str) -> dict:
-    # a paper is one of the shipped manifests by name, never a path ('../x' would read any .toml)
-    folder = files("vprbench.manifests") / "reproduce"
-    papers = sorted(f.name.removesuffix(".toml") for f in folder.iterdir() if f.name.endswith(".toml"))
-    if paper not in papers:
-        raise VPRBenchError(f"No reproduction plans for paper {paper!r}.{closest_names(paper, papers)} "
-                            f"Available: {', '.join(papers)}.")
-    return tomllib.loads((folder / f"{paper}.toml").read_text())["tables"]
+    plans = shipped_file("reproduce", paper, ".toml", "reproduction plans for paper")  # a name, never a path
+    return tomllib.loads(plans.read_text())["tables"]
 
 
 def table_spec(paper: str, table: str) -> dict:
