@@ -139,12 +139,13 @@ def test_an_output_under_a_file_names_the_file_as_not_a_folder(shared_data, cli,
     (["describe", "--method", "hog", "IMAGE", "--out", "OUT/d.npy"], "--out"),
     (["candidates", "export", "--method", "hog", "--dataset", "corridor", "--out", "OUT/c.h5"], "--out"),
     (["vocabulary", "fit", "--method", "dense-vlad", "--domain", "indoor", "--output", "OUT/v.pt"], "--output"),
+    (["results", "export", "--method", "hog", "--dataset", "corridor", "--to", "OUT/r.tar.gz"], "--to"),
 ])
 def test_an_output_in_a_missing_folder_is_refused_before_any_work(args, flag, shared_data, cli, tmp_path):
     """The folders were created (a typo wrote /nonexist/x.npy at the root), after all the work."""
     missing = tmp_path / "no" / "such"
     args = [str(image(shared_data)) if a == "IMAGE" else a.replace("OUT", str(missing)) for a in args]
-    code, _, err = cli(*args, "--data-dir", shared_data)
+    code, _, err = cli(*args, *(["--data-dir", shared_data] if args[0] != "results" else []))
     assert code == 2 and err.count("\n") == 1 and "usage:" not in err, err
     assert f"argument {flag}: the folder {missing} does not exist" in err
     assert not (tmp_path / "no").exists() and not list(cache_root().rglob("*.h5"))

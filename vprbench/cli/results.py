@@ -5,7 +5,7 @@ import math
 
 from ..errors import VPRBenchError
 from .console import say
-from .options import path_argument, resolve_locations
+from .options import output_file, path_argument, resolve_locations
 
 
 def add_parsers(commands) -> None:
@@ -16,7 +16,7 @@ def add_parsers(commands) -> None:
     e.add_argument("--run", dest="run_ids", nargs="+", default=[], metavar="ID", help="run ids to export")
     e.add_argument("--method", help="with --dataset: every run of this method (name or label) on the dataset")
     e.add_argument("--dataset", help="with --method: the dataset")
-    e.add_argument("--to", type=path_argument, required=True, metavar="FILE", help="the bundle to write (e.g. runs.tar.gz)")
+    e.add_argument("--to", type=output_file(), required=True, metavar="FILE", help="the bundle to write (e.g. runs.tar.gz)")
     e.add_argument("--contributor", help="who contributes the runs (shown beside them on the leaderboard)")
     e.add_argument("--cache-dir", help="the results store to export from")
     e.set_defaults(run=run_export)

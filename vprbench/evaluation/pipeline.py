@@ -74,13 +74,14 @@ def stage_context(spec: RunSpec, settings: RunSettings, method, dataset, describ
 
 
 def check_dataset(dataset, spec: RunSpec) -> None:
-    """A dataset given already built must be the spec's (its protocol)."""
+    """A dataset given already built must be the spec's (its protocol and its name)."""
     from ..datasets import Dataset
 
     require(dataset, Dataset, "dataset takes a vprbench Dataset (vprbench.datasets.load_dataset(name)), or None to "
                               "load the spec's")
-    if protocol_of(dataset)["hash"] != spec.dataset.protocol_hash:
-        raise VPRBenchError(f"The dataset given is {protocol_of(dataset)['id']}, not the spec's {spec.dataset.protocol_id}.")
+    protocol = protocol_of(dataset)
+    if protocol["hash"] != spec.dataset.protocol_hash:
+        raise VPRBenchError(f"The dataset given is {protocol['id']}, not the spec's {spec.dataset.protocol_id}.")
     if dataset.name != spec.dataset.name:  # the record names its dataset by this name
         raise VPRBenchError(f"The dataset given is named {dataset.name!r}, but its protocol is the spec's dataset "
                             f"{spec.dataset.name!r}: a dataset cannot be renamed; load it with load_dataset.")
