@@ -17,6 +17,7 @@ from vprbench.datasets import load_dataset
 from vprbench.evaluation import evaluate, find_result, per_query, read_results, save_result
 from vprbench.leaderboard import build_board, publish
 from vprbench.leaderboard.compare import compare
+from vprbench.methods.hog import HOG
 from vprbench.reference import paper_results
 from vprbench.spec import RunSettings, resolve_spec, spec_for
 
@@ -53,11 +54,32 @@ def test_a_renamed_method_is_refused(tmp_path):
     """A HOG whose name was set to 'sad' made a 'sad' spec and was recorded, and ranked, as sad."""
     method = create_method("hog", resize=[32, 32])
     method.name = "sad"
-    expected = ("The method object is a HOG, but its name says 'sad', which is a SAD", "create_method('sad', ...)")
+    expected = ("The method object was created as 'hog' with options {'resize': [32, 32]}, but now says 'sad'",
+                "create_method(name, ...)")
     refused(lambda: spec_for(method, "corridor"), *expected)
     spec = resolve_spec("sad", "corridor", options={"resize": [32, 32]}, ks=(1,))
     refused(lambda: evaluate(spec, RunSettings(cache_dir=tmp_path / "cache"), method=method), *expected)
     assert not (tmp_path / "cache").exists()
+    built_by_hand = HOG()  # not stamped by create_method: its class must be its name's
+    built_by_hand.name = "sad"
+    refused(lambda: spec_for(built_by_hand, "corridor"), "The method object is a HOG, but its name says 'sad', which "
+            "is a SAD", "create_method('sad', ...)")
+
+
+def test_a_preset_renamed_to_another_of_its_class_or_given_other_options_is_refused(tmp_path):
+    """An AnyLoc-VLAD object renamed 'anyloc-gem-dinov2' (the same class) made a GeM spec, and its
+    VLAD descriptors would have been recorded and ranked as GeM's; options edited after creation
+    likewise labelled the run with options it did not run with."""
+    method = create_method("anyloc-vlad-dinov2", weights="random")
+    method.name = "anyloc-gem-dinov2"
+    expected = ("created as 'anyloc-vlad-dinov2' with options {'weights': 'random'}, but now says "
+                "'anyloc-gem-dinov2'", "create_method(name, ...)")
+    refused(lambda: spec_for(method, "corridor"), *expected)
+    hog = create_method("hog", resize=[32, 32])
+    hog.options = {"resize": [64, 64]}
+    refused(lambda: spec_for(hog, "corridor"), "created as 'hog' with options {'resize': [32, 32]}, but now says "
+            "'hog' with options {'resize': [64, 64]}")
+    assert spec_for(create_method("hog", resize=[32, 32]), "corridor").given == {"resize": [32, 32]}
 
 
 def test_the_batch_size_of_the_settings_applies_to_a_method_given(tmp_path):

@@ -11,12 +11,18 @@ from .registry import method_entry
 
 def created_as(method) -> str:
     """The name a method object was created under (`vprbench.create_method`), checked: an object
-    renamed after creation (a HOG whose `name` was set to 'sad') would be recorded as another
-    method. Its class must be the one its name is registered with (when that is a class)."""
+    renamed after creation (a HOG whose `name` was set to 'sad', a VLAD preset renamed to a GeM
+    one of the same class) would be recorded as another method. Its name and options must be
+    those `create_method` stamped it with, and its class the one its name is registered with."""
     require(method, Method, "method takes a vprbench.Method object made by vprbench.create_method(name, ...)")
     if not isinstance(method.name, str) or not method.name:
         raise VPRBenchError(f"The method object {type(method).__name__} has no name: register its factory "
                             "(vprbench.register_method(name, factory)) and create it with vprbench.create_method(name).")
+    stamp = getattr(method, "_created_as", None)
+    if stamp is not None and (method.name, getattr(method, "options", None)) != stamp:
+        raise VPRBenchError(f"The method object was created as {stamp[0]!r} with options {stamp[1]}, but now says "
+                            f"{method.name!r} with options {getattr(method, 'options', None)}: a method cannot be "
+                            f"renamed or given other options; create it with vprbench.create_method(name, ...).")
     factory = method_entry(method.name).factory
     if inspect.isclass(factory) and not isinstance(method, factory):
         raise VPRBenchError(f"The method object is a {type(method).__name__}, but its name says {method.name!r}, which "

@@ -12,6 +12,7 @@ the factory's import path ("my_package.model:MyMethod") so listing methods stays
 """
 from __future__ import annotations
 
+import copy
 import inspect
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -150,6 +151,7 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
     method.name = name
     method.options = {k: v for k, v in given.items() if k not in ("device", "batch_size")}
     method.settings = {k: v for k, v in merged.items() if k not in ("device", "batch_size")}
+    method._created_as = (name, copy.deepcopy(method.options))  # what `name`/`options` may not be changed from
     return method
 
 
