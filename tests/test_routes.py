@@ -177,3 +177,21 @@ def test_one_option_written_several_ways_is_one_spec(written, shared_data):
     flagged = spec("--resize", "64", "64")
     assert spec(*written).key == flagged.key and flagged.given == {"resize": [64, 64]}
     assert resolve_spec("hog", "corridor", options={"resize": (64.0, "64")}, data_dir=shared_data).key == flagged.key
+
+
+def test_run_settings_given_with_o_count_in_every_route_and_flags_win(shared_data, tmp_path, capsys):
+    """One evaluation dropped `-o workers=...` unchecked (a matrix checked and used it), and a plan
+    entry's `workers` won over the --workers flag."""
+    where = ["--data-dir", shared_data, "--cache-dir", tmp_path / "c", "--k", "1", "--quiet"]
+    record = json.loads(cli(capsys, "evaluate", *METHOD, "--dataset", "corridor", "-o", "workers=0",
+                            "-o", "memory_budget=100MB", *where, "--json"))
+    assert (record["run"]["workers"], record["run"]["memory_budget"]) == (0, 100_000_000)
+    code = main([str(a) for a in ("evaluate", *METHOD, "--dataset", "corridor", "-o", "workers=banana", *where)])
+    err = capsys.readouterr().err
+    assert code == 1 and "option workers takes a whole number >= 0 (loader processes); got 'banana'" in err, err
+    plan = tmp_path / "plan.toml"
+    plan.write_text('[[methods]]\nname = "hog"\noptions = { resize = [32, 32], workers = 1, batch_size = 3 }\n\n'
+                    '[[datasets]]\nname = "corridor"\n')
+    cli(capsys, "run", plan, "--workers", "0", *where[:3], tmp_path / "p", *where[4:])
+    record = the_record(tmp_path / "p")
+    assert (record["run"]["workers"], record["run"]["batch_size"]) == (0, 3)

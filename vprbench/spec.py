@@ -249,7 +249,7 @@ class RunSettings:
     def with_options(self, options: dict) -> "RunSettings":
         """These settings with the run settings found among a method's options (a plan entry's
         `batch_size = 4`) taking their place."""
-        found = {k: v for k, v in options.items() if k in RUN_SETTINGS and v is not None}
+        found = split_run_settings(options)[1]
         return dataclasses.replace(self, **found) if found else self
 
     def describe(self) -> dict:
@@ -267,8 +267,8 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
 
     `options` are the method options given, already layered by the caller (command line over
     plan entry); the method's preset fills in the rest (explicit option > preset > default).
-    Run settings among them (device, batch size, ...) are not part of the spec: pass them in
-    `RunSettings` (`RunSettings.with_options` picks them out of a plan entry). `dataset` is a
+    Run settings (device, batch size, ...) are refused among them: they are not part of the
+    spec, pass them in `RunSettings` (`split_run_settings` parts a plan entry's). `dataset` is a
     benchmark name, a folder of one's own, or a `Dataset` already loaded (its protocol is used).
     """
     from .methods.base import Method
@@ -280,6 +280,11 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
     require(method, str, "resolve_spec's method takes a method's name, e.g. 'hog' (see 'vprbench methods list')")
     entry = method_entry(method)
     given = given_options(options)
+    settings = split_run_settings(options)[1]
+    if settings:  # else evaluate(spec) would run without them, on the default device
+        name = next(iter(settings))
+        raise VPRBenchError(f"{name} is a run setting, not part of a run's spec: pass it to evaluate as "
+                            f"vprbench.spec.RunSettings({name}={settings[name]!r}), not in resolve_spec's options.")
     accepted = [o for o in entry.options() if o not in RUN_SETTINGS]
     unknown = sorted(set(given) - set(accepted))
     if unknown:
@@ -319,6 +324,14 @@ def given_options(options) -> dict:
     from .methods.checks import canonical
 
     return {k: canonical(k, v) for k, v in (options or {}).items() if v is not None and k not in RUN_SETTINGS}
+
+
+def split_run_settings(options: dict) -> tuple[dict, dict]:
+    """(the method options, the run settings given among them): a plan entry's or the command
+    line's `batch_size = 4` goes to `RunSettings`, not to the spec."""
+    options = options or {}
+    return ({k: v for k, v in options.items() if k not in RUN_SETTINGS},
+            {k: v for k, v in options.items() if k in RUN_SETTINGS and v is not None})
 
 
 def spec_for(method, dataset, **parts) -> RunSpec:

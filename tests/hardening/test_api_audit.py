@@ -107,6 +107,9 @@ WRONG_TYPES = [
     (lambda: resolve_spec("hog", "corridor", options="resize=64"), "options takes a dict of option name -> value"),
     (lambda: resolve_spec("hog", "corridor", options={5: 1}), "Option names are text", "got 5."),
     (lambda: resolve_spec("hog", "corridor", stages=5), "stages takes a list of stages"),
+    # run settings were dropped: evaluate(spec) then ran on the default device
+    (lambda: resolve_spec("hog", "corridor", options={"device": "cuda"}), "device is a run setting, not part of a "
+     "run's spec: pass it to evaluate as vprbench.spec.RunSettings(device='cuda')"),
     (lambda: resolve_spec("hog", "corridor", ks=5.5), "--k takes whole numbers >= 1", "got 5.5."),
     (lambda: resolve_spec("hog", "corridor", ks=math.nan), "--k takes whole numbers >= 1", "got nan."),
     (lambda: resolve_spec("hog", "corridor", ks={1: 5}), "--k (ks) takes whole numbers >= 1 in a list"),

@@ -77,9 +77,9 @@ def run_evaluate(args) -> int:
 
 def run_one(args, settings, options, overrides, ranks) -> int:
     from ..evaluation import evaluate, save_result
-    from ..spec import resolve_spec
+    from ..spec import resolve_spec, split_run_settings
 
-    spec = resolve_spec(args.method[0], args.dataset[0], options={**options, **explicit_run_options(args)},
+    spec = resolve_spec(args.method[0], args.dataset[0], options=split_run_settings(options)[0],
                         protocol=args.protocol, search=overrides["search"], ks=overrides["k"],
                         stages=overrides["stages"] or (),
                         store_dtype=overrides["store_dtype"] or "float32", data_dir=settings.data_dir,

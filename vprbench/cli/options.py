@@ -236,20 +236,13 @@ def add_sweep_options(parser: argparse.ArgumentParser) -> None:
 
 
 def run_settings(args):
-    """The run settings of the command line (locations resolved first); -o device=... and
-    -o batch_size=... count as the flags do."""
+    """The run settings of the command line (locations resolved first), by flag or with -o."""
     from ..spec import RunSettings
     from ..sweep.claims import checked_lease
 
     if hasattr(args, "lease"):  # checked even when this run makes no claim (one evaluation)
         checked_lease(args.lease)
-    given = {k: v for k, v in method_options(args).items() if k in ("device", "batch_size")}
-    device = getattr(args, "device", None)
-    return RunSettings(cache_dir=args.cache_dir, data_dir=args.data_dir,
-                       device=device if device not in (None, "auto") else given.get("device", "auto"),  # '' is checked, not auto
-                       batch_size=getattr(args, "batch_size", None) if getattr(args, "batch_size", None) is not None
-                       else given.get("batch_size"), workers=getattr(args, "workers", None),
-                       memory_budget=getattr(args, "search_memory", None), lock_timeout=getattr(args, "lock_timeout", None),
+    return RunSettings(cache_dir=args.cache_dir, data_dir=args.data_dir, **explicit_run_options(args),
                        download=True if getattr(args, "download", False) else None, strict=getattr(args, "strict", False))
 
 
@@ -261,11 +254,13 @@ def progress(args, stderr_is_rank_zero: bool = True):
 
 
 def explicit_run_options(args) -> dict:
-    """Run settings given on the command line that a plan entry could also set (they win over
-    the entry; a flag wins over the same name given with -o)."""
-    from ..spec import RUN_SETTINGS
+    """Run settings given on the command line, by flag or with -o (`-o workers=2`); a flag wins
+    over the same name given with -o, and both over a plan entry's."""
+    from ..spec import split_run_settings
 
-    given = {k: v for k, v in method_options(args).items() if k in RUN_SETTINGS}
-    found = {"batch_size": getattr(args, "batch_size", None),
-             "device": None if getattr(args, "device", "auto") == "auto" else args.device}
-    return {**given, **{k: v for k, v in found.items() if v is not None}}
+    given = split_run_settings(method_options(args))[1]
+    device = getattr(args, "device", None)
+    flags = {"device": None if device in (None, "auto") else device,  # '' is checked, not auto
+             "batch_size": getattr(args, "batch_size", None), "workers": getattr(args, "workers", None),
+             "memory_budget": getattr(args, "search_memory", None), "lock_timeout": getattr(args, "lock_timeout", None)}
+    return {**given, **{k: v for k, v in flags.items() if v is not None}}

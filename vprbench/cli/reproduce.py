@@ -24,9 +24,9 @@ def add_parsers(commands) -> None:
 def refuse_changes(args) -> None:
     """Options that change what is computed would make the table another one: named, refused."""
     from ..errors import VPRBenchError
-    from ..spec import RUN_SETTINGS
+    from ..spec import split_run_settings
 
-    given = [f"{k}={v}" for k, v in method_options(args).items() if k not in RUN_SETTINGS]
+    given = [f"{k}={v}" for k, v in split_run_settings(method_options(args))[0].items()]
     given += [f"{k}={v}" for k, v in spec_overrides(args).items() if v is not None]
     if given:
         raise VPRBenchError(f"reproduce evaluates the paper's settings; {', '.join(given)} would change what is "

@@ -66,12 +66,13 @@ def _listed(entry) -> dict:
 def run_export(args) -> int:
     import sys
 
-    from ..spec import resolve_spec
+    from ..spec import resolve_spec, split_run_settings
     from ..stages.candidates import export_candidates
 
     resolve_locations(args)
     settings = run_settings(args)
-    spec = resolve_spec(args.method, args.dataset, options=method_options(args), protocol=args.protocol,
+    spec = resolve_spec(args.method, args.dataset, options=split_run_settings(method_options(args))[0],
+                        protocol=args.protocol,
                         search=args.index, store_dtype=args.store_dtype, data_dir=settings.data_dir,
                         cache_dir=settings.cache_dir)
     with progress(args) as shown:

@@ -44,10 +44,9 @@ def create_run_method(name: str, given: dict, settings: RunSettings):
     """A method with the options given, and the run's device, batch size, cache and data folders."""
     from ..loader import resolve_device
     from ..methods import create_method
-    from ..spec import RUN_SETTINGS
+    from ..spec import split_run_settings
 
-    options = {k: v for k, v in given.items() if k not in RUN_SETTINGS}
-    return create_method(name, **options, device=resolve_device(settings.device), batch_size=settings.batch_size,
+    return create_method(name, **split_run_settings(given)[0], device=resolve_device(settings.device), batch_size=settings.batch_size,
                          cache_dir=settings.cache_dir, data_dir=settings.data_dir)
 
 

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import VPRBenchError, closest_names
-from ..spec import RUN_SETTINGS, RunSettings, RunSpec, resolve_spec
+from ..spec import RUN_SETTINGS, RunSettings, RunSpec, resolve_spec, split_run_settings
 from ..text import toml_data
 
 PLAN_KEYS = {"name", "description", "k", "methods", "datasets", "search", "store_dtype", "stages"}
@@ -181,13 +181,14 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, overrides:
     if not problems:
         for m, method, options, label, stages in methods:
             for d, dataset, protocol in datasets:
+                given, run_options = split_run_settings(options)
                 try:
-                    spec = resolve_spec(method, dataset, options=options, protocol=protocol, data_dir=data_dir,
+                    spec = resolve_spec(method, dataset, options=given, protocol=protocol, data_dir=data_dir,
                                         cache_dir=cache_dir, stages=stages, **shared)
                 except VPRBenchError as error:
                     problems.append(f"{where('methods', m, 'options')}: {error}")
                     continue
-                cells.append(Cell(spec, {k: v for k, v in options.items() if k in RUN_SETTINGS}, label))
+                cells.append(Cell(spec, run_options, label))
     if problems:
         what = "The command line" if origin == "the command line" else f"Plan {origin}"
         raise VPRBenchError(f"{what} has {len(problems)} problem(s); nothing was run:\n  " + "\n  ".join(dict.fromkeys(problems)))
