@@ -9,7 +9,7 @@ import pytest
 from vprbench.cli.main import main
 from vprbench.datasets import load_dataset
 from vprbench.evaluation import read_results, save_result
-from vprbench.leaderboard import figures
+from vprbench.leaderboard import domains, figures
 from vprbench.leaderboard.cells import build_board
 from vprbench.leaderboard.figures import Skipped, mosaic
 
@@ -89,17 +89,17 @@ def board_of(make_record, runs):
 
 
 def test_the_radar_fills_a_domain_only_over_all_its_datasets(make_record):
-    axes = figures.domain_datasets()
+    axes = domains.domain_datasets()
     assert axes["indoor"] == ["17places", "baidu-mall", "gardens-point"]  # the paper's: corridor is not one
     assert axes["outdoor"] == ["nordland", "sped"]  # the paper has none: every benchmark of the domain
-    only_corridor = figures.domain_averages(board_of(make_record, [("hog", "corridor")]))["hog"]
+    only_corridor = domains.domain_averages(board_of(make_record, [("hog", "corridor")]))["hog"]
     assert only_corridor["indoor"].datasets == ("corridor",) and not only_corridor["indoor"].complete
     board = board_of(make_record, [("hog", name) for name in ("corridor", "17places", "baidu-mall", "gardens-point")])
-    indoor = figures.domain_averages(board)["hog"]["indoor"]
+    indoor = domains.domain_averages(board)["hog"]["indoor"]
     assert indoor.complete and indoor.datasets == ("17places", "baidu-mall", "gardens-point")
     r1 = [board.cell(board.rows[0], c).recall(1) for c in board.columns if c.dataset in indoor.datasets]
     assert indoor.value == pytest.approx(np.mean(r1), abs=1e-9)  # corridor left out of the paper's axis
-    paper = figures.paper_domain_averages()["AnyLoc-VLAD-DINOv2"]
+    paper = domains.paper_domain_averages()["AnyLoc-VLAD-DINOv2"]
     assert all(m.complete for m in paper.values())
 
 

@@ -91,7 +91,7 @@ def hostile_benchmarks(tmp_path, monkeypatch):
     import shutil
     from importlib.resources import files
 
-    from vprbench.leaderboard import figures
+    from vprbench.leaderboard import domains
 
     folder = tmp_path / "manifests"
     shutil.copytree(str(files("vprbench.manifests") / "datasets"), folder)
@@ -100,9 +100,9 @@ def hostile_benchmarks(tmp_path, monkeypatch):
     for number, name in enumerate(names):
         (folder / f"hostile-{number}.toml").write_text(corridor.replace('name = "corridor"', f"name = {name!r}", 1))
     monkeypatch.setattr("vprbench.datasets.manifest._manifest_dir", lambda: folder)
-    figures._domains.cache_clear()  # each benchmark's domain, read from the manifests once per process
+    domains._domains.cache_clear()  # each benchmark's domain, read from the manifests once per process
     yield names
-    figures._domains.cache_clear()
+    domains._domains.cache_clear()
 
 
 def test_benchmark_names_from_manifests_are_text_links_and_file_names(hostile_benchmarks, make_record, tmp_path, capsys):

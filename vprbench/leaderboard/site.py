@@ -22,9 +22,9 @@ from ..errors import VPRBenchError, require
 from ..fsutil import LockTimeout, lock
 from ..paths import safe_name
 from ..evaluation.results import read_results
-from ..reference import paper_results
 from ..text import percent, quantity
 from . import figures
+from .domains import domain_datasets
 from .escape import public, public_data, text, to_csv
 from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board, hardware_of, licence_shown, weights_shown
 from .shown import row_name
@@ -34,7 +34,7 @@ from ..evaluation.metrics import successes
 from .compare import shared_resampling
 from .stats import RESAMPLES, format_p, overlaps, paired_test
 from .tables import (GROUPS, TOLERANCE_PP, cell_stats, comparisons, fmt, group_table, marks_note, other_rows,
-                     source_mark, with_ci)
+                     reported_page, source_mark, with_ci)
 
 SECTION = "leaderboard"
 #: MkDocs Material front matter: the wide tables get the table-of-contents column
@@ -216,7 +216,7 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
         lines.append("No measured cell has a counterpart in the paper yet (the paper reports none of the "
                      "datasets measured here, or none of the methods).")
     lines += ["", "## Figures", ""]
-    axes = figures.domain_datasets()
+    axes = domain_datasets()
     lines += _figure(lambda p: figures.radar(board, p, colours), out, "radar.svg",
                      "Average R@1 per domain (AnyLoc Fig. 1, right): measured rows solid; the paper's "
                      f"{', '.join(figures.RADAR_PAPER_ROWS)} dashed (reported). Each axis averages the paper's datasets "
@@ -399,18 +399,3 @@ def _record_download(cell: Cell) -> dict:
         record["per_query"] = {"k": int(cell.arrays["database_indices"].shape[1]),
                                **{name: array.tolist() for name, array in cell.arrays.items()}}
     return record
-
-
-def reported_page() -> str:
-    """The paper's reported values (Tables II-VII), as reported, never as measured."""
-    frame = paper_results()
-    lines = ["# Reported by the AnyLoc paper", "",
-             "Keetha et al., *AnyLoc: Towards Universal Visual Place Recognition*, IEEE RA-L 2023. Values as "
-             "reported (percent), from `manifests/reference/anyloc-paper.csv`; none of them was measured here.", ""]
-    for table, part in frame[~frame["table"].str.startswith("ablation")].groupby("table", sort=False):
-        grid = part.assign(col=part["column"] + " " + part["metric"].str.upper().str.replace("R", "R@"))
-        wide = grid.pivot_table(index="row", columns="col", values="value", aggfunc="first", sort=False)
-        lines += [f"## Table {table}", "", wide.to_markdown(floatfmt=".1f"), ""]
-        settings = [s for s in part["setting"].unique() if s]
-        lines += [f"*{s}*" for s in settings] + ([""] if settings else [])
-    return "\n".join(lines)

@@ -265,3 +265,18 @@ def other_rows(board: Board) -> list[tuple[Row, Column, Cell]]:
     """Cells that are not official runs on a benchmark: non-official weights or own data."""
     return [(row, column, cell) for row in board.rows for column in board.columns
             if (cell := board.cell(row, column)) and (not row.official or column.kind != "benchmark")]
+
+
+def reported_page() -> str:
+    """The paper's reported values (Tables II-VII), as reported, never as measured."""
+    frame = paper_results()
+    lines = ["# Reported by the AnyLoc paper", "",
+             "Keetha et al., *AnyLoc: Towards Universal Visual Place Recognition*, IEEE RA-L 2023. Values as "
+             "reported (percent), from `manifests/reference/anyloc-paper.csv`; none of them was measured here.", ""]
+    for table, part in frame[~frame["table"].str.startswith("ablation")].groupby("table", sort=False):
+        grid = part.assign(col=part["column"] + " " + part["metric"].str.upper().str.replace("R", "R@"))
+        wide = grid.pivot_table(index="row", columns="col", values="value", aggfunc="first", sort=False)
+        lines += [f"## Table {table}", "", wide.to_markdown(floatfmt=".1f"), ""]
+        settings = [s for s in part["setting"].unique() if s]
+        lines += [f"*{s}*" for s in settings] + ([""] if settings else [])
+    return "\n".join(lines)
