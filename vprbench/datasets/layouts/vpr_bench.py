@@ -32,15 +32,23 @@ def load_rows(path: Path) -> np.ndarray:
 def read_positive_lists(path: Path, n_queries: int) -> list[np.ndarray]:
     """VPR-Bench's object array of [query_index, [db indices]] rows -> one array per query."""
     rows = load_rows(path)
-    lists: list[np.ndarray] = [np.zeros(0, np.int64) for _ in range(n_queries)]
+    lists: list[np.ndarray | None] = [None] * n_queries
     try:
         for query, positives in rows[:, :2]:
+            # a query without its row would be scored as a failure, unseen; -1 would wrap to the last
+            if not 0 <= int(query) < n_queries:
+                raise IndexError(f"a row for query {int(query)}, outside 0..{n_queries - 1}")
+            if lists[int(query)] is not None:
+                raise ValueError(f"two rows for query {int(query)}")
             lists[int(query)] = np.asarray(positives, dtype=np.int64).reshape(-1)
+        missing = [q for q, found in enumerate(lists) if found is None]
+        if missing:
+            raise ValueError(f"no row for {len(missing)} of the {n_queries} query images (the first: query {missing[0]})")
     except (ValueError, TypeError, IndexError) as error:
         raise VPRBenchError(
             f"Cannot read ground truth {path}: {error}. Expected VPR-Bench rows "
             "[query_index, [positive reference indices]] for each of the "
-            f"{n_queries} queries; re-download the file."
+            f"{n_queries} queries; the images or the file are incomplete: re-download them."
         ) from None
     return lists
 
