@@ -12,7 +12,7 @@ ANYLOC = {
     # name: (directory, domain, database, queries, radius, radius unit)
     "baidu-mall": ("baidu_datasets", "indoor", 689, 2292, 10, "metres"),
     "gardens-point": ("gardens", "indoor", 200, 200, 2, "frames"),
-    "17places": ("17places", "indoor", 406, 406, 5, "frames"),
+    "17places": ("17places", "indoor", 406, 406, 2, "frames"),
     "pitts30k": ("pitts30k", "urban", 10000, 6816, 25, "metres"),
     "st-lucia": ("st_lucia", "urban", 1549, 1464, 25, "metres"),
     "oxford": ("Oxford_Robotcar", "urban", 213, 251, 25, "metres"),

@@ -122,3 +122,16 @@ def test_recall_of_hog_on_corridor_recomputed_from_its_store(cli, shared_data, t
     assert np.array_equal(arrays["first_positive_rank"], mine)
     assert arrays["positives"].tolist() == [len(rows[i]) for i in range(111)]
     assert record["counts"] == {"database": 111, "queries": 111, "positive_pairs": 549, "queries_without_positives": 0}
+
+
+@pytest.mark.parametrize("name, folder", [("17places", "17places"), ("gardens-point", "GardensPointWalking"),
+                                          ("corridor", None)])
+def test_a_list_datasets_radius_is_what_its_released_lists_hold(shared_data, name, folder):
+    """17 Places said 'within 5 frames' (the paper's words) while its lists hold the query frame
+    +-2; the radius is shown beside its results and sizes its bootstrap blocks (11 queries, not 7)."""
+    path = (shared_data / "corridor" if folder is None else shared_data / "ground-truth" / "vpr-bench" / folder)
+    rows = _rows(path / "ground_truth_new.npy")
+    manifest = dataset_manifests()[name]
+    n = manifest.database_count
+    farthest = max(abs(p - q) for q, positives in rows.items() for p in positives if p < n)
+    assert manifest.radius == farthest, (name, manifest.radius, farthest)
