@@ -186,6 +186,7 @@ def test_run_settings_given_with_o_count_in_every_route_and_flags_win(shared_dat
     record = json.loads(cli(capsys, "evaluate", *METHOD, "--dataset", "corridor", "-o", "workers=0",
                             "-o", "memory_budget=100MB", *where, "--json"))
     assert (record["run"]["workers"], record["run"]["memory_budget"]) == (0, 100_000_000)
+    assert record["run"]["device"] == "cpu"  # where hog runs; it said 'auto', the setting, not the device
     code = main([str(a) for a in ("evaluate", *METHOD, "--dataset", "corridor", "-o", "workers=banana", *where)])
     err = capsys.readouterr().err
     assert code == 1 and "option workers takes a whole number >= 0 (loader processes); got 'banana'" in err, err

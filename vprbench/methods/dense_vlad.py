@@ -34,6 +34,7 @@ _CV_BIN_PER_SIZE = 1.5
 
 class DenseVLAD(Method):
     batch_size = 8
+    device = "cpu"  # OpenCV SIFT on the CPU, whatever --device says (checked, then unused): the record says so
 
     def __init__(self, clusters: int = 128, bin_sizes: tuple[int, ...] = (4, 6, 8, 10), step: int = 2,
                  max_side: int = 640, sample: int = 200_000, seed: int = 0, vocabulary: str = "map",

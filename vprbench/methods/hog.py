@@ -23,6 +23,7 @@ UPSAMPLED_AREA = 16
 
 class HOG(Method):
     batch_size = 32
+    device = "cpu"  # OpenCV on the CPU, whatever --device says (checked, then unused): the record says so
 
     def __init__(self, resize: tuple[int, int] = (512, 512), cell: int = 16, block: int = 16,
                  block_stride: int = 8, bins: int = 9, device: str = "cpu"):
