@@ -37,6 +37,8 @@ _WHAT_TO_DO = {
     codes.EROFS: "{move} a folder on a writable disk",
     codes.ENOSPC: "free some space, or {move} a folder on another disk (finished descriptors are kept)",
     codes.EDQUOT: "free some space, or {move} a folder on another disk (finished descriptors are kept)",
+    codes.EFBIG: "the file size limit (ulimit -f) or the filesystem's largest file is reached: raise the limit, or "
+                 "{move} a folder on another disk",
     codes.EACCES: "change its permissions, or {move} a folder this user may write to",
     codes.EPERM: "{move} another folder",
     codes.ENOENT: "check the path",

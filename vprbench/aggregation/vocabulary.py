@@ -17,6 +17,7 @@ the dataset. `exact=True` in `fit_vocabulary` reproduces the official fit on all
 """
 from __future__ import annotations
 
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable
@@ -175,9 +176,16 @@ class Vocabulary:
         """Written whole or not at all (a process killed while writing, or a full disk, leaves the
         file as it was): a cached vocabulary is read by other runs."""
         path = Path(path)
+        centres = self.centres.float().cpu().contiguous()
         with atomic_path(path) as temporary:
-            torch.save({"centres": self.centres.float().cpu().contiguous(), "meta": dict(self.meta)}, temporary)
+            torch.save({"centres": centres, "meta": dict(self.meta), "crc32": centres_checksum(centres)}, temporary)
         return path
+
+
+def centres_checksum(centres: torch.Tensor) -> int:
+    """crc32 of the centres' float32 bytes (little-endian): a saved vocabulary is checked on load
+    (torch.load does not check the bytes it reads)."""
+    return zlib.crc32(np.ascontiguousarray(centres.float().cpu().numpy(), dtype="<f4").tobytes())
 
 
 def load_vocabulary(path: str | Path) -> Vocabulary:
@@ -200,17 +208,22 @@ def load_vocabulary(path: str | Path) -> Vocabulary:
             raise VPRBenchError(f"Cannot read vocabulary file {path}: {error}. Expected a (clusters, dim) float array.") from None
     else:
         data = read_torch_file(path, "vocabulary file")
-    meta = {}
+    meta, written = {}, None
     if isinstance(data, dict):
         if "centres" not in data:
             raise VPRBenchError(f"Vocabulary file {path} has no 'centres' entry (keys: {sorted(data)}).")
-        data, meta = data["centres"], dict(data.get("meta", {}))
+        data, meta, written = data["centres"], dict(data.get("meta", {})), data.get("crc32")
     try:
         centres = torch.as_tensor(np.asarray(data) if isinstance(data, np.ndarray) else data).float()
     except (TypeError, ValueError, RuntimeError):
         raise VPRBenchError(f"Vocabulary file {path} holds a {type(data).__name__}, not a (clusters, dim) array of numbers.") from None
     if centres.dim() != 2 or centres.shape[0] < 1:
         raise VPRBenchError(f"Vocabulary file {path} holds a tensor of shape {tuple(centres.shape)}, expected (clusters, dim).")
+    # None: a bare array, or saved before vocabularies carried a checksum
+    if written is not None and (type(written) is not int or written != centres_checksum(centres)):
+        raise VPRBenchError(f"Vocabulary file {path} is damaged: its centres no longer match the checksum written with "
+                            "them. Delete it and fit it again (`vprbench vocabulary fit`; dense-vlad fits its cached "
+                            "ones again by itself).")
     meta.setdefault("clusters", int(centres.shape[0]))
     meta["path"] = str(path)
     return Vocabulary(centres, meta)

@@ -172,8 +172,10 @@ def find_result(spec, cache_dir=None) -> dict | None:
     migrate_legacy(cache_dir)
     check_layout(results_dir(cache_dir))
     wanted = {str(k) for k in spec.ks}
+    # row and protocol as the record says, not as the folder it lies in is named (a file copied there)
     found = [r for r in _records_in(run_folder(spec.dataset.protocol_hash, spec.row_key, cache_dir))
-             if r["row_key"] == spec.row_key and wanted <= set(r["recall"])]
+             if r["row_key"] == spec.row_key and r["protocol"]["hash"] == spec.dataset.protocol_hash
+             and wanted <= set(r["recall"])]
     for record in reversed(_order(found)):
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")

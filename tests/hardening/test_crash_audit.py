@@ -1,0 +1,248 @@
+"""Caches under crashes, damage and limits, as two researchers sharing one cache folder meet them.
+
+Descriptor stores and result records are covered by tests/store (torture, checksums, full
+disks) and tests/leaderboard/test_store_torture.py; these are the gaps: the local features a
+re-ranker keeps (stages/features.py) and saved vocabularies were trusted as read, a full disk while
+features were kept crashed the process, a record was served for the protocol its folder is named
+after rather than the one it holds, and a file-size limit said what went wrong but not what to do.
+"""
+from __future__ import annotations
+
+import json
+import re
+import resource
+import shutil
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from vprbench.aggregation.vocabulary import Vocabulary, load_vocabulary
+from vprbench.errors import VPRBenchError
+from vprbench.evaluation.results import find_result
+from vprbench.spec import resolve_spec
+from vprbench.stages.features import FeatureStore
+
+ROWS = 4
+
+
+def features_of(row: int, points: int = 6) -> dict[str, np.ndarray]:
+    """What an extractor computes for image `row` (deterministic: keypoints and descriptors)."""
+    rng = np.random.default_rng(row)
+    return {"points": rng.random((points, 2), dtype=np.float32),
+            "descriptors": rng.integers(0, 255, (points, 128), dtype=np.uint8)}
+
+
+@pytest.fixture
+def kept(tmp_path):
+    """(store, file): the local features of ROWS images, written once as a run would."""
+    store = FeatureStore("sift", {"max_features": 6}, "corridor", {"database": "images-key"}, cache_dir=tmp_path)
+    with store.opened("database", features_of) as get:
+        for row in range(ROWS):
+            get(row)
+    return store, store.file("database")
+
+
+def read_all(store: FeatureStore) -> tuple[dict[int, dict], list[int], list[str]]:
+    """Every image as a second run reads it: (arrays, rows computed again, warnings)."""
+    computed = []
+
+    def compute(row):
+        computed.append(row)
+        return features_of(row)
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with store.opened("database", compute) as get:
+            found = {row: get(row) for row in range(ROWS)}
+    return found, computed, [str(w.message) for w in caught]
+
+
+def flip(path: Path, offset: int, length: int, mask: int = 0x40) -> None:
+    data = bytearray(path.read_bytes())
+    for i in range(offset, offset + length):
+        data[i] ^= mask
+    path.write_bytes(bytes(data))
+
+
+def test_flipped_bytes_in_local_features_are_recomputed_not_trusted(kept):
+    """Was: a flipped byte in a kept keypoint was read back as it stood, and the re-ranking's
+    recall changed without a word (hog + sift-ransac@5 on corridor: R@1 54.05 -> 59.46, exit 0)."""
+    store, path = kept
+    with h5py.File(path, "r") as f:
+        where = [(f["images"][str(r)]["points"].id.get_offset(), f["images"][str(r)]["points"].nbytes)
+                 for r in (1, 3)]
+    for offset, _ in where:
+        flip(path, offset + 3, 1)  # the exponent byte of the first coordinate
+    found, computed, said = read_all(store)
+    assert computed == [1, 3]
+    assert all(np.array_equal(found[r][k], features_of(r)[k]) for r in range(ROWS) for k in ("points", "descriptors"))
+    assert said == [f"Local features of 2 image(s) (1, 3) in {path} no longer matched the checksums written with them; "
+                    "they were recomputed."]
+    assert read_all(store)[1:] == ([], [])  # rewritten whole: the next run reads them
+
+
+def test_local_features_whose_header_cannot_be_read_are_recomputed(kept):
+    """Was: OSError 'Can't synchronously read data (bad global heap collection signature)'
+    from reading the file's identity, which the command line showed as 'Cannot use
+    feature_identity: ...', again on every run until the file was deleted by hand."""
+    store, path = kept
+    data = path.read_bytes()
+    flip(path, data.index(b"GCOL"), 4)  # the heap holding the file's identity strings
+    found, computed, said = read_all(store)
+    assert computed == list(range(ROWS)) and said == []
+    assert all(np.array_equal(found[r]["points"], features_of(r)["points"]) for r in range(ROWS))
+
+
+def test_a_damaged_image_group_discards_the_file_and_the_rerun_recovers(kept):
+    """Was: HDF5's OSError from inside the re-ranking, on this run and every later one (the
+    damaged file stayed). Now one line naming the file, which is discarded; the rerun recomputes."""
+    store, path = kept
+    data = path.read_bytes()
+    heaps = [m.start() for m in re.finditer(b"HEAP", data) if b"points" in data[m.start():m.start() + 256]]
+    assert heaps  # the local heaps naming each image's arrays
+    for offset in heaps:
+        flip(path, offset, 4)
+    with pytest.raises(VPRBenchError) as refused:
+        read_all(store)
+    assert str(refused.value).startswith(f"Local features {path} are damaged (image 0 cannot be read: ")
+    assert str(refused.value).endswith("the file was discarded: run again to recompute it.")
+    assert not path.exists()
+    found, computed, said = read_all(store)
+    assert computed == list(range(ROWS)) and said == []
+    assert all(np.array_equal(found[r]["descriptors"], features_of(r)["descriptors"]) for r in range(ROWS))
+
+
+def test_features_written_without_checksums_are_recomputed_once(kept):
+    """A file from before groups carried a crc32: its images are computed again (never trusted),
+    quietly, once."""
+    store, path = kept
+    with h5py.File(path, "a") as f:
+        for row in range(ROWS):
+            del f["images"][str(row)].attrs["crc32"]
+    assert read_all(store)[1:] == (list(range(ROWS)), [])
+    assert read_all(store)[1:] == ([], [])
+
+
+def test_a_file_size_limit_says_what_to_do(shared_data, tmp_path, cli):
+    """`ulimit -f` below a store's size (as on shared machines): the write fails with EFBIG.
+    Was: 'Cannot use .../database.rank0-of-1.partial.h5: File too large.' and nothing more."""
+    images = sorted((shared_data / "corridor" / "ref").glob("*.jpg"))[:3]
+    cache = tmp_path / "cache"
+
+    def limited():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000))  # a hog store of 3 images is 430 KB
+
+    done = subprocess.run([sys.executable, "-m", "vprbench", "describe", "--method", "hog", "--quiet", "--out",
+                           tmp_path / "d.npy", "--cache-dir", cache, *images], capture_output=True, text=True,
+                          timeout=120, preexec_fn=limited)
+    store = next(cache.glob("stores/hog-*/describe-images-*"))
+    assert done.returncode == 1 and "Traceback" not in done.stderr
+    assert done.stderr.strip() == (
+        f"error: Cannot use {store / 'queries.rank0-of-1.partial.h5'}: File too large; the file size limit "
+        "(ulimit -f) or the filesystem's largest file is reached: raise the limit, or point --cache-dir at a "
+        "folder on another disk.")
+    assert [p.name for p in store.iterdir()] == [".lock"]  # nothing half-written left to trust
+    code, _, err = cli("describe", "--method", "hog", "--quiet", "--out", tmp_path / "d.npy", "--cache-dir", cache,
+                       *images)
+    assert code == 0 and err.startswith("Wrote 3 descriptors")  # the limit lifted, the same cache simply runs
+    assert np.load(tmp_path / "d.npy").shape == (3, 35721)
+
+
+def test_a_saved_vocabulary_with_a_flipped_byte_is_refused(tmp_path, cli):
+    """torch.load does not check the bytes it reads. Was: a cached vocabulary with one flipped bit
+    loaded as it stood (dense-vlad fitted on a folder, corridor: every descriptor described again
+    with the damaged centres, R@1 76.58 -> 77.48, exit 0, no word)."""
+    centres = torch.arange(8 * 16, dtype=torch.float32).reshape(8, 16) / 7
+    path = Vocabulary(centres, {"source": "indoor"}).save(tmp_path / "vocabulary.pt")
+    assert torch.equal(load_vocabulary(path).centres, centres)  # whole: loads as saved
+    data = path.read_bytes()
+    flip(path, data.index(centres.numpy().tobytes()[:64]) + 41, 1)
+    code, out, err = cli("vocabulary", "show", path)
+    assert (code, out) == (1, "") and err == (
+        f"error: Vocabulary file {path} is damaged: its centres no longer match the checksum written with them. "
+        "Delete it and fit it again (`vprbench vocabulary fit`; dense-vlad fits its cached ones again by itself).\n")
+    torch.save({"centres": centres, "meta": {}}, tmp_path / "earlier.pt")  # saved before vocabularies had a checksum
+    torch.save(centres, tmp_path / "released.pt")  # the authors' bare tensor
+    assert all(torch.equal(load_vocabulary(tmp_path / name).centres, centres) for name in ("earlier.pt", "released.pt"))
+
+
+FILL_FEATURES = """
+import sys
+from pathlib import Path
+from test_crash_audit import features_of
+from vprbench.errors import VPRBenchError
+from vprbench.stages.features import FeatureStore
+store = FeatureStore("sift", {"max_features": 300}, "corridor", {"database": "images-key"}, cache_dir=Path(sys.argv[1]))
+try:
+    with store.opened("database", lambda row: features_of(row, 300)) as get:
+        for row in range(40):  # 40 KB each: the limit is reached at the 7th or so
+            get(row)
+except VPRBenchError as error:
+    sys.exit(f"error: {error}")
+"""
+
+
+def test_a_disk_filling_up_while_features_are_kept_is_one_line_and_resumes(tmp_path):
+    """A write that fails (a file-size limit here; a full disk fails the same way). Was: HDF5's
+    sieve buffer failed when h5py freed it ('Exception ignored ... Can't decrement id ref count
+    (file write failed ... No space left on device)'), then the process died of a segmentation
+    fault (exit -11) in the next flush: hog + sift-ransac on a nearly full tmpfs exited 139."""
+    def limited():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (300_000, 300_000))
+
+    done = subprocess.run([sys.executable, "-c", FILL_FEATURES, tmp_path], capture_output=True, text=True, timeout=120,
+                          preexec_fn=limited, cwd=Path(__file__).parent)
+    store = FeatureStore("sift", {"max_features": 300}, "corridor", {"database": "images-key"}, cache_dir=tmp_path)
+    path = store.file("database")
+    assert (done.returncode, done.stderr) == (1, f"error: Cannot use {path}: File too large; the file size limit "
+                                                 "(ulimit -f) or the filesystem's largest file is reached: raise the "
+                                                 "limit, or use a folder on another disk.\n")
+    computed = []
+
+    def compute(row):
+        computed.append(row)
+        return features_of(row, 300)
+
+    with store.opened("database", compute) as get:  # the limit lifted: the next run completes
+        found = {row: get(row) for row in range(40)}
+    # HDF5 had claimed space past the limit, so the file reads as truncated: discarded, all recomputed
+    assert computed == list(range(40))
+    assert all(np.array_equal(found[r][k], features_of(r, 300)[k]) for r in range(40)
+               for k in ("points", "descriptors"))
+
+
+def test_a_record_of_another_protocol_copied_over_one_is_not_served(shared_data, tmp_path, cli, monkeypatch):
+    """Two runs of hog on one folder of one's own, radius 1 frame and then 2 (two protocols, one
+    row). Was: the radius-2 run's record copied over the radius-1 one (same file name) was served
+    by find_result for the radius-1 spec (R@1 50.0 instead of 33.3), so `vprbench run` would show
+    it as that cell and never run it: the folder's name was trusted, not the record's protocol."""
+    own, cache = tmp_path / "own", tmp_path / "cache"
+    rows = ["image,frame"]
+    for i in range(6):
+        for split, source, prefix in (("database", "ref", "d"), ("queries", "query", "q")):
+            (own / split).mkdir(parents=True, exist_ok=True)
+            shutil.copy(shared_data / "corridor" / source / f"{i:07d}.jpg", own / split / f"{prefix}{i}.jpg")
+            rows.append(f"{split}/{prefix}{i}.jpg,{i}")
+    (own / "positions.csv").write_text("\n".join(rows) + "\n")
+    monkeypatch.chdir(tmp_path)
+    runs = {}
+    for radius in (2, 1):
+        (own / "dataset.toml").write_text(f"radius = {radius}\n")
+        code, out, err = cli("evaluate", "--method", "hog", "--dataset", "./own", "--k", "1", "2", "--quiet", "--json",
+                             "--cache-dir", cache)
+        assert code == 0, err
+        runs[radius] = json.loads(out)
+    spec = resolve_spec("hog", "./own", ks=(1, 2), cache_dir=cache)  # radius 1
+    assert spec.dataset.protocol_hash == runs[1]["protocol"]["hash"] != runs[2]["protocol"]["hash"]
+    assert find_result(spec, cache)["recall"] == runs[1]["recall"] == {"1": 33.3333, "2": 66.6667}
+    mine = next(cache.glob(f"results/{runs[1]['protocol']['hash']}/*/*.json"))
+    theirs = next(cache.glob(f"results/{runs[2]['protocol']['hash']}/*/*.json"))
+    shutil.copy(theirs.with_suffix(".npz"), mine.parent)
+    shutil.copy(theirs, mine)  # the other run's record under this one's name
+    assert find_result(spec, cache) is None  # not this protocol's run: the cell is evaluated again
