@@ -57,7 +57,7 @@ def run_reproduce(args) -> int:
     console = make_console()
     missing = {key: missing_for(c, weights.get(tc.row), settings.data_dir, settings.cache_dir) for key, (c, tc) in cells.items()}
     unrunnable = [tc for tc in table_cells_ if not tc.cells]
-    no_method = f"{len(unrunnable)} with no vprbench method ({', '.join(sorted({tc.row for tc in unrunnable}))})"
+    no_method = f"{len(unrunnable)} not runnable as the paper ran them ({', '.join(sorted({tc.row for tc in unrunnable}))})"
     if args.dry_run:
         counted = f"{len(cells)} cells to evaluate{f', {no_method}' if unrunnable else ''}"
         if spec.get("dry_run") == "by-row":

@@ -19,7 +19,7 @@ class TableCell:
     row: str
     column: str
     cells: list[Cell] = field(default_factory=list)  # several for a per-domain mean
-    reason: str = ""  # why it cannot run at all (no vprbench method)
+    reason: str = ""  # why it cannot run as the paper ran it (no vprbench method, ...)
 
 
 def reproduce_tables(paper: str) -> dict:
@@ -66,8 +66,27 @@ def table_cells(paper: str, table: str, ks=(1, 5), *, settings: dict | None = No
                               f"{paper} table {table}", overrides={"options": dict(settings or {})}, data_dir=data_dir,
                               cache_dir=cache_dir)
             cells = [Cell(c.spec, c.settings, label=row["row"]) for c in plan.cells]
-            out.append(TableCell(row["row"], column, cells))
+            reason = next((r for r in map(cannot_run, cells) if r), "")
+            out.append(TableCell(row["row"], column, [] if reason else cells, reason))
     return spec, out
+
+
+def cannot_run(cell: Cell) -> str:
+    """Why the cell cannot run as the paper ran it, known before any image is read ('' if it can):
+    PCA to more dimensions than the dataset has database images, which the authors' code fits
+    jointly over the datasets of the domain (vprbench fits PCA on the evaluated database only)."""
+    from ..datasets import dataset_manifest, find_protocol
+
+    dim, dataset = cell.spec.options.get("pca_dim"), cell.spec.dataset
+    if not dim or dataset.kind != "benchmark":
+        return ""
+    manifest = dataset_manifest(dataset.name)
+    protocol = find_protocol(manifest, dataset.protocol)
+    count = protocol.database_count or (manifest.query_count if protocol.swap else manifest.database_count)
+    if not count or dim <= count:
+        return ""
+    return (f"PCA to {dim} dimensions needs at least {dim} database images; {dataset.name} has {count} (the authors' "
+            "code fits this PCA jointly over its domain's datasets, which vprbench does not)")
 
 
 #: what a cell lacks: (the thing, how to get it), e.g. ("dataset hawkins", "Download ...")
