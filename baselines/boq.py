@@ -146,7 +146,9 @@ def build(
     released = config in RELEASED.values()
     backbone = config.backbone if released else repr(config)
     fingerprint = {"method": METHOD, **identity, "backbone": backbone, "dim": config.dim}
-    preprocess = Preprocess(resize=resize, interpolation="bicubic")
+    # The authors' transform for the released models: ToTensor, bicubic antialiased resize of the
+    # float tensor, Normalize (the resize commutes with the normalisation); not a resize of the 8-bit image.
+    preprocess = Preprocess(resize=resize, interpolation="bicubic", normalise_first=True)
     return TorchMethod(
         model, preprocess, fingerprint, batch_size=batch_size, device=device, precision=precision, dim=config.dim
     )
