@@ -246,3 +246,40 @@ def test_a_record_of_another_protocol_copied_over_one_is_not_served(shared_data,
     shutil.copy(theirs.with_suffix(".npz"), mine.parent)
     shutil.copy(theirs, mine)  # the other run's record under this one's name
     assert find_result(spec, cache) is None  # not this protocol's run: the cell is evaluated again
+
+
+class _StoredRows:
+    """Rows as a store gives them: an array, the folder they lie in, and a key of their content."""
+
+    def __init__(self, array, folder, content):
+        from vprbench.row_sources import ArrayRows
+
+        self._rows, self.folder, self._content = ArrayRows(array), folder, content
+        self.row_count, self.dim, self.dtype = self._rows.row_count, self._rows.dim, self._rows.dtype
+        self.read_rows, self.read_rows_at = self._rows.read_rows, self._rows.read_rows_at
+
+    def content_key(self) -> str:
+        return self._content
+
+
+def test_a_post_processing_state_copied_from_other_rows_is_refitted(tmp_path):
+    """Found by its file name alone: a PCA state fitted on another store's rows, copied under the
+    name these rows' state has, was loaded and applied to them."""
+    from vprbench.aggregation.pca import PCAWhitening
+    from vprbench.evaluation.postprocess import fit_postprocessor
+
+    rng = np.random.default_rng(0)
+    mine, other = (rng.standard_normal((64, 16)).astype(np.float32) for _ in range(2))
+    theirs = fit_postprocessor(PCAWhitening(8), _StoredRows(other, tmp_path / "b", "b" * 16), 2**28)
+    (tmp_path / "a").mkdir()
+    expected = fit_postprocessor(PCAWhitening(8), _StoredRows(mine, tmp_path / "a", "a" * 16), 2**28)
+    assert expected["file"] != theirs["file"] and expected["key"]["rows"]["content"] == "a" * 16
+    shutil.copyfile(theirs["file"], expected["file"])  # the other rows' state under this name
+    refit = PCAWhitening(8)
+    with pytest.warns(UserWarning, match="post-processing state .* is unusable .*fitted on other rows"):
+        info = fit_postprocessor(refit, _StoredRows(mine, tmp_path / "a", "a" * 16), 2**28)
+    assert info["state"] == "fitted"
+    fresh = PCAWhitening(8).fit(mine)
+    np.testing.assert_allclose(refit.transform(mine), fresh.transform(mine), atol=1e-5)  # fitted on these rows
+    again = PCAWhitening(8)
+    assert fit_postprocessor(again, _StoredRows(mine, tmp_path / "a", "a" * 16), 2**28)["state"] == "loaded"

@@ -174,3 +174,14 @@ def test_a_store_without_checksums_is_recomputed_not_trusted(shared_data, tmp_pa
     with pytest.warns(UserWarning, match="written by an earlier vprbench, without row checksums; it is recomputed"):
         again = evaluate(vprbench.create_method("thumb-test"), dataset, cache_dir=tmp_path)
     assert again["descriptors_computed"] == {"database": 0, "queries": 111} and again["recall"] == clean["recall"]
+
+
+def test_a_stores_content_key_names_its_rows_not_its_path(tmp_path):
+    """What is fitted on a store's rows (a post-processor's state) is keyed by this: equal for the
+    same rows anywhere, different when one row differs."""
+    x = values()
+    keys = []
+    for name, rows in (("a.h5", x), ("b.h5", x), ("c.h5", np.vstack([x[:-1], x[-1:] + 1]))):
+        written(tmp_path / name, identity(300), rows)
+        keys.append(DescriptorStore(tmp_path / name, identity(300)).content_key())
+    assert keys[0] == keys[1] != keys[2] and len(keys[0]) == 16

@@ -83,9 +83,13 @@ class TransformedRows:
 
 def fit_postprocessor(postprocessor, database: RowSource, memory_budget: int, state_folder=None) -> dict:
     """Fit on the database rows, or load the state a previous run saved in `state_folder`
-    (default: the database's folder) under a name keyed by what defines it."""
+    (default: the database's folder) under a name keyed by what defines it: the post-processor,
+    and the rows' shape and content (a store's `content_key`). A saved state is used only if the
+    key saved in it is that key (a file copied from another store under this name is refitted)."""
+    content = getattr(database, "content_key", None)
     key = {"postprocessor": postprocessor.key(database, memory_budget),
-           "rows": {"count": database.row_count, "dim": database.dim, "dtype": str(np.dtype(database.dtype))}}
+           "rows": {"count": database.row_count, "dim": database.dim, "dtype": str(np.dtype(database.dtype)),
+                    "content": content() if content else None}}
     text = json.dumps(key, sort_keys=True, default=str)
     folder = Path(state_folder) if state_folder is not None else database.folder
     path = Path(folder) / f"postprocess-{hashlib.sha256(text.encode()).hexdigest()[:16]}.npz" if folder else None
@@ -93,10 +97,12 @@ def fit_postprocessor(postprocessor, database: RowSource, memory_budget: int, st
     if path is not None and path.is_file():
         try:
             with np.load(path, allow_pickle=False) as saved:
+                if str(saved["key"]) != text:
+                    raise ValueError("it was fitted on other rows or settings than these")
                 postprocessor.load_state({name: saved[name] for name in saved.files if name != "key"})
             return {**info, "state": "loaded"}
         except (OSError, ValueError, KeyError, zipfile.BadZipFile) as error:
-            warnings.warn(f"Refitting: the post-processing state {path} is unreadable ({error}).", stacklevel=2)
+            warnings.warn(f"Refitting: the post-processing state {path} is unusable ({error}).", stacklevel=2)
     started = time.perf_counter()
     postprocessor.fit(database, memory_budget)
     info.update(state="fitted", fit_s=round(time.perf_counter() - started, 3))

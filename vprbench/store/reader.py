@@ -73,6 +73,18 @@ class DescriptorStore:
     def names(self) -> list[str]:
         return list(self.identity.names)
 
+    def content_key(self) -> str:
+        """16 hex digits naming the rows' content (a hash of their stored checksums): what is
+        fitted on these rows (a post-processor) is keyed by it, not by the folder it lies in."""
+        import hashlib
+
+        try:
+            with h5py.File(self.path, "r") as f:
+                checksums = np.ascontiguousarray(f["checksums"][...])
+        except (OSError, KeyError) as error:
+            raise cache_error(error, self.path) from None
+        return hashlib.sha256(checksums.tobytes()).hexdigest()[:16]
+
     # ------------------------------------------------------------ checksums
     def _check(self, f: h5py.File, first: int, raw: np.ndarray, rows: np.ndarray | None = None) -> None:
         """Check rows first.. (or `rows`, ascending, from `first`) as stored in `raw` against their checksums."""
