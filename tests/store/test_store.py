@@ -118,6 +118,21 @@ def test_fit_state_written_whole(tmp_path):
     assert not folder.fit_path.exists()
 
 
+def test_a_fit_state_copied_from_another_store_is_not_used(tmp_path):
+    """Its fit id names its content, not the database it was fitted on: a vocabulary fitted on
+    one dataset's images, copied into another's store folder, was loaded as that dataset's."""
+    import shutil
+
+    theirs = StoreFolder("m", {"a": 1}, "other", {"database": "y"}, tmp_path)
+    theirs.write_fit_state({"centres": np.ones((4, 3), np.float32)})
+    ours = StoreFolder("m", {"a": 1}, "d", {"database": "x"}, tmp_path)
+    ours.path.mkdir(parents=True)
+    shutil.copyfile(theirs.fit_path, ours.fit_path)
+    with pytest.warns(UserWarning, match=r"Discarding .*fit_state.h5: .* fitted for store 'm-.*/other-"):
+        assert ours.read_fit_state() is None
+    assert not ours.fit_path.exists() and theirs.read_fit_state() is not None
+
+
 def test_store_key_covers_options_a_fingerprint_forgets(shared_data):
     dataset = load_dataset("corridor", shared_data)
     small = evaluate(vprbench.create_method("forgetful-test", size=4), dataset)

@@ -183,10 +183,12 @@ class StoreFolder:
         try:
             with h5py.File(self.fit_path, "r") as f:
                 state = {key: f["state"][key][...] for key in f["state"]}
-                recorded = f.attrs["fit_id"]
+                recorded, store = f.attrs["fit_id"], f.attrs.get("store")
             recorded = recorded.decode() if isinstance(recorded, bytes) else recorded
             if not state or fit_id_of(state) != recorded:
                 raise ValueError("its content does not match its fit id")
+            if (store.decode() if isinstance(store, bytes) else store) != self.key:  # a copy from another store
+                raise ValueError(f"it was fitted for store {store!r}, not this one")
             return state, recorded
         except (OSError, KeyError, ValueError) as error:
             if isinstance(error, PermissionError):
@@ -205,4 +207,5 @@ class StoreFolder:
                 for key, value in state.items():
                     group.create_dataset(key, data=value)
                 f.attrs["fit_id"] = fit_id
+                f.attrs["store"] = self.key  # the method and the database images it was fitted on
         return fit_id
