@@ -156,7 +156,8 @@ def netvlad_vgg16(
     else:
         prefix = VGG16_TRAIN_SETS[train_set]
         url = PATCH_NETVLAD_URL.format(prefix=prefix, dim=dim)
-        source = WeightSource(f"{prefix}_WPCA{dim}.pth.tar", url=url)
+        # Patch-NetVLAD's download script saves the pitts_ files as pittsburgh_
+        source = WeightSource(f"{prefix}_WPCA{dim}.pth.tar", url=url, also_named=(f"{train_set}_WPCA{dim}.pth.tar",))
         default_resize = (480, 640)  # Patch-NetVLAD's feature-extraction configs
     resize = as_resize(resize) if resize is not None else default_resize
     checkpoint, identity = load_checkpoint(weights, source, name, cache_dir)

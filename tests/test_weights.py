@@ -185,3 +185,24 @@ def test_evaluate_reads_weights_from_the_run_settings_cache(shared_data, tmp_pat
     assert not list(default_cache().rglob(backbone.file_name))
     with pytest.raises(VPRBenchError, match=r"could not download dinov2_vits14_pretrain\.pth .*no network"):
         evaluate(spec, RunSettings(cache_dir=tmp_path / "empty"), dataset=dataset)
+
+
+def test_a_folder_of_release_files_may_hold_one_under_the_authors_script_name(tmp_path, monkeypatch):
+    """Patch-NetVLAD's download script saves the hub's pitts_WPCA4096.pth.tar as
+    pittsburgh_WPCA4096.pth.tar: such a folder, given as --weights, was refused ('does not exist')."""
+    from vprbench.weights import local_weights
+    from vprbench_baselines import netvlad
+
+    given = {}
+    monkeypatch.setattr(netvlad, "load_checkpoint", lambda weights, source, *a: (given.update(source=source), ({}, {}))[1])
+    monkeypatch.setattr(netvlad, "build_loaded", lambda build, state, name: torch.nn.Identity())
+    netvlad.netvlad_vgg16(dim=512)
+    source = given["source"]
+    assert (source.file_name, source.also_named) == ("pitts_WPCA512.pth.tar", ("pittsburgh_WPCA512.pth.tar",))
+    (tmp_path / "pittsburgh_WPCA512.pth.tar").write_bytes(b"x")
+    assert local_weights(source, tmp_path, "netvlad-vgg16") == tmp_path / "pittsburgh_WPCA512.pth.tar"
+    (tmp_path / "pitts_WPCA512.pth.tar").write_bytes(b"y")  # the release's own name first
+    assert local_weights(source, tmp_path, "netvlad-vgg16") == tmp_path / "pitts_WPCA512.pth.tar"
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(VPRBenchError, match=r"weights file .*/empty/pitts_WPCA512.pth.tar does not exist"):
+        local_weights(source, tmp_path / "empty", "netvlad-vgg16")

@@ -105,6 +105,8 @@ class WeightSource:
     pass_with: str = "--weights PATH"
     gated: bool = False
     licence: str | None = None
+    #: other names a folder of release files may hold it under (the authors' own download scripts')
+    also_named: tuple[str, ...] = ()
 
     @property
     def where(self) -> str:
@@ -141,7 +143,8 @@ def local_weights(source: WeightSource, weights: str | Path, what: str) -> Path:
     """The file `weights` names (a folder of release files gives `source`'s file), checked to exist."""
     path = Path(weights).expanduser()
     if path.is_dir():
-        path = path / source.file_name
+        names = (source.file_name, *source.also_named)
+        path = next((path / name for name in names if (path / name).is_file()), path / source.file_name)
     if not path.is_file() and str(weights) == "random":  # AnyLoc's backbones and some stages take it before here
         raise VPRBenchError(f"{what}: weights 'random' (random initialisation) are only for AnyLoc backbones and "
                             "the stages that take them; pass a weights file in the official format instead: "
