@@ -12,16 +12,22 @@ from vprbench import VPRBenchError
 
 from .common import Preprocess, TorchMethod, WeightSource, as_resize, check_dim, choose, build_loaded, load_checkpoint, state_dict_of
 
-#: descriptor dim -> the authors' aggregator settings. Only the 4096-d configuration is
-#: published with its checkpoint (README); the 512/128-d checkpoints' settings are not.
+#: descriptor dim -> the authors' aggregator settings: out_channels and out_rows as the released
+#: files name them (channels(C)_rows(R)); the 4096-d configuration is printed in the README, the
+#: others share its mixer (depth 4, ratio 1), as the evaluation code wrapping them builds them
 CONFIGS = {
-    4096: dict(in_channels=1024, in_h=20, in_w=20, out_channels=1024, mix_depth=4, mlp_ratio=1, out_rows=4),
+    dim: dict(in_channels=1024, in_h=20, in_w=20, out_channels=channels, mix_depth=4, mlp_ratio=1, out_rows=rows)
+    for dim, channels, rows in ((4096, 1024, 4), (512, 256, 2), (128, 64, 2))
 }
+#: the README's Google Drive files
+DRIVE_IDS = {4096: "1vuz3PvnR7vxnDDLQrdHJaOA04SQrtk5L", 512: "1khiTUNzZhfV2UUupZoIsPIbsMRBYVDqj",
+             128: "1DQnefjk1hVICOEYPwE4-CZAZOvi1NSJz"}
 WEIGHTS = {
-    4096: WeightSource(
-        file_name="resnet50_MixVPR_4096_channels(1024)_rows(4).ckpt",
-        page="https://drive.google.com/file/d/1vuz3PvnR7vxnDDLQrdHJaOA04SQrtk5L/view",
-    ),
+    dim: WeightSource(
+        file_name=f"resnet50_MixVPR_{dim}_channels({config['out_channels']})_rows({config['out_rows']}).ckpt",
+        page=f"https://drive.google.com/file/d/{DRIVE_IDS[dim]}/view",
+    )
+    for dim, config in CONFIGS.items()
 }
 IMAGE_SIZE = (320, 320)
 

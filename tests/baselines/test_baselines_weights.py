@@ -139,8 +139,8 @@ def test_unreleased_dimension_lists_valid_ones():
     with pytest.raises(VPRBenchError) as info:
         create_method("eigenplaces", backbone="ResNet18", dim="1024", device="cpu")
     assert "ResNet18 comes in 256, 512" in str(info.value)
-    with pytest.raises(VPRBenchError, match="valid: 4096"):
-        create_method("mixvpr", dim=512, device="cpu")
+    with pytest.raises(VPRBenchError, match="valid: 4096, 512, 128"):
+        create_method("mixvpr", dim=1024, device="cpu")
     with pytest.raises(VPRBenchError, match="valid: 4096, 512, 128, 32768"):
         create_method("netvlad-vgg16", dim=1000, device="cpu")
     with pytest.raises(VPRBenchError, match=r"resnet18conv4 \(16384-d\)"):

@@ -50,6 +50,16 @@ def test_mixvpr_matches_official_layout():
     assert shapes(build_on_meta(mixvpr.MixVPRNet, mixvpr.CONFIGS[4096])) == expected
 
 
+@pytest.mark.parametrize("dim, channels, rows", [(512, 256, 2), (128, 64, 2)])
+def test_mixvpr_smaller_releases_are_the_4096_layout_with_their_files_channels_and_rows(dim, channels, rows):
+    """resnet50_MixVPR_{dim}_channels(C)_rows(R).ckpt: only the two projections differ."""
+    expected = dict(reference("mixvpr")["models"]["resnet50_4096"])
+    expected.update({"aggregator.channel_proj.weight": [channels, 1024], "aggregator.channel_proj.bias": [channels],
+                     "aggregator.row_proj.weight": [rows, 400], "aggregator.row_proj.bias": [rows]})
+    assert shapes(build_on_meta(mixvpr.MixVPRNet, mixvpr.CONFIGS[dim])) == expected
+    assert mixvpr.WEIGHTS[dim].file_name == f"resnet50_MixVPR_{dim}_channels({channels})_rows({rows}).ckpt"
+
+
 @pytest.mark.parametrize("backbone", list(netvlad.DVGL_RELEASES))
 def test_benchmark_netvlad_matches_official_layout(backbone):
     expected = reference("netvlad-dvgl")["models"][f"{backbone}_netvlad"]
