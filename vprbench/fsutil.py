@@ -22,7 +22,7 @@ import socket
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -108,6 +108,18 @@ def file_sha256(path: str | os.PathLike) -> str:
 def is_temporary(path: Path) -> bool:
     """A leftover of `atomic_path` (a writer killed before its rename)."""
     return path.name.startswith(".") and path.name.endswith(".tmp")
+
+
+def remove_stale(paths: Iterable[Path], age_s: float = 3600) -> None:
+    """Remove these leftovers of killed writers if untouched for `age_s` (a live writer's files
+    are younger); best effort: one that cannot be removed stays, harmless to readers."""
+    now = time.time()
+    for path in paths:
+        try:
+            if now - path.stat().st_mtime > age_s:
+                path.unlink()
+        except OSError:
+            pass
 
 
 # ------------------------------------------------------------------ locks

@@ -180,3 +180,22 @@ def test_read_only_cache_reads_and_refuses_to_write_with_a_message(read_only, ma
     assert len(assert_all_whole()) == 1
     with pytest.raises(VPRBenchError, match="Read-only file system"):
         save_result(make_record())
+
+
+def test_what_killed_writers_left_is_removed_by_a_later_save_once_it_is_an_hour_old(tmp_path, make_record):
+    """Temporary files and arrays whose record never came stayed in results/ for ever."""
+    from vprbench.evaluation import save_result
+
+    cache = tmp_path / "cache"
+    folder = save_result(make_record(seed=0), cache).parent
+    old = time.time() - 2 * 3600
+    stale = [folder / ".x.json.abc.tmp", folder / "19990101T000000Z-dead.npz"]
+    fresh = [folder / ".y.json.def.tmp", folder / "19990101T000000Z-live.npz"]  # a live writer's
+    for path in stale + fresh:
+        path.write_bytes(b"partial")
+    for path in stale:
+        os.utime(path, (old, old))
+    written = save_result(make_record(seed=1), cache)
+    assert written.parent == folder
+    assert not any(p.exists() for p in stale) and all(p.exists() for p in fresh)
+    assert len(list(folder.glob("*.json"))) == 2 and len(list(folder.glob("*.npz"))) == 3

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import VPRBenchError, os_error_message, require
-from ..fsutil import CacheError, atomic_write, lock
+from ..fsutil import CacheError, atomic_write, is_temporary, lock, remove_stale
 from ..paths import cache_root
 from .record import OPTIONAL_FIELDS, PER_QUERY_FIELDS, validated
 
@@ -94,6 +94,9 @@ def save_result(record: dict, cache_dir=None) -> Path:
                                    "fields": list(arrays)}
         atomic_write(folder / f"{stem}.json", json.dumps(record, sort_keys=True, indent=1).encode())
         _write_card(record, cache_dir)
+        # what writers killed here left: temporary files, and arrays whose record never came
+        remove_stale(p for p in folder.iterdir()
+                     if is_temporary(p) or (p.suffix == ".npz" and not p.with_suffix(".json").exists()))
     except OSError as error:
         raise VPRBenchError(f"{os_error_message(error, folder)} The result was not stored.") from None
     except CacheError as error:
