@@ -156,9 +156,9 @@ def test_folder_entries_that_escape_and_links_are_still_refused(cli, shared_data
 
 def test_folder_entries_count_against_the_member_bound(cli, shared_data, tmp_path, monkeypatch):
     """Ignored, but read: a flood of empty folders is bounded like a flood of files."""
-    from vprbench.bundles import verify
+    from vprbench.bundles import archive
 
-    monkeypatch.setattr(verify, "MAX_MEMBERS", 3)
+    monkeypatch.setattr(archive, "MAX_MEMBERS", 3)
     packed = tmp_path / "packed.tgz"
     with tarfile.open(packed, "w:gz") as archive:
         for i in range(5):

@@ -29,7 +29,8 @@ from ..evaluation.results import LAYOUT, LAYOUT_FILE, check_layout, read_record
 from ..fsutil import CacheError, atomic_write, check_lock_timeout, lock
 from .export import CARDS
 from .claims import one_record_per_run
-from .verify import MAX_BYTES, RECORD_NAME, BundleReport, check_record, verify_bundle
+from .archive import MAX_BYTES, RECORD_NAME
+from .verify import BundleReport, check_record, verify_bundle
 
 CONTRIBUTION = ".contribution"
 

@@ -1,11 +1,7 @@
 """`vprbench results verify`: nothing in a bundle is trusted that can be recomputed.
 
-The archive is read into memory member by member, never extracted: a member must be a regular
-file whose name is one of the bundle's own (a protocol hash, a row key and a run id, or a method
-card; folder entries are passed over), so no path can climb out of a folder; the bytes read are bounded (an archive bomb stops at
-the bound); the manifest's sha256 sums must match every file, and list every file.
-
-Each record is then validated (a record of a newer schema is refused), the names it gives must be
+The archive is read into memory, bounded and never extracted, and its manifest checked against
+every member (archive.py). Each record is then validated (a record of a newer schema is refused), the names it gives must be
 its spec's and vprbench's (claims.py), its protocol hash must be one vprbench ships for its
 dataset, and its metrics are recomputed from its per-query arrays against that protocol's ground truth, read from the dataset on this machine: query and database
 counts, indices in range, every query present, first-positive ranks, and Recall@K (records keep
@@ -15,15 +11,11 @@ the traverse order) must be the protocol's, or its intervals would be drawn from
 """
 from __future__ import annotations
 
-import gzip
 import hashlib
 import io
-import json
-import re
-import tarfile
 import zipfile
 from dataclasses import dataclass, field
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 
 import numpy as np
 
@@ -31,137 +23,12 @@ from ..errors import VPRBenchError
 from ..evaluation.blocks import Resampling, for_dataset, for_record
 from ..evaluation.record import OPTIONAL_FIELDS, PER_QUERY_FIELDS, validated
 from ..evaluation.results import check_kinds
+from .archive import _CARD, MAX_BYTES, RECORD_NAME, BundleError, _json, check_manifest, read_members
 from .claims import false_card, false_claims, one_record_per_run
-from .export import CARDS, FORMAT, FORMAT_VERSION, MANIFEST
+from .export import CARDS
 
-#: the most bytes a bundle may unpack to (an MSLS-size run is ~10 MB); `--max-size` raises it
-MAX_BYTES = 1 << 30
-MAX_MEMBERS = 200_000
 RECALL_TOLERANCE = 1e-4
 PR_TOLERANCE = 1e-3
-_HEX = r"[0-9a-f]{16}"
-_RUN = r"[A-Za-z0-9][A-Za-z0-9_.-]{0,80}"
-#: where a record or its arrays lie: <protocol hash>/<row key>/<run id>.json or .npz (in a bundle and a repository)
-RECORD_NAME = re.compile(rf"^({_HEX})/({_HEX})/({_RUN})\.(json|npz)$")
-_CARD = re.compile(rf"^{CARDS}/({_HEX})\.json$")
-
-
-class BundleError(VPRBenchError):
-    """The archive as a whole cannot be read as a bundle (no record of it can be trusted)."""
-
-
-# ---------------------------------------------------------------- the archive
-class _Bounded(io.RawIOBase):
-    """A reader that fails once more than `limit` bytes came out of it (a bomb stops here)."""
-
-    def __init__(self, inner, limit: int, where: str):
-        self.inner, self.left, self.limit, self.where = inner, limit, limit, where
-
-    def readable(self) -> bool:
-        return True
-
-    def readinto(self, buffer) -> int:
-        data = self.inner.read(min(len(buffer), self.left + 1))
-        self.left -= len(data)
-        if self.left < 0:
-            raise BundleError(f"{self.where}: it unpacks to more than the bound of {self.limit / 2**20:g} MiB "
-                              "(an archive bomb, or a bundle too big: raise --max-size).")
-        buffer[: len(data)] = data
-        return len(data)
-
-
-def read_members(path: Path, max_bytes: int = MAX_BYTES) -> dict[str, bytes]:
-    """Every member of the bundle at `path`, by name, read within `max_bytes`; a BundleError
-    naming the archive and the member at fault otherwise."""
-    where = str(path)
-    try:
-        raw = open(path, "rb")
-    except OSError as error:
-        raise BundleError(f"Cannot read the bundle {path} ({error.strerror or error}).") from None
-    with raw:
-        magic = raw.read(2)
-        raw.seek(0)
-        inner = gzip.GzipFile(fileobj=raw) if magic == b"\x1f\x8b" else raw
-        stream = _Bounded(inner, max_bytes, where)
-        members: dict[str, bytes] = {}
-        try:
-            with tarfile.open(fileobj=io.BufferedReader(stream), mode="r|") as archive:
-                for count, info in enumerate(archive):
-                    if count >= MAX_MEMBERS:  # folder entries too: tarfile keeps every entry it reads
-                        raise BundleError(f"{where}: more than {MAX_MEMBERS} members.")
-                    name = _member_name(info, where)
-                    if name is None:  # a folder entry ('tar czf' writes them): nothing to read or trust
-                        continue
-                    if name in members:
-                        raise BundleError(f"{where}: member {name} appears twice.")
-                    if info.size > max_bytes:
-                        raise BundleError(f"{where}: member {name} claims {info.size} bytes, over the bound of "
-                                          f"{max_bytes / 2**20:g} MiB (an archive bomb, or a bundle too big: "
-                                          "raise --max-size).")
-                    handle = archive.extractfile(info)
-                    members[name] = handle.read() if handle else b""
-        except (tarfile.TarError, EOFError, OSError, gzip.BadGzipFile, ValueError) as error:
-            raise BundleError(f"{where} is not a readable bundle archive ({type(error).__name__}: {error}).") from None
-    return members
-
-
-def _member_name(info: tarfile.TarInfo, where: str) -> str | None:
-    """A member's bundle name ('./' dropped), None for a folder entry; else a BundleError."""
-    name = info.name
-    parts = PurePosixPath(name).parts
-    if name.startswith(("/", "\\")) or ".." in parts or "\\" in name or re.match(r"^[A-Za-z]:", name):
-        raise BundleError(f"{where}: member {name!r} escapes the folder it would be written to; refused.")
-    if info.isdir():  # nothing is ever extracted: a folder entry inside the bundle is harmless, and ignored
-        return None
-    name = "/".join(parts)  # PurePosixPath drops '.' parts and repeated slashes
-    if not info.isreg():
-        raise BundleError(f"{where}: member {name!r} is a {'link' if info.issym() or info.islnk() else 'special file'}, "
-                          "not a regular file; refused.")
-    if name != MANIFEST and not (RECORD_NAME.match(name) or _CARD.match(name)):
-        raise BundleError(f"{where}: member {name!r} is no file a bundle holds (records, per-query arrays, method "
-                          "cards, the manifest); refused.")
-    return name
-
-
-def _json(data: bytes):
-    """JSON from a bundle; nesting too deep to parse (a hostile file) is a ValueError like any other."""
-    try:
-        return json.loads(data)
-    except RecursionError:
-        raise ValueError("nested too deeply") from None
-
-
-def check_manifest(members: dict[str, bytes], where: str) -> dict:
-    """The manifest, checked: format and version known, every file listed with its sha256 sum."""
-    if MANIFEST not in members:
-        raise BundleError(f"{where}: it has no {MANIFEST}; it is not a vprbench bundle.")
-    try:
-        manifest = _json(members[MANIFEST])
-        files = manifest["files"]
-        if not isinstance(files, dict):
-            raise TypeError("files is not a table")
-    except (ValueError, KeyError, TypeError) as error:
-        raise BundleError(f"{where}: {MANIFEST} is not a bundle manifest ({type(error).__name__}: {error}).") from None
-    if manifest.get("format") != FORMAT:
-        raise BundleError(f"{where}: {MANIFEST} says format {manifest.get('format')!r}, not {FORMAT}.")
-    version = manifest.get("version")
-    if isinstance(version, bool) or not isinstance(version, int) or version < 1:  # JSON true is no version
-        raise BundleError(f"{where}: {MANIFEST} says format version {version!r}, which no vprbench writes; it is "
-                          "damaged or not a vprbench bundle: export it again.")
-    if version > FORMAT_VERSION:
-        raise BundleError(f"{where}: bundle format version {version!r} is from a newer vprbench (this one reads up to "
-                          f"{FORMAT_VERSION}); upgrade vprbench.")
-    problems = []
-    for name in sorted(set(members) - {MANIFEST} - set(files)):
-        problems.append(f"{where}: {name} is not listed in {MANIFEST}.")
-    for name, entry in sorted(files.items()):
-        if name not in members:
-            problems.append(f"{where}: {name} is listed in {MANIFEST} but missing.")
-        elif not isinstance(entry, dict) or hashlib.sha256(members[name]).hexdigest() != entry.get("sha256"):
-            problems.append(f"{where}: {name} does not match its sha256 sum in {MANIFEST} (changed after export).")
-    if problems:
-        raise BundleError(" ".join(problems))
-    return manifest
 
 
 # ---------------------------------------------------------------- the ground truth
