@@ -326,6 +326,7 @@ def _source(pick: dict, runs: list[dict]) -> str:
     """How the cell's number is known: measured on this machine, contributed to a results repository
     (re-scored from its arrays), both (agreeing within the contributed run's 95 % interval, or not)."""
     from .stats import bootstrap_ci
+    from ..evaluation.blocks import for_record
     from ..evaluation.metrics import successes
 
     if pick.get("imported"):
@@ -340,7 +341,8 @@ def _source(pick: dict, runs: list[dict]) -> str:
     arrays = per_query(theirs)
     if arrays is None or "1" not in theirs["recall"] or "1" not in ours["recall"]:
         return f"contributed, re-run here (R@1 {ours['recall'].get('1', '–')}; the contributed run has no interval)"
-    low, high = bootstrap_ci(successes(arrays["first_positive_rank"], 1))
+    # the interval every page gives for that run: its dataset's units (blocks, places), not single queries
+    low, high = bootstrap_ci(successes(arrays["first_positive_rank"], 1), for_record(theirs, arrays))
     mine = float(ours["recall"]["1"])
     if low <= mine <= high:
         return AGREES

@@ -119,7 +119,7 @@ def pr_curves(cells: list[Cell], path: Path, colours: dict[str, str] | None = No
             continue
         precision, recall, _ = precision_recall_curve(correct, cell.arrays["similarities"][:, 0])
         ax.plot(recall, precision, color=colours[cell.row.name],
-                label=_label(f"{cell.row.name} (AUC {cell.record.get('auc_pr', float('nan')):.2f})"))
+                label=_label(f"{cell.row.name} (AUC {cell.record.get('auc_pr', float('nan')):.3f})"))  # as the page gives it
         drawn += 1
     if not drawn:
         plt.close(fig)

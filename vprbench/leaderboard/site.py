@@ -5,6 +5,7 @@ so a failure (full disk, a kill) leaves the previous section whole and no partia
 """
 from __future__ import annotations
 
+import functools
 import json
 import os
 import re
@@ -300,7 +301,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
                      f"{_num(cell.images_per_second, 1)} |")
         versions, computed = r.get("versions") or {}, r.get("descriptors_computed") or {}
         sent = (r.get("_contribution") or {}).get("contributor") or "this machine"
-        runs.append(f"| {name} | {text(cell.source)} | {text(sent)} | `{text(r.get('run_id'))}` | {text(r.get('created', '–'))} | "
+        runs.append(f"| {text(cell.row.name)} | {text(cell.source)} | {text(sent)} | `{text(r.get('run_id'))}` | {text(r.get('created', '–'))} | "
                     f"{text(hardware_of(r))} | {text(versions.get('vprbench', '–'))} | "
                     f"{_commit(versions.get('git'))} | {sum(computed.values()) if computed else '–'} | {cell.passed_over} | "
                     + (f"`{text(cell.timed.get('run_id'))}` on {text(cell.hardware)} |" if cell.timed else "no run computed its descriptors |"))
@@ -309,13 +310,15 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
     lines += _figure(lambda p: figures.recall_curves(cells, p, colours), out, f"{slug}-recall.svg", "Recall@K per run")
     lines += _figure(lambda p: figures.pr_curves(cells, p, colours), out, f"{slug}-pr.svg",
                      "Precision-recall of the top-1 matches ranked by similarity (VPR-Bench)")
-    lines += _figure(lambda p: figures.efficiency(cells, p, colours), out, f"{slug}-efficiency.svg",
-                     "Efficiency: R@1 against descriptor bytes and images described per second (this machine)")
-    lines += ["### Retrieval mosaics", "", f"Seeded queries (seed {seed}) and their top 5: green frame = positive, red = not.", ""]
+    machines = "; ".join(sorted({c.hardware for c in cells if c.images_per_second})) or "none, no run measured its speed"
+    lines += _figure(lambda p: figures.efficiency(cells, p, colours), out, f"{slug}-efficiency.svg",  # the runs' machines
+                     f"Efficiency: R@1 against descriptor bytes and images described per second (machine: {machines})")
+    lines += ["### Retrieval mosaics", "", f"Seeded queries (seed {seed}) and their top matches: green frame = positive, red = not.", ""]
     for cell in cells[:MOSAIC_ROWS]:
-        name = f"{slug}-mosaic-{safe_name(cell.row.name, 80)}.png"
-        lines += _figure(lambda p, c=cell: figures.mosaic(c, p, data_dir=data_dir, seed=seed, cache_dir=cache_dir), out, name,
-                         f"{cell.row.name}: queries and their top 5", f"Mosaic of {cell.row.name}")
+        top = min(5, cell.arrays["database_indices"].shape[1]) if cell.arrays is not None else 5  # it kept its top K
+        draw = functools.partial(figures.mosaic, cell, data_dir=data_dir, seed=seed, top=top, cache_dir=cache_dir)
+        lines += _figure(draw, out, f"{slug}-mosaic-{safe_name(cell.row.name, 80)}.png",
+                         f"{cell.row.name}: queries and their top {top}", f"Mosaic of {cell.row.name}")
     download = [_record_download(c) for c in cells]
     _write(out / "downloads" / f"{slug}.json", json.dumps(download, sort_keys=True, default=_plain))  # compact: per-query arrays
     to_csv(pd.DataFrame([_summary(c, stats[(c.row, column.key)]) for c in cells]), out / "downloads" / f"{slug}.csv",

@@ -201,7 +201,8 @@ def group_table(board: Board, table: str, link=lambda column: column.dataset) ->
             return "–"
         text = f"{value:.1f}"
         text = f"*{text}*" if is_reported else text
-        return f"**{text}**" if best.get((name, k)) is not None and abs(value - best[(name, k)]) < 1e-9 else text
+        # best as shown: two values that read alike (91.46 and the paper's 91.5) are both bold, or neither
+        return f"**{text}**" if best.get((name, k)) is not None and f"{value:.1f}" == f"{best[(name, k)]:.1f}" else text
 
     averages = {name: _average(values, averaged, source) for name, source, values in lines}
     partial = {name: _average(values, datasets, source, partial=True) for name, source, values in lines
@@ -248,7 +249,9 @@ def marks_note(board: Board) -> str:
         parts.append(f"{found['marked_rows']} cell(s) are on rows marked † (weights other than the authors' release, "
                      "approximate search, a float16 store or anything fitted on the evaluated database: the mark says which)")
     if found["own_data"]:
-        parts.append(f"{found['own_data']} cell(s) are on the user's own data, marked *(own data)*")
+        own = next(c.title for c in board.columns if c.kind == "own")  # how such a column is headed: name it as it reads
+        parts.append(f"{found['own_data']} cell(s) are on the user's own data, in columns headed by the data's name and "
+                     f"\"own\", e.g. {text(own)}")
     elsewhere = [c.source for c in board.cells.values() if source_mark(c.source)]
     if elsewhere:
         parts.append(f"{len(elsewhere)} cell(s) have runs contributed to a results repository or imported, each "

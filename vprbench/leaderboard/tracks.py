@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from .cells import Board, Cell
 from .escape import text
-from .shown import row_name
 from .tables import fmt, with_ci
+from ..text import percent
 
 TITLES = {"single-image": "Single-image retrieval", "re-ranked": "Re-ranked", "sequence": "Sequence matching"}
 INTRO = {
@@ -52,15 +52,15 @@ def track_page(full: Board, track: str, stats: dict, head: str = "") -> str:
             if cell is None:
                 continue
             s, r = stats[(row, column.key)], cell.record
-            name = row_name(row)
+            name = text(row.name)  # with what sets it apart: the table has no Weights column
             if track == "re-ranked":
                 base = alone.get((retriever_key(cell), column.key))
                 lines.append(f"| {name} | {with_ci(s[1])} | {with_ci(s[5])} | {_cost(cell, 'ceiling_recall')} | "
                              f"{fmt(base.recall(1)) if base else '–'} | {_cost(cell, 'ms_per_query')} | "
                              f"{_cost(cell, 'stored_bytes_per_database_image', 0)} | `{text(r.get('run_id'))}` |")
             else:
-                pr = [r.get(k) for k in ("auc_pr", "recall_at_100_precision", "max_f1")]
-                shown = [f"{v:.3f}" if isinstance(v, (int, float)) else "–" for v in pr]
+                shown = [f"{v:.3f}" if isinstance(v, (int, float)) else "–" for v in (r.get("auc_pr"), r.get("max_f1"))]
+                shown.insert(1, percent(r.get("recall_at_100_precision")))  # in percent, as on the dataset pages
                 lines.append(f"| {name} | {with_ci(s[1])} | {with_ci(s[5])} | {' | '.join(shown)} | "
                              f"{_cost(cell, 'ms_per_query')} | `{text(r.get('run_id'))}` |")
         lines.append("")
