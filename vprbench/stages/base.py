@@ -161,6 +161,13 @@ class Stage:
         return {}
 
 
+def repeated_row(indices: np.ndarray) -> int | None:
+    """The first row (query) of `indices` (Q, K) holding one database index twice, None when none does."""
+    ordered = np.sort(indices, axis=1)
+    repeats = (ordered[:, 1:] == ordered[:, :-1]).any(1)
+    return int(np.flatnonzero(repeats)[0]) if repeats.any() else None
+
+
 def check_candidates(found, stage: str, queries: int, database: int, k: int) -> Candidates:
     """What stage `stage` returned, checked: Candidates of `queries` rows, >= `k` columns, indices in
     [0, database) and each once per row, finite scores. Anything else is refused naming the stage."""
@@ -183,9 +190,8 @@ def check_candidates(found, stage: str, queries: int, database: int, k: int) -> 
         bad = int(np.flatnonzero((indices < 0).any(1) | (indices >= database).any(1))[0])
         raise VPRBenchError(f"{where} database indices out of range for query {bad} (the database has "
                             f"{database} images, 0..{database - 1}); fix the stage.")
-    ordered = np.sort(indices, axis=1)
-    if indices.shape[1] > 1 and (ordered[:, 1:] == ordered[:, :-1]).any():
-        bad = int(np.flatnonzero((ordered[:, 1:] == ordered[:, :-1]).any(1))[0])
+    bad = repeated_row(indices)
+    if bad is not None:
         raise VPRBenchError(f"{where} one database image twice among the candidates of query {bad}; fix the stage.")
     if not np.issubdtype(scores.dtype, np.number) or not np.isfinite(scores).all():
         raise VPRBenchError(f"{where} scores that are not finite numbers; fix the stage.")

@@ -21,6 +21,7 @@ import numpy as np
 from ..errors import VPRBenchError
 from ..fsutil import atomic_path, file_sha256
 from ..hashing import canonical_hash, canonical_json
+from .base import repeated_row
 
 FORMAT = "vprbench-candidates"
 VERSION = 1
@@ -95,6 +96,14 @@ def read_candidates(path, spec, queries: int, database: int, depth: int) -> dict
             or not np.isfinite(scores).all():
         raise VPRBenchError(f"Candidates file {path} holds indices outside the {database} database images or "
                             "scores that are not finite; export it again.")
+    # a hand-edited file would otherwise reach the re-ranker (blamed as "fix the stage") or silently change which
+    # candidates count as first (alpha-QE's n, the order count ties keep): the export writes neither
+    query = repeated_row(indices)
+    unordered = np.flatnonzero((np.diff(scores, axis=1) > 0).any(1))
+    if query is not None or len(unordered):
+        fault = (f"one database image twice for query {query}" if query is not None
+                 else f"the candidates of query {int(unordered[0])} not best first (scores must not increase)")
+        raise VPRBenchError(f"Candidates file {path} holds {fault}; export it again.")
     try:
         info = json.loads(attrs.get("search", "{}"))
     except ValueError:

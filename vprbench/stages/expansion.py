@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field
 
+from ..errors import VPRBenchError
 from ..evaluation.search import SCORE_TOLERANCE, exact_search
 from ..row_sources import ArrayRows
 from .base import Candidates, RerankOptions, Stage, StageContext, reordered
@@ -33,6 +34,14 @@ def _weighted(base: np.ndarray, neighbours: np.ndarray, alpha: float) -> np.ndar
     return _normalised(base + weights @ neighbours)
 
 
+def _cosine_only(stage: str, context: StageContext) -> None:
+    """Expansion weights and re-scores by inner products of unit rows: on a method compared by a distance
+    (sad's mean absolute difference) they are neither its similarity nor its ranking, so refuse."""
+    if context.compare != "cosine":
+        raise VPRBenchError(f"Stage {stage!r} expands descriptors compared by cosine (inner products of unit rows); "
+                            f"the method's are compared by {context.compare!r}: use a method compared by cosine.")
+
+
 def _rows_at(source, indices: np.ndarray) -> np.ndarray:
     """Rows of `source` in the order of `indices` (a row source reads sorted indices)."""
     unique, inverse = np.unique(indices, return_inverse=True)
@@ -45,6 +54,7 @@ class AlphaQE(Stage):
     description = "alpha query expansion: the query with its top n candidates, re-scoring the top K"
 
     def apply(self, candidates: Candidates, context: StageContext) -> Candidates:
+        _cosine_only(self.name, context)
         n, alpha = min(self.options.n, candidates.k), self.options.alpha
         scores = np.empty(candidates.indices.shape, dtype=np.float64)
         for q in range(candidates.query_count):
@@ -61,6 +71,7 @@ class DatabaseAugmentation(Stage):
     description = "database-side augmentation: each database image with its n nearest database images"
 
     def apply(self, candidates: Candidates, context: StageContext) -> Candidates:
+        _cosine_only(self.name, context)
         n, alpha, database = self.options.n, self.options.alpha, context.database
         needed = np.unique(candidates.indices)
         n = min(n + 1, database.row_count)  # an image is its own nearest neighbour
