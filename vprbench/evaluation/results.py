@@ -210,14 +210,6 @@ def read_results(cache_dir=None, skipped: list | None = None) -> list[dict]:
     return _order(records)
 
 
-def method_card(row_key: str, cache_dir=None) -> dict | None:
-    path = results_dir(cache_dir) / CARDS / f"{row_key}.json"
-    try:
-        return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else None
-    except (OSError, ValueError):
-        return None
-
-
 def per_query(record: dict) -> dict[str, np.ndarray] | None:
     """The record's per-query arrays (from the record itself or its .npz), or None when the
     record has none or its file is missing or damaged (with a warning)."""
