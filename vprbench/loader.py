@@ -115,6 +115,8 @@ def check_batch_size(method) -> int:
 UNIT_TOLERANCE = 1e-2
 #: a row shorter than this is an all-zero row (an image with nothing to describe): it matches nothing
 ZERO_LENGTH = 1e-6
+#: the longest row whose inner products stay within float32's range (sqrt of its largest value)
+MAX_LENGTH = float(np.sqrt(np.finfo(np.float32).max))
 
 
 def _numbers(source: str, rows, n: int) -> np.ndarray:
@@ -139,7 +141,8 @@ def _numbers(source: str, rows, n: int) -> np.ndarray:
 def checked(source: str, descriptors, n: int, dim: int | None = None, compare: str | None = None) -> np.ndarray:
     """Rows a method (or its post-processing) hands to the store or the search, as (n, dim)
     finite float32, or an error naming `source` ("Method 'x'"). A method's rows compared by cosine
-    (`compare`) must be L2-normalised (or all zero), as the search scores them by inner products."""
+    (`compare`) must be L2-normalised (or all zero), as the search scores them by inner products;
+    no row may be so long that its inner products leave float32's range."""
     out = _numbers(source, descriptors, n)
     if out.ndim != 2 or out.shape[0] != n or out.shape[1] < 1:
         raise VPRBenchError(f"{source} returned shape {out.shape} for {n} images; expected ({n}, dim).")
@@ -147,8 +150,8 @@ def checked(source: str, descriptors, n: int, dim: int | None = None, compare: s
         raise VPRBenchError(f"{source} returned {out.shape[1]}-dimensional descriptors after {dim}-dimensional ones.")
     if not np.isfinite(out).all():
         raise VPRBenchError(f"{source} returned non-finite descriptors (NaN, infinity, or beyond float32's range).")
+    lengths = np.sqrt(np.einsum("ij,ij->i", out, out, dtype=np.float64))
     if compare == "cosine":
-        lengths = np.sqrt(np.einsum("ij,ij->i", out, out, dtype=np.float64))
         wrong = np.flatnonzero((lengths >= ZERO_LENGTH) & (np.abs(lengths - 1) > UNIT_TOLERANCE))
         if wrong.size:
             raise VPRBenchError(
@@ -156,6 +159,11 @@ def checked(source: str, descriptors, n: int, dim: int | None = None, compare: s
                 f"{lengths[wrong[0]]:.4g}): "
                 "descriptors compared by cosine must have length 1 (or be all zero); normalise them, e.g. with "
                 "vprbench.methods.l2_normalise.")
+    too_long = np.flatnonzero(lengths > MAX_LENGTH)
+    if too_long.size:  # by Cauchy-Schwarz, no two rows within it have an inner product beyond float32's range
+        raise VPRBenchError(f"{source} returned rows too long to compare (row {too_long[0]} has length "
+                            f"{lengths[too_long[0]]:.3g}: their inner products exceed float32's range); scale them "
+                            "down, e.g. L2-normalise them.")
     return out
 
 

@@ -141,7 +141,9 @@ class Transform:
     (lambda db, q: (db[:-5], q), "returned shape (106, 3) for 111 images"),
     (lambda db, q: (np.where(db == db[0, 0], np.nan, db), q), "non-finite descriptors"),
     (lambda db, q: (db, None), "returned None; expected a (111, dim) array"),
-], ids=["fewer-queries", "fewer-database", "nan", "none"])
+    # finite, but every score inf: searched, ranked as ties, recorded
+    (lambda db, q: (db * 1e30, q * 1e30), "returned rows too long to compare (row 0 has length 1e+30"),
+], ids=["fewer-queries", "fewer-database", "nan", "none", "overflowing"])
 def test_a_postprocess_hook_cannot_change_what_is_scored(post, fragment, cli, shared_data):
     name = plugin("hooked", base=Hooked, post=staticmethod(post))
     code, _, err = cli("evaluate", "--method", name, "--dataset", "corridor", "--data-dir", shared_data)
