@@ -16,6 +16,7 @@ import pooch
 import pytest
 
 from vprbench.datasets import manifest as manifests
+from vprbench.datasets.download import read_registry
 
 from hostile_files import assert_refused
 
@@ -88,8 +89,49 @@ def corridor_server(shared_data, monkeypatch):
 
 
 class QuietHandler(http.server.SimpleHTTPRequestHandler):
+    """Serves the real files, except those in `damaged` (path -> 'wrong' bytes, or 'cut' halfway
+    with the connection closed); every request is counted in `served`."""
+    damaged: dict[str, str] = {}
+    served: list[str] = []
+
     def log_message(self, *args):
         pass
+
+    def do_GET(self):
+        name = self.path.lstrip("/")
+        QuietHandler.served.append(name)
+        if name not in self.damaged:
+            return super().do_GET()
+        body = Path(self.directory, name).read_bytes()
+        self.send_response(200)
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(b"not the image" if self.damaged[name] == "wrong" else body[: len(body) // 2])
+        self.close_connection = True
+
+
+@pytest.mark.parametrize("damage", ["wrong", "cut"])
+def test_damaged_download_is_refused_naming_the_file_and_resumes(corridor_server, tmp_path, monkeypatch, cli, damage):
+    """A file that fails its sha256 or stops halfway: refused naming it (query/ and ref/ share
+    names), nothing at the dataset's place; the rerun fetches only what is missing."""
+    import logging
+    monkeypatch.setattr(pooch.get_logger(), "level", logging.WARNING)
+    monkeypatch.setattr(QuietHandler, "damaged", {"query/0000005.jpg": damage})
+    monkeypatch.setattr(QuietHandler, "served", [])
+    target = tmp_path / "d"
+    code, _, err = cli("datasets", "download", "corridor", "--data-dir", target)
+    assert_refused(code, err, None, "Downloading 'corridor'", "failed at query/0000005.jpg: ",
+                   f"Files fetched so far stay in {target / 'corridor.partial'}; rerun to resume.")
+    assert ".." not in err.replace(str(tmp_path), "")
+    assert not (target / "corridor").exists() and not (target / "corridor.partial" / "query" / "0000005.jpg").exists()
+    first = len(QuietHandler.served)
+    monkeypatch.setattr(QuietHandler, "damaged", {})
+    code, _, err = cli("datasets", "download", "corridor", "--data-dir", target)
+    assert code == 0, err
+    files = len(read_registry("corridor.sha256"))
+    assert len(QuietHandler.served) - first == files - (first - 1)  # the damaged one fetched again, no other
+    assert tree(target) == ["corridor", *(f"corridor/{name}" for name in tree(target / "corridor"))]
+    assert len(list((target / "corridor" / "query").glob("*.jpg"))) == 111
 
 
 def test_default_data_root_is_filled_on_first_use(corridor_server, tmp_path, monkeypatch, shared_data, cli):

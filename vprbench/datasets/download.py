@@ -37,14 +37,14 @@ def download(manifest: DatasetManifest, root: Path, progress: bool = True) -> Pa
         base_url=manifest.download["base_url"],
         registry={k: f"sha256:{v}" for k, v in read_registry(manifest.download["registry"]).items()},
     )
-    try:
-        for relative in fetcher.registry:
+    for relative in fetcher.registry:
+        try:
             fetcher.fetch(relative, progressbar=False)
-    except Exception as error:  # network or checksum failure: keep partial for resuming
-        raise VPRBenchError(
-            f"Downloading {manifest.name!r} from {manifest.download['base_url']} failed: {error}. "
-            f"Files fetched so far stay in {partial}; rerun to resume."
-        ) from None
+        except Exception as error:  # network or checksum failure: keep partial for resuming
+            raise VPRBenchError(
+                f"Downloading {manifest.name!r} from {manifest.download['base_url']} failed at {relative}: "
+                f"{str(error).rstrip('.')}. Files fetched so far stay in {partial}; rerun to resume."
+            ) from None
     if root.exists():
         shutil.rmtree(root)
     partial.rename(root)
