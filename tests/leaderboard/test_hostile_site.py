@@ -174,3 +174,6 @@ def test_pages_name_files_never_the_publishers_paths(make_record, tmp_path, caps
     assert download["dataset_root"] == "corridor" and download["spec"]["given"]["vocabulary"] == "tokyo247-pair"
     assert public("see https://example.org/a/b, 48.6 / 75.7, [bold]x[/bold]") == \
         "see https://example.org/a/b, 48.6 / 75.7, [bold]x[/bold]"  # no URL, number or markup is cut
+    # A path after a label's colon is cut to its name; a URL's path after its scheme is not.
+    assert public("weights:/home/me/w.pth, path:/root/a/b") == "weights:w.pth, path:b"
+    assert public("hf:org/x and https://host/a/b") == "hf:org/x and https://host/a/b"
