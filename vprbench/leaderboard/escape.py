@@ -18,8 +18,9 @@ from ..text import literal
 
 #: a path of the local machine: POSIX with two names or more ('/a/b'; one, '/b', is more often
 #: something else, such as Rich's '[/b]') or from a start ('~/a', './a', '../a'), not inside a URL
-#: or a fraction, but after a label's colon ('weights:/a/b'); or a Windows drive path ('C:\\a\\b'). Names end at white space and at the characters
-#: that close or separate them in text ('|', brackets, quotes, ',', ';').
+#: or a fraction, but after a label's colon ('weights:/a/b'); or a Windows drive path ('C:\\a\\b').
+#: Names end at white space and at the characters that close or separate them in text ('|',
+#: brackets, quotes, ',', ';').
 _NAME = r"[^\s/\\|\[\]()<>'\",;]+"
 _ABSOLUTE = re.compile(rf"(?<![\w.~/\\-])(?:(?:~|\.\.?)(?:/{_NAME})+|(?:/{_NAME}){{2,}})/?|\b[A-Za-z]:\\(?:{_NAME}\\?)+")
 
