@@ -88,6 +88,17 @@ def test_expansion_refuses_a_method_compared_by_a_distance(stage):
         named.apply(candidates, context)
 
 
+def test_stages_say_which_comparisons_they_take_before_any_work():
+    from vprbench.stages.registry import create_stage
+
+    for name in ("aqe", "dba", "seqslam"):
+        create_stage(name).check_compare("cosine")
+    create_stage("seqslam").check_compare("mean-absolute-difference")  # SeqSLAM's own difference matrix
+    with pytest.raises(VPRBenchError, match=r"^Sequence stage 'seqslam' compares descriptors by cosine, "
+                                            r"mean-absolute-difference; the method's are compared by 'l2'\.$"):
+        create_stage("seqslam").check_compare("l2")
+
+
 def test_sad_with_dba_is_one_line_and_no_result(cli, shared_data, tmp_path):
     code, out, err = cli("evaluate", "--method", "sad", "--dataset", "corridor", "--k", "1", "--rerank", "dba",
                          "--rerank-k", "5", "--data-dir", shared_data, "--cache-dir", tmp_path / "cache")
@@ -95,6 +106,7 @@ def test_sad_with_dba_is_one_line_and_no_result(cli, shared_data, tmp_path):
     assert err.strip() == ("error: Stage 'dba' expands descriptors compared by cosine (inner products of unit rows); the "
                            "method's are compared by 'mean-absolute-difference': use a method compared by cosine.")
     assert not list((tmp_path / "cache").glob("results/**/*.json"))
+    assert not list((tmp_path / "cache").rglob("*.h5"))  # refused before any descriptor is computed
 
 
 # ---------------------------------------------------------------- SIFT: ratio test, RootSIFT, USAC inliers

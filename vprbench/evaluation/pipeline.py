@@ -119,8 +119,9 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
     if dataset is None:
         dataset = ranks.on_zero(lambda: load_data(spec, settings))  # fetched on first use by rank 0 alone
     ks = check_ks(spec.ks, len(dataset.database), dataset.name)
-    for stage in stages:
+    for stage in stages:  # before any descriptor is computed
         stage.check(dataset)
+        stage.check_compare(getattr(method, "compare", "cosine"))
     depth = depth or retrieval_depth(stages, ks, len(dataset.database), dataset.name)
     if depth > len(dataset.database):
         raise VPRBenchError(f"{depth} candidates per query asked for, but the database of {dataset.name} holds "

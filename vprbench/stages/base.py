@@ -112,6 +112,8 @@ class Stage:
       at least as many columns as the largest K reported; indices are database rows.
     - `candidates_needed()`: how many candidates retrieval must hand it (None: the run's largest K).
     - `check(dataset)`: refuse a dataset the stage cannot run on (VPRBenchError), before any work.
+    - `check_compare(compare)`: refuse a method whose descriptors are compared by `compare` (its
+      `Method.compare`) when the stage cannot use them, before any work.
     - `stored_bytes(context)`: bytes it keeps per database image (for the record's cost), 0 if none.
     - `file_identities(options)`: the options that name files, by content (part of the run's identity).
     - `provenance()`: where what it learnt came from (its weights), for the record and the board.
@@ -130,6 +132,10 @@ class Stage:
 
     def check(self, dataset) -> None:
         """Refuse `dataset` before any work (e.g. a sequence stage on unordered images)."""
+
+    def check_compare(self, compare: str) -> None:
+        """Refuse a method compared by `compare` ("cosine", or a distance such as sad's
+        "mean-absolute-difference") before any work, when the stage's arithmetic needs another."""
 
     def apply(self, candidates: Candidates, context: StageContext) -> Candidates:
         raise NotImplementedError

@@ -34,27 +34,29 @@ def _weighted(base: np.ndarray, neighbours: np.ndarray, alpha: float) -> np.ndar
     return _normalised(base + weights @ neighbours)
 
 
-def _cosine_only(stage: str, context: StageContext) -> None:
-    """Expansion weights and re-scores by inner products of unit rows: on a method compared by a distance
-    (sad's mean absolute difference) they are neither its similarity nor its ranking, so refuse."""
-    if context.compare != "cosine":
-        raise VPRBenchError(f"Stage {stage!r} expands descriptors compared by cosine (inner products of unit rows); "
-                            f"the method's are compared by {context.compare!r}: use a method compared by cosine.")
-
-
 def _rows_at(source, indices: np.ndarray) -> np.ndarray:
     """Rows of `source` in the order of `indices` (a row source reads sorted indices)."""
     unique, inverse = np.unique(indices, return_inverse=True)
     return source.read_rows_at(unique)[inverse]
 
 
-class AlphaQE(Stage):
+class _Expansion(Stage):
     track = "re-ranked"
     Options = ExpansionOptions
+
+    def check_compare(self, compare: str) -> None:
+        """Expansion weights and re-scores by inner products of unit rows: on a method compared by a distance
+        (sad's mean absolute difference) they are neither its similarity nor its ranking, so refuse."""
+        if compare != "cosine":
+            raise VPRBenchError(f"Stage {self.name!r} expands descriptors compared by cosine (inner products of unit "
+                                f"rows); the method's are compared by {compare!r}: use a method compared by cosine.")
+
+
+class AlphaQE(_Expansion):
     description = "alpha query expansion: the query with its top n candidates, re-scoring the top K"
 
     def apply(self, candidates: Candidates, context: StageContext) -> Candidates:
-        _cosine_only(self.name, context)
+        self.check_compare(context.compare)
         n, alpha = min(self.options.n, candidates.k), self.options.alpha
         scores = np.empty(candidates.indices.shape, dtype=np.float64)
         for q in range(candidates.query_count):
@@ -65,13 +67,11 @@ class AlphaQE(Stage):
         return reordered(candidates.indices, scores, SCORE_TOLERANCE)
 
 
-class DatabaseAugmentation(Stage):
-    track = "re-ranked"
-    Options = ExpansionOptions
+class DatabaseAugmentation(_Expansion):
     description = "database-side augmentation: each database image with its n nearest database images"
 
     def apply(self, candidates: Candidates, context: StageContext) -> Candidates:
-        _cosine_only(self.name, context)
+        self.check_compare(context.compare)
         n, alpha, database = self.options.n, self.options.alpha, context.database
         needed = np.unique(candidates.indices)
         n = min(n + 1, database.row_count)  # an image is its own nearest neighbour

@@ -54,6 +54,11 @@ class _SequenceStage(Stage):
             raise VPRBenchError(f"Sequence stage {self.name!r}: --sequence-length {self.options.length} exceeds the "
                                 f"{len(dataset.queries)} queries of {dataset.name}; give a shorter length.")
 
+    def check_compare(self, compare: str) -> None:
+        if compare not in COMPARES:
+            raise VPRBenchError(f"Sequence stage {self.name!r} compares descriptors by {', '.join(COMPARES)}; the "
+                                f"method's are compared by {compare!r}.")
+
     def candidates_needed(self) -> int | None:
         return None  # the run's largest K: how many it returns
 
@@ -65,9 +70,7 @@ class _SequenceStage(Stage):
 
         orders = traverse_orders(context.dataset, f"Sequence stage {self.name!r}")
         compare = getattr(context, "compare", "cosine")
-        if compare not in COMPARES:
-            raise VPRBenchError(f"Sequence stage {self.name!r} compares descriptors by {', '.join(COMPARES)}; the "
-                                f"method's are compared by {compare!r}.")
+        self.check_compare(compare)
         found = sequence_search(context.database, context.queries, candidates.k, score=self.score, compare=compare,
                                 length=self.options.length, mode=self.options.mode,
                                 database_order=orders["database"], query_order=orders["queries"],
