@@ -91,6 +91,20 @@ def test_edited_arrays_are_rescored_not_trusted(bundle, truth, tmp_path):
     assert any("its first positive is at rank" in p for p in problems)
 
 
+def test_a_list_not_ranked_by_its_own_similarities_is_caught(bundle, truth, tmp_path):
+    members = read_bundle(bundle)
+
+    def unranked(arrays):  # query 4's scores reversed: its order no longer follows them
+        scores = arrays["similarities"]
+        assert scores[4, 0] > scores[4, -1]
+        scores[4] = scores[4][::-1].copy()
+
+    name = edit_arrays(members, unranked)
+    problems = _only_failure(verify_bundle(write_bundle(tmp_path / "b.tar.gz", members), truth), name)
+    assert "query 4: its similarities increase along its top 20, so the list is not ranked by them (best first)" \
+        in problems
+
+
 def test_missing_queries_and_indices_out_of_range(bundle, truth, tmp_path):
     members = read_bundle(bundle)
     name = edit_arrays(members, lambda a: a.update({k: v[:-1] for k, v in a.items()}))

@@ -79,6 +79,8 @@ def test_check_candidates():
     for found, message in [(good, "fewer than the largest K reported \\(4\\)"),
                            (Candidates(np.array([[2, 2, 1]]), good.scores), "one database image twice"),
                            (Candidates(good.indices, np.array([[np.nan, 1, 1]])), "not finite"),
+                           (Candidates(good.indices, np.array([[3.0, 1.0, 2.0]], np.float32)),
+                            "the candidates of query 0 not best first \\(scores must not increase along a row\\)"),
                            (Candidates(good.indices.astype(float), good.scores), "not integers"),
                            ((good.indices, good.scores), "tuple, not Candidates")]:
         with pytest.raises(VPRBenchError, match="Stage 's' returned .*" + message):

@@ -23,6 +23,7 @@ from ..errors import VPRBenchError
 from ..evaluation.blocks import Resampling, for_dataset, for_record
 from ..evaluation.record import OPTIONAL_FIELDS, PER_QUERY_FIELDS, validated
 from ..evaluation.results import check_kinds
+from ..stages.base import unordered_row
 from .archive import _CARD, MAX_BYTES, RECORD_NAME, BundleError, _json, check_manifest, read_members
 from .claims import false_card, false_claims, one_record_per_run
 from .export import CARDS
@@ -226,6 +227,10 @@ def rescore(record: dict, arrays: dict, gt: Truth, problems: list) -> dict[str, 
     repeated = np.flatnonzero([len(np.unique(row)) != k for row in indices])
     if len(repeated):
         problems.append(f"query {int(repeated[0])} lists a database image twice in its top {k}")
+    rising = unordered_row(scores)
+    if rising is not None:  # indices moved without their scores: a list not ranked by what it claims
+        problems.append(f"query {rising}: its similarities increase along its top {k}, so the list is not ranked "
+                        "by them (best first)")
     ks = sorted(int(x) for x in record["recall"])
     if ks and ks[-1] > k:
         problems.append(f"it reports R@{ks[-1]} but keeps only the top {k} per query")

@@ -174,6 +174,12 @@ def repeated_row(indices: np.ndarray) -> int | None:
     return int(np.flatnonzero(repeats)[0]) if repeats.any() else None
 
 
+def unordered_row(scores: np.ndarray) -> int | None:
+    """The first row of `scores` (Q, K) whose scores increase somewhere along it, None when none does."""
+    rising = (np.diff(np.asarray(scores), axis=1) > 0).any(1)
+    return int(np.flatnonzero(rising)[0]) if rising.any() else None
+
+
 def check_candidates(found, stage: str, queries: int, database: int, k: int) -> Candidates:
     """What stage `stage` returned, checked: Candidates of `queries` rows, >= `k` columns, indices in
     [0, database) and each once per row, finite scores. Anything else is refused naming the stage."""
@@ -201,6 +207,10 @@ def check_candidates(found, stage: str, queries: int, database: int, k: int) -> 
         raise VPRBenchError(f"{where} one database image twice among the candidates of query {bad}; fix the stage.")
     if not np.issubdtype(scores.dtype, np.number) or not np.isfinite(scores).all():
         raise VPRBenchError(f"{where} scores that are not finite numbers; fix the stage.")
+    rising = unordered_row(scores)
+    if rising is not None:  # Recall@K reads the order, the PR metrics the first score: they must agree
+        raise VPRBenchError(f"{where} the candidates of query {rising} not best first (scores must not increase "
+                            "along a row); fix the stage.")
     return Candidates(indices.astype(np.int64, copy=False), scores.astype(np.float32, copy=False))
 
 

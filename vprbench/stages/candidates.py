@@ -21,7 +21,7 @@ import numpy as np
 from ..errors import VPRBenchError
 from ..fsutil import atomic_path, file_sha256
 from ..hashing import canonical_hash, canonical_json
-from .base import repeated_row
+from .base import repeated_row, unordered_row
 
 FORMAT = "vprbench-candidates"
 VERSION = 1
@@ -99,10 +99,10 @@ def read_candidates(path, spec, queries: int, database: int, depth: int) -> dict
     # a hand-edited file would otherwise reach the re-ranker (blamed as "fix the stage") or silently change which
     # candidates count as first (alpha-QE's n, the order count ties keep): the export writes neither
     query = repeated_row(indices)
-    unordered = np.flatnonzero((np.diff(scores, axis=1) > 0).any(1))
-    if query is not None or len(unordered):
+    unordered = unordered_row(scores)
+    if query is not None or unordered is not None:
         fault = (f"one database image twice for query {query}" if query is not None
-                 else f"the candidates of query {int(unordered[0])} not best first (scores must not increase)")
+                 else f"the candidates of query {unordered} not best first (scores must not increase)")
         raise VPRBenchError(f"Candidates file {path} holds {fault}; export it again.")
     try:
         info = json.loads(attrs.get("search", "{}"))
