@@ -106,6 +106,21 @@ def test_float16_store_halves_the_disk_and_reads_float32(tmp_path):
     np.testing.assert_allclose(read, rows(0, 2000, 64), rtol=1e-3)
 
 
+def test_a_float16_runs_record_gives_the_bytes_its_map_keeps(shared_data, tmp_path, cli):
+    """Was: descriptor_bytes 4 per dimension whatever the store kept, so the board's bytes-per-image
+    column showed a float16 store at float32's size."""
+    import json
+
+    found = {}
+    for dtype in ("float32", "float16"):
+        code, out, err = cli("evaluate", "--method", "hog", "--resize", 64, 64, "--dataset", "corridor", "--k", 1,
+                             "--store-dtype", dtype, "--data-dir", shared_data, "--cache-dir", tmp_path, "--json")
+        assert code == 0, err
+        found[dtype] = json.loads(out)
+    assert found["float32"]["descriptor_dim"] == found["float16"]["descriptor_dim"] == 441
+    assert found["float32"]["descriptor_bytes"] == 4 * 441 and found["float16"]["descriptor_bytes"] == 2 * 441
+
+
 def test_fit_state_written_whole(tmp_path):
     folder = StoreFolder("m", {"a": 1}, "d", {"database": "x"}, tmp_path)
     assert folder.read_fit_state() is None

@@ -290,7 +290,8 @@ def result_record(*, spec: RunSpec, method, fingerprint, dataset, dataset_key: s
         "resampling": resampling.describe(),
         "decoding": {"orientation": _orientation()},  # how images were turned into pixels
         "descriptor_dim": descriptor_dim,
-        "descriptor_bytes": int(descriptor_dim) * 4,  # float32, as stored and searched
+        # what the map keeps per image: the store's precision (a float16 store halves it; search reads float32)
+        "descriptor_bytes": int(descriptor_dim) * np.dtype(spec.store_dtype).itemsize,
         "recall": {str(k): round(v, 4) for k, v in recalls.items()},
         "auc_pr": round(pr["auc_pr"], 6),
         "max_f1": round(pr["max_f1"], 6),
