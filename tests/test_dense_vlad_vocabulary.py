@@ -56,6 +56,22 @@ def test_folder_vocabulary_is_fitted_once_cached_and_identified_by_its_centres(f
     assert other.fingerprint()["vocabulary"] != method.fingerprint()["vocabulary"]
 
 
+def test_a_damaged_cached_vocabulary_is_fitted_again_and_said(foreign_images, tmp_path):
+    """Was: refused with "Delete it and fit it again", the file in the cache left to the user."""
+    method = create_method("dense-vlad", vocabulary=str(foreign_images), cache_dir=tmp_path, **SMALL)
+    first = method.fingerprint()["vocabulary"]
+    cached = next((tmp_path / "vocabularies" / "dense-vlad").glob("tokyo247-pair-*/vocabulary.pt"))
+    data = bytearray(cached.read_bytes())
+    centres = torch.load(cached)["centres"].numpy().tobytes()
+    data[bytes(data).index(centres[:64]) + 41] ^= 1  # one flipped bit in the centres
+    cached.write_bytes(bytes(data))
+    with pytest.warns(UserWarning, match=f"The cached dense-vlad vocabulary {cached} is damaged or unreadable; "
+                                         "fitting it again"):
+        again = create_method("dense-vlad", vocabulary=str(foreign_images), cache_dir=tmp_path, **SMALL)
+        assert again.fingerprint()["vocabulary"] == first  # the same seeded fit, the same centres
+    assert torch.load(cached)["crc32"] is not None and not list(cached.parent.glob("*.tmp*"))
+
+
 def test_file_vocabulary_is_checked_and_named(tmp_path, corridor_refs):
     good = tmp_path / "words.npy"
     np.save(good, np.random.default_rng(0).random((8, 128), dtype=np.float32))

@@ -166,7 +166,7 @@ def test_a_saved_vocabulary_with_a_flipped_byte_is_refused(tmp_path, cli):
     code, out, err = cli("vocabulary", "show", path)
     assert (code, out) == (1, "") and err == (
         f"error: Vocabulary file {path} is damaged: its centres no longer match the checksum written with them. "
-        "Delete it and fit it again (`vprbench vocabulary fit`; dense-vlad fits its cached ones again by itself).\n")
+        "Delete it and fit it again (`vprbench vocabulary fit`).\n")
     torch.save({"centres": centres, "meta": {}}, tmp_path / "earlier.pt")  # saved before vocabularies had a checksum
     torch.save(centres, tmp_path / "released.pt")  # the authors' bare tensor
     assert all(torch.equal(load_vocabulary(tmp_path / name).centres, centres) for name in ("earlier.pt", "released.pt"))

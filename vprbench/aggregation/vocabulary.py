@@ -222,8 +222,7 @@ def load_vocabulary(path: str | Path) -> Vocabulary:
     # None: a bare array, or saved before vocabularies carried a checksum
     if written is not None and (type(written) is not int or written != centres_checksum(centres)):
         raise VPRBenchError(f"Vocabulary file {path} is damaged: its centres no longer match the checksum written with "
-                            "them. Delete it and fit it again (`vprbench vocabulary fit`; dense-vlad fits its cached "
-                            "ones again by itself).")
+                            "them. Delete it and fit it again (`vprbench vocabulary fit`).")
     meta.setdefault("clusters", int(centres.shape[0]))
     meta["path"] = str(path)
     return Vocabulary(centres, meta)

@@ -13,6 +13,8 @@ fitted on (protocol hashes or image contents) and the method's fit settings.
 """
 from __future__ import annotations
 
+import warnings
+
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -153,19 +155,34 @@ def cached_vocabulary(method, source: VocabularySource) -> tuple[np.ndarray, dic
                            for name, stride, protocol in identity["datasets"]))
     info = {"source": "fitted", "name": source.option, "fitted_on": fitted_on, "file": str(path), "images": len(images),
             **({"datasets": counts} if counts else {"folder": str(source.path.resolve())}), "data_identity": identity}
-    if path.is_file():
-        found = load_vocabulary(path)
-        return check_centres(found.centres.numpy(), method.clusters, str(path), found.meta), info
-    from ..fsutil import atomic_path, lock
+    found = _cached(path)
+    if found is None:
+        from ..fsutil import atomic_path, lock
 
-    with lock(path.with_name(".fit.lock"), what=f"the dense-vlad vocabulary {source.option!r}"):
-        if not path.is_file():  # another process may have fitted it while this one waited
-            import torch
+        with lock(path.with_name(".fit.lock"), what=f"the dense-vlad vocabulary {source.option!r}"):
+            found = _cached(path)  # another process may have fitted it while this one waited
+            if found is None:
+                import torch
 
-            centres = method.fit_centres(images)
-            with atomic_path(path) as temporary:
-                Vocabulary(torch.from_numpy(centres), {**method.fit_recipe(), "source": source.option,
-                                                      "fitted_on": fitted_on, "data": identity,
-                                                      **({"datasets": counts} if counts else {})}).save(temporary)
-    found = load_vocabulary(path)
+                centres = method.fit_centres(images)
+                with atomic_path(path) as temporary:
+                    Vocabulary(torch.from_numpy(centres), {**method.fit_recipe(), "source": source.option,
+                                                          "fitted_on": fitted_on, "data": identity,
+                                                          **({"datasets": counts} if counts else {})}).save(temporary)
+                found = load_vocabulary(path)
     return check_centres(found.centres.numpy(), method.clusters, str(path), found.meta), info
+
+
+def _cached(path: Path):
+    """The vocabulary fitted earlier at `path`; None when there is none, or it is damaged: it is
+    the cache's own, fitted from data named in its key, so it is fitted again (and said so)."""
+    from ..aggregation.vocabulary import load_vocabulary
+
+    if not path.is_file():
+        return None
+    try:
+        return load_vocabulary(path)
+    except VPRBenchError:
+        warnings.warn(f"The cached dense-vlad vocabulary {path} is damaged or unreadable; fitting it again.",
+                      stacklevel=2)
+        return None
