@@ -1,0 +1,67 @@
+"""Approximate indexes (IVF-PQ, HNSW): their measured recall loss and the options refused."""
+import json
+
+import numpy as np
+import pytest
+
+from vprbench.errors import VPRBenchError
+from vprbench.evaluation.search import exact_search
+from vprbench.evaluation.retrieve import retrieve
+from search_rows import h5_rows
+
+
+def clustered(n, d, seed):
+    rng = np.random.default_rng(seed)
+    centres = rng.normal(size=(200, d))
+    x = centres[rng.integers(0, 200, n)] + 0.7 * rng.normal(size=(n, d))
+    return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
+
+
+def near_copies(db, n, seed):
+    rng = np.random.default_rng(seed)
+    q = db[rng.choice(len(db), n, replace=False)] + 0.05 * rng.normal(size=(n, db.shape[1])).astype(np.float32)
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("kind, n", [("ivf-pq", 12_000), ("hnsw", 4000)])
+def test_approximate_index_reports_its_measured_recall_loss(tmp_path, kind, n):
+    db = clustered(n, 32, 18)
+    q = near_copies(db, 300, 19)
+    database = h5_rows(tmp_path, "db", db)
+    result = retrieve(None, database, q, 10, index=kind)
+    info = result.info
+    json.dumps(info)
+    assert info["index"] == kind and info["options"]["shortlist"] == 100 and info["exact_fallback_queries"] == 0
+    loss = info["recall_loss"]
+    assert loss["queries"] == 200 and loss["seed"] == 0 and loss["k"] == 10
+    # the reported figures are what a check against exact search gives
+    sample = np.sort(np.random.default_rng(0).choice(300, 200, replace=False))
+    exact = exact_search(db, q[sample], 10).indices
+    assert loss["r1_agreement"] == pytest.approx(np.mean(result.indices[sample, 0] == exact[:, 0]))
+    overlap = np.mean([len(np.intersect1d(a, e)) / 10 for a, e in zip(result.indices[sample], exact)])
+    assert loss["topk_overlap"] == pytest.approx(overlap)
+    assert loss["r1_agreement"] >= 0.95 and loss["topk_overlap"] >= 0.9
+    # shortlists are re-scored exactly: the scores are true inner products, best first
+    true = np.einsum("qd,qkd->qk", q, db[result.indices])
+    np.testing.assert_allclose(result.scores, true, atol=1e-5)
+    assert np.all(np.diff(result.scores, axis=1) <= 0)
+    if kind == "ivf-pq":
+        assert info["options"]["nlist"] == 128 and info["options"]["train_rows"] == 9984  # 39 x 256 PQ centroids
+        assert max(database.reads) <= 12_000
+
+
+def test_approximate_options_unsuited_to_the_database_are_refused():
+    db, q = clustered(5000, 32, 20), clustered(10, 32, 21)
+    with pytest.raises(VPRBenchError, match=r"index='ivf-pq' needs at least 9,984 database rows to train .* "
+                                             r"this database has 5,000: use index='exact'"):
+        retrieve(None, db, q, 5, index="ivf-pq")
+    with pytest.raises(VPRBenchError, match="shortlist of 4 is smaller than K = 5: .*at least 5"):
+        retrieve(None, db, q, 5, index="hnsw", index_options={"shortlist": 4})
+    with pytest.raises(VPRBenchError, match="ef_search = 50 is smaller than the shortlist \\(100\\)"):
+        retrieve(None, db, q, 5, index="hnsw", index_options={"ef_search": 50})
+    with pytest.raises(VPRBenchError, match="does not take nprobe"):
+        retrieve(None, db, q, 5, index="hnsw", index_options={"nprobe": 3})
+    with pytest.raises(VPRBenchError, match="too small for index='hnsw' on 5,000 rows"):
+        retrieve(None, db, q, 5, index="hnsw", memory_budget="1MB")
+    with pytest.raises(VPRBenchError, match="Unknown index 'annoy': use one of exact, ivf-pq, hnsw"):
+        retrieve(None, db, q, 5, index="annoy")
