@@ -40,6 +40,7 @@ def _row_weights(spec: dict) -> dict:
 
 def run_reproduce(args) -> int:
     from ..evaluation.results import find_result
+    from ..methods.registry import checked_run_options
     from ..sweep import run_cells, summary_table
     from ..sweep.reproduce import missing_for, needs_text, table_cells
     from ..sweep.runner import FAILED
@@ -47,6 +48,8 @@ def run_reproduce(args) -> int:
 
     resolve_locations(args)
     refuse_changes(args)
+    # checked once here: inside each cell's plan a bad --batch-size reads as that method's problem
+    checked_run_options("reproduce", explicit_run_options(args))
     if args.publish and not args.dry_run:  # a folder that cannot be made is said before the cells run, not after
         args.publish.mkdir(parents=True, exist_ok=True)
     settings = run_settings(args)
@@ -146,6 +149,10 @@ def dry_run_listing(spec: dict, table_cells_, missing: dict, cache_dir, counted:
     return notes.below(listing)
 
 
+#: a plan's reported_columns -> the record field measured for it
+RECORD_FIELD = {"dim": "descriptor_dim"}
+
+
 def paper_table(spec: dict, table_cells_, cache_dir=None):
     from rich.table import Table
 
@@ -158,6 +165,9 @@ def paper_table(spec: dict, table_cells_, cache_dir=None):
     for column in columns:
         for metric in spec["metrics"]:
             table.add_column(f"{column} {metric.upper()}", overflow="fold")
+    extras = spec.get("reported_columns", [])  # e.g. Table VI's descriptor dimension
+    for extra in extras:
+        table.add_column(extra, overflow="fold")
     by_row: dict[str, dict] = {}
     for tc in table_cells_:
         by_row.setdefault(tc.row, {})[tc.column] = tc
@@ -177,6 +187,11 @@ def paper_table(spec: dict, table_cells_, cache_dir=None):
                 else:
                     shown += " / not measured"
                 values.append(shown)
+        found = [r for tc in cells.values() for c in tc.cells if (r := find_result(c.spec, cache_dir))]
+        for extra in extras:
+            reported = reported_value(spec, row, extra, extra)
+            got = sorted({str(r[RECORD_FIELD[extra]]) for r in found if r.get(RECORD_FIELD[extra])})
+            values.append(f"{'-' if reported is None else f'{reported:.0f}'} / {', '.join(got) or 'not measured'}")
         table.add_row(row, *values)
     return table
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import tomllib
 from dataclasses import dataclass, field
 
-from ..errors import VPRBenchError
+from ..errors import VPRBenchError, closest_names
 from ..paths import shipped_file
 from ..reference import paper_results
 from .plan import Cell, build_plan
@@ -30,7 +30,11 @@ def reproduce_tables(paper: str) -> dict:
 def table_spec(paper: str, table: str) -> dict:
     tables = reproduce_tables(paper)
     if str(table) not in tables:
-        raise VPRBenchError(f"The {paper} paper has no table {table!r} here; tables: {', '.join(tables)}.")
+        # the paper numbers its tables in Roman numerals (Table II): point from those to ours
+        labels = {str(spec.get("paper", "")).lower(): name for name, spec in tables.items()}
+        hint = labels.get(str(table).strip().lower()) or labels.get(f"ablation-{str(table).strip().lower()}")
+        hint = f" Did you mean: {hint}?" if hint else closest_names(str(table), list(tables))
+        raise VPRBenchError(f"The {paper} paper has no table {table!r} here; tables: {', '.join(tables)}.{hint}")
     return tables[str(table)]
 
 

@@ -1,0 +1,82 @@
+"""`vprbench reproduce anyloc`: each table's cells against the paper (settings, reported numbers,
+what a cell needs) and its bad input, one line each."""
+from __future__ import annotations
+
+import pytest
+
+from vprbench.cli.main import main
+from vprbench.sweep.reproduce import reported_value, table_cells, vocabulary_for
+
+
+def _cells(table: str, row: str, cache_dir) -> dict:
+    spec, cells = table_cells("anyloc", table, cache_dir=cache_dir)
+    found = {tc.column: tc for tc in cells if tc.row == row}
+    assert found, f"table {table} has no row {row!r}"
+    return spec, found
+
+
+def test_dino_vlad_rows_of_tables_2_and_3_use_the_domain_vocabularies(tmp_path):
+    # Table VII's map-specific ViT-S means equal Tables II/III's AnyLoc-VLAD-DINO only where the
+    # domain's vocabulary is the map's (SubT 52.7, underwater 41.6), not indoor (72.9 vs 73.3)
+    spec7, vii = _cells("7", "ViT-S AnyLoc-VLAD-DINO", tmp_path)
+    assert reported_value(spec7, "ViT-S AnyLoc-VLAD-DINO", "indoor", "r1") == 72.9
+    for table, row in (("2", "AnyLoc-VLAD-DINO"), ("2", "AnyLoc-VLAD-DINO-PCA"), ("3", "AnyLoc-VLAD-DINO")):
+        spec, cells = _cells(table, row, tmp_path)
+        runnable = [c for tc in cells.values() for c in tc.cells]
+        assert len(runnable) == {"AnyLoc-VLAD-DINO-PCA": 3}.get(row, 6)  # PCA to 512: Baidu, Pitts, St Lucia
+        assert {c.spec.options["vocabulary"] for c in runnable} == {"domain"}, (table, row)
+        assert {c.spec.options["backbone"] for c in runnable} == {"dino_vits8"}
+        assert {(c.spec.options["facet"], c.spec.options["clusters"]) for c in runnable} == {("key", 128)}
+    assert reported_value(spec, "AnyLoc-VLAD-DINO", "nardo-air", "r1") == 43.7  # spec: Table III's
+    spec2, _ = _cells("2", "AnyLoc-VLAD-DINO", tmp_path)
+    indoor = [reported_value(spec2, "AnyLoc-VLAD-DINO", d, "r1") for d in ("baidu-mall", "gardens-point", "17places")]
+    assert indoor == [61.2, 95.0, 63.8] and round(sum(indoor) / 3, 1) == 73.3
+    # the map-specific tables keep the map's vocabulary
+    assert {c.spec.options["vocabulary"] for tc in vii.values() for c in tc.cells} == {"map"}
+    _, vi = _cells("6", "DINO hard VLAD", tmp_path)
+    assert {c.spec.options["vocabulary"] for tc in vi.values() for c in tc.cells} == {"map"}
+
+
+def test_a_dino_domain_cell_names_the_vocabulary_it_needs(tmp_path):
+    _, cells = _cells("3", "AnyLoc-VLAD-DINO", tmp_path)
+    nardo = cells["nardo-air"].cells[0]
+    assert vocabulary_for(nardo, tmp_path) == (
+        "vocabulary 'aerial' for dino_vits8 layer 9 key c128",
+        "run 'vprbench vocabulary fit --domain aerial --method anyloc-vlad-dino --backbone dino_vits8 --layer 9'")
+    # Mid-Atlantic Ridge: the paper's vocabulary there is its own map's, fitted in the run
+    assert vocabulary_for(cells["mid-atlantic-ridge"].cells[0], tmp_path) is None
+
+
+def test_table_6_shows_the_papers_descriptor_dimensions(tmp_path):
+    from rich.console import Console
+
+    from vprbench.cli.reproduce import paper_table
+
+    spec, cells = table_cells("anyloc", "6", cache_dir=tmp_path)
+    console = Console(width=220, record=True, markup=False)
+    console.print(paper_table(spec, cells, tmp_path))
+    text = console.export_text().splitlines()
+    assert [cell.strip() for cell in text[3].split("┃")[1:-1]] == ["row", "baidu-mall R1", "oxford R1", "dim"], text
+    lines = {line.split("│")[1].strip(): line for line in text if line.count("│") > 2}
+    for row, dim in (("DINO GAP", 384), ("DINO hard VLAD", 49152), ("DINOv2 GeM", 1536), ("DINOv2 soft VLAD", 49152)):
+        assert lines[row].split("│")[4].strip() == f"{dim} / not measured", lines[row]
+
+
+@pytest.mark.parametrize("flag, value, wanted", [
+    ("--batch-size", "0", "reproduce: option batch_size takes a whole number >= 1 (images per batch); got 0."),
+    ("--device", "foo", "reproduce: option device takes a torch device such as cpu, cuda or cuda:1; got 'foo'."),
+])
+def test_a_bad_run_setting_is_one_line_naming_it(tmp_path, capsys, flag, value, wanted):
+    # was two lines blaming the table's first method ("Plan anyloc table 6 has 1 problem(s) ... anyloc-vlad-dino: ...")
+    code = main(["reproduce", "anyloc", "--table", "6", "--dry-run", flag, value, "--cache-dir", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert code == 1 and err.strip().splitlines() == [f"error: {wanted}"], err
+
+
+@pytest.mark.parametrize("given, hint", [("II", "2"), ("vii", "7"), ("Layer", "layer"), ("ablation-facet", "facet")])
+def test_the_papers_table_names_point_to_ours(tmp_path, capsys, given, hint):
+    code = main(["reproduce", "anyloc", "--table", given, "--dry-run", "--cache-dir", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert code == 1 and len(err.strip().splitlines()) == 1, err
+    assert err.strip() == (f"error: The anyloc paper has no table {given!r} here; tables: 2, 3, 4, 5, 6, 7, layer, "
+                           f"facet, backbones. Did you mean: {hint}?")
