@@ -58,6 +58,19 @@ def test_data_root_that_is_the_dataset_folder_says_use_the_folder_above(shared_d
     assert tree(shared_data / "corridor") == before and no_network == []
 
 
+def test_a_data_root_that_is_a_file_is_named_as_one(tmp_path, no_network, cli):
+    """Was: "closest existing path: <the file>" and advice to download into it."""
+    file = tmp_path / "notes.txt"
+    file.write_text("x")
+    for command in (("evaluate", "--method", "hog", "--dataset", "corridor"), ("datasets", "info", "corridor"),
+                    ("evaluate", "--method", "hog", "--dataset", "corridor", "--download"),
+                    ("datasets", "download", "corridor"), ("reproduce", "anyloc", "--table", "6", "--dry-run")):
+        code, _, err = cli(*command, "--data-dir", file)
+        assert_refused(code, err, None, f"The data root {file} is a file, not a folder: give --data-dir the folder "
+                                        "that holds the datasets (or will hold them, with --download).")
+    assert no_network == [] and tree(tmp_path) == ["notes.txt"]
+
+
 def test_missing_own_folder_and_undownloadable_dataset(tmp_path, no_network, cli):
     code, _, err = cli("evaluate", "--method", "hog", "--dataset", tmp_path / "mydta" / "x")
     assert_refused(code, err, None, f"Dataset folder {tmp_path / 'mydta' / 'x'} does not exist (closest existing folder: {tmp_path})")

@@ -96,8 +96,13 @@ def default_data_root() -> Path:
 
 
 def data_root(data_dir: str | Path | None = None) -> Path:
-    """`data_dir`, else the default data root (the command line reads $VPRBENCH_DATA for it)."""
-    return default_data_root() if data_dir is None else folder_path(data_dir, "data_dir")
+    """`data_dir`, else the default data root (the command line reads $VPRBENCH_DATA for it); a data
+    root that is a file is refused (nothing could be found in it, or downloaded into it)."""
+    root = default_data_root() if data_dir is None else folder_path(data_dir, "data_dir")
+    if root.exists() and not root.is_dir():
+        raise VPRBenchError(f"The data root {root} is a file, not a folder: give --data-dir the folder that holds "
+                            "the datasets (or will hold them, with --download).")
+    return root
 
 
 def is_default_data_root(data_dir: str | Path | None = None) -> bool:
