@@ -80,3 +80,13 @@ def test_the_papers_table_names_point_to_ours(tmp_path, capsys, given, hint):
     assert code == 1 and len(err.strip().splitlines()) == 1, err
     assert err.strip() == (f"error: The anyloc paper has no table {given!r} here; tables: 2, 3, 4, 5, 6, 7, layer, "
                            f"facet, backbones. Did you mean: {hint}?")
+
+
+def test_publish_with_a_dry_run_is_refused_not_ignored(tmp_path, capsys):
+    code = main(["reproduce", "anyloc", "--table", "6", "--dry-run", "--publish", str(tmp_path / "site"),
+                 "--cache-dir", str(tmp_path / "cache")])
+    err = capsys.readouterr().err
+    assert code == 1 and err.strip() == (
+        "error: --publish writes the table and the leaderboard after the cells run; --dry-run runs nothing and "
+        "publishes nothing: drop one of them (cells already measured are read, not run again).")
+    assert not (tmp_path / "site").exists()

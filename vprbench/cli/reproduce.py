@@ -39,6 +39,7 @@ def _row_weights(spec: dict) -> dict:
 
 
 def run_reproduce(args) -> int:
+    from ..errors import VPRBenchError
     from ..evaluation.results import find_result
     from ..methods.registry import checked_run_options
     from ..sweep import run_cells, summary_table
@@ -50,7 +51,11 @@ def run_reproduce(args) -> int:
     refuse_changes(args)
     # checked once here: inside each cell's plan a bad --batch-size reads as that method's problem
     checked_run_options("reproduce", explicit_run_options(args))
-    if args.publish and not args.dry_run:  # a folder that cannot be made is said before the cells run, not after
+    if args.publish and args.dry_run:
+        raise VPRBenchError("--publish writes the table and the leaderboard after the cells run; --dry-run runs "
+                            "nothing and publishes nothing: drop one of them (cells already measured are read, "
+                            "not run again).")
+    if args.publish:  # a folder that cannot be made is said before the cells run, not after
         args.publish.mkdir(parents=True, exist_ok=True)
     settings = run_settings(args)
     spec, table_cells_ = table_cells(args.paper, args.table, settings=explicit_run_options(args),
