@@ -83,6 +83,12 @@ class PCAWhitening:
             key.update(sketch=min(rows.dim, rows.row_count, 2 * self.dim), passes=PASSES, seed=self.seed)
         return key
 
+    def check_rows(self, n: int, where: str = "the database") -> None:
+        """Before any descriptor is computed: whitening to `dim` needs at least `dim` database rows."""
+        if self.dim > n:
+            raise VPRBenchError(f"PCA dimension {self.dim} is larger than the number of database images of {where} "
+                                f"({n}): choose pca_dim <= {n}.")
+
     # ------------------------------------------------------------ fitting
     def fit(self, database, memory_budget=DEFAULT_MEMORY_BUDGET) -> "PCAWhitening":
         """Fit on database descriptors: an (N, D) array or a row source, streamed within the budget."""

@@ -200,7 +200,8 @@ def load_vocabulary(path: str | Path) -> Vocabulary:
         else:
             raise VPRBenchError(f"Folder {path} holds neither {VOCABULARY_FILE} nor {RELEASED_FILE}.")
     if not path.is_file():
-        raise VPRBenchError(f"Vocabulary file {path} does not exist.")
+        raise VPRBenchError(f"Vocabulary file {path} does not exist: check the path (a .pt or .npy file of centres, "
+                            f"or a folder holding {VOCABULARY_FILE} or {RELEASED_FILE}).")
     if path.suffix == ".npy":
         try:
             data = np.load(path, allow_pickle=False)  # a pickled array is refused, never run

@@ -132,6 +132,9 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
 
         frozen = read_candidates(settings.candidates, spec, len(dataset.queries), len(dataset.database), depth)
     method.use_dataset(dataset.name)
+    post = method.postprocessor()
+    if post is not None and hasattr(post, "check_rows"):  # e.g. PCA wider than the database: before describing it
+        post.check_rows(len(dataset.database), dataset.name)
     workers = loader_workers(settings, method)
     described = describe_splits(
         method, {"database": dataset.database, "queries": dataset.queries}, root=dataset.root, label=dataset.name,

@@ -172,9 +172,14 @@ class AnyLoc(Method):
 
     @staticmethod
     def _file_info(vocabulary) -> dict:
+        """Where the centres came from, and the datasets whose databases they were fitted on (a vprbench
+        fit records them; the authors' release is known by its name)."""
         found = released_provenance(vocabulary)
         if found.get("source") == "file" and "vocabularies" in Path(found["file"]).parts:
             found["source"] = "cache"  # fitted earlier with `vprbench vocabulary fit` or imported
+        fitted = vocabulary.meta.get("datasets")
+        if isinstance(fitted, (dict, list)) and fitted and all(isinstance(name, str) for name in fitted):
+            found["datasets"] = list(fitted)
         return found
 
     # ------------------------------------------------------------ identity
@@ -227,6 +232,10 @@ class AnyLoc(Method):
     def vocabulary_provenance(self) -> dict:
         """Which vocabulary, its source and sha256, and whether it was fitted on the evaluated database."""
         info = {"option": self.vocabulary, **self.vocabulary_info, "fitted_on_evaluated_database": self.needs_fit}
+        datasets = self.vocabulary_info.get("datasets") or []
+        if not self.needs_fit and self.dataset in datasets:  # map-<dataset>, or a domain holding the dataset
+            info.update(fitted_on_evaluated_database=True,
+                        fitted_on=" + ".join(f"the database of {name}" for name in datasets))
         if self.needs_fit:
             info.update(source="fitted", name=f"{MAP_PREFIX}{self.dataset}" if self.dataset else "map",
                         fitted_on=f"the database of {self.dataset}" if self.dataset else "the database given to fit()")

@@ -128,6 +128,14 @@ def fetch_released(source: str, cache_dir=None) -> Path:
     return path
 
 
+def source_datasets(source: str) -> list[str]:
+    """The datasets whose databases a vocabulary of the vprbench source name `source` is fitted on:
+    map-<dataset>'s one, a domain's or group's members; [] for any other name."""
+    if source.startswith(MAP_PREFIX):
+        return [source[len(MAP_PREFIX):]]
+    return [name for name, _ in domain_datasets(source)] if source in domain_names() else []
+
+
 def released_provenance(vocabulary: Vocabulary) -> dict:
     """{"source": "released", repository, commit, url, sha256} when the file is a released one, else the file's sha256."""
     from ..weights import file_sha256
@@ -140,7 +148,8 @@ def released_provenance(vocabulary: Vocabulary) -> dict:
         if release()["sha256"][released_name(source)] == digest:
             r = release()
             return {"source": "released", "released_as": released_name(source), "repository": r["repository"],
-                    "commit": r["commit"], "url": released_url(source), "sha256": digest, "file": str(path)}
+                    "commit": r["commit"], "url": released_url(source), "sha256": digest, "file": str(path),
+                    "datasets": source_datasets(source)}
     return {"source": "file", "sha256": digest, "file": str(path)}
 
 

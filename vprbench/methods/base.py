@@ -14,6 +14,8 @@ class PostProcessor(Protocol):
     PCA-whitening. The evaluation fits it on the database's row source (`vprbench.row_sources`)
     within a memory budget, saves `state()` in the store's folder under a name made from
     `key(...)`, and applies `transform` chunk by chunk, so no split is ever whole in memory.
+    An optional `check_rows(n, dataset_name)` refuses a database of `n` images it cannot fit,
+    before any descriptor is computed.
     """
 
     def key(self, rows, memory_budget: int) -> dict:

@@ -64,7 +64,8 @@ def parse_vocabulary(option) -> VocabularySource:
         if path.is_dir():
             return VocabularySource("folder", option)
         if not path.is_file():
-            raise VPRBenchError(f"dense-vlad: vocabulary file {path} does not exist.")
+            raise VPRBenchError(f"dense-vlad: vocabulary file {path} does not exist: check the path, or give map, a "
+                                "dataset, a domain or a folder of images.")
         return VocabularySource("file", option)
     if option in dataset_manifests():
         return VocabularySource("dataset", option)

@@ -1,0 +1,71 @@
+"""What a researcher reads is right: claims of the docs checked against what the code does."""
+import pytest
+import torch
+
+from vprbench.aggregation.vocabulary import Vocabulary, vocabulary_dir
+
+
+def _cached(tmp_path, source: str, datasets: dict) -> None:
+    """A vocabulary as `vprbench vocabulary fit` leaves it: its meta names the datasets it saw."""
+    folder = vocabulary_dir("dinov2_vits14@random", 3, "value", 4, source, tmp_path)
+    meta = {"backbone": "dinov2_vits14@random", "layer": 3, "facet": "value", "clusters": 4,
+            "source": source, "datasets": datasets}
+    Vocabulary(torch.nn.functional.normalize(torch.randn(4, 384, generator=torch.Generator().manual_seed(0)), dim=1),
+               meta).save(folder / "vocabulary.pt")
+
+
+def _anyloc(tmp_path, vocabulary: str):
+    from vprbench import create_method
+
+    return create_method("anyloc", backbone="dinov2_vits14", weights="random", layer=3, clusters=4,
+                         vocabulary=vocabulary, cache_dir=tmp_path)
+
+
+@pytest.mark.parametrize("source, datasets, seen, unseen", [
+    ("map-corridor", {"corridor": 111}, "corridor", "baidu-mall"),
+    ("indoor", {"gardens-point": 200, "17places": 406, "baidu-mall": 689}, "baidu-mall", "corridor"),
+])
+def test_a_cached_vocabulary_fitted_on_the_evaluated_database_says_so(tmp_path, source, datasets, seen, unseen):
+    # docs/anyloc.md: the record says whether the vocabulary was fitted on the evaluated database;
+    # `vocabulary fit --dataset corridor` then `--vocabulary map-corridor` on corridor is that case
+    _cached(tmp_path, source, datasets)
+    method = _anyloc(tmp_path, source)
+    method.use_dataset(seen)
+    found = method.provenance()["vocabulary"]
+    assert found["fitted_on_evaluated_database"] is True
+    assert seen in found["fitted_on"]
+    method.use_dataset(unseen)  # the same centres never saw this dataset
+    assert method.provenance()["vocabulary"]["fitted_on_evaluated_database"] is False
+
+
+def test_a_vocabulary_file_fitted_on_the_evaluated_database_says_so(tmp_path):
+    _cached(tmp_path, "map-corridor", {"corridor": 111})
+    path = vocabulary_dir("dinov2_vits14@random", 3, "value", 4, "map-corridor", tmp_path) / "vocabulary.pt"
+    method = _anyloc(tmp_path, str(path))
+    method.use_dataset("corridor")
+    assert method.provenance()["vocabulary"]["fitted_on_evaluated_database"] is True
+
+
+@pytest.mark.parametrize("method", ["anyloc-vlad-dinov2", "dense-vlad"])
+def test_a_missing_vocabulary_file_says_what_to_do(tmp_path, method):
+    # README: `vprbench describe --method anyloc-vlad-dinov2 --vocabulary c_centers.pt ...`; without the
+    # file, the one line names it and what to give instead
+    from vprbench import VPRBenchError, create_method
+
+    with pytest.raises(VPRBenchError) as refused:
+        create_method(method, vocabulary=str(tmp_path / "c_centers.pt"), cache_dir=tmp_path)
+    assert str(tmp_path / "c_centers.pt") in str(refused.value) and "check the path" in str(refused.value)
+
+
+def test_a_pca_wider_than_the_database_is_refused_before_any_descriptor(shared_data, tmp_path):
+    # docs/anyloc.md: pca_dim cannot exceed the database images (a clear error); Corridor has 111,
+    # known once the dataset is loaded, so no image is described for a run that cannot finish
+    from vprbench import VPRBenchError
+    from vprbench.evaluation import evaluate
+    from vprbench.spec import RunSettings, resolve_spec
+
+    spec = resolve_spec("anyloc", "corridor", options={"backbone": "dinov2_vits14", "weights": "random", "layer": 0,
+                                                       "aggregation": "gem", "resize": [28, 28], "pca_dim": 200})
+    with pytest.raises(VPRBenchError, match=r"PCA dimension 200 .*111.*pca_dim <= 111"):
+        evaluate(spec, RunSettings(data_dir=shared_data, cache_dir=tmp_path))
+    assert not list((tmp_path / "stores").rglob("*.h5"))  # nothing was described
