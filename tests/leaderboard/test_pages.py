@@ -47,3 +47,29 @@ def test_the_cell_rule_is_below_the_tables_and_linked_from_the_top(make_record, 
         assert page.count("Each cell is exactly one run") == 1, name
     navigation = (docs / "leaderboard" / "SUMMARY.md").read_text()
     assert "* Datasets\n    * [corridor](corridor.md)\n" in navigation
+
+
+def test_a_row_fitted_on_the_evaluated_database_is_compared_with_the_paper_and_marked(make_record):
+    """AnyLoc's domain vocabularies (and its PCA) are fitted on the databases the paper evaluates: such a
+    run's row is marked †, and its cells are still set against the paper's numbers. Was: only unmarked
+    rows were, so a run of the paper's own setting never was. A row set apart otherwise (HNSW) is not."""
+    from vprbench.leaderboard.tables import comparisons
+
+    runs = []
+    for seed, search in enumerate((None, {"index": "hnsw"})):
+        record = make_record("anyloc-vlad-dinov2", "baidu-mall", quality=0.9, seed=seed, search=search)
+        record["provenance"].update(vocabulary={"source": "released", "fitted_on_evaluated_database": True},
+                                    learnt=["vocabulary"], fitted_on_evaluated_database=True)
+        runs.append(record)
+    board = build_board(runs)
+    name = "anyloc-vlad-dinov2 † fitted on the evaluated database"
+    other = "anyloc-vlad-dinov2 † hnsw search; fitted on the evaluated database"
+    assert sorted(r.name for r in board.rows) == [name, other]
+    found = comparisons(board)
+    assert [(c["row"], c["dataset"], c["metric"], c["reported"]) for c in found] == [
+        (name, "baidu-mall", "R@1", 75.2), (name, "baidu-mall", "R@5", 87.6)]
+    row = next(r for r in board.rows if r.name == name)
+    cell = board.cell(row, board.columns[0])
+    table = table_rows(group_table(board, "II"))
+    assert table[name][1].replace("**", "") == f"{cell.recall(1):.1f} / {cell.recall(5):.1f}"  # Baidu Mall, first
+    assert other not in table

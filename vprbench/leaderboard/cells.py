@@ -67,6 +67,12 @@ class Row:
         return not self.mark
 
     @property
+    def like_the_paper(self) -> bool:
+        """Official, or set apart only by a part fitted on the evaluated database: as the paper's own
+        methods are (AnyLoc's map and domain vocabularies, its PCA), so its numbers are compared here."""
+        return self.mark in ("", TRANSDUCTIVE)
+
+    @property
     def name(self) -> str:
         return self.label if self.official else f"{self.label} † {self.mark}"
 

@@ -54,12 +54,12 @@ def _domains() -> dict[str, str]:
 
 
 def domain_averages(board: Board, axes: dict[str, list[str]] | None = None) -> dict[str, dict[str, DomainMean]]:
-    """Measured official rows on the benchmarks' default protocols: R@1 per radar axis."""
+    """Measured rows like the paper's (Row.like_the_paper) on the benchmarks' default protocols: R@1 per radar axis."""
     axes = domain_datasets() if axes is None else axes
     found = {}
     for row in board.rows:
         values = {column.dataset: cell.recall(1) for column in board.columns
-                  if row.official and column.kind == "benchmark" and column.default
+                  if row.like_the_paper and column.kind == "benchmark" and column.default
                   and (cell := board.cell(row, column)) and cell.recall(1) is not None}
         if values:
             found[row.name] = domain_means(values, axes)

@@ -130,11 +130,12 @@ def _reported_value(frame: pd.DataFrame, method: str, dataset: str, metric: str)
 
 
 def comparisons(board: Board, seed: int = 0) -> list[dict]:
-    """Every official measured cell the paper also reports: both values, the delta, reproduced or not."""
+    """Every measured cell of a row like the paper's (Row.like_the_paper) the paper also reports: both
+    values, the delta, reproduced or not."""
     frame = reported()
     found = []
     for row in board.rows:
-        if not row.official:
+        if not row.like_the_paper:
             continue
         for column in board.columns:
             cell = board.cell(row, column)
@@ -149,7 +150,7 @@ def comparisons(board: Board, seed: int = 0) -> list[dict]:
                 ci = stats[k]["ci"]
                 tolerance = max(TOLERANCE_PP, (ci[1] - ci[0]) / 2) if ci else TOLERANCE_PP
                 table = frame[(frame["method"] == row.label) & (frame["column"] == column.dataset)]["table"].iloc[0]
-                found.append({"method": row.label, "dataset": column.dataset, "metric": f"R@{k}", "measured": measured,
+                found.append({"method": row.label, "row": row.name, "dataset": column.dataset, "metric": f"R@{k}", "measured": measured,
                               "ci": ci, "reported": paper, "delta": measured - paper, "tolerance": tolerance,
                               "reproduced": abs(measured - paper) <= tolerance, "table": table,
                               "run_id": cell.record.get("run_id")})
@@ -157,7 +158,7 @@ def comparisons(board: Board, seed: int = 0) -> list[dict]:
 
 
 def group_table(board: Board, table: str, link=lambda column: column.dataset) -> str:
-    """A paper-style table (II structured, III unstructured) in Markdown: our official measured rows
+    """A paper-style table (II structured, III unstructured) in Markdown: our measured rows like the paper's
     and the paper's rows; R@1 / R@5 per dataset; best in bold. The Average is over the paper's
     datasets of the table, for rows that have them all; a measured row with fewer has its mean in a
     column of its own, "Measured so far". Reported values are in italics, never presented as measured."""
@@ -171,18 +172,18 @@ def group_table(board: Board, table: str, link=lambda column: column.dataset) ->
 
     lines: list[tuple[str, str, dict]] = []  # (name, source, {(dataset, k): (value, is_reported)})
     marks: dict[tuple[str, str], str] = {}  # (row name, dataset): where a measured cell's number comes from
-    for row in [r for r in board.rows if r.official]:
+    for row in [r for r in board.rows if r.like_the_paper]:  # a † row shows its mark
         values = {}
         for name in datasets:
             cell = board.cell(row, by_name[name]) if name in by_name else None
             if cell is not None and cell.recall(1) is not None:
-                marks[(text(row.label), name)] = cell.source
+                marks[(text(row.name), name)] = cell.source
             for k in CELL_KS:
                 measured = cell.recall(k) if cell else None
                 paper_value = _reported_value(paper, row.label, name, f"r{k}")
                 values[(name, k)] = (measured, False) if measured is not None else (paper_value, paper_value is not None)
         if any(v is not None and not rep for v, rep in values.values()):
-            lines.append((text(row.label), "measured", values))
+            lines.append((text(row.name), "measured", values))
     for label, part in paper.groupby("row", sort=False):
         values = {(name, k): (_value(part, name, f"r{k}"), True)
                   for name in datasets for k in CELL_KS}
