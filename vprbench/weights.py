@@ -3,6 +3,7 @@ a local file, the authors' release URL checked against a published sha256, or a 
 hub file), read safely, named by their content."""
 from __future__ import annotations
 
+import contextlib
 import pickle
 import re
 import struct
@@ -55,14 +56,18 @@ def read_torch_file(path: str | Path, what: str = "checkpoint", *, mmap: bool = 
     import torch
 
     path = Path(path)
+    # torch.load reads any path named *.safetensors as safetensors; this reads PyTorch files, whatever
+    # their name: such a file is given as an open file (which cannot be mapped)
+    named_safetensors = path.name.endswith(".safetensors")
     try:
         # torch's notice on a pickle protocol it was not written with is for its developers, not a user
-        with torch.serialization.safe_globals(_numpy_globals()), warnings.catch_warnings():
+        with torch.serialization.safe_globals(_numpy_globals()), warnings.catch_warnings(), \
+                (open(path, "rb") if named_safetensors else contextlib.nullcontext(path)) as source:
             warnings.filterwarnings("ignore", message="Detected pickle protocol")
             try:
-                return torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
+                return torch.load(source, map_location="cpu", weights_only=True, mmap=mmap and not named_safetensors)
             except RuntimeError:
-                if not mmap:
+                if not mmap or named_safetensors:
                     raise
                 return torch.load(path, map_location="cpu", weights_only=True)  # legacy format cannot be mapped
     except pickle.UnpicklingError as error:
@@ -71,16 +76,20 @@ def read_torch_file(path: str | Path, what: str = "checkpoint", *, mmap: bool = 
         except (RuntimeError, ValueError, OSError):  # only zip-format files can be inspected: else the refusal names it
             extra = ", ".join(dict.fromkeys(re.findall(r"GLOBAL ([\w.]+)", str(error))))
         if not extra:
-            raise VPRBenchError(f"Cannot read {what} {path}: it is damaged or not a PyTorch file.") from None
+            raise VPRBenchError(f"Cannot read {what} {path}: it is damaged or not a PyTorch file; a download or copy "
+                                "that stopped early leaves such a file: get it again.") from None
         raise VPRBenchError(
             f"{what.capitalize()} {path} also holds Python objects ({extra}), which are not loaded because "
             "unpickling them can run code. If you trust the file, save its weights alone, e.g. "
             "torch.save(torch.load(FILE, weights_only=False)['state_dict'], 'weights.pth'), and pass that."
         ) from None
     except (RuntimeError, EOFError, OSError, KeyError, ValueError, IndexError, struct.error) as error:
-        # what torch's unpickler raises on truncated or foreign files
+        # what torch's unpickler raises on truncated or foreign files; its first sentence (torch goes on
+        # about its zip reader's internals and how checkpoints get corrupted)
+        reason = str(error).strip().splitlines()[0].split(". ")[0].rstrip(".") if str(error).strip() else ""
         raise VPRBenchError(
-            f"Cannot read {what} {path}: it is damaged or not a PyTorch file ({type(error).__name__}: {error})."
+            f"Cannot read {what} {path}: it is damaged or not a PyTorch file ({type(error).__name__}"
+            f"{': ' + reason if reason else ''}); a download or copy that stopped early leaves such a file: get it again."
         ) from None
 
 
@@ -150,7 +159,9 @@ def local_weights(source: WeightSource, weights: str | Path, what: str) -> Path:
                             "the stages that take them; pass a weights file in the official format instead: "
                             f"{source.how_to_get()}.")
     if not path.is_file():
-        raise VPRBenchError(f"{what}: weights file {path} does not exist; {source.how_to_get()}.")
+        gated = f" The weights are gated ({source.licence}): request access at {source.page or source.where} first." \
+            if source.gated else ""
+        raise VPRBenchError(f"{what}: weights file {path} does not exist; {source.how_to_get()}.{gated}")
     return path
 
 
@@ -229,7 +240,7 @@ def resolve_weights(source: WeightSource, weights: str | Path | None, what: str,
 def read_weights_file(path: str | Path, what: str = "weights file"):
     """A checkpoint's content: a .safetensors file's tensors, else `read_torch_file`."""
     path = Path(path)
-    if path.suffix == ".safetensors":
+    if _safetensors_content(path):
         from safetensors import SafetensorError
         from safetensors.torch import load_file
 
@@ -238,6 +249,19 @@ def read_weights_file(path: str | Path, what: str = "weights file"):
         except (SafetensorError, OSError, ValueError, RuntimeError) as error:
             raise VPRBenchError(f"Cannot read {what} {path}: {error}. Is it the complete .safetensors file?") from None
     return read_torch_file(path, what, mmap=True)
+
+
+def _safetensors_content(path: Path) -> bool:
+    """Read as .safetensors by content, not name (a hub file saved as .pth, a PyTorch file named
+    .safetensors): an 8-byte header length then '{'; PyTorch files start as a zip ('PK') or a pickle."""
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(9)
+    except OSError as error:
+        raise VPRBenchError(f"Cannot read weights file {path}: {error.strerror or error}.") from None
+    if len(head) == 9 and head[8:] == b"{" and 0 < int.from_bytes(head[:8], "little") < path.stat().st_size:
+        return True
+    return path.suffix == ".safetensors" and not (head.startswith(b"PK") or head.startswith(b"\x80"))
 
 
 @cache

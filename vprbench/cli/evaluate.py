@@ -111,10 +111,14 @@ def run_matrix(args, settings, options, overrides) -> int:
 def results_table(record: dict):
     from rich.table import Table
 
+    from ..leaderboard.shown import random_weights
     from ..text import percent
 
     counts, timings = record["counts"], record["timings"]
-    table = Table(title=f"{record.get('label') or record['method']} on {record['protocol']['id']}", show_header=True)
+    # the board keeps such a run out of every cell; its own table says so too
+    random = " (random weights: a pipeline check, not a result)" if random_weights(record) else ""
+    table = Table(title=f"{record.get('label') or record['method']} on {record['protocol']['id']}{random}",
+                  show_header=True)
     for k in record["recall"]:
         table.add_column(f"R@{k}", justify="right")
     table.add_column("AUC-PR", justify="right")

@@ -61,6 +61,15 @@ def run_fit(args) -> int:
     method = create_method(args.method, **method_options(args), cache_dir=args.cache_dir)
     if not hasattr(method, "iter_patch_features"):
         raise VPRBenchError(f"Method {args.method!r} does not expose patch features, so it cannot fit a vocabulary.")
+    from ..methods.anyloc import VLADS
+
+    aggregation = getattr(method, "aggregation", None)
+    if aggregation is not None and aggregation not in VLADS:
+        # its patch features are not VLAD's (DINO: not normalised; CLS: the last block's tokens), yet the
+        # centres would be cached under the VLAD key of this backbone, layer and facet
+        raise VPRBenchError(f"vocabulary fit: method {args.method} has aggregation={aggregation}, which uses no "
+                            "vocabulary and reads other features than VLAD; give --aggregation "
+                            f"{' or '.join(VLADS)}.")
     check_fit_sizes(args, getattr(getattr(method, "spec", None), "width", None))
     clusters = int(method.clusters)
     backbone = getattr(method, "vocabulary_backbone", method.backbone)  # random weights have their own key

@@ -108,6 +108,18 @@ def _grid_mismatches(state: dict, expected: dict) -> list[str]:
     return found
 
 
+def _check_values(state: dict, expected: dict) -> None:
+    """Every value a tensor, of floating point where the model's is (timm's filter and torch's loader
+    would fail on them with their own tracebacks)."""
+    found = [f"{key} ({type(value).__name__})" for key, value in state.items() if not isinstance(value, torch.Tensor)]
+    found += [f"{key} ({str(value.dtype).removeprefix('torch.')})" for key, value in state.items()
+              if isinstance(value, torch.Tensor) and key in expected and not value.is_floating_point()
+              and expected[key].is_floating_point()]
+    if found:
+        raise VPRBenchError(f"The weights file holds values that are no floating-point tensors: {_show(found)}. "
+                            "Pass the checkpoint's weights as saved by PyTorch (a state dict of float tensors).")
+
+
 def _drop_unplaced_biases(state: dict, expected: dict) -> dict:
     """Fused q/k/v biases the file holds but the architecture has no place for (DINOv3's release
     keeps all-zero, masked ones: `qkv.bias` times `qkv.bias_mask`): dropped when they add
@@ -133,6 +145,7 @@ def convert_official(state: dict[str, torch.Tensor], model: nn.Module) -> dict[s
     unexpected or misshapen keys."""
     filter_fn = getattr(sys.modules[type(model).__module__], "checkpoint_filter_fn", None)
     expected = model.state_dict()
+    _check_values(state, expected)
     mismatched = _grid_mismatches(state, expected)
     state = _drop_unplaced_biases(state, expected)
     try:
@@ -228,8 +241,10 @@ def load_backbone(name: str, weights: str | Path | None = None, device: str | to
     if key not in _LOADED:
         try:
             model = read_npz_release(spec, path) if path.suffix == ".npz" else _load_state(spec, path)
-        except VPRBenchError as error:
-            raise VPRBenchError(f"{path} for backbone {spec.name}: {error}") from None
+        except VPRBenchError as error:  # the file named once
+            said = str(error)
+            raise VPRBenchError(f"Backbone {spec.name}: {said}" if str(path) in said else
+                                f"{path} for backbone {spec.name}: {said}") from None
         _LOADED.clear()  # keep one model: a ViT-G takes 4.5 GB
         _LOADED[key] = (model.float().eval().to(device), identity)
     model, identity = _LOADED[key]

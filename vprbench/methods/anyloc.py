@@ -85,6 +85,14 @@ class AnyLoc(Method):
         # DINO v1 follows the official dino extractor: stride 4, interleaved heads, raw features
         self.stride = whole("anyloc", "stride", stride, 1, self.spec.patch, f"pixels, at most the patch size {self.spec.patch}") \
             if stride is not None else (self.spec.stride or self.spec.patch)
+        patch = self.spec.patch
+        if self.stride != patch and self.spec.position_interpolation == "timm":  # timm's own patch embedding
+            raise VPRBenchError(f"anyloc: option stride={self.stride}: backbone {backbone} runs at its patch stride "
+                                f"{patch} only; leave stride unset or give {patch}.")
+        if patch % self.stride:
+            divisors = ", ".join(str(d) for d in range(1, patch + 1) if patch % d == 0)
+            raise VPRBenchError(f"anyloc: option stride={self.stride} does not divide the patch {patch} of "
+                                f"{backbone}; give one of {divisors}.")
         self.gem_p = number("anyloc", "gem_p", gem_p, above=0, what="GeM's power, e.g. 3")
         if facet not in self.spec.facets and aggregation != "cls":
             raise VPRBenchError(f"facet={facet}: backbone {backbone} gives {', '.join(self.spec.facets)} only (its attention "
@@ -130,6 +138,7 @@ class AnyLoc(Method):
             found, source, note = paper_choice(name, self.vocabulary_backbone, self.layer, self.facet, self.clusters,
                                                self.cache_dir)
             if found is not None:
+                found.check_dim(self.spec.width)  # before the model loads, naming the file
                 found.check_setting(self.vocabulary_backbone, self.layer, self.facet)
             self.needs_fit = found is None
             self.centres = None if found is None else found.centres.float()

@@ -165,6 +165,7 @@ def paper_choice(dataset: str, backbone: str, layer: int, facet: str, clusters: 
         return None, source, ""
     found = find_vocabulary(source, backbone, layer, facet, clusters, cache_dir)
     if found is not None:
+        check_clusters(found, clusters, source, vocabulary_dir(backbone, layer, facet, found.clusters, source, cache_dir))
         return found, source, ""
     if released_path(source) is not None and (backbone, layer, facet, clusters) == released_setting():
         return load_vocabulary(fetch_released(source, cache_dir)), source, ""
@@ -256,6 +257,9 @@ def resolve_vocabulary(spec: str, backbone: str, layer: int, facet: str, cluster
         vocabulary = load_vocabulary(path)
     else:
         vocabulary = find_vocabulary(spec, backbone, layer, facet, clusters, cache_dir)
+        if vocabulary is not None:
+            check_clusters(vocabulary, clusters, spec,
+                           vocabulary_dir(backbone, layer, facet, vocabulary.clusters, spec, cache_dir))
         if vocabulary is None and released_path(spec) is not None and (backbone, layer, facet, clusters) == released_setting():
             vocabulary = load_vocabulary(fetch_released(spec, cache_dir))
         if vocabulary is None:
@@ -266,9 +270,21 @@ def resolve_vocabulary(spec: str, backbone: str, layer: int, facet: str, cluster
                 f"(looked in {where}). Fit it with `vprbench vocabulary fit {how} ...`, or pass "
                 "the path of the authors' released c_centers.pt as the vocabulary."
             )
+    check_clusters(vocabulary, clusters, spec)
+    return vocabulary
+
+
+def check_clusters(vocabulary: Vocabulary, clusters: int, name: str, belongs: Path | None = None) -> None:
+    """Refuse centres of another count; `belongs`: the cache folder of their count, for a file
+    found in the folder of another count (copied there by hand)."""
+    if vocabulary.clusters != clusters and belongs is not None:
+        raise VPRBenchError(
+            f"Vocabulary {vocabulary.meta.get('path', name)} has {vocabulary.clusters} clusters but sits in the cache "
+            f"folder of {clusters}-cluster vocabularies: move it to {belongs} (or delete it) and fit one of {clusters} "
+            "(`vprbench vocabulary fit`).")
     if vocabulary.clusters != clusters:
         raise VPRBenchError(
-            f"Vocabulary {vocabulary.meta.get('path', spec)} has {vocabulary.clusters} clusters, "
-            f"the method asks for {clusters}."
+            f"Vocabulary {vocabulary.meta.get('path', name)} has {vocabulary.clusters} clusters, "
+            f"the method asks for {clusters}: give --clusters {vocabulary.clusters} to use it, or fit one of "
+            f"{clusters} (`vprbench vocabulary fit`)."
         )
-    return vocabulary

@@ -125,6 +125,7 @@ def _run_claimed(cell, claims, taken_over, settings, progress, plan) -> Outcome:
 
 def summary_table(outcomes: list[Outcome], title: str = "Sweep"):
     """One line per cell; long details (a missing dataset's instructions, an error) follow the table once."""
+    from ..leaderboard.shown import random_weights
     from ..notes import Notes
 
     notes = Notes()
@@ -136,7 +137,10 @@ def summary_table(outcomes: list[Outcome], title: str = "Sweep"):
     for o in outcomes:
         recall = (o.record or {}).get("recall", {})
         computed = (o.record or {}).get("descriptors_computed") if o.status == RAN else None
+        detail = o.detail
+        if o.record and random_weights(o.record):  # as the evaluation's own table: these numbers are no result
+            detail = "; ".join(filter(None, ["random weights: a pipeline check, not a result", detail]))
         table.add_row(o.cell.title(), Text(o.status, style=colour[o.status]),
                       f"{recall['1']:.1f}" if "1" in recall else "", f"{recall['5']:.1f}" if "5" in recall else "",
-                      f"{computed['database'] + computed['queries']}" if computed else "", notes.short(o.detail))
+                      f"{computed['database'] + computed['queries']}" if computed else "", notes.short(detail))
     return notes.below(table)
