@@ -186,4 +186,4 @@ def test_reproduce_dry_run_and_bad_table(shared_data, capsys, monkeypatch):
     from vprbench.sweep.reproduce import table_cells
 
     spec, cells = table_cells("anyloc", "layer")  # one row per released run, options from its setting
-    assert len(cells) == 165 and cells[0].cells[0].spec.options["aggregation"] == "vlad"
+    assert len(cells) == 165 and cells[0].cells[0].spec.options["facet"] == "key"

@@ -31,6 +31,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, ValidationError, field_validator, model_serializer
 
 from .errors import VPRBenchError, closest_names, require
+from .content_identity import file_identity, folder_identity, option_identities  # noqa: F401 (file_identity: stages)
 from .hashing import canonical_hash, canonical_json
 from .run_settings import RUN_SETTINGS, RunSettings, split_run_settings  # noqa: F401 (how a run goes, beside what it is)
 
@@ -218,7 +219,7 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
                             "already created, use vprbench.spec.spec_for(method, dataset).")
     require(method, str, "resolve_spec's method takes a method's name, e.g. 'hog' (see 'vprbench methods list')")
     entry = method_entry(method)
-    given = given_options(options)
+    given = given_options(options, method)
     settings = split_run_settings(options)[1]
     if settings:  # else evaluate(spec) would run without them, on the default device
         name = next(iter(settings))
@@ -248,21 +249,27 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
         for stage in stages:
             if stage_entry(stage.name).cls.track == "sequence":
                 require_traverse_manifest(data.name, f"Sequence stage {stage.name!r}")
-    return RunSpec(method=method, options=merged, given=given, files=_file_identities(method, given),
+    return RunSpec(method=method, options=merged, given=given, files=option_identities(method, merged, cache_dir),
                    dataset=data, search=resolve_search(search),
                    stages=stages, ks=ks, store_dtype=_choice("--store-dtype", store_dtype, STORE_DTYPES))
 
 
-def given_options(options) -> dict:
+def given_options(options, method: str | None = None) -> dict:
     """The options given that are part of a spec, each in its one form (methods/checks.py
-    `canonical`): None (unset) and run settings left out."""
+    `canonical`): None (unset), run settings and (with the method's name) those set to the
+    value they have anyway left out."""
     require(options or {}, dict, "options takes a dict of option name -> value, e.g. {'resize': [64, 64]}")
     names = [k for k in options or {} if not isinstance(k, str)]
     if names:
         raise VPRBenchError(f"Option names are text, e.g. {{'resize': [64, 64]}}; got {names[0]!r}.")
     from .methods.checks import canonical
 
-    return {k: canonical(k, v) for k, v in (options or {}).items() if v is not None and k not in RUN_SETTINGS}
+    given = {k: canonical(k, v) for k, v in (options or {}).items() if v is not None and k not in RUN_SETTINGS}
+    if method is not None:
+        from .methods.registry import method_entry
+
+        given = method_entry(method).without_defaults(given)
+    return given
 
 
 def spec_for(method, dataset, **parts) -> RunSpec:
@@ -271,35 +278,6 @@ def spec_for(method, dataset, **parts) -> RunSpec:
     from .methods.objects import created_as
 
     return resolve_spec(created_as(method), dataset, options=dict(getattr(method, "options", {}) or {}), **parts)
-
-
-def _file_identities(method: str, given: dict) -> dict[str, str]:
-    """Options whose value names an existing file are identified by its content; a vocabulary
-    fitted on a benchmark (dense-vlad's `vocabulary = "17places"`) by that benchmark's protocol hash."""
-    from .datasets import dataset_manifest, dataset_manifests, find_protocol
-
-    found = {}
-    for name, value in given.items():
-        if name == "vocabulary" and isinstance(value, str) and value in dataset_manifests():
-            found[name] = f"protocol:{find_protocol(dataset_manifest(value), None).hash}"
-            continue
-        try:
-            identity = file_identity(value)
-        except OSError as error:
-            raise VPRBenchError(f"Method {method!r}: cannot read the file of option {name}, {value} "
-                                f"({error.strerror or error}).") from None
-        if identity is not None:
-            found[name] = identity
-    return found
-
-
-def file_identity(value) -> str | None:
-    """'sha256:<hex>' of the file `value` names (a file is identified by its bytes); None when it names none."""
-    from .weights import file_sha256
-
-    if isinstance(value, str) and value and Path(value).expanduser().is_file():
-        return "sha256:" + file_sha256(Path(value).expanduser())
-    return None
 
 
 def resolve_dataset(dataset, protocol: str | None = None, data_dir=None, cache_dir=None) -> DatasetSpec:
@@ -342,9 +320,11 @@ def resolve_search(search) -> SearchSpec:
     if index == "exact" and options:
         raise VPRBenchError(f"Exact search takes no index options; got {', '.join(sorted(options))}.")
     if index != "exact":
-        from .evaluation.approximate import check_options
+        from .evaluation.approximate import DEFAULTS, check_options
 
         check_options(index, options)
+        # a fixed default written out is the same search (shortlist's default depends on the data: kept)
+        options = {k: v for k, v in options.items() if k == "shortlist" or DEFAULTS.get(k, object()) != v}
     return SearchSpec(index=index, options=plain(options))
 
 

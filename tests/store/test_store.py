@@ -151,10 +151,10 @@ def test_a_fit_state_copied_from_another_store_is_not_used(tmp_path):
 def test_store_key_covers_options_a_fingerprint_forgets(shared_data):
     dataset = load_dataset("corridor", shared_data)
     small = evaluate(vprbench.create_method("forgetful-test", size=4), dataset)
-    large = evaluate(vprbench.create_method("forgetful-test", size=8), dataset)
+    large = evaluate(vprbench.create_method("forgetful-test", size=6), dataset)
     assert large["descriptors_computed"] == {"database": 111, "queries": 111}
-    assert (small["descriptor_dim"], large["descriptor_dim"]) == (16, 64)
-    assert large["method_fingerprint"]["settings"] == {"size": 8}
+    assert (small["descriptor_dim"], large["descriptor_dim"]) == (16, 36)
+    assert large["method_fingerprint"]["settings"] == {"size": 6}
 
 
 def test_empty_fit_state_means_fit_again_never_resume_unfitted(shared_data, tmp_path, monkeypatch):

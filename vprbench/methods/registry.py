@@ -14,13 +14,14 @@ from __future__ import annotations
 
 import copy
 import inspect
+import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
 
 from ..errors import VPRBenchError, closest_names
 from ..registration import check_name, claim, imported, run_plugins, source_of
-from .checks import whole
+from .checks import canonical, whole
 
 ENTRY_POINT_GROUP = "vprbench.methods"
 #: what the registry hands a factory that takes it, never an option a user sets
@@ -54,6 +55,18 @@ class MethodEntry:
         """Options the method takes: the factory's (but the locations), and batch_size, which every method takes."""
         own = [o for o in self.factory_options() if o not in LOCATIONS]
         return own + ([] if "batch_size" in own else ["batch_size"])
+
+    def effective_defaults(self) -> dict:
+        """What an option is when not given: the preset's value, else the factory's own default."""
+        params = inspect.signature(self.factory).parameters.values()
+        own = {p.name: p.default for p in params if p.default is not p.empty and p.name not in LOCATIONS}
+        return {**own, **self.defaults}
+
+    def without_defaults(self, given: dict) -> dict:
+        """`given` less the options set to the value they have anyway (`cell = 16` for hog): one
+        computation, one identity (spec, store, label), whether a default is written out or not."""
+        defaults = self.effective_defaults()
+        return {k: v for k, v in given.items() if k not in defaults or not _same(k, v, defaults[k])}
 
 
 _REGISTRY: dict[str, MethodEntry] = {}
@@ -119,7 +132,8 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
     from .base import Method
 
     entry = method_entry(name)
-    given = {k: v for k, v in options.items() if v is not None}
+    # each value in its one form (resize '64x64' is [64, 64]), as a spec holds it: one store either way
+    given = entry.without_defaults({k: canonical(k, v) for k, v in options.items() if v is not None})
     merged = {**entry.defaults, **given}
     accepted = entry.options()
     unknown = sorted(set(merged) - set(accepted) - ({"device"} if "device" not in accepted else set()))
@@ -153,6 +167,13 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
     method.settings = {k: v for k, v in merged.items() if k not in ("device", "batch_size")}
     method._created_as = (name, copy.deepcopy(method.options))  # what `name`/`options` may not be changed from
     return method
+
+
+def _same(name: str, value, default) -> bool:
+    try:
+        return json.dumps(canonical(name, value), sort_keys=True) == json.dumps(canonical(name, default), sort_keys=True)
+    except (TypeError, ValueError):  # not plain data: never taken for a default
+        return False
 
 
 def checked_run_options(name: str, options: dict) -> dict:

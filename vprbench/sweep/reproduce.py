@@ -138,9 +138,12 @@ def vocabulary_for(cell: Cell, cache_dir=None) -> Need | None:
     from ..methods.anyloc_vocabulary import domain_names, find_vocabulary, paper_vocabulary, released_path, released_setting
     from ..methods.registry import method_entry
 
-    options = dict(cell.spec.options)
+    entry = method_entry(cell.spec.method)
+    if entry.factory is not AnyLoc:
+        return None
+    options = {**entry.effective_defaults(), **cell.spec.options}  # a default is not written in a spec
     name = options.get("vocabulary")
-    if method_entry(cell.spec.method).factory is not AnyLoc or options.get("aggregation") not in VLADS:
+    if options.get("aggregation") not in VLADS:
         return None
     if name == "domain":
         name = paper_vocabulary(cell.spec.dataset.name)

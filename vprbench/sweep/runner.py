@@ -62,7 +62,7 @@ def run_cells(cells: list[Cell], settings: RunSettings | None = None, *, lease_s
         from ..progress import Silent
 
         progress = Silent()
-    claims = Claims(cache_dir, lease_s=lease_s)
+    claims, done = Claims(cache_dir, lease_s=lease_s), _Done(settings)
     outcomes: dict[str, Outcome] = {}
     pending = list({c.key: c for c in cells}.values())  # a plan may list a cell twice
     first_look = True
@@ -79,9 +79,9 @@ def run_cells(cells: list[Cell], settings: RunSettings | None = None, *, lease_s
                         continue
                     found = []  # the record the claim found complete, looked up (and proven) once
                     state, detail = claims.claim(
-                        cell.key, lambda c=cell: found.append(find_result(c.spec, cache_dir)) or found[-1] is not None)
+                        cell.key, lambda c=cell: found.append(done.record(c.spec)) or found[-1] is not None)
                     if state == "complete":
-                        record = found[-1] if found else find_result(cell.spec, cache_dir)
+                        record = found[-1] if found else done.record(cell.spec)
                         status, why = (SKIPPED, f"already complete ({_minute(record.get('created'))})") if first_look \
                             else (ELSEWHERE, "evaluated by another process")
                         outcomes[cell.key] = Outcome(cell, status, why, record)
@@ -100,6 +100,42 @@ def run_cells(cells: list[Cell], settings: RunSettings | None = None, *, lease_s
     finally:
         claims.close()
     return [outcomes[c.key] for c in {c.key: c for c in cells}.values()]
+
+
+class _Done:
+    """A cell's stored record, if it was computed on the data at hand: a benchmark's spec names its
+    protocol, not the bytes of the copy (an image or the ground truth edited, a file renamed)."""
+
+    def __init__(self, settings: RunSettings):
+        self.settings, self.fingerprints = settings, {}
+
+    def record(self, spec) -> dict | None:
+        record = find_result(spec, self.settings.cache_dir)
+        if record is None:
+            return None
+        current = self.fingerprint(spec)
+        if current is None or record.get("dataset_fingerprint") == current:
+            return record
+        return find_result(spec, self.settings.cache_dir, dataset_fingerprint=current)
+
+    def fingerprint(self, spec) -> str | None:
+        """The content fingerprint of the spec's data as found now (never downloaded for this); None
+        when it cannot be read (the run itself says why)."""
+        from ..datasets import load_dataset
+
+        if spec.dataset.kind == "own":  # its protocol hash covers its content already
+            return None
+        key = spec.dataset.model_dump_json()
+        if key not in self.fingerprints:
+            data = spec.dataset
+            try:
+                dataset = load_dataset(data.path if data.kind == "own" else data.name, self.settings.data_dir,
+                                       fetch=False, protocol=None if data.kind == "own" else data.protocol,
+                                       cache_dir=self.settings.cache_dir)
+                self.fingerprints[key] = dataset.fingerprint(self.settings.cache_dir)
+            except VPRBenchError:
+                self.fingerprints[key] = None
+        return self.fingerprints[key]
 
 
 def _run_claimed(cell, claims, taken_over, settings, progress, plan) -> Outcome:

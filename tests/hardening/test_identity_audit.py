@@ -1,0 +1,147 @@
+"""One run, one identity: what cannot change a run's numbers (a default written out) leaves its
+spec and store keys alone; what can (a vocabulary folder's images, the bytes of a dataset copy)
+keeps a stored result from being served for it."""
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+from vprbench.cli.main import main
+from vprbench.evaluation import read_results
+from vprbench.methods import create_method
+from vprbench.spec import resolve_spec
+from vprbench.store import method_fingerprint
+
+
+@pytest.mark.parametrize("method, shorter, written", [
+    ("hog", {"resize": [64, 64]}, {"resize": [64, 64], "cell": 16, "bins": 9.0}),
+    ("sad", {}, {"resize": "32x64", "patch": 8}),  # sad's own defaults, a tuple among them
+])
+def test_a_default_written_out_is_the_same_run_and_store(method, shorter, written):
+    """`--method sad -o patch=8` was a run (and a descriptor store) of its own, computed again."""
+    spec, same = resolve_spec(method, "corridor", options=shorter), resolve_spec(method, "corridor", options=written)
+    assert (same.key, same.row_key, same.given, same.label()) == (spec.key, spec.row_key, spec.given, spec.label())
+    assert method_fingerprint(create_method(method, **written)) == method_fingerprint(create_method(method, **shorter))
+    other = resolve_spec(method, "corridor", options={**shorter, "patch" if method == "sad" else "cell": 4})
+    assert other.key != spec.key
+
+
+def test_a_search_default_written_out_is_the_same_run():
+    exact_default = resolve_spec("hog", "corridor", search={"index": "hnsw"})
+    written = resolve_spec("hog", "corridor", search={"index": "hnsw", "options": {"hnsw_m": 32, "seed": 0,
+                                                                                  "ef_construction": 40}})
+    assert written.key == exact_default.key and written.search.options == {}
+    assert resolve_spec("hog", "corridor", search={"index": "hnsw", "options": {"hnsw_m": 16}}).key != written.key
+    # the shortlist's default depends on the database: written out, it stays
+    assert resolve_spec("hog", "corridor", search={"index": "hnsw", "options": {"shortlist": 100}}).key != written.key
+
+
+def test_a_vocabulary_folder_is_known_by_its_images_not_its_path(shared_data, tmp_path):
+    """A folder vocabulary was named by its path: images changed in it, a sweep served the old result."""
+    first, moved = tmp_path / "words", tmp_path / "elsewhere" / "words"
+    first.mkdir()
+    for i in range(3):
+        shutil.copyfile(shared_data / "corridor" / "ref" / f"{i:07d}.jpg", first / f"{i:07d}.jpg")
+    shutil.copytree(first, moved)
+
+    def row(folder):
+        return resolve_spec("dense-vlad", "corridor", options={"vocabulary": str(folder)}, cache_dir=tmp_path).row_key
+
+    before = row(first)
+    assert row(moved) == before  # the same images elsewhere: the same row
+    shutil.copyfile(shared_data / "corridor" / "ref" / "0000050.jpg", first / "0000001.jpg")
+    edited = row(first)
+    assert edited != before
+    (first / ".DS_Store").write_bytes(b"x")  # a hidden file is none of its images
+    assert row(first) == edited
+
+
+def _edit_image(root):
+    path = root / "query" / "0000005.jpg"
+    data = path.read_bytes()
+    path.unlink()  # a symlink into the shared data: replaced, never written through
+    import cv2
+
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    cv2.imwrite(str(path), 255 - image)
+
+
+def _edit_ground_truth(root):
+    path = root / "ground_truth_new.npy"
+    truth = np.load(path, allow_pickle=True)
+    path.unlink()
+    truth[0, 1] = [0]
+    np.save(path, truth, allow_pickle=True)
+
+
+@pytest.mark.parametrize("edit", [_edit_image, _edit_ground_truth])
+def test_a_sweep_does_not_serve_a_result_computed_on_other_data(corridor_copy, shared_data, tmp_path, capsys,
+                                                                 monkeypatch, edit):
+    """A benchmark's spec names its protocol, not the bytes of the copy: `vprbench run` skipped a
+    cell as complete whose record was computed on another copy's images or ground truth."""
+    monkeypatch.setenv("COLUMNS", "200")
+    plan = tmp_path / "plan.toml"
+    plan.write_text('[[methods]]\nname = "hog"\noptions = { resize = [32, 32] }\n\n[[datasets]]\nname = "corridor"\n')
+    cache = tmp_path / "cache"
+
+    def run(data_root) -> list[dict]:
+        code = main([str(a) for a in ("run", plan, "--k", "1", "--quiet", "--data-dir", data_root, "--cache-dir", cache)])
+        assert code == 0, capsys.readouterr().err
+        capsys.readouterr()
+        return read_results(cache)
+
+    [original] = run(shared_data)
+    edit(corridor_copy)
+    records = run(corridor_copy.parent)
+    assert len(records) == 2, "the cell was skipped: a result of other data was served"
+    assert records[-1]["dataset_fingerprint"] != original["dataset_fingerprint"]
+    assert len(run(corridor_copy.parent)) == 2  # the copy's own result is found again
+    assert len(run(shared_data)) == 2  # and the original's
+
+
+def test_a_file_a_plugin_preset_names_is_known_by_its_bytes(tmp_path, monkeypatch):
+    """A preset's file (and a file given equal to it) was named by its path: edited in place, the
+    run kept its key and a sweep served the result of the old bytes."""
+    from vprbench import register_method
+    from vprbench.methods import registry
+    from vprbench.methods.base import Method
+
+    class Toy(Method):
+        def __init__(self, weights: str = "", device: str = "cpu"):
+            self.weights = weights
+
+        def describe(self, images):
+            return np.ones((len(images), 4), np.float32)
+
+    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
+    weights = tmp_path / "w.npy"
+    np.save(weights, np.ones(4))
+    register_method("toy-identity", Toy, defaults={"weights": str(weights)})
+    before = [resolve_spec("toy-identity", "corridor", options=o).key for o in ({}, {"weights": str(weights)})]
+    np.save(weights, np.zeros(4))
+    after = [resolve_spec("toy-identity", "corridor", options=o).key for o in ({}, {"weights": str(weights)})]
+    assert before[0] == before[1] and after[0] == after[1] and after[0] != before[0]
+
+
+def test_reproduce_still_sees_the_vocabulary_a_default_aggregation_needs(tmp_path):
+    """A default left out of the spec (aggregation = "vlad" written out) must still count as set."""
+    from vprbench.sweep.plan import Cell
+    from vprbench.sweep.reproduce import vocabulary_for
+
+    options = {"backbone": "dino_vits8", "layer": 9, "facet": "key", "clusters": 128, "vocabulary": "aerial"}
+    for given in (options, {**options, "aggregation": "vlad"}):
+        spec = resolve_spec("anyloc", "nardo-air", options=given)
+        assert "aggregation" not in spec.options
+        assert vocabulary_for(Cell(spec), tmp_path)[0] == "vocabulary 'aerial' for dino_vits8 layer 9 key c128"
+
+
+def test_a_method_created_in_python_keys_its_store_as_the_command_line_does():
+    """`create_method("hog", resize="64x64")` keyed its store by the text '64x64', `--resize 64 64`
+    by [64, 64]: the same descriptors were computed twice, in two stores."""
+    from vprbench.hashing import canonical_hash
+
+    keys = {canonical_hash(method_fingerprint(create_method("hog", resize=written)))
+            for written in ("64x64", [64, 64], (64.0, 64), "64")}
+    assert len(keys) == 1
