@@ -145,3 +145,29 @@ def test_a_method_created_in_python_keys_its_store_as_the_command_line_does():
     keys = {canonical_hash(method_fingerprint(create_method("hog", resize=written)))
             for written in ("64x64", [64, 64], (64.0, 64), "64")}
     assert len(keys) == 1
+
+
+def test_a_reproduce_dry_run_does_not_call_complete_a_cell_of_other_data(corridor_copy, shared_data, tmp_path, capsys):
+    """The dry run judged a cell complete by its spec alone: one computed on another copy read complete
+    while the run itself would compute it again."""
+    from vprbench.cli.reproduce import dry_run_listing
+    from vprbench.run_settings import RunSettings
+    from vprbench.sweep.plan import Cell
+    from vprbench.sweep.reproduce import TableCell
+    from vprbench.evaluation import evaluate, save_result
+    from rich.console import Console
+
+    cache = tmp_path / "cache"
+    spec = resolve_spec("hog", "corridor", options={"resize": [32, 32]}, ks=[1], data_dir=shared_data)
+    save_result(evaluate(spec, RunSettings(data_dir=shared_data, cache_dir=cache)), cache)
+    _edit_image(corridor_copy)
+
+    def status(data_root) -> str:
+        table = dry_run_listing({"title": "t"}, [TableCell("hog", "corridor", [Cell(spec)])], {spec.key: []},
+                                RunSettings(data_dir=data_root, cache_dir=cache), "1 cell")
+        console = Console(width=200, record=True)
+        console.print(table)
+        return console.export_text()
+
+    assert "complete" in status(shared_data)
+    assert "complete" not in status(corridor_copy.parent) and "would run" in status(corridor_copy.parent)

@@ -40,7 +40,6 @@ def _row_weights(spec: dict) -> dict:
 
 def run_reproduce(args) -> int:
     from ..errors import VPRBenchError
-    from ..evaluation.results import find_result
     from ..methods.registry import checked_run_options
     from ..sweep import run_cells, summary_table
     from ..sweep.reproduce import missing_for, needs_text, table_cells
@@ -69,11 +68,14 @@ def run_reproduce(args) -> int:
     if args.dry_run:
         counted = f"{len(cells)} cells to evaluate{f', {no_method}' if unrunnable else ''}"
         if spec.get("dry_run") == "by-row":
-            records = {key: find_result(c.spec, settings.cache_dir) for key, (c, _) in cells.items()}
+            from ..sweep.runner import StoredRecords
+
+            stored = StoredRecords(settings)  # computed on the data at hand, as run_cells judges it
+            records = {key: stored.record(c.spec) for key, (c, _) in cells.items()}
             status = {key: "complete" if records[key] else "missing" if missing[key] else "would run" for key in cells}
             console.print(by_row(table_cells_, status, missing, f"{spec['title']}: {counted} (dry run, nothing runs)"))
         else:
-            console.print(dry_run_listing(spec, table_cells_, missing, settings.cache_dir, counted))
+            console.print(dry_run_listing(spec, table_cells_, missing, settings, counted))
         return 0
     outcomes = run_cells([c for c, _ in cells.values()], settings, lease_s=args.lease,
                          plan=f"{args.paper} table {args.table}", runnable=lambda c: needs_text(missing[c.key]),
@@ -126,17 +128,16 @@ def by_row(table_cells_, status, missing, title):
     return notes.below(listing)
 
 
-def dry_run_listing(spec: dict, table_cells_, missing: dict, cache_dir, counted: str):
+def dry_run_listing(spec: dict, table_cells_, missing: dict, settings, counted: str):
     """One line per cell (at 80 columns too): each need's instructions once, below the table, the
     cells referring to them by number."""
     from rich.table import Table
     from rich.text import Text
 
-    from ..evaluation.results import find_result
     from ..notes import Notes
-    from ..sweep.runner import _minute
+    from ..sweep.runner import StoredRecords, _minute
 
-    notes = Notes()
+    notes, stored = Notes(), StoredRecords(settings)
     listing = Table(title=f"{spec['title']}: {counted} (dry run, nothing runs)")
     listing.add_column("row", overflow="fold")
     listing.add_column("column: dataset:protocol", overflow="fold")
@@ -145,7 +146,7 @@ def dry_run_listing(spec: dict, table_cells_, missing: dict, cache_dir, counted:
         if not tc.cells:
             listing.add_row(tc.row, tc.column, Text.assemble(("not runnable", "yellow"), f" {notes.refer(tc.reason)}"))
         for c in tc.cells:
-            record = find_result(c.spec, cache_dir)
+            record = stored.record(c.spec)
             needs = " ".join(notes.refer(f"{thing}: {how}") for thing, how in missing[c.key])
             status = (Text.assemble(("complete", "cyan"), f" ({_minute(record.get('created'))})") if record else
                       Text.assemble(("missing", "yellow"), f" {needs}") if needs else Text("would run", style="green"))

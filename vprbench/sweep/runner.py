@@ -62,7 +62,7 @@ def run_cells(cells: list[Cell], settings: RunSettings | None = None, *, lease_s
         from ..progress import Silent
 
         progress = Silent()
-    claims, done = Claims(cache_dir, lease_s=lease_s), _Done(settings)
+    claims, done = Claims(cache_dir, lease_s=lease_s), StoredRecords(settings)
     outcomes: dict[str, Outcome] = {}
     pending = list({c.key: c for c in cells}.values())  # a plan may list a cell twice
     first_look = True
@@ -102,7 +102,7 @@ def run_cells(cells: list[Cell], settings: RunSettings | None = None, *, lease_s
     return [outcomes[c.key] for c in {c.key: c for c in cells}.values()]
 
 
-class _Done:
+class StoredRecords:
     """A cell's stored record, if it was computed on the data at hand: a benchmark's spec names its
     protocol, not the bytes of the copy (an image or the ground truth edited, a file renamed)."""
 
