@@ -12,8 +12,6 @@ import torch
 
 from vprbench.aggregation import Vocabulary
 from vprbench.aggregation.vocabulary import vocabulary_dir
-from vprbench.features.backbones import create_model
-from vprbench.features.catalogue import backbone_spec, backbones
 from vprbench.paths import cache_root
 
 from hostile_files import assert_refused
@@ -22,16 +20,6 @@ from hostile_files import assert_refused
 def nothing_cached() -> None:
     assert not list(cache_root().rglob("vocabulary.pt")), "a refused run cached a vocabulary"
     assert not (cache_root() / "stores").exists(), "a refused run made a descriptor store folder"
-
-
-@pytest.fixture
-def tiny_dinov3(monkeypatch):
-    """A DINOv3 ViT-S/16 of 2 blocks (listed as dinov3_vits16, so a run takes it) and its weights."""
-    entry = backbone_spec("dinov3_vits16")
-    entry = entry.model_copy(update={"depth": 2, "timm_kwargs": {**entry.timm_kwargs, "depth": 2}})
-    monkeypatch.setitem(backbones(), "dinov3_vits16", entry)
-    torch.manual_seed(0)
-    return {k: v.detach().clone() for k, v in create_model(entry).state_dict().items()}
 
 
 def describe(cli, shared_data, tmp_path, *options):

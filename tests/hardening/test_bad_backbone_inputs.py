@@ -12,7 +12,6 @@ import torch
 
 from vprbench import VPRBenchError
 from vprbench.aggregation import Vocabulary
-from vprbench.features.backbones import create_model
 from vprbench.features.catalogue import _entries, backbone_spec, backbones
 from vprbench.paths import cache_root
 
@@ -38,16 +37,6 @@ def test_a_facet_the_attention_cannot_give_is_refused(shared_data, cli, monkeypa
     assert_refused(code, err, None, "facet=key: backbone tokens_only gives token only", "choose one of those")
 
 
-@pytest.fixture
-def dinov3_state(monkeypatch):
-    """A DINOv3 ViT-S/16 of 2 blocks (listed as dinov3_vits16, so the run takes it) and its weights."""
-    entry = backbone_spec("dinov3_vits16")
-    entry = entry.model_copy(update={"depth": 2, "timm_kwargs": {**entry.timm_kwargs, "depth": 2}})
-    monkeypatch.setitem(backbones(), "dinov3_vits16", entry)
-    torch.manual_seed(0)
-    return create_model(entry).state_dict()
-
-
 @pytest.mark.parametrize("change, said", [
     (lambda s: {k.replace("blocks.", "layers."): v for k, v in s.items()},  # another architecture's names
      ["Missing keys: blocks.0.attn.proj.bias", "Unexpected keys: layers.0.attn.proj.bias"]),
@@ -56,10 +45,10 @@ def dinov3_state(monkeypatch):
     (lambda s: {**s, "cls_token": torch.zeros(1, 1, 768)}, ["Shape mismatches: cls_token: file (1, 1, 768) vs model "
                                                             "(1, 1, 384)"]),
 ])
-def test_a_checkpoint_that_does_not_fit_is_refused_naming_the_keys(change, said, dinov3_state, shared_data, cli,
+def test_a_checkpoint_that_does_not_fit_is_refused_naming_the_keys(change, said, tiny_dinov3, shared_data, cli,
                                                                    tmp_path):
     path = tmp_path / "dinov3.pth"
-    torch.save(change(dinov3_state), path)
+    torch.save(change(tiny_dinov3), path)
     code, _, err = cli("evaluate", "--method", "anyloc", "--backbone", "dinov3_vits16", "--layer", "1", "--weights", path,
                        *RUN, "--data-dir", shared_data)
     assert_refused(code, err, None, f"{path} for backbone dinov3_vits16: The weights file does not fit this backbone",
