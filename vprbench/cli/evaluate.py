@@ -111,14 +111,17 @@ def run_matrix(args, settings, options, overrides) -> int:
 def results_table(record: dict):
     from rich.table import Table
 
-    from ..leaderboard.shown import random_weights
+    from ..leaderboard.shown import descriptor_bytes, random_weights
+    from ..spec import RunSpec
     from ..text import percent
 
     counts, timings = record["counts"], record["timings"]
     # the board keeps such a run out of every cell; its own table says so too
     random = " (random weights: a pipeline check, not a result)" if random_weights(record) else ""
-    table = Table(title=f"{record.get('label') or record['method']} on {record['protocol']['id']}{random}",
-                  show_header=True)
+    # an approximate search or a float16 store is a row of its own on the board: its table names it too
+    marks = RunSpec.model_validate(record["spec"]).marks()
+    label = (record.get("label") or record["method"]) + (f" ({', '.join(marks)})" if marks else "")
+    table = Table(title=f"{label} on {record['protocol']['id']}{random}", show_header=True)
     for k in record["recall"]:
         table.add_column(f"R@{k}", justify="right")
     table.add_column("AUC-PR", justify="right")
@@ -130,9 +133,11 @@ def results_table(record: dict):
                   "-" if max_f1 is None else f"{max_f1:.3f}")
     computed = record["descriptors_computed"]
     table.caption = (
-        f"Recall in percent; {counts['database']} database, {counts['queries']} queries "
+        f"R@K and R@100%P in percent, AUC-PR and max F1 from 0 to 1; {counts['database']} database, "
+        f"{counts['queries']} queries "
         f"({counts['queries_without_positives']} without positives, counted as failures); "
-        f"dim {record['descriptor_dim']}; descriptors computed now: {computed['database'] + computed['queries']}; "
+        f"dim {record['descriptor_dim']}" + (f" ({size} bytes as stored)" if (size := descriptor_bytes(record)) else "")
+        + f"; descriptors computed now: {computed['database'] + computed['queries']}; "
         f"{timings['total_s']:.1f} s total"
     )
     return table

@@ -61,6 +61,8 @@ class Row:
     mark: str      # what sets the row apart ('' for an official row)
     #: single-image, re-ranked or sequence: each track is a table of its own, never mixed
     track: str = "single-image"
+    #: the marks of its search and store ('hnsw search; float16 store'): part of `mark`, not of its weights
+    setting: str = ""
 
     @property
     def official(self) -> bool:
@@ -233,7 +235,7 @@ def _row_of(record: dict) -> Row:
     transductive = (record.get("provenance") or {}).get("fitted_on_evaluated_database") is True
     marks = [m for m in (mark, *stage_marks(record), *spec.marks(), TRANSDUCTIVE if transductive else "") if m]
     track = record.get("track") or "single-image"  # records before stages had none
-    return Row(spec.row_key, public(spec.label()), weights, "; ".join(marks), track)
+    return Row(spec.row_key, public(spec.label()), weights, "; ".join(marks), track, "; ".join(spec.marks()))
 
 
 def build_board(records: list[dict]) -> Board:
@@ -359,7 +361,7 @@ def _distinct(rows: list[Row]) -> dict[Row, Row]:
     """Each row as shown: rows whose names would read alike (another version of a preset) are told
     apart by their key."""
     names = Counter(r.name for r in rows)
-    return {r: r if names[r.name] == 1 else Row(r.key, f"{r.label} #{r.key[:6]}", r.weights, r.mark, r.track) for r in rows}
+    return {r: r if names[r.name] == 1 else Row(r.key, f"{r.label} #{r.key[:6]}", r.weights, r.mark, r.track, r.setting) for r in rows}
 
 
 def _distinct_titles(columns: dict[str, Column]) -> dict[str, Column]:

@@ -13,6 +13,7 @@ from ..errors import VPRBenchError
 from .cells import STRUCTURED, UNSTRUCTURED, Board, Cell
 from .domains import DomainMean, domain_averages, domain_datasets, paper_domain_averages
 from .escape import public
+from .shown import descriptor_bytes
 from ..evaluation.metrics import successes
 from ..hashing import canonical_hash
 
@@ -138,14 +139,14 @@ def efficiency(cells: list[Cell], path: Path, colours: dict[str, str] | None = N
     speeds = 0
     for cell in cells:
         r1 = cell.recall(1)
-        size = cell.record.get("descriptor_bytes") or 4 * int(cell.record.get("descriptor_dim") or 0)
+        size = descriptor_bytes(cell.record) or 0
         colour = colours[cell.row.name]
         left.scatter([size], [r1], color=colour, label=_label(cell.row.name))
         speed = cell.images_per_second  # from a run that computed its descriptors
         if speed:
             right.scatter([speed], [r1], color=colour)
             speeds += 1
-    left.set(xscale="log", xlabel="descriptor size (bytes, float32)", ylabel="R@1 (%)", ylim=(0, 101))
+    left.set(xscale="log", xlabel="descriptor size (bytes as stored)", ylabel="R@1 (%)", ylim=(0, 101))
     right.set(xscale="log", xlabel="images described per second (this run's machine)")
     if not speeds:
         right.text(0.5, 0.5, "no run computed its descriptors\n(all served from the store)", ha="center",

@@ -9,8 +9,17 @@ OFFICIAL_WEIGHTS = {"official", "none"}
 
 
 def row_name(row) -> str:
-    """A row's name in a page's table: its label (escaped), marked † when it is not official."""
-    return f"{text(row.label)}{' †' if not row.official else ''}"
+    """A row's name in a table with a Weights column: its label (escaped), marked † when it is not
+    official, with its search and store marks (no Weights column says those): 'hog † hnsw search'."""
+    setting = getattr(row, "setting", "")
+    return f"{text(row.label)}{' †' if not row.official else ''}{f' {text(setting)}' if setting else ''}"
+
+
+def weight_marks(row) -> str:
+    """The row's marks about what it learnt (weights, stages' weights, fitted on the evaluated
+    database), without those of its search and store."""
+    setting = set(filter(None, getattr(row, "setting", "").split("; ")))
+    return "; ".join(m for m in row.mark.split("; ") if m and m not in setting)
 
 
 def method_label(record: dict) -> str:
@@ -38,11 +47,12 @@ TRANSDUCTIVE = "fitted on the evaluated database"
 
 
 def weights_shown(row, record: dict) -> str:
-    """The Weights column, the same on every table, page and download: the row's marks, else
+    """The Weights column, the same on every table, page and download: the row's marks of what it
+    learnt (weight_marks), else
     'official', 'none (nothing learnt)' for a method with nothing learnt, or what it learnt
     (e.g. 'vocabulary fitted on 2 images in ...') when its only learnt parts were fitted elsewhere."""
-    if row.mark:
-        return row.mark
+    if weight_marks(row):  # an HNSW search or a float16 store is not what the weights are
+        return weight_marks(row)
     provenance = record.get("provenance") or {}
     learnt = [part for part in provenance.get("learnt") or [] if isinstance(provenance.get(part), dict)]
     if learnt:
@@ -63,6 +73,16 @@ def licence_shown(record: dict) -> str:
     if card is None:
         return "–"
     return f"{card['licence']} (gated)" if card.get("gated") is True else str(card["licence"])
+
+
+def descriptor_bytes(record: dict) -> int | None:
+    """Bytes of one descriptor as stored: the record's, else its dimensions times its store's
+    width (a float16 store holds 2 bytes per dimension, not 4)."""
+    if record.get("descriptor_bytes"):
+        return int(record["descriptor_bytes"])
+    dim = record.get("descriptor_dim")
+    width = 2 if (record.get("spec") or {}).get("store_dtype") == "float16" else 4
+    return int(dim) * width if isinstance(dim, (int, float)) and dim else None
 
 
 def hardware_of(record: dict) -> str:

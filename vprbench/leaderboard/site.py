@@ -28,14 +28,14 @@ from . import figures
 from .domains import domain_datasets
 from .escape import public, public_data, text, to_csv
 from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board, hardware_of, licence_shown, weights_shown
-from .shown import row_name
+from .shown import descriptor_bytes, row_name
 from .stats import check_k_and_seed
 from ..evaluation.blocks import RULE, for_record
 from ..evaluation.metrics import successes
 from .compare import shared_resampling
 from .stats import RESAMPLES, format_p, overlaps, paired_test
-from .tables import (GROUPS, TOLERANCE_PP, cell_stats, comparisons, fmt, group_table, marks_note, other_rows,
-                     reported_page, source_mark, with_ci)
+from .tables import (DOWNLOAD_UNITS, GROUPS, RESULTS_LEGEND, TOLERANCE_PP, cell_stats, comparisons, fmt, group_table,
+                     marks_note, other_rows, reported_page, source_mark, with_ci)
 
 SECTION = "leaderboard"
 #: MkDocs Material front matter: the wide tables get the table-of-contents column
@@ -228,8 +228,10 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
                      "Database GeM descriptors of one method on every dataset it was run on, first two principal "
                      "components, coloured by domain (AnyLoc Fig. 1, middle).", "PCA map of GeM descriptors")
     others = other_rows(board)
-    lines += ["## Other runs", "", "Runs that are not official runs on a benchmark: weights other than the authors' "
-              "release (†) or the user's own data. They never fill a cell above.", ""]
+    lines += ["## Other runs", "", "Runs that are not official runs on a benchmark: rows marked † (weights other than "
+              "the authors' release, approximate search, a float16 store or a part fitted on the evaluated database: "
+              "the mark says which) or the user's own data. Only a row marked for a part fitted on the evaluated "
+              "database also fills the tables above, as the paper's own methods do; the others never do.", ""]
     if others:
         lines += ["| Method | Weights | Licence | Dataset | R@1 [95 % CI] | R@5 [95 % CI] | Source | Run |",
                   "|:--|:--|:--|:--|--:|--:|:--|:--|"]
@@ -250,7 +252,7 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
     lines += [f"- [{text(c.title)}]({c.slug}.md): {text(c.domain or 'no domain')}, {len(board.column_cells(c))} row(s)" for c in board.columns]
     lines += ["", "The paper's reported tables (II–VII), as reported: [reported numbers](reported.md).", "",
               "Downloads: [leaderboard.csv](downloads/leaderboard.csv), [leaderboard.json](downloads/leaderboard.json) "
-              "(one entry per cell: values, intervals, run and provenance).", "", *_rule()]
+              f"(one entry per cell: values, intervals, run and provenance; {DOWNLOAD_UNITS}).", "", *_rule()]
     return "\n".join(lines)
 
 
@@ -297,7 +299,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
         lines.append(f"| {name}{source_mark(cell.source)} | {text(weights_shown(cell.row, r))} | {text(licence_shown(r))} | "
                      f"{with_ci(s[1])} | {with_ci(s[5])} | {fmt(cell.recall(10))} | {fmt(cell.recall(20))} | "
                      f"{_num(r.get('auc_pr'), 3)} | {percent(r.get('recall_at_100_precision'))} | {text(r.get('descriptor_dim') or '–')} | "
-                     f"{text(r.get('descriptor_bytes') or 4 * int(r.get('descriptor_dim') or 0) or '–')} | "
+                     f"{descriptor_bytes(r) or '–'} | "
                      f"{_num(cell.images_per_second, 1)} |")
         versions, computed = r.get("versions") or {}, r.get("descriptors_computed") or {}
         sent = (r.get("_contribution") or {}).get("contributor") or "this machine"
@@ -305,7 +307,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
                     f"{text(hardware_of(r))} | {text(versions.get('vprbench', '–'))} | "
                     f"{_commit(versions.get('git'))} | {sum(computed.values()) if computed else '–'} | {cell.passed_over} | "
                     + (f"`{text(cell.timed.get('run_id'))}` on {text(cell.hardware)} |" if cell.timed else "no run computed its descriptors |"))
-    lines += ["", "The runs in the cells above:", "", *runs, "", *_paired(cells, seed), "## Figures", ""]
+    lines += ["", RESULTS_LEGEND, "", "The runs in the cells above:", "", *runs, "", *_paired(cells, seed), "## Figures", ""]
     slug = column.slug
     lines += _figure(lambda p: figures.recall_curves(cells, p, colours), out, f"{slug}-recall.svg", "Recall@K per run")
     lines += _figure(lambda p: figures.pr_curves(cells, p, colours), out, f"{slug}-pr.svg",
@@ -324,7 +326,8 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
     to_csv(pd.DataFrame([_summary(c, stats[(c.row, column.key)]) for c in cells]), out / "downloads" / f"{slug}.csv",
            index=False)
     lines += ["## Downloads", "", f"[{slug}.csv](downloads/{slug}.csv) (one row per cell), "
-              f"[{slug}.json](downloads/{slug}.json) (the cells' full records, per-query predictions included).", "",
+              f"[{slug}.json](downloads/{slug}.json) (the cells' full records, per-query predictions included; "
+              f"{DOWNLOAD_UNITS}).", "",
               *_rule()]
     return "\n".join(lines)
 
@@ -373,7 +376,7 @@ def _num(value, digits: int) -> str:
 
 def _summary(cell: Cell, stats: dict) -> dict:
     r = cell.record
-    entry = {"method": cell.row.label, "weights": weights_shown(cell.row, r), "licence": licence_shown(r),
+    entry = {"row": cell.row.name, "method": cell.row.label, "weights": weights_shown(cell.row, r), "licence": licence_shown(r),
              "dataset": cell.column.dataset,
              "column": cell.column.title, "page": f"{cell.column.slug}.md", "dataset_kind": cell.column.kind,
              "domain": cell.column.domain, "row_key": cell.row.key, "track": cell.row.track}
@@ -382,7 +385,8 @@ def _summary(cell: Cell, stats: dict) -> dict:
         entry[f"r{k}_ci_low"], entry[f"r{k}_ci_high"] = stats[k]["ci"] or (None, None)
     for k in (10, 20):
         entry[f"r{k}"] = cell.recall(k)
-    entry.update({key: r.get(key) for key in ("auc_pr", "recall_at_100_precision", "descriptor_dim", "descriptor_bytes",
+    entry.update({key: r.get(key) for key in ("auc_pr", "recall_at_100_precision", "max_f1", "descriptor_dim",
+                                              "descriptor_bytes",
                                               "run_id", "created", "dataset_fingerprint")})
     entry["images_per_second"], entry["speed_hardware"] = cell.images_per_second, cell.hardware
     entry["source"], entry["hardware"] = cell.source, hardware_of(r)

@@ -261,6 +261,13 @@ def marks_note(board: Board) -> str:
         parts.append(f"{found['excluded']} run(s) are left out of every cell (see [Runs left out](index.md#runs-left-out))")
     note = "; ".join(parts) if parts else "every cell is an official run on a benchmark's protocol"
     return f"!!! note \"Marks\"\n    {note[0].upper() + note[1:]}. Nothing here is presented as measured unless it was measured.\n"
+#: what the Results table's columns hold, in which units
+RESULTS_LEGEND = ("R@K and R@100%P in percent (R@100%P: the share of correct top-1 matches ranked above the most "
+                  "confident wrong one); AUC-PR from 0 to 1. Dim: descriptor dimensions. Bytes: one descriptor as stored (4 per "
+                  "dimension, 2 in a float16 store). Images/s: descriptors computed per second of extraction, by the "
+                  "run named below.")
+DOWNLOAD_UNITS = ("r1 .. r20 and their intervals in percent; auc_pr, max_f1 and recall_at_100_precision from 0 to 1, "
+                  "as in the records")
 PARTIAL_LEGEND = (" Measured so far: a measured row's mean over the datasets it has been run on, of all those "
                   "shown (n of m); not comparable with the averages.")
 

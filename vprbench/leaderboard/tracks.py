@@ -30,7 +30,13 @@ def retriever_key(cell: Cell) -> str:
 
 def _cost(cell: Cell, key: str, digits: int = 1) -> str:
     values = [s.get(key) for s in cell.record.get("stages") or [] if isinstance(s.get(key), (int, float))]
-    return " + ".join(f"{v:,.{digits}f}" for v in values) if values else "–"
+    return " + ".join(_amount(v, digits) for v in values) if values else "–"
+
+
+def _amount(value: float, digits: int) -> str:
+    """`digits` decimals, or two significant figures when those would read 0 (0.038 ms, not 0.0)."""
+    shown = f"{value:,.{digits}f}"
+    return f"{value:.2g}" if value and float(shown.replace(",", "")) == 0 else shown
 
 
 def track_page(full: Board, track: str, stats: dict, head: str = "") -> str:
