@@ -30,19 +30,23 @@ def option_identities(method: str, options: dict, cache_dir=None) -> dict[str, s
 
 
 def file_identity(value) -> str | None:
-    """'sha256:<hex>' of the file `value` names (a file is identified by its bytes); None when it names none."""
+    """'sha256:<hex>' of the file `value` names (a file is identified by its bytes); None when it names
+    none. A bare word ('key', 'map', 'urban') may be a name the method knows, not the file of that name
+    the working directory holds: its identity keeps the word ('key@sha256:<hex>'), or two files of one
+    content made facet=key and facet=value one run."""
     from .weights import file_sha256
 
-    if isinstance(value, str) and value and Path(value).expanduser().is_file():
-        return "sha256:" + file_sha256(Path(value).expanduser())
-    return None
+    if not isinstance(value, str) or not value or not Path(value).expanduser().is_file():
+        return None
+    digest = "sha256:" + file_sha256(Path(value).expanduser())
+    return digest if _written_as_path(value) or Path(value).suffix else f"{value}@{digest}"
 
 
 def folder_identity(value, cache_dir=None) -> str | None:
     """'folder:<hex>' over the names and bytes of the files under the folder `value` names (hidden
     ones aside), when written as a path ('./words', '/data/words', '~/w'): a bare word is a name
     ('map', a dataset), not the folder of that name the working directory may hold."""
-    if not isinstance(value, str) or not value.startswith((".", "~", "/")) and "/" not in value:
+    if not isinstance(value, str) or not _written_as_path(value):
         return None
     root = Path(value).expanduser()
     if not root.is_dir():
@@ -52,3 +56,7 @@ def folder_identity(value, cache_dir=None) -> str | None:
     files = sorted(p for p in root.rglob("*") if p.is_file()
                    and not any(part.startswith(".") for part in p.relative_to(root).parts))
     return "folder:" + images_key(files, root, cache_dir)
+
+
+def _written_as_path(value: str) -> bool:
+    return value.startswith((".", "~", "/")) or "/" in value

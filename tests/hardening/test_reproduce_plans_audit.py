@@ -51,10 +51,11 @@ def test_table_6_shows_the_papers_descriptor_dimensions(tmp_path):
     from rich.console import Console
 
     from vprbench.cli.reproduce import paper_table
+    from vprbench.run_settings import RunSettings
 
     spec, cells = table_cells("anyloc", "6", cache_dir=tmp_path)
     console = Console(width=220, record=True, markup=False)
-    console.print(paper_table(spec, cells, tmp_path))
+    console.print(paper_table(spec, cells, RunSettings(cache_dir=tmp_path)))
     text = console.export_text().splitlines()
     assert [cell.strip() for cell in text[3].split("┃")[1:-1]] == ["row", "baidu-mall R1", "oxford R1", "dim"], text
     lines = {line.split("│")[1].strip(): line for line in text if line.count("│") > 2}

@@ -64,6 +64,13 @@ def main(argv=None) -> int:
     except OSError as error:  # permissions, full or read-only disks, lock timeouts: say which path and what to do
         print_error(os_error_message(error))
         return 1
+    except RuntimeError as error:
+        if "home directory" not in str(error):
+            raise
+        # pathlib on '~name/...' for a user this machine does not know, from any path option
+        print_error("A path starting with ~NAME names the home folder of a user this machine does not know: give "
+                    "the path in full, or ~/... for your own home folder.")
+        return 1
     except KeyboardInterrupt:
         print("interrupted; finished descriptors are kept and the next run resumes", file=sys.stderr)
         return 130

@@ -83,7 +83,7 @@ def run_reproduce(args) -> int:
     console.print(summary_table(outcomes, f"{args.paper} table {args.table}"))
     if unrunnable:
         console.print(f"Not evaluated: {no_method}; the paper's values stand alone there.", markup=False)
-    rendered = paper_table(spec, table_cells_, settings.cache_dir)
+    rendered = paper_table(spec, table_cells_, settings)
     console.print(rendered)
     if args.publish:
         publish(args, spec, rendered, settings)
@@ -159,11 +159,20 @@ def dry_run_listing(spec: dict, table_cells_, missing: dict, settings, counted: 
 RECORD_FIELD = {"dim": "descriptor_dim"}
 
 
-def paper_table(spec: dict, table_cells_, cache_dir=None):
+def paper_table(spec: dict, table_cells_, settings):
+    """The paper's values beside the records the run judged complete (StoredRecords: computed on the
+    data at hand, not on another copy's)."""
     from rich.table import Table
 
-    from ..evaluation.results import find_result
     from ..sweep.reproduce import measured, reported_value
+    from ..sweep.runner import StoredRecords
+
+    stored, found_for = StoredRecords(settings), {}
+
+    def find_result(cell_spec):  # each cell's record looked up (and proven) once
+        if cell_spec.key not in found_for:
+            found_for[cell_spec.key] = stored.record(cell_spec)
+        return found_for[cell_spec.key]
 
     table = Table(title=f"{spec['title']} — reported (paper) / measured here (delta) [95% bootstrap CI]")
     table.add_column("row")
@@ -181,7 +190,7 @@ def paper_table(spec: dict, table_cells_, cache_dir=None):
         values = []
         for column in columns:
             tc = cells.get(column)
-            records = [find_result(c.spec, cache_dir) for c in tc.cells] if tc else []
+            records = [find_result(c.spec) for c in tc.cells] if tc else []
             for metric in spec["metrics"]:
                 reported = reported_value(spec, row, column, metric)
                 shown = "-" if reported is None else f"{reported:.1f}"
@@ -193,7 +202,7 @@ def paper_table(spec: dict, table_cells_, cache_dir=None):
                 else:
                     shown += " / not measured"
                 values.append(shown)
-        found = [r for tc in cells.values() for c in tc.cells if (r := find_result(c.spec, cache_dir))]
+        found = [r for tc in cells.values() for c in tc.cells if (r := find_result(c.spec))]
         for extra in extras:
             reported = reported_value(spec, row, extra, extra)
             got = sorted({str(r[RECORD_FIELD[extra]]) for r in found if r.get(RECORD_FIELD[extra])})

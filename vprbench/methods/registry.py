@@ -18,6 +18,7 @@ import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
+from pathlib import Path
 
 from ..errors import VPRBenchError, closest_names
 from ..registration import check_name, claim, imported, run_plugins, source_of
@@ -66,7 +67,10 @@ class MethodEntry:
         """`given` less the options set to the value they have anyway (`cell = 16` for hog): one
         computation, one identity (spec, store, label), whether a default is written out or not."""
         defaults = self.effective_defaults()
-        return {k: v for k, v in given.items() if k not in defaults or not _same(k, v, defaults[k])}
+        # a file the factory's default names stays given: unlike a preset's, that default is not in the
+        # spec's options, so its content (spec.files) would leave the run's identity
+        return {k: v for k, v in given.items() if k not in defaults or not _same(k, v, defaults[k])
+                or k not in self.defaults and _names_a_path(v)}
 
 
 _REGISTRY: dict[str, MethodEntry] = {}
@@ -170,9 +174,18 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
 
 
 def _same(name: str, value, default) -> bool:
+    if default is None:  # "unset": decided by the method (netvlad-vgg16's resize), never a value one writes
+        return False
     try:
         return json.dumps(canonical(name, value), sort_keys=True) == json.dumps(canonical(name, default), sort_keys=True)
     except (TypeError, ValueError):  # not plain data: never taken for a default
+        return False
+
+
+def _names_a_path(value) -> bool:
+    try:
+        return isinstance(value, str) and bool(value) and Path(value).expanduser().exists()
+    except RuntimeError:  # '~name' of no user here: the method names it
         return False
 
 

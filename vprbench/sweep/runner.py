@@ -123,14 +123,13 @@ class StoredRecords:
         when it cannot be read (the run itself says why)."""
         from ..datasets import load_dataset
 
-        if spec.dataset.kind == "own":  # its protocol hash covers its content already
+        if spec.dataset.kind != "benchmark":  # own: its protocol hash covers its content; given: no copy to read
             return None
         key = spec.dataset.model_dump_json()
         if key not in self.fingerprints:
             data = spec.dataset
             try:
-                dataset = load_dataset(data.path if data.kind == "own" else data.name, self.settings.data_dir,
-                                       fetch=False, protocol=None if data.kind == "own" else data.protocol,
+                dataset = load_dataset(data.name, self.settings.data_dir, fetch=False, protocol=data.protocol,
                                        cache_dir=self.settings.cache_dir)
                 self.fingerprints[key] = dataset.fingerprint(self.settings.cache_dir)
             except VPRBenchError:
