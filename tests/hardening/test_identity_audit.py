@@ -171,3 +171,39 @@ def test_a_reproduce_dry_run_does_not_call_complete_a_cell_of_other_data(corrido
 
     assert "complete" in status(shared_data)
     assert "complete" not in status(corridor_copy.parent) and "would run" in status(corridor_copy.parent)
+
+
+def test_a_sweep_hashes_the_data_before_a_claim_not_under_its_lock(shared_data, tmp_path, monkeypatch):
+    """The claim's lock is held for moments (120 s timeout): a first look at a large copy hashed it
+    there, so other processes found the cell "busy" meanwhile."""
+    import vprbench.sweep.claims as claims_module
+    from vprbench.run_settings import RunSettings
+    from vprbench.sweep.plan import Cell
+    from vprbench.sweep.runner import StoredRecords, run_cells
+
+    held, hashed_under_lock = [], []
+    real_lock, real_fingerprint = claims_module._lock, StoredRecords.fingerprint
+
+    class Spy:
+        def __init__(self, path):
+            self.inner = real_lock(path)
+
+        def __enter__(self):
+            held.append(1)
+            return self.inner.__enter__()
+
+        def __exit__(self, *exc):
+            held.pop()
+            return self.inner.__exit__(*exc)
+
+    def fingerprint(self, spec):
+        hashed_under_lock.append(bool(held) and spec.dataset.model_dump_json() not in self.fingerprints)
+        return real_fingerprint(self, spec)
+
+    monkeypatch.setattr(claims_module, "_lock", Spy)
+    monkeypatch.setattr(StoredRecords, "fingerprint", fingerprint)
+    spec = resolve_spec("hog", "corridor", options={"resize": [32, 32]}, ks=[1], data_dir=shared_data)
+    settings = RunSettings(data_dir=shared_data, cache_dir=tmp_path / "cache")
+    for _ in range(2):  # computed, then found complete
+        run_cells([Cell(spec)], settings)
+    assert hashed_under_lock and not any(hashed_under_lock)

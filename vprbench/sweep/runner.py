@@ -77,6 +77,7 @@ def run_cells(cells: list[Cell], settings: RunSettings | None = None, *, lease_s
                         outcomes[cell.key] = Outcome(cell, MISSING, reason)
                         progress.advance(overall)
                         continue
+                    done.fingerprint(cell.spec)  # hashing a new copy's images: before the claim's lock, not under it
                     found = []  # the record the claim found complete, looked up (and proven) once
                     state, detail = claims.claim(
                         cell.key, lambda c=cell: found.append(done.record(c.spec)) or found[-1] is not None)
