@@ -77,13 +77,16 @@ def run_reproduce(args) -> int:
         else:
             console.print(dry_run_listing(spec, table_cells_, missing, settings, counted))
         return 0
-    outcomes = run_cells([c for c, _ in cells.values()], settings, lease_s=args.lease,
+    from ..sweep.runner import StoredRecords
+
+    stored = StoredRecords(settings)  # one lookup for the run and the table after it: each copy fingerprinted once
+    outcomes = run_cells([c for c, _ in cells.values()], settings, lease_s=args.lease, stored=stored,
                          plan=f"{args.paper} table {args.table}", runnable=lambda c: needs_text(missing[c.key]),
                          progress=progress(args))
     console.print(summary_table(outcomes, f"{args.paper} table {args.table}"))
     if unrunnable:
         console.print(f"Not evaluated: {no_method}; the paper's values stand alone there.", markup=False)
-    rendered = paper_table(spec, table_cells_, settings)
+    rendered = paper_table(spec, table_cells_, settings, stored)
     console.print(rendered)
     if args.publish:
         publish(args, spec, rendered, settings)
@@ -159,17 +162,17 @@ def dry_run_listing(spec: dict, table_cells_, missing: dict, settings, counted: 
 RECORD_FIELD = {"dim": "descriptor_dim"}
 
 
-def paper_table(spec: dict, table_cells_, settings):
-    """The paper's values beside the records the run judged complete (StoredRecords: computed on the
-    data at hand, not on another copy's)."""
+def paper_table(spec: dict, table_cells_, settings, stored=None):
+    """The paper's values beside the records the run judged complete (`stored`, a StoredRecords:
+    computed on the data at hand, not on another copy's)."""
     from rich.table import Table
 
     from ..sweep.reproduce import measured, reported_value
     from ..sweep.runner import StoredRecords
 
-    stored, found_for = StoredRecords(settings), {}
+    stored, found_for = stored or StoredRecords(settings), {}
 
-    def find_result(cell_spec):  # each cell's record looked up (and proven) once
+    def record_of(cell_spec):  # each cell's record looked up (and proven) once
         if cell_spec.key not in found_for:
             found_for[cell_spec.key] = stored.record(cell_spec)
         return found_for[cell_spec.key]
@@ -190,7 +193,7 @@ def paper_table(spec: dict, table_cells_, settings):
         values = []
         for column in columns:
             tc = cells.get(column)
-            records = [find_result(c.spec) for c in tc.cells] if tc else []
+            records = [record_of(c.spec) for c in tc.cells] if tc else []
             for metric in spec["metrics"]:
                 reported = reported_value(spec, row, column, metric)
                 shown = "-" if reported is None else f"{reported:.1f}"
@@ -202,7 +205,7 @@ def paper_table(spec: dict, table_cells_, settings):
                 else:
                     shown += " / not measured"
                 values.append(shown)
-        found = [r for tc in cells.values() for c in tc.cells if (r := find_result(c.spec))]
+        found = [r for tc in cells.values() for c in tc.cells if (r := record_of(c.spec))]
         for extra in extras:
             reported = reported_value(spec, row, extra, extra)
             got = sorted({str(r[RECORD_FIELD[extra]]) for r in found if r.get(RECORD_FIELD[extra])})

@@ -52,9 +52,10 @@ def _minute(created: str | None) -> str:
 
 
 def run_cells(cells: list[Cell], settings: RunSettings | None = None, *, lease_s: float = 120.0, poll_s: float = 2.0,
-              progress=None, plan: str = "", runnable=None) -> list[Outcome]:
+              progress=None, plan: str = "", runnable=None, stored: "StoredRecords | None" = None) -> list[Outcome]:
     """Evaluate every cell once across all processes sharing the cache. `runnable(cell)` may
     return a reason not to run a cell here (reproduce: the dataset or weights are missing).
+    `stored`: the lookup of cells' records to share with a caller (its datasets fingerprinted once).
     `progress` is a rich-style progress display (cli.progress makes one for terminals and for logs)."""
     settings = settings or RunSettings()
     cache_dir = settings.cache_dir
@@ -62,7 +63,7 @@ def run_cells(cells: list[Cell], settings: RunSettings | None = None, *, lease_s
         from ..progress import Silent
 
         progress = Silent()
-    claims, done = Claims(cache_dir, lease_s=lease_s), StoredRecords(settings)
+    claims, done = Claims(cache_dir, lease_s=lease_s), stored or StoredRecords(settings)
     outcomes: dict[str, Outcome] = {}
     pending = list({c.key: c for c in cells}.values())  # a plan may list a cell twice
     first_look = True
