@@ -14,7 +14,8 @@ from vprbench.cli.main import main
 from vprbench.evaluation import read_results
 from vprbench.leaderboard import grid
 from vprbench.leaderboard.cells import build_board
-from vprbench.leaderboard.site import _summary, dataset_page, overview
+from vprbench.leaderboard.downloads import summary
+from vprbench.leaderboard.site import dataset_page, overview
 from vprbench.leaderboard.tables import cell_stats
 from vprbench.leaderboard.tracks import track_page
 
@@ -119,7 +120,7 @@ def test_the_downloads_name_each_row_and_give_max_f1(runs):
     search and store only in the Weights column), and no max F1 though `evaluate` and the sequence
     page give it."""
     board = build_board(_variants(runs["single-image"]))
-    found = [_summary(cell, cell_stats(cell)) for cell in board.cells.values()]
+    found = [summary(cell, cell_stats(cell)) for cell in board.cells.values()]
     assert sorted(e["row"] for e in found) == ["hog", "hog † float16 store", "hog † hnsw search"]
     assert {e["max_f1"] for e in found} == {runs["single-image"]["max_f1"]}
 

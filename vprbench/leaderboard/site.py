@@ -26,8 +26,9 @@ from ..evaluation.results import read_results
 from ..text import percent, quantity
 from . import figures
 from .domains import domain_datasets
-from .escape import public, public_data, text, to_csv
-from .cells import CELL_KS, CELL_RULE, Board, Cell, Column, build_board, hardware_of, licence_shown, weights_shown
+from .downloads import plain, record_download, summary
+from .escape import public, text, to_csv
+from .cells import CELL_RULE, Board, Cell, Column, build_board, hardware_of, licence_shown, weights_shown
 from .shown import descriptor_bytes, row_name
 from .stats import check_k_and_seed
 from ..evaluation.blocks import RULE, for_record
@@ -144,9 +145,9 @@ def write_section(out: Path, board: Board, records: list[dict], *, cache_dir=Non
                                                        cache_dir=cache_dir, colours=colours))
     _write(out / "reported.md", reported_page())
     _write(out / NAV_FILE, navigation(board, [t for t in full.tracks if t != "single-image"]))
-    rows = [_summary(cell, stats[key]) for key, cell in full.cells.items()]
+    rows = [summary(cell, stats[key]) for key, cell in full.cells.items()]
     to_csv(pd.DataFrame(rows), out / "downloads" / "leaderboard.csv", index=False)
-    _write(out / "downloads" / "leaderboard.json", json.dumps(rows, indent=1, sort_keys=True, default=_plain))
+    _write(out / "downloads" / "leaderboard.json", json.dumps(rows, indent=1, sort_keys=True, default=plain))
 
 
 def site_colours(board: Board) -> dict[str, str]:
@@ -179,14 +180,6 @@ def _rule(extra: str = "") -> list[str]:
 
 def _write(path: Path, text: str) -> None:
     path.write_text(text, encoding="utf-8")
-
-
-def _plain(value):
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(type(value).__name__)
 
 
 def _from_repository(records) -> str:
@@ -321,9 +314,9 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
         draw = functools.partial(figures.mosaic, cell, data_dir=data_dir, seed=seed, top=top, cache_dir=cache_dir)
         lines += _figure(draw, out, f"{slug}-mosaic-{safe_name(cell.row.name, 80)}.png",
                          f"{cell.row.name}: queries and their top {top}", f"Mosaic of {cell.row.name}")
-    download = [_record_download(c) for c in cells]
-    _write(out / "downloads" / f"{slug}.json", json.dumps(download, sort_keys=True, default=_plain))  # compact: per-query arrays
-    to_csv(pd.DataFrame([_summary(c, stats[(c.row, column.key)]) for c in cells]), out / "downloads" / f"{slug}.csv",
+    download = [record_download(c) for c in cells]
+    _write(out / "downloads" / f"{slug}.json", json.dumps(download, sort_keys=True, default=plain))  # compact: per-query arrays
+    to_csv(pd.DataFrame([summary(c, stats[(c.row, column.key)]) for c in cells]), out / "downloads" / f"{slug}.csv",
            index=False)
     lines += ["## Downloads", "", f"[{slug}.csv](downloads/{slug}.csv) (one row per cell), "
               f"[{slug}.json](downloads/{slug}.json) (the cells' full records, per-query predictions included; "
@@ -372,37 +365,3 @@ def _commit(value) -> str:
 
 def _num(value, digits: int) -> str:
     return "–" if value is None else f"{value:.{digits}f}"
-
-
-def _summary(cell: Cell, stats: dict) -> dict:
-    r = cell.record
-    entry = {"row": cell.row.name, "method": cell.row.label, "weights": weights_shown(cell.row, r), "licence": licence_shown(r),
-             "dataset": cell.column.dataset,
-             "column": cell.column.title, "page": f"{cell.column.slug}.md", "dataset_kind": cell.column.kind,
-             "domain": cell.column.domain, "row_key": cell.row.key, "track": cell.row.track}
-    for k in CELL_KS:
-        entry[f"r{k}"] = stats[k]["value"]
-        entry[f"r{k}_ci_low"], entry[f"r{k}_ci_high"] = stats[k]["ci"] or (None, None)
-    for k in (10, 20):
-        entry[f"r{k}"] = cell.recall(k)
-    entry.update({key: r.get(key) for key in ("auc_pr", "recall_at_100_precision", "max_f1", "descriptor_dim",
-                                              "descriptor_bytes",
-                                              "run_id", "created", "dataset_fingerprint")})
-    entry["images_per_second"], entry["speed_hardware"] = cell.images_per_second, cell.hardware
-    entry["source"], entry["hardware"] = cell.source, hardware_of(r)
-    entry["contributor"] = (r.get("_contribution") or {}).get("contributor") or "this machine"
-    entry["speed_run_id"] = (cell.timed or {}).get("run_id")
-    entry["protocol"] = (r.get("protocol") or {}).get("id")
-    entry["ci_resampling"] = for_record(r, cell.arrays).text()  # which queries the intervals draw together
-    entry["vprbench"] = (r.get("versions") or {}).get("vprbench")
-    entry["provenance"] = json.dumps(r.get("provenance") or {}, sort_keys=True)
-    return public_data(entry)
-
-
-def _record_download(cell: Cell) -> dict:
-    arrays = cell.arrays is not None  # written from the arrays below, not walked by public_data
-    record = public_data({k: v for k, v in cell.record.items() if not k.startswith("_") and not (arrays and k == "per_query")})
-    if arrays:
-        record["per_query"] = {"k": int(cell.arrays["database_indices"].shape[1]),
-                               **{name: array.tolist() for name, array in cell.arrays.items()}}
-    return record

@@ -1,0 +1,54 @@
+"""The leaderboard's downloads: one summary row per cell (CSV/JSON) and each cell's full record,
+every text from data made public (no path of the publisher's machine)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from ..evaluation.blocks import for_record
+from .cells import CELL_KS, Cell, hardware_of, licence_shown, weights_shown
+from .escape import public_data
+from .shown import descriptor_bytes
+
+
+def plain(value):
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(type(value).__name__)
+
+
+def summary(cell: Cell, stats: dict) -> dict:
+    r = cell.record
+    entry = {"row": cell.row.name, "method": cell.row.label, "weights": weights_shown(cell.row, r), "licence": licence_shown(r),
+             "dataset": cell.column.dataset,
+             "column": cell.column.title, "page": f"{cell.column.slug}.md", "dataset_kind": cell.column.kind,
+             "domain": cell.column.domain, "row_key": cell.row.key, "track": cell.row.track}
+    for k in CELL_KS:
+        entry[f"r{k}"] = stats[k]["value"]
+        entry[f"r{k}_ci_low"], entry[f"r{k}_ci_high"] = stats[k]["ci"] or (None, None)
+    for k in (10, 20):
+        entry[f"r{k}"] = cell.recall(k)
+    entry.update({key: r.get(key) for key in ("auc_pr", "recall_at_100_precision", "max_f1", "descriptor_dim")})
+    entry["descriptor_bytes"] = descriptor_bytes(r)  # as the pages give it
+    entry.update({key: r.get(key) for key in ("run_id", "created", "dataset_fingerprint")})
+    entry["images_per_second"], entry["speed_hardware"] = cell.images_per_second, cell.hardware
+    entry["source"], entry["hardware"] = cell.source, hardware_of(r)
+    entry["contributor"] = (r.get("_contribution") or {}).get("contributor") or "this machine"
+    entry["speed_run_id"] = (cell.timed or {}).get("run_id")
+    entry["protocol"] = (r.get("protocol") or {}).get("id")
+    entry["ci_resampling"] = for_record(r, cell.arrays).text()  # which queries the intervals draw together
+    entry["vprbench"] = (r.get("versions") or {}).get("vprbench")
+    entry["provenance"] = json.dumps(r.get("provenance") or {}, sort_keys=True)
+    return public_data(entry)
+
+
+def record_download(cell: Cell) -> dict:
+    arrays = cell.arrays is not None  # written from the arrays below, not walked by public_data
+    record = public_data({k: v for k, v in cell.record.items() if not k.startswith("_") and not (arrays and k == "per_query")})
+    if arrays:
+        record["per_query"] = {"k": int(cell.arrays["database_indices"].shape[1]),
+                               **{name: array.tolist() for name, array in cell.arrays.items()}}
+    return record
