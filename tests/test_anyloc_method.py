@@ -120,6 +120,26 @@ def test_dataset_resize_policy_feeds_fingerprint(weights):
     assert m.fingerprint()["resize"] == [224, 224]
 
 
+def test_resize_native_written_out_keeps_the_native_size(weights, corridor):
+    """`resize=native` is the image's own size even where the policy resizes (Pitts-30k: 480x640),
+    and a run of its own: not the unset option's."""
+    from vprbench.spec import resolve_spec
+    from vprbench.stages.patches import PatchMNNOptions
+
+    (image, *_), _ = corridor  # 120 x 160
+    shapes = {}
+    for resize in (None, "native", "NATIVE"):
+        m = AnyLoc(backbone="dinov2_vits14", weights=str(weights), layer=3, aggregation="gem", resize=resize)
+        m.use_dataset("pitts30k")
+        shapes[resize] = (tuple(m.load(image).shape), m.fingerprint()["resize"])
+    assert shapes[None] == ((3, 476, 630), [480, 640])
+    assert shapes["native"] == shapes["NATIVE"] == ((3, 112, 154), "native")  # cropped to whole 14-pixel patches
+    unset, native = (resolve_spec("anyloc-gem-dinov2", "pitts30k", options={"weights": "random", "resize": r})
+                     for r in (None, "native"))
+    assert unset.key != native.key and native.options["resize"] == "native"
+    assert PatchMNNOptions(resize="native").resize == "native" and PatchMNNOptions().resize is None
+
+
 def test_released_centres_and_domain_vocabulary(shared_data, tmp_path, monkeypatch):
     released = shared_data / "vocabularies" / "anyloc-dinov2_vitg14-l31-value-c32" / "indoor" / "c_centers.pt"
     m = create_method("anyloc-vlad-dinov2", vocabulary=str(released))  # no weights needed to resolve

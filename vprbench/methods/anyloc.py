@@ -26,7 +26,7 @@ from ..features.backbones import RANDOM, backbone_spec, load_backbone, weights_i
 from ..weights import cached_weights, file_sha256, weights_provenance
 from ..features.dense import FACETS, DenseExtractor
 from ..features.preprocess import preprocess
-from ..features.resize import dataset_resize, parse_size
+from ..features.resize import asks_native, dataset_resize, parse_size
 from ..loader import loaded
 from .base import Method, l2_normalise
 from .checks import choice, number, text, whole
@@ -78,6 +78,7 @@ class AnyLoc(Method):
         self.clusters = whole("anyloc", "clusters", clusters, 1, what="VLAD vocabulary size")
         self.vocabulary = text("anyloc", "vocabulary", vocabulary, "map, domain, a domain name or a file")
         self.user_resize = parse_size(resize)
+        self.native = asks_native(resize)  # "native": no resize, not "unset" (the per-dataset policy)
         self.pca_dim = None if pca_dim is None else whole("anyloc", "pca_dim", pca_dim, 1, what="PCA output dimension; leave it unset for none")
         self.batch_size = whole("anyloc", "batch_size", batch_size, 1, what="images per batch")
         self.precision = precision
@@ -161,7 +162,9 @@ class AnyLoc(Method):
 
     @property
     def resize(self) -> tuple[int, int] | None:
-        return self.user_resize if self.user_resize is not None else dataset_resize(self.dataset)
+        if self.user_resize is not None or self.native:
+            return self.user_resize
+        return dataset_resize(self.dataset)
 
     @property
     def normalise_patches(self) -> bool:

@@ -12,6 +12,7 @@ facet, stride, resize, preprocessing), so a second run computes none and never l
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
@@ -43,8 +44,9 @@ class PatchMNNOptions(RerankOptions):
     #: 0-based block; unset: AnyLoc's block 31 of ViT-G/14 at the same relative depth
     layer: int | None = Field(None, ge=0)
     facet: str = "value"
-    #: HEIGHTxWIDTH before the crop to whole patches; unset: AnyLoc's per-dataset resize (native size when none)
-    resize: tuple[int, int] | None = None
+    #: HEIGHTxWIDTH before the crop to whole patches, or "native" (no resize); unset: AnyLoc's
+    #: per-dataset resize (native size when none)
+    resize: tuple[int, int] | Literal["native"] | None = None
     #: a mutual match counts only when its cosine similarity is at least this; unset: every mutual match
     min_similarity: float | None = Field(None, ge=-1, le=1)
 
@@ -57,10 +59,10 @@ class PatchMNNOptions(RerankOptions):
     @field_validator("resize", mode="before")
     @classmethod
     def _size(cls, value):
-        from ..features.resize import parse_size
+        from ..features.resize import asks_native, parse_size
 
         try:
-            return parse_size(value)
+            return "native" if asks_native(value) else parse_size(value)
         except VPRBenchError as error:
             raise ValueError(str(error).removeprefix("Option resize ")) from None
 
