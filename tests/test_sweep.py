@@ -187,3 +187,53 @@ def test_reproduce_dry_run_and_bad_table(shared_data, capsys, monkeypatch):
 
     spec, cells = table_cells("anyloc", "layer")  # one row per released run, options from its setting
     assert len(cells) == 165 and cells[0].cells[0].spec.options["facet"] == "key"
+
+
+NAMED_VOCABULARY_PLAN = """name = "named-vocabulary"
+k = [1]
+
+[[methods]]
+name = "anyloc"
+options = {{ backbone = "dinov2_vits14", weights = "random", layer = 1, clusters = 4, vocabulary = "indoor", resize = [56, 56] }}
+
+[[datasets]]
+name = "{own}"
+"""
+
+
+def test_a_refitted_named_vocabulary_is_another_run_of_the_same_row(tmp_path, own, capsys):
+    """AnyLoc's `vocabulary = "indoor"` names centres in the cache: a sweep never serves the record made
+    with the centres before they were fitted again, and both runs stay one leaderboard row."""
+    import torch
+
+    from vprbench.aggregation.vocabulary import Vocabulary
+    from vprbench.methods.anyloc_vocabulary import save_to_cache
+    from vprbench.spec import resolve_spec
+
+    plan, cache = tmp_path / "named.toml", tmp_path / "cache"
+    plan.write_text(NAMED_VOCABULARY_PLAN.format(own=own))
+    options = {"backbone": "dinov2_vits14", "weights": "random", "layer": 1, "clusters": 4, "vocabulary": "indoor",
+               "resize": [56, 56]}
+
+    def fit(seed):  # as `vocabulary fit --domain indoor` leaves it, for these random-weight features
+        centres = torch.nn.functional.normalize(torch.randn(4, 384, generator=torch.Generator().manual_seed(seed)), dim=1)
+        save_to_cache(Vocabulary(centres, {}), "dinov2_vits14@random", 1, "value", "indoor", cache)
+
+    def sweep() -> str:
+        assert main(["run", str(plan), "--cache-dir", str(cache)]) == 0
+        return capsys.readouterr().out
+
+    before = resolve_spec("anyloc", own, options=options, cache_dir=cache)
+    assert before.found == {}  # nothing of that name yet: the run says how to make it
+    fit(0)
+    first = resolve_spec("anyloc", own, options=options, cache_dir=cache)
+    assert first.found["vocabulary"].startswith("sha256:") and first.key != before.key
+    assert "1 ran" in sweep() and "1 skipped" in sweep()
+    fit(1)
+    second = resolve_spec("anyloc", own, options=options, cache_dir=cache)
+    assert second.found != first.found and second.key != first.key and second.row_key == first.row_key
+    assert "1 ran" in sweep()
+    runs = records(cache)
+    assert len(runs) == 2 and len({r["row_key"] for r in runs}) == 1
+    assert runs[0]["method_fingerprint"]["vocabulary"] != runs[1]["method_fingerprint"]["vocabulary"]
+    assert [r["spec"]["found"] for r in runs] == [first.found, second.found]

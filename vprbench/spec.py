@@ -120,6 +120,9 @@ class RunSpec(_Frozen):
     #: option -> "sha256:<hex>" for options that name a file (a file is identified by its bytes), or
     #: "protocol:<hash>" for a vocabulary fitted on a benchmark
     files: dict[str, str] = {}
+    #: option -> the content of what it named in the cache when the spec was made (an AnyLoc vocabulary
+    #: named "urban" or "domain": Method.cached_identities): in the run's key, not its row's
+    found: dict[str, str] = {}
     dataset: DatasetSpec
     search: SearchSpec = SearchSpec()
     stages: tuple[StageSpec, ...] = ()
@@ -145,7 +148,8 @@ class RunSpec(_Frozen):
                 "stages": [s.identity() for s in self.stages], "store_dtype": self.store_dtype}
 
     def identity(self) -> dict:
-        return {**self.row_identity(), "protocol": self.dataset.protocol_hash, "ks": list(self.ks)}
+        found = {"found": self.found} if self.found else {}  # a run without any keeps its key
+        return {**self.row_identity(), **found, "protocol": self.dataset.protocol_hash, "ks": list(self.ks)}
 
     @property
     def key(self) -> str:
@@ -250,7 +254,7 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
             if stage_entry(stage.name).cls.track == "sequence":
                 require_traverse_manifest(data.name, f"Sequence stage {stage.name!r}")
     return RunSpec(method=method, options=merged, given=given, files=option_identities(method, merged, cache_dir),
-                   dataset=data, search=resolve_search(search),
+                   found=entry.cached_identities(merged, data.name, cache_dir), dataset=data, search=resolve_search(search),
                    stages=stages, ks=ks, store_dtype=_choice("--store-dtype", store_dtype, STORE_DTYPES))
 
 

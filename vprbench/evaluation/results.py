@@ -165,7 +165,8 @@ def _order(records: list[dict]) -> list[dict]:
 
 
 def find_result(spec, cache_dir=None, dataset_fingerprint: str | None = None) -> dict | None:
-    """The newest stored record that answers `spec` (same row, same protocol, every K asked), its
+    """The newest stored record that answers `spec` (same row, same protocol, every K asked, what it
+    named in the cache of the same content: `RunSpec.found`), its
     metrics recomputed from its per-query arrays (evaluation.proof), or None. A record whose arrays
     are missing or damaged answers nothing (named in a warning): its cell is evaluated again.
     With `dataset_fingerprint` (`Dataset.fingerprint`), only a record computed on that content
@@ -180,7 +181,7 @@ def find_result(spec, cache_dir=None, dataset_fingerprint: str | None = None) ->
     # row and protocol as the record says, not as the folder it lies in is named (a file copied there)
     found = [r for r in _records_in(run_folder(spec.dataset.protocol_hash, spec.row_key, cache_dir))
              if r["row_key"] == spec.row_key and r["protocol"]["hash"] == spec.dataset.protocol_hash
-             and wanted <= set(r["recall"])
+             and wanted <= set(r["recall"]) and (r.get("spec") or {}).get("found", {}) == spec.found
              and dataset_fingerprint in (None, r.get("dataset_fingerprint"))]
     for record in reversed(_order(found)):
         with warnings.catch_warnings(record=True) as caught:

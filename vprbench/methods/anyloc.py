@@ -18,7 +18,9 @@ import torch.nn.functional as F
 
 from ..aggregation import pooling, vlad
 from ..aggregation.pca import PCAWhitening
-from .anyloc_vocabulary import MAP_PREFIX, paper_choice, released_provenance, resolve_vocabulary, vocabulary_images
+from .anyloc_vocabulary import (
+    MAP_PREFIX, named_identity, names_file, paper_choice, released_provenance, resolve_vocabulary, vocabulary_images,
+)
 from ..aggregation.vlad import vlad_hard
 from ..aggregation.vocabulary import fit_vocabulary
 from ..errors import VPRBenchError
@@ -116,6 +118,23 @@ class AnyLoc(Method):
         self.needs_fit = aggregation in VLADS and self.vocabulary in ("map", "domain")
         if aggregation in VLADS and self.vocabulary not in ("map", "domain"):
             self.centres = self._resolve_vocabulary()
+
+    @classmethod
+    def cached_identities(cls, options: dict, dataset: str, cache_dir=None) -> dict[str, str]:
+        """A vocabulary named by source ("urban", "domain"), by the content it resolves to now."""
+        vocabulary = options.get("vocabulary", "map")
+        if options.get("aggregation", "vlad") not in VLADS or not isinstance(vocabulary, str) \
+                or vocabulary == "map" or names_file(vocabulary):
+            return {}
+        with warnings.catch_warnings():  # said again when the run creates the method
+            warnings.simplefilter("ignore")
+            try:  # the settings vocabularies are keyed by, without loading the model or any centres
+                probe = cls(**{**options, "vocabulary": "map"}, cache_dir=cache_dir)
+            except VPRBenchError:
+                return {}  # the run names the bad option
+        found = named_identity(vocabulary, dataset, probe.vocabulary_backbone, probe.layer, probe.facet,
+                               probe.clusters, cache_dir)
+        return {"vocabulary": found} if found else {}
 
     # ------------------------------------------------------------ configuration
     def _preset_layer(self, layer_for: str) -> int:

@@ -224,12 +224,15 @@ def fit_map_vocabulary(
 
 
 def find_vocabulary(source: str, backbone: str, layer: int, facet: str, clusters: int, cache_dir=None) -> Vocabulary | None:
-    """A cached vocabulary for these feature settings and source, or None.
+    """A cached vocabulary for these feature settings and source, or None."""
+    path = cached_vocabulary_file(source, backbone, layer, facet, clusters, cache_dir)
+    return None if path is None else load_vocabulary(path)
 
-    Looks in the cache folder for our vocabulary.pt, then for the authors' c_centers.pt
-    under the source name or the authors' folder name (so their released folders can be
-    copied into the cache as they are).
-    """
+
+def cached_vocabulary_file(source: str, backbone: str, layer: int, facet: str, clusters: int, cache_dir=None) -> Path | None:
+    """Our vocabulary.pt in the cache folder of these settings and source, else the authors'
+    c_centers.pt under the source name or the authors' folder name (so their released folders can be
+    copied into the cache as they are); None when there is none."""
     folders = [vocabulary_dir(backbone, layer, facet, clusters, source, cache_dir)]
     released = released_name(source)
     if released:
@@ -237,8 +240,33 @@ def find_vocabulary(source: str, backbone: str, layer: int, facet: str, clusters
     for folder in folders:
         for name in (VOCABULARY_FILE, RELEASED_FILE):
             if (folder / name).is_file():
-                return load_vocabulary(folder / name)
+                return folder / name
     return None
+
+
+def names_file(option: str) -> bool:
+    """Whether the `vocabulary` option names a file or folder rather than a cached source."""
+    path = Path(option).expanduser()
+    return path.suffix in (".pt", ".npy") or "/" in option or path.exists()
+
+
+def named_identity(option: str, dataset: str, backbone: str, layer: int, facet: str, clusters: int,
+                   cache_dir=None) -> str | None:
+    """What a vocabulary named by source ("urban", "map-pitts30k", or "domain": the paper's for
+    `dataset`) is now, by content and without downloading: the cached file's sha256, else the released
+    file's published one, else "map-<dataset>" where "domain" falls back to the evaluated database.
+    None: nothing of that name (the run says how to make it). A refit is so another run."""
+    from ..weights import file_sha256
+
+    source = paper_vocabulary(dataset) if option == "domain" else option
+    if source.startswith(MAP_PREFIX) and option == "domain":
+        return source
+    path = cached_vocabulary_file(source, backbone, layer, facet, clusters, cache_dir)
+    if path is not None:
+        return "sha256:" + file_sha256(path)
+    if released_path(source) is not None and (backbone, layer, facet, clusters) == released_setting():
+        return "sha256:" + release()["sha256"][released_name(source)]
+    return f"{MAP_PREFIX}{dataset}" if option == "domain" else None
 
 
 def save_to_cache(vocabulary: Vocabulary, backbone: str, layer: int, facet: str, source: str, cache_dir=None) -> Path:
@@ -252,9 +280,8 @@ def save_to_cache(vocabulary: Vocabulary, backbone: str, layer: int, facet: str,
 def resolve_vocabulary(spec: str, backbone: str, layer: int, facet: str, clusters: int, cache_dir=None) -> Vocabulary:
     """The `vocabulary` option: a file or folder path, or a cached source name
     (a domain, or map-<dataset>). Raises a clear error saying how to create it."""
-    path = Path(spec).expanduser()
-    if path.suffix in (".pt", ".npy") or "/" in spec or path.exists():
-        vocabulary = load_vocabulary(path)
+    if names_file(spec):
+        vocabulary = load_vocabulary(Path(spec).expanduser())
     else:
         vocabulary = find_vocabulary(spec, backbone, layer, facet, clusters, cache_dir)
         if vocabulary is not None:

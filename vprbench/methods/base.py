@@ -58,6 +58,13 @@ class Method(ABC):
     #: exactly, without post-processing)
     compare: str = "cosine"
 
+    @classmethod
+    def cached_identities(cls, options: dict, dataset: str, cache_dir=None) -> dict[str, str]:
+        """Option -> the content of what it names in the cache by name (a vocabulary fitted earlier
+        under a name), as found when the run's spec is made, without downloading or loading a model:
+        part of the run's key (not its leaderboard row), so a refit is another run. Default: none."""
+        return {}
+
     def use_dataset(self, name: str) -> None:  # pragma: no cover - default no-op
         """Called first by an evaluation with the dataset's name: per-dataset settings
         (e.g. AnyLoc's resize policy and domain vocabulary) must be in place before

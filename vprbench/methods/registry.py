@@ -63,6 +63,11 @@ class MethodEntry:
         own = {p.name: p.default for p in params if p.default is not p.empty and p.name not in LOCATIONS}
         return {**own, **self.defaults}
 
+    def cached_identities(self, options: dict, dataset: str, cache_dir=None) -> dict[str, str]:
+        """`Method.cached_identities` of the factory (a plugin's function factory has none)."""
+        found = getattr(self.factory, "cached_identities", None)
+        return dict(found(options, dataset, cache_dir)) if callable(found) else {}
+
     def without_defaults(self, given: dict) -> dict:
         """`given` less the options set to the value they have anyway (`cell = 16` for hog): one
         computation, one identity (spec, store, label), whether a default is written out or not."""
