@@ -59,7 +59,7 @@ def test_two_processes_rerank_on_one_cache_and_compute_each_image_once(shared_da
 
     command = [sys.executable, "-m", "vprbench", "evaluate", "--method", "hog", "--dataset", "corridor", "--k", "1", "5",
                "--rerank", "sift-ransac", "--rerank-k", "5", "--rerank-option", "max_features=300",
-               "--data-dir", str(shared_data), "--cache-dir", str(tmp_path / "cache"), "--json"]
+               "--data-dir", str(shared_data), "--cache-dir", str(tmp_path / "cache"), "--json", "--inline-arrays"]
     runs = [subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)]
     outputs = [run.communicate(timeout=600) for run in runs]
     assert [run.returncode for run in runs] == [0, 0], [err[-2000:] for _, err in outputs]

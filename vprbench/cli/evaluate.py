@@ -30,7 +30,11 @@ def add_parsers(commands) -> None:
     add_location_options(p)
     p.add_argument("--candidates", type=path_argument, metavar="FILE",
                    help="start the re-ranking from candidates exported by 'vprbench candidates export' (named in the record)")
-    p.add_argument("--json", action="store_true", help="print the result record as JSON on stdout (one run only)")
+    p.add_argument("--json", action="store_true",
+                   help="print the result record as JSON on stdout, as stored (one run only): its per-query arrays "
+                        "by reference, per_query.file naming the .npz saved beside it")
+    p.add_argument("--inline-arrays", action="store_true",
+                   help="with --json: print the per-query arrays inline as lists instead (large: queries x K)")
     p.set_defaults(run=run_evaluate)
 
     p = commands.add_parser("describe", help="write global descriptors of images to a .npy file, in input order")
@@ -52,6 +56,8 @@ def run_evaluate(args) -> int:
     from ..distributed import Ranks
 
     resolve_locations(args)
+    if args.inline_arrays and not args.json:  # it would be ignored, silently
+        raise VPRBenchError("--inline-arrays is for --json (the record printed as JSON): add --json, or drop it.")
     settings = run_settings(args)
     if args.candidates is not None:
         import dataclasses
@@ -88,11 +94,17 @@ def run_one(args, settings, options, overrides, ranks) -> int:
         record = evaluate(spec, settings, progress=shown, ranks=ranks)
     if record is None:  # another rank than 0: its shard is written, rank 0 reports
         return 0
-    if args.json:  # shown first: a result that cannot be saved (full or read-only disk) is still seen
-        print(json.dumps(record, indent=2, sort_keys=True))
-    else:
+    if not args.json:
         make_console().print(results_table(record))
-    save_result(record, settings.cache_dir)
+    try:
+        stored = save_result(record, settings.cache_dir)
+    except VPRBenchError:
+        if args.json:  # not stored (full or read-only disk): still seen, its arrays inline as no .npz holds them
+            print(json.dumps(record, indent=2, sort_keys=True))
+        raise
+    if args.json:  # as stored, so `jq` sees what read_results and the board read
+        print(json.dumps(record if args.inline_arrays else json.loads(stored.read_text(encoding="utf-8")),
+                         indent=2, sort_keys=True))
     return 0
 
 

@@ -87,8 +87,26 @@ def run(args) -> int:
     out = console()
     out.print(view)
     if board.excluded:
-        out.print(f"{len(board.excluded)} run(s) left out of every cell, e.g.: {board.excluded[0][1]}", highlight=False)
+        out.print(left_out_lines(board.excluded), highlight=False)
     return unread(skipped)
+
+
+#: left-out runs named one by one on the terminal; the rest are counted (the site lists them all)
+NAMED = 5
+
+
+def left_out_lines(excluded: list) -> str:
+    """The runs left out of every cell, named as the site's "Runs left out" does: run id (its time
+    first), row label, dataset and why. The console writes control characters out."""
+    from ..leaderboard.shown import left_out
+
+    lines = [f"{len(excluded)} run(s) left out of every cell:"]
+    for record, why in excluded[:NAMED]:
+        run, label, dataset = left_out(record)
+        lines.append(f"- run {run}, {label} on {dataset}: {why}")
+    if len(excluded) > NAMED:
+        lines.append(f"and {len(excluded) - NAMED} more (all under \"Runs left out\" in 'vprbench leaderboard publish').")
+    return "\n".join(lines)
 
 
 def unread(skipped: list) -> int:

@@ -90,6 +90,11 @@ def describe(result: dict) -> str:
         lines.append(f"  {cell.row.name:<{width}}  R@{k} {value:5.1f} %  95 % CI [{low:.1f}, {high:.1f}]  "
                      + (f"(per query [{p_low:.1f}, {p_high:.1f}])  " if per else "") + f"run {cell.record.get('run_id')}")
     q = plain["test"]["ci"]
+    if t["identical"]:  # the same queries right and wrong: nothing to test, p = 1 would read as a finding
+        lines += [f"  intervals overlap: {'yes' if result['overlap'] else 'no'}",
+                  f"  same queries right: both get the same {plural(t['both'], 'query')} right at R@{k} and the same "
+                  f"{t['neither']} wrong; no paired test is meaningful (difference 0)."]
+        return "\n".join(lines)
     lines += [
         f"  intervals overlap: {'yes' if result['overlap'] else 'no'}",
         f"  difference ({first.row.name} - {second.row.name}): {t['difference']:+.1f} pp, 95 % CI "

@@ -134,3 +134,10 @@ def stage_marks(record: dict) -> list[str]:
         digests = [f"sha256:{str(w['sha256'])[:12]}" for w in parts if w.get("source") == source and w.get("sha256")]
         marks.append(" ".join([name, f"{source} weights", ", ".join(digests)]).strip())
     return marks
+
+
+def left_out(record: dict) -> tuple[str, str, str]:
+    """(run id, row label, dataset) of a run left out of every cell, as the terminal and the site
+    name it; the label falls back to the method (a damaged record may lack one), paths cut."""
+    label = record.get("label") or record.get("method")
+    return tuple(public(value) if value else "?" for value in (record.get("run_id"), label, record.get("dataset")))

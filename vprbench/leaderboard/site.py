@@ -29,12 +29,12 @@ from .domains import domain_datasets
 from .downloads import plain, record_download, summary
 from .escape import public, text, to_csv
 from .cells import CELL_RULE, Board, Cell, Column, build_board, hardware_of, licence_shown, weights_shown
-from .shown import descriptor_bytes, row_name
+from .shown import descriptor_bytes, left_out, row_name
 from .stats import check_k_and_seed
 from ..evaluation.blocks import RULE, for_record
 from ..evaluation.metrics import successes
 from .compare import shared_resampling
-from .stats import RESAMPLES, format_p, overlaps, paired_test
+from .stats import RESAMPLES, format_test, overlaps, paired_test
 from .tables import (DOWNLOAD_UNITS, GROUPS, RESULTS_LEGEND, TOLERANCE_PP, cell_stats, comparisons, fmt, group_table,
                      marks_note, other_rows, reported_page, source_mark, with_ci)
 
@@ -238,7 +238,9 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
     lines += ["", "## Runs left out", ""]
     if board.excluded:
         lines += ["| Run | Method | Dataset | Why |", "|:--|:--|:--|:--|"]
-        lines += [f"| `{text(r.get('run_id'))}` | {text(r.get('method'))} | {text(r.get('dataset'))} | {text(why)} |" for r, why in board.excluded]
+        for record, why in board.excluded:
+            run, label, dataset = map(text, left_out(record))
+            lines.append(f"| `{run}` | {label} | {dataset} | {text(why)} |")
     else:
         lines.append("None.")
     lines += ["", "## Datasets", ""]
@@ -345,8 +347,9 @@ def _paired(cells: list[Cell], seed: int) -> list[str]:
             continue
         t = paired_test(successes(a.arrays["first_positive_rank"], 1), successes(b.arrays["first_positive_rank"], 1),
                         shared_resampling(a, b), seed=seed)
+        mcnemar = "–" if t["identical"] else f"{t['p_mcnemar']:.3g}"  # no query to test on
         lines.append(f"| {text(a.row.name)} − {text(b.row.name)} | {t['difference']:+.1f} [{t['ci'][0]:+.1f}, {t['ci'][1]:+.1f}] | "
-                     f"{format_p(t['p_bootstrap']).lstrip('= ')} | {t['only_a']} / {t['only_b']} | {t['p_mcnemar']:.3g} |")
+                     f"{format_test(t)} | {t['only_a']} / {t['only_b']} | {mcnemar} |")
     if not lines:
         return []
     return ["### Paired tests where R@1 intervals overlap", "",

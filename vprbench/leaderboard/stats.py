@@ -99,7 +99,9 @@ def paired_test(a: np.ndarray, b: np.ndarray, resampling: Resampling | None = No
                 resamples: int = RESAMPLES, level: float = LEVEL) -> dict:
     """A against B on the same queries: the difference of recalls (percentage points) with its
     paired-bootstrap interval and p-value (the same units drawn for both), and McNemar's exact
-    test on the queries they disagree on (which takes the queries as independent)."""
+    test on the queries they disagree on (which takes the queries as independent). With no query
+    they disagree on ("identical": e.g. one method with a float16 store), there is nothing to test:
+    its p-values are 1 and pages show "same queries right" instead (`format_test`)."""
     from scipy.stats import binomtest
 
     a, b = np.asarray(a, dtype=bool), np.asarray(b, dtype=bool)
@@ -119,7 +121,7 @@ def paired_test(a: np.ndarray, b: np.ndarray, resampling: Resampling | None = No
         "p_bootstrap": float(p_boot), "only_a": int(counts[1]), "only_b": int(counts[2]),
         "both": int(counts[0]), "neither": int(counts[3]), "p_mcnemar": float(p_mcnemar),
         "resamples": resamples, "seed": seed, "level": level,
-        "resampling": (resampling or per_query(n)).describe(),
+        "resampling": (resampling or per_query(n)).describe(), "identical": discordant == 0,
     }
 
 
@@ -130,3 +132,13 @@ def overlaps(a: tuple[float, float], b: tuple[float, float]) -> bool:
 def format_p(p: float, resamples: int = RESAMPLES) -> str:
     """A bootstrap p-value of 0 means below the resolution of the resamples, not zero."""
     return f"< {1 / resamples:g}" if p == 0 else f"= {p:.3g}"
+
+
+#: what a paired test between runs with the same success on every query shows instead of p = 1
+IDENTICAL = "same queries right"
+
+
+def format_test(test: dict) -> str:
+    """A paired test's bootstrap p-value as shown ('0.034', '< 0.0001'), or IDENTICAL when the two
+    runs succeed on exactly the same queries: no test is meaningful then, and p = 1 would read as one."""
+    return IDENTICAL if test.get("identical") else format_p(test["p_bootstrap"], test.get("resamples", RESAMPLES)).lstrip("= ")
