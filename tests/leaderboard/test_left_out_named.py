@@ -51,3 +51,13 @@ def test_names_print_literally(make_record, cli, monkeypatch):
     assert code == 0
     assert f"hog [note={MARKUP} \\x1b]0;owned\\x07] on corridor: random weights" in out
     assert "\x1b" not in out and "\x07" not in out
+
+
+def test_when_no_run_fills_a_cell_the_error_names_them(make_record, cli, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "300")
+    _save(make_record, range(2))
+    code, _, err = cli("leaderboard")
+    assert code == 1 and "Traceback" not in err
+    runs = [r["run_id"] for r in read_results()]
+    assert "None of the 2 stored run(s) can fill a cell." in " ".join(err.split())
+    assert all(run_id in err for run_id in runs) and "random weights" in err
