@@ -164,7 +164,7 @@ def test_corridor_candidates_are_ranked_by_their_matches(release, corridor, tmp_
             assert found.scores[q].tolist() == [counts[c] for c in expected]
 
     stored = list(tmp_path.glob("features/superpoint-*/corridor-*/*.h5"))
-    assert sorted(p.name for p in stored) == ["database.h5", "queries.h5"]
+    assert sorted(p.name for p in stored) == ["database.1.h5", "queries.1.h5"]
 
     def computed(*args, **kwargs):
         raise AssertionError("a feature was computed again")
@@ -178,7 +178,7 @@ def test_random_weights_run_is_recorded_as_random_and_fills_no_cell(capsys, shar
     options = [a for key, value in TINY.items() for a in ("--rerank-option", f"{key}={value}")]
     code, out, err = run(capsys, "evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", shared_data,
                          "--cache-dir", tmp_path, "--k", "1", "--rerank", NAME, "--rerank-k", "1",
-                         "--rerank-option", "weights=random", *options, "--json", "--quiet")
+                         "--rerank-option", "weights=random", *options, "--json", "--inline-arrays", "--quiet")
     assert code == 0, err
     record = json.loads(out)
     stage = record["stages"][0]

@@ -45,7 +45,7 @@ def kept(tmp_path):
     with store.opened("database", features_of) as get:
         for row in range(ROWS):
             get(row)
-    return store, store.file("database")
+    return store, store.files("database")[0]  # one segment: written whole when the run ends
 
 
 def read_all(store: FeatureStore) -> tuple[dict[int, dict], list[int], list[str]]:
@@ -199,7 +199,7 @@ def test_a_disk_filling_up_while_features_are_kept_is_one_line_and_resumes(tmp_p
     done = subprocess.run([sys.executable, "-c", FILL_FEATURES, tmp_path], capture_output=True, text=True, timeout=120,
                           preexec_fn=limited, cwd=Path(__file__).parent)
     store = FeatureStore("sift", {"max_features": 300}, "corridor", {"database": "images-key"}, cache_dir=tmp_path)
-    path = store.file("database")
+    path = store.path / "database.1.h5"  # the 40 images' segment (1.6 MB) is over the file size limit
     assert (done.returncode, done.stderr) == (1, f"error: Cannot use {path}: File too large; the file size limit "
                                                  "(ulimit -f) or the filesystem's largest file is reached: raise the "
                                                  "limit, or use a folder on another disk.\n")
@@ -211,10 +211,73 @@ def test_a_disk_filling_up_while_features_are_kept_is_one_line_and_resumes(tmp_p
 
     with store.opened("database", compute) as get:  # the limit lifted: the next run completes
         found = {row: get(row) for row in range(40)}
-    # HDF5 had claimed space past the limit, so the file reads as truncated: discarded, all recomputed
-    assert computed == list(range(40))
+    assert computed == list(range(40))  # nothing was written whole (a full disk keeps what was: test_disk_errors)
     assert all(np.array_equal(found[r][k], features_of(r, 300)[k]) for r in range(40)
                for k in ("points", "descriptors"))
+
+
+KILLED_WRITING = """
+import os, signal, sys
+from pathlib import Path
+from test_crash_audit import features_of
+from vprbench.stages import features
+features.SEGMENT_IMAGES = 4
+checksum, calls = features._checksum, []
+
+def killed(arrays):  # the 10th image checksummed: the 2nd of the 3rd segment, mid-write
+    calls.append(1)
+    if len(calls) == 10:
+        os.kill(os.getpid(), signal.SIGKILL)
+    return checksum(arrays)
+
+features._checksum = killed
+store = features.FeatureStore("sift", {"max_features": 6}, "corridor", {"database": "images-key"}, cache_dir=Path(sys.argv[1]))
+with store.opened("database", features_of) as get:
+    for row in range(16):
+        get(row)
+"""
+
+
+def test_a_kill_while_a_segment_is_written_keeps_the_segments_before_it(tmp_path, monkeypatch):
+    """kill -9 in the middle of writing local features: the segments written whole are read, the
+    one half-written (a temporary file) is removed unread, and only its images and later ones are
+    computed again."""
+    done = subprocess.run([sys.executable, "-c", KILLED_WRITING, tmp_path], capture_output=True, text=True,
+                          timeout=120, cwd=Path(__file__).parent)
+    assert done.returncode == -9, done.stderr
+    store = FeatureStore("sift", {"max_features": 6}, "corridor", {"database": "images-key"}, cache_dir=tmp_path)
+    assert [p.name for p in store.files("database")] == ["database.1.h5", "database.2.h5"]
+    assert len(list(store.path.glob(".database.3.h5.*.tmp"))) == 1  # the half-written segment
+    computed = []
+
+    def compute(row):
+        computed.append(row)
+        return features_of(row)
+
+    monkeypatch.setattr("vprbench.stages.features.SEGMENT_IMAGES", 4)
+    with store.opened("database", compute) as get:
+        found = {row: get(row) for row in range(16)}
+    assert computed == list(range(8, 16))
+    assert all(np.array_equal(found[r][k], features_of(r)[k]) for r in range(16) for k in ("points", "descriptors"))
+    assert [p.name for p in store.files("database")] == [f"database.{n}.h5" for n in (1, 2, 3, 4)]
+    assert not list(store.path.glob("*.tmp"))
+
+
+def test_images_computed_before_an_interrupt_are_written(tmp_path):
+    """Ctrl-C (or an image that cannot be read) before a segment is full: what was computed is
+    written on the way out, so the rerun starts where the run stopped."""
+    store = FeatureStore("sift", {"max_features": 6}, "corridor", {"database": "images-key"}, cache_dir=tmp_path)
+
+    def interrupted(row):
+        if row == 5:
+            raise KeyboardInterrupt
+        return features_of(row)
+
+    with pytest.raises(KeyboardInterrupt), store.opened("database", interrupted) as get:
+        for row in range(ROWS + 2):
+            get(row)
+    store.computed = 0
+    assert read_all(store)[1:] == ([], []) and store.computed == 0
 
 
 def test_a_record_of_another_protocol_copied_over_one_is_not_served(shared_data, tmp_path, cli, monkeypatch):

@@ -7,6 +7,7 @@ stop a write). Skipped where mounting is not permitted.
 from __future__ import annotations
 
 import json
+import re
 import os
 import shutil
 import subprocess
@@ -161,3 +162,46 @@ def test_output_into_a_closed_pipe_ends_quietly():
     process.stdout.close()  # the reader is gone before anything is written
     _, err = process.communicate(timeout=120)
     assert process.returncode == 141 and err == b""
+
+
+def test_full_disk_while_local_features_are_kept_keeps_what_was_written(mounts, tmp_path, shared_data, cli,
+                                                                         monkeypatch):
+    """hog + sift-ransac on corridor (190 images' SIFT) with the disk filling up part-way. Was: the
+    features file, torn by the failed write, was discarded and the rerun computed all 190 again.
+    Now what was written whole (segments of 8 images here) is kept; only the rest is computed."""
+    import h5py
+
+    monkeypatch.setattr("vprbench.stages.features.SEGMENT_IMAGES", 8)
+
+    def rerank(cache) -> list:
+        return [*evaluate(shared_data, cache), "--quiet", "--k", 1, 5, "--rerank", "sift-ransac", "--rerank-k", 5,
+                "--rerank-option", "max_features=200", "--inline-arrays"]
+
+    code, out, err = cli(*rerank(tmp_path / "whole"))
+    assert code == 0, err
+    whole = json.loads(out)
+    assert whole["stages"][0]["features_computed"] == 190
+    cache = mounts("-t", "tmpfs", "-o", "size=4m", "tmpfs", target=tmp_path / "small") / "cache"
+    assert cli(*evaluate(shared_data, cache))[0] == 0  # the descriptor stores: fit
+    free = os.statvfs(cache).f_bavail * os.statvfs(cache).f_frsize
+    with open(cache.parent / "filler", "wb") as filler:  # 1 MB left: about half of the 2.3 MB of features
+        filler.write(b"\0" * (free - 2**20))
+    code, _, err = cli(*rerank(cache))
+    features = next(cache.glob("features/sift-*/corridor-*"))
+    assert code == 1 and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert re.fullmatch(
+        f"error: Cannot use {re.escape(str(features))}/(database|queries)\\.\\d+\\.h5: No space left on device; "
+        r"free some space, then rerun \(the local features written so far are kept\), or point --cache-dir at a "
+        r"folder on another disk\.", err.strip()), err
+    kept = set()
+    for path in features.glob("*.h5"):
+        with h5py.File(path, "r") as f:
+            kept |= {(path.name.split(".")[0], row) for row in f["images"]}
+    assert 40 <= len(kept) < 150
+    (cache.parent / "filler").unlink()  # space freed: the rerun computes only the images not written
+    code, out, err = cli(*rerank(cache))
+    assert code == 0, err
+    again = json.loads(out)
+    assert again["stages"][0]["features_computed"] == 190 - len(kept)
+    assert again["recall"] == whole["recall"] and again["top_predictions"] == whole["top_predictions"]
+    assert again["per_query"] == whole["per_query"]

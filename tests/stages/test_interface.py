@@ -100,11 +100,12 @@ def test_feature_store_resumes_and_refuses_another_extractors_file(tmp_path):
     with store.opened("database", compute) as get:
         assert get(2)["points"].shape == (3, 2) and get(0)["points"].shape == (1, 2)
     assert calls == [2, 0]  # row 2 was read back, not computed again
+    assert [p.name for p in store.files("database")] == ["database.1.h5", "database.2.h5"]  # a segment per run
     assert store.bytes_per_image() == (3 * 2 * 4 + 1 * 2 * 4) / 2
     other = FeatureStore("sift", {"options": {"n": 2}}, "set", {"database": "abc"}, tmp_path)
-    other.file("database").parent.mkdir(parents=True)
-    store.file("database").rename(other.file("database"))  # a file of another extractor where this one's belongs
-    with pytest.raises(VPRBenchError, match=r"Local features .*database.h5 were computed by another extractor \('sift' with options=\{'n': 1\}\), "
+    other.path.mkdir(parents=True)
+    store.files("database")[0].rename(other.path / "database.1.h5")  # a file of another extractor where this one's belongs
+    with pytest.raises(VPRBenchError, match=r"Local features .*database.1.h5 were computed by another extractor \('sift' with options=\{'n': 1\}\), "
                                             r"not 'sift' with options=\{'n': 2\} as this run computes them: delete that file"):
         with other.opened("database", compute):
             pass

@@ -93,9 +93,9 @@ def test_patch_mnn_reorders_hogs_candidates_by_mutual_matches(shared_data, stage
     assert cost["provenance"]["weights"] == {"source": "random"} and cost["provenance"]["backbone"]["name"] == "dinov2_vits14"
     assert cost["stored_bytes_per_database_image"] == 20 * 384 * 2  # float16
     # the stored patches are those features
-    stored = list((stage_cache / "features").glob("patches-*/corridor-*/queries.h5"))
-    assert len(stored) == 1
-    with h5py.File(stored[0]) as f:
+    stored = sorted((stage_cache / "features").glob("patches-*/corridor-*/queries.*.h5"))
+    assert len({p.parent for p in stored}) == 1  # one store, its segments (images 0-63 in the first)
+    with h5py.File(next(p for p in stored if p.name == "queries.1.h5")) as f:
         np.testing.assert_allclose(f["images/7/patches"][...].astype(np.float32), queries[7].astype(np.float32), atol=1e-3)
     # a run on random weights is recorded as such and fills no cell of the board
     board = build_board([ranked])
@@ -131,7 +131,7 @@ def test_another_layers_patches_are_never_mixed(shared_data, tmp_path, corridor,
     assert not folder.exists()  # another layer: a store of its own
     layer1 = next(p for p in (tmp_path / "features").glob("patches-*/corridor-*"))
     shutil.copytree(layer1, folder)  # the first layer's files where the second's belong
-    with pytest.raises(VPRBenchError, match=r"Local features .*database.h5 were computed by another extractor "
+    with pytest.raises(VPRBenchError, match=r"Local features .*database\.\d+\.h5 were computed by another extractor "
                                             r"\('patches' with layer=1\), not 'patches' with layer=2 as this run"):
         evaluate(spec_of(shared_data, weights=str(weights_file), layer=2), settings)
 

@@ -1,39 +1,51 @@
 """Per-image data a stage computes once and keeps (local features), beside the descriptor stores.
 
-    features/<name>-<identity hash>/<dataset>-<images key>/<split>.h5
+    features/<name>-<identity hash>/<dataset>-<images key>/<split>.<n>.h5   segments 1, 2, ...
         attrs: feature identity (what computed it), images key (the split's names and contents)
-        images/<row>/<array>...   one group per image, written whole with its crc32, marked done last
+        images/<row>/<array>...   one group per image, with its crc32
 
 Keyed like descriptor stores: by what computed the data (the extractor and its options) and the
-content of the images, so every retriever and re-ranking run on those images shares one file.
-A run holds the folder's lock while it reads and writes (resumable: an image already done is read,
-never recomputed); a file written for another extractor or other images is refused by name. What is
-read is checked, as descriptor stores are: an image whose arrays no longer match their crc32 is
-recomputed (said in a warning), a file HDF5 cannot read (torn by a kill: HDF5 is not crash-safe)
-is discarded.
+content of the images, so every retriever and re-ranking run on those images shares one folder.
+Images computed are written in segments of SEGMENT_IMAGES (or SEGMENT_BYTES): each segment a new
+file written whole and renamed into place (fsutil.atomic_path), never changed afterwards. So a
+full disk or a kill mid-write loses only the segment being written (HDF5 is not crash-safe: a file
+it was writing when the disk filled is unreadable, which is why files are never appended to); the
+rerun reads every segment written and computes the rest. A run holds the folder's lock while it
+reads and writes; a segment written for another extractor or other images is refused by name.
+What is read is checked, as descriptor stores are: an image whose arrays no longer match their
+crc32 is recomputed (said in a warning), a segment HDF5 cannot open is discarded. The newest
+segment holding an image wins.
 """
 from __future__ import annotations
 
+import errno
 import json
 import os
+import re
 import warnings
 import zlib
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 import h5py
 import numpy as np
 
 from ..errors import VPRBenchError
-from ..fsutil import cache_error, lock
+from ..fsutil import CacheError, atomic_path, cache_error, lock, remove_stale
 from ..hashing import canonical_hash, canonical_json
 from ..paths import cache_root, safe_name
 from ..store.rows_file import close_quietly
 
 #: bytes of per-image arrays kept in memory per open split (database images recur across queries)
 KEPT_BYTES = 256 * 2**20
+#: images computed are written as one segment once this many (or SEGMENT_BYTES) are waiting, and
+#: when the split is closed: a kill loses at most one segment's work, a run adds few files
+SEGMENT_IMAGES = 64
+SEGMENT_BYTES = 16 * 2**20
+#: segments kept open while a split is read (opening one per image read cost ~0.25 ms)
+OPEN_SEGMENTS = 32
 
 
 class FeatureStore:
@@ -50,141 +62,196 @@ class FeatureStore:
     def for_images(cls, name: str, identity: dict, dataset, cache_dir=None, lock_timeout=None) -> "FeatureStore":
         return cls(name, identity, dataset.name, dataset.images_fingerprint(cache_dir), cache_dir, lock_timeout)
 
-    def file(self, split: str) -> Path:
-        return self.path / f"{split}.h5"
+    def files(self, split: str) -> list[Path]:
+        """The split's segments, oldest first (`<split>.h5`, one file appended to by earlier versions, first)."""
+        numbered = [(int(p.name.split(".")[1]), p) for p in self.path.glob(f"{split}.*.h5")
+                    if p.name.split(".")[1].isdigit()]
+        earlier = self.path / f"{split}.h5"
+        return ([earlier] if earlier.exists() else []) + [p for _, p in sorted(numbered)]
 
     @contextmanager
     def opened(self, split: str, compute: Callable[[int], dict[str, np.ndarray]]) -> Iterator[Callable[[int], dict]]:
         """`get(row)` for the split's images: read when stored, else `compute(row)` (name -> array),
-        written and flushed at once (a killed run resumes from there). Holds the folder's lock."""
-        path = self.file(split)
+        written with the next segment (a killed run resumes from the last one). Holds the folder's lock."""
         with lock(self.path / ".lock", self.lock_timeout, what=f"local features {self.path}"):
-            handle = self._open(path, split)
+            remove_stale(self.path.glob(f".{split}.*.tmp"), age_s=0)  # a killed writer's (we hold the lock)
+            where = self._index(split)
             kept: OrderedDict[int, dict] = OrderedDict()
-            held, damaged = 0, []
+            waiting: dict[int, dict] = {}  # computed, not yet written
+            held, damaged, failed = 0, {}, False
+            readers: OrderedDict[Path, h5py.File] = OrderedDict()  # segments kept open to read
+
+            def write() -> None:
+                nonlocal failed
+                failed = True  # until written: a write that failed is not tried again on the way out
+                where.update(dict.fromkeys(waiting, self._write(split, waiting)))
+                waiting.clear()
+                failed = False
 
             def get(row: int) -> dict[str, np.ndarray]:
                 nonlocal held
                 if row in kept:
                     kept.move_to_end(row)
                     return kept[row]
-                found = self._read(handle, row, path)
-                if found is False:
-                    damaged.append(row)
+                found = waiting.get(row)
+                if found is None and row in where:
+                    found = self._read(readers, where[row], row)
+                    if found is False:
+                        damaged.setdefault(where.pop(row), []).append(row)
                 if not isinstance(found, dict):
                     found = {key: np.asarray(value) for key, value in compute(row).items()}
-                    self._write(handle, row, found, path)
+                    waiting[row] = found
                     self.computed += 1
+                    if len(waiting) >= SEGMENT_IMAGES or _size(waiting.values()) >= SEGMENT_BYTES:
+                        write()
                 kept[row] = found
-                held += sum(a.nbytes for a in found.values())
+                held += _size([found])
                 while held > KEPT_BYTES and len(kept) > 1:
-                    held -= sum(a.nbytes for a in kept.popitem(last=False)[1].values())
+                    held -= _size([kept.popitem(last=False)[1]])
                 return found
 
             try:
                 yield get
+            except BaseException:
+                if waiting and not failed:  # an interrupt, an image that failed: keep what was computed
+                    with suppress(VPRBenchError):
+                        write()
+                raise
+            else:
+                if waiting:
+                    write()
             finally:
-                close_quietly(handle)  # after a failed write (a full disk) the close fails too
-                if damaged:  # one line per file, not one per image
-                    shown = ", ".join(map(str, damaged[:5])) + (", ..." if len(damaged) > 5 else "")
-                    warnings.warn(f"Local features of {len(damaged)} image(s) ({shown}) in {path} no longer matched "
+                for handle in readers.values():
+                    close_quietly(handle)
+                for path, rows in damaged.items():  # one line per file, not one per image
+                    shown = ", ".join(map(str, rows[:5])) + (", ..." if len(rows) > 5 else "")
+                    warnings.warn(f"Local features of {len(rows)} image(s) ({shown}) in {path} no longer matched "
                                   "the checksums written with them; they were recomputed.", stacklevel=3)
 
-    def _open(self, path: Path, split: str) -> h5py.File:
-        handle = None
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            handle = _appendable(path)
-            fresh = "images" not in handle
-            found, images = handle.attrs.get("feature_identity"), handle.attrs.get("images_key")
-        except (OSError, RuntimeError, KeyError) as error:
-            if isinstance(error, PermissionError) or not path.exists():
-                raise cache_error(error, path) from None
-            if handle is not None:
-                close_quietly(handle)
-            try:  # torn by a kill mid-write (HDF5 is not crash-safe): recomputed
-                path.unlink()
-                handle, fresh = _appendable(path), True
-            except OSError as error:
-                raise cache_error(error, path) from None
-        if fresh:
-            handle.attrs["feature_identity"] = self.identity_json
-            handle.attrs["images_key"] = self.images_keys[split]
-            handle.create_group("images")
-            return handle
-        if found != self.identity_json or images != self.images_keys[split]:
-            handle.close()
-            ours = self.name
-            if found != self.identity_json:
-                theirs, ours = _differing(found, self.identity_json)
-                what = f"another extractor ({theirs})"
-            else:
-                what = "other images"
-            raise VPRBenchError(f"Local features {path} were computed by {what}, not {ours} as this run computes "
-                                "them: delete that file (it is recomputed).")
-        return handle
+    def _index(self, split: str) -> dict[int, Path]:
+        """row -> the newest segment holding it. A segment HDF5 cannot open (damaged; or the file
+        earlier versions appended to, torn by a kill or a full disk) is discarded: its images are
+        computed again."""
+        where: dict[int, Path] = {}
+        for path in self.files(split):
+            try:
+                with h5py.File(path, "r") as f:
+                    found, images = f.attrs.get("feature_identity"), f.attrs.get("images_key")
+                    rows = [int(name) for name, group in f["images"].items()
+                            if group.attrs.get("done") and "crc32" in group.attrs]
+            except (OSError, RuntimeError, KeyError, ValueError) as error:
+                if isinstance(error, PermissionError):
+                    raise cache_error(error, path) from None
+                try:
+                    path.unlink()
+                except OSError as failure:
+                    raise cache_error(failure, path) from None
+                continue
+            self._check(path, found, images, split)
+            where.update(dict.fromkeys(rows, path))
+        return where
+
+    def _check(self, path: Path, found, images, split: str) -> None:
+        if found == self.identity_json and images == self.images_keys[split]:
+            return
+        ours = self.name
+        if found != self.identity_json:
+            theirs, ours = _differing(found, self.identity_json)
+            what = f"another extractor ({theirs})"
+        else:
+            what = "other images"
+        raise VPRBenchError(f"Local features {path} were computed by {what}, not {ours} as this run computes "
+                            "them: delete that file (it is recomputed).")
 
     @staticmethod
-    def _read(handle: h5py.File, row: int, path: Path) -> dict[str, np.ndarray] | None | bool:
-        """The image's arrays; None when they are to be computed (absent, left unfinished by a
-        killed run, or written before groups carried a crc32), False when they no longer match
-        their crc32 (recomputed too). A group HDF5 cannot read discards the file."""
+    def _read(readers: OrderedDict, path: Path, row: int) -> dict[str, np.ndarray] | bool:
+        """The image's arrays (indexed: done, with a crc32), False when they no longer match their
+        crc32 (recomputed). A group HDF5 cannot read discards the segment. `readers`: the segments
+        open to read, the least recently used closed past OPEN_SEGMENTS."""
         try:
-            group = handle["images"].get(str(row))
-            if group is None or not group.attrs.get("done") or "crc32" not in group.attrs:
-                return None
+            if path not in readers:
+                readers[path] = h5py.File(path, "r")
+                while len(readers) > OPEN_SEGMENTS:
+                    close_quietly(readers.popitem(last=False)[1])
+            readers.move_to_end(path)
+            group = readers[path]["images"][str(row)]
             found = {key: group[key][...] for key in group}
-            if int(group.attrs["crc32"]) == _checksum(found):
-                return found
+            crc = int(group.attrs["crc32"])
         except (OSError, RuntimeError, KeyError, ValueError, TypeError) as error:
-            close_quietly(handle)
+            if path in readers:
+                close_quietly(readers.pop(path))
             try:
                 path.unlink(missing_ok=True)
             except OSError as failure:
                 raise cache_error(failure, path) from None
             raise VPRBenchError(f"Local features {path} are damaged (image {row} cannot be read: {error}); the file "
                                 "was discarded: run again to recompute it.") from None
-        return False
+        return found if crc == _checksum(found) else False
 
-    @staticmethod
-    def _write(handle: h5py.File, row: int, arrays: dict[str, np.ndarray], path: Path) -> None:
+    def _write(self, split: str, images: dict[int, dict[str, np.ndarray]]) -> Path:
+        """`images` as a new segment, written whole, then renamed into place; its path."""
+        last = self.files(split)[-1:]
+        number = int(last[0].name.split(".")[1]) + 1 if last and last[0].name.count(".") == 2 else 1
+        path = self.path / f"{split}.{number}.h5"
         try:
-            images = handle["images"]
-            if str(row) in images:  # left unfinished by a killed run, or damaged
-                del images[str(row)]
-            group = images.create_group(str(row))
-            for key, value in arrays.items():
-                group.create_dataset(key, data=value)
-            group.attrs["crc32"] = _checksum({key: group[key][...] for key in group})  # of the bytes as stored
-            group.attrs["done"] = 1
-            handle.flush()
-        except (OSError, RuntimeError) as error:
-            raise cache_error(error, path) from None
+            with atomic_path(path) as temporary:
+                handle = _created(temporary)
+                try:
+                    handle.attrs["feature_identity"] = self.identity_json
+                    handle.attrs["images_key"] = self.images_keys[split]
+                    for row, arrays in images.items():
+                        group = handle.create_group(f"images/{row}")
+                        for key, value in arrays.items():
+                            group.create_dataset(key, data=value)
+                        group.attrs["crc32"] = _checksum({key: group[key][...] for key in group})  # as stored
+                        group.attrs["done"] = 1
+                    handle.close()
+                finally:
+                    close_quietly(handle)  # after a failed write (a full disk) the close fails too
+        except (OSError, RuntimeError, CacheError) as error:
+            number = error.errno if isinstance(error, OSError) else _errno(str(error))
+            if number in (errno.ENOSPC, errno.EDQUOT):
+                raise VPRBenchError(f"Cannot use {path}: {os.strerror(number)}; free some space, then rerun (the "
+                                    "local features written so far are kept), or point --cache-dir at a folder on "
+                                    "another disk.") from None
+            raise error if isinstance(error, CacheError) else cache_error(error, path) from None
+        return path
 
     def bytes_per_image(self, split: str = "database") -> float:
         """Bytes of the arrays stored per image of `split` (what the stage keeps), 0 when none."""
+        sizes: dict[int, int] = {}
         try:
-            with lock(self.path / ".lock", self.lock_timeout, announce=False), h5py.File(self.file(split), "r") as f:
-                groups = [g for g in f["images"].values() if g.attrs.get("done")]
-                total = sum(d.nbytes for g in groups for d in g.values())
-        except (OSError, KeyError):
+            with lock(self.path / ".lock", self.lock_timeout, announce=False):
+                for path in self.files(split):
+                    with h5py.File(path, "r") as f:
+                        sizes.update((int(name), sum(d.nbytes for d in g.values()))
+                                     for name, g in f["images"].items() if g.attrs.get("done"))
+        except (OSError, KeyError, ValueError):
             return 0.0
-        return total / len(groups) if groups else 0.0
+        return sum(sizes.values()) / len(sizes) if sizes else 0.0
 
 
-def _appendable(path: Path) -> h5py.File:
-    """`path` opened to read and write (created when absent) without HDF5's sieve buffer: data are
+def _size(images) -> int:
+    return sum(a.nbytes for arrays in images for a in arrays.values())
+
+
+def _errno(text: str) -> int | None:
+    """The errno HDF5 (a RuntimeError) or a CacheError's OSError carried: in HDF5's text, or by its strerror."""
+    found = re.search(r"errno = (\d+)", text)
+    if found:
+        return int(found.group(1))
+    return next((n for n in (errno.ENOSPC, errno.EDQUOT) if os.strerror(n) in text), None)
+
+
+def _created(path: Path) -> h5py.File:
+    """A new file at `path` (replacing what is there) without HDF5's sieve buffer: data are
     written when written, so a full disk fails that write with an error. (With the buffer, the
     write failed later, when h5py freed it, where the error can only be printed; HDF5 then crashed
     the process.)"""
     access = h5py.h5p.create(h5py.h5p.FILE_ACCESS)
     access.set_libver_bounds(h5py.h5f.LIBVER_EARLIEST, h5py.h5f.LIBVER_LATEST)  # as h5py.File's
     access.set_sieve_buf_size(0)
-    name = os.fsencode(path)
-    try:
-        return h5py.File(h5py.h5f.open(name, h5py.h5f.ACC_RDWR, fapl=access))
-    except FileNotFoundError:
-        return h5py.File(h5py.h5f.create(name, h5py.h5f.ACC_EXCL, fapl=access))
+    return h5py.File(h5py.h5f.create(os.fsencode(path), h5py.h5f.ACC_TRUNC, fapl=access))
 
 
 def _checksum(arrays: dict[str, np.ndarray]) -> int:
