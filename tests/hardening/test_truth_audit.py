@@ -104,10 +104,11 @@ def test_recall_of_hog_on_corridor_recomputed_from_its_store(cli, shared_data, t
     assert code == 0, err
     (record_path,) = (cache / "results").glob("*/*/*.json")
     record = json.loads(record_path.read_text())
-    (store,) = (cache / "stores").glob("hog-*/corridor-*")
-    with h5py.File(store / "database.h5") as f:
+    (database,) = (cache / "stores").glob("hog-*/corridor-database-*")
+    (queries,) = (cache / "stores").glob("hog-*/corridor-queries-*")
+    with h5py.File(database / "database.h5") as f:
         db = f["descriptors"][:].astype(np.float64)
-    with h5py.File(store / "queries.h5") as f:
+    with h5py.File(queries / "queries.h5") as f:
         q = f["descriptors"][:].astype(np.float64)
     db /= np.linalg.norm(db, axis=1, keepdims=True)
     q /= np.linalg.norm(q, axis=1, keepdims=True)

@@ -104,7 +104,7 @@ def test_a_held_store_lock_is_waited_for_and_named(shared_data, tmp_path, capfd)
     folder = StoreFolder(method.name, method_fingerprint(method), "corridor", dataset.images_fingerprint(tmp_path), tmp_path)
     holder = subprocess.Popen([sys.executable, "-c", (
         "import sys, time\nfrom vprbench.fsutil import lock\n"
-        f"with lock({str(folder.path / '.lock')!r}):\n    print('held', flush=True)\n    time.sleep(60)\n")],
+        f"with lock({str(folder.paths['database'] / '.lock')!r}):\n    print('held', flush=True)\n    time.sleep(60)\n")],
         stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline().strip() == "held"
@@ -112,7 +112,7 @@ def test_a_held_store_lock_is_waited_for_and_named(shared_data, tmp_path, capfd)
         with pytest.raises(LockTimeout, match=rf"Timed out after 1 s waiting for descriptor store .* held by pid {holder.pid} on "):
             evaluate(method, dataset, cache_dir=tmp_path, lock_timeout=1)
         assert time.monotonic() - started < 30
-        assert f"waiting for descriptor store {folder.path}: locked by pid {holder.pid}" in capfd.readouterr().err
+        assert f"waiting for descriptor store {folder.paths['database']}: locked by pid {holder.pid}" in capfd.readouterr().err
     finally:
         holder.kill()
         holder.wait()

@@ -145,7 +145,7 @@ def test_a_damaged_shard_is_refused_while_merging(tmp_path):
 
 
 def _store_path(record, cache, split="database"):
-    return cache / "stores" / record["context"]["store"]["folder"] / f"{split}.h5"
+    return cache / "stores" / record["context"]["store"]["folders"][split] / f"{split}.h5"
 
 
 def test_a_flipped_byte_in_a_real_store_is_caught_discarded_and_recomputed(shared_data, tmp_path):

@@ -141,7 +141,7 @@ def test_a_fit_state_copied_from_another_store_is_not_used(tmp_path):
     theirs = StoreFolder("m", {"a": 1}, "other", {"database": "y"}, tmp_path)
     theirs.write_fit_state({"centres": np.ones((4, 3), np.float32)})
     ours = StoreFolder("m", {"a": 1}, "d", {"database": "x"}, tmp_path)
-    ours.path.mkdir(parents=True)
+    ours.fit_path.parent.mkdir(parents=True)
     shutil.copyfile(theirs.fit_path, ours.fit_path)
     with pytest.warns(UserWarning, match=r"Discarding .*fit_state.h5: .* fitted for store 'm-.*/other-"):
         assert ours.read_fit_state() is None

@@ -65,8 +65,9 @@ def describe_splits(method, splits: dict[str, list[Path]], *, root: Path | None 
     digests = digests or {split: content_hashes(paths, cache_dir) for split, paths in splits.items()}
     image_keys = {split: images_key(paths, root, digests=digests[split]) for split, paths in splits.items()}
     fingerprint = method_fingerprint(method, store_dtype)
-    folder = StoreFolder(method.name, fingerprint, label, {s: image_keys[s] for s in splits}, cache_dir)
-    ranks.agree({"fingerprint": fingerprint, "images": image_keys, "store": str(folder.path.resolve())},
+    folder = StoreFolder(method.name, fingerprint, label, split_keys(method, image_keys), cache_dir)
+    ranks.agree({"fingerprint": fingerprint, "images": image_keys,
+                 "store": {split: str(path.resolve()) for split, path in folder.paths.items()}},
                 "the method, the images or the cache folder")
     job = _Job(method, splits, names, folder, store_dtype, workers, ranks, progress, label, digests)
     computed = {split: 0 for split in splits}
@@ -96,9 +97,19 @@ def describe_splits(method, splits: dict[str, list[Path]], *, root: Path | None 
             timings[f"{split}_s"] += time.perf_counter() - started
         stores = job.complete_stores()
     if stores is None:
-        raise VPRBenchError(f"The stores in {folder.path} are still incomplete after extraction; run again.")
+        raise VPRBenchError(f"The stores in {', '.join(map(str, folder.paths.values()))} are still incomplete after "
+                            "extraction; run again.")
     totals = {split: sum(c[split] for c in per_rank) for split in splits}
     return Described(stores, totals, timings, fingerprint, folder, per_rank)
+
+
+def split_keys(method, image_keys: dict[str, str]) -> dict:
+    """What each split's store is keyed by: its own images, and for a method that fits, the
+    database images the fit (so every row) depends on; editing a query keeps the database's."""
+    if not method.needs_fit:
+        return dict(image_keys)
+    return {split: key if split == FIT_SPLIT else {"images": key, "fit_on": image_keys.get(FIT_SPLIT)}
+            for split, key in image_keys.items()}
 
 
 class _Job:
@@ -189,7 +200,7 @@ class _Job:
             parts.append((path, identity))
             dims.add(found.dim)
         if len(dims) != 1:
-            raise VPRBenchError(f"The shards of {split} in {self.folder.path} have different dimensions {sorted(dims)}.")
+            raise VPRBenchError(f"The shards of {split} in {self.folder.paths[split]} have different dimensions {sorted(dims)}.")
         final = self.folder.store_path(split)
         try:
             if world == 1:

@@ -196,7 +196,8 @@ def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None
         timings["stages_s"] = time.perf_counter() - t
     candidates = candidates.top(run.ks[-1])
     timings["total_s"] = time.perf_counter() - started
-    context = {"store": {"folder": described.folder.key}}  # where the descriptors are (vprbench.store.run_store)
+    # where the descriptors are (vprbench.store.run_store): one folder per split
+    context = {"store": {"folders": dict(described.folder.keys)}}
     if ranks.distributed:
         context["distributed"] = {**ranks.describe(), "computed_per_rank": described.per_rank}
     if run.frozen is not None:

@@ -1,15 +1,17 @@
-"""A store folder: the descriptors of one method (fingerprint) on one set of images.
+"""Store folders: the descriptors of one method (fingerprint) on one split's images.
 
-    stores/<method>-<fingerprint key>/<label>-<images key>/
-        database.h5, queries.h5                 complete stores (one per split)
+    stores/<method>-<fingerprint key>/<label>-<split>-<split key>/   one folder per split
+        database.h5 (or queries.h5)             the split's complete store
         database.rank0-of-2.partial.h5 ...      shards being written (one per rank; 1 rank = 1 shard)
-        fit_state.h5                            what the method fitted on the database (vocabulary)
+        fit_state.h5                            (database folder) what the method fitted on it
         .lock (+ .lock.holder)                  held by the one process that writes here
 
-Only the lock holder creates, discards or renames files here (ranks of a distributed run
-write their own shards while their rank 0 holds it). Complete stores are never changed
+A split's key is its own images' content (plus, for a method that fits, the database images
+its rows depend on through the fit): editing a query recomputes only the queries. Only the
+lock holder creates, discards or renames files in a folder (ranks of a distributed run
+write their own shards while their rank 0 holds the locks). Complete stores are never changed
 after they appear, so readers need no lock; a reader that finds one damaged (a row that
-fails its checksum) discards it under the lock. The images key is the content identity of the
+fails its checksum) discards it under the lock. The key is the content identity of the
 images, not of the ground truth: a new radius re-scores the same stores.
 """
 from __future__ import annotations
@@ -18,7 +20,7 @@ import hashlib
 import json
 import uuid
 import warnings
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
 import h5py
@@ -61,8 +63,10 @@ def method_fingerprint(method, store_dtype: str = "float32") -> dict:
 
 def run_store(record: dict, split: str = "database", cache_dir=None) -> DescriptorStore | None:
     """The complete store an evaluation's result record was computed from (its
-    context.store.folder), or None when the record does not name one or the store is gone."""
-    folder = ((record.get("context") or {}).get("store") or {}).get("folder")
+    context.store.folders, or .folder for records of the one-folder layout), or None when the
+    record does not name one or the store is gone."""
+    store = (record.get("context") or {}).get("store") or {}
+    folder = (store.get("folders") or {}).get(split) if "folders" in store else store.get("folder")
     if not folder:
         return None
     return DescriptorStore.recorded(cache_root(cache_dir) / "stores" / folder / f"{split}.h5", f"{folder}/{split}")
@@ -89,31 +93,40 @@ def unsaved_fit_id() -> str:
 
 
 class StoreFolder:
-    def __init__(self, method_name: str, fingerprint: dict, label: str, image_keys: dict[str, str], cache_dir=None):
+    """The folders of one method's splits; `split_keys` maps each split to what its rows depend on."""
+
+    def __init__(self, method_name: str, fingerprint: dict, label: str, split_keys: dict, cache_dir=None):
         self.fingerprint = fingerprint
         self.fingerprint_json = canonical_json(fingerprint)
         # names from data made safe; the hashes keep two stores apart
-        self.key = f"{safe_name(method_name)}-{canonical_hash(fingerprint)}/{safe_name(label)}-{canonical_hash(image_keys)}"
-        self.path = cache_root(cache_dir) / "stores" / self.key
-        self.fit_path = self.path / "fit_state.h5"
+        method = f"{safe_name(method_name)}-{canonical_hash(fingerprint)}"
+        self.keys = {split: f"{method}/{safe_name(label)}-{safe_name(split)}-{canonical_hash(key)}"
+                     for split, key in split_keys.items()}
+        self.paths = {split: cache_root(cache_dir) / "stores" / key for split, key in self.keys.items()}
+        fit_split = "database" if "database" in self.keys else next(iter(self.keys))
+        self.fit_key = self.keys[fit_split]  # the method and the database images it was fitted on
+        self.fit_path = self.paths[fit_split] / "fit_state.h5"
 
     # ------------------------------------------------------------ names
     def store_path(self, split: str) -> Path:
-        return self.path / f"{split}.h5"
+        return self.paths[split] / f"{split}.h5"
 
     def shard_path(self, split: str, rank: int, world: int) -> Path:
-        return self.path / f"{split}.rank{rank}-of-{world}.partial.h5"
+        return self.paths[split] / f"{split}.rank{rank}-of-{world}.partial.h5"
 
     def identity(self, split: str, names: list[str], fit_id: str, dtype: str,
                  start: int = 0, stop: int | None = None) -> RowsIdentity:
         stop = len(names) if stop is None else stop
-        return RowsIdentity(store=f"{self.key}/{split}", start=start, stop=stop, total=len(names), fit_id=fit_id,
+        return RowsIdentity(store=f"{self.keys[split]}/{split}", start=start, stop=stop, total=len(names), fit_id=fit_id,
                             dtype=dtype, fingerprint=self.fingerprint_json, names=names[start:stop])
 
     # ------------------------------------------------------------ the lock
     @contextmanager
     def locked(self, timeout: float | None = None):
-        with folder_lock(self.path, timeout):
+        """Every split folder's lock, taken in one order (by path) so two runs never deadlock."""
+        with ExitStack() as held:
+            for path in sorted(set(self.paths.values())):
+                held.enter_context(folder_lock(path, timeout))
             yield
 
     # ------------------------------------------------------------ complete stores
@@ -157,14 +170,15 @@ class StoreFolder:
     def tidy(self, split: str) -> None:
         """After the split's store is complete: its shards (any number of ranks) and any
         leftovers of killed writers go. Only the lock holder calls this."""
+        folder = self.paths[split]
         try:
-            for path in self.path.glob(f"{split}.rank*-of-*.partial.h5"):
+            for path in folder.glob(f"{split}.rank*-of-*.partial.h5"):
                 path.unlink(missing_ok=True)
-            for path in self.path.iterdir():  # only this split's and the fit state's: others write theirs unlocked
+            for path in folder.iterdir():  # only this split's and the fit state's: others write theirs unlocked
                 if is_temporary(path) and path.name.startswith((f".{split}.", f".{self.fit_path.name}.")):
                     path.unlink(missing_ok=True)
         except OSError as error:
-            raise cache_error(error, self.path) from None
+            raise cache_error(error, folder) from None
 
     # ------------------------------------------------------------ fit state
     def fit_id_on_disk(self) -> str | None:
@@ -187,7 +201,7 @@ class StoreFolder:
             recorded = recorded.decode() if isinstance(recorded, bytes) else recorded
             if not state or fit_id_of(state) != recorded:
                 raise ValueError("its content does not match its fit id")
-            if (store.decode() if isinstance(store, bytes) else store) != self.key:  # a copy from another store
+            if (store.decode() if isinstance(store, bytes) else store) != self.fit_key:  # a copy from another store
                 raise ValueError(f"it was fitted for store {store!r}, not this one")
             return state, recorded
         except (OSError, KeyError, ValueError) as error:
@@ -207,5 +221,5 @@ class StoreFolder:
                 for key, value in state.items():
                     group.create_dataset(key, data=value)
                 f.attrs["fit_id"] = fit_id
-                f.attrs["store"] = self.key  # the method and the database images it was fitted on
+                f.attrs["store"] = self.fit_key  # the method and the database images it was fitted on
         return fit_id
