@@ -183,3 +183,20 @@ def test_dino_v1_path_end_to_end(corridor, tmp_path):
     feats = next(iter(m.iter_patch_features(queries[:1])))
     assert feats.shape == (55 * 73, 384)  # 224x298 at stride 4: 1 + (224-8)//4 by 1 + (298-8)//4
     assert m.describe(queries[:1]).shape == (1, 2 * 384)
+
+
+def test_the_block_or_stride_an_unset_option_stands_for_written_out_is_the_same_run():
+    """`--layer 31` on anyloc-vlad-dinov2 (ViT-G's block 31 is its preset), block 9 on ViT-S/14 (the same
+    relative depth) and DINO's stride 4 are what the unset options run: one spec key and label each."""
+    from vprbench.spec import resolve_spec
+
+    def spec(method, **options):
+        return resolve_spec(method, "corridor", options=options)
+
+    same = [(spec("anyloc-vlad-dinov2"), spec("anyloc-vlad-dinov2", layer=31)),
+            (spec("anyloc-vlad-dinov2", backbone="dinov2_vits14"), spec("anyloc-vlad-dinov2", backbone="dinov2_vits14", layer=9, stride=14)),
+            (spec("anyloc-vlad-dino"), spec("anyloc-vlad-dino", layer=9, stride=4))]
+    for unset, written in same:
+        assert (written.key, written.label()) == (unset.key, unset.label())
+    assert spec("anyloc-vlad-dinov2", layer=30).label() == "anyloc-vlad-dinov2 [layer=30]"
+    assert spec("anyloc-vlad-dino", stride=8).key != spec("anyloc-vlad-dino").key

@@ -136,6 +136,17 @@ class AnyLoc(Method):
                                probe.clusters, cache_dir)
         return {"vocabulary": found} if found else {}
 
+    @classmethod
+    def implied_options(cls, options: dict) -> dict:
+        """The block and stride an unset `layer`/`stride` stand for on this backbone."""
+        with warnings.catch_warnings():  # said when the run creates the method
+            warnings.simplefilter("ignore")
+            try:
+                probe = cls(**{**{k: v for k, v in options.items() if k not in ("layer", "stride")}, "vocabulary": "map"})
+            except (VPRBenchError, TypeError):
+                return {}  # the run names the bad option
+        return {"layer": probe.layer, "stride": probe.stride}
+
     # ------------------------------------------------------------ configuration
     def _preset_layer(self, layer_for: str) -> int:
         """A preset's layer is given for its own backbone ("dinov2_vitg14:31"); on another

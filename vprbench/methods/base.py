@@ -65,6 +65,12 @@ class Method(ABC):
         part of the run's key (not its leaderboard row), so a refit is another run. Default: none."""
         return {}
 
+    @classmethod
+    def implied_options(cls, options: dict) -> dict:
+        """Option -> the value an option left unset (None) takes given the others (AnyLoc: the preset's
+        block on this backbone): written out, that value is the same run. Default: none."""
+        return {}
+
     def use_dataset(self, name: str) -> None:  # pragma: no cover - default no-op
         """Called first by an evaluation with the dataset's name: per-dataset settings
         (e.g. AnyLoc's resize policy and domain vocabulary) must be in place before

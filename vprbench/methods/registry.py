@@ -72,6 +72,9 @@ class MethodEntry:
         """`given` less the options set to the value they have anyway (`cell = 16` for hog): one
         computation, one identity (spec, store, label), whether a default is written out or not."""
         defaults = self.effective_defaults()
+        implied = getattr(self.factory, "implied_options", None)  # an unset option's value, from the others
+        defaults |= {k: v for k, v in (implied({**defaults, **given}) if callable(implied) else {}).items()
+                     if defaults.get(k) is None}
         # a file the factory's default names stays given: unlike a preset's, that default is not in the
         # spec's options, so its content (spec.files) would leave the run's identity
         return {k: v for k, v in given.items() if k not in defaults or not _same(k, v, defaults[k])
