@@ -200,3 +200,23 @@ def test_the_block_or_stride_an_unset_option_stands_for_written_out_is_the_same_
         assert (written.key, written.label()) == (unset.key, unset.label())
     assert spec("anyloc-vlad-dinov2", layer=30).label() == "anyloc-vlad-dinov2 [layer=30]"
     assert spec("anyloc-vlad-dino", stride=8).key != spec("anyloc-vlad-dino").key
+
+
+def test_fp16_runs_get_the_same_implied_layer_and_named_vocabulary_identity(tmp_path):
+    """precision=fp16 needs CUDA, which a probe on this host lacks: the layer written out is still the
+    same run, and a vocabulary named by source is still in the key (a refit is another run)."""
+    import torch
+
+    from vprbench.aggregation.vocabulary import Vocabulary
+    from vprbench.methods.anyloc_vocabulary import save_to_cache
+    from vprbench.spec import resolve_spec
+
+    half = {"precision": "fp16"}
+    assert resolve_spec("anyloc-vlad-dinov2", "corridor", options={**half, "layer": 31}).key == \
+        resolve_spec("anyloc-vlad-dinov2", "corridor", options=half).key
+    centres = torch.nn.functional.normalize(torch.randn(4, 384, generator=torch.Generator().manual_seed(0)), dim=1)
+    save_to_cache(Vocabulary(centres, {}), "dinov2_vits14@random", 1, "value", "indoor", tmp_path)
+    options = {"backbone": "dinov2_vits14", "weights": "random", "layer": 1, "clusters": 4, "vocabulary": "indoor"}
+    found = [resolve_spec("anyloc", "corridor", options={**options, **extra}, cache_dir=tmp_path).found
+             for extra in ({}, half)]
+    assert found[0]["vocabulary"].startswith("sha256:") and found[1] == found[0]

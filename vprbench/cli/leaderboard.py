@@ -72,8 +72,9 @@ def run(args) -> int:
         raise VPRBenchError(f"No run in the {args.track} track yet; the stored runs are in: {', '.join(everything.tracks)} "
                             "(--track).")
     if not board.cells:
-        raise VPRBenchError(f"None of the {len(records)} stored run(s) can fill a cell. "
-                            + left_out_lines(board.excluded).split("\n", 1)[1] if board.excluded else NO_RESULTS)
+        raise VPRBenchError(f"None of the {len(records)} stored run(s) can fill a cell: "
+                            + "; ".join(left_out_lines(board.excluded).split("\n")[1:]).replace("- run ", "run ")
+                            if board.excluded else NO_RESULTS)
     table = grid(board)
     if args.format != "table":
         say(render(table, args.format, board))

@@ -36,7 +36,7 @@ def dataset_resize(dataset: str | None) -> tuple[int, int] | None:
 def asks_native(size) -> bool:
     """`resize = "native"` written out: the image's own size, also where a policy would resize (AnyLoc
     on Pitts-30k); None leaves the choice to the policy."""
-    return isinstance(size, str) and size.strip().lower() == "native"
+    return isinstance(size, str) and size.strip().lower() in ("", "none", "native")  # as parse_size reads them
 
 
 def parse_size(size, name: str = "resize") -> tuple[int, int] | None:

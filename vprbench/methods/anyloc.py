@@ -54,6 +54,11 @@ def _aggregate(name: str, feats: torch.Tensor, centres: torch.Tensor | None, gem
     return getattr(pooling, name)(feats)
 
 
+#: a probe's settings: no centres loaded, and fp16 (CUDA only) not refused on this host; neither
+#: changes the layer, stride or what vocabularies are keyed by
+PROBE = {"vocabulary": "map", "precision": "fp32", "device": "cpu"}
+
+
 class AnyLoc(Method):
     """Global descriptors from one block/facet of DINOv2 or DINO, aggregated."""
 
@@ -129,7 +134,7 @@ class AnyLoc(Method):
         with warnings.catch_warnings():  # said again when the run creates the method
             warnings.simplefilter("ignore")
             try:  # the settings vocabularies are keyed by, without loading the model or any centres
-                probe = cls(**{**options, "vocabulary": "map"}, cache_dir=cache_dir)
+                probe = cls(**{**options, **PROBE}, cache_dir=cache_dir)
             except VPRBenchError:
                 return {}  # the run names the bad option
         found = named_identity(vocabulary, dataset, probe.vocabulary_backbone, probe.layer, probe.facet,
@@ -142,7 +147,7 @@ class AnyLoc(Method):
         with warnings.catch_warnings():  # said when the run creates the method
             warnings.simplefilter("ignore")
             try:
-                probe = cls(**{**{k: v for k, v in options.items() if k not in ("layer", "stride")}, "vocabulary": "map"})
+                probe = cls(**{**{k: v for k, v in options.items() if k not in ("layer", "stride")}, **PROBE})
             except (VPRBenchError, TypeError):
                 return {}  # the run names the bad option
         return {"layer": probe.layer, "stride": probe.stride}
@@ -158,7 +163,7 @@ class AnyLoc(Method):
             return int(layer)
         chosen = round(int(layer) * (depth - 1) / (reference_depth - 1))
         warnings.warn(f"layer {layer} is {reference}'s ({reference_depth} blocks); on {self.backbone} "
-                      f"({depth} blocks) block {chosen} at the same relative depth is used. Pass --layer to choose.",
+                      f"({depth} blocks) block {chosen} at the same relative depth is used (--layer chooses another).",
                       stacklevel=2)
         return chosen
 
