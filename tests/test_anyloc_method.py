@@ -128,12 +128,12 @@ def test_resize_native_written_out_keeps_the_native_size(weights, corridor):
 
     (image, *_), _ = corridor  # 120 x 160
     shapes = {}
-    for resize in (None, "native", "NATIVE"):
+    for resize in (None, "native", "NATIVE", "none"):  # "none": how the option's one form writes native too
         m = AnyLoc(backbone="dinov2_vits14", weights=str(weights), layer=3, aggregation="gem", resize=resize)
         m.use_dataset("pitts30k")
         shapes[resize] = (tuple(m.load(image).shape), m.fingerprint()["resize"])
     assert shapes[None] == ((3, 476, 630), [480, 640])
-    assert shapes["native"] == shapes["NATIVE"] == ((3, 112, 154), "native")  # cropped to whole 14-pixel patches
+    assert shapes["native"] == shapes["NATIVE"] == shapes["none"] == ((3, 112, 154), "native")  # cropped to whole 14-pixel patches
     unset, native = (resolve_spec("anyloc-gem-dinov2", "pitts30k", options={"weights": "random", "resize": r})
                      for r in (None, "native"))
     assert unset.key != native.key and native.options["resize"] == "native"
