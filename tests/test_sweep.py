@@ -224,10 +224,11 @@ def test_a_refitted_named_vocabulary_is_another_run_of_the_same_row(tmp_path, ow
         return capsys.readouterr().out
 
     before = resolve_spec("anyloc", own, options=options, cache_dir=cache)
-    assert before.found == {}  # nothing of that name yet: the run says how to make it
+    assert before.found == {} and "found" not in before.to_json()  # nothing yet; written as before `found` existed
     fit(0)
     first = resolve_spec("anyloc", own, options=options, cache_dir=cache)
     assert first.found["vocabulary"].startswith("sha256:") and first.key != before.key
+    assert first.to_json()["found"] == first.found
     assert "1 ran" in sweep() and "1 skipped" in sweep()
     fit(1)
     second = resolve_spec("anyloc", own, options=options, cache_dir=cache)

@@ -129,6 +129,13 @@ class RunSpec(_Frozen):
     ks: tuple[int, ...] = DEFAULT_KS
     store_dtype: Literal["float32", "float16"] = "float32"
 
+    @model_serializer(mode="wrap")
+    def _found_when_any(self, handler):
+        written = handler(self)
+        if not self.found:  # a run that names nothing in the cache is written as before `found` existed
+            written.pop("found", None)
+        return written
+
     @field_validator("version")
     @classmethod
     def _known_version(cls, version: int) -> int:
