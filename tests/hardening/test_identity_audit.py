@@ -28,6 +28,17 @@ def test_a_default_written_out_is_the_same_run_and_store(method, shorter, writte
     assert other.key != spec.key
 
 
+def test_a_list_written_as_text_is_that_list():
+    """`-o bin_sizes=4,6,8,10` (text from the command line) is dense-vlad's default list, and '4,6,8' the
+    list [4, 6, 8] written in a plan: one run each, not two."""
+    def spec(**options):
+        return resolve_spec("dense-vlad", "corridor", options=options)
+
+    assert spec(bin_sizes="4,6,8,10").key == spec().key and spec(bin_sizes="4,6,8,10").label() == "dense-vlad"
+    assert spec(bin_sizes="4, 6,8").key == spec(bin_sizes=[4, 6, 8]).key != spec().key
+    assert spec(bin_sizes="4,6,8").given == {"bin_sizes": [4, 6, 8]}
+
+
 def test_a_search_default_written_out_is_the_same_run():
     exact_default = resolve_spec("hog", "corridor", search={"index": "hnsw"})
     written = resolve_spec("hog", "corridor", search={"index": "hnsw", "options": {"hnsw_m": 32, "seed": 0,

@@ -15,6 +15,7 @@ from __future__ import annotations
 import copy
 import inspect
 import json
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
@@ -70,8 +71,11 @@ class MethodEntry:
 
     def without_defaults(self, given: dict) -> dict:
         """`given` less the options set to the value they have anyway (`cell = 16` for hog): one
-        computation, one identity (spec, store, label), whether a default is written out or not."""
+        computation, one identity (spec, store, label), whether a default is written out or not. A list
+        written as text ('4,6,8,10' from `-o bin_sizes=4,6,8,10`) for an option whose default is a list
+        is that list."""
         defaults = self.effective_defaults()
+        given = {k: _listed(v) if isinstance(defaults.get(k), (list, tuple)) else v for k, v in given.items()}
         implied = getattr(self.factory, "implied_options", None)  # an unset option's value, from the others
         defaults |= {k: v for k, v in (implied({**defaults, **given}) if callable(implied) else {}).items()
                      if defaults.get(k) is None}
@@ -188,6 +192,13 @@ def _same(name: str, value, default) -> bool:
         return json.dumps(canonical(name, value), sort_keys=True) == json.dumps(canonical(name, default), sort_keys=True)
     except (TypeError, ValueError):  # not plain data: never taken for a default
         return False
+
+
+def _listed(value):
+    """'4,6,8' (or '4') -> [4, 6, 8]; anything else as it is (the method names what it refuses)."""
+    if not isinstance(value, str) or not re.fullmatch(r"\s*-?\d+(\s*,\s*-?\d+)*\s*", value):
+        return value
+    return [int(item) for item in value.split(",")]
 
 
 def _names_a_path(value) -> bool:
