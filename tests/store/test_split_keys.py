@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import shutil
 
+import h5py
 import pytest
 
 import vprbench
@@ -89,3 +90,54 @@ def test_a_record_of_the_one_folder_layout_still_finds_its_stores(tmp_path, monk
     run_store({"context": {"store": {"folders": {"queries": "m-1/d-queries-3"}}}}, "queries", tmp_path)
     assert seen == [(tmp_path / "stores" / "m-1/d-2" / "queries.h5", "m-1/d-2/queries"),
                     (tmp_path / "stores" / "m-1/d-queries-3" / "queries.h5", "m-1/d-queries-3/queries")]
+
+
+def test_a_map_image_edited_while_fitting_leaves_no_fit_for_the_old_images(own, shared_data, tmp_path, monkeypatch):
+    """Another process edits a map image while the fit reads the database: the fit (of the new
+    bytes) must not be saved under the old images' key, to be reused once the edit is undone.
+    Was: saved, and the next run on the original images reused it (other predictions)."""
+    import store_helpers
+
+    from vprbench.errors import VPRBenchError
+
+    cache, fit = tmp_path / "cache", store_helpers.Fitted.fit
+
+    def edited_meanwhile(self, database):
+        swap(own, "database/d3.jpg", "ref/0000019.jpg", shared_data)
+        return fit(self, database)
+
+    monkeypatch.setattr(store_helpers.Fitted, "fit", edited_meanwhile)
+    with pytest.raises(VPRBenchError, match=r"d3\.jpg changed"):
+        evaluate(vprbench.create_method("fitted-test"), load_dataset(str(own)), ks=[1, 3], cache_dir=cache)
+    assert not list(cache.rglob("fit_state.h5"))
+    monkeypatch.setattr(store_helpers.Fitted, "fit", fit)
+    swap(own, "database/d3.jpg", "ref/0000003.jpg", shared_data)  # the edit undone
+    method = vprbench.create_method("fitted-test")
+    record = evaluate(method, load_dataset(str(own)), ks=[1, 3], cache_dir=cache)
+    scratch = evaluate(vprbench.create_method("fitted-test"), load_dataset(str(own)), ks=[1, 3],
+                       cache_dir=tmp_path / "scratch")
+    assert method.fits == 1 and record["top_predictions"] == scratch["top_predictions"]
+
+
+def test_two_query_sets_of_a_fit_that_cannot_be_saved_keep_their_own_database_rows(own, shared_data, tmp_path):
+    """A fit that cannot be saved differs run to run, so another query set on the same map refits
+    and describes the map again. Was: into the shared database store, replacing the rows the
+    first query set's record names (a run still searching them failed; its rerun described again)."""
+    other = tmp_path / "b" / "own"
+    shutil.copytree(own, other)
+    for i in range(4):
+        swap(other, f"queries/q{i}.jpg", f"query/{i + 4:07d}.jpg", shared_data)
+    cache = tmp_path / "cache"
+
+    def run(root):
+        method = vprbench.create_method("unsaved-test")
+        return evaluate(method, load_dataset(str(root)), ks=[1, 3], cache_dir=cache), method.fits
+
+    first, _ = run(own)
+    assert run(other)[0]["descriptors_computed"] == {"database": 6, "queries": 4}
+    with h5py.File(run_store(first, "queries", cache).path) as f:
+        fit = f.attrs["fit_id"]
+    assert run_store(first, "database", cache).identity.fit_id == fit  # the first run's rows are still there
+    again, fits = run(own)
+    assert (again["descriptors_computed"], fits) == ({"database": 0, "queries": 0}, 0)
+    assert again["top_predictions"] == first["top_predictions"]

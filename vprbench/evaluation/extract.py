@@ -24,6 +24,7 @@ from ..datasets.identity import content_hashes, image_names, images_key
 from ..distributed import Ranks
 from ..errors import VPRBenchError
 from ..fsutil import cache_error
+from ..images import reads_seen
 from ..loader import check_batch_size, describe_batches
 from ..store import (DTYPES, NO_FIT, DamagedRows, DescriptorStore, RowWriter, StoreFolder, create_rows_file, inspect_rows_file,
                      method_fingerprint, shard_range)
@@ -66,10 +67,13 @@ def describe_splits(method, splits: dict[str, list[Path]], *, root: Path | None 
     image_keys = {split: images_key(paths, root, digests=digests[split]) for split, paths in splits.items()}
     fingerprint = method_fingerprint(method, store_dtype)
     folder = StoreFolder(method.name, fingerprint, label, split_keys(method, image_keys), cache_dir)
+    if (method.needs_fit and "queries" in splits and not folder.fit_path.exists()
+            and (folder.paths["queries"] / f"{FIT_SPLIT}.h5").exists()):  # described with a fit never saved
+        folder.keep_database_with_queries()
     ranks.agree({"fingerprint": fingerprint, "images": image_keys,
                  "store": {split: str(path.resolve()) for split, path in folder.paths.items()}},
                 "the method, the images or the cache folder")
-    job = _Job(method, splits, names, folder, store_dtype, workers, ranks, progress, label, digests)
+    job = _Job(method, splits, names, folder, store_dtype, workers, ranks, progress, label, digests, cache_dir)
     computed = {split: 0 for split in splits}
     timings = {"fit_s": 0.0, **{f"{split}_s": 0.0 for split in splits}}
 
@@ -114,8 +118,9 @@ def split_keys(method, image_keys: dict[str, str]) -> dict:
 
 class _Job:
     def __init__(self, method, splits, names, folder: StoreFolder, dtype, workers, ranks: Ranks, progress, label,
-                 digests):
+                 digests, cache_dir=None):
         self.method, self.splits, self.names, self.folder, self.digests = method, splits, names, folder, digests
+        self.cache_dir = cache_dir  # the content memo's (datasets.identity.content_hashes)
         self.dtype, self.workers, self.ranks, self.progress, self.label = dtype, workers, ranks, progress, label
 
     # ---------------------------------------------------------------- rank 0
@@ -154,7 +159,9 @@ class _Job:
                 started = time.perf_counter()
                 with phase(self.progress if self.ranks.rank == 0 else None,
                            f"{self.method.name} {self.label} fitting on {len(self.splits[FIT_SPLIT]):,} database images"):
-                    self.method.fit(self.splits[FIT_SPLIT])
+                    with reads_seen() as seen:
+                        self.method.fit(self.splits[FIT_SPLIT])
+                self._check_fitted_images(seen)
                 timings["fit_s"] = time.perf_counter() - started
                 state = {k: np.asarray(v) for k, v in (self.method.fit_state() or {}).items()}
                 if state:
@@ -164,6 +171,8 @@ class _Job:
                                         "empty, so other ranks cannot share the fit: run it in one process.")
                 else:
                     fit_id = unsaved_fit_id()  # nothing described with an unsaved fit is ever resumed
+                    if "queries" in self.splits:
+                        self.folder.keep_database_with_queries()
         todo = []
         for split in self.splits:
             path = self.folder.store_path(split)
@@ -176,6 +185,20 @@ class _Job:
                 self.folder.discard(path, found.reason or "it is not complete")
             todo.append(split)
         return todo, fit_id, state if self.ranks.distributed else None
+
+    def _check_fitted_images(self, seen: dict[str, str]) -> None:
+        """The fit is saved under the database's key: refuse it when an image it read (or one it may
+        have read outside load_image: its content now, by the memo, so a stat unless it changed) is not
+        the one that key names (edited meanwhile)."""
+        paths = self.splits[FIT_SPLIT]
+        unseen = [p for p in paths if os.path.abspath(p) not in seen]
+        now = dict(zip(map(os.path.abspath, unseen), content_hashes(unseen, self.cache_dir)))
+        for path, expected in zip(paths, self.digests[FIT_SPLIT]):
+            got = seen.get(os.path.abspath(path)) or now[os.path.abspath(path)]
+            if got != expected:
+                raise VPRBenchError(f"Image {path} changed while {self.method.name} fitted on the database (sha256 "
+                                    f"{expected[:12]}… expected, {got[:12]}… read): the fit is not saved. Let "
+                                    "whatever is writing the images finish, then run again.")
 
     def _save_fit(self, state: dict) -> str:
         try:

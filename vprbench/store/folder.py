@@ -107,6 +107,11 @@ class StoreFolder:
         self.fit_key = self.keys[fit_split]  # the method and the database images it was fitted on
         self.fit_path = self.paths[fit_split] / "fit_state.h5"
 
+    def keep_database_with_queries(self) -> None:
+        """A fit that cannot be saved: the database rows described with it serve this query set
+        alone (another would refit and replace them under it), so they live in the queries' folder."""
+        self.keys["database"], self.paths["database"] = self.keys["queries"], self.paths["queries"]
+
     # ------------------------------------------------------------ names
     def store_path(self, split: str) -> Path:
         return self.paths[split] / f"{split}.h5"
