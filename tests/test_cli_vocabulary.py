@@ -116,3 +116,14 @@ def test_fit_with_the_anyloc_method_then_use_by_name(shared_data, tmp_path, caps
     images = sorted((shared_data / "corridor" / "query").glob("*.jpg"))[:2]
     out = method.describe(images)
     assert out.shape == (2, 4 * 384) and np.allclose(np.linalg.norm(out, axis=1), 1, atol=1e-5)
+
+
+def test_a_named_vocabulary_that_is_no_domain_is_not_told_to_fit_one(tmp_path):
+    """'urbn' cannot be fitted with `--domain urbn` (no such domain): the error names the near domain and import."""
+    with pytest.raises(VPRBenchError) as caught:
+        resolve_vocabulary("urbn", "dinov2_vits14", 9, "value", 4, tmp_path)
+    said = str(caught.value)
+    assert "Did you mean: urban?" in said and "vocabulary import FILE --source urbn" in said
+    assert "--domain urbn" not in said and "\n" not in said
+    with pytest.raises(VPRBenchError, match=r"Fit it with `vprbench vocabulary fit --domain urban \.\.\.`"):
+        resolve_vocabulary("urban", "dinov2_vits14", 9, "value", 4, tmp_path)

@@ -7,6 +7,7 @@ import shutil
 import socket
 
 import pytest
+import torch
 
 from vprbench import VPRBenchError, create_method
 from vprbench.methods.anyloc_vocabulary import fetch_released, paper_choice, release, released_path, released_sources
@@ -106,3 +107,24 @@ def test_damaged_file_is_downloaded_again_and_offline_says_where_it_goes(release
                                             r"AnyLoc/Revisit-Anything/89cade5529a590c4ed2999b396dcd3cab86e275b/"
                                             r"cache/vocabulary/dinov2_vitg14/l31_value_c32/urban/c_centers\.pt"):
         fetch_released("urban")
+
+
+def test_importing_the_released_file_keeps_the_runs_key(tmp_path, shared_data, no_network):
+    """`vocabulary import c_centers.pt --source urban` places the authors' file: a run naming 'urban' is
+    known by their published sha256 before and after (re-saving it made another key: every cell ran again)."""
+    from vprbench.spec import resolve_spec
+
+    cache = tmp_path / "cache"
+    before = resolve_spec("anyloc-vlad-dinov2", "pitts30k", cache_dir=cache)
+    released = shared_data / "vocabularies" / "anyloc-dinov2_vitg14-l31-value-c32" / "urban" / "c_centers.pt"
+    assert main(["vocabulary", "import", str(released), "--source", "urban", "--cache-dir", str(cache)]) == 0
+    after = resolve_spec("anyloc-vlad-dinov2", "pitts30k", cache_dir=cache)
+    assert before.found == after.found == {"vocabulary": "sha256:" + release()["sha256"]["urban"]}
+    assert after.key == before.key
+    method = create_method("anyloc-vlad-dinov2", vocabulary="urban", cache_dir=cache)
+    assert method.provenance()["vocabulary"]["source"] == "released"
+    # imported for other features (the centres are ViT-G block 31's), it carries the setting it was given,
+    # so the folder of another block never takes it for its own without saying so
+    assert main(["vocabulary", "import", str(released), "--source", "urban", "--layer", "20", "--cache-dir", str(cache)]) == 0
+    (other,) = (cache / "vocabularies").glob("dinov2_vitg14-l20-value-c32/urban/*")
+    assert other.name == "vocabulary.pt" and torch.load(other, weights_only=True)["meta"]["layer"] == 20

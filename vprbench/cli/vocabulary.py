@@ -113,8 +113,12 @@ def check_fit_sizes(args, width: int | None) -> None:
 
 
 def run_import(args) -> int:
-    from ..methods.anyloc_vocabulary import save_to_cache
-    from ..aggregation.vocabulary import load_vocabulary
+    from pathlib import Path
+
+    from ..methods.anyloc_vocabulary import release, released_setting, save_to_cache
+    from ..aggregation.vocabulary import RELEASED_FILE, load_vocabulary, vocabulary_dir
+    from ..fsutil import atomic_write
+    from ..weights import file_sha256
     from ..features.backbones import RANDOM
     from ..features.catalogue import backbone_spec
     from ..methods.checks import choice, whole
@@ -134,8 +138,17 @@ def run_import(args) -> int:
                             "domains`), map-DATASET, or another name of letters, digits, '_' and '-'.")
     vocabulary = load_vocabulary(args.path)
     vocabulary.check_dim(spec.width)
-    vocabulary.meta["imported_from"] = vocabulary.meta.pop("path")
-    path = save_to_cache(vocabulary, args.backbone, args.layer, args.facet, args.source, args.cache_dir)
+    source_file = Path(vocabulary.meta["path"])
+    released = (args.backbone, args.layer, args.facet, vocabulary.clusters) == released_setting()
+    if released and file_sha256(source_file) in release()["sha256"].values():
+        # the authors' file for their setting, placed as it is: a run naming it keeps its key (their
+        # published sha256); under another setting it is saved with the metadata that names it
+        path = vocabulary_dir(args.backbone, args.layer, args.facet, vocabulary.clusters, args.source,
+                              args.cache_dir) / RELEASED_FILE  # under the authors' own file name
+        atomic_write(path, source_file.read_bytes())
+    else:
+        vocabulary.meta["imported_from"] = vocabulary.meta.pop("path")
+        path = save_to_cache(vocabulary, args.backbone, args.layer, args.facet, args.source, args.cache_dir)
     print(f"Imported {vocabulary.clusters} x {vocabulary.dim} centres as {args.source!r} -> {path}")
     return 0
 

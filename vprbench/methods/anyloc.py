@@ -19,7 +19,8 @@ import torch.nn.functional as F
 from ..aggregation import pooling, vlad
 from ..aggregation.pca import PCAWhitening
 from .anyloc_vocabulary import (
-    MAP_PREFIX, named_identity, names_file, paper_choice, released_provenance, resolve_vocabulary, vocabulary_images,
+    MAP_PREFIX, bare_folder_identity, named_identity, names_file, paper_choice, released_provenance, resolve_vocabulary,
+    vocabulary_images,
 )
 from ..aggregation.vlad import vlad_hard
 from ..aggregation.vocabulary import fit_vocabulary
@@ -128,9 +129,10 @@ class AnyLoc(Method):
     def cached_identities(cls, options: dict, dataset: str, cache_dir=None) -> dict[str, str]:
         """A vocabulary named by source ("urban", "domain"), by the content it resolves to now."""
         vocabulary = options.get("vocabulary", "map")
-        if options.get("aggregation", "vlad") not in VLADS or not isinstance(vocabulary, str) \
-                or vocabulary == "map" or names_file(vocabulary):
+        if options.get("aggregation", "vlad") not in VLADS or not isinstance(vocabulary, str) or vocabulary == "map":
             return {}
+        if names_file(vocabulary):
+            return bare_folder_identity(vocabulary)
         with warnings.catch_warnings():  # said again when the run creates the method
             warnings.simplefilter("ignore")
             try:  # the settings vocabularies are keyed by, without loading the model or any centres

@@ -250,6 +250,19 @@ def names_file(option: str) -> bool:
     return path.suffix in (".pt", ".npy") or "/" in option or path.exists()
 
 
+def bare_folder_identity(option: str) -> dict[str, str]:
+    """{"vocabulary": "sha256:<hex>"} of the file a folder named by a bare word ('urban' in the authors'
+    unpacked release) holds: spec.files takes a bare word for a name, but the method loads that file."""
+    from ..content_identity import folder_identity
+    from ..weights import file_sha256
+
+    folder = Path(option).expanduser()
+    if not folder.is_dir() or folder_identity(option) is not None:
+        return {}
+    chosen = next((folder / name for name in (VOCABULARY_FILE, RELEASED_FILE) if (folder / name).is_file()), None)
+    return {} if chosen is None else {"vocabulary": "sha256:" + file_sha256(chosen)}
+
+
 def named_identity(option: str, dataset: str, backbone: str, layer: int, facet: str, clusters: int,
                    cache_dir=None) -> str | None:
     """What a vocabulary named by source ("urban", "map-pitts30k", or "domain": the paper's for
@@ -291,11 +304,16 @@ def resolve_vocabulary(spec: str, backbone: str, layer: int, facet: str, cluster
             vocabulary = load_vocabulary(fetch_released(spec, cache_dir))
         if vocabulary is None:
             where = vocabulary_dir(backbone, layer, facet, clusters, spec, cache_dir)
-            how = f"--dataset {spec[len(MAP_PREFIX):]}" if spec.startswith(MAP_PREFIX) else f"--domain {spec}"
+            if spec.startswith(MAP_PREFIX) or spec in domain_names():
+                how = f"--dataset {spec[len(MAP_PREFIX):]}" if spec.startswith(MAP_PREFIX) else f"--domain {spec}"
+                how = f"Fit it with `vprbench vocabulary fit {how} ...`"
+            else:  # no domain to fit: a typo, or a name only `vocabulary import` gives
+                how = (f"{spec!r} is no domain ({', '.join(domain_names())}) nor map-DATASET."
+                       f"{closest_names(spec, domain_names())} Name one, or put your centres under this name with "
+                       f"`vprbench vocabulary import FILE --source {spec}`")
             raise VPRBenchError(
                 f"No {spec!r} vocabulary for {backbone} layer {layer} {facet} with {clusters} clusters "
-                f"(looked in {where}). Fit it with `vprbench vocabulary fit {how} ...`, or pass "
-                "the path of the authors' released c_centers.pt as the vocabulary."
+                f"(looked in {where}). {how}, or pass the path of the authors' released c_centers.pt as the vocabulary."
             )
     check_clusters(vocabulary, clusters, spec)
     return vocabulary
