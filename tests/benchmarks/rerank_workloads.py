@@ -84,14 +84,15 @@ def run(data: Path, cache: Path, name: str, options: dict) -> dict:
     seconds = time.perf_counter() - started
     peak = rss_kb("VmHWM:")
     store, images = context.stores[0], len(np.unique(nearest))
-    stored = store.file("database")
+    stored = sum(path.stat().st_size for path in store.files("database"))  # the split's segment files
     positives = dataset.positives
     at_1 = lambda found_rows: float(np.mean([row[0] in positives[q] for q, row in zip(chosen, found_rows)]))  # noqa: E731
     return {"stage": name, "options": stage.options.model_dump(mode="json"), "queries": len(chosen), "depth": DEPTH,
             "database_images_touched": images, "seconds": round(seconds, 1),
             "ms_per_query": round(1000 * seconds / len(chosen), 1), "features_computed": context.features_computed,
             "array_bytes_per_database_image": round(store.bytes_per_image("database")),
-            "file_bytes_per_database_image": round(stored.stat().st_size / images),
+            "file_bytes_per_database_image": round(stored / images),
+            "database_segment_files": len(store.files("database")),
             "rss_before_mb": round(base / 1024, 1), "peak_rss_mb": round(peak / 1024, 1),
             "mean_top_score": round(float(found.scores[:, 0].mean()), 1),
             "r1_before": round(100 * at_1(candidates.indices), 1), "r1_after": round(100 * at_1(found.indices), 1)}
