@@ -238,3 +238,30 @@ def test_a_refitted_named_vocabulary_is_another_run_of_the_same_row(tmp_path, ow
     assert len(runs) == 2 and len({r["row_key"] for r in runs}) == 1
     assert runs[0]["method_fingerprint"]["vocabulary"] != runs[1]["method_fingerprint"]["vocabulary"]
     assert [r["spec"]["found"] for r in runs] == [first.found, second.found]
+
+
+def test_a_vocabulary_refitted_after_the_run_was_planned_is_refused(tmp_path, own):
+    """A sweep makes its specs first: a vocabulary fitted again before a cell runs would give a record
+    naming the earlier centres (its key) while holding results of the new ones. Refused, one line."""
+    import torch
+
+    from vprbench import VPRBenchError
+    from vprbench.aggregation.vocabulary import Vocabulary
+    from vprbench.evaluation import evaluate
+    from vprbench.methods.anyloc_vocabulary import save_to_cache
+    from vprbench.spec import RunSettings, resolve_spec
+
+    cache = tmp_path / "cache"
+    options = {"backbone": "dinov2_vits14", "weights": "random", "layer": 1, "clusters": 4, "vocabulary": "indoor",
+               "resize": [56, 56]}
+    def fit(seed):
+        centres = torch.nn.functional.normalize(torch.randn(4, 384, generator=torch.Generator().manual_seed(seed)), dim=1)
+        save_to_cache(Vocabulary(centres, {}), "dinov2_vits14@random", 1, "value", "indoor", cache)
+
+    fit(0)
+    planned = resolve_spec("anyloc", own, options=options, cache_dir=cache)
+    fit(1)
+    with pytest.raises(VPRBenchError, match=r"anyloc: the vocabulary it names changed in the cache after this "
+                                            r"run was planned \(sha256:\w+ then, sha256:\w+ now"):
+        evaluate(planned, RunSettings(cache_dir=cache))
+    assert evaluate(resolve_spec("anyloc", own, options=options, cache_dir=cache), RunSettings(cache_dir=cache))

@@ -50,6 +50,22 @@ def create_run_method(name: str, given: dict, settings: RunSettings):
                          cache_dir=settings.cache_dir, data_dir=settings.data_dir)
 
 
+def check_found(spec: RunSpec, dataset: str, cache_dir) -> None:
+    """What the spec found in the cache by name (spec.found) is what the method has just loaded:
+    refitted meanwhile (a sweep's specs are made before its cells run), the record would name the
+    earlier content while holding results of the new."""
+    if not spec.found:
+        return
+    from ..methods.registry import method_entry
+
+    now = method_entry(spec.method).cached_identities(spec.options, dataset, cache_dir)
+    changed = sorted(k for k in set(now) | set(spec.found) if now.get(k) != spec.found.get(k))
+    if changed:
+        raise VPRBenchError(f"{spec.method}: the {', '.join(changed)} it names changed in the cache after this run was "
+                            f"planned ({spec.found[changed[0]] if changed[0] in spec.found else 'none'} then, "
+                            f"{now.get(changed[0], 'none')} now; fitted or placed again meanwhile): run it again.")
+
+
 def loader_workers(settings: RunSettings, method) -> int:
     """--workers, else the loader's default for the method's device."""
     from ..loader import default_workers
@@ -132,6 +148,7 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
 
         frozen = read_candidates(settings.candidates, spec, len(dataset.queries), len(dataset.database), depth)
     method.use_dataset(dataset.name)
+    check_found(spec, dataset.name, settings.cache_dir)
     post = method.postprocessor()
     if post is not None and hasattr(post, "check_rows"):  # e.g. PCA wider than the database: before describing it
         post.check_rows(len(dataset.database), dataset.name)
