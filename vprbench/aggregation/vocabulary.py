@@ -188,17 +188,20 @@ def centres_checksum(centres: torch.Tensor) -> int:
     return zlib.crc32(np.ascontiguousarray(centres.float().cpu().numpy(), dtype="<f4").tobytes())
 
 
+def vocabulary_file_in(folder: Path) -> Path | None:
+    """The file a vocabulary folder is read from: ours (`vocabulary.pt`), else the authors' `c_centers.pt`."""
+    return next((folder / name for name in (VOCABULARY_FILE, RELEASED_FILE) if (folder / name).is_file()), None)
+
+
 def load_vocabulary(path: str | Path) -> Vocabulary:
     """A vocabulary file: ours (`vocabulary.pt`) or the authors' released `c_centers.pt`
     (a bare tensor); a folder holding either file is accepted too."""
     path = Path(path).expanduser()
     if path.is_dir():
-        for name in (VOCABULARY_FILE, RELEASED_FILE):
-            if (path / name).is_file():
-                path = path / name
-                break
-        else:
+        held = vocabulary_file_in(path)
+        if held is None:
             raise VPRBenchError(f"Folder {path} holds neither {VOCABULARY_FILE} nor {RELEASED_FILE}.")
+        path = held
     if not path.is_file():
         raise VPRBenchError(f"Vocabulary file {path} does not exist: check the path (a .pt or .npy file of centres, "
                             f"or a folder holding {VOCABULARY_FILE} or {RELEASED_FILE}).")

@@ -36,12 +36,12 @@ def dataset_resize(dataset: str | None) -> tuple[int, int] | None:
 def asks_native(size) -> bool:
     """`resize = "native"` written out: the image's own size, also where a policy would resize (AnyLoc
     on Pitts-30k); None leaves the choice to the policy."""
-    return isinstance(size, str) and size.strip().lower() in ("", "none", "native")  # as parse_size reads them
+    return isinstance(size, str) and size.strip().lower() in ("", "none", "native")
 
 
 def parse_size(size, name: str = "resize") -> tuple[int, int] | None:
     """(H, W) from a (H, W) pair, "HxW" / "H,W", one number for a square, or None / "native"."""
-    if size is None or (isinstance(size, str) and size.strip().lower() in ("", "none", "native")):
+    if size is None or asks_native(size):
         return None
     if isinstance(size, str):
         parts = [p.strip() for p in size.lower().replace("x", ",").split(",") if p.strip()]

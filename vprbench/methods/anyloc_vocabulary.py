@@ -19,7 +19,7 @@ from typing import Callable, Iterable, Sequence
 
 from ..aggregation.vocabulary import (
     DEFAULT_BUDGET, KMEANS_SEED, RELEASED_FILE, VOCABULARY_FILE, Vocabulary, fit_vocabulary, load_vocabulary,
-    vocabulary_dir,
+    vocabulary_dir, vocabulary_file_in,
 )
 from ..errors import VPRBenchError, closest_names
 
@@ -237,11 +237,7 @@ def cached_vocabulary_file(source: str, backbone: str, layer: int, facet: str, c
     released = released_name(source)
     if released:
         folders.append(folders[0].parent / released)
-    for folder in folders:
-        for name in (VOCABULARY_FILE, RELEASED_FILE):
-            if (folder / name).is_file():
-                return folder / name
-    return None
+    return next(filter(None, map(vocabulary_file_in, folders)), None)
 
 
 def names_file(option: str) -> bool:
@@ -259,7 +255,7 @@ def bare_folder_identity(option: str) -> dict[str, str]:
     folder = Path(option).expanduser()
     if not folder.is_dir() or folder_identity(option) is not None:
         return {}
-    chosen = next((folder / name for name in (VOCABULARY_FILE, RELEASED_FILE) if (folder / name).is_file()), None)
+    chosen = vocabulary_file_in(folder)
     return {} if chosen is None else {"vocabulary": "sha256:" + file_sha256(chosen)}
 
 
