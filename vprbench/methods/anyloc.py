@@ -55,11 +55,6 @@ def _aggregate(name: str, feats: torch.Tensor, centres: torch.Tensor | None, gem
     return getattr(pooling, name)(feats)
 
 
-#: a probe's settings: no centres loaded, and fp16 (CUDA only) not refused on this host; neither
-#: changes the layer, stride or what vocabularies are keyed by
-PROBE = {"vocabulary": "map", "precision": "fp32", "device": "cpu"}
-
-
 class AnyLoc(Method):
     """Global descriptors from one block/facet of DINOv2 or DINO, aggregated."""
 
@@ -133,26 +128,28 @@ class AnyLoc(Method):
             return {}
         if names_file(vocabulary):
             return bare_folder_identity(vocabulary)
-        with warnings.catch_warnings():  # said again when the run creates the method
-            warnings.simplefilter("ignore")
-            try:  # the settings vocabularies are keyed by, without loading the model or any centres
-                probe = cls(**{**options, **PROBE}, cache_dir=cache_dir)
-            except VPRBenchError:
-                return {}  # the run names the bad option
-        found = named_identity(vocabulary, dataset, probe.vocabulary_backbone, probe.layer, probe.facet,
-                               probe.clusters, cache_dir)
+        probe = cls._probe(options, cache_dir)  # the settings vocabularies are keyed by
+        found = probe and named_identity(vocabulary, dataset, probe.vocabulary_backbone, probe.layer, probe.facet,
+                                         probe.clusters, cache_dir)
         return {"vocabulary": found} if found else {}
 
     @classmethod
     def implied_options(cls, options: dict) -> dict:
         """The block and stride an unset `layer`/`stride` stand for on this backbone."""
-        with warnings.catch_warnings():  # said when the run creates the method
+        probe = cls._probe({k: v for k, v in options.items() if k not in ("layer", "stride")})
+        return {"layer": probe.layer, "stride": probe.stride} if probe else {}
+
+    @classmethod
+    def _probe(cls, options: dict, cache_dir=None) -> "AnyLoc | None":
+        """The method these options make, without loading the model or any centres; None when an option
+        is bad (the run names it). Its notes are said when the run creates the method. No centres, and
+        fp32 on the CPU (fp16 needs CUDA): neither changes the layer, stride or vocabulary keys."""
+        with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             try:
-                probe = cls(**{**{k: v for k, v in options.items() if k not in ("layer", "stride")}, **PROBE})
+                return cls(**{**options, "vocabulary": "map", "precision": "fp32", "device": "cpu"}, cache_dir=cache_dir)
             except (VPRBenchError, TypeError):
-                return {}  # the run names the bad option
-        return {"layer": probe.layer, "stride": probe.stride}
+                return None
 
     # ------------------------------------------------------------ configuration
     def _preset_layer(self, layer_for: str) -> int:
