@@ -73,8 +73,7 @@ def run(args) -> int:
                             "(--track).")
     if not board.cells:
         raise VPRBenchError(f"None of the {len(records)} stored run(s) can fill a cell: "
-                            + "; ".join(left_out_lines(board.excluded).split("\n")[1:]).replace("- run ", "run ")
-                            if board.excluded else NO_RESULTS)
+                            + "; ".join(sum(named_left_out(board.excluded), [])) if board.excluded else NO_RESULTS)
     table = grid(board)
     if args.format != "table":
         say(render(table, args.format, board))
@@ -96,18 +95,22 @@ def run(args) -> int:
 NAMED = 5
 
 
-def left_out_lines(excluded: list) -> str:
-    """The runs left out of every cell, named as the site's "Runs left out" does: run id (its time
-    first), row label, dataset and why. The console writes control characters out."""
+def named_left_out(excluded: list) -> tuple[list[str], list[str]]:
+    """The runs left out of every cell as the site's "Runs left out" names them, the first NAMED of
+    them: run id (its time first), row label, dataset and why; then how many more. The console
+    writes control characters out."""
     from ..leaderboard.shown import left_out
 
-    lines = [f"{len(excluded)} run(s) left out of every cell:"]
-    for record, why in excluded[:NAMED]:
-        run, label, dataset = left_out(record)
-        lines.append(f"- run {run}, {label} on {dataset}: {why}")
-    if len(excluded) > NAMED:
-        lines.append(f"and {len(excluded) - NAMED} more (all under \"Runs left out\" in 'vprbench leaderboard publish').")
-    return "\n".join(lines)
+    named = [f"run {run}, {label} on {dataset}: {why}"
+             for (run, label, dataset), why in ((left_out(record), why) for record, why in excluded[:NAMED])]
+    more = len(excluded) - NAMED
+    return named, ([f"and {more} more (all under \"Runs left out\" in 'vprbench leaderboard publish')."]
+                   if more > 0 else [])
+
+
+def left_out_lines(excluded: list) -> str:
+    named, more = named_left_out(excluded)
+    return "\n".join([f"{len(excluded)} run(s) left out of every cell:", *(f"- {line}" for line in named), *more])
 
 
 def unread(skipped: list) -> int:

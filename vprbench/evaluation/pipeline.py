@@ -59,11 +59,11 @@ def check_found(spec: RunSpec, dataset: str, cache_dir) -> None:
     from ..methods.registry import method_entry
 
     now = method_entry(spec.method).cached_identities(spec.options, dataset, cache_dir)
-    changed = sorted(k for k in set(now) | set(spec.found) if now.get(k) != spec.found.get(k))
-    if changed:
-        raise VPRBenchError(f"{spec.method}: the {', '.join(changed)} it names changed in the cache after this run was "
-                            f"planned ({spec.found[changed[0]] if changed[0] in spec.found else 'none'} then, "
-                            f"{now.get(changed[0], 'none')} now; fitted or placed again meanwhile): run it again.")
+    for option in sorted(set(now) | set(spec.found)):
+        if now.get(option) != spec.found.get(option):
+            raise VPRBenchError(f"{spec.method}: the {option} it names changed in the cache after this run was planned "
+                                f"({spec.found.get(option, 'none')} then, {now.get(option, 'none')} now; fitted or "
+                                "placed again meanwhile): run it again.")
 
 
 def loader_workers(settings: RunSettings, method) -> int:
