@@ -35,8 +35,8 @@ def require(value, kind, what: str) -> None:
 #: errno -> what to do; {move} becomes "point --cache-dir at" (or --data-dir) when the path lies under one
 _WHAT_TO_DO = {
     codes.EROFS: "{move} a folder on a writable disk",
-    codes.ENOSPC: "free some space, or {move} a folder on another disk (finished descriptors are kept)",
-    codes.EDQUOT: "free some space, or {move} a folder on another disk (finished descriptors are kept)",
+    codes.ENOSPC: "free some space, or {move} a folder on another disk ({kept} are kept)",
+    codes.EDQUOT: "free some space, or {move} a folder on another disk ({kept} are kept)",
     codes.EFBIG: "the file size limit (ulimit -f) or the filesystem's largest file is reached: raise the limit, or "
                  "{move} a folder on another disk",
     codes.EACCES: "change its permissions, or {move} a folder this user may write to",
@@ -94,9 +94,9 @@ def _move(path: str | None) -> str:
     return "use"
 
 
-def os_error_message(error: OSError, path: str | os.PathLike | None = None) -> str:
+def os_error_message(error: OSError, path: str | os.PathLike | None = None, kept: str = "finished descriptors") -> str:
     """One sentence for an operating-system error: the path (`path`, else the one the error is
-    about), what went wrong, what to do."""
+    about), what went wrong, what to do (on a full disk: that `kept` are kept)."""
     path = os.fspath(path) if path is not None else _path_of(error)
     where = f" {path}" if path else " a file (the system did not say which)"
     if getattr(error, "lock_file", None) or isinstance(error, TimeoutError):
@@ -107,4 +107,4 @@ def os_error_message(error: OSError, path: str | os.PathLike | None = None) -> s
         number = codes.ENOTDIR  # making a folder where a file stands: the file is the problem, not a clash
     reason = os.strerror(number) if number else (str(error) or type(error).__name__)
     advice = _WHAT_TO_DO.get(number)
-    return f"Cannot use{where}: {reason}" + (f"; {advice.format(move=_move(path))}." if advice else ".")
+    return f"Cannot use{where}: {reason}" + (f"; {advice.format(move=_move(path), kept=kept)}." if advice else ".")

@@ -33,20 +33,35 @@ from .text import literal
 class CacheError(VPRBenchError):
     """A file under the cache (or an output path) could not be read or written."""
 
+    #: the operating system's error number it came from (ENOSPC: a full disk), when it came from one
+    errno: int | None = None
+
 
 class LockTimeout(CacheError):
     """Waited longer than the given timeout for a lock."""
 
 
-def cache_error(error: Exception, path: str | os.PathLike | None = None) -> CacheError:
-    """One clear message (errors.os_error_message: the path, what went wrong, what to do) for an
-    `OSError`, or for HDF5's `RuntimeError`, which carries the errno only in its text. `path`
-    names the file when the error itself does not."""
-    if not isinstance(error, OSError):
-        found = re.search(r"errno = (\d+)", str(error))
-        number = int(found.group(1)) if found else errno.EIO
+def cache_error(error: Exception, path: str | os.PathLike | None = None, **said) -> CacheError:
+    """One clear message (errors.os_error_message: the path, what went wrong, what to do; `said`: its
+    wording, e.g. what a full disk keeps) for an `OSError`, for HDF5's `RuntimeError`, which carries
+    the errno only in its text, or for a CacheError to be said again. `path` names the file when the
+    error itself does not."""
+    if isinstance(error, CacheError) or not isinstance(error, OSError):
+        number = getattr(error, "errno", None) or _errno_in(error) or errno.EIO
         error = OSError(number, os.strerror(number))
-    return CacheError(os_error_message(error, None if error.filename is not None else path))
+    return _failed(error, None if error.filename is not None else path, **said)
+
+
+def _errno_in(error: Exception) -> int | None:
+    """The errno HDF5 writes into its errors' text only."""
+    found = re.search(r"errno = (\d+)", str(error))
+    return int(found.group(1)) if found else None
+
+
+def _failed(error: OSError, path, **said) -> CacheError:
+    failure = CacheError(os_error_message(error, path, **said))
+    failure.errno = error.errno or _errno_in(error)
+    return failure
 
 
 def _sync_folder(folder: Path) -> None:
@@ -72,7 +87,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     except OSError as error:  # name the folder that refuses files, not a temporary name
         too_long = error.errno == errno.ENAMETOOLONG  # then the fault is the file's own name
-        raise CacheError(os_error_message(error, path if too_long else path.parent)) from None
+        raise _failed(error, path if too_long else path.parent) from None
     os.close(fd)
     temporary = Path(name)
     try:
@@ -86,7 +101,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         _sync_folder(path.parent)
     except OSError as error:
         temporary.unlink(missing_ok=True)
-        raise CacheError(os_error_message(error, path)) from None  # the target, not the temporary name
+        raise _failed(error, path) from None  # the target, not the temporary name
     except BaseException:
         temporary.unlink(missing_ok=True)
         raise

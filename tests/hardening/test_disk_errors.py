@@ -191,8 +191,8 @@ def test_full_disk_while_local_features_are_kept_keeps_what_was_written(mounts, 
     assert code == 1 and "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert re.fullmatch(
         f"error: Cannot use {re.escape(str(features))}/(database|queries)\\.\\d+\\.h5: No space left on device; "
-        r"free some space, then rerun \(the local features written so far are kept\), or point --cache-dir at a "
-        r"folder on another disk\.", err.strip()), err
+        r"free some space, or point --cache-dir at a folder on another disk \(the local features written so far "
+        r"are kept\)\.", err.strip()), err
     kept = set()
     for path in features.glob("*.h5"):
         with h5py.File(path, "r") as f:

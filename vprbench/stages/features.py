@@ -18,10 +18,8 @@ segment holding an image wins.
 """
 from __future__ import annotations
 
-import errno
 import json
 import os
-import re
 import warnings
 import zlib
 from collections import OrderedDict
@@ -208,13 +206,8 @@ class FeatureStore:
                     handle.close()
                 finally:
                     close_quietly(handle)  # after a failed write (a full disk) the close fails too
-        except (OSError, RuntimeError, CacheError) as error:
-            number = error.errno if isinstance(error, OSError) else _errno(str(error))
-            if number in (errno.ENOSPC, errno.EDQUOT):
-                raise VPRBenchError(f"Cannot use {path}: {os.strerror(number)}; free some space, then rerun (the "
-                                    "local features written so far are kept), or point --cache-dir at a folder on "
-                                    "another disk.") from None
-            raise error if isinstance(error, CacheError) else cache_error(error, path) from None
+        except (OSError, RuntimeError, CacheError) as error:  # a full disk: the segments before this one are kept
+            raise cache_error(error, path, kept="the local features written so far") from None
         return path
 
     def bytes_per_image(self, split: str = "database") -> float:
@@ -233,14 +226,6 @@ class FeatureStore:
 
 def _size(images) -> int:
     return sum(a.nbytes for arrays in images for a in arrays.values())
-
-
-def _errno(text: str) -> int | None:
-    """The errno HDF5 (a RuntimeError) or a CacheError's OSError carried: in HDF5's text, or by its strerror."""
-    found = re.search(r"errno = (\d+)", text)
-    if found:
-        return int(found.group(1))
-    return next((n for n in (errno.ENOSPC, errno.EDQUOT) if os.strerror(n) in text), None)
 
 
 def _created(path: Path) -> h5py.File:
