@@ -26,7 +26,7 @@ import math
 from collections.abc import Iterable, Mapping
 from numbers import Real
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, ValidationError, field_validator, model_serializer
 
@@ -50,6 +50,17 @@ def plain(value: Any) -> Any:
 # ---------------------------------------------------------------- the specification
 class _Frozen(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
+    #: fields added later, written (and hashed) only when they hold something: a spec without them
+    #: is written as before they existed
+    _written_when_any: ClassVar[tuple[str, ...]] = ()
+
+    @model_serializer(mode="wrap")
+    def _without_empty_later_fields(self, handler):
+        written = handler(self)
+        for name in self._written_when_any:
+            if not getattr(self, name):
+                written.pop(name, None)
+        return written
 
 
 class SearchSpec(_Frozen):
@@ -70,13 +81,7 @@ class StageSpec(_Frozen):
     options: dict[str, Any] = {}
     #: option -> the content of the file it names (`Stage.file_identities`); written only when there is one
     files: dict[str, Any] = {}
-
-    @model_serializer(mode="wrap")
-    def _files_when_any(self, handler):
-        found = handler(self)
-        if not self.files:  # a stage without files is written (and hashed) as before files existed
-            found.pop("files", None)
-        return found
+    _written_when_any: ClassVar[tuple[str, ...]] = ("files",)
 
     def identity(self) -> dict:
         """What the stage computes: its name and options, files by content instead of their paths."""
@@ -123,18 +128,12 @@ class RunSpec(_Frozen):
     #: option -> the content of what it named in the cache when the spec was made (an AnyLoc vocabulary
     #: named "urban" or "domain": Method.cached_identities): in the run's key, not its row's
     found: dict[str, str] = {}
+    _written_when_any: ClassVar[tuple[str, ...]] = ("found",)
     dataset: DatasetSpec
     search: SearchSpec = SearchSpec()
     stages: tuple[StageSpec, ...] = ()
     ks: tuple[int, ...] = DEFAULT_KS
     store_dtype: Literal["float32", "float16"] = "float32"
-
-    @model_serializer(mode="wrap")
-    def _found_when_any(self, handler):
-        written = handler(self)
-        if not self.found:  # a run that names nothing in the cache is written as before `found` existed
-            written.pop("found", None)
-        return written
 
     @field_validator("version")
     @classmethod
