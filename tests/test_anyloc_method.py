@@ -109,6 +109,30 @@ def test_preset_layer_moves_to_the_same_relative_depth_on_another_backbone(weigh
     assert create_method("anyloc-vlad-dino", backbone="dino_vitb16").layer == 9  # same depth: unchanged
 
 
+def test_a_layer_written_out_at_the_moved_depth_is_not_noted_as_the_presets(shared_data, tmp_path, capsys):
+    """`--option layer=9` on ViT-S is the user's choice: same run as unset (same spec), but no note that
+    the preset's ViT-G block 31 was moved there, neither from create_method nor from `evaluate`."""
+    import warnings
+
+    from vprbench.cli.main import main
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert create_method("anyloc-gem-dinov2", backbone="dinov2_vits14", layer=9, weights="random").layer == 9
+    run = ["evaluate", "--method", "anyloc-gem-dinov2", "--option", "backbone=dinov2_vits14", "--option", "weights=random",
+           "--option", "resize=28,28", "--dataset", "corridor", "--data-dir", str(shared_data), "--cache-dir", str(tmp_path)]
+
+    def said(options):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            assert main(run + options) == 0
+        return " ".join(str(w.message) for w in caught), " ".join(capsys.readouterr().out.split())
+
+    assert "relative depth" not in said(["--option", "layer=9"])[0]
+    notes, out = said([])  # unset: the note, and the same run (nothing computed again)
+    assert "block 9 at the same relative depth" in notes and "descriptors computed now: 0" in out
+
+
 def test_dataset_resize_policy_feeds_fingerprint(weights):
     layer_note = "layer 31 is dinov2_vitg14's .* block 9 at the same relative depth"  # the ViT-G layer on ViT-S
     with pytest.warns(UserWarning, match=layer_note):

@@ -69,13 +69,19 @@ class MethodEntry:
         found = getattr(self.factory, "cached_identities", None)
         return dict(found(options, dataset, cache_dir)) if callable(found) else {}
 
+    def in_form(self, given: dict) -> dict:
+        """`given` with a list written as text ('4,6,8,10' from `-o bin_sizes=4,6,8,10`) as that list,
+        for an option whose default is a list."""
+        defaults = self.effective_defaults()
+        return {k: _listed(v) if isinstance(defaults.get(k), (list, tuple)) else v for k, v in given.items()}
+
     def without_defaults(self, given: dict) -> dict:
         """`given` less the options set to the value they have anyway (`cell = 16` for hog): one
         computation, one identity (spec, store, label), whether a default is written out or not. A list
         written as text ('4,6,8,10' from `-o bin_sizes=4,6,8,10`) for an option whose default is a list
         is that list."""
         defaults = self.effective_defaults()
-        given = {k: _listed(v) if isinstance(defaults.get(k), (list, tuple)) else v for k, v in given.items()}
+        given = self.in_form(given)
         implied = getattr(self.factory, "implied_options", None)  # an unset option's value, from the others
         defaults |= {k: v for k, v in (implied({**defaults, **given}) if callable(implied) else {}).items()
                      if defaults.get(k) is None}
@@ -149,7 +155,8 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
 
     entry = method_entry(name)
     # each value in its one form (resize '64x64' is [64, 64]), as a spec holds it: one store either way
-    given = entry.without_defaults({k: canonical(k, v) for k, v in options.items() if v is not None})
+    written = entry.in_form({k: canonical(k, v) for k, v in options.items() if v is not None})
+    given = entry.without_defaults(written)
     merged = {**entry.defaults, **given}
     accepted = entry.options()
     unknown = sorted(set(merged) - set(accepted) - ({"device"} if "device" not in accepted else set()))
@@ -163,7 +170,10 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
         given.pop("device", None)
     merged = checked_run_options(name, merged)  # before a plugin loads its weights
     takes = entry.factory_options()
-    arguments = {k: v for k, v in merged.items() if k in takes}
+    # an option written out at the value it has anyway still reaches the factory: AnyLoc's layer=9 on
+    # ViT-S is the user's choice, not the preset's layer moved to the same depth (which it notes)
+    chosen = {k: v for k, v in written.items() if k not in given and k not in ("batch_size", "device")}
+    arguments = {k: v for k, v in {**merged, **chosen}.items() if k in takes}
     for location, folder in (("cache_dir", cache_dir), ("data_dir", data_dir)):
         if location in takes and folder is not None:
             arguments[location] = folder
