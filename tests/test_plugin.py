@@ -31,3 +31,11 @@ def test_plugin_is_listed_and_evaluated(example_plugin_site, shared_data, tmp_pa
 def test_plugin_absent_without_the_package(tmp_path):
     listed = vprbench_cli(["methods", "list", "--json"], tmp_path / "empty", tmp_path)
     assert "thumbnail" not in {m["name"] for m in json.loads(listed.stdout)}
+
+
+def test_the_example_plugin_refuses_a_bad_option_in_one_line(example_plugin_site, shared_data, tmp_path):
+    """The guide says a plugin raises VPRBenchError for a user error; its own example did not (a traceback)."""
+    run = vprbench_cli(["evaluate", "--method", "thumbnail", "--dataset", "corridor", "--data-dir", str(shared_data),
+                        "-o", "size=abc"], example_plugin_site, tmp_path)
+    assert run.returncode == 1 and run.stderr.strip().splitlines() == [
+        "error: thumbnail: option size takes a whole number >= 1; got 'abc'."]

@@ -291,3 +291,17 @@ def test_cli_export_and_verify(store, records, shared_data, tmp_path, capsys):
     assert text.count(": ok, re-scored") == 3 and text.count("R@5 is 99.0 in the record") == 1
     assert main(["results", "export", "--to", str(out), "--cache-dir", str(store)]) == 1
     assert "needs --run ID, or --method M --dataset D" in capsys.readouterr().err
+
+
+def test_a_record_of_a_stage_not_installed_here_says_so(records):
+    """A plugin stage's defaults shape the label ('consensus@20 [n=2]' leaves out its default
+    weight); without the plugin the label cannot be derived, so the verdict names the missing
+    stage instead of calling a sound record false."""
+    from vprbench.bundles.claims import false_claims
+
+    record = json.loads(json.dumps(records[0]))
+    record["spec"]["stages"] = [{"name": "consensus", "options": {"k": 20, "n": 2, "weight": 1.0}}]
+    record["label"] = f"{record['label']} + consensus@20 [n=2]"
+    assert false_claims(record) == [
+        "its stage consensus is not installed here, so its label cannot be checked: install the package "
+        "that provides it ('vprbench stages list' shows what is installed), then verify again"]

@@ -20,9 +20,12 @@ def false_claims(record: dict) -> list[str]:
     """One line per name the record gives that its spec or vprbench's manifests contradict."""
     from ..datasets import dataset_manifests
     from ..evaluation.identity import benchmark_protocols
+    from ..stages.registry import available_stages
     from ..weights import weights_provenance
 
     spec = RunSpec.model_validate(record["spec"])
+    # a stage's label leaves out its defaults, known only where its plugin is installed
+    missing = [stage.name for stage in spec.stages if stage.name not in available_stages()]
     protocol = record["protocol"]
     given = [("method", record["method"], spec.method, "its spec"),
              ("label", record.get("label", spec.label()), spec.label(), "its spec"),
@@ -42,8 +45,12 @@ def false_claims(record: dict) -> list[str]:
         stated = ((record.get("provenance") or {}).get("weights") or {}).get("source")
         given.append(("weights source", stated, weights_provenance(weights)["source"],
                       f"its weights file {weights[:19]}"))
-    return [f"it says {what} {claimed!r}, but {source} says {truth!r}; a record names only the run it made"
-            for what, claimed, truth, source in given if claimed != truth]
+    problems = [f"it says {what} {claimed!r}, but {source} says {truth!r}; a record names only the run it made"
+                for what, claimed, truth, source in given if claimed != truth and not (what == "label" and missing)]
+    if missing and record.get("label", spec.label()) != spec.label():
+        problems.append(f"its stage {', '.join(missing)} is not installed here, so its label cannot be checked: install "
+                        "the package that provides it ('vprbench stages list' shows what is installed), then verify again")
+    return problems
 
 
 def one_record_per_run(verdicts: list) -> None:

@@ -7,7 +7,9 @@ from vprbench.images import load_image
 
 class Thumbnail(vprbench.Method):
     def __init__(self, size: int = 16, device: str = "cpu"):
-        self.size = int(size)
+        if isinstance(size, bool) or not isinstance(size, int) or size < 1:  # -o size=abc arrives as a string
+            raise vprbench.VPRBenchError(f"thumbnail: option size takes a whole number >= 1; got {size!r}.")
+        self.size = size
 
     def fingerprint(self) -> dict:
         return {"size": self.size}
