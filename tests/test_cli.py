@@ -80,7 +80,7 @@ def test_option_the_method_does_not_take(capsys, shared_data):
     assert_user_error(code, err, "does not take option(s) layer")
 
 
-@pytest.mark.parametrize("ks, message", [(["0"], "--k takes whole numbers >= 1"), (["abc"], "whole numbers"), (["500"], "exceeds the 111")])
+@pytest.mark.parametrize("ks, message", [(["0"], "--k (ks) takes whole numbers >= 1"), (["abc"], "whole numbers"), (["500"], "exceeds the 111")])
 def test_invalid_k(capsys, shared_data, ks, message):
     code, _, err = run(capsys, "evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", str(shared_data), "--k", *ks)
     assert_user_error(code, err, message)

@@ -388,10 +388,10 @@ def check_ks(ks) -> tuple[int, ...]:
             except ValueError:
                 number = math.nan
             if not math.isfinite(number) or number != int(number) or number < 1 or isinstance(value, bool):
-                raise VPRBenchError(f"--k takes whole numbers >= 1 (e.g. --k 1 5 10), got {' '.join(map(str, values))}.")
+                raise VPRBenchError(f"--k (ks) takes whole numbers >= 1 (e.g. --k 1 5 10), got {' '.join(map(str, values))}.")
             found.append(int(number))
     if not found:
-        raise VPRBenchError("--k needs at least one value, e.g. --k 1 5 10.")
+        raise VPRBenchError("--k (ks) needs at least one value, e.g. --k 1 5 10.")
     return tuple(sorted(set(found)))
 
 

@@ -110,8 +110,8 @@ WRONG_TYPES = [
     # run settings were dropped: evaluate(spec) then ran on the default device
     (lambda: resolve_spec("hog", "corridor", options={"device": "cuda"}), "device is a run setting, not part of a "
      "run's spec: pass it to evaluate as vprbench.spec.RunSettings(device='cuda')"),
-    (lambda: resolve_spec("hog", "corridor", ks=5.5), "--k takes whole numbers >= 1", "got 5.5."),
-    (lambda: resolve_spec("hog", "corridor", ks=math.nan), "--k takes whole numbers >= 1", "got nan."),
+    (lambda: resolve_spec("hog", "corridor", ks=5.5), "--k (ks) takes whole numbers >= 1", "got 5.5."),
+    (lambda: resolve_spec("hog", "corridor", ks=math.nan), "--k (ks) takes whole numbers >= 1", "got nan."),
     (lambda: resolve_spec("hog", "corridor", ks={1: 5}), "--k (ks) takes whole numbers >= 1 in a list"),
     (lambda: resolve_spec("hog", "corridor", protocol=5), "Dataset 'corridor' has no protocol 5."),
     (lambda: resolve_spec("hog", "corridor", protocol=["vpr-bench"]), "has no protocol ['vpr-bench']."),
