@@ -79,6 +79,8 @@ def describe_splits(method, splits: dict[str, list[Path]], *, root: Path | None 
 
     stores = job.complete_stores() if ranks.rank == 0 else None
     if ranks.broadcast(stores is not None):
+        for split in stores or ():
+            folder.tidy_if_free(split)
         return Described(stores, computed, timings, fingerprint, folder)
     with ExitStack() as held:
         def plan():

@@ -20,14 +20,14 @@ import hashlib
 import json
 import uuid
 import warnings
-from contextlib import ExitStack, contextmanager
+from contextlib import ExitStack, contextmanager, suppress
 from pathlib import Path
 
 import h5py
 import numpy as np
 
 from ..errors import VPRBenchError
-from ..fsutil import atomic_path, cache_error, is_temporary
+from ..fsutil import CacheError, atomic_path, cache_error, is_temporary, lock
 from ..paths import cache_root, safe_name
 from ..spec import RUN_SETTINGS, canonical_hash, canonical_json
 from .reader import DescriptorStore
@@ -184,6 +184,20 @@ class StoreFolder:
                     path.unlink(missing_ok=True)
         except OSError as error:
             raise cache_error(error, folder) from None
+
+    def tidy_if_free(self, split: str) -> None:
+        """A complete store is served without the lock, so a writer killed between its rename and
+        `tidy` would leave its shards (the store's size again) for good: remove them now, if no
+        other run holds the lock (one that does tidies itself). Best effort: a read-only cache keeps them."""
+        folder = self.paths[split]
+        try:
+            leftover = any(folder.glob(f"{split}.rank*-of-*.partial.h5")) or any(
+                is_temporary(p) and p.name.startswith(f".{split}.") for p in folder.iterdir())
+        except OSError:
+            return
+        if leftover:
+            with suppress(CacheError), lock(folder / ".lock", 0, announce=False):  # LockTimeout is one
+                self.tidy(split)
 
     # ------------------------------------------------------------ fit state
     def fit_id_on_disk(self) -> str | None:
