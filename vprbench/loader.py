@@ -167,6 +167,22 @@ def checked(source: str, descriptors, n: int, dim: int | None = None, compare: s
     return out
 
 
+def _exit_with_parent(_worker: int) -> None:
+    """A loader worker whose run was killed (kill -9) would wait for ever to hand over a batch nobody
+    reads (torch's own check never runs then): it leaves as soon as its parent is gone."""
+    import threading
+    import time
+
+    parent = os.getppid()
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(1)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="exit-with-parent").start()
+
+
 def describe_batches(method, paths: Sequence[Path], *, workers: int = 0, device: str = "cpu",
                      digests: Sequence[str] | None = None) -> Iterator[tuple[int, np.ndarray]]:
     """(offset, descriptors) for consecutive batches of `paths`, in input order; with `digests`
@@ -183,7 +199,8 @@ def describe_batches(method, paths: Sequence[Path], *, workers: int = 0, device:
     keep_freed_memory()  # each batch's tensors reuse the last one's memory
     batches = -(-len(paths) // size)
     loader = DataLoader(_Images(method, paths, digests), batch_size=size, shuffle=False, collate_fn=_as_batch,
-                        num_workers=min(int(workers), batches), pin_memory=str(device).startswith("cuda"))
+                        num_workers=min(int(workers), batches), pin_memory=str(device).startswith("cuda"),
+                        worker_init_fn=_exit_with_parent)
     offset, dim = 0, None
     for items in loader:
         for item in items:

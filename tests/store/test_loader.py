@@ -1,4 +1,6 @@
 """The one describe loop: DataLoader workers, input order, batch independence, clear errors."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -88,3 +90,84 @@ def test_method_is_checked_before_any_dataset_is_touched(tmp_path, capsys):
     assert main(["evaluate", "--method", "hog", "-o", "colour=3", "--dataset", "pitts30k", "--data-dir", str(missing)]) == 1
     assert "does not take option(s) colour" in capsys.readouterr().err
     assert not missing.exists()
+
+
+ORPHAN_RUN = """
+import sys, time
+from pathlib import Path
+from pathlib import Path
+
+import numpy as np
+import vprbench
+from vprbench.loader import describe_batches
+
+class Slow(vprbench.Method):
+    batch_size = 1
+    def fingerprint(self):
+        return {}
+    def load(self, path):  # batches bigger than a pipe's buffer: a worker blocks handing them over
+        return np.zeros((3, 480, 640), np.float32)
+    def describe(self, items):
+        time.sleep(1)
+        return np.full((len(items), 4), 0.5, np.float32)
+
+print("started", flush=True)
+for _ in describe_batches(Slow(), sorted(Path(sys.argv[1]).glob("*.jpg")), workers=2):
+    pass
+"""
+
+
+def test_loader_workers_leave_when_their_run_is_killed(shared_data, tmp_path):
+    """kill -9 of a run must not leave its loader workers behind for good (torch's own check never
+    runs while a worker waits to hand over a batch)."""
+    import contextlib
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    script = tmp_path / "run.py"
+    script.write_text(ORPHAN_RUN)
+    run = subprocess.Popen([sys.executable, str(script), str(shared_data / "corridor" / "ref")],
+                           stdout=subprocess.PIPE, text=True)
+    try:
+        assert run.stdout.readline().strip() == "started"
+
+        def workers():
+            found = []
+            for stat in Path("/proc").glob("[0-9]*/stat"):
+                try:
+                    if int(stat.read_text().rsplit(")", 1)[1].split()[1]) == run.pid:
+                        found.append(int(stat.parent.name))
+                except (OSError, ValueError, IndexError):
+                    pass
+            return found
+
+        def running(pid):  # not gone, nor a zombie
+            try:
+                return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+            except OSError:
+                return False
+
+        deadline = time.monotonic() + 20
+        while len(workers()) < 2 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        children = workers()
+        assert len(children) == 2
+        time.sleep(3)  # their prefetched batches are waiting in the pipe
+        run.send_signal(signal.SIGKILL)
+        run.wait()
+        deadline = time.monotonic() + 10
+        alive = children
+        while alive and time.monotonic() < deadline:
+            time.sleep(0.5)
+            alive = [pid for pid in children if running(pid)]
+        for pid in alive:  # leave nothing behind, whatever the outcome
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGKILL)
+        assert alive == [], "loader workers outlived their killed run"
+    finally:  # nothing left behind if the test fails early
+        run.kill()
+        run.wait()
+        run.stdout.close()
