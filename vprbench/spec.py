@@ -31,7 +31,7 @@ from typing import Any, ClassVar, Literal
 from pydantic import BaseModel, ConfigDict, ValidationError, field_validator, model_serializer
 
 from .errors import VPRBenchError, closest_names, require
-from .content_identity import file_identity, folder_identity, option_identities  # noqa: F401 (file_identity: stages)
+from .content_identity import option_identities
 from .hashing import canonical_hash, canonical_json
 from .run_settings import RUN_SETTINGS, RunSettings, split_run_settings  # noqa: F401 (how a run goes, beside what it is)
 

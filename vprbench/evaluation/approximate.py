@@ -35,7 +35,7 @@ def check_options(kind: str, options: dict) -> None:
             raise VPRBenchError(f"--index {kind} option {name} takes a whole number >= {least}; got {value!r}.")
 
 
-def _resolve(kind: str, n: int, dim: int, k: int, given: dict | None) -> dict:
+def index_options(kind: str, n: int, dim: int, k: int, given: dict | None) -> dict:
     """Every option of `kind`, defaults filled in for this database, checked against its size."""
     given = dict(given or {})
     check_options(kind, given)
@@ -111,7 +111,7 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
         raise VPRBenchError(f"Unknown approximate index {kind!r}: use one of {', '.join(APPROXIMATE)}.")
     check_pair(database, queries, k)
     n, dim, n_queries = database.row_count, database.dim, queries.row_count
-    o = _resolve(kind, n, dim, k, options)
+    o = index_options(kind, n, dim, k, options)
     index_bytes = _index_bytes(kind, n, dim, o)
     (row_bytes, fixed), (q_row, q_fixed) = read_cost(database), read_cost(queries)
     # training set + index, and per query: its row, its shortlist's rows and the index's answers

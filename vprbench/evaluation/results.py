@@ -164,13 +164,16 @@ def _order(records: list[dict]) -> list[dict]:
     return sorted(records, key=lambda r: (str(r.get("created", "")), str(r.get("run_id", ""))))
 
 
-def find_result(spec, cache_dir=None, dataset_fingerprint: str | None = None) -> dict | None:
+def find_result(spec, cache_dir=None, dataset_fingerprint: str | None = None,
+                method_fingerprint: dict | None = None) -> dict | None:
     """The newest stored record that answers `spec` (same row, same protocol, every K asked, what it
     named in the cache of the same content: `RunSpec.found`), its
     metrics recomputed from its per-query arrays (evaluation.proof), or None. A record whose arrays
     are missing or damaged answers nothing (named in a warning): its cell is evaluated again.
     With `dataset_fingerprint` (`Dataset.fingerprint`), only a record computed on that content
-    answers: a benchmark's protocol names its splits and radius, not the bytes of a copy."""
+    answers: a benchmark's protocol names its splits and radius, not the bytes of a copy. With
+    `method_fingerprint` (`store.method_fingerprint` of the method now), only a record whose
+    descriptors were keyed by it answers: the spec names a method's options, not its code."""
     from ..spec import RunSpec
     from .proof import proven
 
@@ -182,7 +185,8 @@ def find_result(spec, cache_dir=None, dataset_fingerprint: str | None = None) ->
     found = [r for r in _records_in(run_folder(spec.dataset.protocol_hash, spec.row_key, cache_dir))
              if r["row_key"] == spec.row_key and r["protocol"]["hash"] == spec.dataset.protocol_hash
              and wanted <= set(r["recall"]) and (r.get("spec") or {}).get("found", {}) == spec.found
-             and dataset_fingerprint in (None, r.get("dataset_fingerprint"))]
+             and dataset_fingerprint in (None, r.get("dataset_fingerprint")) and _same_search(r, spec)
+             and method_fingerprint in (None, r.get("method_fingerprint"))]
     for record in reversed(_order(found)):
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
@@ -194,6 +198,24 @@ def find_result(spec, cache_dir=None, dataset_fingerprint: str | None = None) ->
         # the reason holds what the arrays' own warning said: one line, not two
         warnings.warn(f"{record.get('_source')} does not count as a result: {checked}", stacklevel=2)
     return None
+
+
+def _same_search(record: dict, spec) -> bool:
+    """An approximate search's unset shortlist and ef_search follow the largest K: a record made with
+    another largest K searched with another shortlist, so its Recall@1 is not this spec's."""
+    if not spec.search.approximate:
+        return True
+    from ..stages.run import create_stages, retrieval_depth
+    from .approximate import index_options
+
+    found = record.get("search") or {}
+    try:
+        database = int(record["counts"]["database"])
+        depth = retrieval_depth(create_stages(spec), spec.ks, database, spec.dataset.name)
+        wanted = index_options(spec.search.index, database, int(found["dim"]), depth, spec.search.options)
+    except (VPRBenchError, KeyError, TypeError, ValueError):
+        return False
+    return found.get("options") == wanted
 
 
 def read_results(cache_dir=None, skipped: list | None = None) -> list[dict]:

@@ -147,13 +147,14 @@ class Stage:
     def file_identities(cls, options: StageOptions) -> dict:
         """Option -> the content of the file it names ("sha256:<hex>"), in the run's identity instead of
         the path: a file moved is the same run, a file edited another. Called when the spec is made, so a
-        stage may refuse here a file it cannot use. Default: every option whose value is an existing file."""
-        from ..spec import file_identity
+        stage may refuse here a file it cannot use. Default: every option whose value is an existing file,
+        or a folder written as a path (weights: a folder holding the release's file) by its files."""
+        from ..content_identity import file_identity, folder_identity
 
         found = {}
         for name, value in options.model_dump(mode="json").items():
             try:
-                identity = file_identity(value)
+                identity = file_identity(value) or folder_identity(value)
             except OSError as error:
                 raise VPRBenchError(f"Stage option {name}: cannot read {value} ({error.strerror or error}).") from None
             if identity is not None:
@@ -254,3 +255,4 @@ def rerank_by_counts(name: str, candidates: Candidates, context: StageContext, s
             if task is not None:
                 context.progress.advance(task, 1)
     return by_count(candidates, counts)
+

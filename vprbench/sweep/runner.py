@@ -79,6 +79,8 @@ def run_cells(cells: list[Cell], settings: RunSettings | None = None, *, lease_s
                         progress.advance(overall)
                         continue
                     done.fingerprint(cell.spec)  # hashing a new copy's images: before the claim's lock, not under it
+                    if done.may_hold(cell.spec):  # the method its record is checked against: made before the lock too
+                        done.described_as(cell.spec)
                     found = []  # the record the claim found complete, looked up (and proven) once
                     state, detail = claims.claim(
                         cell.key, lambda c=cell: found.append(done.record(c.spec)) or found[-1] is not None)
@@ -109,16 +111,49 @@ class StoredRecords:
     protocol, not the bytes of the copy (an image or the ground truth edited, a file renamed)."""
 
     def __init__(self, settings: RunSettings):
-        self.settings, self.fingerprints = settings, {}
+        self.settings, self.fingerprints, self.methods = settings, {}, {}
 
     def record(self, spec) -> dict | None:
         record = find_result(spec, self.settings.cache_dir)
-        if record is None:
+        if record is None:  # no method made (nor centres fetched) for a cell without records
             return None
+        described = self.described_as(spec)
+        if described is not None and record.get("method_fingerprint") != described:
+            record = find_result(spec, self.settings.cache_dir, method_fingerprint=described)
+            if record is None:
+                return None
         current = self.fingerprint(spec)
         if current is None or record.get("dataset_fingerprint") == current:
             return record
-        return find_result(spec, self.settings.cache_dir, dataset_fingerprint=current)
+        return find_result(spec, self.settings.cache_dir, dataset_fingerprint=current, method_fingerprint=described)
+
+    def may_hold(self, spec) -> bool:
+        """Whether the spec's results folder holds any record (a listing, nothing read)."""
+        from ..evaluation.results import run_folder
+
+        folder = run_folder(spec.dataset.protocol_hash, spec.row_key, self.settings.cache_dir)
+        return folder.is_dir() and any(folder.glob("*.json"))
+
+    def described_as(self, spec) -> dict | None:
+        """The store key the spec's method has now (`store.method_fingerprint`): its fingerprint names what its
+        descriptors depend on beyond the options (a version its author raised, a library's); a record made
+        with another was computed by other code. None when the method cannot be made here (the run says why)."""
+        import warnings
+
+        from ..evaluation.pipeline import create_run_method
+        from ..store import method_fingerprint
+
+        key = (spec.key, spec.dataset.name)
+        if key not in self.methods:
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")  # the run says the method's notes
+                    method = create_run_method(spec.method, spec.given, self.settings)
+                    method.use_dataset(spec.dataset.name)
+                    self.methods[key] = method_fingerprint(method, spec.store_dtype)
+            except Exception:  # noqa: BLE001 - a lookup: whatever stops the method here stops its run, which names it
+                self.methods[key] = None
+        return self.methods[key]
 
     def fingerprint(self, spec) -> str | None:
         """The content fingerprint of the spec's data as found now (never downloaded for this); None

@@ -1,0 +1,80 @@
+"""A stored record is served only for the computation it holds: what changes a run's numbers
+without changing its spec's row (a default that follows K) keeps the record from being served."""
+from __future__ import annotations
+
+from vprbench.cli.main import main
+from vprbench.evaluation import read_results
+
+PLAN = ('search = { index = "hnsw", options = { hnsw_m = 2 } }\n\n[[methods]]\nname = "hog"\n'
+        'options = { resize = [32, 32] }\n\n[[datasets]]\nname = "corridor"\n')
+
+
+def test_a_sweep_does_not_serve_an_approximate_search_made_for_another_largest_k(shared_data, tmp_path, capsys):
+    """The shortlist (and hnsw's ef_search) default to the largest K: a cell asking K 1 5 was skipped as
+    complete with the record searched with a shortlist of 111 for K 1 5 111 (another Recall@5)."""
+    plan, cache = tmp_path / "plan.toml", tmp_path / "cache"
+    plan.write_text(PLAN)
+
+    def run(*ks) -> list[dict]:
+        code = main([str(a) for a in ("run", plan, "--k", *ks, "--quiet", "--data-dir", shared_data,
+                                      "--cache-dir", cache)])
+        assert code == 0, capsys.readouterr().err
+        capsys.readouterr()
+        return read_results(cache)
+
+    [deep] = run(1, 5, 111)
+    assert deep["search"]["options"]["shortlist"] == 111
+    records = run(1, 5)
+    assert len(records) == 2, "the K 1 5 cell was served the record searched for K 1 5 111"
+    assert records[-1]["search"]["options"]["shortlist"] == records[-1]["search"]["options"]["ef_search"] == 100
+    assert len(run(1, 5)) == 2  # its own record is found again
+    assert len(run(1, 111)) == 2  # and the deep one serves a K its shortlist was made for
+
+
+def test_a_sweep_does_not_serve_a_record_whose_descriptors_the_method_no_longer_computes(shared_data, tmp_path,
+                                                                                       capsys, monkeypatch):
+    """A method's fingerprint names what its descriptors depend on beyond its options (a version its author
+    raises, OpenCV's major version): it changed, the stores were recomputed, but a sweep still served the
+    record of the old descriptors (records are found by the spec's row, which holds only the options)."""
+    from vprbench.methods.hog import HOG
+
+    plan, cache = tmp_path / "plan.toml", tmp_path / "cache"
+    plan.write_text('[[methods]]\nname = "hog"\noptions = { resize = [32, 32] }\n\n[[datasets]]\nname = "corridor"\n')
+
+    def run() -> list[dict]:
+        code = main([str(a) for a in ("run", plan, "--k", 1, "--quiet", "--data-dir", shared_data, "--cache-dir", cache)])
+        assert code == 0, capsys.readouterr().err
+        capsys.readouterr()
+        return read_results(cache)
+
+    [old] = run()
+    fingerprint = HOG.fingerprint
+    monkeypatch.setattr(HOG, "fingerprint", lambda self: {**fingerprint(self), "version": 2})
+    records = run()
+    assert len(records) == 2, "the record of the old descriptors was served"
+    assert records[-1]["method_fingerprint"]["version"] == 2 and "version" not in old["method_fingerprint"]
+    assert records[-1]["descriptors_computed"] == {"database": 111, "queries": 111}
+    assert len(run()) == 2  # the new record is found again
+
+
+def test_a_stage_weights_folder_is_known_by_its_files(tmp_path):
+    """patch-mnn takes a folder holding the release's file as its weights: the spec kept the folder's path,
+    so a file replaced in it was the same run (a sweep served the record of the old weights)."""
+    from vprbench.spec import resolve_spec
+
+    folder = tmp_path / "weights"
+    folder.mkdir()
+    weights = folder / "dinov2_vits14_pretrain.pth"
+
+    def spec():
+        stage = {"name": "patch-mnn", "backbone": "dinov2_vits14", "weights": str(folder), "k": 20}
+        return resolve_spec("hog", "corridor", options={"resize": [32, 32]}, stages=[stage], ks=(1, 5))
+
+    weights.write_bytes(b"first weights")
+    before = spec()
+    assert before.stages[0].files["weights"].startswith("folder:")
+    weights.write_bytes(b"other weights, replaced in place")
+    replaced = spec()
+    assert replaced.key != before.key and replaced.row_key != before.row_key
+    (folder / ".DS_Store").write_bytes(b"x")  # a hidden file is none of its files
+    assert spec().key == replaced.key
