@@ -78,3 +78,68 @@ def test_a_stage_weights_folder_is_known_by_its_files(tmp_path):
     assert replaced.key != before.key and replaced.row_key != before.row_key
     (folder / ".DS_Store").write_bytes(b"x")  # a hidden file is none of its files
     assert spec().key == replaced.key
+
+
+def test_a_sweep_does_not_serve_a_record_whose_pca_another_memory_budget_fitted(shared_data, tmp_path, capsys,
+                                                                              monkeypatch):
+    """--search-memory picks PCA-whitening's solver (exact, or randomized when the exact one does not
+    fit), which no spec names: a sweep with a budget for the exact fit was served the randomized one's
+    record. On Corridor (111 database images) the search itself needs more than the exact fit (12.7 MB
+    against 0.1 MB), so the exact fit is made dearer here, as a database of thousands of images makes it."""
+    from vprbench.aggregation import pca
+
+    solver_memory = pca._solver_memory
+    monkeypatch.setattr(pca, "_solver_memory", lambda solver, n, d, dim: solver_memory(solver, n, d, dim)
+                        + (50_000_000 if solver != "randomized" else 0))
+    plan, cache = tmp_path / "plan.toml", tmp_path / "cache"
+    plan.write_text('[[methods]]\nname = "anyloc"\noptions = { backbone = "dinov2_vits14", weights = "random", '
+                    'layer = 1, aggregation = "gem", resize = [28, 28], pca_dim = 16 }\n\n'
+                    '[[datasets]]\nname = "corridor"\n')
+
+    def run(*memory) -> list[dict]:
+        code = main([str(a) for a in ("run", plan, "--k", 1, *memory, "--quiet", "--data-dir", shared_data,
+                                      "--cache-dir", cache)])
+        assert code == 0, capsys.readouterr().err
+        capsys.readouterr()
+        return read_results(cache)
+
+    def solver(record) -> str:
+        return record["search"]["postprocess"]["key"]["postprocessor"]["solver"]
+
+    [randomized] = run("--search-memory", "20MB")
+    assert solver(randomized) == "randomized"
+    records = run()
+    assert len(records) == 2, "the record of the randomized fit was served to a run that fits the exact one"
+    assert solver(records[-1]) == "gram" and records[-1]["descriptors_computed"] == {"database": 0, "queries": 0}
+    assert len(run()) == len(run("--search-memory", "20MB")) == 2  # each budget finds its own record again
+    # the fitted states, keyed by the solver too, lie side by side
+    assert len({r["search"]["postprocess"]["file"] for r in records}) == 2
+
+
+def test_a_sweep_does_not_serve_a_record_a_stage_no_longer_computes(shared_data, tmp_path, capsys, monkeypatch):
+    """A stage's code is in no spec: a re-ranker changed, its author raising the version in its fingerprint,
+    but a sweep still served the records it re-ranked before. Records without a stage fingerprint (written
+    before stages had one) still count as made with the default one."""
+
+    from vprbench.stages.expansion import AlphaQE
+
+    plan, cache = tmp_path / "plan.toml", tmp_path / "cache"
+    plan.write_text('[[methods]]\nname = "hog"\noptions = { resize = [32, 32] }\n\n[[datasets]]\nname = "corridor"\n')
+
+    def run() -> list[dict]:
+        code = main([str(a) for a in ("run", plan, "--k", 1, "--rerank", "aqe", "--quiet", "--data-dir",
+                                      shared_data, "--cache-dir", cache)])
+        assert code == 0, capsys.readouterr().err
+        capsys.readouterr()
+        return read_results(cache)
+
+    [old] = run()
+    assert "fingerprint" not in old["stages"][0]  # the default is not written: old records look the same
+    assert len(run()) == 1
+    monkeypatch.setattr(AlphaQE, "fingerprint", lambda self: {"version": 2}, raising=False)
+    records = run()
+    assert len(records) == 2, "the record of the stage's old code was served"
+    assert records[-1]["stages"][0]["fingerprint"] == {"version": 2}
+    assert len(run()) == 2  # the new record is found again
+    monkeypatch.undo()
+    assert len(run()) == 2  # and the old code's record (no fingerprint in it) for the default again

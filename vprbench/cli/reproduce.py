@@ -71,7 +71,7 @@ def run_reproduce(args) -> int:
             from ..sweep.runner import StoredRecords
 
             stored = StoredRecords(settings)  # computed on the data at hand, as run_cells judges it
-            records = {key: stored.record(c.spec) for key, (c, _) in cells.items()}
+            records = {key: stored.record(c.spec, c.settings) for key, (c, _) in cells.items()}
             status = {key: "complete" if records[key] else "missing" if missing[key] else "would run" for key in cells}
             console.print(by_row(table_cells_, status, missing, f"{spec['title']}: {counted} (dry run, nothing runs)"))
         else:
@@ -149,7 +149,7 @@ def dry_run_listing(spec: dict, table_cells_, missing: dict, settings, counted: 
         if not tc.cells:
             listing.add_row(tc.row, tc.column, Text.assemble(("not runnable", "yellow"), f" {notes.refer(tc.reason)}"))
         for c in tc.cells:
-            record = stored.record(c.spec)
+            record = stored.record(c.spec, c.settings)
             needs = " ".join(notes.refer(f"{thing}: {how}") for thing, how in missing[c.key])
             status = (Text.assemble(("complete", "cyan"), f" ({_minute(record.get('created'))})") if record else
                       Text.assemble(("missing", "yellow"), f" {needs}") if needs else Text("would run", style="green"))

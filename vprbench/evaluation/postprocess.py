@@ -112,6 +112,33 @@ def fit_postprocessor(postprocessor, database: RowSource, memory_budget: int, st
     return info
 
 
+class _Shape:
+    """A row source's shape without its rows: all a post-processor's key is computed from."""
+
+    folder = None
+
+    def __init__(self, rows: dict):
+        self.row_count, self.dim, self.dtype = int(rows["count"]), int(rows["dim"]), np.dtype(rows["dtype"])
+
+    def read_rows(self, start, stop):
+        raise VPRBenchError("A post-processor's key is computed from the rows' shape, not from their values.")
+
+
+def fits_as_recorded(postprocessor, record: dict, memory_budget: int) -> bool:
+    """Whether the post-processing `record` fitted (its search's postprocess key) is the one
+    `postprocessor` would fit now under `memory_budget`, from the record's row count, dim and dtype
+    (no descriptor read): the budget picks PCA's solver, exact or randomized, which no spec names.
+    True when the record fitted nothing keyed (no post-processor, a plugin's whole-matrix hook)."""
+    found = ((record.get("search") or {}).get("postprocess") or {}).get("key")
+    if postprocessor is None or not isinstance(found, dict):
+        return True
+    try:
+        now = postprocessor.key(_Shape(found["rows"]), memory_budget)
+        return json.loads(json.dumps(now, sort_keys=True, default=str)) == found.get("postprocessor")
+    except Exception:  # noqa: BLE001 - a key that needs the rows cannot be told from the record: run again
+        return False
+
+
 def _overrides_postprocess(method) -> bool:
     from ..methods.base import Method
 

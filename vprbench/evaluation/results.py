@@ -165,7 +165,7 @@ def _order(records: list[dict]) -> list[dict]:
 
 
 def find_result(spec, cache_dir=None, dataset_fingerprint: str | None = None,
-                method_fingerprint: dict | None = None) -> dict | None:
+                method_fingerprint: dict | None = None, accept=None) -> dict | None:
     """The newest stored record that answers `spec` (same row, same protocol, every K asked, what it
     named in the cache of the same content: `RunSpec.found`), its
     metrics recomputed from its per-query arrays (evaluation.proof), or None. A record whose arrays
@@ -173,20 +173,23 @@ def find_result(spec, cache_dir=None, dataset_fingerprint: str | None = None,
     With `dataset_fingerprint` (`Dataset.fingerprint`), only a record computed on that content
     answers: a benchmark's protocol names its splits and radius, not the bytes of a copy. With
     `method_fingerprint` (`store.method_fingerprint` of the method now), only a record whose
-    descriptors were keyed by it answers: the spec names a method's options, not its code."""
+    descriptors were keyed by it answers: the spec names a method's options, not its code. With
+    `accept` (a function of a record), only a record it accepts answers (a sweep's: the post-processing
+    the run would fit). A record answers only while each stage's fingerprint is the one it was made with."""
     from ..spec import RunSpec
     from .proof import proven
 
     require(spec, RunSpec, "find_result(spec) takes a RunSpec (vprbench.spec.resolve_spec or spec_for)")
     migrate_legacy(cache_dir)
     check_layout(results_dir(cache_dir))
-    wanted = {str(k) for k in spec.ks}
+    wanted, stages = {str(k) for k in spec.ks}, _stage_fingerprints(spec)
     # row and protocol as the record says, not as the folder it lies in is named (a file copied there)
     found = [r for r in _records_in(run_folder(spec.dataset.protocol_hash, spec.row_key, cache_dir))
              if r["row_key"] == spec.row_key and r["protocol"]["hash"] == spec.dataset.protocol_hash
              and wanted <= set(r["recall"]) and (r.get("spec") or {}).get("found", {}) == spec.found
              and dataset_fingerprint in (None, r.get("dataset_fingerprint")) and _same_search(r, spec)
-             and method_fingerprint in (None, r.get("method_fingerprint"))]
+             and method_fingerprint in (None, r.get("method_fingerprint")) and _same_stages(r, stages)
+             and (accept is None or accept(r))]
     for record in reversed(_order(found)):
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
@@ -216,6 +219,26 @@ def _same_search(record: dict, spec) -> bool:
     except (VPRBenchError, KeyError, TypeError, ValueError):
         return False
     return found.get("options") == wanted
+
+
+def _stage_fingerprints(spec) -> list[dict] | None:
+    """Each of the spec's stages' fingerprint now (`Stage.fingerprint`, a version its author raises), or
+    None when a stage cannot be made here (its run says why)."""
+    from ..stages.run import create_stages, stage_fingerprint
+
+    try:
+        return [stage_fingerprint(stage) for stage in create_stages(spec)]
+    except Exception:  # noqa: BLE001 - a plugin's fingerprint may raise anything
+        return None
+
+
+def _same_stages(record: dict, now: list[dict] | None) -> bool:
+    """The record was made with each stage's fingerprint as it is now: the spec names a stage's options,
+    not its code. A record without one (written before stages had one) was made with the default, {}."""
+    if now is None:
+        return False
+    made = [s.get("fingerprint") or {} for s in record.get("stages") or [] if isinstance(s, dict)]
+    return made + [{}] * (len(now) - len(made)) == now
 
 
 def read_results(cache_dir=None, skipped: list | None = None) -> list[dict]:

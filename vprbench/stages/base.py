@@ -117,6 +117,9 @@ class Stage:
     - `stored_bytes(context)`: bytes it keeps per database image (for the record's cost), 0 if none.
     - `file_identities(options)`: the options that name files, by content (part of the run's identity).
     - `provenance()`: where what it learnt came from (its weights), for the record and the board.
+    - `fingerprint()`: what its results depend on beyond its options, as `Method.fingerprint` (a
+      "version" its author raises when the code changes them): a sweep serves a stored record only
+      while it is the one the record was made with.
     """
 
     name: str = ""
@@ -165,6 +168,12 @@ class Stage:
         """Where what the stage learnt came from, as `Method.provenance` says it: {"weights": {"source":
         "official"|"user"|"random", ...}}. The board keeps a run whose stage ran on random weights out of
         every cell and marks one on the user's weights, as for methods. {} when nothing is learnt."""
+        return {}
+
+    def fingerprint(self) -> dict:
+        """What changes the stage's results beyond its options (JSON values), in its record: raise a
+        {"version": 2} when its code changes them, or a sweep keeps serving the old records. Default {}
+        (records written before stages had one count as made with it)."""
         return {}
 
 

@@ -15,6 +15,17 @@ def create_stages(spec) -> list:
     return [create_stage(stage.name, stage.options) for stage in spec.stages]
 
 
+def stage_fingerprint(stage) -> dict:
+    """The stage's fingerprint as its record keeps it (JSON), {} by default."""
+    import json
+
+    found = stage.fingerprint()
+    if not isinstance(found, dict):
+        raise VPRBenchError(f"Stage {stage.name!r}: fingerprint() returned {type(found).__name__}, not a dict; fix "
+                            "the stage.")
+    return json.loads(json.dumps(found, sort_keys=True, default=str))
+
+
 def track_of(stages) -> str:
     """single-image (no stage), sequence (any sequence stage), else re-ranked."""
     if not stages:
@@ -61,7 +72,7 @@ def run_stages(stages, candidates: Candidates, context: StageContext, ks, positi
         seconds = time.perf_counter() - started
         after = _peak_rss_bytes()
         candidates = check_candidates(found, stage.name, queries, database, ks[-1])
-        stored, provenance = int(stage.stored_bytes(context)), stage.provenance()
+        stored, provenance, code = int(stage.stored_bytes(context)), stage.provenance(), stage_fingerprint(stage)
         ceiling = {}
         if positives is not None:
             from ..evaluation.metrics import correct_at
@@ -72,5 +83,5 @@ def run_stages(stages, candidates: Candidates, context: StageContext, ks, positi
                       "seconds": round(seconds, 3), "stored_bytes_per_database_image": round(stored / max(database, 1), 1),
                       "peak_rss_bytes": after, "peak_rss_growth_bytes": after - before,
                       "features_computed": context.features_computed - computed,
-                      **({"provenance": provenance} if provenance else {})})
+                      **({"provenance": provenance} if provenance else {}), **({"fingerprint": code} if code else {})})
     return candidates, costs

@@ -83,9 +83,9 @@ def run_cells(cells: list[Cell], settings: RunSettings | None = None, *, lease_s
                         done.described_as(cell.spec)
                     found = []  # the record the claim found complete, looked up (and proven) once
                     state, detail = claims.claim(
-                        cell.key, lambda c=cell: found.append(done.record(c.spec)) or found[-1] is not None)
+                        cell.key, lambda c=cell: found.append(done.record(c.spec, c.settings)) or found[-1] is not None)
                     if state == "complete":
-                        record = found[-1] if found else done.record(cell.spec)
+                        record = found[-1] if found else done.record(cell.spec, cell.settings)
                         status, why = (SKIPPED, f"already complete ({_minute(record.get('created'))})") if first_look \
                             else (ELSEWHERE, "evaluated by another process")
                         outcomes[cell.key] = Outcome(cell, status, why, record)
@@ -111,21 +111,28 @@ class StoredRecords:
     protocol, not the bytes of the copy (an image or the ground truth edited, a file renamed)."""
 
     def __init__(self, settings: RunSettings):
-        self.settings, self.fingerprints, self.methods = settings, {}, {}
+        self.settings, self.fingerprints, self.methods, self.postprocessors = settings, {}, {}, {}
 
-    def record(self, spec) -> dict | None:
+    def record(self, spec, options: dict | None = None) -> dict | None:
+        """`options`: the cell's own run settings (its plan entry's memory_budget)."""
         record = find_result(spec, self.settings.cache_dir)
         if record is None:  # no method made (nor centres fetched) for a cell without records
             return None
-        described = self.described_as(spec)
-        if described is not None and record.get("method_fingerprint") != described:
-            record = find_result(spec, self.settings.cache_dir, method_fingerprint=described)
-            if record is None:
-                return None
-        current = self.fingerprint(spec)
-        if current is None or record.get("dataset_fingerprint") == current:
+        described, current, fits = self.described_as(spec), self.fingerprint(spec), self._fits(spec, options)
+        if described in (None, record.get("method_fingerprint")) and fits(record) \
+                and current in (None, record.get("dataset_fingerprint")):
             return record
-        return find_result(spec, self.settings.cache_dir, dataset_fingerprint=current, method_fingerprint=described)
+        return find_result(spec, self.settings.cache_dir, dataset_fingerprint=current, method_fingerprint=described,
+                           accept=fits)
+
+    def _fits(self, spec, options):
+        """Whether a record fitted the post-processing this run would: the memory budget picks PCA's solver."""
+        from ..evaluation.postprocess import fits_as_recorded
+        from ..row_sources import DEFAULT_MEMORY_BUDGET
+
+        budget = self.settings.with_options(options or {}).memory_budget or DEFAULT_MEMORY_BUDGET
+        postprocessor = self.postprocessors.get((spec.key, spec.dataset.name))
+        return lambda record: fits_as_recorded(postprocessor, record, budget)
 
     def may_hold(self, spec) -> bool:
         """Whether the spec's results folder holds any record (a listing, nothing read)."""
@@ -151,6 +158,7 @@ class StoredRecords:
                     method = create_run_method(spec.method, spec.given, self.settings)
                     method.use_dataset(spec.dataset.name)
                     self.methods[key] = method_fingerprint(method, spec.store_dtype)
+                    self.postprocessors[key] = method.postprocessor()
             except Exception:  # noqa: BLE001 - a lookup: whatever stops the method here stops its run, which names it
                 self.methods[key] = None
         return self.methods[key]
