@@ -172,10 +172,10 @@ def paper_table(spec: dict, table_cells_, settings, stored=None):
 
     stored, found_for = stored or StoredRecords(settings), {}
 
-    def record_of(cell_spec):  # each cell's record looked up (and proven) once
-        if cell_spec.key not in found_for:
-            found_for[cell_spec.key] = stored.record(cell_spec)
-        return found_for[cell_spec.key]
+    def record_of(cell):  # each cell's record looked up (and proven) once, with its own run settings
+        if cell.spec.key not in found_for:
+            found_for[cell.spec.key] = stored.record(cell.spec, cell.settings)
+        return found_for[cell.spec.key]
 
     table = Table(title=f"{spec['title']} — reported (paper) / measured here (delta) [95% bootstrap CI]")
     table.add_column("row")
@@ -193,7 +193,7 @@ def paper_table(spec: dict, table_cells_, settings, stored=None):
         values = []
         for column in columns:
             tc = cells.get(column)
-            records = [record_of(c.spec) for c in tc.cells] if tc else []
+            records = [record_of(c) for c in tc.cells] if tc else []
             for metric in spec["metrics"]:
                 reported = reported_value(spec, row, column, metric)
                 shown = "-" if reported is None else f"{reported:.1f}"
@@ -205,7 +205,7 @@ def paper_table(spec: dict, table_cells_, settings, stored=None):
                 else:
                     shown += " / not measured"
                 values.append(shown)
-        found = [r for tc in cells.values() for c in tc.cells if (r := record_of(c.spec))]
+        found = [r for tc in cells.values() for c in tc.cells if (r := record_of(c))]
         for extra in extras:
             reported = reported_value(spec, row, extra, extra)
             got = sorted({str(r[RECORD_FIELD[extra]]) for r in found if r.get(RECORD_FIELD[extra])})
