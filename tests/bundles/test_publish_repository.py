@@ -34,7 +34,7 @@ def rerun(record: dict, run_id: str, ranks=None) -> dict:
     if ranks is not None:
         again["per_query"]["first_positive_rank"] = ranks
         again["recall"] = {k: 0.0 for k in again["recall"]}  # no query found: every metric is 0
-        again.update(auc_pr=0.0, recall_at_100_precision=0.0)
+        again.update(auc_pr=0.0, recall_at_100_precision=0.0, max_f1=0.0)
     again.update(run_id=run_id, created="2030-01-01T00:00:00+00:00")
     return again
 

@@ -27,8 +27,9 @@ _CACHE: dict[tuple, dict] = {}
 
 
 def proven(record: dict) -> dict | str:
-    """A copy of `record` whose recall, auc_pr and recall_at_100_precision are recomputed from its
-    per-query arrays (and `_proof` saying so), or the reason it has no metrics that can be shown."""
+    """A copy of `record` whose recall, auc_pr, recall_at_100_precision, max_f1 and per_query.k are
+    recomputed from its per-query arrays (and `_proof` saying so), or the reason it has no metrics
+    that can be shown."""
     section = record.get("per_query") or {}
     if not section:
         return "it keeps no per-query arrays, so its metrics cannot be recomputed; rerun it"
@@ -50,15 +51,19 @@ def proven(record: dict) -> dict | str:
     where = record.get("_source") or f"run {record.get('run_id')}"
     disagree = [f"R@{k} {float(record['recall'][str(k)]):g} (arrays: {found['recall'][str(k)]:g})" for k in ks
                 if abs(float(record["recall"][str(k)]) - found["recall"][str(k)]) > RECALL_TOLERANCE]
-    for name in ("auc_pr", "recall_at_100_precision"):
+    for name in ("auc_pr", "recall_at_100_precision", "max_f1"):
         stored = record.get(name)
         if stored is not None and (not isinstance(stored, (int, float)) or abs(float(stored) - found[name]) > PR_TOLERANCE):
             disagree.append(f"{name} {stored} (arrays: {found[name]:.6f})")
+    # the depth cells read R@10, R@20 and intervals to is the arrays', not what the JSON says
+    if section.get("k") != found["k"]:
+        disagree.append(f"per_query.k {section.get('k')} (arrays: {found['k']})")
     if disagree:
         warnings.warn(f"{where}: its stored metrics disagree with its per-query arrays: {', '.join(disagree)}; "
                       "shown with the values recomputed from the arrays.", stacklevel=2)
     return {**record, "recall": dict(found["recall"]), "auc_pr": found["auc_pr"],
-            "recall_at_100_precision": found["recall_at_100_precision"],
+            "recall_at_100_precision": found["recall_at_100_precision"], "max_f1": found["max_f1"],
+            "per_query": {**section, "k": found["k"]},
             "_proof": {"recomputed": True, "disagreed": disagree}}
 
 
@@ -90,6 +95,6 @@ def _recompute(record: dict, arrays: dict[str, np.ndarray], ks: list[int]) -> di
         return f"it reports R@{ks[-1]} but keeps only the top {k} per query; rerun it"
     recall = {str(key): round(value, 4) for key, value in recall_at_k(first, ks).items()}
     pr = top1_precision_recall(similarities[:, 0].astype(np.float64), first == 1) if len(first) else \
-        {"auc_pr": 0.0, "recall_at_100_precision": 0.0}
-    return {"recall": recall, "auc_pr": round(pr["auc_pr"], 6),
-            "recall_at_100_precision": round(pr["recall_at_100_precision"], 6)}
+        {"auc_pr": 0.0, "recall_at_100_precision": 0.0, "max_f1": 0.0}
+    return {"recall": recall, "auc_pr": round(pr["auc_pr"], 6), "max_f1": round(pr["max_f1"], 6),
+            "recall_at_100_precision": round(pr["recall_at_100_precision"], 6), "k": int(k)}
