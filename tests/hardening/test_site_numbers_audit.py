@@ -152,7 +152,7 @@ def test_a_re_run_is_judged_by_the_interval_the_site_gives_the_contributed_run(c
     ours = {**copy.deepcopy(single), "per_query": {**inline, "first_positive_rank": ranks.tolist()},
             "run_id": single["run_id"] + "-here", "created": "2999-01-01T00:00:00.000+00:00",
             "recall": {k: round(100 * float(np.mean((ranks >= 1) & (ranks <= int(k)))), 4) for k in single["recall"]},
-            "auc_pr": None, "recall_at_100_precision": None}  # recomputed from the arrays
+            "auc_pr": None, "recall_at_100_precision": None, "max_f1": None}  # recomputed from the arrays
     (shown,) = build_board([theirs]).cells.values()
     assert [round(v, 1) for v in cell_stats(shown)[1]["ci"]] == [34.5, 62.7]  # the contributed run's, on every page
     (cell,) = build_board([theirs, ours]).cells.values()
