@@ -111,3 +111,17 @@ def test_the_radar_marks_a_partial_domain_hollow_and_names_its_datasets(make_rec
     complete = board_of(make_record, [("hog", name) for name in ("17places", "baidu-mall", "gardens-point")])
     path = figures.radar(complete, tmp_path / "full.svg", {"hog": "#d62728", figures.paper_key("AnyLoc-VLAD-DINOv2"): "#1f77b4"})
     assert not re.findall(r'style="fill: #ffffff; stroke: ', path.read_text())  # every dataset of the axis: filled
+
+
+def test_the_pca_map_draws_no_run_the_board_leaves_out(shared_data, tmp_path, capsys):
+    """Before: the overview's PCA map was drawn from every stored GeM run, here one on random weights
+    (a pipeline check, in no cell), under the title '... GeM descriptors (weights: random)'."""
+    common = ["--dataset", "corridor", "--data-dir", str(shared_data), "--cache-dir", str(tmp_path / "cache")]
+    for method in (["--method", "hog", "--resize", "32", "32"],
+                   ["--method", "anyloc-gem-dinov2", "--option", "backbone=dinov2_vits14", "--option", "weights=random",
+                    "--option", "resize=28,28", "--option", "layer=9"]):
+        assert main(["evaluate", *method, *common]) == 0, capsys.readouterr().err
+    assert main(["leaderboard", "publish", "--to", str(tmp_path / "site"), *common[2:]]) == 0, capsys.readouterr().err
+    overview = (tmp_path / "site" / "leaderboard" / "index.md").read_text()
+    assert "PCA map of GeM descriptors: not drawn, no GeM descriptors" in overview, overview
+    assert not (tmp_path / "site" / "leaderboard" / "figures" / "pca-gem.png").exists()

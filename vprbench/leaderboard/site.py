@@ -217,7 +217,8 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
                      "of its domain (" + "; ".join(f"{d}: {', '.join(axes[d])}" for d in figures.radar_domains(board, axes))
                      + "); a filled point has all of them, a hollow one only the datasets written beside it.",
                      "Radar chart")
-    lines += _figure(lambda p: figures.pca_map(records, p, cache_dir=cache_dir, seed=seed), out, "pca-gem.png",
+    shown = [cell.record for cell in board.cells.values()]  # not the runs left out (random weights, damaged arrays)
+    lines += _figure(lambda p: figures.pca_map(shown, p, cache_dir=cache_dir, seed=seed), out, "pca-gem.png",
                      "Database GeM descriptors of one method on every dataset it was run on, first two principal "
                      "components, coloured by domain (AnyLoc Fig. 1, middle).", "PCA map of GeM descriptors")
     others = other_rows(board)
