@@ -13,6 +13,7 @@ checked by hashing each file just before and just after its `load`.
 """
 from __future__ import annotations
 
+import functools
 import os
 import sys
 from collections.abc import Iterator, Sequence
@@ -167,16 +168,28 @@ def checked(source: str, descriptors, n: int, dim: int | None = None, compare: s
     return out
 
 
-def _exit_with_parent(_worker: int) -> None:
+def _exit_with_parent(run: int, _worker: int) -> None:
     """A loader worker whose run was killed (kill -9) would wait for ever to hand over a batch nobody
-    reads (torch's own check never runs then): it leaves as soon as its parent is gone."""
+    reads (torch's own check never runs then): it leaves as soon as its parent or its run is gone
+    (under forkserver its parent is the fork server, which outlives the run)."""
     import threading
     import time
 
     parent = os.getppid()
 
+    def alive() -> bool:
+        if os.getppid() != parent:
+            return False
+        try:
+            os.kill(run, 0)
+        except ProcessLookupError:
+            return False
+        except OSError:  # another user's process: it exists
+            pass
+        return True
+
     def watch():
-        while os.getppid() == parent:
+        while alive():
             time.sleep(1)
         os._exit(1)
 
@@ -200,7 +213,7 @@ def describe_batches(method, paths: Sequence[Path], *, workers: int = 0, device:
     batches = -(-len(paths) // size)
     loader = DataLoader(_Images(method, paths, digests), batch_size=size, shuffle=False, collate_fn=_as_batch,
                         num_workers=min(int(workers), batches), pin_memory=str(device).startswith("cuda"),
-                        worker_init_fn=_exit_with_parent)
+                        worker_init_fn=functools.partial(_exit_with_parent, os.getpid()))
     offset, dim = 0, None
     for items in loader:
         for item in items:

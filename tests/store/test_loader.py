@@ -171,3 +171,60 @@ def test_loader_workers_leave_when_their_run_is_killed(shared_data, tmp_path):
         run.kill()
         run.wait()
         run.stdout.close()
+
+
+def test_loader_workers_leave_a_killed_run_under_forkserver(shared_data, tmp_path):
+    """Under forkserver a worker's parent is the fork server, which outlives the killed run: the
+    worker watches the run itself."""
+    import contextlib
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    script = tmp_path / "run.py"  # the guard: forkserver imports the script in its server
+    script.write_text(ORPHAN_RUN.replace('print("started"', 'if __name__ == "__main__":\n'
+                                         '    import multiprocessing; multiprocessing.set_start_method("forkserver")\n'
+                                         '    print("started"').replace("\nfor _ in", "\n    for _ in")
+                      .replace("\n    pass\n", "\n        pass\n"))
+    run = subprocess.Popen([sys.executable, str(script), str(shared_data / "corridor" / "ref")],
+                           stdout=subprocess.PIPE, text=True)
+
+    def below(pid):  # every descendant of pid
+        children = []
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            with contextlib.suppress(OSError, ValueError, IndexError):
+                if int(stat.read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                    children.append(int(stat.parent.name))
+        return children + [d for c in children for d in below(c)]
+
+    def running(pid):
+        try:
+            return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+        except OSError:
+            return False
+
+    found = []
+    try:
+        assert run.stdout.readline().strip() == "started"
+        deadline = time.monotonic() + 30
+        while len(found) < 4 and time.monotonic() < deadline:  # fork server, resource tracker, 2 workers
+            time.sleep(0.2)
+            found = below(run.pid)
+        assert len(found) >= 4
+        time.sleep(3)
+        run.send_signal(signal.SIGKILL)
+        run.wait()
+        deadline, alive = time.monotonic() + 10, found
+        while alive and time.monotonic() < deadline:
+            time.sleep(0.5)
+            alive = [pid for pid in found if running(pid)]
+        assert alive == [], "loader workers (and their fork server) outlived their killed run"
+    finally:
+        for pid in found:
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGKILL)
+        run.kill()
+        run.wait()
+        run.stdout.close()
