@@ -131,6 +131,12 @@ def test_a_layer_written_out_at_the_moved_depth_is_not_noted_as_the_presets(shar
     assert "relative depth" not in said(["--option", "layer=9"])[0]
     notes, out = said([])  # unset: the note, and the same run (nothing computed again)
     assert "block 9 at the same relative depth" in notes and "descriptors computed now: 0" in out
+    plan = tmp_path / "plan.toml"  # a sweep's cell is made from its options as written too
+    plan.write_text('[[methods]]\nname = "anyloc-gem-dinov2"\noptions = { backbone = "dinov2_vits14", weights = '
+                    '"random", resize = [28, 28], layer = 9 }\n\n[[datasets]]\nname = "corridor"\n')
+    run[:] = ["run", str(plan), "--data-dir", str(shared_data), "--cache-dir", str(tmp_path / "sweep")]
+    notes, out = said([])
+    assert "relative depth" not in notes and " ran " in out, out
 
 
 def test_dataset_resize_policy_feeds_fingerprint(weights):

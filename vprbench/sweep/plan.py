@@ -44,11 +44,13 @@ DATASET_KEYS = {"name", "protocols", "protocol"}
 @dataclass(frozen=True, eq=False)
 class Cell:
     """One run of a sweep: its spec, the run settings its plan entry sets (e.g. batch_size),
-    and the row label a paper's table gives it."""
+    the row label a paper's table gives it, and the method options as written (the spec leaves
+    out those at their value anyway; the method is made from these, so it notes nothing the user chose)."""
 
     spec: RunSpec
     settings: dict = field(default_factory=dict)
     label: str = ""
+    written: dict = field(default_factory=dict)
 
     @property
     def key(self) -> str:
@@ -188,7 +190,7 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, overrides:
                 except VPRBenchError as error:
                     problems.append(f"{where('methods', m, 'options')}: {error}")
                     continue
-                cells.append(Cell(spec, run_options, label))
+                cells.append(Cell(spec, run_options, label, given))
     if problems:
         what = "The command line" if origin == "the command line" else f"Plan {origin}"
         raise VPRBenchError(f"{what} has {len(problems)} problem(s); nothing was run:\n  " + "\n  ".join(dict.fromkeys(problems)))

@@ -6,7 +6,7 @@ Reported values come from `vprbench.reference.paper_results()`; nothing is copie
 from __future__ import annotations
 
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from ..errors import VPRBenchError, closest_names
 from ..paths import shipped_file
@@ -69,7 +69,7 @@ def table_cells(paper: str, table: str, ks=(1, 5), *, settings: dict | None = No
             plan = build_plan({"methods": [{"name": row["method"], "options": options}], "datasets": datasets, "k": list(ks)},
                               f"{paper} table {table}", overrides={"options": dict(settings or {})}, data_dir=data_dir,
                               cache_dir=cache_dir)
-            cells = [Cell(c.spec, c.settings, label=row["row"]) for c in plan.cells]
+            cells = [replace(c, label=row["row"]) for c in plan.cells]
             reason = next((r for r in map(cannot_run, cells) if r), "")
             out.append(TableCell(row["row"], column, [] if reason else cells, reason))
     return spec, out
