@@ -264,7 +264,10 @@ def test_an_oracle_stage_reaches_its_ceiling_at_r1(monkeypatch, shared_data, tmp
     oracle = evaluate(resolve_spec("hog", "corridor", stages=[{"name": "audit-oracle", "k": 20}], ks=(1, 5, 20),
                                    data_dir=shared_data), settings)
     ceiling = oracle["stages"][0]["ceiling_recall"]
-    assert ceiling == alone["recall"]["20"] == 89.1892 and alone["recall"]["1"] == 48.6486
+    assert ceiling == alone["recall"]["20"]
+    # HOG's figures on this CPU; another CPU's float rounding may swap one near-tie: one query of 111
+    one_query = 100 / 111
+    assert abs(ceiling - 89.1892) <= one_query and abs(alone["recall"]["1"] - 48.6486) <= one_query
     assert oracle["recall"] == {"1": ceiling, "5": ceiling, "20": ceiling}
     before, after = np.array(alone["per_query"]["database_indices"]), np.array(oracle["per_query"]["database_indices"])
     assert (np.sort(before, 1) == np.sort(after, 1)).all()  # the same 20 candidates, re-ordered
