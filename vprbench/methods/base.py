@@ -19,7 +19,9 @@ class PostProcessor(Protocol):
     """
 
     def key(self, rows, memory_budget: int) -> dict:
-        """What defines the fitted state (options, and the algorithm the budget selects)."""
+        """What defines the fitted state (options, and the algorithm the budget selects), from the rows'
+        `row_count`, `dim` and `dtype` only: a sweep computes it from a stored record's shape to judge
+        whether the record fitted what this run would, and runs the cell again when it cannot."""
 
     def fit(self, rows, memory_budget: int) -> object:
         """Learn from the database rows, holding at most `memory_budget` bytes."""
