@@ -146,7 +146,8 @@ def test_reproduce_backbones_plan_lists_what_each_row_needs(capsys, monkeypatch,
     # the paper's setting has released centres; another backbone needs its domain vocabularies fitted
     assert "vocabularies" not in needs("VLAD DINOv2 ViT-G/14 (paper)") and "vocabularies" not in needs("GeM SigLIP 2 B/16")
     assert ("vocabularies D = indoor, urban, hawkins, laurel-caverns, aerial: run 'vprbench vocabulary fit --domain D "
-            "--method anyloc-vlad-dinov3 --backbone dinov3_vitl16 --layer 18'") in needs("VLAD DINOv3 ViT-L/16")
+            f"--method anyloc-vlad-dinov3 --backbone dinov3_vitl16 --layer 18 --data-dir {tmp_path / 'no-data'}'") \
+        in needs("VLAD DINOv3 ViT-L/16")  # the run's data root: the fit reads the same datasets
     assert "gated, DINOv3 License: request access at https://github.com/facebookresearch/dinov3" in needs("GeM DINOv3 ViT-B/16")
     assert "huggingface.co/timm/vit_pe_spatial_base_patch16_512.fb" in needs("VLAD PE-spatial B/16")
     missing = sorted(re.findall(r"^dataset (\S+): ", "\n".join(notes.values()), re.MULTILINE))

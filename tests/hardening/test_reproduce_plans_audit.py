@@ -91,3 +91,39 @@ def test_publish_with_a_dry_run_is_refused_not_ignored(tmp_path, capsys):
         "error: --publish writes the table and the leaderboard after the cells run; --dry-run runs nothing and "
         "publishes nothing: drop one of them (cells already measured are read, not run again).")
     assert not (tmp_path / "site").exists()
+
+
+
+def test_the_backbones_plan_runs_to_its_table_with_nothing_reported(tmp_path, capsys):
+    # no table of the paper: the real (not dry) run ended in "error: The anyloc paper has no table
+    # 'backbones'" once its cells were judged, so its table was never printed
+    from rich.console import Console
+
+    from vprbench.cli.reproduce import paper_table
+    from vprbench.run_settings import RunSettings
+
+    (tmp_path / "data").mkdir()
+    code = main(["reproduce", "anyloc", "--table", "backbones", "--quiet", "--data-dir", str(tmp_path / "data"),
+                 "--cache-dir", str(tmp_path / "cache")])
+    captured = capsys.readouterr()
+    assert code == 0 and "error" not in captured.err, captured.err
+    assert "reported (paper) / measured here" in captured.out
+    spec, cells = table_cells("anyloc", "backbones", cache_dir=tmp_path / "cache")
+    console = Console(width=1000, record=True, markup=False)
+    console.print(paper_table(spec, cells, RunSettings(cache_dir=tmp_path / "cache")))
+    line = next(x for x in console.export_text().splitlines() if x.startswith("│ VLAD DINOv2 ViT-G/14 (paper)"))
+    values = [cell.strip() for cell in line.split("│")[2:-1]]
+    assert values == ["- / not measured"] * 24, values  # 12 datasets x R@1, R@5
+
+
+def test_a_vocabulary_fit_command_names_the_runs_own_data_root_and_cache(tmp_path, capsys, monkeypatch):
+    # it said "run 'vprbench vocabulary fit --domain aerial ... --layer 9'": run as printed, that
+    # fits from the default data root into the default cache, where this run never looks
+    monkeypatch.setenv("COLUMNS", "400")
+    data, cache = tmp_path / "my data", tmp_path / "cache"
+    data.mkdir()
+    code = main(["reproduce", "anyloc", "--table", "3", "--dry-run", "--data-dir", str(data), "--cache-dir", str(cache)])
+    out = " ".join(capsys.readouterr().out.split())
+    assert code == 0
+    assert (f"vocabulary 'aerial' for dino_vits8 layer 9 key c128: run 'vprbench vocabulary fit --domain aerial "
+            f"--method anyloc-vlad-dino --backbone dino_vits8 --layer 9 --data-dir '{data}' --cache-dir {cache}'") in out

@@ -46,6 +46,9 @@ def run_reproduce(args) -> int:
     from ..sweep.runner import FAILED
     from .evaluate import explicit_run_options
 
+    # the locations given on the command line (an environment's reach the fit command too): named in
+    # a vocabulary fit command, which would otherwise fit from and into the default ones
+    given = {"data-dir": args.data_dir, "cache-dir": args.cache_dir}
     resolve_locations(args)
     refuse_changes(args)
     # checked once here: inside each cell's plan a bad --batch-size reads as that method's problem
@@ -62,7 +65,8 @@ def run_reproduce(args) -> int:
     weights = _row_weights(spec)
     cells = {c.key: (c, tc) for tc in table_cells_ for c in tc.cells}
     console = make_console()
-    missing = {key: missing_for(c, weights.get(tc.row), settings.data_dir, settings.cache_dir) for key, (c, tc) in cells.items()}
+    missing = {key: missing_for(c, weights.get(tc.row), settings.data_dir, settings.cache_dir, given)
+               for key, (c, tc) in cells.items()}
     unrunnable = [tc for tc in table_cells_ if not tc.cells]
     no_method = f"{len(unrunnable)} not runnable as the paper ran them ({', '.join(sorted({tc.row for tc in unrunnable}))})"
     if args.dry_run:

@@ -129,9 +129,12 @@ def weights_for(row_weights: dict | None, cell: Cell, cache_dir=None) -> Need | 
     return None if found else (f"weights {row_weights['file']}", f"from {row_weights['url']}, into {folder}, or pass weights=PATH")
 
 
-def vocabulary_for(cell: Cell, cache_dir=None) -> Need | None:
+def vocabulary_for(cell: Cell, cache_dir=None, given: dict | None = None) -> Need | None:
     """A domain or union vocabulary (`domain`: the paper's choice for the cell's dataset) that is
-    neither cached nor released for the cell's features must be fitted first."""
+    neither cached nor released for the cell's features must be fitted first. `given`: the run's
+    own locations ({"data-dir": ..., "cache-dir": ...}), carried into the fit command, which
+    would otherwise fit from and into the default ones."""
+    import shlex
     import warnings
 
     from ..methods.anyloc import VLADS, AnyLoc
@@ -155,13 +158,14 @@ def vocabulary_for(cell: Cell, cache_dir=None) -> Need | None:
     setting = (method.vocabulary_backbone, method.layer, method.facet, method.clusters)
     if find_vocabulary(name, *setting, cache_dir) or (setting == released_setting() and released_path(name)):
         return None  # cached, or the authors' release (downloaded on first use)
+    where = "".join(f" --{flag} {shlex.quote(str(path))}" for flag, path in (given or {}).items() if path is not None)
     return (f"vocabulary {name!r} for {method.backbone} layer {method.layer} {method.facet} c{method.clusters}",
             f"run 'vprbench vocabulary fit --domain {name} --method {cell.spec.method} --backbone {method.backbone} "
-            f"--layer {method.layer}'")
+            f"--layer {method.layer}{where}'")
 
 
-def missing_for(cell: Cell, row_weights, data_dir=None, cache_dir=None) -> list[Need]:
-    """Everything the cell lacks on this machine, none when it can run."""
+def missing_for(cell: Cell, row_weights, data_dir=None, cache_dir=None, given: dict | None = None) -> list[Need]:
+    """Everything the cell lacks on this machine, none when it can run (`given`: as vocabulary_for)."""
     from ..datasets import dataset_location, dataset_manifest
     from ..datasets.download import how_to_get
 
@@ -171,7 +175,7 @@ def missing_for(cell: Cell, row_weights, data_dir=None, cache_dir=None) -> list[
         root = dataset_location(manifest, data_dir)
         if not root.is_dir():
             needs.append((f"dataset {cell.spec.dataset.name}", how_to_get(manifest, root)))
-    return needs + [need for need in (weights_for(row_weights, cell, cache_dir), vocabulary_for(cell, cache_dir)) if need]
+    return needs + [need for need in (weights_for(row_weights, cell, cache_dir), vocabulary_for(cell, cache_dir, given)) if need]
 
 
 def needs_text(needs: list[Need]) -> str:
@@ -203,6 +207,8 @@ def measured(records: list[dict | None], metric: str, seed: int = 0) -> tuple[fl
 
 
 def reported_value(spec: dict, row: str, column: str, metric: str) -> float | None:
-    frame = paper_results(table=spec["paper"])
+    frame = paper_results()
+    # a plan that is no table of the paper (backbones) has nothing reported: every cell None
+    frame = frame[frame["table"] == spec["paper"]]
     hit = frame[(frame["row"] == row) & (frame["column"] == column) & (frame["metric"] == metric)]
     return float(hit["value"].iloc[0]) if len(hit) else None
