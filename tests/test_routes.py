@@ -150,6 +150,10 @@ def test_reproduce_takes_the_run_settings_and_refuses_what_would_change_the_tabl
         code = main([str(a) for a in ("reproduce", "anyloc", "--table", "t", *changes, *where)])
         err = capsys.readouterr().err
         assert code == 1 and "would change what is computed" in err and "Traceback" not in err, changes
+    with pytest.raises(SystemExit):  # so its --help lists none of them: only what it takes
+        main(["reproduce", "--help"])
+    shown = capsys.readouterr().out
+    assert "--search-memory" in shown and not any(flag in shown for flag in ("--weights", "--layer", "--index", "--k "))
 
 
 def test_options_a_route_cannot_use_are_refused_with_the_reason(shared_data, capsys):

@@ -49,21 +49,27 @@ def add_method_options(parser: argparse.ArgumentParser, several: bool = False) -
     add_method_flags(parser)
 
 
-def add_method_flags(parser: argparse.ArgumentParser) -> None:
+def _helps(shown: bool):
+    return (lambda text: text) if shown else (lambda text: argparse.SUPPRESS)
+
+
+def add_method_flags(parser: argparse.ArgumentParser, shown: bool = True) -> None:
+    """`shown=False`: accepted (so a command can refuse them by name) but left out of --help."""
+    h = _helps(shown)
     group = parser.add_argument_group("method options (override the preset; a method rejects those it does not use)")
-    group.add_argument("--backbone", help="backbone, e.g. dinov2_vitg14, dino_vits8, resnet101")
-    group.add_argument("--weights", help="local weights file in the official checkpoint format, or random (AnyLoc "
-                       "backbones: a seeded random initialisation, a pipeline check)")
-    group.add_argument("--layer", type=int, help="0-based index of the block the features come from")
-    group.add_argument("--facet", help="query, key, value or token")
-    group.add_argument("--aggregation", help="gap, gmp, gem, vlad, vlad-soft-official, vlad-soft, cls")  # = anyloc.AGGREGATIONS
-    group.add_argument("--clusters", type=int, help="VLAD vocabulary size")
-    group.add_argument("--vocabulary", help="vocabulary name (map, indoor, urban, ...) or file (e.g. c_centers.pt)")
-    group.add_argument("--resize", type=int, nargs=2, metavar=("H", "W"), help="resize images to H x W")
-    group.add_argument("--pca-dim", type=int, help="PCA-whitening output dimension")
-    group.add_argument("--precision", choices=("fp32", "fp16", "bf16"), help="autocast precision on GPU (default fp32)")
+    group.add_argument("--backbone", help=h("backbone, e.g. dinov2_vitg14, dino_vits8, resnet101"))
+    group.add_argument("--weights", help=h("local weights file in the official checkpoint format, or random (AnyLoc "
+                       "backbones: a seeded random initialisation, a pipeline check)"))
+    group.add_argument("--layer", type=int, help=h("0-based index of the block the features come from"))
+    group.add_argument("--facet", help=h("query, key, value or token"))
+    group.add_argument("--aggregation", help=h("gap, gmp, gem, vlad, vlad-soft-official, vlad-soft, cls"))  # = anyloc.AGGREGATIONS
+    group.add_argument("--clusters", type=int, help=h("VLAD vocabulary size"))
+    group.add_argument("--vocabulary", help=h("vocabulary name (map, indoor, urban, ...) or file (e.g. c_centers.pt)"))
+    group.add_argument("--resize", type=int, nargs=2, metavar=("H", "W"), help=h("resize images to H x W"))
+    group.add_argument("--pca-dim", type=int, help=h("PCA-whitening output dimension"))
+    group.add_argument("--precision", choices=("fp32", "fp16", "bf16"), help=h("autocast precision on GPU (default fp32)"))
     group.add_argument("-o", "--option", action="append", default=[], metavar="KEY=VALUE",
-                       help="any other method option (repeatable)")
+                       help=h("any other method option (repeatable)"))
 
 
 def _value(text: str):
@@ -98,25 +104,27 @@ def method_options(args) -> dict:
 
 
 # ---------------------------------------------------------------- spec options
-def add_spec_options(parser: argparse.ArgumentParser) -> None:
+def add_spec_options(parser: argparse.ArgumentParser, shown: bool = True) -> None:
+    """`shown=False`: as add_method_flags."""
+    h = _helps(shown)
     group = parser.add_argument_group("what is computed besides the method (part of the run's identity)")
-    group.add_argument("--k", nargs="+", help="K values for Recall@K (default 1 5 10 20)")
+    group.add_argument("--k", nargs="+", help=h("K values for Recall@K (default 1 5 10 20)"))
     group.add_argument("--index", choices=INDEXES, default=None,
-                       help="exact (default): streamed exact search; ivf-pq or hnsw: approximate faiss index, "
-                            "shortlist re-scored exactly, recall loss against exact reported (its own leaderboard row)")
+                       help=h("exact (default): streamed exact search; ivf-pq or hnsw: approximate faiss index, "
+                            "shortlist re-scored exactly, recall loss against exact reported (its own leaderboard row)"))
     group.add_argument("--index-option", action="append", default=[], metavar="KEY=VALUE",
-                       help="an approximate index's option, e.g. nprobe=64 (repeatable; docs/evaluation.md)")
+                       help=h("an approximate index's option, e.g. nprobe=64 (repeatable; docs/evaluation.md)"))
     group.add_argument("--store-dtype", choices=("float32", "float16"), default=None,
-                       help="descriptor store precision; float16 halves the disk, reading gives float32 (default: float32)")
+                       help=h("descriptor store precision; float16 halves the disk, reading gives float32 (default: float32)"))
     group = parser.add_argument_group("post-retrieval stages (part of the run's identity; docs/stages.md)")
-    group.add_argument("--rerank", metavar="STAGE", help="re-rank the candidates: sift-ransac, aqe, dba or a plugin's")
-    group.add_argument("--rerank-k", type=int, metavar="K", help="how many candidates the re-ranker re-orders (default 100)")
+    group.add_argument("--rerank", metavar="STAGE", help=h("re-rank the candidates: sift-ransac, aqe, dba or a plugin's"))
+    group.add_argument("--rerank-k", type=int, metavar="K", help=h("how many candidates the re-ranker re-orders (default 100)"))
     group.add_argument("--rerank-option", action="append", default=[], metavar="KEY=VALUE",
-                       help="a re-ranker's option, e.g. model=homography (repeatable)")
-    group.add_argument("--sequence", metavar="STAGE", help="sequence matching over the traverse (e.g. seqslam)")
-    group.add_argument("--sequence-length", type=int, metavar="N", help="frames in a sequence")
+                       help=h("a re-ranker's option, e.g. model=homography (repeatable)"))
+    group.add_argument("--sequence", metavar="STAGE", help=h("sequence matching over the traverse (e.g. seqslam)"))
+    group.add_argument("--sequence-length", type=int, metavar="N", help=h("frames in a sequence"))
     group.add_argument("--sequence-option", action="append", default=[], metavar="KEY=VALUE",
-                       help="a sequence stage's option (repeatable)")
+                       help=h("a sequence stage's option (repeatable)"))
 
 
 def spec_overrides(args) -> dict:

@@ -13,8 +13,8 @@ def add_parsers(commands) -> None:
     p.add_argument("--table", required=True, help="2, 3, 4, 5, 6, 7, layer, facet or backbones")
     p.add_argument("--dry-run", action="store_true", help="list the cells and what each needs; run nothing")
     p.add_argument("--publish", type=path_argument, metavar="DIR", help="also write the table (Markdown) and the leaderboard into DIR")
-    add_method_flags(p)
-    add_spec_options(p)
+    add_method_flags(p, shown=False)  # refused by name (refuse_changes): the paper's settings are fixed
+    add_spec_options(p, shown=False)
     add_run_options(p)
     add_sweep_options(p)
     add_location_options(p)
