@@ -161,9 +161,9 @@ def test_reproduce_dry_run_and_bad_table(shared_data, capsys, monkeypatch):
     assert main(["reproduce", "anyloc", "--table", "2", "--dry-run", "--data-dir", str(shared_data)]) == 0
     out = capsys.readouterr().out
     lines = out.splitlines()
-    # one line per cell (66) and each need said once below the table: it printed 2,707 lines when
-    # every cell repeated its needs' instructions
-    assert len(lines) < 170 and sum("│ CosPlace " in line for line in lines) == 6, out
+    # one line per cell (66) and each need said once below the table (about 100 lines of needs, the
+    # authors' vocabularies among them): it printed 2,707 lines when every cell repeated its needs' instructions
+    assert len(lines) < 200 and sum("│ CosPlace " in line for line in lines) == 6, out
     text = " ".join(out.split())
     assert "54 cells to evaluate, 12 not runnable as the paper ran them (AnyLoc-VLAD-DINO-PCA, AnyLoc-VLAD-DINOv2-PCA, " \
            "NetVLAD)" in text

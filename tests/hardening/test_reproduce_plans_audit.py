@@ -127,3 +127,22 @@ def test_a_vocabulary_fit_command_names_the_runs_own_data_root_and_cache(tmp_pat
     assert code == 0
     assert (f"vocabulary 'aerial' for dino_vits8 layer 9 key c128: run 'vprbench vocabulary fit --domain aerial "
             f"--method anyloc-vlad-dino --backbone dino_vits8 --layer 9 --data-dir '{data}' --cache-dir {cache}'") in out
+
+
+def test_a_released_vocabulary_not_here_is_a_need_until_it_is(tmp_path, shared_data):
+    """Before: a cell on the authors' released centres counted as ready (they download on first use), so a
+    dry run on a machine without internet said 'would run' and the cell failed when run. Like weights,
+    it is now a need until the file is where the run reads it."""
+    import shutil
+
+    from vprbench.methods.anyloc_vocabulary import released_path
+
+    _, cells = _cells("2", "AnyLoc-VLAD-DINOv2", tmp_path)
+    baidu = cells["baidu-mall"].cells[0]  # the paper's vocabulary there: indoor, released
+    what, how = vocabulary_for(baidu, tmp_path)
+    target = released_path("indoor", tmp_path)
+    assert what == "the authors' vocabulary 'indoor'" and "vprbench vocabulary download" in how and str(target) in how
+    target.parent.mkdir(parents=True)
+    shutil.copy(shared_data / "vocabularies" / "anyloc-dinov2_vitg14-l31-value-c32" / target.parent.name / "c_centers.pt",
+                target)
+    assert vocabulary_for(baidu, tmp_path) is None

@@ -150,15 +150,21 @@ def vocabulary_for(cell: Cell, cache_dir=None, given: dict | None = None) -> Nee
         return None
     if name == "domain":
         name = paper_vocabulary(cell.spec.dataset.name)
-    if name not in domain_names():
-        return None
+    if not isinstance(name, str) or name not in domain_names() and released_path(name) is None:
+        return None  # fitted on the map at run time, or a file
     with warnings.catch_warnings():  # a preset's layer on another backbone: the same relative depth
         warnings.simplefilter("ignore")
         method = AnyLoc(**{**options, "vocabulary": "map"})  # the cell's features; nothing loads
     setting = (method.vocabulary_backbone, method.layer, method.facet, method.clusters)
-    if find_vocabulary(name, *setting, cache_dir) or (setting == released_setting() and released_path(name)):
-        return None  # cached, or the authors' release (downloaded on first use)
+    released = released_path(name, cache_dir) if setting == released_setting() else None
+    if find_vocabulary(name, *setting, cache_dir) or (released is not None and released.is_file()):
+        return None  # cached, or the authors' release already here
     where = "".join(f" --{flag} {shlex.quote(str(path))}" for flag, path in (given or {}).items() if path is not None)
+    if released is not None:  # fetched before the run, as weights are (a compute node may be offline)
+        return (f"the authors' vocabulary {name!r}", f"run 'vprbench vocabulary download{where}', or put the "
+                f"release's c_centers.pt at {released}")
+    if name not in domain_names():
+        return None
     return (f"vocabulary {name!r} for {method.backbone} layer {method.layer} {method.facet} c{method.clusters}",
             f"run 'vprbench vocabulary fit --domain {name} --method {cell.spec.method} --backbone {method.backbone} "
             f"--layer {method.layer}{where}'")
