@@ -182,13 +182,14 @@ def find_result(spec, cache_dir=None, dataset_fingerprint: str | None = None,
     require(spec, RunSpec, "find_result(spec) takes a RunSpec (vprbench.spec.resolve_spec or spec_for)")
     migrate_legacy(cache_dir)
     check_layout(results_dir(cache_dir))
-    wanted, stages = {str(k) for k in spec.ks}, _stage_fingerprints(spec)
+    wanted, stages = {str(k) for k in spec.ks}, _created_stages(spec)
+    fingerprints = None if stages is None else _stage_fingerprints(stages)
     # row and protocol as the record says, not as the folder it lies in is named (a file copied there)
     found = [r for r in _records_in(run_folder(spec.dataset.protocol_hash, spec.row_key, cache_dir))
              if r["row_key"] == spec.row_key and r["protocol"]["hash"] == spec.dataset.protocol_hash
              and wanted <= set(r["recall"]) and (r.get("spec") or {}).get("found", {}) == spec.found
-             and dataset_fingerprint in (None, r.get("dataset_fingerprint")) and _same_search(r, spec)
-             and method_fingerprint in (None, r.get("method_fingerprint")) and _same_stages(r, stages)
+             and dataset_fingerprint in (None, r.get("dataset_fingerprint")) and _same_search(r, spec, stages)
+             and method_fingerprint in (None, r.get("method_fingerprint")) and _same_stages(r, fingerprints)
              and (accept is None or accept(r))]
     for record in reversed(_order(found)):
         with warnings.catch_warnings(record=True) as caught:
@@ -203,31 +204,43 @@ def find_result(spec, cache_dir=None, dataset_fingerprint: str | None = None,
     return None
 
 
-def _same_search(record: dict, spec) -> bool:
+def _created_stages(spec) -> list | None:
+    """The spec's stages as they are here; None when one cannot be made here (its run says why)."""
+    from ..stages.run import create_stages
+
+    try:
+        return create_stages(spec)
+    except Exception:  # noqa: BLE001 - a plugin's stage may raise anything
+        return None
+
+
+def _same_search(record: dict, spec, stages: list | None) -> bool:
     """An approximate search's unset shortlist and ef_search follow the largest K: a record made with
     another largest K searched with another shortlist, so its Recall@1 is not this spec's."""
     if not spec.search.approximate:
         return True
-    from ..stages.run import create_stages, retrieval_depth
+    if stages is None:  # a stage that cannot be made here: its depth is unknown
+        return False
+    from ..stages.run import retrieval_depth
     from .approximate import index_options
 
     found = record.get("search") or {}
     try:
         database = int(record["counts"]["database"])
-        depth = retrieval_depth(create_stages(spec), spec.ks, database, spec.dataset.name)
+        depth = retrieval_depth(stages, spec.ks, database, spec.dataset.name)
         wanted = index_options(spec.search.index, database, int(found["dim"]), depth, spec.search.options)
     except (VPRBenchError, KeyError, TypeError, ValueError):
         return False
     return found.get("options") == wanted
 
 
-def _stage_fingerprints(spec) -> list[dict] | None:
-    """Each of the spec's stages' fingerprint now (`Stage.fingerprint`, a version its author raises), or
-    None when a stage cannot be made here (its run says why)."""
-    from ..stages.run import create_stages, stage_fingerprint
+def _stage_fingerprints(stages: list) -> list[dict] | None:
+    """Each stage's fingerprint now (`Stage.fingerprint`, a version its author raises), or None when
+    one cannot be told (its run says why)."""
+    from ..stages.run import stage_fingerprint
 
     try:
-        return [stage_fingerprint(stage) for stage in create_stages(spec)]
+        return [stage_fingerprint(stage) for stage in stages]
     except Exception:  # noqa: BLE001 - a plugin's fingerprint may raise anything
         return None
 

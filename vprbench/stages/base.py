@@ -264,4 +264,3 @@ def rerank_by_counts(name: str, candidates: Candidates, context: StageContext, s
             if task is not None:
                 context.progress.advance(task, 1)
     return by_count(candidates, counts)
-

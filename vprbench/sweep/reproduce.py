@@ -213,8 +213,7 @@ def measured(records: list[dict | None], metric: str, seed: int = 0) -> tuple[fl
 
 
 def reported_value(spec: dict, row: str, column: str, metric: str) -> float | None:
-    frame = paper_results()
-    # a plan that is no table of the paper (backbones) has nothing reported: every cell None
-    frame = frame[frame["table"] == spec["paper"]]
-    hit = frame[(frame["row"] == row) & (frame["column"] == column) & (frame["metric"] == metric)]
+    frame = paper_results()  # all tables: a plan that is no table of the paper (backbones) finds nothing
+    hit = frame[(frame["table"] == spec["paper"]) & (frame["row"] == row) & (frame["column"] == column)
+                & (frame["metric"] == metric)]
     return float(hit["value"].iloc[0]) if len(hit) else None

@@ -114,40 +114,36 @@ class StoredRecords:
     protocol, not the bytes of the copy (an image or the ground truth edited, a file renamed)."""
 
     def __init__(self, settings: RunSettings):
-        self.settings, self.fingerprints, self.methods, self.postprocessors = settings, {}, {}, {}
+        self.settings, self.fingerprints, self.methods = settings, {}, {}
 
     def record(self, spec, options: dict | None = None) -> dict | None:
-        """`options`: the cell's own run settings (its plan entry's memory_budget)."""
-        record = find_result(spec, self.settings.cache_dir)
-        if record is None:  # no method made (nor centres fetched) for a cell without records
+        """The newest record made for the computation this cell would make now: on the data at hand,
+        by the method's code as it is (its store fingerprint), fitting the post-processing this cell's
+        run settings (`options`, its plan entry's: the memory budget picks PCA's solver) would fit."""
+        if not self.may_hold(spec):  # no method made (nor centres fetched) for a cell without records
             return None
-        described, current, fits = self.described_as(spec), self.fingerprint(spec), self._fits(spec, options)
-        if described in (None, record.get("method_fingerprint")) and fits(record) \
-                and current in (None, record.get("dataset_fingerprint")):
-            return record
-        return find_result(spec, self.settings.cache_dir, dataset_fingerprint=current, method_fingerprint=described,
-                           accept=fits)
-
-    def _fits(self, spec, options):
-        """Whether a record fitted the post-processing this run would: the memory budget picks PCA's solver."""
         from ..evaluation.postprocess import fits_as_recorded
         from ..row_sources import DEFAULT_MEMORY_BUDGET
 
+        described, postprocessor = self.described_as(spec)
         budget = self.settings.with_options(options or {}).memory_budget or DEFAULT_MEMORY_BUDGET
-        postprocessor = self.postprocessors.get((spec.key, spec.dataset.name))
-        return lambda record: fits_as_recorded(postprocessor, record, budget)
+        return find_result(spec, self.settings.cache_dir, dataset_fingerprint=self.fingerprint(spec),
+                           method_fingerprint=described,
+                           accept=lambda record: fits_as_recorded(postprocessor, record, budget))
 
     def may_hold(self, spec) -> bool:
         """Whether the spec's results folder holds any record (a listing, nothing read)."""
-        from ..evaluation.results import run_folder
+        from ..evaluation.results import migrate_legacy, run_folder
 
+        migrate_legacy(self.settings.cache_dir)  # 0.2's flat records into their folders first
         folder = run_folder(spec.dataset.protocol_hash, spec.row_key, self.settings.cache_dir)
         return folder.is_dir() and any(folder.glob("*.json"))
 
-    def described_as(self, spec) -> dict | None:
-        """The store key the spec's method has now (`store.method_fingerprint`): its fingerprint names what its
-        descriptors depend on beyond the options (a version its author raised, a library's); a record made
-        with another was computed by other code. None when the method cannot be made here (the run says why)."""
+    def described_as(self, spec) -> tuple[dict | None, object]:
+        """The store key the spec's method has now (`store.method_fingerprint`: what its descriptors depend
+        on beyond the options, a version its author raised, a library's; a record made with another was
+        computed by other code) and its post-processor. (None, None) when the method cannot be made here
+        (the run says why)."""
         import warnings
 
         from ..evaluation.pipeline import create_run_method
@@ -160,10 +156,9 @@ class StoredRecords:
                     warnings.simplefilter("ignore")  # the run says the method's notes
                     method = create_run_method(spec.method, spec.given, self.settings)
                     method.use_dataset(spec.dataset.name)
-                    self.methods[key] = method_fingerprint(method, spec.store_dtype)
-                    self.postprocessors[key] = method.postprocessor()
+                    self.methods[key] = method_fingerprint(method, spec.store_dtype), method.postprocessor()
             except Exception:  # noqa: BLE001 - a lookup: whatever stops the method here stops its run, which names it
-                self.methods[key] = None
+                self.methods[key] = None, None
         return self.methods[key]
 
     def fingerprint(self, spec) -> str | None:
