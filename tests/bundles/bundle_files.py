@@ -61,3 +61,24 @@ def edit_arrays(members, edit, which=0) -> str:
     record["per_query"]["sha256"] = hashlib.sha256(members[npz]).hexdigest()
     members[name] = json.dumps(record).encode()
     return name
+
+
+def respec(members, edit, which=0) -> str:
+    """Change a record's spec (and what follows from it: keys, label, place, method card), as a
+    careful forger would; returns the record's new name."""
+    from vprbench.evaluation.results import card_of
+    from vprbench.spec import RunSpec
+
+    name = record_names(members)[which]
+    folder, row_key = name.rsplit("/", 1)[0], name.split("/")[1]
+    record = json.loads(members.pop(name))
+    npz = members.pop(f"{folder}/{record['per_query']['file']}")
+    card = json.loads(members.pop(f"methods/{row_key}.json"))
+    edit(record)
+    spec = RunSpec.model_validate(record["spec"])
+    record.update(spec=spec.to_json(), spec_key=spec.key, row_key=spec.row_key, label=spec.label(), method=spec.method)
+    folder = f"{record['protocol']['hash']}/{spec.row_key}"
+    members[f"{folder}/{record['run_id']}.json"] = json.dumps(record).encode()
+    members[f"{folder}/{record['per_query']['file']}"] = npz
+    members[f"methods/{spec.row_key}.json"] = json.dumps({**card, **card_of(record)}).encode()
+    return f"{folder}/{record['run_id']}.json"

@@ -107,12 +107,14 @@ def _merge(verified, into: Path, report: ImportReport) -> None:
         contribution = {"contributor": str(manifest.get("contributor") or "anonymous")[:200],
                         "bundle_created": str(manifest.get("created", ""))[:40], "bundle_sha256": bundle_sha,
                         "imported": datetime.now(timezone.utc).isoformat(timespec="seconds")}
-        writes[into / npz] = members[npz]
-        writes[target.with_suffix(CONTRIBUTION)] = json.dumps(contribution, indent=1, sort_keys=True).encode()
-        writes[target] = members[verdict.member]  # last: a record is there only with its arrays
         card = f"{CARDS}/{record['row_key']}.json"
         if not (into / card).exists():
             writes[into / card] = members[card]
+        writes[into / npz] = members[npz]
+        writes[target.with_suffix(CONTRIBUTION)] = json.dumps(contribution, indent=1, sort_keys=True).encode()
+        # last: a record is there only with its card and arrays (a killed import, imported again,
+        # finds the record and skips it as a duplicate: what it lacked would never come)
+        writes[target] = members[verdict.member]
         report.added.append(verdict.run_id)
     if report.problems:
         report.added = []

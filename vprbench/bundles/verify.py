@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import re
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,6 +41,8 @@ class Truth:
     positives: list
     #: the units the protocol's bootstrap draws (evaluation/blocks.py); None: not checked
     resampling: Resampling | None = None
+    #: the dataset's identity here (images and ground truth, as records keep it); None: not checked
+    fingerprints: dict | None = None
 
 
 class DataGroundTruth:
@@ -68,7 +71,11 @@ class DataGroundTruth:
         if data.protocol.get("hash") != protocol_hash:
             raise VPRBenchError(f"the copy of {dataset} on this machine ({data.root}) gives protocol hash "
                                 f"{data.protocol.get('hash')}, not {protocol_hash}")
-        return Truth(protocol["id"], len(data.database), data.positives, for_dataset(data))
+        # the board keeps one copy of a column's data (the fingerprint most runs share): a record
+        # naming another copy than the one re-scored here could push the true runs out
+        fingerprints = {"dataset": data.fingerprint(self.cache_dir), "images": data.images_fingerprint(self.cache_dir),
+                        "ground_truth": data.ground_truth_fingerprint()}
+        return Truth(protocol["id"], len(data.database), data.positives, for_dataset(data), fingerprints)
 
 
 # ---------------------------------------------------------------- the records
@@ -110,7 +117,8 @@ class BundleReport:
             out += [f"{head}: {problem}" for problem in verdict.problems]
         if not self.problems and not self.verdicts:
             out.append(f"{self.path}: it holds no records.")
-        return out
+        # names from a record (a label, a key) hold no line break: none can forge a verdict line
+        return [line.replace("\r", "\\r").replace("\n", "\\n") for line in out]
 
 
 def verify_bundle(path: Path, truth=None, *, max_bytes: int = MAX_BYTES) -> BundleReport:
@@ -212,6 +220,9 @@ def rescore(record: dict, arrays: dict, gt: Truth, problems: list) -> dict[str, 
     indices, scores = arrays["database_indices"].astype(np.int64), arrays["similarities"].astype(np.float64)
     queries, k = indices.shape
     counts = record["counts"]
+    odd = [key for key in record["recall"] if not re.fullmatch(r"[1-9][0-9]{0,8}", key)]
+    if odd:  # a key the checks below would not read (' 1', '01') or cannot ('abc')
+        problems.append(f"its recall has key {odd[0][:20]!r}, not a K (a whole number from 1, as vprbench writes it)")
     if queries != len(gt.positives):
         problems.append(f"it has top-K lists for {queries} queries; protocol {gt.protocol_id} has {len(gt.positives)} "
                         f"({'missing' if queries < len(gt.positives) else 'extra'} queries)")
@@ -251,11 +262,28 @@ def rescore(record: dict, arrays: dict, gt: Truth, problems: list) -> dict[str, 
         for name in ("auc_pr", "recall_at_100_precision", "max_f1"):
             if name in record and abs(float(record[name]) - pr[name]) > PR_TOLERANCE:
                 problems.append(f"{name} is {record[name]} in the record but {pr[name]:.6f} from its arrays")
+    _check_fingerprints(record, gt, problems)
     stated = for_record(record, arrays)
     if gt.resampling is not None and set(OPTIONAL_FIELDS) & set(arrays) and not stated.same_as(gt.resampling):
         problems.append(f"its bootstrap units ({stated.text()}) are not those of protocol {gt.protocol_id} "
                         f"({gt.resampling.text()}); its intervals would be drawn from the wrong units")
     return {k: v for k, v in recall.items()}
+
+
+def _check_fingerprints(record: dict, gt: Truth, problems: list) -> None:
+    """The dataset identity the record gives is that of the copy its arrays are re-scored against."""
+    if gt.fingerprints is None:
+        return
+    parts = record.get("dataset_fingerprints", {})
+    if not isinstance(parts, dict):
+        problems.append(f"its dataset_fingerprints is a {type(parts).__name__}, not a table")
+        return
+    given = [("dataset", record.get("dataset_fingerprint")), *((n, parts[n]) for n in gt.fingerprints if n in parts)]
+    wrong = sorted({name for name, value in given if value != gt.fingerprints[name]})
+    if wrong:
+        problems.append(f"its dataset fingerprint ({', '.join(wrong)}) is not that of the copy of {record['dataset']} "
+                        f"here ({gt.fingerprints['dataset']}); a record names only the data it ran on: verify it against "
+                        "that copy (--data-dir), or run it again on this one")
 
 
 def _check_positives(record: dict, stored: np.ndarray, gt: Truth, problems: list) -> None:

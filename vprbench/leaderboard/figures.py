@@ -16,6 +16,7 @@ from .escape import public
 from .shown import descriptor_bytes
 from ..evaluation.metrics import successes
 from ..hashing import canonical_hash
+from ..text import literal
 
 DOMAIN_COLOURS = {"indoor": "#1f77b4", "urban": "#ff7f0e", "outdoor": "#2ca02c", "aerial": "#d62728",
                   "subt": "#9467bd", "degraded": "#8c564b", "underwater": "#17becf"}
@@ -53,8 +54,8 @@ def _colours(colours, names) -> dict[str, str]:
 
 def _label(value: str) -> str:
     """A name as literal matplotlib text (a '$' from data would start mathtext), without absolute
-    paths (escape.public)."""
-    return public(value).replace("$", r"\$")
+    paths (escape.public), control characters written out (one is no XML: the SVG would not open)."""
+    return literal(public(value)).replace("$", r"\$")
 
 
 class Skipped(Exception):

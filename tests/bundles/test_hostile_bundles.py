@@ -1,0 +1,127 @@
+"""Bundles from a stranger, past what test_export_verify and hardening/test_bundle_audit cover:
+recall keys that are no K, a record naming another copy of the dataset, names holding line
+breaks and control characters, and an import killed between two of its writes."""
+from __future__ import annotations
+
+import xml.etree.ElementTree as ElementTree
+
+import pytest
+
+from bundles.bundle_files import edit_record, read_bundle, record_names, respec, write_bundle
+
+from vprbench.bundles import export_bundle, import_bundles, verify_repository
+from vprbench.bundles.verify import DataGroundTruth
+
+
+@pytest.fixture
+def bundle(records, tmp_path):
+    return export_bundle(records, tmp_path / "runs.tar.gz", contributor="alice")
+
+
+def refused(cli, shared_data, path, repo, message: str) -> None:
+    """verify and import both refuse `path` with `message` on the record's line, no traceback, nothing written."""
+    for args in (("verify", path), ("import", path, "--into", repo)):
+        code, out, err = cli("results", *args, "--data-dir", shared_data)
+        assert code == 1 and "Traceback" not in out + err, (out, err)
+        assert any(line.startswith(f"{path}: ") and message in line for line in out.splitlines()), out
+    assert not repo.exists()
+
+
+def _rename(old: str, new: str):
+    return lambda r: r["recall"].update({new: r["recall"].pop(old)})
+
+
+@pytest.mark.parametrize("edit, key", [
+    (_rename("1", " 1"), " 1"), (lambda r: r["recall"].update(abc=5.0), "abc"),
+    (lambda r: r["recall"].update({"0": 0.0}), "0"), (lambda r: r["recall"].update({"01": 99.0}), "01"),
+    (lambda r: r["recall"].update({"9" * 5000: 1.0}), "9" * 20),
+], ids=["space", "word", "zero", "leading-zero", "5000-digits"])
+def test_recall_keys_that_are_no_k_are_named(bundle, cli, shared_data, tmp_path, edit, key):
+    """Before: ' 1', 'abc' and 5000 digits were tracebacks of verify and import; '0' and '01' (R@1
+    claimed 99) were 'ok, re-scored' and imported, '01' never compared with the arrays."""
+    members = read_bundle(bundle)
+    edit_record(members, edit)
+    path = write_bundle(tmp_path / "keys.tar.gz", members)
+    refused(cli, shared_data, path, tmp_path / "repo", f"its recall has key {key!r}, not a K (a whole number from 1")
+
+
+@pytest.mark.parametrize("edit, wrong", [
+    (lambda r: r.update(dataset_fingerprint="f" * 16), "dataset"),
+    (lambda r: r["dataset_fingerprints"]["images"].update(queries="0" * 64), "images"),
+    (lambda r: r.pop("dataset_fingerprint"), "dataset"),
+], ids=["fingerprint", "images", "none"])
+def test_a_record_naming_another_copy_of_the_dataset_is_refused(bundle, cli, shared_data, tmp_path, edit, wrong):
+    """Before: 'ok' and imported. The board keeps the copy of a column's data most runs name (the
+    newest on a tie): one forged record, dated later, pushed this machine's true run of the same
+    row out of Corridor's column as 'another copy of its images'."""
+    members = read_bundle(bundle)
+    edit_record(members, edit)
+    path = write_bundle(tmp_path / "copy.tar.gz", members)
+    refused(cli, shared_data, path, tmp_path / "repo",
+            f"its dataset fingerprint ({wrong}) is not that of the copy of corridor here (")
+
+
+def test_a_name_with_line_breaks_and_control_characters_forges_no_line_and_breaks_no_figure(
+        bundle, records, cli, shared_data, tmp_path):
+    """A method of a plugin not installed here is re-scored like any (its name is its spec's), but
+    its name comes from a stranger. Before: a line break in it printed a verdict line of its own
+    ('FAKE: ok'), and an escape character reached the site's SVG figures, which then were no XML
+    (every figure of the dataset page and the radar failed to open)."""
+    members = read_bundle(bundle)
+    name = respec(members, lambda r: r["spec"].update(method="plug\x1b[2J\rin\nFAKE: ok"))
+    path = write_bundle(tmp_path / "names.tar.gz", members)
+    code, out, err = cli("results", "verify", path, "--data-dir", shared_data)
+    assert code == 0 and "Traceback" not in err
+    assert len(out.splitlines()) == len(record_names(members)) and "\nFAKE" not in out
+    assert f"{name} (run {records[0]['run_id']}, plug\\x1b[2J\\rin\\nFAKE: ok on corridor:vpr-bench): ok" in out
+    repo, docs = tmp_path / "repo", tmp_path / "docs"
+    assert cli("results", "import", path, "--into", repo, "--data-dir", shared_data)[0] == 0
+    code, _, err = cli("leaderboard", "publish", "--to", docs, "--results", repo, "--cache-dir", tmp_path / "empty")
+    assert code == 0, err
+    figures = sorted((docs / "leaderboard" / "figures").glob("*.svg"))
+    assert len(figures) >= 4
+    for figure in figures:
+        ElementTree.parse(figure)  # raises on a character XML does not allow
+
+
+class Killed(BaseException):
+    """Stands for a kill -9 between two writes (not an Exception: nothing catches it)."""
+
+
+def test_an_import_killed_between_any_two_writes_leaves_a_sound_repository(bundle, records, shared_data, tmp_path,
+                                                                           monkeypatch):
+    """Before: a run's method card was written after its record; an import killed between the two
+    left a record without its card, and importing the bundle again skipped that run as 'already
+    there', so `results verify` of the repository failed for good."""
+    import vprbench.bundles.repository as repository
+
+    truth, written = DataGroundTruth(shared_data), []
+    real = repository.atomic_write
+
+    def dies_after(count):
+        def write(path, data):
+            if len(written) == count:
+                raise Killed
+            written.append(path)
+            return real(path, data)
+        return write
+
+    total = 1 + 4 * len(records)  # LAYOUT, then per run: card, arrays, contribution, record
+    for count in range(total):
+        written.clear()
+        repo = tmp_path / f"repo-{count}"
+        monkeypatch.setattr(repository, "atomic_write", dies_after(count))
+        with pytest.raises(Killed):
+            import_bundles([bundle], repo, truth)
+        monkeypatch.setattr(repository, "atomic_write", real)
+        if repo.exists():
+            report = verify_repository(repo, truth)
+            assert report.problems == [] and all(v.ok for v in report.verdicts), (count, report.lines())
+        [again] = import_bundles([bundle], repo, truth)
+        assert again.ok and len(again.added) + len(again.duplicates) == len(records)
+        report = verify_repository(repo, truth)
+        assert report.ok and {v.run_id for v in report.verdicts} == {r["run_id"] for r in records}, report.lines()
+    written.clear()
+    monkeypatch.setattr(repository, "atomic_write", dies_after(total + 1))
+    import_bundles([bundle], tmp_path / "whole", truth)
+    assert len(written) == total and written[-1].name == f"{records[-1]['run_id']}.json"  # every point was tried
