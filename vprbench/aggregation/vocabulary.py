@@ -17,6 +17,7 @@ the dataset. `exact=True` in `fit_vocabulary` reproduces the official fit on all
 """
 from __future__ import annotations
 
+import zipfile
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -215,21 +216,57 @@ def load_vocabulary(path: str | Path) -> Vocabulary:
     meta, written = {}, None
     if isinstance(data, dict):
         if "centres" not in data:
-            raise VPRBenchError(f"Vocabulary file {path} has no 'centres' entry (keys: {sorted(data)}).")
-        data, meta, written = data["centres"], dict(data.get("meta", {})), data.get("crc32")
+            raise VPRBenchError(f"Vocabulary file {path} has no 'centres' entry (keys: {sorted(map(str, data))}).")
+        data, meta, written = data["centres"], data.get("meta", {}), data.get("crc32")
+        if not isinstance(meta, dict) or not all(isinstance(key, str) for key in meta):
+            raise VPRBenchError(f"Vocabulary file {path} has a 'meta' entry that is no table of named values "
+                                f"({type(meta).__name__}): it was not written by vprbench; fit it again (`vprbench vocabulary fit`).")
+        meta = dict(meta)
     try:
-        centres = torch.as_tensor(np.asarray(data) if isinstance(data, np.ndarray) else data).float()
+        raw = torch.as_tensor(np.asarray(data) if isinstance(data, np.ndarray) else data)
     except (TypeError, ValueError, RuntimeError):
         raise VPRBenchError(f"Vocabulary file {path} holds a {type(data).__name__}, not a (clusters, dim) array of numbers.") from None
+    if not raw.is_floating_point():  # centres are means: whole numbers, truth values or complex ones are no centres
+        raise VPRBenchError(f"Vocabulary file {path} holds {str(raw.dtype).removeprefix('torch.')} values, expected "
+                            "floating-point centres (float32): check the file (its centres were saved as another type).")
+    centres = raw.float()
     if centres.dim() != 2 or centres.shape[0] < 1:
         raise VPRBenchError(f"Vocabulary file {path} holds a tensor of shape {tuple(centres.shape)}, expected (clusters, dim).")
-    # None: a bare array, or saved before vocabularies carried a checksum
-    if written is not None and (type(written) is not int or written != centres_checksum(centres)):
+    # None: a bare array, or saved before vocabularies carried a checksum: the zip's own CRC-32s check those
+    if written is None:
+        _check_zip_crcs(path)
+    elif type(written) is not int or written != centres_checksum(centres):
         raise VPRBenchError(f"Vocabulary file {path} is damaged: its centres no longer match the checksum written with "
                             "them. Delete it and fit it again (`vprbench vocabulary fit`).")
+    bad = (~torch.isfinite(centres)).nonzero()
+    if len(bad):  # after the checks: a damaged file is named as damaged
+        cluster, column = map(int, bad[0])
+        raise VPRBenchError(f"Vocabulary file {path} has {len(bad)} NaN or infinite value(s) in its centres (first "
+                            f"{float(centres[cluster, column])} at cluster {cluster}, dim {column}), expected finite "
+                            "numbers: fit it again (`vprbench vocabulary fit`).")
     meta.setdefault("clusters", int(centres.shape[0]))
     meta["path"] = str(path)
     return Vocabulary(centres, meta)
+
+
+def _check_zip_crcs(path: Path) -> None:
+    """A PyTorch zip file's entries against the CRC-32 its writer stored with each (torch.load reads
+    without checking them): a file without our checksum (the authors' release, or saved before
+    vocabularies carried one) is checked, not trusted as it is. Entries written without a CRC (torch's
+    CRC option off: 0) and the pre-zip format carry nothing to check."""
+    if path.suffix == ".npy" or not zipfile.is_zipfile(path):
+        return
+    try:
+        with zipfile.ZipFile(path) as archive:
+            for entry in archive.infolist():
+                if entry.CRC or not entry.file_size:
+                    with archive.open(entry) as stream:
+                        while stream.read(1 << 20):
+                            pass
+    except (zipfile.BadZipFile, EOFError) as error:
+        raise VPRBenchError(f"Vocabulary file {path} is damaged: its bytes no longer match the CRC-32 written with "
+                            f"them ({error}). Delete it and fit, import or download it again (`vprbench vocabulary "
+                            "fit`, `import`, or `download` for the authors' released centres).") from None
 
 
 def vocabulary_key(backbone: str, layer: int, facet: str, clusters: int) -> str:

@@ -1,4 +1,4 @@
-"""`vprbench vocabulary`: fit, import, show and list VLAD vocabularies.
+"""`vprbench vocabulary`: fit, import, show, list and download VLAD vocabularies.
 
 Wired like the other command modules: `add_parsers(commands)`; each subcommand sets `run`.
 Fitting needs a method whose `iter_patch_features(paths, resize)` yields each image's
@@ -40,9 +40,14 @@ def add_parsers(commands) -> None:
     add_location_options(p)
     p.set_defaults(run=run_import)
 
-    p = sub.add_parser("show", help="print a vocabulary file's shape and metadata")
+    p = sub.add_parser("show", help="print a vocabulary file's shape, what it was fitted on, and its metadata")
     p.add_argument("path", type=path_argument)
     p.set_defaults(run=run_show)
+
+    p = sub.add_parser("list", help="every vocabulary in the cache: setting, name, size and what it was fitted on")
+    p.add_argument("--cache-dir", help="where descriptor stores, vocabularies and results live "
+                                       "(default: $VPRBENCH_CACHE or the user cache)")
+    p.set_defaults(run=run_list)
 
     p = sub.add_parser("domains", help="list the domain vocabularies and their datasets")
     p.set_defaults(run=run_domains)
@@ -158,8 +163,58 @@ def run_show(args) -> int:
 
     vocabulary = load_vocabulary(args.path)
     say(f"{vocabulary.meta['path']}: {vocabulary.clusters} clusters x {vocabulary.dim} dims")
+    say(f"  fitted on: {fitted_on(vocabulary)}")
     for key, value in sorted(vocabulary.meta.items()):  # a file's metadata: text from data
         say(f"  {key}: {value}")
+    return 0
+
+
+def fitted_on(vocabulary) -> str:
+    """What the centres were learnt from, in words: the authors' release (known by its sha256), the
+    datasets and features the metadata names, or that the file does not say (a bare tensor)."""
+    from ..methods.anyloc_vocabulary import release, released_provenance
+
+    meta = vocabulary.meta
+    found = released_provenance(vocabulary)
+    if found.get("source") == "released":
+        r = release()
+        datasets = ", ".join(found["datasets"]) or "not listed"
+        return (f"the authors' released '{found['released_as']}' centres ({r['repository']} at {r['commit'][:12]}): "
+                f"{r['backbone']} layer {r['layer']} {r['facet']} features of {datasets}")
+    setting = " ".join(f"{key} {meta[key]}" for key in ("backbone", "layer", "facet") if key in meta)
+    datasets = meta.get("fitted_on") or meta.get("datasets")  # dense-vlad's says it in words
+    if isinstance(datasets, dict):
+        datasets = ", ".join(f"{name} ({count} images)" for name, count in datasets.items())
+    learnt = ", ".join(part for part in (
+        " of ".join(part for part in (f"{setting} features" if setting else "", str(datasets or "")) if part),
+        f"{meta['features_used']} of {meta['features_seen']} features sampled" if "features_used" in meta else "",
+        f"imported from {meta['imported_from']}" if "imported_from" in meta else "",
+    ) if part)
+    if learnt:
+        return learnt
+    return "not recorded in the file (centres without metadata; sha256 " + found.get("sha256", "?")[:16] + ")"
+
+
+def run_list(args) -> int:
+    from ..aggregation.vocabulary import load_vocabulary, vocabulary_file_in
+    from ..paths import cache_root
+
+    resolve_locations(args)
+    root = cache_root(args.cache_dir) / "vocabularies"
+    folders = sorted(folder for folder in root.glob("*/*") if folder.is_dir()) if root.is_dir() else []
+    found = [(folder, vocabulary_file_in(folder)) for folder in folders]
+    found = [(folder, file) for folder, file in found if file is not None]
+    if not found:
+        say(f"No vocabularies in {root}: `vprbench vocabulary fit`, `import` or `download` makes them.")
+        return 0
+    say(f"Vocabularies in {root} (setting/name: clusters x dims, fitted on):")
+    for folder, file in found:
+        try:
+            vocabulary = load_vocabulary(file)
+        except VPRBenchError as error:  # one damaged file does not hide the others
+            say(f"  {folder.parent.name}/{folder.name}: unusable: {error}")
+            continue
+        say(f"  {folder.parent.name}/{folder.name}: {vocabulary.clusters} x {vocabulary.dim}, {fitted_on(vocabulary)}")
     return 0
 
 
