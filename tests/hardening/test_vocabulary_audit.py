@@ -3,7 +3,9 @@ checksum (the authors' release, vocabularies saved before checksums) are checked
 their zip writer stored, and `vocabulary show` / `list` say what the centres were learnt from."""
 from __future__ import annotations
 
+import os
 import shutil
+import time
 import zipfile
 from pathlib import Path
 
@@ -137,3 +139,18 @@ def test_show_and_list_say_what_was_learnt(shared_data, tmp_path, cli):
     assert code == 0 and out.splitlines()[1].startswith("  fitted on: not recorded in the file (centres without metadata")
     assert cli("vocabulary", "list", "--cache-dir", tmp_path / "none")[1] == (
         f"No vocabularies in {tmp_path / 'none' / 'vocabularies'}: `vprbench vocabulary fit`, `import` or `download` makes them.\n")
+
+
+def test_a_save_removes_what_a_killed_save_left(tmp_path):
+    """Before: a fit killed while saving left `.vocabulary.pt.*.tmp` in the folder for good. A
+    leftover untouched for an hour goes at the next save; a younger one (a live save) stays."""
+    folder = tmp_path / "dinov2_vits14-l11-value-c4" / "mine"
+    folder.mkdir(parents=True)
+    old, young = folder / ".vocabulary.pt.killed.tmp", folder / ".vocabulary.pt.live.tmp"
+    for leftover in (old, young):
+        leftover.write_bytes(b"half a file")
+    hours_ago = time.time() - 2 * 3600
+    os.utime(old, (hours_ago, hours_ago))
+    Vocabulary(torch.ones(4, 8), {"source": "mine"}).save(folder / "vocabulary.pt")
+    assert sorted(p.name for p in folder.iterdir()) == [young.name, "vocabulary.pt"]
+    assert load_vocabulary(folder / "vocabulary.pt").clusters == 4

@@ -28,7 +28,7 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import VPRBenchError
-from ..fsutil import atomic_path
+from ..fsutil import atomic_path, is_temporary, remove_stale
 from ..paths import cache_root
 from ..weights import read_torch_file
 
@@ -180,6 +180,8 @@ class Vocabulary:
         centres = self.centres.float().cpu().contiguous()
         with atomic_path(path) as temporary:
             torch.save({"centres": centres, "meta": dict(self.meta), "crc32": centres_checksum(centres)}, temporary)
+        # a fit killed while saving left its temporary file (never read): gone once untouched for an hour
+        remove_stale(p for p in path.parent.iterdir() if is_temporary(p))
         return path
 
 
