@@ -22,6 +22,7 @@ from pydantic import Field, field_validator
 
 from vprbench import VPRBenchError
 from vprbench.stages import Candidates, RerankOptions, Stage, StageContext
+from vprbench.stages.geometric import C_INT_MAX
 from vprbench.weights import WeightSource, file_sha256, weights_identity, weights_provenance
 
 NAME = "superpoint-lightglue"
@@ -62,7 +63,7 @@ class SuperPointLightGlueOptions(RerankOptions):
     model: Literal["none", "fundamental", "homography"] = "none"
     threshold: float = Field(3.0, gt=0)
     confidence: float = Field(0.999, gt=0, lt=1)
-    max_iterations: int = Field(10000, ge=1)
+    max_iterations: int = Field(10000, ge=1, le=C_INT_MAX)
 
     @field_validator("weights")
     @classmethod

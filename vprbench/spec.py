@@ -250,7 +250,9 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
         stages = [stages]
     require(stages or (), (list, tuple), "stages takes a list of stages, e.g. ['aqe'] or [{'name': 'sift-ransac', 'k': 100}]")
     ks, stages = check_ks(ks), tuple(resolve_stage(s) for s in stages or ())
-    check_stage_depths(stages, ks)
+    from .stages.run import check_stage_chain
+
+    check_stage_chain(stages, ks)
     data = resolve_dataset(dataset, protocol, data_dir, cache_dir)
     if data.kind == "benchmark":  # a benchmark that is no traverse is refused before its data is needed
         from .datasets.traverse import require_traverse_manifest
@@ -361,15 +363,6 @@ def resolve_stage(stage) -> StageSpec:
     validated = stage_options(name, options)
     return StageSpec(name=name, options=plain(validated.model_dump(mode="json")),
                      files=plain(stage_entry(name).cls.file_identities(validated)))
-
-
-def check_stage_depths(stages: tuple[StageSpec, ...], ks: tuple[int, ...]) -> None:
-    """A re-ranker re-orders its top K: a K reported above it would be scored on candidates it never saw."""
-    for stage in stages:
-        depth = stage.options.get("k")
-        if isinstance(depth, int) and depth < ks[-1]:
-            raise VPRBenchError(f"Stage {stage.name!r} re-ranks the top {depth} (--rerank-k), fewer than the largest "
-                                f"K reported ({ks[-1]}): give --rerank-k >= {ks[-1]} or lower --k.")
 
 
 def check_ks(ks) -> tuple[int, ...]:

@@ -141,9 +141,10 @@ def spec_overrides(args) -> dict:
 
 
 def stage_flags(args) -> list[dict] | None:
-    """--rerank / --sequence and their options as the spec's stage list (re-ranking first), None when none."""
+    """--rerank / --sequence and their options as the spec's stage list, None when none. Sequence matching
+    first: it matches against the whole database, so a re-ranker can only re-order what it found."""
     stages = []
-    for kind, size, name in (("rerank", "rerank_k", "k"), ("sequence", "sequence_length", "length")):
+    for kind, size, name in (("sequence", "sequence_length", "length"), ("rerank", "rerank_k", "k")):
         stage = getattr(args, kind, None)
         options = key_values(getattr(args, f"{kind}_option", None) or [], f"--{kind}-option")
         if "name" in options:  # it would replace the stage named, past the track check

@@ -12,10 +12,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar, Literal, get_args
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from ..errors import VPRBenchError
 
@@ -47,6 +47,16 @@ class StageOptions(BaseModel):
     values of the wrong type are refused when the spec is made."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # inf cannot be hashed into the spec (JSON)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_bool_for_a_number(cls, value, info):
+        """pydantic reads true as 1 and false as 0: max_features=false would silently mean every keypoint."""
+        annotation = cls.model_fields[info.field_name].annotation
+        kinds = (annotation, *get_args(annotation))
+        if isinstance(value, bool) and bool not in kinds and (int in kinds or float in kinds):
+            raise ValueError(f"takes a number, not {str(value).lower()}")
+        return value
 
 
 class RerankOptions(StageOptions):
@@ -222,6 +232,18 @@ def check_candidates(found, stage: str, queries: int, database: int, k: int) -> 
         raise VPRBenchError(f"{where} the candidates of query {rising} not best first (scores must not increase "
                             "along a row); fix the stage.")
     return Candidates(indices.astype(np.int64, copy=False), scores.astype(np.float32, copy=False))
+
+
+def check_reordered(found: Candidates, given: Candidates, stage: str, database: int) -> None:
+    """A re-ranker re-orders the candidates it was given: one naming a database image it was not given (found
+    by its own search) is refused, or recall after it could pass the ceiling the record states."""
+    rows = np.arange(found.query_count, dtype=np.int64)[:, None] * database  # each row's indices apart from the others'
+    foreign = ~np.isin(found.indices + rows, given.indices + rows)
+    if foreign.any():
+        q = int(np.flatnonzero(foreign.any(1))[0])
+        image = int(found.indices[q][foreign[q]][0])
+        raise VPRBenchError(f"Stage {stage!r} returned database image {image} for query {q}, which is not among the "
+                            f"{given.k} candidates it was given: a re-ranker re-orders its candidates; fix the stage.")
 
 
 def reordered(indices: np.ndarray, scores: np.ndarray, grid: float | None = None) -> Candidates:

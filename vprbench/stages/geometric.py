@@ -19,19 +19,21 @@ from .base import Candidates, RerankOptions, Stage, StageContext, rerank_by_coun
 
 #: fewest correspondences each model is estimated from
 MINIMUM = {"fundamental": 8, "homography": 4}
+#: OpenCV takes keypoint and iteration counts as C ints: a larger value raised deep inside it
+C_INT_MAX = 2**31 - 1
 
 
 class SiftRansacOptions(RerankOptions):
     features: Literal["rootsift", "sift"] = "rootsift"
     #: SIFT keypoints kept per image (the strongest; 0 = all)
-    max_features: int = Field(2000, ge=0)
+    max_features: int = Field(2000, ge=0, le=C_INT_MAX)
     #: Lowe's ratio: a match is kept when its distance is below ratio x the second nearest's
     ratio: float = Field(0.8, gt=0, le=1)
     model: Literal["fundamental", "homography"] = "fundamental"
     #: RANSAC inlier threshold, pixels
     threshold: float = Field(3.0, gt=0)
     confidence: float = Field(0.999, gt=0, lt=1)
-    max_iterations: int = Field(10000, ge=1)
+    max_iterations: int = Field(10000, ge=1, le=C_INT_MAX)
 
 
 def sift_features(path, max_features: int) -> dict[str, np.ndarray]:

@@ -6,7 +6,7 @@ import sys
 import time
 
 from ..errors import VPRBenchError
-from .base import Candidates, StageContext, check_candidates
+from .base import Candidates, StageContext, check_candidates, check_reordered
 
 
 def create_stages(spec) -> list:
@@ -31,6 +31,38 @@ def track_of(stages) -> str:
     if not stages:
         return "single-image"
     return "sequence" if any(stage.track == "sequence" for stage in stages) else "re-ranked"
+
+
+def check_stage_chain(stages, ks) -> None:
+    """A spec's stages (StageSpec) refused, before any work, where a stage would be scored on candidates it
+    never saw or its work thrown away: a re-ranker re-orders its top `k` (at least the largest K reported,
+    at most what the re-ranker before it hands over); a sequence stage matches every query against the
+    whole database, so a re-ranker before it would be computed and ignored."""
+    from .registry import stage_entry
+
+    handed = None  # (stage, k): the last re-ranker and its depth
+    for position, stage in enumerate(stages):
+        depth = stage.options.get("k")
+        if stage_entry(stage.name).cls.track == "sequence":
+            earlier = [s.name for s in stages[:position] if stage_entry(s.name).cls.track == "sequence"]
+            if earlier:
+                raise VPRBenchError(f"A run takes one sequence stage, got {earlier[0]!r} and {stage.name!r}: each "
+                                    "matches against the whole database, so the later ignores the earlier; keep one.")
+            if position:
+                raise VPRBenchError(f"Stage {stages[position - 1].name!r} runs before sequence stage {stage.name!r}, "
+                                    "which matches every query against the whole database and ignores the candidates "
+                                    f"it is given: put {stage.name!r} first (a re-ranker then re-orders its top K), or "
+                                    "drop the other stage.")
+            continue
+        if isinstance(depth, int) and depth < ks[-1]:
+            raise VPRBenchError(f"Stage {stage.name!r} re-ranks the top {depth} (--rerank-k), fewer than the largest "
+                                f"K reported ({ks[-1]}): give --rerank-k >= {ks[-1]} or lower --k.")
+        if isinstance(depth, int) and handed is not None and depth > handed[1]:
+            raise VPRBenchError(f"Stage {stage.name!r} re-ranks the top {depth}, but stage {handed[0]!r} before it hands "
+                                f"over only its top {handed[1]}: give {stage.name!r} k <= {handed[1]}, or "
+                                f"{handed[0]!r} a larger k.")
+        if isinstance(depth, int):
+            handed = (stage.name, depth)
 
 
 def retrieval_depth(stages, ks, database: int, dataset: str) -> int:
@@ -72,6 +104,8 @@ def run_stages(stages, candidates: Candidates, context: StageContext, ks, positi
         seconds = time.perf_counter() - started
         after = _peak_rss_bytes()
         candidates = check_candidates(found, stage.name, queries, database, ks[-1])
+        if stage.track == "re-ranked":
+            check_reordered(candidates, given, stage.name, database)
         stored, provenance, code = int(stage.stored_bytes(context)), stage.provenance(), stage_fingerprint(stage)
         ceiling = {}
         if positives is not None:
