@@ -247,3 +247,17 @@ def test_a_re_ranker_naming_an_image_it_was_not_given_is_refused(shared_data, st
                                             r"among the 2 candidates it was given: a re-ranker re-orders its "
                                             r"candidates; fix the stage\.$"):
         evaluate(spec, RunSettings(data_dir=shared_data, cache_dir=stage_cache))
+
+
+@pytest.mark.parametrize("stage", ["aqe", "dba"])
+def test_expansion_with_a_huge_alpha_stays_finite(stage):
+    """Was: alpha=1e300 turned a similarity a rounding above 1 (a row with itself) into inf: an overflow
+    warning and NaN descriptors. Weights now stay in [0, 1]; the true one is still first."""
+    database = unit_rows(30, 64, seed=5)
+    indices = np.array([[*np.setdiff1d(np.arange(30), [q])[:9], q] for q in range(10)], dtype=np.int64)
+    given = Candidates(indices, np.tile(np.linspace(1, 0, 10, dtype=np.float32), (10, 1)))
+    context = StageContext(dataset=None, database=ArrayRows(database), queries=ArrayRows(database[:10] * 1.0001))
+    with np.errstate(over="raise", invalid="raise"):  # underflow to 0 is the weight meant
+        found = create_stage(stage, {"k": 10, "n": 3, "alpha": 1e300}).apply(given, context)
+    assert np.isfinite(found.scores).all()
+    assert_oracle(given, found)

@@ -29,8 +29,9 @@ def _normalised(rows: np.ndarray) -> np.ndarray:
 
 
 def _weighted(base: np.ndarray, neighbours: np.ndarray, alpha: float) -> np.ndarray:
-    """base + sum of neighbours weighted by max(similarity, 0)^alpha, L2-normalised (one row)."""
-    weights = np.maximum(neighbours @ base, 0.0) ** alpha
+    """base + sum of neighbours weighted by similarity^alpha, L2-normalised (one row). Similarities of unit
+    rows are clipped to [0, 1]: one a rounding above 1 overflowed to inf under a large alpha."""
+    weights = np.clip(neighbours @ base, 0.0, 1.0).astype(np.float64) ** alpha  # alpha may not fit float32
     return _normalised(base + weights @ neighbours)
 
 
