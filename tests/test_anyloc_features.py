@@ -94,8 +94,10 @@ def test_resize_policy_and_parsing():
     assert dataset_resize("pitts30k") == (480, 640) and dataset_resize("Baidu") == (480, 640)
     assert dataset_resize("mid-atlantic-ridge") == (405, 720) and dataset_resize("oxford") is None
     assert parse_size("480x640") == (480, 640) and parse_size((2, 3)) == (2, 3) and parse_size("native") is None
-    with pytest.raises(VPRBenchError, match="HEIGHT WIDTH"):
-        parse_size("big")
+    assert parse_size(" 480 x 640 ") == (480, 640) and parse_size("32") == (32, 32)
+    for text in ("big", "10x", "x10", "10,,10"):  # a missing side was read as a square
+        with pytest.raises(VPRBenchError, match="HEIGHT WIDTH"):
+            parse_size(text)
 
 
 def test_resize_has_no_antialias():

@@ -37,6 +37,16 @@ def test_gem_p1_equals_gap_and_batches_match_single_images():
     assert gem(batch.numpy()).shape == (3, 5)
 
 
+@pytest.mark.parametrize("p", [1e4, 1e20])
+def test_gem_of_a_large_power_tends_to_max_pooling(p):
+    """x**p overflowed to inf (NaN descriptors) or underflowed to all zeros, silently."""
+    torch.manual_seed(0)
+    features = torch.rand(2, 50, 8) + 0.1
+    pooled = gem(features, p)
+    assert torch.isfinite(pooled).all()
+    assert torch.allclose(pooled, gmp(features), atol=1e-3)
+
+
 def test_pooling_errors():
     with pytest.raises(VPRBenchError, match="p must be positive"):
         gem(PATCHES, p=0)

@@ -142,14 +142,18 @@ def _whole_from_environment(name: str, default: str | None = None) -> int:
     return int(value)
 
 
+MAX_TIMEOUT_S = 1e9  # about 31 years; past about 2700 years timedelta overflows
+
+
 def _timeout_s() -> float:
     value = os.environ.get(TIMEOUT_ENV, "86400")
     try:
         seconds = float(value)
     except ValueError:
         seconds = math.nan
-    if not (math.isfinite(seconds) and seconds > 0):
-        raise VPRBenchError(f"${TIMEOUT_ENV} is {value!r}; it takes the seconds ranks wait for each other, a number > 0.")
+    if not (math.isfinite(seconds) and 0 < seconds <= MAX_TIMEOUT_S):  # a longer one overflowed timedelta
+        raise VPRBenchError(f"${TIMEOUT_ENV} is {value!r}; it takes the seconds ranks wait for each other, a number > 0 "
+                            f"and at most {MAX_TIMEOUT_S:.0e}.")
     return seconds
 
 

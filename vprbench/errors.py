@@ -11,6 +11,11 @@ class VPRBenchError(Exception):
     """A problem with the user's input or environment; the message says what and how to fix it."""
 
 
+class ProblemList(VPRBenchError):
+    """Several problems found at once, one a line: the command line keeps its line breaks (every
+    other message is one line, a line break from data in it written out as '\\n')."""
+
+
 def closest_names(name: str, choices, n: int = 3) -> str:
     """' Did you mean: a, b?' for the names closest to `name`, or '' when none is close."""
     import difflib

@@ -45,9 +45,15 @@ def cache_root(cache_dir: str | Path | None = None) -> Path:
     return root
 
 
-def environment_folder(given: str | None, variable: str) -> str | None:
-    """A folder option of the command line: as given, else the environment variable, else None."""
-    return given if given else os.environ.get(variable) or None
+def environment_folder(given: str | None, variable: str, option: str = "") -> str | None:
+    """A folder option of the command line: as given, else the environment variable, else None.
+    A value of blanks only is refused: it would make a folder named "   " in the current one."""
+    value, source = (given, option or "the option") if given else (os.environ.get(variable), f"${variable}")
+    if value and not value.strip():
+        from .errors import VPRBenchError
+
+        raise VPRBenchError(f"{source} is {value!r}, which names no folder: give a folder, or leave it unset.")
+    return value or None
 
 
 def safe_name(text: str, limit: int = 60) -> str:

@@ -44,6 +44,12 @@ def literal(text) -> str:
     return CONTROL.sub(lambda found: f"\\x{ord(found.group()):02x}", str(text))
 
 
+def one_line(text) -> str:
+    """`literal`, and line breaks written out too ('\\n'): a name or path holding one cannot split
+    a message into lines (or forge a line of its own)."""
+    return literal(text).replace("\n", "\\n")
+
+
 def toml_data(text: str, what: str) -> dict:
     """A user's TOML text (a plan, a dataset.toml) parsed; invalid, or nested too deeply to parse,
     it is a VPRBenchError naming `what` (e.g. "Plan p.toml"), never a traceback."""

@@ -4,6 +4,7 @@ hub file), read safely, named by their content."""
 from __future__ import annotations
 
 import contextlib
+import os
 import pickle
 import re
 import struct
@@ -86,6 +87,9 @@ def read_torch_file(path: str | Path, what: str = "checkpoint", *, mmap: bool = 
     except (RuntimeError, EOFError, OSError, KeyError, ValueError, IndexError, struct.error) as error:
         # what torch's unpickler raises on truncated or foreign files; its first sentence (torch goes on
         # about its zip reader's internals and how checkpoints get corrupted)
+        if isinstance(error, OSError) and error.errno is not None:  # not readable (permissions, a folder): not damaged
+            raise VPRBenchError(f"Cannot read {what} {path}: {os.strerror(error.errno)}; check that it is a file "
+                                "this user may read.") from None
         reason = str(error).strip().splitlines()[0].split(". ")[0].rstrip(".") if str(error).strip() else ""
         raise VPRBenchError(
             f"Cannot read {what} {path}: it is damaged or not a PyTorch file ({type(error).__name__}"

@@ -43,6 +43,8 @@ def test_an_infinite_bundle_size_is_one_line(tmp_path, cli):
     (["--seed", str(2**32)], f"seed (--seed) must be a whole number >= 0, got {2**32}; the largest is {2**32 - 1}"),
     (["--budget", "99999999999999999999999"], "more than this machine's memory"),
     (["--exact", "--budget", "5"], "--budget bounds the sampled fit and --exact fits on every patch: give one of them."),
+    # was 'Sample budget must be at least 1 feature', naming no option
+    (["--budget", "0"], "--budget takes a whole number >= 1 (the features kept for the fit), got 0."),
 ])
 def test_vocabulary_fit_sizes_are_checked_before_any_image(args, message, shared_data, cli):
     code, _, err = cli("vocabulary", "fit", "--dataset", "corridor", "--method", "anyloc", "--backbone", "dinov2_vits14",
@@ -174,3 +176,132 @@ def test_describe_names_a_folder_given_as_an_image(shared_data, cli, tmp_path):
     assert_refused(code, err, None, f"{shared_data / 'corridor' / 'query'} is a folder: give its image files")
     code, _, err = cli("describe", "--method", "hog", "--out", tmp_path / "d.npy", image(shared_data))
     assert code == 0 and "Wrote 1 descriptor of dimension" in err, err
+
+
+# ---------------------------------------------------------------- a second audit (names, values, files)
+@pytest.mark.parametrize("option", ["ef_search", "hnsw_m", "ef_construction"])
+def test_an_index_option_past_faiss_int_is_one_line(option, shared_data, cli):
+    """faiss's setter raised OverflowError (a traceback) after the descriptors were computed."""
+    code, _, err = cli(*HOG, "--index", "hnsw", "--index-option", f"{option}=99999999999999999999",
+                       "--data-dir", shared_data)
+    assert_refused(code, err, None, f"--index hnsw option {option} takes at most 2147483647; got 99999999999999999999.")
+
+
+def test_describe_refuses_an_empty_dataset_name(shared_data, cli, tmp_path):
+    """'' was taken as no dataset: its settings silently not applied."""
+    code, _, err = cli("describe", "--method", "hog", "--dataset", "", "--out", tmp_path / "d.npy", image(shared_data))
+    assert_refused(code, err, None, "Unknown dataset ''.")
+    assert not (tmp_path / "d.npy").exists()
+
+
+def test_describe_names_a_fit_on_folder_without_images(shared_data, cli, tmp_path):
+    """Was 'No images to describe in the database split', naming neither the folder nor the option."""
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    code, _, err = cli("describe", "--method", "hog", "--fit-on", empty, "--out", tmp_path / "d.npy", image(shared_data))
+    assert_refused(code, err, None, f"--fit-on folder {empty} holds no images: give the folder of database images.")
+
+
+def test_vocabulary_fit_refuses_an_empty_domain(shared_data, cli):
+    """'' fell through to a map-specific fit of dataset None ('- None: load_dataset takes...')."""
+    code, _, err = cli("vocabulary", "fit", "--domain", "", "--method", "anyloc", "--data-dir", shared_data)
+    assert_refused(code, err, None, "Unknown vocabulary domain ''; known: indoor")
+
+
+@pytest.mark.parametrize("args, shown", [
+    (HOG + ["-o", "a\nb=1"], "does not take option(s) a\\nb. It accepts"),
+    (HOG + ["--rerank", "aqe", "--rerank-option", "a\nb=1"], "does not take option a\\nb. It accepts"),
+    (["vocabulary", "download", "a\nb"], "unrecognized arguments: a\\nb; see"),
+])
+def test_a_line_break_in_a_name_is_written_out_not_a_second_line(args, shown, shared_data, cli):
+    """A name holding a line break split the message, the second line free to forge anything."""
+    code, _, err = cli(*args, *(["--data-dir", shared_data] if args[0] == "evaluate" else []))
+    assert code in (1, 2) and err.count("\n") == 1 and shown in err, err
+
+
+def test_a_line_break_in_a_path_is_written_out(cli, tmp_path):
+    odd = tmp_path / "a\nerror: forged"
+    odd.write_bytes(b"junk")
+    code, _, err = cli("vocabulary", "show", odd)
+    assert_refused(code, err, None, f"Cannot read vocabulary file {tmp_path}/a\\nerror: forged: it is damaged")
+
+
+def test_a_plan_keeps_one_problem_a_line(cli, tmp_path):
+    plan = tmp_path / "plan.toml"
+    plan.write_text('[[methods]]\nname = "x\\nerror: all fine"\n[[datasets]]\nname = "corridor"\n')
+    code, _, err = cli("run", plan, "--cache-dir", tmp_path / "c", "--data-dir", tmp_path / "no-data")
+    assert code == 1 and err.splitlines() == [f"error: Plan {plan} has 1 problem(s); nothing was run:",
+                                              f"  {plan}:2: unknown method 'x\\nerror: all fine'. Run 'vprbench methods list'."], err
+
+
+def test_an_unreadable_vocabulary_is_not_called_damaged(cli, tmp_path, monkeypatch):
+    """Permission denied was reported as 'damaged or not a PyTorch file ... get it again'."""
+    import torch
+
+    path = tmp_path / "v.pt"
+    torch.save(torch.zeros(2, 3), path)
+
+    def refuse(source, *args, **kwargs):
+        raise PermissionError(13, "Permission denied", str(source))
+    monkeypatch.setattr(torch, "load", refuse)
+    code, _, err = cli("vocabulary", "show", path)
+    assert_refused(code, err, None, f"Cannot read vocabulary file {path}: Permission denied; check that it is a file "
+                   "this user may read.")
+    assert "damaged" not in err
+
+
+def test_import_vpr_bench_names_a_file_as_one(shared_data, cli, tmp_path):
+    """A file was said not to exist."""
+    plain = tmp_path / "matches.txt"
+    plain.write_text("x")
+    code, _, err = cli("results", "import-vpr-bench", plain, "--dataset", "corridor", "--data-dir", shared_data)
+    assert_refused(code, err, None, f"VPR-Bench folder {plain} is a file, not a folder: give the folder")
+
+
+@pytest.mark.parametrize("kind", ["empty", "file"])
+def test_publish_refuses_a_results_folder_that_is_no_repository(kind, cli, tmp_path):
+    """A folder holding no records was accepted and added nothing, exit 0: a wrong path went unseen."""
+    results = tmp_path / "not-a-repository"
+    results.mkdir() if kind == "empty" else results.write_text("x")
+    code, _, err = cli("leaderboard", "publish", "--to", tmp_path / "site", "--results", results)
+    expected = "holds no records" if kind == "empty" else "is a file, not a folder"
+    assert_refused(code, err, None, f"The results repository {results} {expected}: give the folder")
+    assert not (tmp_path / "site").exists()
+
+
+@pytest.mark.parametrize("args, env, expected", [
+    (["--cache-dir", "   "], {}, "--cache-dir is '   ', which names no folder"),
+    ([], {"VPRBENCH_CACHE": " "}, "$VPRBENCH_CACHE is ' ', which names no folder"),
+])
+def test_a_blank_folder_is_refused_not_made(args, env, expected, cli, tmp_path, monkeypatch):
+    """A folder named '   ' was made in the current one, and the run stored there."""
+    monkeypatch.chdir(tmp_path)
+    for name, value in env.items():
+        monkeypatch.setenv(name, value)
+    code, _, err = cli("leaderboard", *args)
+    assert_refused(code, err, None, expected)
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_plan_with_an_infinite_resize_is_one_line(cli, tmp_path):
+    plan = tmp_path / "plan.toml"
+    plan.write_text('[[methods]]\nname = "hog"\noptions = {resize = [inf, 32]}\n[[datasets]]\nname = "corridor"\n')
+    code, _, err = cli("run", plan, "--cache-dir", tmp_path / "c", "--data-dir", tmp_path / "no-data")
+    assert code == 1 and "Traceback" not in err and "plan.toml:3: Method 'hog'" in err, err
+
+
+@pytest.mark.parametrize("device, message", [
+    # mps: RuntimeError 'PyTorch is not linked with support for mps devices' (a traceback) at the first image
+    ("mps", "hog: device 'mps' was asked for but this machine's PyTorch cannot use it; use --device cpu."),
+    ("meta", "hog: device 'meta' holds no data, so it computes nothing; use --device cpu or cuda."),
+])
+def test_a_device_this_machine_lacks_is_one_line(device, message, shared_data, cli):
+    code, _, err = cli(*HOG, "--device", device, "--data-dir", shared_data)
+    assert_refused(code, err, None, message)
+
+
+def test_datasets_info_refuses_protocol_with_protocols(cli):
+    """--protocol was ignored beside --protocols (exit 0, every protocol listed)."""
+    code, out, err = cli("datasets", "info", "corridor", "--protocols", "--protocol", "nosuch")
+    assert_refused(code, err, None, "--protocols lists every protocol and --protocol shows the dataset under one")
+    assert out == ""

@@ -41,6 +41,8 @@ def test_a_method_name_that_is_not_a_text_is_one_line(cli, tmp_path, entry, expe
     # not names: TypeError: unhashable type: 'dict'
     ('protocols = [1, {a = 1}]', "protocols of dataset 'corridor' must be a list of names, e.g. ['vpr-bench']; got [1, {'a': 1}]"),
     ('protocol = ["vpr-bench"]', "protocol of dataset 'corridor' must be a name; got ['vpr-bench']"),
+    # no protocol at all: the plan had no cells and exited 0, having run nothing
+    ('protocols = []', "protocols of dataset 'corridor' must be a list of names, e.g. ['vpr-bench']; got []"),
 ])
 def test_protocols_of_the_wrong_type_are_one_line(cli, tmp_path, key, expected):
     code, output, cache = run_plan(cli, tmp_path, PLAN_HEAD + f'methods = ["hog"]\n[[datasets]]\nname = "corridor"\n{key}\n')
@@ -103,6 +105,9 @@ def test_reproduce_paper_is_a_shipped_name_not_a_path(cli, tmp_path):
     ({"WORLD_SIZE": "2", "RANK": "0", "LOCAL_RANK": "-1"}, "$LOCAL_RANK is '-1', not a whole number >= 0"),
     ({"WORLD_SIZE": "2", "RANK": "0", "VPRBENCH_DIST_TIMEOUT": "soon"}, "$VPRBENCH_DIST_TIMEOUT is 'soon'; it takes the seconds"),
     ({"WORLD_SIZE": "2", "RANK": "0", "VPRBENCH_DIST_TIMEOUT": "nan"}, "$VPRBENCH_DIST_TIMEOUT is 'nan'"),
+    # was: OverflowError: Python int too large to convert to C int (from timedelta)
+    ({"WORLD_SIZE": "2", "RANK": "0", "VPRBENCH_DIST_TIMEOUT": "1e20"}, "$VPRBENCH_DIST_TIMEOUT is '1e20'; it takes the "
+                                                                        "seconds ranks wait for each other, a number > 0 and at most 1e+09."),
     # was: ValueError: Error initializing torch.distributed using env:// rendezvous ...
     ({"WORLD_SIZE": "2", "RANK": "0"}, "torchrun rank 0 could not join the other ranks (Error initializing torch.distributed "
                                        "using env:// rendezvous: environment variable MASTER_ADDR expected, but not set)"),

@@ -194,6 +194,8 @@ def test_a_results_folder_of_another_layout_and_unreadable_records_fail_the_comm
         assert main(["leaderboard"]) == 1  # the board is shown, the unread file named, exit 1
     out, err = capsys.readouterr()
     assert "hog" in out and "1 stored file(s) could not be read" in err and (path.parent / "torn.json").exists()
+    assert err.splitlines()[-1] == ("error: 1 stored file(s) could not be read (named above) and are left out; nothing "
+                                    "was deleted. Fix or move them, or rerun those evaluations."), "one line, not wrapped"
     (results_dir() / "LAYOUT").write_text(json.dumps({"layout": "vprbench-results", "version": 9}))
     assert main(["leaderboard"]) == 1
     err = capsys.readouterr().err

@@ -55,6 +55,10 @@ def gem(features, p: float = 3.0, *, normalise: bool = True) -> torch.Tensor:
     if p <= 0:
         raise VPRBenchError(f"GeM power p must be positive, got {p}.")
     x, single = _prepare(features)
-    m = (x.double() ** p).mean(dim=-2)  # double: p-th powers of small values lose float32 digits
-    root = m.abs() ** (1.0 / p) * torch.sign(m)
+    x = x.double()  # p-th powers of small values lose float32 digits
+    # each channel over its largest magnitude: the same root, yet a large p neither overflows to
+    # infinity nor underflows to all zeros (it tends to max pooling, as it should)
+    scale = x.abs().amax(dim=-2).clamp_min(torch.finfo(torch.float64).tiny)
+    m = ((x / scale.unsqueeze(-2)) ** p).mean(dim=-2)
+    root = m.abs() ** (1.0 / p) * torch.sign(m) * scale
     return _finish(root, single, normalise)

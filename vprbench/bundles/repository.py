@@ -190,12 +190,16 @@ def read_repository(root: Path, skipped: list | None = None) -> list[dict]:
 
     root = Path(root)
     if not root.is_dir():
-        raise VPRBenchError(f"The results repository {root} does not exist.")
+        raise VPRBenchError(f"The results repository {root} "
+                            f"{'is a file, not a folder' if root.exists() else 'does not exist'}: give the folder "
+                            "'vprbench results import --into' wrote.")
     check_layout(root)
     records = []
-    for path in sorted(root.glob("*/*/*.json")):
-        if path.parts[-3] == CARDS:
-            continue
+    paths = [path for path in sorted(root.glob("*/*/*.json")) if path.parts[-3] != CARDS]
+    if not paths:  # a wrong folder would otherwise add nothing, silently
+        raise VPRBenchError(f"The results repository {root} holds no records: give the folder 'vprbench results "
+                            "import --into' wrote.")
+    for path in paths:
         try:
             record = read_record(path)
         except VPRBenchError as error:

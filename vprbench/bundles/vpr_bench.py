@@ -83,7 +83,9 @@ def method_files(folder: Path) -> list[tuple[str, Path]]:
     """(VPR-Bench method name, file) for a folder of method folders, or one method's own folder."""
     folder = Path(folder)
     if not folder.is_dir():
-        raise VPRBenchError(f"VPR-Bench folder {folder} does not exist.")
+        state = "is a file, not a folder" if folder.exists() else "does not exist"
+        raise VPRBenchError(f"VPR-Bench folder {folder} {state}: give the folder of its precomputed matches "
+                            f"(precomputed_matches/<dataset>/, or one method's folder in it).")
     found = [(folder.name, folder / FILE)] if (folder / FILE).is_file() else \
         [(p.parent.name, p) for p in sorted(folder.glob(f"*/{FILE}"))]
     if not found:

@@ -82,6 +82,9 @@ def run_info(args) -> int:
 
     resolve_locations(args)
     if args.protocols:
+        if args.protocol is not None:  # ignored, it would let a user think the list was narrowed to it
+            raise VPRBenchError("--protocols lists every protocol and --protocol shows the dataset under one: "
+                                "give one of them.")
         listed = [p.record() for p in protocols(dataset_manifest(args.name)).values()]
         if args.json:
             print(json.dumps(listed, indent=2))

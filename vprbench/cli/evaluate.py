@@ -172,7 +172,7 @@ def run_describe(args) -> int:
 
     resolve_locations(args)
     settings = run_settings(args)
-    if args.dataset:
+    if args.dataset is not None:  # '' is an unknown name, not none
         from ..datasets import dataset_manifest
 
         dataset_manifest(args.dataset)  # an unknown name would apply no settings, silently
@@ -189,11 +189,13 @@ def run_describe(args) -> int:
         from ..images import list_images
 
         splits["database"] = list_images(args.fit_on)
+        if not splits["database"]:  # was 'No images to describe in the database split', naming no folder
+            raise VPRBenchError(f"--fit-on folder {args.fit_on} holds no images: give the folder of database images.")
     elif method.needs_fit:
         raise VPRBenchError(f"Method {args.method!r} fits a vocabulary on database images: give --fit-on FOLDER "
                             "(or a ready vocabulary with --vocabulary, where the method takes one).")
     splits["queries"] = list(args.images)
-    if args.dataset:
+    if args.dataset is not None:
         method.use_dataset(args.dataset)
     with progress(args) as shown:
         described = describe_splits(method, splits, label=f"describe-{args.dataset or 'images'}",

@@ -118,5 +118,6 @@ def unread(skipped: list) -> int:
     if not skipped:
         return 0
     console(stderr=True).print(f"error: {len(skipped)} stored file(s) could not be read (named above) and are left out; "
-                               "nothing was deleted. Fix or move them, or rerun those evaluations.", highlight=False)
+                               "nothing was deleted. Fix or move them, or rerun those evaluations.", highlight=False,
+                               soft_wrap=True)  # one line, however narrow the terminal
     return 1

@@ -7,9 +7,9 @@ import sys
 import warnings
 
 from .. import __version__
-from ..errors import VPRBenchError, os_error_message
+from ..errors import ProblemList, VPRBenchError, os_error_message
 from . import datasets, evaluate, leaderboard, methods, reproduce, results, run, stages, vocabulary
-from ..text import literal
+from ..text import one_line
 from .console import console, styled
 
 
@@ -37,7 +37,7 @@ def warning_format():
     shown = set()
 
     def format_warning(message, category, filename, lineno, line=None) -> str:
-        text = f"warning: {literal(message)}\n"
+        text = f"warning: {one_line(message)}\n"
         if text in shown:
             return ""
         shown.add(text)
@@ -45,9 +45,11 @@ def warning_format():
     return format_warning
 
 
-def print_error(message: str) -> None:
+def print_error(message: str, lines: bool = False) -> None:
+    """One line (a line break from a name or path written out), or a ProblemList's lines (`lines`)."""
     # soft wrap: no line breaks inserted, so paths in the message stay whole for copying
-    console(stderr=True).print(styled("error:", "bold red"), message, highlight=False, soft_wrap=True)
+    console(stderr=True).print(styled("error:", "bold red"), message if lines else one_line(message), highlight=False,
+                               soft_wrap=True)
 
 
 def main(argv=None) -> int:
@@ -56,7 +58,7 @@ def main(argv=None) -> int:
     try:
         return args.run(args)
     except VPRBenchError as error:
-        print_error(str(error))
+        print_error(str(error), lines=isinstance(error, ProblemList))
         return 1
     except BrokenPipeError:  # output piped into a reader that stopped (| head): end quietly, as other tools do
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

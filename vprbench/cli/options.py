@@ -29,9 +29,9 @@ def resolve_locations(args) -> None:
     from ..paths import CACHE_ENV, DATA_ENV, environment_folder
 
     if hasattr(args, "data_dir"):
-        args.data_dir = environment_folder(args.data_dir, DATA_ENV)
+        args.data_dir = environment_folder(args.data_dir, DATA_ENV, "--data-dir")
     if hasattr(args, "cache_dir"):
-        args.cache_dir = environment_folder(args.cache_dir, CACHE_ENV)
+        args.cache_dir = environment_folder(args.cache_dir, CACHE_ENV, "--cache-dir")
     name_roots(cache_dir=getattr(args, "cache_dir", None), data_dir=getattr(args, "data_dir", None))
 
 

@@ -81,7 +81,7 @@ def run_fit(args) -> int:
     setting = {"backbone": backbone, "layer": method.layer, "facet": method.facet}
     common = {"exact": args.exact, "budget": DEFAULT_BUDGET if args.budget is None else args.budget, "seed": args.seed, "meta": dict(setting)}
     data_dir = args.data_dir
-    if args.domain:
+    if args.domain is not None:  # '' is an unknown domain, not a map-specific fit
         size = domain_image_size()
         vocabulary = fit_domain_vocabulary(
             args.domain, lambda paths: method.iter_patch_features(paths, resize=size), clusters,
@@ -110,6 +110,8 @@ def check_fit_sizes(args, width: int | None) -> None:
     if args.exact and args.budget is not None:
         raise VPRBenchError("--budget bounds the sampled fit and --exact fits on every patch: give one of them.")
     budget = DEFAULT_BUDGET if args.budget is None else args.budget
+    if budget < 1:
+        raise VPRBenchError(f"--budget takes a whole number >= 1 (the features kept for the fit), got {budget}.")
     memory = memory_bytes()
     if not args.exact and width and memory and budget * width * 4 > memory:  # the sample is budget x width float32
         raise VPRBenchError(f"--budget {budget:,} keeps {budget:,} features of {width} floats "

@@ -17,6 +17,7 @@ APPROXIMATE = ("ivf-pq", "hnsw")
 #: faiss's k-means wants at least 39 training points per centroid
 POINTS_PER_CENTROID = 39
 PQ_CENTROIDS = 256  # 8-bit PQ codes
+LARGEST = 2**31 - 1  # faiss takes its sizes as C int: a larger one overflowed in its setters
 DEFAULTS = {"shortlist": 100, "recall_queries": 200, "seed": 0,
             "nprobe": 32, "hnsw_m": 32, "ef_construction": 40}
 OPTIONS = {"ivf-pq": ("nlist", "pq_m", "nprobe", "train_rows", "shortlist", "recall_queries", "seed"),
@@ -25,7 +26,8 @@ OPTIONS = {"ivf-pq": ("nlist", "pq_m", "nprobe", "train_rows", "shortlist", "rec
 
 def check_options(kind: str, options: dict) -> None:
     """Refuse (naming it) an option `kind` does not take, or a value that is not a whole number in
-    its range (seed >= 0, every other >= 1): checked when the run is specified, before any work."""
+    its range (seed >= 0, every other >= 1, all within faiss's 32-bit int): checked when the run is
+    specified, before any work."""
     unknown = sorted(map(str, set(options) - set(OPTIONS[kind])))  # str: a name may be no text (5)
     if unknown:
         raise VPRBenchError(f"--index {kind} does not take {', '.join(unknown)}; its options: {', '.join(OPTIONS[kind])}.")
@@ -33,6 +35,8 @@ def check_options(kind: str, options: dict) -> None:
         least = 0 if name == "seed" else 1
         if isinstance(value, bool) or not isinstance(value, int) or value < least:
             raise VPRBenchError(f"--index {kind} option {name} takes a whole number >= {least}; got {value!r}.")
+        if value > LARGEST and name != "seed":  # the seed goes to numpy, which takes any size
+            raise VPRBenchError(f"--index {kind} option {name} takes at most {LARGEST}; got {value}.")
 
 
 def index_options(kind: str, n: int, dim: int, k: int, given: dict | None) -> dict:

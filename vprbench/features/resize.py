@@ -44,7 +44,7 @@ def parse_size(size, name: str = "resize") -> tuple[int, int] | None:
     if size is None or asks_native(size):
         return None
     if isinstance(size, str):
-        parts = [p.strip() for p in size.lower().replace("x", ",").split(",") if p.strip()]
+        parts = [p.strip() for p in size.lower().replace("x", ",").split(",")]  # '10x' is no size, nor 10x10
     elif isinstance(size, int) and not isinstance(size, bool):
         parts = [size]
     else:
@@ -58,7 +58,7 @@ def parse_size(size, name: str = "resize") -> tuple[int, int] | None:
         if len(parts) != 2 or any(isinstance(p, bool) or (isinstance(p, float) and p != int(p)) for p in parts):
             raise ValueError
         h, w = (int(p) for p in parts)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an infinite size
         raise VPRBenchError(f"Option {name} takes HEIGHT WIDTH (e.g. 480x640, or one number for a square), "
                             f"got {size!r}.") from None
     if h <= 0 or w <= 0:

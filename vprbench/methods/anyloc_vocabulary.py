@@ -21,7 +21,8 @@ from ..aggregation.vocabulary import (
     DEFAULT_BUDGET, KMEANS_SEED, RELEASED_FILE, VOCABULARY_FILE, Vocabulary, fit_vocabulary, load_vocabulary,
     vocabulary_dir, vocabulary_file_in,
 )
-from ..errors import VPRBenchError, closest_names
+from ..errors import ProblemList, VPRBenchError, closest_names
+from ..text import one_line
 
 Extractor = Callable[[Sequence[Path]], Iterable]
 MAP_PREFIX = "map-"
@@ -185,11 +186,11 @@ def _load_all(pairs: list[tuple[str, int]], data_dir) -> list[tuple[str, list[Pa
         try:
             dataset = load_dataset(name, data_dir, fetch=False)
         except VPRBenchError as exc:
-            missing.append(f"  - {name}: {exc}")
+            missing.append(f"  - {one_line(name)}: {one_line(exc)}")
             continue
         loaded.append((name, vocabulary_images(name, dataset.database, stride)))
     if missing:
-        raise VPRBenchError(
+        raise ProblemList(
             "Cannot fit this vocabulary: these datasets are needed and could not be loaded:\n"
             + "\n".join(missing)
             + "\nGet them (see `vprbench datasets`), or use the authors' released centres instead: "

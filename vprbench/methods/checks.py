@@ -102,6 +102,14 @@ def device(method: str, value) -> str:
         raise VPRBenchError(f"{method}: option device takes a torch device such as cpu, cuda or cuda:1; got {value!r}.") from None
     if chosen.type == "cuda" and not torch.cuda.is_available():
         raise VPRBenchError(f"{method}: device {value!r} was asked for but no CUDA GPU is available; use --device cpu.")
+    if chosen.type == "meta":  # tensors without data: every descriptor would be made of nothing
+        raise VPRBenchError(f"{method}: device {value!r} holds no data, so it computes nothing; use --device cpu or cuda.")
+    if chosen.type not in ("cpu", "cuda"):  # mps, xpu, ...: torch.device takes the name whether or not it is there
+        try:
+            torch.empty(0, device=chosen)
+        except (RuntimeError, AssertionError):
+            raise VPRBenchError(f"{method}: device {value!r} was asked for but this machine's PyTorch cannot use it; "
+                                "use --device cpu.") from None
     return str(chosen)
 
 

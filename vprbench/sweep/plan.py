@@ -32,9 +32,9 @@ import reprlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..errors import VPRBenchError, closest_names
+from ..errors import ProblemList, VPRBenchError, closest_names
 from ..spec import RUN_SETTINGS, RunSettings, RunSpec, resolve_spec, split_run_settings
-from ..text import toml_data
+from ..text import one_line, toml_data
 
 PLAN_KEYS = {"name", "description", "k", "methods", "datasets", "search", "store_dtype", "stages"}
 METHOD_KEYS = {"name", "options", "label", "stages"}
@@ -159,7 +159,7 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, overrides:
             problems.append(f"{where('datasets', i, key)}: dataset entry {i + 1} has unknown key {key!r} (allowed: {', '.join(sorted(DATASET_KEYS))})")
         name = str(entry.get("name"))
         wanted = entry.get("protocols", [entry["protocol"]] if "protocol" in entry else [overrides.get("protocol")])
-        if not isinstance(wanted, list) or not all(isinstance(p, str) or p is None for p in wanted):
+        if not isinstance(wanted, list) or not wanted or not all(isinstance(p, str) or p is None for p in wanted):
             key, kind = ("protocols", "a list of names, e.g. ['vpr-bench']") if "protocols" in entry else ("protocol", "a name")
             problems.append(f"{where('datasets', i, key)}: {key} of dataset {reprlib.repr(name)} must be {kind}; "
                             f"got {reprlib.repr(entry[key])}")
@@ -193,7 +193,8 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, overrides:
                 cells.append(Cell(spec, run_options, label, given))
     if problems:
         what = "The command line" if origin == "the command line" else f"Plan {origin}"
-        raise VPRBenchError(f"{what} has {len(problems)} problem(s); nothing was run:\n  " + "\n  ".join(dict.fromkeys(problems)))
+        raise ProblemList(f"{what} has {len(problems)} problem(s); nothing was run:\n  "
+                          + "\n  ".join(one_line(p) for p in dict.fromkeys(problems)))
     return Plan(name=str(data.get("name", default_name)), cells=cells, description=str(data.get("description", "")))
 
 
