@@ -305,3 +305,14 @@ def test_datasets_info_refuses_protocol_with_protocols(cli):
     code, out, err = cli("datasets", "info", "corridor", "--protocols", "--protocol", "nosuch")
     assert_refused(code, err, None, "--protocols lists every protocol and --protocol shows the dataset under one")
     assert out == ""
+
+
+@pytest.mark.parametrize("resize, said", [("[-1, 32]", "must be positive, got -1x32"), ("{a = 1}", "takes HEIGHT WIDTH")])
+def test_a_plan_with_a_bad_resize_is_a_plan_problem(resize, said, cli, shared_data, tmp_path):
+    """Was: the plan was accepted and each cell failed when it ran (docs/sweeps.md: every plan problem is
+    listed before anything runs)."""
+    plan = tmp_path / "plan.toml"
+    plan.write_text(f'[[methods]]\nname = "hog"\noptions = {{resize = {resize}}}\n[[datasets]]\nname = "corridor"\n')
+    code, out, err = cli("run", plan, "--cache-dir", tmp_path / "c", "--data-dir", shared_data)
+    assert code == 1 and "has 1 problem(s); nothing was run" in err and said in err, err
+    assert not (tmp_path / "c" / "results").exists()

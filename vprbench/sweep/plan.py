@@ -143,6 +143,10 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, overrides:
                             f"{closest_names(option, accepted)} (It accepts: {', '.join(accepted) or 'none'}.)")
         try:  # run settings' values too, so a bad batch_size stops the plan, not each of its cells
             RunSettings().with_options(checked_run_options(name, options))
+            if "resize" in options and "resize" in accepted:  # one parser for every method's: checked here, not per cell
+                from ..features.resize import parse_size
+
+                parse_size(options["resize"])
         except VPRBenchError as error:
             problems.append(f"{where('methods', i, 'options')}: {error}")
         stages = overrides.get("stages") or entry.get("stages", data.get("stages", []))
