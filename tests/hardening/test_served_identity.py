@@ -133,13 +133,14 @@ def test_a_sweep_does_not_serve_a_record_a_stage_no_longer_computes(shared_data,
         capsys.readouterr()
         return read_results(cache)
 
+    monkeypatch.setattr(AlphaQE, "fingerprint", lambda self: {})  # a stage with the default fingerprint
     [old] = run()
     assert "fingerprint" not in old["stages"][0]  # the default is not written: old records look the same
     assert len(run()) == 1
-    monkeypatch.setattr(AlphaQE, "fingerprint", lambda self: {"version": 2}, raising=False)
+    monkeypatch.setattr(AlphaQE, "fingerprint", lambda self: {"version": 3})
     records = run()
     assert len(records) == 2, "the record of the stage's old code was served"
-    assert records[-1]["stages"][0]["fingerprint"] == {"version": 2}
+    assert records[-1]["stages"][0]["fingerprint"] == {"version": 3}
     assert len(run()) == 2  # the new record is found again
-    monkeypatch.undo()
+    monkeypatch.setattr(AlphaQE, "fingerprint", lambda self: {})
     assert len(run()) == 2  # and the old code's record (no fingerprint in it) for the default again

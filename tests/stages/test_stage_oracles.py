@@ -261,3 +261,4 @@ def test_expansion_with_a_huge_alpha_stays_finite(stage):
         found = create_stage(stage, {"k": 10, "n": 3, "alpha": 1e300}).apply(given, context)
     assert np.isfinite(found.scores).all()
     assert_oracle(given, found)
+    assert create_stage(stage, {"k": 10}).fingerprint() == {"version": 2}  # its records were made by other code

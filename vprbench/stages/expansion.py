@@ -45,6 +45,9 @@ class _Expansion(Stage):
     track = "re-ranked"
     Options = ExpansionOptions
 
+    def fingerprint(self) -> dict:
+        return {"version": 2}  # 2: weights in float64, similarities clipped to [0, 1]
+
     def check_compare(self, compare: str) -> None:
         """Expansion weights and re-scores by inner products of unit rows: on a method compared by a distance
         (sad's mean absolute difference) they are neither its similarity nor its ranking, so refuse."""
