@@ -14,7 +14,9 @@ an image that is not in database/ or queries/ a warning.
 """
 from __future__ import annotations
 
+import os
 import re
+import unicodedata
 import warnings
 from pathlib import Path
 
@@ -95,15 +97,16 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
             f"or frame; it has {list(table.columns)}"
         )
     names, unit = chosen
-    listed = [str(Path(str(name))) for name in table["image"]]
+    written = [str(name) for name in table["image"]]
     # rows are matched to the images found by name and never opened; one naming a file outside
     # the folder is still refused, as everything a data file names must lie inside its dataset
-    outside = [name for name in listed if climbs_out(name)]
+    outside = [name for name in written if climbs_out(name)]
     if outside:
         raise VPRBenchError(
             f"{csv} names {len(outside)} image(s) outside {root}, e.g. {outside[:3]}; the column 'image' holds "
             "paths relative to the folder (database/0001.jpg): fix those rows."
         )
+    found, listed = image_row_names(images, root), [row_name(name) for name in written]
     names_column = pd.Series(listed)
     repeated = sorted(set(names_column[names_column.duplicated()]))
     if repeated:
@@ -128,15 +131,39 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
             raise VPRBenchError(f"{csv}: latitudes must lie within +-84 degrees (UTM) and longitudes within +-180.")
         values, unit = latlon_to_metres(values[:, 0], values[:, 1]), "metres"
     by_name = dict(zip(listed, values))
-    found = [str(p.relative_to(root)) for p in images]
     missing = [name for name in found if name not in by_name]
     if missing:
-        raise VPRBenchError(f"{csv} has no position for {len(missing)} image(s), e.g. {missing[:3]}")
+        by_case = {name.casefold(): name for name in listed}
+        near = [(name, by_case[name.casefold()]) for name in missing if name.casefold() in by_case]
+        hint = (f"; names must match in case: the row {near[0][1]!r} is not the file {near[0][0]!r}" if near else "")
+        raise VPRBenchError(f"{csv} has no position for {len(missing)} image(s), e.g. {missing[:3]}{hint}; "
+                            "add a row for each.")
     absent = sorted(set(listed) - set(found))
     if absent:
         warnings.warn(f"{csv} lists {len(absent)} image(s) that are not in {root}/database or {root}/queries, "
                       f"e.g. {absent[:3]}; they are left out.", stacklevel=2)
-    return np.stack([by_name[str(p.relative_to(root))] for p in images]), unit
+    return np.stack([by_name[name] for name in found]), unit
+
+
+def row_name(name: str) -> str:
+    """How an image is named for matching rows to files: one spelling per path (`queries/../database/a.jpg`
+    is `database/a.jpg`) in Unicode NFC, as the same name typed or copied may arrive in either form."""
+    return unicodedata.normalize("NFC", os.path.normpath(name))
+
+
+def image_row_names(images: list[Path], root: Path) -> list[str]:
+    """The images' row names; two files whose names differ only in Unicode form are refused (which
+    row is whose cannot be told, and they print alike)."""
+    names, seen = [], {}
+    for path in images:
+        relative = path.relative_to(root).as_posix()
+        name = row_name(relative)
+        if name in seen:
+            raise VPRBenchError(f"{root}: {ascii(seen[name])} and {ascii(relative)} are one name in two Unicode forms "
+                                "(they print alike); rename one of the two files.")
+        seen[name] = relative
+        names.append(name)
+    return names
 
 
 @layout("own", expects=lambda options: ["database/", "queries/"])
