@@ -122,6 +122,9 @@ def paired_test(a: np.ndarray, b: np.ndarray, resampling: Resampling | None = No
         "both": int(counts[0]), "neither": int(counts[3]), "p_mcnemar": float(p_mcnemar),
         "resamples": resamples, "seed": seed, "level": level,
         "resampling": (resampling or per_query(n)).describe(), "identical": discordant == 0,
+        # called a difference when the shown interval excludes 0: the p-value can sit at 0.05 while
+        # the interpolated interval already excludes 0, and the verdict must not contradict it
+        "significant": bool(low > 0 or high < 0),
     }
 
 
