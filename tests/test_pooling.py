@@ -47,6 +47,17 @@ def test_gem_of_a_large_power_tends_to_max_pooling(p):
     assert torch.allclose(pooled, gmp(features), atol=1e-3)
 
 
+def test_gem_of_ordinary_features_is_bit_for_bit_the_formula():
+    """Rescaling every channel (for large powers) moved ordinary descriptors in their last bit: stored
+    GeM descriptors and records no longer matched a new run's exactly."""
+    features = torch.randn(50, 200, 128, generator=torch.Generator().manual_seed(0))
+    for p in (1.0, 3.0):
+        m = (features.double() ** p).mean(dim=-2)
+        formula = m.abs() ** (1 / p) * torch.sign(m)
+        assert torch.equal(gem(features, p, normalise=False), formula.float())
+        assert torch.equal(gem(features, p), torch.nn.functional.normalize(formula.float(), dim=-1))
+
+
 def test_pooling_errors():
     with pytest.raises(VPRBenchError, match="p must be positive"):
         gem(PATCHES, p=0)

@@ -3,6 +3,7 @@ recall keys that are no K, a record naming another copy of the dataset, names ho
 breaks and control characters, and an import killed between two of its writes."""
 from __future__ import annotations
 
+import json
 import xml.etree.ElementTree as ElementTree
 
 import pytest
@@ -59,6 +60,30 @@ def test_a_record_naming_another_copy_of_the_dataset_is_refused(bundle, cli, sha
     path = write_bundle(tmp_path / "copy.tar.gz", members)
     refused(cli, shared_data, path, tmp_path / "repo",
             f"its dataset fingerprint ({wrong}) is not that of the copy of corridor here (")
+
+
+def test_a_0_2_record_on_this_copy_of_the_dataset_is_not_called_another_copy(bundle, cli, shared_data, tmp_path):
+    """0.2 hashed a dataset's fingerprint another way; the upgrade recomputes the top-level one from the
+    parts but leaves the parts' own "dataset" as 0.2 wrote it. Before: verify compared that copy too and
+    refused a 0.2 record run on this very data as naming 'another copy' of it."""
+    def as_0_2(record):
+        options = record["spec"]["options"]
+        for key in ("spec", "spec_key", "row_key", "served_from_store", "run"):
+            record.pop(key, None)
+        record.update(schema_version=2, method_settings=options, method_options=options)
+        record["dataset_fingerprint"] = record["dataset_fingerprints"]["dataset"] = "0" * 16  # 0.2's hash
+
+    members = read_bundle(bundle)
+    name = edit_record(members, as_0_2)
+    path = write_bundle(tmp_path / "old.tar.gz", members)
+    code, out, err = cli("results", "verify", path, "--data-dir", shared_data)
+    assert code == 0 and "Traceback" not in err, out
+    recall = json.loads(members[name])["recall"]
+    [line] = [line for line in out.splitlines() if line.startswith(f"{path}: {name} (run ")]
+    assert f": ok, re-scored from its arrays: R@1 {recall['1']:.2f} R@5 " in line, line
+    edit_record(members, lambda r: r["dataset_fingerprints"]["images"].update(queries="0" * 64))  # still checked
+    path = write_bundle(tmp_path / "old-forged.tar.gz", members)
+    refused(cli, shared_data, path, tmp_path / "repo", "its dataset fingerprint (dataset, images) is not that of the copy")
 
 
 def test_a_name_with_line_breaks_and_control_characters_forges_no_line_and_breaks_no_figure(

@@ -234,6 +234,16 @@ def test_a_plan_keeps_one_problem_a_line(cli, tmp_path):
                                               f"  {plan}:2: unknown method 'x\\nerror: all fine'. Run 'vprbench methods list'."], err
 
 
+def test_a_line_break_in_a_plan_path_is_written_out(cli, tmp_path):
+    """A ProblemList keeps its line breaks: the plan's path in its first line printed one of its own."""
+    plan = tmp_path / "p\nerror: forged.toml"
+    plan.write_text('[[methods]]\nname = "x"\n[[datasets]]\nname = "corridor"\n')
+    code, _, err = cli("run", plan, "--cache-dir", tmp_path / "c", "--data-dir", tmp_path / "no-data")
+    shown = str(plan).replace("\n", "\\n")
+    assert code == 1 and err.splitlines() == [f"error: Plan {shown} has 1 problem(s); nothing was run:",
+                                              f"  {shown}:2: unknown method 'x'. Run 'vprbench methods list'."], err
+
+
 def test_an_unreadable_vocabulary_is_not_called_damaged(cli, tmp_path, monkeypatch):
     """Permission denied was reported as 'damaged or not a PyTorch file ... get it again'."""
     import torch

@@ -54,6 +54,9 @@ def edited(path, tmp_path, **attrs):
     ({}, {"indices": 5000}, "holds indices outside the 111 database images"),
     ({}, {"format": "something"}, "is not a vprbench candidates file"),
     ({"stages": []}, {}, "this run has no stage: add --rerank STAGE"),
+    # before: accepted, the file ignored by the sequence stage yet named in the record
+    ({"stages": [{"name": "diagonal", "length": 3}, *RERANK]}, {},
+     "sequence stage 'diagonal' runs first and matches every query against the whole database, ignoring them"),
 ])
 def test_a_file_that_does_not_fit_the_run_is_refused(shared_data, exported, tmp_path, spec_parts, attrs, message):
     path, settings = exported

@@ -56,9 +56,14 @@ def gem(features, p: float = 3.0, *, normalise: bool = True) -> torch.Tensor:
         raise VPRBenchError(f"GeM power p must be positive, got {p}.")
     x, single = _prepare(features)
     x = x.double()  # p-th powers of small values lose float32 digits
-    # each channel over its largest magnitude: the same root, yet a large p neither overflows to
-    # infinity nor underflows to all zeros (it tends to max pooling, as it should)
-    scale = x.abs().amax(dim=-2).clamp_min(torch.finfo(torch.float64).tiny)
-    m = ((x / scale.unsqueeze(-2)) ** p).mean(dim=-2)
-    root = m.abs() ** (1.0 / p) * torch.sign(m) * scale
+    m = (x ** p).mean(dim=-2)
+    root = m.abs() ** (1.0 / p) * torch.sign(m)
+    tiny = torch.finfo(torch.float64).tiny
+    lost = ~torch.isfinite(m) | (m.abs() < tiny)
+    if lost.any():  # a large p overflowed to infinity or underflowed to (nearly) zero: each channel over its
+        # largest magnitude gives the same root without either (it tends to max pooling, as it should); only
+        # there, so every other descriptor stays bit for bit what it was
+        scale = x.abs().amax(dim=-2).clamp_min(tiny)
+        scaled = ((x / scale.unsqueeze(-2)) ** p).mean(dim=-2)
+        root = torch.where(lost, scaled.abs() ** (1.0 / p) * torch.sign(scaled) * scale, root)
     return _finish(root, single, normalise)

@@ -278,7 +278,10 @@ def _check_fingerprints(record: dict, gt: Truth, problems: list) -> None:
     if not isinstance(parts, dict):
         problems.append(f"its dataset_fingerprints is a {type(parts).__name__}, not a table")
         return
-    given = [("dataset", record.get("dataset_fingerprint")), *((n, parts[n]) for n in gt.fingerprints if n in parts)]
+    # the parts' "dataset" repeats the top-level one; a 0.2 record's (hashed another way) is recomputed by
+    # its upgrade, its parts' copy is not: only the top-level one is compared
+    given = [("dataset", record.get("dataset_fingerprint")),
+             *((n, parts[n]) for n in gt.fingerprints if n in parts and n != "dataset")]
     wrong = sorted({name for name, value in given if value != gt.fingerprints[name]})
     if wrong:
         problems.append(f"its dataset fingerprint ({', '.join(wrong)}) is not that of the copy of {record['dataset']} "

@@ -36,7 +36,8 @@ def load_data(spec: RunSpec, settings: RunSettings):
     if dataset.protocol.get("hash") != spec.dataset.protocol_hash:
         raise VPRBenchError(f"Dataset {name} now has protocol hash {dataset.protocol.get('hash')}, but the spec was "
                             f"made for {spec.dataset.protocol_hash} ({spec.dataset.protocol_id}): its images or "
-                            "ground truth changed since; build the spec again.")
+                            "ground truth changed after the run was planned; run it again (a spec from a file: "
+                            "build the spec again).")
     return dataset
 
 
@@ -200,6 +201,10 @@ def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None
     if settings.candidates is not None and not stages:
         raise VPRBenchError(f"--candidates {settings.candidates} gives the candidates a re-ranking starts from, but "
                             "this run has no stage: add --rerank STAGE (or drop --candidates).")
+    if settings.candidates is not None and stages[0].track == "sequence":  # it would be named in the record, unused
+        raise VPRBenchError(f"--candidates {settings.candidates} gives the candidates a re-ranking starts from, but "
+                            f"sequence stage {stages[0].name!r} runs first and matches every query against the whole "
+                            "database, ignoring them: drop --candidates (or the sequence stage).")
     run = retrieved(spec, settings, stages, dataset=dataset, method=method, progress=progress, ranks=ranks)
     if run is None:
         return None

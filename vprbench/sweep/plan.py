@@ -143,12 +143,15 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, overrides:
                             f"{closest_names(option, accepted)} (It accepts: {', '.join(accepted) or 'none'}.)")
         try:  # run settings' values too, so a bad batch_size stops the plan, not each of its cells
             RunSettings().with_options(checked_run_options(name, options))
-            if "resize" in options and "resize" in accepted:  # one parser for every method's: checked here, not per cell
-                from ..features.resize import parse_size
-
-                parse_size(options["resize"])
         except VPRBenchError as error:
             problems.append(f"{where('methods', i, 'options')}: {error}")
+        if "resize" in options and "resize" in accepted:  # one parser for every method's: checked here, not per cell
+            from ..features.resize import parse_size
+
+            try:
+                parse_size(options["resize"])
+            except VPRBenchError as error:
+                problems.append(f"{where('methods', i, 'options')}: Method {name!r}: {error}")
         stages = overrides.get("stages") or entry.get("stages", data.get("stages", []))
         if not isinstance(stages, list):
             problems.append(f"{where('methods', i, 'stages')}: stages of method {name!r} must be a list of tables, "
@@ -196,7 +199,8 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, overrides:
                     continue
                 cells.append(Cell(spec, run_options, label, given))
     if problems:
-        what = "The command line" if origin == "the command line" else f"Plan {origin}"
+        # a ProblemList prints its line breaks: the path's are written out, as in its problems
+        what = "The command line" if origin == "the command line" else f"Plan {one_line(origin)}"
         raise ProblemList(f"{what} has {len(problems)} problem(s); nothing was run:\n  "
                           + "\n  ".join(one_line(p) for p in dict.fromkeys(problems)))
     return Plan(name=str(data.get("name", default_name)), cells=cells, description=str(data.get("description", "")))
