@@ -188,3 +188,23 @@ def test_cli_import_verify_list_info(tmp_path, gardens, capsys):
     assert (info["database"], info["queries"], info["queries_with_positives"], info["positive_pairs"]) == (200, 200, 200, 994)
     assert (info["unit"], info["radius"], info["radius_unit"], info["domain"]) == ("positives", 2, "frames", "indoor")
     assert info["layout"] == "folders" and "night_right" in info["notes"]
+
+
+def test_a_database_image_more_or_fewer_is_refused_where_positives_are_indices(tmp_path, gardens):
+    """Was a warning: a copy with one database image more (or fewer) was read, its ground truth (indices into
+    the sorted database) then pointing every later index at another image: a wrong Recall, exit 0."""
+    import shutil
+
+    shutil.copy(gardens / "day_right" / "Image010.jpg", gardens / "day_right" / "Image010a.jpg")
+    said = "201 database images at .* the manifest expects 200. Its ground truth names database images by their position"
+    with pytest.raises(VPRBenchError, match=said):
+        load_dataset("gardens-point", gardens.parent)
+    with pytest.raises(VPRBenchError, match=said):
+        import_dataset("gardens-point", gardens, tmp_path / "data")
+    assert not (tmp_path / "data" / "datasets.json").exists()
+    report = verify_dataset("gardens-point", gardens.parent)
+    assert not report.ok and report.problems[0].startswith("201 database images, the manifest expects 200 (-1). Its")
+    (gardens / "day_right" / "Image010a.jpg").unlink()
+    (gardens / "day_right" / "Image199.jpg").unlink()  # one fewer: named as such, not as an index past the end
+    with pytest.raises(VPRBenchError, match="199 database images at .* expects 200. Its ground truth"):
+        import_dataset("gardens-point", gardens, tmp_path / "data")

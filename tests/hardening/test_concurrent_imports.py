@@ -51,11 +51,11 @@ sys.exit(main(sys.argv[5:]))
 def two_copies(tmp_path, shared_data) -> dict[str, Path]:
     """corridor (the real one) and a small Gardens Point copy, both outside the data root."""
     gardens = tmp_path / "elsewhere" / "gardens"
-    names = [f"Image{i:03d}.jpg" for i in range(3)]
+    names = [f"Image{i:03d}.jpg" for i in range(200)]  # the manifest's counts: its positives are indices
     tiny_images(gardens / "day_right", names)
     tiny_images(gardens / "night_right", names)
-    rows = np.empty((3, 2), dtype=object)
-    for i in range(3):
+    rows = np.empty((200, 2), dtype=object)
+    for i in range(200):
         rows[i] = i, [i]
     np.save(gardens / "gardens_gt.npy", rows, allow_pickle=True)
     return {"corridor": shared_data / "corridor", "gardens-point": gardens}

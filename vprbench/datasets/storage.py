@@ -95,7 +95,8 @@ def missing_dataset_message(manifest: DatasetManifest, root: Path, data_dir=None
 
 
 def check_counts(dataset: Dataset, manifest: DatasetManifest, strict: bool) -> list[str]:
-    """Messages for counts that differ from the manifest; raises instead when strict."""
+    """Messages for counts that differ from the manifest; raises instead when strict, or when the
+    ground truth names images by position (then the counts must be the manifest's)."""
     messages = []
     for split, expected, found in (
         ("database", manifest.database_count, len(dataset.database)),
@@ -103,11 +104,26 @@ def check_counts(dataset: Dataset, manifest: DatasetManifest, strict: bool) -> l
     ):
         if expected is not None and expected != found:
             messages.append(f"Dataset {manifest.name!r}: {found} {split} images at {dataset.root}, the manifest expects {expected}.")
+    expected = manifest.database_count
+    if by_position(dataset) and expected is not None and expected != len(dataset.database):
+        raise VPRBenchError(" ".join(messages) + f" {BY_POSITION} use a complete copy (vprbench datasets verify "
+                            f"{manifest.name} lists what differs).")
     if messages and strict:
         raise VPRBenchError(" ".join(messages) + " (--strict)")
     for message in messages:
         warnings.warn(message, stacklevel=3)
     return messages
+
+
+#: why a database count that differs is no warning where the ground truth lists positives by index
+BY_POSITION = ("Its ground truth names database images by their position in the sorted list, so with an image "
+               "more or fewer every later index would point at another image:")
+
+
+def by_position(dataset: Dataset) -> bool:
+    """The ground truth is lists of database indices (VPR-Bench style), not positions in space. (Its
+    rows of queries are checked against the query images as it is read.)"""
+    return dataset.ground_truth.positive_lists is not None
 
 
 def import_dataset(name: str, path: str | Path, data_dir=None, strict: bool = False) -> Dataset:
@@ -117,8 +133,8 @@ def import_dataset(name: str, path: str | Path, data_dir=None, strict: bool = Fa
     if not root.is_dir():
         raise VPRBenchError(f"Cannot import {name!r}: {root} is not a folder.")
     dataset = read_layout(root, manifest)  # raises, naming what is missing, before anything is written
+    check_counts(dataset, manifest, strict)  # first: an image more or fewer is named as such
     dataset.positives  # ground truth must match the images  # noqa: B018
-    check_counts(dataset, manifest, strict)
     registry = registry_path(data_dir)
     # held for the moment of a read and a write; 120 s is ample even on a slow network disk
     with lock(registry.with_name(registry.name + ".lock"), timeout=120.0, what=f"the dataset registry {registry}",

@@ -18,7 +18,7 @@ from ..text import plural, quantity
 from .download import how_to_get
 from .layouts import candidates, describe_layout, detect_layout, missing_paths, read_layout
 from .manifest import dataset_manifest
-from .storage import dataset_location
+from .storage import BY_POSITION, by_position, dataset_location
 
 
 @dataclass
@@ -94,7 +94,10 @@ def verify_dataset(name: str, data_dir=None, strict: bool = False, sample: int |
     for split, expected, paths in (("database", chosen.database_count, dataset.database), ("query", chosen.query_count, dataset.queries)):
         if expected is not None and expected != len(paths):
             message = f"{len(paths)} {split} images, the manifest expects {expected} ({expected - len(paths):+d})"
-            (report.problems if strict else report.warnings).append(message)
+            shifted = split == "database" and by_position(dataset)
+            if shifted:
+                message += f". {BY_POSITION} use a complete copy"
+            (report.problems if strict or shifted else report.warnings).append(message)
     absent = [p for p in dataset.database + dataset.queries if not p.is_file()]
     if absent:
         report.problems.append(f"{len(absent)} listed image(s) are missing, e.g. {', '.join(str(p) for p in absent[:5])}")
