@@ -14,7 +14,7 @@ from pathlib import Path
 from ..errors import VPRBenchError
 from ..fsutil import atomic_write, lock
 from .download import how_to_get
-from .layouts import candidates, missing_paths, read_layout
+from .layouts import candidates, detect_layout, missing_paths, read_layout
 from .manifest import DatasetManifest, data_root, dataset_manifest, is_default_data_root
 from .model import Dataset
 
@@ -96,8 +96,9 @@ def missing_dataset_message(manifest: DatasetManifest, root: Path, data_dir=None
 
 def check_counts(dataset: Dataset, manifest: DatasetManifest, strict: bool) -> list[str]:
     """Messages for counts that differ from the manifest; raises instead when strict, or when the
-    ground truth names images by position (then the counts must be the manifest's)."""
-    messages = []
+    ground truth names images by position (then the counts must be the manifest's). The counts are
+    those of the layout the copy is in (an alternative layout may give its own)."""
+    messages, manifest = [], detect_layout(dataset.root, manifest)
     for split, expected, found in (
         ("database", manifest.database_count, len(dataset.database)),
         ("query", manifest.query_count, len(dataset.queries)),
