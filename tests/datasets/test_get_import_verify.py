@@ -208,3 +208,15 @@ def test_a_database_image_more_or_fewer_is_refused_where_positives_are_indices(t
     (gardens / "day_right" / "Image199.jpg").unlink()  # one fewer: named as such, not as an index past the end
     with pytest.raises(VPRBenchError, match="199 database images at .* expects 200. Its ground truth"):
         import_dataset("gardens-point", gardens, tmp_path / "data")
+
+
+def test_import_and_verify_name_an_empty_image(tmp_path, gardens):
+    """Was: a zero-byte image (a download that stopped) was imported; verify's sample or the run named it later."""
+    (gardens / "night_right" / "Image005.jpg").unlink()  # a hard link to every other image: not truncated
+    (gardens / "night_right" / "Image005.jpg").write_bytes(b"")
+    with pytest.raises(VPRBenchError, match=r"^Cannot import 'gardens-point': 1 listed image\(s\) are empty or no file, "
+                                            r"e\.g\. .*Image005\.jpg; get those images again"):
+        import_dataset("gardens-point", gardens, tmp_path / "data")
+    assert not (tmp_path / "data" / "datasets.json").exists()
+    problems = verify_dataset("gardens-point", gardens.parent, sample=1).problems  # whatever its sample decodes
+    assert problems[0].startswith("1 listed image(s) are empty or no file, e.g. ") and "Image005.jpg" in problems[0]

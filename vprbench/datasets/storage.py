@@ -127,6 +127,19 @@ def by_position(dataset: Dataset) -> bool:
     return dataset.ground_truth.positive_lists is not None
 
 
+def absent_or_empty(paths: list[Path]) -> str:
+    """'' when every listed image is a file with bytes, else what is wrong, with the first few."""
+    absent, empty = [], []
+    for path in paths:
+        try:
+            if path.stat().st_size == 0 or not path.is_file():
+                empty.append(path)
+        except OSError:  # missing, or a link to nothing
+            absent.append(path)
+    return "; ".join(f"{len(found)} listed image(s) {what}, e.g. {', '.join(str(p) for p in found[:5])}"
+                     for found, what in ((absent, "are missing"), (empty, "are empty or no file")) if found)
+
+
 def import_dataset(name: str, path: str | Path, data_dir=None, strict: bool = False) -> Dataset:
     """Register an existing copy of dataset `name` at `path`, after checking it reads completely."""
     manifest = dataset_manifest(name)
@@ -136,6 +149,10 @@ def import_dataset(name: str, path: str | Path, data_dir=None, strict: bool = Fa
     dataset = read_layout(root, manifest)  # raises, naming what is missing, before anything is written
     check_counts(dataset, manifest, strict)  # first: an image more or fewer is named as such
     dataset.positives  # ground truth must match the images  # noqa: B018
+    bad = absent_or_empty(dataset.database + dataset.queries)  # a stat each: cheap at any benchmark's size
+    if bad:
+        raise VPRBenchError(f"Cannot import {name!r}: {bad}; get those images again (`vprbench datasets verify "
+                            f"{name} --all-images` decodes every image).")
     registry = registry_path(data_dir)
     # held for the moment of a read and a write; 120 s is ample even on a slow network disk
     with lock(registry.with_name(registry.name + ".lock"), timeout=120.0, what=f"the dataset registry {registry}",

@@ -18,7 +18,7 @@ from ..text import plural, quantity
 from .download import how_to_get
 from .layouts import candidates, describe_layout, detect_layout, missing_paths, read_layout
 from .manifest import dataset_manifest
-from .storage import BY_POSITION, by_position, dataset_location
+from .storage import BY_POSITION, absent_or_empty, by_position, dataset_location
 
 
 @dataclass
@@ -98,9 +98,9 @@ def verify_dataset(name: str, data_dir=None, strict: bool = False, sample: int |
             if shifted:
                 message += f". {BY_POSITION} use a complete copy"
             (report.problems if strict or shifted else report.warnings).append(message)
-    absent = [p for p in dataset.database + dataset.queries if not p.is_file()]
+    absent = absent_or_empty(dataset.database + dataset.queries)
     if absent:
-        report.problems.append(f"{len(absent)} listed image(s) are missing, e.g. {', '.join(str(p) for p in absent[:5])}")
+        report.problems.append(absent)
     try:
         report.summary = dataset.summary()
     except VPRBenchError as error:
