@@ -50,3 +50,8 @@ def test_invalid_k_is_refused(ks):
 
 def test_ks_sorted_and_unique():
     assert check_ks([5, 1, 5], 10) == (1, 5)
+
+
+def test_k_beyond_a_database_of_one_image_is_said_in_the_singular():
+    with pytest.raises(VPRBenchError, match=r"^K = 5 exceeds the 1 database image of own: give --k with values up to 1"):
+        check_ks([1, 5], 1, "own")

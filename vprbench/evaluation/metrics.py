@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import VPRBenchError
+from ..text import plural
 
 
 def check_ks(ks, n_database: int, dataset: str = "the dataset") -> tuple[int, ...]:
@@ -13,7 +14,7 @@ def check_ks(ks, n_database: int, dataset: str = "the dataset") -> tuple[int, ..
         raise VPRBenchError(f"Recall@K needs K >= 1, got {list(ks)}")
     if ks[-1] > n_database:
         within = " ".join(str(k) for k in ks if k <= n_database) or "1"
-        raise VPRBenchError(f"K = {ks[-1]} exceeds the {n_database} database images of {dataset}: give --k with "
+        raise VPRBenchError(f"K = {ks[-1]} exceeds the {plural(n_database, 'database image')} of {dataset}: give --k with "
                             f"values up to {n_database}, e.g. --k {within}.")
     return ks
 
