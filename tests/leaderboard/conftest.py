@@ -11,6 +11,7 @@ from synthetic_runs import FakeMethod, synthetic_ground_truth, synthetic_search,
 from vprbench.datasets import apply_protocol, dataset_manifest, find_protocol, own_protocol
 from vprbench.datasets.model import Dataset
 from vprbench.evaluation.record import result_record
+from vprbench.stages.run import create_stages, track_of
 
 
 @pytest.fixture
@@ -20,7 +21,8 @@ def make_record(tmp_path):
 
     def make(method="hog", dataset="corridor", *, k=20, ks=(1, 5, 10, 20), quality=0.5, seed=0, options=None,
              weights=None, kind="benchmark", n_database=None, n_queries=None, root=None, fingerprint=None,
-             domain=None, created=None, descriptor_dim=64, protocol=None, search=None, unit=None, radius=None):
+             domain=None, created=None, descriptor_dim=64, protocol=None, search=None, unit=None, radius=None,
+             stages=()):
         manifest = dataset_manifest(dataset) if kind == "benchmark" else None
         n_database = n_database or manifest.database_count
         n_queries = n_queries or manifest.query_count
@@ -37,8 +39,9 @@ def make_record(tmp_path):
         data = apply_protocol(data, find_protocol(manifest, protocol)) if manifest else \
             dataclasses.replace(data, protocol=own_protocol(data))
         fake = FakeMethod(method, options or {}, weights or {"source": "none"})
+        spec = synthetic_spec(method, options or {}, weights or {}, data, ks, search or {}, stages)
         record = result_record(
-            spec=synthetic_spec(method, options or {}, weights or {}, data, ks, search or {}), method=fake,
+            spec=spec, method=fake, track=track_of(create_stages(spec)),
             fingerprint={"method": method, **(options or {})}, dataset=data,
             dataset_key=fingerprint or f"fp-{dataset}-{n_database}", ks=ks, scores=scores, indices=indices,
             positives=positives, descriptor_dim=descriptor_dim, computed={"database": n_database, "queries": n_queries},

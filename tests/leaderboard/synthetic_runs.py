@@ -53,8 +53,11 @@ def synthetic_search(positives, n_database, k, quality, seed):
     return scores, indices, positives
 
 
-def synthetic_spec(method: str, options: dict, weights: dict, data: Dataset, ks, search: dict) -> RunSpec:
-    """The spec such a run would have (the method need not be registered: the search is made up)."""
+def synthetic_spec(method: str, options: dict, weights: dict, data: Dataset, ks, search: dict, stages=()) -> RunSpec:
+    """The spec such a run would have (the method need not be registered: the search is made up;
+    `stages` are named, as on the command line, e.g. [{"name": "diagonal", "length": 5}])."""
+    from vprbench.spec import resolve_stage
+
     protocol = data.protocol
     kind = "own" if protocol["name"] == "own" else "benchmark"
     files = {"weights": f"sha256:{weights['sha256']}"} if weights.get("sha256") else {}
@@ -62,4 +65,4 @@ def synthetic_spec(method: str, options: dict, weights: dict, data: Dataset, ks,
     return RunSpec(method=method, options=plain(options), given=plain(options), files=files,
                    dataset=DatasetSpec(name=data.name, kind=kind, protocol=protocol["name"], protocol_id=protocol["id"],
                                        protocol_hash=protocol["hash"]),
-                   search=SearchSpec(**search), ks=tuple(ks))
+                   search=SearchSpec(**search), ks=tuple(ks), stages=tuple(resolve_stage(s) for s in stages))

@@ -7,7 +7,8 @@ dataset, and its metrics are recomputed from its per-query arrays against that p
 counts, indices in range, every query present, first-positive ranks, and Recall@K (records keep
 4 decimals) and the top-1 PR metrics (6 decimals, computed from the similarities the record keeps;
 tolerance 1e-3 for records of earlier versions, computed before rounding). Units of the bootstrap a record keeps (each query's place,
-the traverse order) must be the protocol's, or its intervals would be drawn from the wrong ones.
+the traverse order, blocks lengthened by its stages' sequence window) must be the protocol's, or its
+intervals would be drawn from the wrong ones.
 """
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import VPRBenchError
-from ..evaluation.blocks import Resampling, for_dataset, for_record
+from ..evaluation.blocks import Resampling, for_dataset, for_record, record_window
 from ..evaluation.record import OPTIONAL_FIELDS, PER_QUERY_FIELDS, validated
 from ..evaluation.results import check_kinds
 from ..stages.base import unordered_row
@@ -264,9 +265,13 @@ def rescore(record: dict, arrays: dict, gt: Truth, problems: list) -> dict[str, 
                 problems.append(f"{name} is {record[name]} in the record but {pr[name]:.6f} from its arrays")
     _check_fingerprints(record, gt, problems)
     stated = for_record(record, arrays)
-    if gt.resampling is not None and set(OPTIONAL_FIELDS) & set(arrays) and not stated.same_as(gt.resampling):
+    # the protocol's units for this run: blocks lengthen by its stages' query window, by the same rule;
+    # checked when the record keeps unit arrays or the units need none (records before them kept none)
+    expected = gt.resampling.for_window(record_window(record)) if gt.resampling is not None else None
+    needs_arrays = expected is not None and (expected.order is not None or expected.places is not None)
+    if expected is not None and (set(OPTIONAL_FIELDS) & set(arrays) or not needs_arrays) and not stated.same_as(expected):
         problems.append(f"its bootstrap units ({stated.text()}) are not those of protocol {gt.protocol_id} "
-                        f"({gt.resampling.text()}); its intervals would be drawn from the wrong units")
+                        f"({expected.text()}); its intervals would be drawn from the wrong units")
     return {k: v for k, v in recall.items()}
 
 

@@ -248,11 +248,12 @@ def result_record(*, spec: RunSpec, method, fingerprint, dataset, dataset_key: s
     every metric is computed here, from what the record keeps."""
     from .metrics import correct_at, recall_at_k, top1_precision_recall
 
-    from .blocks import for_dataset
+    from .blocks import for_dataset, query_window
 
     correct = correct_at(indices, positives)  # (queries, K): once, for every metric below
     section = per_query_section(scores, indices, correct, positives)
-    resampling = for_dataset(dataset)  # which queries the bootstrap draws together
+    # which queries the bootstrap draws together: blocks also cover a sequence stage's window
+    resampling = for_dataset(dataset, query_window([{"name": s.name, "options": s.options} for s in spec.stages]))
     section.update({name: array.tolist() for name, array in resampling.arrays().items()})
     recalls = recall_at_k(np.asarray(section["first_positive_rank"]), ks)
     pr = top1_precision_recall(kept_similarities(scores)[:, 0], correct[:, 0])

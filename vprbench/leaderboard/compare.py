@@ -5,7 +5,7 @@ from __future__ import annotations
 from ..errors import VPRBenchError, closest_names, require
 from ..text import plural
 from .cells import Board, Cell
-from ..evaluation.blocks import for_record
+from ..evaluation.blocks import for_record, shared
 from ..evaluation.metrics import successes
 from .stats import RESAMPLES, bootstrap_ci, check_k_and_seed, format_p, overlaps, paired_test
 
@@ -37,11 +37,13 @@ def _cell(board: Board, method: str, dataset: str) -> Cell:
 
 
 def shared_resampling(first: Cell, second: Cell):
-    """The units both runs are drawn by: their dataset's (the same queries, so the same units); a
-    run that keeps no places (recorded before them) takes the other's."""
+    """The units both runs are drawn by: their dataset's (the same queries, so the same units), on a
+    traverse the longer blocks of the two (a sequence run's cover its window: evaluation/blocks.py);
+    a run that keeps no places (recorded before them) takes the other's."""
     found = [for_record(c.record, c.arrays) for c in (first, second)]
-    if found[0].same_as(found[1]):
-        return found[0]
+    both = shared(*found)
+    if both is not None:
+        return both
     richer = [r for r in found if r.scheme != "queries"]
     if len(richer) == 1:
         return richer[0]

@@ -330,8 +330,12 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
 
 def _units(cells: list[Cell]) -> str:
     """Which queries the column's intervals draw together, and by what rule (evaluation/blocks.py)."""
-    found = for_record(cells[0].record, cells[0].arrays)
-    return f"{text(found.text())}: {text(RULE[found.scheme])}" + \
+    each = [for_record(c.record, c.arrays) for c in cells]
+    found, lengths = each[0], sorted({f.block_length for f in each if f.scheme == "blocks"})
+    # a sequence run's blocks cover its window: a column of several windows names each length
+    said = found.text() if len(lengths) < 2 else \
+        f"blocks of {', '.join(map(str, lengths))} consecutive queries (per run, by its sequence window)"
+    return f"{text(said)}: {text(RULE[found.scheme])}" + \
         (f" (n = {found.queries}, r = {found.radius:g})" if found.scheme == "blocks" else "")
 
 

@@ -124,6 +124,7 @@ class Stage:
     - `check(dataset)`: refuse a dataset the stage cannot run on (VPRBenchError), before any work.
     - `check_compare(compare)`: refuse a method whose descriptors are compared by `compare` (its
       `Method.compare`) when the stage cannot use them, before any work.
+    - `query_window(options)`: the consecutive queries one query's result reads (sequence stages: their window).
     - `stored_bytes(context)`: bytes it keeps per database image (for the record's cost), 0 if none.
     - `file_identities(options)`: the options that name files, by content (part of the run's identity).
     - `provenance()`: where what it learnt came from (its weights), for the record and the board.
@@ -155,6 +156,13 @@ class Stage:
 
     def stored_bytes(self, context: StageContext) -> int:
         return 0
+
+    @classmethod
+    def query_window(cls, options: dict) -> int:
+        """How many consecutive queries (traverse order) one query's result reads the descriptors
+        of, for these options (a record's): 1, its own. The bootstrap's blocks cover it
+        (evaluation/blocks.py); ValueError for options the stage refuses."""
+        return 1
 
     @classmethod
     def file_identities(cls, options: StageOptions) -> dict:

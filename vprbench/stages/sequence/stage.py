@@ -13,7 +13,7 @@ from pydantic import Field, model_validator
 
 from ...errors import VPRBenchError
 from ..base import Candidates, Stage, StageContext, StageOptions
-from .matching import SEQSLAM_DEFAULTS
+from .matching import SEQSLAM_DEFAULTS, query_offsets
 from .search import COMPARES, sequence_search
 
 #: more trajectories than this would be a typo (v_step 0.0001), not a search
@@ -64,6 +64,14 @@ class _SequenceStage(Stage):
 
     def search_options(self) -> dict:
         return {}
+
+    @classmethod
+    def query_window(cls, options: dict) -> int:
+        """The frames of a query's sequence, offline or causal (their offsets' span: `length`);
+        options it refuses raise pydantic's ValidationError, a ValueError."""
+        chosen = cls.Options(**options)
+        offsets = query_offsets(chosen.length, chosen.mode)
+        return int(offsets.max() - offsets.min()) + 1
 
     def apply(self, candidates: Candidates, context: StageContext) -> Candidates:
         from ...datasets.traverse import traverse_orders
