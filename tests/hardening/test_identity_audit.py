@@ -3,6 +3,7 @@ spec and store keys alone; what can (a vocabulary folder's images, the bytes of 
 keeps a stored result from being served for it."""
 from __future__ import annotations
 
+import re
 import shutil
 
 import numpy as np
@@ -218,3 +219,21 @@ def test_a_sweep_hashes_the_data_before_a_claim_not_under_its_lock(shared_data, 
     for _ in range(2):  # computed, then found complete
         run_cells([Cell(spec)], settings)
     assert hashed_under_lock and not any(hashed_under_lock)
+
+
+@pytest.mark.parametrize("method, options, idle", [
+    ("anyloc-gem-dinov2", {"clusters": 4}, "clusters=4 is not used here (only VLAD uses it, the aggregation is gem)"),
+    ("anyloc-gem-dinov2", {"vocabulary": "urban"}, "vocabulary='urban' is not used here (only VLAD uses it"),
+    ("anyloc-vlad-dinov2", {"gem_p": 4}, "gem_p=4 is not used here (only GeM uses it, the aggregation is vlad)"),
+])
+def test_an_option_the_aggregation_ignores_is_refused_not_named_in_the_row(method, options, idle):
+    """Was: accepted, computed without it, and named in the row ('anyloc-gem-dinov2 [clusters=4]', a second
+    row of the same numbers)."""
+    from vprbench.errors import VPRBenchError
+
+    for make in (lambda: resolve_spec(method, "corridor", options=options), lambda: create_method(method, **options)):
+        with pytest.raises(VPRBenchError, match=re.escape(f"Method {method!r}: option {idle}")):
+            make()
+    assert resolve_spec("anyloc-gem-dinov2", "corridor", options={"clusters": 32}).label() == "anyloc-gem-dinov2"
+    gem = resolve_spec("anyloc-vlad-dinov2", "corridor", options={"aggregation": "gem", "gem_p": 4})
+    assert gem.given == {"aggregation": "gem", "gem_p": 4}

@@ -140,6 +140,14 @@ class AnyLoc(Method):
         return {"layer": probe.layer, "stride": probe.stride} if probe else {}
 
     @classmethod
+    def unused_options(cls, options: dict) -> dict[str, str]:
+        """Options the aggregation ignores, and why (given, they would only name the row)."""
+        aggregation = options.get("aggregation", "vlad")
+        vlad_only = {} if aggregation in VLADS else dict.fromkeys(("clusters", "vocabulary"), f"only VLAD uses it, "
+                                                                   f"the aggregation is {aggregation}")
+        return vlad_only | ({} if aggregation == "gem" else {"gem_p": f"only GeM uses it, the aggregation is {aggregation}"})
+
+    @classmethod
     def _probe(cls, options: dict, cache_dir=None) -> "AnyLoc | None":
         """The method these options make, without loading the model or any centres; None when an option
         is bad (the run names it). Its notes are said when the run creates the method. No centres, and

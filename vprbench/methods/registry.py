@@ -87,8 +87,15 @@ class MethodEntry:
                      if defaults.get(k) is None}
         # a file the factory's default names stays given: unlike a preset's, that default is not in the
         # spec's options, so its content (spec.files) would leave the run's identity
-        return {k: v for k, v in given.items() if k not in defaults or not _same(k, v, defaults[k])
+        kept = {k: v for k, v in given.items() if k not in defaults or not _same(k, v, defaults[k])
                 or k not in self.defaults and _names_a_path(v)}
+        unused = getattr(self.factory, "unused_options", None)  # options the other options leave idle
+        idle = {k: why for k, why in (unused({**defaults, **given}) if callable(unused) else {}).items() if k in kept}
+        if idle:
+            name, why = sorted(idle.items())[0]
+            raise VPRBenchError(f"Method {self.name!r}: option {name}={kept[name]!r} is not used here ({why}): drop it "
+                                "(a row would name it, computed without it).")
+        return kept
 
 
 _REGISTRY: dict[str, MethodEntry] = {}
