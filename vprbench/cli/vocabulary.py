@@ -61,20 +61,26 @@ def run_fit(args) -> int:
     from ..methods.anyloc_vocabulary import MAP_PREFIX, domain_image_size, fit_domain_vocabulary, fit_map_vocabulary, save_to_cache
     from ..aggregation.vocabulary import DEFAULT_BUDGET
     from ..methods import create_method
+    from ..methods.anyloc import VLADS
+    from ..methods.registry import method_entry
 
     resolve_locations(args)
-    method = create_method(args.method, **method_options(args), cache_dir=args.cache_dir)
-    if not hasattr(method, "iter_patch_features"):
-        raise VPRBenchError(f"Method {args.method!r} does not expose patch features, so it cannot fit a vocabulary.")
-    from ..methods.anyloc import VLADS
-
-    aggregation = getattr(method, "aggregation", None)
+    options = method_options(args)
+    # from the options, before the method is made (which refuses --clusters beside a GeM or CLS aggregation)
+    try:
+        defaults = method_entry(args.method).effective_defaults()
+    except VPRBenchError:  # an unknown method: create_method below names it
+        defaults = {}
+    aggregation = {**defaults, **{k: v for k, v in options.items() if v is not None}}.get("aggregation")
     if aggregation is not None and aggregation not in VLADS:
         # its patch features are not VLAD's (DINO: not normalised; CLS: the last block's tokens), yet the
         # centres would be cached under the VLAD key of this backbone, layer and facet
         raise VPRBenchError(f"vocabulary fit: method {args.method} has aggregation={aggregation}, which uses no "
                             "vocabulary and reads other features than VLAD; give --aggregation "
                             f"{' or '.join(VLADS)}.")
+    method = create_method(args.method, **options, cache_dir=args.cache_dir)
+    if not hasattr(method, "iter_patch_features"):
+        raise VPRBenchError(f"Method {args.method!r} does not expose patch features, so it cannot fit a vocabulary.")
     check_fit_sizes(args, getattr(getattr(method, "spec", None), "width", None))
     clusters = int(method.clusters)
     backbone = getattr(method, "vocabulary_backbone", method.backbone)  # random weights have their own key
