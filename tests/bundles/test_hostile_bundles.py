@@ -98,7 +98,7 @@ def test_a_name_with_line_breaks_and_control_characters_forges_no_line_and_break
     code, out, err = cli("results", "verify", path, "--data-dir", shared_data)
     assert code == 0 and "Traceback" not in err
     assert len(out.splitlines()) == len(record_names(members)) and "\nFAKE" not in out
-    assert f"{name} (run {records[0]['run_id']}, plug\\x1b[2J\\rin\\nFAKE: ok on corridor:vpr-bench): ok" in out
+    assert f"{name} (run {records[0]['run_id']}, plug\\x1b[2J\\x0din\\nFAKE: ok on corridor:vpr-bench): ok" in out
     repo, docs = tmp_path / "repo", tmp_path / "docs"
     assert cli("results", "import", path, "--into", repo, "--data-dir", shared_data)[0] == 0
     code, _, err = cli("leaderboard", "publish", "--to", docs, "--results", repo, "--cache-dir", tmp_path / "empty")

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import VPRBenchError
+from ..text import one_line
 from ..evaluation.blocks import Resampling, for_dataset, for_record, record_window
 from ..evaluation.record import OPTIONAL_FIELDS, PER_QUERY_FIELDS, validated
 from ..evaluation.results import check_kinds
@@ -119,7 +120,7 @@ class BundleReport:
         if not self.problems and not self.verdicts:
             out.append(f"{self.path}: it holds no records.")
         # names from a record (a label, a key) hold no line break: none can forge a verdict line
-        return [line.replace("\r", "\\r").replace("\n", "\\n") for line in out]
+        return [one_line(line) for line in out]
 
 
 def verify_bundle(path: Path, truth=None, *, max_bytes: int = MAX_BYTES) -> BundleReport:
