@@ -282,7 +282,12 @@ def vocabulary_dir(backbone: str, layer: int, facet: str, clusters: int, source:
     `source` is a domain name (indoor, urban, ...) or `map-<dataset>` for a map-specific
     vocabulary. The authors' released folders (with c_centers.pt) can be copied here under
     their own names: they are found too (see vprbench.methods.anyloc_vocabulary)."""
-    return cache_root(cache_dir) / "vocabularies" / vocabulary_key(backbone, layer, facet, clusters) / source
+    return vocabularies_root(cache_dir) / vocabulary_key(backbone, layer, facet, clusters) / source
+
+
+def vocabularies_root(cache_dir=None) -> Path:
+    """The cache folder every vocabulary lies under (one folder per setting, then per source)."""
+    return cache_root(cache_dir) / "vocabularies"
 
 
 def fit_vocabulary(

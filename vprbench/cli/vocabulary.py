@@ -204,11 +204,10 @@ def fitted_on(vocabulary) -> str:
 
 
 def run_list(args) -> int:
-    from ..aggregation.vocabulary import load_vocabulary, vocabulary_file_in
-    from ..paths import cache_root
+    from ..aggregation.vocabulary import load_vocabulary, vocabularies_root, vocabulary_file_in
 
     resolve_locations(args)
-    root = cache_root(args.cache_dir) / "vocabularies"
+    root = vocabularies_root(args.cache_dir)
     folders = sorted(folder for folder in root.glob("*/*") if folder.is_dir()) if root.is_dir() else []
     found = [(folder, vocabulary_file_in(folder)) for folder in folders]
     found = [(folder, file) for folder, file in found if file is not None]

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import VPRBenchError, closest_names
 from ..hashing import canonical_hash
-from ..paths import cache_root, safe_name
+from ..paths import safe_name
 
 #: RootSIFT's dimension: every bin size gives 128-dimensional descriptors of its own keypoints
 SIFT_DIM = 128
@@ -134,7 +134,7 @@ def check_centres(centres, clusters: int, where: str, meta: dict) -> np.ndarray:
 
 def cached_vocabulary(method, source: VocabularySource) -> tuple[np.ndarray, dict]:
     """(centres, provenance) of a vocabulary that is not the evaluated database's."""
-    from ..aggregation.vocabulary import Vocabulary, load_vocabulary
+    from ..aggregation.vocabulary import Vocabulary, load_vocabulary, vocabularies_root
 
     if source.kind == "file":
         from .anyloc_vocabulary import released_provenance
@@ -148,7 +148,7 @@ def cached_vocabulary(method, source: VocabularySource) -> tuple[np.ndarray, dic
         return centres, info
     identity, counts, images = _fit_images(method, source)
     key = canonical_hash({"fit": method.fit_recipe(), "data": identity})
-    path = cache_root(method.cache_dir) / "vocabularies" / "dense-vlad" / f"{safe_name(source.path.name or source.option)}-{key}" / VOCABULARY_FILE
+    path = vocabularies_root(method.cache_dir) / "dense-vlad" / f"{safe_name(source.path.name or source.option)}-{key}" / VOCABULARY_FILE
     fitted_on = (f"{len(images)} images in {source.path.resolve()} (content {identity['images'][:16]})"
                  if source.kind == "folder" else
                  ", ".join(f"the database of {name}:{protocol} ({counts[name]} images, every {stride})"
