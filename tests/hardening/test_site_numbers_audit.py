@@ -194,3 +194,19 @@ def test_the_marks_note_names_own_data_columns_as_they_are_headed(corridor_runs)
     note = marks_note(board)
     assert "1 cell(s) are on the user's own data" in note and "corridor (own, ±2 frames)" in note
     assert "(own data)" not in note, note
+
+
+def test_a_contributed_run_kept_without_k_1_is_judged_from_its_arrays(corridor_runs):
+    """Before: a contributed run evaluated with --k 5 10 (no '1' among its recall keys) was shown as
+    'has no interval', though its per-query arrays give R@1 and its interval."""
+    from vprbench.evaluation.results import per_query
+    from vprbench.leaderboard.cells import AGREES
+
+    single = next(r for r in corridor_runs if r.get("track", "single-image") == "single-image")
+    arrays = per_query(single)
+    inline = {"k": int(arrays["database_indices"].shape[1]), **{n: a.tolist() for n, a in arrays.items()}}
+    theirs = {**copy.deepcopy(single), "per_query": inline, "_contribution": {"contributor": "A. Lab"},
+              "recall": {k: v for k, v in single["recall"].items() if k != "1"}}
+    ours = {**copy.deepcopy(single), "run_id": single["run_id"] + "-here", "created": "2999-01-01T00:00:00.000+00:00"}
+    (cell,) = build_board([theirs, ours]).cells.values()
+    assert cell.record["run_id"] == ours["run_id"] and cell.source == AGREES, cell.source

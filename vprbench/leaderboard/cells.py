@@ -347,7 +347,7 @@ def _source(pick: dict, runs: list[dict]) -> str:
         return CONTRIBUTED
     theirs, ours = contributed[-1], local[-1]
     arrays = per_query(theirs)
-    if arrays is None or "1" not in theirs["recall"] or "1" not in ours["recall"]:
+    if arrays is None or "1" not in ours["recall"]:  # R@1 of theirs comes from its arrays, kept with any K
         return f"contributed, re-run here (R@1 {ours['recall'].get('1', '–')}; the contributed run has no interval)"
     # the interval every page gives for that run: its dataset's units (blocks, places), not single queries
     low, high = bootstrap_ci(successes(arrays["first_positive_rank"], 1), for_record(theirs, arrays))
