@@ -164,3 +164,24 @@ def test_mean_absolute_difference_compare():
     mad = np.abs(queries[:, None, :] - database[None, :, :]).mean(axis=2)
     np.testing.assert_array_equal(found.indices[:, 0], mad.argmin(axis=1))
     np.testing.assert_allclose(found.scores[:, 0], -mad.min(axis=1), atol=TOLERANCE)
+
+
+def test_a_stages_costs_are_ranked_on_the_grid_ties_to_the_lower_database_index():
+    """Before: costs were ranked as computed and ties went to the lower traverse position, so a
+    last-bit difference between two CPUs' products could swap two near-equal candidates."""
+    from vprbench.evaluation.search import SCORE_TOLERANCE
+    from vprbench.stages.registry import create_stage
+
+    rng = np.random.default_rng(3)
+    a, b = rng.standard_normal(16), rng.standard_normal(16)
+    near = a + 1e-3 * b  # cosine with `a` about 1 - 5e-7: below the grid's 2^-16, above float32's last bit
+    rows = np.stack([rng.standard_normal(16), near, a, rng.standard_normal(16)])
+    database = (rows / np.linalg.norm(rows, axis=1, keepdims=True)).astype(np.float32)
+    queries = database[[2, 2, 2]]
+    order = np.array([3, 2, 1, 0])  # captured in reverse: traverse positions differ from indices
+    raw = sequence_search(database, queries, 2, score="diagonal", length=1, database_order=order, query_order=np.arange(3))
+    assert raw.indices[:, 0].tolist() == [2, 2, 2]  # the nearer by its last bits
+    found = sequence_search(database, queries, 2, score="diagonal", length=1, database_order=order,
+                            query_order=np.arange(3), grid=SCORE_TOLERANCE)
+    assert found.indices.tolist() == [[1, 2]] * 3 and found.info["tie_order"].startswith("cost rounded to 2^-16")
+    assert create_stage("diagonal", {}).fingerprint()["version"] == 2

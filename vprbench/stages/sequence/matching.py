@@ -120,20 +120,30 @@ def trajectory_costs(costs: np.ndarray, first_row: int, start: int, stop: int, n
     return best
 
 
-def top_k(costs: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """(indices, costs) of the k lowest costs per row, lowest first, ties to the lower index."""
+def top_k(costs: np.ndarray, k: int, ties: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(indices, costs) of the k lowest costs per row, lowest first, ties to the lower `ties` key of
+    the column (default: the lower column)."""
     n = costs.shape[1]
     k = min(k, n)
+    ties = np.arange(n) if ties is None else np.asarray(ties)
     part = np.argpartition(costs, k - 1, axis=1)[:, :k] if k < n else np.tile(np.arange(n), (len(costs), 1))
     values = np.take_along_axis(costs, part, axis=1)
-    order = np.lexsort((part, values), axis=1)
+    order = np.lexsort((ties[part], values), axis=1)
     part, values = np.take_along_axis(part, order, axis=1), np.take_along_axis(values, order, axis=1)
     # argpartition keeps any of the rows tied with the k-th: where it left one out, sort that row whole
     kth = values[:, -1:]
     for row in np.flatnonzero((costs == kth).sum(axis=1) > (values == kth).sum(axis=1)):
-        part[row] = np.argsort(costs[row], kind="stable")[:k]
+        part[row] = np.lexsort((ties, costs[row]))[:k]
         values[row] = costs[row, part[row]]
     return part, values
+
+
+def on_grid(costs: np.ndarray, grid: float) -> np.ndarray:
+    """`costs` rounded in place to multiples of `grid` (a power of two: exact in float32), so a
+    last-bit difference between CPUs' products cannot swap two candidates."""
+    np.multiply(costs, np.float32(1 / grid), out=costs)
+    np.rint(costs, out=costs)
+    return np.multiply(costs, np.float32(grid), out=costs)
 
 
 def second_best(costs: np.ndarray, best: np.ndarray, window: int) -> np.ndarray:

@@ -13,8 +13,11 @@ import numpy as np
 
 from ...errors import VPRBenchError
 from ...row_sources import DEFAULT_MEMORY_BUDGET, READ_BYTES, as_rows, chunks, format_bytes, parse_memory
-from .matching import (SEQSLAM_DEFAULTS, enhance, query_offsets, second_best, top_k, trajectories,
+from .matching import (SEQSLAM_DEFAULTS, enhance, on_grid, query_offsets, second_best, top_k, trajectories,
                        trajectory_costs, velocities)
+
+#: how a sequence stage ranks (its costs on the exact search's grid, see evaluation/search.py)
+TIE_ORDER = "cost rounded to 2^-16 ascending, then database index ascending"
 
 SCORES = ("seqslam", "diagonal")
 #: how two descriptors are compared: inner product of unit rows, or the mean absolute difference (sad)
@@ -79,7 +82,7 @@ def sequence_search(database, queries, k: int, *, score: str = "seqslam", compar
                     v_min: float = SEQSLAM_DEFAULTS["v_min"], v_max: float = SEQSLAM_DEFAULTS["v_max"],
                     v_step: float = SEQSLAM_DEFAULTS["v_step"],
                     uniqueness_window: int = SEQSLAM_DEFAULTS["uniqueness_window"],
-                    memory_budget=DEFAULT_MEMORY_BUDGET) -> SequenceResult:
+                    memory_budget=DEFAULT_MEMORY_BUDGET, grid: float | None = None) -> SequenceResult:
     """Top-k database images per query by sequence matching (see matching.py for the scores).
 
     `database_order`/`query_order` are each split's row indices in traverse (capture) order
@@ -87,7 +90,8 @@ def sequence_search(database, queries, k: int, *, score: str = "seqslam", compar
     SeqSLAM's scores are -(cost - m) / (second - m): the top-1 score is minus OpenSeqSLAM's match
     quality (its cost over the best cost outside the uniqueness window, m the enhanced matrix's
     minimum), so a PR curve over top-1 scores thresholds that ratio. The diagonal's scores are
-    the mean similarity (minus the mean distance for sad)."""
+    the mean similarity (minus the mean distance for sad). `grid`: costs rounded to multiples of it
+    before they are ranked (ties to the lower database index)."""
     database, queries = as_rows(database, "database"), as_rows(queries, "queries")
     if score not in SCORES or compare not in COMPARES:
         raise VPRBenchError(f"Sequence matching scores by one of {SCORES} and compares descriptors by one of "
@@ -118,7 +122,9 @@ def sequence_search(database, queries, k: int, *, score: str = "seqslam", compar
         lowest = min(lowest, float(matrix.min()))
         best = trajectory_costs(matrix, first, start, stop, q, offsets, paths)
         del matrix
-        places, values = top_k(best, k)
+        if grid:
+            on_grid(best, grid)
+        places, values = top_k(best, k, ties=database_order)
         indices[start:stop], costs[start:stop] = places, values
         if score == "seqslam":
             second[start:stop] = second_best(best, places[:, 0], uniqueness_window)
@@ -135,7 +141,7 @@ def sequence_search(database, queries, k: int, *, score: str = "seqslam", compar
     info = {"score": score, "compare": compare, "length": int(length), "mode": mode,
             "query_offsets": [int(offsets[0]), int(offsets[-1])], "trajectories": int(len(paths)),
             "velocities": [str(v) for v in speeds], "block_rows": int(block), "blocks": -(-q // block),
-            "memory_budget": budget}
+            "memory_budget": budget, "tie_order": TIE_ORDER if grid else "cost ascending, then database index ascending"}
     if score == "seqslam":
         info.update(enhance_window=int(enhance_window), uniqueness_window=int(uniqueness_window),
                     enhanced_minimum=round(lowest, 6))

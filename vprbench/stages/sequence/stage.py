@@ -73,8 +73,14 @@ class _SequenceStage(Stage):
         offsets = query_offsets(chosen.length, chosen.mode)
         return int(offsets.max() - offsets.min()) + 1
 
+    def fingerprint(self) -> dict:
+        from .search import TIE_ORDER
+
+        return {"version": 2, "tie_order": TIE_ORDER}  # 2: costs on a grid, ties to the lower database index
+
     def apply(self, candidates: Candidates, context: StageContext) -> Candidates:
         from ...datasets.traverse import traverse_orders
+        from ...evaluation.search import SCORE_TOLERANCE
 
         orders = traverse_orders(context.dataset, f"Sequence stage {self.name!r}")
         compare = getattr(context, "compare", "cosine")
@@ -82,7 +88,7 @@ class _SequenceStage(Stage):
         found = sequence_search(context.database, context.queries, candidates.k, score=self.score, compare=compare,
                                 length=self.options.length, mode=self.options.mode,
                                 database_order=orders["database"], query_order=orders["queries"],
-                                memory_budget=context.memory_budget, **self.search_options())
+                                memory_budget=context.memory_budget, grid=SCORE_TOLERANCE, **self.search_options())
         return Candidates(found.indices, found.scores)
 
 
