@@ -15,12 +15,14 @@ extraction options and the library versions), so later runs (another retriever, 
 """
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, field_validator
 
 from vprbench import VPRBenchError
+from vprbench.images import DECODE_BUDGET_PIXELS
 from vprbench.stages import Candidates, RerankOptions, Stage, StageContext
 from vprbench.stages.geometric import C_INT_MAX
 from vprbench.weights import WeightSource, file_sha256, weights_identity, weights_provenance
@@ -53,8 +55,9 @@ class SuperPointLightGlueOptions(RerankOptions):
     max_keypoints: int = Field(2048, ge=1)
     detection_threshold: float = Field(0.0005, gt=0, lt=1)
     nms_radius: int = Field(4, ge=0)
-    #: the longer side SuperPoint sees (LightGlue's extractor: 1024); 0 = the image as stored
-    resize: int = Field(1024, ge=0)
+    #: the longer side SuperPoint sees (LightGlue's extractor: 1024); 0 = the image as stored; at
+    #: most a square within the decode budget, the bound every image in vprbench has
+    resize: int = Field(1024, ge=0, le=math.isqrt(DECODE_BUDGET_PIXELS))
     #: LightGlue's match confidence threshold, early stopping and point pruning (-1 turns either off)
     filter_threshold: float = Field(0.1, gt=0, lt=1)
     depth_confidence: float = Field(0.95, ge=-1, lt=1)

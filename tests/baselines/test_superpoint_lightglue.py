@@ -237,6 +237,8 @@ def test_a_file_of_another_format_is_refused_naming_it(release, shared_data, tmp
 @pytest.mark.parametrize("option, message", [
     ({"model": "affine"}, "option model: Input should be 'none', 'fundamental' or 'homography'"),
     ({"max_keypoints": 0}, "option max_keypoints: Input should be greater than or equal to 1"),
+    # before: accepted, then a traceback allocating 9 TB when the first image was resized
+    ({"resize": 1_000_000}, "option resize: Input should be less than or equal to 9459"),
     ({"weights": "{folder}/superpoint_v1.pth"}, "is not a folder; give a folder holding superpoint_v1.pth and "
                                                "superpoint_lightglue.pth"),
 ])
