@@ -179,3 +179,20 @@ def test_a_dataset_toml_nested_too_deeply_is_one_line(cli, tmp_path, value):
         code, out, err = cli(*command)
         assert code == 1 and "Traceback" not in out + err, out + err
         assert f"{own / 'dataset.toml'} nests arrays or tables too deeply to be read; check its brackets." in out + err
+
+
+@pytest.mark.parametrize("error", [MemoryError(), RuntimeError(
+    "[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate memory: you tried to allocate "
+    "9000000000000 bytes. Error code 12 (Cannot allocate memory)")])
+def test_running_out_of_memory_is_one_line_saying_what_to_lower(monkeypatch, cli, shared_data, tmp_path, error):
+    """Before: a traceback (an option within every bound can still need more memory than the machine has)."""
+    from vprbench.methods.hog import HOG
+
+    def describe(self, images):
+        raise error
+
+    monkeypatch.setattr(HOG, "describe", describe)
+    code, _, err = cli("evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", shared_data,
+                       "--cache-dir", tmp_path / "cache")
+    assert code == 1 and len(err.strip().splitlines()) == 1, err
+    assert err.startswith("error: Out of memory (") and "Lower --batch-size" in err and "Traceback" not in err, err

@@ -52,6 +52,12 @@ def print_error(message: str, lines: bool = False) -> None:
                                soft_wrap=True)
 
 
+def out_of_memory(error: BaseException) -> str:
+    found = str(error).strip().splitlines()
+    return (f"Out of memory ({found[-1] if found else type(error).__name__}). Lower --batch-size or the image size "
+            "(--resize, a stage's resize), or run on a machine with more memory; finished descriptors are kept.")
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     warnings.formatwarning = warning_format()
@@ -66,7 +72,13 @@ def main(argv=None) -> int:
     except OSError as error:  # permissions, full or read-only disks, lock timeouts: say which path and what to do
         print_error(os_error_message(error))
         return 1
+    except MemoryError as error:
+        print_error(out_of_memory(error))
+        return 1
     except RuntimeError as error:
+        if "can't allocate memory" in str(error) or "out of memory" in str(error):  # torch's CPU and GPU allocators
+            print_error(out_of_memory(error))
+            return 1
         if "home directory" not in str(error):
             raise
         # pathlib on '~name/...' for a user this machine does not know, from any path option
