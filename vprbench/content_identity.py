@@ -20,13 +20,21 @@ def option_identities(method: str, options: dict, cache_dir=None) -> dict[str, s
             found[name] = f"protocol:{find_protocol(dataset_manifest(value), None).hash}"
             continue
         try:
-            identity = file_identity(value) or folder_identity(value, cache_dir)
+            identity = value_identity(name, value, cache_dir)
         except OSError as error:
             raise VPRBenchError(f"Method {method!r}: cannot read the file of option {name}, {value} "
                                 f"({error.strerror or error}).") from None
         if identity is not None:
             found[name] = identity
     return found
+
+
+def value_identity(option: str, value, cache_dir=None) -> str | None:
+    """What a method's or a stage's option names, by content: a file, or a folder. A bare word is taken
+    for a name, but `weights` take no names ('random' aside, which no folder is): a bare word naming a
+    folder is that folder (weights.local_weights loads the release's file from it), as for a file the
+    word is kept."""
+    return file_identity(value) or folder_identity(value, cache_dir, bare_word=option == "weights")
 
 
 def file_identity(value) -> str | None:
@@ -42,11 +50,12 @@ def file_identity(value) -> str | None:
     return digest if _written_as_path(value) or Path(value).suffix else f"{value}@{digest}"
 
 
-def folder_identity(value, cache_dir=None) -> str | None:
+def folder_identity(value, cache_dir=None, *, bare_word: bool = False) -> str | None:
     """'folder:<hex>' over the names and bytes of the files under the folder `value` names (hidden
     ones aside), when written as a path ('./words', '/data/words', '~/w'): a bare word is a name
-    ('map', a dataset), not the folder of that name the working directory may hold."""
-    if not isinstance(value, str) or not _written_as_path(value):
+    ('map', a dataset), not the folder of that name the working directory may hold; with `bare_word`
+    it is that folder too ('ckpt@folder:<hex>')."""
+    if not isinstance(value, str) or not value or not (_written_as_path(value) or bare_word):
         return None
     root = Path(value).expanduser()
     if not root.is_dir():
@@ -55,7 +64,8 @@ def folder_identity(value, cache_dir=None) -> str | None:
 
     files = sorted(p for p in root.rglob("*") if p.is_file()
                    and not any(part.startswith(".") for part in p.relative_to(root).parts))
-    return "folder:" + images_key(files, root, cache_dir)
+    digest = "folder:" + images_key(files, root, cache_dir)
+    return digest if _written_as_path(value) else f"{value}@{digest}"
 
 
 def _written_as_path(value: str) -> bool:

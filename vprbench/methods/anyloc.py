@@ -145,7 +145,11 @@ class AnyLoc(Method):
         aggregation = options.get("aggregation", "vlad")
         vlad_only = {} if aggregation in VLADS else dict.fromkeys(("clusters", "vocabulary"), f"only VLAD uses it, "
                                                                    f"the aggregation is {aggregation}")
-        return vlad_only | ({} if aggregation == "gem" else {"gem_p": f"only GeM uses it, the aggregation is {aggregation}"})
+        gem_only = {} if aggregation == "gem" else {"gem_p": f"only GeM uses it, the aggregation is {aggregation}"}
+        probe = cls._probe(options) if aggregation == "cls" else None  # None too for a backbone it refuses
+        no_block = dict.fromkeys(("layer", "layer_for", "facet"), "the CLS token comes from the final norm, after the "
+                                 "last block") if probe and probe.spec.cls == "final-norm" else {}
+        return vlad_only | gem_only | no_block
 
     @classmethod
     def _probe(cls, options: dict, cache_dir=None) -> "AnyLoc | None":

@@ -15,7 +15,10 @@ from __future__ import annotations
 import copy
 import inspect
 import json
+import math
 import re
+import types
+import typing
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
@@ -71,9 +74,22 @@ class MethodEntry:
 
     def in_form(self, given: dict) -> dict:
         """`given` with a list written as text ('4,6,8,10' from `-o bin_sizes=4,6,8,10`) as that list,
-        for an option whose default is a list."""
-        defaults = self.effective_defaults()
-        return {k: _listed(v) if isinstance(defaults.get(k), (list, tuple)) else v for k, v in given.items()}
+        for an option whose default is a list, and a number written as text ('4' in a plan or from
+        Python) as that number, for an option that takes a number (the method reads both alike)."""
+        defaults, numeric = self.effective_defaults(), self.numeric_options()
+        return {k: _listed(v) if isinstance(defaults.get(k), (list, tuple)) else
+                _numbered(v) if k in numeric else v for k, v in given.items()}
+
+    def numeric_options(self) -> set[str]:
+        """Options that take a number only: annotated int/float (optionally None), else defaulting to one."""
+        try:
+            params = inspect.signature(self.factory, eval_str=True).parameters.values()
+        except (NameError, TypeError, SyntaxError, AttributeError):  # a plugin's annotation not resolvable here
+            params = inspect.signature(self.factory).parameters.values()
+        found = {p.name for p in params if _number_annotation(p.annotation)}
+        found |= {k for k, v in self.effective_defaults().items()
+                  if isinstance(v, (int, float)) and not isinstance(v, bool)}
+        return found
 
     def without_defaults(self, given: dict) -> dict:
         """`given` less the options set to the value they have anyway (`cell = 16` for hog): one
@@ -209,6 +225,24 @@ def _same(name: str, value, default) -> bool:
         return json.dumps(canonical(name, value), sort_keys=True) == json.dumps(canonical(name, default), sort_keys=True)
     except (TypeError, ValueError):  # not plain data: never taken for a default
         return False
+
+
+def _number_annotation(annotation) -> bool:
+    """int, float, int | None, float | None (not bool, nor a union with text or a size)."""
+    union = typing.get_origin(annotation) in (typing.Union, types.UnionType)
+    kinds = set(typing.get_args(annotation)) if union else {annotation}
+    return kinds - {type(None)} <= {int, float} and kinds != {type(None)}
+
+
+def _numbered(value):
+    """'4' -> 4, '3.5' -> 3.5, '3.0' -> 3; anything else as it is (the method names what it refuses)."""
+    if not isinstance(value, str):
+        return value
+    try:
+        number = float(value)
+    except ValueError:
+        return value
+    return canonical("", number) if math.isfinite(number) else value
 
 
 def _listed(value):

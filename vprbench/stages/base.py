@@ -170,12 +170,12 @@ class Stage:
         the path: a file moved is the same run, a file edited another. Called when the spec is made, so a
         stage may refuse here a file it cannot use. Default: every option whose value is an existing file,
         or a folder written as a path (weights: a folder holding the release's file) by its files."""
-        from ..content_identity import file_identity, folder_identity
+        from ..content_identity import value_identity
 
         found = {}
         for name, value in options.model_dump(mode="json").items():
             try:
-                identity = file_identity(value) or folder_identity(value)
+                identity = value_identity(name, value)
             except OSError as error:
                 raise VPRBenchError(f"Stage option {name}: cannot read {value} ({error.strerror or error}).") from None
             if identity is not None:
