@@ -69,7 +69,7 @@ def test_unreadable_ground_truth_is_a_clear_error(gardens):
 
 def test_ground_truth_pointing_past_the_database(gardens, save_rows):
     save_rows(gardens / "gardens_gt.npy", [[250]] * 200)
-    with pytest.raises(VPRBenchError, match="points past the 200 database images"):
+    with pytest.raises(VPRBenchError, match=r"names database image 250, outside 0..199"):
         load_dataset("gardens-point", gardens.parent).positives
 
 
@@ -220,3 +220,55 @@ def test_import_and_verify_name_an_empty_image(tmp_path, gardens):
     assert not (tmp_path / "data" / "datasets.json").exists()
     problems = verify_dataset("gardens-point", gardens.parent, sample=1).problems  # whatever its sample decodes
     assert problems[0].startswith("1 listed image(s) are empty or no file, e.g. ") and "Image005.jpg" in problems[0]
+
+
+@pytest.mark.parametrize("bad, shown", [(1.7, "1.7"), (float("nan"), "nan"), (2**70, str(2**70))])
+def test_positive_lists_refuse_indices_that_are_not_whole_numbers(gardens, save_rows, bad, shown):
+    # a cast would make 1.7 read as image 1 and NaN a huge negative; 2**70 overflowed with a traceback
+    lists = [[i] for i in range(200)]
+    lists[5] = [bad]
+    save_rows(gardens / "gardens_gt.npy", lists)
+    with pytest.raises(VPRBenchError, match=rf"gardens_gt.npy: {shown} is not an image index"):
+        load_dataset("gardens-point", gardens.parent).positives
+
+
+@pytest.mark.parametrize("query", [5.5, "5"])
+def test_vpr_bench_rows_refuse_a_query_index_that_is_not_a_whole_number(tmp_path, make_images, query):
+    root = tmp_path / "corridor"
+    make_images(root / "ref", [f"{i:07d}.jpg" for i in range(111)])
+    make_images(root / "query", [f"{i:07d}.jpg" for i in range(111)])
+    rows = np.empty((111, 2), dtype=object)
+    for i in range(111):
+        rows[i, 0], rows[i, 1] = (query if i == 5 else i), [i]
+    np.save(root / "ground_truth_new.npy", rows, allow_pickle=True)
+    with pytest.raises(VPRBenchError, match=rf"{query!r} is not an image index"):
+        load_dataset("corridor", tmp_path)
+
+
+def test_dropping_frames_past_the_references_keeps_negative_indices_an_error(tmp_path, make_images, save_rows):
+    # 17 Places' lists name frames 406, 407 (dropped, as AnyLoc does); a -1 is a damaged file, not such a frame
+    root = tmp_path / "17places"
+    make_images(root / "ref", [f"{i:07d}.jpg" for i in range(406)])
+    make_images(root / "query", [f"{i:07d}.jpg" for i in range(406)])
+    lists = [[i, i + 2] for i in range(406)]
+    save_rows(root / "ground_truth_new.npy", lists)
+    lists[3] = [-1]  # VPR-Bench's mark of a query without a true match (as in GardensPoint_TN)
+    save_rows(root / "ground_truth_new.npy", lists)
+    dataset = load_dataset("17places", tmp_path)
+    assert (dataset.positives[405].tolist(), dataset.positives[3].tolist()) == ([405], [])
+    lists[7] = [-1, 7]
+    save_rows(root / "ground_truth_new.npy", lists)
+    with pytest.raises(VPRBenchError, match=r"query 7 names database image -1, outside 0..405"):
+        load_dataset("17places", tmp_path).positives
+
+
+@pytest.mark.parametrize("bad, shown", [(1.7, "1.7"), (10**30, str(10**30))])
+def test_top_k_csv_refuses_indices_that_are_not_whole_numbers(tmp_path, make_images, bad, shown):
+    root = tmp_path / "test_40_midref_rot0"
+    make_images(root / "reference_images", [f"{i:04d}.png" for i in range(102)])
+    make_images(root / "query_images", [f"{i:04d}.png" for i in range(71)])
+    header = ",".join(f"top_{k}_ref_ind" for k in range(1, 6))
+    rows = [",".join([str(bad) if q == 5 and k == 0 else str(q) for k in range(5)]) for q in range(71)]
+    (root / "gt_matches.csv").write_text(header + "\n" + "\n".join(rows) + "\n")
+    with pytest.raises(VPRBenchError, match=rf"gt_matches.csv: .*{shown}"):
+        load_dataset("nardo-air", tmp_path).positives

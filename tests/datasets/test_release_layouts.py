@@ -1,6 +1,7 @@
 """Miniatures of the authors' release layouts (as their loaders read them), with hand-checked positives."""
 from __future__ import annotations
 
+import re
 import warnings
 
 import numpy as np
@@ -8,6 +9,7 @@ import pandas as pd
 import pytest
 
 from vprbench.datasets import load_dataset
+from vprbench.errors import VPRBenchError
 
 
 def test_hawkins_uses_rows_of_pose_topic_list(tmp_path, make_images):
@@ -156,3 +158,23 @@ def test_corridor_real_data(shared_data):
         dataset = load_dataset("corridor", shared_data, strict=True)
     summary = dataset.summary()
     assert (summary["database"], summary["queries"], summary["queries_with_positives"]) == (111, 111, 111)
+
+
+@pytest.mark.parametrize("db_names, q_names, said", [
+    (["a.png", "b.png", "a.png"], ["q.png"], "'a.png' twice (in the database and in the database)"),
+    (["a.png", "b.png"], ["q.png", "./b.png"], "'b.png' twice (in the database and in the queries)"),
+])
+def test_oxford_netvlad_mat_refuses_an_image_named_twice(tmp_path, make_images, db_names, q_names, said):
+    # counted twice it weighs double; a query among the database would retrieve itself
+    from scipy.io import savemat
+
+    root = tmp_path / "Oxford_Robotcar"
+    make_images(root / "oxDataPart", ["a.png", "b.png", "q.png"])
+    struct = np.empty((1, 8), dtype=object)
+    values = (np.array(db_names, dtype=object).reshape(-1, 1), np.zeros((len(db_names), 2)),
+              np.array(q_names, dtype=object).reshape(-1, 1), np.zeros((len(q_names), 2)), len(db_names), len(q_names), 25, 625)
+    for k, value in enumerate(values):
+        struct[0, k] = value
+    savemat(root / "oxdatapart.mat", {"dbStruct": struct})
+    with pytest.raises(VPRBenchError, match=re.escape(f"oxdatapart.mat names {said}")):
+        load_dataset("oxford", tmp_path)

@@ -66,15 +66,15 @@ def test_mat_image_names_leading_out_are_refused(route, tmp_path, secret, cli):
 def test_mat_names_inside_the_folder_still_read(tmp_path):
     """Names with '..' that stay inside, and a symlinked image folder, are fine."""
     data = tmp_path / "data"
-    root = oxford_copy(data, ["a.png", "sub/../b.png"], ["./a.png"])
+    root = oxford_copy(data, ["sub/../a.png"], ["./b.png"])  # each image named once: a query is not in the database
     (root / "oxDataPart" / "sub").mkdir()
     dataset = load_dataset("oxford", data)
-    assert [p.name for p in dataset.database] == ["a.png", "b.png"] and len(dataset.queries) == 1
+    assert [p.name for p in dataset.database] == ["a.png"] and [p.name for p in dataset.queries] == ["b.png"]
     moved = tmp_path / "disk2" / "oxDataPart"  # the whole image folder on another disk, linked in
     moved.parent.mkdir()
     (root / "oxDataPart").rename(moved)
     (root / "oxDataPart").symlink_to(moved, target_is_directory=True)
-    assert len(load_dataset("oxford", data).database) == 2
+    assert len(load_dataset("oxford", data).database) == 1
 
 
 @pytest.mark.parametrize("entry", ["../private/holiday.png", "ABSOLUTE"])

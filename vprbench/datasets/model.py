@@ -99,9 +99,10 @@ class Dataset:
         if bad:
             from ..errors import VPRBenchError
 
+            worst = positives[bad[0]].min() if positives[bad[0]].min() < 0 else positives[bad[0]].max()
             raise VPRBenchError(
-                f"Dataset {self.name!r}: ground truth of query {bad[0]} points past the "
-                f"{len(self.database)} database images; the ground-truth file does not match the images."
+                f"Dataset {self.name!r}: ground truth of query {bad[0]} names database image {worst}, outside "
+                f"0..{len(self.database) - 1}; the ground-truth file does not match the images."
             )
         return positives
 

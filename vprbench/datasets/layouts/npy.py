@@ -85,6 +85,19 @@ def _unpickle_array(handle, shape: tuple) -> np.ndarray:
     return array
 
 
+def as_indices(values) -> np.ndarray:
+    """Image indices as int64: whole numbers only. A cast would silently turn 1.7 into 1 and
+    NaN into a huge negative, or overflow with a traceback; these raise ValueError instead."""
+    array = np.asarray(values, dtype=object).reshape(-1)
+    out = np.empty(len(array), dtype=np.int64)
+    for i, value in enumerate(array):
+        whole = _number(value) and math.isfinite(value) and float(value).is_integer()
+        if not whole or not -2**63 <= int(value) < 2**63:
+            raise ValueError(f"{value!r} is not an image index (a whole number)")
+        out[i] = int(value)
+    return out
+
+
 def read_npy(path: Path, what: str, expected: str) -> np.ndarray:
     """The array in an .npy file: numbers or texts, or an object array of numbers, lists of
     numbers and texts.

@@ -118,6 +118,15 @@ def read_netvlad_mat(root: Path, manifest: DatasetManifest):
     folder = require(root, opts.get("images", "oxDataPart"), manifest)
     database = [inside(folder, name, mat) for name in db_struct["db_image"]]
     queries = [inside(folder, name, mat) for name in db_struct["q_image"]]
+    # an image named twice is counted twice, and a query among the database finds itself
+    seen = {}
+    for split, paths in (("database", database), ("queries", queries)):
+        for path in paths:
+            key = os.path.normpath(path)
+            if key in seen:
+                raise VPRBenchError(f"{mat} names {str(path.relative_to(folder))!r} twice (in the {seen[key]} and in the {split}); "
+                                    "each image must be named once: fix or replace the file (re-download the dataset).")
+            seen[key] = split
     missing = [p for p in database + queries if not p.is_file()]
     if missing:
         raise VPRBenchError(

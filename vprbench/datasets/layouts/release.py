@@ -29,7 +29,7 @@ from ..manifest import DatasetManifest
 from ..model import GroundTruth
 from ...images import list_images
 from . import from_manifest, layout, require
-from .npy import read_npy
+from .npy import as_indices, read_npy
 from .vpr_bench import load_rows
 
 
@@ -56,7 +56,7 @@ def positive_lists(path: Path, gt: dict, n_queries: int) -> list[np.ndarray]:
             f"but {n_queries} query images were found; the images or the file are incomplete."
         )
     try:
-        return [np.asarray(p, dtype=np.int64).reshape(-1) for p in rows[:, 1]]
+        return [as_indices(p) for p in rows[:, 1]]
     except (ValueError, TypeError) as error:
         raise VPRBenchError(f"Cannot read ground truth {path}: {error}; expected integer positive lists.") from None
 
@@ -114,12 +114,12 @@ def top_k_csv(path: Path, gt: dict, n_queries: int) -> list[np.ndarray]:
     columns = gt.get("columns", [f"top_{k}_ref_ind" for k in range(1, 6)])
     try:
         table = pd.read_csv(path)
-        values = table[columns].to_numpy(dtype=np.int64)
+        values = [as_indices(row) for row in table[columns].apply(pd.to_numeric).to_numpy()]
     except (OSError, ValueError, KeyError) as error:
         raise VPRBenchError(f"Cannot read ground truth {path}: {error}. Expected columns {columns}.") from None
     if len(values) != n_queries:
         raise VPRBenchError(f"Ground truth {path} has {len(values)} rows but {n_queries} query images were found.")
-    return list(values)
+    return values
 
 
 @layout("folders", expects=folders_expects)

@@ -15,7 +15,7 @@ from ..manifest import DatasetManifest
 from ..model import GroundTruth
 from ...images import list_images
 from . import from_manifest, layout, require
-from .npy import read_npy
+from .npy import as_indices, read_npy
 
 ROWS = ("rows [query_index, [positive reference indices]] of integers; the file is damaged "
         "or not this dataset's; re-download it")
@@ -35,12 +35,15 @@ def read_positive_lists(path: Path, n_queries: int) -> list[np.ndarray]:
     lists: list[np.ndarray | None] = [None] * n_queries
     try:
         for query, positives in rows[:, :2]:
+            query = int(as_indices(query)[0])
             # a query without its row would be scored as a failure, unseen; -1 would wrap to the last
-            if not 0 <= int(query) < n_queries:
-                raise IndexError(f"a row for query {int(query)}, outside 0..{n_queries - 1}")
-            if lists[int(query)] is not None:
-                raise ValueError(f"two rows for query {int(query)}")
-            lists[int(query)] = np.asarray(positives, dtype=np.int64).reshape(-1)
+            if not 0 <= query < n_queries:
+                raise IndexError(f"a row for query {query}, outside 0..{n_queries - 1}")
+            if lists[query] is not None:
+                raise ValueError(f"two rows for query {query}")
+            lists[query] = as_indices(positives)
+            if lists[query].tolist() == [-1]:  # VPR-Bench's mark of a query with no true match (GardensPoint_TN)
+                lists[query] = lists[query][:0]
         missing = [q for q, found in enumerate(lists) if found is None]
         if missing:
             raise ValueError(f"no row for {len(missing)} of the {n_queries} query images (the first: query {missing[0]})")
@@ -65,7 +68,7 @@ def read_vpr_bench(root: Path, manifest: DatasetManifest):
     queries = list_images(require(root, opts.get("queries", "query"), manifest), natural=True)
     gt_path = require(root, opts.get("ground_truth", "ground_truth_new.npy"), manifest, kind="file")
     lists = read_positive_lists(gt_path, len(queries))
-    if opts.get("drop_out_of_range", False):
-        lists = [p[(p >= 0) & (p < len(database))] for p in lists]
+    if opts.get("drop_out_of_range", False):  # frames past the last reference only: a negative is an error
+        lists = [p[p < len(database)] for p in lists]
     ground_truth = GroundTruth(unit="positives", radius=manifest.radius, positive_lists=lists)
     return from_manifest(manifest, root, database, queries, ground_truth)
