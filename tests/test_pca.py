@@ -152,3 +152,16 @@ def test_anyloc_pca_presets_use_the_post_processor():
     post = method.postprocessor()
     assert isinstance(post, PCAWhitening) and post.dim == method.pca_dim == 512
     assert create_method("anyloc-vlad-dinov2").postprocessor() is None
+
+
+def test_as_many_dims_as_database_images_is_refused_before_describing():
+    # centred on their mean, 40 rows span 39 directions: dim 40 used to pass the early check and
+    # fail only at the fit, after every descriptor was computed
+    with pytest.raises(VPRBenchError, match=r"PCA dimension 40 is larger than the number of database images of toy "
+                                            r"\(40\) less one \(centring leaves 39 directions\): choose pca_dim <= 39\."):
+        PCAWhitening(40).check_rows(40, "toy")
+    PCAWhitening(39).check_rows(40, "toy")
+    with pytest.raises(VPRBenchError, match=r"images \(40\) less one or the descriptor dimension \(100\): choose "
+                                            r"pca_dim <= 39\."):
+        PCAWhitening(40).fit(data(40, 100, 0))
+    assert PCAWhitening(39).fit(data(40, 100, 0)).projection.shape == (39, 100)

@@ -170,7 +170,7 @@ def test_reproduce_dry_run_and_bad_table(shared_data, capsys, monkeypatch):
     # PCA to 512 dimensions on a database of 200 (Gardens Point), 406 (17 Places), 213 (Oxford) images
     # was planned, and failed after the descriptors were extracted
     for name, count in (("gardens-point", 200), ("17places", 406), ("oxford", 213)):
-        assert text.count(f"PCA to 512 dimensions needs at least 512 database images; {name} has {count} (the "
+        assert text.count(f"PCA to 512 dimensions needs more than 512 database images; {name} has {count} (the "
                           "authors' code fits this PCA jointly over its domain's datasets, which vprbench does not)") == 1
     assert text.count("not runnable [") == 12
     assert text.count("not runnable [1]") == 6 and text.count("[1] no vprbench method matches this row") == 1

@@ -84,20 +84,21 @@ class PCAWhitening:
         return key
 
     def check_rows(self, n: int, where: str = "the database") -> None:
-        """Before any descriptor is computed: whitening to `dim` needs at least `dim` database rows."""
-        if self.dim > n:
+        """Before any descriptor is computed: whitening to `dim` needs more than `dim` database rows
+        (centred on their mean, N rows span at most N - 1 directions)."""
+        if self.dim > n - 1:
             raise VPRBenchError(f"PCA dimension {self.dim} is larger than the number of database images of {where} "
-                                f"({n}): choose pca_dim <= {n}.")
+                                f"({n}) less one (centring leaves {n - 1} directions): choose pca_dim <= {n - 1}.")
 
     # ------------------------------------------------------------ fitting
     def fit(self, database, memory_budget=DEFAULT_MEMORY_BUDGET) -> "PCAWhitening":
         """Fit on database descriptors: an (N, D) array or a row source, streamed within the budget."""
         rows, budget = as_rows(database, "database descriptors"), parse_memory(memory_budget)
         n, d = rows.row_count, rows.dim
-        if self.dim > min(n, d):
+        if self.dim > min(n - 1, d):  # centred, N rows span at most N - 1 directions
             raise VPRBenchError(
-                f"PCA dimension {self.dim} is larger than the number of database images ({n}) or the "
-                f"descriptor dimension ({d}): choose pca_dim <= {min(n, d)}.")
+                f"PCA dimension {self.dim} is larger than the number of database images ({n}) less one or the "
+                f"descriptor dimension ({d}): choose pca_dim <= {min(n - 1, d)}.")
         solver = self.solver(rows, budget)
         held = _solver_memory(solver, n, d, self.dim)
         row_cost = ROW_COPIES * read_bytes_per_row(rows)

@@ -11,7 +11,8 @@ import numpy as np
 
 from ..errors import VPRBenchError
 from ..row_sources import READ_BYTES, ArrayRows, RowSource, chunks, format_bytes
-from .search import SearchResult, TIE_ORDER, check_pair, exact_search, order_results, read_cost, rounded_scores
+from .search import (SearchResult, TIE_ORDER, check_finite, check_pair, exact_search, order_results, read_cost,
+                     rounded_scores)
 
 APPROXIMATE = ("ivf-pq", "hnsw")
 #: faiss's k-means wants at least 39 training points per centroid
@@ -101,10 +102,14 @@ def _build(kind: str, database: RowSource, o: dict, budget: int):
         index = faiss.index_factory(dim, f"HNSW{o['hnsw_m']},SQ8", faiss.METRIC_INNER_PRODUCT)
         index.hnsw.efConstruction, index.hnsw.efSearch = o["ef_construction"], o["ef_search"]
     sample = np.sort(np.random.default_rng(o["seed"]).choice(n, o["train_rows"], replace=False))
-    index.train(np.ascontiguousarray(database.read_rows_at(sample), dtype=np.float32))
+    training = np.ascontiguousarray(database.read_rows_at(sample), dtype=np.float32)
+    check_finite(training, "Database", numbers=sample)  # before faiss trains on it
+    index.train(training)
+    del training
     row_bytes, fixed = read_cost(database)
     chunk_rows = max(1, min(READ_BYTES, budget - fixed) // row_bytes)
-    for _, rows in chunks(database, chunk_rows):
+    for start, rows in chunks(database, chunk_rows):
+        check_finite(rows, "Database", start)  # faiss would index a NaN row as if it were a place
         index.add(rows)
     return index, chunk_rows
 
@@ -137,6 +142,7 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
     indices = np.empty((n_queries, k), dtype=np.int64)
     short = []  # queries whose shortlist came back with fewer than k rows
     for q0, block in chunks(queries, q_chunk):
+        check_finite(block, "Query", q0)
         _, found = index.search(block, o["shortlist"])
         rows_ids = np.unique(found[found >= 0])
         rows = database.read_rows_at(rows_ids)
@@ -146,6 +152,9 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
                 short.append(q0 + i)
                 continue
             exact = rounded_scores(rows[np.searchsorted(rows_ids, candidates)] @ block[i])  # as exact search
+            if not np.isfinite(exact).all():  # every row is finite (checked above): too long, their products overflow
+                raise VPRBenchError(f"Inner products of query row {q0 + i} and its shortlist exceed float32's range: "
+                                    "the descriptors are too long to compare; L2-normalise them.")
             s, c = order_results(exact[None], candidates[None])
             scores[q0 + i], indices[q0 + i] = s[0, :k], c[0, :k]
     del index

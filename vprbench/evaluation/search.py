@@ -64,8 +64,9 @@ def read_cost(rows) -> tuple[int, int]:
 
 def rounded_scores(scores: np.ndarray) -> np.ndarray:
     """Scores on the grid of SCORE_TOLERANCE (round half to even), float32."""
-    return (np.rint(np.asarray(scores, dtype=np.float32) / np.float32(SCORE_TOLERANCE))
-            * np.float32(SCORE_TOLERANCE)).astype(np.float32)
+    with np.errstate(over="ignore"):  # a score beyond float32 in grid steps: refused by the caller
+        return (np.rint(np.asarray(scores, dtype=np.float32) / np.float32(SCORE_TOLERANCE))
+                * np.float32(SCORE_TOLERANCE)).astype(np.float32)
 
 
 def products(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -81,14 +82,46 @@ def inner_products(queries: np.ndarray, rows: np.ndarray, out: np.ndarray, scale
     fresh product stays in memory the allocator reuses (features/allocator.py); the columns per
     product are set by the tile's shape, never by the budget."""
     step = max(1, PRODUCT_BYTES // (4 * max(1, len(queries))))
-    for lo in range(0, len(rows), step):
-        np.multiply(products(queries, rows[lo:lo + step]), scale, out=out[:, lo:lo + step])
+    with np.errstate(over="ignore"):  # rows too long to compare: an infinite score kept is refused
+        for lo in range(0, len(rows), step):
+            np.multiply(products(queries, rows[lo:lo + step]), scale, out=out[:, lo:lo + step])
 
 
 def order_results(scores: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rows sorted by score descending, then index ascending (the tie order)."""
     order = np.lexsort((indices, -scores), axis=-1)
     return np.take_along_axis(scores, order, -1), np.take_along_axis(indices, order, -1)
+
+
+def finite(block: np.ndarray) -> bool:
+    """Whether every value is finite, by one float64 sum (of float32 values it cannot overflow)."""
+    with np.errstate(invalid="ignore"):  # inf - inf
+        return bool(np.isfinite(np.add.reduce(block, axis=None, dtype=np.float64)))
+
+
+def check_finite(block: np.ndarray, what: str, start: int = 0, numbers=None) -> None:
+    """Rows of `what` ("Query", "Database"), numbered from `start` (or by `numbers`), must be finite
+    numbers: a NaN row would be ranked last (a NaN query given index -1), an infinite one first."""
+    if not finite(block):
+        bad = np.flatnonzero(~np.isfinite(block).all(axis=1))[0]
+        row = start + bad if numbers is None else numbers[bad]
+        raise VPRBenchError(f"{what} row {row} holds NaN or infinity, which search cannot rank: fix the "
+                            "method or post-processor that made it (or describe again if its store was damaged).")
+
+
+def checked(chunk: Chunk, what: str) -> Chunk:
+    """The chunk, once each of its rows is known finite (one pass over its rows: little beside the
+    products every row takes part in)."""
+    for t, (tile, real) in enumerate(zip(chunk.tiles, chunk.real)):
+        check_finite(tile[:real], what, chunk.start + t * len(tile))
+    return chunk
+
+
+def check_products(distances: np.ndarray) -> None:
+    """Finite rows whose products overflowed float32 in grid units (rows far from unit length)."""
+    if not np.isfinite(distances).all():
+        raise VPRBenchError("Inner products of the descriptors exceed float32's range: they are too long to compare; "
+                            "L2-normalise them.")
 
 
 def check_pair(database: RowSource, queries: RowSource, k: int) -> None:
@@ -199,7 +232,9 @@ def _scan(database, queries, keep: int, plan: dict, on_grid: bool) -> tuple[np.n
         pool = ThreadPoolExecutor(threads, "vprbench-search", _one_thread_each) if threads > 1 else None
         with threadpool_limits(1, user_api="blas") if pool else _nothing():
             for query_chunk in query_reader:
+                checked(query_chunk, "Query")
                 for chunk in reader:
+                    checked(chunk, "Database")
                     work = [(w, query_chunk, chunk) for w in range(threads)]
                     list(pool.map(scan.chunk, *zip(*work))) if pool else scan.chunk(*work[0])
                     chunk = work = None  # let go before the next is read (ChunkReader)
@@ -251,6 +286,7 @@ def exact_search(database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDG
     plan = _plan(database, queries, k, budget)
     keep = plan["candidates"]
     distances, indices = _scan(database, queries, keep, plan, on_grid=False)
+    check_products(distances)
     units, indices = order_results(-np.rint(distances), indices)  # units: rounded scores in grid steps
     ambiguous = np.flatnonzero(units[:, keep - 1] == units[:, k - 1]) if keep < database.row_count else []
     units, indices = units[:, :k], indices[:, :k]
@@ -258,6 +294,7 @@ def exact_search(database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDG
         subset = ArrayRows(queries.read_rows_at(ambiguous))
         again = _plan(database, subset, k, budget)
         exact, exact_indices = _scan(database, subset, k, {**again, "candidates": k}, on_grid=True)
+        check_products(exact)
         units[ambiguous], indices[ambiguous] = order_results(-exact, exact_indices)
     scores = (units * np.float32(SCORE_TOLERANCE)).astype(np.float32)
     return SearchResult(scores, indices, {"index": "exact", "memory_budget": budget, **plan,

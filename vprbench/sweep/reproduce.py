@@ -87,9 +87,9 @@ def cannot_run(cell: Cell) -> str:
     manifest = dataset_manifest(dataset.name)
     protocol = find_protocol(manifest, dataset.protocol)
     count = protocol.database_count or (manifest.query_count if protocol.swap else manifest.database_count)
-    if not count or dim <= count:
+    if not count or dim < count:  # centred, N images span at most N - 1 directions
         return ""
-    return (f"PCA to {dim} dimensions needs at least {dim} database images; {dataset.name} has {count} (the authors' "
+    return (f"PCA to {dim} dimensions needs more than {dim} database images; {dataset.name} has {count} (the authors' "
             "code fits this PCA jointly over its domain's datasets, which vprbench does not)")
 
 

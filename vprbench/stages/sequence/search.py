@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ...errors import VPRBenchError
+from ...evaluation.search import check_finite
 from ...row_sources import DEFAULT_MEMORY_BUDGET, READ_BYTES, as_rows, chunks, format_bytes, parse_memory
 from .matching import (SEQSLAM_DEFAULTS, enhance, on_grid, query_offsets, second_best, top_k, trajectories,
                        trajectory_costs, velocities)
@@ -52,6 +53,7 @@ def cost_rows(queries: np.ndarray, database, database_order: np.ndarray, score: 
     for sad)."""
     out = np.empty((len(queries), database.row_count), dtype=np.float32)
     for start, block in chunks(database, chunk_rows):
+        check_finite(block, "Database", start)
         out[:, start:start + len(block)] = similarities_or_distances(queries, block, compare)
     out = out[:, database_order]
     if compare == "cosine":
@@ -118,6 +120,7 @@ def sequence_search(database, queries, k: int, *, score: str = "seqslam", compar
         wanted = query_order[first:last]
         sorted_rows = np.unique(wanted)
         rows = queries.read_rows_at(sorted_rows)[np.searchsorted(sorted_rows, wanted)]
+        check_finite(rows, "Query", numbers=wanted)
         matrix = cost_rows(rows, database, database_order, score, compare, chunk_rows, enhance_window)
         lowest = min(lowest, float(matrix.min()))
         best = trajectory_costs(matrix, first, start, stop, q, offsets, paths)
