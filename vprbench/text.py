@@ -37,11 +37,18 @@ def quantity(value, unit: str | None) -> str:
 CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f-\x9f]")
 
 
+#: characters that show nothing yet change what is shown: bidi controls (which reverse the text
+#: after them: a name's cell, a terminal's line of numbers) and zero-width ones (two names that
+#: read alike, 'hog' and 'h\u200bog')
+INVISIBLE = re.compile("[\u061c\u200b-\u200f\u202a-\u202e\u2060-\u2064\u2066-\u2069\ufeff]")
+
+
 def literal(text) -> str:
     """Text from data as a terminal should show it: each control character written out as its
     escape ('\\x1b'), so a name or path holding one is seen, never acted on (a title set, a
-    screen cleared, a line overwritten)."""
-    return CONTROL.sub(lambda found: f"\\x{ord(found.group()):02x}", str(text))
+    screen cleared, a line overwritten); each INVISIBLE character too ('\\u202e')."""
+    shown = CONTROL.sub(lambda found: f"\\x{ord(found.group()):02x}", str(text))
+    return INVISIBLE.sub(lambda found: f"\\u{ord(found.group()):04x}", shown)
 
 
 def one_line(text) -> str:

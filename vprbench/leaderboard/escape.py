@@ -42,15 +42,41 @@ def public_data(value):
     return value
 
 
+#: a backslash that Markdown reads as an escape: before a character it escapes, or last (before the
+#: page's own ']' or '|'); one written out by `literal`, '\\x1b', stays as it is
+_ESCAPING = re.compile(r"\\(?=[\\`*_{}\[\]()>#+\-.!|]|$)")
+
+
 def text(value) -> str:
     """Text from data or records (names, labels, paths, reasons) as plain text in Markdown: no
-    HTML element, no link or image, no table cell break can come from it, no absolute path. A pipe
-    and a backtick are written as character references (a backslash from data would cancel a
-    backslash escape; a backtick would pair with a code span further along the row), and a line
+    HTML element, no link or image, no table cell break can come from it, no absolute path. A pipe,
+    a backtick, an asterisk, a backslash that would escape and a square bracket without its pair
+    are written as character references (a backslash from data would cancel a backslash escape, or
+    escape the bracket that ends a link's text; a backtick would pair with a code span further along
+    the row; a lone bracket would end or open a link's text early: the link lost, the site's
+    navigation unbuilt), and a line
     break of either kind as a space (a line of its own could define a link); other control
     characters are written out as their escapes ('\\x1b'), as on the terminal."""
     flat = public(value).replace("\r", " ").replace("\n", " ")
-    return html.escape(literal(flat), quote=True).replace("|", "&#124;").replace("`", "&#96;").replace("](", "]\\(")
+    escaped = _ESCAPING.sub("&#92;", html.escape(literal(flat), quote=True))
+    escaped = escaped.replace("|", "&#124;").replace("`", "&#96;").replace("*", "&#42;")  # '*': never emphasis
+    return _paired_brackets(escaped).replace("](", "]\\(")
+
+
+def _paired_brackets(value: str) -> str:
+    """`value` with each '[' or ']' that has no pair written as a character reference: paired ones
+    read as written ('hog [note=x]') and nest inside a link's text."""
+    opened, lone = [], set()
+    for at, char in enumerate(value):
+        if char == "[":
+            opened.append(at)
+        elif char == "]":
+            if opened:
+                opened.pop()
+            else:
+                lone.add(at)
+    lone.update(opened)
+    return "".join({"[": "&#91;", "]": "&#93;"}[c] if at in lone else c for at, c in enumerate(value))
 
 
 #: how a cell that a spreadsheet runs as a formula begins (tab and carriage return are dropped

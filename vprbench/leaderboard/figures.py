@@ -52,10 +52,19 @@ def _colours(colours, names) -> dict[str, str]:
     return colours if colours is not None else method_colours(names)
 
 
+#: the longest name a figure's legend or title shows whole
+LABEL_CHARS = 100
+
+
 def _label(value: str) -> str:
     """A name as literal matplotlib text (a '$' from data would start mathtext), without absolute
-    paths (escape.public), control characters written out (one is no XML: the SVG would not open)."""
-    return literal(public(value)).replace("$", r"\$")
+    paths (escape.public), control characters written out (one is no XML: the SVG would not open),
+    at most LABEL_CHARS long: a longer one keeps its start and end (a legend as wide as a 300-character
+    name hid the plot; the page beside the figure gives it whole)."""
+    shown = literal(public(value))
+    if len(shown) > LABEL_CHARS:
+        shown = f"{shown[:LABEL_CHARS * 2 // 3]}…{shown[-(LABEL_CHARS // 3 - 1):]}"
+    return shown.replace("$", r"\$")
 
 
 class Skipped(Exception):

@@ -6,6 +6,7 @@ so a failure (full disk, a kill) leaves the previous section whole and no partia
 from __future__ import annotations
 
 import functools
+from collections import Counter
 import json
 import os
 import re
@@ -312,10 +313,10 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
     lines += _figure(lambda p: figures.efficiency(cells, p, colours), out, f"{slug}-efficiency.svg",  # the runs' machines
                      f"Efficiency: R@1 against descriptor bytes and images described per second (machine: {machines})")
     lines += ["### Retrieval mosaics", "", f"Seeded queries (seed {seed}) and their top matches: green frame = positive, red = not.", ""]
-    for cell in cells[:MOSAIC_ROWS]:
+    for cell, file in zip(cells[:MOSAIC_ROWS], _file_names([c.row.name for c in cells[:MOSAIC_ROWS]])):
         top = min(5, cell.arrays["database_indices"].shape[1]) if cell.arrays is not None else 5  # it kept its top K
         draw = functools.partial(figures.mosaic, cell, data_dir=data_dir, seed=seed, top=top, cache_dir=cache_dir)
-        lines += _figure(draw, out, f"{slug}-mosaic-{safe_name(cell.row.name, 80)}.png",
+        lines += _figure(draw, out, f"{slug}-mosaic-{file}.png",
                          f"{cell.row.name}: queries and their top {top}", f"Mosaic of {cell.row.name}")
     download = [record_download(c) for c in cells]
     _write(out / "downloads" / f"{slug}.json", json.dumps(download, sort_keys=True, default=plain))  # compact: per-query arrays
@@ -326,6 +327,18 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
               f"{DOWNLOAD_UNITS}).", "",
               *_rule()]
     return "\n".join(lines)
+
+
+def _file_names(names: list[str]) -> list[str]:
+    """Each name as a file name (paths.safe_name); names that would share one ('a/b' and 'a:b',
+    'Hog' and 'hog' on a case-blind disk, a long name's first 80 characters) get a hash of the name
+    each, so no row's figure overwrites another's."""
+    import hashlib
+
+    safe = [safe_name(name, 80) for name in names]
+    seen = Counter(s.lower() for s in safe)
+    return [s if seen[s.lower()] == 1 else f"{safe_name(name, 60)}-{hashlib.sha256(name.encode()).hexdigest()[:8]}"
+            for s, name in zip(safe, names)]
 
 
 def _units(cells: list[Cell]) -> str:
