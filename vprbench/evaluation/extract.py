@@ -81,7 +81,9 @@ def describe_splits(method, splits: dict[str, list[Path]], *, root: Path | None 
     if ranks.broadcast(stores is not None):
         for split in stores or ():
             folder.tidy_if_free(split)
-        return Described(stores, computed, timings, fingerprint, folder)
+        # one entry per rank, as when they compute: nothing, on every rank
+        per_rank = [dict(computed) for _ in range(ranks.world_size)]
+        return Described(stores, computed, timings, fingerprint, folder, per_rank)
     with ExitStack() as held:
         def plan():
             held.enter_context(folder.locked(lock_timeout))
