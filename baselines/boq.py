@@ -134,8 +134,12 @@ def build(
     config: BoQConfig, *, weights=None, resize=None, batch_size=None, precision="fp32", device="cpu", cache_dir=None
 ) -> TorchMethod:
     """A BoQ method for `config` (a released one, or a reduced one in tests)."""
-    resize = as_resize(resize) or config.resize
+    resize = config.resize if resize is None else as_resize(resize)  # unset: the authors' size; 'native': none
     if config.backbone == "dinov2":
+        if resize is None:
+            raise VPRBenchError(f"{METHOD}: the DINOv2 backbone takes sides that are multiples of {config.vit.patch}, "
+                                "not images as stored: give --resize H W (the authors': "
+                                f"{config.resize[0]} {config.resize[1]}).")
         check_patch_multiple(*resize, config.vit.patch, METHOD)
     source = WeightSource(
         config.file_name, url=_RELEASE + config.file_name, page="https://github.com/amaralibey/Bag-of-Queries"

@@ -38,6 +38,7 @@ from .common import (
     choose,
     file_sha256,  # noqa: F401  (tests name a file's identity through the baseline)
     load_exact,
+    native_when_unset,
     read_weights_file,
     resolve_weights,
     state_dict_of,
@@ -201,3 +202,6 @@ def clip_cls(backbone="ViT-bigG-14", pretrained="laion2b_s39b_b160k", weights=No
     fingerprint = {"method": METHOD, **identity, "backbone": backbone, "pretrained": tag, "dim": dim}
     return TorchMethod(ClipImageEncoder(visual), preprocessing, fingerprint, batch_size=batch_size, device=device,
                        precision=precision, dim=dim)
+
+#: unset resize is the image as stored: resize=native written out is the same run
+clip_cls.implied_options = native_when_unset

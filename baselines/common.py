@@ -33,6 +33,12 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 # ---------------------------------------------------------------- option parsing
+def native_when_unset(options: dict) -> dict:
+    """A method's `implied_options` where resize left unset is the image as stored: `resize=native`
+    written out is the same run (one row, not two of the same numbers)."""
+    return {"resize": "native"}
+
+
 def as_int(value, name: str) -> int:
     """Options from `-o key=value` arrive as strings."""
     try:

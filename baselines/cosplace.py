@@ -11,7 +11,8 @@ from torch import nn
 
 from vprbench import VPRBenchError
 
-from .common import Preprocess, TorchMethod, WeightSource, as_int, as_resize, choose, build_loaded, load_checkpoint, state_dict_of
+from .common import (Preprocess, TorchMethod, WeightSource, as_int, as_resize, build_loaded, choose, load_checkpoint,
+                     native_when_unset, state_dict_of)
 
 #: backbone -> descriptor dimensions with released weights (authors' hubconf)
 RELEASED = {
@@ -118,3 +119,6 @@ def cosplace(
         "cosplace", RELEASED, RELEASE_URL, backbone, dim, weights, resize, batch_size, device, precision, "SF-XL CosPlace",
         cache_dir,
     )
+
+#: unset resize is the image as stored: resize=native written out is the same run
+cosplace.implied_options = native_when_unset

@@ -6,7 +6,7 @@ CosPlace's `GeoLocalizationNet`, so the network is shared.
 from __future__ import annotations
 
 
-from .common import TorchMethod
+from .common import TorchMethod, native_when_unset
 from .cosplace import build_gem_fc_method
 
 #: backbone -> descriptor dimensions with released weights (authors' hubconf)
@@ -34,3 +34,6 @@ def eigenplaces(
         "eigenplaces", RELEASED, RELEASE_URL, backbone, dim, weights, resize, batch_size, device, precision,
         "SF-XL EigenPlaces", cache_dir,
     )
+
+#: unset resize is the image as stored: resize=native written out is the same run
+eigenplaces.implied_options = native_when_unset

@@ -24,6 +24,7 @@ from .common import (
     choose,
     load_checkpoint,
     load_exact,
+    native_when_unset,
     state_dict_of,
 )
 from .salad import SaladAggregator
@@ -114,3 +115,6 @@ def megaloc(
     check_dim(METHOD, dim, [config.dim], "dinov2_vitb14")
     return build(config, weights=weights, resize=resize, batch_size=batch_size, precision=precision, device=device,
                  cache_dir=cache_dir)
+
+#: unset resize is the image as stored: resize=native written out is the same run
+megaloc.implied_options = native_when_unset

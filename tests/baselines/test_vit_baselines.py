@@ -267,3 +267,28 @@ def test_registered_through_entry_points_only():
     text = " ".join(p.read_text().lower() for p in core.rglob("*.py"))
     for word in ("salad", "megaloc", "boq", "vprbench_baselines"):
         assert word not in text
+
+
+@pytest.mark.parametrize("backbone", ["dinov2", "resnet50"])
+def test_boq_resize_native_is_the_image_as_stored_or_refused(tmp_path, backbone):
+    """Before: `resize=native` ran at the authors' size while its row said 'native'."""
+    config = boq.BoQConfig(backbone, 64, (56, 56), "tiny.pth", vit=TINY_VIT, queries=4, row_dim=2)
+    prefix = "backbone.dino." if backbone == "dinov2" else None
+    weights = save_official(boq.BoQ(config), tmp_path / "tiny.pth", prefix, wrap=backbone == "resnet50")
+    if backbone == "dinov2":
+        with pytest.raises(VPRBenchError, match=r"boq: the DINOv2 backbone takes sides that are multiples of 14, not "
+                                                r"images as stored: give --resize H W \(the authors': 56 56\)"):
+            boq.build(config, weights=str(weights), resize="native")
+    else:
+        assert boq.build(config, weights=str(weights), resize="native").preprocess.resize is None
+
+
+@pytest.mark.parametrize("method", ["cosplace", "eigenplaces", "megaloc", "clip-cls"])
+def test_resize_native_written_out_is_the_run_left_unset(method):
+    """Before: these run on images as stored when resize is unset, yet `--resize native` made a second row
+    (and run key) of the same numbers."""
+    from vprbench.spec import resolve_spec
+
+    native, unset = resolve_spec(method, "corridor", options={"resize": "native"}), resolve_spec(method, "corridor")
+    assert (native.key, native.row_key, native.given) == (unset.key, unset.row_key, unset.given)
+    assert resolve_spec(method, "corridor", options={"resize": [224, 224]}).key != unset.key
