@@ -67,3 +67,17 @@ def test_weights_in_a_folder_named_by_a_bare_word_are_known_by_its_files(tmp_pat
         assert spec.files["weights"].startswith("ckpt@folder:")
         rows.append((spec.key, spec.row_key))
     assert rows[0] != rows[1] and rows[0] == rows[2]  # other bytes: another run; the same bytes elsewhere: the same
+
+
+def test_an_evaluation_refuses_anylocs_dataset_option_naming_another_dataset():
+    """Before: `-o dataset=pitts30k` on Corridor was overridden by the evaluated dataset, computed without it,
+    yet named a row of its own."""
+    method = create_method("anyloc", **TINY, aggregation="gem", dataset="pitts30k")
+    with pytest.raises(VPRBenchError, match=re.escape("anyloc: option dataset='pitts30k' names another dataset than "
+                                                      "the one evaluated ('corridor'), whose settings apply: drop it")):
+        method.use_dataset("corridor")
+    method.use_dataset("pitts30k")
+    unnamed = create_method("anyloc", **TINY, aggregation="gem")  # a sweep's method, one dataset after another
+    unnamed.use_dataset("pitts30k")
+    unnamed.use_dataset("corridor")
+    assert unnamed.dataset == "corridor"

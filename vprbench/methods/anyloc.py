@@ -85,7 +85,7 @@ class AnyLoc(Method):
         self.pca_dim = None if pca_dim is None else whole("anyloc", "pca_dim", pca_dim, 1, what="PCA output dimension; leave it unset for none")
         self.batch_size = whole("anyloc", "batch_size", batch_size, 1, what="images per batch")
         self.precision = precision
-        self.dataset = None if dataset is None else text("anyloc", "dataset", dataset)
+        self.dataset = self.given_dataset = None if dataset is None else text("anyloc", "dataset", dataset)
         # DINO v1 follows the official dino extractor: stride 4, interleaved heads, raw features
         self.stride = whole("anyloc", "stride", stride, 1, self.spec.patch, f"pixels, at most the patch size {self.spec.patch}") \
             if stride is not None else (self.spec.stride or self.spec.patch)
@@ -180,6 +180,10 @@ class AnyLoc(Method):
 
     def use_dataset(self, name: str) -> None:
         """Tell the method which dataset it runs on (AnyLoc's per-dataset resize, domain vocabularies)."""
+        if self.given_dataset not in (None, name):  # else evaluated with another dataset's settings, named so
+            raise VPRBenchError(f"anyloc: option dataset={self.given_dataset!r} names another dataset than the one "
+                                f"evaluated ({name!r}), whose settings apply: drop it (it is for describing images "
+                                "outside an evaluation; choose a size with --resize).")
         self.dataset = name
         if self.aggregation in VLADS and self.vocabulary == "domain":
             found, source, note = paper_choice(name, self.vocabulary_backbone, self.layer, self.facet, self.clusters,
