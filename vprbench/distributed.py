@@ -162,3 +162,12 @@ def _first_line(error: BaseException) -> str:
     text = (str(error).strip().splitlines() or [type(error).__name__])[0]
     text = text.split("] ", 1)[1] if text.startswith("[") and "] " in text else text
     return text.split(". ", 1)[0].rstrip(".")
+
+
+def refuse_torchrun(command: str) -> None:
+    """Plans' cells are shared by plain processes (claims on the cache); torchrun shards one evaluation.
+    Under torchrun each rank would run cells of its own, each printing a table: refused, saying both ways."""
+    if _whole_from_environment("WORLD_SIZE", "1") > 1:
+        raise VPRBenchError(f"'vprbench {command}' runs under torchrun as independent copies, not sharded: start it "
+                            "without torchrun (several plain processes on one --cache-dir share the cells), or "
+                            "torchrun one 'vprbench evaluate' at a time.")

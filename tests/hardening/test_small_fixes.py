@@ -196,3 +196,14 @@ def test_running_out_of_memory_is_one_line_saying_what_to_lower(monkeypatch, cli
                        "--cache-dir", tmp_path / "cache")
     assert code == 1 and len(err.strip().splitlines()) == 1, err
     assert err.startswith("error: Out of memory (") and "Lower --batch-size" in err and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize("command", [["run", "plan.toml"], ["reproduce", "anyloc", "--table", "1", "--dry-run"]])
+def test_plans_under_torchrun_are_refused_saying_both_ways(monkeypatch, cli, tmp_path, command):
+    """Before: each rank ran cells of its own as an independent sweep, each printing its table."""
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("RANK", "0")
+    code, out, err = cli(*command, "--cache-dir", tmp_path / "cache")
+    assert code == 1 and out == "" and len(err.strip().splitlines()) == 1, err
+    assert f"'vprbench {command[0]}' runs under torchrun as independent copies, not sharded" in err
+    assert not (tmp_path / "cache").exists()

@@ -39,6 +39,7 @@ def _row_weights(spec: dict) -> dict:
 
 
 def run_reproduce(args) -> int:
+    from ..distributed import refuse_torchrun
     from ..errors import VPRBenchError
     from ..methods.registry import checked_run_options
     from ..sweep import run_cells, summary_table
@@ -49,6 +50,7 @@ def run_reproduce(args) -> int:
     # the locations given on the command line (an environment's reach the fit command too): named in
     # a vocabulary fit command, which would otherwise fit from and into the default ones
     given = {"data-dir": args.data_dir, "cache-dir": args.cache_dir}
+    refuse_torchrun("reproduce")
     resolve_locations(args)
     refuse_changes(args)
     # checked once here: inside each cell's plan a bad --batch-size reads as that method's problem

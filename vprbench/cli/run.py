@@ -19,8 +19,10 @@ def add_parsers(commands) -> None:
 
 
 def run_plan(args) -> int:
+    from ..distributed import refuse_torchrun
     from ..sweep import read_plan, run_cells
 
+    refuse_torchrun("run")
     resolve_locations(args)
     settings = run_settings(args)
     overrides = {**spec_overrides(args), "options": {**method_options(args), **explicit_run_options(args)}}
