@@ -65,3 +65,13 @@ def test_approximate_options_unsuited_to_the_database_are_refused():
         retrieve(None, db, q, 5, index="hnsw", memory_budget="1MB")
     with pytest.raises(VPRBenchError, match="Unknown index 'annoy': use one of exact, ivf-pq, hnsw"):
         retrieve(None, db, q, 5, index="annoy")
+
+
+def test_nprobe_beyond_the_lists_is_refused_not_lowered_in_silence():
+    """Before: nprobe=64 on 32 lists ran as nprobe=32 under a spec naming 64 (a second name for one run)."""
+    from vprbench.evaluation.approximate import index_options
+
+    assert index_options("ivf-pq", 20_000, 64, 5, {"nlist": 32})["nprobe"] == 32  # the default, within the lists
+    assert index_options("ivf-pq", 20_000, 64, 5, {"nlist": 32, "nprobe": 8})["nprobe"] == 8
+    with pytest.raises(VPRBenchError, match=r"^nprobe = 64 exceeds the index's 32 lists \(nlist\): give nprobe <= 32\.$"):
+        index_options("ivf-pq", 20_000, 64, 5, {"nlist": 32, "nprobe": 64})

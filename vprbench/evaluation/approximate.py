@@ -67,6 +67,9 @@ def index_options(kind: str, n: int, dim: int, k: int, given: dict | None) -> di
                 f"index='ivf-pq' needs at least {least:,} database rows to train its coarse quantizer "
                 f"({POINTS_PER_CENTROID} per list x nlist={o['nlist']}) and PQ codebooks ({POINTS_PER_CENTROID} x "
                 f"{PQ_CENTROIDS} centroids); this database has {n:,}: use index='exact'.")
+        if int(given.get("nprobe", 0)) > int(o["nlist"]):  # probed as nlist: another name for that run
+            raise VPRBenchError(f"nprobe = {given['nprobe']} exceeds the index's {o['nlist']} lists (nlist): give "
+                                f"nprobe <= {o['nlist']}.")
         o["nprobe"] = min(int(o["nprobe"]), int(o["nlist"]))
         o["train_rows"] = int(given.get("train_rows", min(n, max(least, 64 * int(o["nlist"])))))
         if not least <= o["train_rows"] <= n:
