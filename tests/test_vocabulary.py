@@ -127,14 +127,14 @@ def test_a_vocabulary_killed_while_saving_leaves_the_cached_one_whole(tmp_path):
     path = tmp_path / "vocabulary.pt"
     Vocabulary(torch.ones(2, 3), {"source": "before"}).save(path)
     script = """
-import os, signal, sys, torch
+import os, pathlib, signal, sys, torch
 from vprbench.aggregation import Vocabulary
-def half_then_killed(obj, target):
+def half_then_killed(target, data):
     with open(target, "wb") as f:
-        f.write(b"PK" * 1000)
+        f.write(data[:len(data) // 2])
         f.flush()
     os.kill(os.getpid(), signal.SIGKILL)
-torch.save = half_then_killed
+pathlib.Path.write_bytes = half_then_killed
 Vocabulary(torch.zeros(2, 3), {"source": "after"}).save(sys.argv[1])
 """
     done = subprocess.run([sys.executable, "-c", script, str(path)], capture_output=True)

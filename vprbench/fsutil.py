@@ -3,6 +3,7 @@
 - `atomic_path(path)` / `atomic_write(path, data)`: the file is written under a temporary
   name in the same folder and `os.replace`d over `path`, so a reader (or a kill at any
   moment) sees the old content or the new, never half of one.
+- `exchange(a, b)`: two folders swapped in one step where the system can (a published site).
 - `lock(path, timeout)`: an exclusive `filelock` lock shared by every process on the
   machine (and by hosts sharing the folder, where the filesystem supports `flock`). A
   process that has to wait says, in one line, who holds the lock; a timeout is a
@@ -112,6 +113,26 @@ def atomic_write(path: str | os.PathLike, data: bytes | str) -> Path:
     with atomic_path(path) as temporary:
         temporary.write_bytes(data.encode("utf-8") if isinstance(data, str) else data)
     return Path(path)
+
+
+def exchange(a: Path, b: Path) -> bool:
+    """Swap two existing paths in one step (Linux renameat2 RENAME_EXCHANGE), so a reader or a kill
+    sees one or the other in place, never neither; False where the system or filesystem cannot
+    (the caller then renames twice)."""
+    import ctypes
+
+    try:
+        renameat2 = ctypes.CDLL(None, use_errno=True).renameat2
+    except (OSError, AttributeError, TypeError):  # not Linux, or a C library older than glibc 2.28
+        return False
+    renameat2.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    at_cwd, rename_exchange = -100, 2
+    if renameat2(at_cwd, os.fsencode(a), at_cwd, os.fsencode(b), rename_exchange) == 0:
+        return True
+    number = ctypes.get_errno()
+    if number in (errno.EINVAL, errno.ENOSYS, errno.ENOTSUP, errno.EOPNOTSUPP):
+        return False
+    raise OSError(number, os.strerror(number), str(b))
 
 
 def file_sha256(path: str | os.PathLike) -> str:

@@ -17,6 +17,8 @@ the dataset. `exact=True` in `fit_vocabulary` reproduces the official fit on all
 """
 from __future__ import annotations
 
+import glob
+import io
 import zipfile
 import zlib
 from dataclasses import dataclass, field
@@ -28,7 +30,7 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import VPRBenchError
-from ..fsutil import atomic_path, is_temporary, remove_stale
+from ..fsutil import atomic_write, is_temporary, remove_stale
 from ..paths import cache_root
 from ..weights import read_torch_file
 
@@ -178,10 +180,12 @@ class Vocabulary:
         file as it was): a cached vocabulary is read by other runs."""
         path = Path(path)
         centres = self.centres.float().cpu().contiguous()
-        with atomic_path(path) as temporary:
-            torch.save({"centres": centres, "meta": dict(self.meta), "crc32": centres_checksum(centres)}, temporary)
-        # a fit killed while saving left its temporary file (never read): gone once untouched for an hour
-        remove_stale(p for p in path.parent.iterdir() if is_temporary(p))
+        buffer = io.BytesIO()  # torch.save's own writes fail on a full disk with a RuntimeError, no OSError
+        torch.save({"centres": centres, "meta": dict(self.meta), "crc32": centres_checksum(centres)}, buffer)
+        atomic_write(path, buffer.getvalue())
+        # a fit killed while saving left its temporary file (never read): gone once untouched for an hour;
+        # only this file's own (--output may be any folder, holding other programs' .*.tmp files)
+        remove_stale(p for p in path.parent.glob(f".{glob.escape(path.name)}.*.tmp") if is_temporary(p))
         return path
 
 

@@ -92,8 +92,8 @@ def save_result(record: dict, cache_dir=None) -> Path:
             record["per_query"] = {"file": f"{stem}.npz", "sha256": hashlib.sha256(data).hexdigest(),
                                    "k": section["k"], "queries": len(section["first_positive_rank"]),
                                    "fields": list(arrays)}
+        _write_card(record, cache_dir)  # before the record: a record is there only with its card (export needs it)
         atomic_write(folder / f"{stem}.json", json.dumps(record, sort_keys=True, indent=1).encode())
-        _write_card(record, cache_dir)
         # what writers killed here left: temporary files, and arrays whose record never came
         remove_stale(p for p in folder.iterdir()
                      if is_temporary(p) or (p.suffix == ".npz" and not p.with_suffix(".json").exists()))

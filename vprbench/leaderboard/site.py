@@ -5,6 +5,7 @@ so a failure (full disk, a kill) leaves the previous section whole and no partia
 """
 from __future__ import annotations
 
+import errno
 import functools
 from collections import Counter
 import json
@@ -21,7 +22,7 @@ import pandas as pd
 
 from .. import __version__
 from ..errors import VPRBenchError, require
-from ..fsutil import LockTimeout, lock
+from ..fsutil import LockTimeout, exchange, lock
 from ..paths import safe_name
 from ..evaluation.results import read_results
 from ..text import percent, quantity
@@ -90,8 +91,10 @@ def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0, skipp
             _swap(staging, target)
             _remove_stale(folder)
     except OSError as error:
+        full = error.errno in (errno.ENOSPC, errno.EDQUOT)
         raise VPRBenchError(f"Cannot write the leaderboard to {folder} ({error.strerror or error}); "
-                            f"the previous {target} is unchanged.") from None
+                            f"the previous {target} is unchanged" + (": free some space, then publish again, or "
+                            "publish to a folder on another disk." if full else ".")) from None
     except LockTimeout as error:
         raise VPRBenchError(f"{error} Another 'leaderboard publish' is writing there; try again.") from None
     finally:
@@ -106,6 +109,13 @@ def _swap(staging: Path, target: Path) -> None:
     """Put the finished folder in place of the old one; the old one is removed only afterwards."""
     if target.exists() and not target.is_dir():
         raise VPRBenchError(f"{target} is a file; move it away so the leaderboard section can be written there.")
+    mask = os.umask(0)
+    os.umask(mask)
+    staging.chmod(0o777 & ~mask)  # mkdtemp makes 0700: a web server reads the site as another user
+    # in one step: the old site or the new is in place (a link to a folder is replaced as it was)
+    if target.is_dir() and not target.is_symlink() and exchange(staging, target):
+        shutil.rmtree(staging, ignore_errors=True)
+        return
     old = None
     if target.exists():
         old = Path(tempfile.mkdtemp(prefix=f".{SECTION}-old-", dir=target.parent))
