@@ -132,7 +132,7 @@ def test_reproduce_takes_the_run_settings_and_refuses_what_would_change_the_tabl
                                                                                   monkeypatch):
     import vprbench.sweep.reproduce as reproduce
 
-    table = {"t": {"paper": "II", "title": "a table of hog on Corridor", "metrics": ["r1", "r5"],
+    table = {"t": {"paper": "t", "title": "a table of hog on Corridor", "metrics": ["r1", "r5"],
                    "columns": {"corridor": ["corridor"]},
                    "rows": [{"row": "HOG", "method": "hog", "options": {"resize": [32, 32]}}]}}
     monkeypatch.setattr(reproduce, "reproduce_tables", lambda paper: table)

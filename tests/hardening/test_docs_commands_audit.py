@@ -58,7 +58,7 @@ def test_a_missing_vocabulary_file_says_what_to_do(tmp_path, method):
 
 
 def test_a_pca_wider_than_the_database_is_refused_before_any_descriptor(shared_data, tmp_path):
-    # docs/anyloc.md: pca_dim cannot exceed the database images (a clear error); Corridor has 111,
+    # docs/anyloc.md: pca_dim must be below the number of database images (a clear error); Corridor has 111,
     # known once the dataset is loaded, so no image is described for a run that cannot finish
     from vprbench import VPRBenchError
     from vprbench.evaluation import evaluate
@@ -66,6 +66,6 @@ def test_a_pca_wider_than_the_database_is_refused_before_any_descriptor(shared_d
 
     spec = resolve_spec("anyloc", "corridor", options={"backbone": "dinov2_vits14", "weights": "random", "layer": 0,
                                                        "aggregation": "gem", "resize": [28, 28], "pca_dim": 200})
-    with pytest.raises(VPRBenchError, match=r"PCA dimension 200 .*111.*pca_dim <= 111"):
+    with pytest.raises(VPRBenchError, match=r"PCA dimension 200 .*111.*pca_dim <= 110"):
         evaluate(spec, RunSettings(data_dir=shared_data, cache_dir=tmp_path))
     assert not list((tmp_path / "stores").rglob("*.h5"))  # nothing was described

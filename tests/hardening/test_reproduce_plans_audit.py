@@ -146,3 +146,71 @@ def test_a_released_vocabulary_not_here_is_a_need_until_it_is(tmp_path, shared_d
     shutil.copy(shared_data / "vocabularies" / "anyloc-dinov2_vitg14-l31-value-c32" / target.parent.name / "c_centers.pt",
                 target)
     assert vocabulary_for(baidu, tmp_path) is None
+
+
+def _edited(monkeypatch, edit):
+    import copy
+
+    import vprbench.sweep.reproduce as reproduce
+
+    tables = copy.deepcopy(reproduce.reproduce_tables("anyloc"))
+    edit(tables)
+    monkeypatch.setattr(reproduce, "reproduce_tables", lambda paper: tables)
+
+
+@pytest.mark.parametrize("edit, wanted", [
+    # Baidu Mall's reported numbers beside an Oxford run, and Oxford's beside Baidu Mall's
+    (lambda t: t["2"]["columns"].update({"baidu-mall": ["oxford"], "oxford": ["baidu-mall"]}),
+     "column 'baidu-mall' runs oxford: a dataset's column runs that dataset only"),
+    # a row label the CSV does not have: its reported numbers were silently '-'
+    (lambda t: t["2"]["rows"][6].update(row="AnyLoc-GeM-DINOv2 "),
+     "the paper's table II has row 'AnyLoc-GeM-DINOv2', which the plan leaves out"),
+    (lambda t: t["4"]["columns"].update(indoor=["baidu-mall", "gardens-point"]),
+     "column 'indoor' runs baidu-mall, gardens-point; the indoor domain is 17places, baidu-mall, gardens-point"),
+    (lambda t: t["5"]["rows"][0]["cells"]["vocab-transfer"].update(dataset="gardens-point"),
+     "row 'baidu-mall->17places': cell 'vocab-transfer' runs gardens-point"),
+    (lambda t: t["2"].update(metrics=["r1"]), "the paper's table II has metric 'r5', which the plan leaves out"),
+    (lambda t: t["2"].update(paper="IIX"), "paper = 'IIX' is no table of the paper's reported numbers."),
+    (lambda t: t["2"]["rows"].append(dict(t["2"]["rows"][0])), "row 'NetVLAD' is there more than once"),
+    # these were tracebacks (KeyError, AttributeError)
+    (lambda t: t["2"].pop("columns"), "row 'NetVLAD' has no columns"),
+    (lambda t: t["2"]["rows"][0].pop("row"), "rows must be a list of tables, each with its row label"),
+    (lambda t: t["5"]["rows"][0]["cells"]["map-specific"].pop("dataset"),
+     "row 'baidu-mall->17places': cell 'map-specific' needs its dataset"),
+])
+def test_an_inconsistent_plan_is_refused_naming_what(monkeypatch, tmp_path, capsys, edit, wanted):
+    _edited(monkeypatch, edit)
+    table = "4" if "indoor" in wanted else "5" if "17places" in wanted else "2"
+    code = main(["reproduce", "anyloc", "--table", table, "--dry-run", "--cache-dir", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert code != 0 and "Traceback" not in err
+    assert err.startswith(f"error: The reproduction plan of table {table} (manifests/reproduce/anyloc.toml) is inconsistent")
+    assert wanted in err, err
+
+
+def test_the_shipped_plans_are_consistent_with_the_papers_tables():
+    from vprbench.sweep.reproduce import plan_problems, reproduce_tables
+
+    assert {name: plan_problems(spec, name) for name, spec in reproduce_tables("anyloc").items()} == \
+        {name: [] for name in ("2", "3", "4", "5", "6", "7", "layer", "facet", "backbones")}
+
+
+def test_a_stored_run_that_fell_back_to_the_maps_vocabulary_is_not_the_papers(monkeypatch, tmp_path, capsys):
+    # `evaluate anyloc-vlad-dino --vocabulary domain` without the domain's vocabulary fits the map's
+    # (with a warning) under the same spec: its record was counted as the paper's cell, "complete" in
+    # the dry run and shown against Table III's domain-vocabulary number
+    from vprbench.sweep.runner import StoredRecords
+
+    monkeypatch.setenv("COLUMNS", "400")
+    monkeypatch.setattr(StoredRecords, "record", lambda self, spec, options=None: {"created": "2026-01-02T03:04:05+00:00"})
+    code = main(["reproduce", "anyloc", "--table", "3", "--dry-run", "--data-dir", str(tmp_path / "data"),
+                 "--cache-dir", str(tmp_path / "cache")])
+    lines = capsys.readouterr().out.splitlines()
+    assert code == 0
+
+    def status(row):
+        line = next(x for x in lines if x.startswith(f"│ {row} ") and "nardo-air:anyloc" in x)
+        return line.split("│")[3].split()[0]
+
+    assert status("AnyLoc-VLAD-DINO") == "missing"  # its 'aerial' vocabulary for ViT-S/8 is not fitted
+    assert status("DINO-CLS") == "complete"  # no vocabulary: its stored record stands

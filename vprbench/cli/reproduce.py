@@ -74,18 +74,18 @@ def run_reproduce(args) -> int:
     if args.dry_run:
         counted = f"{len(cells)} cells to evaluate{f', {no_method}' if unrunnable else ''}"
         if spec.get("dry_run") == "by-row":
-            from ..sweep.runner import StoredRecords
+            from ..sweep.reproduce import PaperRecords
 
-            stored = StoredRecords(settings)  # computed on the data at hand, as run_cells judges it
+            stored = PaperRecords(settings)  # computed on the data at hand, as run_cells judges it
             records = {key: stored.record(c.spec, c.settings) for key, (c, _) in cells.items()}
             status = {key: "complete" if records[key] else "missing" if missing[key] else "would run" for key in cells}
             console.print(by_row(table_cells_, status, missing, f"{spec['title']}: {counted} (dry run, nothing runs)"))
         else:
             console.print(dry_run_listing(spec, table_cells_, missing, settings, counted))
         return 0
-    from ..sweep.runner import StoredRecords
+    from ..sweep.reproduce import PaperRecords
 
-    stored = StoredRecords(settings)  # one lookup for the run and the table after it: each copy fingerprinted once
+    stored = PaperRecords(settings)  # one lookup for the run and the table after it: each copy fingerprinted once
     outcomes = run_cells([c for c, _ in cells.values()], settings, lease_s=args.lease, stored=stored,
                          plan=f"{args.paper} table {args.table}", runnable=lambda c: needs_text(missing[c.key]),
                          progress=progress(args))
@@ -144,9 +144,10 @@ def dry_run_listing(spec: dict, table_cells_, missing: dict, settings, counted: 
     from rich.text import Text
 
     from ..notes import Notes
-    from ..sweep.runner import StoredRecords, _minute
+    from ..sweep.reproduce import PaperRecords
+    from ..sweep.runner import _minute
 
-    notes, stored = Notes(), StoredRecords(settings)
+    notes, stored = Notes(), PaperRecords(settings)
     listing = Table(title=f"{spec['title']}: {counted} (dry run, nothing runs)")
     listing.add_column("row", overflow="fold")
     listing.add_column("column: dataset:protocol", overflow="fold")
@@ -173,10 +174,9 @@ def paper_table(spec: dict, table_cells_, settings, stored=None):
     computed on the data at hand, not on another copy's)."""
     from rich.table import Table
 
-    from ..sweep.reproduce import measured, reported_value
-    from ..sweep.runner import StoredRecords
+    from ..sweep.reproduce import PaperRecords, measured, reported_value
 
-    stored, found_for = stored or StoredRecords(settings), {}
+    stored, found_for = stored or PaperRecords(settings), {}
 
     def record_of(cell):  # each cell's record looked up (and proven) once, with its own run settings
         if cell.spec.key not in found_for:

@@ -114,9 +114,25 @@ def cell_stats(cell: Cell, ks=CELL_KS, seed: int = 0) -> dict[int, dict]:
     return found
 
 
+def paper_rows(table: str) -> pd.DataFrame:
+    """The paper's table, each row's `method` the label of the run that reproduces it: the reproduction
+    plan's method with the options it sets on top of the preset (Table II's AnyLoc-VLAD-DINO: the domain
+    vocabularies, where the preset fits the map's), so no other setting of a method is set against it."""
+    from ..spec import RunSpec, given_options
+    from ..sweep.reproduce import reproduce_tables
+
+    frame = paper_results(table=table).copy()
+    plan = next((t for t in reproduce_tables("anyloc").values() if t.get("paper") == table), {})
+    labels = {row["row"]: RunSpec.model_construct(method=row["method"], stages=[],
+                                                  given=given_options(row.get("options", {}), row["method"])).label()
+              for row in plan.get("rows", []) if row.get("method")}
+    frame["method"] = [labels.get(row, "") for row in frame["row"]]
+    return frame
+
+
 def reported(method: str | None = None) -> pd.DataFrame:
-    """The paper's Table II and III values, one row per (row, dataset, metric)."""
-    frame = pd.concat([paper_results(table="II"), paper_results(table="III")], ignore_index=True)
+    """The paper's Table II and III values, one row per (row, dataset, metric); `method` as paper_rows."""
+    frame = pd.concat([paper_rows("II"), paper_rows("III")], ignore_index=True)
     return frame if method is None else frame[frame["method"] == method]
 
 
@@ -127,6 +143,15 @@ def _value(frame: pd.DataFrame, dataset: str, metric: str) -> float | None:
 
 def _reported_value(frame: pd.DataFrame, method: str, dataset: str, metric: str) -> float | None:
     return _value(frame[frame["method"] == method], dataset, metric) if method else None
+
+
+def fell_back(record: dict, dataset: str) -> bool:
+    """A run asked for the paper's domain vocabulary that fitted another (the map's: none of the domain's
+    fitted these features): not the setting the paper's number was measured with."""
+    from ..methods.anyloc_vocabulary import paper_vocabulary
+
+    vocabulary = (record.get("provenance") or {}).get("vocabulary") or {}
+    return vocabulary.get("option") == "domain" and vocabulary.get("name") != paper_vocabulary(dataset)
 
 
 def comparisons(board: Board, seed: int = 0) -> list[dict]:
@@ -140,6 +165,8 @@ def comparisons(board: Board, seed: int = 0) -> list[dict]:
         for column in board.columns:
             cell = board.cell(row, column)
             if cell is None or column.kind != "benchmark" or not column.default:  # the paper's protocols
+                continue
+            if fell_back(cell.record, column.dataset):
                 continue
             stats = cell_stats(cell, seed=seed)
             for k in CELL_KS:
@@ -163,7 +190,7 @@ def group_table(board: Board, table: str, link=lambda column: column.dataset) ->
     datasets of the table, for rows that have them all; a measured row with fewer has its mean in a
     column of its own, "Measured so far". Reported values are in italics, never presented as measured."""
     title, domains = GROUPS[table]
-    paper = paper_results(table=table)
+    paper = paper_rows(table)
     datasets = list(dict.fromkeys(paper["column"]))
     averaged = list(datasets)  # what the paper's averages are over
     ours = [c for c in board.columns if c.kind == "benchmark" and c.default and c.domain in domains]
@@ -285,8 +312,11 @@ def reported_page() -> str:
              "Keetha et al., *AnyLoc: Towards Universal Visual Place Recognition*, IEEE RA-L 2023. Values as "
              "reported (percent), from `manifests/reference/anyloc-paper.csv`; none of them was measured here.", ""]
     for table, part in frame[~frame["table"].str.startswith("ablation")].groupby("table", sort=False):
-        grid = part.assign(col=part["column"] + " " + part["metric"].str.upper().str.replace("R", "R@"))
+        recall = part["metric"] != part["column"]  # a column of its own (Table VI's dim) is no recall
+        grid = part.assign(col=(part["column"] + " " + part["metric"].str.upper().str.replace("R", "R@")).where(recall, part["column"]))
         wide = grid.pivot_table(index="row", columns="col", values="value", aggfunc="first", sort=False)
+        counts = list(dict.fromkeys(grid.loc[~recall, "col"]))
+        wide[counts] = wide[counts].astype("Int64")  # a dimension as the paper gives it: 384, not 384.0
         lines += [f"## Table {table}", "", wide.to_markdown(floatfmt=".1f"), ""]
         settings = [s for s in part["setting"].unique() if s]
         lines += [f"*{s}*" for s in settings] + ([""] if settings else [])

@@ -8,10 +8,11 @@ from __future__ import annotations
 import tomllib
 from dataclasses import dataclass, field, replace
 
-from ..errors import VPRBenchError, closest_names
+from ..errors import ProblemList, VPRBenchError, closest_names
 from ..paths import shipped_file
 from ..reference import paper_results
 from .plan import Cell, build_plan
+from .runner import StoredRecords
 
 
 @dataclass
@@ -35,7 +36,75 @@ def table_spec(paper: str, table: str) -> dict:
         hint = labels.get(str(table).strip().lower()) or labels.get(f"ablation-{str(table).strip().lower()}")
         hint = f" Did you mean: {hint}?" if hint else closest_names(str(table), list(tables))
         raise VPRBenchError(f"The {paper} paper has no table {table!r} here; tables: {', '.join(tables)}.{hint}")
-    return tables[str(table)]
+    spec = tables[str(table)]
+    problems = plan_problems(spec, str(table))
+    if problems:  # a reported value shown beside another row's, dataset's or metric's run, or none shown at all
+        raise ProblemList(f"The reproduction plan of table {table} (manifests/reproduce/{paper}.toml) is inconsistent; "
+                          "fix it:\n  " + "\n  ".join(problems))
+    return spec
+
+
+def plan_problems(spec: dict, name: str = "") -> list[str]:
+    """What in a table's plan would run one thing under another's name: rows, columns and metrics the
+    paper's table (the CSV) does not have or has beside them, a dataset column running another
+    dataset, a domain column other datasets than the domain's. A plan that is no table of the paper
+    (`paper` = its own `name`, as backbones) has nothing reported to pair. [] when consistent."""
+    from ..datasets import dataset_manifests
+    from ..methods.anyloc_vocabulary import vocabulary_policies
+
+    def listed(value) -> bool:
+        return isinstance(value, list) and bool(value) and all(isinstance(v, str) for v in value)
+
+    problems = []
+    metrics, columns = spec.get("metrics"), spec.get("columns", {})
+    if not listed(metrics) or not all(m[:1] == "r" and m[1:].isdigit() for m in metrics):
+        problems.append(f"metrics must be a list such as [\"r1\", \"r5\"]; got {metrics!r}")
+    if not isinstance(columns, dict) or not all(listed(d) for d in columns.values()):
+        return problems + [f"columns must map each column to a list of datasets; got {columns!r}"]
+    rows = spec.get("rows", []) if spec.get("rows_from") != "setting" else []
+    if spec.get("rows_from") == "setting" and not isinstance(spec.get("method"), str):
+        problems.append("rows_from = \"setting\" needs the method the rows run")
+    if spec.get("rows_from") != "setting" and (not isinstance(rows, list) or not rows) or \
+            not all(isinstance(r, dict) and isinstance(r.get("row"), str) for r in rows):
+        return problems + ["rows must be a list of tables, each with its row label (row = \"...\")"]
+    labels = [r["row"] for r in rows]
+    problems += [f"row {label!r} is there more than once" for label in dict.fromkeys(labels) if labels.count(label) > 1]
+    used = dict(columns)
+    for row in rows:
+        for column, where in (row.get("cells") or {}).items():
+            if not isinstance(where, dict) or not isinstance(where.get("dataset"), str):
+                problems.append(f"row {row['row']!r}: cell {column!r} needs its dataset (dataset = \"...\")")
+            elif "->" in row["row"] and where["dataset"] != row["row"].split("->")[-1]:  # vocabulary -> evaluated
+                problems.append(f"row {row['row']!r}: cell {column!r} runs {where['dataset']}")
+            else:
+                used.setdefault(column, [where["dataset"]])
+        if not row.get("cells") and not columns:
+            problems.append(f"row {row['row']!r} has no columns (the table's columns, or cells of its own)")
+    domains = {domain: {d for d, _ in members} for domain, members in vocabulary_policies()["domains"].items()}
+    for column, datasets in columns.items():
+        if column in dataset_manifests() and datasets != [column]:
+            problems.append(f"column {column!r} runs {', '.join(datasets)}: a dataset's column runs that dataset only")
+        elif column in domains and set(datasets) != domains[column]:
+            problems.append(f"column {column!r} runs {', '.join(datasets)}; the {column} domain is "
+                            f"{', '.join(sorted(domains[column]))}")
+    reported = paper_results()
+    reported = reported[reported["table"] == spec.get("paper")]
+    if not len(reported) and spec.get("paper") != name:
+        tables = list(dict.fromkeys(paper_results()["table"]))
+        problems.append(f"paper = {spec.get('paper')!r} is no table of the paper's reported numbers."
+                        f"{closest_names(str(spec.get('paper')), tables)} (Tables: {', '.join(tables)}.)")
+    if not len(reported) or problems:
+        return problems
+    extras = spec.get("reported_columns", [])
+    for what, planned, paper in (
+            ("row", set(labels) if rows else set(reported["row"]), set(reported["row"])),
+            ("column", set(used) | set(extras), set(reported["column"])),
+            ("metric", set(metrics) | set(extras), set(reported["metric"]))):
+        problems += [f"{what} {item!r} is not in the paper's table {spec['paper']}.{closest_names(item, paper)}"
+                     for item in sorted(planned - paper)]
+        problems += [f"the paper's table {spec['paper']} has {what} {item!r}, which the plan leaves out"
+                     for item in sorted(paper - planned)]
+    return problems
 
 
 def _rows(spec: dict) -> list[dict]:
@@ -168,6 +237,16 @@ def vocabulary_for(cell: Cell, cache_dir=None, given: dict | None = None) -> Nee
     return (f"vocabulary {name!r} for {method.backbone} layer {method.layer} {method.facet} c{method.clusters}",
             f"run 'vprbench vocabulary fit --domain {name} --method {cell.spec.method} --backbone {method.backbone} "
             f"--layer {method.layer}{where}'")
+
+
+class PaperRecords(StoredRecords):
+    """Stored records as the paper's cells take them: a cell whose vocabulary is not here has none (a
+    run without it fell back to the map's vocabulary, under the same spec, and is not the paper's run)."""
+
+    def record(self, spec, options: dict | None = None) -> dict | None:
+        if vocabulary_for(Cell(spec), self.settings.cache_dir) is not None:
+            return None
+        return super().record(spec, options)
 
 
 def missing_for(cell: Cell, row_weights, data_dir=None, cache_dir=None, given: dict | None = None) -> list[Need]:
