@@ -77,7 +77,7 @@ def test_a_fixed_input_size_must_be_a_multiple_of_the_patch_for_timms_embedding(
             'input_size = [224, 298]\ninterpolation = "bilinear"\nfacets = ["token"]\npreprocess = "x"\n'
             'cls = "final-norm"\nnormalise_patches = "always"\nlicence = "x"\ngated = false\npage = "https://x"\n'
             '[[backbone]]\nname = "x"\ntimm = "vit_small_patch16_224"\ndepth = 12\nwidth = 384\nhub = "timm/x"\n')
-    with pytest.raises(VPRBenchError, match=r"Backbone manifest bad.toml, entry 'x': entry: Value error, input_size "
+    with pytest.raises(VPRBenchError, match=r"Backbone manifest bad.toml, entry 'x': input_size "
                                             r"224 x 298 is not a multiple of the patch 16"):
         _entries(text, "bad.toml")
     assert _entries(text.replace("298", "304"), "good.toml")[0].input_size == (224, 304)

@@ -13,7 +13,7 @@ import re
 import tomllib
 from functools import cache
 from importlib.resources import files
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -24,6 +24,15 @@ TIMM_PREFIX = "timm:"
 #: a timm model name: an architecture (letters, digits, '_'), then optionally '.' and a weights tag
 TIMM_NAME = re.compile(r"[A-Za-z0-9_]+(\.[A-Za-z0-9_-]+)?")
 IMAGENET = ((0.485, 0.456, 0.406), (0.229, 0.224, 0.225))
+#: timm keywords that load weights or replace the head: the one resolver loads weights, and
+#: `--weights random` must stay random (timm would download the pretrained file itself)
+TIMM_RESERVED = {"pretrained", "pretrained_cfg", "pretrained_cfg_overlay", "pretrained_strict", "checkpoint_path",
+                 "cache_dir", "num_classes", "features_only"}
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+#: counts and flags as TOML writes them (strict: `patch = true` or `gated = "no"` is no value of theirs)
+Count = Annotated[int, Field(strict=True, gt=0)]
+Flag = Annotated[bool, Field(strict=True)]
 
 
 class BackboneEntry(BaseModel):
@@ -31,35 +40,35 @@ class BackboneEntry(BaseModel):
 
     name: str = Field(pattern=r"^[A-Za-z0-9_.:-]+$")
     family: str
-    timm: str                         # timm architecture
-    tag: str = ""                     # timm weights tag (the pretrained config)
-    patch: int = Field(gt=0)
-    cls_token: bool
-    registers: int = Field(ge=0)
+    timm: str = Field(pattern=r"^[A-Za-z0-9_]+$")  # timm architecture
+    tag: str = Field("", pattern=r"^[A-Za-z0-9_-]*$")  # timm weights tag (the pretrained config)
+    patch: Count
+    cls_token: Flag
+    registers: int = Field(strict=True, ge=0)
     position: Literal["learned", "rope"]
     #: "dino": the official DINO/DINOv2 bicubic resampling of learned embeddings ((grid + 0.1) / M);
     #: "timm": the model's own (timm's `_pos_embed`, run through `forward_intermediates`)
     position_interpolation: Literal["dino", "timm"]
-    depth: int = Field(gt=0)
-    width: int = Field(gt=0)
-    mean: tuple[float, float, float]
-    std: tuple[float, float, float]
+    depth: Count
+    width: Count
+    mean: tuple[Finite, Finite, Finite]
+    std: tuple[Positive, Positive, Positive]
     #: "crop": centre crop to a multiple of the patch; "fixed": interpolate to `input_size`
     resize: Literal["crop", "fixed"]
-    input_size: tuple[int, int] | None = None
+    input_size: tuple[Count, Count] | None = None
     interpolation: Literal["bilinear", "nearest", "bicubic"]
     facets: tuple[Literal["token", "query", "key", "value"], ...]
     preprocess: str                   # the preprocessing's name in fingerprints
-    stride: int | None = None         # default stride of the patch embedding (None: the patch)
+    stride: Count | None = None       # default stride of the patch embedding (None: the patch)
     channels: Literal["thirds", "head-interleaved"] = "thirds"
     cls: Literal["final-norm", "layer", "none"]
     normalise_patches: Literal["always", "vlad"]
-    licence: str
-    gated: bool
-    page: str
-    url: str | None = None            # the authors' release file (official format)
-    sha256: str | None = None         # only when the authors publish one
-    hub: str | None = None            # Hugging Face hub repository (timm format, model.safetensors)
+    licence: str = Field(min_length=1)
+    gated: Flag
+    page: str = Field(pattern=r"^https://\S+$")
+    url: str | None = Field(None, pattern=r"^https://\S+/[^/\s]+$")  # the authors' release file (official format)
+    sha256: str | None = Field(None, pattern=r"^[0-9a-fA-F]{64}$")  # only when the authors publish one
+    hub: str | None = Field(None, pattern=r"^[A-Za-z0-9_.-]+/[A-Za-z0-9_.-]+$")  # Hugging Face hub repository
     #: keyword arguments timm's constructor needs (e.g. dynamic_img_size for any input size)
     timm_kwargs: dict[str, bool | int | float | str] = Field(default_factory=dict)
     #: the precision the release keeps its RoPE periods in (DINOv3: bfloat16; timm computes float32)
@@ -76,6 +85,15 @@ class BackboneEntry(BaseModel):
             raise ValueError("cls = 'final-norm' needs a CLS token")
         if self.url is None and self.hub is None:
             raise ValueError("give a weight source: url (the release) or hub (a Hugging Face repository)")
+        if self.stride is not None and self.patch % self.stride:
+            raise ValueError(f"stride {self.stride} does not divide the patch {self.patch}; give a divisor of it")
+        if "token" not in self.facets or len(set(self.facets)) != len(self.facets):
+            raise ValueError(f"facets {list(self.facets)}: list each facet once, 'token' among them "
+                             "(every ViT gives it)")
+        reserved = sorted(TIMM_RESERVED & set(self.timm_kwargs))
+        if reserved:
+            raise ValueError(f"timm_kwargs {', '.join(reserved)}: vprbench loads the weights itself (the resolver, "
+                             "or random); leave them out")
         return self
 
     @property
@@ -105,7 +123,10 @@ class BackboneEntry(BaseModel):
 
 
 def _entries(text: str, origin: str) -> list[BackboneEntry]:
-    data = tomllib.loads(text)
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise VPRBenchError(f"Backbone manifest {origin} is not valid TOML ({error}); fix it.") from None
     defaults = data.get("family", {})
     found = []
     for raw in data.get("backbone", []):
@@ -113,8 +134,9 @@ def _entries(text: str, origin: str) -> list[BackboneEntry]:
             found.append(BackboneEntry(**{**defaults, **raw}))
         except ValidationError as error:
             first = error.errors()[0]
+            where = f"{'.'.join(map(str, first['loc']))}: " if first["loc"] else ""  # a model check has no field
             raise VPRBenchError(f"Backbone manifest {origin}, entry {raw.get('name', '?')!r}: "
-                                f"{'.'.join(map(str, first['loc'])) or 'entry'}: {first['msg']}.") from None
+                                f"{where}{first['msg'].removeprefix('Value error, ')}.") from None
     return found
 
 
@@ -192,6 +214,13 @@ def timm_entry(arch_tag: str) -> BackboneEntry:
     has_cls = getattr(model, "cls_token", None) is not None
     prefix = int(getattr(model, "num_prefix_tokens", int(has_cls)))
     hub = cfg.get("hf_hub_id") or None
+    tag = tag or str(cfg.get("tag") or "")  # the weights timm resolves to, named in records
+    # the same weights as a shipped entry: its licence and gating (read from the model card), which
+    # timm's config does not carry (DINOv3's timm copies are gated too)
+    shipped = next((e for e in backbones().values() if (e.timm, e.tag) == (arch, tag) or (hub and e.hub == hub)), None)
+    access = {"licence": shipped.licence, "gated": shipped.gated, "page": shipped.page} if shipped else {
+        "licence": str(cfg.get("license") or "see the model card"), "gated": False,
+        "page": f"https://huggingface.co/{hub}" if hub else "https://github.com/huggingface/pytorch-image-models"}
     return BackboneEntry(
         name=TIMM_PREFIX + arch_tag, family="timm", timm=arch, tag=tag, patch=int(embed.patch_size[0]),
         cls_token=has_cls, registers=prefix - int(has_cls),
@@ -201,7 +230,6 @@ def timm_entry(arch_tag: str) -> BackboneEntry:
         resize="crop", interpolation="bilinear", facets=("token", "query", "key", "value") if has_qkv else ("token",),
         preprocess="crop-to-patch", cls="final-norm" if has_cls else "none", normalise_patches="always",
         timm_kwargs={"dynamic_img_size": True} if hasattr(model, "dynamic_img_size") else {},
-        licence=str(cfg.get("license") or "see the model card"), gated=False,
-        page=f"https://huggingface.co/{hub}" if hub else "https://github.com/huggingface/pytorch-image-models",
-        url=None if hub else (cfg.get("url") or None), hub=hub or (None if cfg.get("url") else f"timm/{arch_tag}"),
+        **access, url=None if hub else (cfg.get("url") or None),
+        hub=hub or (None if cfg.get("url") else f"timm/{arch_tag}"),
     )

@@ -73,6 +73,12 @@ class DenseExtractor(nn.Module):
                 f"Layer {layer!r} is out of range for {spec.name}: it has {depth} blocks, "
                 f"valid layers are 0..{depth - 1} (0-based)."
             )
+        attn = getattr(model.blocks[layer], "attn", None)
+        if facet != "token" and not (attn is not None and (getattr(attn, "qkv", None) is not None
+                                                           or getattr(attn, "q_proj", None) is not None)):
+            # a manifest may list q/k/v for an attention kind without them (parallel blocks)
+            raise VPRBenchError(f"Facet {facet!r}: block {layer} of {spec.name} ({type(model.blocks[layer]).__name__}) "
+                                "has no separate query/key/value projection; use facet token.")
         self.model, self.spec, self.layer, self.facet = model, spec, layer, facet
         keep_freed_memory()  # every block's tensors reuse the last one's memory
         self.stride = stride or spec.patch
