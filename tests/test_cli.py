@@ -186,3 +186,26 @@ def test_the_cli_answers_without_importing_heavy_libraries():
     done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "[]", done.stdout
+
+
+def test_summary_counts_one_query_in_the_singular(capsys, shared_data, tmp_path):
+    own = tmp_path / "mydata"  # own-data.md's example: two database images, one query
+    for split, folder, names in (("database", "ref", ("0000000", "0000050")), ("queries", "query", ("0000000",))):
+        (own / split).mkdir(parents=True)
+        for name in names:
+            shutil.copyfile(shared_data / "corridor" / folder / f"{name}.jpg", own / split / f"{name}.jpg")
+    (own / "positions.csv").write_text("image,x,y\ndatabase/0000000.jpg,0,0\ndatabase/0000050.jpg,100,0\n"
+                                       "queries/0000000.jpg,1,0\n")
+    code, out, err = run(capsys, "evaluate", "--method", "hog", "--resize", "32", "32", "--dataset", str(own), "--k", "1")
+    assert code == 0, err
+    assert "2 database, 1 query (0 without positives" in " ".join(out.split()), out  # the caption wraps
+
+
+def test_every_leaderboard_option_is_explained_in_its_help():
+    import argparse
+
+    from vprbench.cli.main import build_parser
+
+    commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    unexplained = [a.option_strings for a in commands.choices["leaderboard"]._actions if a.option_strings and not a.help]
+    assert unexplained == []

@@ -131,6 +131,19 @@ def test_bad_plan_lists_every_problem_with_lines_and_runs_nothing(tmp_path, caps
     assert main(["run", str(plan)]) == 1 and "not valid TOML" in capsys.readouterr().err
 
 
+def test_bad_k_search_and_store_dtype_of_a_plan_are_listed_with_the_rest_at_their_lines(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "1000")
+    plan = tmp_path / "bad.toml"
+    plan.write_text('name = "bad"\nk = [1, 0]\nsearch = { index = "foo" }\nstore_dtype = "int8"\n\n'
+                    '[[methods]]\nname = "hogg"\n\n[[datasets]]\nname = "corridor"\n')
+    assert main(["run", str(plan)]) == 1
+    err = " ".join(capsys.readouterr().err.split())
+    for expected in ("4 problem(s)", "bad.toml:2: --k (ks) takes whole numbers >= 1", "got 1 0",
+                     "bad.toml:3: --index takes one of exact, ivf-pq, hnsw; got 'foo'",
+                     "bad.toml:4: --store-dtype takes one of float32, float16; got 'int8'", "bad.toml:7: unknown method 'hogg'"):
+        assert expected in err, err
+
+
 def test_evaluate_matrix_continues_past_a_failing_cell(shared_data, tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("COLUMNS", "1000")
     code = main(["evaluate", "--method", "hog", "--dataset", "corridor", "hawkins", "--data-dir", str(shared_data),

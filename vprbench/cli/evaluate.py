@@ -150,7 +150,7 @@ def results_table(record: dict):
     computed = record["descriptors_computed"]
     table.caption = (
         f"R@K and R@100%P in percent, AUC-PR and max F1 from 0 to 1; {counts['database']} database, "
-        f"{counts['queries']} queries "
+        f"{plural(counts['queries'], 'query')} "
         f"({counts['queries_without_positives']} without positives, counted as failures); "
         f"dim {record['descriptor_dim']}" + (f" ({size} bytes as stored)" if (size := descriptor_bytes(record)) else "")
         + f"; descriptors computed now: {computed['database'] + computed['queries']}; "

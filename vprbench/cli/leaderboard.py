@@ -15,7 +15,8 @@ def add_parsers(commands) -> None:
     p = commands.add_parser("leaderboard", help="leaderboard of all evaluations: show, publish to the docs, compare two methods")
     p.add_argument("action", nargs="?", choices=("show", "publish", "compare"), default="show")
     p.add_argument("methods", nargs="*", metavar="METHOD", help="with 'compare': the two method rows to compare")
-    p.add_argument("--format", choices=FORMATS, default="table")
+    p.add_argument("--format", choices=FORMATS, default="table",
+                   help="with 'show': how the table is printed (default table; csv and json for other tools)")
     p.add_argument("--to", type=path_argument, help="with 'publish': the docs folder; the section goes to <folder>/leaderboard/")
     p.add_argument("--dataset", help="with 'compare': the dataset both were run on")
     p.add_argument("--k", type=int, help="with 'compare': the K of Recall@K compared (default 1)")

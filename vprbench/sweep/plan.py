@@ -33,7 +33,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import ProblemList, VPRBenchError, closest_names
-from ..spec import RUN_SETTINGS, RunSettings, RunSpec, resolve_spec, split_run_settings
+from ..spec import (RUN_SETTINGS, STORE_DTYPES, RunSettings, RunSpec, _choice, check_ks, resolve_search, resolve_spec,
+                    split_run_settings)
 from ..text import one_line, toml_data
 
 PLAN_KEYS = {"name", "description", "k", "methods", "datasets", "search", "store_dtype", "stages"}
@@ -119,6 +120,12 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, overrides:
         problems.append(f"{where('', 0, key)}: unknown key {key!r}{closest_names(key, PLAN_KEYS)} (allowed: {', '.join(sorted(PLAN_KEYS))})")
     shared = {"ks": overrides.get("k") or data.get("k"), "search": overrides.get("search") or data.get("search"),
               "store_dtype": overrides.get("store_dtype") or data.get("store_dtype", "float32")}
+    for key, check in (("k", lambda: check_ks(shared["ks"])), ("search", lambda: resolve_search(shared["search"])),
+                       ("store_dtype", lambda: _choice("--store-dtype", shared["store_dtype"], STORE_DTYPES))):
+        try:  # with the other problems, at its own line (not each cell's, after them)
+            check()
+        except VPRBenchError as error:
+            problems.append(f"{where('', 0, key)}: {error}")
 
     methods, known_methods = [], available_methods()
     for i, entry in enumerate(_entries(data, "methods", problems, where)):
