@@ -167,3 +167,16 @@ def netvlad_vgg16(
     fingerprint = {"architecture": name, "backbone": "vgg16", "dim": dim, "clusters": CLUSTERS,
                    "training": train_set, **identity}
     return TorchMethod(net, preprocess, fingerprint, batch_size=batch_size, device=device, precision=precision, dim=dim)
+
+
+def _vgg16_resize(options: dict) -> dict:
+    """netvlad_vgg16's `implied_options`: the size an unset resize stands for (full resolution for the
+    32768-d model, Patch-NetVLAD's 480 x 640 for the WPCA ones), so writing it out is the same run."""
+    try:
+        full = int(options.get("dim", 4096)) == FULL_DIM
+    except (TypeError, ValueError):  # a bad dim: the factory names it
+        return {}
+    return {"resize": "native" if full else [480, 640]}
+
+
+netvlad_vgg16.implied_options = _vgg16_resize

@@ -292,3 +292,15 @@ def test_resize_native_written_out_is_the_run_left_unset(method):
     native, unset = resolve_spec(method, "corridor", options={"resize": "native"}), resolve_spec(method, "corridor")
     assert (native.key, native.row_key, native.given) == (unset.key, unset.row_key, unset.given)
     assert resolve_spec(method, "corridor", options={"resize": [224, 224]}).key != unset.key
+
+
+def test_netvlad_vgg16s_unset_resize_written_out_is_the_same_run():
+    """Before: `--resize 480 640` on the WPCA models (their default) and `resize=native` on the 32768-d one
+    (full resolution by default) each made a second row of the same numbers."""
+    from vprbench.spec import resolve_spec
+
+    def key(**options):
+        return resolve_spec("netvlad-vgg16", "corridor", options=options).key
+
+    assert key(resize=[480, 640]) == key() != key(resize="native")
+    assert key(dim=32768, resize="native") == key(dim=32768) != key(dim=32768, resize=[480, 640])
