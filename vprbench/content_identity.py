@@ -34,6 +34,8 @@ def value_identity(option: str, value, cache_dir=None) -> str | None:
     for a name, but `weights` take no names ('random' aside, which no folder is): a bare word naming a
     folder is that folder (weights.local_weights loads the release's file from it), as for a file the
     word is kept."""
+    if option == "weights" and value == "random":  # random initialisation whatever the working directory holds
+        return None
     return file_identity(value) or folder_identity(value, cache_dir, bare_word=option == "weights")
 
 

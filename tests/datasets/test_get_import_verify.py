@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -272,3 +273,17 @@ def test_top_k_csv_refuses_indices_that_are_not_whole_numbers(tmp_path, make_ima
     (root / "gt_matches.csv").write_text(header + "\n" + "\n".join(rows) + "\n")
     with pytest.raises(VPRBenchError, match=rf"gt_matches.csv: .*{shown}"):
         load_dataset("nardo-air", tmp_path).positives
+
+
+@pytest.mark.parametrize("query", [[5, 9], [5], []])
+def test_vpr_bench_rows_refuse_a_query_cell_holding_a_list(tmp_path, make_images, query):
+    # a list there was read as its first number: row [5, 9] became query 5's, 9 dropped in silence
+    root = tmp_path / "corridor"
+    make_images(root / "ref", [f"{i:07d}.jpg" for i in range(111)])
+    make_images(root / "query", [f"{i:07d}.jpg" for i in range(111)])
+    rows = np.empty((111, 2), dtype=object)
+    for i in range(111):
+        rows[i, 0], rows[i, 1] = (query if i == 5 else i), [i]
+    np.save(root / "ground_truth_new.npy", rows, allow_pickle=True)
+    with pytest.raises(VPRBenchError, match=re.escape(f"{query!r} is not a query index (one whole number)")):
+        load_dataset("corridor", tmp_path)

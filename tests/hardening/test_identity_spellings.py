@@ -67,6 +67,13 @@ def test_weights_in_a_folder_named_by_a_bare_word_are_known_by_its_files(tmp_pat
         assert spec.files["weights"].startswith("ckpt@folder:")
         rows.append((spec.key, spec.row_key))
     assert rows[0] != rows[1] and rows[0] == rows[2]  # other bytes: another run; the same bytes elsewhere: the same
+    # 'random' is random initialisation, never a folder or file of that name the working directory holds
+    plain = resolve_spec("anyloc", "corridor", options={**TINY, "aggregation": "gem"}, cache_dir=tmp_path / "cache")
+    for made in ("random", "random/notes.txt"):
+        (tmp_path / "one" / made).mkdir() if made == "random" else (tmp_path / "one" / made).write_text("notes")
+        monkeypatch.chdir(tmp_path / "one")
+        spec = resolve_spec("anyloc", "corridor", options={**TINY, "aggregation": "gem"}, cache_dir=tmp_path / "cache")
+        assert ("weights" not in spec.files, spec.key, spec.row_key) == (True, plain.key, plain.row_key)
 
 
 def test_an_evaluation_refuses_anylocs_dataset_option_naming_another_dataset():

@@ -35,6 +35,8 @@ def read_positive_lists(path: Path, n_queries: int) -> list[np.ndarray]:
     lists: list[np.ndarray | None] = [None] * n_queries
     try:
         for query, positives in rows[:, :2]:
+            if isinstance(query, (list, tuple)) or getattr(query, "ndim", 0):  # else read as its first number
+                raise ValueError(f"{query!r} is not a query index (one whole number)")
             query = int(as_indices(query)[0])
             # a query without its row would be scored as a failure, unseen; -1 would wrap to the last
             if not 0 <= query < n_queries:
