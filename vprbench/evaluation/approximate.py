@@ -68,8 +68,9 @@ def index_options(kind: str, n: int, dim: int, k: int, given: dict | None) -> di
                 f"({POINTS_PER_CENTROID} per list x nlist={o['nlist']}) and PQ codebooks ({POINTS_PER_CENTROID} x "
                 f"{PQ_CENTROIDS} centroids); this database has {n:,}: use index='exact'.")
         if int(given.get("nprobe", 0)) > int(o["nlist"]):  # probed as nlist: another name for that run
-            raise VPRBenchError(f"nprobe = {given['nprobe']} exceeds the index's {o['nlist']} lists (nlist): give "
-                                f"nprobe <= {o['nlist']}.")
+            chosen = "" if "nlist" in given else f", chosen for {n:,} database rows"  # a sweep's smaller datasets
+            raise VPRBenchError(f"nprobe = {given['nprobe']} exceeds the index's {o['nlist']} lists (nlist{chosen}): "
+                                f"give nprobe <= {o['nlist']}.")
         o["nprobe"] = min(int(o["nprobe"]), int(o["nlist"]))
         o["train_rows"] = int(given.get("train_rows", min(n, max(least, 64 * int(o["nlist"])))))
         if not least <= o["train_rows"] <= n:
