@@ -1,4 +1,5 @@
 import argparse
+import re
 
 import numpy as np
 import pytest
@@ -127,3 +128,24 @@ def test_a_named_vocabulary_that_is_no_domain_is_not_told_to_fit_one(tmp_path):
     assert "--domain urbn" not in said and "\n" not in said
     with pytest.raises(VPRBenchError, match=r"Fit it with `vprbench vocabulary fit --domain urban \.\.\.`"):
         resolve_vocabulary("urban", "dinov2_vits14", 9, "value", 4, tmp_path)
+
+
+def test_fit_logs_its_progress_and_quiet_logs_none(shared_data, monkeypatch, capsys):
+    """Describing the images is most of a fit: a batch job's log counts them, then the k-means says it is alive."""
+    import vprbench.methods as methods
+    from vprbench import progress
+
+    monkeypatch.setattr(progress, "LOG_INTERVAL_S", 0.0)  # a line at every image
+    monkeypatch.setattr(methods, "create_method", lambda name, **kw: FakeMethod(**kw))
+    argv = ["vocabulary", "fit", "--dataset", "corridor", "--method", "fake", "--clusters", "2", "--budget", "500",
+            "--data-dir", str(shared_data)]
+    assert run(parse(*argv)) == 0
+    err = capsys.readouterr().err.splitlines()
+    counted = [line for line in err if line.startswith("progress: vocabulary map-corridor images ")]
+    assert counted[0].startswith("progress: vocabulary map-corridor images 1/111 (1 %)"), err
+    assert counted[-1].startswith("progress: vocabulary map-corridor images done 111/111 (100 %)"), err
+    assert len(counted) == 111  # one line per image, the last one saying done
+    others = {re.sub(r", \d+ s elapsed| done in \d+ s", "", line) for line in err if line not in counted}
+    assert others <= {"progress: vocabulary map-corridor k-means (2 clusters, 500 features)"}, others
+    assert run(parse(*argv, "--quiet")) == 0
+    assert capsys.readouterr().err == ""

@@ -5,6 +5,7 @@ import errno as codes
 import io
 import os
 import re
+from contextlib import contextmanager
 
 
 class VPRBenchError(Exception):
@@ -40,8 +41,8 @@ def require(value, kind, what: str) -> None:
 #: errno -> what to do; {move} becomes "point --cache-dir at" (or --data-dir) when the path lies under one
 _WHAT_TO_DO = {
     codes.EROFS: "{move} a folder on a writable disk",
-    codes.ENOSPC: "free some space, or {move} a folder on another disk ({kept} are kept)",
-    codes.EDQUOT: "free some space, or {move} a folder on another disk ({kept} are kept)",
+    codes.ENOSPC: "free some space, or {move} a folder on another disk{kept}",
+    codes.EDQUOT: "free some space, or {move} a folder on another disk{kept}",
     codes.EFBIG: "the file size limit (ulimit -f) or the filesystem's largest file is reached: raise the limit, or "
                  "{move} a folder on another disk",
     codes.EACCES: "change its permissions, or {move} a folder this user may write to",
@@ -99,9 +100,27 @@ def _move(path: str | None) -> str:
     return "use"
 
 
-def os_error_message(error: OSError, path: str | os.PathLike | None = None, kept: str = "finished descriptors") -> str:
+#: what a run stopped part-way keeps (the next run resumes from it)
+DESCRIBED = "finished descriptors"
+#: what the running command keeps, said on a full disk; None: nothing partial worth naming. A command
+#: line command says it (`keeping`); the API's long work is describing.
+KEPT: dict[str, str | None] = {"what": DESCRIBED}
+
+
+@contextmanager
+def keeping(what: str | None):
+    """Within it, a full disk's advice says that `what` are kept (None: says nothing of it)."""
+    before, KEPT["what"] = KEPT["what"], what
+    try:
+        yield
+    finally:
+        KEPT["what"] = before
+
+
+def os_error_message(error: OSError, path: str | os.PathLike | None = None, kept: str | None = None) -> str:
     """One sentence for an operating-system error: the path (`path`, else the one the error is
-    about), what went wrong, what to do (on a full disk: that `kept` are kept)."""
+    about), what went wrong, what to do (on a full disk: that `kept`, else what the command keeps,
+    are kept)."""
     path = os.fspath(path) if path is not None else _path_of(error)
     where = f" {path}" if path else " a file (the system did not say which)"
     if getattr(error, "lock_file", None) or isinstance(error, TimeoutError):
@@ -112,4 +131,6 @@ def os_error_message(error: OSError, path: str | os.PathLike | None = None, kept
         number = codes.ENOTDIR  # making a folder where a file stands: the file is the problem, not a clash
     reason = os.strerror(number) if number else (str(error) or type(error).__name__)
     advice = _WHAT_TO_DO.get(number)
-    return f"Cannot use{where}: {reason}" + (f"; {advice.format(move=_move(path), kept=kept)}." if advice else ".")
+    kept = kept or KEPT["what"]
+    said = f" ({kept} are kept)" if kept else ""
+    return f"Cannot use{where}: {reason}" + (f"; {advice.format(move=_move(path), kept=said)}." if advice else ".")

@@ -205,3 +205,39 @@ def test_full_disk_while_local_features_are_kept_keeps_what_was_written(mounts, 
     assert again["stages"][0]["features_computed"] == 190 - len(kept)
     assert again["recall"] == whole["recall"] and again["top_predictions"] == whole["top_predictions"]
     assert again["per_query"] == whole["per_query"]
+
+
+def test_a_full_disk_says_what_the_failed_command_keeps(cli, shared_data, tmp_path, monkeypatch):
+    """evaluate keeps its finished descriptors; `results export` and `vocabulary import` keep nothing
+    partial. Was: every command said '(finished descriptors are kept)'."""
+    import errno
+
+    import torch
+
+    from vprbench.aggregation import Vocabulary
+
+    def full(*_):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    cache, bundle, centres = tmp_path / "cache", tmp_path / "runs.tar.gz", tmp_path / "mine.pt"
+    Vocabulary(torch.randn(3, 384)).save(centres)
+    run = ["evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", shared_data, "--cache-dir", cache,
+           "--resize", "64", "64", "--k", "1", "--quiet"]
+    with monkeypatch.context() as patched:
+        patched.setattr(os, "fsync", full)  # every atomic write flushes its file: the disk is full there
+        code, _, err = cli(*run)
+        assert code == 1 and re.fullmatch(
+            f"error: Cannot use {re.escape(str(cache))}/stores/\\S+\\.h5: No space left on device; free some space, "
+            r"or point --cache-dir at a folder on another disk \(finished descriptors are kept\)\.\n", err), err
+    assert cli(*run)[0] == 0
+    with monkeypatch.context() as patched:
+        patched.setattr(os, "fsync", full)
+        code, _, err = cli("results", "export", "--method", "hog", "--dataset", "corridor", "--to", bundle,
+                           "--cache-dir", cache)
+        assert (code, err) == (1, f"error: Cannot use {bundle}: No space left on device; free some space, or use a "
+                                  "folder on another disk. No bundle was written.\n")
+        code, _, err = cli("vocabulary", "import", centres, "--source", "urban", "--backbone", "dinov2_vits14",
+                           "--layer", "9", "--facet", "key", "--cache-dir", cache)
+        stored = cache / "vocabularies" / "dinov2_vits14-l9-key-c3" / "urban" / "vocabulary.pt"
+        assert (code, err) == (1, f"error: Cannot use {stored}: No space left on device; free some space, or point "
+                                  "--cache-dir at a folder on another disk.\n")

@@ -296,13 +296,16 @@ def vocabularies_root(cache_dir=None) -> Path:
 
 def fit_vocabulary(
     features: Iterable, clusters: int, *, exact: bool = False, budget: int = DEFAULT_BUDGET,
-    seed: int = KMEANS_SEED, meta: dict | None = None,
+    seed: int = KMEANS_SEED, meta: dict | None = None, progress=None,
 ) -> Vocabulary:
     """Fit a vocabulary on a stream of per-image (N, D) patch features.
 
     exact=True: AnyLoc's fit, k-means on every feature (memory grows with the dataset).
     exact=False: k-means on a seeded reservoir sample of at most `budget` features.
+    `progress` (vprbench.progress) shows the k-means as a phase.
     """
+    from ..progress import phase
+
     if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**32:  # numpy's seed range
         raise VPRBenchError(f"The vocabulary's seed (--seed) must be a whole number >= 0, got {seed!r}; "
                             f"the largest is {2**32 - 1}.")
@@ -317,7 +320,9 @@ def fit_vocabulary(
         for f in features:
             sampler.add(f)
         sample, seen = torch.from_numpy(sampler.sample()), sampler.seen
-    centres, iterations = kmeans_cosine(sample, clusters, seed=seed)
+    label = " ".join(filter(None, ("vocabulary", (meta or {}).get("source"))))
+    with phase(progress, f"{label} k-means ({clusters} clusters, {len(sample):,} features)"):
+        centres, iterations = kmeans_cosine(sample, clusters, seed=seed)
     info = {"clusters": clusters, "seed": seed, "exact": exact, "features_seen": int(seen),
             "features_used": int(len(sample)), "iterations": iterations}
     if not exact:

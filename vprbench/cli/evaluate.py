@@ -10,7 +10,7 @@ import io
 import json
 import sys
 
-from ..errors import VPRBenchError
+from ..errors import DESCRIBED, VPRBenchError
 from ..text import plural
 from .console import console as make_console
 from .options import (add_location_options, add_method_options, add_run_options, add_spec_options, add_sweep_options,
@@ -35,7 +35,7 @@ def add_parsers(commands) -> None:
                         "by reference, per_query.file naming the .npz saved beside it")
     p.add_argument("--inline-arrays", action="store_true",
                    help="with --json: print the per-query arrays inline as lists instead (large: queries x K)")
-    p.set_defaults(run=run_evaluate)
+    p.set_defaults(run=run_evaluate, kept=DESCRIBED)
 
     p = commands.add_parser("describe", help="write global descriptors of images to a .npy file, in input order")
     add_method_options(p)
@@ -49,7 +49,7 @@ def add_parsers(commands) -> None:
                         "(without it, PCA is fitted on the images described)")
     p.add_argument("--dataset", help="apply this dataset's per-method settings (e.g. AnyLoc's resize and vocabulary)")
     add_location_options(p)
-    p.set_defaults(run=run_describe)
+    p.set_defaults(run=run_describe, kept=DESCRIBED)
 
 
 def run_evaluate(args) -> int:

@@ -7,7 +7,7 @@ import sys
 import warnings
 
 from .. import __version__
-from ..errors import ProblemList, VPRBenchError, os_error_message
+from ..errors import KEPT, ProblemList, VPRBenchError, keeping, os_error_message
 from . import datasets, evaluate, leaderboard, methods, reproduce, results, run, stages, vocabulary
 from ..text import one_line
 from .console import console, styled
@@ -54,13 +54,19 @@ def print_error(message: str, lines: bool = False) -> None:
 
 def out_of_memory(error: BaseException) -> str:
     found = str(error).strip().splitlines()
+    kept = f"; {KEPT['what']} are kept" if KEPT["what"] else ""
     return (f"Out of memory ({found[-1] if found else type(error).__name__}). Lower --batch-size or the image size "
-            "(--resize, a stage's resize), or run on a machine with more memory; finished descriptors are kept.")
+            f"(--resize, a stage's resize), or run on a machine with more memory{kept}.")
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     warnings.formatwarning = warning_format()
+    with keeping(getattr(args, "kept", None)):  # a command that resumes declares what it keeps (set_defaults)
+        return _run(args)
+
+
+def _run(args) -> int:
     try:
         return args.run(args)
     except VPRBenchError as error:
@@ -86,7 +92,8 @@ def main(argv=None) -> int:
                     "the path in full, or ~/... for your own home folder.")
         return 1
     except KeyboardInterrupt:
-        print("interrupted; finished descriptors are kept and the next run resumes", file=sys.stderr)
+        kept = f"; {KEPT['what']} are kept and the next run resumes" if KEPT["what"] else ""
+        print(f"interrupted{kept}", file=sys.stderr)
         return 130
 
 

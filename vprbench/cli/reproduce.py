@@ -3,6 +3,7 @@ from __future__ import annotations
 
 
 from .console import console as make_console
+from ..errors import DESCRIBED
 from .options import (add_location_options, add_method_flags, add_run_options, add_spec_options, add_sweep_options,
                       method_options, path_argument, progress, resolve_locations, run_settings, spec_overrides)
 
@@ -18,7 +19,7 @@ def add_parsers(commands) -> None:
     add_run_options(p)
     add_sweep_options(p)
     add_location_options(p)
-    p.set_defaults(run=run_reproduce)
+    p.set_defaults(run=run_reproduce, kept=DESCRIBED)
 
 
 def refuse_changes(args) -> None:

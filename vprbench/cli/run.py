@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from .console import console
+from ..errors import DESCRIBED
 from .options import (add_location_options, add_method_flags, add_run_options, add_spec_options, add_sweep_options,
                       explicit_run_options, method_options, progress, resolve_locations, run_settings,
                       spec_overrides)
@@ -15,7 +16,7 @@ def add_parsers(commands) -> None:
     add_run_options(p)
     add_sweep_options(p)
     add_location_options(p)
-    p.set_defaults(run=run_plan)
+    p.set_defaults(run=run_plan, kept=DESCRIBED)
 
 
 def run_plan(args) -> int:

@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 
 from .console import console
+from ..errors import DESCRIBED
 from .options import (add_location_options, add_method_options, add_run_options, method_options, output_file,
                       progress, resolve_locations, run_settings)
 
@@ -27,7 +28,7 @@ def add_parsers(commands) -> None:
     p.add_argument("--out", required=True, type=output_file(".h5", ".hdf5"), help="output .h5 file")
     add_run_options(p)
     add_location_options(p)
-    p.set_defaults(run=run_export)
+    p.set_defaults(run=run_export, kept=DESCRIBED)
 
 
 def run_list(args) -> int:

@@ -11,7 +11,8 @@ import re
 # The vocabulary machinery (torch) is imported by each subcommand, so `vprbench --help` answers at once.
 from ..errors import VPRBenchError
 from .console import say
-from .options import add_location_options, add_method_options, method_options, output_file, path_argument, resolve_locations
+from .options import (add_location_options, add_method_options, method_options, output_file, path_argument, progress,
+                      resolve_locations)
 
 
 def add_parsers(commands) -> None:
@@ -26,6 +27,8 @@ def add_parsers(commands) -> None:
     p.add_argument("--exact", action="store_true", help="the authors' fit on every patch (memory grows with the data)")
     p.add_argument("--seed", type=int, default=42)
     p.add_argument("--output", type=output_file(), help="also write the vocabulary file here")
+    p.add_argument("--quiet", action="store_true",
+                   help="no progress (without a terminal, progress is a line to stderr at most every 30 s)")
     add_location_options(p)
     add_method_options(p)
     p.set_defaults(run=run_fit)
@@ -87,17 +90,18 @@ def run_fit(args) -> int:
     setting = {"backbone": backbone, "layer": method.layer, "facet": method.facet}
     common = {"exact": args.exact, "budget": DEFAULT_BUDGET if args.budget is None else args.budget, "seed": args.seed, "meta": dict(setting)}
     data_dir = args.data_dir
-    if args.domain is not None:  # '' is an unknown domain, not a map-specific fit
-        size = domain_image_size()
-        vocabulary = fit_domain_vocabulary(
-            args.domain, lambda paths: method.iter_patch_features(paths, resize=size), clusters,
-            data_dir=data_dir, **common)
-        source = args.domain
-    else:
-        vocabulary = fit_map_vocabulary(
-            args.dataset, lambda paths: method.iter_patch_features(paths, resize=None), clusters,
-            data_dir=data_dir, **common)
-        source = f"{MAP_PREFIX}{args.dataset}"
+    with progress(args) as shown:
+        if args.domain is not None:  # '' is an unknown domain, not a map-specific fit
+            size = domain_image_size()
+            vocabulary = fit_domain_vocabulary(
+                args.domain, lambda paths: method.iter_patch_features(paths, resize=size), clusters,
+                data_dir=data_dir, progress=shown, **common)
+            source = args.domain
+        else:
+            vocabulary = fit_map_vocabulary(
+                args.dataset, lambda paths: method.iter_patch_features(paths, resize=None), clusters,
+                data_dir=data_dir, progress=shown, **common)
+            source = f"{MAP_PREFIX}{args.dataset}"
     path = save_to_cache(vocabulary, source=source, **setting, cache_dir=args.cache_dir)
     print(f"Vocabulary {source}: {vocabulary.clusters} x {vocabulary.dim}, "
           f"{vocabulary.meta['features_used']} of {vocabulary.meta['features_seen']} features -> {path}")

@@ -15,7 +15,7 @@ import tomllib
 from functools import cache
 from importlib.resources import files
 from pathlib import Path
-from typing import Callable, Iterable, Sequence
+from typing import Callable, Iterable, Iterator, Sequence
 
 from ..aggregation.vocabulary import (
     DEFAULT_BUDGET, KMEANS_SEED, RELEASED_FILE, VOCABULARY_FILE, Vocabulary, fit_vocabulary, load_vocabulary,
@@ -201,27 +201,42 @@ def _load_all(pairs: list[tuple[str, int]], data_dir) -> list[tuple[str, list[Pa
 
 def fit_domain_vocabulary(
     domain: str, extract: Extractor, clusters: int, *, data_dir=None, exact: bool = False,
-    budget: int = DEFAULT_BUDGET, seed: int = KMEANS_SEED, meta: dict | None = None,
+    budget: int = DEFAULT_BUDGET, seed: int = KMEANS_SEED, meta: dict | None = None, progress=None,
 ) -> Vocabulary:
     """Fit AnyLoc's vocabulary of a domain (indoor, urban, aerial, ..., structured, global).
 
-    `extract` must produce features of images resized to `domain_image_size()`.
+    `extract` must produce features of images resized to `domain_image_size()`; `progress`
+    (vprbench.progress) counts the images described, then shows the k-means.
     """
     loaded = _load_all(domain_datasets(domain), data_dir)
     paths = [path for _, images in loaded for path in images]
     sources = {name: len(images) for name, images in loaded}
     info = {**(meta or {}), "source": domain, "datasets": sources, "image_size": list(domain_image_size())}
-    return fit_vocabulary(extract(paths), clusters, exact=exact, budget=budget, seed=seed, meta=info)
+    return fit_vocabulary(_counted(extract(paths), len(paths), domain, progress), clusters, exact=exact,
+                          budget=budget, seed=seed, meta=info, progress=progress)
 
 
 def fit_map_vocabulary(
     dataset: str, extract: Extractor, clusters: int, *, data_dir=None, exact: bool = False,
-    budget: int = DEFAULT_BUDGET, seed: int = KMEANS_SEED, meta: dict | None = None,
+    budget: int = DEFAULT_BUDGET, seed: int = KMEANS_SEED, meta: dict | None = None, progress=None,
 ) -> Vocabulary:
-    """Fit a map-specific vocabulary on the dataset's own database images (distractors left out)."""
+    """Fit a map-specific vocabulary on the dataset's own database images (distractors left out);
+    `progress` as for `fit_domain_vocabulary`."""
     (name, images), = _load_all([(dataset, map_stride(dataset))], data_dir)
     info = {**(meta or {}), "source": f"{MAP_PREFIX}{name}", "datasets": {name: len(images)}}
-    return fit_vocabulary(extract(images), clusters, exact=exact, budget=budget, seed=seed, meta=info)
+    return fit_vocabulary(_counted(extract(images), len(images), info["source"], progress), clusters, exact=exact,
+                          budget=budget, seed=seed, meta=info, progress=progress)
+
+
+def _counted(features: Iterable, total: int, source: str, progress) -> Iterator:
+    """`features`, one image's at a time, counted as images described (describing is most of a fit)."""
+    if progress is None:
+        yield from features
+        return
+    task = progress.add_task(f"vocabulary {source} images", total=total)
+    for found in features:
+        yield found
+        progress.advance(task)
 
 
 def find_vocabulary(source: str, backbone: str, layer: int, facet: str, clusters: int, cache_dir=None) -> Vocabulary | None:
