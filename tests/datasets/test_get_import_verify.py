@@ -233,8 +233,12 @@ def test_positive_lists_refuse_indices_that_are_not_whole_numbers(gardens, save_
         load_dataset("gardens-point", gardens.parent).positives
 
 
-@pytest.mark.parametrize("query", [5.5, "5"])
-def test_vpr_bench_rows_refuse_a_query_index_that_is_not_a_whole_number(tmp_path, make_images, query):
+@pytest.mark.parametrize("query, said", [
+    (5.5, "5.5 is not an image index"), ("5", "'5' is not an image index"),
+    # a list there was read as its first number: row [5, 9] became query 5's, 9 dropped in silence
+    ([5, 9], "[5, 9] is not a query index (one whole number)"), ([5], "[5] is not a query index"),
+    ([], "[] is not a query index")])
+def test_vpr_bench_rows_refuse_a_query_cell_that_is_not_one_whole_number(tmp_path, make_images, query, said):
     root = tmp_path / "corridor"
     make_images(root / "ref", [f"{i:07d}.jpg" for i in range(111)])
     make_images(root / "query", [f"{i:07d}.jpg" for i in range(111)])
@@ -242,7 +246,7 @@ def test_vpr_bench_rows_refuse_a_query_index_that_is_not_a_whole_number(tmp_path
     for i in range(111):
         rows[i, 0], rows[i, 1] = (query if i == 5 else i), [i]
     np.save(root / "ground_truth_new.npy", rows, allow_pickle=True)
-    with pytest.raises(VPRBenchError, match=rf"{query!r} is not an image index"):
+    with pytest.raises(VPRBenchError, match=re.escape(said)):
         load_dataset("corridor", tmp_path)
 
 
@@ -273,17 +277,3 @@ def test_top_k_csv_refuses_indices_that_are_not_whole_numbers(tmp_path, make_ima
     (root / "gt_matches.csv").write_text(header + "\n" + "\n".join(rows) + "\n")
     with pytest.raises(VPRBenchError, match=rf"gt_matches.csv: .*{shown}"):
         load_dataset("nardo-air", tmp_path).positives
-
-
-@pytest.mark.parametrize("query", [[5, 9], [5], []])
-def test_vpr_bench_rows_refuse_a_query_cell_holding_a_list(tmp_path, make_images, query):
-    # a list there was read as its first number: row [5, 9] became query 5's, 9 dropped in silence
-    root = tmp_path / "corridor"
-    make_images(root / "ref", [f"{i:07d}.jpg" for i in range(111)])
-    make_images(root / "query", [f"{i:07d}.jpg" for i in range(111)])
-    rows = np.empty((111, 2), dtype=object)
-    for i in range(111):
-        rows[i, 0], rows[i, 1] = (query if i == 5 else i), [i]
-    np.save(root / "ground_truth_new.npy", rows, allow_pickle=True)
-    with pytest.raises(VPRBenchError, match=re.escape(f"{query!r} is not a query index (one whole number)")):
-        load_dataset("corridor", tmp_path)
