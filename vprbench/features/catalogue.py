@@ -122,6 +122,13 @@ class BackboneEntry(BaseModel):
                 "gated": self.gated, **({"access": self.page} if self.gated else {})}
 
 
+#: what a field with a pattern takes, said in words where a value does not match
+WRITTEN_AS = {"name": "a name of letters, digits and . _ : -", "timm": "a timm architecture (letters, digits, _)",
+              "tag": "a timm weights tag (letters, digits, _ -)", "page": "an https:// address",
+              "url": "an https:// address of a file", "sha256": "a sha256 (64 hexadecimal digits)",
+              "hub": "a Hugging Face repository (OWNER/NAME)"}
+
+
 def _entries(text: str, origin: str) -> list[BackboneEntry]:
     try:
         data = tomllib.loads(text)
@@ -135,8 +142,10 @@ def _entries(text: str, origin: str) -> list[BackboneEntry]:
         except ValidationError as error:
             first = error.errors()[0]
             where = f"{'.'.join(map(str, first['loc']))}: " if first["loc"] else ""  # a model check has no field
-            raise VPRBenchError(f"Backbone manifest {origin}, entry {raw.get('name', '?')!r}: "
-                                f"{where}{first['msg'].removeprefix('Value error, ')}.") from None
+            said = first["msg"].removeprefix("Value error, ")
+            if first["type"] == "string_pattern_mismatch" and first["loc"][0] in WRITTEN_AS:  # not the regex
+                said = f"{first['input']!r} is not {WRITTEN_AS[first['loc'][0]]}"
+            raise VPRBenchError(f"Backbone manifest {origin}, entry {raw.get('name', '?')!r}: {where}{said}.") from None
     return found
 
 
