@@ -169,7 +169,6 @@ def test_mean_absolute_difference_compare():
 def test_a_stages_costs_are_ranked_on_the_grid_ties_to_the_lower_database_index():
     """Before: costs were ranked as computed and ties went to the lower traverse position, so a
     last-bit difference between two CPUs' products could swap two near-equal candidates."""
-    from vprbench.evaluation.search import SCORE_TOLERANCE
     from vprbench.stages.registry import create_stage
 
     rng = np.random.default_rng(3)
@@ -182,6 +181,6 @@ def test_a_stages_costs_are_ranked_on_the_grid_ties_to_the_lower_database_index(
     raw = sequence_search(database, queries, 2, score="diagonal", length=1, database_order=order, query_order=np.arange(3))
     assert raw.indices[:, 0].tolist() == [2, 2, 2]  # the nearer by its last bits
     found = sequence_search(database, queries, 2, score="diagonal", length=1, database_order=order,
-                            query_order=np.arange(3), grid=SCORE_TOLERANCE)
+                            query_order=np.arange(3), grid=True)
     assert found.indices.tolist() == [[1, 2]] * 3 and found.info["tie_order"].startswith("cost rounded to 2^-16")
     assert create_stage("diagonal", {}).fingerprint()["version"] == 2

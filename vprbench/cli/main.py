@@ -52,11 +52,15 @@ def print_error(message: str, lines: bool = False) -> None:
                                soft_wrap=True)
 
 
+def kept(after: str = "") -> str:
+    """'; finished descriptors are kept<after>' for a command that keeps its work, '' for one that keeps none."""
+    return f"; {KEPT['what']} are kept{after}" if KEPT["what"] else ""
+
+
 def out_of_memory(error: BaseException) -> str:
     found = str(error).strip().splitlines()
-    kept = f"; {KEPT['what']} are kept" if KEPT["what"] else ""
     return (f"Out of memory ({found[-1] if found else type(error).__name__}). Lower --batch-size or the image size "
-            f"(--resize, a stage's resize), or run on a machine with more memory{kept}.")
+            f"(--resize, a stage's resize), or run on a machine with more memory{kept()}.")
 
 
 def main(argv=None) -> int:
@@ -92,8 +96,7 @@ def _run(args) -> int:
                     "the path in full, or ~/... for your own home folder.")
         return 1
     except KeyboardInterrupt:
-        kept = f"; {KEPT['what']} are kept and the next run resumes" if KEPT["what"] else ""
-        print(f"interrupted{kept}", file=sys.stderr)
+        print(f"interrupted{kept(' and the next run resumes')}", file=sys.stderr)
         return 130
 
 

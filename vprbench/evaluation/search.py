@@ -62,11 +62,15 @@ def read_cost(rows) -> tuple[int, int]:
     return own() if own is not None else (read_bytes_per_row(rows), 0)
 
 
-def rounded_scores(scores: np.ndarray) -> np.ndarray:
-    """Scores on the grid of SCORE_TOLERANCE (round half to even), float32."""
+def rounded_scores(scores: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Scores on the grid of SCORE_TOLERANCE (round half to even), float32; into `out` (which may be
+    `scores` itself: no copy of a large block) when given."""
+    scores = np.asarray(scores, dtype=np.float32)
+    out = np.empty_like(scores) if out is None else out
     with np.errstate(over="ignore"):  # a score beyond float32 in grid steps: refused by the caller
-        return (np.rint(np.asarray(scores, dtype=np.float32) / np.float32(SCORE_TOLERANCE))
-                * np.float32(SCORE_TOLERANCE)).astype(np.float32)
+        np.divide(scores, np.float32(SCORE_TOLERANCE), out=out)
+        np.rint(out, out=out)
+        return np.multiply(out, np.float32(SCORE_TOLERANCE), out=out)
 
 
 def products(a: np.ndarray, b: np.ndarray) -> np.ndarray:

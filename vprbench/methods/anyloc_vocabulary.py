@@ -230,9 +230,9 @@ def fit_map_vocabulary(
 
 def _counted(features: Iterable, total: int, source: str, progress) -> Iterator:
     """`features`, one image's at a time, counted as images described (describing is most of a fit)."""
-    if progress is None:
-        yield from features
-        return
+    from ..progress import Silent
+
+    progress = progress or Silent()
     task = progress.add_task(f"vocabulary {source} images", total=total)
     for found in features:
         yield found

@@ -138,14 +138,6 @@ def top_k(costs: np.ndarray, k: int, ties: np.ndarray | None = None) -> tuple[np
     return part, values
 
 
-def on_grid(costs: np.ndarray, grid: float) -> np.ndarray:
-    """`costs` rounded in place to multiples of `grid` (a power of two: exact in float32), so a
-    last-bit difference between CPUs' products cannot swap two candidates."""
-    np.multiply(costs, np.float32(1 / grid), out=costs)
-    np.rint(costs, out=costs)
-    return np.multiply(costs, np.float32(grid), out=costs)
-
-
 def second_best(costs: np.ndarray, best: np.ndarray, window: int) -> np.ndarray:
     """Per row, the lowest cost outside best - window/2 .. best + window/2 (OpenSeqSLAM's
     Rwindow); inf when the window covers the whole row."""

@@ -12,9 +12,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ...errors import VPRBenchError
-from ...evaluation.search import check_finite
+from ...evaluation.search import check_finite, rounded_scores
 from ...row_sources import DEFAULT_MEMORY_BUDGET, READ_BYTES, as_rows, chunks, format_bytes, parse_memory
-from .matching import (SEQSLAM_DEFAULTS, enhance, on_grid, query_offsets, second_best, top_k, trajectories,
+from .matching import (SEQSLAM_DEFAULTS, enhance, query_offsets, second_best, top_k, trajectories,
                        trajectory_costs, velocities)
 
 #: how a sequence stage ranks (its costs on the exact search's grid, see evaluation/search.py)
@@ -46,14 +46,15 @@ def similarities_or_distances(queries: np.ndarray, database: np.ndarray, compare
 
 
 def cost_rows(queries: np.ndarray, database, database_order: np.ndarray, score: str, compare: str,
-              chunk_rows: int, enhance_window: int) -> np.ndarray:
+              chunk_rows: int, enhance_window: int, check: bool = True) -> np.ndarray:
     """(q, N) float32 costs (lower is better) of query rows against every database image, in
     database traverse order: SeqSLAM's enhanced difference (distance = sqrt(2 - 2 cos) for unit
     descriptors, the mean absolute difference for sad); the diagonal's -similarity (the distance
     for sad)."""
     out = np.empty((len(queries), database.row_count), dtype=np.float32)
     for start, block in chunks(database, chunk_rows):
-        check_finite(block, "Database", start)
+        if check:  # once per search: every block of queries reads the same rows
+            check_finite(block, "Database", start)
         out[:, start:start + len(block)] = similarities_or_distances(queries, block, compare)
     out = out[:, database_order]
     if compare == "cosine":
@@ -84,7 +85,7 @@ def sequence_search(database, queries, k: int, *, score: str = "seqslam", compar
                     v_min: float = SEQSLAM_DEFAULTS["v_min"], v_max: float = SEQSLAM_DEFAULTS["v_max"],
                     v_step: float = SEQSLAM_DEFAULTS["v_step"],
                     uniqueness_window: int = SEQSLAM_DEFAULTS["uniqueness_window"],
-                    memory_budget=DEFAULT_MEMORY_BUDGET, grid: float | None = None) -> SequenceResult:
+                    memory_budget=DEFAULT_MEMORY_BUDGET, grid: bool = False) -> SequenceResult:
     """Top-k database images per query by sequence matching (see matching.py for the scores).
 
     `database_order`/`query_order` are each split's row indices in traverse (capture) order
@@ -92,8 +93,8 @@ def sequence_search(database, queries, k: int, *, score: str = "seqslam", compar
     SeqSLAM's scores are -(cost - m) / (second - m): the top-1 score is minus OpenSeqSLAM's match
     quality (its cost over the best cost outside the uniqueness window, m the enhanced matrix's
     minimum), so a PR curve over top-1 scores thresholds that ratio. The diagonal's scores are
-    the mean similarity (minus the mean distance for sad). `grid`: costs rounded to multiples of it
-    before they are ranked (ties to the lower database index)."""
+    the mean similarity (minus the mean distance for sad). `grid`: costs rounded to the exact
+    search's grid (`rounded_scores`) before they are ranked (ties to the lower database index)."""
     database, queries = as_rows(database, "database"), as_rows(queries, "queries")
     if score not in SCORES or compare not in COMPARES:
         raise VPRBenchError(f"Sequence matching scores by one of {SCORES} and compares descriptors by one of "
@@ -121,12 +122,12 @@ def sequence_search(database, queries, k: int, *, score: str = "seqslam", compar
         sorted_rows = np.unique(wanted)
         rows = queries.read_rows_at(sorted_rows)[np.searchsorted(sorted_rows, wanted)]
         check_finite(rows, "Query", numbers=wanted)
-        matrix = cost_rows(rows, database, database_order, score, compare, chunk_rows, enhance_window)
+        matrix = cost_rows(rows, database, database_order, score, compare, chunk_rows, enhance_window, check=start == 0)
         lowest = min(lowest, float(matrix.min()))
         best = trajectory_costs(matrix, first, start, stop, q, offsets, paths)
         del matrix
         if grid:
-            on_grid(best, grid)
+            rounded_scores(best, out=best)  # in place: the block is the search's largest array
         places, values = top_k(best, k, ties=database_order)
         indices[start:stop], costs[start:stop] = places, values
         if score == "seqslam":

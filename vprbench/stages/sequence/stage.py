@@ -80,7 +80,6 @@ class _SequenceStage(Stage):
 
     def apply(self, candidates: Candidates, context: StageContext) -> Candidates:
         from ...datasets.traverse import traverse_orders
-        from ...evaluation.search import SCORE_TOLERANCE
 
         orders = traverse_orders(context.dataset, f"Sequence stage {self.name!r}")
         compare = getattr(context, "compare", "cosine")
@@ -88,7 +87,7 @@ class _SequenceStage(Stage):
         found = sequence_search(context.database, context.queries, candidates.k, score=self.score, compare=compare,
                                 length=self.options.length, mode=self.options.mode,
                                 database_order=orders["database"], query_order=orders["queries"],
-                                memory_budget=context.memory_budget, grid=SCORE_TOLERANCE, **self.search_options())
+                                memory_budget=context.memory_budget, grid=True, **self.search_options())
         return Candidates(found.indices, found.scores)
 
 
