@@ -55,3 +55,9 @@ def test_ks_sorted_and_unique():
 def test_k_beyond_a_database_of_one_image_is_said_in_the_singular():
     with pytest.raises(VPRBenchError, match=r"^K = 5 exceeds the 1 database image of own: give --k with values up to 1"):
         check_ks([1, 5], 1, "own")
+
+
+def test_k_equal_to_the_database_is_kept_and_one_more_is_refused():
+    assert check_ks([1, 10], 10) == (1, 10)
+    with pytest.raises(VPRBenchError, match=r"^K = 11 exceeds the 10 database images"):
+        check_ks([1, 11], 10)

@@ -178,3 +178,16 @@ def test_oxford_netvlad_mat_refuses_an_image_named_twice(tmp_path, make_images, 
     savemat(root / "oxdatapart.mat", {"dbStruct": struct})
     with pytest.raises(VPRBenchError, match=re.escape(f"oxdatapart.mat names {said}")):
         load_dataset("oxford", tmp_path)
+
+
+def test_vpr_bench_layout_lists_unpadded_frame_names_in_natural_order(tmp_path, make_images, save_rows):
+    """ground_truth_new.npy numbers images in natural order (2.jpg before 10.jpg): a plain sort of
+    either folder would pair the lists with other images."""
+    root = tmp_path / "corridor"
+    names = [f"{i}.jpg" for i in range(111)]
+    make_images(root / "ref", names)
+    make_images(root / "query", names)
+    save_rows(root / "ground_truth_new.npy", [[i] for i in range(111)])
+    dataset = load_dataset("corridor", tmp_path)
+    assert [p.name for p in dataset.queries] == names and [p.name for p in dataset.database] == names
+    assert [dataset.database[p[0]].name for p in dataset.positives] == names

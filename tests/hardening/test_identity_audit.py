@@ -237,3 +237,18 @@ def test_an_option_the_aggregation_ignores_is_refused_not_named_in_the_row(metho
     assert resolve_spec("anyloc-gem-dinov2", "corridor", options={"clusters": 32}).label() == "anyloc-gem-dinov2"
     gem = resolve_spec("anyloc-vlad-dinov2", "corridor", options={"aggregation": "gem", "gem_p": 4})
     assert gem.given == {"aggregation": "gem", "gem_p": 4}
+
+
+def test_every_part_of_what_a_run_computes_is_in_its_keys():
+    base = resolve_spec("hog", "corridor", ks=[1, 5])
+    # a float16 store and an approximate index change the numbers: another run and another row
+    for other in (resolve_spec("hog", "corridor", ks=[1, 5], store_dtype="float16"),
+                  resolve_spec("hog", "corridor", ks=[1, 5], search={"index": "hnsw"})):
+        assert other.key != base.key and other.row_key != base.row_key
+    # other K values: another run (its record holds other recalls), the same leaderboard row
+    more = resolve_spec("hog", "corridor", ks=[1, 5, 10])
+    assert more.key != base.key and more.row_key == base.row_key
+    # another protocol under the same name (own folders: positions or radius edited): another run, the same row
+    edited = base.model_copy(update={"dataset": base.dataset.model_copy(update={"protocol_hash": "0" * 16})})
+    assert edited.dataset.protocol == base.dataset.protocol
+    assert edited.key != base.key and edited.row_key == base.row_key

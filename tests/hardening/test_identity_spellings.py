@@ -88,3 +88,16 @@ def test_an_evaluation_refuses_anylocs_dataset_option_naming_another_dataset():
     unnamed.use_dataset("pitts30k")
     unnamed.use_dataset("corridor")
     assert unnamed.dataset == "corridor"
+
+
+def test_files_of_one_content_named_by_bare_words_stay_apart(tmp_path, monkeypatch):
+    """A bare word ('key', 'value') may be a name the method knows: two such files of one content keep
+    their words, so facet=key and facet=value are not made one run by the working directory's files."""
+    from vprbench.content_identity import file_identity
+
+    monkeypatch.chdir(tmp_path)
+    for word in ("key", "value", "w.pth"):
+        (tmp_path / word).write_bytes(b"same bytes")
+    key, value, path = file_identity("key"), file_identity("value"), file_identity("w.pth")
+    assert key.startswith("key@sha256:") and value.startswith("value@sha256:")
+    assert key.split("@")[1] == value.split("@")[1] == path  # a file with a suffix is known by its bytes alone

@@ -163,3 +163,24 @@ def test_a_vocabulary_fitted_on_the_evaluated_database_is_marked_and_never_nothi
                      "hog": "none (nothing learnt)"}
     assert board.marked["marked_rows"] == 1
     assert only_cell(board, "dense-vlad [vocabulary=tokyo-pair]").record["run_id"] == foreign["run_id"]
+
+
+def test_a_stage_on_random_weights_fills_no_cell(make_record):
+    """The method's weights are the authors', a re-ranking stage's are random: no cell either."""
+    stage = {"name": "patch-mnn", "k": 5, "backbone": "dinov2_vits14", "weights": "random"}
+    plain = make_record(seed=1)
+    reranked = make_record(stages=[stage], seed=2)
+    board = board_of(plain, reranked)
+    reasons = {r["run_id"]: why for r, why in board.excluded}
+    assert list(reasons) == [reranked["run_id"]]
+    assert "numbers from random initialisation never fill a cell" in reasons[reranked["run_id"]]
+    assert only_cell(board).record["run_id"] == plain["run_id"]
+
+
+def test_two_copies_with_as_many_runs_go_to_the_newest_copy(make_record):
+    older = make_record(fingerprint="first-copy", seed=1, created="2026-01-01T00:00:00+00:00")
+    newer = make_record(fingerprint="second-copy", seed=2, created="2026-02-01T00:00:00+00:00")
+    board = board_of(older, newer)
+    assert only_cell(board).record["run_id"] == newer["run_id"]
+    reasons = {r["run_id"]: why for r, why in board.excluded}
+    assert list(reasons) == [older["run_id"]] and "first-copy differs from the second-copy" in reasons[older["run_id"]]

@@ -184,3 +184,11 @@ def test_a_stages_costs_are_ranked_on_the_grid_ties_to_the_lower_database_index(
                             query_order=np.arange(3), grid=True)
     assert found.indices.tolist() == [[1, 2]] * 3 and found.info["tie_order"].startswith("cost rounded to 2^-16")
     assert create_stage("diagonal", {}).fingerprint()["version"] == 2
+
+
+def test_second_best_skips_both_ends_of_the_window():
+    # best at 2, window 2: columns 1..3 skipped, so the cheap neighbours 1 and 3 are never the second best
+    costs = np.array([[5, 1, 0, 2, 6, 7]], dtype=np.float32)
+    assert second_best(costs, np.array([2]), 2).tolist() == [5.0]
+    assert second_best(costs, np.array([2]), 4).tolist() == [7.0]  # 0..4 skipped
+    assert second_best(costs, np.array([2]), 1).tolist() == [1.0]  # window 1: only the best itself

@@ -192,3 +192,18 @@ def test_warm_store_computes_nothing_and_reuses_the_saved_fit(shared_data):
     warm = evaluate(warm_method, dataset)
     assert warm["descriptors_computed"] == {"database": 0, "queries": 0} and warm_method.fits == 0
     assert warm["recall"] == cold["recall"]
+
+
+def test_rows_written_in_runs_far_apart_land_at_their_own_rows(tmp_path):
+    """A resumed run writes two runs of rows too far apart to rewrite as one block: each run of
+    rows must take its own descriptors, not the first ones of the batch."""
+    n, dim = 200, 4
+    path, ident = tmp_path / "database.h5", identity(n)
+    create_rows_file(path, ident, dim)
+    writer = RowWriter(path, ident)
+    batch = np.array([0, 1, 2, 150, 151])
+    writer.write(batch, rows(0, n, dim)[batch])
+    rest = np.setdiff1d(np.arange(n), batch)
+    writer.write(rest, rows(0, n, dim)[rest])
+    writer.finish()
+    np.testing.assert_array_equal(DescriptorStore(path, ident).read_rows(0, n), rows(0, n, dim))
