@@ -305,3 +305,20 @@ def test_a_record_of_a_stage_not_installed_here_says_so(records):
     assert false_claims(record) == [
         "its stage consensus is not installed here, so its label cannot be checked: install the package "
         "that provides it ('vprbench stages list' shows what is installed), then verify again"]
+
+
+def test_a_stored_record_without_its_card_exports_with_the_card_rebuilt(store, records, shared_data, tmp_path, cli):
+    """A store of an older vprbench kept a record without its row's method card. Was: `results
+    export` refused it, exit 1: 'Run ...: Cannot use .../methods/<row key>.json: No such file or
+    directory; check the path. Nothing was exported.', until the row was run again."""
+    r = records[0]
+    card = store / "results" / "methods" / f"{r['row_key']}.json"
+    saved = card.read_bytes()
+    card.unlink()
+    to = tmp_path / "rebuilt.tar.gz"
+    code, out, err = cli("results", "export", "--run", r["run_id"], "--to", to, "--cache-dir", store)
+    assert code == 0, out + err
+    assert read_bundle(to)[f"methods/{r['row_key']}.json"] == saved  # as the store would have kept it
+    assert not card.exists()  # export reads the store, it does not write it
+    code, out, err = cli("results", "verify", to, "--data-dir", shared_data)
+    assert code == 0 and out.count(": ok, re-scored from its arrays") == 1, out + err

@@ -21,6 +21,7 @@ from pathlib import Path
 
 from .. import __version__
 from ..errors import VPRBenchError, os_error_message
+from ..evaluation.results import card_bytes
 from ..fsutil import CacheError, atomic_write
 
 #: the bundle's format; a bundle of a newer version is refused by older verifiers
@@ -60,11 +61,19 @@ def _record_files(record: dict) -> dict[str, bytes]:
                             "checked; rerun that evaluation.")
     card = source.parents[2] / CARDS / f"{record['row_key']}.json"
     try:
-        return {f"{folder}/{source.name}": source.read_bytes(),
-                f"{folder}/{section['file']}": (source.parent / str(section["file"])).read_bytes(),
-                f"{CARDS}/{card.name}": card.read_bytes()}
+        files = {f"{folder}/{source.name}": source.read_bytes(),
+                 f"{folder}/{section['file']}": (source.parent / str(section["file"])).read_bytes()}
+        # a store of an older vprbench may hold a record without its card: the card is what the
+        # record decides (verifiers check exactly that) and the method's description, so rebuild it
+        files[f"{CARDS}/{card.name}"] = card.read_bytes() if card.exists() else card_bytes(_stored(record))
+        return files
     except OSError as error:
         raise VPRBenchError(f"Run {record['run_id']}: {os_error_message(error)} Nothing was exported.") from None
+
+
+def _stored(record: dict) -> dict:
+    """The record as stored (the fields `read_results` adds, '_source' and the like, left out)."""
+    return {k: v for k, v in record.items() if not k.startswith("_")}
 
 
 def bundle_bytes(records: list[dict], contributor: str | None = None) -> bytes:

@@ -107,14 +107,19 @@ def save_result(record: dict, cache_dir=None) -> Path:
 def _write_card(record: dict, cache_dir) -> None:
     """What the row's method is, kept apart from its results (written once per row)."""
     path = results_dir(cache_dir) / CARDS / f"{record['row_key']}.json"
-    if path.is_file():
-        return
+    if not path.is_file():
+        atomic_write(path, card_bytes(record))
+
+
+def card_bytes(record: dict) -> bytes:
+    """The method card of the record's row, as `save_result` writes it: what the record decides,
+    and the installed method's description (so a card lost or never written is rebuilt the same)."""
     from ..methods.registry import available_methods
 
     entry = available_methods().get(record["method"])
     card = {**card_of(record), "description": entry.description if entry else "",
             "source": entry.source if entry else "unknown"}
-    atomic_write(path, json.dumps(card, sort_keys=True, indent=1).encode())
+    return json.dumps(card, sort_keys=True, indent=1).encode()
 
 
 def card_of(record: dict) -> dict:
