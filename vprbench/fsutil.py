@@ -193,6 +193,9 @@ def lock(path: str | os.PathLike, timeout: float | None = None, *, what: str | N
     path = Path(path)
     what = what or str(path)
     check_lock_timeout(timeout, what)
+    for file in (path, _holder_path(path)):
+        if file.is_symlink():  # taking the lock would empty, or write the holder note into, the file it points to
+            raise CacheError(f"The lock file {file} is a link; remove it (vprbench makes its own), then run again.")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         held = FileLock(path, is_singleton=True)

@@ -110,43 +110,56 @@ def test_a_name_with_line_breaks_and_control_characters_forges_no_line_and_break
 
 
 class Killed(BaseException):
-    """Stands for a kill -9 between two writes (not an Exception: nothing catches it)."""
+    """Stands for a kill -9 between two steps (not an Exception: nothing catches it)."""
 
 
-def test_an_import_killed_between_any_two_writes_leaves_a_sound_repository(bundle, records, shared_data, tmp_path,
-                                                                           monkeypatch):
-    """Before: a run's method card was written after its record; an import killed between the two
-    left a record without its card, and importing the bundle again skipped that run as 'already
-    there', so `results verify` of the repository failed for good."""
-    import vprbench.bundles.repository as repository
+def test_an_import_killed_between_any_two_steps_leaves_a_sound_repository(bundle, records, shared_data, tmp_path,
+                                                                          monkeypatch):
+    """Every step of an import's commit (each staged file, the one rename that commits, each move
+    after it) is a place it may die. Was: files written one by one to their places, so a kill left
+    arrays, notes and cards no record used, which no later import or verify removed."""
+    import vprbench.bundles.commit as commit
 
-    truth, written = DataGroundTruth(shared_data), []
-    real = repository.atomic_write
+    truth, steps = DataGroundTruth(shared_data), []
+    real = {"_write": commit._write, "_rename": commit._rename}
 
-    def dies_after(count):
-        def write(path, data):
-            if len(written) == count:
-                raise Killed
-            written.append(path)
-            return real(path, data)
-        return write
+    def dies_at(count):
+        def step(name):
+            def run(*args):
+                if len(steps) == count:
+                    raise Killed
+                steps.append((name, args[-1]))
+                return real[name](*args)
+            return run
+        for name in real:
+            monkeypatch.setattr(commit, name, step(name))
 
-    total = 1 + 4 * len(records)  # LAYOUT, then per run: card, arrays, contribution, record
+    files = 4 * len(records)  # two rows: per run its card, arrays, contribution note and record
+    total = files + 1 + files  # staged, the commit, moved
     for count in range(total):
-        written.clear()
+        steps.clear()
         repo = tmp_path / f"repo-{count}"
-        monkeypatch.setattr(repository, "atomic_write", dies_after(count))
+        dies_at(count)
         with pytest.raises(Killed):
             import_bundles([bundle], repo, truth)
-        monkeypatch.setattr(repository, "atomic_write", real)
-        if repo.exists():
-            report = verify_repository(repo, truth)
-            assert report.problems == [] and all(v.ok for v in report.verdicts), (count, report.lines())
-        [again] = import_bundles([bundle], repo, truth)
-        assert again.ok and len(again.added) + len(again.duplicates) == len(records)
+        monkeypatch.undo()
+        runs = sorted(repo.glob("*/*/*.json"))
+        assert len(runs) == (0 if count <= files else max(0, count - 2 * files - 1 + len(records))), count
+        for path in runs:  # what readers see: a record only with its arrays and card
+            assert path.with_suffix(".npz").is_file() and (repo / "methods" / f"{path.parent.name}.json").is_file()
+        [again] = import_bundles([bundle], repo, truth)  # undoes or finishes the killed one, under the lock
+        assert again.ok and len(again.added) + len(again.duplicates) == len(records), again.lines()
         report = verify_repository(repo, truth)
         assert report.ok and {v.run_id for v in report.verdicts} == {r["run_id"] for r in records}, report.lines()
-    written.clear()
-    monkeypatch.setattr(repository, "atomic_write", dies_after(total + 1))
+        left = sorted(p.relative_to(repo).as_posix() for p in repo.rglob("*") if p.is_file())
+        assert left == sorted(["LAYOUT", ".import.lock", *(n for r in records for n in _files(r))]), (count, left)
+    steps.clear()
+    dies_at(total + 1)
     import_bundles([bundle], tmp_path / "whole", truth)
-    assert len(written) == total and written[-1].name == f"{records[-1]['run_id']}.json"  # every point was tried
+    assert len(steps) == total and steps[files] == ("_rename", steps[files][1])  # every point was tried
+    assert steps[-1][1].name == f"{records[-1]['run_id']}.json"
+
+
+def _files(record) -> list[str]:
+    folder = f"{record['protocol']['hash']}/{record['row_key']}/{record['run_id']}"
+    return [f"{folder}.json", f"{folder}.npz", f"{folder}.contribution", f"methods/{record['row_key']}.json"]

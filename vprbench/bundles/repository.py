@@ -11,7 +11,8 @@ ever added, each under a name that is its identity. A run already there (same ru
 same bytes, or another run id with the same spec and the same per-query arrays) is recognised
 as a duplicate and skipped; a different record under a run id already there is a conflict,
 and its bundle is refused. A bundle that fails verification is refused with its reasons and
-nothing of it is written. Imports hold the repository's lock, so two at once both land whole.
+nothing of it is written. Imports hold the repository's lock, so two at once both land whole;
+each commits its files with one rename (commit.py), so a kill leaves none of them orphaned.
 
 `verify_repository` re-scores every run already in the folder, as a bundle's: a pull request that
 adds or edits a record by hand, without an import, is caught however its files got there.
@@ -26,13 +27,15 @@ from pathlib import Path
 
 from ..errors import VPRBenchError
 from ..evaluation.results import LAYOUT, LAYOUT_FILE, check_layout, read_record
-from ..fsutil import CacheError, atomic_write, check_lock_timeout, lock
+from ..fsutil import CacheError, LockTimeout, atomic_write, check_lock_timeout, lock
 from .export import CARDS
 from .claims import one_record_per_run
 from .archive import MAX_BYTES, RECORD_NAME
+from .commit import PENDING, commit, leftovers, link_in, recover
 from .verify import BundleReport, check_record, verify_bundle
 
 CONTRIBUTION = ".contribution"
+LOCK = ".import.lock"
 
 
 @dataclass
@@ -68,7 +71,7 @@ def import_bundles(bundles, into: Path, truth=None, *, max_bytes: int = MAX_BYTE
         if not verified.ok:
             report.problems = [line for line in verified.lines() if ": ok, re-scored" not in line]
         else:
-            with lock(into / ".import.lock", lock_timeout, what=f"the results repository {into}"):
+            with lock(into / LOCK, lock_timeout, what=f"the results repository {into}"):
                 _merge(verified, into, report)
         reports.append(report)
     return reports
@@ -77,14 +80,22 @@ def import_bundles(bundles, into: Path, truth=None, *, max_bytes: int = MAX_BYTE
 def _merge(verified, into: Path, report: ImportReport) -> None:
     """Under the lock: every record checked against the repository first, then written."""
     check_layout(into)
+    recover(into)  # what an import killed here left (the lock proves no live import's files are touched)
     members, manifest = verified.members, verified.manifest
     bundle_sha = hashlib.sha256(b"".join(members[n] for n in sorted(members))).hexdigest()
-    writes: dict[Path, bytes] = {}
+    writes: dict[str, bytes] = {}
     for verdict in verified.verdicts:
         folder = verdict.member.rsplit("/", 1)[0]
         record = json.loads(members[verdict.member])
         target = into / verdict.member
         npz = f"{folder}/{record['per_query']['file']}"
+        card = f"{CARDS}/{record['row_key']}.json"
+        names = (PENDING, verdict.member, npz, card, f"{folder}/{verdict.run_id}{CONTRIBUTION}")
+        linked = next((found for name in names if (found := link_in(into, name))), None)
+        if linked:  # a write through it would land outside the repository, a read take in another file
+            report.problems.append(f"{verified.path}: {verdict.member} (run {verdict.run_id}): {into / linked} is a "
+                                   "link, not a file or folder of the repository; remove it, then import again.")
+            continue
         if target.exists():
             if target.read_bytes() == members[verdict.member]:
                 report.duplicates.append(verdict.run_id)
@@ -107,14 +118,17 @@ def _merge(verified, into: Path, report: ImportReport) -> None:
         contribution = {"contributor": str(manifest.get("contributor") or "anonymous")[:200],
                         "bundle_created": str(manifest.get("created", ""))[:40], "bundle_sha256": bundle_sha,
                         "imported": datetime.now(timezone.utc).isoformat(timespec="seconds")}
-        card = f"{CARDS}/{record['row_key']}.json"
+        if (into / npz).exists() and (into / npz).read_bytes() != members[npz]:
+            report.problems.append(f"{verified.path}: {verdict.member} (run {verdict.run_id}): {into / npz} is there "
+                                   "without its record and holds other arrays (left by a killed import of an older "
+                                   "vprbench, or added by hand): remove it, then import again.")
+            continue
         if not (into / card).exists():
-            writes[into / card] = members[card]
-        writes[into / npz] = members[npz]
-        writes[target.with_suffix(CONTRIBUTION)] = json.dumps(contribution, indent=1, sort_keys=True).encode()
-        # last: a record is there only with its card and arrays (a killed import, imported again,
-        # finds the record and skips it as a duplicate: what it lacked would never come)
-        writes[target] = members[verdict.member]
+            writes[card] = members[card]
+        writes[npz] = members[npz]
+        writes[verdict.member[:-len(".json")] + CONTRIBUTION] = json.dumps(contribution, indent=1,
+                                                                         sort_keys=True).encode()
+        writes[verdict.member] = members[verdict.member]
         report.added.append(verdict.run_id)
     if report.problems:
         report.added = []
@@ -122,15 +136,16 @@ def _merge(verified, into: Path, report: ImportReport) -> None:
     try:
         if not (into / LAYOUT_FILE).is_file():
             atomic_write(into / LAYOUT_FILE, json.dumps(LAYOUT))
-        for path, data in writes.items():
-            atomic_write(path, data)
+        commit(into, writes)  # all of the bundle's new files, or (killed before its one rename) none
     except CacheError as error:
-        raise VPRBenchError(f"{error} The import of {verified.path} stopped; the runs written are whole.") from None
+        raise VPRBenchError(f"{error} The import of {verified.path} stopped; import it again.") from None
 
 
 def _same_result(folder: Path, record: dict) -> str | None:
     """The run id of a record in `folder` with the same spec and the same per-query arrays."""
     for path in sorted(folder.glob("*.json")) if folder.is_dir() else []:
+        if path.is_symlink():
+            continue
         try:
             other = json.loads(path.read_text(encoding="utf-8"))
         except (OSError, ValueError):
@@ -153,7 +168,20 @@ def verify_repository(root: Path, truth=None, *, max_bytes: int = MAX_BYTES) -> 
     except VPRBenchError as error:
         report.problems.append(str(error))
         return report
+    if leftovers(root):  # an import killed here: finished or undone, unless one is running now
+        try:
+            with lock(root / LOCK, 0, what=f"the results repository {root}", announce=False):
+                recover(root)
+        except LockTimeout:
+            pass
+        except VPRBenchError as error:
+            report.problems.append(f"{error} An import into {root} was interrupted: import into it again (with "
+                                   "write access) to finish it.")
+    for link in sorted(p for p in (*root.glob("*"), *root.glob("*/*")) if p.is_symlink()):  # folders, mostly
+        report.problems.append(f"{root}: {link.relative_to(root).as_posix()} is a link, not a regular file or folder; "
+                               "refused (an import would write through it, outside the repository).")
     cards = {p.stem for p in (root / CARDS).glob("*.json")}
+    _orphans(root, cards, report.problems)
     for path in sorted(root.glob("*/*/*.json")):
         name = path.relative_to(root).as_posix()
         if path.parts[-3] == CARDS:
@@ -180,6 +208,17 @@ def verify_repository(root: Path, truth=None, *, max_bytes: int = MAX_BYTES) -> 
             report.verdicts.append(check_record(name, match.groups()[:3], members, cards, truth, max_bytes))
     one_record_per_run(report.verdicts)
     return report
+
+
+def _orphans(root: Path, cards: set, problems: list) -> None:
+    """Arrays, notes and cards no record uses (a kill in an import of an older vprbench left them)."""
+    rows = {p.parent.name for p in root.glob("*/*/*.json") if p.parts[-3] != CARDS}
+    stray = [p for suffix in (".npz", CONTRIBUTION) for p in root.glob(f"*/*/*{suffix}")
+             if not p.with_suffix(".json").exists()]
+    stray += [root / CARDS / f"{card}.json" for card in cards - rows]
+    for path in sorted(stray):
+        problems.append(f"{root}: {path.relative_to(root).as_posix()} belongs to no record (left by an import of an "
+                        "older vprbench that was killed, or added by hand); remove it.")
 
 
 def read_repository(root: Path, skipped: list | None = None) -> list[dict]:
