@@ -209,3 +209,19 @@ def test_every_leaderboard_option_is_explained_in_its_help():
     commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
     unexplained = [a.option_strings for a in commands.choices["leaderboard"]._actions if a.option_strings and not a.help]
     assert unexplained == []
+
+
+def test_describe_offers_no_strict_it_would_ignore(capsys, tmp_path):
+    """--strict checks a dataset's image counts; describe loads no dataset (--dataset only applies its
+    per-method settings), so it offered a flag that did nothing: now refused by name."""
+    import argparse
+
+    from vprbench.cli.main import build_parser
+
+    commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    assert "--strict" in commands.choices["evaluate"].format_help()  # evaluate loads a dataset: it checks
+    assert "--strict" not in commands.choices["describe"].format_help()
+    with pytest.raises(SystemExit) as exited:
+        main(["describe", "--method", "hog", "--strict", __file__, "--out", str(tmp_path / "x.npy")])
+    err = capsys.readouterr().err
+    assert exited.value.code == 2 and err.strip() == "error: unrecognized arguments: --strict; see 'vprbench --help'", err

@@ -41,7 +41,7 @@ def add_parsers(commands) -> None:
     add_method_options(p)
     p.add_argument("--store-dtype", choices=("float32", "float16"), default="float32",
                    help="descriptor store precision (default: float32)")
-    add_run_options(p, download=False)
+    add_run_options(p, download=False, strict=False)  # describe loads no dataset: no counts to check
     p.add_argument("images", nargs="+", type=path_argument, help="image files")
     p.add_argument("--out", required=True, type=output_file(".npy"), help="output .npy file")
     p.add_argument("--fit-on", type=path_argument,

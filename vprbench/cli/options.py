@@ -217,7 +217,9 @@ def output_file(*suffixes: str):
     return parse
 
 
-def add_run_options(parser: argparse.ArgumentParser, *, download: bool = True, quiet: bool = True) -> None:
+def add_run_options(parser: argparse.ArgumentParser, *, download: bool = True, quiet: bool = True,
+                    strict: bool = True) -> None:
+    """The run settings' flags; `strict` and `download` only for commands that load a dataset."""
     group = parser.add_argument_group("how it runs (never changes a result)")
     group.add_argument("--device", default="auto",
                        help="torch device: auto (cuda when available, else cpu), cpu, cuda, cuda:1 (default: auto)")
@@ -228,7 +230,8 @@ def add_run_options(parser: argparse.ArgumentParser, *, download: bool = True, q
                        help="memory budget of search and PCA fitting, e.g. 1GB, 512MB, 4GiB (default 1.0 GB)")
     group.add_argument("--lock-timeout", type=float, metavar="SECONDS",
                        help="give up waiting for another run's store lock after this long (default: wait)")
-    group.add_argument("--strict", action="store_true", help="fail when image counts differ from the manifest")
+    if strict:
+        group.add_argument("--strict", action="store_true", help="fail when image counts differ from the manifest")
     if download:
         group.add_argument("--download", action="store_true",
                            help="fetch a missing dataset into --data-dir (without it, only the default data root is downloaded into)")
