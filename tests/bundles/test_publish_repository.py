@@ -62,7 +62,7 @@ def test_a_site_from_a_repository_marks_each_cell(repository, records, tmp_path,
     assert {found["hog"]["contributor"], found["hog [resize=96x128]"]["contributor"]} == {"alice", "bob"}
     page = (docs / "leaderboard" / "corridor.md").read_text()
     for record, who in zip(records, ("alice", "bob")):
-        [line] = [row for row in page.splitlines() if f"`{record['run_id']}`" in row and row.startswith("| hog")]
+        [line] = [row for row in page.splitlines() if f"<code>{record['run_id']}</code>" in row and row.startswith("| hog")]
         assert f"| {CONTRIBUTED} | {who} |" in line and record["created"] in line
         assert record["hardware"]["cpu"] in line and f"| {record['versions']['vprbench']} |" in line
     # the overview marks each contributed cell, and says what the mark means

@@ -29,7 +29,7 @@ def test_each_left_out_run_is_named(make_record, cli, monkeypatch, tmp_path):
     assert cli("leaderboard", "publish", "--to", docs)[0] == 0
     site = (docs / "leaderboard" / "index.md").read_text().split("## Runs left out")[1]
     for run_id, record in records.items():  # the same names on the site
-        assert f"| `{run_id}` | hog [note={record['spec']['options']['note']}] | corridor | random weights" in site
+        assert f"| <code>{run_id}</code> | hog [note={record['spec']['options']['note']}] | corridor | random weights" in site
 
 
 def test_past_five_the_rest_are_counted(make_record, cli, monkeypatch):

@@ -62,7 +62,7 @@ def test_publish_leaves_the_run_out_and_names_it(forged, tmp_path, shared_data, 
         assert main(["leaderboard", "publish", "--to", str(docs), "--data-dir", str(shared_data)]) == 0
     assert not (docs / "leaderboard" / "corridor.md").exists()  # no cell: its metrics cannot be proven
     left_out = (docs / "leaderboard" / "index.md").read_text().split("## Runs left out")[1].split("\n## ")[0]
-    assert f"`{record['run_id']}` | hog | corridor | its per-query arrays are missing or damaged" in left_out
+    assert f"<code>{record['run_id']}</code> | hog | corridor | its per-query arrays are missing or damaged" in left_out
     assert "outside the record&#x27;s 111 database images" in left_out
     assert "Traceback" not in capsys.readouterr().err
 

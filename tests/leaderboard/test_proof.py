@@ -119,7 +119,7 @@ def test_a_run_served_from_stores_never_replaces_the_measured_speed(make_record,
 
     out = publish(tmp_path / "docs")
     page = (out / "corridor.md").read_text()
-    assert f"`{measured_run['run_id']}` on Test CPU 9000 (2 cores), no GPU" in page
+    assert f"<code>{measured_run['run_id']}</code> on Test CPU 9000 (2 cores), no GPU" in page
     [row] = [line for line in page.splitlines() if line.startswith("| hog | none")]
     assert row.rstrip(" |").endswith("211.0")
     [entry] = json.loads((out / "downloads" / "leaderboard.json").read_text())

@@ -11,7 +11,6 @@ from data runs as a formula in a spreadsheet.
 """
 from __future__ import annotations
 
-import html
 import re
 
 from ..text import literal
@@ -42,25 +41,36 @@ def public_data(value):
     return value
 
 
-#: a backslash that Markdown reads as an escape: before a character it escapes, or last (before the
-#: page's own ']' or '|'); one written out by `literal`, '\\x1b', stays as it is
-_ESCAPING = re.compile(r"\\(?=[\\`*_{}\[\]()>#+\-.!|]|$)")
+#: each character from data that Markdown (or HTML) would act on, as its character reference: '&',
+#: '<', '>' and quotes as HTML; '|' (a cell break), '`' (a code span with one further along the row),
+#: '*' and '_' (emphasis: '_x_', '__x__'; an '_' between two letters or digits stays, as in 'pca_dim':
+#: it never starts or ends one), '#' (a heading's closing hashes: 'c#' read as 'c'); and
+#: a backslash that Markdown reads as an escape, before a character it escapes or last (before the
+#: page's own ']' or '|'): one from data would cancel a backslash escape or escape the bracket that
+#: ends a link's text. One written out by `literal`, '\\x1b', stays as it is. One pass, so no
+#: reference is escaped again.
+_REFERENCES = {"&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#x27;", "|": "&#124;", "`": "&#96;",
+               "*": "&#42;", "_": "&#95;", "#": "&#35;", "\\": "&#92;"}
+_MARKUP = re.compile(r"\\(?=[\\`*_{}\[\]()>#+\-.!|]|$)|[&<>\"'|`*#]|(?<![^\W_])_|_(?![^\W_])")
 
 
 def text(value) -> str:
     """Text from data or records (names, labels, paths, reasons) as plain text in Markdown: no
-    HTML element, no link or image, no table cell break can come from it, no absolute path. A pipe,
-    a backtick, an asterisk, a backslash that would escape and a square bracket without its pair
-    are written as character references (a backslash from data would cancel a backslash escape, or
-    escape the bracket that ends a link's text; a backtick would pair with a code span further along
-    the row; a lone bracket would end or open a link's text early: the link lost, the site's
-    navigation unbuilt), and a line
-    break of either kind as a space (a line of its own could define a link); other control
-    characters are written out as their escapes ('\\x1b'), as on the terminal."""
+    HTML element, no link or image, no emphasis, no table cell break can come from it, no absolute
+    path. Each character of `_REFERENCES` is written as its character reference, a square bracket
+    without its pair too (a lone bracket would end or open a link's text early: the link lost, the
+    site's navigation unbuilt), and a line break of either kind as a space (a line of its own could
+    define a link); other control characters are written out as their escapes ('\\x1b'), as on the
+    terminal."""
     flat = public(value).replace("\r", " ").replace("\n", " ")
-    escaped = _ESCAPING.sub("&#92;", html.escape(literal(flat), quote=True))
-    escaped = escaped.replace("|", "&#124;").replace("`", "&#96;").replace("*", "&#42;")  # '*': never emphasis
+    escaped = _MARKUP.sub(lambda found: _REFERENCES[found.group()], literal(flat))
     return _paired_brackets(escaped).replace("](", "]\\(")
+
+
+def code(value) -> str:
+    """`text(value)` set as code: an HTML <code> element, not a Markdown code span, in which the
+    character references of `text` would show as written ('&lt;' for '<')."""
+    return f"<code>{text(value)}</code>"
 
 
 def _paired_brackets(value: str) -> str:

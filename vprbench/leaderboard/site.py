@@ -29,7 +29,7 @@ from ..text import percent, quantity
 from . import figures
 from .domains import domain_datasets
 from .downloads import plain, record_download, summary
-from .escape import public, text, to_csv
+from .escape import code, public, text, to_csv
 from .cells import CELL_RULE, Board, Cell, Column, build_board, hardware_of, licence_shown, weights_shown
 from .shown import descriptor_bytes, left_out, row_name
 from .stats import check_k_and_seed
@@ -244,7 +244,7 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
             s = stats[(row, column.key)]
             lines.append(f"| {row_name(row)} | {text(weights_shown(row, cell.record))} | "
                          f"{text(licence_shown(cell.record))} | [{text(column.title)}]({column.slug}.md) | {with_ci(s[1])} | "
-                         f"{with_ci(s[5])} | {text(cell.source)} | `{text(cell.record.get('run_id'))}` |")
+                         f"{with_ci(s[5])} | {text(cell.source)} | {code(cell.record.get('run_id'))} |")
     else:
         lines.append("None.")
     lines += ["", "## Runs left out", ""]
@@ -252,7 +252,7 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
         lines += ["| Run | Method | Dataset | Why |", "|:--|:--|:--|:--|"]
         for record, why in board.excluded:
             run, label, dataset = map(text, left_out(record))
-            lines.append(f"| `{run}` | {label} | {dataset} | {text(why)} |")
+            lines.append(f"| {code(run)} | {label} | {dataset} | {text(why)} |")
     else:
         lines.append("None.")
     lines += ["", "## Datasets", ""]
@@ -289,8 +289,8 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
              f"{counts.get('positive_pairs', '–')} | "
              + (f"{positives.min()} / {np.median(positives):g} / {positives.max()}" if len(positives) else "–")
              + f" | {text(gt.get('unit', '–'))}, radius {text(quantity(gt.get('radius'), gt.get('radius_unit')))} | "
-             f"`{text(protocol.get('id', '–'))}` (`{text(protocol.get('hash', '–'))}`) | `{text(column.fingerprint)}` |", "",
-             f"Protocol `{text(protocol.get('id', '–'))}`: {text(protocol.get('description') or 'no description')}"
+             f"{code(protocol.get('id', '–'))} ({code(protocol.get('hash', '–'))}) | {code(column.fingerprint)} |", "",
+             f"Protocol {code(protocol.get('id', '–'))}: {text(protocol.get('description') or 'no description')}"
              + (f" (source: {text(protocol['source'])})" if protocol.get("source") else "") + ".", "",
              "Queries without positives count as failures.", "",
              "## Results", "",
@@ -310,10 +310,10 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
                      f"{_num(cell.images_per_second, 1)} |")
         versions, computed = r.get("versions") or {}, r.get("descriptors_computed") or {}
         sent = (r.get("_contribution") or {}).get("contributor") or "this machine"
-        runs.append(f"| {text(cell.row.name)} | {text(cell.source)} | {text(sent)} | `{text(r.get('run_id'))}` | {text(r.get('created', '–'))} | "
+        runs.append(f"| {text(cell.row.name)} | {text(cell.source)} | {text(sent)} | {code(r.get('run_id'))} | {text(r.get('created', '–'))} | "
                     f"{text(hardware_of(r))} | {text(versions.get('vprbench', '–'))} | "
                     f"{_commit(versions.get('git'))} | {sum(computed.values()) if computed else '–'} | {cell.passed_over} | "
-                    + (f"`{text(cell.timed.get('run_id'))}` on {text(cell.hardware)} |" if cell.timed else "no run computed its descriptors |"))
+                    + (f"{code(cell.timed.get('run_id'))} on {text(cell.hardware)} |" if cell.timed else "no run computed its descriptors |"))
     lines += ["", RESULTS_LEGEND, "", "The runs in the cells above:", "", *runs, "", *_paired(cells, seed), "## Figures", ""]
     slug = column.slug
     lines += _figure(lambda p: figures.recall_curves(cells, p, colours), out, f"{slug}-recall.svg", "Recall@K per run")

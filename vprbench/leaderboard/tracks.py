@@ -3,7 +3,7 @@ single-image retrieval (a re-ranker is compared beside its retriever, not among 
 from __future__ import annotations
 
 from .cells import Board, Cell
-from .escape import text
+from .escape import code, text
 from .tables import fmt, with_ci
 from ..text import percent
 
@@ -63,12 +63,12 @@ def track_page(full: Board, track: str, stats: dict, head: str = "") -> str:
                 base = alone.get((retriever_key(cell), column.key))
                 lines.append(f"| {name} | {with_ci(s[1])} | {with_ci(s[5])} | {_cost(cell, 'ceiling_recall')} | "
                              f"{fmt(base.recall(1)) if base else '–'} | {_cost(cell, 'ms_per_query')} | "
-                             f"{_cost(cell, 'stored_bytes_per_database_image', 0)} | `{text(r.get('run_id'))}` |")
+                             f"{_cost(cell, 'stored_bytes_per_database_image', 0)} | {code(r.get('run_id'))} |")
             else:
                 shown = [f"{v:.3f}" if isinstance(v, (int, float)) else "–" for v in (r.get("auc_pr"), r.get("max_f1"))]
                 shown.insert(1, percent(r.get("recall_at_100_precision")))  # in percent, as on the dataset pages
                 lines.append(f"| {name} | {with_ci(s[1])} | {with_ci(s[5])} | {' | '.join(shown)} | "
-                             f"{_cost(cell, 'ms_per_query')} | `{text(r.get('run_id'))}` |")
+                             f"{_cost(cell, 'ms_per_query')} | {code(r.get('run_id'))} |")
         lines.append("")
     if not board.columns:
         lines.append("No run in this track yet.")
