@@ -48,8 +48,28 @@ def loaded(method, items: Sequence) -> list:
     return [method.load(Path(x)) if isinstance(x, (str, os.PathLike)) else x for x in items]
 
 
+def plugin_failure(method, part: str, error: BaseException) -> str | None:
+    """One line for what a plugin method's `part` (describe, load) raised, naming it and the line of
+    its code that raised (its user is not its author: a traceback through vprbench helps neither);
+    None for a core method (a bug of vprbench's own keeps its traceback) and for what the command
+    already says in a line (vprbench's errors, paths, memory)."""
+    import traceback
+
+    top = (type(method).__module__ or "").split(".")[0]
+    if top == "vprbench" or isinstance(error, (VPRBenchError, OSError, MemoryError, KeyboardInterrupt)) or (
+            isinstance(error, RuntimeError) and "memory" in str(error)):  # torch's out of memory
+        return None
+    home = os.path.dirname(getattr(sys.modules.get(top), "__file__", None) or "?")
+    frames = traceback.extract_tb(error.__traceback__)
+    own = [f for f in frames if f.filename.startswith(home + os.sep)] or frames[-1:]
+    at = f" at {own[-1].filename}:{own[-1].lineno}" if own else ""
+    return (f"Method {getattr(method, 'name', '?')!r} ({top}) failed in {part}(): {type(error).__name__}: "
+            f"{error}{at}; fix the plugin, or report it to its authors.")
+
+
 class _Failed:
-    """A `VPRBenchError` raised in a worker, carried to the main process as a plain message."""
+    """A `VPRBenchError` (or a plugin's failure, `plugin_failure`) raised in a worker, carried to the main
+    process as a plain message."""
 
     def __init__(self, message: str):
         self.message = message
@@ -83,6 +103,11 @@ class _Images:
             return item
         except VPRBenchError as error:
             return _Failed(str(error))
+        except (Exception, SystemExit) as error:
+            message = plugin_failure(self.method, "load", error)
+            if message is None:
+                raise
+            return _Failed(message)
 
 
 def _digest(path: Path) -> str:
@@ -219,7 +244,14 @@ def describe_batches(method, paths: Sequence[Path], *, workers: int = 0, device:
         for item in items:
             if isinstance(item, _Failed):
                 raise VPRBenchError(item.message)
-        descriptors = checked(f"Method {method.name!r}", method.describe(items), len(items), dim,
+        try:
+            described = method.describe(items)
+        except (Exception, SystemExit) as error:
+            message = plugin_failure(method, "describe", error)
+            if message is None:
+                raise
+            raise VPRBenchError(message) from error  # the chain for a Python caller; the command prints the line
+        descriptors = checked(f"Method {method.name!r}", described, len(items), dim,
                               getattr(method, "compare", "cosine"))
         dim = descriptors.shape[1]
         yield offset, descriptors

@@ -156,6 +156,34 @@ def test_a_postprocessor_returning_nan_is_refused(cli, shared_data):
     assert_refused(code, err, None, "Post-processor Transform returned non-finite descriptors", stores_allowed=True)
 
 
+class SplitDims(Returns):
+    """Three numbers per database image, two per query: each split fine alone, not comparable."""
+
+    def describe(self, images):
+        rows = unit_rows(images)[:, :2 if "query" in str(images[0]) else 3]
+        return rows / np.linalg.norm(rows, axis=1, keepdims=True)
+
+
+def test_splits_of_different_dimensions_name_the_method(cli, shared_data):
+    name = plugin("split-dims", base=SplitDims)
+    for _ in range(2):  # computed, then served from its stores: the same line
+        code, _, err = cli("evaluate", "--method", name, "--dataset", "corridor", "--data-dir", shared_data)
+        # was: 'Database descriptors have 3 dims, queries 2', naming neither the method nor what to do
+        assert_refused(code, err, None, "Method 'split-dims' described the database in 3 and the queries in 2 "
+                                        "dimensions: every image must get the same dimension", stores_allowed=True)
+
+
+@pytest.mark.parametrize("value, fragment", [
+    ({"car", "road"}, "set"), (object(), "object"), (float("nan"), "Out of range float"),
+])
+def test_an_option_that_is_not_plain_data_is_refused_when_the_method_is_created(value, fragment):
+    name = plugin("takes-x", base=type("TakesX", (Returns,), {"__init__": lambda self, x=1, device="cpu": None}))
+    # before: created with it; a set or an object was refused only when the run was specified, the object
+    # as 'created as ... but now says ...' (its deep copy), which named no option
+    with pytest.raises(VPRBenchError, match=rf"Method 'takes-x': an option is not plain data \(.*{fragment}"):
+        registry.create_method(name, x=value)
+
+
 # ---------------------------------------------------------------- names
 def test_a_plugin_cannot_take_a_core_method_name(monkeypatch):
     class Hijack(Returns):
@@ -222,6 +250,48 @@ def test_a_fingerprint_cannot_hide_the_options_from_the_store(own, fragment, cli
     assert_refused(code, err, None, f"Method 'sized': {fragment}")
 
 
+class Projects(Sized):
+    """A plugin whose rows come from `projection`, which its fingerprint() names as the array itself."""
+
+    projection = np.zeros(2000)
+
+    def fingerprint(self) -> dict:
+        return {"projection": type(self).projection}
+
+    def describe(self, images):
+        rows = np.zeros((len(images), 2), np.float32)
+        rows[:, 0 if type(self).projection[1000] == 0 else 1] = 1
+        return rows
+
+
+def test_a_fingerprint_holding_an_array_is_refused_not_keyed_by_its_summary(cli, tmp_path, images):
+    name = plugin("projects", base=Projects)
+    # before: keyed by the array's text, '[0. 0. 0. ... 0. 0. 0.]' for both, so the second projection was
+    # served the rows stored for the first
+    code, _, err = describe(cli, tmp_path, name, images)
+    assert_refused(code, err, None, "Method 'projects': fingerprint() holds a ndarray at projection, which is not "
+                                    "plain data", "the sha256 of an array's bytes")
+
+
+@pytest.mark.parametrize("own, fragment", [
+    ({"classes": {"car", "tree", "road"}}, "holds a set at classes"),  # text ordered by each process's hash seed
+    ({"net": {"loaded": object()}}, "holds a object at net.loaded"),  # text holds its address: never served again
+    ({"scale": float("nan")}, "holds nan at scale; give a finite number"),  # was a traceback
+])
+def test_a_fingerprint_is_plain_data(own, fragment, cli, tmp_path, images):
+    name = plugin("unplain", base=Sized, fingerprint=lambda self: own)
+    code, _, err = describe(cli, tmp_path, name, images)
+    assert_refused(code, err, None, f"Method 'unplain': fingerprint() {fragment}")
+
+
+def test_numpy_numbers_and_paths_in_a_fingerprint_key_the_store_as_plain_values(cli, tmp_path, images):
+    from vprbench.store.folder import method_fingerprint
+
+    method = SimpleNamespace(name="x", settings={}, fingerprint=lambda: {"dim": np.int64(8), "file": Path("w.pt")})
+    plain = SimpleNamespace(name="x", settings={}, fingerprint=lambda: {"dim": 8, "file": "w.pt"})
+    assert method_fingerprint(method) == method_fingerprint(plain)  # was {"dim": "8"}: another store for 8
+
+
 def test_options_key_the_store_whatever_the_fingerprint_forgets(cli, tmp_path, images):
     name = plugin("forgets", base=Sized, fingerprint=lambda self: {})
     for size in (3, 5):
@@ -254,6 +324,26 @@ def test_provenance_must_be_a_dict_and_is_kept_as_json():
     marker = object()
     declared["value"] = {"weights": {"source": "none", "loaded_by": marker}}
     assert method_provenance(method)["weights"] == {"source": "none", "loaded_by": str(marker)}  # was unsaveable
+
+
+def boom(*_):
+    raise RuntimeError("server said no")
+
+
+def leaves(*_):
+    raise SystemExit(3)
+
+
+@pytest.mark.parametrize("part, attributes, error", [
+    ("describe", {"describe": boom}, "RuntimeError: server said no"),  # was a traceback through vprbench
+    ("describe", {"describe": leaves}, "SystemExit: 3"),  # was exit 3, not a word said
+    ("load", {"load": boom}, "RuntimeError: server said no"),
+])
+def test_a_plugin_that_raises_is_one_line_naming_it_and_its_line(part, attributes, error, cli, tmp_path, images):
+    code, _, err = describe(cli, tmp_path, plugin("crashes", __module__="my_plugin", **attributes), images)
+    assert_refused(code, err, None, f"Method 'crashes' (my_plugin) failed in {part}(): {error} at ",
+                   f"test_plugin_audit.py:{next(iter(attributes.values())).__code__.co_firstlineno + 1}; fix the "
+                   "plugin, or report it to its authors.")
 
 
 # ---------------------------------------------------------------- a method that fails mid-run

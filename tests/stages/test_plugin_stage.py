@@ -57,3 +57,17 @@ def test_without_the_package_the_stage_is_unknown(tmp_path, shared_data):
     run = cli(["evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", shared_data, "--rerank",
                "consensus"], tmp_path / "empty", tmp_path)
     assert run.returncode == 1 and "Unknown stage 'consensus'" in run.stderr
+
+
+def test_a_stage_fingerprint_is_plain_data():
+    import numpy as np
+
+    from vprbench.errors import VPRBenchError
+    from vprbench.stages.run import stage_fingerprint
+
+    stage = type("S", (), {"name": "mine", "fingerprint": lambda self: {"table": np.zeros(2000)}})()
+    # before: kept as the array's text, '[0. 0. 0. ... 0. 0. 0.]' whatever the array
+    with pytest.raises(VPRBenchError, match=r"Stage 'mine': fingerprint\(\) holds a ndarray at table, which is "):
+        stage_fingerprint(stage)
+    stage.fingerprint = lambda: {"k": np.int64(4), "w": Path("a.pt")}
+    assert stage_fingerprint(stage) == {"k": 4, "w": "a.pt"}

@@ -83,7 +83,7 @@ def describe_splits(method, splits: dict[str, list[Path]], *, root: Path | None 
             folder.tidy_if_free(split)
         # one entry per rank, as when they compute: nothing, on every rank
         per_rank = [dict(computed) for _ in range(ranks.world_size)]
-        return Described(stores, computed, timings, fingerprint, folder, per_rank)
+        return Described(same_dim(method, stores), computed, timings, fingerprint, folder, per_rank)
     with ExitStack() as held:
         def plan():
             held.enter_context(folder.locked(lock_timeout))
@@ -108,7 +108,18 @@ def describe_splits(method, splits: dict[str, list[Path]], *, root: Path | None 
         raise VPRBenchError(f"The stores in {', '.join(map(str, folder.paths.values()))} are still incomplete after "
                             "extraction; run again.")
     totals = {split: sum(c[split] for c in per_rank) for split in splits}
-    return Described(stores, totals, timings, fingerprint, folder, per_rank)
+    return Described(same_dim(method, stores), totals, timings, fingerprint, folder, per_rank)
+
+
+def same_dim(method, stores: dict) -> dict:
+    """`stores`, or an error naming the method when its splits' rows differ in dimension (each
+    store is what it computed for its images; only their comparison is impossible)."""
+    dims = {split: store.dim for split, store in stores.items()}
+    if len(set(dims.values())) > 1:
+        found = " and ".join(f"the {split} in {dim}" for split, dim in dims.items())
+        raise VPRBenchError(f"Method {method.name!r} described {found} dimensions: every image must get the same "
+                            "dimension to be compared; fix the method.")
+    return stores
 
 
 def split_keys(method, image_keys: dict[str, str]) -> dict:

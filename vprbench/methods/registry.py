@@ -25,6 +25,7 @@ from importlib.metadata import entry_points
 from pathlib import Path
 
 from ..errors import VPRBenchError, closest_names
+from ..hashing import canonical_json
 from ..registration import check_name, claim, imported, run_plugins, source_of
 from .checks import canonical, whole
 
@@ -179,6 +180,10 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
     entry = method_entry(name)
     # each value in its one form (resize '64x64' is [64, 64]), as a spec holds it: one store either way
     written = entry.in_form({k: canonical(k, v) for k, v in options.items() if v is not None})
+    try:  # before the factory sees it: the spec refuses it later, after models are loaded
+        canonical_json(written)
+    except (TypeError, ValueError) as error:
+        raise VPRBenchError(f"Method {name!r}: an option is not plain data ({error}).") from None
     given = entry.without_defaults(written)
     merged = {**entry.defaults, **given}
     accepted = entry.options()

@@ -6,6 +6,7 @@ import sys
 import time
 
 from ..errors import VPRBenchError
+from ..hashing import exact_data
 from .base import Candidates, StageContext, check_candidates, check_reordered
 
 
@@ -23,7 +24,7 @@ def stage_fingerprint(stage) -> dict:
     if not isinstance(found, dict):
         raise VPRBenchError(f"Stage {stage.name!r}: fingerprint() returned {type(found).__name__}, not a dict; fix "
                             "the stage.")
-    return json.loads(json.dumps(found, sort_keys=True, default=str))
+    return json.loads(json.dumps(exact_data(found, f"Stage {stage.name!r}: fingerprint()"), sort_keys=True))
 
 
 def track_of(stages) -> str:

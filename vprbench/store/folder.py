@@ -29,6 +29,7 @@ import numpy as np
 from ..errors import VPRBenchError
 from ..fsutil import CacheError, atomic_path, cache_error, is_temporary, lock
 from ..paths import cache_root, safe_name
+from ..hashing import exact_data
 from ..spec import RUN_SETTINGS, canonical_hash, canonical_json
 from .reader import DescriptorStore
 from .rows_file import DamagedRows, RowsIdentity, folder_lock, hdf5_written, inspect_rows_file
@@ -57,6 +58,7 @@ def method_fingerprint(method, store_dtype: str = "float32") -> dict:
     if clash:
         raise VPRBenchError(f"Method {method.name!r}: fingerprint() uses the key(s) {', '.join(clash)}, which the "
                             f"store's key sets itself ({', '.join(RESERVED_KEYS)}); rename them in the method.")
+    own = exact_data(own, f"Method {method.name!r}: fingerprint()")  # as text, two arrays could share one key
     return json.loads(json.dumps({"method": method.name, "settings": settings, **own,
                                   "store_dtype": store_dtype, "decoding": {"orientation": ORIENTATION}}, default=str))
 
