@@ -118,7 +118,8 @@ class WeightSource:
     pass_with: str = "--weights PATH"
     gated: bool = False
     licence: str | None = None
-    #: other names a folder of release files may hold it under (the authors' own download scripts')
+    #: other names a folder of release files may hold it under (the authors' own download scripts'), and
+    #: other files of a hub repository holding it, tried in this order after `file_name` (timm's)
     also_named: tuple[str, ...] = ()
 
     @property
@@ -135,8 +136,8 @@ class WeightSource:
 
 @dataclass(frozen=True)
 class ResolvedWeights:
-    """A weight file on disk and its identity for fingerprints: the release URL, 'hf:<repo>/<file>'
-    for a hub download, or 'sha256:<hex>' of a local file."""
+    """A weight file on disk and its identity for fingerprints: 'sha256:<hex>' of a local file or of a
+    release whose sha256 a backbone manifest pins, else the release URL or 'hf:<repo>/<file>'."""
 
     path: Path
     identity: str
@@ -177,17 +178,22 @@ def cached_weights(source: WeightSource, cache_dir=None) -> Path | None:
     if source.hub:
         from huggingface_hub import try_to_load_from_cache
 
-        found = try_to_load_from_cache(source.hub, source.file_name, cache_dir=str(hub_folder(cache_dir)))
-        return Path(found) if isinstance(found, str) else None
+        for name in (source.file_name, *source.also_named):
+            found = try_to_load_from_cache(source.hub, name, cache_dir=str(hub_folder(cache_dir)))
+            if isinstance(found, str):
+                return Path(found)
     return None
 
 
 def weights_identity(source: WeightSource, weights: str | Path | None, what: str) -> str:
-    """The identity `resolve_weights` gives, without downloading anything."""
+    """The identity `resolve_weights` gives, without downloading anything. A release whose sha256 a
+    backbone manifest pins is named by it, as a local copy of its bytes is: one computation, one
+    identity; only there, as its records still name its URL from the pin (`weights_provenance`)."""
     if weights is not None:
         return "sha256:" + file_sha256(local_weights(source, weights, what))
     if source.url:
-        return source.url
+        pinned = f"sha256:{source.sha256.lower()}" if source.sha256 else None
+        return pinned if pinned and weights_provenance(pinned).get("url") == source.url else source.url
     if source.hub:
         return f"hf:{source.hub}/{source.file_name}"
     raise VPRBenchError(_no_download(source, what))
@@ -212,7 +218,7 @@ def resolve_weights(source: WeightSource, weights: str | Path | None, what: str,
     sha256 when there is one). Offline, or without a download, the error says how to supply it."""
     if weights is not None:
         path = local_weights(source, weights, what)
-        return ResolvedWeights(path, "sha256:" + file_sha256(path))
+        return ResolvedWeights(path, weights_identity(source, path, what))
     identity = weights_identity(source, None, what)
     found = cached_weights(source, cache_dir)
     if found is not None:
@@ -223,14 +229,24 @@ def resolve_weights(source: WeightSource, weights: str | Path | None, what: str,
 
             found = weights_folder(cache_dir) / source.file_name
             found.parent.mkdir(parents=True, exist_ok=True)
-            torch.hub.download_url_to_file(source.url, str(found), hash_prefix=source.sha256, progress=False)
+            torch.hub.download_url_to_file(source.url, str(found), hash_prefix=source.sha256 and source.sha256.lower(),
+                                           progress=False)  # torch compares lower-case hex
         else:
             from huggingface_hub import get_hf_file_metadata, hf_hub_download, hf_hub_url
+            from huggingface_hub.errors import EntryNotFoundError, LocalEntryNotFoundError
 
             # one request without the hub client's retries first: an offline machine or a gated
-            # repository is told at once, not after half a minute of retrying
-            get_hf_file_metadata(hf_hub_url(source.hub, source.file_name), retry_on_errors=False)
-            found = Path(hf_hub_download(source.hub, source.file_name, cache_dir=str(hub_folder(cache_dir))))
+            # repository is told at once, not after half a minute of retrying; a file the repository
+            # lacks: the next name (its weights under timm's other name)
+            names = (source.file_name, *source.also_named)
+            for name in names:
+                try:
+                    get_hf_file_metadata(hf_hub_url(source.hub, name), retry_on_errors=False)
+                    break
+                except EntryNotFoundError as error:
+                    if isinstance(error, LocalEntryNotFoundError) or name == names[-1]:  # offline, or none there
+                        raise
+            found = Path(hf_hub_download(source.hub, name, cache_dir=str(hub_folder(cache_dir))))
     except Exception as error:  # noqa: BLE001 - network clients raise their own types (urllib, httpx, hub errors)
         if type(error).__name__ == "GatedRepoError":  # not logged in, or logged in without access
             raise _gated(source, what) from None
@@ -279,10 +295,10 @@ def weights_provenance(identity: str | None) -> dict:
     """Where a method's weights came from, for result records and the leaderboard.
 
     `identity` is what fingerprints hold: the official URL (or 'hf:<repo>/<file>') of a file
-    vprbench downloaded from the authors' release, 'sha256:<hex>' for a local file, None
-    for a model run without weights (random initialisation). A local file is official only when
-    its sha256 equals one the authors publish (manifests/weights.toml); otherwise it is the
-    user's file, identified by its sha256.
+    vprbench downloaded from the authors' release, 'sha256:<hex>' for a local file or a release
+    with a published sha256, None for a model run without weights (random initialisation). A
+    sha256 is official only when it equals one the authors publish (a backbone manifest's pinned
+    sha256, or manifests/weights.toml); otherwise it is the user's file.
     """
     if identity is None:
         return {"source": "random"}
@@ -294,6 +310,13 @@ def weights_provenance(identity: str | None) -> dict:
         return {"source": "official", "url": identity, "recognised_by": "download",
                 **({"release": release["name"]} if release else {})}
     digest = identity.removeprefix("sha256:")
+    from .features.catalogue import backbones  # imports this module: here, not at the top
+
+    url = next((e.url for e in backbones().values() if e.url and e.sha256 and e.sha256.lower() == digest.lower()), None)
+    if url is not None:  # a pinned release's bytes, downloaded or a local copy alike: its URL and sha256
+        release = next((r for r in official_releases() if url.startswith(r["url_prefix"])), None)
+        return {"source": "official", "url": url, "sha256": digest, "recognised_by": "sha256",
+                **({"release": release["name"]} if release else {})}
     for release in official_releases():
         for name, published in release.get("sha256", {}).items():
             if published.lower() == digest.lower():

@@ -69,6 +69,8 @@ class BackboneEntry(BaseModel):
     url: str | None = Field(None, pattern=r"^https://\S+/[^/\s]+$")  # the authors' release file (official format)
     sha256: str | None = Field(None, pattern=r"^[0-9a-fA-F]{64}$")  # only when the authors publish one
     hub: str | None = Field(None, pattern=r"^[A-Za-z0-9_.-]+/[A-Za-z0-9_.-]+$")  # Hugging Face hub repository
+    #: the file timm names in the hub repository (its pretrained config's hf_hub_filename, else its default)
+    hub_file: str = Field("pytorch_model.bin", pattern=r"^[A-Za-z0-9_.-]+$")
     #: keyword arguments timm's constructor needs (e.g. dynamic_img_size for any input size)
     timm_kwargs: dict[str, bool | int | float | str] = Field(default_factory=dict)
     #: the precision the release keeps its RoPE periods in (DINOv3: bfloat16; timm computes float32)
@@ -102,15 +104,25 @@ class BackboneEntry(BaseModel):
 
     @property
     def file_name(self) -> str:
-        return self.url.rsplit("/", 1)[-1] if self.url else "model.safetensors"
+        return self.url.rsplit("/", 1)[-1] if self.url else self.hub_files[0]
+
+    @property
+    def hub_files(self) -> tuple[str, ...]:
+        """The hub files of the weights in the order timm looks for them (timm.models._hub's
+        load_state_dict_from_hf): the .safetensors beside `hub_file` first, then `hub_file` itself."""
+        name = self.hub_file
+        safe = {"pytorch_model.bin": "model.safetensors", "open_clip_pytorch_model.bin": "open_clip_model.safetensors"}
+        alternative = safe.get(name) or (name.removesuffix(".bin") + ".safetensors" if name.endswith(".bin") else None)
+        return (alternative, name) if alternative else (name,)
 
     @property
     def source(self) -> WeightSource:
-        """The release URL when there is one, else the hub file."""
+        """The release URL when there is one, else the hub files (the first found is loaded)."""
         if self.url:
             return WeightSource(self.file_name, url=self.url, page=self.page, sha256=self.sha256, gated=self.gated,
                                 licence=self.licence)
-        return WeightSource(self.file_name, hub=self.hub, page=self.page, gated=self.gated, licence=self.licence)
+        return WeightSource(self.file_name, hub=self.hub, page=self.page, gated=self.gated, licence=self.licence,
+                            also_named=self.hub_files[1:])
 
     @property
     def timm_name(self) -> str:
@@ -241,4 +253,5 @@ def timm_entry(arch_tag: str) -> BackboneEntry:
         timm_kwargs={"dynamic_img_size": True} if hasattr(model, "dynamic_img_size") else {},
         **access, url=None if hub else (cfg.get("url") or None),
         hub=hub or (None if cfg.get("url") else f"timm/{arch_tag}"),
+        **({"hub_file": cfg["hf_hub_filename"]} if cfg.get("hf_hub_filename") else {}),
     )
