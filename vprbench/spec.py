@@ -254,6 +254,9 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
 
     check_stage_chain(stages, ks)
     data = resolve_dataset(dataset, protocol, data_dir, cache_dir)
+    if getattr(entry.factory, "dataset_option", None) in given:  # naming the dataset evaluated: as unset
+        given = entry.without_defaults(given, data.name)
+        merged = plain({**{k: v for k, v in entry.defaults.items() if k not in RUN_SETTINGS}, **given})
     if data.kind == "benchmark":  # a benchmark that is no traverse is refused before its data is needed
         from .datasets.traverse import require_traverse_manifest
         from .stages.registry import stage_entry
@@ -266,10 +269,10 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
                    stages=stages, ks=ks, store_dtype=_choice("--store-dtype", store_dtype, STORE_DTYPES))
 
 
-def given_options(options, method: str | None = None) -> dict:
+def given_options(options, method: str | None = None, dataset: str | None = None) -> dict:
     """The options given that are part of a spec, each in its one form (methods/checks.py
     `canonical`): None (unset), run settings and (with the method's name) those set to the
-    value they have anyway left out."""
+    value they have anyway left out (an option naming the `dataset` evaluated among them)."""
     require(options or {}, dict, "options takes a dict of option name -> value, e.g. {'resize': [64, 64]}")
     names = [k for k in options or {} if not isinstance(k, str)]
     if names:
@@ -280,7 +283,7 @@ def given_options(options, method: str | None = None) -> dict:
     if method is not None:
         from .methods.registry import method_entry
 
-        given = method_entry(method).without_defaults(given)
+        given = method_entry(method).without_defaults(given, dataset)
     return given
 
 

@@ -9,6 +9,7 @@ import pytest
 
 from vprbench.errors import VPRBenchError
 from vprbench.methods import create_method
+from vprbench.methods.objects import check_method
 from vprbench.spec import resolve_spec, spec_for
 
 TINY = {"backbone": "dinov2_vits14", "weights": "random", "resize": [28, 28]}
@@ -101,3 +102,17 @@ def test_files_of_one_content_named_by_bare_words_stay_apart(tmp_path, monkeypat
     key, value, path = file_identity("key"), file_identity("value"), file_identity("w.pth")
     assert key.startswith("key@sha256:") and value.startswith("value@sha256:")
     assert key.split("@")[1] == value.split("@")[1] == path  # a file with a suffix is known by its bytes alone
+
+
+def test_anylocs_dataset_option_naming_the_dataset_evaluated_is_the_run_without_it():
+    """Unset, AnyLoc's `dataset` is the dataset evaluated (use_dataset): written equal to it, one run, one
+    row, in its spec and in the spec of a method created with it; another dataset's name stays its own."""
+    unset = resolve_spec("anyloc", "corridor", options={**TINY, "aggregation": "gem"})
+    written = resolve_spec("anyloc", "corridor", options={**TINY, "aggregation": "gem", "dataset": "corridor"})
+    assert (written.key, written.row_key, written.label()) == (unset.key, unset.row_key, unset.label())
+    assert "dataset" not in written.options
+    created = create_method("anyloc", **TINY, aggregation="gem", dataset="corridor")
+    assert spec_for(created, "corridor").key == unset.key
+    check_method(created, spec_for(created, "corridor"))  # evaluate takes that method with that spec
+    other = resolve_spec("anyloc", "corridor", options={**TINY, "aggregation": "gem", "dataset": "pitts30k"})
+    assert other.given["dataset"] == "pitts30k" and other.row_key != unset.row_key

@@ -18,10 +18,9 @@ import torch.nn.functional as F
 
 from ..aggregation import pooling, vlad
 from ..aggregation.pca import PCAWhitening
-from .anyloc_vocabulary import (
-    MAP_PREFIX, bare_folder_identity, named_identity, names_file, paper_choice, released_provenance, resolve_vocabulary,
-    vocabulary_images,
-)
+from . import anyloc_options
+from .anyloc_options import AGGREGATIONS, VLADS
+from .anyloc_vocabulary import MAP_PREFIX, paper_choice, released_provenance, resolve_vocabulary, vocabulary_images
 from ..aggregation.vlad import vlad_hard
 from ..aggregation.vocabulary import fit_vocabulary
 from ..errors import VPRBenchError
@@ -38,8 +37,6 @@ from .registry import register_method
 
 #: bump when a change in this code changes descriptors (part of the fingerprint)
 DESCRIPTOR_VERSION = 1
-AGGREGATIONS = ("vlad", "vlad-soft-official", "vlad-soft", "gem", "gap", "gmp", "cls")
-VLADS = ("vlad", "vlad-soft-official", "vlad-soft")
 PRECISIONS = {"fp32": None, "fp16": torch.float16, "bf16": torch.bfloat16}
 
 
@@ -57,6 +54,8 @@ def _aggregate(name: str, feats: torch.Tensor, centres: torch.Tensor | None, gem
 
 class AnyLoc(Method):
     """Global descriptors from one block/facet of DINOv2 or DINO, aggregated."""
+
+    dataset_option = "dataset"  # picks the resize and domain vocabulary; unset, the dataset evaluated does
 
     def __init__(self, *, backbone: str = "dinov2_vitg14", weights: str | None = None, layer: int | None = None,
                  layer_for: str = "dinov2_vitg14:31",
@@ -120,48 +119,10 @@ class AnyLoc(Method):
         if aggregation in VLADS and self.vocabulary not in ("map", "domain"):
             self.centres = self._resolve_vocabulary()
 
-    @classmethod
-    def cached_identities(cls, options: dict, dataset: str, cache_dir=None) -> dict[str, str]:
-        """A vocabulary named by source ("urban", "domain"), by the content it resolves to now."""
-        vocabulary = options.get("vocabulary", "map")
-        if options.get("aggregation", "vlad") not in VLADS or not isinstance(vocabulary, str) or vocabulary == "map":
-            return {}
-        if names_file(vocabulary):
-            return bare_folder_identity(vocabulary)
-        probe = cls._probe(options, cache_dir)  # the settings vocabularies are keyed by
-        found = probe and named_identity(vocabulary, dataset, probe.vocabulary_backbone, probe.layer, probe.facet,
-                                         probe.clusters, cache_dir)
-        return {"vocabulary": found} if found else {}
-
-    @classmethod
-    def implied_options(cls, options: dict) -> dict:
-        """The block and stride an unset `layer`/`stride` stand for on this backbone."""
-        probe = cls._probe({k: v for k, v in options.items() if k not in ("layer", "stride")})
-        return {"layer": probe.layer, "stride": probe.stride} if probe else {}
-
-    @classmethod
-    def unused_options(cls, options: dict) -> dict[str, str]:
-        """Options the aggregation ignores, and why (given, they would only name the row)."""
-        aggregation = options.get("aggregation", "vlad")
-        vlad_only = {} if aggregation in VLADS else dict.fromkeys(("clusters", "vocabulary"), f"only VLAD uses it, "
-                                                                   f"the aggregation is {aggregation}")
-        gem_only = {} if aggregation == "gem" else {"gem_p": f"only GeM uses it, the aggregation is {aggregation}"}
-        probe = cls._probe(options) if aggregation == "cls" else None  # None too for a backbone it refuses
-        no_block = dict.fromkeys(("layer", "layer_for", "facet"), "the CLS token comes from the final norm, after the "
-                                 "last block") if probe and probe.spec.cls == "final-norm" else {}
-        return vlad_only | gem_only | no_block
-
-    @classmethod
-    def _probe(cls, options: dict, cache_dir=None) -> "AnyLoc | None":
-        """The method these options make, without loading the model or any centres; None when an option
-        is bad (the run names it). Its notes are said when the run creates the method. No centres, and
-        fp32 on the CPU (fp16 needs CUDA): neither changes the layer, stride or vocabulary keys."""
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            try:
-                return cls(**{**options, "vocabulary": "map", "precision": "fp32", "device": "cpu"}, cache_dir=cache_dir)
-            except (VPRBenchError, TypeError):
-                return None
+    # what a run's spec asks of the options before the method is created (anyloc_options.py)
+    cached_identities = classmethod(anyloc_options.cached_identities)
+    implied_options = classmethod(anyloc_options.implied_options)
+    unused_options = classmethod(anyloc_options.unused_options)
 
     # ------------------------------------------------------------ configuration
     def _preset_layer(self, layer_for: str) -> int:

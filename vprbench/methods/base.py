@@ -67,6 +67,10 @@ class Method(ABC):
         part of the run's key (not its leaderboard row), so a refit is another run. Default: none."""
         return {}
 
+    #: the option naming the dataset the method is for (AnyLoc's `dataset`), if it has one: in an
+    #: evaluation an unset one is the dataset evaluated (`use_dataset`), so written equal, it is one run
+    dataset_option: str | None = None
+
     @classmethod
     def implied_options(cls, options: dict) -> dict:
         """Option -> the value an option left unset (None) takes given the others (AnyLoc: the preset's

@@ -38,7 +38,7 @@ def check_method(method, spec) -> None:
 
     name = created_as(method)
     try:
-        given = plain(given_options(dict(getattr(method, "options", {}) or {}), name))
+        given = plain(given_options(dict(getattr(method, "options", {}) or {}), name, spec.dataset.name))
     except (TypeError, ValueError):
         given = None
     if name != spec.method or given != spec.given:

@@ -92,16 +92,19 @@ class MethodEntry:
                   if isinstance(v, (int, float)) and not isinstance(v, bool)}
         return found
 
-    def without_defaults(self, given: dict) -> dict:
+    def without_defaults(self, given: dict, dataset: str | None = None) -> dict:
         """`given` less the options set to the value they have anyway (`cell = 16` for hog): one
         computation, one identity (spec, store, label), whether a default is written out or not. A list
         written as text ('4,6,8,10' from `-o bin_sizes=4,6,8,10`) for an option whose default is a list
-        is that list."""
+        is that list. With the `dataset` evaluated, the factory's `dataset_option` naming it is as unset."""
         defaults = self.effective_defaults()
         given = self.in_form(given)
         implied = getattr(self.factory, "implied_options", None)  # an unset option's value, from the others
         defaults |= {k: v for k, v in (implied({**defaults, **given}) if callable(implied) else {}).items()
                      if defaults.get(k) is None}
+        named = getattr(self.factory, "dataset_option", None)  # unset, it is the dataset evaluated (use_dataset)
+        if dataset is not None and isinstance(named, str) and defaults.get(named) is None:
+            defaults[named] = dataset
         # a file the factory's default names stays given: unlike a preset's, that default is not in the
         # spec's options, so its content (spec.files) would leave the run's identity
         kept = {k: v for k, v in given.items() if k not in defaults or not _same(k, v, defaults[k])
