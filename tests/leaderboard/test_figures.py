@@ -125,3 +125,14 @@ def test_the_pca_map_draws_no_run_the_board_leaves_out(shared_data, tmp_path, ca
     overview = (tmp_path / "site" / "leaderboard" / "index.md").read_text()
     assert "PCA map of GeM descriptors: not drawn, no GeM descriptors" in overview, overview
     assert not (tmp_path / "site" / "leaderboard" / "figures" / "pca-gem.png").exists()
+
+
+def test_a_name_starting_with_an_underscore_has_its_legend_entry(make_record, tmp_path):
+    """matplotlib leaves '_'-labels out of a legend it gathers itself: a record's method '_x_' had none."""
+    board = board_of(make_record, [("_x_", "corridor"), ("hog", "corridor")])
+    cells = list(board.cells.values())
+    shown = {}
+    for draw in (figures.recall_curves, figures.pr_curves, figures.efficiency):
+        svg = draw(cells, tmp_path / f"{draw.__name__}.svg").read_text()
+        shown[draw.__name__] = sorted(set(re.findall(r"<!-- (_x_|hog)\b", svg)))  # the text's comment
+    assert shown == dict.fromkeys(("recall_curves", "pr_curves", "efficiency"), ["_x_", "hog"])

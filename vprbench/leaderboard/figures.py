@@ -67,6 +67,12 @@ def _label(value: str) -> str:
     return shown.replace("$", r"\$")
 
 
+def _legend(where, artists: list, **options) -> None:
+    """A legend of exactly `artists`, each under its label: matplotlib leaves out of a legend it
+    gathers itself every label that starts with '_' (a method named '_x_' had no entry)."""
+    where.legend(artists, [a.get_label() for a in artists], **options)
+
+
 class Skipped(Exception):
     """A figure that cannot be drawn; the message says why (shown on the page)."""
 
@@ -93,24 +99,23 @@ def recall_curves(cells: list[Cell], path: Path, colours: dict[str, str] | None 
     colours = _colours(colours, [c.row.name for c in cells])
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(5.5, 3.6))
-    drawn = 0
+    drawn = []
     for cell in cells:
         if cell.arrays is not None:
             first, depth = cell.arrays["first_positive_rank"], cell.record["per_query"]["k"]
             ks = np.arange(1, depth + 1)
-            ax.plot(ks, [100 * successes(first, k).mean() for k in ks], marker=".", label=_label(cell.row.name),
-                    color=colours[cell.row.name])
+            drawn += ax.plot(ks, [100 * successes(first, k).mean() for k in ks], marker=".",
+                             label=_label(cell.row.name), color=colours[cell.row.name])
         else:
             points = sorted((int(k), v) for k, v in cell.record["recall"].items())
-            ax.plot(*zip(*points), marker="o", linestyle="--", label=_label(f"{cell.row.name} (recorded K only)"),
-                    color=colours[cell.row.name])
-        drawn += 1
+            drawn += ax.plot(*zip(*points), marker="o", linestyle="--",
+                             label=_label(f"{cell.row.name} (recorded K only)"), color=colours[cell.row.name])
     if not drawn:
         plt.close(fig)
         raise Skipped("no run to draw")
     ax.set(xlabel="K", ylabel="Recall@K (%)", ylim=(0, 101), xscale="log")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="lower right")
+    _legend(ax, drawn, fontsize=7, loc="lower right")
     return _save(fig, path)
 
 
@@ -121,7 +126,7 @@ def pr_curves(cells: list[Cell], path: Path, colours: dict[str, str] | None = No
     colours = _colours(colours, [c.row.name for c in cells])
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(5.5, 3.6))
-    drawn = 0
+    drawn = []
     for cell in cells:
         if cell.arrays is None:
             continue
@@ -129,15 +134,14 @@ def pr_curves(cells: list[Cell], path: Path, colours: dict[str, str] | None = No
         if not correct.any():
             continue
         precision, recall, _ = precision_recall_curve(correct, cell.arrays["similarities"][:, 0])
-        ax.plot(recall, precision, color=colours[cell.row.name],
-                label=_label(f"{cell.row.name} (AUC {cell.record.get('auc_pr', float('nan')):.3f})"))  # as the page gives it
-        drawn += 1
+        drawn += ax.plot(recall, precision, color=colours[cell.row.name],  # AUC as the page gives it
+                         label=_label(f"{cell.row.name} (AUC {cell.record.get('auc_pr', float('nan')):.3f})"))
     if not drawn:
         plt.close(fig)
         raise Skipped("no run with per-query data and a correct top-1 match")
     ax.set(xlabel="recall", ylabel="precision", xlim=(0, 1.01), ylim=(0, 1.01))
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="lower left")
+    _legend(ax, drawn, fontsize=7, loc="lower left")
     return _save(fig, path)
 
 
@@ -146,12 +150,12 @@ def efficiency(cells: list[Cell], path: Path, colours: dict[str, str] | None = N
     colours = _colours(colours, [c.row.name for c in cells])
     plt = _pyplot()
     fig, (left, right) = plt.subplots(1, 2, figsize=(7.5, 3.2), sharey=True)
-    speeds = 0
+    speeds, points = 0, []
     for cell in cells:
         r1 = cell.recall(1)
         size = descriptor_bytes(cell.record) or 0
         colour = colours[cell.row.name]
-        left.scatter([size], [r1], color=colour, label=_label(cell.row.name))
+        points.append(left.scatter([size], [r1], color=colour, label=_label(cell.row.name)))
         speed = cell.images_per_second  # from a run that computed its descriptors
         if speed:
             right.scatter([speed], [r1], color=colour)
@@ -164,7 +168,7 @@ def efficiency(cells: list[Cell], path: Path, colours: dict[str, str] | None = N
     for ax in (left, right):
         ax.grid(alpha=0.3)
         _decades(ax)
-    fig.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=2, frameon=False)
+    _legend(fig, points, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=2, frameon=False)
     return _save(fig, path)
 
 
@@ -215,11 +219,12 @@ def radar(board: Board, path: Path, colours: dict[str, str] | None = None) -> Pa
     angles = np.linspace(0, 2 * np.pi, len(domains), endpoint=False)
     fig, ax = plt.subplots(figsize=(5.6, 5.6), subplot_kw={"projection": "polar"})
     notes: dict[str, int] = {}  # partial points already written beside each axis: stack the next below
+    lines = []
     for name, means, style in series:
         colour = colours[name]
         full = np.array([means[d].value if d in means and means[d].complete else np.nan for d in domains])
-        ax.plot(np.append(angles, angles[0]), np.append(full, full[0]), style, marker="o", color=colour,
-                label=_label(name))
+        lines += ax.plot(np.append(angles, angles[0]), np.append(full, full[0]), style, marker="o", color=colour,
+                         label=_label(name))
         for angle, domain in zip(angles, domains):
             part = means.get(domain)
             if part is not None and not part.complete:
@@ -233,7 +238,7 @@ def radar(board: Board, path: Path, colours: dict[str, str] | None = None) -> Pa
                            for d in domains])
     ax.tick_params(axis="x", pad=10)  # keep the labels off the outer ring
     ax.set_ylim(0, 100)
-    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=2, frameon=False)
+    _legend(ax, lines, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=2, frameon=False)
     ax.set_title("Average R@1 (%) per domain\nfilled: over every dataset of the axis; hollow: only the datasets named",
                  fontsize=8)
     return _save(fig, path)
@@ -366,12 +371,13 @@ def pca_map(records: list[dict], path: Path, *, cache_dir=None, seed: int = 0, p
     record = next(iter(found.values()))[0]
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(5.5, 4.5))
+    points = []
     for domain in sorted({d for d, _ in labels}):
         mask = np.array([d == domain for d, _ in labels])
         names = sorted({n for d, n in labels if d == domain})
-        ax.scatter(*projected[mask].T, s=6, alpha=0.6, color=DOMAIN_COLOURS.get(domain),
-                   label=_label(f"{domain} ({', '.join(names)})"))
+        points.append(ax.scatter(*projected[mask].T, s=6, alpha=0.6, color=DOMAIN_COLOURS.get(domain),
+                                 label=_label(f"{domain} ({', '.join(names)})")))
     weights = ((record.get("provenance") or {}).get("weights") or {}).get("source", "undeclared")
     ax.set(xlabel="PC 1", ylabel="PC 2", title=_label(f"{record['method']} GeM descriptors (weights: {weights})"))
-    ax.legend(fontsize=7)
+    _legend(ax, points, fontsize=7)
     return _save(fig, path)
