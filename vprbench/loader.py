@@ -13,6 +13,7 @@ checked by hashing each file just before and just after its `load`.
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import sys
@@ -48,14 +49,14 @@ def loaded(method, items: Sequence) -> list:
     return [method.load(Path(x)) if isinstance(x, (str, os.PathLike)) else x for x in items]
 
 
-def plugin_failure(method, part: str, error: BaseException) -> str | None:
-    """One line for what a plugin method's `part` (describe, load) raised, naming it and the line of
-    its code that raised (its user is not its author: a traceback through vprbench helps neither);
-    None for a core method (a bug of vprbench's own keeps its traceback) and for what the command
-    already says in a line (vprbench's errors, paths, memory)."""
+def plugin_failure(owner, part: str, error: BaseException, who: str | None = None) -> str | None:
+    """One line for what a plugin's `part` (describe, load, fit, ...) raised, naming `who` (default: the
+    method `owner`), its package and the line of its code that raised (its user is not its author: a
+    traceback through vprbench helps neither); None for vprbench's own code (a bug of vprbench's keeps its
+    traceback) and for what the command already says in a line (vprbench's errors, paths, memory)."""
     import traceback
 
-    top = (type(method).__module__ or "").split(".")[0]
+    top = (getattr(owner, "__module__", None) or type(owner).__module__ or "").split(".")[0]
     if top == "vprbench" or isinstance(error, (VPRBenchError, OSError, MemoryError, KeyboardInterrupt)) or (
             isinstance(error, RuntimeError) and "memory" in str(error)):  # torch's out of memory
         return None
@@ -63,8 +64,22 @@ def plugin_failure(method, part: str, error: BaseException) -> str | None:
     frames = traceback.extract_tb(error.__traceback__)
     own = [f for f in frames if f.filename.startswith(home + os.sep)] or frames[-1:]
     at = f" at {own[-1].filename}:{own[-1].lineno}" if own else ""
-    return (f"Method {getattr(method, 'name', '?')!r} ({top}) failed in {part}(): {type(error).__name__}: "
+    who = who or f"Method {getattr(owner, 'name', '?')!r}"
+    return (f"{who} ({top}) failed in {part}(): {type(error).__name__}: "
             f"{error}{at}; fix the plugin, or report it to its authors.")
+
+
+@contextlib.contextmanager
+def plugin_part(owner, part: str, who: str | None = None):
+    """Runs a call into `owner`'s code (a plugin's method, stage or post-processor): what it raises is
+    the one line of `plugin_failure`, a VPRBenchError (its chain kept for a Python caller)."""
+    try:
+        yield
+    except (Exception, SystemExit) as error:
+        message = plugin_failure(owner, part, error, who)
+        if message is None:
+            raise
+        raise VPRBenchError(message) from error
 
 
 class _Failed:
@@ -244,13 +259,8 @@ def describe_batches(method, paths: Sequence[Path], *, workers: int = 0, device:
         for item in items:
             if isinstance(item, _Failed):
                 raise VPRBenchError(item.message)
-        try:
+        with plugin_part(method, "describe"):
             described = method.describe(items)
-        except (Exception, SystemExit) as error:
-            message = plugin_failure(method, "describe", error)
-            if message is None:
-                raise
-            raise VPRBenchError(message) from error  # the chain for a Python caller; the command prints the line
         descriptors = checked(f"Method {method.name!r}", described, len(items), dim,
                               getattr(method, "compare", "cosine"))
         dim = descriptors.shape[1]

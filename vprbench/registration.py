@@ -5,6 +5,7 @@ load is a warning, skipped, never the end of the command."""
 from __future__ import annotations
 
 import importlib
+import unicodedata
 import warnings
 
 from .errors import VPRBenchError
@@ -14,6 +15,14 @@ def check_name(kind: str, name) -> None:
     """`name` is lower-case text without spaces; `kind` is "Method" or "Stage"."""
     if not isinstance(name, str) or not name or name != name.strip().lower() or " " in name:
         raise ValueError(f"{kind} names are lower-case without spaces, got {name!r}")
+    if not unicodedata.is_normalized("NFC", name):  # 'é' as e + accent would be a second name that looks the same
+        raise ValueError(f"{kind} names are written in Unicode NFC (composed), got {name!r} ({name.encode()!r}); "
+                         "register it as unicodedata.normalize('NFC', name)")
+
+
+def looked_up(name):
+    """A name as the registries hold it (NFC): one typed decomposed (e + accent) finds its entry."""
+    return unicodedata.normalize("NFC", name) if isinstance(name, str) else name
 
 
 def source_of(target) -> str:

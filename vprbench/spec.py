@@ -229,6 +229,7 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
                             "already created, use vprbench.spec.spec_for(method, dataset).")
     require(method, str, "resolve_spec's method takes a method's name, e.g. 'hog' (see 'vprbench methods list')")
     entry = method_entry(method)
+    method = entry.name  # as registered (NFC), however it was typed
     given = given_options(options, method)
     settings = split_run_settings(options)[1]
     if settings:  # else evaluate(spec) would run without them, on the default device
@@ -363,7 +364,7 @@ def resolve_stage(stage) -> StageSpec:
             raise VPRBenchError(f"A stage needs a name, e.g. {{name = \"sift-ransac\", k = 100}}; got {stage!r}.")
     else:
         raise VPRBenchError(f"A stage is a name or a table with a name, got {stage!r}.")
-    validated = stage_options(name, options)
+    validated, name = stage_options(name, options), stage_entry(name).name  # as registered (NFC)
     return StageSpec(name=name, options=plain(validated.model_dump(mode="json")),
                      files=plain(stage_entry(name).cls.file_identities(validated)))
 

@@ -25,7 +25,7 @@ from ..distributed import Ranks
 from ..errors import VPRBenchError
 from ..fsutil import cache_error
 from ..images import reads_seen
-from ..loader import check_batch_size, describe_batches
+from ..loader import check_batch_size, describe_batches, plugin_part
 from ..store import (DTYPES, NO_FIT, DamagedRows, DescriptorStore, RowWriter, StoreFolder, create_rows_file, inspect_rows_file,
                      method_fingerprint, shard_range)
 from ..store.folder import unsaved_fit_id
@@ -169,16 +169,18 @@ class _Job:
             found = self.folder.read_fit_state()
             if found is not None:
                 state, fit_id = found
-                self.method.load_fit_state(state)
+                with plugin_part(self.method, "load_fit_state"):
+                    self.method.load_fit_state(state)
             else:
                 started = time.perf_counter()
                 with phase(self.progress if self.ranks.rank == 0 else None,
                            f"{self.method.name} {self.label} fitting on {len(self.splits[FIT_SPLIT]):,} database images"):
-                    with reads_seen() as seen:
+                    with reads_seen() as seen, plugin_part(self.method, "fit"):
                         self.method.fit(self.splits[FIT_SPLIT])
                 self._check_fitted_images(seen)
                 timings["fit_s"] = time.perf_counter() - started
-                state = {k: np.asarray(v) for k, v in (self.method.fit_state() or {}).items()}
+                with plugin_part(self.method, "fit_state"):
+                    state = {k: np.asarray(v) for k, v in (self.method.fit_state() or {}).items()}
                 if state:
                     fit_id = self._save_fit(state)
                 elif self.ranks.distributed:

@@ -22,7 +22,8 @@ from .metrics import check_ks
 from .record import result_record
 from .retrieve import retrieve
 from ..stages.base import Candidates, StageContext
-from ..stages.run import create_stages, retrieval_depth, run_stages, track_of
+from ..loader import plugin_part
+from ..stages.run import create_stages, in_stage, retrieval_depth, run_stages, track_of
 
 
 def load_data(spec: RunSpec, settings: RunSettings):
@@ -137,8 +138,10 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
         dataset = ranks.on_zero(lambda: load_data(spec, settings))  # fetched on first use by rank 0 alone
     ks = check_ks(spec.ks, len(dataset.database), dataset.name)
     for stage in stages:  # before any descriptor is computed
-        stage.check(dataset)
-        stage.check_compare(getattr(method, "compare", "cosine"))
+        with in_stage(stage, "check"):
+            stage.check(dataset)
+        with in_stage(stage, "check_compare"):
+            stage.check_compare(getattr(method, "compare", "cosine"))
     depth = depth or retrieval_depth(stages, ks, len(dataset.database), dataset.name)
     if depth > len(dataset.database):
         raise VPRBenchError(f"{depth} candidates per query asked for, but the database of {dataset.name} holds "
@@ -148,9 +151,11 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
         from ..stages.candidates import read_candidates
 
         frozen = read_candidates(settings.candidates, spec, len(dataset.queries), len(dataset.database), depth)
-    method.use_dataset(dataset.name)
+    with plugin_part(method, "use_dataset"):
+        method.use_dataset(dataset.name)
     check_found(spec, dataset.name, settings.cache_dir)
-    post = method.postprocessor()
+    with plugin_part(method, "postprocessor"):
+        post = method.postprocessor()
     if post is not None and hasattr(post, "check_rows"):  # e.g. PCA wider than the database: before describing it
         post.check_rows(len(dataset.database), dataset.name)
     workers = loader_workers(settings, method)

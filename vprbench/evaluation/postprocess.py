@@ -15,7 +15,8 @@ import numpy as np
 
 from ..errors import VPRBenchError
 from ..fsutil import atomic_path
-from ..loader import checked
+from ..hashing import exact_data
+from ..loader import checked, plugin_part
 from ..row_sources import ArrayRows, RowSource, read_bytes_per_row
 
 #: a post-processor transforms tiles of at most this many input bytes (see transform_rows)
@@ -52,7 +53,8 @@ class TransformedRows:
     def _transform(self, block: np.ndarray) -> np.ndarray:
         """At most one tile of rows, transformed as one full tile."""
         size = min(self.tile, self.row_count)
-        out = self.postprocessor.transform(padded(np.asarray(block, dtype=np.float32), size))
+        with in_postprocessor(self.postprocessor, "transform"):
+            out = self.postprocessor.transform(padded(np.asarray(block, dtype=np.float32), size))
         if np.ndim(out) != 2 or np.shape(out)[0] != size:
             raise VPRBenchError(f"Post-processor {type(self.postprocessor).__name__} returned shape {np.shape(out)} "
                                 f"for {size} rows; expected one row per row.")
@@ -81,16 +83,29 @@ class TransformedRows:
                               or [np.zeros((0, self.dim), dtype=np.float32)])
 
 
+def in_postprocessor(postprocessor, part: str):
+    """Runs a call into `postprocessor`'s code: a plugin's failure is one line naming it (`plugin_part`)."""
+    return plugin_part(postprocessor, part, f"Post-processor {type(postprocessor).__name__}")
+
+
+def postprocessor_key(postprocessor, rows, memory_budget: int):
+    """`postprocessor.key(rows, memory_budget)` as exact plain data (`exact_data`): as text, two arrays
+    would print alike and share one fitted state."""
+    with in_postprocessor(postprocessor, "key"):
+        found = postprocessor.key(rows, memory_budget)
+    return exact_data(found, f"Post-processor {type(postprocessor).__name__}: key()")
+
+
 def fit_postprocessor(postprocessor, database: RowSource, memory_budget: int, state_folder=None) -> dict:
     """Fit on the database rows, or load the state a previous run saved in `state_folder`
     (default: the database's folder) under a name keyed by what defines it: the post-processor,
     and the rows' shape and content (a store's `content_key`). A saved state is used only if the
     key saved in it is that key (a file copied from another store under this name is refitted)."""
     content = getattr(database, "content_key", None)
-    key = {"postprocessor": postprocessor.key(database, memory_budget),
-           "rows": {"count": database.row_count, "dim": database.dim, "dtype": str(np.dtype(database.dtype)),
+    key = {"postprocessor": postprocessor_key(postprocessor, database, memory_budget),
+           "rows": {"count": int(database.row_count), "dim": int(database.dim), "dtype": str(np.dtype(database.dtype)),
                     "content": content() if content else None}}
-    text = json.dumps(key, sort_keys=True, default=str)
+    text = json.dumps(key, sort_keys=True)
     folder = Path(state_folder) if state_folder is not None else database.folder
     path = Path(folder) / f"postprocess-{hashlib.sha256(text.encode()).hexdigest()[:16]}.npz" if folder else None
     info = {"key": key, "file": str(path) if path else None}
@@ -104,11 +119,14 @@ def fit_postprocessor(postprocessor, database: RowSource, memory_budget: int, st
         except (OSError, ValueError, KeyError, zipfile.BadZipFile) as error:
             warnings.warn(f"Refitting: the post-processing state {path} is unusable ({error}).", stacklevel=2)
     started = time.perf_counter()
-    postprocessor.fit(database, memory_budget)
+    with in_postprocessor(postprocessor, "fit"):
+        postprocessor.fit(database, memory_budget)
     info.update(state="fitted", fit_s=round(time.perf_counter() - started, 3))
     if path is not None:
+        with in_postprocessor(postprocessor, "state"):
+            state = postprocessor.state()
         with atomic_path(path) as temporary, open(temporary, "wb") as file:
-            np.savez(file, **postprocessor.state(), key=np.array(text))
+            np.savez(file, **state, key=np.array(text))
     return info
 
 
@@ -133,8 +151,7 @@ def fits_as_recorded(postprocessor, record: dict, memory_budget: int) -> bool:
     if postprocessor is None or not isinstance(found, dict):
         return True
     try:
-        now = postprocessor.key(_Shape(found["rows"]), memory_budget)
-        return json.loads(json.dumps(now, sort_keys=True, default=str)) == found.get("postprocessor")
+        return postprocessor_key(postprocessor, _Shape(found["rows"]), memory_budget) == found.get("postprocessor")
     except Exception:  # noqa: BLE001 - a key that needs the rows cannot be told from the record: run again
         return False
 
@@ -149,9 +166,14 @@ def postprocessed(method, database: RowSource, queries: RowSource, memory_budget
     """(database, queries, info): both row sources as `method` post-processes them (its
     post-processor fitted on the database, or a plugin's whole-matrix `postprocess`); info
     None when there is nothing to do. `retrieve` and `vprbench describe` share it."""
-    postprocessor = method.postprocessor() if method is not None else None
+    postprocessor = None
+    if method is not None:
+        with plugin_part(method, "postprocessor"):
+            postprocessor = method.postprocessor()
     if method is not None and _overrides_postprocess(method):  # a plugin's whole-matrix hook
-        db, q = method.postprocess(database.read_rows(0, database.row_count), queries.read_rows(0, queries.row_count))
+        db, q = database.read_rows(0, database.row_count), queries.read_rows(0, queries.row_count)
+        with plugin_part(method, "postprocess"):
+            db, q = method.postprocess(db, q)
         hook = f"Method {method.name!r} (its postprocess)"
         db = checked(hook, db, database.row_count)  # one finite row per image, as the method's own
         database, queries = ArrayRows(db), ArrayRows(checked(hook, q, queries.row_count, db.shape[1]))

@@ -26,7 +26,10 @@ def method_provenance(method, dataset=None, cache_dir=None) -> dict:
     them is an image of the evaluated `dataset`, whatever the method says."""
     from ..methods import Method
 
-    own = method.provenance() or {}
+    from ..loader import plugin_part
+
+    with plugin_part(method, "provenance"):
+        own = method.provenance() or {}
     if not isinstance(own, dict):
         raise VPRBenchError(f"Method {method.name!r}: provenance() must return a dict such as "
                             f"{{\"weights\": {{\"source\": \"none\"}}}}, got {type(own).__name__}.")

@@ -26,7 +26,8 @@ from pathlib import Path
 
 from ..errors import VPRBenchError, closest_names
 from ..hashing import canonical_json
-from ..registration import check_name, claim, imported, run_plugins, source_of
+from ..loader import plugin_part
+from ..registration import check_name, claim, imported, looked_up, run_plugins, source_of
 from .checks import canonical, whole
 
 ENTRY_POINT_GROUP = "vprbench.methods"
@@ -159,7 +160,7 @@ def available_methods() -> dict[str, MethodEntry]:
 
 
 def method_entry(name: str) -> MethodEntry:
-    methods = available_methods()
+    methods, name = available_methods(), looked_up(name)
     if not isinstance(name, str) or name not in methods:  # a list would be unhashable here
         raise VPRBenchError(
             f"Unknown method {name!r}.{closest_names(name, methods)} "
@@ -208,7 +209,10 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
     for location, folder in (("cache_dir", cache_dir), ("data_dir", data_dir)):
         if location in takes and folder is not None:
             arguments[location] = folder
-    method = entry.factory(**arguments)
+    factory = entry.factory
+    with plugin_part(factory, f"its factory {getattr(factory, '__name__', type(factory).__name__)}",
+                     f"Method {name!r}"):
+        method = factory(**arguments)
     if not isinstance(method, Method):
         raise VPRBenchError(f"Method {name!r} ({entry.source}) did not return a vprbench.Method")
     if "batch_size" in merged:
@@ -219,10 +223,10 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
     if isinstance(method.batch_size, bool) or not isinstance(method.batch_size, int) or method.batch_size < 1:
         raise VPRBenchError(f"Method {name!r} ({entry.source}) has batch_size {method.batch_size!r}; "
                             "it must be a whole number >= 1 (fix the plugin, or pass --batch-size).")
-    method.name = name
+    method.name = entry.name
     method.options = {k: v for k, v in given.items() if k not in ("device", "batch_size")}
     method.settings = {k: v for k, v in merged.items() if k not in ("device", "batch_size")}
-    method._created_as = (name, copy.deepcopy(method.options))  # what `name`/`options` may not be changed from
+    method._created_as = (entry.name, copy.deepcopy(method.options))  # what `name`/`options` may not be changed from
     return method
 
 

@@ -16,7 +16,7 @@ from importlib.metadata import entry_points
 from pydantic import ValidationError
 
 from ..errors import VPRBenchError, closest_names
-from ..registration import check_name, claim, imported, run_plugins, source_of
+from ..registration import check_name, claim, imported, looked_up, run_plugins, source_of
 
 ENTRY_POINT_GROUP = "vprbench.stages"
 
@@ -84,7 +84,7 @@ def available_stages() -> dict[str, StageEntry]:
 
 
 def stage_entry(name: str) -> StageEntry:
-    stages = available_stages()
+    stages, name = available_stages(), looked_up(name)
     if name not in stages:
         raise VPRBenchError(f"Unknown stage {name!r}.{closest_names(str(name), stages)} "
                             f"Stages: {', '.join(stages) or 'none'}.")
@@ -112,7 +112,11 @@ def stage_options(name: str, options: dict):
 
 def create_stage(name: str, options: dict | None = None):
     """The stage `name` with its options validated; its `name` set."""
+    from ..loader import plugin_part
+
     cls = stage_entry(name).cls
-    stage = cls(stage_options(name, options or {}))
-    stage.name = name
+    options = stage_options(name, options or {})
+    with plugin_part(cls, f"its constructor {cls.__name__}", f"Stage {name!r}"):
+        stage = cls(options)
+    stage.name = looked_up(name)
     return stage

@@ -7,7 +7,13 @@ import time
 
 from ..errors import VPRBenchError
 from ..hashing import exact_data
+from ..loader import plugin_part
 from .base import Candidates, StageContext, check_candidates, check_reordered
+
+
+def in_stage(stage, part: str):
+    """Runs a call into `stage`'s code: a plugin stage's failure is one line naming it (`plugin_part`)."""
+    return plugin_part(stage, part, f"Stage {getattr(stage, 'name', '?')!r}")
 
 
 def create_stages(spec) -> list:
@@ -20,7 +26,8 @@ def stage_fingerprint(stage) -> dict:
     """The stage's fingerprint as its record keeps it (JSON), {} by default."""
     import json
 
-    found = stage.fingerprint()
+    with in_stage(stage, "fingerprint"):
+        found = stage.fingerprint()
     if not isinstance(found, dict):
         raise VPRBenchError(f"Stage {stage.name!r}: fingerprint() returned {type(found).__name__}, not a dict; fix "
                             "the stage.")
@@ -71,7 +78,8 @@ def retrieval_depth(stages, ks, database: int, dataset: str) -> int:
     the database holds."""
     depth = ks[-1]
     for stage in stages:
-        needed = stage.candidates_needed()
+        with in_stage(stage, "candidates_needed"):
+            needed = stage.candidates_needed()
         if needed is None:
             continue
         if needed > database:
@@ -97,17 +105,23 @@ def run_stages(stages, candidates: Candidates, context: StageContext, ks, positi
     queries, database = candidates.query_count, context.database.row_count
     costs = []
     for stage in stages:
-        needed = stage.candidates_needed()
+        with in_stage(stage, "candidates_needed"):
+            needed = stage.candidates_needed()
         given = candidates.top(needed) if needed is not None else candidates
         before, computed = _peak_rss_bytes(), context.features_computed
         started = time.perf_counter()
-        found = stage.apply(given, context)
+        with in_stage(stage, "apply"):
+            found = stage.apply(given, context)
         seconds = time.perf_counter() - started
         after = _peak_rss_bytes()
         candidates = check_candidates(found, stage.name, queries, database, ks[-1])
         if stage.track == "re-ranked":
             check_reordered(candidates, given, stage.name, database)
-        stored, provenance, code = int(stage.stored_bytes(context)), stage.provenance(), stage_fingerprint(stage)
+        with in_stage(stage, "stored_bytes"):
+            stored = int(stage.stored_bytes(context))
+        with in_stage(stage, "provenance"):
+            provenance = stage.provenance()
+        code = stage_fingerprint(stage)
         ceiling = {}
         if positives is not None:
             from ..evaluation.metrics import correct_at

@@ -30,6 +30,7 @@ from ..errors import VPRBenchError
 from ..fsutil import CacheError, atomic_path, cache_error, is_temporary, lock
 from ..paths import cache_root, safe_name
 from ..hashing import exact_data
+from ..loader import plugin_part
 from ..spec import RUN_SETTINGS, canonical_hash, canonical_json
 from .reader import DescriptorStore
 from .rows_file import DamagedRows, RowsIdentity, folder_lock, hdf5_written, inspect_rows_file
@@ -50,7 +51,8 @@ def method_fingerprint(method, store_dtype: str = "float32") -> dict:
     from ..images import ORIENTATION
 
     settings = {k: v for k, v in sorted(settings.items()) if k not in RUN_SETTINGS}
-    own = method.fingerprint()
+    with plugin_part(method, "fingerprint"):
+        own = method.fingerprint()
     if not isinstance(own, dict):
         raise VPRBenchError(f"Method {method.name!r}: fingerprint() must return a dict naming what changes its "
                             f"descriptors, got {type(own).__name__}.")

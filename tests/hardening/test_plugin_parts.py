@@ -1,0 +1,111 @@
+"""Every part of a plugin vprbench calls (a method's factory, fingerprint, fit, provenance; a stage's and a
+post-processor's methods) that raises is one line naming the plugin, the part and its line; a
+post-processor's key names its state exactly; a name has one Unicode form."""
+from __future__ import annotations
+
+import re
+import unicodedata
+
+import numpy as np
+import pytest
+
+from hostile_files import assert_refused
+from test_plugin_audit import Returns, Transform, plugin
+from vprbench import register_method
+from vprbench.methods import registry
+from vprbench.stages import RerankOptions, Stage, register_stage
+from vprbench.stages import registry as stage_registry
+
+
+@pytest.fixture(autouse=True)
+def own_registries(monkeypatch):
+    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
+    monkeypatch.setattr(stage_registry, "_REGISTRY", dict(stage_registry.available_stages()))
+
+
+def evaluate(cli, shared_data, method, *extra):
+    return cli("evaluate", "--method", method, "--dataset", "corridor", "--data-dir", shared_data, "--k", 1, *extra)
+
+
+def boom(*_):
+    raise RuntimeError("server said no")
+
+
+def line_of(function) -> str:
+    return f"test_plugin_parts.py:{function.__code__.co_firstlineno + 1}; fix the plugin, or report it to its authors."
+
+
+class Arrayed(Transform):
+    """A post-processor keyed by its array: as text, '[0. 0. 0. ... 0. 0. 0.]' whatever its values."""
+
+    def key(self, rows, memory_budget):
+        return {"projection": np.zeros(2000)}
+
+    def transform(self, rows):
+        return np.asarray(rows, dtype=np.float32)
+
+
+def test_a_postprocessor_key_holding_an_array_is_refused(cli, shared_data):
+    # before: keyed by the array's summarised text, so another array loaded this one's state
+    code, _, err = evaluate(cli, shared_data, plugin("arrayed", postprocessor=lambda self: Arrayed()))
+    assert_refused(code, err, None, "Post-processor Arrayed: key() holds a ndarray at projection, which is not plain "
+                                    "data", stores_allowed=True)
+
+
+@pytest.mark.parametrize("part, attributes", [
+    ("its factory Crashes", {"__init__": boom}),
+    ("fingerprint", {"fingerprint": boom}),
+    ("fit", {"fit": boom, "needs_fit": True}),
+    ("provenance", {"provenance": boom}),
+    ("postprocessor", {"postprocessor": boom}),
+])
+def test_a_method_part_that_raises_is_one_line(part, attributes, cli, shared_data):
+    code, _, err = evaluate(cli, shared_data, plugin("crashes", __module__="my_plugin", **attributes))
+    # before: a traceback through vprbench
+    assert_refused(code, err, None, f"Method 'crashes' (my_plugin) failed in {part}(): RuntimeError: server said no at ",
+                   line_of(boom), stores_allowed=True)
+
+
+@pytest.mark.parametrize("part", ["key", "fit", "transform", "state"])
+def test_a_postprocessor_part_that_raises_is_one_line(part, cli, shared_data):
+    broken = type("Broken", (Arrayed,), {"__module__": "my_plugin", "key": lambda self, rows, budget: {"k": 1},
+                                         part: boom})
+    code, _, err = evaluate(cli, shared_data, plugin("post", postprocessor=lambda self: broken()))
+    assert_refused(code, err, None, f"Post-processor Broken (my_plugin) failed in {part}(): RuntimeError: server "
+                                    "said no at ", line_of(boom), stores_allowed=True)
+
+
+class Passes(Stage):
+    Options = RerankOptions
+    track = "re-ranked"
+
+    def apply(self, candidates, context):
+        return candidates
+
+
+@pytest.mark.parametrize("part", ["__init__", "apply", "fingerprint", "provenance", "stored_bytes", "check"])
+def test_a_stage_part_that_raises_is_one_line(part, cli, shared_data):
+    register_stage("wobbly", type("Wobbly", (Passes,), {"__module__": "my_plugin", part: boom}))
+    code, _, err = evaluate(cli, shared_data, plugin("plain"), "--rerank", "wobbly", "--rerank-k", 5)
+    where = "its constructor Wobbly" if part == "__init__" else part
+    assert_refused(code, err, None, f"Stage 'wobbly' (my_plugin) failed in {where}(): RuntimeError: server said no at ",
+                   line_of(boom), stores_allowed=True)
+
+
+NFC, NFD = unicodedata.normalize("NFC", "café"), unicodedata.normalize("NFD", "café")
+
+
+def test_a_name_has_one_unicode_form(cli, shared_data):
+    register_method(NFC, Returns)
+    # before: registered as a second method 'café', shown alike
+    with pytest.raises(ValueError, match=r"Method names are written in Unicode NFC \(composed\), got "
+                       + re.escape(f"{NFD!r} (b'cafe\\xcc\\x81')")):
+        register_method(NFD, Returns)
+    with pytest.raises(ValueError, match=r"Stage names are written in Unicode NFC"):
+        register_stage(NFD, Passes)
+    assert [n for n in registry.available_methods() if n.startswith("caf")] == [NFC]
+    code, out, err = evaluate(cli, shared_data, NFD, "--json", "--quiet")  # typed decomposed: the same method
+    assert code == 0, err  # before: Unknown method 'café'
+    import json
+
+    assert json.loads(out)["method"] == NFC
