@@ -2,9 +2,7 @@
 cell, a heading, a link's text, a caption in emphasis, an image's text, a code element): no
 emphasis from '_x_', no heading's closing '#' dropped, no '&lt;' shown for '<' inside code. Rendered
 with the Markdown extensions of the project's mkdocs.yml, and by mkdocs itself."""
-import html
 import importlib.util
-import re
 from html.parser import HTMLParser
 from pathlib import Path
 

@@ -16,7 +16,6 @@ checked against their checksums as they are read (reader.py).
 from __future__ import annotations
 
 import errno
-import json
 import os
 import zlib
 from contextlib import contextmanager
@@ -310,7 +309,3 @@ def merge_rows_files(parts: list[tuple[Path, RowsIdentity]], path: Path, identit
             out.create_dataset("done", data=np.ones(n, np.uint8), dcpl=_early_contiguous())
             out.create_dataset("complete", data=np.uint8(1), dcpl=_early_contiguous())
             identity.write_into(out)
-
-
-def fingerprint_json(fingerprint: dict) -> str:
-    return json.dumps(fingerprint, sort_keys=True, default=str)
