@@ -65,6 +65,19 @@ def safe_name(text: str, limit: int = 60) -> str:
     return name or "_"
 
 
+#: characters Windows forbids in a file name (with the control characters)
+WINDOWS_FORBIDDEN = re.compile(r'[<>:"/\\|?*\x00-\x1f]')
+
+
+def portable_name(text: str) -> str:
+    """`text` as one folder name every filesystem takes, changed only where one would refuse it:
+    Windows' forbidden characters (a timm:ARCH backbone's ':') and separators become '_', trailing dots
+    and blanks go, '.' and '..' are no names. Unlike `safe_name` it keeps '@' and the rest, so the
+    names of folders already written on Linux stay as they were."""
+    name = WINDOWS_FORBIDDEN.sub("_", str(text)).rstrip(". ")
+    return name if name.strip(".") else "_"
+
+
 def shipped_file(folder: str, name, suffix: str, what: str):
     """The file `<folder>/<name><suffix>` of the manifests vprbench ships, found by name only
     (never a path: '../x' would read any file); an unknown name is one line listing the shipped

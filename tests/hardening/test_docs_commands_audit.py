@@ -8,7 +8,7 @@ from vprbench.aggregation.vocabulary import Vocabulary, vocabulary_dir
 def _cached(tmp_path, source: str, datasets: dict) -> None:
     """A vocabulary as `vprbench vocabulary fit` leaves it: its meta names the datasets it saw."""
     folder = vocabulary_dir("dinov2_vits14@random", 3, "value", 4, source, tmp_path)
-    meta = {"backbone": "dinov2_vits14@random", "layer": 3, "facet": "value", "clusters": 4,
+    meta = {"backbone": "dinov2_vits14@random", "layer": 3, "facet": "value", "stride": 14, "clusters": 4,
             "source": source, "datasets": datasets}
     Vocabulary(torch.nn.functional.normalize(torch.randn(4, 384, generator=torch.Generator().manual_seed(0)), dim=1),
                meta).save(folder / "vocabulary.pt")

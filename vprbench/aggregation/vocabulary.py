@@ -31,7 +31,7 @@ import torch.nn.functional as F
 
 from ..errors import VPRBenchError
 from ..fsutil import atomic_write, is_temporary, remove_stale
-from ..paths import cache_root
+from ..paths import cache_root, portable_name
 from ..weights import read_torch_file
 
 #: AnyLoc's k-means settings (fast_pytorch_kmeans 0.1.6 defaults + AnyLoc's seed)
@@ -164,16 +164,20 @@ class Vocabulary:
                 f"{f': {fitted}' if fitted else ''}). Use a vocabulary fitted for these features."
             )
 
-    def check_setting(self, backbone: str, layer: int, facet: str) -> None:
-        """Refuse centres whose metadata names other features (a bare released tensor names none)."""
-        asked = {"backbone": backbone, "layer": layer, "facet": facet}
-        made = {key: self.meta[key] for key in asked if self.meta.get(key) is not None}
+    def check_setting(self, backbone: str, layer: int, facet: str, stride: int | None = None) -> None:
+        """Refuse centres whose metadata names other features (a bare released tensor names none).
+        `stride` None: the backbone's own."""
+        asked = {"backbone": backbone, "layer": layer, "facet": facet,
+                 "stride": default_stride(backbone) if stride is None else stride}
+        made = {key: self.meta[key] for key in asked if self.meta.get(key) is not None and asked[key] is not None}
         if any(str(value) != str(asked[key]) for key, value in made.items()):
             source = self.meta.get("path") or self.meta.get("imported_from") or self.meta.get("source") or "the vocabulary"
-            shown = " ".join(f"{key} {value}" for key, value in made.items())
+            named = [key for key in made if key != "stride" or str(made[key]) != str(asked[key])]  # a stride if it differs
+            shown = " ".join(f"{key} {made[key]}" for key in named)
+            wanted = " ".join(f"{key} {asked[key]}" for key in asked if key != "stride" or key in named)
             raise VPRBenchError(
-                f"Vocabulary {source} was fitted on {shown}, but these features are backbone {backbone} "
-                f"layer {layer} facet {facet}: use a vocabulary fitted on them (`vprbench vocabulary fit`).")
+                f"Vocabulary {source} was fitted on {shown}, but these features are {wanted}: use a vocabulary "
+                "fitted on them (`vprbench vocabulary fit`).")
 
     def save(self, path: str | Path) -> Path:
         """Written whole or not at all (a process killed while writing, or a full disk, leaves the
@@ -275,18 +279,50 @@ def _check_zip_crcs(path: Path) -> None:
                             "fit`, `import`, or `download` for the authors' released centres).") from None
 
 
-def vocabulary_key(backbone: str, layer: int, facet: str, clusters: int) -> str:
-    """Folder name of a feature setting, as the authors' release: `dinov2_vitg14-l31-value-c32`."""
-    return f"{backbone}-l{layer}-{facet}-c{clusters}"
+def default_stride(backbone: str) -> int | None:
+    """The patch stride `backbone` (BACKBONE or BACKBONE@weights) runs at unless told: the catalogue's
+    (DINO v1: 4), else its patch; None for a name the catalogue does not know."""
+    from ..features.catalogue import backbone_spec
+
+    try:
+        spec = backbone_spec(backbone.partition("@")[0])
+    except VPRBenchError:
+        return None
+    return spec.stride or spec.patch
 
 
-def vocabulary_dir(backbone: str, layer: int, facet: str, clusters: int, source: str, cache_dir=None) -> Path:
-    """cache_root()/vocabularies/<backbone>-l<layer>-<facet>-c<clusters>/<source>/.
+def vocabulary_key(backbone: str, layer: int, facet: str, clusters: int, stride: int | None = None) -> str:
+    """Folder name of a feature setting, as the authors' release: `dinov2_vitg14-l31-value-c32`.
+
+    `backbone` carries the weights (BACKBONE@random, BACKBONE@<sha256 prefix>); a patch stride other
+    than the backbone's own (DINO v1 at 8, not 4) adds `-s<stride>`: other features, other centres.
+    None: the backbone's own stride. Names are kept portable (`portable_name`)."""
+    key = f"{backbone}-l{layer}-{facet}-c{clusters}"
+    if stride is not None and int(stride) != default_stride(backbone):
+        key += f"-s{int(stride)}"
+    return portable_name(key)
+
+
+def vocabulary_dir(backbone: str, layer: int, facet: str, clusters: int, source: str, cache_dir=None,
+                   stride: int | None = None) -> Path:
+    """cache_root()/vocabularies/<backbone>-l<layer>-<facet>-c<clusters>[-s<stride>]/<source>/.
 
     `source` is a domain name (indoor, urban, ...) or `map-<dataset>` for a map-specific
     vocabulary. The authors' released folders (with c_centers.pt) can be copied here under
     their own names: they are found too (see vprbench.methods.anyloc_vocabulary)."""
-    return vocabularies_root(cache_dir) / vocabulary_key(backbone, layer, facet, clusters) / source
+    return vocabularies_root(cache_dir) / vocabulary_key(backbone, layer, facet, clusters, stride) / portable_name(source)
+
+
+def legacy_vocabulary_dir(backbone: str, layer: int, facet: str, clusters: int, source: str, cache_dir=None,
+                          stride: int | None = None) -> Path | None:
+    """Where vprbench kept this vocabulary before folder names were made portable (a timm:ARCH
+    backbone's ':' as it is), when that differs and names one folder; read, never written."""
+    if stride is not None and int(stride) != default_stride(backbone):
+        return None  # no stride was keyed then: no old folder holds another stride's centres
+    key, found = f"{backbone}-l{layer}-{facet}-c{clusters}", vocabulary_dir(backbone, layer, facet, clusters, source, cache_dir)
+    if any(sep in part for part in (key, source) for sep in "/\\") or (key, source) == (found.parent.name, found.name):
+        return None
+    return vocabularies_root(cache_dir) / key / source
 
 
 def vocabularies_root(cache_dir=None) -> Path:

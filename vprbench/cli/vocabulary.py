@@ -40,6 +40,7 @@ def add_parsers(commands) -> None:
                    help="the features the centres fit: BACKBONE, BACKBONE@random, or BACKBONE@<16 hex of your checkpoint's sha256>")
     p.add_argument("--layer", type=int, default=31)
     p.add_argument("--facet", default="value")
+    p.add_argument("--stride", type=int, help="the patch stride the centres were fitted at (default: the backbone's own)")
     add_location_options(p)
     p.set_defaults(run=run_import)
 
@@ -87,8 +88,11 @@ def run_fit(args) -> int:
     check_fit_sizes(args, getattr(getattr(method, "spec", None), "width", None))
     clusters = int(method.clusters)
     backbone = getattr(method, "vocabulary_backbone", method.backbone)  # random weights have their own key
-    setting = {"backbone": backbone, "layer": method.layer, "facet": method.facet}
-    common = {"exact": args.exact, "budget": DEFAULT_BUDGET if args.budget is None else args.budget, "seed": args.seed, "meta": dict(setting)}
+    setting = {"backbone": backbone, "layer": method.layer, "facet": method.facet, "stride": getattr(method, "stride", None)}
+    # the resize is not keyed (a domain's centres serve each dataset at its own size, as the paper's): recorded
+    resize = getattr(method, "resize", None)
+    meta = {**setting, **({} if args.domain is not None else {"resize": list(resize) if resize else "native"})}
+    common = {"exact": args.exact, "budget": DEFAULT_BUDGET if args.budget is None else args.budget, "seed": args.seed, "meta": meta}
     data_dir = args.data_dir
     with progress(args) as shown:
         if args.domain is not None:  # '' is an unknown domain, not a map-specific fit
@@ -132,7 +136,7 @@ def check_fit_sizes(args, width: int | None) -> None:
 def run_import(args) -> int:
     from pathlib import Path
 
-    from ..methods.anyloc_vocabulary import release, released_setting, save_to_cache
+    from ..methods.anyloc_vocabulary import is_released_setting, release, save_to_cache
     from ..aggregation.vocabulary import RELEASED_FILE, load_vocabulary, vocabulary_dir
     from ..fsutil import atomic_write
     from ..weights import file_sha256
@@ -150,22 +154,26 @@ def run_import(args) -> int:
     spec = backbone_spec(name)
     whole("vocabulary import", "--layer", args.layer, 0, spec.depth - 1, f"0-based block of {spec.name}")
     choice("vocabulary import", "--facet", args.facet, spec.facets)
+    stride = spec.stride or spec.patch if args.stride is None else args.stride
+    if spec.patch % whole("vocabulary import", "--stride", stride, 1, spec.patch, f"pixels, at most the patch {spec.patch}"):
+        raise VPRBenchError(f"--stride {stride} does not divide the patch {spec.patch} of {spec.name}: give one of "
+                            + ", ".join(str(d) for d in range(1, spec.patch + 1) if spec.patch % d == 0) + ".")
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_-]*", args.source):
         raise VPRBenchError(f"--source {args.source!r} is not a vocabulary name: give a domain (`vprbench vocabulary "
                             "domains`), map-DATASET, or another name of letters, digits, '_' and '-'.")
     vocabulary = load_vocabulary(args.path)
     vocabulary.check_dim(spec.width)
     source_file = Path(vocabulary.meta["path"])
-    released = (args.backbone, args.layer, args.facet, vocabulary.clusters) == released_setting()
+    released = is_released_setting(args.backbone, args.layer, args.facet, vocabulary.clusters, stride)
     if released and file_sha256(source_file) in release()["sha256"].values():
         # the authors' file for their setting, placed as it is: a run naming it keeps its key (their
         # published sha256); under another setting it is saved with the metadata that names it
         path = vocabulary_dir(args.backbone, args.layer, args.facet, vocabulary.clusters, args.source,
-                              args.cache_dir) / RELEASED_FILE  # under the authors' own file name
+                              args.cache_dir, stride) / RELEASED_FILE  # under the authors' own file name
         atomic_write(path, source_file.read_bytes())
     else:
         vocabulary.meta["imported_from"] = vocabulary.meta.pop("path")
-        path = save_to_cache(vocabulary, args.backbone, args.layer, args.facet, args.source, args.cache_dir)
+        path = save_to_cache(vocabulary, args.backbone, args.layer, args.facet, args.source, args.cache_dir, stride)
     print(f"Imported {vocabulary.clusters} x {vocabulary.dim} centres as {args.source!r} -> {path}")
     return 0
 

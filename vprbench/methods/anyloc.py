@@ -20,7 +20,8 @@ from ..aggregation import pooling, vlad
 from ..aggregation.pca import PCAWhitening
 from . import anyloc_options
 from .anyloc_options import AGGREGATIONS, VLADS
-from .anyloc_vocabulary import MAP_PREFIX, paper_choice, released_provenance, resolve_vocabulary, vocabulary_images
+from .anyloc_vocabulary import (MAP_PREFIX, check_proven, names_file, paper_choice, released_provenance, resolve_vocabulary,
+                                 vocabulary_images)
 from ..aggregation.vlad import vlad_hard
 from ..aggregation.vocabulary import fit_vocabulary
 from ..errors import VPRBenchError
@@ -148,10 +149,10 @@ class AnyLoc(Method):
         self.dataset = name
         if self.aggregation in VLADS and self.vocabulary == "domain":
             found, source, note = paper_choice(name, self.vocabulary_backbone, self.layer, self.facet, self.clusters,
-                                               self.cache_dir)
+                                               self.cache_dir, self.stride)
             if found is not None:
                 found.check_dim(self.spec.width)  # before the model loads, naming the file
-                found.check_setting(self.vocabulary_backbone, self.layer, self.facet)
+                check_proven(found, self.vocabulary_backbone, self.layer, self.facet, self.stride)
             self.needs_fit = found is None
             self.centres = None if found is None else found.centres.float()
             self.vocabulary_info = {"name": source, **({"note": note} if note else {}),
@@ -187,9 +188,12 @@ class AnyLoc(Method):
         cached source name (a domain such as "indoor", or "map-<dataset>"); the authors'
         released centres are downloaded on first use where they fit these features."""
         found = resolve_vocabulary(self.vocabulary, self.vocabulary_backbone, self.layer, self.facet, self.clusters,
-                                   self.cache_dir)
+                                   self.cache_dir, self.stride)
         found.check_dim(self.spec.width)  # before the model loads, naming the file
-        found.check_setting(self.vocabulary_backbone, self.layer, self.facet)
+        if names_file(self.vocabulary):  # a path: the user vouches for what its metadata does not say
+            found.check_setting(self.vocabulary_backbone, self.layer, self.facet, self.stride)
+        else:  # served by its key: only for the features it proves it was fitted on
+            check_proven(found, self.vocabulary_backbone, self.layer, self.facet, self.stride)
         self.vocabulary_info = {"name": self.vocabulary, **self._file_info(found)}
         return found.centres.float()
 
@@ -203,6 +207,9 @@ class AnyLoc(Method):
         fitted = vocabulary.meta.get("datasets")
         if isinstance(fitted, (dict, list)) and fitted and all(isinstance(name, str) for name in fitted):
             found["datasets"] = list(fitted)
+        # the features' settings the key leaves out: the record tells what the centres were fitted at
+        found.update({f"fitted_{key}": vocabulary.meta[key] for key in ("stride", "resize", "image_size")
+                      if key in vocabulary.meta})
         return found
 
     # ------------------------------------------------------------ identity

@@ -21,7 +21,7 @@ def cached_identities(cls, options: dict, dataset: str, cache_dir=None) -> dict[
         return bare_folder_identity(vocabulary)
     made = probe(cls, options, cache_dir)  # the settings vocabularies are keyed by
     found = made and named_identity(vocabulary, dataset, made.vocabulary_backbone, made.layer, made.facet,
-                                    made.clusters, cache_dir)
+                                    made.clusters, cache_dir, made.stride)
     return {"vocabulary": found} if found else {}
 
 

@@ -18,8 +18,8 @@ from pathlib import Path
 from typing import Callable, Iterable, Iterator, Sequence
 
 from ..aggregation.vocabulary import (
-    DEFAULT_BUDGET, KMEANS_SEED, RELEASED_FILE, VOCABULARY_FILE, Vocabulary, fit_vocabulary, load_vocabulary,
-    vocabulary_dir, vocabulary_file_in,
+    DEFAULT_BUDGET, KMEANS_SEED, RELEASED_FILE, VOCABULARY_FILE, Vocabulary, default_stride, fit_vocabulary,
+    legacy_vocabulary_dir, load_vocabulary, vocabulary_dir, vocabulary_file_in,
 )
 from ..errors import ProblemList, VPRBenchError, closest_names
 from ..text import one_line
@@ -155,7 +155,7 @@ def released_provenance(vocabulary: Vocabulary) -> dict:
 
 
 def paper_choice(dataset: str, backbone: str, layer: int, facet: str, clusters: int,
-                 cache_dir=None) -> tuple[Vocabulary | None, str, str]:
+                 cache_dir=None, stride: int | None = None) -> tuple[Vocabulary | None, str, str]:
     """(vocabulary or None, source name, note) for the paper's vocabulary of `dataset`.
 
     None means map-specific: where the paper fits it on the evaluated database (e.g. Mid-Atlantic
@@ -164,14 +164,15 @@ def paper_choice(dataset: str, backbone: str, layer: int, facet: str, clusters: 
     source = paper_vocabulary(dataset)
     if source.startswith(MAP_PREFIX):
         return None, source, ""
-    found = find_vocabulary(source, backbone, layer, facet, clusters, cache_dir)
+    found = find_vocabulary(source, backbone, layer, facet, clusters, cache_dir, stride)
     if found is not None:
-        check_clusters(found, clusters, source, vocabulary_dir(backbone, layer, facet, found.clusters, source, cache_dir))
+        check_clusters(found, clusters, source, vocabulary_dir(backbone, layer, facet, found.clusters, source, cache_dir,
+                                                               stride))
         return found, source, ""
-    if released_path(source) is not None and (backbone, layer, facet, clusters) == released_setting():
+    if released_path(source) is not None and is_released_setting(backbone, layer, facet, clusters, stride):
         return load_vocabulary(fetch_released(source, cache_dir)), source, ""
     rb, rl, rf, rc = released_setting()
-    note = (f"no {source!r} vocabulary for {backbone} layer {layer} {facet} with {clusters} clusters (the authors "
+    note = (f"no {source!r} vocabulary for {setting_words(backbone, layer, facet, clusters, stride)} (the authors "
             f"released {rb} layer {rl} {rf} {rc} only; `vprbench vocabulary fit --domain {source}` makes one): "
             f"fitted on the evaluated database of {dataset} (map-specific) instead")
     return None, f"{MAP_PREFIX}{dataset}", note
@@ -239,21 +240,66 @@ def _counted(features: Iterable, total: int, source: str, progress) -> Iterator:
         progress.advance(task)
 
 
-def find_vocabulary(source: str, backbone: str, layer: int, facet: str, clusters: int, cache_dir=None) -> Vocabulary | None:
-    """A cached vocabulary for these feature settings and source, or None."""
-    path = cached_vocabulary_file(source, backbone, layer, facet, clusters, cache_dir)
+def find_vocabulary(source: str, backbone: str, layer: int, facet: str, clusters: int, cache_dir=None,
+                    stride: int | None = None) -> Vocabulary | None:
+    """A cached vocabulary for these feature settings and source, or None; `stride` None: the
+    backbone's own. Its user checks it proves them (`check_proven`) once its size is checked."""
+    path = cached_vocabulary_file(source, backbone, layer, facet, clusters, cache_dir, stride)
     return None if path is None else load_vocabulary(path)
 
 
-def cached_vocabulary_file(source: str, backbone: str, layer: int, facet: str, clusters: int, cache_dir=None) -> Path | None:
+def cached_vocabulary_file(source: str, backbone: str, layer: int, facet: str, clusters: int, cache_dir=None,
+                           stride: int | None = None) -> Path | None:
     """Our vocabulary.pt in the cache folder of these settings and source, else the authors'
     c_centers.pt under the source name or the authors' folder name (so their released folders can be
-    copied into the cache as they are); None when there is none."""
-    folders = [vocabulary_dir(backbone, layer, facet, clusters, source, cache_dir)]
+    copied into the cache as they are), each also under the folder name used before names were made
+    portable; None when there is none."""
+    folders = [vocabulary_dir(backbone, layer, facet, clusters, source, cache_dir, stride)]
+    old = legacy_vocabulary_dir(backbone, layer, facet, clusters, source, cache_dir, stride)
+    folders += [old] if old is not None else []
     released = released_name(source)
     if released:
-        folders.append(folders[0].parent / released)
+        folders += [folder.parent / released for folder in folders]
     return next(filter(None, map(vocabulary_file_in, folders)), None)
+
+
+def at_default_stride(backbone: str, stride: int | None) -> bool:
+    return stride is None or int(stride) == default_stride(backbone)
+
+
+def is_released_setting(backbone: str, layer: int, facet: str, clusters: int, stride: int | None = None) -> bool:
+    """Whether these features are the ones the authors' released centres were fitted on."""
+    return (backbone, layer, facet, clusters) == released_setting() and at_default_stride(backbone, stride)
+
+
+def setting_words(backbone: str, layer: int, facet: str, clusters: int, stride: int | None = None) -> str:
+    shown = "" if at_default_stride(backbone, stride) else f" at stride {stride}"
+    return f"{backbone} layer {layer} {facet}{shown} with {clusters} clusters"
+
+
+def check_proven(vocabulary: Vocabulary, backbone: str, layer: int, facet: str, stride: int | None = None) -> None:
+    """A cached file is served by its key only for the features it proves it was fitted on. The stride
+    is recorded since it is keyed; a file that does not record it (saved before) proves it only as the
+    authors' release (by its sha256) or for a backbone that runs at one stride only."""
+    from ..features.catalogue import backbone_spec
+
+    vocabulary.check_setting(backbone, layer, facet, stride)
+    if vocabulary.meta.get("stride") is not None:
+        return
+    try:
+        one_stride = backbone_spec(backbone.partition("@")[0]).position_interpolation == "timm"
+    except VPRBenchError:
+        one_stride = False
+    released = at_default_stride(backbone, stride) and released_provenance(vocabulary).get("source") == "released"
+    if one_stride or released:  # the authors fitted at the backbone's own stride
+        return
+    asked = default_stride(backbone) if stride is None else stride
+    raise VPRBenchError(
+        f"Vocabulary {vocabulary.meta.get('path')} does not record the patch stride it was fitted at (saved before "
+        f"vprbench keyed vocabularies by stride), so it cannot be served by name to features at stride {asked}: if it "
+        f"was fitted at stride {asked}, import it again with `vprbench vocabulary import {vocabulary.meta.get('path')} --source "
+        f"{vocabulary.meta.get('source', 'SOURCE')} --backbone {backbone} --layer {layer} --facet {facet} --stride "
+        f"{asked}`, else fit it again (`vprbench vocabulary fit`).")
 
 
 def names_file(option: str) -> bool:
@@ -276,7 +322,7 @@ def bare_folder_identity(option: str) -> dict[str, str]:
 
 
 def named_identity(option: str, dataset: str, backbone: str, layer: int, facet: str, clusters: int,
-                   cache_dir=None) -> str | None:
+                   cache_dir=None, stride: int | None = None) -> str | None:
     """What a vocabulary named by source ("urban", "map-pitts30k", or "domain": the paper's for
     `dataset`) is now, by content and without downloading: the cached file's sha256, else the released
     file's published one, else "map-<dataset>" where "domain" falls back to the evaluated database.
@@ -286,36 +332,42 @@ def named_identity(option: str, dataset: str, backbone: str, layer: int, facet: 
     source = paper_vocabulary(dataset) if option == "domain" else option
     if source.startswith(MAP_PREFIX) and option == "domain":
         return source
-    path = cached_vocabulary_file(source, backbone, layer, facet, clusters, cache_dir)
+    path = cached_vocabulary_file(source, backbone, layer, facet, clusters, cache_dir, stride)
     if path is not None:
         return "sha256:" + file_sha256(path)
-    if released_path(source) is not None and (backbone, layer, facet, clusters) == released_setting():
+    if released_path(source) is not None and is_released_setting(backbone, layer, facet, clusters, stride):
         return "sha256:" + release()["sha256"][released_name(source)]
     return f"{MAP_PREFIX}{dataset}" if option == "domain" else None
 
 
-def save_to_cache(vocabulary: Vocabulary, backbone: str, layer: int, facet: str, source: str, cache_dir=None) -> Path:
-    vocabulary.check_setting(backbone, layer, facet)  # never cached under another setting's key
+def save_to_cache(vocabulary: Vocabulary, backbone: str, layer: int, facet: str, source: str, cache_dir=None,
+                  stride: int | None = None) -> Path:
+    """Cache the centres under the key of the features they were fitted on (`stride` None: the
+    backbone's own), which their metadata records (`check_proven` reads it back)."""
+    stride = default_stride(backbone) if stride is None else int(stride)
+    vocabulary.check_setting(backbone, layer, facet, stride)  # never cached under another setting's key
     meta = {**vocabulary.meta, "backbone": backbone, "layer": layer, "facet": facet, "source": source}
-    vocabulary.meta = meta
-    folder = vocabulary_dir(backbone, layer, facet, vocabulary.clusters, source, cache_dir)
+    vocabulary.meta = {**meta, **({"stride": stride} if stride is not None else {})}
+    folder = vocabulary_dir(backbone, layer, facet, vocabulary.clusters, source, cache_dir, stride)
     return vocabulary.save(folder / VOCABULARY_FILE)
 
 
-def resolve_vocabulary(spec: str, backbone: str, layer: int, facet: str, clusters: int, cache_dir=None) -> Vocabulary:
+def resolve_vocabulary(spec: str, backbone: str, layer: int, facet: str, clusters: int, cache_dir=None,
+                       stride: int | None = None) -> Vocabulary:
     """The `vocabulary` option: a file or folder path, or a cached source name
     (a domain, or map-<dataset>). Raises a clear error saying how to create it."""
     if names_file(spec):
         vocabulary = load_vocabulary(Path(spec).expanduser())
     else:
-        vocabulary = find_vocabulary(spec, backbone, layer, facet, clusters, cache_dir)
+        vocabulary = find_vocabulary(spec, backbone, layer, facet, clusters, cache_dir, stride)
         if vocabulary is not None:
             check_clusters(vocabulary, clusters, spec,
-                           vocabulary_dir(backbone, layer, facet, vocabulary.clusters, spec, cache_dir))
-        if vocabulary is None and released_path(spec) is not None and (backbone, layer, facet, clusters) == released_setting():
+                           vocabulary_dir(backbone, layer, facet, vocabulary.clusters, spec, cache_dir, stride))
+        if vocabulary is None and released_path(spec) is not None and is_released_setting(backbone, layer, facet,
+                                                                                           clusters, stride):
             vocabulary = load_vocabulary(fetch_released(spec, cache_dir))
         if vocabulary is None:
-            where = vocabulary_dir(backbone, layer, facet, clusters, spec, cache_dir)
+            where = vocabulary_dir(backbone, layer, facet, clusters, spec, cache_dir, stride)
             if spec.startswith(MAP_PREFIX) or spec in domain_names():
                 how = f"--dataset {spec[len(MAP_PREFIX):]}" if spec.startswith(MAP_PREFIX) else f"--domain {spec}"
                 how = f"Fit it with `vprbench vocabulary fit {how} ...`"
@@ -324,7 +376,7 @@ def resolve_vocabulary(spec: str, backbone: str, layer: int, facet: str, cluster
                        f"{closest_names(spec, domain_names())} Name one, or put your centres under this name with "
                        f"`vprbench vocabulary import FILE --source {spec}`")
             raise VPRBenchError(
-                f"No {spec!r} vocabulary for {backbone} layer {layer} {facet} with {clusters} clusters "
+                f"No {spec!r} vocabulary for {setting_words(backbone, layer, facet, clusters, stride)} "
                 f"(looked in {where}). {how}, or pass the path of the authors' released c_centers.pt as the vocabulary."
             )
     check_clusters(vocabulary, clusters, spec)

@@ -207,7 +207,8 @@ def vocabulary_for(cell: Cell, cache_dir=None, given: dict | None = None) -> Nee
     import warnings
 
     from ..methods.anyloc import VLADS, AnyLoc
-    from ..methods.anyloc_vocabulary import domain_names, find_vocabulary, paper_vocabulary, released_path, released_setting
+    from ..methods.anyloc_vocabulary import (domain_names, find_vocabulary, is_released_setting, paper_vocabulary,
+                                             released_path)
     from ..methods.registry import method_entry
 
     entry = method_entry(cell.spec.method)
@@ -225,8 +226,8 @@ def vocabulary_for(cell: Cell, cache_dir=None, given: dict | None = None) -> Nee
         warnings.simplefilter("ignore")
         method = AnyLoc(**{**options, "vocabulary": "map"})  # the cell's features; nothing loads
     setting = (method.vocabulary_backbone, method.layer, method.facet, method.clusters)
-    released = released_path(name, cache_dir) if setting == released_setting() else None
-    if find_vocabulary(name, *setting, cache_dir) or (released is not None and released.is_file()):
+    released = released_path(name, cache_dir) if is_released_setting(*setting, method.stride) else None
+    if find_vocabulary(name, *setting, cache_dir, method.stride) or (released is not None and released.is_file()):
         return None  # cached, or the authors' release already here
     where = "".join(f" --{flag} {shlex.quote(str(path))}" for flag, path in (given or {}).items() if path is not None)
     if released is not None:  # fetched before the run, as weights are (a compute node may be offline)
