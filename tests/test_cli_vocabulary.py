@@ -1,4 +1,5 @@
 import argparse
+import os
 import re
 
 import numpy as np
@@ -68,7 +69,10 @@ class FakeMethod:
     backbone, layer, facet = "fake", 0, "token"
 
     def __init__(self, clusters=None, **options):
-        self.clusters, self.seen, self.resizes = int(clusters or 32), [], set()
+        self.clusters, self.seen, self.resizes, self.dataset = int(clusters or 32), [], set(), None
+
+    def use_dataset(self, name):
+        self.dataset = name
 
     def iter_patch_features(self, paths, resize=None):
         from vprbench.images import load_rgb
@@ -88,7 +92,7 @@ def test_fit_map_vocabulary_on_real_dataset(shared_data, monkeypatch, capsys, tm
     args = parse("vocabulary", "fit", "--dataset", "corridor", "--method", "fake", "--clusters", "8",
                  "--budget", "5000", "--output", str(tmp_path / "out.pt"), "--data-dir", str(shared_data))
     assert run(args) == 0
-    assert len(made[0].seen) == 111 and made[0].resizes == {None}
+    assert len(made[0].seen) == 111 and made[0].resizes == {None} and made[0].dataset == "corridor"
     found = resolve_vocabulary("map-corridor", "fake", 0, "token", 8)
     assert found.centres.shape == (8, 16)
     assert found.meta["features_seen"] == 111 * 1200 and found.meta["features_used"] == 5000
@@ -149,3 +153,29 @@ def test_fit_logs_its_progress_and_quiet_logs_none(shared_data, monkeypatch, cap
     assert others <= {"progress: vocabulary map-corridor k-means (2 clusters, 500 features)"}, others
     assert run(parse(*argv, "--quiet")) == 0
     assert capsys.readouterr().err == ""
+
+
+def test_a_map_fit_describes_the_database_at_the_size_its_runs_do(tmp_path, capsys):
+    """`vocabulary fit --dataset 17places` fitted on native-size images while every AnyLoc run on 17 Places
+    resizes to 480 x 640 (its in-run map fit too): centres of other features than the runs'."""
+    from PIL import Image
+
+    folder, count = tmp_path / "data" / "17places", 406  # the manifest's counts: a copy of another size is refused
+    image = tmp_path / "one.jpg"
+    Image.fromarray(np.full((60, 80, 3), 90, np.uint8)).save(image)
+    for split in ("ref", "query"):
+        (folder / split).mkdir(parents=True)
+        for i in range(count):
+            os.link(image, folder / split / f"{i}.jpg")
+    rows = np.empty((count, 2), dtype=object)
+    for i in range(count):
+        rows[i, 0], rows[i, 1] = i, [i]
+    np.save(folder / "ground_truth_new.npy", rows, allow_pickle=True)
+    args = parse("vocabulary", "fit", "--dataset", "17places", "--method", "anyloc", "--backbone", "dinov2_vits14",
+                 "--weights", "random", "--layer", "0", "--clusters", "4", "--budget", "2000",
+                 "--data-dir", str(tmp_path / "data"), "--cache-dir", str(tmp_path / "cache"), "--quiet")
+    assert run(args) == 0
+    # 480 x 640 -> 476 x 630 after the crop to the patch -> 34 x 45 patches per image (native: 4 x 5)
+    assert f"of {count * 34 * 45} features" in capsys.readouterr().out
+    found = resolve_vocabulary("map-17places", "dinov2_vits14@random", 0, "value", 4, tmp_path / "cache")
+    assert found.meta["resize"] == [480, 640]

@@ -89,6 +89,8 @@ def run_fit(args) -> int:
     clusters = int(method.clusters)
     backbone = getattr(method, "vocabulary_backbone", method.backbone)  # random weights have their own key
     setting = {"backbone": backbone, "layer": method.layer, "facet": method.facet, "stride": getattr(method, "stride", None)}
+    if args.domain is None:  # its database described as a run on it describes it (AnyLoc: the dataset's resize)
+        method.use_dataset(args.dataset)
     # the resize is not keyed (a domain's centres serve each dataset at its own size, as the paper's): recorded
     resize = getattr(method, "resize", None)
     meta = {**setting, **({} if args.domain is not None else {"resize": list(resize) if resize else "native"})}
