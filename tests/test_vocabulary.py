@@ -241,3 +241,40 @@ def test_vocabulary_images_leave_out_distractors_and_stride():
     assert vocabulary_images("vp-air", refs + distractors) == refs[::2]
     assert vocabulary_images("vp-air", refs + distractors, stride=1) == refs
     assert vocabulary_images("baidu-mall", refs + distractors) == refs + distractors
+
+
+def test_kmeans_returns_the_update_that_met_the_tolerance():
+    """The update is applied before the stop test: with any tolerance met at once, the centres
+    are the means of the first assignment, not the initial rows."""
+    x = torch.tensor([[1.0, 0.0], [0.8, 0.6], [0.0, 1.0], [-0.6, 0.8]])
+    init = torch.tensor([[1.0, 0.0], [0.0, 1.0]])
+    centres, iterations = kmeans_cosine(x, 2, init=init, tol=1e9)
+    assert iterations == 1
+    torch.testing.assert_close(centres, torch.tensor([[0.9, 0.3], [-0.3, 0.9]]))
+
+
+def test_the_vocabulary_seed_reaches_the_kmeans_draw():
+    features = [np.random.default_rng(i).normal(size=(40, 8)).astype(np.float32) for i in range(3)]
+    fitted = fit_vocabulary(features, 4, exact=True, seed=7)
+    expected, _ = kmeans_cosine(F.normalize(torch.from_numpy(np.concatenate(features)), dim=-1), 4, seed=7)
+    torch.testing.assert_close(fitted.centres, expected)
+    assert fitted.meta["seed"] == 7
+    assert not torch.equal(fit_vocabulary(features, 4, exact=True, seed=42).centres, fitted.centres)
+
+
+def test_the_sampler_is_a_sequential_reservoir():
+    """Item t replaces slot j ~ U{0..t} when j < budget, items in stream order (a later item in the same
+    slot wins): the batched sampler keeps what one-at-a-time reservoir sampling with its draws keeps."""
+    stream = [np.eye(80, dtype=np.float32)[:50], np.eye(80, dtype=np.float32)[50:]]
+    sampler = FeatureSampler(budget=5, seed=3)
+    for chunk in stream:
+        sampler.add(chunk)
+    rng, kept, t = np.random.default_rng(3), list(range(5)), 5
+    for stop in (50, 80):
+        draws = rng.integers(0, np.arange(t, stop) + 1)
+        for item, slot in zip(range(t, stop), draws):
+            if slot < 5:
+                kept[slot] = item
+        t = stop
+    assert np.argmax(sampler.sample(), axis=1).tolist() == kept
+    assert len(set(kept)) == 5 and max(kept) >= 50  # the second chunk took part

@@ -322,3 +322,28 @@ def test_a_stored_record_without_its_card_exports_with_the_card_rebuilt(store, r
     assert not card.exists()  # export reads the store, it does not write it
     code, out, err = cli("results", "verify", to, "--data-dir", shared_data)
     assert code == 0 and out.count(": ok, re-scored from its arrays") == 1, out + err
+
+
+def test_a_recall_off_by_less_than_a_query_is_still_caught(bundle, truth, tmp_path):
+    """Records keep 4 decimals: a recall nudged by 0.001 points (far below one query's 0.9) is no rounding."""
+    members = read_bundle(bundle)
+    name = edit_record(members, lambda r: r["recall"].update({"5": round(r["recall"]["5"] + 0.001, 4)}))
+    problems = _only_failure(verify_bundle(write_bundle(tmp_path / "nudged.tar.gz", members), truth), name)
+    assert len(problems) == 1 and problems[0].startswith("R@5 is ") and problems[0].endswith(" from its arrays")
+
+
+def test_a_recall_beyond_the_kept_top_k_and_a_repeated_candidate_are_refused(bundle, truth, tmp_path):
+    members = read_bundle(bundle)
+    name = edit_record(members, lambda r: r["recall"].update({"25": 90.0}))
+    problems = _only_failure(verify_bundle(write_bundle(tmp_path / "k.tar.gz", members), truth), name)
+    assert "it reports R@25 but keeps only the top 20 per query" in problems
+
+    members = read_bundle(bundle)
+
+    def repeat(arrays):  # query 5's second candidate is its first again (scores stay ranked)
+        arrays["database_indices"][5, 1] = arrays["database_indices"][5, 0]
+        arrays["similarities"][5, 1] = arrays["similarities"][5, 0]
+
+    name = edit_arrays(members, repeat)
+    problems = _only_failure(verify_bundle(write_bundle(tmp_path / "twice.tar.gz", members), truth), name)
+    assert "query 5 lists a database image twice in its top 20" in problems

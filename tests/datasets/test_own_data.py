@@ -106,3 +106,12 @@ def test_counts_and_radii_read_in_the_singular_and_plural(mydata, capsys):
     assert "2 queries, 2 with a positive, 4 positive pairs (frames, radius 1 frame); 7 images decoded" in out, out
     assert main(["datasets", "info", str(mydata)]) == 0
     assert "within 1 frame " in capsys.readouterr().out
+
+
+def test_positions_either_side_of_a_utm_zone_boundary_share_one_plane():
+    """Longitude 6 E divides UTM zones 31 and 32: two points 157 m apart across it are 157 m apart in
+    metres (each in its own zone's eastings they would be hundreds of kilometres apart)."""
+    from vprbench.datasets.layouts.own_data import latlon_to_metres
+
+    metres = latlon_to_metres(np.array([45.0, 45.0]), np.array([5.999, 6.001]))
+    assert np.linalg.norm(metres[0] - metres[1]) == pytest.approx(157.3, abs=0.5)

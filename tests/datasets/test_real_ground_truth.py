@@ -203,3 +203,20 @@ def test_sped_vpr_bench_and_downloader_layouts(gt, tmp_path, make_images):
     assert (b.summary()["unit"], b.summary()["radius"], b.summary()["radius_unit"]) == ("metres", 25, "metres")
     assert (a.summary()["unit"], a.summary()["radius"], a.summary()["radius_unit"]) == ("positives", 0, "frames")
     assert [p.tolist() for p in b.positives] == [[i] for i in range(607)]
+
+
+def test_the_manifests_radius_wins_over_the_mat_files(pitts30k, tmp_path, make_images):
+    """The paper's 25 m (the manifest's) is the protocol: a .mat whose posDistThr says 5 m changes no positive."""
+    from scipy.io import savemat
+
+    utm_db, utm_q, db_names, q_names, expected = pitts30k
+    root = tmp_path / "pitts30k"
+    make_images(root, db_names + q_names)
+    (root / "datasets").mkdir()
+    struct = {"dbImageFns": np.array(db_names, dtype=object).reshape(-1, 1), "utmDb": utm_db.T,
+              "qImageFns": np.array(q_names, dtype=object).reshape(-1, 1), "utmQ": utm_q.T,
+              "numImages": 10000, "numQueries": 6816, "posDistThr": 5}
+    savemat(root / "datasets" / "pitts30k_test.mat", {"dbStruct": struct})
+    dataset = load_dataset("pitts30k", tmp_path, strict=True)
+    assert dataset.layout == "netvlad-mat"
+    assert [set(p.tolist()) for p in dataset.positives] == expected

@@ -252,3 +252,37 @@ def test_every_part_of_what_a_run_computes_is_in_its_keys():
     edited = base.model_copy(update={"dataset": base.dataset.model_copy(update={"protocol_hash": "0" * 16})})
     assert edited.dataset.protocol == base.dataset.protocol
     assert edited.key != base.key and edited.row_key == base.row_key
+
+
+def test_a_folders_identity_skips_hidden_files_below_it_only(tmp_path):
+    """Hidden means hidden inside the folder (a .git/ beside the images); a folder that itself lies
+    under a hidden one (~/.cache/words) still has its files counted."""
+    from vprbench.content_identity import folder_identity
+
+    words = tmp_path / ".cache" / "words"
+    (words / ".git").mkdir(parents=True)
+    (words / "a.jpg").write_bytes(b"a")
+    (words / "b.jpg").write_bytes(b"b")
+    before = folder_identity(str(words))
+    (words / ".git" / "index").write_bytes(b"changed")
+    assert folder_identity(str(words)) == before
+    (words / "b.jpg").write_bytes(b"B")
+    assert folder_identity(str(words)) != before
+
+
+def test_a_folders_identity_does_not_depend_on_the_order_files_are_listed(tmp_path, monkeypatch):
+    """Directory listings come in the file system's order (by hash, by creation): the files are hashed by name."""
+    from pathlib import Path
+
+    from vprbench.content_identity import folder_identity
+
+    words = tmp_path / "words"
+    words.mkdir()
+    for i in range(12):
+        (words / f"{i:03d}.jpg").write_bytes(bytes([i]))
+    listed = folder_identity(str(words))
+    rglob = Path.rglob
+    monkeypatch.setattr(Path, "rglob", lambda self, pattern: reversed(sorted(rglob(self, pattern))))
+    assert folder_identity(str(words)) == listed
+    monkeypatch.setattr(Path, "rglob", lambda self, pattern: iter(sorted(rglob(self, pattern))))
+    assert folder_identity(str(words)) == listed

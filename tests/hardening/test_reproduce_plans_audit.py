@@ -214,3 +214,25 @@ def test_a_stored_run_that_fell_back_to_the_maps_vocabulary_is_not_the_papers(mo
 
     assert status("AnyLoc-VLAD-DINO") == "missing"  # its 'aerial' vocabulary for ViT-S/8 is not fitted
     assert status("DINO-CLS") == "complete"  # no vocabulary: its stored record stands
+
+
+def test_the_paper_table_shows_measured_minus_reported(tmp_path, monkeypatch):
+    """A cell reads 'reported / measured (delta) [CI]'; the delta is measured - reported (+ above the paper)."""
+    from rich.console import Console
+
+    import vprbench.sweep.reproduce as reproduce_module
+    from vprbench.cli.reproduce import paper_table
+    from vprbench.run_settings import RunSettings
+
+    class Stored:
+        def record(self, spec, settings):
+            return {"run_id": "r"}
+
+    spec, cells = table_cells("anyloc", "6", cache_dir=tmp_path)
+    monkeypatch.setattr(reproduce_module, "measured", lambda records, metric: (99.0, 98.0, 99.5))
+    reported = reproduce_module.reported_value(spec, "DINOv2 GeM", "baidu-mall", "r1")
+    assert reported is not None and reported < 99.0
+    console = Console(width=220, record=True, markup=False)
+    console.print(paper_table(spec, cells, RunSettings(cache_dir=tmp_path), Stored()))
+    line = next(line for line in console.export_text().splitlines() if "│ DINOv2 GeM" in line)
+    assert line.split("│")[2].strip() == f"{reported:.1f} / 99.0 (+{99.0 - reported:.1f}) [98.0, 99.5]"

@@ -203,3 +203,15 @@ def test_pr_metrics_come_from_the_similarities_the_record_keeps(make_record):
     assert record["recall_at_100_precision"] == round(again["recall_at_100_precision"], 6) == 0.020833
     assert record["auc_pr"] == round(again["auc_pr"], 6) and record["max_f1"] == round(again["max_f1"], 6)
     assert not proven(record)["_proof"]["disagreed"]
+
+
+def test_a_domain_mean_needs_every_dataset_measured(make_record):
+    """reproduce's domain columns average datasets: one dataset without a run is no mean at all."""
+    from vprbench.sweep.reproduce import measured
+
+    a, b = make_record(quality=0.6, seed=1), make_record("netvlad", quality=0.3, seed=2)
+    records = [read_record(save_result(r)) for r in (a, b)]
+    value, low, high = measured(records, "r1")
+    assert value == pytest.approx((a["recall"]["1"] + b["recall"]["1"]) / 2, abs=1e-4)
+    assert low < value < high
+    assert measured([records[0], None], "r1") is None and measured([None, records[1]], "r5") is None

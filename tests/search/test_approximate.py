@@ -75,3 +75,17 @@ def test_nprobe_beyond_the_lists_is_refused_not_lowered_in_silence():
     assert index_options("ivf-pq", 20_000, 64, 5, {"nlist": 32, "nprobe": 8})["nprobe"] == 8
     with pytest.raises(VPRBenchError, match=r"^nprobe = 64 exceeds the index's 32 lists \(nlist\): give nprobe <= 32\.$"):
         index_options("ivf-pq", 20_000, 64, 5, {"nlist": 32, "nprobe": 64})
+
+
+def test_the_index_searches_with_the_nprobe_and_ef_search_it_records():
+    """What a record says the index probed is what faiss was told: nprobe lists, efSearch candidates."""
+    from vprbench.evaluation.approximate import _build, index_options
+    from vprbench.row_sources import ArrayRows
+
+    db = clustered(10_000, 16, 3)
+    o = index_options("ivf-pq", len(db), 16, 5, {"nlist": 16, "nprobe": 5, "pq_m": 4})
+    index, _ = _build("ivf-pq", ArrayRows(db), o, 10**9)
+    assert o["nprobe"] == 5 and index.nprobe == 5
+    o = index_options("hnsw", 2000, 16, 5, {"ef_search": 77, "shortlist": 50})
+    index, _ = _build("hnsw", ArrayRows(db[:2000]), o, 10**9)
+    assert o["ef_search"] == 77 and index.hnsw.efSearch == 77

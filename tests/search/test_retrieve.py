@@ -205,3 +205,25 @@ def test_base_postprocess_applies_the_postprocessor_in_memory():
     assert out_db.shape == (500, 8)
 
 
+
+
+class _ByTile:
+    """A post-processor whose output shows the tile it was given: its row count (`shape`) or its
+    rows' sum (`neighbours`). The fixed, padded grid must hide both from the rows read."""
+
+    def __init__(self, kind):
+        self.kind = kind
+
+    def transform(self, x):
+        return x * len(x) if self.kind == "shape" else x + x.sum(axis=0)
+
+
+def test_transformed_rows_come_from_one_fixed_padded_grid():
+    db = np.arange(40 * 4, dtype=np.float32).reshape(40, 4) / 100
+    by_shape = TransformedRows(ArrayRows(db), _ByTile("shape"))
+    assert by_shape.tile == 1024  # one tile, padded to the 40 rows
+    whole = by_shape.read_rows(0, 40)
+    np.testing.assert_array_equal(whole, db * 40)
+    np.testing.assert_array_equal(by_shape.read_rows_at(np.array([3, 17])), whole[[3, 17]])
+    by_neighbours = TransformedRows(ArrayRows(db), _ByTile("neighbours"))
+    np.testing.assert_array_equal(by_neighbours.read_rows(5, 9), by_neighbours.read_rows(0, 40)[5:9])

@@ -69,3 +69,36 @@ def test_two_processes_rerank_on_one_cache_and_compute_each_image_once(shared_da
     touched = len({i for row in first["per_query"]["database_indices"] for i in row})  # the top 5s, re-ordered
     assert computed == [0, 111 + touched]  # the 111 queries and every candidate, computed once between the two
     assert len({p.parent for p in (tmp_path / "cache" / "features").glob("sift-*/corridor-*/database.*.h5")}) == 1
+
+
+def test_the_ratio_test_keeps_a_match_clearly_nearer_than_the_second():
+    query = np.zeros((2, 128), np.float32)
+    query[1, 2] = 10.0  # about equally far from both database rows: ambiguous, dropped
+    database = np.zeros((2, 128), np.float32)
+    database[0, 0], database[1, 1] = 0.7, 1.0  # query 0: nearest at 0.7, second at 1.0
+    assert ratio_matches(query, database, 0.8).tolist() == [[0, 0]]
+    assert ratio_matches(query, database, 0.69).tolist() == []
+
+
+def test_the_ransac_threshold_decides_which_matches_are_inliers():
+    """Half the points map exactly (identity homography), half are 2.8 px off: an 8 px threshold
+    takes them all, a 1 px one only the exact half."""
+    rng = np.random.default_rng(0)
+    query = rng.uniform(0, 400, size=(60, 2)).astype(np.float32)
+    moved = query.copy()
+    moved[30:] += rng.choice([-2.0, 2.0], size=(30, 2)).astype(np.float32)
+    wide = inliers(query, moved, SiftRansacOptions(model="homography", threshold=8.0))
+    narrow = inliers(query, moved, SiftRansacOptions(model="homography", threshold=1.0))
+    assert wide == 60 and narrow == 30
+
+
+def test_equal_counts_keep_their_retrieval_order():
+    from vprbench.stages.base import Candidates, by_count
+
+    k = 40  # past the short rows a non-stable sort would still keep in order
+    indices = np.arange(100, 100 + k)[None]
+    counts = (np.arange(k) % 3)[None]  # many ties
+    found = by_count(Candidates(indices, np.zeros((1, k), np.float32)), counts)
+    expected = sorted(range(k), key=lambda c: -counts[0, c])  # Python's sort is stable
+    assert found.indices[0].tolist() == [100 + c for c in expected]
+    assert found.scores[0].tolist() == [float(counts[0, c]) for c in expected]

@@ -207,3 +207,14 @@ def test_rows_written_in_runs_far_apart_land_at_their_own_rows(tmp_path):
     writer.write(rest, rows(0, n, dim)[rest])
     writer.finish()
     np.testing.assert_array_equal(DescriptorStore(path, ident).read_rows(0, n), rows(0, n, dim))
+
+
+def test_float16_rows_at_given_indices_read_in_order_as_float32(tmp_path):
+    """Rows close together are read as one slice, far apart ones one by one: both keep the order
+    and the repeats asked for, and give float32 whatever the stored type."""
+    path, ident = complete_store(tmp_path, n=2000, dim=64, dtype="float16")
+    store = DescriptorStore(path, ident)
+    for asked in ([3, 3, 4, 5], [0, 0, 1999]):
+        read = store.read_rows_at(asked)
+        assert read.dtype == np.float32 and read.shape == (len(asked), 64)
+        np.testing.assert_allclose(read, rows(0, 2000, 64)[asked], rtol=1e-3)
