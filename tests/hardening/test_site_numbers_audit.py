@@ -89,7 +89,8 @@ def test_the_runs_table_of_a_dataset_page_names_each_row(corridor_runs, tmp_path
     (tmp_path / "downloads").mkdir()
     stats = {key: cell_stats(cell) for key, cell in board.cells.items()}
     page = dataset_page(tmp_path, board, board.columns[0], stats)
-    runs = {row[0]: row[3].strip("`") for row in _table_rows(page, "The runs in the cells above")}
+    runs = {row[0]: row[3].removeprefix("<code>").removesuffix("</code>")
+            for row in _table_rows(page, "The runs in the cells above")}
     assert runs == {"hog": f"{single['run_id']}-0", "hog † hnsw search": f"{single['run_id']}-1",
                     "hog † float16 store": f"{single['run_id']}-2"}
 
