@@ -47,7 +47,8 @@ def add_parsers(commands) -> None:
     p.add_argument("--fit-on", type=path_argument,
                    help="folder of database images: the method's vocabulary and PCA-whitening are fitted on them "
                         "(without it, PCA is fitted on the images described)")
-    p.add_argument("--dataset", help="apply this dataset's per-method settings (e.g. AnyLoc's resize and vocabulary)")
+    p.add_argument("--dataset", help="apply this dataset's per-method settings (e.g. AnyLoc's resize and vocabulary); "
+                                     "its own images then share the descriptor stores 'evaluate' keeps")
     add_location_options(p)
     p.set_defaults(run=run_describe, kept=DESCRIBED)
 
@@ -172,10 +173,17 @@ def run_describe(args) -> int:
 
     resolve_locations(args)
     settings = run_settings(args)
+    root, label = None, f"describe-{args.dataset or 'images'}"
     if args.dataset is not None:  # '' is an unknown name, not none
-        from ..datasets import dataset_manifest
+        from ..datasets import dataset_location, dataset_manifest
 
-        dataset_manifest(args.dataset)  # an unknown name would apply no settings, silently
+        manifest = dataset_manifest(args.dataset)  # an unknown name would apply no settings, silently
+        root = _absolute(dataset_location(manifest, settings.data_dir))
+        given = [*args.images, *([args.fit_on] if args.fit_on is not None else [])]
+        if all(_absolute(p).is_relative_to(root) for p in given):  # its own images: named and stored
+            label = args.dataset  # as evaluate names them, so either one serves the other's stores
+        else:
+            root = None
     method = create_run_method(args.method, method_options(args), settings)
     for image in args.images:
         if image.is_dir():
@@ -188,17 +196,17 @@ def run_describe(args) -> int:
             raise VPRBenchError(f"--fit-on must be a folder of images, got {args.fit_on}")
         from ..images import list_images
 
-        splits["database"] = list_images(args.fit_on)
+        splits["database"] = [_absolute(p) if root else p for p in list_images(args.fit_on)]
         if not splits["database"]:  # was 'No images to describe in the database split', naming no folder
             raise VPRBenchError(f"--fit-on folder {args.fit_on} holds no images: give the folder of database images.")
     elif method.needs_fit:
         raise VPRBenchError(f"Method {args.method!r} fits a vocabulary on database images: give --fit-on FOLDER "
                             "(or a ready vocabulary with --vocabulary, where the method takes one).")
-    splits["queries"] = list(args.images)
+    splits["queries"] = [_absolute(p) if root else p for p in args.images]
     if args.dataset is not None:
         method.use_dataset(args.dataset)
     with progress(args) as shown:
-        described = describe_splits(method, splits, label=f"describe-{args.dataset or 'images'}",
+        described = describe_splits(method, splits, root=root, label=label,
                                     cache_dir=settings.cache_dir, progress=shown, store_dtype=args.store_dtype,
                                     workers=loader_workers(settings, method), lock_timeout=settings.lock_timeout)
     queries = described.stores["queries"]
@@ -210,3 +218,11 @@ def run_describe(args) -> int:
     atomic_write(args.out, buffer.getvalue())
     print(f"Wrote {plural(descriptors.shape[0], 'descriptor')} of dimension {descriptors.shape[1]} to {args.out}", file=sys.stderr)
     return 0
+
+
+def _absolute(path):
+    """`path` absolute, '..' folded, links kept (an image linked from elsewhere is still the dataset's)."""
+    import os
+    from pathlib import Path
+
+    return Path(os.path.abspath(Path(path).expanduser()))

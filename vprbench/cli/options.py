@@ -97,9 +97,17 @@ def key_values(items: list[str], flag: str) -> dict:
 
 def method_options(args) -> dict:
     """The method options the user gave (None = use the preset's)."""
+    from ..methods.checks import canonical
+
     options = {name: getattr(args, name, None) for name in METHOD_FLAGS}
     options["resize"] = list(args.resize) if getattr(args, "resize", None) else None
-    options.update(key_values(getattr(args, "option", []), "-o"))
+    for key, value in key_values(getattr(args, "option", []), "-o").items():
+        if options.get(key) is not None and canonical(key, options[key]) != canonical(key, value):
+            # else one of the two would be dropped, silently, and the run not be the one asked for
+            flag, given = f"--{key.replace('_', '-')}", options[key]
+            shown = " ".join(map(str, given)) if isinstance(given, list) else given
+            raise VPRBenchError(f"{flag} {shown} and -o {key}={value} disagree; give {key} once.")
+        options[key] = value
     return {k: v for k, v in options.items() if v is not None}
 
 

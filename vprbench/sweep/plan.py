@@ -145,9 +145,10 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, overrides:
         accepted = known_methods[name].options()
         if "device" not in accepted:  # given to methods that take one
             options.pop("device", None)
+        named = [o for o in accepted if o not in RUN_SETTINGS]  # as a single run names them: run settings apart
         for option in sorted(set(options) - set(accepted) - set(RUN_SETTINGS)):
             problems.append(f"{where('methods', i, 'options')}: method {name!r} does not take option {option!r}."
-                            f"{closest_names(option, accepted)} (It accepts: {', '.join(accepted) or 'none'}.)")
+                            f"{closest_names(option, named)} (It accepts: {', '.join(named) or 'none'}.)")
         try:  # run settings' values too, so a bad batch_size stops the plan, not each of its cells
             RunSettings().with_options(checked_run_options(name, options))
         except VPRBenchError as error:
