@@ -179,3 +179,19 @@ def test_a_map_fit_describes_the_database_at_the_size_its_runs_do(tmp_path, caps
     assert f"of {count * 34 * 45} features" in capsys.readouterr().out
     found = resolve_vocabulary("map-17places", "dinov2_vits14@random", 0, "value", 4, tmp_path / "cache")
     assert found.meta["resize"] == [480, 640]
+
+
+def test_a_map_fit_looks_for_no_domain_vocabulary(tmp_path, capsys):
+    """A method whose vocabulary option is 'domain' (AnyLoc-VLAD-DINOv2's preset) took the dataset's domain
+    centres when the map fit applied the dataset's settings: a warning that the run falls back to the map
+    (and, for the authors' setting, their centres fetched), for a fit that makes its own."""
+    args = parse("vocabulary", "fit", "--dataset", "pitts30k", "--method", "anyloc", "--backbone", "dinov2_vits14",
+                 "--weights", "random", "--layer", "0", "-o", "vocabulary=domain", "--data-dir", str(tmp_path / "none"),
+                 "--cache-dir", str(tmp_path / "cache"), "--quiet")
+    import warnings
+
+    missing = "pitts30k: Dataset 'pitts30k' is not in"
+    with warnings.catch_warnings(record=True) as caught, pytest.raises(VPRBenchError, match=missing):
+        warnings.simplefilter("always")
+        run(args)
+    assert not [str(w.message) for w in caught if "vocabulary for" in str(w.message)]

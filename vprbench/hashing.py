@@ -33,6 +33,10 @@ def exact_data(value: Any, owner: str, where: str = "") -> Any:
     from .errors import VPRBenchError
 
     if isinstance(value, dict):
+        for key in value:  # JSON makes 1 the text "1": {1: a, "1": b} would key as {"1": b}; a tuple no key at all
+            if not isinstance(key, str):
+                raise VPRBenchError(f"{owner} holds the key {key!r} ({type(key).__name__}) at {where or 'its top'}; "
+                                    "give its keys as text.")
         return {key: exact_data(item, owner, f"{where}.{key}" if where else str(key)) for key, item in value.items()}
     if isinstance(value, (list, tuple)):
         return [exact_data(item, owner, f"{where}[{i}]") for i, item in enumerate(value)]

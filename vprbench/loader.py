@@ -60,9 +60,14 @@ def plugin_failure(owner, part: str, error: BaseException, who: str | None = Non
     if top == "vprbench" or isinstance(error, (VPRBenchError, OSError, MemoryError, KeyboardInterrupt)) or (
             isinstance(error, RuntimeError) and "memory" in str(error)):  # torch's out of memory
         return None
-    home = os.path.dirname(getattr(sys.modules.get(top), "__file__", None) or "?")
+    module = sys.modules.get(top)
+    file = getattr(module, "__file__", None) or "?"
     frames = traceback.extract_tb(error.__traceback__)
-    own = [f for f in frames if f.filename.startswith(home + os.sep)] or frames[-1:]
+    if hasattr(module, "__path__"):  # a package: its folder
+        own = [f for f in frames if f.filename.startswith(os.path.dirname(file) + os.sep)]
+    else:  # one module, whose folder (site-packages) holds other libraries too: its file only
+        own = [f for f in frames if f.filename == file]
+    own = own or frames[-1:]
     at = f" at {own[-1].filename}:{own[-1].lineno}" if own else ""
     who = who or f"Method {getattr(owner, 'name', '?')!r}"
     return (f"{who} ({top}) failed in {part}(): {type(error).__name__}: "

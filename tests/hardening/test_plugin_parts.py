@@ -109,3 +109,12 @@ def test_a_name_has_one_unicode_form(cli, shared_data):
     import json
 
     assert json.loads(out)["method"] == NFC
+
+
+def test_a_plan_finds_a_name_typed_decomposed():
+    from vprbench.sweep.plan import build_plan
+
+    register_method(NFC, Returns)
+    # before: "unknown method 'café'. Did you mean: café?", where the command line took it
+    plan = build_plan({"methods": [NFD], "datasets": ["corridor"]}, "plan.toml")
+    assert [cell.spec.method for cell in plan.cells] == [NFC]

@@ -90,6 +90,8 @@ def run_fit(args) -> int:
     backbone = getattr(method, "vocabulary_backbone", method.backbone)  # random weights have their own key
     setting = {"backbone": backbone, "layer": method.layer, "facet": method.facet, "stride": getattr(method, "stride", None)}
     if args.domain is None:  # its database described as a run on it describes it (AnyLoc: the dataset's resize)
+        if getattr(method, "vocabulary", None) == "domain":  # a fit makes centres: none is looked for (or fetched)
+            method.vocabulary = "map"
         method.use_dataset(args.dataset)
     # the resize is not keyed (a domain's centres serve each dataset at its own size, as the paper's): recorded
     resize = getattr(method, "resize", None)

@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import ProblemList, VPRBenchError, closest_names
+from ..registration import looked_up
 from ..spec import (RUN_SETTINGS, STORE_DTYPES, RunSettings, RunSpec, _choice, check_ks, resolve_search, resolve_spec,
                     split_run_settings)
 from ..text import one_line, toml_data
@@ -132,7 +133,7 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, overrides:
         entry = {"name": entry} if isinstance(entry, str) else entry
         for key in sorted(set(entry) - METHOD_KEYS):
             problems.append(f"{where('methods', i, key)}: method entry {i + 1} has unknown key {key!r} (allowed: {', '.join(sorted(METHOD_KEYS))})")
-        name = entry.get("name")
+        name = looked_up(entry.get("name"))  # typed decomposed (e + accent): its NFC entry, as on the command line
         if not isinstance(name, str) or name not in known_methods:
             problems.append(f"{where('methods', i, 'name')}: unknown method {reprlib.repr(name)}.{closest_names(str(name), known_methods)}"
                             " Run 'vprbench methods list'.")
