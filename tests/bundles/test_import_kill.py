@@ -160,6 +160,9 @@ def test_orphans_an_older_import_left_are_named_by_verify(records, shared_data, 
     others = repo / ".notes.md.x1y2z3w4.tmp"  # not a repository file's: someone else's
     for path in (*mine, others):
         path.write_bytes(b"half")
+        os.utime(path, (time.time() - 7200,) * 2)  # left two hours ago
+    fresh = run.parent / f".{run.name}.json.q9w8e7r6.tmp"  # a live writer's (outside the lock): kept
+    fresh.write_bytes(b"being written")
     code, out, err = cli("results", "verify", repo, "--data-dir", shared_data)
     stray = [f"{run.with_suffix(s).relative_to(repo).as_posix()}" for s in (".contribution", ".npz")]
     stray.append(f"methods/{r['row_key']}.json")
@@ -170,4 +173,4 @@ def test_orphans_an_older_import_left_are_named_by_verify(records, shared_data, 
     assert code == 0 and "1 run(s) added" in out, out + err
     code, out, err = cli("results", "verify", repo, "--data-dir", shared_data)
     assert code == 0, out
-    assert files(repo) == sorted([*expected(records), others.name]) and others.read_bytes() == b"half"
+    assert files(repo) == sorted([*expected(records), others.name, fresh.relative_to(repo).as_posix()]) and others.read_bytes() == b"half"

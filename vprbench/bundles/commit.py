@@ -17,7 +17,7 @@ import secrets
 import shutil
 from pathlib import Path
 
-from ..fsutil import _sync_folder, cache_error
+from ..fsutil import _sync_folder, cache_error, remove_stale
 from .archive import _CARD, RECORD_NAME
 
 PENDING = ".import.pending"
@@ -113,13 +113,12 @@ def leftovers(into: Path) -> bool:
 
 def recover(into: Path) -> int:
     """What imports killed here left, set right (under the lock, so none of it is a live import's):
-    uncommitted staging folders and temporary files removed, committed imports finished. Returns
+    uncommitted staging folders and stale temporary files removed, committed imports finished. Returns
     how many were found."""
     pending = into / PENDING
     try:
         temporaries = _temporaries(into)
-        for path in temporaries:
-            path.unlink()
+        remove_stale(temporaries)  # untouched for an hour: not a live writer's (one outside the lock, e.g. an evaluation)
         if pending.is_symlink() or not pending.is_dir():
             return len(temporaries)
         found = sorted(pending.iterdir())
