@@ -8,14 +8,23 @@ import warnings
 
 from .. import __version__
 from ..errors import KEPT, ProblemList, VPRBenchError, keeping, os_error_message
-from . import datasets, evaluate, leaderboard, methods, reproduce, results, run, stages, vocabulary
+from . import datasets, evaluate, leaderboard, methods, reproduce, repeats, results, run, stages, vocabulary
 from ..text import one_line
 from .console import console, styled
 
 
 class Parser(argparse.ArgumentParser):
     """A usage error is one line like every other error; the whole usage is one --help away. Each
-    subcommand's parser is of this class too (argparse makes them like their parent)."""
+    subcommand's parser is of this class too (argparse makes them like their parent). A flag given
+    twice with different values is refused (repeats.py), on every command."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        repeats.register(self)
+
+    def parse_known_args(self, args=None, namespace=None):
+        self.given_flags = {}  # what this parse has seen, for repeats.py
+        return super().parse_known_args(args, namespace)
 
     def error(self, message: str):
         print_error(f"{message}; see '{self.prog} --help'")
