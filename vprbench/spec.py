@@ -350,6 +350,7 @@ def resolve_stage(stage) -> StageSpec:
     """A stage by name (`"aqe"`), as a table (`{name = "sift-ransac", options = {k = 100}}` or with
     the options beside the name), or a StageSpec: its options validated by the stage's own
     Options model and stored resolved (defaults filled in), so one stage has one identity."""
+    from .loader import plugin_part
     from .stages.registry import stage_entry, stage_options
 
     if isinstance(stage, StageSpec):
@@ -364,9 +365,10 @@ def resolve_stage(stage) -> StageSpec:
             raise VPRBenchError(f"A stage needs a name, e.g. {{name = \"sift-ransac\", k = 100}}; got {stage!r}.")
     else:
         raise VPRBenchError(f"A stage is a name or a table with a name, got {stage!r}.")
-    validated, name = stage_options(name, options), stage_entry(name).name  # as registered (NFC)
-    return StageSpec(name=name, options=plain(validated.model_dump(mode="json")),
-                     files=plain(stage_entry(name).cls.file_identities(validated)))
+    validated, entry = stage_options(name, options), stage_entry(name)  # its name as registered (NFC)
+    with plugin_part(entry.cls, "file_identities", f"Stage {entry.name!r}"):
+        files = entry.cls.file_identities(validated)
+    return StageSpec(name=entry.name, options=plain(validated.model_dump(mode="json")), files=plain(files))
 
 
 def check_ks(ks) -> tuple[int, ...]:

@@ -12,6 +12,7 @@ import pytest
 from hostile_files import assert_refused
 from test_plugin_audit import Returns, Transform, plugin
 from vprbench import register_method
+from vprbench.evaluation.results import read_results
 from vprbench.methods import registry
 from vprbench.stages import RerankOptions, Stage, register_stage
 from vprbench.stages import registry as stage_registry
@@ -118,3 +119,63 @@ def test_a_plan_finds_a_name_typed_decomposed():
     # before: "unknown method 'café'. Did you mean: café?", where the command line took it
     plan = build_plan({"methods": [NFD], "datasets": ["corridor"]}, "plan.toml")
     assert [cell.spec.method for cell in plan.cells] == [NFC]
+
+
+def test_a_postprocessor_load_state_that_raises_is_one_line(cli, shared_data):
+    broken = type("Broken", (Arrayed,), {"__module__": "my_plugin", "key": lambda self, rows, budget: {"k": 1},
+                                         "state": lambda self: {"mean": np.zeros(3)}, "load_state": boom})
+    method = plugin("loads", postprocessor=lambda self: broken())
+    assert evaluate(cli, shared_data, method)[0] == 0  # fitted, its state saved
+    # the second run loads that state: before, a traceback through vprbench
+    code, _, err = evaluate(cli, shared_data, method)
+    assert code == 1 and err.startswith("error: ") and err.count("\n") == 1, err
+    assert ("error: Post-processor Broken (my_plugin) failed in load_state(): RuntimeError: server said no at " in err
+            and err.endswith(line_of(boom) + "\n")), err
+    assert len(read_results()) == 1  # the first run's only
+
+
+def raises(cls, *_):
+    raise RuntimeError("server said no")
+
+
+@pytest.mark.parametrize("hook", ["cached_identities", "implied_options", "unused_options"])
+def test_a_method_hook_that_raises_is_one_line(hook, cli, shared_data):
+    code, _, err = evaluate(cli, shared_data, plugin("hooked", __module__="my_plugin", **{hook: classmethod(raises)}))
+    # before: a traceback through vprbench (the spec calls the hook before the method exists)
+    assert_refused(code, err, None, f"Method 'hooked' (my_plugin) failed in {hook}(): RuntimeError: server said no at ",
+                   line_of(raises))
+
+
+@pytest.mark.parametrize("hook", ["file_identities", "query_window"])
+def test_a_stage_hook_that_raises_is_one_line(hook, cli, shared_data):
+    register_stage("hooked", type("Hooked", (Passes,), {"__module__": "my_plugin", hook: classmethod(raises)}))
+    code, _, err = evaluate(cli, shared_data, plugin("plain"), "--rerank", "hooked", "--rerank-k", 5)
+    assert_refused(code, err, None, f"Stage 'hooked' (my_plugin) failed in {hook}(): RuntimeError: server said no at ",
+                   line_of(raises), stores_allowed=True)
+
+
+def test_describe_with_a_use_dataset_that_raises_is_one_line(cli, shared_data, tmp_path):
+    images = sorted((shared_data / "corridor" / "query").glob("*.jpg"))[:2]
+    code, _, err = cli("describe", "--method", plugin("aimed", __module__="my_plugin", use_dataset=boom), *images,
+                       "--dataset", "corridor", "--out", tmp_path / "d.npy")
+    # before: a traceback through vprbench
+    assert_refused(code, err, None, "Method 'aimed' (my_plugin) failed in use_dataset(): RuntimeError: server said "
+                                    "no at ", line_of(boom))
+
+
+def test_a_sweep_survives_a_method_postprocessor_that_exits(cli, shared_data, tmp_path):
+    import sys
+
+    def leaves(self):
+        if type(self).leave:
+            sys.exit("bye")
+
+    method = plugin("leaves", __module__="my_plugin", postprocessor=leaves, leave=False)
+    plan = tmp_path / "plan.toml"
+    plan.write_text(f'[[methods]]\nname = "{method}"\n\n[[datasets]]\nname = "corridor"\n')
+    assert cli("run", plan, "--data-dir", shared_data)[0] == 0  # a record: the next run checks it against the method
+    registry.method_entry(method).factory.leave = True
+    code, out, err = cli("run", plan, "--data-dir", shared_data)
+    # before: the plugin's exit ended the sweep (exit 'bye', no table); now a method not made here, as any
+    # other failure of it (StoredRecords.described_as): its cell keeps its record
+    assert (code, err) == (0, "") and "plan: 1 skipped" in out, (code, out, err)

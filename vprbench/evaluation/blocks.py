@@ -147,6 +147,7 @@ def block_length(queries: int, radius_steps: float, window: int = 1) -> int:
 def query_window(stages) -> int:
     """The run's query window from its stages (a record's spec["stages"]: name and options): 1 plus
     what each stage's window adds. A stage no longer installed counts by its `length` option."""
+    from ..loader import plugin_part
     from ..stages.registry import available_stages
 
     known, window = available_stages(), 1
@@ -154,10 +155,12 @@ def query_window(stages) -> int:
         name = stage.get("name") if isinstance(stage, dict) else None
         options = stage.get("options") if isinstance(stage, dict) and isinstance(stage.get("options"), dict) else {}
         if name in known:
-            try:
-                found = known[name].cls.query_window(options)
-            except ValueError:  # options that never ran (an edited record): the stage's defaults
-                found = known[name].cls.query_window({})
+            cls = known[name].cls
+            with plugin_part(cls, "query_window", f"Stage {name!r}"):
+                try:
+                    found = cls.query_window(options)
+                except ValueError:  # options that never ran (an edited record): the stage's defaults
+                    found = cls.query_window({})
         else:
             length = options.get("length")
             found = length if isinstance(length, int) and not isinstance(length, bool) and length > 0 else 1

@@ -110,14 +110,10 @@ def fit_postprocessor(postprocessor, database: RowSource, memory_budget: int, st
     path = Path(folder) / f"postprocess-{hashlib.sha256(text.encode()).hexdigest()[:16]}.npz" if folder else None
     info = {"key": key, "file": str(path) if path else None}
     if path is not None and path.is_file():
-        try:
-            with np.load(path, allow_pickle=False) as saved:
-                if str(saved["key"]) != text:
-                    raise ValueError("it was fitted on other rows or settings than these")
-                postprocessor.load_state({name: saved[name] for name in saved.files if name != "key"})
+        unusable = _load_state(postprocessor, path, text)
+        if unusable is None:
             return {**info, "state": "loaded"}
-        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as error:
-            warnings.warn(f"Refitting: the post-processing state {path} is unusable ({error}).", stacklevel=2)
+        warnings.warn(f"Refitting: the post-processing state {path} is unusable ({unusable}).", stacklevel=2)
     started = time.perf_counter()
     with in_postprocessor(postprocessor, "fit"):
         postprocessor.fit(database, memory_budget)
@@ -128,6 +124,24 @@ def fit_postprocessor(postprocessor, database: RowSource, memory_budget: int, st
         with atomic_path(path) as temporary, open(temporary, "wb") as file:
             np.savez(file, **state, key=np.array(text))
     return info
+
+
+def _load_state(postprocessor, path: Path, text: str) -> str | None:
+    """None when `postprocessor` loaded the state saved at `path` under the key `text`, else why that
+    state is unusable (refitted); what else its load_state raises is its one line (`in_postprocessor`)."""
+    try:
+        with np.load(path, allow_pickle=False) as saved:
+            if str(saved["key"]) != text:
+                return "it was fitted on other rows or settings than these"
+            state = {name: saved[name] for name in saved.files if name != "key"}
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as error:
+        return str(error)
+    with in_postprocessor(postprocessor, "load_state"):
+        try:
+            postprocessor.load_state(state)
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as error:  # a state it refuses, as a damaged file
+            return str(error)
+    return None
 
 
 class _Shape:

@@ -72,7 +72,10 @@ class MethodEntry:
     def cached_identities(self, options: dict, dataset: str, cache_dir=None) -> dict[str, str]:
         """`Method.cached_identities` of the factory (a plugin's function factory has none)."""
         found = getattr(self.factory, "cached_identities", None)
-        return dict(found(options, dataset, cache_dir)) if callable(found) else {}
+        if not callable(found):
+            return {}
+        with plugin_part(self.factory, "cached_identities", f"Method {self.name!r}"):
+            return dict(found(options, dataset, cache_dir))
 
     def in_form(self, given: dict) -> dict:
         """`given` with a list written as text ('4,6,8,10' from `-o bin_sizes=4,6,8,10`) as that list,
@@ -101,8 +104,9 @@ class MethodEntry:
         defaults = self.effective_defaults()
         given = self.in_form(given)
         implied = getattr(self.factory, "implied_options", None)  # an unset option's value, from the others
-        defaults |= {k: v for k, v in (implied({**defaults, **given}) if callable(implied) else {}).items()
-                     if defaults.get(k) is None}
+        with plugin_part(self.factory, "implied_options", f"Method {self.name!r}"):
+            implied = implied({**defaults, **given}) if callable(implied) else {}
+        defaults |= {k: v for k, v in implied.items() if defaults.get(k) is None}
         named = getattr(self.factory, "dataset_option", None)  # unset, it is the dataset evaluated (use_dataset)
         if dataset is not None and isinstance(named, str) and defaults.get(named) is None:
             defaults[named] = dataset
@@ -111,7 +115,9 @@ class MethodEntry:
         kept = {k: v for k, v in given.items() if k not in defaults or not _same(k, v, defaults[k])
                 or k not in self.defaults and _names_a_path(v)}
         unused = getattr(self.factory, "unused_options", None)  # options the other options leave idle
-        idle = {k: why for k, why in (unused({**defaults, **given}) if callable(unused) else {}).items() if k in kept}
+        with plugin_part(self.factory, "unused_options", f"Method {self.name!r}"):
+            unused = unused({**defaults, **given}) if callable(unused) else {}
+        idle = {k: why for k, why in unused.items() if k in kept}
         if idle:
             name, why = sorted(idle.items())[0]
             raise VPRBenchError(f"Method {self.name!r}: option {name}={kept[name]!r} is not used here ({why}): drop it "

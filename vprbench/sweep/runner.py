@@ -147,6 +147,7 @@ class StoredRecords:
         import warnings
 
         from ..evaluation.pipeline import create_run_method
+        from ..loader import plugin_part
         from ..store import method_fingerprint
 
         key = (spec.key, spec.dataset.name)
@@ -155,8 +156,11 @@ class StoredRecords:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")  # the run says the method's notes
                     method = create_run_method(spec.method, spec.given, self.settings)
-                    method.use_dataset(spec.dataset.name)
-                    self.methods[key] = method_fingerprint(method, spec.store_dtype), method.postprocessor()
+                    with plugin_part(method, "use_dataset"):
+                        method.use_dataset(spec.dataset.name)
+                    with plugin_part(method, "postprocessor"):
+                        postprocessor = method.postprocessor()
+                    self.methods[key] = method_fingerprint(method, spec.store_dtype), postprocessor
             except Exception:  # noqa: BLE001 - a lookup: whatever stops the method here stops its run, which names it
                 self.methods[key] = None, None
         return self.methods[key]
