@@ -288,7 +288,7 @@ def default_stride(backbone: str) -> int | None:
         spec = backbone_spec(backbone.partition("@")[0])
     except VPRBenchError:
         return None
-    return spec.stride or spec.patch
+    return spec.default_stride
 
 
 def vocabulary_key(backbone: str, layer: int, facet: str, clusters: int, stride: int | None = None) -> str:

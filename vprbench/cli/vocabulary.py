@@ -160,7 +160,7 @@ def run_import(args) -> int:
     spec = backbone_spec(name)
     whole("vocabulary import", "--layer", args.layer, 0, spec.depth - 1, f"0-based block of {spec.name}")
     choice("vocabulary import", "--facet", args.facet, spec.facets)
-    stride = spec.stride or spec.patch if args.stride is None else args.stride
+    stride = spec.default_stride if args.stride is None else args.stride
     if spec.patch % whole("vocabulary import", "--stride", stride, 1, spec.patch, f"pixels, at most the patch {spec.patch}"):
         raise VPRBenchError(f"--stride {stride} does not divide the patch {spec.patch} of {spec.name}: give one of "
                             + ", ".join(str(d) for d in range(1, spec.patch + 1) if spec.patch % d == 0) + ".")

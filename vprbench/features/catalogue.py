@@ -125,6 +125,16 @@ class BackboneEntry(BaseModel):
                             also_named=self.hub_files[1:])
 
     @property
+    def default_stride(self) -> int:
+        """The patch stride it runs at unless told (DINO v1 as AnyLoc: 4)."""
+        return self.stride or self.patch
+
+    @property
+    def one_stride(self) -> bool:
+        """Whether it runs at its patch stride only (timm's own patch embedding takes no other)."""
+        return self.position_interpolation == "timm"
+
+    @property
     def timm_name(self) -> str:
         return f"{self.timm}.{self.tag}" if self.tag else self.timm
 

@@ -88,9 +88,9 @@ class AnyLoc(Method):
         self.dataset = self.given_dataset = None if dataset is None else text("anyloc", "dataset", dataset)
         # DINO v1 follows the official dino extractor: stride 4, interleaved heads, raw features
         self.stride = whole("anyloc", "stride", stride, 1, self.spec.patch, f"pixels, at most the patch size {self.spec.patch}") \
-            if stride is not None else (self.spec.stride or self.spec.patch)
+            if stride is not None else self.spec.default_stride
         patch = self.spec.patch
-        if self.stride != patch and self.spec.position_interpolation == "timm":  # timm's own patch embedding
+        if self.stride != patch and self.spec.one_stride:
             raise VPRBenchError(f"anyloc: option stride={self.stride}: backbone {backbone} runs at its patch stride "
                                 f"{patch} only; leave stride unset or give {patch}.")
         if patch % self.stride:

@@ -287,7 +287,7 @@ def check_proven(vocabulary: Vocabulary, backbone: str, layer: int, facet: str, 
     if vocabulary.meta.get("stride") is not None:
         return
     try:
-        one_stride = backbone_spec(backbone.partition("@")[0]).position_interpolation == "timm"
+        one_stride = backbone_spec(backbone.partition("@")[0]).one_stride
     except VPRBenchError:
         one_stride = False
     released = at_default_stride(backbone, stride) and released_provenance(vocabulary).get("source") == "released"
