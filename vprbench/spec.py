@@ -222,6 +222,7 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
     benchmark name, a folder of one's own, or a `Dataset` already loaded (its protocol is used).
     """
     from .methods.base import Method
+    from .methods.checks import plain_options
     from .methods.registry import method_entry
 
     if isinstance(method, Method):
@@ -242,11 +243,7 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
         hint = closest_names(unknown[0], accepted)
         raise VPRBenchError(f"Method {method!r} does not take option(s) {', '.join(unknown)}.{hint} "
                             f"It accepts: {', '.join(accepted) or 'none'}.")
-    try:
-        given = plain(given)
-        merged = plain({**{k: v for k, v in entry.defaults.items() if k not in RUN_SETTINGS}, **given})
-    except (TypeError, ValueError) as error:
-        raise VPRBenchError(f"Method {method!r}: an option is not plain data ({error}).") from None
+    given = plain_options(method, given)
     if isinstance(stages, (str, dict, StageSpec)):  # one stage, not a list of its characters or keys
         stages = [stages]
     require(stages or (), (list, tuple), "stages takes a list of stages, e.g. ['aqe'] or [{'name': 'sift-ransac', 'k': 100}]")
@@ -257,7 +254,7 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
     data = resolve_dataset(dataset, protocol, data_dir, cache_dir)
     if getattr(entry.factory, "dataset_option", None) in given:  # naming the dataset evaluated: as unset
         given = entry.without_defaults(given, data.name)
-        merged = plain({**{k: v for k, v in entry.defaults.items() if k not in RUN_SETTINGS}, **given})
+    merged = plain({**{k: v for k, v in entry.defaults.items() if k not in RUN_SETTINGS}, **given})
     if data.kind == "benchmark":  # a benchmark that is no traverse is refused before its data is needed
         from .datasets.traverse import require_traverse_manifest
         from .stages.registry import stage_entry

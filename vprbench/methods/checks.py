@@ -135,3 +135,16 @@ def canonical(name: str, value):
             return value
         return list(size) if size else "native"
     return value
+
+
+def plain_options(method: str, options: dict) -> dict:
+    """`options` as plain data (tuples as lists), or one line naming the method: an object, a set or
+    NaN would not name the run exactly (refused when the method is created and in a spec alike)."""
+    import json
+
+    from ..hashing import canonical_json
+
+    try:
+        return json.loads(canonical_json(options))
+    except (TypeError, ValueError) as error:
+        raise VPRBenchError(f"Method {method!r}: an option is not plain data ({error}).") from None

@@ -25,10 +25,9 @@ from importlib.metadata import entry_points
 from pathlib import Path
 
 from ..errors import VPRBenchError, closest_names
-from ..hashing import canonical_json
 from ..loader import plugin_part
 from ..registration import check_name, claim, imported, looked_up, run_plugins, source_of
-from .checks import canonical, whole
+from .checks import canonical, plain_options, whole
 
 ENTRY_POINT_GROUP = "vprbench.methods"
 #: what the registry hands a factory that takes it, never an option a user sets
@@ -190,10 +189,7 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
     entry = method_entry(name)
     # each value in its one form (resize '64x64' is [64, 64]), as a spec holds it: one store either way
     written = entry.in_form({k: canonical(k, v) for k, v in options.items() if v is not None})
-    try:  # before the factory sees it: the spec refuses it later, after models are loaded
-        canonical_json(written)
-    except (TypeError, ValueError) as error:
-        raise VPRBenchError(f"Method {name!r}: an option is not plain data ({error}).") from None
+    plain_options(name, written)  # before the factory sees it, as a spec does
     given = entry.without_defaults(written)
     merged = {**entry.defaults, **given}
     accepted = entry.options()
