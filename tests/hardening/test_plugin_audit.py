@@ -380,22 +380,3 @@ def test_a_method_that_fails_mid_run_resumes_with_the_rows_it_finished(cli, tmp_
     assert code == 0, err
     assert calls == [2, 1]  # the first batch of 2 was kept, the 3 others described now
     np.testing.assert_array_equal(np.load(tmp_path / "d.npy"), unit_rows(images))
-
-
-def test_a_one_module_plugin_is_named_by_its_own_line_not_a_library_beside_it(tmp_path, monkeypatch):
-    from vprbench.loader import plugin_part
-
-    # installed as one module, a plugin lies in site-packages beside the libraries it calls: the
-    # line was the library's, where the error surfaced, not the plugin's call
-    (tmp_path / "lib_beside").mkdir()
-    (tmp_path / "lib_beside" / "__init__.py").write_text("def check(x):\n    raise ValueError('bad shape')\n")
-    (tmp_path / "one_module_plugin.py").write_text(
-        "import lib_beside\n\nclass Plug:\n    name = 'plug'\n\n    def describe(self, images):\n"
-        "        return lib_beside.check(images)\n")
-    monkeypatch.syspath_prepend(str(tmp_path))
-    import one_module_plugin
-
-    with pytest.raises(VPRBenchError, match=r"Method 'plug' \(one_module_plugin\) failed in describe\(\): ValueError: "
-                                            rf"bad shape at {tmp_path / 'one_module_plugin.py'}:7; fix"):
-        with plugin_part(one_module_plugin.Plug(), "describe"):
-            one_module_plugin.Plug().describe([])

@@ -12,6 +12,7 @@ import pytest
 from hostile_files import assert_refused
 from test_plugin_audit import Returns, Transform, plugin
 from vprbench import register_method
+from vprbench.errors import VPRBenchError
 from vprbench.evaluation.results import read_results
 from vprbench.methods import registry
 from vprbench.stages import RerankOptions, Stage, register_stage
@@ -179,3 +180,22 @@ def test_a_sweep_survives_a_method_postprocessor_that_exits(cli, shared_data, tm
     # before: the plugin's exit ended the sweep (exit 'bye', no table); now a method not made here, as any
     # other failure of it (StoredRecords.described_as): its cell keeps its record
     assert (code, err) == (0, "") and "plan: 1 skipped" in out, (code, out, err)
+
+
+def test_a_one_module_plugin_is_named_by_its_own_line_not_a_library_beside_it(tmp_path, monkeypatch):
+    from vprbench.loader import plugin_part
+
+    # installed as one module, a plugin lies in site-packages beside the libraries it calls: the
+    # line was the library's, where the error surfaced, not the plugin's call
+    (tmp_path / "lib_beside").mkdir()
+    (tmp_path / "lib_beside" / "__init__.py").write_text("def check(x):\n    raise ValueError('bad shape')\n")
+    (tmp_path / "one_module_plugin.py").write_text(
+        "import lib_beside\n\nclass Plug:\n    name = 'plug'\n\n    def describe(self, images):\n"
+        "        return lib_beside.check(images)\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import one_module_plugin
+
+    with pytest.raises(VPRBenchError, match=r"Method 'plug' \(one_module_plugin\) failed in describe\(\): ValueError: "
+                                            rf"bad shape at {tmp_path / 'one_module_plugin.py'}:7; fix"):
+        with plugin_part(one_module_plugin.Plug(), "describe"):
+            one_module_plugin.Plug().describe([])
