@@ -181,11 +181,10 @@ def verify_repository(root: Path, truth=None, *, max_bytes: int = MAX_BYTES) -> 
         report.problems.append(f"{root}: {link.relative_to(root).as_posix()} is a link, not a regular file or folder; "
                                "refused (an import would write through it, outside the repository).")
     cards = {p.stem for p in (root / CARDS).glob("*.json")}
-    _orphans(root, cards, report.problems)
-    for path in sorted(root.glob("*/*/*.json")):
+    records = sorted(p for p in root.glob("*/*/*.json") if p.parts[-3] != CARDS)
+    _orphans(root, cards, records, report.problems)
+    for path in records:
         name = path.relative_to(root).as_posix()
-        if path.parts[-3] == CARDS:
-            continue
         match = RECORD_NAME.match(name)
         if not match:
             report.problems.append(f"{root}: {name} is not where a results repository keeps a record "
@@ -210,9 +209,9 @@ def verify_repository(root: Path, truth=None, *, max_bytes: int = MAX_BYTES) -> 
     return report
 
 
-def _orphans(root: Path, cards: set, problems: list) -> None:
+def _orphans(root: Path, cards: set, records: list[Path], problems: list) -> None:
     """Arrays, notes and cards no record uses (a kill in an import of an older vprbench left them)."""
-    rows = {p.parent.name for p in root.glob("*/*/*.json") if p.parts[-3] != CARDS}
+    rows = {p.parent.name for p in records}
     stray = [p for suffix in (".npz", CONTRIBUTION) for p in root.glob(f"*/*/*{suffix}")
              if not p.with_suffix(".json").exists()]
     stray += [root / CARDS / f"{card}.json" for card in cards - rows]
