@@ -291,6 +291,11 @@ def default_stride(backbone: str) -> int | None:
     return spec.default_stride
 
 
+def at_default_stride(backbone: str, stride: int | None) -> bool:
+    """Whether `stride` (None: unset) is the backbone's own, which vocabulary keys leave unsaid."""
+    return stride is None or int(stride) == default_stride(backbone)
+
+
 def vocabulary_key(backbone: str, layer: int, facet: str, clusters: int, stride: int | None = None) -> str:
     """Folder name of a feature setting, as the authors' release: `dinov2_vitg14-l31-value-c32`.
 
@@ -298,7 +303,7 @@ def vocabulary_key(backbone: str, layer: int, facet: str, clusters: int, stride:
     than the backbone's own (DINO v1 at 8, not 4) adds `-s<stride>`: other features, other centres.
     None: the backbone's own stride. Names are kept portable (`portable_name`)."""
     key = f"{backbone}-l{layer}-{facet}-c{clusters}"
-    if stride is not None and int(stride) != default_stride(backbone):
+    if not at_default_stride(backbone, stride):
         key += f"-s{int(stride)}"
     return portable_name(key)
 
@@ -317,7 +322,7 @@ def legacy_vocabulary_dir(backbone: str, layer: int, facet: str, clusters: int, 
                           stride: int | None = None) -> Path | None:
     """Where vprbench kept this vocabulary before folder names were made portable (a timm:ARCH
     backbone's ':' as it is), when that differs and names one folder; read, never written."""
-    if stride is not None and int(stride) != default_stride(backbone):
+    if not at_default_stride(backbone, stride):
         return None  # no stride was keyed then: no old folder holds another stride's centres
     key, found = f"{backbone}-l{layer}-{facet}-c{clusters}", vocabulary_dir(backbone, layer, facet, clusters, source, cache_dir)
     if any(sep in part for part in (key, source) for sep in "/\\") or (key, source) == (found.parent.name, found.name):

@@ -18,7 +18,8 @@ from pathlib import Path
 from typing import Callable, Iterable, Iterator, Sequence
 
 from ..aggregation.vocabulary import (
-    DEFAULT_BUDGET, KMEANS_SEED, RELEASED_FILE, VOCABULARY_FILE, Vocabulary, default_stride, fit_vocabulary,
+    DEFAULT_BUDGET, KMEANS_SEED, RELEASED_FILE, VOCABULARY_FILE, Vocabulary, at_default_stride, default_stride,
+    fit_vocabulary,
     legacy_vocabulary_dir, load_vocabulary, vocabulary_dir, vocabulary_file_in,
 )
 from ..errors import ProblemList, VPRBenchError, closest_names
@@ -261,10 +262,6 @@ def cached_vocabulary_file(source: str, backbone: str, layer: int, facet: str, c
     if released:
         folders += [folder.parent / released for folder in folders]
     return next(filter(None, map(vocabulary_file_in, folders)), None)
-
-
-def at_default_stride(backbone: str, stride: int | None) -> bool:
-    return stride is None or int(stride) == default_stride(backbone)
 
 
 def is_released_setting(backbone: str, layer: int, facet: str, clusters: int, stride: int | None = None) -> bool:
