@@ -174,3 +174,83 @@ def test_orphans_an_older_import_left_are_named_by_verify(records, shared_data, 
     code, out, err = cli("results", "verify", repo, "--data-dir", shared_data)
     assert code == 0, out
     assert files(repo) == sorted([*expected(records), others.name, fresh.relative_to(repo).as_posix()]) and others.read_bytes() == b"half"
+
+
+def paused_import(bundle, repo, shared_data, tmp_path, step):
+    """An import run up to step STEP of its commit, then holding there (the lock held)."""
+    paused = tmp_path / "paused"
+    running = importer(bundle, repo, shared_data, tmp_path / "cache", STEP=str(step), MODE="pause", PAUSED=str(paused))
+    deadline = time.monotonic() + 120
+    while not paused.exists() and running.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert paused.exists(), running.communicate()
+    return running
+
+
+def test_verify_while_an_import_moves_its_files_names_none_of_them(records, shared_data, tmp_path, cli):
+    """Was: a verify while an import was moving its files (arrays and cards first, records last) said
+    of the arrays, notes and card whose record was not yet moved 'belongs to no record ...; remove it'
+    (exit 1): a false alarm, and advice that, taken, leaves a record without its arrays."""
+    bundle = export_bundle(records, tmp_path / "runs.tar.gz")
+    repo = tmp_path / "repo"
+    running = paused_import(bundle, repo, shared_data, tmp_path, 16)  # one record moved, the other's files too
+    try:
+        [pending] = (repo / ".import.pending").iterdir()
+        assert files(pending) == [f"{records[1]['protocol']['hash']}/{records[1]['row_key']}/{records[1]['run_id']}.json"]
+        code, out, err = cli("results", "verify", repo, "--data-dir", shared_data)
+        assert code == 0 and "belongs to no record" not in out, out + err
+        assert out.count(": ok, re-scored from its arrays") == 1 and records[0]["run_id"] in out, out
+        assert len(files(pending)) == 1  # the live import's file left alone
+    finally:
+        os.kill(running.pid, signal.SIGKILL)
+        running.communicate(timeout=60)
+    code, out, err = cli("results", "verify", repo, "--data-dir", shared_data)  # the killed import finished
+    assert code == 0 and out.count(": ok, re-scored from its arrays") == 2, out + err
+    assert files(repo) == expected(records)
+
+
+def test_an_import_started_while_verify_runs_is_no_orphan(records, shared_data, tmp_path, monkeypatch):
+    """An import that starts after verify has listed the records, and is moving its files when verify
+    looks for orphans: its arrays and note are not named (was: two 'belongs to no record' lines)."""
+    from vprbench.bundles import import_bundles, repository
+
+    truth, repo = DataGroundTruth(shared_data), tmp_path / "repo"
+    assert import_bundles([export_bundle([records[0]], tmp_path / "alice.tar.gz")], repo, truth)[0].ok
+    bob = export_bundle([records[1]], tmp_path / "bob.tar.gz")
+    started, real = [], repository._orphans
+
+    def import_meanwhile(*args):
+        # one run: 4 files staged, the commit (5), then note, arrays and card moved (6..8), the record not
+        started.append(paused_import(bob, repo, shared_data, tmp_path, 8))
+        return real(*args)
+
+    monkeypatch.setattr(repository, "_orphans", import_meanwhile)
+    try:
+        report = verify_repository(repo, truth)
+    finally:
+        for running in started:
+            os.kill(running.pid, signal.SIGKILL)
+            running.communicate(timeout=60)
+    assert len(started) == 1 and report.problems == [] and report.ok, report.lines()
+    assert [v.run_id for v in report.verdicts] == [records[0]["run_id"]]
+
+
+def test_a_killed_import_verify_cannot_finish_is_named_once(records, shared_data, tmp_path, monkeypatch):
+    """Killed mid-move and verified without write access: one line says to import again; its moved
+    arrays are not named orphans to remove (was: 'remove it' for each, which loses them for good)."""
+    from vprbench.bundles import repository
+    from vprbench.fsutil import cache_error
+
+    bundle = export_bundle(records, tmp_path / "runs.tar.gz")
+    repo = tmp_path / "repo"
+    killed = importer(bundle, repo, shared_data, tmp_path / "cache", STEP="14")
+    killed.communicate(timeout=120)
+    assert killed.returncode == -signal.SIGKILL
+
+    def read_only(into):
+        raise cache_error(PermissionError(13, "Permission denied"), into / ".import.pending")
+
+    monkeypatch.setattr(repository, "recover", read_only)
+    report = verify_repository(repo, DataGroundTruth(shared_data))
+    assert len(report.problems) == 1 and report.problems[0].endswith(
+        f"An import into {repo} was interrupted: import into it again (with write access) to finish it."), report.problems

@@ -210,11 +210,22 @@ def verify_repository(root: Path, truth=None, *, max_bytes: int = MAX_BYTES) -> 
 
 
 def _orphans(root: Path, cards: set, records: list[Path], problems: list) -> None:
-    """Arrays, notes and cards no record uses (a kill in an import of an older vprbench left them)."""
+    """Arrays, notes and cards no record uses (a kill in an import of an older vprbench left them). Not those
+    whose record is still in an import's commit folder: that import (running now, or killed and finished by
+    the next) moves the record last."""
     rows = {p.parent.name for p in records}
     stray = [p for suffix in (".npz", CONTRIBUTION) for p in root.glob(f"*/*/*{suffix}")
              if not p.with_suffix(".json").exists()]
     stray += [root / CARDS / f"{card}.json" for card in cards - rows]
+    if stray:  # the commit folders looked in first, then the places again: a record moved in between is seen
+        pending = root / PENDING
+        moving = set() if pending.is_symlink() else {
+            p.relative_to(folder).as_posix() for folder in pending.glob("commit-*") if not folder.is_symlink()
+            for p in folder.glob("*/*/*.json")}
+        known = moving | {p.relative_to(root).as_posix() for p in root.glob("*/*/*.json") if p.parts[-3] != CARDS}
+        rows = {name.split("/")[1] for name in known}
+        stray = [p for p in stray if (p.stem not in rows if p.parent == root / CARDS
+                                      else p.with_suffix(".json").relative_to(root).as_posix() not in known)]
     for path in sorted(stray):
         problems.append(f"{root}: {path.relative_to(root).as_posix()} belongs to no record (left by an import of an "
                         "older vprbench that was killed, or added by hand); remove it.")
