@@ -199,3 +199,27 @@ def test_reduced_precision_flows_through_every_facet(name):
         assert reduced.dtype == (torch.float32 if facet == "token" else torch.bfloat16) and full.dtype == torch.float32
         cosine = torch.nn.functional.cosine_similarity(reduced.float(), full, dim=-1)
         assert cosine.min() > 0.999, (facet, cosine.min())
+
+
+def test_a_timm_name_of_dinov3s_release_runs_as_the_release():
+    """`timm:vit_small_patch16_dinov3` built its RoPE periods in timm's float32 where dinov3_vits16 (the
+    same architecture and weights) keeps the release's bfloat16: its descriptors differed by ~1e-2."""
+    from vprbench import create_method
+
+    torch.manual_seed(1)
+    images = [torch.rand(3, 128, 128) for _ in range(3)]
+    found = {}
+    for name in ("dinov3_vits16", "timm:vit_small_patch16_dinov3"):
+        method = create_method("anyloc", backbone=name, weights="random", layer=11, facet="key", aggregation="gem")
+        found[name] = method.describe(images), method.extractor.model.rope.periods.clone(), method.fingerprint()
+    (release, periods, fp), (by_timm, timm_periods, timm_fp) = found.values()
+    assert torch.equal(periods, timm_periods) and periods[1].item() == 1.3359375  # float32: 1.3335
+    assert abs(release - by_timm).max() <= 1e-6
+    assert fp["rope_periods"] == timm_fp["rope_periods"] == "bfloat16"  # not served the timm name's float32 stores
+    # another size or variant of the release, known by the licence timm's config names it by; other weights keep timm's
+    for name, periods, licence in (("timm:vit_small_patch16_dinov3_qkvb.lvd1689m", "bfloat16", "DINOv3 License"),
+                                   ("timm:vit_small_plus_patch16_dinov3", "bfloat16", "DINOv3 License"),
+                                   ("timm:vit_small_patch16_dinov3_qkvb.eupe_lvd1689m", "float32",
+                                    "fair-noncommercial-research-license")):
+        entry = backbone_spec(name)
+        assert (entry.rope_periods, entry.licence, entry.gated) == (periods, licence, periods == "bfloat16")

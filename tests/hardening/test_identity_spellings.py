@@ -116,3 +116,20 @@ def test_anylocs_dataset_option_naming_the_dataset_evaluated_is_the_run_without_
     check_method(created, spec_for(created, "corridor"))  # evaluate takes that method with that spec
     other = resolve_spec("anyloc", "corridor", options={**TINY, "aggregation": "gem", "dataset": "pitts30k"})
     assert other.given["dataset"] == "pitts30k" and other.row_key != unset.row_key
+
+
+def test_anylocs_dataset_option_naming_the_dataset_evaluated_shares_the_store(shared_data, tmp_path):
+    """The spec dropped `dataset=corridor` on Corridor, but the store was keyed by the method's own settings,
+    which kept it: the same run from the command line computed all 222 descriptors again."""
+    from vprbench.evaluation import evaluate
+    from vprbench.spec import RunSettings
+
+    run = RunSettings(cache_dir=tmp_path / "cache", data_dir=shared_data, workers=0)
+    created = create_method("anyloc", **TINY, aggregation="gem", dataset="corridor")
+    first = evaluate(spec_for(created, "corridor", data_dir=shared_data), run, method=created)
+    unset = resolve_spec("anyloc", "corridor", options={**TINY, "aggregation": "gem"}, data_dir=shared_data)
+    again = evaluate(unset, run)  # as the command line runs it
+    assert first["descriptors_computed"] == {"database": 111, "queries": 111}
+    assert again["descriptors_computed"] == {"database": 0, "queries": 0}
+    assert again["context"]["store"]["folders"] == first["context"]["store"]["folders"]
+    assert "dataset" not in again["method_fingerprint"]["settings"]

@@ -51,10 +51,11 @@ class Described:
 def describe_splits(method, splits: dict[str, list[Path]], *, root: Path | None = None, label: str = "images",
                     digests: dict[str, list[str]] | None = None, cache_dir=None, store_dtype: str = "float32",
                     workers: int = 0, lock_timeout: float | None = None, ranks: Ranks | None = None,
-                    progress=None) -> Described:
+                    progress=None, settings: dict | None = None) -> Described:
     """Complete stores for every split of `splits` (name -> image paths), computing what is missing.
     `digests` are the images' sha256 per split (hashed now when not given): the store is keyed by
-    them, and every image described is checked to still have them (loader.py)."""
+    them, and every image described is checked to still have them (loader.py). `settings` are the
+    options the store is keyed by when not the method's own (an evaluation's: its spec's)."""
     ranks = ranks or Ranks()
     if store_dtype not in DTYPES:
         raise VPRBenchError(f"--store-dtype must be one of {', '.join(DTYPES)}, got {store_dtype!r}.")
@@ -65,7 +66,7 @@ def describe_splits(method, splits: dict[str, list[Path]], *, root: Path | None 
     names = {split: image_names(paths, root) for split, paths in splits.items()}
     digests = digests or {split: content_hashes(paths, cache_dir) for split, paths in splits.items()}
     image_keys = {split: images_key(paths, root, digests=digests[split]) for split, paths in splits.items()}
-    fingerprint = method_fingerprint(method, store_dtype)
+    fingerprint = method_fingerprint(method, store_dtype, settings)
     folder = StoreFolder(method.name, fingerprint, label, split_keys(method, image_keys), cache_dir)
     if (method.needs_fit and "queries" in splits and not folder.fit_path.exists()
             and (folder.paths["queries"] / f"{FIT_SPLIT}.h5").exists()):  # described with a fit never saved

@@ -163,7 +163,7 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
         method, {"database": dataset.database, "queries": dataset.queries}, root=dataset.root, label=dataset.name,
         digests=dataset.image_digests(settings.cache_dir), cache_dir=settings.cache_dir,
         store_dtype=spec.store_dtype, workers=workers, lock_timeout=settings.lock_timeout, ranks=ranks,
-        progress=progress)
+        progress=progress, settings=spec.options)  # keyed as the spec: one run, one store
     if described.stores is None:  # not rank 0: its shard is written; rank 0 evaluates
         return None
     timings = {"fit_s": described.timings["fit_s"], "database_s": described.timings["database_s"],

@@ -75,6 +75,9 @@ class BackboneEntry(BaseModel):
     timm_kwargs: dict[str, bool | int | float | str] = Field(default_factory=dict)
     #: the precision the release keeps its RoPE periods in (DINOv3: bfloat16; timm computes float32)
     rope_periods: Literal["float32", "bfloat16"] = "float32"
+    #: the licence timm's pretrained config names the release's weights by: a `timm:` name whose config
+    #: says it (another size or variant of the release) is of this release (licence, gating, RoPE periods)
+    timm_licence: str | None = Field(None, min_length=1)
 
     @model_validator(mode="after")
     def _consistent(self):
@@ -246,10 +249,14 @@ def timm_entry(arch_tag: str) -> BackboneEntry:
     prefix = int(getattr(model, "num_prefix_tokens", int(has_cls)))
     hub = cfg.get("hf_hub_id") or None
     tag = tag or str(cfg.get("tag") or "")  # the weights timm resolves to, named in records
-    # the same weights as a shipped entry: its licence and gating (read from the model card), which
-    # timm's config does not carry (DINOv3's timm copies are gated too)
-    shipped = next((e for e in backbones().values() if (e.timm, e.tag) == (arch, tag) or (hub and e.hub == hub)), None)
-    access = {"licence": shipped.licence, "gated": shipped.gated, "page": shipped.page} if shipped else {
+    # weights of a shipped entry's release: its licence and gating (read from the model card) and the
+    # release's RoPE periods precision, which timm's config does not carry (DINOv3's timm copies are
+    # gated too, and run as the release: one architecture and weights, one descriptor, by either name)
+    listed = list(backbones().values())
+    shipped = next((e for e in listed if (e.timm, e.tag) == (arch, tag) or (hub and e.hub == hub)), None) or \
+        next((e for e in listed if e.timm_licence and e.timm_licence == cfg.get("license")), None)
+    access = {"licence": shipped.licence, "gated": shipped.gated, "page": shipped.page,
+              "rope_periods": shipped.rope_periods} if shipped else {
         "licence": str(cfg.get("license") or "see the model card"), "gated": False,
         "page": f"https://huggingface.co/{hub}" if hub else "https://github.com/huggingface/pytorch-image-models"}
     return BackboneEntry(

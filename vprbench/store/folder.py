@@ -42,10 +42,13 @@ NO_FIT = "none"
 RESERVED_KEYS = ("settings", "store_dtype", "decoding")
 
 
-def method_fingerprint(method, store_dtype: str = "float32") -> dict:
+def method_fingerprint(method, store_dtype: str = "float32", settings: dict | None = None) -> dict:
     """What the store is keyed by: the method's name, its merged options (even those its own
-    `fingerprint()` forgets), its fingerprint and the stored dtype."""
-    settings = getattr(method, "settings", None)
+    `fingerprint()` forgets), its fingerprint and the stored dtype. An evaluation gives `settings`,
+    its spec's options: normalised as the spec is (an option naming the dataset evaluated is as
+    unset), so a method created with it shares the store of one created without."""
+    if settings is None:
+        settings = getattr(method, "settings", None)
     if not isinstance(settings, dict):  # until the registry sets `settings`, the user's options
         settings = method.options
     from ..images import ORIENTATION

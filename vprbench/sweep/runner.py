@@ -160,7 +160,7 @@ class StoredRecords:
                         method.use_dataset(spec.dataset.name)
                     with plugin_part(method, "postprocessor"):
                         postprocessor = method.postprocessor()
-                    self.methods[key] = method_fingerprint(method, spec.store_dtype), postprocessor
+                    self.methods[key] = method_fingerprint(method, spec.store_dtype, spec.options), postprocessor
             except Exception:  # noqa: BLE001 - a lookup: whatever stops the method here stops its run, which names it
                 self.methods[key] = None, None
         return self.methods[key]
