@@ -69,3 +69,41 @@ def test_a_pca_wider_than_the_database_is_refused_before_any_descriptor(shared_d
     with pytest.raises(VPRBenchError, match=r"PCA dimension 200 .*111.*pca_dim <= 110"):
         evaluate(spec, RunSettings(data_dir=shared_data, cache_dir=tmp_path))
     assert not list((tmp_path / "stores").rglob("*.h5"))  # nothing was described
+
+
+def _python_blocks(page: str) -> list[str]:
+    from pathlib import Path
+    import re
+
+    text = (Path(__file__).resolve().parents[2] / "docs" / page).read_text()
+    return re.findall(r"```python\n(.*?)```", text, flags=re.S)
+
+
+def test_the_python_snippet_of_runs_md_runs_as_written(shared_data, tmp_path):
+    # docs/runs.md "From Python": run verbatim but for its two folders, which must still read as the page shows
+    (snippet,) = _python_blocks("runs.md")
+    assert 'data_dir="../shared/data"' in snippet and '"/tmp/cache"' in snippet
+    code = snippet.replace('"../shared/data"', repr(str(shared_data))).replace('"/tmp/cache"', repr(str(tmp_path)))
+    scope: dict = {}
+    exec(compile(code, "docs/runs.md", "exec"), scope)
+    record = scope["record"]
+    assert (record["method"], record["dataset"], record["label"]) == ("hog", "corridor", "hog [resize=64x64]")
+    assert record["recall"] == {"1": 33.3333, "5": 67.5676}
+    # the page's layout: <cache>/results/<protocol hash>/<row key>/<run id>.json, plus the row's method card
+    saved = tmp_path / "results" / "f60ac2fa1d51bc67" / record["row_key"] / f"{record['run_id']}.json"
+    assert saved.is_file() and saved.with_suffix(".npz").is_file()
+    assert (tmp_path / "results" / "methods" / f"{record['row_key']}.json").is_file()
+
+
+def test_the_stage_snippet_of_stages_md_defines_a_stage(tmp_path):
+    # docs/stages.md "Writing a stage": the class skeleton imports and validates its options as the comments say
+    (snippet,) = _python_blocks("stages.md")
+    scope: dict = {}
+    exec(compile(snippet, "docs/stages.md", "exec"), scope)
+    options = scope["ConsensusOptions"]()
+    assert options.n == 3 and options.k >= 1  # RerankOptions gives k
+    assert scope["Consensus"].track == "re-ranked" and scope["Consensus"].Options is scope["ConsensusOptions"]
+    import pydantic
+
+    with pytest.raises(pydantic.ValidationError):
+        scope["ConsensusOptions"](n=0)
