@@ -8,6 +8,7 @@ import unicodedata
 
 import numpy as np
 import pytest
+from pydantic import field_validator
 
 from hostile_files import assert_refused
 from test_plugin_audit import Returns, Transform, plugin
@@ -60,6 +61,7 @@ def test_a_postprocessor_key_holding_an_array_is_refused(cli, shared_data):
     ("fit", {"fit": boom, "needs_fit": True}),
     ("provenance", {"provenance": boom}),
     ("postprocessor", {"postprocessor": boom}),
+    ("fitted_image_digests", {"fitted_image_digests": boom}),
 ])
 def test_a_method_part_that_raises_is_one_line(part, attributes, cli, shared_data):
     code, _, err = evaluate(cli, shared_data, plugin("crashes", __module__="my_plugin", **attributes))
@@ -68,7 +70,7 @@ def test_a_method_part_that_raises_is_one_line(part, attributes, cli, shared_dat
                    line_of(boom), stores_allowed=True)
 
 
-@pytest.mark.parametrize("part", ["key", "fit", "transform", "state"])
+@pytest.mark.parametrize("part", ["key", "fit", "transform", "state", "check_rows"])
 def test_a_postprocessor_part_that_raises_is_one_line(part, cli, shared_data):
     broken = type("Broken", (Arrayed,), {"__module__": "my_plugin", "key": lambda self, rows, budget: {"k": 1},
                                          part: boom})
@@ -92,6 +94,23 @@ def test_a_stage_part_that_raises_is_one_line(part, cli, shared_data):
     where = "its constructor Wobbly" if part == "__init__" else part
     assert_refused(code, err, None, f"Stage 'wobbly' (my_plugin) failed in {where}(): RuntimeError: server said no at ",
                    line_of(boom), stores_allowed=True)
+
+
+class Refuses(RerankOptions):
+    __module__ = "my_plugin"
+
+    @field_validator("k")
+    @classmethod
+    def _k(cls, k):
+        raise RuntimeError("server said no")  # beyond ValueError: pydantic does not turn it into its own error
+
+
+def test_a_stage_options_validator_that_raises_is_one_line(cli, shared_data):
+    register_stage("picky", type("Picky", (Passes,), {"__module__": "my_plugin", "Options": Refuses}))
+    code, _, err = evaluate(cli, shared_data, plugin("plain"), "--rerank", "picky", "--rerank-k", 5)
+    # before: a traceback through vprbench (the spec validates a stage's options before anything runs)
+    assert_refused(code, err, None, "Stage 'picky' (my_plugin) failed in its options Refuses(): RuntimeError: server "
+                                    "said no at ", f"test_plugin_parts.py:{Refuses._k.__func__.__code__.co_firstlineno + 3}")
 
 
 NFC, NFD = unicodedata.normalize("NFC", "café"), unicodedata.normalize("NFD", "café")
@@ -164,22 +183,42 @@ def test_describe_with_a_use_dataset_that_raises_is_one_line(cli, shared_data, t
                                     "no at ", line_of(boom))
 
 
-def test_a_sweep_survives_a_method_postprocessor_that_exits(cli, shared_data, tmp_path):
-    import sys
+def leaves(self):
+    if type(self).broken:
+        import sys
 
-    def leaves(self):
-        if type(self).leave:
-            sys.exit("bye")
+        sys.exit("bye")
 
-    method = plugin("leaves", __module__="my_plugin", postprocessor=leaves, leave=False)
+
+def fails(self):
+    if type(self).broken:
+        raise RuntimeError("server said no")
+    return None
+
+
+def unknown(self):
+    return fails(self) or {}
+
+
+@pytest.mark.parametrize("part, attributes, error", [
+    ("postprocessor", {"postprocessor": leaves}, "SystemExit: bye"),
+    ("postprocessor", {"postprocessor": fails}, "RuntimeError: server said no"),
+    ("fingerprint", {"fingerprint": unknown}, "RuntimeError: server said no"),
+], ids=["postprocessor-exits", "postprocessor-raises", "fingerprint-raises"])
+def test_a_sweep_cell_whose_method_cannot_be_made_is_not_served_its_record(part, attributes, error, cli, shared_data,
+                                                                            tmp_path):
+    method = plugin("broken", __module__="my_plugin", broken=False, **attributes)
     plan = tmp_path / "plan.toml"
-    plan.write_text(f'[[methods]]\nname = "{method}"\n\n[[datasets]]\nname = "corridor"\n')
-    assert cli("run", plan, "--data-dir", shared_data)[0] == 0  # a record: the next run checks it against the method
-    registry.method_entry(method).factory.leave = True
+    plan.write_text(f'k = [1]\n\n[[methods]]\nname = "{method}"\n\n[[datasets]]\nname = "corridor"\n')
+    assert cli("run", plan, "--data-dir", shared_data)[0] == 0  # a record of the method as it was
+    registry.method_entry(method).factory.broken = True
     code, out, err = cli("run", plan, "--data-dir", shared_data)
-    # before: the plugin's exit ended the sweep (exit 'bye', no table); now a method not made here, as any
-    # other failure of it (StoredRecords.described_as): its cell keeps its record
-    assert (code, err) == (0, "") and "plan: 1 skipped" in out, (code, out, err)
+    # before: served that record ("plan: 1 skipped", exit 0) with no check of the method's identity now (an
+    # exit ended the sweep before that); now the cell fails, in one line naming the method and the part
+    text = " ".join(out.split())
+    assert code == 1 and "Traceback" not in out + err and "plan: 1 failed" in text, (code, out, err)
+    assert f"Method 'broken' (my_plugin) failed in {part}(): {error} at " in text, text
+    assert len(read_results()) == 1  # the first run's only
 
 
 def test_a_one_module_plugin_is_named_by_its_own_line_not_a_library_beside_it(tmp_path, monkeypatch):
@@ -199,3 +238,44 @@ def test_a_one_module_plugin_is_named_by_its_own_line_not_a_library_beside_it(tm
                                             rf"bad shape at {tmp_path / 'one_module_plugin.py'}:7; fix"):
         with plugin_part(one_module_plugin.Plug(), "describe"):
             one_module_plugin.Plug().describe([])
+
+
+def test_evaluate_with_a_use_dataset_that_raises_and_the_patch_reranker_is_one_line(cli, shared_data):
+    # the patch re-ranker calls use_dataset on its own AnyLoc (vprbench's code), never on the plugin's method,
+    # whose use_dataset runs (and fails) before any stage
+    code, _, err = evaluate(cli, shared_data, plugin("aimed", __module__="my_plugin", use_dataset=boom), "--rerank",
+                            "patch-mnn", "--rerank-k", 5, "--rerank-option", "weights=random", "--rerank-option",
+                            "backbone=dinov2_vits14", "--rerank-option", "resize=28x28")
+    assert_refused(code, err, None, "Method 'aimed' (my_plugin) failed in use_dataset(): RuntimeError: server said "
+                                    "no at ", line_of(boom))
+
+
+def test_provenance_of_a_method_whose_postprocessor_raises_is_one_line():
+    from vprbench.evaluation.provenance import method_provenance
+
+    method = registry.create_method(plugin("crashes", __module__="my_plugin", postprocessor=boom))
+    # before: the RuntimeError itself, through vprbench (method_provenance is called as a record is made)
+    with pytest.raises(VPRBenchError, match=r"^Method 'crashes' \(my_plugin\) failed in postprocessor\(\): RuntimeError: "
+                                            r"server said no at .*" + re.escape(line_of(boom)) + "$"):
+        method_provenance(method)
+
+
+class Patches(Returns):
+    """A plugin exposing patch features (as AnyLoc does), which `vocabulary fit` reads."""
+
+    backbone, layer, facet, clusters = "fake", 0, "token", 2
+
+    def __init__(self, clusters=None, device="cpu"):
+        pass
+
+    def iter_patch_features(self, paths, resize=None):
+        yield from ()
+        boom()
+
+
+def test_a_vocabulary_fit_on_patch_features_that_raise_is_one_line(cli, shared_data):
+    register_method("patchy", type("Patchy", (Patches,), {"__module__": "my_plugin"}))
+    code, _, err = cli("vocabulary", "fit", "--dataset", "corridor", "--method", "patchy", "--data-dir", shared_data)
+    # before: a traceback through vprbench (the fit reads the features as it goes)
+    assert_refused(code, err, None, "Method 'patchy' (my_plugin) failed in iter_patch_features(): RuntimeError: server "
+                                    "said no at ", line_of(boom))

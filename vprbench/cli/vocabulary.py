@@ -104,12 +104,12 @@ def run_fit(args) -> int:
         if args.domain is not None:  # '' is an unknown domain, not a map-specific fit
             size = domain_image_size()
             vocabulary = fit_domain_vocabulary(
-                args.domain, lambda paths: method.iter_patch_features(paths, resize=size), clusters,
+                args.domain, lambda paths: _patch_features(method, paths, size), clusters,
                 data_dir=data_dir, progress=shown, **common)
             source = args.domain
         else:
             vocabulary = fit_map_vocabulary(
-                args.dataset, lambda paths: method.iter_patch_features(paths, resize=None), clusters,
+                args.dataset, lambda paths: _patch_features(method, paths, None), clusters,
                 data_dir=data_dir, progress=shown, **common)
             source = f"{MAP_PREFIX}{args.dataset}"
     path = save_to_cache(vocabulary, source=source, **setting, cache_dir=args.cache_dir)
@@ -118,6 +118,15 @@ def run_fit(args) -> int:
     if args.output:
         print(f"Also written to {vocabulary.save(args.output)}")
     return 0
+
+
+def _patch_features(method, paths, resize):
+    """`method.iter_patch_features`, what a plugin's raises as one line (`plugin_part`) and only that: the fit
+    consuming the features is vprbench's own code."""
+    from ..loader import plugin_part
+
+    with plugin_part(method, "iter_patch_features"):
+        yield from method.iter_patch_features(paths, resize=resize)
 
 
 def check_fit_sizes(args, width: int | None) -> None:

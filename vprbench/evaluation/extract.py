@@ -92,7 +92,8 @@ def describe_splits(method, splits: dict[str, list[Path]], *, root: Path | None 
 
         todo, fit_id, state = ranks.on_zero(plan)
         if ranks.rank != 0 and state:
-            method.load_fit_state(state)
+            with plugin_part(method, "load_fit_state"):
+                method.load_fit_state(state)
         for split in todo:
             started = time.perf_counter()
             computed[split] = job.extract_shard(split, fit_id)

@@ -157,7 +157,10 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
     with plugin_part(method, "postprocessor"):
         post = method.postprocessor()
     if post is not None and hasattr(post, "check_rows"):  # e.g. PCA wider than the database: before describing it
-        post.check_rows(len(dataset.database), dataset.name)
+        from .postprocess import in_postprocessor
+
+        with in_postprocessor(post, "check_rows"):
+            post.check_rows(len(dataset.database), dataset.name)
     workers = loader_workers(settings, method)
     described = describe_splits(
         method, {"database": dataset.database, "queries": dataset.queries}, root=dataset.root, label=dataset.name,

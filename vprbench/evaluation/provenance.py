@@ -40,11 +40,14 @@ def method_provenance(method, dataset=None, cache_dir=None) -> dict:
     if method.needs_fit:
         found.setdefault("vocabulary", {"source": "map", "fitted_on": "the evaluated database"})
         found["vocabulary"].setdefault("fitted_on_evaluated_database", True)
-    if method.postprocessor() is not None and not any(k in found for k in ("pca", "postprocessor")):
+    with plugin_part(method, "postprocessor"):
+        post = method.postprocessor()
+    if post is not None and not any(k in found for k in ("pca", "postprocessor")):
         found["postprocessor"] = {"source": "fitted", "fitted_on": "the evaluated database's descriptors",
                                   "fitted_on_evaluated_database": True}
     parts = {k: v for k, v in found.items() if isinstance(v, dict) and "fitted_on_evaluated_database" in v}
-    fitted_images = getattr(method, "fitted_image_digests", lambda: {})()  # part -> set of sha256
+    with plugin_part(method, "fitted_image_digests"):
+        fitted_images = getattr(method, "fitted_image_digests", lambda: {})()  # part -> set of sha256
     if fitted_images and dataset is not None:
         evaluated = {d for split in dataset.image_digests(cache_dir).values() for d in split}
         for part, digests in fitted_images.items():

@@ -93,21 +93,30 @@ def stage_entry(name: str) -> StageEntry:
 
 def stage_options(name: str, options: dict):
     """`options` validated by stage `name`'s Options model (unknown names and wrong types refused)."""
+    from ..loader import plugin_part
+
     cls = stage_entry(name).cls
-    try:
-        return cls.Options(**options)
-    except ValidationError as error:
-        problem = error.errors()[0]
-        option = ".".join(str(p) for p in problem["loc"]) or "its options"
-        accepted = ", ".join(cls.Options.model_fields) or "none"
-        if problem["type"] == "extra_forbidden":
-            raise VPRBenchError(f"Stage {name!r} does not take option {option}.{closest_names(option, cls.Options.model_fields)} "
-                                f"It accepts: {accepted}.") from None
-        if problem["type"] == "value_error":  # a check of the stage's own: its message as written
-            message = str(problem["ctx"]["error"]).rstrip(".")
-            raise VPRBenchError(f"Stage {name!r} option {option}: {message}." if problem["loc"] else
-                                f"Stage {name!r}: {message}.") from None
-        raise VPRBenchError(f"Stage {name!r} option {option}: {problem['msg']} (got {problem.get('input')!r}).") from None
+    # what a plugin's validator raises beyond ValueError (pydantic's ValidationError, below) is its one line
+    with plugin_part(cls.Options, f"its options {cls.Options.__name__}", f"Stage {name!r}"):
+        try:
+            return cls.Options(**options)
+        except ValidationError as error:
+            raise _refused(name, cls, error) from None
+
+
+def _refused(name: str, cls, error: ValidationError) -> VPRBenchError:
+    """The first problem pydantic found in stage `name`'s options, as one line."""
+    problem = error.errors()[0]
+    option = ".".join(str(p) for p in problem["loc"]) or "its options"
+    accepted = ", ".join(cls.Options.model_fields) or "none"
+    if problem["type"] == "extra_forbidden":
+        return VPRBenchError(f"Stage {name!r} does not take option {option}.{closest_names(option, cls.Options.model_fields)} "
+                             f"It accepts: {accepted}.")
+    if problem["type"] == "value_error":  # a check of the stage's own: its message as written
+        message = str(problem["ctx"]["error"]).rstrip(".")
+        return VPRBenchError(f"Stage {name!r} option {option}: {message}." if problem["loc"] else
+                             f"Stage {name!r}: {message}.")
+    return VPRBenchError(f"Stage {name!r} option {option}: {problem['msg']} (got {problem.get('input')!r}).")
 
 
 def create_stage(name: str, options: dict | None = None):

@@ -119,13 +119,16 @@ class StoredRecords:
     def record(self, spec, options: dict | None = None) -> dict | None:
         """The newest record made for the computation this cell would make now: on the data at hand,
         by the method's code as it is (its store fingerprint), fitting the post-processing this cell's
-        run settings (`options`, its plan entry's: the memory budget picks PCA's solver) would fit."""
+        run settings (`options`, its plan entry's: the memory budget picks PCA's solver) would fit. None
+        when the method cannot be made here (its factory, use_dataset, postprocessor or fingerprint fails)."""
         if not self.may_hold(spec):  # no method made (nor centres fetched) for a cell without records
             return None
         from ..evaluation.postprocess import fits_as_recorded
         from ..row_sources import DEFAULT_MEMORY_BUDGET
 
         described, postprocessor = self.described_as(spec)
+        if described is None:  # the method's identity cannot be checked now: no stored number; its run says why
+            return None
         budget = self.settings.with_options(options or {}).memory_budget or DEFAULT_MEMORY_BUDGET
         return find_result(spec, self.settings.cache_dir, dataset_fingerprint=self.fingerprint(spec),
                            method_fingerprint=described,
@@ -142,8 +145,8 @@ class StoredRecords:
     def described_as(self, spec) -> tuple[dict | None, object]:
         """The store key the spec's method has now (`store.method_fingerprint`: what its descriptors depend
         on beyond the options, a version its author raised, a library's; a record made with another was
-        computed by other code) and its post-processor. (None, None) when the method cannot be made here
-        (the run says why)."""
+        computed by other code) and its post-processor. (None, None) when the method cannot be made here:
+        no record answers then (the run says why)."""
         import warnings
 
         from ..evaluation.pipeline import create_run_method
