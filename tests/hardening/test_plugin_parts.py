@@ -70,6 +70,14 @@ def test_a_method_part_that_raises_is_one_line(part, attributes, cli, shared_dat
                    line_of(boom), stores_allowed=True)
 
 
+@pytest.mark.parametrize("returned", [["a" * 64], {"vocabulary": "a" * 64}])
+def test_fitted_image_digests_of_another_shape_is_refused(returned, cli, shared_data):
+    # before: vprbench's own `.items()` (or a set of a string's characters) on what the plugin returned
+    code, _, err = evaluate(cli, shared_data, plugin("shapeless", fitted_image_digests=lambda self: returned))
+    assert_refused(code, err, None, "Method 'shapeless': fitted_image_digests() must return a dict of part -> set of "
+                                    "sha256", stores_allowed=True)
+
+
 @pytest.mark.parametrize("part", ["key", "fit", "transform", "state", "check_rows"])
 def test_a_postprocessor_part_that_raises_is_one_line(part, cli, shared_data):
     broken = type("Broken", (Arrayed,), {"__module__": "my_plugin", "key": lambda self, rows, budget: {"k": 1},

@@ -48,6 +48,10 @@ def method_provenance(method, dataset=None, cache_dir=None) -> dict:
     parts = {k: v for k, v in found.items() if isinstance(v, dict) and "fitted_on_evaluated_database" in v}
     with plugin_part(method, "fitted_image_digests"):
         fitted_images = getattr(method, "fitted_image_digests", lambda: {})()  # part -> set of sha256
+    if not isinstance(fitted_images, dict) or not all(isinstance(v, (set, frozenset, list, tuple))
+                                                       for v in fitted_images.values()):
+        raise VPRBenchError(f"Method {method.name!r}: fitted_image_digests() must return a dict of part -> set of "
+                            f"sha256, such as {{\"vocabulary\": {{\"<sha256>\"}}}}, got {type(fitted_images).__name__}.")
     if fitted_images and dataset is not None:
         evaluated = {d for split in dataset.image_digests(cache_dir).values() for d in split}
         for part, digests in fitted_images.items():
