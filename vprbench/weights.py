@@ -4,6 +4,7 @@ hub file), read safely, named by their content."""
 from __future__ import annotations
 
 import contextlib
+import glob
 import os
 import pickle
 import re
@@ -229,8 +230,14 @@ def resolve_weights(source: WeightSource, weights: str | Path | None, what: str,
 
             found = weights_folder(cache_dir) / source.file_name
             found.parent.mkdir(parents=True, exist_ok=True)
-            torch.hub.download_url_to_file(source.url, str(found), hash_prefix=source.sha256 and source.sha256.lower(),
-                                           progress=False)  # torch compares lower-case hex
+            # one download at a time per file: a second run waits, then finds it; the '.partial' files
+            # torch leaves when killed are then dead ones' (torch never removes them)
+            with fsutil.lock(found.with_name(f".{found.name}.lock"), what=f"the download of {found}"):
+                for partial in found.parent.glob(f"{glob.escape(found.name)}.*.partial"):
+                    partial.unlink(missing_ok=True)
+                if not found.is_file():
+                    torch.hub.download_url_to_file(source.url, str(found), progress=False,
+                                                   hash_prefix=source.sha256 and source.sha256.lower())  # lower-case hex
         else:
             from huggingface_hub import get_hf_file_metadata, hf_hub_download, hf_hub_url
             from huggingface_hub.errors import EntryNotFoundError, LocalEntryNotFoundError

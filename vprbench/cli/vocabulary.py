@@ -152,7 +152,7 @@ def run_import(args) -> int:
     from pathlib import Path
 
     from ..methods.anyloc_vocabulary import is_released_setting, release, save_to_cache
-    from ..aggregation.vocabulary import RELEASED_FILE, load_vocabulary, vocabulary_dir
+    from ..aggregation.vocabulary import RELEASED_FILE, load_vocabulary, vocabulary_dir, write_cached
     from ..fsutil import atomic_write
     from ..weights import file_sha256
     from ..features.backbones import RANDOM
@@ -185,7 +185,7 @@ def run_import(args) -> int:
         # published sha256); under another setting it is saved with the metadata that names it
         path = vocabulary_dir(args.backbone, args.layer, args.facet, vocabulary.clusters, args.source,
                               args.cache_dir, stride) / RELEASED_FILE  # under the authors' own file name
-        atomic_write(path, source_file.read_bytes())
+        write_cached(path, lambda into: atomic_write(into, source_file.read_bytes()))
     else:
         vocabulary.meta["imported_from"] = vocabulary.meta.pop("path")
         path = save_to_cache(vocabulary, args.backbone, args.layer, args.facet, args.source, args.cache_dir, stride)

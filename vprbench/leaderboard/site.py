@@ -5,6 +5,7 @@ so a failure (full disk, a kill) leaves the previous section whole and no partia
 """
 from __future__ import annotations
 
+import contextlib
 import errno
 import functools
 from collections import Counter
@@ -86,10 +87,12 @@ def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0, skipp
         raise VPRBenchError(f"Cannot write to {folder} ({error.strerror or error}): choose a folder you can write "
                             "to with --to; nothing was written.") from None
     try:
-        write_section(staging, build_board(records), records, cache_dir=cache_dir, data_dir=data_dir, seed=seed)
-        with lock(folder / f".{SECTION}.lock", timeout=60, what=f"the leaderboard in {folder}"):
-            _swap(staging, target)
-            _remove_stale(folder)
+        with lock(_alive(staging), announce=False):  # held while it is written: a staging folder whose lock is free is dead
+            staging.mkdir(exist_ok=True)  # another publish may have taken it for dead before this lock was held
+            write_section(staging, build_board(records), records, cache_dir=cache_dir, data_dir=data_dir, seed=seed)
+            with lock(folder / f".{SECTION}.lock", timeout=60, what=f"the leaderboard in {folder}"):
+                _swap(staging, target)
+                _remove_stale(folder, staging)
     except OSError as error:
         full = error.errno in (errno.ENOSPC, errno.EDQUOT)
         raise VPRBenchError(f"Cannot write the leaderboard to {folder} ({error.strerror or error}); "
@@ -99,6 +102,7 @@ def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0, skipp
         raise VPRBenchError(f"{error} Another 'leaderboard publish' is writing there; try again.") from None
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+        _alive(staging).unlink(missing_ok=True)
     if (folder / f"{SECTION}.md").is_file():
         warnings.warn(f"{folder / f'{SECTION}.md'} (written by vprbench 0.1) and {target}/index.md are the same page "
                       "for MkDocs: delete the old file.", stacklevel=2)
@@ -125,14 +129,17 @@ def _swap(staging: Path, target: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def _remove_stale(folder: Path, age_s: float = 3600) -> None:
-    """Folders a killed publish left: old sections (only ever made under the lock, so stale when we
-    hold it) and staging folders untouched for an hour (a live publish writes into its own)."""
-    import time
+def _alive(staging: Path) -> Path:
+    return staging.with_name(staging.name + ".lock")  # held by the publish writing `staging`
 
-    for path in folder.glob(f".{SECTION}-*-*"):
-        if path.is_dir() and (path.name.startswith(f".{SECTION}-old-") or time.time() - path.stat().st_mtime > age_s):
+
+def _remove_stale(folder: Path, own: Path) -> None:
+    """Folders a killed publish left: old sections (only ever made under the lock, so stale when we
+    hold it) and staging folders whose lock no publish holds (a live one does)."""
+    for path in (p for p in folder.glob(f".{SECTION}-*-*") if p.is_dir() and p != own):
+        with contextlib.suppress(LockTimeout), lock(_alive(path), timeout=0, announce=False):  # else: live
             shutil.rmtree(path, ignore_errors=True)
+            _alive(path).unlink(missing_ok=True)
 
 
 # ---------------------------------------------------------------- pages

@@ -1,0 +1,99 @@
+"""Caches other than descriptor stores after a kill -9: the rerun leaves one whole entry and no
+temporary file of the killed writer, even one younger than the hour after which strays are swept."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import torch
+
+from vprbench.aggregation.vocabulary import Vocabulary, load_vocabulary
+from vprbench.methods.anyloc_vocabulary import save_to_cache
+
+SETTING = ("dino_vits8@random", 1, "value")
+
+#: saves a vocabulary into the cache and is killed (SIGKILL) just before its temporary file is renamed in place
+KILLED_SAVE = """
+import os, signal, sys, torch
+from vprbench.aggregation.vocabulary import Vocabulary
+from vprbench.methods.anyloc_vocabulary import save_to_cache
+os.replace = lambda *args: os.kill(os.getpid(), signal.SIGKILL)
+save_to_cache(Vocabulary(torch.zeros(4, 8), {}), "dino_vits8@random", 1, "value", "mine", sys.argv[1])
+"""
+
+
+def test_a_save_into_the_cache_removes_a_killed_saves_temporary_file(tmp_path):
+    """Was: the killed save's `.vocabulary.pt.*.tmp` stayed for an hour after the rerun (a live save's
+    could not be told from it); saves of one key now take turns, so any found then is a dead one's."""
+    killed = subprocess.run([sys.executable, "-c", KILLED_SAVE, str(tmp_path)], capture_output=True, text=True,
+                            timeout=60)
+    assert killed.returncode == -9, killed.stderr
+    folder = tmp_path / "vocabularies" / "dino_vits8@random-l1-value-c4" / "mine"
+    assert len([p for p in folder.iterdir() if p.name.endswith(".tmp")]) == 1  # the killed save's
+    centres = torch.arange(32, dtype=torch.float32).reshape(4, 8)
+    path = save_to_cache(Vocabulary(centres, {}), *SETTING, "mine", tmp_path)
+    assert sorted(p.name for p in folder.iterdir()) == [".vocabulary.pt.lock", "vocabulary.pt"]
+    assert torch.equal(load_vocabulary(path).centres, centres)
+
+
+#: `vprbench ARGS...` killed (SIGKILL) once its new leaderboard section is written, before it is swapped in
+KILLED_PUBLISH = """
+import os, signal, sys
+from vprbench.cli.main import main
+from vprbench.leaderboard import site
+
+def killed(*args, **kwargs):
+    written(*args, **kwargs)
+    os.kill(os.getpid(), signal.SIGKILL)
+
+written, site.write_section = site.write_section, killed
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_a_publish_removes_what_a_killed_publish_left(shared_data, tmp_path, cli):
+    """Was: the killed publish's `.leaderboard-new-*` folder (a whole site) stayed beside the section for
+    an hour after the next publish; a publish now holds a lock on its own, so a dead one's is known."""
+    from vprbench.evaluation import evaluate, save_result
+    from vprbench.spec import RunSettings, resolve_spec
+
+    cache = tmp_path / "cache"
+    spec = resolve_spec("hog", "corridor", options={"resize": [32, 32]}, data_dir=shared_data, cache_dir=cache)
+    save_result(evaluate(spec, RunSettings(cache_dir=cache, data_dir=shared_data, workers=0)), cache)
+    docs = tmp_path / "docs"
+    args = ["leaderboard", "publish", "--to", docs, "--cache-dir", cache]
+    killed = subprocess.run([sys.executable, "-c", KILLED_PUBLISH, *map(str, args)], capture_output=True, text=True,
+                            timeout=120)
+    assert killed.returncode == -9, killed.stderr
+    assert any(p.is_dir() and p.name.startswith(".leaderboard-new-") for p in docs.iterdir())
+    code, _, err = cli(*args)
+    assert code == 0 and "Traceback" not in err, err
+    assert sorted(p.name for p in docs.iterdir()) == [".leaderboard.lock", "leaderboard"]
+    assert (docs / "leaderboard" / "index.md").is_file()
+
+
+#: downloads weights (a file:// release, no network needed) into the cache, killed before its '.partial' file is moved in
+KILLED_DOWNLOAD = """
+import os, shutil, signal, sys
+from vprbench.weights import WeightSource, resolve_weights
+shutil.move = lambda *args: os.kill(os.getpid(), signal.SIGKILL)
+resolve_weights(WeightSource("w.pth", url=sys.argv[1]), None, "test", cache_dir=sys.argv[2])
+"""
+
+
+def test_a_download_removes_what_a_killed_download_left(tmp_path):
+    """Was: torch's `w.pth.<hex>.partial` of a killed download stayed in the cache for good."""
+    from vprbench.fsutil import file_sha256
+    from vprbench.weights import WeightSource, resolve_weights, weights_folder
+
+    release = tmp_path / "release.pth"
+    torch.save({"w": torch.arange(1000.0)}, release)
+    cache = tmp_path / "cache"
+    killed = subprocess.run([sys.executable, "-c", KILLED_DOWNLOAD, release.as_uri(), str(cache)],
+                            capture_output=True, text=True, timeout=60)
+    assert killed.returncode == -9, killed.stderr
+    folder = weights_folder(cache)
+    assert len(list(folder.glob("w.pth.*.partial"))) == 1
+    found = resolve_weights(WeightSource("w.pth", url=release.as_uri()), None, "test", cache_dir=cache).path
+    assert found == folder / "w.pth" and file_sha256(found) == file_sha256(release)
+    assert sorted(p.name for p in folder.iterdir()) == [".w.pth.lock", "w.pth"]
