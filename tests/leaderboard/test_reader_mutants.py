@@ -1,11 +1,13 @@
 """What a reader sees on the leaderboard, pinned where a small change to cells.py or tables.py went
 unnoticed by the other tests (a hand mutation audit): which run fills a cell and lends it its speed,
 column headings, the interval's order, the marks of a cell's source, the paper tables' averages,
-protocol and marks, and the sign of a comparison's delta."""
+protocol and marks, the sign of a comparison's delta; no paper comparison for a variant protocol, the
+"nothing measured yet" note, undeclared weights giving way, runs left out per track, a row's search kept
+apart from its weights, and no speed from a run served from stores."""
 import pytest
 
 from vprbench.leaderboard.cells import AGREES, CONTRIBUTED, IMPORTED, MEASURED, build_board
-from vprbench.leaderboard.tables import cell_stats, source_mark, with_ci
+from vprbench.leaderboard.tables import cell_stats, source_mark, weights_shown, with_ci
 
 
 def _cell(board, label="hog", dataset="corridor"):
@@ -182,3 +184,72 @@ def test_a_run_searched_exactly_to_k_5_has_an_interval_at_r5(make_record):
     cell = _cell(build_board([make_record(ks=(1, 5), k=5, quality=0.5, seed=5)]))
     stats = cell_stats(cell)
     assert stats[5]["ci"] is not None and stats[5]["ci"][0] < stats[5]["value"] < stats[5]["ci"][1]
+
+
+def test_a_variant_protocols_cell_is_never_set_against_the_papers_number(make_record):
+    """The paper reports only the default protocol: a variant's cell gets no mark nor delta against it."""
+    from vprbench.leaderboard.tables import comparisons
+
+    variant = make_record("cosplace", "vp-air", n_database=2706, n_queries=2706, protocol="no-distractors", seed=2,
+                          fingerprint="fp-vp-air-2706")
+    assert comparisons(build_board([variant])) == []
+    default = make_record("cosplace", "vp-air", n_database=12706, n_queries=2706, seed=1)
+    found = comparisons(build_board([default, variant]))
+    assert [(c["dataset"], c["metric"], c["reported"], c["run_id"]) for c in found] == [
+        ("vp-air", "R@1", 8.1, default["run_id"]), ("vp-air", "R@5", 14.2, default["run_id"])]
+
+
+def test_a_paper_table_without_a_measured_row_says_every_value_is_reported(make_record):
+    from vprbench.leaderboard.tables import group_table
+
+    note = "No official run measured in this group yet: every value below is reported."
+    board = build_board([make_record(seed=1)])  # corridor: none of Table III's datasets
+    assert note in group_table(board, "III") and note not in group_table(board, "II")
+
+
+def test_an_older_run_with_undeclared_weights_gives_way_to_a_later_declared_one(make_record):
+    old = make_record(seed=1, created="2026-01-01T00:00:00+00:00")
+    old["provenance"]["weights"] = {"source": "undeclared"}  # as provenance() recorded a method that declared none
+    new = make_record(seed=2, created="2026-02-01T00:00:00+00:00")
+    board = build_board([old, new])
+    assert [r.name for r in board.rows] == ["hog"]
+    assert [c.record["run_id"] for c in board.cells.values()] == [new["run_id"]]
+    assert [(r["run_id"], why.split(";")[0]) for r, why in board.excluded] == [
+        (old["run_id"], "its method did not declare its weights then")]
+    alone = build_board([old])  # no declared run yet: it keeps its row, marked
+    assert [r.name for r in alone.rows] == ["hog † weights undeclared"] and not alone.excluded
+
+
+def test_runs_left_out_are_listed_with_the_single_image_track_only(make_record):
+    random = make_record("cosplace", weights={"source": "random"}, seed=3)
+    board = build_board([make_record(seed=1), make_record(seed=2, stages=[{"name": "diagonal", "length": 10}]), random])
+    assert [r["run_id"] for r, _ in board.of_track("single-image").excluded] == [random["run_id"]]
+    assert board.of_track("sequence").cells and board.of_track("sequence").excluded == []
+
+
+def test_a_rows_search_is_named_apart_from_its_weights(make_record):
+    from vprbench.leaderboard.shown import row_name
+
+    board = build_board([make_record(seed=1, search={"index": "hnsw"})])
+    [row] = board.rows
+    [cell] = board.cells.values()
+    assert (row.name, row.setting, row_name(row)) == ("hog † hnsw search", "hnsw search", "hog † hnsw search")
+    assert weights_shown(row, cell.record) == "none (nothing learnt)"
+    other = make_record(seed=2, search={"index": "hnsw"})
+    other["spec"]["options"] = {"cells": 8}  # another version of the preset: the same label, told apart by key
+    board = build_board([make_record(seed=1, search={"index": "hnsw"}), other])
+    assert len({r.label for r in board.rows}) == 2
+    for row in board.rows:
+        assert row.setting == "hnsw search" and row_name(row).endswith(" † hnsw search")
+        assert weights_shown(row, board.cells[(row, "corridor")].record) == "none (nothing learnt)"
+
+
+def test_a_speed_claimed_by_a_run_served_from_stores_is_never_a_cells(make_record):
+    measured = make_record(seed=1, created="2026-01-01T00:00:00+00:00")
+    served = make_record(seed=1, created="2026-02-01T00:00:00+00:00")
+    measured["images_per_second"], served["images_per_second"] = 211.0, 9999.0
+    served.update(served_from_store=True, descriptors_computed={"database": 0, "queries": 0})
+    cell = _cell(build_board([measured, served]))
+    assert cell.record["run_id"] == served["run_id"] and cell.timed["run_id"] == measured["run_id"]
+    assert cell.images_per_second == 211.0
+    assert _cell(build_board([served])).images_per_second is None
