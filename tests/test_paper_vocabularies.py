@@ -126,5 +126,5 @@ def test_importing_the_released_file_keeps_the_runs_key(tmp_path, shared_data, n
     # imported for other features (the centres are ViT-G block 31's), it carries the setting it was given,
     # so the folder of another block never takes it for its own without saying so
     assert main(["vocabulary", "import", str(released), "--source", "urban", "--layer", "20", "--cache-dir", str(cache)]) == 0
-    (other,) = (cache / "vocabularies").glob("dinov2_vitg14-l20-value-c32/urban/*")
+    (other,) = (cache / "vocabularies").glob("dinov2_vitg14-l20-value-c32/urban/*.pt")
     assert other.name == "vocabulary.pt" and torch.load(other, weights_only=True)["meta"]["layer"] == 20
