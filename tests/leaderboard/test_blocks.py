@@ -181,3 +181,25 @@ def test_verify_refuses_units_that_are_not_the_protocols(make_record):
     rescore(record, narrowed, truth, problems)
     assert len(problems) == 1 and "its bootstrap units (by place (1,464 places" in problems[0] \
         and "are not those of protocol st-lucia:vg-benchmark" in problems[0]
+
+
+def test_verify_refuses_a_current_record_without_the_unit_arrays_its_units_need(make_record):
+    """Records before unit arrays existed kept none (and no `resampling`): checked as before. One that
+    states its resampling but drops the places its units need would have its intervals drawn per query."""
+    from synthetic_runs import synthetic_ground_truth
+
+    from vprbench.bundles.verify import Truth, rescore
+
+    record = make_record("a", "st-lucia")
+    gt = synthetic_ground_truth(1549, 1464, "metres", 25)
+    truth = Truth("st-lucia:vg-benchmark", 1549, gt.positives(),
+                  Resampling("places", 1464, places=place_groups(gt.query_positions, 25), radius=25))
+    dropped = {k: v for k, v in per_query(record).items() if k != "place"}
+    assert record["resampling"]["scheme"] == "places"
+    problems = []
+    rescore(record, dropped, truth, problems)
+    assert len(problems) == 1 and "its bootstrap units (per query" in problems[0], problems
+    older = {k: v for k, v in record.items() if k != "resampling"}  # as written before unit arrays
+    problems = []
+    rescore(older, dropped, truth, problems)
+    assert problems == []

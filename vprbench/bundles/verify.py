@@ -267,10 +267,12 @@ def rescore(record: dict, arrays: dict, gt: Truth, problems: list) -> dict[str, 
     _check_fingerprints(record, gt, problems)
     stated = for_record(record, arrays)
     # the protocol's units for this run: blocks lengthen by its stages' query window, by the same rule;
-    # checked when the record keeps unit arrays or the units need none (records before them kept none)
+    # checked when the record keeps unit arrays, states its resampling (written with them) or the units
+    # need none (records before unit arrays kept none, and no resampling)
     expected = gt.resampling.for_window(record_window(record)) if gt.resampling is not None else None
     needs_arrays = expected is not None and (expected.order is not None or expected.places is not None)
-    if expected is not None and (set(OPTIONAL_FIELDS) & set(arrays) or not needs_arrays) and not stated.same_as(expected):
+    checked = set(OPTIONAL_FIELDS) & set(arrays) or "resampling" in record or not needs_arrays
+    if expected is not None and checked and not stated.same_as(expected):
         problems.append(f"its bootstrap units ({stated.text()}) are not those of protocol {gt.protocol_id} "
                         f"({expected.text()}); its intervals would be drawn from the wrong units")
     return {k: v for k, v in recall.items()}
