@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import errno
+import glob
 import hashlib
 import math
 import os
@@ -144,6 +145,11 @@ def file_sha256(path: str | os.PathLike) -> str:
 def is_temporary(path: Path) -> bool:
     """A leftover of `atomic_path` (a writer killed before its rename)."""
     return path.name.startswith(".") and path.name.endswith(".tmp")
+
+
+def temporaries_of(path: Path) -> list[Path]:
+    """The temporary files `atomic_path` writers of `path` made beside it (a live one's, or a killed one's)."""
+    return list(path.parent.glob(f".{glob.escape(path.name)}.*.tmp"))
 
 
 def remove_stale(paths: Iterable[Path], age_s: float = 3600) -> None:

@@ -87,6 +87,18 @@ def plugin_part(owner, part: str, who: str | None = None):
         raise VPRBenchError(message) from error
 
 
+def use_dataset(method, name: str) -> None:
+    """`method.use_dataset(name)`, what a plugin's raises as its one line."""
+    with plugin_part(method, "use_dataset"):
+        method.use_dataset(name)
+
+
+def postprocessor_of(method):
+    """`method.postprocessor()`, what a plugin's raises as its one line."""
+    with plugin_part(method, "postprocessor"):
+        return method.postprocessor()
+
+
 class _Failed:
     """A `VPRBenchError` (or a plugin's failure, `plugin_failure`) raised in a worker, carried to the main
     process as a plain message."""

@@ -17,7 +17,6 @@ the dataset. `exact=True` in `fit_vocabulary` reproduces the official fit on all
 """
 from __future__ import annotations
 
-import glob
 import io
 import zipfile
 import zlib
@@ -30,7 +29,7 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import VPRBenchError
-from ..fsutil import atomic_write, is_temporary, lock, remove_stale
+from ..fsutil import atomic_write, lock, remove_stale, temporaries_of
 from ..paths import cache_root, portable_name
 from ..weights import read_torch_file
 
@@ -189,7 +188,7 @@ class Vocabulary:
         atomic_write(path, buffer.getvalue())
         # a fit killed while saving left its temporary file (never read): gone once untouched for an hour;
         # only this file's own (--output may be any folder, holding other programs' .*.tmp files)
-        remove_stale(p for p in path.parent.glob(f".{glob.escape(path.name)}.*.tmp") if is_temporary(p))
+        remove_stale(temporaries_of(path))
         return path
 
 
@@ -198,7 +197,7 @@ def write_cached(path: Path, write) -> Path:
     temporary files found then are a killed writer's, removed whatever their age."""
     with lock(path.with_name(f".{path.name}.lock"), timeout=120, announce=False, what=f"the vocabulary {path}"):
         write(path)
-        remove_stale((p for p in path.parent.glob(f".{glob.escape(path.name)}.*.tmp") if is_temporary(p)), age_s=0)
+        remove_stale(temporaries_of(path), age_s=0)
     return path
 
 
@@ -288,16 +287,22 @@ def _check_zip_crcs(path: Path) -> None:
                             "fit`, `import`, or `download` for the authors' released centres).") from None
 
 
-def default_stride(backbone: str) -> int | None:
-    """The patch stride `backbone` (BACKBONE or BACKBONE@weights) runs at unless told: the catalogue's
-    (DINO v1: 4), else its patch; None for a name the catalogue does not know."""
+def catalogued(backbone: str):
+    """The catalogue's entry of `backbone` (BACKBONE or BACKBONE@weights, a vocabulary key's name), or None
+    for a name it does not know."""
     from ..features.catalogue import backbone_spec
 
     try:
-        spec = backbone_spec(backbone.partition("@")[0])
+        return backbone_spec(backbone.partition("@")[0])
     except VPRBenchError:
         return None
-    return spec.default_stride
+
+
+def default_stride(backbone: str) -> int | None:
+    """The patch stride `backbone` runs at unless told: the catalogue's (DINO v1: 4), else its patch;
+    None for a name the catalogue does not know."""
+    entry = catalogued(backbone)
+    return entry.default_stride if entry is not None else None
 
 
 def at_default_stride(backbone: str, stride: int | None) -> bool:

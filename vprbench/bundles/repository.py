@@ -181,7 +181,7 @@ def verify_repository(root: Path, truth=None, *, max_bytes: int = MAX_BYTES) -> 
         report.problems.append(f"{root}: {link.relative_to(root).as_posix()} is a link, not a regular file or folder; "
                                "refused (an import would write through it, outside the repository).")
     cards = {p.stem for p in (root / CARDS).glob("*.json")}
-    records = sorted(p for p in root.glob("*/*/*.json") if p.parts[-3] != CARDS)
+    records = _records(root)
     _orphans(root, cards, records, report.problems)
     for path in records:
         name = path.relative_to(root).as_posix()
@@ -209,6 +209,11 @@ def verify_repository(root: Path, truth=None, *, max_bytes: int = MAX_BYTES) -> 
     return report
 
 
+def _records(root: Path) -> list[Path]:
+    """The records in place: `<protocol>/<row>/<run>.json`, method cards apart."""
+    return sorted(p for p in root.glob("*/*/*.json") if p.parts[-3] != CARDS)
+
+
 def _orphans(root: Path, cards: set, records: list[Path], problems: list) -> None:
     """Arrays, notes and cards no record uses (a kill in an import of an older vprbench left them). Not those
     whose record is still in an import's commit folder: that import (running now, or killed and finished by
@@ -222,7 +227,7 @@ def _orphans(root: Path, cards: set, records: list[Path], problems: list) -> Non
         moving = set() if pending.is_symlink() else {
             p.relative_to(folder).as_posix() for folder in pending.glob("commit-*") if not folder.is_symlink()
             for p in folder.glob("*/*/*.json")}
-        known = moving | {p.relative_to(root).as_posix() for p in root.glob("*/*/*.json") if p.parts[-3] != CARDS}
+        known = moving | {p.relative_to(root).as_posix() for p in _records(root)}
         rows = {name.split("/")[1] for name in known}
         stray = [p for p in stray if (p.stem not in rows if p.parent == root / CARDS
                                       else p.with_suffix(".json").relative_to(root).as_posix() not in known)]

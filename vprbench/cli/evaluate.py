@@ -169,7 +169,7 @@ def run_describe(args) -> int:
     from ..evaluation.pipeline import create_run_method, loader_workers
     from ..evaluation.postprocess import postprocessed
     from ..fsutil import atomic_write
-    from ..loader import plugin_part
+    from ..loader import use_dataset
     from ..row_sources import DEFAULT_MEMORY_BUDGET
 
     resolve_locations(args)
@@ -205,8 +205,7 @@ def run_describe(args) -> int:
                             "(or a ready vocabulary with --vocabulary, where the method takes one).")
     splits["queries"] = [_absolute(p) if root else p for p in args.images]
     if args.dataset is not None:
-        with plugin_part(method, "use_dataset"):
-            method.use_dataset(args.dataset)
+        use_dataset(method, args.dataset)
     with progress(args) as shown:
         described = describe_splits(method, splits, root=root, label=label,
                                     cache_dir=settings.cache_dir, progress=shown, store_dtype=args.store_dtype,

@@ -65,7 +65,7 @@ def run_fit(args) -> int:
     from ..methods.anyloc_vocabulary import MAP_PREFIX, domain_image_size, fit_domain_vocabulary, fit_map_vocabulary, save_to_cache
     from ..aggregation.vocabulary import DEFAULT_BUDGET
     from ..methods import create_method
-    from ..loader import plugin_part
+    from ..loader import use_dataset
     from ..methods.anyloc import VLADS
     from ..methods.registry import method_entry
 
@@ -93,8 +93,7 @@ def run_fit(args) -> int:
     if args.domain is None:  # its database described as a run on it describes it (AnyLoc: the dataset's resize)
         if getattr(method, "vocabulary", None) == "domain":  # a fit makes centres: none is looked for (or fetched)
             method.vocabulary = "map"
-        with plugin_part(method, "use_dataset"):
-            method.use_dataset(args.dataset)
+        use_dataset(method, args.dataset)
     # the resize is not keyed (a domain's centres serve each dataset at its own size, as the paper's): recorded
     resize = getattr(method, "resize", None)
     meta = {**setting, **({} if args.domain is not None else {"resize": list(resize) if resize else "native"})}

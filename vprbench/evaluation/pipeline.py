@@ -22,7 +22,7 @@ from .metrics import check_ks
 from .record import result_record
 from .retrieve import retrieve
 from ..stages.base import Candidates, StageContext
-from ..loader import plugin_part
+from ..loader import postprocessor_of, use_dataset
 from ..stages.run import create_stages, in_stage, retrieval_depth, run_stages, track_of
 
 
@@ -151,11 +151,9 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
         from ..stages.candidates import read_candidates
 
         frozen = read_candidates(settings.candidates, spec, len(dataset.queries), len(dataset.database), depth)
-    with plugin_part(method, "use_dataset"):
-        method.use_dataset(dataset.name)
+    use_dataset(method, dataset.name)
     check_found(spec, dataset.name, settings.cache_dir)
-    with plugin_part(method, "postprocessor"):
-        post = method.postprocessor()
+    post = postprocessor_of(method)
     if post is not None and hasattr(post, "check_rows"):  # e.g. PCA wider than the database: before describing it
         from .postprocess import in_postprocessor
 

@@ -16,7 +16,7 @@ import numpy as np
 from ..errors import VPRBenchError
 from ..fsutil import atomic_path
 from ..hashing import exact_data
-from ..loader import checked, plugin_part
+from ..loader import checked, plugin_part, postprocessor_of
 from ..row_sources import ArrayRows, RowSource, read_bytes_per_row
 
 #: a post-processor transforms tiles of at most this many input bytes (see transform_rows)
@@ -180,10 +180,7 @@ def postprocessed(method, database: RowSource, queries: RowSource, memory_budget
     """(database, queries, info): both row sources as `method` post-processes them (its
     post-processor fitted on the database, or a plugin's whole-matrix `postprocess`); info
     None when there is nothing to do. `retrieve` and `vprbench describe` share it."""
-    postprocessor = None
-    if method is not None:
-        with plugin_part(method, "postprocessor"):
-            postprocessor = method.postprocessor()
+    postprocessor = postprocessor_of(method) if method is not None else None
     if method is not None and _overrides_postprocess(method):  # a plugin's whole-matrix hook
         db, q = database.read_rows(0, database.row_count), queries.read_rows(0, queries.row_count)
         with plugin_part(method, "postprocess"):

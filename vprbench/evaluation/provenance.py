@@ -26,7 +26,7 @@ def method_provenance(method, dataset=None, cache_dir=None) -> dict:
     them is an image of the evaluated `dataset`, whatever the method says."""
     from ..methods import Method
 
-    from ..loader import plugin_part
+    from ..loader import plugin_part, postprocessor_of
 
     with plugin_part(method, "provenance"):
         own = method.provenance() or {}
@@ -40,8 +40,7 @@ def method_provenance(method, dataset=None, cache_dir=None) -> dict:
     if method.needs_fit:
         found.setdefault("vocabulary", {"source": "map", "fitted_on": "the evaluated database"})
         found["vocabulary"].setdefault("fitted_on_evaluated_database", True)
-    with plugin_part(method, "postprocessor"):
-        post = method.postprocessor()
+    post = postprocessor_of(method)
     if post is not None and not any(k in found for k in ("pca", "postprocessor")):
         found["postprocessor"] = {"source": "fitted", "fitted_on": "the evaluated database's descriptors",
                                   "fitted_on_evaluated_database": True}

@@ -18,9 +18,8 @@ from pathlib import Path
 from typing import Callable, Iterable, Iterator, Sequence
 
 from ..aggregation.vocabulary import (
-    DEFAULT_BUDGET, KMEANS_SEED, RELEASED_FILE, VOCABULARY_FILE, Vocabulary, at_default_stride, default_stride,
-    fit_vocabulary,
-    legacy_vocabulary_dir, load_vocabulary, vocabulary_dir, vocabulary_file_in, write_cached,
+    DEFAULT_BUDGET, KMEANS_SEED, RELEASED_FILE, VOCABULARY_FILE, Vocabulary, at_default_stride, catalogued,
+    default_stride, fit_vocabulary, legacy_vocabulary_dir, load_vocabulary, vocabulary_dir, vocabulary_file_in, write_cached,
 )
 from ..errors import ProblemList, VPRBenchError, closest_names
 from ..text import one_line
@@ -278,15 +277,11 @@ def check_proven(vocabulary: Vocabulary, backbone: str, layer: int, facet: str, 
     """A cached file is served by its key only for the features it proves it was fitted on. The stride
     is recorded since it is keyed; a file that does not record it (saved before) proves it only as the
     authors' release (by its sha256) or for a backbone that runs at one stride only."""
-    from ..features.catalogue import backbone_spec
-
     vocabulary.check_setting(backbone, layer, facet, stride)
     if vocabulary.meta.get("stride") is not None:
         return
-    try:
-        one_stride = backbone_spec(backbone.partition("@")[0]).one_stride
-    except VPRBenchError:
-        one_stride = False
+    entry = catalogued(backbone)
+    one_stride = entry is not None and entry.one_stride
     released = at_default_stride(backbone, stride) and released_provenance(vocabulary).get("source") == "released"
     if one_stride or released:  # the authors fitted at the backbone's own stride
         return

@@ -68,12 +68,16 @@ class MethodEntry:
         own = {p.name: p.default for p in params if p.default is not p.empty and p.name not in LOCATIONS}
         return {**own, **self.defaults}
 
+    def in_factory(self, part: str):
+        """Runs a call into the factory's code (a hook, or the factory itself): a plugin's failure is one line."""
+        return plugin_part(self.factory, part, f"Method {self.name!r}")
+
     def cached_identities(self, options: dict, dataset: str, cache_dir=None) -> dict[str, str]:
         """`Method.cached_identities` of the factory (a plugin's function factory has none)."""
         found = getattr(self.factory, "cached_identities", None)
         if not callable(found):
             return {}
-        with plugin_part(self.factory, "cached_identities", f"Method {self.name!r}"):
+        with self.in_factory("cached_identities"):
             return dict(found(options, dataset, cache_dir))
 
     def in_form(self, given: dict) -> dict:
@@ -103,7 +107,7 @@ class MethodEntry:
         defaults = self.effective_defaults()
         given = self.in_form(given)
         implied = getattr(self.factory, "implied_options", None)  # an unset option's value, from the others
-        with plugin_part(self.factory, "implied_options", f"Method {self.name!r}"):
+        with self.in_factory("implied_options"):
             implied = implied({**defaults, **given}) if callable(implied) else {}
         defaults |= {k: v for k, v in implied.items() if defaults.get(k) is None}
         named = getattr(self.factory, "dataset_option", None)  # unset, it is the dataset evaluated (use_dataset)
@@ -114,7 +118,7 @@ class MethodEntry:
         kept = {k: v for k, v in given.items() if k not in defaults or not _same(k, v, defaults[k])
                 or k not in self.defaults and _names_a_path(v)}
         unused = getattr(self.factory, "unused_options", None)  # options the other options leave idle
-        with plugin_part(self.factory, "unused_options", f"Method {self.name!r}"):
+        with self.in_factory("unused_options"):
             unused = unused({**defaults, **given}) if callable(unused) else {}
         idle = {k: why for k, why in unused.items() if k in kept}
         if idle:
@@ -212,8 +216,7 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
         if location in takes and folder is not None:
             arguments[location] = folder
     factory = entry.factory
-    with plugin_part(factory, f"its factory {getattr(factory, '__name__', type(factory).__name__)}",
-                     f"Method {name!r}"):
+    with entry.in_factory(f"its factory {getattr(factory, '__name__', type(factory).__name__)}"):
         method = factory(**arguments)
     if not isinstance(method, Method):
         raise VPRBenchError(f"Method {name!r} ({entry.source}) did not return a vprbench.Method")

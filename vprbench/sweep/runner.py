@@ -150,7 +150,7 @@ class StoredRecords:
         import warnings
 
         from ..evaluation.pipeline import create_run_method
-        from ..loader import plugin_part
+        from ..loader import postprocessor_of, use_dataset
         from ..store import method_fingerprint
 
         key = (spec.key, spec.dataset.name)
@@ -159,10 +159,8 @@ class StoredRecords:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")  # the run says the method's notes
                     method = create_run_method(spec.method, spec.given, self.settings)
-                    with plugin_part(method, "use_dataset"):
-                        method.use_dataset(spec.dataset.name)
-                    with plugin_part(method, "postprocessor"):
-                        postprocessor = method.postprocessor()
+                    use_dataset(method, spec.dataset.name)
+                    postprocessor = postprocessor_of(method)
                     self.methods[key] = method_fingerprint(method, spec.store_dtype, spec.options), postprocessor
             except Exception:  # noqa: BLE001 - a lookup: whatever stops the method here stops its run, which names it
                 self.methods[key] = None, None
