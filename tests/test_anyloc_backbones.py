@@ -104,6 +104,28 @@ def test_timm_names_any_vit_and_refuses_models_without_patch_tokens():
         backbone_spec("timm:vit_small_patch16_dinov3.nope")
 
 
+def test_a_timm_naflexvit_keeps_its_cls_token_apart_from_its_registers():
+    """NaFlexVit holds its CLS token in its embedding (embeds.cls_token): C-RADIO by its timm name has
+    a CLS and 7 registers, as the shipped entry says, and takes aggregation=cls."""
+    shipped = backbone_spec("radio_v3_b16")
+    spec = backbone_spec("timm:naflexvit_base_patch16_radio_v3")
+    assert (spec.cls_token, spec.registers, spec.cls) == (shipped.cls_token, shipped.registers, shipped.cls) \
+        == (True, 7, "final-norm")
+    plain = backbone_spec("timm:naflexvit_base_patch16_gap")  # registers only
+    assert (plain.cls_token, plain.registers, plain.cls) == (False, 4, "none")
+
+
+def test_a_vit_like_model_timm_reads_no_prefix_apart_is_refused_saying_why():
+    """CaiT, XCiT and SAM's ViT have a patch embedding, blocks and patch tokens: the refusal says what
+    stops them (a fixed input size; no block tokens with the prefix apart), not that they are CNNs."""
+    with pytest.raises(VPRBenchError, match="timm:cait_xxs24_224 takes 224x224 inputs only"):
+        backbone_spec("timm:cait_xxs24_224")
+    for arch, kind in (("xcit_nano_12_p16_224", "Xcit"), ("samvit_base_patch16", "VisionTransformerSAM")):
+        with pytest.raises(VPRBenchError, match=rf"timm:{arch} \({kind}\) has patch tokens, but timm gives none of "
+                                                "its blocks' tokens with its class and register tokens set apart"):
+            backbone_spec(f"timm:{arch}")
+
+
 def test_bad_manifest_entry_is_named():
     text = '[family]\nfamily = "X"\n[[backbone]]\nname = "x"\ntimm = "vit_small_patch16_224"\n'
     with pytest.raises(VPRBenchError, match=r"Backbone manifest bad.toml, entry 'x': patch: Field required"):

@@ -227,12 +227,12 @@ def timm_entry(arch_tag: str) -> BackboneEntry:
         model = timm.create_model(arch, pretrained=False, num_classes=0)
     embed = getattr(model, "patch_embed", None) or getattr(model, "embeds", None)  # NaFlexVit: embeds
     patch = getattr(embed, "patch_size", None)
+    patch = (patch, patch) if isinstance(patch, int) and not isinstance(patch, bool) else patch  # XCiT: one int
     intermediates = getattr(model, "forward_intermediates", None)
     # the dense extractor reads a block's tokens, prefix tokens apart, through forward_intermediates; a
     # hybrid's embedding is a CNN stem (its `backbone`), whose stride is not the patch
     if not (isinstance(patch, tuple) and len(patch) == 2 and getattr(embed, "backbone", None) is None
-            and hasattr(model, "blocks") and intermediates is not None
-            and "return_prefix_tokens" in inspect.signature(intermediates).parameters):
+            and hasattr(model, "blocks") and intermediates is not None):
         raise VPRBenchError(f"timm:{arch_tag} has no patch tokens vprbench can read (it is not a ViT with a patch "
                             "embedding, blocks and per-block tokens, e.g. a CNN, a hybrid or a hierarchical model); "
                             "AnyLoc aggregates per-patch ViT features: choose a plain ViT, e.g. "
@@ -242,10 +242,17 @@ def timm_entry(arch_tag: str) -> BackboneEntry:
         raise VPRBenchError(f"timm:{arch_tag} takes {height}x{width} inputs only (its patch embedding has a fixed "
                             "size), but AnyLoc reads each image at its own size cropped to a multiple of the patch: "
                             "choose a timm ViT that takes any size, e.g. timm:vit_small_patch16_224.dino.")
+    # a ViT-like model (CaiT, SAM's ViT, ...) whose timm code hands no block tokens with its prefix apart
+    if "return_prefix_tokens" not in inspect.signature(intermediates).parameters:
+        raise VPRBenchError(f"timm:{arch_tag} ({type(model).__name__}) has patch tokens, but timm gives none of its "
+                            "blocks' tokens with its class and register tokens set apart (its forward_intermediates "
+                            "takes no return_prefix_tokens), which vprbench reads: choose a timm VisionTransformer, "
+                            "Eva or NaFlexVit, e.g. timm:vit_small_patch16_224.dino.")
     attn = getattr(model.blocks[0], "attn", None)
     has_qkv = attn is not None and (getattr(attn, "qkv", None) is not None or getattr(attn, "q_proj", None) is not None)
     cfg = cfg.to_dict() if cfg is not None else {}
-    has_cls = getattr(model, "cls_token", None) is not None
+    # NaFlexVit keeps its CLS token in its embedding (C-RADIO's CLS and registers: embeds.cls_token, reg_token)
+    has_cls = getattr(model, "cls_token", None) is not None or getattr(embed, "cls_token", None) is not None
     prefix = int(getattr(model, "num_prefix_tokens", int(has_cls)))
     hub = cfg.get("hf_hub_id") or None
     tag = tag or str(cfg.get("tag") or "")  # the weights timm resolves to, named in records
@@ -260,7 +267,7 @@ def timm_entry(arch_tag: str) -> BackboneEntry:
         "licence": str(cfg.get("license") or "see the model card"), "gated": False,
         "page": f"https://huggingface.co/{hub}" if hub else "https://github.com/huggingface/pytorch-image-models"}
     return BackboneEntry(
-        name=TIMM_PREFIX + arch_tag, family="timm", timm=arch, tag=tag, patch=int(embed.patch_size[0]),
+        name=TIMM_PREFIX + arch_tag, family="timm", timm=arch, tag=tag, patch=int(patch[0]),
         cls_token=has_cls, registers=prefix - int(has_cls),
         position="rope" if getattr(model, "rope", None) is not None else "learned", position_interpolation="timm",
         depth=len(model.blocks), width=int(model.embed_dim),
