@@ -5,6 +5,7 @@ from types import SimpleNamespace
 import pytest
 
 import pitts30k_tree as pitts30k_tree_module  # tests/ is on sys.path (pytest's rootdir conftest)
+import utm_trees
 
 #: real public data shared beside the repo (../shared/data, or $VPRBENCH_SHARED_DATA); never copied into it
 SHARED_DATA = Path(os.environ.get("VPRBENCH_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
@@ -88,14 +89,20 @@ def pitts30k_tree(tmp_path_factory, shared_data) -> SimpleNamespace:
 
 @pytest.fixture(scope="session")
 def pitts30k_places(pitts30k_tree) -> dict:
-    """Image name -> index of the database image nearest to where it was taken (for the oracle)."""
-    from scipy.spatial import cKDTree
+    return pitts30k_tree_module.oracle_places(pitts30k_tree)
 
-    tree = pitts30k_tree
-    _, nearest = cKDTree(tree.utm_db).query(tree.utm_q)
-    places = {name: i for i, name in enumerate(tree.db_names)}
-    places.update({name: int(j) for name, j in zip(tree.q_names, nearest)})
-    return places
+
+# ------------------------------------- full-size trees of the largest utm-names datasets
+@pytest.fixture(scope="session")
+def pitts250k_tree(tmp_path_factory, shared_data) -> SimpleNamespace:
+    """83,952 database and 8,280 query images at synthetic positions (tests/utm_trees.py)."""
+    return utm_trees.build_pitts250k(shared_data, tmp_path_factory.mktemp("data"))
+
+
+@pytest.fixture(scope="session")
+def tokyo247_tree(tmp_path_factory, shared_data) -> SimpleNamespace:
+    """75,984 database and 315 query images at Tokyo 24/7's real positions (tests/utm_trees.py)."""
+    return utm_trees.build_tokyo247(shared_data, tmp_path_factory.mktemp("data"))
 
 
 @pytest.fixture

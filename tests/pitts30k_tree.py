@@ -28,6 +28,29 @@ def place_image(easting: float, northing: float, size=(64, 48), grain: float = 0
     return np.stack([grey, np.roll(grey, 7, axis=1), 255 - grey], axis=-1).clip(0, 255).astype(np.uint8)
 
 
+def link_images(root: Path, pool: Path, groups, image) -> int:
+    """Writes one JPEG (`image(easting, northing)` -> RGB uint8) per distinct position into `pool`
+    and hard-links it to every `root / name` taken there (`groups`: (names, (N, 2) positions)
+    pairs), so a tree of 100k names costs a few thousand small files. Returns the JPEGs made."""
+    pool.mkdir(parents=True)
+    made_folders, pooled = set(), {}
+    for names, utm in groups:
+        for name, (easting, northing) in zip(names, utm):
+            key = (float(easting), float(northing))
+            if key not in pooled:
+                pooled[key] = pool / f"{len(pooled)}.jpg"
+                Image.fromarray(image(*key)).save(pooled[key], quality=90)
+            path = root / name
+            if path.parent not in made_folders:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                made_folders.add(path.parent)
+            try:
+                os.link(pooled[key], path)
+            except OSError:  # no hard links here: a copy
+                path.write_bytes(pooled[key].read_bytes())
+    return len(pooled)
+
+
 def build(shared_data: Path, data: Path, size=(64, 48), grain: float = 0.0, image=None) -> SimpleNamespace:
     """<data>/pitts30k in the original NetVLAD packaging: the 10,000 database and 6,816 query
     images under their real names (000/..., queries_real/...) with their real UTM positions in
@@ -42,32 +65,25 @@ def build(shared_data: Path, data: Path, size=(64, 48), grain: float = 0.0, imag
     strip = lambda text: [n.removeprefix("./Pittsburgh250k/") for n in text.split()]  # noqa: E731
     db_names = strip((base / "pitts30k_imageNames_index.txt").read_text())
     q_names = strip((base / "pitts30k_imageNames_query.txt").read_text())
-    data.mkdir(parents=True, exist_ok=True)
     root = data / "pitts30k"
-    pool = data / "pool"
-    pool.mkdir()
-    made_folders, pooled = set(), {}
-    for names, utm in ((db_names, gt["utmDb"]), (q_names, gt["utmQ"])):
-        for name, (easting, northing) in zip(names, utm):
-            key = (float(easting), float(northing))
-            if key not in pooled:
-                pooled[key] = pool / f"{len(pooled)}.jpg"
-                made = image(*key) if image is not None else place_image(*key, size, grain)
-                Image.fromarray(made).save(pooled[key], quality=90)
-            path = root / name
-            if path.parent not in made_folders:
-                path.parent.mkdir(parents=True, exist_ok=True)
-                made_folders.add(path.parent)
-            try:
-                os.link(pooled[key], path)
-            except OSError:  # no hard links here: a copy
-                path.write_bytes(pooled[key].read_bytes())
+    link_images(root, data / "pool", [(db_names, gt["utmDb"]), (q_names, gt["utmQ"])],
+                image or (lambda easting, northing: place_image(easting, northing, size, grain)))
     (root / "datasets").mkdir()
     struct = {"whichSet": "test", "dbImageFns": np.array(db_names, dtype=object).reshape(-1, 1), "utmDb": gt["utmDb"].T,
               "qImageFns": np.array(q_names, dtype=object).reshape(-1, 1), "utmQ": gt["utmQ"].T,
               "numImages": 10000, "numQueries": 6816, "posDistThr": 25, "posDistSqThr": 625, "nonTrivPosDistSqThr": 100}
     savemat(root / "datasets" / "pitts30k_test.mat", {"dbStruct": struct})
     return SimpleNamespace(data=data, root=root, db_names=db_names, q_names=q_names, utm_db=gt["utmDb"], utm_q=gt["utmQ"])
+
+
+def oracle_places(tree) -> dict:
+    """Image name -> index of the database image nearest to where it was taken (for the oracle)."""
+    from scipy.spatial import cKDTree
+
+    _, nearest = cKDTree(tree.utm_db).query(tree.utm_q)
+    places = {name: i for i, name in enumerate(tree.db_names)}
+    places.update({name: int(j) for name, j in zip(tree.q_names, nearest)})
+    return places
 
 
 if __name__ == "__main__":

@@ -101,17 +101,18 @@ class Oracle(vprbench.Method):
     the database row nearest to where it was taken. Every place has a random unit code and an
     image is described by its place's code, so a query's top match is exactly its nearest
     database image: Recall@1 is 100 % whenever store rows, search indices and positives stay
-    aligned (a shuffled store or a misaligned shard would break it)."""
+    aligned (a shuffled store or a misaligned shard would break it). `folder`: the dataset's
+    directory, whose path the names are relative to."""
 
     batch_size = 512
 
-    def __init__(self, places: dict | None = None, dim: int = 32, device: str = "cpu"):
-        self.places = places or {}
+    def __init__(self, places: dict | None = None, dim: int = 32, device: str = "cpu", folder: str = "pitts30k"):
+        self.places, self.folder = places or {}, folder
         codes = np.random.default_rng(0).normal(size=(max(self.places.values(), default=0) + 1, int(dim)))
         self.codes = _unit(codes).astype(np.float32)
 
     def load(self, path: Path):
-        return self.places[Path(path).as_posix().split("/pitts30k/", 1)[1]]
+        return self.places[Path(path).as_posix().split(f"/{self.folder}/", 1)[1]]
 
     def describe(self, items):
         return self.codes[np.asarray(loaded(self, items), dtype=np.int64)]
