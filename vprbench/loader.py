@@ -49,8 +49,9 @@ def loaded(method, items: Sequence) -> list:
     return [method.load(Path(x)) if isinstance(x, (str, os.PathLike)) else x for x in items]
 
 
-def plugin_failure(owner, part: str, error: BaseException, who: str | None = None) -> str | None:
-    """One line for what a plugin's `part` (describe, load, fit, ...) raised, naming `who` (default: the
+def plugin_failure(owner, part: str, error: BaseException, who: str | None = None,
+                   attribute: bool = False) -> str | None:
+    """One line for what a plugin's `part` (describe, load, fit, ..., or an `attribute` read) raised, naming `who` (default: the
     method `owner`), its package and the line of its code that raised (its user is not its author: a
     traceback through vprbench helps neither); None for vprbench's own code (a bug of vprbench's keeps its
     traceback) and for what the command already says in a line (vprbench's errors, paths, memory)."""
@@ -70,27 +71,32 @@ def plugin_failure(owner, part: str, error: BaseException, who: str | None = Non
     own = own or frames[-1:]
     at = f" at {own[-1].filename}:{own[-1].lineno}" if own else ""
     who = who or f"Method {getattr(owner, 'name', '?')!r}"
-    return (f"{who} ({top}) failed in {part}(): {type(error).__name__}: "
+    doing = f"reading its attribute {part}" if attribute else f"in {part}()"
+    return (f"{who} ({top}) failed {doing}: {type(error).__name__}: "
             f"{error}{at}; fix the plugin, or report it to its authors.")
 
 
 @contextlib.contextmanager
-def plugin_part(owner, part: str, who: str | None = None):
-    """Runs a call into `owner`'s code (a plugin's method, stage or post-processor): what it raises is
-    the one line of `plugin_failure`, a VPRBenchError (its chain kept for a Python caller)."""
+def plugin_part(owner, part: str, who: str | None = None, attribute: bool = False):
+    """Runs a call into `owner`'s code (a plugin's method, stage or post-processor, or a property read): what it
+    raises is the one line of `plugin_failure`, a VPRBenchError (its chain kept for a Python caller)."""
     try:
         yield
     except (Exception, SystemExit) as error:
-        message = plugin_failure(owner, part, error, who)
+        message = plugin_failure(owner, part, error, who, attribute)
         if message is None:
             raise
         raise VPRBenchError(message) from error
 
 
 def use_dataset(method, name: str) -> None:
-    """`method.use_dataset(name)`, what a plugin's raises as its one line."""
+    """`method.use_dataset(name)`, what a plugin's raises as its one line; the attributes it may set
+    (AnyLoc's needs_fit) checked again after it."""
+    from .methods.attributes import check_attributes
+
     with plugin_part(method, "use_dataset"):
         method.use_dataset(name)
+    check_attributes(method)
 
 
 def postprocessor_of(method):

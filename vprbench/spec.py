@@ -290,9 +290,10 @@ def spec_for(method, dataset, **parts) -> RunSpec:
     on `dataset` (a name, a folder or a `Dataset`): the Python API's way to `resolve_spec`."""
     from .methods.objects import created_as
 
+    name = created_as(method)  # first: it checks the attributes read here
     if parts.get("cache_dir") is None:  # what the spec finds by name (spec.found) is what the method itself resolves
         parts["cache_dir"] = getattr(method, "cache_dir", None)
-    return resolve_spec(created_as(method), dataset, options=dict(getattr(method, "options", {}) or {}), **parts)
+    return resolve_spec(name, dataset, options=dict(getattr(method, "options", {}) or {}), **parts)
 
 
 def resolve_dataset(dataset, protocol: str | None = None, data_dir=None, cache_dir=None) -> DatasetSpec:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import inspect
 
 from ..errors import VPRBenchError, require
+from .attributes import check_attributes
 from .base import Method
 from .registry import method_entry
 
@@ -28,6 +29,7 @@ def created_as(method) -> str:
         raise VPRBenchError(f"The method object is a {type(method).__name__}, but its name says {method.name!r}, which "
                             f"is a {factory.__name__}: a method cannot be renamed; create it with "
                             f"vprbench.create_method({method.name!r}, ...).")
+    check_attributes(method)  # an object built without create_method is checked as one built with it
     return method.name
 
 

@@ -27,13 +27,12 @@ from pathlib import Path
 from ..errors import VPRBenchError, closest_names
 from ..loader import plugin_part
 from ..registration import check_name, claim, imported, looked_up, run_plugins, source_of
+from .attributes import MAX_BATCH_SIZE, check_attributes, set_attributes
 from .checks import canonical, plain_options, whole
 
 ENTRY_POINT_GROUP = "vprbench.methods"
 #: what the registry hands a factory that takes it, never an option a user sets
 LOCATIONS = ("cache_dir", "data_dir")
-#: far above any real batch; the data loader crashes on one beyond sys.maxsize
-MAX_BATCH_SIZE = 2**31 - 1
 
 
 @dataclass(frozen=True)
@@ -187,7 +186,6 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
     hands `cache_dir` and `data_dir` to factories that take them. The method gets `name`, `options` (what the
     user gave) and `settings` (preset + user options, what the store is keyed on).
     """
-    from ..stages.sequence.search import COMPARES
     from .base import Method
 
     entry = method_entry(name)
@@ -221,17 +219,12 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
     if not isinstance(method, Method):
         raise VPRBenchError(f"Method {name!r} ({entry.source}) did not return a vprbench.Method")
     if "batch_size" in merged:
-        method.batch_size = merged["batch_size"]
-    if method.compare not in COMPARES:  # what the search can do, checked before any image is described
-        raise VPRBenchError(f"Method {name!r} ({entry.source}) has compare {method.compare!r}; it must be one of "
-                            f"{', '.join(COMPARES)} (fix the plugin).")
-    if isinstance(method.batch_size, bool) or not isinstance(method.batch_size, int) or method.batch_size < 1:
-        raise VPRBenchError(f"Method {name!r} ({entry.source}) has batch_size {method.batch_size!r}; "
-                            "it must be a whole number >= 1 (fix the plugin, or pass --batch-size).")
-    method.name = entry.name
-    method.options = {k: v for k, v in given.items() if k not in ("device", "batch_size")}
-    method.settings = {k: v for k, v in merged.items() if k not in ("device", "batch_size")}
-    method._created_as = (entry.name, copy.deepcopy(method.options))  # what `name`/`options` may not be changed from
+        set_attributes(method, name, entry.source, batch_size=merged["batch_size"])
+    check_attributes(method, name, entry.source)  # compare, batch_size, ...: before any image is described
+    options = {k: v for k, v in given.items() if k not in ("device", "batch_size")}
+    set_attributes(method, name, entry.source, name=entry.name, options=options,
+                   settings={k: v for k, v in merged.items() if k not in ("device", "batch_size")},
+                   _created_as=(entry.name, copy.deepcopy(options)))  # what `name`/`options` may not be changed from
     return method
 
 
