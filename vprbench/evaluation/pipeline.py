@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from ..distributed import Ranks
 from ..errors import VPRBenchError, require
 from ..progress import phase
+from ..registration import source_of
 from ..methods.attributes import set_attributes
 from ..methods.objects import check_method
 from ..methods.registry import checked_run_options
@@ -132,7 +133,7 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
         check_method(method, spec)
         if settings.batch_size is not None:  # honoured (and checked) for a method given as for one created here
             size = checked_run_options(method.name, {"batch_size": settings.batch_size})["batch_size"]
-            set_attributes(method, method.name, type(method).__module__.split(".")[0], batch_size=size)
+            set_attributes(method, method.name, source_of(type(method)), batch_size=size)
     ranks.agree({"spec": spec.key, "cache": str(settings.cache_dir.resolve()) if settings.cache_dir else None,
                  "data": str(settings.data_dir) if settings.data_dir else None,
                  "memory_budget": settings.memory_budget}, "the run (spec, cache folder, data root)")

@@ -11,6 +11,7 @@ import numpy as np
 
 from ..errors import VPRBenchError
 from ..loader import plugin_part
+from ..registration import source_of
 
 #: far above any real batch; the data loader crashes on one beyond sys.maxsize
 MAX_BATCH_SIZE = 2**31 - 1
@@ -40,15 +41,11 @@ def _rules() -> dict:
     }
 
 
-def _source(method) -> str:
-    return (type(method).__module__ or "").split(".")[0] or "unknown"
-
-
 def check_attributes(method, name: str | None = None, source: str | None = None) -> None:
     """Every attribute vprbench reads off `method` (created as `name`, registered by `source`), read once
     (a plugin's property that raises is `plugin_part`'s one line) and of the type its readers take."""
     name = method.name if name is None else name
-    source = source or _source(method)
+    source = source or source_of(type(method))
     for attribute, (accepts, what) in _rules().items():
         with plugin_part(method, attribute, f"Method {name!r}", attribute=True):
             value = getattr(method, attribute, None) if attribute in OPTIONAL else getattr(method, attribute)
@@ -64,7 +61,7 @@ def set_attributes(method, name: str, source: str, /, **values) -> None:
         try:
             setattr(method, attribute, value)
         except (Exception, SystemExit) as error:
-            if _source(method) == "vprbench":  # a bug of vprbench's keeps its traceback
+            if source_of(type(method)) == "vprbench":  # a bug of vprbench's keeps its traceback
                 raise
             raise VPRBenchError(
                 f"Method {name!r} ({source}) does not let vprbench set its {attribute} ({type(error).__name__}: "
