@@ -133,3 +133,6 @@ def test_anylocs_dataset_option_naming_the_dataset_evaluated_shares_the_store(sh
     assert again["descriptors_computed"] == {"database": 0, "queries": 0}
     assert again["context"]["store"]["folders"] == first["context"]["store"]["folders"]
     assert "dataset" not in again["method_fingerprint"]["settings"]
+    # and one record: the Python route's method_settings kept dataset=corridor, the command line's did not
+    assert first["method_settings"] == again["method_settings"] == unset.options
+    assert "dataset" not in first["method_settings"] and first["method_settings"]["aggregation"] == "gem"

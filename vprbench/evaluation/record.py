@@ -272,7 +272,9 @@ def result_record(*, spec: RunSpec, method, fingerprint, dataset, dataset_key: s
         "label": spec.label(),
         "method": method.name,
         "method_options": plain(spec.given),
-        "method_settings": _jsonable(getattr(method, "settings", None)),
+        # the spec's options, as the store key takes them: a method created with dataset= the evaluated
+        # one kept it in its own settings, which the command line's run of the same spec has not
+        "method_settings": _jsonable(plain(spec.options)) if getattr(method, "settings", None) is not None else None,
         "method_fingerprint": fingerprint,
         "needs_fit": bool(method.needs_fit),
         "dataset": dataset.name,
