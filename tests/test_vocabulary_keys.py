@@ -80,3 +80,36 @@ def test_import_keys_and_records_the_stride(cli, tmp_path):
     code, _, err = cli("vocabulary", "import", str(tmp_path / "v.pt"), "--source", "indoor", "--backbone",
                        "dino_vits8", "--layer", "1", "--facet", "key", "--stride", "3", "--cache-dir", str(tmp_path / "c"))
     assert code == 1 and err.strip().endswith("--stride 3 does not divide the patch 8 of dino_vits8: give one of 1, 2, 4, 8.")
+
+
+def test_dinov3s_bfloat16_rope_periods_are_keyed_as_in_the_store(tmp_path):
+    """A timm: name of DINOv3's release now runs with the release's bfloat16 RoPE periods (its store key says
+    so), but its vocabularies kept the key of the float32 periods it ran with before: centres fitted on those
+    features (up to 1.2e-2 apart) were served to the new ones."""
+    from vprbench.aggregation.vocabulary import vocabulary_key
+    from vprbench.methods.anyloc_vocabulary import released_path, released_sources
+    from vprbench.store.folder import method_fingerprint
+
+    timm = {"backbone": "timm:vit_small_patch16_dinov3", "weights": "random", "layer": 1, "clusters": 4}
+    before = tmp_path / "vocabularies" / "timm_vit_small_patch16_dinov3@random-l1-value-c4" / "indoor" / "vocabulary.pt"
+    Vocabulary(_centres(0), {"backbone": "timm:vit_small_patch16_dinov3@random", "layer": 1, "facet": "value",
+                             "stride": 16}).save(before)  # as fitted on timm's float32 periods
+    legacy = tmp_path / "vocabularies" / "timm:vit_small_patch16_dinov3@random-l1-value-c4" / "indoor" / "vocabulary.pt"
+    Vocabulary(_centres(0), {"backbone": "timm:vit_small_patch16_dinov3@random", "layer": 1,
+                             "facet": "value"}).save(legacy)  # the name before names were made portable
+    with pytest.raises(VPRBenchError, match=r"No 'indoor' vocabulary for timm:vit_small_patch16_dinov3@random layer 1 "
+                                            r"value with 4 clusters \(looked in \S+rope_periods-bfloat16"):
+        create_method("anyloc", **timm, vocabulary="indoor", cache_dir=tmp_path)  # was served `before`
+    now = save_to_cache(Vocabulary(_centres(1), {}), "timm:vit_small_patch16_dinov3@random", 1, "value", "indoor", tmp_path)
+    assert now.parent.parent.name == "timm_vit_small_patch16_dinov3@random-l1-value-c4-rope_periods-bfloat16"
+    method = create_method("anyloc", **timm, vocabulary="indoor", cache_dir=tmp_path)
+    assert method.vocabulary_info["file"] == str(now)
+    assert method_fingerprint(method)["rope_periods"] == "bfloat16"  # the same thing in the store key
+    # float32 or no RoPE: keys as before, the authors' released folders among them
+    assert {released_path(source).parent.parent.name for source in released_sources()} == {"dinov2_vitg14-l31-value-c32"}
+    assert vocabulary_key("dinov2_vitg14", 31, "value", 32) == "dinov2_vitg14-l31-value-c32"
+    assert vocabulary_key("dinov2_vits14@random", 1, "value", 4) == "dinov2_vits14@random-l1-value-c4"
+    assert vocabulary_key("dino_vits8@random", 1, "key", 4, 8) == "dino_vits8@random-l1-key-c4-s8"
+    assert vocabulary_key("pe_spatial_s16@random", 1, "value", 4) == "pe_spatial_s16@random-l1-value-c4"
+    assert "rope_periods" not in create_method("anyloc", backbone="pe_spatial_s16", weights="random", layer=1,
+                                               aggregation="gem").fingerprint()  # RoPE in float32

@@ -310,15 +310,24 @@ def at_default_stride(backbone: str, stride: int | None) -> bool:
     return stride is None or int(stride) == default_stride(backbone)
 
 
+def feature_variant(backbone: str) -> dict[str, str]:
+    """The catalogue's `feature_variant` of `backbone` (what else changes its features, as the store key
+    takes it: DINOv3's bfloat16 RoPE periods), {} for a name it does not know."""
+    entry = catalogued(backbone)
+    return entry.feature_variant if entry is not None else {}
+
+
 def vocabulary_key(backbone: str, layer: int, facet: str, clusters: int, stride: int | None = None) -> str:
     """Folder name of a feature setting, as the authors' release: `dinov2_vitg14-l31-value-c32`.
 
     `backbone` carries the weights (BACKBONE@random, BACKBONE@<sha256 prefix>); a patch stride other
     than the backbone's own (DINO v1 at 8, not 4) adds `-s<stride>`: other features, other centres.
-    None: the backbone's own stride. Names are kept portable (`portable_name`)."""
+    None: the backbone's own stride. The backbone's `feature_variant` adds `-<name>-<value>` each
+    (`-rope_periods-bfloat16`), as it enters the store key. Names are kept portable (`portable_name`)."""
     key = f"{backbone}-l{layer}-{facet}-c{clusters}"
     if not at_default_stride(backbone, stride):
         key += f"-s{int(stride)}"
+    key += "".join(f"-{name}-{value}" for name, value in sorted(feature_variant(backbone).items()))
     return portable_name(key)
 
 
@@ -336,8 +345,8 @@ def legacy_vocabulary_dir(backbone: str, layer: int, facet: str, clusters: int, 
                           stride: int | None = None) -> Path | None:
     """Where vprbench kept this vocabulary before folder names were made portable (a timm:ARCH
     backbone's ':' as it is), when that differs and names one folder; read, never written."""
-    if not at_default_stride(backbone, stride):
-        return None  # no stride was keyed then: no old folder holds another stride's centres
+    if not at_default_stride(backbone, stride) or feature_variant(backbone):
+        return None  # neither was keyed then: no old folder holds these features' centres
     key, found = f"{backbone}-l{layer}-{facet}-c{clusters}", vocabulary_dir(backbone, layer, facet, clusters, source, cache_dir)
     if any(sep in part for part in (key, source) for sep in "/\\") or (key, source) == (found.parent.name, found.name):
         return None

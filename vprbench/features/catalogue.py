@@ -138,6 +138,13 @@ class BackboneEntry(BaseModel):
         return self.position_interpolation == "timm"
 
     @property
+    def feature_variant(self) -> dict[str, str]:
+        """What changes its features beyond its name and weights, said only where not the default (other
+        backbones' keys stay as they were): RoPE periods other than timm's float32. The one source of the
+        descriptor store's key (AnyLoc.fingerprint) and the vocabulary key (vocabulary_key) for it."""
+        return {"rope_periods": self.rope_periods} if self.rope_periods != "float32" else {}
+
+    @property
     def timm_name(self) -> str:
         return f"{self.timm}.{self.tag}" if self.tag else self.timm
 

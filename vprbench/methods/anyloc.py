@@ -228,8 +228,7 @@ class AnyLoc(Method):
         }
         if self.aggregation == "cls" and self.spec.cls == "final-norm":
             fp["layer"], fp["facet"] = "final-norm", "cls"  # layer/facet options do not apply
-        if self.spec.rope_periods != "float32":  # a timm: name of such a release ran timm's float32 before
-            fp["rope_periods"] = self.spec.rope_periods
+        fp.update(self.spec.feature_variant)  # RoPE periods: a timm: name of DINOv3 ran timm's float32 before
         if self.aggregation in VLADS:
             fp["clusters"] = self.clusters
             # a named or file vocabulary is identified by its centres' bytes; fitted ones by "map"
