@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from vprbench import Method
 from vprbench.aggregation import Vocabulary
 from vprbench.methods.anyloc_vocabulary import resolve_vocabulary
 from vprbench.cli import vocabulary as cli
@@ -63,16 +64,19 @@ def test_fit_needs_domain_or_dataset_and_key_value_options():
         run(args)
 
 
-class FakeMethod:
+class FakeMethod(Method):
     """Stands in for AnyLoc: 4x4 grey-level patches of the real image as 'patch features'."""
 
-    backbone, layer, facet = "fake", 0, "token"
+    name, backbone, layer, facet = "fake", "fake", 0, "token"
 
     def __init__(self, clusters=None, **options):
         self.clusters, self.seen, self.resizes, self.dataset = int(clusters or 32), [], set(), None
 
     def use_dataset(self, name):
         self.dataset = name
+
+    def describe(self, images):
+        raise AssertionError("a fit reads patch features only")
 
     def iter_patch_features(self, paths, resize=None):
         from vprbench.images import load_rgb
