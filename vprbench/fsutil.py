@@ -225,7 +225,9 @@ def lock(path: str | os.PathLike, timeout: float | None = None, *, what: str | N
             since = time.strftime("%Y-%m-%d %H:%M:%S")
             command = " ".join(os.path.basename(a) if i == 0 else a for i, a in enumerate(sys.argv))[:200]
             try:  # a note for people, written in place (a torn note after a kill is harmless)
-                _holder_path(path).write_text(f"pid {os.getpid()} on {socket.gethostname()} since {since} ({command})\n")
+                # an argument of bytes that are not UTF-8 (a path on Linux) is written as escapes, not refused
+                _holder_path(path).write_text(f"pid {os.getpid()} on {socket.gethostname()} since {since} ({command})\n",
+                                              encoding="utf-8", errors="backslashreplace")
             except OSError:
                 pass
         yield

@@ -48,8 +48,9 @@ def cache_root(cache_dir: str | Path | None = None) -> Path:
 def environment_folder(given: str | None, variable: str, option: str = "") -> str | None:
     """A folder option of the command line: as given, else the environment variable, else None.
     A value of blanks only is refused: it would make a folder named "   " in the current one."""
-    value, source = (given, option or "the option") if given else (os.environ.get(variable), f"${variable}")
-    if value and not value.strip():
+    # an empty option (an unset shell variable) is refused too: else it meant the default, and was downloaded into
+    value, source = (given, option or "the option") if given is not None else (os.environ.get(variable), f"${variable}")
+    if value is not None and not value.strip() and (given is not None or value):  # an empty variable is unset
         from .errors import VPRBenchError
 
         raise VPRBenchError(f"{source} is {value!r}, which names no folder: give a folder, or leave it unset.")

@@ -98,6 +98,10 @@ def _run(args) -> int:
         if "can't allocate memory" in str(error) or "out of memory" in str(error):  # torch's CPU and GPU allocators
             print_error(out_of_memory(error))
             return 1
+        if str(error).startswith("Symlink loop from"):  # Path.resolve on a link that leads back to itself
+            print_error(f"{error}: a symbolic link in this path leads back to itself; fix or remove the link, or "
+                        "give another path.")
+            return 1
         if "home directory" not in str(error):
             raise
         # pathlib on '~name/...' for a user this machine does not know, from any path option

@@ -71,6 +71,10 @@ def run_fit(args) -> int:
 
     resolve_locations(args)
     options = method_options(args)
+    # a name or file names centres to use; a fit makes them, so it was ignored ('domain' and 'map' are modes)
+    if options.get("vocabulary", "map") not in ("domain", "map"):
+        raise VPRBenchError(f"vocabulary fit: --vocabulary {options['vocabulary']} names centres to use, and a fit "
+                            "makes them; drop it (--domain or --dataset says what to fit on).")
     # from the options, before the method is made (which refuses --clusters beside a GeM or CLS aggregation)
     try:
         defaults = method_entry(args.method).effective_defaults()

@@ -17,6 +17,11 @@ from .checks import whole
 
 #: OpenCV's HOG crashes (SIGSEGV) with fewer orientation bins
 MIN_BINS = 4
+#: one bin per degree of OpenCV's unsigned 0-180 degree range (more failed inside OpenCV: too large
+#: for a C int, or out of memory at the first image)
+MAX_BINS = 180
+#: OpenCV takes sizes as C ints
+MAX_SIDE = 2**31 - 1
 #: a window this many times an image's area is said once per run (the protocol's 512 x 512 on thumbnails)
 UPSAMPLED_AREA = 16
 
@@ -31,6 +36,13 @@ class HOG(Method):
         cell, block = whole("hog", "cell", cell, what="pixels per cell side"), whole("hog", "block", block, what="pixels per block side")
         block_stride = whole("hog", "block_stride", block_stride, what="pixels between blocks")
         bins = whole("hog", "bins", bins, MIN_BINS, what="orientation bins")
+        # cell and block are bounded by the resize below; these two are not
+        if bins > MAX_BINS:
+            raise VPRBenchError(f"hog: option bins takes at most {MAX_BINS} orientation bins (one a degree of "
+                                f"OpenCV's 0-180 degree range); got {bins}.")
+        if block_stride > MAX_SIDE:
+            raise VPRBenchError(f"hog: option block_stride takes at most {MAX_SIDE} pixels (OpenCV's limit); got "
+                                f"{block_stride}.")
         if block % cell:
             raise VPRBenchError(f"hog: option block ({block}) must be a multiple of cell ({cell}).")
         size = parse_size(resize)
