@@ -179,3 +179,39 @@ def test_a_publish_onto_a_full_disk_keeps_the_site_and_says_what_to_do(one_run, 
         "is unchanged: free some space, then publish again, or publish to a folder on another disk.\n")
     assert tree(docs / "leaderboard") == before
     assert sorted(p.name for p in docs.iterdir()) == [".leaderboard.lock", "leaderboard"]  # no half-written section
+
+
+
+#: stores the record of the run in cache argv[1] into cache argv[2], killed (SIGKILL) just before the file
+#: argv[3] of its results folder (the row's method card, or LAYOUT) is renamed in place
+KILLED_WRITE = """
+import os, signal, sys
+from vprbench.evaluation import read_results, save_result
+replace = os.replace
+def killed(source, target):
+    if os.path.relpath(target, os.path.join(sys.argv[2], "results")).startswith(sys.argv[3]):
+        os.kill(os.getpid(), signal.SIGKILL)
+    replace(source, target)
+os.replace = killed
+save_result(read_results(sys.argv[1])[0], sys.argv[2])
+"""
+
+
+@pytest.mark.parametrize("killed_in", ["methods", "LAYOUT"])
+def test_a_stored_record_removes_what_killed_writers_of_files_written_once_left(hog_run, tmp_path, killed_in):
+    """Was: a run killed while writing its row's method card (or the results folder's LAYOUT) left
+    `.<name>.*.tmp` there for good: that file, once written, is never written again, so nothing looked."""
+    cache, record = hog_run
+    for _ in range(2):
+        killed = subprocess.run([sys.executable, "-c", KILLED_WRITE, str(cache), str(tmp_path), killed_in],
+                                capture_output=True, text=True, timeout=60)
+        assert killed.returncode == -9, killed.stderr
+    left = sorted(p for p in (tmp_path / "results").rglob(".*.tmp"))
+    assert len(left) == 2 and all(p.relative_to(tmp_path / "results").as_posix().startswith(killed_in)
+                                  or p.name.startswith(f".{killed_in}.") for p in left)
+    os.utime(left[0], (time.time() - 7200, time.time() - 7200))  # untouched for two hours: a dead writer's
+    save_result(record, tmp_path)
+    other = record["run_id"][:-1] + ("1" if record["run_id"].endswith("0") else "0")  # another run of the same row
+    save_result({**record, "run_id": other}, tmp_path)  # its card and LAYOUT written already: not again
+    assert sorted((tmp_path / "results").rglob(".*.tmp")) == [left[1]]  # a young one may be a live writer's
+    assert len(read_results(tmp_path)) == 2

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import torch
 
@@ -97,3 +98,71 @@ def test_a_download_removes_what_a_killed_download_left(tmp_path):
     found = resolve_weights(WeightSource("w.pth", url=release.as_uri()), None, "test", cache_dir=cache).path
     assert found == folder / "w.pth" and file_sha256(found) == file_sha256(release)
     assert sorted(p.name for p in folder.iterdir()) == [".w.pth.lock", "w.pth"]
+
+
+#: fits PCA-whitening on seeded rows and saves its state in a folder, killed (SIGKILL) just before the rename
+KILLED_STATE = """
+import os, signal, sys
+import numpy as np
+from vprbench.aggregation.pca import PCAWhitening
+from vprbench.evaluation.postprocess import fit_postprocessor
+from vprbench.row_sources import ArrayRows
+rows = ArrayRows(np.random.default_rng(0).standard_normal((64, 16)).astype(np.float32))
+os.replace = lambda *args: os.kill(os.getpid(), signal.SIGKILL)
+fit_postprocessor(PCAWhitening(8), rows, 2**28, state_folder=sys.argv[1])
+"""
+
+
+def test_a_saved_post_processing_state_removes_what_killed_saves_left(tmp_path):
+    """Was: each evaluation killed while saving its PCA state left a `.postprocess-*.npz.*.tmp` (the
+    state's size) in the store folder for good: nothing ever removed them."""
+    import numpy as np
+
+    from vprbench.aggregation.pca import PCAWhitening
+    from vprbench.evaluation.postprocess import fit_postprocessor
+    from vprbench.row_sources import ArrayRows
+
+    for _ in range(2):
+        killed = subprocess.run([sys.executable, "-c", KILLED_STATE, str(tmp_path)], capture_output=True, text=True,
+                                timeout=60)
+        assert killed.returncode == -9, killed.stderr
+    assert len([p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]) == 2
+    rows = np.random.default_rng(0).standard_normal((64, 16)).astype(np.float32)
+    fitted = PCAWhitening(8)
+    info = fit_postprocessor(fitted, ArrayRows(rows), 2**28, state_folder=tmp_path)
+    name = Path(info["file"]).name
+    assert info["state"] == "fitted" and sorted(p.name for p in tmp_path.iterdir()) == [f".{name}.lock", name]
+    loaded = PCAWhitening(8)
+    assert fit_postprocessor(loaded, ArrayRows(rows), 2**28, state_folder=tmp_path)["state"] == "loaded"
+    np.testing.assert_array_equal(loaded.transform(rows), fitted.transform(rows))
+
+
+#: claims a sweep's cell, killed (SIGKILL) just before its lease file is renamed in place
+KILLED_CLAIM = """
+import os, signal, sys
+from vprbench.sweep.claims import Claims
+claims = Claims(sys.argv[1])
+os.replace = lambda *args: os.kill(os.getpid(), signal.SIGKILL)
+claims.claim("cell", lambda: False)
+"""
+
+
+def test_a_claim_removes_what_killed_claims_of_its_cell_left(tmp_path):
+    """Was: each `vprbench run` killed while writing a lease (or failure marker) left a
+    `.<cell>.lease.*.tmp` under sweeps/claims for good: nothing ever removed them."""
+    from vprbench.sweep.claims import Claims
+
+    for _ in range(2):
+        killed = subprocess.run([sys.executable, "-c", KILLED_CLAIM, str(tmp_path)], capture_output=True, text=True,
+                                timeout=60)
+        assert killed.returncode == -9, killed.stderr
+    folder = tmp_path / "sweeps" / "claims"
+    assert len([p for p in folder.iterdir() if p.name.endswith(".tmp")]) == 2
+    claims = Claims(tmp_path)
+    try:
+        assert claims.claim("cell", lambda: False) == ("claimed", "")
+        assert sorted(p.name for p in folder.iterdir()) == ["cell.lease", "cell.lock"]
+        claims.release("cell", "it failed")
+        assert sorted(p.name for p in folder.iterdir()) == ["cell.failed", "cell.lock"]
+    finally:
+        claims.close()

@@ -26,7 +26,7 @@ import warnings
 from pathlib import Path
 
 from ..errors import VPRBenchError
-from ..fsutil import LockTimeout, atomic_write, cache_error, lock
+from ..fsutil import LockTimeout, atomic_write, cache_error, lock, remove_stale, temporaries_of
 from ..paths import cache_root
 
 #: the shortest lease: four heartbeats, so a live process on a busy machine is not judged dead
@@ -55,7 +55,9 @@ def _lock(path: Path):
 
 
 def _write_json(path: Path, data: dict) -> None:
+    """Under the cell's lock: temporaries found then are killed writers' (else kept for good)."""
     atomic_write(path, json.dumps(data))
+    remove_stale(temporaries_of(path), age_s=0)
 
 
 def _read_claim(path: Path) -> dict | None:
