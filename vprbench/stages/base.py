@@ -275,6 +275,15 @@ def by_count(candidates: Candidates, counts: np.ndarray) -> Candidates:
                       np.take_along_axis(np.asarray(counts), order, 1).astype(np.float32))
 
 
+def progress_task(context: StageContext, description: str, total: int):
+    """`advance(n=1)` of a progress task on `context.progress` (a no-op without one)."""
+    progress = context.progress
+    if progress is None:
+        return lambda n=1: None
+    task = progress.add_task(description, total=total)
+    return lambda n=1: progress.advance(task, n)
+
+
 def rerank_by_counts(name: str, candidates: Candidates, context: StageContext, store, extract, count,
                      prepare=lambda query: query) -> Candidates:
     """What every count-based re-ranker does: each image's data from the feature store `store`
@@ -283,14 +292,12 @@ def rerank_by_counts(name: str, candidates: Candidates, context: StageContext, s
     counts (`by_count`). `prepare` runs once per query (e.g. descriptors made matchable)."""
     dataset = context.dataset
     counts = np.zeros(candidates.indices.shape, dtype=np.int64)
-    task = context.progress.add_task(f"{name} re-ranking", total=candidates.query_count) \
-        if context.progress is not None else None
+    advance = progress_task(context, f"{name} re-ranking", candidates.query_count)
     with store.opened("database", lambda row: extract(dataset.database[row])) as db, \
             store.opened("queries", lambda row: extract(dataset.queries[row])) as qs:
         for q in range(candidates.query_count):
             query = prepare(qs(q))
             for c, row in enumerate(candidates.indices[q]):
                 counts[q, c] = count(query, db(int(row)))
-            if task is not None:
-                context.progress.advance(task, 1)
+            advance()
     return by_count(candidates, counts)

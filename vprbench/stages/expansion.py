@@ -14,7 +14,11 @@ from pydantic import Field
 from ..errors import VPRBenchError
 from ..evaluation.search import SCORE_TOLERANCE, exact_search
 from ..row_sources import ArrayRows
-from .base import Candidates, RerankOptions, Stage, StageContext, reordered
+from .base import Candidates, RerankOptions, Stage, StageContext, progress_task, reordered
+
+
+#: database images dba expands per search of the database (at most; less when the memory budget says so)
+BLOCK_ROWS = 8192
 
 
 class ExpansionOptions(RerankOptions):
@@ -63,11 +67,13 @@ class AlphaQE(_Expansion):
         self.check_compare(context.compare)
         n, alpha = min(self.options.n, candidates.k), self.options.alpha
         scores = np.empty(candidates.indices.shape, dtype=np.float64)
+        advance = progress_task(context, f"{self.name} re-ranking", candidates.query_count)
         for q in range(candidates.query_count):
             query = context.queries.read_rows(q, q + 1)[0]
             rows = _rows_at(context.database, candidates.indices[q])
             expanded = _weighted(query, rows[:n], alpha)
             scores[q] = rows @ expanded
+            advance()
         return reordered(candidates.indices, scores, SCORE_TOLERANCE)
 
 
@@ -80,13 +86,16 @@ class DatabaseAugmentation(_Expansion):
         needed = np.unique(candidates.indices)
         n = min(n + 1, database.row_count)  # an image is its own nearest neighbour
         augmented = np.empty((len(needed), database.dim), dtype=np.float32)
-        block = max(1, min(len(needed), context.memory_budget // (8 * database.dim * (n + 1))))
+        # blocks of at most BLOCK_ROWS, so progress moves during an 84k-image database's expansion
+        block = max(1, min(len(needed), BLOCK_ROWS, context.memory_budget // (8 * database.dim * (n + 1))))
+        advance = progress_task(context, f"{self.name} augmenting database images", len(needed))
         for start in range(0, len(needed), block):
             rows = database.read_rows_at(needed[start:start + block])
             found = exact_search(database, ArrayRows(rows), n, memory_budget=context.memory_budget)
             for i, (row, neighbours) in enumerate(zip(rows, found.indices)):
                 others = _rows_at(database, neighbours[neighbours != needed[start + i]][: n - 1])
                 augmented[start + i] = _weighted(row, others, alpha)
+            advance(len(rows))
         position = np.searchsorted(needed, candidates.indices)
         scores = np.empty(candidates.indices.shape, dtype=np.float64)
         for q in range(candidates.query_count):
