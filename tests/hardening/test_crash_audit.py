@@ -123,6 +123,7 @@ def test_features_written_without_checksums_are_recomputed_once(kept):
     quietly, once."""
     store, path = kept
     with h5py.File(path, "a") as f:
+        del f.attrs["rows"]  # files of that time did not list their rows either
         for row in range(ROWS):
             del f["images"][str(row)].attrs["crc32"]
     assert read_all(store)[1:] == (list(range(ROWS)), [])
