@@ -68,15 +68,15 @@ def test_an_unknown_timm_architecture_says_where_names_are_listed():
         backbone_spec("timm:vit_nosuch_thing")
 
 
-@pytest.mark.parametrize("arch", ["hiera_tiny_224", "crossvit_tiny_240", "xcit_nano_12_p16_224", "convit_tiny",
-                                  "cait_xxs24_224", "samvit_base_patch16", "vit_small_r26_s32_224"])
+@pytest.mark.parametrize("arch", ["hiera_tiny_224", "crossvit_tiny_240", "vit_small_r26_s32_224"])
 def test_a_timm_model_whose_tokens_the_extractor_cannot_read_is_refused(arch):
-    # hierarchical, two-branch, cross-covariance, gated-attention, late-CLS and SAM models, a CNN-stem hybrid
+    # hierarchical and two-branch models, a CNN-stem hybrid (XCiT and SAM's ViT: test_anyloc_backbones.py)
     with pytest.raises(VPRBenchError, match=f"timm:{arch} has no patch tokens vprbench can read .* choose a plain ViT"):
         backbone_spec(f"timm:{arch}")
 
 
-@pytest.mark.parametrize("arch, size", [("beit_base_patch16_224", "224x224"), ("test_vit_relpos", "160x160")])
+@pytest.mark.parametrize("arch, size", [("beit_base_patch16_224", "224x224"), ("test_vit_relpos", "160x160"),
+                                       ("convit_tiny", "224x224"), ("cait_xxs24_224", "224x224")])
 def test_a_timm_vit_of_one_input_size_is_refused(arch, size):
     with pytest.raises(VPRBenchError, match=f"timm:{arch} takes {size} inputs only .* choose a timm ViT that takes "
                                             "any size"):
