@@ -1,7 +1,7 @@
 """Opt-in benchmark: re-ranking at the full count of the largest dataset served (Pitts-250k test: 8,280
 queries x top 100 of 83,952 database images, the pitts250k_tree fixture's 64x48 JPEGs).
 
-    pytest tests/benchmarks/test_rerank_full_size.py --benchmark-enable -s
+    pytest tests/benchmarks/test_rerank_pitts250k_scale.py --benchmark-enable -s
 
 - `vprbench candidates export` (hog 32x32), then `vprbench evaluate --rerank aqe|dba --candidates`:
   every query, end to end; wall time, peak RSS, the stage's own ms per query, the file's bytes.
