@@ -164,6 +164,23 @@ def remove_stale(paths: Iterable[Path], age_s: float = 3600) -> None:
             pass
 
 
+def write_in_turn(path: Path, write, what: str) -> Path:
+    """`write(path)` (a writer through `atomic_path`) under a lock beside `path`: writers of one file take
+    turns, so the temporaries found then are killed writers', removed whatever their age (else kept for good)."""
+    with lock(path.with_name(f".{path.name}.lock"), timeout=120, announce=False, what=what):
+        write(path)
+        remove_stale(temporaries_of(path), age_s=0)
+    return path
+
+
+def write_once(path: Path, data: bytes | str) -> None:
+    """`path` written if it is not there yet (a file no one writes twice); killed writers' temporaries beside
+    it removed once untouched for an hour (a live writer's are younger), as nothing would look again."""
+    if not path.is_file():
+        atomic_write(path, data)
+    remove_stale(temporaries_of(path))
+
+
 # ------------------------------------------------------------------ locks
 def _holder_path(path: Path) -> Path:
     return path.with_name(path.name + ".holder")

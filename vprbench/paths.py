@@ -48,13 +48,15 @@ def cache_root(cache_dir: str | Path | None = None) -> Path:
 def environment_folder(given: str | None, variable: str, option: str = "") -> str | None:
     """A folder option of the command line: as given, else the environment variable, else None.
     A value of blanks only is refused: it would make a folder named "   " in the current one."""
-    # an empty option (an unset shell variable) is refused too: else it meant the default, and was downloaded into
-    value, source = (given, option or "the option") if given is not None else (os.environ.get(variable), f"${variable}")
-    if value is not None and not value.strip() and (given is not None or value):  # an empty variable is unset
+    if given is None:  # an empty variable counts as unset
+        value, source = os.environ.get(variable) or None, f"${variable}"
+    else:  # an empty option (an unset shell variable) is refused: it meant the default, and was downloaded into
+        value, source = given, option or "the option"
+    if value is not None and not value.strip():
         from .errors import VPRBenchError
 
         raise VPRBenchError(f"{source} is {value!r}, which names no folder: give a folder, or leave it unset.")
-    return value or None
+    return value
 
 
 def safe_name(text: str, limit: int = 60) -> str:

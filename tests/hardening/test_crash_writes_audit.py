@@ -18,7 +18,7 @@ from vprbench.aggregation.vocabulary import Vocabulary, load_vocabulary
 from vprbench.bundles.export import bundle_bytes
 from vprbench.errors import VPRBenchError
 from vprbench.evaluation import evaluate, read_results, save_result
-from vprbench.evaluation import results as results_module
+from vprbench import fsutil
 from vprbench.fsutil import atomic_write
 from vprbench.spec import RunSettings, resolve_spec
 
@@ -141,7 +141,7 @@ def test_a_record_stored_is_one_that_can_be_exported(hog_run, tmp_path, monkeypa
             raise stop
         return atomic_write(path, data)
 
-    monkeypatch.setattr(results_module, "atomic_write", card_fails)
+    monkeypatch.setattr(fsutil, "atomic_write", card_fails)  # the card is written through fsutil.write_once
     with pytest.raises((KeyboardInterrupt, VPRBenchError)) as stopped:
         save_result(record, cache)
     if isinstance(stopped.value, VPRBenchError):

@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import VPRBenchError
-from ..fsutil import atomic_write, lock, remove_stale, temporaries_of
+from ..fsutil import atomic_write, remove_stale, temporaries_of
 from ..paths import cache_root, portable_name
 from ..weights import read_torch_file
 
@@ -190,15 +190,6 @@ class Vocabulary:
         # only this file's own (--output may be any folder, holding other programs' .*.tmp files)
         remove_stale(temporaries_of(path))
         return path
-
-
-def write_cached(path: Path, write) -> Path:
-    """`write(path)` under a lock beside the cached file: writers of one key take turns, so its
-    temporary files found then are a killed writer's, removed whatever their age."""
-    with lock(path.with_name(f".{path.name}.lock"), timeout=120, announce=False, what=f"the vocabulary {path}"):
-        write(path)
-        remove_stale(temporaries_of(path), age_s=0)
-    return path
 
 
 def centres_checksum(centres: torch.Tensor) -> int:

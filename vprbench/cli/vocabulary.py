@@ -155,8 +155,8 @@ def run_import(args) -> int:
     from pathlib import Path
 
     from ..methods.anyloc_vocabulary import is_released_setting, release, save_to_cache
-    from ..aggregation.vocabulary import RELEASED_FILE, load_vocabulary, vocabulary_dir, write_cached
-    from ..fsutil import atomic_write
+    from ..aggregation.vocabulary import RELEASED_FILE, load_vocabulary, vocabulary_dir
+    from ..fsutil import atomic_write, write_in_turn
     from ..weights import file_sha256
     from ..features.backbones import RANDOM
     from ..features.catalogue import backbone_spec
@@ -188,7 +188,7 @@ def run_import(args) -> int:
         # published sha256); under another setting it is saved with the metadata that names it
         path = vocabulary_dir(args.backbone, args.layer, args.facet, vocabulary.clusters, args.source,
                               args.cache_dir, stride) / RELEASED_FILE  # under the authors' own file name
-        write_cached(path, lambda into: atomic_write(into, source_file.read_bytes()))
+        write_in_turn(path, lambda into: atomic_write(into, source_file.read_bytes()), f"the vocabulary {path}")
     else:
         vocabulary.meta["imported_from"] = vocabulary.meta.pop("path")
         path = save_to_cache(vocabulary, args.backbone, args.layer, args.facet, args.source, args.cache_dir, stride)

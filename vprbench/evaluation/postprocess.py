@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import VPRBenchError
-from ..fsutil import atomic_path, lock, remove_stale, temporaries_of
+from ..fsutil import atomic_path, write_in_turn
 from ..hashing import exact_data
 from ..loader import checked, plugin_part, postprocessor_of
 from ..row_sources import ArrayRows, RowSource, read_bytes_per_row
@@ -121,11 +121,12 @@ def fit_postprocessor(postprocessor, database: RowSource, memory_budget: int, st
     if path is not None:
         with in_postprocessor(postprocessor, "state"):
             state = postprocessor.state()
-        # writers of one state take turns, so temporaries found then are killed writers' (else kept for good)
-        with lock(path.with_name(f".{path.name}.lock"), timeout=120, announce=False, what=f"the state {path}"):
-            with atomic_path(path) as temporary, open(temporary, "wb") as file:
+
+        def save(into: Path) -> None:
+            with atomic_path(into) as temporary, open(temporary, "wb") as file:
                 np.savez(file, **state, key=np.array(text))
-            remove_stale(temporaries_of(path), age_s=0)
+
+        write_in_turn(path, save, f"the state {path}")
     return info
 
 

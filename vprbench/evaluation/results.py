@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import VPRBenchError, os_error_message, require
-from ..fsutil import CacheError, atomic_write, is_temporary, lock, remove_stale, temporaries_of
+from ..fsutil import CacheError, atomic_write, is_temporary, lock, remove_stale, write_once
 from ..paths import cache_root
 from .record import OPTIONAL_FIELDS, PER_QUERY_FIELDS, validated
 
@@ -80,9 +80,7 @@ def save_result(record: dict, cache_dir=None) -> Path:
     stem = checked["run_id"]
     check_layout(results_dir(cache_dir))
     try:
-        if not (results_dir(cache_dir) / LAYOUT_FILE).is_file():
-            atomic_write(results_dir(cache_dir) / LAYOUT_FILE, json.dumps(LAYOUT))
-        remove_stale(temporaries_of(results_dir(cache_dir) / LAYOUT_FILE))  # killed writers' (written once: else kept)
+        write_once(results_dir(cache_dir) / LAYOUT_FILE, json.dumps(LAYOUT))
         section = record.get("per_query")
         if section and "file" not in section:
             arrays = _per_query_arrays(section)
@@ -107,10 +105,7 @@ def save_result(record: dict, cache_dir=None) -> Path:
 
 def _write_card(record: dict, cache_dir) -> None:
     """What the row's method is, kept apart from its results (written once per row)."""
-    path = results_dir(cache_dir) / CARDS / f"{record['row_key']}.json"
-    if not path.is_file():
-        atomic_write(path, card_bytes(record))
-    remove_stale(temporaries_of(path))  # killed writers' (a live one's is younger than the hour); else kept for good
+    write_once(results_dir(cache_dir) / CARDS / f"{record['row_key']}.json", card_bytes(record))
 
 
 def card_bytes(record: dict) -> bytes:

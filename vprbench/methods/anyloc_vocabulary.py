@@ -19,9 +19,10 @@ from typing import Callable, Iterable, Iterator, Sequence
 
 from ..aggregation.vocabulary import (
     DEFAULT_BUDGET, KMEANS_SEED, RELEASED_FILE, VOCABULARY_FILE, Vocabulary, at_default_stride, catalogued,
-    default_stride, fit_vocabulary, legacy_vocabulary_dir, load_vocabulary, vocabulary_dir, vocabulary_file_in, write_cached,
+    default_stride, fit_vocabulary, legacy_vocabulary_dir, load_vocabulary, vocabulary_dir, vocabulary_file_in,
 )
 from ..errors import ProblemList, VPRBenchError, closest_names
+from ..fsutil import write_in_turn
 from ..text import one_line
 
 Extractor = Callable[[Sequence[Path]], Iterable]
@@ -341,7 +342,7 @@ def save_to_cache(vocabulary: Vocabulary, backbone: str, layer: int, facet: str,
     meta = {**vocabulary.meta, "backbone": backbone, "layer": layer, "facet": facet, "source": source}
     vocabulary.meta = {**meta, **({"stride": stride} if stride is not None else {})}
     folder = vocabulary_dir(backbone, layer, facet, vocabulary.clusters, source, cache_dir, stride)
-    return write_cached(folder / VOCABULARY_FILE, vocabulary.save)
+    return write_in_turn(folder / VOCABULARY_FILE, vocabulary.save, f"the vocabulary in {folder}")
 
 
 def resolve_vocabulary(spec: str, backbone: str, layer: int, facet: str, clusters: int, cache_dir=None,
