@@ -47,7 +47,7 @@ def tree(folder: Path) -> dict[str, str]:
 KILLED_PUBLISHING = """
 import os, pathlib, signal, sys
 from vprbench.cli.main import main
-from vprbench.leaderboard import site
+from vprbench.leaderboard import staging
 
 def killed_after(step):
     def run(*args):
@@ -56,8 +56,7 @@ def killed_after(step):
     return run
 
 pathlib.Path.rename = killed_after(pathlib.Path.rename)
-if hasattr(site, "exchange"):
-    site.exchange = killed_after(site.exchange)
+staging.exchange = killed_after(staging.exchange)
 sys.exit(main(sys.argv[1:]))
 """
 

@@ -5,7 +5,6 @@ so a failure (full disk, a kill) leaves the previous section whole and no partia
 """
 from __future__ import annotations
 
-import contextlib
 import errno
 import functools
 from collections import Counter
@@ -23,11 +22,12 @@ import pandas as pd
 
 from .. import __version__
 from ..errors import VPRBenchError, require
-from ..fsutil import LockTimeout, exchange, lock
+from ..fsutil import LockTimeout, lock
 from ..paths import safe_name
 from ..evaluation.results import read_results
 from ..text import percent, quantity
 from . import figures
+from .staging import alive, remove_stale_sections, swap
 from .domains import domain_datasets
 from .downloads import plain, record_download, summary
 from .escape import code, public, text, to_csv
@@ -87,12 +87,12 @@ def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0, skipp
         raise VPRBenchError(f"Cannot write to {folder} ({error.strerror or error}): choose a folder you can write "
                             "to with --to; nothing was written.") from None
     try:
-        with lock(_alive(staging), announce=False):  # held while it is written: a staging folder whose lock is free is dead
+        with lock(alive(staging), announce=False):  # held while it is written: a staging folder whose lock is free is dead
             staging.mkdir(exist_ok=True)  # another publish may have taken it for dead before this lock was held
             write_section(staging, build_board(records), records, cache_dir=cache_dir, data_dir=data_dir, seed=seed)
             with lock(folder / f".{SECTION}.lock", timeout=60, what=f"the leaderboard in {folder}"):
-                _swap(staging, target)
-                _remove_stale(folder, staging)
+                swap(staging, target)
+                remove_stale_sections(folder, SECTION, staging)
     except OSError as error:
         full = error.errno in (errno.ENOSPC, errno.EDQUOT)
         raise VPRBenchError(f"Cannot write the leaderboard to {folder} ({error.strerror or error}); "
@@ -102,44 +102,11 @@ def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0, skipp
         raise VPRBenchError(f"{error} Another 'leaderboard publish' is writing there; try again.") from None
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-        _alive(staging).unlink(missing_ok=True)
+        alive(staging).unlink(missing_ok=True)
     if (folder / f"{SECTION}.md").is_file():
         warnings.warn(f"{folder / f'{SECTION}.md'} (written by vprbench 0.1) and {target}/index.md are the same page "
                       "for MkDocs: delete the old file.", stacklevel=2)
     return target
-
-
-def _swap(staging: Path, target: Path) -> None:
-    """Put the finished folder in place of the old one; the old one is removed only afterwards."""
-    if target.exists() and not target.is_dir():
-        raise VPRBenchError(f"{target} is a file; move it away so the leaderboard section can be written there.")
-    mask = os.umask(0)
-    os.umask(mask)
-    staging.chmod(0o777 & ~mask)  # mkdtemp makes 0700: a web server reads the site as another user
-    # in one step: the old site or the new is in place (a link to a folder is replaced as it was)
-    if target.is_dir() and not target.is_symlink() and exchange(staging, target):
-        shutil.rmtree(staging, ignore_errors=True)
-        return
-    old = None
-    if target.exists():
-        old = Path(tempfile.mkdtemp(prefix=f".{SECTION}-old-", dir=target.parent))
-        target.rename(old / SECTION)
-    staging.rename(target)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
-
-
-def _alive(staging: Path) -> Path:
-    return staging.with_name(staging.name + ".lock")  # held by the publish writing `staging`
-
-
-def _remove_stale(folder: Path, own: Path) -> None:
-    """Folders a killed publish left: old sections (only ever made under the lock, so stale when we
-    hold it) and staging folders whose lock no publish holds (a live one does)."""
-    for path in (p for p in folder.glob(f".{SECTION}-*-*") if p.is_dir() and p != own):
-        with contextlib.suppress(LockTimeout), lock(_alive(path), timeout=0, announce=False):  # else: live
-            shutil.rmtree(path, ignore_errors=True)
-            _alive(path).unlink(missing_ok=True)
 
 
 # ---------------------------------------------------------------- pages
