@@ -146,3 +146,18 @@ def test_damaged_claim_files_are_set_aside(case, plan, shared_data, cli):
     assert code == 0 and "Traceback" not in err, err
     assert "1 ran" in out and len(read_results()) == 1
     assert path.with_name(path.name + ".damaged").read_bytes() == content and not path.exists()
+
+
+def test_the_mat_readers_child_imports_nothing_from_the_working_folder(tmp_path, monkeypatch):
+    """The child that reads a .mat ran `python -c`, which puts the working folder first on its import path:
+    a `scipy` there (a dataset folder one works in) ran in it. Now it runs with -P."""
+    from vprbench.datasets import load_dataset
+
+    oxford_copy(tmp_path / "data", ["a.png"], ["b.png"])
+    planted = tmp_path / "work" / "scipy"
+    planted.mkdir(parents=True)
+    (planted / "__init__.py").write_text(f"open({str(tmp_path / 'ran')!r}, 'w').close()\n")
+    monkeypatch.chdir(tmp_path / "work")
+    dataset = load_dataset("oxford", tmp_path / "data")
+    assert (len(dataset.database), len(dataset.queries)) == (1, 1)
+    assert not (tmp_path / "ran").exists(), "code in the working folder ran in the .mat reader's process"

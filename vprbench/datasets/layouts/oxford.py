@@ -68,7 +68,8 @@ def _read_in_child(path: Path) -> dict:
     """scipy's MATLAB reader is not hardened against damaged or crafted files (its documentation
     says so): some crash the process with a segmentation fault. It reads in a child process, so a
     crash is a message naming the file, not the end of vprbench without a word."""
-    command = [sys.executable, "-c", "import sys; from vprbench.datasets.layouts.oxford import _child; _child(sys.argv[1])",
+    # -P: nothing imported from the working folder (a dataset folder's files are data, never code)
+    command = [sys.executable, "-P", "-c", "import sys; from vprbench.datasets.layouts.oxford import _child; _child(sys.argv[1])",
                str(path)]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}  # the same vprbench as this process
     try:
