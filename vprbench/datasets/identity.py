@@ -176,10 +176,12 @@ def content_hashes(paths: Sequence[Path], cache_dir=None) -> list[str]:
     return [known.get(name, "missing") for name in names]
 
 
-def images_key(paths: Sequence[Path], root: Path | None, cache_dir=None, digests: Sequence[str] | None = None) -> str:
-    """sha256 over the images' names and contents (`digests`, else hashed now), in order."""
+def images_key(paths: Sequence[Path], root: Path | None, cache_dir=None, digests: Sequence[str] | None = None,
+               names: Sequence[str] | None = None) -> str:
+    """sha256 over the images' names (`names`, else made now) and contents (`digests`, else hashed
+    now), in order."""
     h = hashlib.sha256()
     digests = content_hashes(paths, cache_dir) if digests is None else digests
-    for name, digest in zip(image_names(paths, root), digests):
+    for name, digest in zip(image_names(paths, root) if names is None else names, digests, strict=True):
         h.update(f"{name}\0{digest}\n".encode())
     return h.hexdigest()
