@@ -248,9 +248,11 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
         stages = [stages]
     require(stages or (), (list, tuple), "stages takes a list of stages, e.g. ['aqe'] or [{'name': 'sift-ransac', 'k': 100}]")
     ks, stages = check_ks(ks), tuple(resolve_stage(s) for s in stages or ())
+    from .evaluation.approximate import searched_to
     from .stages.run import check_stage_chain
 
     check_stage_chain(stages, ks)
+    depth = max([ks[-1], *(s.options["k"] for s in stages if isinstance(s.options.get("k"), int))])  # re-rankers' k
     data = resolve_dataset(dataset, protocol, data_dir, cache_dir)
     if getattr(entry.factory, "dataset_option", None) in given:  # naming the dataset evaluated: as unset
         given = entry.without_defaults(given, data.name)
@@ -263,8 +265,9 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
             if stage_entry(stage.name).cls.track == "sequence":
                 require_traverse_manifest(data.name, f"Sequence stage {stage.name!r}")
     return RunSpec(method=method, options=merged, given=given, files=option_identities(method, merged, cache_dir),
-                   found=entry.cached_identities(merged, data.name, cache_dir), dataset=data, search=resolve_search(search),
-                   stages=stages, ks=ks, store_dtype=_choice("--store-dtype", store_dtype, STORE_DTYPES))
+                   found=entry.cached_identities(merged, data.name, cache_dir),
+                   search=searched_to(resolve_search(search), depth),
+                   dataset=data, stages=stages, ks=ks, store_dtype=_choice("--store-dtype", store_dtype, STORE_DTYPES))
 
 
 def given_options(options, method: str | None = None, dataset: str | None = None) -> dict:

@@ -23,6 +23,8 @@ from vprbench.leaderboard.cells import RANDOM
 from vprbench.spec import resolve_spec
 from vprbench.stages import Candidates, StageContext, create_stage
 
+from oracles import PLACES, Images, assert_oracle, variants, worst_first
+
 NAME = "superpoint-lightglue"
 #: small and fast: SuperPoint on 64x48 images, few keypoints; random LightGlue weights are never confident,
 #: so a tiny match threshold lets them give matches to count
@@ -246,3 +248,38 @@ def test_bad_options_are_refused_when_the_spec_is_made(release, shared_data, opt
     option = {k: v.format(folder=release[0]) if isinstance(v, str) else v for k, v in option.items()}
     with pytest.raises(VPRBenchError, match=f"Stage '{NAME}'.*{message}"):
         resolve_spec("hog", "corridor", stages=[{"name": NAME, **option}], data_dir=shared_data)
+
+
+def nearest_neighbour_lightglue(official_checkpoint) -> dict:
+    """LightGlue weights (release layout) that match by SuperPoint descriptors alone: every layer's ffn adds nothing
+    (its last linear zero, so descriptors pass through unchanged), the final projection a scaled identity and every
+    point matchable, leaving the dual softmax's mutual nearest neighbours. Trained weights need a download; random
+    ones are never confident, so they could not tell the true place from another."""
+    state = official_checkpoint("lightglue", "superpoint_lightglue", seed=2)
+    for key in state:
+        if re.fullmatch(r"(self|cross)_attn\.\d+\.ffn\.3\.(weight|bias)", key):
+            state[key] = torch.zeros_like(state[key])
+        elif re.fullmatch(r"log_assignment\.\d+\.final_proj\.weight", key):
+            state[key] = 28 * torch.eye(state[key].shape[0])  # similarities of unit rows x 28^2 / 256^0.5: sharp
+        elif re.fullmatch(r"log_assignment\.\d+\.(final_proj|matchability)\.bias", key):
+            state[key] = torch.full_like(state[key], 10.0 if "matchability" in key else 0.0)
+        elif re.fullmatch(r"log_assignment\.\d+\.matchability\.weight", key):
+            state[key] = torch.zeros_like(state[key])
+    return state
+
+
+def test_the_same_place_comes_first_in_any_format(corridor, tmp_path, official_checkpoint):
+    """The oracle the other image re-rankers pass (tests/stages/test_stage_oracles.py): queries that are database
+    images themselves, in other formats, handed over with the true match last, come out first, by a margin."""
+    folder = tmp_path / "weights"
+    folder.mkdir()
+    torch.save(official_checkpoint("superpoint", "superpoint_v1", seed=1), folder / "superpoint_v1.pth",
+               _use_new_zipfile_serialization=False)
+    torch.save(nearest_neighbour_lightglue(official_checkpoint), folder / "superpoint_lightglue.pth")
+    images = Images([corridor.database[row] for row in PLACES], variants(corridor, tmp_path))
+    given = worst_first(len(PLACES))
+    stage = create_stage(NAME, {"k": len(PLACES), "weights": str(folder), "resize": 64, "max_keypoints": 48,
+                                "depth_confidence": -1, "width_confidence": -1})
+    found = stage.apply(given, StageContext(dataset=images, database=None, queries=None, cache_dir=tmp_path / "cache"))
+    assert_oracle(given, found)
+    assert (found.scores[:, 0] > found.scores[:, 1]).all()  # first by a margin, not by the tie rule

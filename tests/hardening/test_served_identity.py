@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from vprbench.cli.main import main
 from vprbench.evaluation import read_results
+from vprbench.spec import resolve_spec
 
 PLAN = ('search = { index = "hnsw", options = { hnsw_m = 2 } }\n\n[[methods]]\nname = "hog"\n'
         'options = { resize = [32, 32] }\n\n[[datasets]]\nname = "corridor"\n')
@@ -144,3 +145,21 @@ def test_a_sweep_does_not_serve_a_record_a_stage_no_longer_computes(shared_data,
     assert len(run()) == 2  # the new record is found again
     monkeypatch.setattr(AlphaQE, "fingerprint", lambda self: {})
     assert len(run()) == 2  # and the old code's record (no fingerprint in it) for the default again
+
+
+def test_an_approximate_search_as_deep_as_its_largest_k_is_a_row_of_its_own(shared_data, tmp_path):
+    """hnsw's unset shortlist (and ef_search) follow the largest K: K 1 5 searched a shortlist of 100, K 1 5 111
+    one of 111, yet both runs had one leaderboard row, whose cells showed either search's Recall@1."""
+    from vprbench.evaluation import evaluate
+    from vprbench.spec import RunSettings, RunSpec
+
+    settings = RunSettings(data_dir=shared_data, cache_dir=tmp_path)
+    records = [evaluate(resolve_spec("hog", "corridor", options={"resize": [32, 32]}, search="hnsw", ks=ks,
+                                     data_dir=shared_data), settings) for ks in ((1, 5), (1, 5, 111))]
+    searched = [r["search"]["options"]["shortlist"] for r in records]
+    rows = {RunSpec.model_validate(r["spec"]).row_key for r in records}
+    assert searched == [100, 111] and len(rows) == 2, "two searches shown in one leaderboard row"
+    # what is written is what ran: the spec read back searches as its record did
+    assert RunSpec.model_validate(records[1]["spec"]).search.options == {"shortlist": 111}
+    shallow = resolve_spec("hog", "corridor", search="hnsw", stages=[{"name": "aqe", "k": 100}], ks=(1,))
+    assert shallow.search.options == {}  # a run within the default shortlist keeps its identity

@@ -1,5 +1,6 @@
 """Frozen candidates: exported once, re-rankers start from them; a file of another protocol or retriever is refused."""
 import dataclasses
+import shutil
 
 import h5py
 import pytest
@@ -49,6 +50,8 @@ def edited(path, tmp_path, **attrs):
 @pytest.mark.parametrize("spec_parts, attrs, message", [
     ({}, {"protocol_hash": "0" * 16, "protocol_id": "corridor:other"},
      r"was exported under protocol corridor:other \(0000000000000000\), not this run's corridor:vpr-bench"),
+    # before: accepted, its rows indexing another copy's images scored against this copy's ground truth
+    ({}, {"images_key": "0" * 16}, "was exported on other images of corridor than this run's"),
     ({"options": {"resize": [32, 32]}}, {}, r"was exported by another retriever \(hog \{\}\), not this run's hog"),
     ({"stages": [{"name": "aqe", "k": 50}]}, {}, r"holds the top 30 per query, but this run needs 50"),
     ({}, {"indices": 5000}, "holds indices outside the 111 database images"),
@@ -66,6 +69,23 @@ def test_a_file_that_does_not_fit_the_run_is_refused(shared_data, exported, tmp_
         evaluate(spec, dataclasses.replace(settings, candidates=edited(path, tmp_path, **attrs)))
 
 
+def test_a_file_from_another_copy_of_the_dataset_is_refused(shared_data, exported, tmp_path):
+    """Same name and protocol, two reference images swapped: the file's rows index the other copy's images."""
+    _, settings = exported
+    ref = tmp_path / "copy" / "corridor" / "ref"
+    shutil.copytree(shared_data / "corridor", ref.parent)
+    first, other = ref / "0000000.jpg", ref / "0000050.jpg"
+    first_bytes = first.read_bytes()
+    first.write_bytes(other.read_bytes())
+    other.write_bytes(first_bytes)
+    path = tmp_path / "copy.h5"
+    export_candidates(resolve_spec("hog", "corridor", data_dir=tmp_path / "copy"),
+                      dataclasses.replace(settings, data_dir=tmp_path / "copy"), path, k=30)
+    spec = resolve_spec("hog", "corridor", stages=RERANK, ks=(1, 5), data_dir=shared_data)
+    with pytest.raises(VPRBenchError, match="was exported on other images of corridor than this run's"):
+        evaluate(spec, dataclasses.replace(settings, candidates=path))
+
+
 def test_export_needs_a_retriever_without_stages(shared_data, exported, tmp_path):
     _, settings = exported
     with pytest.raises(VPRBenchError, match="candidates export writes a retriever's candidates"):
@@ -74,3 +94,19 @@ def test_export_needs_a_retriever_without_stages(shared_data, exported, tmp_path
     with pytest.raises(VPRBenchError, match="500 candidates per query asked for, but the database of corridor holds 111"):
         export_candidates(resolve_spec("hog", "corridor", data_dir=shared_data), settings, tmp_path / "x.h5", k=500)
     assert not (tmp_path / "x.h5").exists()
+
+
+def test_a_file_searched_deeper_by_an_approximate_index_is_not_a_shallower_run(shared_data, stage_cache, tmp_path):
+    """hnsw exported with --k 111 searched a shortlist of 111; a re-ranking of its top 100 took the file for the run
+    that searches a shortlist of 100 (one spec key, other candidates). It is refused, and taken by the run as deep."""
+    settings = RunSettings(data_dir=shared_data, cache_dir=stage_cache)
+    path = tmp_path / "hnsw.h5"
+    export_candidates(resolve_spec("hog", "corridor", search="hnsw", data_dir=shared_data), settings, path, k=111)
+    rerank = {"stages": [{"name": "aqe", "k": 100, "n": 2}], "ks": (1, 5), "data_dir": shared_data}
+    shallow = resolve_spec("hog", "corridor", search="hnsw", **rerank)
+    with pytest.raises(VPRBenchError, match=r"exported by another retriever \(hog \{.*\}, search .*'shortlist': 111"):
+        evaluate(shallow, dataclasses.replace(settings, candidates=path))
+    deep = resolve_spec("hog", "corridor", search={"index": "hnsw", "options": {"shortlist": 111}}, **rerank)
+    frozen = evaluate(deep, dataclasses.replace(settings, candidates=path))
+    assert frozen["spec_key"] != shallow.key
+    assert frozen["per_query"]["database_indices"] == evaluate(deep, settings)["per_query"]["database_indices"]

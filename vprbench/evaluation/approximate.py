@@ -40,6 +40,15 @@ def check_options(kind: str, options: dict) -> None:
             raise VPRBenchError(f"--index {kind} option {name} takes at most {LARGEST}; got {value}.")
 
 
+def searched_to(search, depth: int):
+    """`search` (a SearchSpec) as it runs for `depth` candidates per query: an unset shortlist (and hnsw's
+    ef_search after it) follows the depth past its default, so a deeper search is written out, in the spec's
+    identity and its leaderboard row, not hidden in the row of a shallower one with other numbers."""
+    if not search.approximate or "shortlist" in search.options or depth <= DEFAULTS["shortlist"]:
+        return search
+    return search.model_copy(update={"options": {**search.options, "shortlist": int(depth)}})
+
+
 def index_options(kind: str, n: int, dim: int, k: int, given: dict | None) -> dict:
     """Every option of `kind`, defaults filled in for this database, checked against its size."""
     given = dict(given or {})

@@ -3,12 +3,13 @@ compared on exactly the same candidates.
 
     indices  int64 (queries, K)    database rows, best first
     scores   float32 (queries, K)  the retriever's similarities
-    attrs    format, version, protocol hash and id, the retriever's spec (JSON) and its identity,
-             the search's info, K
+    attrs    format, version, protocol hash and id, the images' key (their names, order and contents),
+             the retriever's spec (JSON) and its identity, the search's info, K
 
 A re-ranking run started from a file (`--candidates FILE`) refuses one exported under another
-protocol or by another retriever (method, options, weights, search, store), and names the file
-and its sha256 in its record.
+protocol, on other images (another copy of the dataset: files changed or in another order) or by
+another retriever (method, options, weights, search, store), and names the file and its sha256 in
+its record.
 """
 from __future__ import annotations
 
@@ -33,8 +34,14 @@ def retriever_identity(spec) -> dict:
     return {**spec.row_identity(), "stages": []}
 
 
-def write_candidates(path: Path, spec, found) -> Path:
-    """`found` (a SearchResult) of `spec`'s retriever, written whole or not at all."""
+def images_key(dataset, cache_dir=None) -> str:
+    """The dataset's images as the candidates index them: each split's names, order and contents. The protocol
+    hash names a benchmark's split, not the copy of its files: candidates of another copy index other images."""
+    return canonical_hash(dataset.images_fingerprint(cache_dir))
+
+
+def write_candidates(path: Path, spec, found, images: str) -> Path:
+    """`found` (a SearchResult) of `spec`'s retriever on the images `images` (`images_key`), written whole or not at all."""
     from ..store.rows_file import hdf5_written
 
     path = Path(path)
@@ -44,15 +51,16 @@ def write_candidates(path: Path, spec, found) -> Path:
             f.create_dataset("indices", data=np.asarray(found.indices, dtype=np.int64))
             f.create_dataset("scores", data=np.asarray(found.scores, dtype=np.float32))
             f.attrs.update({"format": FORMAT, "version": VERSION, "protocol_hash": spec.dataset.protocol_hash,
-                            "protocol_id": spec.dataset.protocol_id, "retriever_spec": canonical_json(retriever.to_json()),
+                            "protocol_id": spec.dataset.protocol_id, "images_key": images, "retriever_spec": canonical_json(retriever.to_json()),
                             "retriever_key": canonical_hash(retriever_identity(spec)), "k": int(found.indices.shape[1]),
                             "search": json.dumps(found.info, default=str, sort_keys=True)})
     return path
 
 
-def read_candidates(path, spec, queries: int, database: int, depth: int) -> dict:
+def read_candidates(path, spec, queries: int, database: int, depth: int, images: str) -> dict:
     """The file's candidates for `spec` ({"found": SearchResult, "file", "sha256", "k"}), after checking it
-    is a candidates file of this protocol and retriever, with every query and at least `depth` columns."""
+    is a candidates file of this protocol, these images (`images_key`) and retriever, with every query and at
+    least `depth` columns."""
     from ..evaluation.search import SearchResult
 
     path = Path(path)
@@ -76,15 +84,23 @@ def read_candidates(path, spec, queries: int, database: int, depth: int) -> dict
         raise VPRBenchError(f"Candidates file {path} was exported under protocol {attrs.get('protocol_id')} "
                             f"({attrs.get('protocol_hash')}), not this run's {spec.dataset.protocol_id} "
                             f"({spec.dataset.protocol_hash}): export candidates on this dataset and protocol.")
+    if attrs.get("images_key") != images:  # same protocol, another copy: its rows index other images
+        raise VPRBenchError(f"Candidates file {path} was exported on " + ("other images of " if attrs.get("images_key")
+                            else "images it does not name (an earlier vprbench's file) of ") + f"{spec.dataset.name} "
+                            "than this run's (files changed or in another order): export candidates from this copy "
+                            "of the dataset.")
     if attrs.get("retriever_key") != canonical_hash(retriever_identity(spec)):
         try:
             theirs = json.loads(attrs.get("retriever_spec", "{}"))
             shown = f"{theirs.get('method')} {theirs.get('options')}"
-        except ValueError:
+            ours = spec.search.model_dump()
+            if theirs.get("search", ours) != ours:  # e.g. an hnsw shortlist as deep as the export's --k
+                shown += f", search {theirs['search']}"
+        except (ValueError, AttributeError):
             shown = "an unreadable spec"
         raise VPRBenchError(f"Candidates file {path} was exported by another retriever ({shown}), not this run's "
-                            f"{spec.method} {spec.options} (with its search and store): export candidates with "
-                            "this method and options.")
+                            f"{spec.method} {spec.options}, search {spec.search.model_dump()} (with its store): export "
+                            "candidates with this method, options and search.")
     if indices.ndim != 2 or indices.shape != scores.shape or indices.shape[0] != queries:
         raise VPRBenchError(f"Candidates file {path} holds {indices.shape} candidates for {queries} queries; export "
                             "it again.")
@@ -123,8 +139,11 @@ def export_candidates(spec, settings, path, k: int = DEFAULT_K, progress=None) -
                             "(no --rerank or --sequence).")
     if settings.candidates is not None:
         raise VPRBenchError("candidates export searches; it does not start from --candidates.")
-    run = retrieved(spec, settings, [], progress=progress, depth=_depth(k))
-    write_candidates(path, spec, run.found)
+    from ..evaluation.approximate import searched_to
+
+    spec = spec.model_copy(update={"search": searched_to(spec.search, _depth(k))})  # the search as deep as it runs
+    run = retrieved(spec, settings, [], progress=progress, depth=k)
+    write_candidates(path, spec, run.found, images_key(run.dataset, settings.cache_dir))
     return {"file": str(path), "queries": int(run.found.indices.shape[0]), "k": int(run.found.indices.shape[1])}
 
 
