@@ -101,8 +101,12 @@ def test_local_features_whose_header_cannot_be_read_are_recomputed(kept):
 
 def test_a_damaged_image_group_discards_the_file_and_the_rerun_recovers(kept):
     """Was: HDF5's OSError from inside the re-ranking, on this run and every later one (the
-    damaged file stayed). Now one line naming the file, which is discarded; the rerun recomputes."""
+    damaged file stayed). Now one line naming the file, which is discarded; the rerun recomputes.
+    (Groups are read for segments written without a layout, by earlier versions.)"""
     store, path = kept
+    with h5py.File(path, "a") as f:
+        for key in ("arrays", "row_at", "row_crc32"):
+            del f.attrs[key]
     data = path.read_bytes()
     heaps = [m.start() for m in re.finditer(b"HEAP", data) if b"points" in data[m.start():m.start() + 256]]
     assert heaps  # the local heaps naming each image's arrays
@@ -116,6 +120,23 @@ def test_a_damaged_image_group_discards_the_file_and_the_rerun_recovers(kept):
     found, computed, said = read_all(store)
     assert computed == list(range(ROWS)) and said == []
     assert all(np.array_equal(found[r]["descriptors"], features_of(r)["descriptors"]) for r in range(ROWS))
+
+
+def test_a_layout_past_the_end_of_its_file_discards_the_file_and_the_rerun_recovers(kept):
+    """Where a segment's arrays lie (its layout, read without HDF5) pointing outside the file: one
+    line naming the file, which is discarded; the rerun recomputes."""
+    store, path = kept
+    with h5py.File(path, "a") as f:
+        at = f.attrs["row_at"]
+        at[0, 0, 0] = path.stat().st_size
+        f.attrs["row_at"] = at
+    with pytest.raises(VPRBenchError) as refused:
+        read_all(store)
+    assert str(refused.value).startswith(f"Local features {path} are damaged (image 0 cannot be read: ")
+    assert "lies outside the file" in str(refused.value) and not path.exists()
+    found, computed, said = read_all(store)
+    assert computed == list(range(ROWS)) and said == []
+    assert all(np.array_equal(found[r]["points"], features_of(r)["points"]) for r in range(ROWS))
 
 
 def test_features_written_without_checksums_are_recomputed_once(kept):

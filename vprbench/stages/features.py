@@ -3,6 +3,8 @@
     features/<name>-<identity hash>/<dataset>-<images key>/<split>.<n>.h5   segments 1, 2, ...
         attrs: feature identity (what computed it), images key (the split's names and contents)
         attrs rows, row_bytes: the rows it holds and their arrays' bytes, written last (read instead of every group)
+        attrs arrays, row_at, row_crc32: where each row's arrays lie in the file and their crc32 (read
+            without HDF5: opening a segment per image read cost more than the read; absent: read by group)
         images/<row>/<array>...   one group per image, with its crc32
 
 Keyed like descriptor stores: by what computed the data (the extractor and its options) and the
@@ -45,6 +47,8 @@ SEGMENT_IMAGES = 64
 SEGMENT_BYTES = 16 * 2**20
 #: segments kept open while a split is read (opening one per image read cost ~0.25 ms)
 OPEN_SEGMENTS = 32
+#: dtype kinds whose stored bytes are the values (read by layout; others, e.g. strings HDF5 keeps in a heap, by group)
+PLAIN = "biufc"
 
 
 class FeatureStore:
@@ -74,7 +78,7 @@ class FeatureStore:
         written with the next segment (a killed run resumes from the last one). Holds the folder's lock."""
         with lock(self.path / ".lock", self.lock_timeout, what=f"local features {self.path}"):
             remove_stale(self.path.glob(f".{split}.*.tmp"), age_s=0)  # a killed writer's (we hold the lock)
-            where = self._index(split)
+            where, layouts = self._index(split)
             kept: OrderedDict[int, dict] = OrderedDict()
             waiting: dict[int, dict] = {}  # computed, not yet written
             held, damaged, failed = 0, {}, False
@@ -94,7 +98,8 @@ class FeatureStore:
                     return kept[row]
                 found = waiting.get(row)
                 if found is None and row in where:
-                    found = self._read(readers, where[row], row)
+                    path = where[row]
+                    found = _read_at(path, layouts[path], row) if path in layouts else self._read(readers, path, row)
                     if found is False:
                         damaged.setdefault(where.pop(row), []).append(row)
                 if not isinstance(found, dict):
@@ -127,11 +132,12 @@ class FeatureStore:
                     warnings.warn(f"Local features of {len(rows)} image(s) ({shown}) in {path} no longer matched "
                                   "the checksums written with them; they were recomputed.", stacklevel=3)
 
-    def _index(self, split: str) -> dict[int, Path]:
-        """row -> the newest segment holding it. A segment HDF5 cannot open (damaged; or the file
-        earlier versions appended to, torn by a kill or a full disk) is discarded: its images are
-        computed again."""
+    def _index(self, split: str) -> tuple[dict[int, Path], dict[Path, "Layout"]]:
+        """row -> the newest segment holding it, and the layout of each segment that has one. A
+        segment HDF5 cannot open (damaged; or the file earlier versions appended to, torn by a kill
+        or a full disk) is discarded: its images are computed again."""
         where: dict[int, Path] = {}
+        layouts: dict[Path, Layout] = {}
         for path in self.files(split):
             try:
                 with h5py.File(path, "r") as f:
@@ -139,8 +145,10 @@ class FeatureStore:
                     if rows is None:  # a segment of an earlier version: every group's attributes (~7 ms a file)
                         rows = [int(name) for name, group in f["images"].items()
                                 if group.attrs.get("done") and "crc32" in group.attrs]
+                    elif "row_at" in f.attrs:
+                        layouts[path] = Layout(rows, f.attrs["arrays"], f.attrs["row_at"], f.attrs["row_crc32"])
                     rows = [int(row) for row in rows]
-            except (OSError, RuntimeError, KeyError, ValueError) as error:
+            except (OSError, RuntimeError, KeyError, ValueError, TypeError) as error:
                 if isinstance(error, PermissionError):
                     raise cache_error(error, path) from None
                 try:
@@ -150,7 +158,7 @@ class FeatureStore:
                 continue
             self._check(path, found, images, split)
             where.update(dict.fromkeys(rows, path))
-        return where
+        return where, layouts
 
     def _check(self, path: Path, found, images, split: str) -> None:
         if found == self.identity_json and images == self.images_keys[split]:
@@ -181,12 +189,7 @@ class FeatureStore:
         except (OSError, RuntimeError, KeyError, ValueError, TypeError) as error:
             if path in readers:
                 close_quietly(readers.pop(path))
-            try:
-                path.unlink(missing_ok=True)
-            except OSError as failure:
-                raise cache_error(failure, path) from None
-            raise VPRBenchError(f"Local features {path} are damaged (image {row} cannot be read: {error}); the file "
-                                "was discarded: run again to recompute it.") from None
+            raise _discarded(path, row, error) from None
         return found if crc == _checksum(found) else False
 
     def _write(self, split: str, images: dict[int, dict[str, np.ndarray]]) -> Path:
@@ -200,13 +203,15 @@ class FeatureStore:
                 try:
                     handle.attrs["feature_identity"] = self.identity_json
                     handle.attrs["images_key"] = self.images_keys[split]
+                    written = []  # (datasets, crc32) per row
                     for row, arrays in images.items():
                         group = handle.create_group(f"images/{row}")
-                        for key, value in arrays.items():
-                            group.create_dataset(key, data=value)
-                        group.attrs["crc32"] = _checksum({key: group[key][...] for key in group})  # as stored
-                        group.attrs["done"] = 1
+                        stored = {key: group.create_dataset(key, data=value) for key, value in arrays.items()}
+                        crc = _checksum({key: value[...] for key, value in stored.items()})  # as stored
+                        group.attrs["crc32"], group.attrs["done"] = crc, 1
+                        written.append((stored, crc))
                     # last, so they list only groups written whole; SEGMENT_IMAGES rows at most (64 kB attribute limit)
+                    handle.attrs.update(Layout.of(written))
                     handle.attrs["row_bytes"] = np.array([_size([arrays]) for arrays in images.values()], np.int64)
                     handle.attrs["rows"] = np.fromiter(images, np.int64, len(images))
                     handle.close()
@@ -232,6 +237,69 @@ class FeatureStore:
         except (OSError, KeyError, ValueError):
             return 0.0
         return sum(sizes.values()) / len(sizes) if sizes else 0.0
+
+
+class Layout:
+    """Where a segment's rows lie in its file: each array's offset and first-axis length per row,
+    the arrays' names, dtypes and trailing shapes (the same for every row), each row's crc32."""
+
+    def __init__(self, rows, arrays, row_at, row_crc32):
+        self.position = {int(row): i for i, row in enumerate(rows)}
+        self.arrays = [(str(key), np.dtype(str(dtype)), tuple(map(int, rest))) for key, dtype, rest in json.loads(arrays)]
+        self.at, self.crc = np.asarray(row_at, np.int64), np.asarray(row_crc32, np.int64)
+        if self.at.shape != (len(self.position), len(self.arrays), 2) or self.crc.shape != (len(self.position),):
+            raise ValueError(f"a layout of shape {self.at.shape} for {len(self.position)} rows")
+        if any(dtype.kind not in PLAIN for _, dtype, _ in self.arrays):
+            raise ValueError(f"a layout of arrays of {[str(dtype) for _, dtype, _ in self.arrays]}")
+
+    @staticmethod
+    def of(written: list[tuple[dict[str, h5py.Dataset], int]]) -> dict:
+        """The attributes of a segment of rows `written` (each one's datasets and crc32); none when
+        its arrays are not all stored whole in place with the same names, dtypes and trailing
+        shapes (then read by group)."""
+        specs = [[(key, d.dtype.str, d.shape[1:]) for key, d in sorted(stored.items())] for stored, _ in written]
+        if any(spec != specs[0] for spec in specs) or any(d.dtype.kind not in PLAIN for d in written[0][0].values()):
+            return {}
+        at = []
+        for stored, _ in written:
+            arrays = [stored[key] for key, _, _ in specs[0]]
+            offsets = [a.id.get_offset() for a in arrays]
+            if any(a.ndim == 0 or offset is None and a.size for offset, a in zip(offsets, arrays)):  # chunked, compact
+                return {}
+            at.append([(-1 if offset is None else offset, a.shape[0]) for offset, a in zip(offsets, arrays)])
+        return {"arrays": json.dumps(specs[0]), "row_at": np.array(at, np.int64).reshape(len(written), len(specs[0]), 2),
+                "row_crc32": np.array([crc for _, crc in written], np.int64)}
+
+
+def _read_at(path: Path, layout: Layout, row: int) -> dict[str, np.ndarray] | bool:
+    """The image's arrays read at their offsets (one plain file read each, no HDF5), False when
+    they no longer match their crc32 (recomputed). A layout past the file's end discards the segment."""
+    i = layout.position[row]
+    try:
+        with open(path, "rb") as f:
+            end, found = os.fstat(f.fileno()).st_size, {}
+            for (key, dtype, rest), (offset, length) in zip(layout.arrays, layout.at[i].tolist()):
+                size = length * dtype.itemsize * int(np.prod(rest))
+                if length < 0 or size and not 0 <= offset <= end - size:
+                    raise ValueError(f"{key} at {offset} ({size} bytes) lies outside the file ({end} bytes)")
+                found[key] = value = np.empty((length, *rest), dtype)
+                if size:
+                    f.seek(offset)
+                    if f.readinto(value) != size:
+                        raise ValueError(f"{key} at {offset} was cut short")
+    except (OSError, ValueError) as error:
+        raise _discarded(path, row, error) from None
+    return found if int(layout.crc[i]) == _checksum(found) else False
+
+
+def _discarded(path: Path, row: int, error: Exception) -> VPRBenchError:
+    """The damaged segment `path` deleted (its images are computed again on the next run); the error saying so."""
+    try:
+        path.unlink(missing_ok=True)
+    except OSError as failure:
+        return cache_error(failure, path)
+    return VPRBenchError(f"Local features {path} are damaged (image {row} cannot be read: {error}); the file "
+                         "was discarded: run again to recompute it.")
 
 
 def _size(images) -> int:
