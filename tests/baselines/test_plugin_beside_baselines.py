@@ -83,3 +83,39 @@ def test_plugin_and_baseline_share_the_leaderboard(with_plugin, capsys, tmp_path
     assert "none (nothing learnt)" in rows["thumbnail"] and "†" not in rows["thumbnail"]
     assert f"{baseline['recall']['1']:.1f} / {baseline['recall']['5']:.1f}" in rows[cosplace]
     assert f"{plugin['recall']['1']:.1f} / {plugin['recall']['5']:.1f}" in rows["thumbnail"]
+
+
+def test_the_weights_snippet_builds_a_method_from_the_run_cache(tmp_path, monkeypatch):
+    # section 5's factory, copied into a package of one's own: with no --weights it finds the release
+    # in <cache>/torch of the run's cache_dir (put there as a download would), so it must take cache_dir
+    (snippet,) = [b for b in re.findall(r"```python\n(.*?)```", DOC.read_text(), flags=re.S) if "load_checkpoint" in b]
+    package = tmp_path / "my_package"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "network.py").write_text(
+        "import torch\n\nclass MyNet(torch.nn.Module):\n"
+        "    def __init__(self):\n        super().__init__()\n        self.proj = torch.nn.Linear(3, 512)\n\n"
+        "    def forward(self, x):\n        return self.proj(x.mean((2, 3)))\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    try:
+        from my_package.network import MyNet
+
+        scope: dict = {}
+        exec(compile(snippet, str(DOC), "exec"), scope)
+        release = tmp_path / "cache" / "torch" / "hub" / "checkpoints" / "my_net_512.pth"
+        release.parent.mkdir(parents=True)
+        torch.save(MyNet().state_dict(), release)
+        method = scope["my_net"](resize=(32, 32), cache_dir=tmp_path / "cache")
+        assert method.fingerprint()["weights_url"] == "https://example.org/my_net_512.pth"
+        assert method.provenance()["weights"]["source"] == "official"
+    finally:
+        for name in ("my_package", "my_package.network"):
+            sys.modules.pop(name, None)
+
+
+def test_the_baselines_table_lists_every_released_mixvpr_dimension():
+    # section "Baselines and where their weights come from": mixvpr's row names its -o dim choices
+    from vprbench_baselines.mixvpr import CONFIGS
+
+    (row,) = [line for line in DOC.read_text().splitlines() if line.startswith("| `mixvpr`")]
+    assert all(str(dim) in row for dim in CONFIGS), row

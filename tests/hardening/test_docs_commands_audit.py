@@ -107,3 +107,14 @@ def test_the_stage_snippet_of_stages_md_defines_a_stage(tmp_path):
 
     with pytest.raises(pydantic.ValidationError):
         scope["ConsensusOptions"](n=0)
+
+
+def test_every_candidates_file_stages_md_reranks_from_is_one_it_exports():
+    # docs/stages.md: a reader copying the commands in order has only the files `candidates export --out` wrote
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[2] / "docs" / "stages.md").read_text()
+    exported = set(re.findall(r"--out (\S+\.h5)", text))
+    used = set(re.findall(r"--candidates (\S+\.h5)", text))
+    assert used and used <= exported, used - exported
