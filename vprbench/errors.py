@@ -37,6 +37,36 @@ def require(value, kind, what: str) -> None:
         raise VPRBenchError(f"{what}; got {type(value).__name__} {reprlib.repr(value)}.")
 
 
+# ---------------------------------------------------------------- network errors
+def network_reason(error: BaseException) -> str:
+    """Why a download failed, in a few words: an HTTP status, else the innermost operating-system
+    reason ('Connection refused'), else the error's first line. The clients wrap it in layers
+    (requests > urllib3 > socket) whose text repeats the host, port and path at length."""
+    found, pending, seen = None, [error], set()
+    while pending:
+        current = pending.pop(0)
+        if current is None or id(current) in seen or not isinstance(current, BaseException):
+            continue
+        seen.add(id(current))
+        status = getattr(getattr(current, "response", None), "status_code", None) or getattr(current, "code", None)
+        if isinstance(status, int) and 400 <= status < 600:
+            return f"HTTP {status}"
+        if isinstance(current, TimeoutError) or "timed out" in str(current).lower():
+            found = found or "timed out"
+        if isinstance(current, OSError) and current.strerror:
+            found = current.strerror  # the innermost wins: it is the one the others wrap
+        pending += [current.__cause__, current.__context__, getattr(current, "reason", None), *current.args]
+    text = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+    return found or (text if len(text) <= 160 else text[:157] + "...")
+
+
+def url_host(url: str) -> str:
+    """The host (and port) of `url`, which names where a download went without its long path."""
+    from urllib.parse import urlsplit
+
+    return urlsplit(url).netloc or url
+
+
 # ---------------------------------------------------------------- operating-system errors
 #: errno -> what to do; {move} becomes "point --cache-dir at" (or --data-dir) when the path lies under one
 _WHAT_TO_DO = {

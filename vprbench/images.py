@@ -28,6 +28,7 @@ import numpy as np
 from PIL import Image, ImageOps, UnidentifiedImageError
 
 from .errors import VPRBenchError
+from .paths import regular_file
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".ppm", ".webp")
 #: the Pillow decoders for IMAGE_SUFFIXES (JPEG includes multi-picture MPO files)
@@ -151,8 +152,14 @@ def list_images(folder: Path, *, recursive: bool = False, natural: bool = False)
     """The image files in `folder` (and below it when `recursive`), sorted by path, or in natural
     name order when `natural` (the order a released dataset's ground truth indexes)."""
     found = folder.rglob("*") if recursive else folder.iterdir()
-    images = [p for p in found if p.suffix.lower() in IMAGE_SUFFIXES and (p.is_file() or _refuse_dead_link(p))]
+    images = [p for p in found if p.suffix.lower() in IMAGE_SUFFIXES and _is_image_file(p)]
     return sorted(images, key=natural_key if natural else None)
+
+
+def _is_image_file(path: Path) -> bool:
+    """A file to read; False for a folder named like an image; an error for a named pipe (reading
+    it would hang) or a device, and for a link that leads nowhere (skipping it would drop an image unseen)."""
+    return _refuse_dead_link(path) if path.is_symlink() and not path.exists() else regular_file(path, "Image")
 
 
 def _refuse_dead_link(path: Path) -> bool:

@@ -5,8 +5,10 @@ environment ($VPRBENCH_CACHE, $VPRBENCH_DATA) for their defaults.
 """
 from __future__ import annotations
 
+import errno
 import os
 import re
+import stat
 from pathlib import Path
 
 CACHE_ENV = "VPRBENCH_CACHE"
@@ -33,14 +35,14 @@ def folder_path(value, option: str) -> Path | None:
     return Path(value).expanduser()
 
 
-def cache_root(cache_dir: str | Path | None = None) -> Path:
+def cache_root(cache_dir: str | Path | None = None, option: str = "cache_dir") -> Path:
     """`cache_dir`, else the user cache folder; a cache folder that is a file is refused (reading
-    it would find nothing, silently)."""
-    root = default_cache() if cache_dir is None else folder_path(cache_dir, "cache_dir")
+    it would find nothing, silently). `option` names where it was given, for the message."""
+    root = default_cache() if cache_dir is None else folder_path(cache_dir, option)
     if root.exists() and not root.is_dir():
         from .errors import VPRBenchError
 
-        raise VPRBenchError(f"The cache folder {root} (cache_dir) is a file, not a folder: give the folder "
+        raise VPRBenchError(f"The cache folder {root} ({option}) is a file, not a folder: give the folder "
                             "vprbench keeps its stores and results in.")
     return root
 
@@ -57,6 +59,44 @@ def environment_folder(given: str | None, variable: str, option: str = "") -> st
 
         raise VPRBenchError(f"{source} is {value!r}, which names no folder: give a folder, or leave it unset.")
     return value
+
+
+def _link_loop(path, what: str):
+    from .errors import VPRBenchError
+
+    return VPRBenchError(f"{what} {path}: a symbolic link in this path leads back to itself; fix or remove the link, "
+                         "or give another path.")
+
+
+def regular_file(path, what: str) -> bool:
+    """Whether `path` (links followed) is a regular file, checked before any read: False when nothing
+    (or a folder) is there, which callers explain their way; an error naming `what` for anything else:
+    a named pipe would hang the read, a device read forever, a link loop say nothing of the link."""
+    from .errors import VPRBenchError, require
+
+    require(path, (str, os.PathLike), f"{what}: give a file path (a str or pathlib.Path)")
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as error:
+        if error.errno == errno.ELOOP:
+            raise _link_loop(path, what) from None
+        return False  # missing, or not reachable: the caller's own message, or its open(), says which
+    if stat.S_ISREG(mode) or stat.S_ISDIR(mode):
+        return stat.S_ISREG(mode)
+    raise VPRBenchError(f"{what} {path} is not a regular file (a named pipe, device or socket): give a file.")
+
+
+def resolved(path, what: str) -> Path:
+    """Path(path).resolve(), a link loop being one line naming `what` (Python < 3.13 raises a RuntimeError)."""
+    from .errors import require
+
+    require(path, (str, os.PathLike), f"{what}: give a path (a str or pathlib.Path)")
+    try:
+        return Path(path).expanduser().resolve()
+    except RuntimeError as error:
+        if not str(error).startswith("Symlink loop"):
+            raise
+        raise _link_loop(path, what) from None
 
 
 def safe_name(text: str, limit: int = 60) -> str:

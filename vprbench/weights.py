@@ -17,8 +17,8 @@ from importlib.resources import files
 from pathlib import Path
 
 from . import fsutil
-from .errors import VPRBenchError
-from .paths import cache_root
+from .errors import VPRBenchError, network_reason, require
+from .paths import cache_root, regular_file
 
 _SHA256: dict[tuple, str] = {}
 
@@ -57,6 +57,7 @@ def read_torch_file(path: str | Path, what: str = "checkpoint", *, mmap: bool = 
     """
     import torch
 
+    regular_file(path, what.capitalize())  # before torch: a named pipe would hang it, None fail deep inside
     path = Path(path)
     # torch.load reads any path named *.safetensors as safetensors; this reads PyTorch files, whatever
     # their name: such a file is given as an open file (which cannot be mapped)
@@ -164,7 +165,7 @@ def local_weights(source: WeightSource, weights: str | Path, what: str) -> Path:
         raise VPRBenchError(f"{what}: weights 'random' (random initialisation) are only for AnyLoc backbones and "
                             "the stages that take them; pass a weights file in the official format instead: "
                             f"{source.how_to_get()}.")
-    if not path.is_file():
+    if not regular_file(path, f"{what}: weights file"):
         gated = f" The weights are gated ({source.licence}): request access at {source.page or source.where} first." \
             if source.gated else ""
         raise VPRBenchError(f"{what}: weights file {path} does not exist; {source.how_to_get()}.{gated}")
@@ -260,12 +261,13 @@ def resolve_weights(source: WeightSource, weights: str | Path | None, what: str,
         gated = f" The model is gated ({source.licence}): access is requested at {source.page or source.where}." \
             if source.gated else ""
         raise VPRBenchError(f"{what}: could not download {source.file_name} from {source.where} "
-                            f"({type(error).__name__}: {error}). Offline? {source.how_to_get()}.{gated}") from None
+                            f"({network_reason(error)}). Offline? {source.how_to_get()}.{gated}") from None
     return ResolvedWeights(found, identity)
 
 
 def read_weights_file(path: str | Path, what: str = "weights file"):
     """A checkpoint's content: a .safetensors file's tensors, else `read_torch_file`."""
+    regular_file(path, what.capitalize())
     path = Path(path)
     if _safetensors_content(path):
         from safetensors import SafetensorError
@@ -309,6 +311,8 @@ def weights_provenance(identity: str | None) -> dict:
     """
     if identity is None:
         return {"source": "random"}
+    require(identity, str, "weights_provenance takes a weights identity (a URL, 'hf:REPO/FILE' or 'sha256:HEX'), "
+                           "or None for random weights")
     if identity.startswith("hf:"):
         repo, _, name = identity.removeprefix("hf:").rpartition("/")
         return {"source": "official", "hub": repo, "file": name, "recognised_by": "download"}

@@ -30,7 +30,7 @@ import torch.nn.functional as F
 
 from ..errors import VPRBenchError
 from ..fsutil import atomic_write, remove_stale, temporaries_of
-from ..paths import cache_root, portable_name
+from ..paths import cache_root, portable_name, regular_file
 from ..weights import read_torch_file
 
 #: AnyLoc's k-means settings (fast_pytorch_kmeans 0.1.6 defaults + AnyLoc's seed)
@@ -212,7 +212,7 @@ def load_vocabulary(path: str | Path) -> Vocabulary:
         if held is None:
             raise VPRBenchError(f"Folder {path} holds neither {VOCABULARY_FILE} nor {RELEASED_FILE}.")
         path = held
-    if not path.is_file():
+    if not regular_file(path, "Vocabulary file"):
         raise VPRBenchError(f"Vocabulary file {path} does not exist: check the path (a .pt or .npy file of centres, "
                             f"or a folder holding {VOCABULARY_FILE} or {RELEASED_FILE}).")
     if path.suffix == ".npy":

@@ -14,6 +14,7 @@ import tarfile
 from pathlib import Path, PurePosixPath
 
 from ..errors import VPRBenchError
+from ..paths import regular_file
 from .export import CARDS, FORMAT, FORMAT_VERSION, MANIFEST
 
 #: the most bytes a bundle may unpack to (an MSLS-size run is ~10 MB); `--max-size` raises it
@@ -53,6 +54,7 @@ def read_members(path: Path, max_bytes: int = MAX_BYTES) -> dict[str, bytes]:
     """Every member of the bundle at `path`, by name, read within `max_bytes`; a BundleError
     naming the archive and the member at fault otherwise."""
     where = str(path)
+    regular_file(path, "The bundle")  # a named pipe would hang the read
     try:
         raw = open(path, "rb")
     except OSError as error:

@@ -8,14 +8,14 @@ import warnings
 from ..errors import VPRBenchError
 from ..text import literal, quantity
 from .console import console, say, styled
-from .options import add_location_options, resolve_locations
+from .options import add_location_options, refuse_unused, resolve_locations
 
 
 def add_parsers(commands) -> None:
     datasets = commands.add_parser("datasets", help="list datasets, show their counts, get them")
     sub = datasets.add_subparsers(dest="datasets_command", required=True, metavar="COMMAND")
     p = sub.add_parser("list", help="every dataset with its domain and whether it is on disk")
-    add_location_options(p)
+    add_location_options(p, cache=False)
     p.add_argument("--json", action="store_true")
     p.set_defaults(run=run_list)
     p = sub.add_parser("info", help="counts, positives, unit and radius of one dataset, and its protocols")
@@ -27,18 +27,18 @@ def add_parsers(commands) -> None:
     p.set_defaults(run=run_info)
     p = sub.add_parser("download", help="fetch a dataset with a direct source, else print how to get it")
     p.add_argument("name")
-    add_location_options(p)
+    add_location_options(p, cache=False)
     p.add_argument("--no-strict", dest="strict", action="store_false", help="only warn when counts differ from the manifest")
     p.set_defaults(run=run_download)
     p = sub.add_parser("import", help="register a copy of a dataset already on disk (checked first)")
     p.add_argument("name")
     p.add_argument("path", help="folder holding the dataset in its release layout (or a supported alternative)")
-    add_location_options(p)
+    add_location_options(p, cache=False)
     p.add_argument("--strict", action="store_true", help="refuse when counts differ from the manifest")
     p.set_defaults(run=run_import)
     p = sub.add_parser("verify", help="check a dataset on disk: layout, counts, ground truth, images")
     p.add_argument("name", help="dataset name or a folder of your own")
-    add_location_options(p)
+    add_location_options(p, cache=False)
     p.add_argument("--strict", action="store_true", help="counts that differ from the manifest are errors")
     p.add_argument("--sample", type=int, default=20, help="images decoded per split (default 20)")
     p.add_argument("--all-images", action="store_true", help="decode every image")
@@ -78,8 +78,16 @@ def run_list(args) -> int:
 def run_info(args) -> int:
     from rich.table import Table
 
-    from ..datasets import dataset_location, dataset_manifest, dataset_manifests, load_dataset, protocols
+    from ..datasets import dataset_location, dataset_manifest, dataset_manifests, is_path, load_dataset, protocols
 
+    if args.protocols:  # read from the manifest alone
+        for dest in ("data_dir", "cache_dir"):
+            refuse_unused(args, dest, "with --protocols (the protocols need no data)")
+    elif is_path(args.name):  # a folder of your own: no data root; its images' identities are remembered in the cache
+        refuse_unused(args, "data_dir", f"for a folder of your own ({args.name})")
+    else:
+        refuse_unused(args, "cache_dir", f"for dataset {args.name!r} (the cache only remembers a folder of your own's "
+                                         "image identities)")
     resolve_locations(args)
     if args.protocols:
         if args.protocol is not None:  # ignored, it would let a user think the list was narrowed to it
@@ -92,7 +100,7 @@ def run_info(args) -> int:
             console().print(protocol_table(args.name, listed))
         return 0
     try:
-        dataset = load_dataset(args.name, args.data_dir, fetch=False, protocol=args.protocol)
+        dataset = load_dataset(args.name, args.data_dir, fetch=False, protocol=args.protocol, cache_dir=args.cache_dir)
     except VPRBenchError as error:
         if args.name in dataset_manifests() and not dataset_location(dataset_manifest(args.name), args.data_dir).exists():
             raise VPRBenchError(f"{error} Its protocols need no data: 'vprbench datasets info {args.name} --protocols'.") from None
@@ -160,8 +168,10 @@ def run_import(args) -> int:
 
 
 def run_verify(args) -> int:
-    from ..datasets import verify_dataset
+    from ..datasets import is_path, verify_dataset
 
+    if is_path(args.name):
+        refuse_unused(args, "data_dir", f"for a folder of your own ({args.name})")
     resolve_locations(args)
     report = verify_dataset(args.name, args.data_dir, strict=args.strict, sample=None if args.all_images else args.sample)
     if args.json:

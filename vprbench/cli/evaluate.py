@@ -14,8 +14,8 @@ from ..errors import DESCRIBED, VPRBenchError
 from ..text import plural
 from .console import console as make_console
 from .options import (add_location_options, add_method_options, add_run_options, add_spec_options, add_sweep_options,
-                      explicit_run_options, method_options, output_file, path_argument, progress, resolve_locations,
-                      run_settings, spec_overrides)
+                      explicit_run_options, method_options, output_file, path_argument, progress, refuse_unused,
+                      resolve_locations, run_settings, spec_overrides)
 
 
 def add_parsers(commands) -> None:
@@ -54,8 +54,11 @@ def add_parsers(commands) -> None:
 
 
 def run_evaluate(args) -> int:
+    from ..datasets import is_path
     from ..distributed import Ranks
 
+    if all(is_path(name) for name in args.dataset):  # folders of your own are read where they are
+        refuse_unused(args, "data_dir", "when every --dataset is a folder of your own")
     resolve_locations(args)
     if args.inline_arrays and not args.json:  # it would be ignored, silently
         raise VPRBenchError("--inline-arrays is for --json (the record printed as JSON): add --json, or drop it.")
@@ -172,6 +175,8 @@ def run_describe(args) -> int:
     from ..loader import use_dataset
     from ..row_sources import DEFAULT_MEMORY_BUDGET
 
+    if args.dataset is None:  # the images are given as paths: no dataset is looked up
+        refuse_unused(args, "data_dir", "without --dataset (the images are read from the paths given)")
     resolve_locations(args)
     settings = run_settings(args)
     root, label = None, f"describe-{args.dataset or 'images'}"

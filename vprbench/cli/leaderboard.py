@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from ..errors import VPRBenchError
 from .console import console, say
-from .options import path_argument, resolve_locations
+from .options import path_argument, refuse_unused, resolve_locations
 
 FORMATS = ("table", "markdown", "csv", "json")
 
@@ -37,6 +37,8 @@ def run(args) -> int:
     from ..leaderboard import build_board, grid, publish, render
     from ..leaderboard.stats import check_k_and_seed
 
+    if args.action != "publish":
+        refuse_unused(args, "data_dir", f"by 'leaderboard {args.action}' (only 'publish' reads images, for its mosaics)")
     resolve_locations(args)
     for flag, value, action in (("--to", args.to, "publish"), ("--dataset", args.dataset, "compare"),
                                 ("--k", args.k, "compare")):

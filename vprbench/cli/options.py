@@ -25,19 +25,45 @@ DEFAULT_LEASE_S = 120.0
 
 
 def resolve_locations(args) -> None:
-    """--data-dir / --cache-dir as given, else from the environment; error messages learn them."""
-    from ..paths import CACHE_ENV, DATA_ENV, environment_folder
+    """--data-dir / --cache-dir as given, else from the environment; error messages learn them. A
+    cache folder that is a file is refused here, on every command (one that reads nothing from it
+    would otherwise go on as if it were fine)."""
+    from ..paths import CACHE_ENV, DATA_ENV, cache_root, environment_folder
 
     if hasattr(args, "data_dir"):
         args.data_dir = environment_folder(args.data_dir, DATA_ENV, "--data-dir")
     if hasattr(args, "cache_dir"):
+        source = "--cache-dir" if args.cache_dir is not None else f"${CACHE_ENV}"
         args.cache_dir = environment_folder(args.cache_dir, CACHE_ENV, "--cache-dir")
+        if args.cache_dir is not None:
+            cache_root(args.cache_dir, source)
     name_roots(cache_dir=getattr(args, "cache_dir", None), data_dir=getattr(args, "data_dir", None))
 
 
-def add_location_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data-dir", help="data root holding the datasets (default: $VPRBENCH_DATA or the user cache)")
-    parser.add_argument("--cache-dir", help="where descriptor stores, vocabularies and results live (default: $VPRBENCH_CACHE or the user cache)")
+def refuse_unused(args, dest: str, why: str) -> None:
+    """An option given that this route of the command does not use is refused, not ignored: the user
+    meant it to matter. Called before `resolve_locations` (the environment's defaults are no option
+    given). `why` completes "--flag VALUE is not used ...", e.g. "without --dataset"."""
+    value = getattr(args, dest, None)
+    if value is not None:
+        raise VPRBenchError(f"--{dest.replace('_', '-')} {value} is not used {why}: leave it out.")
+
+
+class Unused(argparse.Action):
+    """An option this command never uses: left out of --help, and refused by name when given."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        parser.error(f"{option_string} is not used by '{parser.prog}': leave it out")
+
+
+def add_location_options(parser: argparse.ArgumentParser, *, data: bool = True, cache: bool = True) -> None:
+    """The folder options; one a command never uses is refused (ignored, it would look as if it mattered)."""
+    parser.add_argument("--data-dir", **({} if data else {"action": Unused, "default": argparse.SUPPRESS}),
+                        help="data root holding the datasets (default: $VPRBENCH_DATA or the user cache)"
+                        if data else argparse.SUPPRESS)
+    parser.add_argument("--cache-dir", **({} if cache else {"action": Unused, "default": argparse.SUPPRESS}),
+                        help="where descriptor stores, vocabularies and results live (default: $VPRBENCH_CACHE or the "
+                             "user cache)" if cache else argparse.SUPPRESS)
 
 
 # ---------------------------------------------------------------- method options

@@ -41,7 +41,7 @@ def add_parsers(commands) -> None:
     p.add_argument("--layer", type=int, default=31)
     p.add_argument("--facet", default="value")
     p.add_argument("--stride", type=int, help="the patch stride the centres were fitted at (default: the backbone's own)")
-    add_location_options(p)
+    add_location_options(p, data=False)
     p.set_defaults(run=run_import)
 
     p = sub.add_parser("show", help="print a vocabulary file's shape, what it was fitted on, and its metadata")
@@ -57,7 +57,7 @@ def add_parsers(commands) -> None:
     p.set_defaults(run=run_domains)
 
     p = sub.add_parser("download", help="fetch the authors' released centres ahead of time (sha256-checked)")
-    add_location_options(p)
+    add_location_options(p, data=False)
     p.set_defaults(run=run_download)
 
 

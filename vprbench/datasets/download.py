@@ -1,11 +1,12 @@
 """Fetching a dataset whose manifest names a stable direct source (pooch, sha256-checked)."""
 from __future__ import annotations
 
+import contextlib
 import shutil
 from importlib.resources import files
 from pathlib import Path
 
-from ..errors import VPRBenchError
+from ..errors import VPRBenchError, network_reason, url_host
 from .manifest import DatasetManifest, default_data_root
 
 
@@ -41,9 +42,14 @@ def download(manifest: DatasetManifest, root: Path, progress: bool = True) -> Pa
         try:
             fetcher.fetch(relative, progressbar=False)
         except Exception as error:  # network or checksum failure: keep partial for resuming
+            with contextlib.suppress(OSError):
+                partial.rmdir()  # nothing fetched (the folder is empty): none left behind
+            kept = f"Files fetched so far stay in {partial}; rerun to resume." if partial.exists() else \
+                "Check the network and rerun."
             raise VPRBenchError(
-                f"Downloading {manifest.name!r} from {manifest.download['base_url']} failed at {relative}: "
-                f"{str(error).rstrip('.')}. Files fetched so far stay in {partial}; rerun to resume."
+                f"Downloading {manifest.name!r} from {url_host(manifest.download['base_url'])} failed at {relative}: "
+                f"{network_reason(error).rstrip('.')}. {kept} Or get the files yourself and run "
+                f"'vprbench datasets import {manifest.name} PATH'."
             ) from None
     if root.exists():
         shutil.rmtree(root)

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from ..errors import VPRBenchError
 from ..fsutil import atomic_write, lock
+from ..paths import resolved
 from .download import how_to_get
 from .layouts import candidates, detect_layout, missing_paths, read_layout
 from .manifest import DatasetManifest, data_root, dataset_manifest, is_default_data_root
@@ -143,7 +144,7 @@ def absent_or_empty(paths: list[Path]) -> str:
 def import_dataset(name: str, path: str | Path, data_dir=None, strict: bool = False) -> Dataset:
     """Register an existing copy of dataset `name` at `path`, after checking it reads completely."""
     manifest = dataset_manifest(name)
-    root = Path(path).expanduser().resolve()
+    root = resolved(path, f"The folder to import {name!r} from")
     if not root.is_dir():
         raise VPRBenchError(f"Cannot import {name!r}: {root} is not a folder.")
     dataset = read_layout(root, manifest)  # raises, naming what is missing, before anything is written

@@ -22,6 +22,7 @@ import numpy as np
 from ..errors import VPRBenchError
 from ..fsutil import atomic_path, file_sha256
 from ..hashing import canonical_hash, canonical_json
+from ..paths import regular_file
 from .base import repeated_row, unordered_row
 
 FORMAT = "vprbench-candidates"
@@ -64,6 +65,7 @@ def read_candidates(path, spec, queries: int, database: int, depth: int, images:
     from ..evaluation.search import SearchResult
 
     path = Path(path)
+    regular_file(path, "Candidates file")  # a named pipe would hang the read
     if path.is_dir():  # the HDF5 library's message for a folder runs over several lines
         raise VPRBenchError(f"Candidates file {path} is a folder: give the .h5 file 'vprbench candidates export' wrote.")
     try:

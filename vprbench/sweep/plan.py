@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import ProblemList, VPRBenchError, closest_names
+from ..paths import regular_file
 from ..registration import looked_up
 from ..spec import (RUN_SETTINGS, STORE_DTYPES, RunSettings, RunSpec, _choice, check_ks, resolve_search, resolve_spec,
                     split_run_settings)
@@ -87,6 +88,7 @@ def _line_index(text: str) -> dict[tuple[str, int, str], int]:
 
 def read_plan(path: str | Path, *, overrides: dict | None = None, data_dir=None, cache_dir=None) -> Plan:
     path = Path(path)
+    regular_file(path, "Plan")  # a named pipe would hang the read
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as error:

@@ -14,6 +14,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ...errors import VPRBenchError
+from ...paths import regular_file
 from ..manifest import DatasetManifest
 from ..model import Dataset
 
@@ -53,7 +54,7 @@ def missing_paths(root: Path, manifest: DatasetManifest) -> list[str]:
     missing = []
     for relative in EXPECTS[manifest.layout](manifest.options):
         path = root / relative
-        if not (path.is_dir() if relative.endswith("/") else path.is_file()):
+        if not (path.is_dir() if relative.endswith("/") else regular_file(path, f"Dataset {manifest.name!r}: file")):
             missing.append(relative)
     return missing
 
@@ -133,7 +134,7 @@ def require(root: Path, relative: str, manifest: DatasetManifest, kind: str = "f
         raise VPRBenchError(f"Dataset {manifest.name!r}: its manifest names {relative!r}, which is not a path "
                             "inside the dataset folder; fix the manifest.")
     path = root / relative
-    exists = path.is_dir() if kind == "folder" else path.is_file()
+    exists = path.is_dir() if kind == "folder" else regular_file(path, f"Dataset {manifest.name!r}: {kind}")
     if not exists:
         raise VPRBenchError(
             f"Dataset {manifest.name!r}: expected {kind} '{relative}' under {root} "

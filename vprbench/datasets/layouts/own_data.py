@@ -24,6 +24,7 @@ import numpy as np
 
 from ...errors import VPRBenchError
 from ...images import IMAGE_SUFFIXES, list_images
+from ...paths import regular_file
 from ...text import CONTROL, toml_data
 from ..manifest import DatasetManifest
 from ..model import GroundTruth
@@ -175,7 +176,7 @@ def read_own(root: Path, manifest: DatasetManifest):
         raise VPRBenchError(f"Dataset {manifest.name!r}: no images in {' or '.join(empty)}; put "
                             f"{', '.join(s[1:] for s in IMAGE_SUFFIXES)} files there.")
     csv = root / "positions.csv"
-    if csv.is_file():
+    if regular_file(csv, "Positions file"):
         positions, unit = positions_from_csv(csv, root, database + queries)
     else:
         positions = np.array([utm_from_name(p) for p in database + queries])
@@ -203,7 +204,7 @@ def read_own(root: Path, manifest: DatasetManifest):
 def own_manifest(root: Path) -> DatasetManifest:
     """The manifest of a folder of the user's own: defaults, overridden by its dataset.toml."""
     settings, toml = {}, root / "dataset.toml"
-    if toml.is_file():
+    if regular_file(toml, "Dataset settings"):
         try:
             text = toml.read_text(encoding="utf-8")
         except UnicodeDecodeError as error:
