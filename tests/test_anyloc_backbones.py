@@ -126,6 +126,21 @@ def test_a_vit_like_model_timm_reads_no_prefix_apart_is_refused_saying_why():
             backbone_spec(f"timm:{arch}")
 
 
+@pytest.mark.parametrize("arch, reason", [
+    ("tnt_s_patch16_224", r"\(TNT\) embeds each patch as pixel tokens and nests inner pixel blocks in its blocks "
+                          r"\(attentions attn_in, attn_out; no single attention over the patch and prefix tokens\), "
+                          r"so its blocks hand no plain per-patch tokens"),
+    ("mixer_s16_224", r"\(MlpMixer\) has patch tokens but no attention at all \(its blocks mix tokens with MLPs: "
+                      r"no query, key or value to read\) and no class token"),
+])
+def test_a_patch_model_of_another_kind_is_refused_saying_what_it_is(arch, reason):
+    """TNT and MLP-Mixer embed patches and have blocks: the refusal says what their blocks are, read
+    from their structure (was: the general "not a ViT ... e.g. a CNN, a hybrid or a hierarchical model")."""
+    with pytest.raises(VPRBenchError, match=rf"^timm:{arch} {reason}; AnyLoc aggregates per-patch ViT features: "
+                                            "choose a plain ViT"):
+        backbone_spec(f"timm:{arch}")
+
+
 def test_bad_manifest_entry_is_named():
     text = '[family]\nfamily = "X"\n[[backbone]]\nname = "x"\ntimm = "vit_small_patch16_224"\n'
     with pytest.raises(VPRBenchError, match=r"Backbone manifest bad.toml, entry 'x': patch: Field required"):

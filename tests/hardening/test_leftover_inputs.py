@@ -107,6 +107,18 @@ def test_a_data_root_is_refused_when_every_dataset_is_a_folder(command, cli, tmp
     assert_refused(code, err, None, f"--data-dir {tmp_path / 'data'} is not used")
 
 
+def test_run_refuses_a_data_root_when_every_dataset_of_the_plan_is_a_folder(cli, tmp_path):
+    """Was: exit 0, --data-dir unused; refused before the folder is read (nothing cached)."""
+    folder = own_folder(tmp_path / "own")
+    plan = tmp_path / "plan.toml"
+    plan.write_text(f'k = [1]\nmethods = [{{ name = "hog", options = {{ resize = [32, 32] }} }}]\n'
+                    f'datasets = [{str(folder)!r}]\n')
+    code, _, err = cli("run", plan, "--data-dir", tmp_path / "data", "--cache-dir", tmp_path / "cache")
+    assert_refused(code, err, None, f"--data-dir {tmp_path / 'data'} is not used when every dataset of the plan "
+                                    "is a folder of your own")
+    assert not (tmp_path / "cache").exists() and not (tmp_path / "data").exists()
+
+
 def test_leaderboard_refuses_a_data_root_outside_publish(cli, tmp_path):
     code, _, err = cli("leaderboard", "show", "--data-dir", tmp_path)
     assert_refused(code, err, None, f"--data-dir {tmp_path} is not used by 'leaderboard show'")
@@ -149,6 +161,7 @@ def test_a_named_pipe_given_to_the_api_is_refused(tmp_path):
     ["run", "{pipe}"],
     ["vocabulary", "import", "{pipe}", "--source", "urban"],
     ["describe", "--method", "netvlad", "--weights", "{pipe}", "--out", "{tmp}/o.npy", "{image}"],
+    ["describe", "--method", "hog", "--out", "{tmp}/o.npy", "{pipe}"],  # was: "Image not found"
     ["evaluate", "--method", "hog", "--resize", "32", "32", "--dataset", "corridor", "--data-dir", "{data}",
      "--rerank", "aqe", "--candidates", "{pipe}"],
 ])

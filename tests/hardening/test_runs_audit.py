@@ -15,11 +15,12 @@ from vprbench.errors import VPRBenchError
 PLAN_HEAD = 'k = [1]\n'
 
 
-def run_plan(cli, tmp_path, text: str):
+def run_plan(cli, tmp_path, text: str, *, data_dir: bool = True):
+    """`data_dir=False` for a plan of folders of one's own only (a data root is refused there)."""
     plan = tmp_path / "plan.toml"
     plan.write_text(text)
     cache = tmp_path / "cache"
-    code, out, err = cli("run", plan, "--cache-dir", cache, "--data-dir", tmp_path / "no-data")
+    code, out, err = cli("run", plan, "--cache-dir", cache, *(["--data-dir", tmp_path / "no-data"] if data_dir else []))
     return code, out + err, cache
 
 
@@ -211,6 +212,6 @@ def test_the_protocols_of_a_folder_of_ones_own_are_not_ignored(cli, tmp_path):
         (tmp_path / "mine" / split).mkdir(parents=True)
         Image.new("RGB", (32, 24)).save(tmp_path / "mine" / split / "0.png")
     code, output, cache = run_plan(cli, tmp_path, PLAN_HEAD + f'methods = ["hog"]\n[[datasets]]\nname = "{tmp_path / "mine"}"\n'
-                                   'protocols = ["bogus"]\n')
+                                   'protocols = ["bogus"]\n', data_dir=False)
     assert code == 1 and "nothing was run" in output
     assert "A folder of your own has one protocol, 'own' (its positions and radius); got 'bogus'." in output

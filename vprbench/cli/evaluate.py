@@ -173,6 +173,7 @@ def run_describe(args) -> int:
     from ..evaluation.postprocess import postprocessed
     from ..fsutil import atomic_write
     from ..loader import use_dataset
+    from ..paths import regular_file
     from ..row_sources import DEFAULT_MEMORY_BUDGET
 
     if args.dataset is None:  # the images are given as paths: no dataset is looked up
@@ -194,7 +195,7 @@ def run_describe(args) -> int:
     for image in args.images:
         if image.is_dir():
             raise VPRBenchError(f"{image} is a folder: give its image files (e.g. {image / '*.jpg'}).")
-        if not image.is_file():
+        if not regular_file(image, "Image"):  # a named pipe is refused as such, not as missing
             raise VPRBenchError(f"Image not found: {image}")
     splits = {}
     if args.fit_on is not None:

@@ -4,8 +4,8 @@ from __future__ import annotations
 from .console import console
 from ..errors import DESCRIBED
 from .options import (add_location_options, add_method_flags, add_run_options, add_spec_options, add_sweep_options,
-                      explicit_run_options, method_options, progress, resolve_locations, run_settings,
-                      spec_overrides)
+                      explicit_run_options, method_options, progress, refuse_unused, resolve_locations,
+                      run_settings, spec_overrides)
 
 
 def add_parsers(commands) -> None:
@@ -20,14 +20,19 @@ def add_parsers(commands) -> None:
 
 
 def run_plan(args) -> int:
+    from ..datasets import is_path
     from ..distributed import refuse_torchrun
-    from ..sweep import read_plan, run_cells
+    from ..sweep import run_cells
+    from ..sweep.plan import read_entries
 
     refuse_torchrun("run")
+    overrides = {**spec_overrides(args), "options": {**method_options(args), **explicit_run_options(args)}}
+    entries = read_entries(args.plan, overrides=overrides)
+    if all(is_path(name) for _, name, _ in entries.datasets):  # folders of your own are read where they are
+        refuse_unused(args, "data_dir", "when every dataset of the plan is a folder of your own")
     resolve_locations(args)
     settings = run_settings(args)
-    overrides = {**spec_overrides(args), "options": {**method_options(args), **explicit_run_options(args)}}
-    plan = read_plan(args.plan, overrides=overrides, data_dir=settings.data_dir, cache_dir=settings.cache_dir)
+    plan = entries.plan(settings.data_dir, settings.cache_dir)
     return report(plan.name, run_cells(plan.cells, settings, lease_s=args.lease, plan=plan.name, progress=progress(args)))
 
 

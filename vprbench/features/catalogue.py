@@ -208,6 +208,30 @@ def backbone_spec(name: str) -> BackboneEntry:
     return known[name]
 
 
+def _why_not_a_vit(model) -> str:
+    """What in a timm model's structure stops vprbench reading it as a ViT, said of the model itself
+    where its parts tell (a patch embedding under another name, blocks of another kind), else the
+    general reason. Read from its modules, not its family's name: a new model of the kind is told too."""
+    general = ("has no patch tokens vprbench can read (it is not a ViT with a patch embedding, blocks and per-block "
+               "tokens, e.g. a CNN, a hybrid or a hierarchical model)")
+    embeddings = [m for m in model.children() if isinstance(getattr(m, "patch_size", None), tuple)]
+    blocks = getattr(model, "blocks", None)
+    blocks = list(blocks.children()) if hasattr(blocks, "children") else []
+    if len(embeddings) != 1 or not blocks:
+        return general
+    kind = type(model).__name__
+    attentions = [name for name, m in blocks[0].named_children() if "Attention" in type(m).__name__]
+    if len(attentions) > 1 and getattr(blocks[0], "attn", None) is None:  # TNT: inner blocks over each patch's pixels
+        return (f"({kind}) embeds each patch as pixel tokens and nests inner pixel blocks in its blocks (attentions "
+                f"{', '.join(attentions)}; no single attention over the patch and prefix tokens), so its blocks hand "
+                "no plain per-patch tokens")
+    if not any("Attention" in type(m).__name__ for m in model.modules()):  # MLP-Mixer, ResMLP, gMLP
+        prefix = int(getattr(model, "num_prefix_tokens", 0) or 0) or getattr(model, "cls_token", None) is not None
+        return (f"({kind}) has patch tokens but no attention at all (its blocks mix tokens with MLPs: no query, key "
+                f"or value to read){'' if prefix else ' and no class token'}")
+    return general
+
+
 @cache
 def timm_entry(arch_tag: str) -> BackboneEntry:
     """A timm ViT by name: its patch, prefix tokens and position kind read from the architecture
@@ -240,10 +264,8 @@ def timm_entry(arch_tag: str) -> BackboneEntry:
     # hybrid's embedding is a CNN stem (its `backbone`), whose stride is not the patch
     if not (isinstance(patch, tuple) and len(patch) == 2 and getattr(embed, "backbone", None) is None
             and hasattr(model, "blocks") and intermediates is not None):
-        raise VPRBenchError(f"timm:{arch_tag} has no patch tokens vprbench can read (it is not a ViT with a patch "
-                            "embedding, blocks and per-block tokens, e.g. a CNN, a hybrid or a hierarchical model); "
-                            "AnyLoc aggregates per-patch ViT features: choose a plain ViT, e.g. "
-                            "timm:vit_small_patch16_224.dino.")
+        raise VPRBenchError(f"timm:{arch_tag} {_why_not_a_vit(model)}; AnyLoc aggregates per-patch ViT features: "
+                            "choose a plain ViT, e.g. timm:vit_small_patch16_224.dino.")
     if not hasattr(model, "dynamic_img_size") and getattr(embed, "strict_img_size", False):
         height, width = embed.img_size
         raise VPRBenchError(f"timm:{arch_tag} takes {height}x{width} inputs only (its patch embedding has a fixed "

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import re
 import reprlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -87,6 +88,11 @@ def _line_index(text: str) -> dict[tuple[str, int, str], int]:
 
 
 def read_plan(path: str | Path, *, overrides: dict | None = None, data_dir=None, cache_dir=None) -> Plan:
+    return read_entries(path, overrides=overrides).plan(data_dir, cache_dir)
+
+
+def read_entries(path: str | Path, *, overrides: dict | None = None) -> PlanEntries:
+    """A plan file's entries, checked; no dataset read yet (see `PlanEntries`)."""
     path = Path(path)
     regular_file(path, "Plan")  # a named pipe would hang the read
     try:
@@ -96,8 +102,7 @@ def read_plan(path: str | Path, *, overrides: dict | None = None, data_dir=None,
     except UnicodeDecodeError:
         raise VPRBenchError(f"Plan {path} is not a UTF-8 text file.") from None
     data = toml_data(text, f"Plan {path}")
-    return build_plan(data, str(path), _line_index(text), overrides=overrides, data_dir=data_dir,
-                      cache_dir=cache_dir, default_name=path.stem)
+    return plan_entries(data, str(path), _line_index(text), overrides=overrides, default_name=path.stem)
 
 
 def build_plan(data: dict, origin: str, lines: dict | None = None, *, overrides: dict | None = None,
@@ -107,6 +112,50 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, overrides:
     `overrides` are what the command line sets on top of every entry: `options` (method options,
     run settings among them), `search`, `store_dtype`, `k`, `stages` (replacing every entry's).
     """
+    return plan_entries(data, origin, lines, overrides=overrides, default_name=default_name).plan(data_dir, cache_dir)
+
+
+@dataclass
+class PlanEntries:
+    """A plan's entries, checked, before its cells are made: making them reads each folder of one's
+    own (and remembers its images in the cache), so what the datasets are is known before that."""
+
+    name: str
+    description: str
+    origin: str
+    where: Callable[[str, int, str], str]  # (section, entry, key) -> "origin:line"
+    methods: list  # (entry, name, options, label, stages)
+    datasets: list  # (entry, name, protocol)
+    shared: dict  # ks, search, store_dtype
+
+    def plan(self, data_dir=None, cache_dir=None) -> Plan:
+        """The cells, each spec resolved; raises one error listing every problem."""
+        cells, problems = [], []
+        for m, method, options, label, stages in self.methods:
+            for d, dataset, protocol in self.datasets:
+                given, run_options = split_run_settings(options)
+                try:
+                    spec = resolve_spec(method, dataset, options=given, protocol=protocol, data_dir=data_dir,
+                                        cache_dir=cache_dir, stages=stages, **self.shared)
+                except VPRBenchError as error:
+                    problems.append(f"{self.where('methods', m, 'options')}: {error}")
+                    continue
+                cells.append(Cell(spec, run_options, label, given))
+        _raise_problems(self.origin, problems)
+        return Plan(name=self.name, cells=cells, description=self.description)
+
+
+def _raise_problems(origin: str, problems: list[str]) -> None:
+    if problems:
+        # a ProblemList prints its line breaks: the path's are written out, as in its problems
+        what = "The command line" if origin == "the command line" else f"Plan {one_line(origin)}"
+        raise ProblemList(f"{what} has {len(problems)} problem(s); nothing was run:\n  "
+                          + "\n  ".join(one_line(p) for p in dict.fromkeys(problems)))
+
+
+def plan_entries(data: dict, origin: str, lines: dict | None = None, *, overrides: dict | None = None,
+                 default_name: str = "plan") -> PlanEntries:
+    """A plan given as a dict, checked (see `build_plan`); raises one error listing every problem."""
     from ..datasets import dataset_manifests, is_path
     from ..datasets.protocol import protocols
     from ..methods import available_methods
@@ -197,24 +246,9 @@ def build_plan(data: dict, origin: str, lines: dict | None = None, *, overrides:
             else:
                 datasets.append((i, name, protocol))
 
-    cells = []
-    if not problems:
-        for m, method, options, label, stages in methods:
-            for d, dataset, protocol in datasets:
-                given, run_options = split_run_settings(options)
-                try:
-                    spec = resolve_spec(method, dataset, options=given, protocol=protocol, data_dir=data_dir,
-                                        cache_dir=cache_dir, stages=stages, **shared)
-                except VPRBenchError as error:
-                    problems.append(f"{where('methods', m, 'options')}: {error}")
-                    continue
-                cells.append(Cell(spec, run_options, label, given))
-    if problems:
-        # a ProblemList prints its line breaks: the path's are written out, as in its problems
-        what = "The command line" if origin == "the command line" else f"Plan {one_line(origin)}"
-        raise ProblemList(f"{what} has {len(problems)} problem(s); nothing was run:\n  "
-                          + "\n  ".join(one_line(p) for p in dict.fromkeys(problems)))
-    return Plan(name=str(data.get("name", default_name)), cells=cells, description=str(data.get("description", "")))
+    _raise_problems(origin, problems)
+    return PlanEntries(str(data.get("name", default_name)), str(data.get("description", "")), origin, where,
+                       methods, datasets, shared)
 
 
 def _entries(data: dict, key: str, problems: list[str], where) -> list:
