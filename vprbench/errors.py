@@ -42,22 +42,41 @@ def network_reason(error: BaseException) -> str:
     """Why a download failed, in a few words: an HTTP status, else the innermost operating-system
     reason ('Connection refused'), else the error's first line. The clients wrap it in layers
     (requests > urllib3 > socket) whose text repeats the host, port and path at length."""
-    found, pending, seen = None, [error], set()
+    from collections import deque
+
+    found, pending, seen = None, deque([error]), set()
     while pending:
-        current = pending.pop(0)
+        current = pending.popleft()
         if current is None or id(current) in seen or not isinstance(current, BaseException):
             continue
         seen.add(id(current))
-        status = getattr(getattr(current, "response", None), "status_code", None) or getattr(current, "code", None)
+        status = _attribute(_attribute(current, "response"), "status_code") or _attribute(current, "code")
         if isinstance(status, int) and 400 <= status < 600:
             return f"HTTP {status}"
-        if isinstance(current, TimeoutError) or "timed out" in str(current).lower():
+        if isinstance(current, TimeoutError) or "timed out" in _text(current).lower():
             found = found or "timed out"
-        if isinstance(current, OSError) and current.strerror:
+        if isinstance(current, OSError) and isinstance(current.strerror, str) and current.strerror:
             found = current.strerror  # the innermost wins: it is the one the others wrap
-        pending += [current.__cause__, current.__context__, getattr(current, "reason", None), *current.args]
-    text = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-    return found or (text if len(text) <= 160 else text[:157] + "...")
+        pending += [current.__cause__, current.__context__, _attribute(current, "reason"), *current.args]
+    text = _text(error).strip()
+    found = found or (text.splitlines()[0] if text else type(error).__name__)
+    return found if len(found) <= 160 else found[:157] + "..."
+
+
+def _text(error: BaseException) -> str:
+    """str(error), or '' when it cannot be had: the reason is asked for while reporting a failure,
+    which a faulty __str__ (or an args tuple holding the error itself) must not replace."""
+    try:
+        return str(error)
+    except Exception:  # RecursionError too
+        return ""
+
+
+def _attribute(value, name: str):
+    try:
+        return getattr(value, name, None)
+    except Exception:  # a property that raises (a response object half made)
+        return None
 
 
 def url_host(url: str) -> str:

@@ -76,7 +76,7 @@ def regular_file(path, what: str) -> bool:
 
     require(path, (str, os.PathLike), f"{what}: give a file path (a str or pathlib.Path)")
     try:
-        mode = os.stat(path).st_mode
+        mode = os.stat(_no_nul(path, what)).st_mode
     except OSError as error:
         if error.errno == errno.ELOOP:
             raise _link_loop(path, what) from None
@@ -86,13 +86,23 @@ def regular_file(path, what: str) -> bool:
     raise VPRBenchError(f"{what} {path} is not a regular file (a named pipe, device or socket): give a file.")
 
 
+def _no_nul(path, what: str):
+    """`path`, refused when it holds a NUL character (which no file name can: the system calls raise a ValueError)."""
+    if "\0" in os.fsdecode(path):
+        from .errors import VPRBenchError
+
+        raise VPRBenchError(f"{what} {os.fsdecode(path)!r} holds a NUL character, which no file name can: "
+                            "give its path.")
+    return path
+
+
 def resolved(path, what: str) -> Path:
     """Path(path).resolve(), a link loop being one line naming `what` (Python < 3.13 raises a RuntimeError)."""
     from .errors import require
 
     require(path, (str, os.PathLike), f"{what}: give a path (a str or pathlib.Path)")
     try:
-        return Path(path).expanduser().resolve()
+        return Path(_no_nul(path, what)).expanduser().resolve()
     except RuntimeError as error:
         if not str(error).startswith("Symlink loop"):
             raise

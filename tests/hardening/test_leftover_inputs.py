@@ -124,6 +124,12 @@ def test_leaderboard_refuses_a_data_root_outside_publish(cli, tmp_path):
     assert_refused(code, err, None, f"--data-dir {tmp_path} is not used by 'leaderboard show'")
 
 
+def test_an_empty_unused_option_is_named_so(cli):
+    """Was: "--cache-dir  is not used ...", the empty value ('--cache-dir=') invisible."""
+    code, _, err = cli("datasets", "info", "corridor", "--protocols", "--cache-dir=")
+    assert_refused(code, err, None, "--cache-dir '' is not used with --protocols")
+
+
 # ---------------------------------------------------------------- 2. the Python API
 @pytest.mark.parametrize("call, fragment", [
     (lambda: __import__("vprbench.weights").weights.read_torch_file(None), "Checkpoint: give a file path"),
@@ -145,6 +151,14 @@ def test_a_link_loop_given_to_the_api_is_the_projects_error(tmp_path):
         with pytest.raises(VPRBenchError, match="a symbolic link in this path leads back to itself"):
             call()
     assert not (tmp_path / "data").exists()
+
+
+def test_a_path_holding_a_nul_given_to_the_api_is_the_projects_error():
+    """Was: ValueError('embedded null byte') out of os.stat."""
+    from vprbench.weights import read_torch_file
+
+    with pytest.raises(VPRBenchError, match="Checkpoint 'w\\\\x00.pth' holds a NUL character"):
+        read_torch_file("w\x00.pth")
 
 
 def test_a_named_pipe_given_to_the_api_is_refused(tmp_path):
@@ -226,3 +240,32 @@ def test_a_weights_download_failure_says_why_in_a_few_words(closed_port, tmp_pat
         resolve_weights(WeightSource("w.pth", url=url), None, "toy", cache_dir=tmp_path)
     assert f"toy: could not download w.pth from {url} (Connection refused). Offline? " in str(raised.value)
     assert "URLError" not in str(raised.value) and "urlopen" not in str(raised.value)
+
+
+class _Unprintable(Exception):
+    def __str__(self):
+        raise RuntimeError("no text")
+
+
+def _holding_itself() -> Exception:
+    error = ConnectionError()
+    error.args = (error,)
+    return error
+
+
+def _cycle() -> Exception:
+    outer, inner = OSError("outer"), OSError(111, "Connection refused")
+    outer.__cause__, inner.__context__ = inner, outer
+    return outer
+
+
+@pytest.mark.parametrize("error, reason", [
+    (_Unprintable(), "_Unprintable"),  # was: the RuntimeError of its __str__, in place of the download's failure
+    (_holding_itself(), "ConnectionError"),  # was: RecursionError
+    (_cycle(), "Connection refused"),
+    (OSError(5, "x" * 10_000), "x" * 157 + "..."),  # was: the whole text
+])
+def test_a_download_failure_of_any_make_is_a_few_words(error, reason):
+    from vprbench.errors import network_reason
+
+    assert network_reason(error) == reason

@@ -3,6 +3,7 @@ import dataclasses
 import shutil
 
 import h5py
+import numpy as np
 import pytest
 
 from vprbench.errors import VPRBenchError
@@ -56,6 +57,16 @@ def edited(path, tmp_path, **attrs):
     ({"stages": [{"name": "aqe", "k": 50}]}, {}, r"holds the top 30 per query, but this run needs 50"),
     ({}, {"indices": 5000}, "holds indices outside the 111 database images"),
     ({}, {"format": "something"}, "is not a vprbench candidates file"),
+    # before: tracebacks (an array's truth value, a UTF-8 decode, int('abc'), json's recursion, info["dim"])
+    ({}, {"images_key": np.array(["a", "b"], dtype=h5py.string_dtype())}, "its attribute images_key holds ndarray"),
+    ({}, {"protocol_hash": np.bytes_(b"\xff\xfe")}, "its attribute protocol_hash cannot be read"),
+    ({}, {"version": "abc"}, "holds version abc, not a vprbench candidates version"),
+    ({}, {"retriever_key": "0", "retriever_spec": "[" * 100_000 + "]" * 100_000},
+     r"exported by another retriever \(an unreadable spec\)"),
+    ({}, {"search": "[1, 2]"}, r"its search attribute does not give the descriptors' dimension \(dim\)"),
+    # before: the whole 100,000-character name in the message
+    ({}, {"retriever_key": "0", "retriever_spec": '{"method": "%s"}' % ("x" * 100_000)},
+     r"exported by another retriever \(x{77}\.\.\. None\), not"),
     ({"stages": []}, {}, "this run has no stage: add --rerank STAGE"),
     # before: accepted, the file ignored by the sequence stage yet named in the record
     ({"stages": [{"name": "diagonal", "length": 3}, *RERANK]}, {},

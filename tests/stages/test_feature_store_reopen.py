@@ -8,6 +8,8 @@ Reading at that size: with more segments than kept open, nearly every read opene
 read with one plain file read each."""
 from __future__ import annotations
 
+import warnings
+
 import h5py
 import numpy as np
 import pytest
@@ -106,3 +108,23 @@ def test_an_image_without_keypoints_is_read_back_by_layout(tmp_path, monkeypatch
     with store.opened("database", lambda row: pytest.fail(f"image {row} computed")) as get:
         assert [get(row)["descriptors"].shape for row in range(3)] == [(5, 128), (0, 128), (5, 128)]
     assert len(opened) == 1
+
+
+@pytest.mark.parametrize("attr, edit", [
+    # before: OverflowError out of the index, on every run (the segment stayed)
+    ("arrays", lambda found: '[["descriptors", "|u1", [1e400]], ["points", "<f4", [2]]]'),
+    # before: cast to int64 (NaN with numpy's "invalid value encountered in cast" warning)
+    ("row_at", lambda found: np.full(found.shape, np.nan)),
+])
+def test_a_layout_of_other_numbers_than_whole_ones_is_recomputed(tmp_path, monkeypatch, attr, edit):
+    """A segment whose layout is not what vprbench writes is discarded and its images computed again."""
+    store = written(tmp_path, monkeypatch)
+    with h5py.File(store.files("database")[0], "a") as f:
+        f.attrs[attr] = edit(f.attrs[attr])
+    computed = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with store.opened("database", lambda row: computed.append(row) or arrays(row)) as get:
+            for row in range(12):
+                assert all(np.array_equal(get(row)[key], value) for key, value in arrays(row).items())
+    assert computed == [0, 1, 2, 3]

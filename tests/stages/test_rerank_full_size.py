@@ -74,7 +74,8 @@ def test_expansion_keeps_exact_candidates_first_at_full_size(full, stage):
 def test_candidates_file_round_trips_at_full_size(full, pitts250k_tree, tmp_path):
     dataset, _, _, found, _ = full
     spec = resolve_spec("hog", dataset, options={"resize": [32, 32]}, cache_dir=tmp_path)
-    path = write_candidates(tmp_path / "candidates.h5", spec, SearchResult(found.scores, found.indices, {}), "images")
+    searched = SearchResult(found.scores, found.indices, {"dim": 1})  # a search's info names its dim (the record's)
+    path = write_candidates(tmp_path / "candidates.h5", spec, searched, "images")
     assert 8_000_000 < path.stat().st_size < 11_000_000  # int64 + float32 per candidate, no more
     read = read_candidates(path, spec, QUERIES, DATABASE, DEPTH, "images")
     assert read["k"] == DEPTH

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import shlex
 from pathlib import Path
 
 from ..errors import VPRBenchError, name_roots, os_error_message
@@ -45,8 +46,8 @@ def refuse_unused(args, dest: str, why: str) -> None:
     meant it to matter. Called before `resolve_locations` (the environment's defaults are no option
     given). `why` completes "--flag VALUE is not used ...", e.g. "without --dataset"."""
     value = getattr(args, dest, None)
-    if value is not None:
-        raise VPRBenchError(f"--{dest.replace('_', '-')} {value} is not used {why}: leave it out.")
+    if value is not None:  # quoted as a shell would need it: an empty value ('--cache-dir=') is seen as ''
+        raise VPRBenchError(f"--{dest.replace('_', '-')} {shlex.quote(str(value))} is not used {why}: leave it out.")
 
 
 class Unused(argparse.Action):

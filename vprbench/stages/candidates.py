@@ -14,6 +14,7 @@ its record.
 from __future__ import annotations
 
 import json
+import reprlib
 from pathlib import Path
 
 import h5py
@@ -70,11 +71,14 @@ def read_candidates(path, spec, queries: int, database: int, depth: int, images:
         raise VPRBenchError(f"Candidates file {path} is a folder: give the .h5 file 'vprbench candidates export' wrote.")
     try:
         with h5py.File(path, "r") as f:
-            attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+            attrs = _attributes(f, path)
             if attrs.get("format") != FORMAT:
                 raise VPRBenchError(f"{path} is not a vprbench candidates file (make one with 'vprbench candidates "
                                     "export').")
-            if int(attrs.get("version", 0)) > VERSION:
+            if not isinstance(attrs.get("version", 0), int):
+                raise VPRBenchError(f"Candidates file {path} holds version {_short(attrs['version'])}, not a vprbench "
+                                    "candidates version; export it again.")
+            if attrs.get("version", 0) > VERSION:
                 raise VPRBenchError(f"Candidates file {path} is from a newer vprbench (version {attrs['version']}); "
                                     "upgrade vprbench.")
             indices, scores = f["indices"][...], f["scores"][...]
@@ -92,14 +96,10 @@ def read_candidates(path, spec, queries: int, database: int, depth: int, images:
                             "than this run's (files changed or in another order): export candidates from this copy "
                             "of the dataset.")
     if attrs.get("retriever_key") != canonical_hash(retriever_identity(spec)):
-        try:
-            theirs = json.loads(attrs.get("retriever_spec", "{}"))
-            shown = f"{theirs.get('method')} {theirs.get('options')}"
-            ours = spec.search.model_dump()
-            if theirs.get("search", ours) != ours:  # e.g. an hnsw shortlist as deep as the export's --k
-                shown += f", search {theirs['search']}"
-        except (ValueError, AttributeError):
-            shown = "an unreadable spec"
+        theirs, ours = _json(attrs.get("retriever_spec")), spec.search.model_dump()
+        shown = f"{_short(theirs.get('method'))} {_short(theirs.get('options'))}" if theirs else "an unreadable spec"
+        if theirs.get("search", ours) != ours:  # e.g. an hnsw shortlist as deep as the export's --k
+            shown += f", search {_short(theirs['search'])}"
         raise VPRBenchError(f"Candidates file {path} was exported by another retriever ({shown}), not this run's "
                             f"{spec.method} {spec.options}, search {spec.search.model_dump()} (with its store): export "
                             "candidates with this method, options and search.")
@@ -122,13 +122,45 @@ def read_candidates(path, spec, queries: int, database: int, depth: int, images:
         fault = (f"one database image twice for query {query}" if query is not None
                  else f"the candidates of query {unordered} not best first (scores must not increase)")
         raise VPRBenchError(f"Candidates file {path} holds {fault}; export it again.")
-    try:
-        info = json.loads(attrs.get("search", "{}"))
-    except ValueError:
-        info = {}
+    info = _json(attrs.get("search"))  # what the export's search reported; its dim goes into the record
+    if type(info.get("dim")) is not int or info["dim"] < 1:
+        raise VPRBenchError(f"Candidates file {path}: its search attribute does not give the descriptors' dimension "
+                            "(dim); export it again.")
     info["from_candidates"] = str(path)
     found = SearchResult(scores[:, :depth].astype(np.float32), indices[:, :depth].astype(np.int64), info)
     return {"found": found, "file": str(path.resolve()), "sha256": file_sha256(path), "k": int(indices.shape[1])}
+
+
+def _attributes(f, path: Path) -> dict:
+    """The file's attributes, each one value (text decoded, numbers as Python's): a hand-edited one holding
+    an array or bytes that are not UTF-8 would otherwise be a traceback in a comparison far from the file."""
+    found = {}
+    for key in f.attrs:
+        try:
+            value = f.attrs[key]
+            value = value.item() if isinstance(value, np.generic) else value
+            found[key] = value.decode() if isinstance(value, bytes) else value
+        except (UnicodeDecodeError, OSError, TypeError) as error:
+            raise VPRBenchError(f"Candidates file {path}: its attribute {_short(key)} cannot be read ({error}); "
+                                "export it again.") from None
+        if not isinstance(found[key], (str, int, float)):
+            raise VPRBenchError(f"Candidates file {path}: its attribute {_short(key)} holds "
+                                f"{type(found[key]).__name__} {_short(found[key])}, not one value; export it again.")
+    return found
+
+
+def _json(text) -> dict:
+    """The JSON object `text` holds, else {} (not JSON, not an object, or nested too deeply to parse)."""
+    try:
+        found = json.loads(text) if isinstance(text, str) else None
+    except (ValueError, RecursionError):
+        return {}
+    return found if isinstance(found, dict) else {}
+
+
+def _short(value) -> str:
+    """`value` as a message shows it: at most a line's worth of a hand-edited file's text."""
+    return reprlib.repr(value) if not isinstance(value, str) else value if len(value) <= 80 else value[:77] + "..."
 
 
 def export_candidates(spec, settings, path, k: int = DEFAULT_K, progress=None) -> dict:

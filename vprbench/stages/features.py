@@ -22,6 +22,7 @@ segment holding an image wins.
 from __future__ import annotations
 
 import json
+import math
 import os
 import warnings
 import zlib
@@ -245,8 +246,8 @@ class Layout:
 
     def __init__(self, rows, arrays, row_at, row_crc32):
         self.position = {int(row): i for i, row in enumerate(rows)}
-        self.arrays = [(str(key), np.dtype(str(dtype)), tuple(map(int, rest))) for key, dtype, rest in json.loads(arrays)]
-        self.at, self.crc = np.asarray(row_at, np.int64), np.asarray(row_crc32, np.int64)
+        self.arrays = [(str(key), np.dtype(str(dtype)), _dimensions(rest)) for key, dtype, rest in json.loads(arrays)]
+        self.at, self.crc = _integers(row_at), _integers(row_crc32)
         if self.at.shape != (len(self.position), len(self.arrays), 2) or self.crc.shape != (len(self.position),):
             raise ValueError(f"a layout of shape {self.at.shape} for {len(self.position)} rows")
         if any(dtype.kind not in PLAIN for _, dtype, _ in self.arrays):
@@ -271,6 +272,23 @@ class Layout:
                 "row_crc32": np.array([crc for _, crc in written], np.int64)}
 
 
+def _dimensions(rest) -> tuple[int, ...]:
+    """A layout's trailing shape; anything but whole numbers in range (an infinity, a float) is a
+    ValueError: the segment is discarded."""
+    if not isinstance(rest, list) or any(type(n) is not int or not 0 <= n < 2**32 for n in rest):
+        raise ValueError(f"a layout's trailing shape {str(rest)[:80]}")
+    return tuple(rest)
+
+
+def _integers(values) -> np.ndarray:
+    """A layout's offsets or crc32s as int64; not integers (a float would be cast silently, NaN with a
+    warning) is a ValueError."""
+    found = np.asarray(values)
+    if found.dtype.kind not in "iu":
+        raise ValueError(f"a layout of {found.dtype} values")
+    return found.astype(np.int64)
+
+
 def _read_at(path: Path, layout: Layout, row: int) -> dict[str, np.ndarray] | bool:
     """The image's arrays read at their offsets (one plain file read each, no HDF5), False when
     they no longer match their crc32 (recomputed). A layout past the file's end discards the segment."""
@@ -279,7 +297,7 @@ def _read_at(path: Path, layout: Layout, row: int) -> dict[str, np.ndarray] | bo
         with open(path, "rb") as f:
             end, found = os.fstat(f.fileno()).st_size, {}
             for (key, dtype, rest), (offset, length) in zip(layout.arrays, layout.at[i].tolist()):
-                size = length * dtype.itemsize * int(np.prod(rest))
+                size = length * dtype.itemsize * math.prod(rest)  # exact: np.prod wraps past 2**63
                 if length < 0 or size and not 0 <= offset <= end - size:
                     raise ValueError(f"{key} at {offset} ({size} bytes) lies outside the file ({end} bytes)")
                 found[key] = value = np.empty((length, *rest), dtype)
