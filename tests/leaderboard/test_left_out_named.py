@@ -62,3 +62,16 @@ def test_when_no_run_fills_a_cell_the_error_names_them(make_record, cli, monkeyp
     assert "None of the 2 stored run(s) can fill a cell: run " in " ".join(err.split())
     assert len(err.strip().splitlines()) == 1 or "\n- " not in err  # one line (the console may wrap it)
     assert all(run_id in err for run_id in runs) and "random weights" in err
+
+
+def test_a_run_id_on_the_site_is_escaped_once(make_record, cli, tmp_path):
+    """`code` escapes what it is given: the id was escaped before it too, so an '_' Markdown would
+    read ('r._x') showed as '&#95;' on the page."""
+    save_result(make_record("hog", seed=9, quality=0.6))  # fills the one cell
+    record = make_record("hog", seed=1, weights={"source": "random"}, options={"note": "n"})
+    record["run_id"] = "r._x"
+    save_result(record)
+    docs = tmp_path / "docs"
+    assert cli("leaderboard", "publish", "--to", docs)[0] == 0
+    site = (docs / "leaderboard" / "index.md").read_text().split("## Runs left out")[1]
+    assert "| <code>r.&#95;x</code> | hog [note=n] | corridor |" in site and "&amp;" not in site

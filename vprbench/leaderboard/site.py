@@ -225,8 +225,8 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
     if board.excluded:
         lines += ["| Run | Method | Dataset | Why |", "|:--|:--|:--|:--|"]
         for record, why in board.excluded:
-            run, label, dataset = map(text, left_out(record))
-            lines.append(f"| {code(run)} | {label} | {dataset} | {text(why)} |")
+            run, label, dataset = left_out(record)
+            lines.append(f"| {code(run)} | {text(label)} | {text(dataset)} | {text(why)} |")
     else:
         lines.append("None.")
     lines += ["", "## Datasets", ""]
