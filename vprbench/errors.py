@@ -60,7 +60,9 @@ def network_reason(error: BaseException) -> str:
         pending += [current.__cause__, current.__context__, _attribute(current, "reason"), *current.args]
     text = _text(error).strip()
     found = found or (text.splitlines()[0] if text else type(error).__name__)
-    return found if len(found) <= 160 else found[:157] + "..."
+    from .text import shortened  # text imports this module
+
+    return shortened(found, 160)
 
 
 def _text(error: BaseException) -> str:

@@ -3,6 +3,7 @@ made safe for a terminal; a user's TOML text read with a one-line error."""
 from __future__ import annotations
 
 import re
+import reprlib
 import tomllib
 
 from .errors import VPRBenchError
@@ -55,6 +56,13 @@ def one_line(text) -> str:
     """`literal`, and line breaks written out too ('\\n'): a name or path holding one cannot split
     a message into lines (or forge a line of its own)."""
     return literal(text).replace("\n", "\\n")
+
+
+def shortened(value, limit: int = 80) -> str:
+    """`value` as a message shows it, at most `limit` characters (cut with '...'): a hand-edited
+    file's megabyte-long value, or a client's paragraph, stays one readable line."""
+    shown = value if isinstance(value, str) else reprlib.repr(value)
+    return shown if len(shown) <= limit else shown[:limit - 3] + "..."
 
 
 def toml_data(text: str, what: str) -> dict:

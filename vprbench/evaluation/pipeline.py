@@ -151,10 +151,10 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
                             f"{len(dataset.database)} images: ask for at most {len(dataset.database)}.")
     frozen = None
     if settings.candidates is not None:  # checked before any descriptor is computed
-        from ..stages.candidates import images_key, read_candidates
+        from ..stages.candidates import images_identity, read_candidates
 
         frozen = read_candidates(settings.candidates, spec, len(dataset.queries), len(dataset.database), depth,
-                                 images_key(dataset, settings.cache_dir))
+                                 images_identity(dataset, settings.cache_dir))
     use_dataset(method, dataset.name)
     check_found(spec, dataset.name, settings.cache_dir)
     post = postprocessor_of(method)

@@ -14,13 +14,13 @@ its record.
 from __future__ import annotations
 
 import json
-import reprlib
 from pathlib import Path
 
 import h5py
 import numpy as np
 
 from ..errors import VPRBenchError
+from ..text import shortened
 from ..fsutil import atomic_path, file_sha256
 from ..hashing import canonical_hash, canonical_json
 from ..paths import regular_file
@@ -36,14 +36,14 @@ def retriever_identity(spec) -> dict:
     return {**spec.row_identity(), "stages": []}
 
 
-def images_key(dataset, cache_dir=None) -> str:
+def images_identity(dataset, cache_dir=None) -> str:
     """The dataset's images as the candidates index them: each split's names, order and contents. The protocol
     hash names a benchmark's split, not the copy of its files: candidates of another copy index other images."""
     return canonical_hash(dataset.images_fingerprint(cache_dir))
 
 
 def write_candidates(path: Path, spec, found, images: str) -> Path:
-    """`found` (a SearchResult) of `spec`'s retriever on the images `images` (`images_key`), written whole or not at all."""
+    """`found` (a SearchResult) of `spec`'s retriever on the images `images` (`images_identity`), written whole or not at all."""
     from ..store.rows_file import hdf5_written
 
     path = Path(path)
@@ -61,7 +61,7 @@ def write_candidates(path: Path, spec, found, images: str) -> Path:
 
 def read_candidates(path, spec, queries: int, database: int, depth: int, images: str) -> dict:
     """The file's candidates for `spec` ({"found": SearchResult, "file", "sha256", "k"}), after checking it
-    is a candidates file of this protocol, these images (`images_key`) and retriever, with every query and at
+    is a candidates file of this protocol, these images (`images_identity`) and retriever, with every query and at
     least `depth` columns."""
     from ..evaluation.search import SearchResult
 
@@ -76,7 +76,7 @@ def read_candidates(path, spec, queries: int, database: int, depth: int, images:
                 raise VPRBenchError(f"{path} is not a vprbench candidates file (make one with 'vprbench candidates "
                                     "export').")
             if not isinstance(attrs.get("version", 0), int):
-                raise VPRBenchError(f"Candidates file {path} holds version {_short(attrs['version'])}, not a vprbench "
+                raise VPRBenchError(f"Candidates file {path} holds version {shortened(attrs['version'])}, not a vprbench "
                                     "candidates version; export it again.")
             if attrs.get("version", 0) > VERSION:
                 raise VPRBenchError(f"Candidates file {path} is from a newer vprbench (version {attrs['version']}); "
@@ -97,9 +97,9 @@ def read_candidates(path, spec, queries: int, database: int, depth: int, images:
                             "of the dataset.")
     if attrs.get("retriever_key") != canonical_hash(retriever_identity(spec)):
         theirs, ours = _json(attrs.get("retriever_spec")), spec.search.model_dump()
-        shown = f"{_short(theirs.get('method'))} {_short(theirs.get('options'))}" if theirs else "an unreadable spec"
+        shown = f"{shortened(theirs.get('method'))} {shortened(theirs.get('options'))}" if theirs else "an unreadable spec"
         if theirs.get("search", ours) != ours:  # e.g. an hnsw shortlist as deep as the export's --k
-            shown += f", search {_short(theirs['search'])}"
+            shown += f", search {shortened(theirs['search'])}"
         raise VPRBenchError(f"Candidates file {path} was exported by another retriever ({shown}), not this run's "
                             f"{spec.method} {spec.options}, search {spec.search.model_dump()} (with its store): export "
                             "candidates with this method, options and search.")
@@ -141,11 +141,11 @@ def _attributes(f, path: Path) -> dict:
             value = value.item() if isinstance(value, np.generic) else value
             found[key] = value.decode() if isinstance(value, bytes) else value
         except (UnicodeDecodeError, OSError, TypeError) as error:
-            raise VPRBenchError(f"Candidates file {path}: its attribute {_short(key)} cannot be read ({error}); "
+            raise VPRBenchError(f"Candidates file {path}: its attribute {shortened(key)} cannot be read ({error}); "
                                 "export it again.") from None
         if not isinstance(found[key], (str, int, float)):
-            raise VPRBenchError(f"Candidates file {path}: its attribute {_short(key)} holds "
-                                f"{type(found[key]).__name__} {_short(found[key])}, not one value; export it again.")
+            raise VPRBenchError(f"Candidates file {path}: its attribute {shortened(key)} holds "
+                                f"{type(found[key]).__name__} {shortened(found[key])}, not one value; export it again.")
     return found
 
 
@@ -156,11 +156,6 @@ def _json(text) -> dict:
     except (ValueError, RecursionError):
         return {}
     return found if isinstance(found, dict) else {}
-
-
-def _short(value) -> str:
-    """`value` as a message shows it: at most a line's worth of a hand-edited file's text."""
-    return reprlib.repr(value) if not isinstance(value, str) else value if len(value) <= 80 else value[:77] + "..."
 
 
 def export_candidates(spec, settings, path, k: int = DEFAULT_K, progress=None) -> dict:
@@ -177,7 +172,7 @@ def export_candidates(spec, settings, path, k: int = DEFAULT_K, progress=None) -
 
     spec = spec.model_copy(update={"search": searched_to(spec.search, _depth(k))})  # the search as deep as it runs
     run = retrieved(spec, settings, [], progress=progress, depth=k)
-    write_candidates(path, spec, run.found, images_key(run.dataset, settings.cache_dir))
+    write_candidates(path, spec, run.found, images_identity(run.dataset, settings.cache_dir))
     return {"file": str(path), "queries": int(run.found.indices.shape[0]), "k": int(run.found.indices.shape[1])}
 
 
