@@ -89,3 +89,30 @@ def test_the_index_searches_with_the_nprobe_and_ef_search_it_records():
     o = index_options("hnsw", 2000, 16, 5, {"ef_search": 77, "shortlist": 50})
     index, _ = _build("hnsw", ArrayRows(db[:2000]), o, 10**9)
     assert o["ef_search"] == 77 and index.hnsw.efSearch == 77
+
+
+def test_a_short_shortlist_is_searched_exactly_whatever_k_is(tmp_path, monkeypatch):
+    """A query whose index answers fewer rows than the shortlist falls back to exact search at every K:
+    `--k 1` and `--k 1 5` are one leaderboard row, so their top-1 must agree."""
+    import vprbench.evaluation.approximate as approximate
+
+    db, q = clustered(4000, 16, 30), clustered(40, 16, 31)
+    built = approximate._build
+
+    def short_answers(kind, database, o, budget):
+        index, chunk_rows = built(kind, database, o, budget)
+
+        class Short:  # every other query gets 3 arbitrary rows, padded with -1 as faiss pads
+            def search(self, block, shortlist):
+                scores, found = index.search(block, shortlist)
+                found[::2, :3], found[::2, 3:] = np.arange(3), -1
+                return scores, found
+        return Short(), chunk_rows
+
+    monkeypatch.setattr(approximate, "_build", short_answers)
+    exact = exact_search(db, q, 5)
+    one, five = (retrieve(None, h5_rows(tmp_path, f"db{k}", db), q, k, index="hnsw") for k in (1, 5))
+    assert one.info["exact_fallback_queries"] == five.info["exact_fallback_queries"] == 20
+    np.testing.assert_array_equal(one.indices[:, 0], five.indices[:, 0])
+    np.testing.assert_array_equal(one.indices[::2, 0], exact.indices[::2, 0])
+    np.testing.assert_array_equal(five.indices[::2], exact.indices[::2])

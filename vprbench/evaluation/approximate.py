@@ -153,7 +153,9 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
     q_chunk = max(1, (memory_budget - index_bytes - q_fixed - n_queries * k * 12) // per_query)
     scores = np.empty((n_queries, k), dtype=np.float32)
     indices = np.empty((n_queries, k), dtype=np.int64)
-    short = []  # queries whose shortlist came back with fewer than k rows
+    # queries whose shortlist came back short: searched exactly, whatever k is, so a run's top-1 does not
+    # depend on the deepest K asked (the K list is not part of a leaderboard row)
+    short = []
     for q0, block in chunks(queries, q_chunk):
         check_finite(block, "Query", q0)
         _, found = index.search(block, o["shortlist"])
@@ -161,7 +163,7 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
         rows = database.read_rows_at(rows_ids)
         for i, candidates in enumerate(found):
             candidates = candidates[candidates >= 0]
-            if len(candidates) < k:
+            if len(candidates) < o["shortlist"]:
                 short.append(q0 + i)
                 continue
             exact = rounded_scores(rows[np.searchsorted(rows_ids, candidates)] @ block[i])  # as exact search
