@@ -90,12 +90,15 @@ def test_flipped_bytes_in_local_features_are_recomputed_not_trusted(kept):
 def test_local_features_whose_header_cannot_be_read_are_recomputed(kept):
     """Was: OSError 'Can't synchronously read data (bad global heap collection signature)'
     from reading the file's identity, which the command line showed as 'Cannot use
-    feature_identity: ...', again on every run until the file was deleted by hand."""
+    feature_identity: ...', again on every run until the file was deleted by hand. Then: the file
+    was discarded and its images recomputed without a word; now one line says so."""
     store, path = kept
     data = path.read_bytes()
     flip(path, data.index(b"GCOL"), 4)  # the heap holding the file's identity strings
     found, computed, said = read_all(store)
-    assert computed == list(range(ROWS)) and said == []
+    assert computed == list(range(ROWS)) and said == [
+        f"Local features {path} are damaged (Can't synchronously read data (bad global heap collection signature)); "
+        "the file was discarded and its images are computed again."]
     assert all(np.array_equal(found[r]["points"], features_of(r)["points"]) for r in range(ROWS))
 
 
@@ -330,7 +333,14 @@ def test_a_record_of_another_protocol_copied_over_one_is_not_served(shared_data,
     theirs = next(cache.glob(f"results/{runs[2]['protocol']['hash']}/*/*.json"))
     shutil.copy(theirs.with_suffix(".npz"), mine.parent)
     shutil.copy(theirs, mine)  # the other run's record under this one's name
-    assert find_result(spec, cache) is None  # not this protocol's run: the cell is evaluated again
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert find_result(spec, cache) is None  # not this protocol's run: the cell is evaluated again
+    row = runs[1]["row_key"]
+    assert [str(w.message) for w in caught] == [  # was: without a word
+        f"{mine} does not count as a result: it lies among the runs of protocol {runs[1]['protocol']['hash']}, row "
+        f"{row}, but holds a run of protocol {runs[2]['protocol']['hash']}, row {row} (copied or moved there; nothing "
+        "was deleted)."]
 
 
 class _StoredRows:

@@ -110,21 +110,26 @@ def test_an_image_without_keypoints_is_read_back_by_layout(tmp_path, monkeypatch
     assert len(opened) == 1
 
 
-@pytest.mark.parametrize("attr, edit", [
+@pytest.mark.parametrize("attr, edit, reason", [
     # before: OverflowError out of the index, on every run (the segment stayed)
-    ("arrays", lambda found: '[["descriptors", "|u1", [1e400]], ["points", "<f4", [2]]]'),
+    ("arrays", lambda found: '[["descriptors", "|u1", [1e400]], ["points", "<f4", [2]]]',
+     "a layout's trailing shape [inf]"),
     # before: cast to int64 (NaN with numpy's "invalid value encountered in cast" warning)
-    ("row_at", lambda found: np.full(found.shape, np.nan)),
+    ("row_at", lambda found: np.full(found.shape, np.nan), "a layout of float64 values"),
 ])
-def test_a_layout_of_other_numbers_than_whole_ones_is_recomputed(tmp_path, monkeypatch, attr, edit):
-    """A segment whose layout is not what vprbench writes is discarded and its images computed again."""
+def test_a_layout_of_other_numbers_than_whole_ones_is_recomputed(tmp_path, monkeypatch, attr, edit, reason):
+    """A segment whose layout is not what vprbench writes is discarded and its images computed
+    again, said in one line naming the file (was: without a word)."""
     store = written(tmp_path, monkeypatch)
-    with h5py.File(store.files("database")[0], "a") as f:
+    path = store.files("database")[0]
+    with h5py.File(path, "a") as f:
         f.attrs[attr] = edit(f.attrs[attr])
     computed = []
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         with store.opened("database", lambda row: computed.append(row) or arrays(row)) as get:
             for row in range(12):
                 assert all(np.array_equal(get(row)[key], value) for key, value in arrays(row).items())
-    assert computed == [0, 1, 2, 3]
+    assert computed == [0, 1, 2, 3] and not path.exists()
+    assert [str(w.message) for w in caught] == [
+        f"Local features {path} are damaged ({reason}); the file was discarded and its images are computed again."]

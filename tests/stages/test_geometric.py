@@ -71,6 +71,31 @@ def test_two_processes_rerank_on_one_cache_and_compute_each_image_once(shared_da
     assert len({p.parent for p in (tmp_path / "cache" / "features").glob("sift-*/corridor-*/database.*.h5")}) == 1
 
 
+def test_a_damaged_features_file_is_said_in_one_line_and_its_images_computed_again(shared_data, tmp_path):
+    """hog + sift-ransac on corridor, a kept segment of query features then overwritten at its
+    start (HDF5 cannot open it). Was: discarded and its 64 images recomputed without a word; now
+    one warning line names it, the run succeeds as before."""
+    import json
+    import subprocess
+    import sys
+
+    command = [sys.executable, "-m", "vprbench", "evaluate", "--method", "hog", "--resize", "64", "64", "--dataset",
+               "corridor", "--k", "1", "--rerank", "sift-ransac", "--rerank-k", "2", "--rerank-option",
+               "max_features=100", "--data-dir", str(shared_data), "--cache-dir", str(tmp_path / "cache"), "--json",
+               "--quiet"]
+    first = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert (first.returncode, first.stderr) == (0, "")
+    segment = next((tmp_path / "cache" / "features").glob("sift-*/corridor-*/queries.1.h5"))
+    with open(segment, "r+b") as f:
+        f.write(b"garbage!")  # HDF5's signature
+    again = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0 and again.stderr == (
+        f"warning: Local features {segment} are damaged (Unable to synchronously open file (file signature not "
+        "found)); the file was discarded and its images are computed again.\n")
+    before, after = json.loads(first.stdout), json.loads(again.stdout)
+    assert after["stages"][0]["features_computed"] == 64 and after["recall"] == before["recall"]
+
+
 def test_the_ratio_test_keeps_a_match_clearly_nearer_than_the_second():
     query = np.zeros((2, 128), np.float32)
     query[1, 2] = 10.0  # about equally far from both database rows: ambiguous, dropped

@@ -25,6 +25,7 @@ import numpy as np
 from ..errors import VPRBenchError, os_error_message, require
 from ..fsutil import CacheError, atomic_write, is_temporary, lock, remove_stale, write_once
 from ..paths import cache_root
+from ..text import shortened
 from .record import OPTIONAL_FIELDS, PER_QUERY_FIELDS, validated
 
 CARDS = "methods"
@@ -171,7 +172,8 @@ def find_result(spec, cache_dir=None, dataset_fingerprint: str | None = None,
     """The newest stored record that answers `spec` (same row, same protocol, every K asked, what it
     named in the cache of the same content: `RunSpec.found`), its
     metrics recomputed from its per-query arrays (evaluation.proof), or None. A record whose arrays
-    are missing or damaged answers nothing (named in a warning): its cell is evaluated again.
+    are missing or damaged, or that holds another row or protocol than its folder (copied there), answers
+    nothing (named in a warning): its cell is evaluated again.
     With `dataset_fingerprint` (`Dataset.fingerprint`), only a record computed on that content
     answers: a benchmark's protocol names its splits and radius, not the bytes of a copy. With
     `method_fingerprint` (`store.method_fingerprint` of the method now), only a record whose
@@ -188,7 +190,7 @@ def find_result(spec, cache_dir=None, dataset_fingerprint: str | None = None,
     fingerprints = None if stages is None else _stage_fingerprints(stages)
     # row and protocol as the record says, not as the folder it lies in is named (a file copied there)
     found = [r for r in _records_in(run_folder(spec.dataset.protocol_hash, spec.row_key, cache_dir))
-             if r["row_key"] == spec.row_key and r["protocol"]["hash"] == spec.dataset.protocol_hash
+             if _in_place(r, spec)
              and wanted <= set(r["recall"]) and (r.get("spec") or {}).get("found", {}) == spec.found
              and dataset_fingerprint in (None, r.get("dataset_fingerprint")) and _same_search(r, spec, stages)
              and method_fingerprint in (None, r.get("method_fingerprint")) and _same_stages(r, fingerprints)
@@ -204,6 +206,17 @@ def find_result(spec, cache_dir=None, dataset_fingerprint: str | None = None,
         # the reason holds what the arrays' own warning said: one line, not two
         warnings.warn(f"{record.get('_source')} does not count as a result: {checked}", stacklevel=2)
     return None
+
+
+def _in_place(record: dict, spec) -> bool:
+    """Whether the record is a run of the row and protocol its folder is named after; one that is not
+    (copied or moved there) answers nothing, said in a warning: its cell is evaluated again."""
+    theirs, ours = (record["protocol"]["hash"], record["row_key"]), (spec.dataset.protocol_hash, spec.row_key)
+    if theirs != ours:
+        warnings.warn(f"{record.get('_source')} does not count as a result: it lies among the runs of protocol "
+                      f"{ours[0]}, row {ours[1]}, but holds a run of protocol {shortened(theirs[0])}, row "
+                      f"{shortened(theirs[1])} (copied or moved there; nothing was deleted).", stacklevel=3)
+    return theirs == ours
 
 
 def _created_stages(spec) -> list | None:

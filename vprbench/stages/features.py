@@ -16,7 +16,7 @@ it was writing when the disk filled is unreadable, which is why files are never 
 rerun reads every segment written and computes the rest. A run holds the folder's lock while it
 reads and writes; a segment written for another extractor or other images is refused by name.
 What is read is checked, as descriptor stores are: an image whose arrays no longer match their
-crc32 is recomputed (said in a warning), a segment HDF5 cannot open is discarded. The newest
+crc32 is recomputed, a segment HDF5 cannot open is discarded (each said in a warning). The newest
 segment holding an image wins.
 """
 from __future__ import annotations
@@ -38,6 +38,7 @@ from ..errors import VPRBenchError
 from ..fsutil import CacheError, atomic_path, cache_error, lock, remove_stale
 from ..hashing import canonical_hash, canonical_json
 from ..paths import cache_root, safe_name
+from ..text import shortened
 from ..store.rows_file import close_quietly
 
 #: bytes of per-image arrays kept in memory per open split (database images recur across queries)
@@ -136,7 +137,7 @@ class FeatureStore:
     def _index(self, split: str) -> tuple[dict[int, Path], dict[Path, "Layout"]]:
         """row -> the newest segment holding it, and the layout of each segment that has one. A
         segment HDF5 cannot open (damaged; or the file earlier versions appended to, torn by a kill
-        or a full disk) is discarded: its images are computed again."""
+        or a full disk) is discarded, said in a warning: its images are computed again."""
         where: dict[int, Path] = {}
         layouts: dict[Path, Layout] = {}
         for path in self.files(split):
@@ -156,6 +157,8 @@ class FeatureStore:
                     path.unlink()
                 except OSError as failure:
                     raise cache_error(failure, path) from None
+                warnings.warn(f"Local features {path} are damaged ({shortened(str(error))}); the file was discarded "
+                              "and its images are computed again.", stacklevel=4)
                 continue
             self._check(path, found, images, split)
             where.update(dict.fromkeys(rows, path))
