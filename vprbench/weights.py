@@ -49,6 +49,11 @@ def _numpy_globals() -> list:
     return allowed
 
 
+#: a damaged file's remedy; one in the cache would otherwise be served again by its name
+GET_AGAIN = ("a download or copy that stopped early leaves such a file: get it again (one vprbench downloaded: "
+             "delete it, and the next run downloads it anew).")
+
+
 def read_torch_file(path: str | Path, what: str = "checkpoint", *, mmap: bool = False):
     """torch.load of tensors, containers and numpy scalars only: loading never runs code.
 
@@ -79,8 +84,7 @@ def read_torch_file(path: str | Path, what: str = "checkpoint", *, mmap: bool = 
         except (RuntimeError, ValueError, OSError):  # only zip-format files can be inspected: else the refusal names it
             extra = ", ".join(dict.fromkeys(re.findall(r"GLOBAL ([\w.]+)", str(error))))
         if not extra:
-            raise VPRBenchError(f"Cannot read {what} {path}: it is damaged or not a PyTorch file; a download or copy "
-                                "that stopped early leaves such a file: get it again.") from None
+            raise VPRBenchError(f"Cannot read {what} {path}: it is damaged or not a PyTorch file; {GET_AGAIN}") from None
         raise VPRBenchError(
             f"{what.capitalize()} {path} also holds Python objects ({extra}), which are not loaded because "
             "unpickling them can run code. If you trust the file, save its weights alone, e.g. "
@@ -95,8 +99,7 @@ def read_torch_file(path: str | Path, what: str = "checkpoint", *, mmap: bool = 
         reason = str(error).strip().splitlines()[0].split(". ")[0].rstrip(".") if str(error).strip() else ""
         raise VPRBenchError(
             f"Cannot read {what} {path}: it is damaged or not a PyTorch file ({type(error).__name__}"
-            f"{': ' + reason if reason else ''}); a download or copy that stopped early leaves such a file: get it again."
-        ) from None
+            f"{': ' + reason if reason else ''}); {GET_AGAIN}") from None
 
 
 # ---------------------------------------------------------------- the one resolver

@@ -138,7 +138,8 @@ def test_a_truncated_checkpoint_is_named_once_without_torchs_internals(tiny_dino
                             "1", "--aggregation", "gem", "--resize", "32", "32")
     assert_refused(code, err, None, f"Backbone dinov3_vits16: Cannot read weights file {path}: it is damaged or not a "
                                     "PyTorch file (RuntimeError: PytorchStreamReader failed reading zip archive",
-                   "a download or copy that stopped early leaves such a file: get it again")
+                   "a download or copy that stopped early leaves such a file: get it again (one vprbench "
+                   "downloaded: delete it, and the next run downloads it anew).")
     assert err.count(str(path)) == 1 and "miniz" not in err
 
 
