@@ -21,7 +21,8 @@ def test_evaluate_hog_on_corridor_then_served_from_store(capsys, shared_data):
     code, out, err = run(capsys, "evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", str(shared_data), "--json")
     assert code == 0, err
     record = json.loads(out)
-    assert record["counts"] == {"database": 111, "queries": 111, "queries_without_positives": 0, "positive_pairs": 549}
+    assert record["counts"] == {"database": 111, "queries": 111, "queries_without_positives": 0, "positive_pairs": 549,
+                                "all_zero_queries": 0, "all_zero_database": 0}
     assert record["descriptors_computed"] == {"database": 111, "queries": 111}
     assert set(record["recall"]) == {"1", "5", "10", "20"}
     assert record["recall"]["1"] <= record["recall"]["5"] <= record["recall"]["10"] <= record["recall"]["20"]

@@ -122,7 +122,8 @@ def test_recall_of_hog_on_corridor_recomputed_from_its_store(cli, shared_data, t
     mine = np.where(hit.any(axis=1), hit.argmax(axis=1) + 1, 0)
     assert np.array_equal(arrays["first_positive_rank"], mine)
     assert arrays["positives"].tolist() == [len(rows[i]) for i in range(111)]
-    assert record["counts"] == {"database": 111, "queries": 111, "positive_pairs": 549, "queries_without_positives": 0}
+    assert record["counts"] == {"database": 111, "queries": 111, "positive_pairs": 549, "queries_without_positives": 0,
+                                "all_zero_queries": 0, "all_zero_database": 0}
 
 
 @pytest.mark.parametrize("name, folder", [("17places", "17places"), ("gardens-point", "GardensPointWalking"),

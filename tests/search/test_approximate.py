@@ -84,10 +84,10 @@ def test_the_index_searches_with_the_nprobe_and_ef_search_it_records():
 
     db = clustered(10_000, 16, 3)
     o = index_options("ivf-pq", len(db), 16, 5, {"nlist": 16, "nprobe": 5, "pq_m": 4})
-    index, _ = _build("ivf-pq", ArrayRows(db), o, 10**9)
+    index, _, _ = _build("ivf-pq", ArrayRows(db), o, 10**9)
     assert o["nprobe"] == 5 and index.nprobe == 5
     o = index_options("hnsw", 2000, 16, 5, {"ef_search": 77, "shortlist": 50})
-    index, _ = _build("hnsw", ArrayRows(db[:2000]), o, 10**9)
+    index, _, _ = _build("hnsw", ArrayRows(db[:2000]), o, 10**9)
     assert o["ef_search"] == 77 and index.hnsw.efSearch == 77
 
 
@@ -100,14 +100,14 @@ def test_a_short_shortlist_is_searched_exactly_whatever_k_is(tmp_path, monkeypat
     built = approximate._build
 
     def short_answers(kind, database, o, budget):
-        index, chunk_rows = built(kind, database, o, budget)
+        index, *rest = built(kind, database, o, budget)
 
         class Short:  # every other query gets 3 arbitrary rows, padded with -1 as faiss pads
             def search(self, block, shortlist):
                 scores, found = index.search(block, shortlist)
                 found[::2, :3], found[::2, 3:] = np.arange(3), -1
                 return scores, found
-        return Short(), chunk_rows
+        return Short(), *rest
 
     monkeypatch.setattr(approximate, "_build", short_answers)
     exact = exact_search(db, q, 5)

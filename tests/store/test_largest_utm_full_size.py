@@ -37,7 +37,8 @@ def test_pitts250k_oracle_scores_recall_at_1_of_100_at_full_size(pitts250k_tree,
 
     places = oracle_places(tree)
     record = evaluate(create_method("oracle-test", places=places, folder="pitts250k"), dataset, ks=(1, 5))
-    assert record["counts"] == {"database": 83952, "queries": 8280, "queries_without_positives": 0, "positive_pairs": pairs}
+    assert record["counts"] == {"database": 83952, "queries": 8280, "queries_without_positives": 0,
+                                "positive_pairs": pairs, "all_zero_queries": 0, "all_zero_database": 0}
     assert record["descriptors_computed"] == {"database": 83952, "queries": 8280}
     assert record["recall"] == {"1": 100.0, "5": 100.0}
 

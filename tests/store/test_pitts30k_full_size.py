@@ -10,7 +10,8 @@ from vprbench.cli.main import main
 from vprbench.datasets import load_dataset
 from runs import evaluate_method as evaluate
 
-COUNTS = {"database": 10000, "queries": 6816, "queries_without_positives": 0, "positive_pairs": 968448}
+COUNTS = {"database": 10000, "queries": 6816, "queries_without_positives": 0, "positive_pairs": 968448,
+          "all_zero_queries": 0, "all_zero_database": 0}
 
 
 def test_oracle_scores_recall_at_1_of_100_at_full_size(pitts30k_tree, pitts30k_places):

@@ -24,7 +24,7 @@ import numpy as np
 from ..errors import VPRBenchError
 from ..text import one_line
 from ..evaluation.blocks import Resampling, for_dataset, for_record, record_window
-from ..evaluation.record import OPTIONAL_FIELDS, PER_QUERY_FIELDS, validated
+from ..evaluation.record import OPTIONAL_FIELDS, PER_QUERY_FIELDS, UNIT_FIELDS, validated
 from ..evaluation.results import check_kinds
 from ..stages.base import unordered_row
 from .archive import _CARD, MAX_BYTES, RECORD_NAME, BundleError, _json, check_manifest, read_members
@@ -248,7 +248,12 @@ def rescore(record: dict, arrays: dict, gt: Truth, problems: list) -> dict[str, 
     if ks and ks[-1] > k:
         problems.append(f"it reports R@{ks[-1]} but keeps only the top {k} per query")
         return {}
-    first = first_positive_rank(correct_at(indices, gt.positives))
+    flags = arrays.get("all_zero")  # queries whose descriptor was all zero: failures whatever they list
+    # (a sequence run counts them but flags none: a sequence stage places them from their neighbours)
+    if flags is not None and counts.get("all_zero_queries") != np.count_nonzero(flags):
+        problems.append(f"its counts say {counts.get('all_zero_queries', 'nothing of')} all-zero queries; its "
+                        f"arrays flag {np.count_nonzero(flags)}")
+    first = first_positive_rank(correct_at(indices, gt.positives, flags))
     if not np.array_equal(first, arrays["first_positive_rank"]):
         q = int(np.flatnonzero(first != arrays["first_positive_rank"])[0])
         problems.append(f"query {q}: its first positive is at rank {int(first[q])} of its top K, the record says "
@@ -271,7 +276,7 @@ def rescore(record: dict, arrays: dict, gt: Truth, problems: list) -> dict[str, 
     # need none (records before unit arrays kept none, and no resampling)
     expected = gt.resampling.for_window(record_window(record)) if gt.resampling is not None else None
     needs_arrays = expected is not None and (expected.order is not None or expected.places is not None)
-    checked = set(OPTIONAL_FIELDS) & set(arrays) or "resampling" in record or not needs_arrays
+    checked = set(UNIT_FIELDS) & set(arrays) or "resampling" in record or not needs_arrays
     if expected is not None and checked and not stated.same_as(expected):
         problems.append(f"its bootstrap units ({stated.text()}) are not those of protocol {gt.protocol_id} "
                         f"({expected.text()}); its intervals would be drawn from the wrong units")

@@ -156,11 +156,22 @@ def results_table(record: dict):
         f"R@K and R@100%P in percent, AUC-PR and max F1 from 0 to 1; {counts['database']} database, "
         f"{plural(counts['queries'], 'query')} "
         f"({counts['queries_without_positives']} without positives, counted as failures); "
+        + all_zero_text(counts) +
         f"dim {record['descriptor_dim']}" + (f" ({size} bytes as stored)" if (size := descriptor_bytes(record)) else "")
         + f"; descriptors computed now: {computed['database'] + computed['queries']}; "
         f"{timings['total_s']:.1f} s total"
     )
     return table
+
+
+def all_zero_text(counts: dict) -> str:
+    """The caption's note of all-zero descriptors, when there were any ('' too for a record from before
+    they were counted)."""
+    queries, database = counts.get("all_zero_queries", 0), counts.get("all_zero_database", 0)
+    if not queries and not database:
+        return ""
+    return (f"{plural(queries, 'query')} and {plural(database, 'database image')} with all-zero descriptors "
+            "(nothing described; such queries count as failures); ")
 
 
 def run_describe(args) -> int:

@@ -11,8 +11,8 @@ import numpy as np
 
 from ..errors import VPRBenchError
 from ..row_sources import READ_BYTES, ArrayRows, RowSource, chunks, format_bytes
-from .search import (SearchResult, TIE_ORDER, check_finite, check_pair, exact_search, order_results, read_cost,
-                     rounded_scores)
+from .search import (ZERO_SQUARED, AllZero, SearchResult, TIE_ORDER, check_finite, check_pair, exact_search,
+                     order_results, read_cost, rounded_scores, squared_lengths)
 
 APPROXIMATE = ("ivf-pq", "hnsw")
 #: faiss's k-means wants at least 39 training points per centroid
@@ -121,10 +121,12 @@ def _build(kind: str, database: RowSource, o: dict, budget: int):
     del training
     row_bytes, fixed = read_cost(database)
     chunk_rows = max(1, min(READ_BYTES, budget - fixed) // row_bytes)
+    zeros = 0  # counted on this one pass over every row
     for start, rows in chunks(database, chunk_rows):
         check_finite(rows, "Database", start)  # faiss would index a NaN row as if it were a place
+        zeros += int(np.count_nonzero(squared_lengths(rows) < ZERO_SQUARED))
         index.add(rows)
-    return index, chunk_rows
+    return index, chunk_rows, zeros
 
 
 def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind: str, memory_budget: int,
@@ -146,7 +148,7 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
             f"{format_bytes(o['train_rows'] * row_bytes)}, {format_bytes(need)} in all. Raise --search-memory "
             "(memory_budget) to at least that, or lower train_rows / pq_m.")
     started = time.perf_counter()
-    index, chunk_rows = _build(kind, database, o, memory_budget - index_bytes)
+    index, chunk_rows, zero_database = _build(kind, database, o, memory_budget - index_bytes)
     build_s = time.perf_counter() - started
 
     started = time.perf_counter()
@@ -156,8 +158,10 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
     # queries whose shortlist came back short: searched exactly, whatever k is, so a run's top-1 does not
     # depend on the deepest K asked (the K list is not part of a leaderboard row)
     short = []
+    zero_queries = np.zeros(n_queries, dtype=bool)
     for q0, block in chunks(queries, q_chunk):
         check_finite(block, "Query", q0)
+        zero_queries[q0:q0 + len(block)] = squared_lengths(block) < ZERO_SQUARED
         _, found = index.search(block, o["shortlist"])
         rows_ids = np.unique(found[found >= 0])
         rows = database.read_rows_at(rows_ids)
@@ -183,7 +187,7 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
             "query_chunks": -(-n_queries // q_chunk), "exact_fallback_queries": len(short),
             "build_s": round(build_s, 3), "query_s": round(query_s, 3), "tie_order": TIE_ORDER,
             "recall_loss": recall_loss(database, queries, k, indices, o, memory_budget)}
-    return SearchResult(scores, indices, info)
+    return SearchResult(scores, indices, info, AllZero(zero_queries, zero_database))
 
 
 def recall_loss(database: RowSource, queries: RowSource, k: int, indices: np.ndarray, o: dict, budget: int) -> dict:

@@ -19,9 +19,14 @@ def check_ks(ks, n_database: int, dataset: str = "the dataset") -> tuple[int, ..
     return ks
 
 
-def correct_at(indices: np.ndarray, positives: list[np.ndarray]) -> np.ndarray:
-    """(queries, k) bool: is the j-th retrieved image a positive of the query?"""
-    return np.stack([np.isin(row, pos) for row, pos in zip(indices, positives)])
+def correct_at(indices: np.ndarray, positives: list[np.ndarray], all_zero=None) -> np.ndarray:
+    """(queries, k) bool: is the j-th retrieved image a positive of the query? Never for a query flagged
+    in `all_zero` (one flag per query): its descriptor is all zero, it matches nothing, and its list is
+    only the search's tie rule (rows 0, 1, ...), so it counts as a failure at every K."""
+    correct = np.stack([np.isin(row, pos) for row, pos in zip(indices, positives)])
+    if all_zero is not None:
+        correct[np.asarray(all_zero) != 0] = False
+    return correct
 
 
 def first_positive_rank(correct: np.ndarray) -> np.ndarray:

@@ -222,9 +222,9 @@ def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None
     candidates, stage_costs = Candidates(found.indices, found.scores), []
     if stages:
         t = time.perf_counter()
-        candidates, stage_costs = run_stages(stages, candidates, stage_context(spec, settings, method, dataset,
-                                                                               described, progress), run.ks,
-                                              dataset.positives)
+        context = stage_context(spec, settings, method, dataset, described, progress)
+        flags = None if found.all_zero is None else found.all_zero.failures(track_of(stages))
+        candidates, stage_costs = run_stages(stages, candidates, context, run.ks, dataset.positives, flags)
         timings["stages_s"] = time.perf_counter() - t
     candidates = candidates.top(run.ks[-1])
     timings["total_s"] = time.perf_counter() - started
@@ -241,5 +241,5 @@ def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None
         descriptor_dim=int(found.info["dim"]), computed=described.computed, timings=timings, search=found.info,
         context=context, run={**settings.describe(), "device": str(getattr(method, "device", settings.device)),
                               "workers": run.workers, "batch_size": method.batch_size},
-        cache_dir=settings.cache_dir, track=track_of(stages), stages=stage_costs,
+        cache_dir=settings.cache_dir, track=track_of(stages), stages=stage_costs, all_zero=found.all_zero,
     )

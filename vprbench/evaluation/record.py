@@ -24,7 +24,10 @@ SCHEMA_VERSION = 3  # 2 = vprbench 0.2 (no spec), 1 = the JSON lines of 0.1 (no 
 #: the per-query arrays, in the record and in its .npz
 PER_QUERY_FIELDS = ("database_indices", "similarities", "first_positive_rank", "positives")
 #: per-query arrays kept when the dataset has them: the bootstrap's units (evaluation/blocks.py)
-OPTIONAL_FIELDS = ("place", "order")
+UNIT_FIELDS = ("place", "order")
+#: per-query arrays kept only where they apply: the units, and `all_zero` (1 for a query whose descriptor
+#: is all zero: a failure at every K, search.AllZero) when a query is
+OPTIONAL_FIELDS = (*UNIT_FIELDS, "all_zero")
 
 
 # ---------------------------------------------------------------- the typed record
@@ -243,15 +246,19 @@ def new_run_id() -> tuple[str, datetime]:
 
 def result_record(*, spec: RunSpec, method, fingerprint, dataset, dataset_key: str, ks, scores, indices, positives,
                   descriptor_dim, computed, timings, search=None, context=None, run=None, cache_dir=None,
-                  track: str = "single-image", stages: list[dict] | None = None) -> dict:
+                  track: str = "single-image", stages: list[dict] | None = None, all_zero=None) -> dict:
     """The record of one run, from the search's top-K (scores and database indices per query):
-    every metric is computed here, from what the record keeps."""
+    every metric is computed here, from what the record keeps. `all_zero` (search.AllZero, None when
+    not counted): the all-zero rows, counted; on the track's terms their queries count as failures."""
     from .metrics import correct_at, recall_at_k, top1_precision_recall
 
     from .blocks import for_dataset, query_window
 
-    correct = correct_at(indices, positives)  # (queries, K): once, for every metric below
+    flags = None if all_zero is None else all_zero.failures(track)
+    correct = correct_at(indices, positives, flags)  # (queries, K): once, for every metric below
     section = per_query_section(scores, indices, correct, positives)
+    if flags is not None and flags.any():
+        section["all_zero"] = flags.astype(np.int32).tolist()
     # which queries the bootstrap draws together: blocks also cover a sequence stage's window
     resampling = for_dataset(dataset, query_window([{"name": s.name, "options": s.options} for s in spec.stages]))
     section.update({name: array.tolist() for name, array in resampling.arrays().items()})
@@ -288,6 +295,7 @@ def result_record(*, spec: RunSpec, method, fingerprint, dataset, dataset_key: s
             "database": summary["database"], "queries": summary["queries"],
             "queries_without_positives": summary["queries"] - summary["queries_with_positives"],
             "positive_pairs": summary["positive_pairs"],
+            **(all_zero.counts() if all_zero is not None else {}),
         },
         "ground_truth": {"unit": summary["unit"], "radius": summary["radius"], "radius_unit": summary["radius_unit"]},
         "resampling": resampling.describe(),

@@ -21,11 +21,13 @@ from __future__ import annotations
 
 from contextlib import nullcontext as _nothing
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
 from ..errors import VPRBenchError
 from ..features.allocator import keep_freed_memory
+from ..loader import ZERO_LENGTH
 from ..row_sources import (DEFAULT_MEMORY_BUDGET, READ_BYTES, ArrayRows, RowSource, as_rows, format_bytes,
                     parse_memory, read_bytes_per_row)
 from .chunks import Chunk, ChunkReader, tile_rows
@@ -41,11 +43,32 @@ EXTRA_CANDIDATES = 16
 #: scores are scaled by this after their products: exact (a power of two), giving the negated
 #: grid units the heaps keep
 _UNITS = np.float32(-1 / SCORE_TOLERANCE)
+#: a row whose squared length is below this is all zero: an image with nothing described, which matches
+#: nothing (loader.ZERO_LENGTH); its query counts as a failure at every K (AllZero)
+ZERO_SQUARED = np.float32(ZERO_LENGTH) ** 2
 #: the largest product computed at once (bytes of scores): below glibc's mmap threshold
 PRODUCT_BYTES = 16 * 2**20
 
-__all__ = ["ArrayRows", "DEFAULT_MEMORY_BUDGET", "INDEXES", "SCORE_TOLERANCE", "SearchResult",
+__all__ = ["AllZero", "ArrayRows", "DEFAULT_MEMORY_BUDGET", "INDEXES", "SCORE_TOLERANCE", "SearchResult",
            "exact_search", "search", "tile_rows"]
+
+
+class AllZero(NamedTuple):
+    """The all-zero rows a search saw (after post-processing), each row counted once: such a query
+    still gets the tie rule's candidates (rows 0, 1, ...) but matches nothing, so it counts as a
+    failure at every K, whatever a stage does with them (metrics.correct_at)."""
+
+    queries: np.ndarray   # (Q,) bool: the query's descriptor is all zero
+    database: int         # database rows that are all zero
+
+    def counts(self) -> dict[str, int]:
+        """The record's counts of them."""
+        return {"all_zero_queries": int(np.count_nonzero(self.queries)), "all_zero_database": int(self.database)}
+
+    def failures(self, track: str) -> np.ndarray | None:
+        """The queries that count as failures on `track`: none on the sequence track, where a stage
+        places a query from its neighbours' descriptors too (a blank frame in a known sequence)."""
+        return None if track == "sequence" else self.queries
 
 
 @dataclass
@@ -53,6 +76,7 @@ class SearchResult:
     scores: np.ndarray    # (Q, k) float32, best first
     indices: np.ndarray   # (Q, k) int64 database rows
     info: dict = field(default_factory=dict)  # how it ran: goes into the result record's "search"
+    all_zero: AllZero | None = None  # None where they were not counted (a distance search, an older candidates file)
 
 
 def read_cost(rows) -> tuple[int, int]:
@@ -113,12 +137,25 @@ def check_finite(block: np.ndarray, what: str, start: int = 0, numbers=None) -> 
                             "method or post-processor that made it (or describe again if its store was damaged).")
 
 
-def checked(chunk: Chunk, what: str) -> Chunk:
-    """The chunk, once each of its rows is known finite (one pass over its rows: little beside the
-    products every row takes part in)."""
-    for t, (tile, real) in enumerate(zip(chunk.tiles, chunk.real)):
-        check_finite(tile[:real], what, chunk.start + t * len(tile))
-    return chunk
+def squared_lengths(block: np.ndarray) -> np.ndarray:
+    """Each row's squared length, float32 (one pass): NaN or infinity where the row holds one, and
+    infinity too where a finite row is very long."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        return np.einsum("ij,ij->i", block, block)
+
+
+def checked(chunk: Chunk, what: str) -> np.ndarray:
+    """The numbers of the chunk's all-zero rows (`ZERO_SQUARED`), once each of its rows is known
+    finite: one pass over its rows, little beside the products every row takes part in (a squared
+    length that is not finite sends its tile to the exact check, which names a row holding NaN)."""
+    found, start = [], chunk.start
+    for tile, real in zip(chunk.tiles, chunk.real):
+        squares = squared_lengths(tile[:real])
+        if not np.isfinite(squares).all():
+            check_finite(tile[:real], what, start)
+        found.append(start + np.flatnonzero(squares < ZERO_SQUARED))
+        start += real
+    return np.concatenate(found)
 
 
 def check_products(distances: np.ndarray) -> None:
@@ -209,8 +246,9 @@ def _one_thread_each() -> None:
     threadpool_limits(1, user_api="openmp")
 
 
-def _scan(database, queries, keep: int, plan: dict, on_grid: bool) -> tuple[np.ndarray, np.ndarray]:
-    """(negated grid units, indices) of the `keep` best rows per query, unordered: queries a
+def _scan(database, queries, keep: int, plan: dict, on_grid: bool) -> tuple[np.ndarray, np.ndarray, AllZero]:
+    """(negated grid units, indices) of the `keep` best rows per query, unordered, and the all-zero
+    rows (the database's counted on its first pass only): queries a
     chunk at a time, the database streamed past each, every product one tile of the grid.
     With several threads, each takes its own slice of every query tile, with one-thread BLAS
     and its own heap rows: products and merges run side by side and no thread waits on another
@@ -234,11 +272,13 @@ def _scan(database, queries, keep: int, plan: dict, on_grid: bool) -> tuple[np.n
         threads = len(slices(q_tile, search_threads()))
         scan = _Scan(_heap(distances, indices), q_tile, d_tile, threads, on_grid)
         pool = ThreadPoolExecutor(threads, "vprbench-search", _one_thread_each) if threads > 1 else None
+        zero_queries, zero_database = np.zeros(n_queries, dtype=bool), 0
         with threadpool_limits(1, user_api="blas") if pool else _nothing():
-            for query_chunk in query_reader:
-                checked(query_chunk, "Query")
+            for number, query_chunk in enumerate(query_reader):
+                zero_queries[checked(query_chunk, "Query")] = True
                 for chunk in reader:
-                    checked(chunk, "Database")
+                    zeros = checked(chunk, "Database")
+                    zero_database += len(zeros) if number == 0 else 0
                     work = [(w, query_chunk, chunk) for w in range(threads)]
                     list(pool.map(scan.chunk, *zip(*work))) if pool else scan.chunk(*work[0])
                     chunk = work = None  # let go before the next is read (ChunkReader)
@@ -248,7 +288,7 @@ def _scan(database, queries, keep: int, plan: dict, on_grid: bool) -> tuple[np.n
             opened.close()
         if pool is not None:
             pool.shutdown(wait=True)
-    return distances, indices
+    return distances, indices, AllZero(zero_queries, zero_database)
 
 
 class _Scan:
@@ -289,20 +329,23 @@ def exact_search(database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDG
     check_pair(database, queries, k)
     plan = _plan(database, queries, k, budget)
     keep = plan["candidates"]
-    distances, indices = _scan(database, queries, keep, plan, on_grid=False)
+    distances, indices, all_zero = _scan(database, queries, keep, plan, on_grid=False)
     check_products(distances)
     units, indices = order_results(-np.rint(distances), indices)  # units: rounded scores in grid steps
-    ambiguous = np.flatnonzero(units[:, keep - 1] == units[:, k - 1]) if keep < database.row_count else []
+    # an all-zero query ties everywhere, matches nothing: its list is not worth another pass over the database
+    tied = (units[:, keep - 1] == units[:, k - 1]) & ~all_zero.queries
+    ambiguous = np.flatnonzero(tied) if keep < database.row_count else []
     units, indices = units[:, :k], indices[:, :k]
     if len(ambiguous):
         subset = ArrayRows(queries.read_rows_at(ambiguous))
         again = _plan(database, subset, k, budget)
-        exact, exact_indices = _scan(database, subset, k, {**again, "candidates": k}, on_grid=True)
+        exact, exact_indices, _ = _scan(database, subset, k, {**again, "candidates": k}, on_grid=True)
         check_products(exact)
         units[ambiguous], indices[ambiguous] = order_results(-exact, exact_indices)
     scores = (units * np.float32(SCORE_TOLERANCE)).astype(np.float32)
     return SearchResult(scores, indices, {"index": "exact", "memory_budget": budget, **plan,
-                                          "queries_searched_again_for_ties": len(ambiguous), "tie_order": TIE_ORDER})
+                                          "queries_searched_again_for_ties": len(ambiguous), "tie_order": TIE_ORDER},
+                        all_zero)
 
 
 def search(database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDGET) -> tuple[np.ndarray, np.ndarray]:

@@ -301,8 +301,9 @@ def _run_image(dataset, split: str, index: int, cache_dir=None):
 
 def mosaic(cell: Cell, path: Path, *, data_dir=None, seed: int = 0, queries: int = 4, top: int = 5,
            cache_dir=None) -> Path:
-    """Seeded queries and their top matches: a green frame is a positive, a red one is not. Only
-    images whose content is the run's are read (_dataset_of, _run_image)."""
+    """Seeded queries and their top matches: a green frame is a positive, a red one is not (nor any match of
+    a query whose descriptor was all zero: it matched nothing, its list is the tie rule's). Only images whose
+    content is the run's are read (_dataset_of, _run_image)."""
     if cell.arrays is None:
         raise Skipped("the run has no per-query predictions")
     dataset = _dataset_of(cell.record, data_dir, cache_dir)
@@ -312,10 +313,12 @@ def mosaic(cell: Cell, path: Path, *, data_dir=None, seed: int = 0, queries: int
     plt = _pyplot()
     fig, axes = plt.subplots(len(chosen), top + 1, figsize=(1.6 * (top + 1), 1.35 * len(chosen)), squeeze=False)
     try:
+        blank = cell.arrays.get("all_zero")
         for row, q in zip(axes, chosen):
-            shown = [(("queries", int(q)), f"query {q}", "black")]
+            nothing = blank is not None and blank[q] != 0
+            shown = [(("queries", int(q)), f"query {q}" + (" (all zero)" if nothing else ""), "black")]
             for rank, d in enumerate(cell.arrays["database_indices"][q, :top], 1):
-                right = int(d) in set(dataset.positives[q].tolist())
+                right = not nothing and int(d) in set(dataset.positives[q].tolist())
                 shown.append((("database", int(d)), f"#{rank} db {d}", "#1a9e3a" if right else "#d62728"))
             for ax, ((split, index), title, colour) in zip(row, shown):
                 image = _run_image(dataset, split, index, cache_dir)

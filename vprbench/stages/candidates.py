@@ -3,6 +3,9 @@ compared on exactly the same candidates.
 
     indices  int64 (queries, K)    database rows, best first
     scores   float32 (queries, K)  the retriever's similarities
+    all_zero uint8 (queries,)      1 for a query whose descriptor is all zero (a failure at every K,
+                                   search.AllZero); with the attribute all_zero_database (files of
+                                   an earlier vprbench have neither: such queries are then not known)
     attrs    format, version, protocol hash and id, the images' key (their names, order and contents),
              the retriever's spec (JSON) and its identity, the search's info, K
 
@@ -56,6 +59,9 @@ def write_candidates(path: Path, spec, found, images: str) -> Path:
                             "protocol_id": spec.dataset.protocol_id, "images_key": images, "retriever_spec": canonical_json(retriever.to_json()),
                             "retriever_key": canonical_hash(retriever_identity(spec)), "k": int(found.indices.shape[1]),
                             "search": json.dumps(found.info, default=str, sort_keys=True)})
+            if found.all_zero is not None:
+                f.create_dataset("all_zero", data=np.asarray(found.all_zero.queries, dtype=np.uint8))
+                f.attrs["all_zero_database"] = int(found.all_zero.database)
     return path
 
 
@@ -82,6 +88,8 @@ def read_candidates(path, spec, queries: int, database: int, depth: int, images:
                 raise VPRBenchError(f"Candidates file {path} is from a newer vprbench (version {attrs['version']}); "
                                     "upgrade vprbench.")
             indices, scores = f["indices"][...], f["scores"][...]
+            flags = f["all_zero"] if "all_zero" in f else None
+            flags = flags[...] if isinstance(flags, h5py.Dataset) else flags  # a group: refused below
     except FileNotFoundError:
         raise VPRBenchError(f"Candidates file not found: {path}") from None
     except (OSError, KeyError) as error:
@@ -127,8 +135,22 @@ def read_candidates(path, spec, queries: int, database: int, depth: int, images:
         raise VPRBenchError(f"Candidates file {path}: its search attribute does not give the descriptors' dimension "
                             "(dim); export it again.")
     info["from_candidates"] = str(path)
-    found = SearchResult(scores[:, :depth].astype(np.float32), indices[:, :depth].astype(np.int64), info)
+    found = SearchResult(scores[:, :depth].astype(np.float32), indices[:, :depth].astype(np.int64), info,
+                         _all_zero(path, flags, attrs.get("all_zero_database"), queries, database))
     return {"found": found, "file": str(path.resolve()), "sha256": file_sha256(path), "k": int(indices.shape[1])}
+
+
+def _all_zero(path: Path, flags, count, queries: int, database: int):
+    """The file's all-zero rows (search.AllZero), None when it has none (an earlier vprbench's file)."""
+    from ..evaluation.search import AllZero
+
+    if flags is None and count is None:
+        return None
+    if not isinstance(flags, np.ndarray) or flags.shape != (queries,) or flags.dtype.kind not in "biu" \
+            or type(count) is not int or not 0 <= count <= database:
+        raise VPRBenchError(f"Candidates file {path}: its all-zero rows (all_zero, all_zero_database) are not one "
+                            f"flag per query and a count within the {database} database images; export it again.")
+    return AllZero(flags != 0, count)
 
 
 def _attributes(f, path: Path) -> dict:

@@ -94,14 +94,16 @@ def _peak_rss_bytes() -> int:
     return int(peak if sys.platform == "darwin" else peak * 1024)  # Linux reports KiB
 
 
-def run_stages(stages, candidates: Candidates, context: StageContext, ks, positives=None) -> tuple[Candidates, list[dict]]:
+def run_stages(stages, candidates: Candidates, context: StageContext, ks, positives=None,
+               all_zero=None) -> tuple[Candidates, list[dict]]:
     """The candidates after every stage, in order, and each stage's cost: ms per query for the stage
     alone, bytes it stores per database image, the process's peak RSS after it and how far the stage
     raised it (0 when it stayed under an earlier peak; no tracer, so the timing is the stage's own), how
     many images' per-image data it computed rather than read from the cache, and where its weights
     come from when it has any.
     With `positives`, each cost has the stage's ceiling: the % of queries with a positive among the
-    candidates it was given (a re-ranker of them can reach no higher recall)."""
+    candidates it was given (a re-ranker of them can reach no higher recall; a query flagged in `all_zero`
+    has none: its descriptor is all zero, so it counts as a failure whatever a stage makes of its candidates)."""
     queries, database = candidates.query_count, context.database.row_count
     costs = []
     for stage in stages:
@@ -126,7 +128,8 @@ def run_stages(stages, candidates: Candidates, context: StageContext, ks, positi
         if positives is not None:
             from ..evaluation.metrics import correct_at
 
-            ceiling = {"ceiling_recall": round(100 * float(correct_at(given.indices, positives).any(1).mean()), 4)}
+            found_any = correct_at(given.indices, positives, all_zero).any(1)
+            ceiling = {"ceiling_recall": round(100 * float(found_any.mean()), 4)}
         costs.append({**ceiling, "name": stage.name, "track": stage.track, "options": stage.options.model_dump(mode="json"),
                       "candidates_in": given.k, "ms_per_query": round(1000 * seconds / max(queries, 1), 3),
                       "seconds": round(seconds, 3), "stored_bytes_per_database_image": round(stored / max(database, 1), 1),
