@@ -18,6 +18,14 @@ pytestmark = [pytest.mark.skipif(not torch.backends.mkldnn.is_available(), reaso
 ONEDNN = "mkldnn._linear_pointwise.default"
 
 
+@pytest.fixture(autouse=True)
+def onednn_here(monkeypatch):
+    """The oneDNN path on any CPU (on one without AVX-512 vprbench leaves products to the BLAS)."""
+    import vprbench.gemm as gemm
+
+    monkeypatch.setattr(gemm, "onednn_faster", lambda: True)
+
+
 class Ops(TorchDispatchMode):
     """Names of the operators that ran."""
 
@@ -203,3 +211,26 @@ def test_inner_products_of_no_queries_write_nothing():
     out = np.empty((0, 5), dtype=np.float32)
     inner_products(np.zeros((0, 3), np.float32), np.ones((5, 3), np.float32), out, np.float32(2))
     assert out.shape == (0, 5)
+
+
+@pytest.mark.parametrize("capability, library", [("AVX512", "oneDNN"), ("AVX2", "BLAS"), ("DEFAULT", "BLAS")])
+def test_onednn_is_used_on_the_cpus_where_it_outruns_the_blas(vits, monkeypatch, capability, library):
+    """By the vector instructions torch runs (never by a timing): AVX-512 -> oneDNN; else the BLAS,
+    which outran oneDNN on an AVX2 EPYC (torch's own linear, its fused attention, numpy's products)."""
+    import numpy as np
+
+    import vprbench.gemm as gemm
+
+    monkeypatch.undo()  # the rule itself, not the fixture's
+    gemm.onednn_faster.cache_clear()
+    monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda: capability)
+    try:
+        assert gemm.library() == library
+        model, spec = vits
+        extractor = DenseExtractor(model, spec, 2, "value")
+        _, names = ran(lambda: extractor(torch.randn(1, 3, 320, 336)))  # 425 tokens: attention by head on oneDNN
+        _, products = ran(lambda: gemm.products(np.ones((3, 4), np.float32), np.ones((5, 4), np.float32)))
+        assert (ONEDNN in names) == (ONEDNN in products) == (library == "oneDNN")
+        assert any("scaled_dot_product" in name for name in names) == (library == "BLAS")
+    finally:
+        gemm.onednn_faster.cache_clear()

@@ -1,10 +1,15 @@
-"""fp32 matrix products on CPU computed by oneDNN, the GEMM library inside torch, where it can.
+"""fp32 matrix products on CPU computed by oneDNN, the GEMM library inside torch, on CPUs where it
+outruns the BLAS.
 
 The BLAS libraries the products would otherwise call (MKL under torch's nn.Linear and its CPU
 attention kernel, OpenBLAS under numpy) are slower on some CPUs: on the AMD EPYC (AVX-512) this
 was measured on, one core reaches 84 to 100 GFLOP/s with MKL, 107 to 115 with OpenBLAS and 176
-to 199 with oneDNN at a ViT's and a search's shapes. On another EPYC (cpu family 25) all three
-run at about 100: there oneDNN gains little, and attention by head costs 0 to 7 %. Two users:
+to 199 with oneDNN at a ViT's and a search's shapes. On another EPYC with AVX-512 (cpu family 25,
+model 17) all three run at about 100: there oneDNN gains little, and attention by head costs 0 to
+7 %. On an EPYC with AVX2 only (family 25, model 1) oneDNN is the slowest: 62 to 85 GFLOP/s against
+MKL's and OpenBLAS's 75 to 90, whole extractions 6 to 18 % slower. So oneDNN is used where torch
+runs its AVX-512 kernels (`onednn_faster`), decided by the CPU, never by timing, so a machine's
+results do not depend on its load. Two users:
 
 - `onednn_products()`: inside it, without autograd or autocast, every fp32 CPU `F.linear` goes
   to oneDNN's linear with the layer's own weight (hooks and state dicts see nothing new), and
@@ -46,9 +51,26 @@ def _available() -> bool:
         return False
 
 
+#: torch's CPU capabilities (`torch.backends.cpu.get_cpu_capability`) on which oneDNN's fp32 products
+#: outrun the BLAS's (see the module)
+ONEDNN_FASTER_ON = ("AVX512",)
+
+
+@functools.cache
+def onednn_faster() -> bool:
+    """Whether this CPU runs oneDNN's products faster than its BLAS's: by the vector instructions
+    torch runs here (ATEN_CPU_CAPABILITY may lower them), not by a timing."""
+    return torch.backends.cpu.get_cpu_capability() in ONEDNN_FASTER_ON
+
+
 def onednn_on() -> bool:
-    """oneDNN is in this torch and not turned off (torch.backends.mkldnn.flags)."""
-    return _available() and torch.backends.mkldnn.enabled
+    """oneDNN is in this torch, faster on this CPU, and not turned off (torch.backends.mkldnn.flags)."""
+    return _available() and torch.backends.mkldnn.enabled and onednn_faster()
+
+
+def library() -> str:
+    """What computes fp32 CPU products here, for a record: "oneDNN" or "BLAS"."""
+    return "oneDNN" if onednn_on() else "BLAS"
 
 
 try:  # whether CPU autocast is on, asked once how: by device since torch 2.4, by its own function before
@@ -140,7 +162,7 @@ class _OneDNNProducts(TorchFunctionMode):
 def onednn_products() -> Iterator[None]:
     """Within it (or a function it decorates), fp32 CPU linear layers and attention products run
     on oneDNN (see the module)."""
-    if not _available():
+    if not (_available() and onednn_faster()):
         yield
         return
     with _OneDNNProducts():

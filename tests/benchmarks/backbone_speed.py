@@ -15,9 +15,11 @@ interleaved (every backbone once per round, in one order) so load on the machine
 "of bound" is the median over rounds of bound / time.
 With one thread the clock is the process's CPU time (on a shared machine, the time it
 computed rather than the time it waited for a core); with several threads, wall time.
-"GEMMs alone" replays the extraction's own matrix products, nothing else: every oneDNN linear
-and convolution call with its recorded arguments, and torch's fused attention kernel (below
-gemm.ATTENTION_MIN_KEYS keys) as its two products per head on oneDNN. Its share of the bound is
+"GEMMs alone" replays the extraction's own matrix products, nothing else: every linear (oneDNN's,
+or the BLAS's where gemm.py leaves products to it) and convolution call with its recorded arguments,
+and torch's fused attention kernel (all of attention where the BLAS computes products, else below
+gemm.ATTENTION_MIN_KEYS keys) as its two products per head, on the library the extractor uses
+(gemm.library()). Its share of the bound is
 the most the extraction could reach with these GEMMs if everything else (softmax, GELU, norms,
 copies) took no time. Also:
 the DINOv2 path as it is (official position resampling, hand-written token path) against
@@ -38,7 +40,7 @@ from torch.utils.flop_counter import FlopCounterMode
 from vprbench.features.backbones import create_model
 from vprbench.features.catalogue import backbone_spec
 from vprbench.features.dense import DenseExtractor
-from vprbench.gemm import linear
+from vprbench.gemm import library, linear, onednn_on
 
 ENTRIES = ["dinov2_vits14", "dinov2_vitb14", "dinov2_vits14_reg", "dinov2_vitb14_reg", "dinov3_vits16",
            "dinov3_vitb16", "pe_spatial_s16", "pe_spatial_b16", "radio_v3_b16", "siglip2_b16", "dino_vitb16"]
@@ -103,7 +105,8 @@ def flops(run) -> int:
     return counter.get_total_flops()
 
 
-_PRODUCTS = (torch.ops.mkldnn._linear_pointwise.default, torch.ops.aten.convolution.default)
+_PRODUCTS = (torch.ops.mkldnn._linear_pointwise.default, torch.ops.aten.convolution.default,
+             torch.ops.aten.addmm.default, torch.ops.aten.mm.default, torch.ops.aten.bmm.default)
 _FUSED_ATTENTION = torch.ops.aten._scaled_dot_product_flash_attention_for_cpu.default
 
 
@@ -128,7 +131,9 @@ class _Products(TorchDispatchMode):
 
 
 def _attention_products(query, key, value_t):
-    return linear(linear(query, key, None), value_t, None)
+    if onednn_on():
+        return linear(linear(query, key, None), value_t, None)
+    return torch.mm(torch.mm(query, key.T), value_t.T)
 
 
 def gemms_alone(run):
@@ -188,7 +193,7 @@ def main() -> None:
                         rates[key].append([(b + a) / 2 for b, a in zip(before, after)])
         clock = "CPU time of the process" if threads == 1 else "wall time"
         print(f"\n## {threads} thread(s), batch {args.batch} at {height}x{width}px, {clock}, medians of {args.rounds} "
-              "interleaved rounds")
+              f"interleaved rounds; products on {library()} ({torch.backends.cpu.get_cpu_capability()})")
         print("| backbone | GFLOP per image | ms per image | " + " | ".join(f"{g} GFLOP/s" for g in GEMMS)
               + " | bound ms per image (fastest GEMM) | of bound | its GEMMs alone, ms per image | they, of bound |")
         print("|---" * (7 + len(GEMMS)) + "|")

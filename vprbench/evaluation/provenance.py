@@ -71,12 +71,16 @@ def environment() -> dict:
     import h5py
     import torch
 
+    from ..gemm import library
+
     versions = {"vprbench": __version__, "python": platform.python_version(), "numpy": np.__version__,
                 "torch": torch.__version__, "faiss": faiss.__version__, "h5py": h5py.__version__,
                 "git": _git_commit()}
     hardware = {"platform": platform.platform(), "machine": platform.machine(), "cpu": _cpu_name(),
                 "cpu_count": os.cpu_count(), "memory_gib": _memory_gib(),
-                "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
+                "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+                # what computed fp32 products on the CPU: its speed (and their last bits) depend on it
+                "cpu_capability": torch.backends.cpu.get_cpu_capability(), "cpu_products": library()}
     return {"versions": versions, "hardware": hardware}
 
 
