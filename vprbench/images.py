@@ -134,7 +134,7 @@ def load_image(path: str | Path, mode: str = "RGB") -> Image.Image:
     except (OSError, SyntaxError, ValueError, TypeError, KeyError, IndexError, EOFError, struct.error) as error:
         # damaged pixels or a damaged EXIF block (whose orientation cannot then be trusted)
         raise VPRBenchError(
-            f"Cannot read image {path}: {error or type(error).__name__}. Replace or remove the corrupt file."
+            f"Cannot read image {path}: {str(error) or type(error).__name__}. Replace or remove the corrupt file."
         ) from None
 
 

@@ -40,13 +40,31 @@ def claim(registry: dict, kind: str, entry) -> None:
     registry[entry.name] = entry
 
 
-def run_plugins(kind: str, found) -> None:
-    """Call the register function of every entry point in `found`; one that fails is skipped."""
+def run_plugins(kind: str, found) -> list[str]:
+    """Call the register function of every entry point in `found`; one that fails is skipped, and
+    named in what is returned ("'name' (module:function): error"), for an unknown name's message."""
+    failed = []
     for ep in found:
         try:
             ep.load()()
         except (Exception, SystemExit) as error:  # a broken plugin (sys.exit too) must not take the suite down
-            warnings.warn(f"{kind} plugin {ep.name!r} ({ep.value}) failed to load: {error}", stacklevel=3)
+            reason = str(error) or type(error).__name__
+            failed.append(f"{ep.name!r} ({ep.value}): {reason}")
+            warnings.warn(f"{kind} plugin {ep.name!r} ({ep.value}) failed to load: {reason}", stacklevel=3)
+    return failed
+
+
+#: what to do about a plugin that cannot be imported
+LOAD_FIX = "install what it needs or fix it (or uninstall the plugin)"
+
+
+def unloaded_hint(kind: str, failed: list[str]) -> str:
+    """For an unknown name: the plugins that failed to load may be what registers it."""
+    if not failed:
+        return ""
+    which, whose = ("a plugin", "its") if len(failed) == 1 else ("one of the plugins", "their")
+    return (f" It may come from {which} that failed to load: {'; '.join(failed)}. To use {whose} "
+            f"{kind.lower()}s, {LOAD_FIX}.")
 
 
 def imported(kind: str, name: str, source: str, target):
@@ -58,4 +76,4 @@ def imported(kind: str, name: str, source: str, target):
         return getattr(importlib.import_module(module), attribute)
     except (Exception, SystemExit) as error:  # a module that raises or exits when imported, as a plugin may
         raise VPRBenchError(f"{kind} {name!r} ({source}) cannot be loaded from {target}: "
-                            f"{error or type(error).__name__}") from None
+                            f"{str(error) or type(error).__name__}; {LOAD_FIX}.") from None

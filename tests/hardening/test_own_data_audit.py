@@ -106,14 +106,38 @@ def test_the_default_k_beyond_a_small_map_says_which_k_to_give(own, cli):
                    "e.g. --k 1.")
 
 
-def test_a_row_for_an_absent_image_is_warned_of_once(own):
-    """The folder is read for the run's identity and again for the run: the same warning was printed twice."""
+@pytest.mark.parametrize("given", ["absolute", "relative"])
+def test_a_row_for_an_absent_image_is_warned_of_once(own, given):
+    """The folder is read for the run's identity and again for the run: the same warning was printed twice
+    (and still was for a folder given as ./own, read the second time by its absolute path)."""
     import subprocess
     import sys
 
     with (own / "positions.csv").open("a") as positions:
         positions.write("database/ghost.jpg,5,0\n")
+    folder = str(own) if given == "absolute" else "./own"
     done = subprocess.run([sys.executable, "-m", "vprbench", "evaluate", "--method", "hog", "--resize", "32", "32",
-                           "--dataset", str(own), "--k", "1"], capture_output=True, text=True, timeout=120)
+                           "--dataset", folder, "--k", "1"], capture_output=True, text=True, timeout=120,
+                          cwd=own.parent)
     assert done.returncode == 0, done.stderr
     assert done.stderr.count("lists 1 image(s) that are not in") == 1, done.stderr
+
+
+def test_positions_separated_by_semicolons_are_named_so(own, cli):
+    """A spreadsheet's export in ';' (as many locales write CSV): the error listed one strange column only."""
+    (own / "positions.csv").write_text("image;x;y\n" + "".join(f"{name};{x};0\n" for name, x in ROWS))
+    code, _, err = evaluate(cli, own)
+    assert_refused(code, err, None, "positions.csv needs a column 'image'", "(one column: the file is separated by ';'; "
+                   "save it separated by commas)")
+    write_positions(own)
+    good_run_after(cli, own)
+
+
+def test_rows_naming_bare_file_names_say_which_path_to_write(own, cli):
+    """Rows '0001.jpg' for database/0001.jpg: 'no position ... add a row for each', with the rows right there."""
+    (own / "positions.csv").write_text("image,x,y\n" + "".join(f"{name.split('/')[1]},{x},0\n" for name, x in ROWS))
+    code, _, err = evaluate(cli, own)
+    assert_refused(code, err, None, "has no position for 5 image(s)", "rows name images by their path in ",
+                   "write 'database/d0.jpg', not 'd0.jpg'")
+    write_positions(own)
+    good_run_after(cli, own)

@@ -16,6 +16,7 @@ from vprbench.evaluation.provenance import method_provenance
 from vprbench.evaluation.results import read_results
 from vprbench.methods import registry
 from vprbench.paths import cache_root
+from vprbench.registration import run_plugins
 
 def unit_rows(images) -> np.ndarray:
     """One unit row per image, set by its file name only (no batch statistics)."""
@@ -195,6 +196,7 @@ def test_a_plugin_cannot_take_a_core_method_name(monkeypatch):
     def fresh(*plugins):
         monkeypatch.setattr(registry, "_REGISTRY", {})
         monkeypatch.setattr(registry, "_plugins_loaded", False)
+        monkeypatch.setattr(registry, "_plugin_failures", [], raising=False)
         monkeypatch.setattr(registry, "entry_points", lambda group: list(plugins))
 
     fresh()
@@ -219,11 +221,36 @@ def test_a_plugin_that_exits_while_loading_is_skipped(monkeypatch, cli):
 
     monkeypatch.setattr(registry, "_REGISTRY", {})
     monkeypatch.setattr(registry, "_plugins_loaded", False)
+    monkeypatch.setattr(registry, "_plugin_failures", [], raising=False)
     monkeypatch.setattr(registry, "entry_points", lambda group: [SimpleNamespace(name="exits", value="x:exits",
                                                                                  load=lambda: exits)])
     with pytest.warns(UserWarning, match=r"Method plugin 'exits' \(x:exits\) failed to load: please install superlib"):
         code, out, err = cli("methods", "list", "--json")
     assert code == 0 and "hog" in out, err
+
+
+def test_a_method_of_a_plugin_that_failed_to_import_is_not_just_unknown(monkeypatch, cli, tmp_path):
+    """The plugin's methods were 'Unknown method' alone, as if never installed; the error names the plugin
+    that failed to load, why, and what to do."""
+    def broken():
+        import nonexistent_dependency_of_the_plugin  # noqa: F401
+
+    monkeypatch.setattr(registry, "_REGISTRY", {})
+    monkeypatch.setattr(registry, "_plugins_loaded", False)
+    monkeypatch.setattr(registry, "_plugin_failures", [], raising=False)
+    monkeypatch.setattr(registry, "entry_points", lambda group: [SimpleNamespace(name="mine", value="my_pkg:register",
+                                                                                 load=lambda: broken)])
+    with pytest.warns(UserWarning, match="Method plugin 'mine'"):
+        code, _, err = cli("evaluate", "--method", "thumbnail", "--dataset", "corridor", "--k", "1")
+    assert_refused(code, err, None, "Unknown method 'thumbnail'. Run 'vprbench methods list' to see all methods. It may "
+                   "come from a plugin that failed to load: 'mine' (my_pkg:register): No module named "
+                   "'nonexistent_dependency_of_the_plugin'. To use its methods, install what it needs or fix it (or "
+                   "uninstall the plugin).")
+    plan = tmp_path / "plan.toml"  # a plan names it in its list of problems alike
+    plan.write_text('k = [1]\n[[methods]]\nname = "thumbnail"\n[[datasets]]\nname = "corridor"\n')
+    code, _, err = cli("run", plan)
+    assert code == 1 and "plan.toml:3: unknown method 'thumbnail'" in err, err
+    assert "It may come from a plugin that failed to load: 'mine' (my_pkg:register)" in err, err
 
 
 # ---------------------------------------------------------------- what keys its descriptors
@@ -380,3 +407,50 @@ def test_a_method_that_fails_mid_run_resumes_with_the_rows_it_finished(cli, tmp_
     assert code == 0, err
     assert calls == [2, 1]  # the first batch of 2 was kept, the 3 others described now
     np.testing.assert_array_equal(np.load(tmp_path / "d.npy"), unit_rows(images))
+
+
+# ---------------------------------------------------------------- the contract's one required member left out
+def test_a_method_without_describe_is_named_not_a_line_of_vprbench(cli, tmp_path, images):
+    """Was "failed in its factory ...: TypeError: Can't instantiate abstract class ... at vprbench/methods/
+    registry.py:NNN": a line of vprbench's given as the plugin's."""
+    class NoDescribe(Method):
+        def __init__(self, device: str = "cpu"):
+            pass
+
+    register_method("no-describe", NoDescribe)
+    code, _, err = describe(cli, tmp_path, "no-describe", images)
+    assert_refused(code, err, None, "Method 'no-describe' (", "): NoDescribe does not define describe(), which every "
+                   "vprbench.Method needs; define it")
+    assert "registry.py" not in err
+
+
+def test_a_stage_without_apply_is_refused_before_retrieval(monkeypatch, cli, shared_data):
+    """Was "failed in apply(): NotImplementedError:  at vprbench/stages/base.py:NNN", after retrieval had run."""
+    from vprbench.stages import RerankOptions, Stage
+    from vprbench.stages import registry as stages
+
+    class NoApply(Stage):
+        Options = RerankOptions
+
+    monkeypatch.setattr(stages, "_REGISTRY", dict(stages.available_stages()))
+    stages.register_stage("no-apply", NoApply)
+    code, _, err = cli("evaluate", "--method", "hog", "--resize", 32, 32, "--dataset", "corridor", "--data-dir",
+                       shared_data, "--k", 1, "--rerank", "no-apply", "--rerank-k", 5)
+    assert_refused(code, err, None, "Stage 'no-apply' (", "): NoApply does not define apply(candidates, context), "
+                   "which every stage needs; define it")
+
+
+class Silent:
+    """An entry point whose register() raises an exception without a message."""
+
+    name, value = "quiet", "pkg:register"
+
+    def load(self):
+        def register():
+            raise RuntimeError()
+        return register
+
+
+def test_a_plugin_failing_without_a_message_is_named_by_its_error_type():
+    with pytest.warns(UserWarning, match=r"plugin 'quiet' \(pkg:register\) failed to load: RuntimeError$"):
+        assert run_plugins("Method", [Silent()]) == ["'quiet' (pkg:register): RuntimeError"]

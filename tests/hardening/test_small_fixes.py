@@ -24,6 +24,7 @@ class Hijack(AlphaQE):
 def fresh_stages(monkeypatch, *plugins):
     monkeypatch.setattr(stages, "_REGISTRY", {})
     monkeypatch.setattr(stages, "_plugins_loaded", False)
+    monkeypatch.setattr(stages, "_plugin_failures", [], raising=False)
     monkeypatch.setattr(stages, "entry_points", lambda group: list(plugins))
 
 
@@ -66,7 +67,7 @@ def test_a_list_marks_a_registration_that_cannot_be_loaded(monkeypatch, cli, kin
     monkeypatch.setattr(registry, "_REGISTRY", dict(listed))
     register("broken", "nosuchmodule:thing")
     why = f"{kind[:-1].title()} 'broken' (nosuchmodule) cannot be loaded from nosuchmodule:thing: No module named " \
-          "'nosuchmodule'"
+          "'nosuchmodule'; install what it needs or fix it (or uninstall the plugin)."
     code, out, err = cli(kind, "list", "--json")
     assert code == 0, err
     shown = {e["name"]: e for e in json.loads(out)}
@@ -90,10 +91,11 @@ def test_a_registration_whose_module_fails_on_import_is_one_line(monkeypatch, cl
     vprbench.register_method("broken", f"{module}_plugin:Thing")
     code, out, err = cli("methods", "list", "--json")
     assert code == 0, err
-    assert {e["name"]: e for e in json.loads(out)}["broken"]["unloadable"].endswith(f"_plugin:Thing: {why}")
+    fix = "install what it needs or fix it (or uninstall the plugin)"  # what to do: the line said only what failed
+    assert {e["name"]: e for e in json.loads(out)}["broken"]["unloadable"].endswith(f"_plugin:Thing: {why}; {fix}.")
     code, out, err = cli("evaluate", "--method", "broken", "--dataset", "corridor", "--data-dir", shared_data)
     assert code == 1 and err == f"error: Method 'broken' ({module}_plugin) cannot be loaded from {module}_plugin:Thing: " \
-                                f"{why}\n", err
+                                f"{why}; {fix}.\n", err
 
 
 # ---------------------------------------------------------------- --weights random

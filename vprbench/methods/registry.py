@@ -26,7 +26,7 @@ from pathlib import Path
 
 from ..errors import VPRBenchError, closest_names
 from ..loader import plugin_part
-from ..registration import check_name, claim, imported, looked_up, run_plugins, source_of
+from ..registration import check_name, claim, imported, looked_up, run_plugins, source_of, unloaded_hint
 from .attributes import MAX_BATCH_SIZE, check_attributes, set_attributes
 from .checks import canonical, plain_options, whole
 
@@ -129,6 +129,7 @@ class MethodEntry:
 
 _REGISTRY: dict[str, MethodEntry] = {}
 _plugins_loaded = False
+_plugin_failures: list[str] = []  # plugins that failed to load, named when a name is unknown
 
 
 def register_method(
@@ -159,7 +160,8 @@ def _load_plugins() -> None:
 
     for entry in core_methods():
         register_method(**entry)
-    run_plugins("Method", entry_points(group=ENTRY_POINT_GROUP))
+    global _plugin_failures
+    _plugin_failures = run_plugins("Method", entry_points(group=ENTRY_POINT_GROUP))
 
 
 def available_methods() -> dict[str, MethodEntry]:
@@ -167,12 +169,18 @@ def available_methods() -> dict[str, MethodEntry]:
     return dict(sorted(_REGISTRY.items()))
 
 
+def failed_plugins_hint() -> str:
+    """For a method name that is unknown: the plugins that failed to load, which may register it ('' if none)."""
+    available_methods()
+    return unloaded_hint("Method", _plugin_failures)
+
+
 def method_entry(name: str) -> MethodEntry:
     methods, name = available_methods(), looked_up(name)
     if not isinstance(name, str) or name not in methods:  # a list would be unhashable here
         raise VPRBenchError(
             f"Unknown method {name!r}.{closest_names(name, methods)} "
-            "Run 'vprbench methods list' to see all methods."
+            f"Run 'vprbench methods list' to see all methods.{failed_plugins_hint()}"
         )
     return methods[name]
 
@@ -214,6 +222,11 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
         if location in takes and folder is not None:
             arguments[location] = folder
     factory = entry.factory
+    missing = sorted(getattr(factory, "__abstractmethods__", ())) if isinstance(factory, type) else []
+    if missing:  # else a TypeError raised inside vprbench, whose line it would name as the plugin's
+        raise VPRBenchError(f"Method {name!r} ({entry.source}): {factory.__name__} does not define "
+                            f"{', '.join(m + '()' for m in missing)}, which every vprbench.Method needs; define it "
+                            "(see 'Add your method', the contract).")
     with entry.in_factory(f"its factory {getattr(factory, '__name__', type(factory).__name__)}"):
         method = factory(**arguments)
     if not isinstance(method, Method):

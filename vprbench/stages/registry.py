@@ -16,7 +16,7 @@ from importlib.metadata import entry_points
 from pydantic import ValidationError
 
 from ..errors import VPRBenchError, closest_names
-from ..registration import check_name, claim, imported, looked_up, run_plugins, source_of
+from ..registration import check_name, claim, imported, looked_up, run_plugins, source_of, unloaded_hint
 
 ENTRY_POINT_GROUP = "vprbench.stages"
 
@@ -35,11 +35,16 @@ class StageEntry:
         found = imported("Stage", self.name, self.source, self.target)
         if not (isinstance(found, type) and issubclass(found, Stage)):
             raise VPRBenchError(f"Stage {self.name!r} ({self.source}) is not a vprbench Stage class; fix the plugin.")
+        if found.apply is Stage.apply:  # refused when the spec is made, not after retrieval has run
+            raise VPRBenchError(f"Stage {self.name!r} ({self.source}): {found.__name__} does not define "
+                                "apply(candidates, context), which every stage needs; define it (see 'Stages', "
+                                "writing a stage).")
         return found
 
 
 _REGISTRY: dict[str, StageEntry] = {}
 _plugins_loaded = False
+_plugin_failures: list[str] = []  # plugins that failed to load, named when a name is unknown
 
 
 def register_stage(name: str, target: type | str, *, description: str = "", source: str | None = None) -> None:
@@ -75,7 +80,8 @@ def _load_plugins() -> None:
     _plugins_loaded = True
     for entry in core_stages():
         register_stage(**entry, source="vprbench")
-    run_plugins("Stage", entry_points(group=ENTRY_POINT_GROUP))
+    global _plugin_failures
+    _plugin_failures = run_plugins("Stage", entry_points(group=ENTRY_POINT_GROUP))
 
 
 def available_stages() -> dict[str, StageEntry]:
@@ -87,7 +93,7 @@ def stage_entry(name: str) -> StageEntry:
     stages, name = available_stages(), looked_up(name)
     if name not in stages:
         raise VPRBenchError(f"Unknown stage {name!r}.{closest_names(str(name), stages)} "
-                            f"Stages: {', '.join(stages) or 'none'}.")
+                            f"Stages: {', '.join(stages) or 'none'}.{unloaded_hint('Stage', _plugin_failures)}")
     return stages[name]
 
 

@@ -159,7 +159,7 @@ def plan_entries(data: dict, origin: str, lines: dict | None = None, *, override
     from ..datasets import dataset_manifests, is_path
     from ..datasets.protocol import protocols
     from ..methods import available_methods
-    from ..methods.registry import checked_run_options
+    from ..methods.registry import checked_run_options, failed_plugins_hint
 
     lines, overrides = lines or {}, dict(overrides or {})
     problems: list[str] = []
@@ -187,7 +187,7 @@ def plan_entries(data: dict, origin: str, lines: dict | None = None, *, override
         name = looked_up(entry.get("name"))  # typed decomposed (e + accent): its NFC entry, as on the command line
         if not isinstance(name, str) or name not in known_methods:
             problems.append(f"{where('methods', i, 'name')}: unknown method {reprlib.repr(name)}.{closest_names(str(name), known_methods)}"
-                            " Run 'vprbench methods list'.")
+                            f" Run 'vprbench methods list'.{failed_plugins_hint()}")
             continue
         options = entry.get("options", {})
         if not isinstance(options, dict):

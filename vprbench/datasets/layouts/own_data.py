@@ -85,7 +85,11 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
     except (OSError, ValueError) as error:
         raise VPRBenchError(f"Cannot read {csv}: {error}") from None
     if "image" not in table.columns:
-        raise VPRBenchError(f"{csv} needs a column 'image' (path relative to {root}); it has {list(table.columns)}")
+        # one column whose name holds ';' or a tab: a spreadsheet's export in another separator
+        other = next((sep for sep in (";", "\t") if len(table.columns) == 1 and sep in str(table.columns[0])), None)
+        hint = f" (one column: the file is separated by {other!r}; save it separated by commas)" if other else ""
+        raise VPRBenchError(f"{csv} needs a column 'image' (path relative to {root}); it has "
+                            f"{list(table.columns)}{hint}")
     columns = set(table.columns)
     choices = (
         (("x", "y"), "metres"), (("easting", "northing"), "metres"),
@@ -137,12 +141,19 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
         by_case = {name.casefold(): name for name in listed}
         near = [(name, by_case[name.casefold()]) for name in missing if name.casefold() in by_case]
         hint = (f"; names must match in case: the row {near[0][1]!r} is not the file {near[0][0]!r}" if near else "")
+        by_file = {name.rpartition("/")[2]: name for name in missing}  # a row of the bare file name
+        bare = [(name, by_file[name]) for name in listed if "/" not in name and name in by_file]
+        if bare and not hint:
+            hint = (f"; rows name images by their path in {root}: write {bare[0][1]!r}, not {bare[0][0]!r}")
         raise VPRBenchError(f"{csv} has no position for {len(missing)} image(s), e.g. {missing[:3]}{hint}; "
                             "add a row for each.")
     absent = sorted(set(listed) - set(found))
     if absent:
-        warnings.warn(f"{csv} lists {len(absent)} image(s) that are not in {root}/database or {root}/queries, "
-                      f"e.g. {absent[:3]}; they are left out.", stacklevel=2)
+        # named in full: the folder is read for the run's identity as the user wrote it and again for the
+        # run by its absolute path, and the CLI shows one text once
+        folder = root.resolve()
+        warnings.warn(f"{csv.resolve()} lists {len(absent)} image(s) that are not in {folder}/database or "
+                      f"{folder}/queries, e.g. {absent[:3]}; they are left out.", stacklevel=2)
     return np.stack([by_name[name] for name in found]), unit
 
 
