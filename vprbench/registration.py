@@ -40,14 +40,18 @@ def claim(registry: dict, kind: str, entry) -> None:
     registry[entry.name] = entry
 
 
-def run_plugins(kind: str, found) -> list[str]:
-    """Call the register function of every entry point in `found`; one that fails is skipped, and
-    named in what is returned ("'name' (module:function): error"), for an unknown name's message."""
+def run_plugins(kind: str, found, registry: dict) -> list[str]:
+    """Call the register function of every entry point in `found`; one that fails is skipped (what it
+    registered in `registry` before failing is taken out again), and named in what is returned
+    ("'name' (module:function): error"), for an unknown name's message."""
     failed = []
     for ep in found:
+        before = dict(registry)
         try:
             ep.load()()
         except (Exception, SystemExit) as error:  # a broken plugin (sys.exit too) must not take the suite down
+            registry.clear()
+            registry.update(before)
             reason = str(error) or type(error).__name__
             failed.append(f"{ep.name!r} ({ep.value}): {reason}")
             warnings.warn(f"{kind} plugin {ep.name!r} ({ep.value}) failed to load: {reason}", stacklevel=3)

@@ -453,4 +453,22 @@ class Silent:
 
 def test_a_plugin_failing_without_a_message_is_named_by_its_error_type():
     with pytest.warns(UserWarning, match=r"plugin 'quiet' \(pkg:register\) failed to load: RuntimeError$"):
-        assert run_plugins("Method", [Silent()]) == ["'quiet' (pkg:register): RuntimeError"]
+        assert run_plugins("Method", [Silent()], {}) == ["'quiet' (pkg:register): RuntimeError"]
+
+
+def test_a_plugin_failing_partway_is_skipped_whole():
+    """What its register() registered before it failed is taken out again: the plugin is skipped."""
+    registry = {"hog": "core"}
+
+    class Partway:
+        name, value = "partway", "pkg:register"
+
+        def load(self):
+            def register():
+                registry["first"] = "registered"
+                raise RuntimeError("the second method's import failed")
+            return register
+
+    with pytest.warns(UserWarning, match="failed to load: the second method's import failed"):
+        run_plugins("Method", [Partway()], registry)
+    assert registry == {"hog": "core"}

@@ -161,7 +161,7 @@ def _load_plugins() -> None:
     for entry in core_methods():
         register_method(**entry)
     global _plugin_failures
-    _plugin_failures = run_plugins("Method", entry_points(group=ENTRY_POINT_GROUP))
+    _plugin_failures = run_plugins("Method", entry_points(group=ENTRY_POINT_GROUP), _REGISTRY)
 
 
 def available_methods() -> dict[str, MethodEntry]:

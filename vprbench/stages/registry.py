@@ -81,7 +81,7 @@ def _load_plugins() -> None:
     for entry in core_stages():
         register_stage(**entry, source="vprbench")
     global _plugin_failures
-    _plugin_failures = run_plugins("Stage", entry_points(group=ENTRY_POINT_GROUP))
+    _plugin_failures = run_plugins("Stage", entry_points(group=ENTRY_POINT_GROUP), _REGISTRY)
 
 
 def available_stages() -> dict[str, StageEntry]:
