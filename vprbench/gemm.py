@@ -6,8 +6,8 @@ attention kernel, OpenBLAS under numpy) are slower on some CPUs: on the AMD EPYC
 was measured on, one core reaches 84 to 100 GFLOP/s with MKL, 107 to 115 with OpenBLAS and 176
 to 199 with oneDNN at a ViT's and a search's shapes. On another EPYC with AVX-512 (cpu family 25,
 model 17) all three run at about 100: there oneDNN gains little, and attention by head costs 0 to
-7 %. On an EPYC with AVX2 only (family 25, model 1) oneDNN is the slowest: 62 to 85 GFLOP/s against
-MKL's and OpenBLAS's 75 to 90, whole extractions 6 to 18 % slower. So oneDNN is used where torch
+7 %. On an EPYC with AVX2 only (family 25, model 1) oneDNN is the slowest: 62 to 86 GFLOP/s against
+MKL's and OpenBLAS's 75 to 94, whole extractions 1.12 to 1.23 times as long. So oneDNN is used where torch
 runs its AVX-512 kernels (`onednn_faster`), decided by the CPU, never by timing, so a machine's
 results do not depend on its load. Two users:
 

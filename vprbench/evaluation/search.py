@@ -56,7 +56,7 @@ __all__ = ["AllZero", "ArrayRows", "DEFAULT_MEMORY_BUDGET", "INDEXES", "SCORE_TO
 class AllZero(NamedTuple):
     """The all-zero rows a search saw (after post-processing), each row counted once: such a query
     still gets the tie rule's candidates (rows 0, 1, ...) but matches nothing, so it counts as a
-    failure at every K, whatever a stage does with them (metrics.correct_at)."""
+    failure at every K, whatever a re-ranker does with them (metrics.correct_at; but see `failures`)."""
 
     queries: np.ndarray   # (Q,) bool: the query's descriptor is all zero
     database: int         # database rows that are all zero
