@@ -11,8 +11,8 @@ import numpy as np
 
 from ..errors import VPRBenchError
 from ..row_sources import READ_BYTES, ArrayRows, RowSource, chunks, format_bytes
-from .search import (ZERO_SQUARED, AllZero, SearchResult, TIE_ORDER, check_finite, check_pair, exact_search,
-                     order_results, read_cost, rounded_scores, squared_lengths)
+from .search import (AllZero, SearchResult, TIE_ORDER, check_finite, check_pair, exact_search, order_results,
+                     read_cost, rounded_scores, zero_rows)
 
 APPROXIMATE = ("ivf-pq", "hnsw")
 #: faiss's k-means wants at least 39 training points per centroid
@@ -123,8 +123,7 @@ def _build(kind: str, database: RowSource, o: dict, budget: int):
     chunk_rows = max(1, min(READ_BYTES, budget - fixed) // row_bytes)
     zeros = 0  # counted on this one pass over every row
     for start, rows in chunks(database, chunk_rows):
-        check_finite(rows, "Database", start)  # faiss would index a NaN row as if it were a place
-        zeros += int(np.count_nonzero(squared_lengths(rows) < ZERO_SQUARED))
+        zeros += int(np.count_nonzero(zero_rows(rows, "Database", start)))  # and faiss indexes no NaN row
         index.add(rows)
     return index, chunk_rows, zeros
 
@@ -160,8 +159,7 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
     short = []
     zero_queries = np.zeros(n_queries, dtype=bool)
     for q0, block in chunks(queries, q_chunk):
-        check_finite(block, "Query", q0)
-        zero_queries[q0:q0 + len(block)] = squared_lengths(block) < ZERO_SQUARED
+        zero_queries[q0:q0 + len(block)] = zero_rows(block, "Query", q0)
         _, found = index.search(block, o["shortlist"])
         rows_ids = np.unique(found[found >= 0])
         rows = database.read_rows_at(rows_ids)

@@ -137,23 +137,23 @@ def check_finite(block: np.ndarray, what: str, start: int = 0, numbers=None) -> 
                             "method or post-processor that made it (or describe again if its store was damaged).")
 
 
-def squared_lengths(block: np.ndarray) -> np.ndarray:
-    """Each row's squared length, float32 (one pass): NaN or infinity where the row holds one, and
-    infinity too where a finite row is very long."""
+def zero_rows(block: np.ndarray, what: str, start: int = 0) -> np.ndarray:
+    """(rows,) bool: which rows are all zero (`ZERO_SQUARED`), once every row is known finite; one pass
+    over the rows (a squared length that is not finite sends the block to `check_finite`, which names
+    a row holding NaN or infinity; a finite row too long to square is no zero row)."""
     with np.errstate(over="ignore", invalid="ignore"):
-        return np.einsum("ij,ij->i", block, block)
+        squares = np.einsum("ij,ij->i", block, block)
+    if not np.isfinite(squares).all():
+        check_finite(block, what, start)
+    return squares < ZERO_SQUARED
 
 
 def checked(chunk: Chunk, what: str) -> np.ndarray:
-    """The numbers of the chunk's all-zero rows (`ZERO_SQUARED`), once each of its rows is known
-    finite: one pass over its rows, little beside the products every row takes part in (a squared
-    length that is not finite sends its tile to the exact check, which names a row holding NaN)."""
+    """The numbers of the chunk's all-zero rows, once each of its rows is known finite (`zero_rows`:
+    little beside the products every row takes part in)."""
     found, start = [], chunk.start
     for tile, real in zip(chunk.tiles, chunk.real):
-        squares = squared_lengths(tile[:real])
-        if not np.isfinite(squares).all():
-            check_finite(tile[:real], what, start)
-        found.append(start + np.flatnonzero(squares < ZERO_SQUARED))
+        found.append(start + np.flatnonzero(zero_rows(tile[:real], what, start)))
         start += real
     return np.concatenate(found)
 
