@@ -16,7 +16,7 @@ from vprbench.evaluation.provenance import method_provenance
 from vprbench.evaluation.results import read_results
 from vprbench.methods import registry
 from vprbench.paths import cache_root
-from vprbench.registration import run_plugins
+
 
 def unit_rows(images) -> np.ndarray:
     """One unit row per image, set by its file name only (no batch statistics)."""
@@ -183,74 +183,6 @@ def test_an_option_that_is_not_plain_data_is_refused_when_the_method_is_created(
     # as 'created as ... but now says ...' (its deep copy), which named no option
     with pytest.raises(VPRBenchError, match=rf"Method 'takes-x': an option is not plain data \(.*{fragment}"):
         registry.create_method(name, x=value)
-
-
-# ---------------------------------------------------------------- names
-def test_a_plugin_cannot_take_a_core_method_name(monkeypatch):
-    class Hijack(Returns):
-        pass
-
-    def hijack():  # an installed plugin's entry point, registering HOG's name (its rows all ties: R@1 2.7 as HOG)
-        register_method("hog", Hijack, description="not HOG")
-
-    def fresh(*plugins):
-        monkeypatch.setattr(registry, "_REGISTRY", {})
-        monkeypatch.setattr(registry, "_plugins_loaded", False)
-        monkeypatch.setattr(registry, "_plugin_failures", [], raising=False)
-        monkeypatch.setattr(registry, "entry_points", lambda group: list(plugins))
-
-    fresh()
-    with pytest.raises(ValueError, match=r"Method name 'hog' is taken \(registered by vprbench\); register yours "
-                                         "under another name"):
-        register_method("hog", Hijack)  # the Python API, before the registry was ever read: the core's name first
-    fresh(SimpleNamespace(name="hijack", value="x:hijack", load=lambda: hijack))
-    with pytest.warns(UserWarning, match=r"Method plugin 'hijack' \(x:hijack\) failed to load: Method name 'hog' is "
-                                         r"taken \(registered by vprbench\)"):
-        entry = registry.method_entry("hog")
-    assert entry.source == "vprbench" and entry.target == "vprbench.methods.hog:HOG"
-    register_method("thumb", Returns)
-    with pytest.raises(ValueError, match="Method name 'thumb' is taken"):  # a second plugin's, or a second factory
-        register_method("thumb", Hijack)
-    register_method("thumb", Returns)  # the same registration again is no clash
-    assert registry.method_entry("thumb").target is Returns
-
-
-def test_a_plugin_that_exits_while_loading_is_skipped(monkeypatch, cli):
-    def exits():  # e.g. a module that calls sys.exit when a dependency is missing: every command ended with it
-        raise SystemExit("please install superlib")
-
-    monkeypatch.setattr(registry, "_REGISTRY", {})
-    monkeypatch.setattr(registry, "_plugins_loaded", False)
-    monkeypatch.setattr(registry, "_plugin_failures", [], raising=False)
-    monkeypatch.setattr(registry, "entry_points", lambda group: [SimpleNamespace(name="exits", value="x:exits",
-                                                                                 load=lambda: exits)])
-    with pytest.warns(UserWarning, match=r"Method plugin 'exits' \(x:exits\) failed to load: please install superlib"):
-        code, out, err = cli("methods", "list", "--json")
-    assert code == 0 and "hog" in out, err
-
-
-def test_a_method_of_a_plugin_that_failed_to_import_is_not_just_unknown(monkeypatch, cli, tmp_path):
-    """The plugin's methods were 'Unknown method' alone, as if never installed; the error names the plugin
-    that failed to load, why, and what to do."""
-    def broken():
-        import nonexistent_dependency_of_the_plugin  # noqa: F401
-
-    monkeypatch.setattr(registry, "_REGISTRY", {})
-    monkeypatch.setattr(registry, "_plugins_loaded", False)
-    monkeypatch.setattr(registry, "_plugin_failures", [], raising=False)
-    monkeypatch.setattr(registry, "entry_points", lambda group: [SimpleNamespace(name="mine", value="my_pkg:register",
-                                                                                 load=lambda: broken)])
-    with pytest.warns(UserWarning, match="Method plugin 'mine'"):
-        code, _, err = cli("evaluate", "--method", "thumbnail", "--dataset", "corridor", "--k", "1")
-    assert_refused(code, err, None, "Unknown method 'thumbnail'. Run 'vprbench methods list' to see all methods. It may "
-                   "come from a plugin that failed to load: 'mine' (my_pkg:register): No module named "
-                   "'nonexistent_dependency_of_the_plugin'. To use its methods, install what it needs or fix it (or "
-                   "uninstall the plugin).")
-    plan = tmp_path / "plan.toml"  # a plan names it in its list of problems alike
-    plan.write_text('k = [1]\n[[methods]]\nname = "thumbnail"\n[[datasets]]\nname = "corridor"\n')
-    code, _, err = cli("run", plan)
-    assert code == 1 and "plan.toml:3: unknown method 'thumbnail'" in err, err
-    assert "It may come from a plugin that failed to load: 'mine' (my_pkg:register)" in err, err
 
 
 # ---------------------------------------------------------------- what keys its descriptors
@@ -438,37 +370,3 @@ def test_a_stage_without_apply_is_refused_before_retrieval(monkeypatch, cli, sha
                        shared_data, "--k", 1, "--rerank", "no-apply", "--rerank-k", 5)
     assert_refused(code, err, None, "Stage 'no-apply' (", "): NoApply does not define apply(candidates, context), "
                    "which every stage needs; define it")
-
-
-class Silent:
-    """An entry point whose register() raises an exception without a message."""
-
-    name, value = "quiet", "pkg:register"
-
-    def load(self):
-        def register():
-            raise RuntimeError()
-        return register
-
-
-def test_a_plugin_failing_without_a_message_is_named_by_its_error_type():
-    with pytest.warns(UserWarning, match=r"plugin 'quiet' \(pkg:register\) failed to load: RuntimeError$"):
-        assert run_plugins("Method", [Silent()], {}) == ["'quiet' (pkg:register): RuntimeError"]
-
-
-def test_a_plugin_failing_partway_is_skipped_whole():
-    """What its register() registered before it failed is taken out again: the plugin is skipped."""
-    registry = {"hog": "core"}
-
-    class Partway:
-        name, value = "partway", "pkg:register"
-
-        def load(self):
-            def register():
-                registry["first"] = "registered"
-                raise RuntimeError("the second method's import failed")
-            return register
-
-    with pytest.warns(UserWarning, match="failed to load: the second method's import failed"):
-        run_plugins("Method", [Partway()], registry)
-    assert registry == {"hog": "core"}
