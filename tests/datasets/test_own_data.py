@@ -76,6 +76,18 @@ def test_missing_queries_folder_is_named(tmp_path, make_images):
         load_dataset(str(tmp_path / "mine"))
 
 
+def test_images_in_subfolders_are_named(tmp_path, make_images):
+    root = tmp_path / "mine"
+    make_images(root / "database", ["run1/a.jpg", "run2/deeper/b.jpg", "notes/readme.txt"])
+    make_images(root / "queries", ["@0.0@0.0@.jpg"])
+    with pytest.raises(VPRBenchError, match=r"no images in .*mine/database; .*mine/database has images only in "
+                                            r"its subfolders \('run1', 'run2'\): move them up into it\.$"):
+        load_dataset(str(root))
+    make_images(root / "database", ["@0.0@5.0@.jpg"])  # some at the top: the rest are left out, with a warning
+    with pytest.warns(UserWarning, match=r"mine/database: the images in its subfolders \('run1', 'run2'\) are not read"):
+        assert load_dataset(str(root)).database[0].name == "@0.0@5.0@.jpg"
+
+
 def test_verify_own_data(mydata):
     from vprbench.datasets import verify_dataset
 

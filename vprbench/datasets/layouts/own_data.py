@@ -178,14 +178,29 @@ def image_row_names(images: list[Path], root: Path) -> list[str]:
     return names
 
 
+def _nested_images(folder: Path) -> str:
+    """The subfolders of `folder` that hold images (at any depth), named for a message; "" if none."""
+    with os.scandir(folder) as entries:  # the folder's own images were listed already: only its folders
+        found = sorted(entry.name for entry in entries if entry.is_dir()
+                       and any(path.suffix.lower() in IMAGE_SUFFIXES for path in Path(entry.path).rglob("*")))
+    return ", ".join(ascii(name) for name in found[:3]) + (f" and {len(found) - 3} more" if len(found) > 3 else "")
+
+
 @layout("own", expects=lambda options: ["database/", "queries/"])
 def read_own(root: Path, manifest: DatasetManifest):
     database = list_images(require(root, "database", manifest))
     queries = list_images(require(root, "queries", manifest))
     empty = [f"{root}/{name}" for name, images in (("database", database), ("queries", queries)) if not images]
+    nested = {name: _nested_images(root / name) for name in ("database", "queries")}
     if empty:
-        raise VPRBenchError(f"Dataset {manifest.name!r}: no images in {' or '.join(empty)}; put "
-                            f"{', '.join(s[1:] for s in IMAGE_SUFFIXES)} files there.")
+        hint = next((f"{root}/{name} has images only in its subfolders ({nested[name]}): move them up into it"
+                     for name in ("database", "queries") if f"{root}/{name}" in empty and nested[name]),
+                    f"put {', '.join(s[1:] for s in IMAGE_SUFFIXES)} files there")
+        raise VPRBenchError(f"Dataset {manifest.name!r}: no images in {' or '.join(empty)}; {hint}.")
+    for name, folders in nested.items():
+        if folders:
+            warnings.warn(f"{root}/{name}: the images in its subfolders ({folders}) are not read, only those "
+                          f"directly in {name}/; move them up to include them.", stacklevel=2)
     csv = root / "positions.csv"
     if regular_file(csv, "Positions file"):
         positions, unit = positions_from_csv(csv, root, database + queries)
