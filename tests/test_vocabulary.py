@@ -150,7 +150,8 @@ def test_load_errors(tmp_path):
     with pytest.raises(VPRBenchError, match="neither vocabulary.pt nor c_centers.pt"):
         load_vocabulary(tmp_path)
     (tmp_path / "bad.pt").write_text("not torch")
-    with pytest.raises(VPRBenchError, match="Cannot read vocabulary file .*bad.pt: it is damaged or not a PyTorch file"):
+    with pytest.raises(VPRBenchError, match=r"Cannot read vocabulary file .*bad.pt: it is damaged or not a PyTorch "
+                                            r"file.*copy it again, or fit it again \(`vprbench vocabulary fit`\)"):
         load_vocabulary(tmp_path / "bad.pt")
     torch.save(torch.zeros(5), tmp_path / "flat.pt")
     with pytest.raises(VPRBenchError, match=r"shape \(5,\)"):

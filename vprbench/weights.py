@@ -54,11 +54,11 @@ GET_AGAIN = ("a download or copy that stopped early leaves such a file: get it a
              "delete it, and the next run downloads it anew).")
 
 
-def read_torch_file(path: str | Path, what: str = "checkpoint", *, mmap: bool = False):
+def read_torch_file(path: str | Path, what: str = "checkpoint", *, mmap: bool = False, remedy: str = GET_AGAIN):
     """torch.load of tensors, containers and numpy scalars only: loading never runs code.
 
     `mmap` maps large zip-format files instead of copying them (legacy files are read whole).
-    Any failure is a VPRBenchError naming the file.
+    Any failure is a VPRBenchError naming the file; a damaged one also says `remedy`.
     """
     import torch
 
@@ -84,7 +84,7 @@ def read_torch_file(path: str | Path, what: str = "checkpoint", *, mmap: bool = 
         except (RuntimeError, ValueError, OSError):  # only zip-format files can be inspected: else the refusal names it
             extra = ", ".join(dict.fromkeys(re.findall(r"GLOBAL ([\w.]+)", str(error))))
         if not extra:
-            raise VPRBenchError(f"Cannot read {what} {path}: it is damaged or not a PyTorch file; {GET_AGAIN}") from None
+            raise VPRBenchError(f"Cannot read {what} {path}: it is damaged or not a PyTorch file; {remedy}") from None
         raise VPRBenchError(
             f"{what.capitalize()} {path} also holds Python objects ({extra}), which are not loaded because "
             "unpickling them can run code. If you trust the file, save its weights alone, e.g. "
@@ -99,7 +99,7 @@ def read_torch_file(path: str | Path, what: str = "checkpoint", *, mmap: bool = 
         reason = str(error).strip().splitlines()[0].split(". ")[0].rstrip(".") if str(error).strip() else ""
         raise VPRBenchError(
             f"Cannot read {what} {path}: it is damaged or not a PyTorch file ({type(error).__name__}"
-            f"{': ' + reason if reason else ''}); {GET_AGAIN}") from None
+            f"{': ' + reason if reason else ''}); {remedy}") from None
 
 
 # ---------------------------------------------------------------- the one resolver

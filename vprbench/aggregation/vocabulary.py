@@ -37,6 +37,9 @@ from ..weights import read_torch_file
 KMEANS_SEED, KMEANS_MAX_ITER, KMEANS_TOL = 42, 100, 1e-4
 #: default sample budget (features): 250k x 1536 float32 (ViT-G) is 1.5 GB; ViT-S 0.4 GB
 DEFAULT_BUDGET = 250_000
+#: a damaged vocabulary file's remedy (the authors' released centres are checked by their sha256 at
+#: every use and downloaded again: a damaged one is never read)
+FIT_AGAIN = "a copy that stopped early leaves such a file: copy it again, or fit it again (`vprbench vocabulary fit`)."
 #: file name of the authors' released centres (a bare (K, D) float tensor)
 RELEASED_FILE = "c_centers.pt"
 VOCABULARY_FILE = "vocabulary.pt"
@@ -221,7 +224,7 @@ def load_vocabulary(path: str | Path) -> Vocabulary:
         except (ValueError, EOFError) as error:
             raise VPRBenchError(f"Cannot read vocabulary file {path}: {error}. Expected a (clusters, dim) float array.") from None
     else:
-        data = read_torch_file(path, "vocabulary file")
+        data = read_torch_file(path, "vocabulary file", remedy=FIT_AGAIN)
     meta, written = {}, None
     if isinstance(data, dict):
         if "centres" not in data:

@@ -183,7 +183,7 @@ def _cached(path: Path):
         return None
     try:
         return load_vocabulary(path)
-    except VPRBenchError:
-        warnings.warn(f"The cached dense-vlad vocabulary {path} is damaged or unreadable; fitting it again.",
-                      stacklevel=2)
+    except VPRBenchError as error:
+        warnings.warn(f"The cached dense-vlad vocabulary {path} is damaged or unreadable; fitting it again. "
+                      f"(Why: {error})", stacklevel=2)
         return None
