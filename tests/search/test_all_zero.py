@@ -154,3 +154,26 @@ def test_a_sequence_stage_places_them_from_their_neighbours(shared_data, tmp_pat
                             for_dataset(load_dataset("corridor", shared_data))), []
     rescore(record, per_query(record), truth, problems)
     assert problems == []
+
+
+class _Centred(Oracle):
+    """The oracle whose rows are moved off the origin by a whole-matrix post-processing (as centring does)."""
+
+    def postprocess(self, database, queries):
+        shift = np.full(database.shape[1], 0.05, dtype=np.float32)
+        return database + shift, queries + shift
+
+
+@pytest.mark.parametrize("how", ["pca", "hook"])
+def test_an_image_with_nothing_described_stays_so_after_post_processing(how, corridor, tmp_path):
+    """Was: PCA-whitening's centring turned every all-zero row into one and the same nonzero vector,
+    so such queries matched an image (and counted as hits when it was a positive) and were not counted."""
+    from vprbench.aggregation import PCAWhitening
+
+    extra = {"postprocessor": lambda self: PCAWhitening(dim=64)} if how == "pca" else {}
+    register_method(f"blank-{how}", type(f"Blank{how}", (_Centred if how == "hook" else Oracle,),
+                                         {"blank": frozenset(BLANK), **extra}))
+    record = evaluate_method(create_method(f"blank-{how}"), corridor, ks=(1, 5), cache_dir=tmp_path)
+    assert record["counts"]["all_zero_queries"] == 3 and record["counts"]["all_zero_database"] == 1
+    assert per_query(record)["all_zero"].tolist()[:4] == [1, 1, 1, 0]
+    assert record["recall"]["5"] <= 97.2973  # queries 0-2 fail at every K

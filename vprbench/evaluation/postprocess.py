@@ -18,6 +18,7 @@ from ..fsutil import atomic_path, write_in_turn
 from ..hashing import exact_data
 from ..loader import checked, plugin_part, postprocessor_of
 from ..row_sources import ArrayRows, RowSource, read_bytes_per_row
+from .search import zero_rows
 
 #: a post-processor transforms tiles of at most this many input bytes (see transform_rows)
 TRANSFORM_BYTES = 128 * 2**20
@@ -39,6 +40,16 @@ def transform_rows(dim: int) -> int:
     return int(min(1024, max(16, 1 << (rows.bit_length() - 1))))
 
 
+def kept_undescribed(undescribed: np.ndarray, after: np.ndarray) -> np.ndarray:
+    """`after` (post-processed rows) with the rows `undescribed` flags (all zero before: images the
+    method had nothing to describe) set to zero again: post-processing cannot describe them, and
+    would turn them all into one vector (PCA's centring) that matches some image."""
+    if undescribed.any():
+        after = np.array(after, dtype=np.float32)
+        after[undescribed] = 0
+    return after
+
+
 class TransformedRows:
     """A row source seen through a fitted post-processor, transformed tile by tile on the grid
     of `transform_rows(source.dim)` (aligned to row 0, short tiles padded with zero rows), so a
@@ -52,14 +63,15 @@ class TransformedRows:
 
     def _transform(self, block: np.ndarray) -> np.ndarray:
         """At most one tile of rows, transformed as one full tile."""
-        size = min(self.tile, self.row_count)
+        size, block = min(self.tile, self.row_count), np.asarray(block, dtype=np.float32)
         with in_postprocessor(self.postprocessor, "transform"):
-            out = self.postprocessor.transform(padded(np.asarray(block, dtype=np.float32), size))
+            out = self.postprocessor.transform(padded(block, size))
         if np.ndim(out) != 2 or np.shape(out)[0] != size:
             raise VPRBenchError(f"Post-processor {type(self.postprocessor).__name__} returned shape {np.shape(out)} "
                                 f"for {size} rows; expected one row per row.")
         # the rows kept must be finite numbers, as a method's own (the padding rows are dropped unseen)
-        return checked(f"Post-processor {type(self.postprocessor).__name__}", out[:len(block)], len(block))
+        return kept_undescribed(zero_rows(block, "descriptors"), checked(f"Post-processor {type(self.postprocessor).__name__}",
+                                               out[:len(block)], len(block)))
 
     def read_cost(self) -> tuple[int, int]:
         # a tile read, padded, and computed in float64 (PCA-whitening does), with its output
@@ -187,11 +199,13 @@ def postprocessed(method, database: RowSource, queries: RowSource, memory_budget
     postprocessor = postprocessor_of(method) if method is not None else None
     if method is not None and _overrides_postprocess(method):  # a plugin's whole-matrix hook
         db, q = database.read_rows(0, database.row_count), queries.read_rows(0, queries.row_count)
+        undescribed = zero_rows(db, "database descriptors"), zero_rows(q, "query descriptors")
         with plugin_part(method, "postprocess"):
             db, q = method.postprocess(db, q)
         hook = f"Method {method.name!r} (its postprocess)"
-        db = checked(hook, db, database.row_count)  # one finite row per image, as the method's own
-        database, queries = ArrayRows(db), ArrayRows(checked(hook, q, queries.row_count, db.shape[1]))
+        db = kept_undescribed(undescribed[0], checked(hook, db, database.row_count))  # finite, as the method's own
+        database, queries = ArrayRows(db), ArrayRows(kept_undescribed(undescribed[1], checked(hook, q, queries.row_count,
+                                                                                               db.shape[1])))
         return database, queries, {"kind": f"{type(method).__name__}.postprocess", "in_memory": True}
     if postprocessor is not None:
         info = fit_postprocessor(postprocessor, database, memory_budget, state_folder)
