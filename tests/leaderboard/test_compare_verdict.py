@@ -36,3 +36,21 @@ def test_an_interval_that_holds_zero_is_no_difference():
     a[:7], b[7:12] = True, True  # 7 only A, 5 only B
     test = paired_test(a, b, seed=0)
     assert test["ci"][0] < 0 < test["ci"][1] and test["significant"] is False
+
+
+def test_the_verdict_names_its_units_in_words_that_read_for_every_scheme():
+    """The verdict's units read after "resampled": 'over by place (...)' or 'over per query' did not."""
+    from vprbench.evaluation.blocks import Resampling
+
+    a, b = np.zeros(60, bool), np.zeros(60, bool)
+    a[:7], b[7:12] = True, True
+    cells = [SimpleNamespace(row=SimpleNamespace(name=n), record={"run_id": n}) for n in ("A", "B")]
+    for units, said in ((per_query(60), "resampled per query,"),
+                        (Resampling("places", 60, places=np.arange(60) // 3, radius=25), "resampled by place (20 places")):
+        test = paired_test(a, b, units, seed=0)
+        result = {"dataset": "d", "k": 1, "cells": cells, "intervals": [bootstrap_ci(w, units, seed=0) for w in (a, b)],
+                  "overlap": True, "test": test, "resampling": units,
+                  "per_query": {"intervals": [bootstrap_ci(w, seed=0) for w in (a, b)], "test": paired_test(a, b, seed=0)}}
+        verdict = describe(result).splitlines()[-1]
+        assert f"(the paired-bootstrap interval, {said}" in verdict and "over by" not in verdict \
+            and "over per" not in verdict, verdict

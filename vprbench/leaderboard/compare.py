@@ -105,6 +105,7 @@ def describe(result: dict) -> str:
         f"  McNemar exact test (takes the queries as independent): {plural(t['only_a'], 'query')} only {first.row.name} "
         f"gets right, {t['only_b']} only {second.row.name}; p = {t['p_mcnemar']:.3g}",
         f"  {'A difference at the 5 % level' if t['significant'] else 'No difference at the 5 % level'} "
-        f"(the paired-bootstrap interval over {units.text()} {'excludes' if t['significant'] else 'includes'} 0).",
+        # units.text() reads after "resampled" ("by place (...)", "per query"), not after "over"
+        f"(the paired-bootstrap interval, resampled {units.text()}, {'excludes' if t['significant'] else 'includes'} 0).",
     ]
     return "\n".join(lines)
