@@ -212,8 +212,11 @@ def checked(source: str, descriptors, n: int, dim: int | None = None, compare: s
         raise VPRBenchError(f"{source} returned shape {out.shape} for {n} images; expected ({n}, dim).")
     if dim is not None and out.shape[1] != dim:
         raise VPRBenchError(f"{source} returned {out.shape[1]}-dimensional descriptors after {dim}-dimensional ones.")
-    if not np.isfinite(out).all():
-        raise VPRBenchError(f"{source} returned non-finite descriptors (NaN, infinity, or beyond float32's range).")
+    finite = np.isfinite(out).all(axis=1)
+    if not finite.all():  # most often a row divided by its length where that is 0 (a blank image)
+        raise VPRBenchError(f"{source} returned non-finite descriptors (NaN, infinity, or beyond float32's range), "
+                            f"first in row {np.flatnonzero(~finite)[0]} of {n}: fix it (an image with nothing to "
+                            "describe gets an all-zero row: guard a division by a row's length).")
     lengths = np.sqrt(np.einsum("ij,ij->i", out, out, dtype=np.float64))
     if compare == "cosine":
         wrong = np.flatnonzero((lengths >= ZERO_LENGTH) & (np.abs(lengths - 1) > UNIT_TOLERANCE))

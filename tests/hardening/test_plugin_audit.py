@@ -87,6 +87,14 @@ def test_what_is_no_array_of_real_numbers_is_refused(shape, fragment, cli, tmp_p
     assert_refused(code, err, None, "Method 'careless' ", fragment)
 
 
+def test_a_nan_row_names_its_row_and_what_to_do(cli, tmp_path, images):
+    # a blank image's row divided by its length 0: was the bare "returned non-finite descriptors (...)."
+    code, _, err = describe(cli, tmp_path, plugin("divides", lambda rows: np.where(np.arange(len(rows))[:, None] == 1,
+                                                                                   np.nan, rows)), images)
+    assert_refused(code, err, None, "Method 'divides' returned non-finite descriptors", "first in row 1 of 2: fix it "
+                   "(an image with nothing to describe gets an all-zero row")
+
+
 def zero_first(rows):
     return np.where(np.arange(len(rows))[:, None] == 0, 0, rows)  # an all-zero row, as for a blank image
 
@@ -278,6 +286,17 @@ def test_a_registration_that_is_no_factory_is_one_clear_line(cli, tmp_path, imag
     code, _, err = describe(cli, tmp_path, "not-callable", images)  # was: TypeError: '/' is not a callable object
     assert_refused(code, err, None, "Method 'not-callable' (os) is registered with 'os:sep', which is not a class "
                                     "or function returning a vprbench.Method; fix the plugin.")
+
+
+def test_a_factory_returning_no_method_says_what_it_returned_and_what_to_do(cli, tmp_path, images):
+    class Plain:  # a newcomer's class with describe, not derived from vprbench.Method
+        def describe(self, images):
+            return unit_rows(images)
+
+    register_method("plain", Plain)
+    code, _, err = describe(cli, tmp_path, "plain", images)  # was: "... did not return a vprbench.Method", no remedy
+    assert_refused(code, err, None, "Method 'plain' (", "): its factory returned Plain, not a vprbench.Method; return "
+                                    "an instance of a subclass of vprbench.Method")
 
 
 def test_an_unknown_comparison_is_refused_before_anything_is_described(cli, tmp_path, images):

@@ -70,12 +70,39 @@ def test_a_method_part_that_raises_is_one_line(part, attributes, cli, shared_dat
                    line_of(boom), stores_allowed=True)
 
 
+def test_a_factory_option_without_a_default_is_asked_for(cli, shared_data):
+    class NeedsSize(Returns):
+        def __init__(self, size, device: str = "cpu"):
+            self.size = size
+
+    register_method("needs-size", NeedsSize)
+    code, _, err = evaluate(cli, shared_data, "needs-size")
+    # before: "failed in its factory NeedsSize(): TypeError: ... missing ... 'size' at vprbench/methods/registry.py:NNN"
+    assert_refused(code, err, None, "Method 'needs-size' (", ") needs option(s) size, for which it has no default: "
+                                    "give it, e.g. -o size=VALUE.")
+    assert "registry.py" not in err
+    code, _, err = evaluate(cli, shared_data, "needs-size", "-o", "size=3")
+    assert code == 0, err
+
+
 @pytest.mark.parametrize("returned", [["a" * 64], {"vocabulary": "a" * 64}])
 def test_fitted_image_digests_of_another_shape_is_refused(returned, cli, shared_data):
     # before: vprbench's own `.items()` (or a set of a string's characters) on what the plugin returned
     code, _, err = evaluate(cli, shared_data, plugin("shapeless", fitted_image_digests=lambda self: returned))
     assert_refused(code, err, None, "Method 'shapeless': fitted_image_digests() must return a dict of part -> set of "
                                     "sha256", stores_allowed=True)
+
+
+@pytest.mark.parametrize("returned, fragment", [([np.zeros(3)], "(got list)"),
+                                               ({"mean": [[1, 2], [3]]}, "inhomogeneous")])
+def test_a_fit_state_of_another_shape_is_refused(returned, fragment, cli, shared_data):
+    # before: "failed in fit_state(): AttributeError ... at vprbench/evaluation/extract.py:NNN" (vprbench's line
+    # named as the plugin's), or a traceback for a ragged array
+    method = plugin("shapeless-fit", needs_fit=True, fit=lambda self, database: None, fit_state=lambda self: returned)
+    code, _, err = evaluate(cli, shared_data, method)
+    assert_refused(code, err, None, "Method 'shapeless-fit': fit_state() must map names to numeric arrays", fragment,
+                   stores_allowed=True)
+    assert "extract.py" not in err
 
 
 @pytest.mark.parametrize("part", ["key", "fit", "transform", "state", "check_rows"])

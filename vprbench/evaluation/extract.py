@@ -181,8 +181,7 @@ class _Job:
                         self.method.fit(self.splits[FIT_SPLIT])
                 self._check_fitted_images(seen)
                 timings["fit_s"] = time.perf_counter() - started
-                with plugin_part(self.method, "fit_state"):
-                    state = {k: np.asarray(v) for k, v in (self.method.fit_state() or {}).items()}
+                state = fitted_state(self.method)
                 if state:
                     fit_id = self._save_fit(state)
                 elif self.ranks.distributed:
@@ -223,7 +222,7 @@ class _Job:
         try:
             return self.folder.write_fit_state(state)
         except TypeError as error:
-            raise VPRBenchError(f"Method {self.method.name!r}: fit_state() must map names to numeric arrays ({error}).") from None
+            raise VPRBenchError(FIT_STATE.format(name=self.method.name, error=error)) from None
 
     def stitch(self, split: str, fit_id: str) -> None:
         """The ranks' complete shards -> the split's store; then the shards go."""
@@ -303,3 +302,19 @@ class _Job:
             if writer is not None:
                 writer.close()
         return len(todo)
+
+
+FIT_STATE = "Method {name!r}: fit_state() must map names to numeric arrays ({error})."
+
+
+def fitted_state(method) -> dict:
+    """What the method's fit_state() returned, as arrays: a value that is no dict of arrays is one line
+    naming the method (converted outside plugin_part, whose line would be vprbench's, named as the plugin's)."""
+    with plugin_part(method, "fit_state"):
+        state = method.fit_state() or {}
+    try:
+        if not isinstance(state, dict):
+            raise TypeError(f"got {type(state).__name__}")
+        return {k: np.asarray(v) for k, v in state.items()}
+    except (TypeError, ValueError) as error:
+        raise VPRBenchError(FIT_STATE.format(name=method.name, error=error)) from None

@@ -51,10 +51,11 @@ class MethodEntry:
                                 "not a class or function returning a vprbench.Method; fix the plugin.")
         return found
 
-    def factory_options(self) -> list[str]:
-        """Keyword options the factory itself accepts."""
+    def factory_options(self, *, required: bool = False) -> list[str]:
+        """Keyword options the factory itself accepts (`required`: those it has no default for)."""
         params = inspect.signature(self.factory).parameters.values()
-        return [p.name for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)]
+        return [p.name for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)
+                and not (required and p.default is not p.empty)]
 
     def options(self) -> list[str]:
         """Options the method takes: the factory's (but the locations), and batch_size, which every method takes."""
@@ -227,10 +228,16 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
         raise VPRBenchError(f"Method {name!r} ({entry.source}): {factory.__name__} does not define "
                             f"{', '.join(m + '()' for m in missing)}, which every vprbench.Method needs; define it "
                             "(see 'Add your method', the contract).")
+    needed = [o for o in entry.factory_options(required=True) if o not in arguments and o not in LOCATIONS]
+    if needed:  # else a TypeError at the call here, whose line would be named as the plugin's
+        raise VPRBenchError(f"Method {name!r} ({entry.source}) needs option(s) {', '.join(needed)}, for which it has no "
+                            f"default: give {'them' if len(needed) > 1 else 'it'}, e.g. -o {needed[0]}=VALUE.")
     with entry.in_factory(f"its factory {getattr(factory, '__name__', type(factory).__name__)}"):
         method = factory(**arguments)
     if not isinstance(method, Method):
-        raise VPRBenchError(f"Method {name!r} ({entry.source}) did not return a vprbench.Method")
+        raise VPRBenchError(f"Method {name!r} ({entry.source}): its factory returned {type(method).__name__}, not a "
+                            "vprbench.Method; return an instance of a subclass of vprbench.Method (see 'Add your "
+                            "method', the contract).")
     if "batch_size" in merged:
         set_attributes(method, name, entry.source, batch_size=merged["batch_size"])
     check_attributes(method, name, entry.source)  # compare, batch_size, ...: before any image is described
