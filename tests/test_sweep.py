@@ -144,6 +144,17 @@ def test_bad_k_search_and_store_dtype_of_a_plan_are_listed_with_the_rest_at_thei
         assert expected in err, err
 
 
+def test_a_dataset_folder_at_fault_is_named_once_at_its_own_line(tmp_path, capsys, monkeypatch):
+    """Was: the folder's error given once per method, at each method entry's line."""
+    monkeypatch.setenv("COLUMNS", "1000")
+    plan = tmp_path / "bad.toml"
+    plan.write_text('[[methods]]\nname = "hog"\n\n[[methods]]\nname = "sad"\n\n'
+                    f'[[datasets]]\nname = "{tmp_path / "no-such-folder"}"\n')
+    assert main(["run", str(plan)]) == 1
+    err = " ".join(capsys.readouterr().err.split())
+    assert "1 problem(s)" in err and "bad.toml:8: Dataset folder" in err and "does not exist" in err, err
+
+
 def test_evaluate_matrix_continues_past_a_failing_cell(shared_data, tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("COLUMNS", "1000")
     code = main(["evaluate", "--method", "hog", "--dataset", "corridor", "hawkins", "--data-dir", str(shared_data),

@@ -36,8 +36,8 @@ from pathlib import Path
 from ..errors import ProblemList, VPRBenchError, closest_names
 from ..paths import regular_file
 from ..registration import looked_up
-from ..spec import (RUN_SETTINGS, STORE_DTYPES, RunSettings, RunSpec, _choice, check_ks, resolve_search, resolve_spec,
-                    split_run_settings)
+from ..spec import (RUN_SETTINGS, STORE_DTYPES, RunSettings, RunSpec, _choice, check_ks, resolve_dataset, resolve_search,
+                    resolve_spec, split_run_settings)
 from ..text import one_line, toml_data
 
 PLAN_KEYS = {"name", "description", "k", "methods", "datasets", "search", "store_dtype", "stages"}
@@ -130,9 +130,20 @@ class PlanEntries:
 
     def plan(self, data_dir=None, cache_dir=None) -> Plan:
         """The cells, each spec resolved; raises one error listing every problem."""
-        cells, problems = [], []
+        from ..datasets import is_path
+
+        cells, problems, unreadable = [], [], set()
+        for d, dataset, protocol in self.datasets:
+            if is_path(dataset):  # a folder's fault is its entry's, told once, not at every method's line
+                try:
+                    resolve_dataset(dataset, protocol, data_dir, cache_dir)
+                except VPRBenchError as error:
+                    problems.append(f"{self.where('datasets', d, 'name')}: {error}")
+                    unreadable.add((d, protocol))
         for m, method, options, label, stages in self.methods:
             for d, dataset, protocol in self.datasets:
+                if (d, protocol) in unreadable:
+                    continue
                 given, run_options = split_run_settings(options)
                 try:
                     spec = resolve_spec(method, dataset, options=given, protocol=protocol, data_dir=data_dir,
