@@ -141,3 +141,40 @@ def test_rows_naming_bare_file_names_say_which_path_to_write(own, cli):
                    "write 'database/d0.jpg', not 'd0.jpg'")
     write_positions(own)
     good_run_after(cli, own)
+
+
+def test_positions_typed_with_a_space_after_each_comma_are_read(own, cli):
+    """'image, x, y' by hand: was "needs position columns x,y ...; it has ['image', ' x', ' y']"."""
+    import json
+
+    info = json.loads(cli("datasets", "info", own, "--json")[1])
+    (own / "positions.csv").write_text("image, x, y\n" + "".join(f"{name}, {x}, 0\n" for name, x in ROWS))
+    code, out, err = cli("datasets", "info", own, "--json")
+    assert code == 0, err
+    assert json.loads(out)["protocol"]["hash"] == info["protocol"]["hash"]  # the same positions, the same dataset
+    good_run_after(cli, own)
+
+
+def test_a_row_for_a_file_there_that_is_not_read_as_an_image_says_so(own, cli, recwarn):
+    """A .gif (or an image in a subfolder) with its row: was warned of as "not in database or queries"."""
+    from PIL import Image
+
+    Image.open(own / "database" / "d2.jpg").save(own / "database" / "d3.gif")
+    (own / "database" / "sub").mkdir()
+    shutil.copy(own / "database" / "d2.jpg", own / "database" / "sub" / "d4.jpg")
+    with open(own / "positions.csv", "a") as rows:
+        rows.write("database/d3.gif,30,0\ndatabase/sub/d4.jpg,40,0\nqueries/gone.jpg,5,0\n")
+    code, _, err = evaluate(cli, own)
+    assert code == 0, err
+    said = " ".join(str(w.message) for w in recwarn)
+    assert "lists 2 file(s) that are not read as images, e.g. ['database/d3.gif', 'database/sub/d4.jpg']" in said, said
+    assert "lists 1 image(s) that are not in " in said and "['queries/gone.jpg']" in said, said
+
+
+@pytest.mark.parametrize("content", [b"", "image,x,y\ndatabase/caf\xe9.jpg,1,0\n".encode("cp1252")], ids=["empty", "cp1252"])
+def test_positions_that_are_no_utf8_csv_say_how_to_save_them(content, own, cli):
+    """Was "Cannot read F: 'utf-8' codec can't decode byte 0xe9 in position 27" with nothing to do."""
+    (own / "positions.csv").write_bytes(content)
+    code, _, err = evaluate(cli, own)
+    assert_refused(code, err, None, f"Cannot read {own / 'positions.csv'}: ", ". Save it as UTF-8 text, a header row "
+                                    "first (e.g. image,x,y).")

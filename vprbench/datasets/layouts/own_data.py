@@ -81,9 +81,12 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
     import pandas as pd
 
     try:
-        table = pd.read_csv(csv)
-    except (OSError, ValueError) as error:
+        table = pd.read_csv(csv, skipinitialspace=True)  # "image, x, y" as typed by hand: no column ' x'
+    except OSError as error:
         raise VPRBenchError(f"Cannot read {csv}: {error}") from None
+    except ValueError as error:  # not UTF-8 (a spreadsheet's "CSV" in a Windows code page), empty, malformed
+        raise VPRBenchError(f"Cannot read {csv}: {error}. Save it as UTF-8 text, a header row first "
+                            "(e.g. image,x,y).") from None
     if "image" not in table.columns:
         # one column whose name holds ';' or a tab: a spreadsheet's export in another separator
         other = next((sep for sep in (";", "\t") if len(table.columns) == 1 and sep in str(table.columns[0])), None)
@@ -148,10 +151,17 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
         raise VPRBenchError(f"{csv} has no position for {len(missing)} image(s), e.g. {missing[:3]}{hint}; "
                             "add a row for each.")
     absent = sorted(set(listed) - set(found))
+    folder = root.resolve()
+    there = [name for name in absent if os.path.isfile(root / name)]  # a file not read as an image: not "not there"
+    if there:
+        warnings.warn(f"{csv.resolve()} lists {len(there)} file(s) that are not read as images, e.g. {there[:3]}: "
+                      f"only files directly in {folder}/database and {folder}/queries ending in "
+                      f"{', '.join(IMAGE_SUFFIXES)} are; they are left out (convert or move them to be evaluated).",
+                      stacklevel=2)
+        absent = [name for name in absent if name not in there]
     if absent:
         # named in full: the folder is read for the run's identity as the user wrote it and again for the
         # run by its absolute path, and the CLI shows one text once
-        folder = root.resolve()
         warnings.warn(f"{csv.resolve()} lists {len(absent)} image(s) that are not in {folder}/database or "
                       f"{folder}/queries, e.g. {absent[:3]}; they are left out.", stacklevel=2)
     return np.stack([by_name[name] for name in found]), unit
