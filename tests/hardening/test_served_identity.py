@@ -163,3 +163,37 @@ def test_an_approximate_search_as_deep_as_its_largest_k_is_a_row_of_its_own(shar
     assert RunSpec.model_validate(records[1]["spec"]).search.options == {"shortlist": 111}
     shallow = resolve_spec("hog", "corridor", search="hnsw", stages=[{"name": "aqe", "k": 100}], ks=(1,))
     assert shallow.search.options == {}  # a run within the default shortlist keeps its identity
+
+
+def test_a_file_an_option_names_keys_the_store_by_its_bytes(shared_data, tmp_path, monkeypatch):
+    """The spec names a file by its bytes, the store named it by its path: the file edited in place, the
+    run was another (its own key, the new sha256 in its record) but read the descriptors of the old bytes."""
+    import numpy as np
+
+    from vprbench import register_method
+    from vprbench.evaluation import evaluate
+    from vprbench.images import load_image
+    from vprbench.methods import registry
+    from vprbench.methods.base import Method
+    from vprbench.spec import RunSettings
+
+    class Weighted(Method):  # a plugin whose fingerprint() forgets its file: the store key still sees it
+        def __init__(self, table: str = "", device: str = "cpu"):
+            self.table = np.load(table)
+
+        def describe(self, images):
+            rows = np.stack([np.asarray(load_image(p, "L").resize((4, 4)), np.float32).ravel() * self.table
+                             for p in images])
+            return rows / np.linalg.norm(rows, axis=1, keepdims=True)
+
+    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
+    register_method("weighted-grey", Weighted)
+    table, run = tmp_path / "table.npy", RunSettings(data_dir=shared_data, cache_dir=tmp_path / "cache")
+    records = []
+    for content in (np.ones(16), np.arange(1.0, 17.0)):
+        np.save(table, content)
+        spec = resolve_spec("weighted-grey", "corridor", options={"table": str(table)}, ks=[1], data_dir=shared_data)
+        records.append(evaluate(spec, run))
+    assert records[0]["spec"]["files"] != records[1]["spec"]["files"]
+    assert records[1]["descriptors_computed"] == {"database": 111, "queries": 111}, "the old bytes' store was read"
+    assert records[0]["context"]["store"] != records[1]["context"]["store"]

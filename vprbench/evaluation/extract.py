@@ -66,7 +66,7 @@ def describe_splits(method, splits: dict[str, list[Path]], *, root: Path | None 
     names = {split: image_names(paths, root) for split, paths in splits.items()}
     digests = digests or {split: content_hashes(paths, cache_dir) for split, paths in splits.items()}
     image_keys = {split: images_key(paths, root, digests=digests[split], names=names[split]) for split, paths in splits.items()}
-    fingerprint = method_fingerprint(method, store_dtype, settings)
+    fingerprint = method_fingerprint(method, store_dtype, settings, cache_dir)
     folder = StoreFolder(method.name, fingerprint, label, split_keys(method, image_keys), cache_dir)
     if (method.needs_fit and "queries" in splits and not folder.fit_path.exists()
             and (folder.paths["queries"] / f"{FIT_SPLIT}.h5").exists()):  # described with a fit never saved

@@ -42,18 +42,23 @@ NO_FIT = "none"
 RESERVED_KEYS = ("settings", "store_dtype", "decoding")
 
 
-def method_fingerprint(method, store_dtype: str = "float32", settings: dict | None = None) -> dict:
+def method_fingerprint(method, store_dtype: str = "float32", settings: dict | None = None, cache_dir=None) -> dict:
     """What the store is keyed by: the method's name, its merged options (even those its own
     `fingerprint()` forgets), its fingerprint and the stored dtype. An evaluation gives `settings`,
     its spec's options: normalised as the spec is (an option naming the dataset evaluated is as
-    unset), so a method created with it shares the store of one created without."""
+    unset), so a method created with it shares the store of one created without. An option naming a
+    file or folder is keyed by its content, as the spec names it (`RunSpec.files`)."""
     if settings is None:
         settings = getattr(method, "settings", None)
     if not isinstance(settings, dict):  # until the registry sets `settings`, the user's options
         settings = method.options
+    from ..content_identity import option_identities
     from ..images import ORIENTATION
 
     settings = {k: v for k, v in sorted(settings.items()) if k not in RUN_SETTINGS}
+    # by path, the file edited in place kept its store: a run whose spec names the new bytes read the old ones'
+    files = option_identities(method.name, settings, cache_dir if cache_dir is not None else getattr(method, "cache_dir", None))
+    settings = {k: files.get(k, v) for k, v in settings.items()}
     with plugin_part(method, "fingerprint"):
         own = method.fingerprint()
     if not isinstance(own, dict):

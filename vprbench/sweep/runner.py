@@ -161,7 +161,8 @@ class StoredRecords:
                     method = create_run_method(spec.method, spec.given, self.settings)
                     use_dataset(method, spec.dataset.name)
                     postprocessor = postprocessor_of(method)
-                    self.methods[key] = method_fingerprint(method, spec.store_dtype, spec.options), postprocessor
+                    self.methods[key] = method_fingerprint(method, spec.store_dtype, spec.options,
+                                                           self.settings.cache_dir), postprocessor
             except Exception:  # noqa: BLE001 - a lookup: whatever stops the method here stops its run, which names it
                 self.methods[key] = None, None
         return self.methods[key]
