@@ -256,7 +256,7 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
     data = resolve_dataset(dataset, protocol, data_dir, cache_dir)
     if getattr(entry.factory, "dataset_option", None) in given:  # naming the dataset evaluated: as unset
         given = entry.without_defaults(given, data.name)
-    merged = plain({**{k: v for k, v in entry.defaults.items() if k not in RUN_SETTINGS}, **given})
+    merged = spec_options(method, given)
     if data.kind == "benchmark":  # a benchmark that is no traverse is refused before its data is needed
         from .datasets.traverse import require_traverse_manifest
         from .stages.registry import stage_entry
@@ -286,6 +286,14 @@ def given_options(options, method: str | None = None, dataset: str | None = None
 
         given = method_entry(method).without_defaults(given, dataset)
     return given
+
+
+def spec_options(method: str, given: dict) -> dict:
+    """A spec's options: `method`'s preset defaults (but run settings) under the options `given` (as
+    `given_options` leaves them), which its stores are keyed by."""
+    from .methods.registry import method_entry
+
+    return plain({**{k: v for k, v in method_entry(method).defaults.items() if k not in RUN_SETTINGS}, **given})
 
 
 def spec_for(method, dataset, **parts) -> RunSpec:

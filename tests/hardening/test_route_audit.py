@@ -51,3 +51,17 @@ def test_a_plan_names_a_methods_options_as_a_single_run_does(shared_data, cli, t
     accepts = "It accepts: clusters, bin_sizes, step, max_side, sample, seed, vocabulary."
     assert accepts in one and "Did you mean: bin_sizes?" in one
     assert f"({accepts})" in several and "Did you mean: bin_sizes?" in several
+
+
+def test_describe_with_anylocs_dataset_option_naming_its_dataset_shares_evaluates_store(shared_data, cli, tmp_path):
+    """`-o dataset=corridor` on Corridor is the run without it, and evaluate keys its store so; describe keyed
+    its store by the method's own settings, which kept it: the same descriptors were computed again."""
+    cache, corridor = tmp_path / "cache", shared_data / "corridor"
+    common = ("--method", "anyloc", "--backbone", "dinov2_vits14", "--weights", "random", "--resize", "28", "28",
+              "--aggregation", "gem", "--data-dir", shared_data, "--cache-dir", cache, "--quiet")
+    assert cli("evaluate", *common, "--dataset", "corridor", "--k", "1")[0] == 0
+    stores = sorted(cache.glob("stores/*/*"))
+    code, _, err = cli("describe", *common, "-o", "dataset=corridor", "--dataset", "corridor",
+                       *sorted((corridor / "query").glob("*.jpg")), "--out", tmp_path / "d.npy")
+    assert code == 0, err
+    assert sorted(cache.glob("stores/*/*")) == stores, "describe made a store of its own"

@@ -221,12 +221,18 @@ def run_describe(args) -> int:
         raise VPRBenchError(f"Method {args.method!r} fits a vocabulary on database images: give --fit-on FOLDER "
                             "(or a ready vocabulary with --vocabulary, where the method takes one).")
     splits["queries"] = [_absolute(p) if root else p for p in args.images]
+    keyed = None  # the method's own settings
     if args.dataset is not None:
+        from ..spec import given_options, spec_options
+
         use_dataset(method, args.dataset)
+        # keyed as evaluate keys them (its spec's options): an option naming this dataset is as unset
+        keyed = spec_options(method.name, given_options(method.options, method.name, args.dataset))
     with progress(args) as shown:
         described = describe_splits(method, splits, root=root, label=label,
                                     cache_dir=settings.cache_dir, progress=shown, store_dtype=args.store_dtype,
-                                    workers=loader_workers(settings, method), lock_timeout=settings.lock_timeout)
+                                    workers=loader_workers(settings, method), lock_timeout=settings.lock_timeout,
+                                    settings=keyed)
     queries = described.stores["queries"]
     database = described.stores.get("database", queries)
     _, queries, _ = postprocessed(method, database, queries, settings.memory_budget or DEFAULT_MEMORY_BUDGET)
