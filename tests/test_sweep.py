@@ -291,3 +291,24 @@ def test_a_vocabulary_refitted_after_the_run_was_planned_is_refused(tmp_path, ow
                                             r"run was planned \(sha256:\w+ then, sha256:\w+ now"):
         evaluate(planned, RunSettings(cache_dir=cache))
     assert evaluate(resolve_spec("anyloc", own, options=options, cache_dir=cache), RunSettings(cache_dir=cache))
+
+
+@pytest.mark.parametrize("flags, expected", [
+    # was: refused as "Exact search takes no index options", the plan's own index being hnsw
+    (["--index-option", "ef_search=128"], {"index": "hnsw", "options": {"hnsw_m": 8, "ef_search": 128}}),
+    # was: the plan's hnsw_m = 8 dropped, silently (the run used the default 32)
+    (["--index", "hnsw", "--index-option", "ef_search=128"], {"index": "hnsw", "options": {"hnsw_m": 8, "ef_search": 128}}),
+    (["--index", "hnsw"], {"index": "hnsw", "options": {"hnsw_m": 8}}),
+    (["--index-option", "hnsw_m=16"], {"index": "hnsw", "options": {"hnsw_m": 16}}),  # the command line wins
+    (["--index", "exact"], {"index": "exact", "options": {}}),  # another index: the plan's options are not its own
+])
+def test_the_command_lines_index_options_go_over_the_plans_as_its_method_options_do(tmp_path, flags, expected):
+    from vprbench.cli.main import build_parser
+    from vprbench.cli.options import spec_overrides
+    from vprbench.sweep.plan import read_entries
+
+    plan = tmp_path / "plan.toml"
+    plan.write_text('search = { index = "hnsw", options = { hnsw_m = 8 } }\nmethods = ["hog"]\ndatasets = ["corridor"]\n')
+    args = build_parser().parse_args(["run", str(plan), *flags])
+    [cell] = read_entries(plan, overrides=spec_overrides(args)).plan().cells
+    assert cell.spec.search.model_dump() == expected

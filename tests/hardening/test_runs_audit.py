@@ -215,3 +215,12 @@ def test_the_protocols_of_a_folder_of_ones_own_are_not_ignored(cli, tmp_path):
                                    'protocols = ["bogus"]\n', data_dir=False)
     assert code == 1 and "nothing was run" in output
     assert "A folder of your own has one protocol, 'own' (its positions and radius); got 'bogus'." in output
+
+
+def test_a_problem_every_cell_of_a_matrix_has_is_counted_once(cli, tmp_path):
+    """Was: 'The command line has 2 problem(s)' above the one line it listed (each cell's copy of it counted)."""
+    code, out, err = cli("evaluate", "--method", "hog", "--dataset", "corridor", "17places", "--rerank", "aqe",
+                         "--rerank-k", "0", "--cache-dir", tmp_path / "cache", "--data-dir", tmp_path / "no-data")
+    assert code == 1 and err.splitlines() == [
+        "error: The command line has 1 problem(s); nothing was run:",
+        "  the command line: Stage 'aqe' option k: Input should be greater than or equal to 1 (got 0)."]

@@ -121,3 +121,16 @@ def test_a_file_searched_deeper_by_an_approximate_index_is_not_a_shallower_run(s
     frozen = evaluate(deep, dataclasses.replace(settings, candidates=path))
     assert frozen["spec_key"] != shallow.key
     assert frozen["per_query"]["database_indices"] == evaluate(deep, settings)["per_query"]["database_indices"]
+
+
+def test_the_export_command_takes_the_index_options_evaluate_takes(shared_data, stage_cache, tmp_path, cli):
+    """`evaluate --index hnsw --index-option hnsw_m=16 --candidates FILE` could never start from a file: `candidates
+    export` had --index but no --index-option, so no file of that retriever could be written."""
+    out, search = tmp_path / "hnsw16.h5", ["--index", "hnsw", "--index-option", "hnsw_m=16"]
+    where = ["--data-dir", shared_data, "--cache-dir", stage_cache, "--quiet"]
+    code, _, err = cli("candidates", "export", "--method", "hog", "--dataset", "corridor", "--k", 20, *search,
+                       "--out", out, *where)
+    assert code == 0, err
+    code, _, err = cli("evaluate", "--method", "hog", "--dataset", "corridor", "--k", 1, 5, *search, "--rerank", "aqe",
+                       "--rerank-k", 20, "--candidates", out, *where)
+    assert code == 0, err

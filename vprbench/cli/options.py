@@ -164,15 +164,20 @@ def add_spec_options(parser: argparse.ArgumentParser, shown: bool = True) -> Non
 
 def spec_overrides(args) -> dict:
     """What the spec options set, for every run of the command (None = the plan's or the default)."""
-    search = None
-    options = key_values(getattr(args, "index_option", []), "--index-option")
-    if getattr(args, "index", None) or options:
-        search = {"index": args.index or "exact", "options": options}
     from ..spec import check_ks
 
     ks = check_ks(args.k) if getattr(args, "k", None) else None
-    return {"search": search, "k": list(ks) if ks else None, "store_dtype": getattr(args, "store_dtype", None),
-            "stages": stage_flags(args)}
+    return {"search": search_flags(args), "k": list(ks) if ks else None,
+            "store_dtype": getattr(args, "store_dtype", None), "stages": stage_flags(args)}
+
+
+def search_flags(args) -> dict | None:
+    """--index and --index-option as a search table; None when neither is given. Without --index it names
+    no index: a plan's own is kept (a single run's is exact)."""
+    options = key_values(getattr(args, "index_option", []), "--index-option")
+    if not getattr(args, "index", None) and not options:
+        return None
+    return {"options": options, **({"index": args.index} if args.index else {})}
 
 
 def stage_flags(args) -> list[dict] | None:

@@ -23,6 +23,8 @@ def add_parsers(commands) -> None:
     p.add_argument("--dataset", required=True, help="dataset name or folder of your own")
     p.add_argument("--protocol", help="the dataset's protocol (default: its first)")
     p.add_argument("--index", choices=("exact", "ivf-pq", "hnsw"), default=None, help="search (default exact)")
+    p.add_argument("--index-option", action="append", default=[], metavar="KEY=VALUE",
+                   help="an approximate index's option, e.g. nprobe=64 (repeatable), as evaluate takes it")
     p.add_argument("--store-dtype", choices=("float32", "float16"), default="float32")
     p.add_argument("--k", type=int, default=100, help="candidates per query (default 100)")
     p.add_argument("--out", required=True, type=output_file(".h5", ".hdf5"), help="output .h5 file")
@@ -69,12 +71,13 @@ def run_export(args) -> int:
 
     from ..spec import resolve_spec, split_run_settings
     from ..stages.candidates import export_candidates
+    from .options import search_flags
 
     resolve_locations(args)
     settings = run_settings(args)
     spec = resolve_spec(args.method, args.dataset, options=split_run_settings(method_options(args))[0],
                         protocol=args.protocol,
-                        search=args.index, store_dtype=args.store_dtype, data_dir=settings.data_dir,
+                        search=search_flags(args), store_dtype=args.store_dtype, data_dir=settings.data_dir,
                         cache_dir=settings.cache_dir)
     with progress(args) as shown:
         written = export_candidates(spec, settings, args.out, k=args.k, progress=shown)

@@ -160,8 +160,8 @@ def _raise_problems(origin: str, problems: list[str]) -> None:
     if problems:
         # a ProblemList prints its line breaks: the path's are written out, as in its problems
         what = "The command line" if origin == "the command line" else f"Plan {one_line(origin)}"
-        raise ProblemList(f"{what} has {len(problems)} problem(s); nothing was run:\n  "
-                          + "\n  ".join(one_line(p) for p in dict.fromkeys(problems)))
+        shown = list(dict.fromkeys(one_line(p) for p in problems))  # a problem every cell has is one, counted once
+        raise ProblemList(f"{what} has {len(shown)} problem(s); nothing was run:\n  " + "\n  ".join(shown))
 
 
 def plan_entries(data: dict, origin: str, lines: dict | None = None, *, overrides: dict | None = None,
@@ -181,7 +181,7 @@ def plan_entries(data: dict, origin: str, lines: dict | None = None, *, override
 
     for key in sorted(set(data) - PLAN_KEYS):
         problems.append(f"{where('', 0, key)}: unknown key {key!r}{closest_names(key, PLAN_KEYS)} (allowed: {', '.join(sorted(PLAN_KEYS))})")
-    shared = {"ks": overrides.get("k") or data.get("k"), "search": overrides.get("search") or data.get("search"),
+    shared = {"ks": overrides.get("k") or data.get("k"), "search": layered_search(data.get("search"), overrides.get("search")),
               "store_dtype": overrides.get("store_dtype") or data.get("store_dtype", "float32")}
     for key, check in (("k", lambda: check_ks(shared["ks"])), ("search", lambda: resolve_search(shared["search"])),
                        ("store_dtype", lambda: _choice("--store-dtype", shared["store_dtype"], STORE_DTYPES))):
@@ -260,6 +260,22 @@ def plan_entries(data: dict, origin: str, lines: dict | None = None, *, override
     _raise_problems(origin, problems)
     return PlanEntries(str(data.get("name", default_name)), str(data.get("description", "")), origin, where,
                        methods, datasets, shared)
+
+
+def layered_search(planned, given: dict | None):
+    """The command line's search over the plan's, as its method options are: for the plan's index (no
+    --index, or the same one) its --index-option over the plan's options, the others kept; another
+    --index replaces the plan's search, whose options are that index's."""
+    if not given:
+        return planned
+    planned = {"index": planned} if isinstance(planned, str) else planned
+    if not isinstance(planned, dict) or not isinstance(planned.get("options") or {}, dict):
+        return given  # a malformed plan search is the command line's to replace
+    index = given.get("index", planned.get("index", "exact"))
+    if index != planned.get("index", "exact"):
+        return given
+    # the plan's other keys kept, so a wrong one is still named
+    return {**planned, "index": index, "options": {**(planned.get("options") or {}), **given.get("options", {})}}
 
 
 def _entries(data: dict, key: str, problems: list[str], where) -> list:
