@@ -33,6 +33,13 @@ def test_latitude_longitude_become_metres(mydata):
     assert dataset.summary()["unit"] == "metres" and dataset.summary()["radius"] == 25
 
 
+def test_several_kinds_of_position_say_which_is_used(mydata):
+    table = pd.DataFrame({"image": images(mydata), "x": range(7), "y": 0, "frame": range(7)})
+    table.to_csv(mydata / "positions.csv", index=False)
+    with pytest.warns(UserWarning, match=r"several kinds of position: x,y \(metres\) is used, frame ignored"):
+        assert load_dataset(str(mydata)).ground_truth.unit == "metres"
+
+
 def test_frames_need_a_radius_and_use_it(mydata):
     pd.DataFrame({"image": images(mydata), "frame": [0, 1, 2, 3, 4, 0, 4]}).to_csv(mydata / "positions.csv", index=False)
     with pytest.raises(VPRBenchError, match="radius = N"):

@@ -105,6 +105,11 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
             f"or frame; it has {list(table.columns)}"
         )
     names, unit = chosen
+    others = [",".join(n) for n, _ in choices if set(n) <= columns and n != names]
+    if others:  # the first in the documented order is used: say so, or the wrong one is used unseen
+        warnings.warn(f"{csv.resolve()} has several kinds of position: {','.join(names)} ({unit}) is used, "
+                      f"{' and '.join(others)} ignored (the first kind of x,y; easting,northing; latitude,longitude; "
+                      "lat,lon; frame is used): to use another, remove the columns of the one used.", stacklevel=2)
     written = [str(name) for name in table["image"]]
     # rows are matched to the images found by name and never opened; one naming a file outside
     # the folder is still refused, as everything a data file names must lie inside its dataset
