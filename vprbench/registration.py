@@ -4,6 +4,7 @@ an entry's import path, and the one rule for names and plugins: a taken name is 
 load is a warning, skipped, never the end of the command."""
 from __future__ import annotations
 
+import contextlib
 import importlib
 import unicodedata
 import warnings
@@ -31,30 +32,50 @@ def source_of(target) -> str:
     return module.split(".")[0] or "unknown"
 
 
+#: what each plugin being loaded has claimed so far, innermost last, in every registry (a method
+#: plugin may register stages too): taken out again if it fails; None while the core registers its own
+_claims: list[list[tuple[dict, str]] | None] = []
+
+
 def claim(registry: dict, kind: str, entry) -> None:
     """`entry` put under its name in `registry`, unless a different entry holds that name."""
     taken = registry.get(entry.name)
     if taken is not None and taken != entry:
         raise ValueError(f"{kind} name {entry.name!r} is taken (registered by {taken.source}); register yours under "
                          "another name")
+    if taken is None and _claims and _claims[-1] is not None:
+        _claims[-1].append((registry, entry.name))
     registry[entry.name] = entry
+
+
+@contextlib.contextmanager
+def core_entries():
+    """Within it the core registers its own entries: never a plugin's to take back (a registry's first
+    use, which registers them, may come while a plugin of another registry loads)."""
+    _claims.append(None)
+    try:
+        yield
+    finally:
+        _claims.pop()
 
 
 def run_plugins(kind: str, found, registry: dict) -> list[str]:
     """Call the register function of every entry point in `found`; one that fails is skipped (what it
-    registered in `registry` before failing is taken out again), and named in what is returned
+    claimed before failing, in `registry` or another, is taken out again), and named in what is returned
     ("'name' (module:function): error"), for an unknown name's message."""
     failed = []
     for ep in found:
-        before = dict(registry)
+        _claims.append([])
         try:
             ep.load()()
         except (Exception, SystemExit) as error:  # a broken plugin (sys.exit too) must not take the suite down
-            registry.clear()
-            registry.update(before)
+            for held, name in _claims[-1]:
+                held.pop(name, None)
             reason = str(error) or type(error).__name__
             failed.append(f"{ep.name!r} ({ep.value}): {reason}")
             warnings.warn(f"{kind} plugin {ep.name!r} ({ep.value}) failed to load: {reason}", stacklevel=3)
+        finally:
+            _claims.pop()
     return failed
 
 

@@ -105,19 +105,27 @@ def test_a_plugin_failing_without_a_message_is_named_by_its_error_type():
         assert run_plugins("Method", [Silent()], {}) == ["'quiet' (pkg:register): RuntimeError"]
 
 
-def test_a_plugin_failing_partway_is_skipped_whole():
-    """What its register() registered before it failed is taken out again: the plugin is skipped."""
-    registry = {"hog": "core"}
+def test_a_plugin_failing_partway_is_skipped_whole(monkeypatch):
+    """What its register() registered before it failed is taken out again, in every registry (a method
+    plugin may register stages too: was, its stages stayed); the core's and other plugins' stay."""
+    from vprbench.stages import register_stage
+    from vprbench.stages import registry as stages
 
-    class Partway:
-        name, value = "partway", "pkg:register"
+    installed(monkeypatch)
+    monkeypatch.setattr(stages, "_REGISTRY", {})
+    monkeypatch.setattr(stages, "_plugins_loaded", False)
+    monkeypatch.setattr(stages, "entry_points", lambda group: [SimpleNamespace(
+        name="other", value="o:register", load=lambda: lambda: register_stage("other-stage", "o:Stage"))])
 
-        def load(self):
-            def register():
-                registry["first"] = "registered"
-                raise RuntimeError("the second method's import failed")
-            return register
+    def partway():  # the stage registry is first read here: its core and plugin stages load meanwhile
+        register_method("first", Returns)
+        register_stage("its-stage", "pkg:Stage")
+        raise RuntimeError("the second method's import failed")
 
+    monkeypatch.setattr(registry, "entry_points", lambda group: [SimpleNamespace(name="partway", value="pkg:register",
+                                                                                 load=lambda: partway)])
     with pytest.warns(UserWarning, match="failed to load: the second method's import failed"):
-        run_plugins("Method", [Partway()], registry)
-    assert registry == {"hog": "core"}
+        methods = registry.available_methods()
+    assert "first" not in methods and "hog" in methods
+    found = stages.available_stages()
+    assert "its-stage" not in found and {"other-stage", "aqe", "sift-ransac"} <= set(found)

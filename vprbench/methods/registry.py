@@ -26,7 +26,8 @@ from pathlib import Path
 
 from ..errors import VPRBenchError, closest_names
 from ..loader import plugin_part
-from ..registration import check_name, claim, imported, looked_up, run_plugins, source_of, unloaded_hint
+from ..registration import (check_name, claim, core_entries, imported, looked_up, run_plugins, source_of,
+                            unloaded_hint)
 from .attributes import MAX_BATCH_SIZE, check_attributes, set_attributes
 from .checks import canonical, plain_options, whole
 
@@ -159,8 +160,9 @@ def _load_plugins() -> None:
     _plugins_loaded = True
     from .builtin import core_methods
 
-    for entry in core_methods():
-        register_method(**entry)
+    with core_entries():
+        for entry in core_methods():
+            register_method(**entry)
     global _plugin_failures
     _plugin_failures = run_plugins("Method", entry_points(group=ENTRY_POINT_GROUP), _REGISTRY)
 

@@ -16,7 +16,8 @@ from importlib.metadata import entry_points
 from pydantic import ValidationError
 
 from ..errors import VPRBenchError, closest_names
-from ..registration import check_name, claim, imported, looked_up, run_plugins, source_of, unloaded_hint
+from ..registration import (check_name, claim, core_entries, imported, looked_up, run_plugins, source_of,
+                            unloaded_hint)
 
 ENTRY_POINT_GROUP = "vprbench.stages"
 
@@ -78,8 +79,9 @@ def _load_plugins() -> None:
     if _plugins_loaded:
         return
     _plugins_loaded = True
-    for entry in core_stages():
-        register_stage(**entry, source="vprbench")
+    with core_entries():
+        for entry in core_stages():
+            register_stage(**entry, source="vprbench")
     global _plugin_failures
     _plugin_failures = run_plugins("Stage", entry_points(group=ENTRY_POINT_GROUP), _REGISTRY)
 
