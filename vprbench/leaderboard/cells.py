@@ -178,9 +178,19 @@ class Board:
         excluded = self.excluded if track == "single-image" else []
         return Board(rows, [c for c in self.columns if c.key in filled], cells, excluded)
 
+    def of_column(self, column: Column) -> "Board":
+        """The board of one column, as its dataset page shows it: its cells, their rows, and the runs
+        left out on its dataset (own data and a benchmark of the same name are told apart)."""
+        cells = {key: cell for key, cell in self.cells.items() if key[1] == column.key}
+        rows = [r for r in self.rows if (r, column.key) in cells]
+        excluded = [(record, why) for record, why in self.excluded if record.get("dataset") == column.dataset
+                    and (record.get("dataset_kind") == "own") == (column.kind == "own")]
+        return Board(rows, [column], cells, excluded)
+
     @property
     def marked(self) -> dict[str, int]:
-        """How many cells are not on official weights, or not on a benchmark: shown on every page."""
+        """How many cells are not on official weights, or not on a benchmark, and how many runs are left
+        out: the board's (a page's note counts those of the board it shows, tables.marks_note)."""
         cells = list(self.cells.values())
         return {"marked_rows": sum(not c.row.official for c in cells),
                 "own_data": sum(c.column.kind == "own" for c in cells), "excluded": len(self.excluded)}

@@ -254,7 +254,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
                            (cells[0].arrays["positives"] if cells[0].arrays is not None else []))
     colours = colours if colours is not None else site_colours(board)
     lines = [page_head(column.title), f"# {text(column.title)}", "", f"Each cell is one run: {RULE_LINK} (below the tables).", "",
-             marks_note(board),
+             marks_note(board, column),
              f"Domain: {text(column.domain or '–')}. Kind: {'benchmark' if column.kind == 'benchmark' else 'own data (not a benchmark)'}.", "",
              "## Data and ground truth", "",
              "| Database | Queries | Queries without positives | Positive pairs | Positives per query (min / median / max) | Ground truth | Protocol | Dataset fingerprint |",

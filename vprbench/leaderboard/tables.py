@@ -269,25 +269,36 @@ LEGEND = ("Upright: measured (one run per cell), here unless marked. *Italic*: r
           "the row's own kind, only for a row that has all of them.")
 
 
-def marks_note(board: Board) -> str:
-    """The note at the top of every page: which cells are marked, and why."""
-    found = board.marked
+def marks_note(board: Board, column: Column | None = None) -> str:
+    """The note at the top of every page: which cells are marked, and why. A dataset page (`column`)
+    counts only its own cells and the runs left out on its dataset; the overview, which shows every
+    cell, counts the whole leaderboard and says so."""
+    page = column is not None
+    board = board.of_column(column) if page else board
+    found, are = board.marked, "on this page are" if page else "are"
     parts = []
     if found["marked_rows"]:
-        parts.append(f"{found['marked_rows']} cell(s) are on rows marked † (weights other than the authors' release, "
+        parts.append(f"{found['marked_rows']} cell(s) {are} on rows marked † (weights other than the authors' release, "
                      "approximate search, a float16 store or anything fitted on the evaluated database: the mark says which)")
     if found["own_data"]:
         own = next(c.title for c in board.columns if c.kind == "own")  # how such a column is headed: name it as it reads
-        parts.append(f"{found['own_data']} cell(s) are on the user's own data, in columns headed by the data's name and "
-                     f"\"own\", e.g. {text(own)}")
+        parts.append(f"{found['own_data']} cell(s) {are} on the user's own data, in columns headed by the data's name "
+                     f"and \"own\", e.g. {text(own)}")
     elsewhere = [c.source for c in board.cells.values() if source_mark(c.source)]
     if elsewhere:
-        parts.append(f"{len(elsewhere)} cell(s) have runs contributed to a results repository or imported, each "
-                     "re-scored here from its per-query arrays:" + marks_legend(elsewhere).rstrip("."))
+        parts.append(f"{len(elsewhere)} cell(s){' on this page' if page else ''} have runs contributed to a results "
+                     "repository or imported, each re-scored here from its per-query arrays:" + marks_legend(elsewhere).rstrip("."))
     if found["excluded"]:
-        parts.append(f"{found['excluded']} run(s) are left out of every cell (see [Runs left out](index.md#runs-left-out))")
-    note = "; ".join(parts) if parts else "every cell is an official run on a benchmark's protocol"
+        runs = f"run(s) on {text(column.dataset)}" if page else "run(s)"
+        parts.append(f"{found['excluded']} {runs} are left out of every cell (see [Runs left out](index.md#runs-left-out))")
+    if page:
+        note = "; ".join(parts) if parts else "every cell on this page is an official run on a benchmark's protocol"
+    else:
+        note = "across the leaderboard, " + ("; ".join(parts) if parts else "every cell is an official run on a "
+                                             "benchmark's protocol")
     return f"!!! note \"Marks\"\n    {note[0].upper() + note[1:]}. Nothing here is presented as measured unless it was measured.\n"
+
+
 #: what the Results table's columns hold, in which units
 RESULTS_LEGEND = ("R@K and R@100%P in percent (R@100%P: the share of correct top-1 matches ranked above the most "
                   "confident wrong one); AUC-PR from 0 to 1. Dim: descriptor dimensions. Bytes: one descriptor as stored (4 per "
