@@ -79,3 +79,34 @@ def test_sad_on_corridor_end_to_end(shared_data, tmp_path, capsys):
     err = capsys.readouterr().err
     assert code != 0 and "only exact search does" in err and "Traceback" not in err
     assert json.loads(json.dumps(record["recall"]))  # plain data
+
+
+def test_a_plan_pairing_sad_with_an_approximate_index_lists_it_with_its_other_problems(tmp_path, capsys, monkeypatch):
+    """Was: the plan check passed it (hog's cells would run) and sad's cells failed only when they ran."""
+    monkeypatch.setenv("COLUMNS", "1000")
+    plan = tmp_path / "plan.toml"
+    plan.write_text('search = { index = "hnsw" }\n\n[[methods]]\nname = "hog"\n\n[[methods]]\nname = "sad"\n\n'
+                    '[[methods]]\nname = "hogg"\n\n[[datasets]]\nname = "corridor"\n')
+    assert main(["run", str(plan), "--cache-dir", str(tmp_path / "cache")]) == 1
+    err = " ".join(capsys.readouterr().err.split())
+    assert "2 problem(s); nothing was run" in err and "plan.toml:10: unknown method 'hogg'" in err, err
+    assert "plan.toml:7: Method 'sad' compares descriptors by mean-absolute-difference, which only exact search " \
+           "does; drop --index hnsw" in err and "Traceback" not in err, err
+    assert not (tmp_path / "cache").exists()
+
+
+def test_a_matrix_or_a_run_of_sad_with_an_approximate_index_is_refused_before_any_image_is_described(
+        shared_data, tmp_path, capsys, monkeypatch):
+    """Was: the matrix ran hog's cell, then sad's failed after describing Corridor; the single run
+    described the whole dataset (stores written) before it was refused."""
+    monkeypatch.setenv("COLUMNS", "1000")
+    cache = tmp_path / "cache"
+    for methods in (["sad", "hog"], ["sad"]):
+        code = main(["evaluate", "--method", *methods, "--dataset", "corridor", "--index", "ivf-pq",
+                     "--data-dir", str(shared_data), "--cache-dir", str(cache)])
+        err = " ".join(capsys.readouterr().err.split())
+        assert code == 1 and "'sad' compares descriptors by mean-absolute-difference, which only exact search does; " \
+                             "drop --index ivf-pq" in err and "Traceback" not in err, err
+        assert not (cache / "stores").exists() and not (cache / "results").exists(), methods
+    with pytest.raises(VPRBenchError, match="only exact search does; drop --index hnsw"):
+        resolve_spec("sad", "corridor", search="hnsw")

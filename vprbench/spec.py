@@ -257,6 +257,10 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
     if getattr(entry.factory, "dataset_option", None) in given:  # naming the dataset evaluated: as unset
         given = entry.without_defaults(given, data.name)
     merged = spec_options(method, given)
+    search = searched_to(resolve_search(search), depth)
+    from .evaluation.retrieve import check_compare
+
+    check_compare(method, entry.compare, search.index, search.options)  # with a plan's other problems, not when it runs
     if data.kind == "benchmark":  # a benchmark that is no traverse is refused before its data is needed
         from .datasets.traverse import require_traverse_manifest
         from .stages.registry import stage_entry
@@ -266,7 +270,7 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
                 require_traverse_manifest(data.name, f"Sequence stage {stage.name!r}")
     return RunSpec(method=method, options=merged, given=given, files=option_identities(method, merged, cache_dir),
                    found=entry.cached_identities(merged, data.name, cache_dir),
-                   search=searched_to(resolve_search(search), depth),
+                   search=search,
                    dataset=data, stages=stages, ks=ks, store_dtype=_choice("--store-dtype", store_dtype, STORE_DTYPES))
 
 

@@ -134,6 +134,9 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
         if settings.batch_size is not None:  # honoured (and checked) for a method given as for one created here
             size = checked_run_options(method.name, {"batch_size": settings.batch_size})["batch_size"]
             set_attributes(method, method.name, source_of(type(method)), batch_size=size)
+    from .retrieve import check_compare
+
+    check_compare(spec.method, getattr(method, "compare", "cosine"), spec.search.index, spec.search.options)
     ranks.agree({"spec": spec.key, "cache": str(settings.cache_dir.resolve()) if settings.cache_dir else None,
                  "data": str(settings.data_dir) if settings.data_dir else None,
                  "memory_budget": settings.memory_budget}, "the run (spec, cache folder, data root)")

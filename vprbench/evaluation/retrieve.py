@@ -43,9 +43,7 @@ def compared_search(method, database, queries, k: int, index: str, index_options
     distance, so higher is still better."""
     from ..stages.sequence.search import sequence_search
 
-    if index != "exact" or index_options:
-        raise VPRBenchError(f"Method {method.name!r} compares descriptors by {method.compare}, which only exact "
-                            f"search does; drop --index {index} (and its options).")
+    check_compare(method.name, method.compare, index, index_options)
     started = time.perf_counter()
     check_pair(database, queries, k)
     found = sequence_search(database, queries, k, score="diagonal", compare=method.compare, length=1,
@@ -54,3 +52,13 @@ def compared_search(method, database, queries, k: int, index: str, index_options
         "index": "exact", "compare": method.compare, "memory_budget": budget, "block_rows": found.info["block_rows"],
         "dim": database.dim, "postprocess": None, "search_s": round(time.perf_counter() - started, 3),
         "tie_order": "distance ascending, then database index ascending"})
+
+
+def check_compare(name: str, compare: str | None, index: str, index_options=None) -> None:
+    """Refuse a search other than exact for method `name` whose descriptors are compared by a
+    distance (`compare`, e.g. sad's; None: not known until the method is made): the indexes rank by
+    inner product. The one check, made when a spec is resolved (a plan lists it with its other
+    problems), when its method is made (before any image is described) and here."""
+    if compare not in (None, "cosine") and (index != "exact" or index_options):
+        raise VPRBenchError(f"Method {name!r} compares descriptors by {compare}, which only exact search does; drop "
+                            f"--index {index} (and its options; in a plan, its search) for this method.")

@@ -52,6 +52,13 @@ class MethodEntry:
                                 "not a class or function returning a vprbench.Method; fix the plugin.")
         return found
 
+    @property
+    def compare(self) -> str | None:
+        """How its methods compare descriptors when the factory says so unmade (a class attribute, e.g.
+        sad's); None when only the method made knows (a function factory, a property)."""
+        found = getattr(self.factory, "compare", None)
+        return found if isinstance(found, str) else None
+
     def factory_options(self, *, required: bool = False) -> list[str]:
         """Keyword options the factory itself accepts (`required`: those it has no default for)."""
         params = inspect.signature(self.factory).parameters.values()

@@ -169,6 +169,7 @@ def plan_entries(data: dict, origin: str, lines: dict | None = None, *, override
     """A plan given as a dict, checked (see `build_plan`); raises one error listing every problem."""
     from ..datasets import dataset_manifests, is_path
     from ..datasets.protocol import protocols
+    from ..evaluation.retrieve import check_compare
     from ..methods import available_methods
     from ..methods.registry import checked_run_options, failed_plugins_hint
 
@@ -190,6 +191,10 @@ def plan_entries(data: dict, origin: str, lines: dict | None = None, *, override
         except VPRBenchError as error:
             problems.append(f"{where('', 0, key)}: {error}")
 
+    try:
+        search = resolve_search(shared["search"])
+    except VPRBenchError:
+        search = None  # named above, at its own line
     methods, known_methods = [], available_methods()
     for i, entry in enumerate(_entries(data, "methods", problems, where)):
         entry = {"name": entry} if isinstance(entry, str) else entry
@@ -223,6 +228,11 @@ def plan_entries(data: dict, origin: str, lines: dict | None = None, *, override
                 parse_size(options["resize"])
             except VPRBenchError as error:
                 problems.append(f"{where('methods', i, 'options')}: Method {name!r}: {error}")
+        if search is not None:  # the single run's check, at the method's line: not when its cells run
+            try:
+                check_compare(name, known_methods[name].compare, search.index, search.options)
+            except VPRBenchError as error:
+                problems.append(f"{where('methods', i, 'name')}: {error}")
         stages = overrides.get("stages") or entry.get("stages", data.get("stages", []))
         if not isinstance(stages, list):
             problems.append(f"{where('methods', i, 'stages')}: stages of method {name!r} must be a list of tables, "
