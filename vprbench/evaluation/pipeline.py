@@ -22,7 +22,7 @@ from .extract import describe_splits
 from .identity import protocol_of
 from .metrics import check_ks
 from .record import result_record
-from .retrieve import retrieve
+from .retrieve import check_compare, retrieve
 from ..stages.base import Candidates, StageContext
 from ..loader import postprocessor_of, use_dataset
 from ..stages.run import create_stages, in_stage, retrieval_depth, run_stages, track_of
@@ -134,8 +134,6 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
         if settings.batch_size is not None:  # honoured (and checked) for a method given as for one created here
             size = checked_run_options(method.name, {"batch_size": settings.batch_size})["batch_size"]
             set_attributes(method, method.name, source_of(type(method)), batch_size=size)
-    from .retrieve import check_compare
-
     check_compare(spec.method, getattr(method, "compare", "cosine"), spec.search.index, spec.search.options)
     ranks.agree({"spec": spec.key, "cache": str(settings.cache_dir.resolve()) if settings.cache_dir else None,
                  "data": str(settings.data_dir) if settings.data_dir else None,
