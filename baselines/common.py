@@ -128,6 +128,19 @@ def build_loaded(build, state_dict: Mapping, method: str) -> nn.Module:
 
 
 # ---------------------------------------------------------------- preprocessing
+#: `preprocess` of a baseline AnyLoc compares with: "authors" (its own code's) or "anyloc" (AnyLoc's
+#: evaluation: its dataset loaders normalise first and resize the tensor without antialiasing, as
+#: torchvision 0.14 did)
+PREPROCESSING = ("authors", "anyloc")
+
+
+def preprocess_for(mode: str, method: str, resize, interpolation: str = "bilinear") -> "Preprocess":
+    """The Preprocess of `mode` (one of PREPROCESSING); AnyLoc's resize is bilinear on the tensor."""
+    if choose("preprocess", mode, PREPROCESSING, method) == "anyloc":
+        return Preprocess(resize=resize, normalise_first=True, antialias=False)
+    return Preprocess(resize=resize, interpolation=interpolation)
+
+
 @dataclass(frozen=True)
 class Preprocess:
     """How the authors turn an image file into a network input.

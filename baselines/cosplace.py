@@ -11,8 +11,8 @@ from torch import nn
 
 from vprbench import VPRBenchError
 
-from .common import (Preprocess, TorchMethod, WeightSource, as_int, as_resize, build_loaded, choose, load_checkpoint,
-                     native_when_unset, state_dict_of)
+from .common import (TorchMethod, WeightSource, as_int, as_resize, build_loaded, choose, load_checkpoint,
+                     native_when_unset, preprocess_for, state_dict_of)
 
 #: backbone -> descriptor dimensions with released weights (authors' hubconf)
 RELEASED = {
@@ -90,14 +90,14 @@ def check_release(method: str, released: dict, backbone, dim) -> tuple[str, int]
 
 def build_gem_fc_method(
     method: str, released: dict, url: str, backbone, dim, weights, resize, batch_size, device, precision, training: str,
-    cache_dir=None,
+    cache_dir=None, preprocess: str = "authors",
 ) -> TorchMethod:
     """Shared by CosPlace and EigenPlaces: same network, different release."""
     backbone, dim = check_release(method, released, backbone, dim)
     file_url = url.format(backbone=backbone, dim=dim)
     source = WeightSource(file_name=file_url.rsplit("/", 1)[1], url=file_url)
     # The authors evaluate at full resolution (ToTensor + ImageNet normalisation, no resize).
-    preprocess = Preprocess(resize=as_resize(resize))  # checked before the weights load
+    preprocess = preprocess_for(preprocess, method, as_resize(resize))  # checked before the weights load
     checkpoint, identity = load_checkpoint(weights, source, method, cache_dir)
     net = build_loaded(lambda: GeoLocalizationNet(backbone, dim), state_dict_of(checkpoint), method)
     fingerprint = {"architecture": method, "backbone": backbone, "dim": dim, "training": training, **identity}
@@ -113,11 +113,13 @@ def cosplace(
     device: str = "cpu",
     precision: str = "fp32",
     cache_dir=None,
+    preprocess: str = "authors",
 ) -> TorchMethod:
-    """CosPlace trained on SF-XL; `backbone`/`dim` pick one of the released models."""
+    """CosPlace trained on SF-XL; `backbone`/`dim` pick one of the released models; `preprocess=anyloc`
+    resizes as AnyLoc's evaluation of it did (normalised tensor, no antialiasing)."""
     return build_gem_fc_method(
         "cosplace", RELEASED, RELEASE_URL, backbone, dim, weights, resize, batch_size, device, precision, "SF-XL CosPlace",
-        cache_dir,
+        cache_dir, preprocess,
     )
 
 #: unset resize is the image as stored: resize=native written out is the same run

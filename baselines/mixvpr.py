@@ -10,7 +10,8 @@ from torch import nn
 
 from vprbench import VPRBenchError
 
-from .common import Preprocess, TorchMethod, WeightSource, as_resize, check_dim, choose, build_loaded, load_checkpoint, state_dict_of
+from .common import (TorchMethod, WeightSource, as_resize, check_dim, choose, build_loaded, load_checkpoint, preprocess_for,
+                     state_dict_of)
 
 #: descriptor dim -> the authors' aggregator settings: out_channels and out_rows as the released
 #: files name them (channels(C)_rows(R)); the 4096-d configuration is printed in the README, the
@@ -96,8 +97,10 @@ def mixvpr(
     device: str = "cpu",
     precision: str = "fp32",
     cache_dir=None,
+    preprocess: str = "authors",
 ) -> TorchMethod:
-    """MixVPR trained on GSV-Cities; images resized to 320x320 (bicubic) as the authors do."""
+    """MixVPR trained on GSV-Cities; images resized to 320x320 (bicubic) as the authors do, or, with
+    `preprocess=anyloc`, as AnyLoc's evaluation of it did (bilinear on the normalised tensor)."""
     backbone = choose("backbone", backbone, ["resnet50"], "mixvpr")
     dim = check_dim("mixvpr", dim, list(CONFIGS), "ResNet-50 MixVPR")
     resize = as_resize(resize)
@@ -108,9 +111,10 @@ def mixvpr(
             f"mixvpr: resize {resize} does not fit the aggregator's {config['in_h']}x{config['in_w']} "
             f"feature map; valid: {config['in_h'] * 16} {config['in_w'] * 16}."
         )
+    preprocessing = preprocess_for(preprocess, "mixvpr", resize, interpolation="bicubic")
     checkpoint, identity = load_checkpoint(weights, WEIGHTS[dim], "mixvpr", cache_dir)
     net = build_loaded(lambda: MixVPRNet(config), state_dict_of(checkpoint), "mixvpr")
-    preprocess = Preprocess(resize=resize, interpolation="bicubic")
     fingerprint = {"architecture": "mixvpr", "backbone": backbone, "dim": dim, "training": "GSV-Cities",
                    "config": config, **identity}
-    return TorchMethod(net, preprocess, fingerprint, batch_size=batch_size, device=device, precision=precision, dim=dim)
+    return TorchMethod(net, preprocessing, fingerprint, batch_size=batch_size, device=device, precision=precision,
+                       dim=dim)

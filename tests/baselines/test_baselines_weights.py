@@ -59,6 +59,30 @@ def test_cosplace_loads_official_layout(tmp_path, images, official_checkpoint):
     assert len(fp["weights_sha256"]) == 64
 
 
+@pytest.mark.parametrize("name, variant, resize", [("cosplace", "ResNet18_512", (32, 48)),
+                                                   ("mixvpr", "resnet50_4096", (320, 320))])
+def test_anyloc_preprocessing_resizes_the_normalised_tensor(tmp_path, images, official_checkpoint, name, variant,
+                                                             resize):
+    """preprocess=anyloc is AnyLoc's evaluation of these baselines: its loaders normalise, then resize the
+    tensor bilinearly without antialiasing (torchvision 0.14); the default stays each authors' own."""
+    import torch.nn.functional as F
+
+    path = tmp_path / f"{name}.pth"
+    torch.save(official_checkpoint(name, variant), path)
+    extra = {"backbone": "ResNet18", "dim": 512, "resize": resize} if name == "cosplace" else {}
+    method = create_method(name, weights=str(path), device="cpu", preprocess="anyloc", **extra)
+    rgb = torch.from_numpy(np.asarray(Image.open(images[2]).convert("RGB"))).permute(2, 0, 1).float() / 255
+    mean, std = torch.tensor([0.485, 0.456, 0.406]).view(3, 1, 1), torch.tensor([0.229, 0.224, 0.225]).view(3, 1, 1)
+    wanted = F.interpolate(((rgb - mean) / std)[None], size=resize, mode="bilinear", align_corners=False,
+                           antialias=False)[0]
+    torch.testing.assert_close(method.preprocess(images[2]), wanted, atol=1e-5, rtol=0)
+    authors = create_method(name, weights=str(path), device="cpu", **extra)
+    assert authors.fingerprint()["preprocess"]["normalise_first"] is False
+    assert method.fingerprint()["preprocess"]["antialias"] is False
+    with pytest.raises(VPRBenchError, match="unknown preprocess 'vprbench'; valid: authors, anyloc"):
+        create_method(name, weights=str(path), device="cpu", preprocess="vprbench", **extra)
+
+
 def test_cosplace_other_release_from_minus_o_strings(tmp_path, images, official_checkpoint):
     state = official_checkpoint("cosplace", "ResNet18_512")
     state["aggregation.3.weight"] = state["aggregation.3.weight"][:128]

@@ -37,6 +37,39 @@ def test_dino_vlad_rows_of_tables_2_and_3_use_the_domain_vocabularies(tmp_path):
     assert {c.spec.options["vocabulary"] for tc in vi.values() for c in tc.cells} == {"map"}
 
 
+def test_baseline_cells_see_anylocs_per_dataset_resize(tmp_path):
+    """The authors' CLIP and CosPlace scripts read images through their dataset loaders, which resize
+    Baidu Mall, 17 Places, Pitts-30k and St Lucia to 480x640 and Mid-Atlantic Ridge to 405x720 (on the
+    normalised tensor); before, every CLIP-CLS and CosPlace cell ran on the images as stored, and MixVPR
+    resized with PIL bicubic (its authors') instead of AnyLoc's bilinear tensor resize."""
+    from vprbench.features.resize import dataset_resize
+
+    seen = {}
+    for table in ("2", "3"):
+        _, cells = _cells(table, "CLIP-CLS", tmp_path)
+        for column, tc in cells.items():
+            (cell,) = tc.cells
+            assert cell.spec.dataset.name == column
+            seen[column] = cell.spec.options.get("resize")
+            assert seen[column] == (list(dataset_resize(column)) if dataset_resize(column) else None), column
+            assert cell.spec.options.get("preprocess", "anyloc") == "anyloc"
+    assert seen["baidu-mall"] == [480, 640] and seen["mid-atlantic-ridge"] == [405, 720] and seen["oxford"] is None
+    # CosPlace: through the same loaders (CosPlace/eval.py), resized on the normalised tensor; MixVPR:
+    # its loaders' own 320x320 tensor resize (MixVPR/mixer_top_k_vpr.py), no dataset size
+    for table in ("2", "3"):
+        _, cosplace = _cells(table, "CosPlace", tmp_path)
+        for column, tc in cosplace.items():
+            (cell,) = tc.cells
+            assert cell.spec.options.get("resize") == (list(dataset_resize(column)) if dataset_resize(column) else None)
+            assert cell.spec.options["preprocess"] == "anyloc"
+        _, mixvpr = _cells(table, "MixVPR", tmp_path)
+        assert {(c.spec.options["preprocess"], c.spec.options.get("resize")) for tc in mixvpr.values()
+                for c in tc.cells} == {("anyloc", None)}
+    # the other rows keep their own preprocessing (the AnyLoc presets resize per dataset themselves)
+    _, gem = _cells("2", "AnyLoc-GeM-DINOv2", tmp_path)
+    assert "resize" not in gem["baidu-mall"].cells[0].spec.options
+
+
 def test_a_dino_domain_cell_names_the_vocabulary_it_needs(tmp_path):
     _, cells = _cells("3", "AnyLoc-VLAD-DINO", tmp_path)
     nardo = cells["nardo-air"].cells[0]
@@ -177,6 +210,8 @@ def _edited(monkeypatch, edit):
     (lambda t: t["2"]["rows"][0].pop("row"), "rows must be a list of tables, each with its row label"),
     (lambda t: t["5"]["rows"][0]["cells"]["map-specific"].pop("dataset"),
      "row 'baidu-mall->17places': cell 'map-specific' needs its dataset"),
+    (lambda t: t["2"]["rows"][3].update(dataset_resize="yes"),
+     "row 'CLIP-CLS': dataset_resize must be true or false, and not given with a resize option"),
 ])
 def test_an_inconsistent_plan_is_refused_naming_what(monkeypatch, tmp_path, capsys, edit, wanted):
     _edited(monkeypatch, edit)

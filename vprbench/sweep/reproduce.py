@@ -80,6 +80,10 @@ def plan_problems(spec: dict, name: str = "") -> list[str]:
                 used.setdefault(column, [where["dataset"]])
         if not row.get("cells") and not columns:
             problems.append(f"row {row['row']!r} has no columns (the table's columns, or cells of its own)")
+        per_dataset = row.get("dataset_resize", False)
+        if not isinstance(per_dataset, bool) or (per_dataset and "resize" in row.get("options", {})):
+            problems.append(f"row {row['row']!r}: dataset_resize must be true or false, and not given with a resize "
+                            "option")
     domains = {domain: {d for d, _ in members} for domain, members in vocabulary_policies()["domains"].items()}
     for column, datasets in columns.items():
         if column in dataset_manifests() and datasets != [column]:
@@ -135,13 +139,27 @@ def table_cells(paper: str, table: str, ks=(1, 5), *, settings: dict | None = No
                 continue
             options = {**row.get("options", {}), **where.get("options", {})}
             datasets = where.get("datasets") or [where["dataset"]]
-            plan = build_plan({"methods": [{"name": row["method"], "options": options}], "datasets": datasets, "k": list(ks)},
-                              f"{paper} table {table}", overrides={"options": dict(settings or {})}, data_dir=data_dir,
-                              cache_dir=cache_dir)
-            cells = [replace(c, label=row["row"]) for c in plan.cells]
+            cells = []
+            for group, resize in _resize_groups(row, datasets):
+                given = {**options, **({"resize": list(resize)} if resize else {})}
+                plan = build_plan({"methods": [{"name": row["method"], "options": given}], "datasets": group,
+                                   "k": list(ks)}, f"{paper} table {table}", overrides={"options": dict(settings or {})},
+                                  data_dir=data_dir, cache_dir=cache_dir)
+                cells += [replace(c, label=row["row"]) for c in plan.cells]
             reason = next((r for r in map(cannot_run, cells) if r), "")
             out.append(TableCell(row["row"], column, [] if reason else cells, reason))
     return spec, out
+
+
+def _resize_groups(row: dict, datasets: list[str]) -> list[tuple[list[str], tuple[int, int] | None]]:
+    """(datasets, resize) runs of a cell: all at once, or, for a row with `dataset_resize = true` (a
+    method the authors ran through their dataset loaders, which resize every image), each dataset at
+    AnyLoc's size for it (vprbench.features.resize; None = as stored)."""
+    if not row.get("dataset_resize"):
+        return [(datasets, None)]
+    from ..features.resize import dataset_resize
+
+    return [([name], dataset_resize(name)) for name in datasets]
 
 
 def cannot_run(cell: Cell) -> str:
