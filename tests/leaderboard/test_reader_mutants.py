@@ -190,10 +190,11 @@ def test_a_variant_protocols_cell_is_never_set_against_the_papers_number(make_re
     """The paper reports only the default protocol: a variant's cell gets no mark nor delta against it."""
     from vprbench.leaderboard.tables import comparisons
 
+    paper = {"preprocess": "anyloc"}  # as the paper's plan runs CosPlace (VP-Air at its stored size)
     variant = make_record("cosplace", "vp-air", n_database=2706, n_queries=2706, protocol="no-distractors", seed=2,
-                          fingerprint="fp-vp-air-2706")
+                          fingerprint="fp-vp-air-2706", options=paper)
     assert comparisons(build_board([variant])) == []
-    default = make_record("cosplace", "vp-air", n_database=12706, n_queries=2706, seed=1)
+    default = make_record("cosplace", "vp-air", n_database=12706, n_queries=2706, seed=1, options=paper)
     found = comparisons(build_board([default, variant]))
     assert [(c["dataset"], c["metric"], c["reported"], c["run_id"]) for c in found] == [
         ("vp-air", "R@1", 8.1, default["run_id"]), ("vp-air", "R@5", 14.2, default["run_id"])]
