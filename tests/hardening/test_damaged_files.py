@@ -6,6 +6,7 @@ with an exception (or a crash) that names nothing."""
 from __future__ import annotations
 
 import json
+import re
 import os
 import shutil
 import signal
@@ -161,3 +162,48 @@ def test_the_mat_readers_child_imports_nothing_from_the_working_folder(tmp_path,
     dataset = load_dataset("oxford", tmp_path / "data")
     assert (len(dataset.database), len(dataset.queries)) == (1, 1)
     assert not (tmp_path / "ran").exists(), "code in the working folder ran in the .mat reader's process"
+
+
+# ---------------------------------------------------------------- descriptor store layout
+def _relaid(f, **dataset) -> None:
+    """Replace the store's descriptors by `dataset`, each row's checksum recomputed to match."""
+    import zlib
+
+    del f["descriptors"]
+    f.create_dataset("descriptors", **dataset)
+    if "data" in dataset:
+        rows = np.ascontiguousarray(dataset["data"])
+        del f["checksums"]
+        f.create_dataset("checksums", data=np.array([zlib.crc32(row) for row in rows], dtype=np.uint32))
+
+
+LAYOUTS = {
+    # a header claiming 2**40 columns (chunked, nothing allocated): read as a 4 TiB row
+    "huge-width": lambda f, n, rows: _relaid(f, shape=(n, 2**40), dtype="f4", chunks=(1, 1024)),
+    # text where rows belong: HDF5 cannot convert it, and its error names no file
+    "text": lambda f, n, rows: _relaid(f, data=np.array([b"x"] * n, dtype="S1").reshape(n, 1)),
+    # no column at all: the run blamed the method for describing in 0 dimensions
+    "no-columns": lambda f, n, rows: _relaid(f, data=np.zeros((n, 0), np.float32)),
+    # rows read from another file on the machine
+    "external": lambda f, n, rows: _relaid(f, shape=rows.shape, dtype="f4", external=[("/etc/hostname", 0, 2**20)]),
+}
+
+
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_a_store_not_laid_out_as_vprbench_writes_it_is_recomputed(layout, corridor_copy, cli):
+    """The store's header is trusted for no width, type or place vprbench never writes: such a
+    store is discarded (named) and recomputed, not read as a huge row, text or another file."""
+    import h5py
+
+    command = ["evaluate", "--method", "hog", "--resize", 64, 64, "--dataset", "corridor", "--data-dir", corridor_copy.parent]
+    assert cli(*command)[0] == 0
+    first = read_results()[0]["recall"]
+    shutil.rmtree(results_dir())
+    store = next(cache_root().rglob("database.h5"))
+    with h5py.File(store, "r+") as f:
+        rows = f["descriptors"][...]
+        LAYOUTS[layout](f, len(rows), rows)
+    with pytest.warns(UserWarning, match=rf"Discarding {re.escape(str(store))}: its descriptors .*; it is recomputed"):
+        code, _, err = cli(*command)
+    assert code == 0 and "Traceback" not in err, err
+    assert read_results()[0]["recall"] == first

@@ -192,7 +192,11 @@ def inspect_rows_file(path: Path, identity: RowsIdentity) -> Inspection:
             descriptors = f["descriptors"]
             if (descriptors.ndim != 2 or descriptors.shape[0] != n or len(f["names"]) != n or f["done"].shape != (n,)
                     or f["checksums"].shape != (n,)):
-                return Inspection("foreign", f"it holds {descriptors.shape[0]} rows and {len(f['names'])} names, expected {n}")
+                return Inspection("foreign", f"it holds descriptors of shape {descriptors.shape} and {len(f['names'])} "
+                                             f"names, expected {n} rows of each")
+            misfit = _layout_misfit(descriptors, identity.dtype, path.stat().st_size)
+            if misfit:
+                return Inspection("torn", misfit)
             names = f["names"].asstr()[...].tolist()
             if names != identity.names:
                 first = next(i for i, (a, b) in enumerate(zip(names, identity.names)) if a != b)
@@ -208,6 +212,27 @@ def inspect_rows_file(path: Path, identity: RowsIdentity) -> Inspection:
         if isinstance(error, PermissionError):
             raise cache_error(error, path) from None
         return Inspection("torn", f"it cannot be read ({error})")
+
+
+def _layout_misfit(descriptors: h5py.Dataset, dtype: str, file_size: int) -> str:
+    """Why `descriptors` is not laid out as `create_rows_file` writes it (one contiguous block of
+    little-endian `dtype` with at least one column, inside the file), or "": its header is
+    trusted for no size, type or place of another kind (a huge width, text, an external file)."""
+    rows, dim = descriptors.shape
+    expected = np.dtype(dtype).newbyteorder("<")
+    if descriptors.dtype != expected:
+        return f"its descriptors are stored as {descriptors.dtype}, not {expected}"
+    if dim < 1 or descriptors.chunks is not None or not stored_inside(descriptors):
+        return f"its descriptors ({rows} x {dim}) are not one block of rows inside the file"
+    if descriptors.id.get_storage_size() != rows * dim * expected.itemsize or rows * dim * expected.itemsize > file_size:
+        return f"its descriptors ({rows} x {dim}) do not fit in its {file_size:,} bytes"
+    return ""
+
+
+def stored_inside(data: h5py.Dataset) -> bool:
+    """Whether the dataset's values lie in its own file: not in an external raw file or another
+    HDF5 file (virtual), whose bytes are not those a file's checksum or sha256 covers."""
+    return not data.is_virtual and data.id.get_create_plist().get_external_count() == 0
 
 
 def _plain(value):
