@@ -33,10 +33,11 @@ OPTIONAL_FIELDS = (*UNIT_FIELDS, "all_zero")
 # ---------------------------------------------------------------- the typed record
 # Numbers the leaderboard shows and computes with: strict, so a string, a bool or a list in a
 # record is refused at read (its file named) instead of failing a publish of every record.
-#: a count or a size: a whole number >= 0
-Count = Annotated[int, Field(strict=True, ge=0)]
-#: a measured amount (seconds, images per second, bytes per image): finite, >= 0; an int is one too
-Amount = Annotated[float, Field(strict=True, ge=0, allow_inf_nan=False)]
+#: a count or a size: a whole number >= 0 that fits an int64 (as arrays and floats compute with it)
+Count = Annotated[int, Field(strict=True, ge=0, le=2**63 - 1)]
+#: a measured amount (seconds, images per second, bytes per image): finite, >= 0, at most 1e12 (no run
+#: measures more; a figure's log axis cannot span to near the float maximum); an int is one too
+Amount = Annotated[float, Field(strict=True, ge=0, le=1e12, allow_inf_nan=False)]
 Fraction = Annotated[float, Field(strict=True, ge=0, le=1, allow_inf_nan=False)]
 Percent = Annotated[float, Field(strict=True, ge=0, le=100, allow_inf_nan=False)]
 
