@@ -80,6 +80,39 @@ def test_a_file_that_does_not_fit_the_run_is_refused(shared_data, exported, tmp_
         evaluate(spec, dataclasses.replace(settings, candidates=edited(path, tmp_path, **attrs)))
 
 
+def _replaced(name, **dataset):
+    def edit(f):
+        del f[name]
+        f.create_dataset(name, **dataset)
+    return edit
+
+
+#: arrays of a hand-made file, each refused from its header before it is read; before: a traceback
+#: (text scores, a group), an "out of memory, lower --batch-size" (a header claiming 2**40 columns),
+#: complex scores cut to their real part, scores read from another file on the machine
+ARRAYS = {
+    "text-scores": _replaced("scores", data=np.full((111, 30), b"x")),
+    "complex-scores": _replaced("scores", data=np.ones((111, 30), np.complex64)),
+    "group-indices": lambda f: (f.__delitem__("indices"), f.create_group("indices")),
+    "huge-indices": _replaced("indices", shape=(111, 2**40), dtype="i8", chunks=(1, 1024)),
+    "huge-all-zero": _replaced("all_zero", shape=(2**40,), dtype="u1", chunks=(1024,)),
+    "external-scores": _replaced("scores", shape=(111, 30), dtype="f4", external=[("/etc/hostname", 0, 2**20)]),
+}
+
+
+@pytest.mark.parametrize("edit", ARRAYS)
+def test_arrays_a_file_cannot_hold_are_refused_before_they_are_read(shared_data, exported, tmp_path, edit):
+    path, settings = exported
+    copy = edited(path, tmp_path)
+    with h5py.File(copy, "a") as f:
+        ARRAYS[edit](f)
+    spec = resolve_spec("hog", "corridor", stages=RERANK, ks=(1, 5), data_dir=shared_data)
+    name = edit.split("-", 1)[1].replace("-", "_")
+    with pytest.raises(VPRBenchError, match=rf"Candidates file .*: its {name} holds .*, not at most [\d,]+ real "
+                                            "numbers stored in the file; export it again"):
+        evaluate(spec, dataclasses.replace(settings, candidates=copy))
+
+
 def test_a_file_from_another_copy_of_the_dataset_is_refused(shared_data, exported, tmp_path):
     """Same name and protocol, two reference images swapped: the file's rows index the other copy's images."""
     _, settings = exported

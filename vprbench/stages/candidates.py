@@ -87,9 +87,9 @@ def read_candidates(path, spec, queries: int, database: int, depth: int, images:
             if attrs.get("version", 0) > VERSION:
                 raise VPRBenchError(f"Candidates file {path} is from a newer vprbench (version {attrs['version']}); "
                                     "upgrade vprbench.")
-            indices, scores = f["indices"][...], f["scores"][...]
-            flags = f["all_zero"] if "all_zero" in f else None
-            flags = flags[...] if isinstance(flags, h5py.Dataset) else flags  # a group: refused below
+            indices = _numbers(f, "indices", path, "iub", queries * database)
+            scores = _numbers(f, "scores", path, "iuf", queries * database)
+            flags = _numbers(f, "all_zero", path, "iub", queries) if "all_zero" in f else None
     except FileNotFoundError:
         raise VPRBenchError(f"Candidates file not found: {path}") from None
     except (OSError, KeyError) as error:
@@ -138,6 +138,22 @@ def read_candidates(path, spec, queries: int, database: int, depth: int, images:
     found = SearchResult(scores[:, :depth].astype(np.float32), indices[:, :depth].astype(np.int64), info,
                          _all_zero(path, flags, attrs.get("all_zero_database"), queries, database))
     return {"found": found, "file": str(path.resolve()), "sha256": file_sha256(path), "k": int(indices.shape[1])}
+
+
+def _numbers(f: h5py.File, name: str, path: Path, kinds: str, most: int) -> np.ndarray:
+    """Dataset `name` of the file, read only after its header is checked: real numbers of `kinds`
+    (numpy kind letters), stored in this file, at most `most` of them (the run's queries x database
+    images bound every array the export writes: a header claiming more would be read whole first)."""
+    from ..store.rows_file import stored_inside
+
+    data = f.get(name)
+    if not isinstance(data, h5py.Dataset) or data.dtype.kind not in kinds or not stored_inside(data) \
+            or data.size > most:
+        held = (f"{data.dtype} {data.shape}" + ("" if stored_inside(data) else " stored in another file")
+                if isinstance(data, h5py.Dataset) else "no dataset" if data is None else f"a {type(data).__name__}")
+        raise VPRBenchError(f"Candidates file {path}: its {name} holds {shortened(held)}, not at most {most:,} real "
+                            "numbers stored in the file; export it again.")
+    return data[...]
 
 
 def _all_zero(path: Path, flags, count, queries: int, database: int):
