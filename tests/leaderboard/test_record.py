@@ -183,6 +183,36 @@ def test_damaged_per_query_file_is_named_and_only_statistics_are_lost(make_recor
     assert record["recall"]["1"] >= 0
 
 
+def _huge_npz() -> bytes:
+    """An .npz of a few bytes whose top-K array's header claims 2**40 x 20 int32 (80 TiB)."""
+    import io
+    import zipfile
+
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "<i4", "fortran_order": False, "shape": (2**40, 20)})
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w") as bundle:
+        bundle.writestr("database_indices.npy", header.getvalue() + b"\0" * 80)
+    return out.getvalue()
+
+
+@pytest.mark.parametrize("content", [b"PK\x03\x04 not really", _huge_npz()], ids=["not-a-zip", "huge-header"])
+def test_a_per_query_file_its_record_vouches_for_is_still_read_as_untrusted(make_record, content):
+    """Record and file written together (a copied cache): the sha256 matches, yet the file is no
+    .npz (before: zipfile's traceback) or claims an 80 TiB array (before: an 'out of memory, lower
+    --batch-size' ending the whole leaderboard). Named, its statistics skipped, the board kept."""
+    import hashlib
+
+    path = save_result(make_record("hog"))
+    path.with_suffix(".npz").write_bytes(content)
+    data = json.loads(path.read_text())
+    data["per_query"]["sha256"] = hashlib.sha256(content).hexdigest()
+    path.write_text(json.dumps(data))
+    [record] = read_results()
+    with pytest.warns(UserWarning, match=r"Per-query data .*\.npz of run .* is unreadable"):
+        assert per_query(record) is None
+
+
 def test_a_results_folder_of_another_layout_and_unreadable_records_fail_the_command(make_record, capsys):
     from vprbench.cli.main import main
 

@@ -18,6 +18,7 @@ import json
 import os
 import re
 import warnings
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -322,7 +323,10 @@ def per_query(record: dict) -> dict[str, np.ndarray] | None:
             arrays = {field: found[field] for field in PER_QUERY_FIELDS}
             arrays.update({field: found[field] for field in OPTIONAL_FIELDS if field in found.files})
         _in_range(record, arrays)
-    except (OSError, ValueError, KeyError, AttributeError, TypeError) as error:
+    # the sha256 proves the file is the one its record names, not that it is an .npz: a record and
+    # file made together may hold any bytes, or an array header claiming terabytes
+    except (OSError, ValueError, KeyError, AttributeError, TypeError, EOFError, zipfile.BadZipFile,
+            MemoryError) as error:
         warnings.warn(f"Per-query data {path} of run {record.get('run_id')} is unreadable ({error}); "
                       "its statistics and figures are skipped.", stacklevel=2)
         return None
