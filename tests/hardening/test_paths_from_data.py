@@ -102,6 +102,21 @@ def test_manifest_list_files_outside_the_folder_are_refused(tmp_path, make_proto
     assert len(apply_protocol(dataset, inside).queries) == 1  # the same list inside the folder is read
 
 
+@pytest.mark.parametrize("role", ["names", "index"])
+def test_a_query_subset_npy_claiming_more_than_it_holds_is_refused_unread(role, tmp_path, make_protocol_dataset):
+    """Was: the 64 TiB its header claims allocated first (a MemoryError: "out of memory, lower --batch-size")."""
+    dataset, _ = make_protocol_dataset
+    (dataset.root / "names.txt").write_text("q0.jpg\n")
+    huge = dataset.root / "huge.npy"
+    with open(huge, "wb") as handle:
+        np.lib.format.write_array_header_1_0(handle, {"descr": "<i8", "fortran_order": False, "shape": (2**43,)})
+        handle.write(bytes(64))
+    spec = {"names": "huge.npy"} if role == "names" else {"names": "names.txt", "index": "huge.npy"}
+    protocol = Protocol(dataset="mine", name="subset", select_queries=spec, base={"unit": "metres"})
+    with pytest.raises(VPRBenchError, match=rf"Cannot read query subset \w+ {huge}: it is truncated"):
+        apply_protocol(dataset, protocol)
+
+
 @pytest.fixture
 def make_protocol_dataset(tmp_path):
     root = tmp_path / "mine"

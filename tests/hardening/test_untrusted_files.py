@@ -6,7 +6,7 @@ Files read, and how each is protected (the audit):
 - ground truth and poses .npy (VPR-Bench rows, positive lists, pose tables): datasets/layouts/npy.py,
   an unpickler that knows only numpy's array/dtype/scalar reconstruction;
 - vocabularies (.pt, the authors' c_centers.pt) and weights: torch.load(weights_only=True) in
-  vprbench/weights.py; vocabulary .npy: np.load(allow_pickle=False);
+  vprbench/weights.py; vocabulary .npy: the same npy.py reader;
 - .mat (scipy.io.loadmat), .camera (text), CSV (pandas), TOML (tomllib), datasets.json (json),
   HDF5 stores (h5py): parsers that build plain data, never objects; images: Pillow restricted
   to the image formats vprbench lists (no PostScript via Ghostscript).

@@ -52,6 +52,19 @@ def test_centres_that_are_no_real_numbers_are_refused(name, tmp_path, cli):
     assert err.count("\n") == 1 and "Traceback" not in err and not (tmp_path / "cache" / "vocabularies").exists()
 
 
+def test_an_npy_whose_header_claims_more_than_the_file_holds_is_refused_unread(tmp_path, cli):
+    """Was: the 64 TiB its header claims allocated first: "out of memory, lower --batch-size"."""
+    import numpy as np
+
+    path = tmp_path / "centres.npy"
+    with open(path, "wb") as handle:
+        np.lib.format.write_array_header_1_0(handle, {"descr": "<f4", "fortran_order": False, "shape": (2**30, 2**14)})
+        handle.write(bytes(64))
+    code, out, err = cli("vocabulary", "import", path, "--source", "mine", "--cache-dir", tmp_path / "cache")
+    assert (code, out) == (1, "") and err.startswith(f"error: Cannot read vocabulary file {path}: it is truncated")
+    assert err.count("\n") == 1 and "Traceback" not in err and not (tmp_path / "cache" / "vocabularies").exists()
+
+
 def data_offset(path: Path, member_suffix: str) -> int:
     """Where the bytes of the zip member ending in `member_suffix` start in the file."""
     with zipfile.ZipFile(path) as archive:

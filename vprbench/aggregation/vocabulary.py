@@ -219,10 +219,11 @@ def load_vocabulary(path: str | Path) -> Vocabulary:
         raise VPRBenchError(f"Vocabulary file {path} does not exist: check the path (a .pt or .npy file of centres, "
                             f"or a folder holding {VOCABULARY_FILE} or {RELEASED_FILE}).")
     if path.suffix == ".npy":
-        try:
-            data = np.load(path, allow_pickle=False)  # a pickled array is refused, never run
-        except (ValueError, EOFError) as error:
-            raise VPRBenchError(f"Cannot read vocabulary file {path}: {error}. Expected a (clusters, dim) float array.") from None
+        from ..datasets.layouts.npy import read_npy
+
+        # the one .npy reader of files from elsewhere: no pickle run, no size its header claims allocated
+        # beyond the file's bytes
+        data = read_npy(path, "vocabulary file", "a (clusters, dim) float array")
     else:
         data = read_torch_file(path, "vocabulary file", remedy=FIT_AGAIN)
     meta, written = {}, None

@@ -25,6 +25,7 @@ import numpy as np
 
 from ..errors import VPRBenchError, closest_names
 from .layouts import climbs_out
+from .layouts.npy import read_npy
 from .model import Dataset, GroundTruth
 
 DEFAULT = "default"
@@ -237,7 +238,7 @@ def _swapped(gt: GroundTruth, n_database: int) -> GroundTruth:
 
 def _read_names(path: Path) -> list[str]:
     if path.suffix == ".npy":
-        return [str(v) for v in np.load(path, allow_pickle=False).reshape(-1)]
+        return [str(v) for v in read_npy(path, "query subset file", "image names").reshape(-1)]
     return [line.strip() for line in path.read_text().splitlines() if line.strip()]
 
 
@@ -260,7 +261,7 @@ def _query_subset(dataset: Dataset, queries: list[Path], protocol: Protocol) -> 
     try:
         names = _read_names(files[0])
         if "index" in spec:
-            index = np.load(files[1], allow_pickle=False).astype(np.int64).reshape(-1)
+            index = read_npy(files[1], "query subset index", "query indices").astype(np.int64).reshape(-1)
             if len(index) and not (0 <= index.min() and index.max() < len(names)):  # a negative index would wrap
                 raise IndexError(f"its indices must lie in 0..{len(names) - 1}")
             names = [names[i] for i in index]
