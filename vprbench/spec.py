@@ -316,6 +316,8 @@ def resolve_dataset(dataset, protocol: str | None = None, data_dir=None, cache_d
     read (positions, radius, image identities) to name its protocol."""
     from .datasets import Dataset, dataset_manifest, find_protocol, is_path, load_dataset
 
+    if isinstance(dataset, DatasetSpec):  # resolved already (a plan's folder, read once for all its cells)
+        return dataset
     if isinstance(dataset, Dataset):
         from .evaluation.identity import protocol_of
 

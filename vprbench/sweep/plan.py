@@ -132,17 +132,18 @@ class PlanEntries:
         """The cells, each spec resolved; raises one error listing every problem."""
         from ..datasets import is_path
 
-        cells, problems, unreadable = [], [], set()
+        cells, problems, folders = [], [], {}
         for d, dataset, protocol in self.datasets:
-            if is_path(dataset):  # a folder's fault is its entry's, told once, not at every method's line
+            if is_path(dataset):  # read once for every method; a fault is its entry's, told once at its line
                 try:
-                    resolve_dataset(dataset, protocol, data_dir, cache_dir)
+                    folders[d, protocol] = resolve_dataset(dataset, protocol, data_dir, cache_dir)
                 except VPRBenchError as error:
                     problems.append(f"{self.where('datasets', d, 'name')}: {error}")
-                    unreadable.add((d, protocol))
+                    folders[d, protocol] = None
         for m, method, options, label, stages in self.methods:
             for d, dataset, protocol in self.datasets:
-                if (d, protocol) in unreadable:
+                dataset = folders.get((d, protocol), dataset)
+                if dataset is None:
                     continue
                 given, run_options = split_run_settings(options)
                 try:
