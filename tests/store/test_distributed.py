@@ -112,3 +112,25 @@ def test_a_shard_from_another_run_is_refused(shared_data, tmp_path):
         evaluate(method, dataset, cache_dir=tmp_path)
     assert folder.shard_path("database", 0, 1).exists()  # not ours to delete
     assert not folder.store_path("database").exists()
+
+
+def test_describe_under_torchrun_shards_the_images_and_writes_what_one_process_writes(shared_data, tmp_path):
+    images = sorted(str(p) for p in (shared_data / "corridor" / "query").iterdir())[:30]
+    fit_on = str(shared_data / "corridor" / "ref")
+
+    def describe(cache, out, *launcher, env=None):
+        command = [*launcher, str(DRIVER), "describe", "--method", "fitted-test", "--fit-on", fit_on,
+                   "--cache-dir", str(cache), "--out", str(out), *images]
+        return subprocess.run(command, capture_output=True, text=True, cwd=DRIVER.parent, timeout=300,
+                              env={**os.environ, "OMP_NUM_THREADS": "1", **(env or {})})
+
+    alone = describe(tmp_path / "one", tmp_path / "one.npy", sys.executable)
+    assert alone.returncode == 0, alone.stderr[-3000:]
+    sharded = describe(tmp_path / "two", tmp_path / "two.npy", sys.executable, "-m", "torch.distributed.run",
+                       "--standalone", "--nproc-per-node=2", env={"LOG": str(tmp_path / "log")})
+    assert sharded.returncode == 0, sharded.stderr[-3000:]
+    assert np.array_equal(np.load(tmp_path / "two.npy"), np.load(tmp_path / "one.npy"))
+    assert sharded.stderr.count("Wrote 30 descriptors") == 1  # rank 0 writes --out
+    described = {rank: len((tmp_path / f"log.rank{rank}").read_text().split()) for rank in (0, 1)}
+    # each rank described its share of the fit-on images (111) and of the queries (30), once
+    assert described == {0: 55 + 15, 1: 56 + 15}

@@ -179,6 +179,7 @@ def run_describe(args) -> int:
     (what the method fits on, and what PCA-whitening is fitted on), the images the queries."""
     import numpy as np
 
+    from ..distributed import Ranks
     from ..evaluation.extract import describe_splits
     from ..evaluation.pipeline import create_run_method, loader_workers
     from ..evaluation.postprocess import postprocessed
@@ -228,11 +229,17 @@ def run_describe(args) -> int:
         use_dataset(method, args.dataset)
         # keyed as evaluate keys them (its spec's options): an option naming this dataset is as unset
         keyed = spec_options(method.name, given_options(method.options, method.name, args.dataset))
-    with progress(args) as shown:
-        described = describe_splits(method, splits, root=root, label=label,
-                                    cache_dir=settings.cache_dir, progress=shown, store_dtype=args.store_dtype,
-                                    workers=loader_workers(settings, method), lock_timeout=settings.lock_timeout,
-                                    settings=keyed)
+    ranks = Ranks.from_environment(settings.device)
+    try:
+        with progress(args, ranks.rank == 0) as shown:
+            described = describe_splits(method, splits, root=root, label=label,
+                                        cache_dir=settings.cache_dir, progress=shown, store_dtype=args.store_dtype,
+                                        workers=loader_workers(settings, method), lock_timeout=settings.lock_timeout,
+                                        settings=keyed, ranks=ranks)
+    finally:
+        ranks.close()
+    if described.stores is None:  # another rank than 0 under torchrun: its share is written, rank 0 writes --out
+        return 0
     queries = described.stores["queries"]
     database = described.stores.get("database", queries)
     _, queries, _ = postprocessed(method, database, queries, settings.memory_budget or DEFAULT_MEMORY_BUDGET)
