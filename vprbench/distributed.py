@@ -42,7 +42,9 @@ class Ranks:
         rank, local_rank = _whole_from_environment("RANK"), _whole_from_environment("LOCAL_RANK", "0")
         if rank >= world:
             raise VPRBenchError(f"$RANK is {rank} but $WORLD_SIZE is {world}: start the ranks with torchrun, which sets both.")
-        backend = "nccl" if str(device).startswith("cuda") else "gloo"
+        from .loader import resolve_device
+
+        backend = "nccl" if resolve_device(device).startswith("cuda") else "gloo"  # "auto" finds a GPU as the method will
         if not dist.is_initialized():
             kwargs = {}
             if backend == "nccl":
@@ -54,10 +56,6 @@ class Ranks:
                 raise VPRBenchError(f"torchrun rank {rank} could not join the other ranks ({_first_line(error)}). "
                                     "Start every rank with torchrun and the same --rdzv-endpoint.") from None
         return cls(rank, world, local_rank, backend)
-
-    def device(self, device: str) -> str:
-        """Each rank on its own GPU: "cuda" becomes cuda:<local rank>."""
-        return f"cuda:{self.local_rank}" if self.distributed and device == "cuda" else device
 
     def all_gather(self, value) -> list:
         if not self.distributed:

@@ -123,6 +123,23 @@ def test_a_broken_torchrun_environment_is_one_line(monkeypatch, environment, exp
     assert expected in str(caught.value) and "\n" not in str(caught.value)
 
 
+@pytest.mark.parametrize("device, backend, gpu", [("auto", "nccl", 1), ("cuda", "nccl", 1), ("cpu", "gloo", None)])
+def test_ranks_on_a_gpu_machine_talk_over_nccl_each_on_its_own_gpu(monkeypatch, device, backend, gpu):
+    """--device auto (the default) finds the GPU for the process group as for the method (was: gloo, every rank on cuda:0)."""
+    import torch
+    import torch.distributed as dist
+
+    for name, value in {"WORLD_SIZE": "2", "RANK": "1", "LOCAL_RANK": "1"}.items():
+        monkeypatch.setenv(name, value)
+    joined, chosen = [], []
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "set_device", chosen.append)
+    monkeypatch.setattr(dist, "is_initialized", lambda: False)
+    monkeypatch.setattr(dist, "init_process_group", lambda backend, **_: joined.append(backend))
+    ranks = Ranks.from_environment(device)
+    assert (ranks.backend, joined, chosen) == (backend, [backend], [gpu] if gpu is not None else [])
+
+
 # ---------------------------------------------------------------- torch.distributed: a rank that dies or stalls
 RANK_SCRIPT = """
 import os, signal, sys, time
