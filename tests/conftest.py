@@ -29,6 +29,15 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+@pytest.fixture(scope="session")
+def shared_reference(shared_data) -> Path:
+    """The AnyLoc paper's facts and tables as data (../shared/reference, beside the real data)."""
+    folder = shared_data.parent / "reference"
+    if not (folder / "anyloc-paper-results.csv").is_file():
+        pytest.skip(f"reference folder {folder} is absent (it sits beside the repo as ../shared/reference)")
+    return folder
+
+
 def pytest_terminal_summary(terminalreporter):
     """In CI, a real-data test that skipped (for any reason: no browser, no mount permission...) is named."""
     if not IN_CI:
