@@ -53,11 +53,13 @@ class RowsIdentity:
         return {"format": FORMAT, "store": self.store, "start": self.start, "stop": self.stop,
                 "total": self.total, "fit_id": self.fit_id, "dtype": self.dtype}
 
-    def write_into(self, f: h5py.File) -> None:
-        """Names and fingerprint as datasets (attributes are capped at 64 KB), the rest as attributes."""
+    def write_into(self, f: h5py.File, dim: int) -> None:
+        """Names and fingerprint as datasets (attributes are capped at 64 KB), the rest as attributes,
+        with the width the method wrote (`dim`): descriptors rewritten later at another width are the
+        file's fault, not the method's."""
         f.create_dataset("names", data=self.names, dtype=h5py.string_dtype("utf-8"))
         f.create_dataset("fingerprint", data=self.fingerprint, dtype=h5py.string_dtype("utf-8"))
-        f.attrs.update(self.attrs())
+        f.attrs.update({**self.attrs(), "dim": int(dim)})
 
 
 @dataclass
@@ -123,7 +125,7 @@ def create_rows_file(path: Path, identity: RowsIdentity, dim: int) -> None:
             f.create_dataset("checksums", shape=(n,), dtype="<u4", dcpl=_early_contiguous(), fillvalue=0)
             f.create_dataset("done", shape=(n,), dtype="uint8", dcpl=_early_contiguous(), fillvalue=0)
             f.create_dataset("complete", shape=(), dtype="uint8", dcpl=_early_contiguous(), fillvalue=0)
-            identity.write_into(f)
+            identity.write_into(f, dim)
 
 
 def reserve(path: Path, shown: Path, identity: RowsIdentity, dim: int) -> None:
@@ -195,6 +197,9 @@ def inspect_rows_file(path: Path, identity: RowsIdentity) -> Inspection:
                 return Inspection("foreign", f"it holds descriptors of shape {descriptors.shape} and {len(f['names'])} "
                                              f"names, expected {n} rows of each")
             misfit = _layout_misfit(descriptors, identity.dtype, path.stat().st_size)
+            written = _plain(attrs.get("dim"))  # None in files written before it was recorded
+            if not misfit and written is not None and written != descriptors.shape[1]:
+                misfit = f"its descriptors have {descriptors.shape[1]} columns, it was written with {written}"
             if misfit:
                 return Inspection("torn", misfit)
             names = f["names"].asstr()[...].tolist()
@@ -333,4 +338,4 @@ def merge_rows_files(parts: list[tuple[Path, RowsIdentity]], path: Path, identit
                         sums[part.start + first:part.start + last] = expected
             out.create_dataset("done", data=np.ones(n, np.uint8), dcpl=_early_contiguous())
             out.create_dataset("complete", data=np.uint8(1), dcpl=_early_contiguous())
-            identity.write_into(out)
+            identity.write_into(out, dim)
