@@ -7,13 +7,16 @@ payload never runs, nothing cached (no descriptor store, result or vocabulary), 
 it is not affected."""
 from __future__ import annotations
 
+import io
 import os
 import pickle
 import warnings
+import zipfile
 
 import numpy as np
 import pytest
 import torch
+from numpy.lib import format as npy_format
 
 from vprbench import VPRBenchError
 from vprbench.aggregation import Vocabulary
@@ -126,18 +129,25 @@ def test_dinov2_weights_and_the_registers_model_are_refused_both_ways(official, 
     assert len(read_results()) == 1
 
 
-@pytest.mark.parametrize("content", [b"", b"garbage, not an archive", "truncated"])
+@pytest.mark.parametrize("content", [b"", b"garbage, not an archive", "truncated", "claims terabytes"])
 def test_npz_weights_that_are_no_archive_are_refused_without_advice_to_unpickle(content, cli, shared_data, tmp_path,
                                                                               monkeypatch):
     spec = tiny("siglip2_b16", monkeypatch)
     path = tmp_path / "siglip2_b16_224.npz"
+    said = "it is not a complete .npz archive"
     if content == "truncated":
         np.savez(path, **{"params/img/embedding/kernel": np.zeros((16, 16, 3, 96), np.float32)})
         content = path.read_bytes()[:-40]
+    if content == "claims terabytes":  # a kernel whose header claims 8 TB, in a file of a few hundred bytes
+        header = io.BytesIO()
+        npy_format.write_array_header_1_0(header, {"descr": "<f8", "fortran_order": False, "shape": (10**12,)})
+        with zipfile.ZipFile(path, "w") as archive:
+            archive.writestr("params/img/embedding/kernel.npy", header.getvalue() + bytes(16))
+        content, said = path.read_bytes(), "its member params/img/embedding/kernel.npy: it is truncated"
     path.write_bytes(content)
     code, _, err = evaluate(cli, shared_data, spec.name, path, "--resize", "32", "32")
-    assert_refused(code, err, f"Cannot read weights file {path}: it is not a complete .npz archive of numeric arrays",
-                   "pass the release file as published")
+    assert_refused(code, err, f"Cannot read weights file {path}: {said}",
+                   "pass the release file as published (download it again), or another")
     assert "allow_pickle" not in err
 
 

@@ -149,9 +149,17 @@ class PCAWhitening:
 
     def load_state(self, state: dict[str, np.ndarray]) -> None:
         projection = np.asarray(state["pca_projection"], dtype=np.float32)
+        mean = np.asarray(state["pca_mean"], dtype=np.float32)
+        if projection.ndim != 2:
+            raise VPRBenchError(f"Saved PCA state has a projection of shape {projection.shape}, expected ({self.dim}, D).")
         if projection.shape[0] != self.dim:
             raise VPRBenchError(f"Saved PCA state has {projection.shape[0]} dims, this PCA {self.dim}.")
-        self.mean, self.projection = np.asarray(state["pca_mean"], dtype=np.float32), projection
+        if mean.shape != projection.shape[1:]:  # a file rewritten by hand would fail deep in transform
+            raise VPRBenchError(f"Saved PCA state has a mean of shape {mean.shape} for a projection of shape "
+                                f"{projection.shape}: one mean per input dimension expected.")
+        if not (np.isfinite(projection).all() and np.isfinite(mean).all()):
+            raise VPRBenchError("Saved PCA state holds NaN or infinite values.")
+        self.mean, self.projection = mean, projection
         self._projection64 = None
 
 

@@ -8,7 +8,6 @@ import hashlib
 import json
 import time
 import warnings
-import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -125,7 +124,7 @@ def fit_postprocessor(postprocessor, database: RowSource, memory_budget: int, st
         unusable = _load_state(postprocessor, path, text)
         if unusable is None:
             return {**info, "state": "loaded"}
-        warnings.warn(f"Refitting: the post-processing state {path} is unusable ({unusable}).", stacklevel=2)
+        warnings.warn(f"Refitting: {unusable}", stacklevel=2)  # the fit below replaces the file
     started = time.perf_counter()
     with in_postprocessor(postprocessor, "fit"):
         postprocessor.fit(database, memory_budget)
@@ -143,20 +142,30 @@ def fit_postprocessor(postprocessor, database: RowSource, memory_budget: int, st
 
 
 def _load_state(postprocessor, path: Path, text: str) -> str | None:
-    """None when `postprocessor` loaded the state saved at `path` under the key `text`, else why that
-    state is unusable (refitted); what else its load_state raises is its one line (`in_postprocessor`)."""
+    """None when `postprocessor` loaded the state saved at `path` under the key `text`, else a line
+    saying why that state is unusable (refitted); what else its load_state raises is its one line
+    (`in_postprocessor`)."""
+    from ..datasets.layouts.npy import read_npz
+
+    unusable = f"the post-processing state {path} is unusable"
     try:
-        with np.load(path, allow_pickle=False) as saved:
-            if str(saved["key"]) != text:
-                return "it was fitted on other rows or settings than these"
-            state = {name: saved[name] for name in saved.files if name != "key"}
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as error:
+        # the one guarded reader: a header claiming terabytes, objects or a torn zip are a line, not a traceback
+        saved = read_npz(path, "post-processing state", "the arrays vprbench saves (it is fitted again and replaced)")
+    except OSError as error:
+        return f"{unusable} ({error})."
+    except VPRBenchError as error:
         return str(error)
+    key = saved.pop("key", None)
+    if key is None or key.shape != () or key.dtype.kind != "U":
+        return f"{unusable} (it holds no key text: it was not saved by vprbench)."
+    if str(key) != text:
+        return f"{unusable} (it was fitted on other rows or settings than these)."
     with in_postprocessor(postprocessor, "load_state"):
         try:
-            postprocessor.load_state(state)
-        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as error:  # a state it refuses, as a damaged file
-            return str(error)
+            postprocessor.load_state(saved)
+        # a state it refuses (PCA's own checks are VPRBenchErrors), as a damaged file
+        except (VPRBenchError, OSError, ValueError, KeyError) as error:
+            return f"{unusable} ({error})."
     return None
 
 

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 import sys
-import zipfile
 from pathlib import Path
 
 import torch
@@ -101,8 +100,8 @@ def _grid_mismatches(state: dict, expected: dict) -> list[str]:
         if key not in state or key not in expected:
             continue
         file, model = tuple(state[key].shape), tuple(expected[key].shape)
-        same = (file[-1] == model[-1] and math.isqrt(file[-2]) == math.isqrt(model[-2])) if key == "pos_embed" \
-            else file == model
+        same = (len(file) >= 2 and file[-1] == model[-1] and math.isqrt(file[-2]) == math.isqrt(model[-2])) \
+            if key == "pos_embed" else file == model
         if not same:
             found.append(f"{key}: file {file} vs model {model}")
     return found
@@ -172,31 +171,31 @@ def read_npz_release(spec: BackboneEntry, path: Path) -> nn.Module:
     by timm's own loader into the architecture. Every parameter starts as NaN, so one the file does
     not fill is named; a patch kernel or position grid of another size is refused (timm would
     resample it)."""
-    import numpy as np
+    from ..datasets.layouts.npy import npz_headers
 
     model = create_model(spec)
     if not hasattr(model, "load_pretrained"):
         raise VPRBenchError(f"{path}: .npz files are read for timm VisionTransformer architectures only; backbone "
                             f"{spec.name} ({spec.timm}) takes a PyTorch or .safetensors file.")
     try:
-        with np.load(path, allow_pickle=False) as arrays:
-            keys = set(arrays.files)
-            prefix = next((p for p in NPZ_PREFIXES if p + "embedding/kernel" in keys), None)
-            if prefix is None:
-                raise _misfit(missing=["embedding/kernel (the patch embedding of a ViT image tower)"])
-            kernel = arrays[prefix + "embedding/kernel"].shape
-            grid = next((arrays[prefix + k].shape for k in ("pos_embedding", "Transformer/posembed_input/pos_embedding")
-                         if prefix + k in keys), None)
+        # every member checked before timm's loader reads them all: a header claiming terabytes, or
+        # Python objects, is refused here unread
+        shapes = {name: shape for name, (shape, _) in npz_headers(
+            path, "weights file", "a complete .npz archive of numeric arrays: pass the release file as published "
+            "(download it again), or another", kinds="iuf").items()}
     except OSError as error:
         raise VPRBenchError(f"Cannot read weights file {path}: {error}.") from None
-    except (ValueError, EOFError, zipfile.BadZipFile):  # numpy's message would advise unpickling the file
-        raise VPRBenchError(f"Cannot read weights file {path}: it is not a complete .npz archive of numeric arrays "
-                            "(empty, damaged, another format, or holding Python objects, which are never loaded); "
-                            "pass the release file as published.") from None
+    prefix = next((p for p in NPZ_PREFIXES if p + "embedding/kernel" in shapes), None)
+    if prefix is None:
+        raise _misfit(missing=["embedding/kernel (the patch embedding of a ViT image tower)"])
+    kernel = shapes[prefix + "embedding/kernel"]
+    grid = next((shapes[prefix + k] for k in ("pos_embedding", "Transformer/posembed_input/pos_embedding")
+                 if prefix + k in shapes), None)
     expected = model.state_dict()
-    found = {"patch_embed.proj.weight": torch.empty(kernel[::-1][:2] + kernel[:2])}
+    # shapes only (meta tensors hold no storage): a file's shapes may multiply to anything
+    found = {"patch_embed.proj.weight": torch.empty(kernel[::-1][:2] + kernel[:2], device="meta")}
     if grid is not None:
-        found["pos_embed"] = torch.empty(grid)
+        found["pos_embed"] = torch.empty(grid, device="meta")
     mismatched = _grid_mismatches(found, expected)
     if mismatched:
         raise _misfit(mismatched=mismatched)

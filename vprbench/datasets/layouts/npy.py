@@ -1,4 +1,4 @@
-"""Reading the authors' .npy files without running code.
+"""Reading the authors' .npy files, and .npz archives from elsewhere, without running code.
 
 VPR-Bench's `ground_truth_new.npy` (rows `[query_index, [positives]]`) and other released
 ground-truth and pose files are numpy object arrays, which numpy stores as a pickle:
@@ -6,13 +6,16 @@ loading them with numpy, pickles allowed, would run whatever a hostile file name
 numeric arrays with numpy (no pickle at all), and object arrays with an unpickler that knows
 only numpy's own array, dtype and scalar reconstruction; it then accepts only what these
 files hold: ints and floats, lists, tuples or arrays of them, and texts (a pose table may
-name its ROS topic); the caller checks the shape it needs.
+name its ROS topic); the caller checks the shape it needs. `read_npz` and `npz_headers` check each
+member of an .npz (weights, a saved post-processing state) the same way; objects are never read there.
 """
 from __future__ import annotations
 
 import math
 import pickle
 import struct
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -77,6 +80,17 @@ def _header(handle) -> tuple[tuple, np.dtype]:
     return tuple(shape), dtype
 
 
+def _sized_header(handle, size: int) -> tuple[tuple, np.dtype]:
+    """The header of the array at the start of `handle` (`size` bytes long), refused when it claims
+    more data than those bytes hold: numpy would allocate what a few-byte header claims."""
+    shape, dtype = _header(handle)
+    if not dtype.hasobject:
+        needed, available = math.prod(shape) * dtype.itemsize, size - handle.tell()
+        if needed > available:
+            raise ValueError(f"it is truncated ({available} of {needed} data bytes)")
+    return shape, dtype
+
+
 def _unpickle_array(handle, shape: tuple) -> np.ndarray:
     array = _ArrayUnpickler(handle, encoding="latin1").load()  # latin1: numpy's advice for Python 2 files
     if not isinstance(array, np.ndarray) or array.shape != shape:
@@ -109,16 +123,54 @@ def read_npy(path: Path, what: str, expected: str) -> np.ndarray:
     path = Path(path)
     with open(path, "rb") as handle:
         try:
-            shape, dtype = _header(handle)
+            shape, dtype = _sized_header(handle, path.stat().st_size)
             if dtype.hasobject:
                 return _unpickle_array(handle, shape)
             if dtype.kind not in "iufUS":  # numbers, or texts (image lists): no pickle involved
                 raise ValueError(f"it holds {dtype} values, not numbers or texts")
-            needed, available = math.prod(shape) * dtype.itemsize, path.stat().st_size - handle.tell()
-            if needed > available:
-                raise ValueError(f"it is truncated ({available} of {needed} data bytes)")
             handle.seek(0)
             return np.load(handle, allow_pickle=False)
         except (pickle.UnpicklingError, ValueError, TypeError, EOFError, AttributeError, IndexError, KeyError,
                 OverflowError, MemoryError, RecursionError, struct.error) as error:
             raise VPRBenchError(f"Cannot read {what} {path}: {error}. Expected {expected}.") from None
+
+
+def npz_headers(path: Path, what: str, expected: str, kinds: str = "iufUS") -> dict[str, tuple[tuple, np.dtype]]:
+    """Each array's (shape, dtype) in an .npz archive, by name, no data read: every member checked
+    as `read_npz` checks it, so a reader of the file after this allocates no more than it holds."""
+    return _npz(path, what, expected, kinds, read=False)
+
+
+def read_npz(path: Path, what: str, expected: str, kinds: str = "iufUS") -> dict[str, np.ndarray]:
+    """The arrays of an .npz archive, by name. A member that is no .npy array, claims more data than
+    it holds, or holds values of a kind not in `kinds` (objects never: numpy stores them as a
+    pickle), and an archive that is no zip or is damaged, are a VPRBenchError naming the file,
+    `what` it is and what was `expected`. OSError (missing file, permissions) is left to the caller."""
+    return _npz(path, what, expected, kinds, read=True)
+
+
+def _npz(path: Path, what: str, expected: str, kinds: str, read: bool) -> dict:
+    path, found, name = Path(path), {}, None
+    try:
+        with zipfile.ZipFile(path) as archive:
+            for info in archive.infolist():
+                name = info.filename
+                if not name.endswith(".npy"):
+                    raise ValueError("it is no .npy array")
+                with archive.open(info) as handle:
+                    shape, dtype = _sized_header(handle, info.file_size)
+                    if dtype.kind not in kinds:
+                        raise ValueError(f"it holds {dtype} values" + (" (Python objects, which are never loaded)"
+                                                                       if dtype.hasobject else ""))
+                    if read:
+                        handle.seek(0)
+                        found[name[:-4]] = npy_format.read_array(handle, allow_pickle=False)
+                    else:
+                        found[name[:-4]] = shape, dtype
+    # a zip's own failures too: a torn or forged archive (BadZipFile, zlib.error), an encrypted or
+    # unknown compression (RuntimeError, NotImplementedError)
+    except (zipfile.BadZipFile, zlib.error, RuntimeError, NotImplementedError, ValueError, TypeError, EOFError,
+            OverflowError, MemoryError, struct.error) as error:
+        reason = f"its member {name}: {error}" if name is not None else f"it is not a complete .npz archive ({error})"
+        raise VPRBenchError(f"Cannot read {what} {path}: {reason}. Expected {expected}.") from None
+    return found
