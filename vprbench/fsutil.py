@@ -11,6 +11,8 @@
 - `file_sha256(path)`: the content hash that identifies images and weight files.
 - `cache_error(error, path)`: an `OSError` (or HDF5's `RuntimeError`) turned into a
   `CacheError` (a `VPRBenchError`) that names the path and says what to do.
+- `warn_once(path, text)`: a file left where it lies (a record in the wrong folder) named once
+  per process, however many look-ups meet it.
 """
 from __future__ import annotations
 
@@ -24,6 +26,7 @@ import socket
 import sys
 import tempfile
 import time
+import warnings
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -179,6 +182,32 @@ def write_once(path: Path, data: bytes | str) -> None:
     if not path.is_file():
         atomic_write(path, data)
     remove_stale(temporaries_of(path))
+
+
+#: files named by `warn_once`, by path, size and modification time
+_SAID: set[tuple] = set()
+
+
+def _stamp(path) -> tuple:
+    try:
+        found = os.stat(path)
+    except OSError:
+        return (os.fspath(path),)
+    return os.fspath(path), found.st_size, found.st_mtime_ns
+
+
+def said_of(path) -> bool:
+    """Whether `warn_once` named the file as it is now."""
+    return _stamp(path) in _SAID
+
+
+def warn_once(path, text: str, stacklevel: int = 2) -> None:
+    """Warn `text` of the file at `path` once per process (a command, a session), however many look-ups
+    meet it: it is said where it is met, not once per look-up. Changed or replaced, it is said again."""
+    stamp = _stamp(path)
+    if stamp not in _SAID:
+        _SAID.add(stamp)
+        warnings.warn(text, stacklevel=stacklevel + 1)
 
 
 # ------------------------------------------------------------------ locks

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import VPRBenchError, os_error_message, require
-from ..fsutil import CacheError, atomic_write, is_temporary, lock, remove_stale, write_once
+from ..fsutil import CacheError, atomic_write, is_temporary, lock, remove_stale, said_of, warn_once, write_once
 from ..paths import cache_root
 from ..text import shortened
 from .record import OPTIONAL_FIELDS, PER_QUERY_FIELDS, validated
@@ -213,10 +213,10 @@ def _in_place(record: dict, spec) -> bool:
     """Whether the record is a run of the row and protocol its folder is named after; one that is not
     (copied or moved there) answers nothing, said in a warning: its cell is evaluated again."""
     theirs, ours = (record["protocol"]["hash"], record["row_key"]), (spec.dataset.protocol_hash, spec.row_key)
-    if theirs != ours:
-        warnings.warn(f"{record.get('_source')} does not count as a result: it lies among the runs of protocol "
-                      f"{ours[0]}, row {ours[1]}, but holds a run of protocol {shortened(theirs[0])}, row "
-                      f"{shortened(theirs[1])} (copied or moved there; nothing was deleted).", stacklevel=3)
+    if theirs != ours:  # once per command, not once per cell of its row
+        warn_once(record["_source"], f"{record['_source']} does not count as a result: it lies among the runs of "
+                  f"protocol {ours[0]}, row {ours[1]}, but holds a run of protocol {shortened(theirs[0])}, row "
+                  f"{shortened(theirs[1])} (copied or moved there; nothing was deleted).", stacklevel=3)
     return theirs == ours
 
 
@@ -378,7 +378,8 @@ def migrate_legacy(cache_dir=None) -> int:
     unchanged; returns how many moved. A file that cannot be upgraded stays where it is (named
     in a warning)."""
     root = results_dir(cache_dir)
-    flat = sorted(root.glob("*.json")) if root.is_dir() else []
+    # one already named stays where it is: not read (nor said) again by every look-up of a command
+    flat = [path for path in sorted(root.glob("*.json")) if not said_of(path)] if root.is_dir() else []
     if not flat:
         return 0
     moved = 0
@@ -389,7 +390,7 @@ def migrate_legacy(cache_dir=None) -> int:
             try:
                 record = validated(json.loads(path.read_text(encoding="utf-8")), str(path))
             except (OSError, ValueError, VPRBenchError) as error:
-                warnings.warn(f"{path} stays where it is: {error}", stacklevel=3)
+                warn_once(path, f"{path} stays where it is: {error}", stacklevel=3)
                 continue
             folder = run_folder(record["protocol"]["hash"], record["row_key"], cache_dir)
             folder.mkdir(parents=True, exist_ok=True)
