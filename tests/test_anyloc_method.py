@@ -139,6 +139,33 @@ def test_a_layer_written_out_at_the_moved_depth_is_not_noted_as_the_presets(shar
     assert "relative depth" not in notes and " ran " in out, out
 
 
+def test_a_layer_written_out_in_the_python_api_is_not_noted_as_the_presets(shared_data, tmp_path):
+    """resolve_spec(options={"layer": 9}) on ViT-S then evaluate(spec): the method is made from the layer
+    written, as on the command line (no note); unset, the note is said. The record states block 9 either way,
+    and the layer written leaves the spec's identity and JSON as they are."""
+    import warnings
+
+    from vprbench.evaluation import evaluate
+    from vprbench.spec import RunSettings, resolve_spec
+
+    settings = RunSettings(data_dir=shared_data, cache_dir=tmp_path)
+    options = {"backbone": "dinov2_vits14", "weights": "random", "resize": [28, 28]}
+
+    def run(**layer):
+        spec = resolve_spec("anyloc-gem-dinov2", "corridor", options={**options, **layer}, data_dir=shared_data,
+                            cache_dir=tmp_path)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            record = evaluate(spec, settings)
+        return spec, record, " ".join(str(w.message) for w in caught)
+
+    written, record, notes = run(layer=9)
+    assert "relative depth" not in notes and record["method_fingerprint"]["layer"] == 9
+    unset, record, notes = run()
+    assert "block 9 at the same relative depth" in notes and record["method_fingerprint"]["layer"] == 9
+    assert (written.key, written.to_json()) == (unset.key, unset.to_json())
+
+
 def test_dataset_resize_policy_feeds_fingerprint(weights):
     layer_note = "layer 31 is dinov2_vitg14's .* block 9 at the same relative depth"  # the ViT-G layer on ViT-S
     with pytest.warns(UserWarning, match=layer_note):

@@ -28,7 +28,7 @@ from numbers import Real
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, ValidationError, field_validator, model_serializer
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_serializer
 
 from .errors import VPRBenchError, closest_names, require
 from .content_identity import option_identities
@@ -129,6 +129,10 @@ class RunSpec(_Frozen):
     #: named "urban" or "domain": Method.cached_identities): in the run's key, not its row's
     found: dict[str, str] = {}
     _written_when_any: ClassVar[tuple[str, ...]] = ("found",)
+    #: the options as written where `given` leaves some out (at the value they have anyway, e.g. a layer
+    #: the preset's moves to): the method is made from these, so it notes nothing the user chose. Not
+    #: part of the run (its identity, its JSON)
+    written: dict[str, Any] = Field(default={}, exclude=True, repr=False)
     dataset: DatasetSpec
     search: SearchSpec = SearchSpec()
     stages: tuple[StageSpec, ...] = ()
@@ -231,7 +235,7 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
     require(method, str, "resolve_spec's method takes a method's name, e.g. 'hog' (see 'vprbench methods list')")
     entry = method_entry(method)
     method = entry.name  # as registered (NFC), however it was typed
-    given = given_options(options, method)
+    written, given = given_options(options), given_options(options, method)
     settings = split_run_settings(options)[1]
     if settings:  # else evaluate(spec) would run without them, on the default device
         name = next(iter(settings))
@@ -243,7 +247,7 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
         hint = closest_names(unknown[0], accepted)
         raise VPRBenchError(f"Method {method!r} does not take option(s) {', '.join(unknown)}.{hint} "
                             f"It accepts: {', '.join(accepted) or 'none'}.")
-    given = plain_options(method, given)
+    given, written = plain_options(method, given), plain_options(method, written)
     if isinstance(stages, (str, dict, StageSpec)):  # one stage, not a list of its characters or keys
         stages = [stages]
     require(stages or (), (list, tuple), "stages takes a list of stages, e.g. ['aqe'] or [{'name': 'sift-ransac', 'k': 100}]")
@@ -268,7 +272,8 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
         for stage in stages:
             if stage_entry(stage.name).cls.track == "sequence":
                 require_traverse_manifest(data.name, f"Sequence stage {stage.name!r}")
-    return RunSpec(method=method, options=merged, given=given, files=option_identities(method, merged, cache_dir),
+    return RunSpec(method=method, options=merged, given=given, written={} if written == given else written,
+                   files=option_identities(method, merged, cache_dir),
                    found=entry.cached_identities(merged, data.name, cache_dir),
                    search=search,
                    dataset=data, stages=stages, ks=ks, store_dtype=_choice("--store-dtype", store_dtype, STORE_DTYPES))

@@ -87,7 +87,6 @@ def run_evaluate(args) -> int:
 
 def run_one(args, settings, options, overrides, ranks) -> int:
     from ..evaluation import evaluate, save_result
-    from ..evaluation.pipeline import create_run_method
     from ..spec import resolve_spec, split_run_settings
 
     spec = resolve_spec(args.method[0], args.dataset[0], options=split_run_settings(options)[0],
@@ -95,11 +94,8 @@ def run_one(args, settings, options, overrides, ranks) -> int:
                         stages=overrides["stages"] or (),
                         store_dtype=overrides["store_dtype"] or "float32", data_dir=settings.data_dir,
                         cache_dir=settings.cache_dir)
-    # made from the options as written, not the spec's (which leaves out those at their value anyway):
-    # a layer the user wrote is not noted as the preset's
-    method = create_run_method(args.method[0], options, settings)
     with progress(args, ranks.rank == 0) as shown:
-        record = evaluate(spec, settings, method=method, progress=shown, ranks=ranks)
+        record = evaluate(spec, settings, progress=shown, ranks=ranks)
     if record is None:  # another rank than 0: its shard is written, rank 0 reports
         return 0
     if not args.json:

@@ -128,7 +128,7 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
     if dataset is not None:  # before a method is built (it may load weights)
         check_dataset(dataset, spec)
     if method is None:
-        method = create_run_method(spec.method, spec.given, settings)  # options are checked before any data is touched
+        method = create_run_method(spec.method, spec.written or spec.given, settings)  # checked before data is read
     else:
         check_method(method, spec)
         if settings.batch_size is not None:  # honoured (and checked) for a method given as for one created here

@@ -48,13 +48,11 @@ DATASET_KEYS = {"name", "protocols", "protocol"}
 @dataclass(frozen=True, eq=False)
 class Cell:
     """One run of a sweep: its spec, the run settings its plan entry sets (e.g. batch_size),
-    the row label a paper's table gives it, and the method options as written (the spec leaves
-    out those at their value anyway; the method is made from these, so it notes nothing the user chose)."""
+    and the row label a paper's table gives it."""
 
     spec: RunSpec
     settings: dict = field(default_factory=dict)
     label: str = ""
-    written: dict = field(default_factory=dict)
 
     @property
     def key(self) -> str:
@@ -152,7 +150,7 @@ class PlanEntries:
                 except VPRBenchError as error:
                     problems.append(f"{self.where('methods', m, 'options')}: {error}")
                     continue
-                cells.append(Cell(spec, run_options, label, given))
+                cells.append(Cell(spec, run_options, label))
         _raise_problems(self.origin, problems)
         return Plan(name=self.name, cells=cells, description=self.description)
 

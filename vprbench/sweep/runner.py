@@ -35,11 +35,8 @@ class Outcome:
 def evaluate_cell(cell: Cell, settings: RunSettings, *, progress=None, context=None) -> dict:
     """The one entry point, with the cell's own run settings."""
     from ..evaluation import evaluate
-    from ..evaluation.pipeline import create_run_method
 
-    settings = settings.with_options(cell.settings)
-    method = create_run_method(cell.spec.method, cell.written or cell.spec.given, settings)
-    record = evaluate(cell.spec, settings, method=method, progress=progress)
+    record = evaluate(cell.spec, settings.with_options(cell.settings), progress=progress)
     record.setdefault("context", {})["sweep"] = {"cell": cell.key, **(context or {})}
     return record
 
