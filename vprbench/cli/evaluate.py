@@ -86,16 +86,22 @@ def run_evaluate(args) -> int:
 
 
 def run_one(args, settings, options, overrides, ranks) -> int:
+    from ..datasets import is_path, load_dataset
     from ..evaluation import evaluate, save_result
+    from ..methods.registry import method_entry
     from ..spec import resolve_spec, split_run_settings
 
-    spec = resolve_spec(args.method[0], args.dataset[0], options=split_run_settings(options)[0],
+    name, own = args.dataset[0], None
+    if is_path(name):  # a folder of one's own is read once, for its spec's protocol and for the run
+        method_entry(args.method[0])  # a mistyped method is said before the folder is read
+        own = load_dataset(name, protocol=args.protocol, cache_dir=settings.cache_dir)
+    spec = resolve_spec(args.method[0], name if own is None else own, options=split_run_settings(options)[0],
                         protocol=args.protocol, search=overrides["search"], ks=overrides["k"],
                         stages=overrides["stages"] or (),
                         store_dtype=overrides["store_dtype"] or "float32", data_dir=settings.data_dir,
                         cache_dir=settings.cache_dir)
     with progress(args, ranks.rank == 0) as shown:
-        record = evaluate(spec, settings, progress=shown, ranks=ranks)
+        record = evaluate(spec, settings, dataset=own, progress=shown, ranks=ranks)
     if record is None:  # another rank than 0: its shard is written, rank 0 reports
         return 0
     if not args.json:

@@ -49,12 +49,14 @@ class Described:
 
 
 def describe_splits(method, splits: dict[str, list[Path]], *, root: Path | None = None, label: str = "images",
-                    digests: dict[str, list[str]] | None = None, cache_dir=None, store_dtype: str = "float32",
+                    digests: dict[str, list[str]] | None = None, names: dict[str, list[str]] | None = None,
+                    cache_dir=None, store_dtype: str = "float32",
                     workers: int = 0, lock_timeout: float | None = None, ranks: Ranks | None = None,
                     progress=None, settings: dict | None = None) -> Described:
     """Complete stores for every split of `splits` (name -> image paths), computing what is missing.
     `digests` are the images' sha256 per split (hashed now when not given): the store is keyed by
-    them, and every image described is checked to still have them (loader.py). `settings` are the
+    them, and every image described is checked to still have them (loader.py). `names` are the
+    images' names per split (`image_names` of `root`; made now when not given). `settings` are the
     options the store is keyed by when not the method's own (an evaluation's: its spec's)."""
     ranks = ranks or Ranks()
     if store_dtype not in DTYPES:
@@ -63,7 +65,7 @@ def describe_splits(method, splits: dict[str, list[Path]], *, root: Path | None 
     for split, paths in splits.items():
         if not paths:
             raise VPRBenchError(f"No images to describe in the {split} split.")
-    names = {split: image_names(paths, root) for split, paths in splits.items()}
+    names = names or {split: image_names(paths, root) for split, paths in splits.items()}
     digests = digests or {split: content_hashes(paths, cache_dir) for split, paths in splits.items()}
     image_keys = {split: images_key(paths, root, digests=digests[split], names=names[split]) for split, paths in splits.items()}
     fingerprint = method_fingerprint(method, store_dtype, settings, cache_dir)

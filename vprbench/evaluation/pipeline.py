@@ -167,7 +167,7 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
     workers = loader_workers(settings, method)
     described = describe_splits(
         method, {"database": dataset.database, "queries": dataset.queries}, root=dataset.root, label=dataset.name,
-        digests=dataset.image_digests(settings.cache_dir), cache_dir=settings.cache_dir,
+        digests=dataset.image_digests(settings.cache_dir), names=dataset.image_names(), cache_dir=settings.cache_dir,
         store_dtype=spec.store_dtype, workers=workers, lock_timeout=settings.lock_timeout, ranks=ranks,
         progress=progress, settings=spec.options)  # keyed as the spec: one run, one store
     if described.stores is None:  # not rank 0: its shard is written; rank 0 evaluates
