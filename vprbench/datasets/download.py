@@ -2,11 +2,11 @@
 from __future__ import annotations
 
 import contextlib
-import shutil
 from importlib.resources import files
 from pathlib import Path
 
 from ..errors import VPRBenchError, network_reason, url_host
+from ..fsutil import lock, remove_stale
 from .manifest import DatasetManifest, default_data_root
 
 
@@ -27,9 +27,18 @@ def how_to_get(manifest: DatasetManifest, root: Path) -> str:
 
 
 def download(manifest: DatasetManifest, root: Path, progress: bool = True) -> Path:
-    """Download into root (via root.partial, renamed when every file checks out)."""
+    """Download into root (via root.partial, renamed when every file checks out). Downloads of one
+    dataset into one data root take turns: the one that waited finds the first one's copy and keeps it
+    (two at once into one partial folder had one rename it away while the other still wrote there)."""
     if not manifest.download:
         raise VPRBenchError(f"Dataset {manifest.name!r} has no direct download. {how_to_get(manifest, root)}")
+    with lock(root.with_name(f".{root.name}.download.lock"), what=f"the download of {manifest.name!r} into {root}"):
+        if not root.exists():
+            _fetch(manifest, root)
+    return root
+
+
+def _fetch(manifest: DatasetManifest, root: Path) -> None:
     import pooch
 
     partial = root.with_name(root.name + ".partial")
@@ -51,7 +60,8 @@ def download(manifest: DatasetManifest, root: Path, progress: bool = True) -> Pa
                 f"{network_reason(error).rstrip('.')}. {kept} Or get the files yourself and run "
                 f"'vprbench datasets import {manifest.name} PATH'."
             ) from None
-    if root.exists():
-        shutil.rmtree(root)
+    # pooch streams each file into a tmp* file beside it: a killed download's would be renamed into the
+    # dataset for good (no live one is writing: the lock)
+    remove_stale((p for p in partial.rglob("tmp*") if p.relative_to(partial).as_posix() not in fetcher.registry),
+                 age_s=0)
     partial.rename(root)
-    return root
