@@ -22,7 +22,7 @@ from ..aggregation.vocabulary import (
     default_stride, fit_vocabulary, legacy_vocabulary_dir, load_vocabulary, vocabulary_dir, vocabulary_file_in,
 )
 from ..errors import ProblemList, VPRBenchError, closest_names
-from ..fsutil import write_in_turn
+from ..fsutil import lock, remove_stale, write_in_turn
 from ..text import one_line
 
 Extractor = Callable[[Sequence[Path]], Iterable]
@@ -118,15 +118,19 @@ def fetch_released(source: str, cache_dir=None) -> Path:
     import pooch
 
     url = released_url(source)
-    try:
-        pooch.retrieve(url, known_hash=f"sha256:{release()['sha256'][released_name(source)]}", fname=path.name,
-                       path=path.parent, progressbar=False)
-    except Exception as error:  # network failure or checksum mismatch: say where the file goes
-        raise VPRBenchError(
-            f"Cannot download the authors' {source!r} centres from {url} ({type(error).__name__}: {error}). "
-            f"On a machine with internet access run `vprbench vocabulary download` (or fetch that URL) "
-            f"and put the file at {path}."
-        ) from None
+    # one download at a time per file: pooch streams it into a tmp* file beside it, so those found then
+    # are killed downloads' (pooch never removes them)
+    with lock(path.with_name(f".{path.name}.lock"), what=f"the download of {path}"):
+        remove_stale(path.parent.glob("tmp*"), age_s=0)
+        try:
+            pooch.retrieve(url, known_hash=f"sha256:{release()['sha256'][released_name(source)]}", fname=path.name,
+                           path=path.parent, progressbar=False)
+        except Exception as error:  # network failure or checksum mismatch: say where the file goes
+            raise VPRBenchError(
+                f"Cannot download the authors' {source!r} centres from {url} ({type(error).__name__}: {error}). "
+                f"On a machine with internet access run `vprbench vocabulary download` (or fetch that URL) "
+                f"and put the file at {path}."
+            ) from None
     return path
 
 
