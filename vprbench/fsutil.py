@@ -2,7 +2,8 @@
 
 - `atomic_path(path)` / `atomic_write(path, data)`: the file is written under a temporary
   name in the same folder and `os.replace`d over `path`, so a reader (or a kill at any
-  moment) sees the old content or the new, never half of one.
+  moment) sees the old content or the new, never half of one; `atomic_write` also removes the
+  temporaries killed writers of `path` left, once an hour old.
 - `exchange(a, b)`: two folders swapped in one step where the system can (a published site).
 - `lock(path, timeout)`: an exclusive `filelock` lock shared by every process on the
   machine (and by hosts sharing the folder, where the filesystem supports `flock`). A
@@ -113,9 +114,11 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
 
 
 def atomic_write(path: str | os.PathLike, data: bytes | str) -> Path:
-    """Write `data` (str as UTF-8) to `path` atomically."""
+    """Write `data` (str as UTF-8) to `path` atomically. Temporaries of `path` that killed writers left
+    (untouched for an hour: a live writer's are younger) are removed then, as nothing else would."""
     with atomic_path(path) as temporary:
         temporary.write_bytes(data.encode("utf-8") if isinstance(data, str) else data)
+    remove_stale(temporaries_of(Path(path)))
     return Path(path)
 
 
@@ -181,7 +184,8 @@ def write_once(path: Path, data: bytes | str) -> None:
     it removed once untouched for an hour (a live writer's are younger), as nothing would look again."""
     if not path.is_file():
         atomic_write(path, data)
-    remove_stale(temporaries_of(path))
+    else:
+        remove_stale(temporaries_of(path))
 
 
 #: files named by `warn_once`, by path, size and modification time

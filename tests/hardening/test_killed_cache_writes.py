@@ -166,3 +166,43 @@ def test_a_claim_removes_what_killed_claims_of_its_cell_left(tmp_path):
         assert sorted(p.name for p in folder.iterdir()) == ["cell.failed", "cell.lock"]
     finally:
         claims.close()
+
+
+#: `vprbench ARGS...` killed (SIGKILL) just before the temporary of its output (`--out`, the last
+#: argument but one) is renamed in place
+KILLED_OUTPUT = """
+import os, signal, sys
+from vprbench.cli.main import main
+replace = os.replace
+def killed(source, target, *args, **kwargs):
+    if str(target) == sys.argv[-2]:
+        os.kill(os.getpid(), signal.SIGKILL)
+    return replace(source, target, *args, **kwargs)
+os.replace = killed
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_an_output_written_again_removes_what_a_killed_write_of_it_left(shared_data, tmp_path, cli):
+    """`describe --out` (as `results export --to`, any file written whole): was: the killed write's
+    `.d.npy.*.tmp` stayed beside the output for good. The next write of that file removes it once
+    untouched for an hour (a live writer's, e.g. a second describe to the same file, is younger)."""
+    import os
+    import time
+
+    import numpy as np
+
+    out, image = tmp_path / "out" / "d.npy", shared_data / "corridor" / "query" / "0000000.jpg"
+    out.parent.mkdir()
+    args = ["describe", "--method", "hog", "--resize", "32", "32", "--cache-dir", str(tmp_path / "cache"),
+            "--out", str(out), str(image)]
+    killed = subprocess.run([sys.executable, "-c", KILLED_OUTPUT, *args], capture_output=True, text=True, timeout=120)
+    assert killed.returncode == -9, killed.stderr
+    [left] = [p for p in out.parent.iterdir() if p.name.endswith(".tmp")]
+    hours_ago = time.time() - 2 * 3600
+    os.utime(left, (hours_ago, hours_ago))
+    live = out.parent / ".d.npy.live.tmp"
+    live.write_bytes(b"half a file")
+    assert cli(*args)[0] == 0
+    assert sorted(p.name for p in out.parent.iterdir()) == [live.name, "d.npy"]
+    assert np.load(out).shape[0] == 1

@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import VPRBenchError
-from ..fsutil import atomic_write, remove_stale, temporaries_of
+from ..fsutil import atomic_write
 from ..paths import cache_root, portable_name, regular_file
 from ..weights import read_torch_file
 
@@ -188,10 +188,9 @@ class Vocabulary:
         centres = self.centres.float().cpu().contiguous()
         buffer = io.BytesIO()  # torch.save's own writes fail on a full disk with a RuntimeError, no OSError
         torch.save({"centres": centres, "meta": dict(self.meta), "crc32": centres_checksum(centres)}, buffer)
+        # a fit killed while saving left its temporary (never read): atomic_write removes this file's own once
+        # an hour old (--output may be any folder, holding other programs' .*.tmp files)
         atomic_write(path, buffer.getvalue())
-        # a fit killed while saving left its temporary file (never read): gone once untouched for an hour;
-        # only this file's own (--output may be any folder, holding other programs' .*.tmp files)
-        remove_stale(temporaries_of(path))
         return path
 
 
