@@ -19,6 +19,8 @@ def _refuse(value):
 
 def canonical_hash(value: Any, length: int = 16) -> str:
     """sha256 of `canonical_json(value)`, hex, the first `length` digits."""
+    if isinstance(length, bool) or not isinstance(length, int) or not 1 <= length <= 64:  # else '' or a silent cut
+        raise ValueError(f"canonical_hash's length takes a whole number from 1 to 64 (hex digits); got {length!r}")
     return hashlib.sha256(canonical_json(value).encode()).hexdigest()[:length]
 
 

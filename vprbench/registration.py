@@ -21,6 +21,19 @@ def check_name(kind: str, name) -> None:
                          "register it as unicodedata.normalize('NFC', name)")
 
 
+def check_target(kind: str, name: str, target, description, source) -> None:
+    """What an entry is registered with: a class or function (or its import path "module:attribute"),
+    text for its description and source; else a ValueError now, not an unusable entry holding the name."""
+    import re
+
+    if not (callable(target) or isinstance(target, str) and re.fullmatch(r"[\w.]+:[\w.]+", target)):
+        raise ValueError(f"{kind} {name!r}: register it with a class or function, or its import path "
+                         f"'module:attribute'; got {type(target).__name__} {target!r}")
+    for what, value in (("description", description), ("source", source)):
+        if value is not None and not isinstance(value, str):
+            raise ValueError(f"{kind} {name!r}: its {what} is text; got {type(value).__name__} {value!r}")
+
+
 def looked_up(name):
     """A name as the registries hold it (NFC): one typed decomposed (e + accent) finds its entry."""
     return unicodedata.normalize("NFC", name) if isinstance(name, str) else name

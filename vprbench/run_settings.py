@@ -74,5 +74,6 @@ def split_run_settings(options: dict) -> tuple[dict, dict]:
     """(the method options, the run settings given among them): a plan entry's or the command
     line's `batch_size = 4` goes to `RunSettings`, not to the spec."""
     options = options or {}
+    require(options, dict, "run settings come from a dict of option name -> value, e.g. {'batch_size': 4}")
     return ({k: v for k, v in options.items() if k not in RUN_SETTINGS},
             {k: v for k, v in options.items() if k in RUN_SETTINGS and v is not None})

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from collections.abc import Iterable, Mapping
 from numbers import Real
 from pathlib import Path
@@ -33,6 +34,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from .errors import VPRBenchError, closest_names, require
 from .content_identity import option_identities
 from .hashing import canonical_hash, canonical_json
+from .paths import folder_path
 from .run_settings import RUN_SETTINGS, RunSettings, split_run_settings  # noqa: F401 (how a run goes, beside what it is)
 
 #: version of the spec's shape; a spec from a newer vprbench is refused
@@ -233,6 +235,7 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
         raise VPRBenchError(f"resolve_spec takes a method's name; for the method object {method.name or method!r} "
                             "already created, use vprbench.spec.spec_for(method, dataset).")
     require(method, str, "resolve_spec's method takes a method's name, e.g. 'hog' (see 'vprbench methods list')")
+    data_dir, cache_dir = folder_path(data_dir, "data_dir"), folder_path(cache_dir, "cache_dir")
     entry = method_entry(method)
     method = entry.name  # as registered (NFC), however it was typed
     written, given = given_options(options), given_options(options, method)
@@ -331,7 +334,9 @@ def resolve_dataset(dataset, protocol: str | None = None, data_dir=None, cache_d
                            ("benchmark" if dataset.kind == "benchmark" and not found.get("provisional") else "given"),
                            protocol=found["name"], protocol_id=found["id"], protocol_hash=found["hash"],
                            path=str(Path(dataset.root).resolve()) if dataset.root and found["name"] == "own" else None)
-    name = str(dataset)
+    require(dataset, (str, os.PathLike), "resolve_spec's dataset takes a dataset's name (see 'vprbench datasets "
+                                         "list'), the path of a folder of your own or a Dataset")
+    name = os.fspath(dataset)
     if is_path(name):
         own = load_dataset(name, data_dir, protocol=protocol, cache_dir=cache_dir)
         return DatasetSpec(name=own.name, kind="own", protocol=own.protocol["name"], protocol_id=own.protocol["id"],

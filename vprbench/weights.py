@@ -62,6 +62,9 @@ def read_torch_file(path: str | Path, what: str = "checkpoint", *, mmap: bool = 
     """
     import torch
 
+    from .methods.checks import flag
+
+    mmap = flag("read_torch_file", "mmap", mmap)  # 'no' would be truthy
     regular_file(path, what.capitalize())  # before torch: a named pipe would hang it, None fail deep inside
     path = Path(path)
     # torch.load reads any path named *.safetensors as safetensors; this reads PyTorch files, whatever
@@ -307,8 +310,9 @@ def weights_provenance(identity: str | None) -> dict:
     """Where a method's weights came from, for result records and the leaderboard.
 
     `identity` is what fingerprints hold: the official URL (or 'hf:<repo>/<file>') of a file
-    vprbench downloaded from the authors' release, 'sha256:<hex>' for a local file or a release
-    with a published sha256, None for a model run without weights (random initialisation). A
+    vprbench downloaded from the authors' release (or another source's 'SOURCE:NAME', e.g. an
+    open_clip model), 'sha256:<hex>' for a local file or a release with a published sha256, None for
+    a model run without weights (random initialisation); other text is refused. A
     sha256 is official only when it equals one the authors publish (a backbone manifest's pinned
     sha256, or manifests/weights.toml); otherwise it is the user's file.
     """
@@ -316,6 +320,12 @@ def weights_provenance(identity: str | None) -> dict:
         return {"source": "random"}
     require(identity, str, "weights_provenance takes a weights identity (a URL, 'hf:REPO/FILE' or 'sha256:HEX'), "
                            "or None for random weights")
+    import re
+
+    if not re.fullmatch(r"[A-Za-z][\w+.-]*:\S+", identity) or identity.startswith("sha256:") and not re.fullmatch(
+            r"sha256:[0-9a-fA-F]{64}", identity):  # else any text (a bare file name) is recorded as official weights
+        raise VPRBenchError(f"weights_provenance takes a weights identity (a URL, 'hf:REPO/FILE', a source's "
+                            f"'SOURCE:NAME' or 'sha256:' and 64 hex digits), or None for random weights; got {identity!r}.")
     if identity.startswith("hf:"):
         repo, _, name = identity.removeprefix("hf:").rpartition("/")
         return {"source": "official", "hub": repo, "file": name, "recognised_by": "download"}

@@ -10,6 +10,7 @@ and a method card (methods/<row key>.json) that describes another method than it
 from __future__ import annotations
 
 import json
+import re
 
 from ..evaluation.results import card_of
 from ..spec import RunSpec
@@ -41,7 +42,7 @@ def false_claims(record: dict) -> list[str]:
                   ("domain", record.get("domain"), dataset_manifests()[record["dataset"]].domain,
                    f"the {record['dataset']} manifest")]
     weights = spec.files.get("weights")
-    if isinstance(weights, str) and weights.startswith("sha256:"):  # a weights file, known by its content
+    if isinstance(weights, str) and re.fullmatch(r"sha256:[0-9a-fA-F]{64}", weights):  # a weights file, known by its content
         stated = ((record.get("provenance") or {}).get("weights") or {}).get("source")
         given.append(("weights source", stated, weights_provenance(weights)["source"],
                       f"its weights file {weights[:19]}"))

@@ -5,6 +5,7 @@ import os
 from pathlib import Path
 
 from ..errors import VPRBenchError, require
+from ..paths import folder_path
 from .download import download, how_to_get
 from .layouts import read_layout
 from .layouts.own_data import own_manifest
@@ -53,6 +54,7 @@ def load_dataset(name: str, data_dir=None, *, fetch: bool | None = None, strict:
                        "of your own")
     fetch = flag("load_dataset", "fetch", fetch, "only into the default data root")  # 'no' would be truthy: a download
     strict = flag("load_dataset", "strict", strict)
+    cache_dir = folder_path(cache_dir, "cache_dir")  # else a wrong one is found out only for a folder of one's own
     if is_path(name):
         root = Path(name).expanduser()
         if root.exists() and not root.is_dir():

@@ -33,9 +33,14 @@ class GroundTruth:
     def __post_init__(self):
         if self.unit not in UNITS:
             raise ValueError(f"ground-truth unit must be one of {UNITS}, got {self.unit!r}")
+        if self.radius is not None:  # NaN would make no pair positive, silently; a negative one fails deep inside
+            from numbers import Real
+
+            if isinstance(self.radius, bool) or not isinstance(self.radius, Real) or not 0 <= self.radius < float("inf"):
+                raise ValueError(f"ground-truth radius must be a finite number >= 0 (or None), got {self.radius!r}")
         if self.unit == "positives":
-            if self.positive_lists is None:
-                raise ValueError("unit 'positives' needs positive_lists")
+            if not isinstance(self.positive_lists, (list, tuple)):  # text would be read character by character
+                raise ValueError(f"unit 'positives' needs positive_lists, a list of index lists; got {self.positive_lists!r}")
         elif self.database_positions is None or self.query_positions is None or self.radius is None:
             raise ValueError(f"unit {self.unit!r} needs database/query positions and a radius")
 
@@ -77,6 +82,25 @@ class Dataset:
     kind: str = "benchmark"
     #: how the splits' capture order is known, for sequence matching (datasets/traverse.py)
     sequence_order: str = ""
+
+    def __post_init__(self):
+        """A Dataset made by hand: image paths given as text are Paths (else a failure deep inside)."""
+        import os
+
+        from ..errors import require
+
+        require(self.name, str, "Dataset's name takes text")
+        require(self.ground_truth, GroundTruth, "Dataset's ground_truth takes a vprbench GroundTruth")
+        for split in ("database", "queries"):
+            paths = getattr(self, split)
+            require(paths, (list, tuple), f"Dataset's {split} takes a list of image paths")
+            if not all(isinstance(p, Path) for p in paths):  # the readers' lists pass as they are
+                for p in paths:
+                    require(p, (str, os.PathLike), f"Dataset's {split} takes a list of image paths")
+                setattr(self, split, [Path(p) for p in paths])
+        if self.root is not None:
+            require(self.root, (str, os.PathLike), "Dataset's root takes a folder path, or None")
+            self.root = Path(self.root)
 
     @cached_property
     def positives(self) -> list[np.ndarray]:

@@ -23,6 +23,9 @@ def correct_at(indices: np.ndarray, positives: list[np.ndarray], all_zero=None) 
     """(queries, k) bool: is the j-th retrieved image a positive of the query? Never for a query flagged
     in `all_zero` (one flag per query): its descriptor is all zero, it matches nothing, and its list is
     only the search's tie rule (rows 0, 1, ...), so it counts as a failure at every K."""
+    if len(indices) != len(positives):  # zip would drop the extra queries silently
+        raise VPRBenchError(f"correct_at takes one row of indices per query and one positive list per query; got "
+                            f"{len(indices)} rows and {len(positives)} lists.")
     correct = np.stack([np.isin(row, pos) for row, pos in zip(indices, positives)])
     if all_zero is not None:
         correct[np.asarray(all_zero) != 0] = False
@@ -38,13 +41,18 @@ def first_positive_rank(correct: np.ndarray) -> np.ndarray:
 def successes(first_rank: np.ndarray, k: int) -> np.ndarray:
     """Per query: is a positive among the top k (ranks are 1-based, 0 = none in the top K)?"""
     first = np.asarray(first_rank)
+    if first.ndim != 1 or not (np.issubdtype(first.dtype, np.integer) or first.size == 0):
+        raise VPRBenchError(f"Recall@K takes each query's first-positive rank, whole numbers in a 1-D array; got "
+                            f"{first.dtype} of shape {first.shape}.")
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:  # K = 0 would read as 0 %, K = '5' fail deep
+        raise VPRBenchError(f"Recall@K takes K as a whole number >= 1; got {k!r}.")
     return (first >= 1) & (first <= k)
 
 
 def recall_at_k(first_rank: np.ndarray, ks) -> dict[int, float]:
     """Recall@K in percent over ALL queries (queries without positives count as failures), from
     each query's first-positive rank: the one Recall@K of vprbench (records, cells, figures)."""
-    return {int(k): float(100.0 * successes(first_rank, k).mean()) if len(first_rank) else 0.0 for k in ks}
+    return {int(k): float(100.0 * found.mean()) if len(found := successes(first_rank, k)) else 0.0 for k in ks}
 
 
 def top1_precision_recall(top1_scores: np.ndarray, top1_correct: np.ndarray) -> dict:
@@ -56,7 +64,10 @@ def top1_precision_recall(top1_scores: np.ndarray, top1_correct: np.ndarray) -> 
     """
     from sklearn.metrics import auc, precision_recall_curve
 
-    correct = np.asarray(top1_correct, dtype=bool)
+    correct, scores = np.asarray(top1_correct, dtype=bool), np.asarray(top1_scores)
+    if correct.ndim != 1 or scores.shape != correct.shape:  # None would be a 0-d False: zeros, silently
+        raise VPRBenchError(f"top1_precision_recall takes one top-1 score and one correct flag per query, two 1-D "
+                            f"arrays of one length; got shapes {scores.shape} and {correct.shape}.")
     if not correct.any():
         return {"auc_pr": 0.0, "recall_at_100_precision": 0.0, "max_f1": 0.0, "curve": {"precision": [], "recall": []}}
     precision, recall, _ = precision_recall_curve(correct, top1_scores)

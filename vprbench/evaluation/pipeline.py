@@ -32,6 +32,9 @@ def load_data(spec: RunSpec, settings: RunSettings):
     """The spec's dataset under its protocol, checked to be the one the spec names."""
     from ..datasets import load_dataset
 
+    if spec.dataset.kind == "given":  # made by hand: nothing on disk names it (a benchmark's name would load another)
+        raise VPRBenchError(f"The spec's dataset {spec.dataset.name!r} was given as a Dataset made in Python "
+                            f"({spec.dataset.protocol_id}): pass it again, evaluate(spec, settings, dataset=...).")
     name = spec.dataset.path if spec.dataset.kind == "own" else spec.dataset.name
     dataset = load_dataset(name, settings.data_dir, strict=settings.strict, fetch=settings.download,
                            protocol=None if spec.dataset.kind == "own" else spec.dataset.protocol,
@@ -207,7 +210,12 @@ def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None
     settings = RunSettings() if settings is None else settings
     require(settings, RunSettings, "evaluate's settings take a vprbench.spec.RunSettings(cache_dir=..., data_dir=...), "
                                    "or None for the defaults")
-    ranks = ranks or Ranks()
+    ranks = Ranks() if ranks is None else ranks
+    require(ranks, Ranks, "evaluate's ranks take a vprbench.distributed.Ranks (Ranks.from_environment() under "
+                          "torchrun), or None for one process")
+    if progress is not None and not callable(getattr(progress, "add_task", None)):  # else found out mid-run
+        raise VPRBenchError(f"evaluate's progress takes a rich Progress (or vprbench.progress's log one), or None; "
+                            f"got {type(progress).__name__}.")
     stages = create_stages(spec)  # their options are checked before any data is touched
     if settings.candidates is not None and not stages:
         raise VPRBenchError(f"--candidates {settings.candidates} gives the candidates a re-ranking starts from, but "

@@ -93,6 +93,8 @@ def _recompute(record: dict, arrays: dict[str, np.ndarray], ks: list[int]) -> di
         return f"its first-positive ranks are not ranks within its top {k} of queries that have positives; rerun it"
     if ks and ks[-1] > k:
         return f"it reports R@{ks[-1]} but keeps only the top {k} per query; rerun it"
+    if ks and ks[0] < 1:  # (Recall@K refuses K = 0)
+        return f"it reports R@{ks[0]}, but K is a whole number >= 1; rerun it"
     recall = {str(key): round(value, 4) for key, value in recall_at_k(first, ks).items()}
     pr = top1_precision_recall(similarities[:, 0].astype(np.float64), first == 1) if len(first) else \
         {"auc_pr": 0.0, "recall_at_100_precision": 0.0, "max_f1": 0.0}

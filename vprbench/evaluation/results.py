@@ -185,6 +185,9 @@ def find_result(spec, cache_dir=None, dataset_fingerprint: str | None = None,
     from .proof import proven
 
     require(spec, RunSpec, "find_result(spec) takes a RunSpec (vprbench.spec.resolve_spec or spec_for)")
+    for what, value, kind, example in (("dataset", dataset_fingerprint, str, "Dataset.fingerprint()"),
+                                       ("method", method_fingerprint, dict, "store.method_fingerprint")):
+        require(value, (kind, type(None)), f"find_result's {what}_fingerprint takes {example}, or None")  # else no match
     migrate_legacy(cache_dir)
     check_layout(results_dir(cache_dir))
     wanted, stages = {str(k) for k in spec.ks}, _created_stages(spec)

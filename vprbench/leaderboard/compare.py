@@ -56,6 +56,9 @@ def compare(board: Board, a: str, b: str, dataset: str, *, k: int = 1, seed: int
     """Both cells' R@k with intervals, and the paired tests of A against B: the bootstrap draws the
     dataset's units (blocks, places) for both; per-query intervals are given beside them."""
     require(board, Board, "compare takes a Board: vprbench.leaderboard.build_board(read_results(cache_dir))")
+    for what, value in (("a", a), ("b", b)):
+        require(value, str, f"compare's {what} takes a row's name or key as the leaderboard shows it")
+    require(dataset, str, "compare's dataset takes a column's name as the leaderboard shows it, e.g. 'corridor'")
     k, seed = check_k_and_seed(k, seed)
     first, second = _cell(board, a, dataset), _cell(board, b, dataset)
     for cell in (first, second):

@@ -23,7 +23,7 @@ import pandas as pd
 from .. import __version__
 from ..errors import VPRBenchError, require
 from ..fsutil import LockTimeout, lock
-from ..paths import safe_name
+from ..paths import folder_path, safe_name
 from ..evaluation.results import read_results
 from ..text import percent, quantity
 from . import figures
@@ -64,6 +64,9 @@ def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0, skipp
     its number comes from); returns that folder. Nothing is changed when anything fails."""
     require(folder, (str, os.PathLike), "publish takes the docs folder to write the leaderboard into, e.g. 'docs'")
     folder, (_, seed) = Path(folder), check_k_and_seed(1, seed)  # before any record is read
+    data_dir = folder_path(data_dir, "data_dir")  # else a wrong one is found out only when a page needs images
+    if results is not None:
+        require(results, (str, os.PathLike), "publish's results take the folder 'vprbench results import --into' wrote")
     if folder.exists() and not folder.is_dir():
         raise VPRBenchError(f"--to {folder} is a file, not a folder: give the docs folder, e.g. --to docs/")
     with warnings.catch_warnings(record=True) as caught:

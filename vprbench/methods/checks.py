@@ -117,7 +117,13 @@ def canonical(name: str, value):
     """One form for the ways of writing one option value, so one computation has one identity (a
     spec, a store, a leaderboard row): a whole float is an int (3.0 is 3), and `resize` is
     [H, W] however it was written (`-o resize=64,64`, '64x64', `--resize 64 64`, (64, 64)) or
-    'native'. A value the method will refuse is left as it is, for the method to name."""
+    'native'; a path (`weights=Path(...)`) is its text, as on the command line. A value the method
+    will refuse is left as it is, for the method to name."""
+    import os
+
+    if isinstance(value, os.PathLike):
+        value = os.fspath(value)
+
     def whole(item):
         if isinstance(item, float) and item.is_integer():
             return int(item)

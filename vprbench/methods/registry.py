@@ -26,7 +26,8 @@ from pathlib import Path
 
 from ..errors import VPRBenchError, closest_names
 from ..loader import plugin_part
-from ..registration import (check_name, claim, core_entries, imported, looked_up, run_plugins, source_of,
+from ..paths import folder_path
+from ..registration import (check_name, check_target, claim, core_entries, imported, looked_up, run_plugins, source_of,
                             unloaded_hint)
 from .attributes import MAX_BATCH_SIZE, check_attributes, set_attributes
 from .checks import canonical, plain_options, whole
@@ -152,9 +153,14 @@ def register_method(
     """Make `name` available to `vprbench evaluate --method name`.
 
     `factory(**options)` returns a `Method` (or give its import path, "module:attribute");
-    `defaults` are the preset's options, which the user's options override.
+    `defaults` are the preset's options, which the user's options override. A name already taken, a
+    factory neither callable nor an import path, defaults that are no dict, a description that is no
+    text: a ValueError, and nothing is registered.
     """
     check_name("Method", name)
+    check_target("Method", name, factory, description, source)
+    if defaults is not None and not isinstance(defaults, dict):
+        raise ValueError(f"Method {name!r}: defaults takes a dict of option name -> value; got {defaults!r}")
     entry = MethodEntry(name, factory, dict(defaults or {}), description, source or source_of(factory))
     _load_plugins()  # the core's and installed plugins' names are taken before any other registers
     claim(_REGISTRY, "Method", entry)
@@ -206,7 +212,11 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
     """
     from .base import Method
 
+    if isinstance(name, Method):  # else 'Unknown method <... object at 0x...>'
+        raise VPRBenchError(f"create_method takes a method's name, e.g. 'hog'; got the method object "
+                            f"{getattr(name, 'name', '') or type(name).__name__!r}, already created: use it as it is.")
     entry = method_entry(name)
+    cache_dir, data_dir = folder_path(cache_dir, "cache_dir"), folder_path(data_dir, "data_dir")
     # each value in its one form (resize '64x64' is [64, 64]), as a spec holds it: one store either way
     written = entry.in_form({k: canonical(k, v) for k, v in options.items() if v is not None})
     plain_options(name, written)  # before the factory sees it, as a spec does

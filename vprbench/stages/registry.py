@@ -16,7 +16,7 @@ from importlib.metadata import entry_points
 from pydantic import ValidationError
 
 from ..errors import VPRBenchError, closest_names
-from ..registration import (check_name, claim, core_entries, imported, looked_up, run_plugins, source_of,
+from ..registration import (check_name, check_target, claim, core_entries, imported, looked_up, run_plugins, source_of,
                             unloaded_hint)
 
 ENTRY_POINT_GROUP = "vprbench.stages"
@@ -52,6 +52,7 @@ def register_stage(name: str, target: type | str, *, description: str = "", sour
     """Make `name` available to `--rerank name` / `--sequence name` and plans' `stages`; a name
     already taken by another stage is refused (ValueError naming who registered it)."""
     check_name("Stage", name)
+    check_target("Stage", name, target, description, source)
     entry = StageEntry(name, target, description, source or source_of(target))
     _load_plugins()  # the core's and installed plugins' names are taken before any other registers
     claim(_REGISTRY, "Stage", entry)
