@@ -199,3 +199,27 @@ def test_a_map_fit_looks_for_no_domain_vocabulary(tmp_path, capsys):
         warnings.simplefilter("always")
         run(args)
     assert not [str(w.message) for w in caught if "vocabulary for" in str(w.message)]
+
+
+@pytest.mark.parametrize("given", ["./campus-folder", "campus-folder"])
+def test_a_map_fit_on_a_folder_is_named_by_its_dataset_not_the_path(given, shared_data, monkeypatch, capsys, tmp_path):
+    """`--dataset ./mydata` was saved as 'map-./mydata' (folder 'map-._mydata'), a name no run could give back:
+    --vocabulary map-./mydata is read as a file path."""
+    import vprbench.methods as methods
+
+    own = tmp_path / "campus-folder"
+    rows = ["image,x,y"]
+    for split, folder, count in (("database", "ref", 3), ("queries", "query", 2)):
+        (own / split).mkdir(parents=True)
+        for i in range(count):
+            name = f"{i:07d}.jpg"
+            os.symlink(shared_data / "corridor" / folder / name, own / split / name)
+            rows.append(f"{split}/{name},{i * 10},0")
+    (own / "positions.csv").write_text("\n".join(rows) + "\n")
+    (own / "dataset.toml").write_text('name = "campus"\n')
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(methods, "create_method", lambda name, **kw: FakeMethod(**kw))
+    assert run(parse("vocabulary", "fit", "--dataset", given, "--method", "fake", "--clusters", "4")) == 0
+    assert "Vocabulary map-campus: 4 x 16" in capsys.readouterr().out
+    found = resolve_vocabulary("map-campus", "fake", 0, "token", 4)
+    assert found.meta["source"] == "map-campus" and found.meta["datasets"] == {"campus": 3}

@@ -44,12 +44,3 @@ def test_describe_applies_pca_fitted_on_fit_on_images(shared_data, tmp_path, cap
     assert main(args) == 0  # a second run is served from the stores
     np.testing.assert_array_equal(np.load(out), described)
 
-
-def test_describe_with_a_folder_for_its_dataset_says_what_the_option_takes(shared_data, tmp_path, capsys):
-    own = tmp_path / "own"
-    images = [str(p) for p in sorted((shared_data / "corridor" / "query").glob("*.jpg"))[:2]]
-    code = main(["describe", "--method", "hog", "--dataset", str(own), *images, "--out", str(tmp_path / "d.npy")])
-    err = capsys.readouterr().err
-    # was: "Unknown dataset '...'. ... or pass a folder path for your own data", though one was passed
-    assert code == 1 and f"describe --dataset takes a benchmark's name ('vprbench datasets list'), not a folder ({own})" in err
-    assert "Traceback" not in err and not (tmp_path / "d.npy").exists()

@@ -8,7 +8,7 @@ import warnings
 from ..errors import VPRBenchError
 from ..text import literal, quantity
 from .console import console, say, styled
-from .options import add_location_options, refuse_unused, resolve_locations
+from .options import add_location_options, path_argument, refuse_unused, resolve_locations
 
 
 def add_parsers(commands) -> None:
@@ -32,7 +32,7 @@ def add_parsers(commands) -> None:
     p.set_defaults(run=run_download)
     p = sub.add_parser("import", help="register a copy of a dataset already on disk (checked first)")
     p.add_argument("name")
-    p.add_argument("path", help="folder holding the dataset in its release layout (or a supported alternative)")
+    p.add_argument("path", type=path_argument, help="folder holding the dataset in its release layout (or a supported alternative)")
     add_location_options(p, cache=False)
     p.add_argument("--strict", action="store_true", help="refuse when counts differ from the manifest")
     p.set_defaults(run=run_import)
@@ -40,7 +40,7 @@ def add_parsers(commands) -> None:
     p.add_argument("name", help="dataset name or a folder of your own")
     add_location_options(p, cache=False)
     p.add_argument("--strict", action="store_true", help="counts that differ from the manifest are errors")
-    p.add_argument("--sample", type=int, default=20, help="images decoded per split (default 20)")
+    p.add_argument("--sample", type=int, help="images decoded per split (default 20)")
     p.add_argument("--all-images", action="store_true", help="decode every image")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(run=run_verify)
@@ -172,8 +172,11 @@ def run_verify(args) -> int:
 
     if is_path(args.name):
         refuse_unused(args, "data_dir", f"for a folder of your own ({args.name})")
+    if args.all_images:
+        refuse_unused(args, "sample", "with --all-images (every image is decoded)")
     resolve_locations(args)
-    report = verify_dataset(args.name, args.data_dir, strict=args.strict, sample=None if args.all_images else args.sample)
+    sample = 20 if args.sample is None else args.sample
+    report = verify_dataset(args.name, args.data_dir, strict=args.strict, sample=None if args.all_images else sample)
     if args.json:
         print(json.dumps({
             "name": report.name, "root": str(report.root), "layout": report.layout, "ok": report.ok,

@@ -196,12 +196,8 @@ def run_describe(args) -> int:
     settings = run_settings(args)
     root, label = None, f"describe-{args.dataset or 'images'}"
     if args.dataset is not None:  # '' is an unknown name, not none
-        from ..datasets import dataset_location, dataset_manifest, is_path
+        from ..datasets import dataset_location, dataset_manifest
 
-        if is_path(args.dataset):  # the manifest's error would say to pass a folder, as was done
-            raise VPRBenchError(f"describe --dataset takes a benchmark's name ('vprbench datasets list'), not a folder "
-                                f"({args.dataset}): for a folder of your own, give its images and --fit-on its "
-                                "database folder (or evaluate it whole: 'vprbench evaluate --dataset FOLDER').")
         manifest = dataset_manifest(args.dataset)  # an unknown name would apply no settings, silently
         root = _absolute(dataset_location(manifest, settings.data_dir))
         given = [*args.images, *([args.fit_on] if args.fit_on is not None else [])]

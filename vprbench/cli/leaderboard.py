@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from ..errors import VPRBenchError
 from .console import console, say
-from .options import path_argument, refuse_unused, resolve_locations
+from .options import check_new_folder, path_argument, refuse_unused, resolve_locations
 
 FORMATS = ("table", "markdown", "csv", "json")
 
@@ -15,13 +15,13 @@ def add_parsers(commands) -> None:
     p = commands.add_parser("leaderboard", help="leaderboard of all evaluations: show, publish to the docs, compare two methods")
     p.add_argument("action", nargs="?", choices=("show", "publish", "compare"), default="show")
     p.add_argument("methods", nargs="*", metavar="METHOD", help="with 'compare': the two method rows to compare")
-    p.add_argument("--format", choices=FORMATS, default="table",
+    p.add_argument("--format", choices=FORMATS,
                    help="with 'show': how the table is printed (default table; csv and json for other tools)")
     p.add_argument("--to", type=path_argument, help="with 'publish': the docs folder; the section goes to <folder>/leaderboard/")
     p.add_argument("--dataset", help="with 'compare': the dataset both were run on")
     p.add_argument("--k", type=int, help="with 'compare': the K of Recall@K compared (default 1)")
     p.add_argument("--seed", type=int, default=0, help="seed of the bootstrap (default 0)")
-    p.add_argument("--track", choices=("single-image", "re-ranked", "sequence"), default="single-image",
+    p.add_argument("--track", choices=("single-image", "re-ranked", "sequence"),
                    help="with 'show': which track's table (default single-image; each track is a table of its own)")
     p.add_argument("--cache-dir", help="where the results store lives")
     p.add_argument("--results", type=path_argument, metavar="DIR",
@@ -41,16 +41,19 @@ def run(args) -> int:
         refuse_unused(args, "data_dir", f"by 'leaderboard {args.action}' (only 'publish' reads images, for its mosaics)")
     resolve_locations(args)
     for flag, value, action in (("--to", args.to, "publish"), ("--dataset", args.dataset, "compare"),
-                                ("--k", args.k, "compare")):
+                                ("--k", args.k, "compare"), ("--format", args.format, "show"),
+                                ("--track", args.track, "show")):
         if value is not None and args.action != action:  # ignored, it would let a user think it took effect
             raise VPRBenchError(f"{flag} is for 'leaderboard {action}'; 'leaderboard {args.action}' does not use it: "
                                 "drop it.")
+    args.format, args.track = args.format or "table", args.track or "single-image"
     args.k, args.seed = check_k_and_seed(1 if args.k is None else args.k, args.seed)  # before any record is read
     if args.results is not None and args.action != "publish":
         raise VPRBenchError("--results DIR is for 'leaderboard publish' (it builds the site from a results repository).")
     if args.action == "publish":
         if args.to is None:
             raise VPRBenchError("leaderboard publish needs --to FOLDER (e.g. --to docs/)")
+        check_new_folder(args.to, "--to")
         skipped: list = []
         say(f"Wrote {publish(args.to, args.cache_dir, data_dir=args.data_dir, seed=args.seed, skipped=skipped, results=args.results)}")
         return unread(skipped)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import shlex
 from pathlib import Path
 
@@ -257,6 +258,15 @@ def output_file(*suffixes: str):
     return parse
 
 
+def check_new_folder(path: Path, flag: str) -> None:
+    """A folder a command writes into, made when missing: its parent must exist, as an output file's
+    folder must (a typo would otherwise make a tree of folders anywhere)."""
+    folder = path.expanduser()
+    if not os.path.lexists(folder) and not os.path.lexists(folder.parent):  # a file there is told where it is made
+        raise VPRBenchError(f"{flag} {folder}: the folder {folder.parent} does not exist: create it first or write "
+                            "elsewhere.")
+
+
 def add_run_options(parser: argparse.ArgumentParser, *, download: bool = True, quiet: bool = True,
                     strict: bool = True) -> None:
     """The run settings' flags; `strict` and `download` only for commands that load a dataset."""
@@ -306,8 +316,9 @@ def progress(args, stderr_is_rank_zero: bool = True):
 
 
 def explicit_run_options(args) -> dict:
-    """Run settings given on the command line, by flag or with -o (`-o workers=2`); a flag wins
-    over the same name given with -o, and both over a plan entry's."""
+    """Run settings given on the command line, by flag or with -o (`-o workers=2`), over a plan
+    entry's; a flag and -o giving one setting two values are refused, as method options are."""
+    from ..row_sources import parse_memory
     from ..spec import split_run_settings
 
     given = split_run_settings(method_options(args))[1]
@@ -315,4 +326,11 @@ def explicit_run_options(args) -> dict:
     flags = {"device": None if device in (None, "auto") else device,  # '' is checked, not auto
              "batch_size": getattr(args, "batch_size", None), "workers": getattr(args, "workers", None),
              "memory_budget": getattr(args, "search_memory", None), "lock_timeout": getattr(args, "lock_timeout", None)}
-    return {**given, **{k: v for k, v in flags.items() if v is not None}}
+    flags = {k: v for k, v in flags.items() if v is not None}
+    for name in set(flags) & set(given):
+        same = (parse_memory(flags[name]) == parse_memory(given[name]) if name == "memory_budget"  # 1GB = 1000MB
+                else flags[name] == given[name] or str(flags[name]) == str(given[name]))
+        if not same:  # else one is dropped, silently
+            flag = {"memory_budget": "--search-memory"}.get(name, f"--{name.replace('_', '-')}")
+            raise VPRBenchError(f"{flag} {flags[name]} and -o {name}={given[name]} disagree; give {name} once.")
+    return {**given, **flags}

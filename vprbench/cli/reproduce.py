@@ -5,7 +5,8 @@ from __future__ import annotations
 from .console import console as make_console
 from ..errors import DESCRIBED
 from .options import (add_location_options, add_method_flags, add_run_options, add_spec_options, add_sweep_options,
-                      method_options, path_argument, progress, resolve_locations, run_settings, spec_overrides)
+                      check_new_folder, method_options, path_argument, progress, resolve_locations, run_settings,
+                      spec_overrides)
 
 
 def add_parsers(commands) -> None:
@@ -61,7 +62,8 @@ def run_reproduce(args) -> int:
                             "nothing and publishes nothing: drop one of them (cells already measured are read, "
                             "not run again).")
     if args.publish:  # a folder that cannot be made is said before the cells run, not after
-        args.publish.mkdir(parents=True, exist_ok=True)
+        check_new_folder(args.publish, "--publish")
+        args.publish.mkdir(exist_ok=True)
     settings = run_settings(args)
     spec, table_cells_ = table_cells(args.paper, args.table, settings=explicit_run_options(args),
                                      data_dir=settings.data_dir, cache_dir=settings.cache_dir)

@@ -5,7 +5,7 @@ import math
 
 from ..errors import VPRBenchError
 from .console import say
-from .options import output_file, path_argument, resolve_locations
+from .options import check_new_folder, output_file, path_argument, resolve_locations
 
 
 def add_parsers(commands) -> None:
@@ -85,6 +85,7 @@ def run_import(args) -> int:
     from ..bundles import import_bundles
 
     resolve_locations(args)
+    check_new_folder(args.into, "--into")
     reports = import_bundles(args.bundles, args.into, _truth(args), max_bytes=_max_bytes(args),
                              lock_timeout=args.lock_timeout)
     for report in reports:

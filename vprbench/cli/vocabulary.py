@@ -26,7 +26,7 @@ def add_parsers(commands) -> None:
     p.add_argument("--budget", type=int, help="features kept by the seeded sampler (default: its standard budget)")
     p.add_argument("--exact", action="store_true", help="the authors' fit on every patch (memory grows with the data)")
     p.add_argument("--seed", type=int, default=42)
-    p.add_argument("--output", type=output_file(), help="also write the vocabulary file here")
+    p.add_argument("--output", type=output_file(".pt"), help="also write the vocabulary file (.pt) here")
     p.add_argument("--quiet", action="store_true",
                    help="no progress (without a terminal, progress is a line to stderr at most every 30 s)")
     add_location_options(p)
@@ -62,7 +62,7 @@ def add_parsers(commands) -> None:
 
 
 def run_fit(args) -> int:
-    from ..methods.anyloc_vocabulary import MAP_PREFIX, domain_image_size, fit_domain_vocabulary, fit_map_vocabulary, save_to_cache
+    from ..methods.anyloc_vocabulary import domain_image_size, fit_domain_vocabulary, fit_map_vocabulary, save_to_cache
     from ..aggregation.vocabulary import DEFAULT_BUDGET
     from ..methods import create_method
     from ..loader import use_dataset
@@ -114,7 +114,7 @@ def run_fit(args) -> int:
             vocabulary = fit_map_vocabulary(
                 args.dataset, lambda paths: _patch_features(method, paths, None), clusters,
                 data_dir=data_dir, progress=shown, **common)
-            source = f"{MAP_PREFIX}{args.dataset}"
+            source = vocabulary.meta["source"]  # map-<the dataset's name> (a folder's, not its path)
     path = save_to_cache(vocabulary, source=source, **setting, cache_dir=args.cache_dir)
     print(f"Vocabulary {source}: {vocabulary.clusters} x {vocabulary.dim}, "
           f"{vocabulary.meta['features_used']} of {vocabulary.meta['features_seen']} features -> {path}")

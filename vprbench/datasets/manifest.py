@@ -81,6 +81,11 @@ def _parsed(text: str, origin: str) -> DatasetManifest:
 def dataset_manifest(name: str) -> DatasetManifest:
     manifests = dataset_manifests()
     if name not in manifests:
+        from . import is_path
+
+        if is_path(name):  # else told to 'pass a folder path for your own data', the very thing given
+            raise VPRBenchError(f"{name} is a folder of your own; here a benchmark's name is needed: run "
+                                "'vprbench datasets list' to see them.")
         raise VPRBenchError(
             f"Unknown dataset {name!r}.{closest_names(name, manifests)} "
             "Run 'vprbench datasets list' to see all datasets, or pass a folder path for your own data."

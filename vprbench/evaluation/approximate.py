@@ -27,13 +27,13 @@ OPTIONS = {"ivf-pq": ("nlist", "pq_m", "nprobe", "train_rows", "shortlist", "rec
 
 def check_options(kind: str, options: dict) -> None:
     """Refuse (naming it) an option `kind` does not take, or a value that is not a whole number in
-    its range (seed >= 0, every other >= 1, all within faiss's 32-bit int): checked when the run is
-    specified, before any work."""
+    its range (seed >= 0, hnsw_m >= 2, every other >= 1, all within faiss's 32-bit int): checked when
+    the run is specified, before any work."""
     unknown = sorted(map(str, set(options) - set(OPTIONS[kind])))  # str: a name may be no text (5)
     if unknown:
         raise VPRBenchError(f"--index {kind} does not take {', '.join(unknown)}; its options: {', '.join(OPTIONS[kind])}.")
     for name, value in options.items():
-        least = 0 if name == "seed" else 1
+        least = {"seed": 0, "hnsw_m": 2}.get(name, 1)  # faiss's HNSW of M = 1 kills the process (levels 1/log M)
         if isinstance(value, bool) or not isinstance(value, int) or value < least:
             raise VPRBenchError(f"--index {kind} option {name} takes a whole number >= {least}; got {value!r}.")
         if value > LARGEST and name != "seed":  # the seed goes to numpy, which takes any size

@@ -194,7 +194,8 @@ def _load_all(pairs: list[tuple[str, int]], data_dir) -> list[tuple[str, list[Pa
         except VPRBenchError as exc:
             missing.append(f"  - {one_line(name)}: {one_line(exc)}")
             continue
-        loaded.append((name, vocabulary_images(name, dataset.database, stride)))
+        # by the dataset's name, not the text given: a folder's './mydata' would key its centres by that path
+        loaded.append((dataset.name, vocabulary_images(name, dataset.database, stride)))
     if missing:
         raise ProblemList(
             "Cannot fit this vocabulary: these datasets are needed and could not be loaded:\n"

@@ -208,7 +208,9 @@ def export_candidates(spec, settings, path, k: int = DEFAULT_K, progress=None) -
         raise VPRBenchError("candidates export searches; it does not start from --candidates.")
     from ..evaluation.approximate import searched_to
 
-    spec = spec.model_copy(update={"search": searched_to(spec.search, _depth(k))})  # the search as deep as it runs
+    # the search as deep as it runs; no Recall@K is computed: the default K (up to 20) was checked against the
+    # database and told to lower --k, which here is the depth (checked by `retrieved`, named as such)
+    spec = spec.model_copy(update={"search": searched_to(spec.search, _depth(k)), "ks": (1,)})
     run = retrieved(spec, settings, [], progress=progress, depth=k)
     write_candidates(path, spec, run.found, images_identity(run.dataset, settings.cache_dir))
     return {"file": str(path), "queries": int(run.found.indices.shape[0]), "k": int(run.found.indices.shape[1])}
