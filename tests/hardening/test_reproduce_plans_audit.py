@@ -271,3 +271,19 @@ def test_the_paper_table_shows_measured_minus_reported(tmp_path, monkeypatch):
     console.print(paper_table(spec, cells, RunSettings(cache_dir=tmp_path), Stored()))
     line = next(line for line in console.export_text().splitlines() if "│ DINOv2 GeM" in line)
     assert line.split("│")[2].strip() == f"{reported:.1f} / 99.0 (+{99.0 - reported:.1f}) [98.0, 99.5]"
+
+
+def test_the_released_vocabulary_download_command_runs_as_printed(tmp_path):
+    # it said "run 'vprbench vocabulary download --data-dir ...'", a flag that command does not take
+    # (it reads no data): copied as printed, it stopped at argparse
+    import shlex
+
+    from vprbench.cli.main import build_parser
+
+    _, cells = _cells("2", "AnyLoc-VLAD-DINOv2", tmp_path)
+    given = {"data-dir": str(tmp_path / "my data"), "cache-dir": str(tmp_path / "cache")}
+    _, how = vocabulary_for(cells["baidu-mall"].cells[0], tmp_path, given)
+    command = shlex.split(how.split("run '", 1)[1].split("'", 1)[0])
+    assert command[:3] == ["vprbench", "vocabulary", "download"], how
+    args = build_parser().parse_args(command[1:])
+    assert args.cache_dir == given["cache-dir"]

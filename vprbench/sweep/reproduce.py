@@ -247,9 +247,12 @@ def vocabulary_for(cell: Cell, cache_dir=None, given: dict | None = None) -> Nee
     released = released_path(name, cache_dir) if is_released_setting(*setting, method.stride) else None
     if find_vocabulary(name, *setting, cache_dir, method.stride) or (released is not None and released.is_file()):
         return None  # cached, or the authors' release already here
-    where = "".join(f" --{flag} {shlex.quote(str(path))}" for flag, path in (given or {}).items() if path is not None)
+    located = [(flag, shlex.quote(str(path))) for flag, path in (given or {}).items() if path is not None]
+    where = "".join(f" --{flag} {path}" for flag, path in located)
     if released is not None:  # fetched before the run, as weights are (a compute node may be offline)
-        return (f"the authors' vocabulary {name!r}", f"run 'vprbench vocabulary download{where}', or put the "
+        # `vocabulary download` reads no data: only the cache it fills is carried into the command
+        into = "".join(f" --{flag} {path}" for flag, path in located if flag == "cache-dir")
+        return (f"the authors' vocabulary {name!r}", f"run 'vprbench vocabulary download{into}', or put the "
                 f"release's c_centers.pt at {released}")
     if name not in domain_names():
         return None
