@@ -277,3 +277,26 @@ def test_top_k_csv_refuses_indices_that_are_not_whole_numbers(tmp_path, make_ima
     (root / "gt_matches.csv").write_text(header + "\n" + "\n".join(rows) + "\n")
     with pytest.raises(VPRBenchError, match=rf"gt_matches.csv: .*{shown}"):
         load_dataset("nardo-air", tmp_path).positives
+
+
+def test_a_moved_import_says_to_import_again_into_the_same_data_root(tmp_path, gardens):
+    # it said "Import it again with 'vprbench datasets import gardens-point PATH'": run as printed, that
+    # registers the copy in the default data root, and the run naming this one still fails
+    data_root = tmp_path / "data"
+    import_dataset("gardens-point", gardens, data_root)
+    gardens.rename(tmp_path / "moved")
+    with pytest.raises(VPRBenchError) as refused:
+        load_dataset("gardens-point", data_root)
+    command = re.search(r"'(vprbench datasets import [^']*)'", str(refused.value)).group(1)
+    args = build_parser().parse_args(command.split()[1:])
+    assert args.name == "gardens-point" and args.data_dir == str(data_root.resolve())
+
+
+def test_the_import_hint_for_a_dataset_not_there_names_its_data_root(tmp_path):
+    # it said "or run 'vprbench datasets import hawkins PATH'": that registers the copy in the default
+    # data root, and the run naming this one still finds nothing
+    with pytest.raises(VPRBenchError) as refused:
+        load_dataset("hawkins", tmp_path)
+    command = re.search(r"'(vprbench datasets import [^']*)'", str(refused.value)).group(1)
+    args = build_parser().parse_args(command.split()[1:])
+    assert args.name == "hawkins" and args.data_dir == str(tmp_path)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import contextlib
+import shlex
 from importlib.resources import files
 from pathlib import Path
 
@@ -16,14 +17,21 @@ def read_registry(name: str) -> dict[str, str]:
     return dict(line.split() for line in text.splitlines() if line.strip() and not line.startswith("#"))
 
 
+def data_root_flag(base: Path) -> str:
+    """The `--data-dir` a printed command needs to act on the data root `base` (none for the default
+    one): downloads and imports go to, and are looked up in, one data root."""
+    return "" if base == default_data_root() else f" --data-dir {shlex.quote(str(base))}"
+
+
 def how_to_get(manifest: DatasetManifest, root: Path) -> str:
     """What to do to have the dataset at root. Manifests' instructions say how to get the data,
     never where it goes: that is said here, once."""
+    named = data_root_flag(root.parent)
     if manifest.download:
-        named = "" if root.parent == default_data_root() else f" --data-dir {root.parent}"
         return f"Run 'vprbench datasets download {manifest.name}{named}' to fetch it into {root}."
     text = manifest.instructions.strip() or f"Get it from {manifest.source or 'its authors'}."
-    return f"{text} Place it at {root}, or run 'vprbench datasets import {manifest.name} PATH' on a copy elsewhere."
+    return (f"{text} Place it at {root}, or run 'vprbench datasets import {manifest.name} PATH{named}' on a copy "
+            "elsewhere.")
 
 
 def download(manifest: DatasetManifest, root: Path, progress: bool = True) -> Path:
@@ -58,7 +66,7 @@ def _fetch(manifest: DatasetManifest, root: Path) -> None:
             raise VPRBenchError(
                 f"Downloading {manifest.name!r} from {url_host(manifest.download['base_url'])} failed at {relative}: "
                 f"{network_reason(error).rstrip('.')}. {kept} Or get the files yourself and run "
-                f"'vprbench datasets import {manifest.name} PATH'."
+                f"'vprbench datasets import {manifest.name} PATH{data_root_flag(root.parent)}'."
             ) from None
     # pooch streams each file into a tmp* file beside it: a killed download's would be renamed into the
     # dataset for good (no live one is writing: the lock)

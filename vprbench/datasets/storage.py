@@ -14,7 +14,7 @@ from pathlib import Path
 from ..errors import VPRBenchError
 from ..fsutil import atomic_write, lock
 from ..paths import resolved
-from .download import how_to_get
+from .download import data_root_flag, how_to_get
 from .layouts import candidates, detect_layout, missing_paths, read_layout
 from .manifest import DatasetManifest, data_root, dataset_manifest, is_default_data_root
 from .model import Dataset
@@ -79,8 +79,10 @@ def missing_dataset_message(manifest: DatasetManifest, root: Path, data_dir=None
     dataset folder itself, the closest existing path, how to get the data."""
     name, base = manifest.name, data_root(data_dir)
     if read_registry(data_dir).get(name):
+        # the registry read is this data root's: an import into the default one would not be seen here
+        named = data_root_flag(base)
         return (f"Dataset {name!r} was imported from {root}, which no longer exists (closest existing folder: "
-                f"{nearest_existing(root)}). Import it again with 'vprbench datasets import {name} PATH'.")
+                f"{nearest_existing(root)}). Import it again with 'vprbench datasets import {name} PATH{named}'.")
     if is_dataset_folder(base, manifest) or base.name == manifest.directory:
         return (f"The data root {base} is the {name!r} dataset folder itself; the data root is the folder that "
                 f"holds the datasets: use the folder above, --data-dir {base.parent}.")
