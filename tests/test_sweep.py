@@ -179,7 +179,7 @@ def test_missing_benchmarks_of_a_sweep_are_said_once_below_the_table(tmp_path, c
     assert "[3]" not in text and text.lower().count("place it") == 2  # once per dataset
     # a path longer than the line is folded inside it (a long temporary folder, as under pytest-xdist)
     unwrapped = "".join(notes.split())
-    assert f"Placeitat{tmp_path / 'Nordland'},orrun'vprbenchdatasetsimportnordlandPATH'" in unwrapped
+    assert f"Placeitat{tmp_path / 'Nordland'},orrun'vprbenchdatasetsimportnordlandPATH--data-dir{tmp_path}'" in unwrapped
 
 
 def test_reproduce_dry_run_and_bad_table(shared_data, capsys, monkeypatch):
