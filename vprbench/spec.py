@@ -35,6 +35,7 @@ from .errors import VPRBenchError, closest_names, require
 from .content_identity import option_identities
 from .hashing import canonical_hash, canonical_json
 from .paths import folder_path
+from .text import shortened
 from .run_settings import RUN_SETTINGS, RunSettings, split_run_settings  # noqa: F401 (how a run goes, beside what it is)
 
 #: version of the spec's shape; a spec from a newer vprbench is refused
@@ -383,11 +384,19 @@ def resolve_stage(stage) -> StageSpec:
     elif isinstance(stage, str):
         name, options = stage, {}
     elif isinstance(stage, dict):
-        name = stage.get("name")
-        options = dict(stage.get("options") or {})
-        options.update({k: v for k, v in stage.items() if k not in ("name", "options")})
+        name, table = stage.get("name"), stage.get("options")
+        table = {} if table is None else table
         if not isinstance(name, str):
             raise VPRBenchError(f"A stage needs a name, e.g. {{name = \"sift-ransac\", k = 100}}; got {stage!r}.")
+        if not isinstance(table, Mapping):  # dict() of a string or a list would be a traceback or read it as pairs
+            raise VPRBenchError(f"Stage {name!r}: options must be a table of option = value, e.g. {{name = \"{name}\", "
+                                f"options = {{k = 100}}}}; got {shortened(repr(table))}.")
+        beside = {k: v for k, v in stage.items() if k not in ("name", "options")}
+        twice = [k for k in beside if k in table and table[k] != beside[k]]
+        if twice:  # else the one beside the name silently replaced the other
+            raise VPRBenchError(f"Stage {name!r}: option {twice[0]} is given twice, {shortened(table[twice[0]])} in "
+                                f"options and {shortened(beside[twice[0]])} beside the name; give it once.")
+        options = {**table, **beside}
     else:
         raise VPRBenchError(f"A stage is a name or a table with a name, got {stage!r}.")
     validated, entry = stage_options(name, options), stage_entry(name)  # its name as registered (NFC)

@@ -17,12 +17,18 @@ def test_stage_options_are_checked_when_the_spec_is_made(shared_data):
     spec = spec_of(shared_data, [{"name": "aqe", "k": "20"}])
     assert spec.stages[0].options == {"k": 20, "n": 10, "alpha": 3.0}  # resolved: one identity per stage
     assert spec.row_key == spec_of(shared_data, [{"name": "aqe", "options": {"k": 20}}]).row_key
+    assert spec.row_key == spec_of(shared_data, [{"name": "aqe", "options": {"k": 20}, "k": 20}]).row_key  # once, agreeing
     assert spec.row_key != spec_of(shared_data, [{"name": "aqe", "k": 30}]).row_key != spec_of(shared_data, []).row_key
     for stage, message in [({"name": "aqe", "k": "many"}, "Stage 'aqe' option k: Input should be a valid integer"),
                            ({"name": "aqe", "kk": 3}, "Stage 'aqe' does not take option kk. Did you mean: k?"),
                            ({"name": "aqe", "k": 0}, "Stage 'aqe' option k: Input should be greater than or equal to 1"),
                            ("sift-ransak", "Unknown stage 'sift-ransak'. Did you mean: sift-ransac?"),
-                           ({"k": 3}, "A stage needs a name")]:
+                           ({"k": 3}, "A stage needs a name"),
+                           ({"name": "aqe", "options": "k=20"}, "Stage 'aqe': options must be a table of option = value"),
+                           ({"name": "aqe", "options": 5}, "Stage 'aqe': options must be a table"),
+                           ({"name": "aqe", "options": [["k", 20]]}, "Stage 'aqe': options must be a table"),
+                           ({"name": "aqe", "options": {"n": 3}, "n": 4},
+                            "Stage 'aqe': option n is given twice, 3 in options and 4 beside the name; give it once")]:
         with pytest.raises(VPRBenchError, match=message):
             spec_of(shared_data, [stage])
     with pytest.raises(VPRBenchError, match=r"re-ranks the top 10 \(--rerank-k\), fewer than the largest K reported \(20\)"):

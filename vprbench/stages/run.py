@@ -101,9 +101,10 @@ def run_stages(stages, candidates: Candidates, context: StageContext, ks, positi
     raised it (0 when it stayed under an earlier peak; no tracer, so the timing is the stage's own), how
     many images' per-image data it computed rather than read from the cache, and where its weights
     come from when it has any.
-    With `positives`, each cost has the stage's ceiling: the % of queries with a positive among the
+    With `positives`, each re-ranker's cost has its ceiling: the % of queries with a positive among the
     candidates it was given (a re-ranker of them can reach no higher recall; a query flagged in `all_zero`
-    has none: its descriptor is all zero, so it counts as a failure whatever a stage makes of its candidates)."""
+    has none: its descriptor is all zero, so it counts as a failure whatever a stage makes of its candidates).
+    A sequence stage has no ceiling: it matches against the whole database, not what it was given."""
     queries, database = candidates.query_count, context.database.row_count
     costs = []
     for stage in stages:
@@ -125,7 +126,7 @@ def run_stages(stages, candidates: Candidates, context: StageContext, ks, positi
             provenance = stage.provenance()
         code = stage_fingerprint(stage)
         ceiling = {}
-        if positives is not None:
+        if positives is not None and stage.track == "re-ranked":  # a sequence stage ignores what it is given: no ceiling
             from ..evaluation.metrics import correct_at
 
             found_any = correct_at(given.indices, positives, all_zero).any(1)
