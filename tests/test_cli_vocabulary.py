@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from own_folders import corridor_folder
 from vprbench import Method
 from vprbench.aggregation import Vocabulary
 from vprbench.methods.anyloc_vocabulary import resolve_vocabulary
@@ -207,15 +208,7 @@ def test_a_map_fit_on_a_folder_is_named_by_its_dataset_not_the_path(given, share
     --vocabulary map-./mydata is read as a file path."""
     import vprbench.methods as methods
 
-    own = tmp_path / "campus-folder"
-    rows = ["image,x,y"]
-    for split, folder, count in (("database", "ref", 3), ("queries", "query", 2)):
-        (own / split).mkdir(parents=True)
-        for i in range(count):
-            name = f"{i:07d}.jpg"
-            os.symlink(shared_data / "corridor" / folder / name, own / split / name)
-            rows.append(f"{split}/{name},{i * 10},0")
-    (own / "positions.csv").write_text("\n".join(rows) + "\n")
+    own = corridor_folder(shared_data, tmp_path / "campus-folder")
     (own / "dataset.toml").write_text('name = "campus"\n')
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(methods, "create_method", lambda name, **kw: FakeMethod(**kw))

@@ -3,18 +3,16 @@ streams in: real processes fetching the real Corridor files from a local HTTP se
 checks and all, without the internet)."""
 from __future__ import annotations
 
-import functools
-import http.server
 import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import pytest
 
+from stalling_server import serving
 from vprbench.datasets.download import read_registry
 
 #: `vprbench ARGS...` with Corridor's source at the local server; with a meeting folder, each process
@@ -52,39 +50,11 @@ sys.exit(main(sys.argv[5:]))
 STALLED = "query/0000005.jpg"
 
 
-class Handler(http.server.SimpleHTTPRequestHandler):
-    """The real files; while `stall` is set, STALLED stops halfway (its first half sent) until it is cleared."""
-    stall = threading.Event()
-
-    def log_message(self, *args):
-        pass
-
-    def do_GET(self):
-        if self.path.lstrip("/") != STALLED or not self.stall.is_set():
-            return super().do_GET()
-        body = Path(self.directory, STALLED).read_bytes()
-        self.send_response(200)
-        self.send_header("Content-Length", str(len(body)))
-        self.end_headers()
-        self.wfile.write(body[: len(body) // 2])
-        self.wfile.flush()
-        while self.stall.is_set():
-            time.sleep(0.05)
-        self.close_connection = True
-
-
-class Server(http.server.ThreadingHTTPServer):
-    def handle_error(self, request, client_address):
-        pass  # a client killed mid-file (the point of a test) is no server error to print
-
-
 @pytest.fixture
-def port(shared_data):
-    server = Server(("127.0.0.1", 0), functools.partial(Handler, directory=str(shared_data / "corridor")))
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    yield server.server_port
-    Handler.stall.clear()
-    server.shutdown()
+def served(shared_data):
+    with serving(shared_data / "corridor", stalled=STALLED) as server:
+        yield server
+
 
 
 def start(port: int, data: Path, meeting: str = "-", me: str = "-", other: str = "-") -> subprocess.Popen:
@@ -103,13 +73,13 @@ def assert_whole(root: Path) -> None:
     assert all(file_sha256(root / name) == sha for name, sha in registry.items())
 
 
-def test_two_downloads_at_once_take_turns_and_keep_one_whole_copy(port, tmp_path):
+def test_two_downloads_at_once_take_turns_and_keep_one_whole_copy(served, tmp_path):
     """Was: both fetched into corridor.partial; the first renamed it to corridor while the second still
     wrote there, so the second failed ('No such file or directory ... Check the network'), or removed the
     first's whole copy and renamed its own few files in its place (a broken dataset kept for good)."""
     data, meeting = tmp_path / "data", tmp_path / "meeting"
     meeting.mkdir()
-    runs = [start(port, data, str(meeting), me, other) for me, other in (("a", "b"), ("b", "a"))]
+    runs = [start(served.port, data, str(meeting), me, other) for me, other in (("a", "b"), ("b", "a"))]
     outputs = [run.communicate(timeout=120) for run in runs]
     assert [run.returncode for run in runs] == [0, 0], outputs
     assert all("Traceback" not in err for _, err in outputs), outputs
@@ -119,20 +89,20 @@ def test_two_downloads_at_once_take_turns_and_keep_one_whole_copy(port, tmp_path
     assert not (data / "corridor.partial").exists()
 
 
-def test_a_download_killed_while_a_file_streams_in_leaves_nothing_in_the_dataset(port, tmp_path):
+def test_a_download_killed_while_a_file_streams_in_leaves_nothing_in_the_dataset(served, tmp_path):
     """kill -9 while pooch streams a file into its tmp* file beside it. Was: the rerun renamed that
     half-written temporary into the dataset folder, for good."""
     data = tmp_path / "data"
-    Handler.stall.set()
-    run = start(port, data)
+    served.stall.set()
+    run = start(served.port, data)
     deadline = time.time() + 60
     while not any((data / "corridor.partial" / "query").glob("tmp*")) and time.time() < deadline:
         time.sleep(0.02)
     run.send_signal(signal.SIGKILL)
     run.communicate(timeout=30)
     assert any((data / "corridor.partial" / "query").glob("tmp*"))  # what the kill left
-    Handler.stall.clear()
-    rerun = start(port, data)
+    served.stall.clear()
+    rerun = start(served.port, data)
     out, err = rerun.communicate(timeout=120)
     assert rerun.returncode == 0 and "Traceback" not in err, err
     assert_whole(data / "corridor")

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from own_folders import corridor_folder
+
 from vprbench.errors import VPRBenchError
 from vprbench.evaluation.approximate import check_options
 
@@ -110,15 +112,7 @@ def test_leaderboard_show_options_given_to_another_action_are_refused(args, flag
 def test_candidates_export_of_a_small_database_is_not_refused_for_recall_at_20(shared_data, cli, tmp_path):
     """On a database of fewer than 20 images every export stopped with 'K = 20 exceeds ...: give --k with values
     up to 3': the default Recall@K, which an export never computes, and --k there is the depth, already 2."""
-    own = tmp_path / "own"
-    rows = ["image,x,y"]
-    for split, folder, count in (("database", "ref", 3), ("queries", "query", 2)):
-        (own / split).mkdir(parents=True)
-        for i in range(count):
-            name = f"{i:07d}.jpg"
-            os.symlink(shared_data / "corridor" / folder / name, own / split / name)
-            rows.append(f"{split}/{name},{i * 10},0")
-    (own / "positions.csv").write_text("\n".join(rows) + "\n")
+    own = corridor_folder(shared_data, tmp_path / "own")
     export = ["candidates", "export", "--method", "hog", "--resize", "64", "64", "--dataset", own, "--quiet"]
     code, _, err = cli(*export, "--k", "2", "--out", tmp_path / "c.h5")
     assert code == 0 and "Wrote the top 2 candidates of 2 queries" in err, err
