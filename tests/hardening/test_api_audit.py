@@ -211,14 +211,16 @@ def test_compare_takes_a_whole_k_and_seed(stored, k, seed):
     board = build_board(read_results(cache))
     name = board.rows[0].name
     assert compare(board, name, name, "corridor", k=5)["k"] == 5
-    refused(lambda: compare(board, name, name, "corridor", k=k, seed=seed),
-            "--k takes a whole number >= 1 (the K of Recall@K compared) and --seed one >= 0", f"got --k {k!r} --seed {seed!r}.")
+    wrong = (f"--k takes a whole number >= 1 (the K of Recall@K compared); got {k!r}" if seed == 0 else
+             f"--seed takes a whole number >= 0 (the bootstrap's); got {seed!r}")
+    refused(lambda: compare(board, name, name, "corridor", k=k, seed=seed), f"{wrong}.")
 
 
 def test_publish_refuses_a_bad_seed_before_writing(stored, tmp_path):
     cache, _ = stored
-    refused(lambda: publish(tmp_path / "docs", cache, seed=-1), "--seed one >= 0")
-    refused(lambda: publish(tmp_path / "docs", cache, seed=1.5), "--seed one >= 0")
+    # only the seed is named: publish takes no K (was: "got --k 1 --seed -1")
+    refused(lambda: publish(tmp_path / "docs", cache, seed=-1), "--seed takes a whole number >= 0 (the bootstrap's); got -1.")
+    refused(lambda: publish(tmp_path / "docs", cache, seed=1.5), "--seed takes a whole number >= 0 (the bootstrap's); got 1.5.")
     assert not (tmp_path / "docs").exists()
 
 

@@ -263,11 +263,12 @@ def test_own_dataset_title_with_markup_prints_whole(own, cli):
 # ---------------------------------------------------------------- seeds and K of the other commands
 def test_negative_seeds_and_k_are_one_line(shared_data, cli, tmp_path):
     """A negative seed was a numpy traceback in compare, publish and vocabulary fit; --k 0 compared 'R@0'."""
-    for args in (["compare", "hog", "dense-vlad", "--dataset", "corridor", "--seed", "-1"],
-                 ["compare", "hog", "dense-vlad", "--dataset", "corridor", "--k", "0"],
-                 ["publish", "--to", tmp_path / "docs", "--seed", "-1"]):
+    for args, said in ((["compare", "hog", "dense-vlad", "--dataset", "corridor", "--seed", "-1"], "--seed takes a whole number >= 0"),
+                       (["compare", "hog", "dense-vlad", "--dataset", "corridor", "--k", "0"], "--k takes a whole number >= 1"),
+                       (["publish", "--to", tmp_path / "docs", "--seed", "-1"], "--seed takes a whole number >= 0")):
         code, _, err = cli("leaderboard", *args)
-        assert_refused(code, err, None, "--k takes a whole number >= 1", "--seed one >= 0")
+        assert_refused(code, err, None, said)
+        assert err.count("takes a whole number") == 1  # the option at fault alone (was: both, '--k 1' never given)
     assert not (tmp_path / "docs").exists()
     code, _, err = cli("vocabulary", "fit", "--dataset", "corridor", "--method", "anyloc", "--backbone", "dinov2_vits14",
                        "--weights", "random", "--layer", 1, "--clusters", 2, "--resize", 28, 28, "--seed", -1,

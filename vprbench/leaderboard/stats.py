@@ -29,9 +29,11 @@ _INTERVALS: dict[tuple, tuple[float, float]] = {}
 def check_k_and_seed(k, seed) -> tuple[int, int]:
     """The K of Recall@K compared (>= 1) and the bootstrap's seed (>= 0), as whole numbers: R@0,
     R@-1 or R@1.5 would compare nothing without a word, and a bad seed was a numpy traceback."""
-    if not all(isinstance(v, Integral) and not isinstance(v, bool) for v in (k, seed)) or k < 1 or seed < 0:
-        raise VPRBenchError(f"--k takes a whole number >= 1 (the K of Recall@K compared) and --seed one >= 0 (the "
-                            f"bootstrap's); got --k {k!r} --seed {seed!r}.")
+    wrong = [f"--{name} takes a whole number >= {least} ({what}); got {value!r}"  # only what was wrong: --k may be unset
+             for name, value, least, what in (("k", k, 1, "the K of Recall@K compared"), ("seed", seed, 0, "the bootstrap's"))
+             if not (isinstance(value, Integral) and not isinstance(value, bool) and value >= least)]
+    if wrong:
+        raise VPRBenchError("; ".join(wrong) + ".")
     return int(k), int(seed)
 
 
