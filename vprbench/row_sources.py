@@ -101,18 +101,18 @@ def chunks(rows: RowSource, chunk_rows: int) -> Iterator[tuple[int, np.ndarray]]
         del block  # with the caller's reference gone too, one chunk is alive at a time
 
 
-def parse_memory(text) -> int:
-    """'1GB' (10^9), '512MiB' (2^29), '2.5GB', or a number of bytes -> bytes."""
+def parse_memory(text, what: str = "Memory size") -> int:
+    """'1GB' (10^9), '512MiB' (2^29), '2.5GB', or a number of bytes -> bytes; `what` names it in an error."""
     if isinstance(text, (int, np.integer)):
         value = int(text)
     else:
         match = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([A-Za-z]*)\s*", str(text))
         unit = match.group(2).upper() if match else None
         if unit not in _UNITS:
-            raise VPRBenchError(f"Memory size {text!r} is not understood: use e.g. 1GB, 512MB, 2GiB or a number of bytes.")
+            raise VPRBenchError(f"{what} {text!r} is not understood: use e.g. 1GB, 512MB, 2GiB or a number of bytes.")
         value = int(float(match.group(1)) * _UNITS[unit])
     if value <= 0:
-        raise VPRBenchError(f"Memory size must be positive, got {text!r}.")
+        raise VPRBenchError(f"{what} must be positive, got {text!r}.")
     return value
 
 

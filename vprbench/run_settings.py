@@ -48,7 +48,7 @@ class RunSettings:
         if self.workers is not None:
             object.__setattr__(self, "workers", whole("run", "workers", self.workers, 0, what="loader processes"))
         if self.memory_budget is not None:
-            object.__setattr__(self, "memory_budget", parse_memory(self.memory_budget))
+            object.__setattr__(self, "memory_budget", parse_memory(self.memory_budget, "--search-memory (memory_budget)"))
         if self.lock_timeout is not None:
             try:
                 timeout = number("run", "lock_timeout", self.lock_timeout, minimum=0)

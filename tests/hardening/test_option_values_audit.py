@@ -138,3 +138,12 @@ def test_a_run_setting_given_twice_alike_runs(shared_data, cli):
     code, _, err = cli(*HOG, "--data-dir", shared_data, "--resize", "64", "64", "--search-memory", "1GB",
                        "-o", "memory_budget=1000MB", "--batch-size", "8", "-o", "batch_size=8")
     assert code == 0, err
+
+
+@pytest.mark.parametrize("value, said", [("lots", "--search-memory (memory_budget) 'lots' is not understood"),
+                                         ("0", "--search-memory (memory_budget) must be positive, got '0'")])
+def test_a_bad_search_memory_names_its_option(value, said, shared_data, cli, tmp_path):
+    """(was: "Memory size 'lots' is not understood", naming no option)"""
+    code, _, err = cli(*HOG, "--data-dir", shared_data, "--search-memory", value, "--cache-dir", tmp_path / "cache")
+    assert_refused(code, err, None, said)
+    assert not (tmp_path / "cache" / "stores").exists()

@@ -62,7 +62,7 @@ def test_a_very_long_name_is_shortened_in_the_message(cli, tmp_path):
     ("batch_size = 0", "plan.toml:5: hog: option batch_size takes a whole number >= 1 (images per batch); got 0."),
     ('device = "bogus"', "plan.toml:5: hog: option device takes a torch device such as cpu, cuda or cuda:1; got 'bogus'."),
     ("workers = -1", "plan.toml:5: run: option workers takes a whole number >= 0 (loader processes); got -1."),
-    ('memory_budget = "x"', "plan.toml:5: Memory size 'x' is not understood"),
+    ('memory_budget = "x"', "plan.toml:5: --search-memory (memory_budget) 'x' is not understood"),
     ("lock_timeout = -1", "plan.toml:5: --lock-timeout (lock_timeout) takes a finite number of seconds >= 0"),
 ])
 def test_a_bad_run_setting_stops_the_plan_before_any_cell(cli, tmp_path, options, expected):
