@@ -306,6 +306,11 @@ def official_releases() -> tuple[dict, ...]:
     return tuple(tomllib.loads(text)["release"])
 
 
+def is_file_identity(identity) -> bool:
+    """Whether `identity` names a weights file by its content: 'sha256:' and 64 hex digits."""
+    return isinstance(identity, str) and re.fullmatch(r"sha256:[0-9a-fA-F]{64}", identity) is not None
+
+
 def weights_provenance(identity: str | None) -> dict:
     """Where a method's weights came from, for result records and the leaderboard.
 
@@ -320,10 +325,8 @@ def weights_provenance(identity: str | None) -> dict:
         return {"source": "random"}
     require(identity, str, "weights_provenance takes a weights identity (a URL, 'hf:REPO/FILE' or 'sha256:HEX'), "
                            "or None for random weights")
-    import re
-
-    if not re.fullmatch(r"[A-Za-z][\w+.-]*:\S+", identity) or identity.startswith("sha256:") and not re.fullmatch(
-            r"sha256:[0-9a-fA-F]{64}", identity):  # else any text (a bare file name) is recorded as official weights
+    if not re.fullmatch(r"[A-Za-z][\w+.-]*:\S+", identity) or identity.startswith("sha256:") and not \
+            is_file_identity(identity):  # else any text (a bare file name) is recorded as official weights
         raise VPRBenchError(f"weights_provenance takes a weights identity (a URL, 'hf:REPO/FILE', a source's "
                             f"'SOURCE:NAME' or 'sha256:' and 64 hex digits), or None for random weights; got {identity!r}.")
     if identity.startswith("hf:"):

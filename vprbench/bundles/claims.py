@@ -10,7 +10,6 @@ and a method card (methods/<row key>.json) that describes another method than it
 from __future__ import annotations
 
 import json
-import re
 
 from ..evaluation.results import card_of
 from ..spec import RunSpec
@@ -22,7 +21,7 @@ def false_claims(record: dict) -> list[str]:
     from ..datasets import dataset_manifests
     from ..evaluation.identity import benchmark_protocols
     from ..stages.registry import available_stages
-    from ..weights import weights_provenance
+    from ..weights import is_file_identity, weights_provenance
 
     spec = RunSpec.model_validate(record["spec"])
     # a stage's label leaves out its defaults, known only where its plugin is installed
@@ -42,7 +41,7 @@ def false_claims(record: dict) -> list[str]:
                   ("domain", record.get("domain"), dataset_manifests()[record["dataset"]].domain,
                    f"the {record['dataset']} manifest")]
     weights = spec.files.get("weights")
-    if isinstance(weights, str) and re.fullmatch(r"sha256:[0-9a-fA-F]{64}", weights):  # a weights file, known by its content
+    if is_file_identity(weights):  # a weights file, known by its content (a malformed one is no file's)
         stated = ((record.get("provenance") or {}).get("weights") or {}).get("source")
         given.append(("weights source", stated, weights_provenance(weights)["source"],
                       f"its weights file {weights[:19]}"))
