@@ -24,7 +24,7 @@ import numpy as np
 from ..errors import VPRBenchError
 from ..text import one_line
 from ..evaluation.blocks import Resampling, for_dataset, for_record, record_window
-from ..evaluation.record import OPTIONAL_FIELDS, PER_QUERY_FIELDS, UNIT_FIELDS, validated
+from ..evaluation.record import UNIT_FIELDS, per_query_arrays_in, validated
 from ..evaluation.results import check_kinds
 from ..stages.base import unordered_row
 from .archive import _CARD, MAX_BYTES, RECORD_NAME, BundleError, _json, check_manifest, read_members
@@ -201,10 +201,8 @@ def _arrays(record: dict, members: dict[str, bytes], folder: str, problems: list
             problems.append(f"{file} unpacks to {unpacked / 2**20:,.0f} MiB, more than the bound of "
                             f"{max_bytes / 2**20:g} MiB (an archive bomb, or a bundle too big: raise --max-size)")
             return None
-        with np.load(io.BytesIO(data), allow_pickle=False) as found:
-            arrays = {f: found[f] for f in PER_QUERY_FIELDS}
-            arrays.update({f: found[f] for f in OPTIONAL_FIELDS if f in found.files})
-    except (ValueError, KeyError, OSError, EOFError, zipfile.BadZipFile, MemoryError) as error:
+        arrays = per_query_arrays_in(data)
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as error:
         problems.append(f"{file} is not readable per-query arrays ({type(error).__name__}: {error})")
         return None
     try:

@@ -6,6 +6,7 @@ file is never rewritten). Schema: docs/record-schema.md.
 """
 from __future__ import annotations
 
+import io
 import uuid
 from datetime import datetime, timezone
 from pathlib import Path
@@ -342,3 +343,15 @@ def plain_or_text(value):
     import json
 
     return json.loads(json.dumps(value, default=str))
+
+
+def per_query_arrays_in(data: bytes) -> dict[str, np.ndarray]:
+    """The per-query arrays of an .npz file's bytes, read by the one guarded .npz reader (no
+    objects, no header claiming more than the file holds); a ValueError saying why not."""
+    from ..datasets.layouts.npy import npz_members
+
+    found = npz_members(io.BytesIO(data), kinds="biufUS")  # what else they hold is check_kinds' to refuse
+    missing = [field for field in PER_QUERY_FIELDS if field not in found]
+    if missing:
+        raise ValueError(f"it has no {', '.join(missing)} array")
+    return {field: found[field] for field in (*PER_QUERY_FIELDS, *OPTIONAL_FIELDS) if field in found}

@@ -150,9 +150,18 @@ def read_npz(path: Path, what: str, expected: str, kinds: str = "iufUS") -> dict
 
 
 def _npz(path: Path, what: str, expected: str, kinds: str, read: bool) -> dict:
-    path, found, name = Path(path), {}, None
     try:
-        with zipfile.ZipFile(path) as archive:
+        return npz_members(path, kinds, read)
+    except ValueError as error:
+        raise VPRBenchError(f"Cannot read {what} {path}: {error}. Expected {expected}.") from None
+
+
+def npz_members(source, kinds: str = "iufUS", read: bool = True) -> dict:
+    """The arrays (`read`) or their (shape, dtype) of an .npz archive at `source` (a path or a file
+    object), by name; a ValueError saying why it is unreadable (see `read_npz`). OSError is left."""
+    found, name = {}, None
+    try:
+        with zipfile.ZipFile(source) as archive:
             for info in archive.infolist():
                 name = info.filename
                 if not name.endswith(".npy"):
@@ -171,6 +180,6 @@ def _npz(path: Path, what: str, expected: str, kinds: str, read: bool) -> dict:
     # unknown compression (RuntimeError, NotImplementedError)
     except (zipfile.BadZipFile, zlib.error, RuntimeError, NotImplementedError, ValueError, TypeError, EOFError,
             OverflowError, MemoryError, struct.error) as error:
-        reason = f"its member {name}: {error}" if name is not None else f"it is not a complete .npz archive ({error})"
-        raise VPRBenchError(f"Cannot read {what} {path}: {reason}. Expected {expected}.") from None
+        raise ValueError(f"its member {name}: {error}" if name is not None else
+                         f"it is not a complete .npz archive ({error})") from None
     return found
