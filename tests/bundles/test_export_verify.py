@@ -347,3 +347,15 @@ def test_a_recall_beyond_the_kept_top_k_and_a_repeated_candidate_are_refused(bun
     name = edit_arrays(members, repeat)
     problems = _only_failure(verify_bundle(write_bundle(tmp_path / "twice.tar.gz", members), truth), name)
     assert "query 5 lists a database image twice in its top 20" in problems
+
+
+@pytest.mark.parametrize("kind", ["own", "given"])
+def test_a_run_no_one_can_rescore_is_not_exported(records, kind, tmp_path):
+    """Was: `results export` packed a run on an own folder into a bundle, exit 0, which `results
+    verify` then refused ('it was run on a own dataset ...'), so the contributor learnt it too late."""
+    record = {**records[0], "dataset_kind": kind}
+    to = tmp_path / "own.tar.gz"
+    with pytest.raises(VPRBenchError, match=f"Run {record['run_id']} .* ground truth vprbench does not ship.*"
+                                            "bundles carry benchmark runs only.*Nothing was exported"):
+        export_bundle([records[1], record], to)
+    assert not to.exists()

@@ -102,7 +102,7 @@ def test_a_benchmark_run_relabelled_as_a_run_on_own_data_is_refused(members, ver
         record["spec"]["dataset"]["kind"] = record["dataset_kind"] = "own"
     name = respec(members, own)
     [problem] = problems_of(verify(members), name)
-    assert problem.startswith("it was run on a own dataset, whose ground truth vprbench does not ship")
+    assert problem.startswith("it was run on a folder of your own, whose ground truth vprbench does not ship")
 
 
 @pytest.mark.parametrize("field, change", [("database", 1), ("queries", -1)])

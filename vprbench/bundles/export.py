@@ -51,9 +51,20 @@ def select_records(records: list[dict], *, run_ids=(), method: str | None = None
     return chosen
 
 
+#: what a record's dataset kind is, in words, where a bundle cannot carry it
+KIND_WORDS = {"own": "a folder of your own", "given": "data given by hand (no dataset on disk)"}
+
+
 def _record_files(record: dict) -> dict[str, bytes]:
     """The record's file, its per-query arrays and its method card, as the store has them."""
     source = Path(record["_source"])
+    kind = record.get("dataset_kind")
+    if kind != "benchmark":  # a bundle is for re-scoring, which needs the ground truth vprbench ships
+        raise VPRBenchError(
+            f"Run {record['run_id']} ({record.get('label') or record['method']} on {record['dataset']!r}) is on "
+            f"{KIND_WORDS.get(kind, f'a {kind} dataset')}, whose ground truth vprbench does not ship, so no one could "
+            "re-score it from a bundle: bundles carry benchmark runs only; share the record and the dataset folder "
+            "instead. Nothing was exported.")
     folder = f"{record['protocol']['hash']}/{record['row_key']}"
     section = record.get("per_query") or {}
     if "file" not in section:

@@ -29,7 +29,7 @@ from ..evaluation.results import check_kinds
 from ..stages.base import unordered_row
 from .archive import _CARD, MAX_BYTES, RECORD_NAME, BundleError, _json, check_manifest, read_members
 from .claims import false_card, false_claims, one_record_per_run
-from .export import CARDS
+from .export import CARDS, KIND_WORDS
 
 RECALL_TOLERANCE = 1e-4
 PR_TOLERANCE = 1e-3
@@ -166,8 +166,8 @@ def check_record(name: str, place: tuple, members: dict[str, bytes], cards: set,
     elif f"{CARDS}/{row_key}.json" in members:
         problems += false_card(members[f"{CARDS}/{row_key}.json"], record)
     if record["dataset_kind"] != "benchmark":
-        problems.append(f"it was run on a {record['dataset_kind']} dataset, whose ground truth vprbench does not ship; "
-                        "only benchmark runs can be checked")
+        problems.append(f"it was run on {KIND_WORDS.get(record['dataset_kind'], 'a dataset of its own')}, whose ground "
+                        "truth vprbench does not ship; only benchmark runs can be checked")
         return verdict
     problems += false_claims(record)
     arrays = _arrays(record, members, f"{protocol_hash}/{row_key}", problems, max_bytes)
