@@ -51,6 +51,23 @@ def test_a_re_ranking_run_reorders_the_retrievers_candidates(shared_data, stage_
     assert cost["stored_bytes_per_database_image"] == 0 and cost["peak_rss_bytes"] > 0
 
 
+def test_expansion_beyond_what_it_can_sum_in_is_refused(shared_data, stage_cache):
+    """Was: aqe's n was capped at its k, and dba's at the database's other images, silently: "aqe@20
+    [n=50]" and "aqe@20 [n=20]" were two rows of one computation."""
+    with pytest.raises(VPRBenchError, match=r"Stage 'aqe': n = 50 sums in more candidates than the top k = 20 it "
+                                            r"re-ranks; give n <= 20, or a larger k\.$"):
+        spec_of(shared_data, [{"name": "aqe", "k": 20, "n": 50}])
+    assert spec_of(shared_data, [{"name": "aqe", "k": 20, "n": 20}]).stages[0].options["n"] == 20
+    with pytest.raises(VPRBenchError, match=r"n = 10 \(its default\) sums in more candidates than the top k = 5"):
+        spec_of(shared_data, [{"name": "aqe", "k": 5}])
+    before = sorted(stage_cache.rglob("*"))
+    with pytest.raises(VPRBenchError, match=r"Stage 'dba': n = 111 nearest database images, but each database image "
+                                            r"of corridor has 110 others: give n <= 110\.$"):
+        evaluate(spec_of(shared_data, [{"name": "dba", "k": 20, "n": 111}]),
+                 RunSettings(data_dir=shared_data, cache_dir=stage_cache))
+    assert sorted(stage_cache.rglob("*")) == before  # refused before any work
+
+
 def test_rerank_k_larger_than_the_database_is_refused(shared_data, stage_cache):
     with pytest.raises(VPRBenchError, match=r"Stage 'aqe' re-ranks the top 500 .* database of corridor holds 111 "
                                             r"images: give --rerank-k <= 111"):

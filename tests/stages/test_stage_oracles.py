@@ -118,11 +118,11 @@ def test_a_re_ranker_before_a_sequence_stage_is_refused(shared_data):
     with pytest.raises(VPRBenchError, match=r"^Stage 'aqe' runs before sequence stage 'diagonal', which matches every "
                                             r"query against the whole database and ignores the candidates it is given: "
                                             r"put 'diagonal' first"):
-        resolve_spec("hog", "corridor", stages=[{"name": "aqe", "k": 5}, "diagonal"], ks=(1, 5), data_dir=shared_data)
+        resolve_spec("hog", "corridor", stages=[{"name": "aqe", "k": 10}, "diagonal"], ks=(1, 5), data_dir=shared_data)
     with pytest.raises(VPRBenchError, match=r"^A run takes one sequence stage, got 'seqslam' and 'diagonal'"):
         resolve_spec("hog", "corridor", stages=["seqslam", "diagonal"], ks=(1, 5), data_dir=shared_data)
-    after = resolve_spec("hog", "corridor", stages=["diagonal", {"name": "aqe", "k": 5}], ks=(1, 5), data_dir=shared_data)
-    assert after.label() == "hog + diagonal + aqe@5"
+    after = resolve_spec("hog", "corridor", stages=["diagonal", {"name": "aqe", "k": 10}], ks=(1, 5), data_dir=shared_data)
+    assert after.label() == "hog + diagonal + aqe@10"
 
 
 def test_both_flags_run_the_sequence_stage_first():
@@ -141,8 +141,8 @@ def test_a_re_ranker_cannot_re_rank_deeper_than_the_one_before_hands_over(shared
     from vprbench.spec import resolve_spec
 
     with pytest.raises(VPRBenchError, match=r"^Stage 'dba' re-ranks the top 50, but stage 'aqe' before it hands over "
-                                            r"only its top 5: give 'dba' k <= 5, or 'aqe' a larger k\.$"):
-        resolve_spec("hog", "corridor", stages=[{"name": "aqe", "k": 5}, {"name": "dba", "k": 50}], ks=(1, 5),
+                                            r"only its top 10: give 'dba' k <= 10, or 'aqe' a larger k\.$"):
+        resolve_spec("hog", "corridor", stages=[{"name": "aqe", "k": 10}, {"name": "dba", "k": 50}], ks=(1, 5),
                      data_dir=shared_data)
     shallower = resolve_spec("hog", "corridor", stages=[{"name": "aqe", "k": 50}, {"name": "dba", "k": 5}], ks=(1, 5),
                              data_dir=shared_data)

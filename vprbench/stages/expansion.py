@@ -9,7 +9,7 @@ Rows are read a query at a time (or a block of database rows at a time): nothing
 from __future__ import annotations
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from ..errors import VPRBenchError
 from ..evaluation.search import SCORE_TOLERANCE, exact_search
@@ -25,6 +25,17 @@ class ExpansionOptions(RerankOptions):
     #: neighbours summed in (the candidate list's first n, or a database image's n nearest)
     n: int = Field(10, ge=1)
     alpha: float = Field(3.0, ge=0)
+
+
+class AlphaQEOptions(ExpansionOptions):
+    @model_validator(mode="after")
+    def _n_within_k(self):
+        # n beyond k would sum in the same k candidates: another label, the same computation
+        if self.n > self.k:
+            default = "" if "n" in self.model_fields_set else " (its default)"
+            raise ValueError(f"n = {self.n}{default} sums in more candidates than the top k = {self.k} it re-ranks; "
+                             f"give n <= {self.k}, or a larger k")
+        return self
 
 
 def _normalised(rows: np.ndarray) -> np.ndarray:
@@ -62,10 +73,11 @@ class _Expansion(Stage):
 
 class AlphaQE(_Expansion):
     description = "alpha query expansion: the query with its top n candidates, re-scoring the top K"
+    Options = AlphaQEOptions
 
     def apply(self, candidates: Candidates, context: StageContext) -> Candidates:
         self.check_compare(context.compare)
-        n, alpha = min(self.options.n, candidates.k), self.options.alpha
+        n, alpha = self.options.n, self.options.alpha
         scores = np.empty(candidates.indices.shape, dtype=np.float64)
         advance = progress_task(context, f"{self.name} re-ranking", candidates.query_count)
         for q in range(candidates.query_count):
@@ -80,11 +92,17 @@ class AlphaQE(_Expansion):
 class DatabaseAugmentation(_Expansion):
     description = "database-side augmentation: each database image with its n nearest database images"
 
+    def check(self, dataset) -> None:
+        others = len(dataset.database) - 1  # n beyond them would sum in the same images under another label
+        if self.options.n > others:
+            raise VPRBenchError(f"Stage {self.name!r}: n = {self.options.n} nearest database images, but each database "
+                                f"image of {dataset.name} has {others} others: give n <= {others}.")
+
     def apply(self, candidates: Candidates, context: StageContext) -> Candidates:
         self.check_compare(context.compare)
         n, alpha, database = self.options.n, self.options.alpha, context.database
         needed = np.unique(candidates.indices)
-        n = min(n + 1, database.row_count)  # an image is its own nearest neighbour
+        n += 1  # an image is its own nearest neighbour
         augmented = np.empty((len(needed), database.dim), dtype=np.float32)
         # blocks of at most BLOCK_ROWS, so progress moves during an 84k-image database's expansion
         block = max(1, min(len(needed), BLOCK_ROWS, context.memory_budget // (8 * database.dim * (n + 1))))
