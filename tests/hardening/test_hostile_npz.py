@@ -1,10 +1,13 @@
 """.npz files from elsewhere (backbone weights, a saved post-processing state) go through the one
 guarded reader (datasets/layouts/npy.py: read_npz, npz_headers): a member whose header claims more
-than the file holds, a torn zip, no zip at all, Python objects, and shapes that fit nothing are one
+than the file holds, members that unpack to more than such a file may hold (a compression bomb), a
+shape no array has, a torn zip, no zip at all, Python objects, and shapes that fit nothing are one
 line naming the file and what to do, never a traceback or an allocation of what a header claims."""
 from __future__ import annotations
 
 import io
+import math
+import struct
 import zipfile
 from pathlib import Path
 
@@ -16,10 +19,14 @@ from vprbench import VPRBenchError
 from vprbench.aggregation import PCAWhitening
 from vprbench.datasets.layouts.npy import npz_headers, read_npz
 from vprbench.evaluation.postprocess import fit_postprocessor
+from vprbench.evaluation.record import per_query_arrays_in
 from vprbench.row_sources import ArrayRows
 
 #: a header's claim: 8 TB of float64, in a member of a few bytes
 HUGE = (10**12,)
+#: what a deflated bomb of 2 GiB of zeros (a 2 MB file) declares, in its header and in the zip
+#: directory alike, forged here in a few bytes
+BOMB = (2**28,)
 
 
 def npy_bytes(array: np.ndarray) -> bytes:
@@ -43,16 +50,35 @@ def npz(path: Path, members: dict[str, bytes]) -> Path:
     return path
 
 
+def unpacked_size(path: Path, member: str, size: int) -> None:
+    """The uncompressed size the zip directory of `path` gives `member`, set to `size`."""
+    data = bytearray(path.read_bytes())
+    at = data.index(b"PK\x01\x02")  # the central directory's first entry
+    while True:
+        length = struct.unpack_from("<H", data, at + 28)[0]
+        if data[at + 46:at + 46 + length].decode() == member:
+            struct.pack_into("<I", data, at + 24, size)
+            return path.write_bytes(bytes(data))
+        extra, comment = struct.unpack_from("<HH", data, at + 30)
+        at += 46 + length + extra + comment
+
+
 def hostile(kind: str, path: Path, arrays: dict[str, np.ndarray], target: str) -> Path:
     """`arrays` saved at `path`, spoilt as `kind` says (`target`: the member spoilt)."""
     members = {name: npy_bytes(value) for name, value in arrays.items()}
     if kind == "huge header":
         members[target] = claiming(HUGE)
+    elif kind == "bomb":
+        members[target] = claiming(BOMB)
+    elif kind == "negative dimension":  # 16 x -1 x 16 x 3 values: fewer than none, so no more than it holds
+        members[target] = claiming((16, -1, 16, 3))
     elif kind == "objects":
         members[target] = npy_bytes(np.array([1, "two", None], dtype=object))
     elif kind == "texts":
         members[target] = npy_bytes(np.array(["not", "numbers"]))
     npz(path, members)
+    if kind == "bomb":
+        unpacked_size(path, f"{target}.npy", len(members[target]) - 16 + 8 * math.prod(BOMB))
     if kind == "truncated zip":
         path.write_bytes(path.read_bytes()[:-60])  # its central directory cut off
     elif kind == "no zip":  # a bare .npy under the .npz name: numpy would hand back an array
@@ -62,9 +88,30 @@ def hostile(kind: str, path: Path, arrays: dict[str, np.ndarray], target: str) -
 
 #: each hostile kind and what the one line says of it
 SAID = {"huge header": "is truncated (16 of 8000000000000 data bytes)",
+        "bomb": "it unpacks to 2.1 GB, more than the 1.1 GB such a file may hold (a compression bomb, or not such a file)",
+        "negative dimension": "its header announces shape (16, -1, 16, 3), which no array has",
         "objects": "holds object values (Python objects, which are never loaded)",
         "truncated zip": "it is not a complete .npz archive",
         "no zip": "it is not a complete .npz archive"}
+
+
+@pytest.fixture(autouse=True)
+def unread_claims(monkeypatch):
+    """Fails a test in which numpy reads an array of more than 1 MB (what a hostile header claims),
+    before it allocates it."""
+    real = npy_format.read_array
+
+    def read_array(handle, *args, **kwargs):
+        start = handle.tell()
+        version = npy_format.read_magic(handle)
+        shape, _, dtype = (npy_format.read_array_header_1_0 if version == (1, 0) else
+                           npy_format.read_array_header_2_0)(handle)
+        handle.seek(start)
+        if abs(math.prod(shape)) * dtype.itemsize > 2**20:
+            pytest.fail(f"numpy was asked to read an array of shape {shape}")
+        return real(handle, *args, **kwargs)
+
+    monkeypatch.setattr(npy_format, "read_array", read_array)
 
 
 # ---------------------------------------------------------------- the reader itself
@@ -77,8 +124,34 @@ def test_the_reader_refuses_each_hostile_archive_in_one_line(kind, read, tmp_pat
     message = str(caught.value)
     assert message.startswith(f"Cannot read test file {path}: ") and message.endswith("Expected two arrays; write it again.")
     assert SAID[kind] in message and "\n" not in message and "allow_pickle" not in message
-    if kind in ("huge header", "objects"):
+    if kind in ("huge header", "bomb", "negative dimension", "objects"):
         assert "its member b.npy: " in message
+
+
+def test_a_deflated_bomb_is_refused_before_any_member_is_unpacked(tmp_path, monkeypatch):
+    """Zeros deflate to a thousandth (a gigabyte in a megabyte): here 4 MB in a few kB, under a
+    bound of 1 MiB its caller gives; the zip directory's sizes are checked before a member is opened."""
+    np.savez_compressed(tmp_path / "one.npz", a=np.zeros(2**22, np.uint8))
+    np.savez_compressed(tmp_path / "two.npz", a=np.zeros(600_000, np.uint8), b=np.zeros(600_000, np.uint8))
+    assert (tmp_path / "one.npz").stat().st_size < 2**15
+    monkeypatch.setattr(zipfile.ZipFile, "open", lambda *args, **kwargs: pytest.fail("a member was opened"))
+    for read in (read_npz, npz_headers):
+        with pytest.raises(VPRBenchError) as caught:
+            read(tmp_path / "one.npz", "test file", "arrays", max_bytes=2**20)
+        assert str(caught.value) == (f"Cannot read test file {tmp_path / 'one.npz'}: its member a.npy: it unpacks to "
+                                     "4.2 MB, more than the 1.0 MB such a file may hold (a compression bomb, or not "
+                                     "such a file). Expected arrays.")
+        with pytest.raises(VPRBenchError, match=r"its member b\.npy: it unpacks to 600\.1 kB \(1\.2 MB with the "
+                                                r"members before it\), more than the 1\.0 MB"):
+            read(tmp_path / "two.npz", "test file", "arrays", max_bytes=2**20)
+
+
+def test_per_query_arrays_of_a_bomb_are_refused_unread(tmp_path):
+    path = hostile("bomb", tmp_path / "run.npz", {"database_indices": np.zeros((3, 2), np.int64),
+                                                  "similarities": np.zeros((3, 2), np.float32)}, "similarities")
+    with pytest.raises(ValueError, match=f"its member similarities.npy: {SAID['bomb']}".replace("(", r"\(")
+                       .replace(")", r"\)").replace(".", r"\.")):
+        per_query_arrays_in(path.read_bytes())
 
 
 def test_the_reader_reads_what_numpy_saves(tmp_path):
@@ -102,6 +175,9 @@ def saved_state(tmp_path) -> tuple[ArrayRows, dict, dict[str, np.ndarray]]:
 
 
 STATES = {**SAID,
+          "state of another width": "it is unusable for these 16-dimensional descriptors (PCA was fitted on "
+                                    "12-dimensional descriptors, got shape (1, 16): fit it on descriptors of this "
+                                    "method, or load the state fitted on them)",
           "mean of another width": "it is unusable (Saved PCA state has a mean of shape (5,) for a projection of shape (8, 16)",
           "projection of no matrix": "it is unusable (Saved PCA state has a projection of shape (128,), expected (8, D)"}
 
@@ -114,6 +190,8 @@ def test_a_hostile_post_processing_state_is_named_and_fitted_again(kind, tmp_pat
         arrays["pca_mean"] = arrays["pca_mean"][:5]
     if kind == "projection of no matrix":
         arrays["pca_projection"] = arrays["pca_projection"].reshape(-1)
+    if kind == "state of another width":  # consistent in itself, under this run's key: fitted on other rows
+        arrays["pca_projection"], arrays["pca_mean"] = arrays["pca_projection"][:, :12], arrays["pca_mean"][:12]
     hostile(kind, path, arrays, "pca_mean")
     pca = PCAWhitening(8)
     with pytest.warns(UserWarning) as caught:
@@ -143,7 +221,9 @@ def siglip(monkeypatch):
     return spec, siglip2_npz(create_model(spec))
 
 
-WEIGHTS = {**SAID, "texts": "its member params/img/embedding/kernel.npy: it holds <U7 values"}
+WEIGHTS = {**SAID, "texts": "its member params/img/embedding/kernel.npy: it holds <U7 values",
+           # nothing is unpacked when the headers are read: what timm would read is bounded by the model
+           "bomb": "params/img/embedding/kernel: file (268435456,) holds more values than any parameter of the model"}
 
 
 @pytest.mark.parametrize("kind", sorted(WEIGHTS))
@@ -155,9 +235,11 @@ def test_hostile_npz_weights_are_named_with_what_to_do(kind, siglip, tmp_path):
     with pytest.raises(VPRBenchError) as caught:
         load_backbone(spec.name, path)
     message = str(caught.value)
-    assert message.startswith(f"Backbone {spec.name}: Cannot read weights file {path}: "), message
+    assert message.startswith(f"{path} for backbone {spec.name}: The weights file does not fit" if kind == "bomb"
+                              else f"Backbone {spec.name}: Cannot read weights file {path}: "), message
     assert WEIGHTS[kind] in message and "\n" not in message, message
-    assert "pass the release file as published (download it again), or another." in message
+    assert ("Pass a checkpoint of this backbone" if kind == "bomb" else
+            "pass the release file as published (download it again), or another.") in message
 
 
 @pytest.mark.parametrize("member, shape, said", [

@@ -132,7 +132,8 @@ class PCAWhitening:
         descriptors = np.asarray(descriptors)
         if descriptors.ndim != 2 or descriptors.shape[1] != self.projection.shape[1]:
             raise VPRBenchError(
-                f"PCA was fitted on {self.projection.shape[1]}-dimensional descriptors, got shape {descriptors.shape}.")
+                f"PCA was fitted on {self.projection.shape[1]}-dimensional descriptors, got shape {descriptors.shape}: "
+                "fit it on descriptors of this method, or load the state fitted on them.")
         if self._projection64 is None:
             self._projection64 = self.projection.astype(np.float64)
         centred = descriptors.astype(np.float64)

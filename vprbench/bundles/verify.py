@@ -201,7 +201,7 @@ def _arrays(record: dict, members: dict[str, bytes], folder: str, problems: list
             problems.append(f"{file} unpacks to {unpacked / 2**20:,.0f} MiB, more than the bound of "
                             f"{max_bytes / 2**20:g} MiB (an archive bomb, or a bundle too big: raise --max-size)")
             return None
-        arrays = per_query_arrays_in(data)
+        arrays = per_query_arrays_in(data, max_bytes)  # the bound above, not the reader's default
     except (ValueError, OSError, EOFError, zipfile.BadZipFile) as error:
         problems.append(f"{file} is not readable per-query arrays ({type(error).__name__}: {error})")
         return None

@@ -121,7 +121,7 @@ def fit_postprocessor(postprocessor, database: RowSource, memory_budget: int, st
     path = Path(folder) / f"postprocess-{hashlib.sha256(text.encode()).hexdigest()[:16]}.npz" if folder else None
     info = {"key": key, "file": str(path) if path else None}
     if path is not None and path.is_file():
-        unusable = _load_state(postprocessor, path, text)
+        unusable = _load_state(postprocessor, path, text, int(database.dim))
         if unusable is None:
             return {**info, "state": "loaded"}
         warnings.warn(f"Refitting: {unusable}", stacklevel=2)  # the fit below replaces the file
@@ -141,10 +141,10 @@ def fit_postprocessor(postprocessor, database: RowSource, memory_budget: int, st
     return info
 
 
-def _load_state(postprocessor, path: Path, text: str) -> str | None:
-    """None when `postprocessor` loaded the state saved at `path` under the key `text`, else a line
-    saying why that state is unusable (refitted); what else its load_state raises is its one line
-    (`in_postprocessor`)."""
+def _load_state(postprocessor, path: Path, text: str, dim: int) -> str | None:
+    """None when `postprocessor` loaded the state saved at `path` under the key `text` and applies
+    it to `dim`-wide rows, else a line saying why that state is unusable (refitted); what else its
+    load_state raises is its one line (`in_postprocessor`)."""
     from ..datasets.layouts.npy import read_npz
 
     unusable = f"the post-processing state {path} is unusable"
@@ -166,6 +166,13 @@ def _load_state(postprocessor, path: Path, text: str) -> str | None:
         # a state it refuses (PCA's own checks are VPRBenchErrors), as a damaged file
         except (VPRBenchError, OSError, ValueError, KeyError) as error:
             return f"{unusable} ({error})."
+    try:
+        # a state of another input width (its key rewritten) is named here, not at the first transform;
+        # a zero row is what any transform takes (tiles are padded with them)
+        with in_postprocessor(postprocessor, "transform"):
+            postprocessor.transform(np.zeros((1, dim), dtype=np.float32))
+    except VPRBenchError as error:
+        return f"{unusable} for these {dim}-dimensional descriptors ({str(error).rstrip('.')})."
     return None
 
 

@@ -345,12 +345,14 @@ def plain_or_text(value):
     return json.loads(json.dumps(value, default=str))
 
 
-def per_query_arrays_in(data: bytes) -> dict[str, np.ndarray]:
+def per_query_arrays_in(data: bytes, max_bytes: int | None = None) -> dict[str, np.ndarray]:
     """The per-query arrays of an .npz file's bytes, read by the one guarded .npz reader (no
-    objects, no header claiming more than the file holds); a ValueError saying why not."""
-    from ..datasets.layouts.npy import npz_members
+    objects, no header claiming more than the file holds, no more than `max_bytes` unpacked:
+    default, the reader's own bound); a ValueError saying why not."""
+    from ..datasets.layouts.npy import NPZ_MAX_BYTES, npz_members
 
-    found = npz_members(io.BytesIO(data), kinds="biufUS")  # what else they hold is check_kinds' to refuse
+    # what else they hold is check_kinds' to refuse
+    found = npz_members(io.BytesIO(data), kinds="biufUS", max_bytes=max_bytes or NPZ_MAX_BYTES)
     missing = [field for field in PER_QUERY_FIELDS if field not in found]
     if missing:
         raise ValueError(f"it has no {', '.join(missing)} array")

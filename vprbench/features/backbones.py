@@ -179,15 +179,23 @@ def read_npz_release(spec: BackboneEntry, path: Path) -> nn.Module:
                             f"{spec.name} ({spec.timm}) takes a PyTorch or .safetensors file.")
     try:
         # every member checked before timm's loader reads them all: a header claiming terabytes, or
-        # Python objects, is refused here unread
+        # Python objects, is refused here unread. Nothing is unpacked here, and a two-tower release
+        # holds a text tower timm never reads (unbounded together): what timm reads is bounded below
         shapes = {name: shape for name, (shape, _) in npz_headers(
             path, "weights file", "a complete .npz archive of numeric arrays: pass the release file as published "
-            "(download it again), or another", kinds="iuf").items()}
+            "(download it again), or another", kinds="iuf", max_bytes=sys.maxsize).items()}
     except OSError as error:
         raise VPRBenchError(f"Cannot read weights file {path}: {error}.") from None
     prefix = next((p for p in NPZ_PREFIXES if p + "embedding/kernel" in shapes), None)
     if prefix is None:
         raise _misfit(missing=["embedding/kernel (the patch embedding of a ViT image tower)"])
+    # timm reads each array under the prefix whole before it compares it with a parameter: one
+    # holding more values than any parameter (a deflated bomb of zeros) fits none, and is never read
+    largest = max(parameter.numel() for parameter in model.parameters())
+    oversized = [f"{name}: file {shape} holds more values than any parameter of the model ({largest:,})"
+                 for name, shape in shapes.items() if name.startswith(prefix) and math.prod(shape) > largest]
+    if oversized:
+        raise _misfit(mismatched=oversized)
     kernel = shapes[prefix + "embedding/kernel"]
     grid = next((shapes[prefix + k] for k in ("pos_embedding", "Transformer/posembed_input/pos_embedding")
                  if prefix + k in shapes), None)

@@ -7,7 +7,8 @@ numeric arrays with numpy (no pickle at all), and object arrays with an unpickle
 only numpy's own array, dtype and scalar reconstruction; it then accepts only what these
 files hold: ints and floats, lists, tuples or arrays of them, and texts (a pose table may
 name its ROS topic); the caller checks the shape it needs. `read_npz` and `npz_headers` check each
-member of an .npz (weights, a saved post-processing state) the same way; objects are never read there.
+member of an .npz (weights, a saved post-processing state) the same way, and bound what its members
+unpack to before any is unpacked; objects are never read there.
 """
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ import numpy as np
 from numpy.lib import format as npy_format
 
 from ...errors import VPRBenchError
+from ...row_sources import format_bytes
 
 try:
     from numpy._core import multiarray
@@ -49,6 +51,13 @@ class _ArrayUnpickler(pickle.Unpickler):
                 f"it asks to load {module}.{name}, which a data file never needs (unpickling it could run code)"
             )
         return _ALLOWED[module, name]
+
+
+#: the most an .npz's members may unpack to, together, unless its caller gives another bound: ten
+#: times what the largest vprbench writes needs (AnyLoc's PCA state, 512 x 49,152 float32: 100 MB;
+#: per-query arrays of 27,592 queries x 100 candidates: 33 MB). A deflated member of zeros is a
+#: thousandth of its size: a 1 MB file could otherwise claim a gigabyte.
+NPZ_MAX_BYTES = 1 << 30
 
 
 def _number(value) -> bool:
@@ -82,10 +91,15 @@ def _header(handle) -> tuple[tuple, np.dtype]:
 
 def _sized_header(handle, size: int) -> tuple[tuple, np.dtype]:
     """The header of the array at the start of `handle` (`size` bytes long), refused when it claims
-    more data than those bytes hold: numpy would allocate what a few-byte header claims."""
+    more data than those bytes hold (numpy would allocate what a few-byte header claims), or a shape
+    no array has (numpy refuses it only when reading, which `npz_headers` does not)."""
     shape, dtype = _header(handle)
+    # an item of no width (numpy never writes one) counted as a byte, or its count would be unbounded
+    itemsize = max(dtype.itemsize, 1)
+    if any(d < 0 for d in shape) or math.prod(d for d in shape if d) * itemsize >= 2**63:
+        raise ValueError(f"its header announces shape {shape}, which no array has (a negative or too large dimension)")
     if not dtype.hasobject:
-        needed, available = math.prod(shape) * dtype.itemsize, size - handle.tell()
+        needed, available = math.prod(shape) * itemsize, size - handle.tell()
         if needed > available:
             raise ValueError(f"it is truncated ({available} of {needed} data bytes)")
     return shape, dtype
@@ -135,34 +149,57 @@ def read_npy(path: Path, what: str, expected: str) -> np.ndarray:
             raise VPRBenchError(f"Cannot read {what} {path}: {error}. Expected {expected}.") from None
 
 
-def npz_headers(path: Path, what: str, expected: str, kinds: str = "iufUS") -> dict[str, tuple[tuple, np.dtype]]:
+def npz_headers(path: Path, what: str, expected: str, kinds: str = "iufUS",
+                max_bytes: int = NPZ_MAX_BYTES) -> dict[str, tuple[tuple, np.dtype]]:
     """Each array's (shape, dtype) in an .npz archive, by name, no data read: every member checked
     as `read_npz` checks it, so a reader of the file after this allocates no more than it holds."""
-    return _npz(path, what, expected, kinds, read=False)
+    return _npz(path, what, expected, kinds, read=False, max_bytes=max_bytes)
 
 
-def read_npz(path: Path, what: str, expected: str, kinds: str = "iufUS") -> dict[str, np.ndarray]:
+def read_npz(path: Path, what: str, expected: str, kinds: str = "iufUS",
+             max_bytes: int = NPZ_MAX_BYTES) -> dict[str, np.ndarray]:
     """The arrays of an .npz archive, by name. A member that is no .npy array, claims more data than
     it holds, or holds values of a kind not in `kinds` (objects never: numpy stores them as a
-    pickle), and an archive that is no zip or is damaged, are a VPRBenchError naming the file,
-    `what` it is and what was `expected`. OSError (missing file, permissions) is left to the caller."""
-    return _npz(path, what, expected, kinds, read=True)
+    pickle), members that unpack to more than `max_bytes` together, and an archive that is no zip or
+    is damaged, are a VPRBenchError naming the file, `what` it is and what was `expected`. OSError
+    (missing file, permissions) is left to the caller."""
+    return _npz(path, what, expected, kinds, read=True, max_bytes=max_bytes)
 
 
-def _npz(path: Path, what: str, expected: str, kinds: str, read: bool) -> dict:
+def _npz(path: Path, what: str, expected: str, kinds: str, read: bool, max_bytes: int) -> dict:
     try:
-        return npz_members(path, kinds, read)
+        return npz_members(path, kinds, read, max_bytes)
     except ValueError as error:
         raise VPRBenchError(f"Cannot read {what} {path}: {error}. Expected {expected}.") from None
 
 
-def npz_members(source, kinds: str = "iufUS", read: bool = True) -> dict:
+def _beyond(members: list[zipfile.ZipInfo], max_bytes: int) -> tuple[zipfile.ZipInfo, str] | None:
+    """The first member with which the sizes the zip directory gives exceed `max_bytes`, and why.
+    Checked before any member is unpacked: a member unpacks to no more than its size (zipfile stops
+    there) and its header may claim no more (`_sized_header`), so these sizes bound what is allocated."""
+    unpacked = 0
+    for info in members:
+        unpacked += info.file_size
+        if unpacked > max_bytes:
+            size, together = format_bytes(info.file_size), format_bytes(unpacked)
+            size += "" if together == size else f" ({together} with the members before it)"
+            return info, (f"it unpacks to {size}, more than the {format_bytes(max_bytes)} such a file may "
+                          "hold (a compression bomb, or not such a file)")
+    return None
+
+
+def npz_members(source, kinds: str = "iufUS", read: bool = True, max_bytes: int = NPZ_MAX_BYTES) -> dict:
     """The arrays (`read`) or their (shape, dtype) of an .npz archive at `source` (a path or a file
     object), by name; a ValueError saying why it is unreadable (see `read_npz`). OSError is left."""
     found, name = {}, None
     try:
         with zipfile.ZipFile(source) as archive:
-            for info in archive.infolist():
+            members = archive.infolist()
+            beyond = _beyond(members, max_bytes)
+            if beyond is not None:
+                name = beyond[0].filename
+                raise ValueError(beyond[1])
+            for info in members:
                 name = info.filename
                 if not name.endswith(".npy"):
                     raise ValueError("it is no .npy array")
