@@ -154,7 +154,7 @@ def test_download_with_direct_source_checks_counts(tmp_path, monkeypatch, shared
 
     calls = []
 
-    def fake_download(manifest, root, progress=True):
+    def fake_download(manifest, root, progress=True, data_dir=None):
         calls.append(manifest.name)
         shutil.copytree(shared_data / "corridor", root)
         return root
@@ -198,10 +198,14 @@ def test_a_database_image_more_or_fewer_is_refused_where_positives_are_indices(t
 
     shutil.copy(gardens / "day_right" / "Image010.jpg", gardens / "day_right" / "Image010a.jpg")
     said = "201 database images at .* the manifest expects 200. Its ground truth names database images by their position"
-    with pytest.raises(VPRBenchError, match=said):
+    with pytest.raises(VPRBenchError, match=said) as error:
         load_dataset("gardens-point", gardens.parent)
-    with pytest.raises(VPRBenchError, match=said):
+    # the check it suggests names the data root given (was: none, the default one's copy checked)
+    assert str(error.value).endswith(f"('vprbench datasets verify gardens-point --data-dir {gardens.parent}' lists "
+                                     "what differs).")
+    with pytest.raises(VPRBenchError, match=said) as error:
         import_dataset("gardens-point", gardens, tmp_path / "data")
+    assert "datasets verify" not in str(error.value)  # it would check the data root's copy, not this folder
     assert not (tmp_path / "data" / "datasets.json").exists()
     report = verify_dataset("gardens-point", gardens.parent)
     assert not report.ok and report.problems[0].startswith("201 database images, the manifest expects 200 (-1). Its")
@@ -300,3 +304,36 @@ def test_the_import_hint_for_a_dataset_not_there_names_its_data_root(tmp_path):
     command = re.search(r"'(vprbench datasets import [^']*)'", str(refused.value)).group(1)
     args = build_parser().parse_args(command.split()[1:])
     assert args.name == "hawkins" and args.data_dir == str(tmp_path)
+
+
+def test_hints_name_the_data_root_the_user_gave(tmp_path, gardens, make_images, monkeypatch, capsys):
+    """Was: the commands a hint suggested named the parent of the folder read (an imported copy's, or the
+    folder being imported's) as --data-dir, or no --data-dir at all: followed, they ran on another root."""
+    import shutil
+
+    from vprbench.datasets import layouts
+
+    data = tmp_path / "data"
+    assert run("datasets", "import", "gardens-point", str(gardens), "--data-dir", str(data)) == 0
+    moved = shutil.move(gardens, tmp_path / "moved")
+    assert run("datasets", "verify", "gardens-point", "--data-dir", str(data)) == 1
+    out = capsys.readouterr().out
+    assert f"'vprbench datasets import gardens-point PATH --data-dir {data}' on a copy elsewhere" in out, out
+    # a folder being imported that is in no layout: where a download goes in the data root named
+    with pytest.raises(VPRBenchError) as error:
+        import_dataset("corridor", tmp_path / "elsewhere", data)
+    assert f"Run 'vprbench datasets download corridor --data-dir {data}' to fetch it into {data / 'corridor'}." \
+        in str(error.value)
+    # a part missing that only the reader looks for: the check it suggests is of this data root's copy
+    shutil.move(moved, gardens)
+    (gardens / "gardens_gt.npy").unlink()
+    monkeypatch.setitem(layouts.EXPECTS, "folders", lambda options: [])
+    said = f"expected file 'gardens_gt.npy' under {gardens.resolve()} (layout 'folders') but it is missing."
+    with pytest.raises(VPRBenchError) as error:
+        load_dataset("gardens-point", data)
+    assert str(error.value).endswith(f"{said} The copy is incomplete: 'vprbench datasets verify gardens-point "
+                                     f"--data-dir {data}' checks all of it."), str(error.value)
+    assert verify_dataset("gardens-point", data).problems == [f"Dataset 'gardens-point': {said}"]
+    with pytest.raises(VPRBenchError) as error:  # being imported: no command checks it but importing
+        import_dataset("gardens-point", gardens, tmp_path / "other")
+    assert str(error.value) == f"Dataset 'gardens-point': {said}"

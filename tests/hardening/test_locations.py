@@ -50,6 +50,25 @@ def test_mistyped_data_dir_names_where_it_looked_and_creates_nothing(tmp_path, n
     assert tree(tmp_path) == ["shared"] and no_network == []
 
 
+def test_datasets_commands_refuse_a_mistyped_data_root(tmp_path, no_network, cli, monkeypatch):
+    """Was: 'datasets list --data-dir TYPO' listed every dataset as not on disk, exit 0; 'download' and
+    'import' made the typo's whole tree of folders."""
+    (tmp_path / "shared").mkdir()
+    typo = tmp_path / "shraed"
+    code, _, err = cli("datasets", "list", "--data-dir", typo)
+    assert_refused(code, err, None, f"The data root {typo} (--data-dir) does not exist (closest existing path: "
+                                    f"{tmp_path} (which holds shared)): check the path")
+    monkeypatch.setenv("VPRBENCH_DATA", str(typo))
+    code, _, err = cli("datasets", "list")
+    assert_refused(code, err, None, f"The data root {typo} ($VPRBENCH_DATA) does not exist")
+    monkeypatch.delenv("VPRBENCH_DATA")
+    deep = typo / "data"
+    for command in (("download", "corridor"), ("import", "corridor", tmp_path / "shared")):
+        code, _, err = cli("datasets", *command, "--data-dir", deep)
+        assert_refused(code, err, None, f"--data-dir {deep}: the folder {typo} does not exist: create it first")
+    assert tree(tmp_path) == ["shared"] and no_network == []
+
+
 def test_data_root_that_is_the_dataset_folder_says_use_the_folder_above(shared_data, no_network, cli):
     before = tree(shared_data / "corridor")
     code, _, err = cli("evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", shared_data / "corridor")

@@ -75,9 +75,9 @@ def load_dataset(name: str, data_dir=None, *, fetch: bool | None = None, strict:
             fetch = is_default_data_root(data_dir) and name not in read_registry(data_dir)
         if not (fetch and manifest.download):
             raise VPRBenchError(missing_dataset_message(manifest, root, data_dir))
-        download(manifest, root)
-    dataset = read_layout(root, manifest)
-    check_counts(dataset, manifest, strict)
+        download(manifest, root, data_dir=data_dir)
+    dataset = read_layout(root, manifest, data_dir)
+    check_counts(dataset, manifest, strict, data_dir)
     return apply_protocol(dataset, chosen)
 
 
@@ -85,6 +85,5 @@ def download_dataset(name: str, data_dir=None, strict: bool = True) -> Dataset:
     """`vprbench datasets download NAME`: fetch (when a direct source exists), then read and check it."""
     manifest = dataset_manifest(name)
     if not manifest.download:
-        root = dataset_location(manifest, data_dir)
-        raise VPRBenchError(f"Dataset {name!r} has no direct download. {how_to_get(manifest, root)}")
+        raise VPRBenchError(f"Dataset {name!r} has no direct download. {how_to_get(manifest, data_dir)}")
     return load_dataset(name, data_dir, fetch=True, strict=strict)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from ..errors import VPRBenchError, network_reason, url_host
 from ..fsutil import lock, remove_stale
-from .manifest import DatasetManifest, default_data_root
+from .manifest import DatasetManifest, data_root, default_data_root
 
 
 def read_registry(name: str) -> dict[str, str]:
@@ -23,10 +23,14 @@ def data_root_flag(base: Path) -> str:
     return "" if base == default_data_root() else f" --data-dir {shlex.quote(str(base))}"
 
 
-def how_to_get(manifest: DatasetManifest, root: Path) -> str:
-    """What to do to have the dataset at root. Manifests' instructions say how to get the data,
-    never where it goes: that is said here, once."""
-    named = data_root_flag(root.parent)
+def how_to_get(manifest: DatasetManifest, data_dir=None) -> str:
+    """What to do to have the dataset where the data root `data_dir` (None: the default) looks for it
+    (its folder there, or the place of the copy imported into it), the printed commands naming that
+    data root. Manifests' instructions say how to get the data, never where it goes: that is said
+    here, once."""
+    from .storage import dataset_location  # (storage reads the layouts, which give this hint)
+
+    root, named = dataset_location(manifest, data_dir), data_root_flag(data_root(data_dir))
     if manifest.download:
         return f"Run 'vprbench datasets download {manifest.name}{named}' to fetch it into {root}."
     text = manifest.instructions.strip() or f"Get it from {manifest.source or 'its authors'}."
@@ -34,19 +38,20 @@ def how_to_get(manifest: DatasetManifest, root: Path) -> str:
             "elsewhere.")
 
 
-def download(manifest: DatasetManifest, root: Path, progress: bool = True) -> Path:
-    """Download into root (via root.partial, renamed when every file checks out). Downloads of one
+def download(manifest: DatasetManifest, root: Path, progress: bool = True, data_dir=None) -> Path:
+    """Download into root (via root.partial, renamed when every file checks out), the dataset's place
+    in the data root `data_dir` (whose --data-dir the advice on a failure names). Downloads of one
     dataset into one data root take turns: the one that waited finds the first one's copy and keeps it
     (two at once into one partial folder had one rename it away while the other still wrote there)."""
     if not manifest.download:
-        raise VPRBenchError(f"Dataset {manifest.name!r} has no direct download. {how_to_get(manifest, root)}")
+        raise VPRBenchError(f"Dataset {manifest.name!r} has no direct download. {how_to_get(manifest, data_dir)}")
     with lock(root.with_name(f".{root.name}.download.lock"), what=f"the download of {manifest.name!r} into {root}"):
         if not root.exists():
-            _fetch(manifest, root)
+            _fetch(manifest, root, data_dir)
     return root
 
 
-def _fetch(manifest: DatasetManifest, root: Path) -> None:
+def _fetch(manifest: DatasetManifest, root: Path, data_dir=None) -> None:
     import pooch
 
     partial = root.with_name(root.name + ".partial")
@@ -66,7 +71,7 @@ def _fetch(manifest: DatasetManifest, root: Path) -> None:
             raise VPRBenchError(
                 f"Downloading {manifest.name!r} from {url_host(manifest.download['base_url'])} failed at {relative}: "
                 f"{network_reason(error).rstrip('.')}. {kept} Or get the files yourself and run "
-                f"'vprbench datasets import {manifest.name} PATH{data_root_flag(root.parent)}'."
+                f"'vprbench datasets import {manifest.name} PATH{data_root_flag(data_root(data_dir))}'."
             ) from None
     # pooch streams each file into a tmp* file beside it: a killed download's would be renamed into the
     # dataset for good (no live one is writing: the lock)

@@ -53,6 +53,15 @@ def dataset_location(manifest: DatasetManifest, data_dir=None) -> Path:
     return Path(registered) if registered else data_root(data_dir) / manifest.directory
 
 
+def verify_command(manifest: DatasetManifest, root: Path, data_dir=None) -> str | None:
+    """The command that checks the copy at `root`, naming the data root `data_dir` as the user did;
+    None when that data root looks for the dataset elsewhere (`root` is a folder being imported): its
+    command would check another copy."""
+    if Path(root) != dataset_location(manifest, data_dir):
+        return None
+    return f"vprbench datasets verify {manifest.name}{data_root_flag(data_root(data_dir))}"
+
+
 def nearest_existing(path: Path) -> str:
     """The deepest existing folder on the way to `path`, with the names in it closest to the
     first missing part (so a typo in --data-dir shows)."""
@@ -93,14 +102,15 @@ def missing_dataset_message(manifest: DatasetManifest, root: Path, data_dir=None
         get = (f"To download it there, add --download to evaluate or run 'vprbench datasets download {name} "
                f"--data-dir {base}'.")
     else:
-        get = how_to_get(manifest, root)
+        get = how_to_get(manifest, data_dir)
     return f"Dataset {name!r} is not in the data root {base}: looked for {root}{where}. {get}"
 
 
-def check_counts(dataset: Dataset, manifest: DatasetManifest, strict: bool) -> list[str]:
+def check_counts(dataset: Dataset, manifest: DatasetManifest, strict: bool, data_dir=None) -> list[str]:
     """Messages for counts that differ from the manifest; raises instead when strict, or when the
     ground truth names images by position (then the counts must be the manifest's). The counts are
-    those of the layout the copy is in (an alternative layout may give its own)."""
+    those of the layout the copy is in (an alternative layout may give its own). `data_dir`: the data
+    root the copy is read from (or imported into), for the advice."""
     messages, manifest = [], detect_layout(dataset.root, manifest)
     for split, expected, found in (
         ("database", manifest.database_count, len(dataset.database)),
@@ -110,8 +120,9 @@ def check_counts(dataset: Dataset, manifest: DatasetManifest, strict: bool) -> l
             messages.append(f"Dataset {manifest.name!r}: {found} {split} images at {dataset.root}, the manifest expects {expected}.")
     expected = manifest.database_count
     if by_position(dataset) and expected is not None and expected != len(dataset.database):
-        raise VPRBenchError(" ".join(messages) + f" {BY_POSITION} use a complete copy (vprbench datasets verify "
-                            f"{manifest.name} lists what differs).")
+        command = verify_command(manifest, dataset.root, data_dir)
+        raise VPRBenchError(" ".join(messages) + f" {BY_POSITION} use a complete copy"
+                            + (f" ('{command}' lists what differs)." if command else "."))
     if messages and strict:
         raise VPRBenchError(" ".join(messages) + " (--strict)")
     for message in messages:
@@ -149,13 +160,12 @@ def import_dataset(name: str, path: str | Path, data_dir=None, strict: bool = Fa
     root = resolved(path, f"The folder to import {name!r} from")
     if not root.is_dir():
         raise VPRBenchError(f"Cannot import {name!r}: {root} is not a folder.")
-    dataset = read_layout(root, manifest)  # raises, naming what is missing, before anything is written
-    check_counts(dataset, manifest, strict)  # first: an image more or fewer is named as such
+    dataset = read_layout(root, manifest, data_dir)  # raises, naming what is missing, before anything is written
+    check_counts(dataset, manifest, strict, data_dir)  # first: an image more or fewer is named as such
     dataset.positives  # ground truth must match the images  # noqa: B018
     bad = absent_or_empty(dataset.database + dataset.queries)  # a stat each: cheap at any benchmark's size
     if bad:
-        raise VPRBenchError(f"Cannot import {name!r}: {bad}; get those images again (`vprbench datasets verify "
-                            f"{name} --all-images` decodes every image).")
+        raise VPRBenchError(f"Cannot import {name!r}: {bad}; get those images again, then import it.")
     registry = registry_path(data_dir)
     # held for the moment of a read and a write; 120 s is ample even on a slow network disk
     with lock(registry.with_name(registry.name + ".lock"), timeout=120.0, what=f"the dataset registry {registry}",

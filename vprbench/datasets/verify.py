@@ -16,7 +16,7 @@ from ..errors import VPRBenchError
 from ..images import load_image
 from ..text import plural, quantity
 from .download import how_to_get
-from .layouts import candidates, describe_layout, detect_layout, missing_paths, read_layout
+from .layouts import MissingPart, candidates, describe_layout, detect_layout, missing_paths, read_layout
 from .manifest import dataset_manifest
 from .storage import BY_POSITION, absent_or_empty, by_position, dataset_location
 
@@ -77,7 +77,7 @@ def verify_dataset(name: str, data_dir=None, strict: bool = False, sample: int |
         root = dataset_location(manifest, data_dir)
     report = VerifyReport(name=manifest.name, root=root)  # own data: its dataset.toml name, not the path given
     if not root.is_dir():
-        report.problems.append(f"folder {root} does not exist. {how_to_get(manifest, root)}")
+        report.problems.append(f"folder {root} does not exist. {how_to_get(manifest, data_dir)}")
         return report
     try:
         chosen = detect_layout(root, manifest)
@@ -87,7 +87,10 @@ def verify_dataset(name: str, data_dir=None, strict: bool = False, sample: int |
         return report
     report.layout = chosen.layout
     try:
-        dataset = read_layout(root, manifest)
+        dataset = read_layout(root, manifest, data_dir)
+    except MissingPart as error:  # without its advice to run this very check
+        report.problems.append(error.detail)
+        return report
     except VPRBenchError as error:
         report.problems.append(str(error))
         return report

@@ -281,7 +281,7 @@ def missing_for(cell: Cell, row_weights, data_dir=None, cache_dir=None, given: d
         manifest = dataset_manifest(cell.spec.dataset.name)
         root = dataset_location(manifest, data_dir)
         if not root.is_dir():
-            needs.append((f"dataset {cell.spec.dataset.name}", how_to_get(manifest, root)))
+            needs.append((f"dataset {cell.spec.dataset.name}", how_to_get(manifest, data_dir)))
     return needs + [need for need in (weights_for(row_weights, cell, cache_dir), vocabulary_for(cell, cache_dir, given)) if need]
 
 

@@ -68,8 +68,10 @@ def describe_missing(missing: list[str]) -> str:
     return ", ".join(f"folder '{m[:-1]}'" if m.endswith("/") else f"file '{m}'" for m in missing)
 
 
-def detect_layout(root: Path, manifest: DatasetManifest) -> DatasetManifest:
-    """The first candidate layout whose expected folders and files are all under root."""
+def detect_layout(root: Path, manifest: DatasetManifest, data_dir=None) -> DatasetManifest:
+    """The first candidate layout whose expected folders and files are all under root; else an error
+    saying how to get the data into the data root `data_dir` (the one the user named, not root's
+    parent: an imported copy, or a folder being imported, lies elsewhere)."""
     options = candidates(manifest)
     report = []
     for candidate in options:
@@ -82,7 +84,7 @@ def detect_layout(root: Path, manifest: DatasetManifest) -> DatasetManifest:
     else:
         from ..download import how_to_get
 
-        hint = how_to_get(manifest, root)
+        hint = how_to_get(manifest, data_dir)
     if len(report) == 1:
         layout_name, missing = report[0]
         text = f"expected {describe_missing(missing)} under {root} (layout {layout_name!r}) but {'it is' if len(missing) == 1 else 'they are'} missing"
@@ -92,9 +94,28 @@ def detect_layout(root: Path, manifest: DatasetManifest) -> DatasetManifest:
     raise VPRBenchError(f"Dataset {manifest.name!r}: {root} is in none of its known layouts: " + "; ".join(parts) + f". {hint}")
 
 
-def read_layout(root: Path, manifest: DatasetManifest) -> Dataset:
-    candidate = detect_layout(root, manifest)
-    dataset = LAYOUTS[candidate.layout](root, candidate)
+class MissingPart(VPRBenchError):
+    """A folder or file a layout reader needs is missing (`require`); `read_layout` adds what to do,
+    `detail` is the message without it (`datasets verify` says it as one problem of its report)."""
+
+    def __init__(self, message: str, detail: str | None = None):
+        super().__init__(message)
+        self.detail = detail or message
+
+
+def read_layout(root: Path, manifest: DatasetManifest, data_dir=None) -> Dataset:
+    """The dataset at root in the first layout it is in; `data_dir` is the data root it is read from
+    (or imported into): the commands an error suggests name it."""
+    candidate = detect_layout(root, manifest, data_dir)
+    try:
+        dataset = LAYOUTS[candidate.layout](root, candidate)
+    except MissingPart as error:
+        from ..storage import verify_command
+
+        command = None if manifest.layout == "own" else verify_command(manifest, root, data_dir)
+        if command is None:
+            raise  # a folder of one's own, or one being imported: nothing checks it but reading it
+        raise MissingPart(f"{error} The copy is incomplete: '{command}' checks all of it.", str(error)) from None
     dataset.layout = candidate.layout
     return dataset
 
@@ -135,12 +156,9 @@ def require(root: Path, relative: str, manifest: DatasetManifest, kind: str = "f
                             "inside the dataset folder; fix the manifest.")
     path = root / relative
     exists = path.is_dir() if kind == "folder" else regular_file(path, f"Dataset {manifest.name!r}: {kind}")
-    if not exists:
-        raise VPRBenchError(
-            f"Dataset {manifest.name!r}: expected {kind} '{relative}' under {root} "
-            f"(layout {manifest.layout!r}) but it is missing. Run 'vprbench datasets verify {manifest.name}' "
-            f"or see 'vprbench datasets info {manifest.name}' for how to get the data."
-        )
+    if not exists:  # what to do is said by read_layout, which knows the data root
+        raise MissingPart(f"Dataset {manifest.name!r}: expected {kind} '{relative}' under {root} "
+                          f"(layout {manifest.layout!r}) but it is missing.")
     return path
 
 
