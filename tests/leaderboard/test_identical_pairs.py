@@ -36,3 +36,17 @@ def test_the_site_says_identical_results(make_record, cli, tmp_path):
     assert any(C in pair for pair in rows)
     assert all("identical" not in line and line.split(" | ")[-1].strip("| ") != "–"
                for pair, line in rows.items() if C in pair)
+
+
+def test_a_row_compared_with_itself_is_refused(make_record, cli):
+    """Was: 'compare hog hog' compared the one run with itself, 'same queries right', exit 0 (a finding
+    of nothing). A row named twice, by its name or by its key, is one run: refused, naming it."""
+    from vprbench.evaluation import read_results
+    from vprbench.leaderboard import build_board
+
+    _runs(make_record)
+    row = next(r for r in build_board(read_results()).rows if r.name == A)
+    for second in (A, row.key):
+        code, out, err = cli("leaderboard", "compare", A, second, "--dataset", "corridor")
+        assert code == 1 and out == "" and err.count("\n") == 1, (code, out, err)
+        assert f"{A!r} and {second!r} name the same run" in err and "two different rows" in err

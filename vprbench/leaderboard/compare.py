@@ -61,6 +61,9 @@ def compare(board: Board, a: str, b: str, dataset: str, *, k: int = 1, seed: int
     require(dataset, str, "compare's dataset takes a column's name as the leaderboard shows it, e.g. 'corridor'")
     k, seed = check_k_and_seed(k, seed)
     first, second = _cell(board, a, dataset), _cell(board, b, dataset)
+    if first is second:  # one row named twice (by name, label or key): its run against itself proves nothing
+        raise VPRBenchError(f"{a!r} and {b!r} name the same run ({first.record.get('run_id')}, {first.row.name} on "
+                            f"{first.column.title}): compare two different rows ('vprbench leaderboard' lists them).")
     for cell in (first, second):
         if cell.arrays is None:
             raise VPRBenchError(f"Run {cell.record.get('run_id')} ({cell.row.name}) has no per-query data (recorded by "
