@@ -3,8 +3,8 @@ model, timm models whose tokens the dense extractor cannot read, a DINOv2 checkp
 model with registers (and the other way round), .npz files that are no archive, legacy checkpoints
 holding code, an input resized below one patch, vocabularies imported under keys no features have.
 Each is refused in one line naming the thing at fault and what to do, exit 1, no traceback, the
-payload never runs, nothing cached (no descriptor store, result or vocabulary), and a good run after
-it is not affected."""
+payload never runs, nothing cached (no descriptor store or store folder, result or vocabulary), and a
+good run after it is not affected."""
 from __future__ import annotations
 
 import io
@@ -37,6 +37,8 @@ def assert_refused(code: int, err: str, *fragments: str) -> None:
         assert fragment in message, message
     assert not read_results(), "a refused run recorded a result"
     assert not list(cache_root().rglob("*.h5")), "a refused run wrote a descriptor store"
+    # was: weights of another architecture (or a resize below one patch) left empty store folders with a lock file
+    assert not (cache_root() / "stores").exists(), list((cache_root() / "stores").rglob("*"))
     assert not list(cache_root().rglob("vocabulary.pt")), "a refused run cached a vocabulary"
 
 

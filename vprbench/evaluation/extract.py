@@ -89,6 +89,8 @@ def describe_splits(method, splits: dict[str, list[Path]], *, root: Path | None 
         return Described(same_dim(method, stores), computed, timings, fingerprint, folder, per_rank)
     with ExitStack() as held:
         def plan():
+            with plugin_part(method, "prepare"):  # a bad weights file is refused before the folders exist
+                method.prepare()
             held.enter_context(folder.locked(lock_timeout))
             return job.plan(timings)
 

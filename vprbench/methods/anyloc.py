@@ -28,7 +28,7 @@ from ..errors import VPRBenchError
 from ..features.backbones import RANDOM, backbone_spec, load_backbone, weights_identity
 from ..weights import cached_weights, file_sha256, weights_provenance
 from ..features.dense import FACETS, DenseExtractor
-from ..features.preprocess import preprocess
+from ..features.preprocess import crop_offsets, preprocess
 from ..features.resize import asks_native, dataset_resize, parse_size
 from ..loader import loaded
 from .base import Method, l2_normalise
@@ -277,6 +277,11 @@ class AnyLoc(Method):
         return info
 
     # ------------------------------------------------------------ extraction
+    def prepare(self) -> None:
+        if self.resize is not None and self.spec.resize != "fixed":  # a size below one patch: refused as an image's
+            crop_offsets(*self.resize, self.spec.patch)
+        self.extractor  # the backbone loaded: weights of another architecture are refused here  # noqa: B018
+
     @property
     def extractor(self) -> DenseExtractor:
         if self._extractor is None:

@@ -85,6 +85,10 @@ class Method(ABC):
     def fingerprint(self) -> dict:
         return {}
 
+    def prepare(self) -> None:  # pragma: no cover - default no-op
+        """Load what `fit` and `describe` need (a model's weights), once there is something to compute
+        and before its store folders are made: a file refused here leaves nothing in the cache."""
+
     def fit(self, database: Sequence[Path]) -> None:  # pragma: no cover - default no-op
         """Learn from the database images (never the queries)."""
 
