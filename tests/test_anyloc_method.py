@@ -277,3 +277,13 @@ def test_fp16_runs_get_the_same_implied_layer_and_named_vocabulary_identity(tmp_
     found = [resolve_spec("anyloc", "corridor", options={**options, **extra}, cache_dir=tmp_path).found
              for extra in ({}, half)]
     assert found[0]["vocabulary"].startswith("sha256:") and found[1] == found[0]
+
+
+def test_an_on_demand_fit_of_more_clusters_than_patches_is_refused_before_any_image_is_read(tmp_path):
+    """vocabulary=map fits on the database in the run: too many clusters were found out once every image was
+    described. At 28 x 28 each image gives 2 x 2 patches of 14 (these images do not exist: none is read)."""
+    method = AnyLoc(backbone="dinov2_vits14", weights="random", layer=0, clusters=13, resize=[28, 28])
+    assert method.patches_per_image() == 4 and method.patches_per_image((56, 70)) == 20
+    with pytest.raises(VPRBenchError, match=r"Cannot fit 13 clusters on 12 features \(3 images x 4 patches each"):
+        method.fit([tmp_path / f"{i}.jpg" for i in range(3)])
+    assert AnyLoc(backbone="dinov2_vits14", weights="random", layer=0).patches_per_image() is None  # native size

@@ -213,6 +213,78 @@ def test_a_map_fit_on_a_folder_is_named_by_its_dataset_not_the_path(given, share
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(methods, "create_method", lambda name, **kw: FakeMethod(**kw))
     assert run(parse("vocabulary", "fit", "--dataset", given, "--method", "fake", "--clusters", "4")) == 0
-    assert "Vocabulary map-campus: 4 x 16" in capsys.readouterr().out
-    found = resolve_vocabulary("map-campus", "fake", 0, "token", 4)
-    assert found.meta["source"] == "map-campus" and found.meta["datasets"] == {"campus": 3}
+    name = re.search(r"Vocabulary (map-campus-[0-9a-f]{12}): 4 x 16", capsys.readouterr().out)[1]  # and its content
+    found = resolve_vocabulary(name, "fake", 0, "token", 4)
+    assert found.meta["source"] == name and found.meta["datasets"] == {"campus": 3}
+
+
+def test_two_folders_of_one_name_keep_their_own_map_vocabularies(shared_data, monkeypatch, capsys, tmp_path):
+    """/x/a/place and /x/b/place (other images) were both cached as 'map-place': fitted on one, a run on the other
+    named map-place took centres fitted on another map, and a fit on the other replaced them."""
+    import vprbench.methods as methods
+
+    a = corridor_folder(shared_data, tmp_path / "a" / "place", database=3)
+    b = corridor_folder(shared_data, tmp_path / "b" / "place", database=4)
+    cache = tmp_path / "cache"
+    monkeypatch.setattr(methods, "create_method", lambda name, **kw: FakeMethod(**kw))
+    names = []
+    for folder in (a, b):
+        assert run(parse("vocabulary", "fit", "--dataset", str(folder), "--method", "fake", "--clusters", "4",
+                         "--cache-dir", str(cache), "--quiet")) == 0
+        names.append(re.search(r"Vocabulary (map-place-[0-9a-f]{12}):", capsys.readouterr().out)[1])
+    assert names[0] != names[1]
+    for name, folder, count in zip(names, (a, b), (3, 4)):
+        found = resolve_vocabulary(name, "fake", 0, "token", 4, cache)
+        assert found.meta["folder"] == str(folder.resolve()) and found.meta["datasets"] == {"place": count}
+    with pytest.raises(VPRBenchError) as caught:  # which folder's? none is taken for another
+        resolve_vocabulary("map-place", "fake", 0, "token", 4, cache)
+    said = str(caught.value)
+    assert all(str(part) in said for part in (*names, a.resolve(), b.resolve())) and "\n" not in said, said
+
+
+def test_a_map_vocabulary_of_a_folder_fitted_before_names_carried_its_content_is_refused(tmp_path):
+    """Cached as 'map-place' by an earlier vprbench: any folder named place would be served it."""
+    from vprbench.methods.anyloc_vocabulary import save_to_cache
+
+    old = Vocabulary(torch.randn(4, 16), {"source": "map-place", "datasets": {"place": 3}, "features_seen": 48})
+    save_to_cache(old, "fake", 0, "token", "map-place", tmp_path)
+    with pytest.raises(VPRBenchError, match=r"fitted on a folder of your own named 'place' before .* fit it again"):
+        resolve_vocabulary("map-place", "fake", 0, "token", 4, tmp_path)
+    imported = Vocabulary(torch.randn(4, 16), {"datasets": {"place": 3}, "imported_from": "/x/c_centers.pt"})
+    save_to_cache(imported, "fake", 0, "token", "map-place", tmp_path)  # named so by its user: served
+    assert resolve_vocabulary("map-place", "fake", 0, "token", 4, tmp_path).meta["imported_from"] == "/x/c_centers.pt"
+
+
+@pytest.mark.parametrize("source", ["map-campus-0123456789ab", "map-my.data+1", "map-pitts30k", "mine"])
+def test_import_takes_a_folder_of_ones_owns_map_name(source, tmp_path, capsys):
+    Vocabulary(torch.randn(3, 384)).save(tmp_path / "mine.pt")
+    assert run(parse("vocabulary", "import", str(tmp_path / "mine.pt"), "--source", source, "--backbone",
+                     "dinov2_vits14", "--layer", "9", "--cache-dir", str(tmp_path / "cache"))) == 0
+    assert resolve_vocabulary(source, "dinov2_vits14", 9, "value", 3, tmp_path / "cache").clusters == 3
+
+
+class CountedFake(FakeMethod):
+    """FakeMethod whose features per image are known before any image is read, as AnyLoc's at a set resize."""
+
+    def patches_per_image(self, resize=None):
+        return 30 * 40
+
+
+@pytest.mark.parametrize("more, said", [
+    (["--clusters", "200000", "--budget", "300000"], "Cannot fit 200000 clusters on 133,200 features (111 images x "
+                                                     "1,200 patches each at this resize): give at most 133200 clusters"),
+    (["--clusters", "600", "--budget", "500"], "Cannot fit 600 clusters on a sample of at most 500 features"),
+])
+def test_more_clusters_than_the_fit_has_features_are_refused_before_any_image_is_described(
+        more, said, shared_data, monkeypatch, tmp_path):
+    """--clusters beyond the features a fit can have was refused by the k-means, after every image was described."""
+    import vprbench.methods as methods
+
+    made = []
+    monkeypatch.setattr(methods, "create_method", lambda name, **kw: made.append(CountedFake(**kw)) or made[-1])
+    args = parse("vocabulary", "fit", "--dataset", "corridor", "--method", "fake", *more, "--data-dir",
+                 str(shared_data), "--cache-dir", str(tmp_path / "cache"), "--quiet")
+    with pytest.raises(VPRBenchError) as caught:
+        run(args)
+    assert said in str(caught.value) and "\n" not in str(caught.value)
+    assert made[0].seen == [] and not list((tmp_path / "cache").rglob("*.pt"))

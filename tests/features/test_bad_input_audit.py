@@ -191,6 +191,10 @@ def test_a_resize_below_one_patch_says_what_to_do(cli, shared_data, monkeypatch)
     ("nosuch", 3, "value", "indoor", "Unknown backbone 'nosuch'"),
     ("dinov2_vitb14", 3, "value", "indoor", "has 384-dimensional centres but the features are 768-dimensional"),
     ("dinov2_vits14", 3, "value", "../../escape", "--source '../../escape' is not a vocabulary name"),
+    ("dinov2_vits14", 3, "value", "map-", "--source 'map-' is not a vocabulary name: give a domain"),
+    ("dinov2_vits14", 3, "value", "map-a/b", "map-DATASET with a dataset's name (1 to 100 letters"),
+    ("dinov2_vits14", 3, "value", "map-.hidden", "--source 'map-.hidden' is not a vocabulary name"),
+    ("dinov2_vits14", 3, "value", "x" * 300, "or another name of 1 to 100 letters, digits, '_' or '-'"),
 ])
 def test_a_vocabulary_imported_under_a_key_no_features_have_is_refused(backbone, layer, facet, source, said, cli,
                                                                        tmp_path):

@@ -354,19 +354,29 @@ def vocabularies_root(cache_dir=None) -> Path:
 
 def fit_vocabulary(
     features: Iterable, clusters: int, *, exact: bool = False, budget: int = DEFAULT_BUDGET,
-    seed: int = KMEANS_SEED, meta: dict | None = None, progress=None,
+    seed: int = KMEANS_SEED, meta: dict | None = None, progress=None, images: int | None = None,
+    per_image: int | None = None,
 ) -> Vocabulary:
     """Fit a vocabulary on a stream of per-image (N, D) patch features.
 
     exact=True: AnyLoc's fit, k-means on every feature (memory grows with the dataset).
     exact=False: k-means on a seeded reservoir sample of at most `budget` features.
-    `progress` (vprbench.progress) shows the k-means as a phase.
+    `progress` (vprbench.progress) shows the k-means as a phase. `images` and `per_image` (the stream's
+    length and features per image, where the resize fixes them) refuse too many clusters before it is read.
     """
     from ..progress import phase
 
     if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**32:  # numpy's seed range
         raise VPRBenchError(f"The vocabulary's seed (--seed) must be a whole number >= 0, got {seed!r}; "
                             f"the largest is {2**32 - 1}.")
+    # before the stream is read (describing the images is most of a fit); k-means checks it again
+    if not exact and clusters > budget:
+        raise VPRBenchError(f"Cannot fit {clusters} clusters on a sample of at most {budget:,} features (the budget): "
+                            f"give fewer clusters or a budget of at least {clusters}.")
+    if images is not None and per_image is not None and clusters > images * per_image:
+        raise VPRBenchError(f"Cannot fit {clusters} clusters on {images * per_image:,} features ({images:,} images x "
+                            f"{per_image:,} patches each at this resize): give at most {images * per_image} clusters, "
+                            "or more images or a larger resize.")
     if exact:
         chunks = [torch.as_tensor(f).float().reshape(-1, torch.as_tensor(f).shape[-1]) for f in features]
         if not chunks:

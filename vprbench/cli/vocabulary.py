@@ -62,7 +62,8 @@ def add_parsers(commands) -> None:
 
 
 def run_fit(args) -> int:
-    from ..methods.anyloc_vocabulary import domain_image_size, fit_domain_vocabulary, fit_map_vocabulary, save_to_cache
+    from ..methods.anyloc_fit import fit_domain_vocabulary, fit_map_vocabulary
+    from ..methods.anyloc_vocabulary import domain_image_size, save_to_cache
     from ..aggregation.vocabulary import DEFAULT_BUDGET
     from ..methods import create_method
     from ..loader import use_dataset
@@ -103,9 +104,11 @@ def run_fit(args) -> int:
     meta = {**setting, **({} if args.domain is not None else {"resize": list(resize) if resize else "native"})}
     common = {"exact": args.exact, "budget": DEFAULT_BUDGET if args.budget is None else args.budget, "seed": args.seed, "meta": meta}
     data_dir = args.data_dir
+    size = domain_image_size() if args.domain is not None else None  # None: the dataset's own (the method's resize)
+    # the features per image where the resize fixes them: too many clusters are refused before any is described
+    common["per_image"] = method.patches_per_image(size) if hasattr(method, "patches_per_image") else None
     with progress(args) as shown:
         if args.domain is not None:  # '' is an unknown domain, not a map-specific fit
-            size = domain_image_size()
             vocabulary = fit_domain_vocabulary(
                 args.domain, lambda paths: _patch_features(method, paths, size), clusters,
                 data_dir=data_dir, progress=shown, **common)
@@ -114,7 +117,7 @@ def run_fit(args) -> int:
             vocabulary = fit_map_vocabulary(
                 args.dataset, lambda paths: _patch_features(method, paths, None), clusters,
                 data_dir=data_dir, progress=shown, **common)
-            source = vocabulary.meta["source"]  # map-<the dataset's name> (a folder's, not its path)
+            source = vocabulary.meta["source"]  # map-<the dataset's name> (a folder's: and its content's)
     path = save_to_cache(vocabulary, source=source, **setting, cache_dir=args.cache_dir)
     print(f"Vocabulary {source}: {vocabulary.clusters} x {vocabulary.dim}, "
           f"{vocabulary.meta['features_used']} of {vocabulary.meta['features_seen']} features -> {path}")
@@ -176,9 +179,7 @@ def run_import(args) -> int:
     if spec.patch % whole("vocabulary import", "--stride", stride, 1, spec.patch, f"pixels, at most the patch {spec.patch}"):
         raise VPRBenchError(f"--stride {stride} does not divide the patch {spec.patch} of {spec.name}: give one of "
                             + ", ".join(str(d) for d in range(1, spec.patch + 1) if spec.patch % d == 0) + ".")
-    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_-]*", args.source):
-        raise VPRBenchError(f"--source {args.source!r} is not a vocabulary name: give a domain (`vprbench vocabulary "
-                            "domains`), map-DATASET, or another name of letters, digits, '_' and '-'.")
+    check_source(args.source)
     vocabulary = load_vocabulary(args.path)
     vocabulary.check_dim(spec.width)
     source_file = Path(vocabulary.meta["path"])
@@ -194,6 +195,23 @@ def run_import(args) -> int:
         path = save_to_cache(vocabulary, args.backbone, args.layer, args.facet, args.source, args.cache_dir, stride)
     print(f"Imported {vocabulary.clusters} x {vocabulary.dim} centres as {args.source!r} -> {path}")
     return 0
+
+
+def check_source(source: str) -> None:
+    """A name `import` may cache centres under (a folder's name, given back by runs' --vocabulary): map-DATASET
+    with a dataset's name (a folder of one's own's followed by its content's digits, as its fit names it), or
+    another plain name."""
+    from ..datasets.layouts.own_data import NAME_RULE, is_safe_name
+    from ..methods.anyloc_vocabulary import MAP_PREFIX, OWN_CONTENT_DIGITS
+
+    if source.startswith(MAP_PREFIX):
+        ok = is_safe_name(re.sub(rf"-[0-9a-f]{{{OWN_CONTENT_DIGITS}}}$", "", source[len(MAP_PREFIX):]))
+    else:
+        ok = re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_-]{0,99}", source) is not None
+    if not ok:
+        raise VPRBenchError(f"--source {source!r} is not a vocabulary name: give a domain (`vprbench vocabulary "
+                            f"domains`), map-DATASET with a dataset's name ({NAME_RULE}), or another name of 1 to 100 "
+                            "letters, digits, '_' or '-' starting with a letter or digit.")
 
 
 def run_show(args) -> int:

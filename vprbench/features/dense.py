@@ -54,6 +54,11 @@ def interpolate_pos_embed(pos_embed: torch.Tensor, grid: tuple[int, int], num_pr
     return torch.cat([prefix, resampled], dim=1)
 
 
+def patch_grid(height: int, width: int, patch: int, stride: int) -> tuple[int, int]:
+    """(rows, columns) of patch features of an input of height x width pixels (a multiple of the patch)."""
+    return 1 + (height - patch) // stride, 1 + (width - patch) // stride
+
+
 class DenseExtractor(nn.Module):
     """Per-patch features of block `layer` (0-based) and `facet` of a timm ViT.
 
@@ -89,8 +94,7 @@ class DenseExtractor(nn.Module):
         self.dim = model.embed_dim
 
     def grid(self, height: int, width: int) -> tuple[int, int]:
-        p, s = self.spec.patch, self.stride
-        return 1 + (height - p) // s, 1 + (width - p) // s
+        return patch_grid(height, width, self.spec.patch, self.stride)
 
     def _tokens(self, images: torch.Tensor) -> torch.Tensor:
         """Patch embedding + prefix tokens + interpolated position embedding."""

@@ -27,7 +27,7 @@ from ..aggregation.vocabulary import fit_vocabulary
 from ..errors import VPRBenchError
 from ..features.backbones import RANDOM, backbone_spec, load_backbone, weights_identity
 from ..weights import cached_weights, file_sha256, weights_provenance
-from ..features.dense import FACETS, DenseExtractor
+from ..features.dense import FACETS, DenseExtractor, patch_grid
 from ..features.preprocess import crop_offsets, preprocess
 from ..features.resize import asks_native, dataset_resize, parse_size
 from ..loader import loaded
@@ -354,7 +354,21 @@ class AnyLoc(Method):
         if self.dataset is not None:  # as the authors: no distractors, the dataset's stride
             database = vocabulary_images(self.dataset, database)
         # one image's features at a time into the bounded-memory sampler of fit_vocabulary
-        self.centres = fit_vocabulary(self.iter_patch_features(database), self.clusters).centres.float()
+        self.centres = fit_vocabulary(self.iter_patch_features(database), self.clusters, images=len(database),
+                                      per_image=self.patches_per_image()).centres.float()
+
+    def patches_per_image(self, resize=None) -> int | None:
+        """Patch features each image gives at `resize` (else the method's): None where they depend on the
+        image's own size (no resize), so a fit can be refused before any image is described."""
+        size = parse_size(resize) or self.resize
+        if self.spec.resize == "fixed":
+            height, width = self.spec.input_size
+        elif size is None:
+            return None
+        else:
+            _, _, height, width = crop_offsets(*size, self.spec.patch)
+        rows, columns = patch_grid(height, width, self.spec.patch, self.stride)
+        return rows * columns
 
     def iter_patch_features(self, paths: Sequence[Path], resize=None):
         """Each image's (N, D) patch features as they enter VLAD, in input order.

@@ -1,32 +1,27 @@
 """AnyLoc's vocabulary policy: which images a VLAD vocabulary is fitted on (map-specific
 and domain vocabularies), the authors' released centres, and the `vocabulary` option.
 
-Domain membership is data (manifests/vocabularies.toml). Fitting takes a feature
-extractor from the caller, so this module knows nothing about backbones:
-
-    extract(paths: list[Path]) -> iterable of (N, D) patch features, one per path, in order
-
-For domain vocabularies the extractor must resize images to `domain_image_size()`
-(320 x 320, as the authors' script); map-specific ones use the dataset's own preprocessing.
+Domain membership is data (manifests/vocabularies.toml); fitting is anyloc_fit.py.
 """
 from __future__ import annotations
 
+import glob
 import tomllib
 from functools import cache
 from importlib.resources import files
 from pathlib import Path
-from typing import Callable, Iterable, Iterator, Sequence
+from typing import Sequence
 
 from ..aggregation.vocabulary import (
-    DEFAULT_BUDGET, KMEANS_SEED, RELEASED_FILE, VOCABULARY_FILE, Vocabulary, at_default_stride, catalogued,
-    default_stride, fit_vocabulary, legacy_vocabulary_dir, load_vocabulary, vocabulary_dir, vocabulary_file_in,
+    RELEASED_FILE, VOCABULARY_FILE, Vocabulary, at_default_stride, catalogued, default_stride, legacy_vocabulary_dir,
+    load_vocabulary, vocabulary_dir, vocabulary_file_in,
 )
-from ..errors import ProblemList, VPRBenchError, closest_names
+from ..errors import VPRBenchError, closest_names
 from ..fsutil import lock, remove_stale, write_in_turn
-from ..text import one_line
 
-Extractor = Callable[[Sequence[Path]], Iterable]
 MAP_PREFIX = "map-"
+#: hex digits of a folder of one's own's database content in its map vocabulary's name
+OWN_CONTENT_DIGITS = 12
 
 
 @cache
@@ -183,69 +178,6 @@ def paper_choice(dataset: str, backbone: str, layer: int, facet: str, clusters: 
     return None, f"{MAP_PREFIX}{dataset}", note
 
 
-def _load_all(pairs: list[tuple[str, int]], data_dir) -> list[tuple[str, list[Path]]]:
-    """Database images of every dataset, strided; one error naming every dataset that is missing."""
-    from ..datasets import load_dataset
-
-    loaded, missing = [], []
-    for name, stride in pairs:
-        try:
-            dataset = load_dataset(name, data_dir, fetch=False)
-        except VPRBenchError as exc:
-            missing.append(f"  - {one_line(name)}: {one_line(exc)}")
-            continue
-        # by the dataset's name, not the text given: a folder's './mydata' would key its centres by that path
-        loaded.append((dataset.name, vocabulary_images(name, dataset.database, stride)))
-    if missing:
-        raise ProblemList(
-            "Cannot fit this vocabulary: these datasets are needed and could not be loaded:\n"
-            + "\n".join(missing)
-            + "\nGet them (see `vprbench datasets`), or use the authors' released centres instead: "
-            "pass the path of their c_centers.pt as the vocabulary."
-        )
-    return loaded
-
-
-def fit_domain_vocabulary(
-    domain: str, extract: Extractor, clusters: int, *, data_dir=None, exact: bool = False,
-    budget: int = DEFAULT_BUDGET, seed: int = KMEANS_SEED, meta: dict | None = None, progress=None,
-) -> Vocabulary:
-    """Fit AnyLoc's vocabulary of a domain (indoor, urban, aerial, ..., structured, global).
-
-    `extract` must produce features of images resized to `domain_image_size()`; `progress`
-    (vprbench.progress) counts the images described, then shows the k-means.
-    """
-    loaded = _load_all(domain_datasets(domain), data_dir)
-    paths = [path for _, images in loaded for path in images]
-    sources = {name: len(images) for name, images in loaded}
-    info = {**(meta or {}), "source": domain, "datasets": sources, "image_size": list(domain_image_size())}
-    return fit_vocabulary(_counted(extract(paths), len(paths), domain, progress), clusters, exact=exact,
-                          budget=budget, seed=seed, meta=info, progress=progress)
-
-
-def fit_map_vocabulary(
-    dataset: str, extract: Extractor, clusters: int, *, data_dir=None, exact: bool = False,
-    budget: int = DEFAULT_BUDGET, seed: int = KMEANS_SEED, meta: dict | None = None, progress=None,
-) -> Vocabulary:
-    """Fit a map-specific vocabulary on the dataset's own database images (distractors left out);
-    `progress` as for `fit_domain_vocabulary`."""
-    (name, images), = _load_all([(dataset, map_stride(dataset))], data_dir)
-    info = {**(meta or {}), "source": f"{MAP_PREFIX}{name}", "datasets": {name: len(images)}}
-    return fit_vocabulary(_counted(extract(images), len(images), info["source"], progress), clusters, exact=exact,
-                          budget=budget, seed=seed, meta=info, progress=progress)
-
-
-def _counted(features: Iterable, total: int, source: str, progress) -> Iterator:
-    """`features`, one image's at a time, counted as images described (describing is most of a fit)."""
-    from ..progress import Silent
-
-    progress = progress or Silent()
-    task = progress.add_task(f"vocabulary {source} images", total=total)
-    for found in features:
-        yield found
-        progress.advance(task)
-
-
 def find_vocabulary(source: str, backbone: str, layer: int, facet: str, clusters: int, cache_dir=None,
                     stride: int | None = None) -> Vocabulary | None:
     """A cached vocabulary for these feature settings and source, or None; `stride` None: the
@@ -361,14 +293,19 @@ def resolve_vocabulary(spec: str, backbone: str, layer: int, facet: str, cluster
         if vocabulary is not None:
             check_clusters(vocabulary, clusters, spec,
                            vocabulary_dir(backbone, layer, facet, vocabulary.clusters, spec, cache_dir, stride))
+            check_folder_known(vocabulary, spec)
         if vocabulary is None and released_path(spec) is not None and is_released_setting(backbone, layer, facet,
                                                                                            clusters, stride):
             vocabulary = load_vocabulary(fetch_released(spec, cache_dir))
         if vocabulary is None:
             where = vocabulary_dir(backbone, layer, facet, clusters, spec, cache_dir, stride)
             if spec.startswith(MAP_PREFIX) or spec in domain_names():
-                how = f"--dataset {spec[len(MAP_PREFIX):]}" if spec.startswith(MAP_PREFIX) else f"--domain {spec}"
-                how = f"Fit it with `vprbench vocabulary fit {how} ...`"
+                from ..datasets import dataset_manifests
+
+                name = spec[len(MAP_PREFIX):]
+                name = name if name in dataset_manifests() else "YOUR-FOLDER"  # a folder of one's own: by its path
+                how = f"--dataset {name}" if spec.startswith(MAP_PREFIX) else f"--domain {spec}"
+                how = own_map_names(where) + f"Fit it with `vprbench vocabulary fit {how} ...`"
             else:  # no domain to fit: a typo, or a name only `vocabulary import` gives
                 how = (f"{spec!r} is no domain ({', '.join(domain_names())}) nor map-DATASET."
                        f"{closest_names(spec, domain_names())} Name one, or put your centres under this name with "
@@ -379,6 +316,36 @@ def resolve_vocabulary(spec: str, backbone: str, layer: int, facet: str, cluster
             )
     check_clusters(vocabulary, clusters, spec)
     return vocabulary
+
+
+def check_folder_known(vocabulary: Vocabulary, source: str) -> None:
+    """Refuse a map vocabulary fitted on a folder of one's own before such names carried its content (the
+    folder is unknown: any folder of that name could be served it); one imported under a name is the user's."""
+    from ..datasets import dataset_manifests
+
+    name = source[len(MAP_PREFIX):]
+    meta = vocabulary.meta
+    if (source.startswith(MAP_PREFIX) and name not in dataset_manifests() and "folder" not in meta
+            and "imported_from" not in meta and isinstance(meta.get("datasets"), dict) and list(meta["datasets"]) == [name]):
+        raise VPRBenchError(f"Vocabulary {source!r} ({meta.get('path')}) was fitted on a folder of your own named "
+                            f"{name!r} before vprbench named such vocabularies by the folder's content too, so which "
+                            f"folder is unknown: fit it again (`vprbench vocabulary fit --dataset YOUR-FOLDER`).")
+
+
+def own_map_names(where: Path) -> str:
+    """The map vocabularies cached beside `where` (map-NAME's folder) for folders of one's own named NAME, whose
+    names carry their content too: none is taken for another (two folders may share a name)."""
+    found = sorted(where.parent.glob(f"{glob.escape(where.name)}-{'[0-9a-f]' * OWN_CONTENT_DIGITS}"))
+    if not found:
+        return ""
+    fitted = []
+    for folder in found:
+        try:
+            fitted.append(f"{folder.name} (fitted on {load_vocabulary(folder).meta.get('folder', 'a folder')})")
+        except VPRBenchError:  # a damaged one is still named
+            fitted.append(folder.name)
+    return (f"A folder of your own's map vocabulary is named by its content too: cached are {', '.join(fitted)}; "
+            "give the one of your folder. ")
 
 
 def check_clusters(vocabulary: Vocabulary, clusters: int, name: str, belongs: Path | None = None) -> None:
