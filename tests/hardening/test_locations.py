@@ -63,8 +63,9 @@ def test_datasets_commands_refuse_a_mistyped_data_root(tmp_path, no_network, cli
     assert_refused(code, err, None, f"The data root {typo} ($VPRBENCH_DATA) does not exist")
     monkeypatch.delenv("VPRBENCH_DATA")
     deep = typo / "data"
-    for command in (("download", "corridor"), ("import", "corridor", tmp_path / "shared")):
-        code, _, err = cli("datasets", *command, "--data-dir", deep)
+    for command in (("datasets", "download", "corridor"), ("datasets", "import", "corridor", tmp_path / "shared"),
+                    ("evaluate", "--method", "hog", "--dataset", "corridor", "--download")):
+        code, _, err = cli(*command, "--data-dir", deep)
         assert_refused(code, err, None, f"--data-dir {deep}: the folder {typo} does not exist: create it first")
     assert tree(tmp_path) == ["shared"] and no_network == []
 

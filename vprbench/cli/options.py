@@ -304,6 +304,8 @@ def run_settings(args):
 
     if hasattr(args, "lease"):  # checked even when this run makes no claim (one evaluation)
         checked_lease(args.lease)
+    if getattr(args, "download", False) and args.data_dir is not None:  # as `datasets download` checks it
+        check_new_folder(Path(args.data_dir), "--data-dir")
     return RunSettings(cache_dir=args.cache_dir, data_dir=args.data_dir, **explicit_run_options(args),
                        download=True if getattr(args, "download", False) else None, strict=getattr(args, "strict", False))
 
