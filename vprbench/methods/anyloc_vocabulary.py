@@ -16,7 +16,7 @@ from ..aggregation.vocabulary import (
     RELEASED_FILE, VOCABULARY_FILE, Vocabulary, at_default_stride, catalogued, default_stride, legacy_vocabulary_dir,
     load_vocabulary, vocabulary_dir, vocabulary_file_in,
 )
-from ..errors import VPRBenchError, closest_names
+from ..errors import VPRBenchError, closest_names, network_reason
 from ..fsutil import lock, remove_stale, write_in_turn
 
 MAP_PREFIX = "map-"
@@ -122,7 +122,7 @@ def fetch_released(source: str, cache_dir=None) -> Path:
                            path=path.parent, progressbar=False)
         except Exception as error:  # network failure or checksum mismatch: say where the file goes
             raise VPRBenchError(
-                f"Cannot download the authors' {source!r} centres from {url} ({type(error).__name__}: {error}). "
+                f"Cannot download the authors' {source!r} centres from {url} ({network_reason(error).rstrip('.')}). "
                 f"On a machine with internet access run `vprbench vocabulary download` (or fetch that URL) "
                 f"and put the file at {path}."
             ) from None
