@@ -69,7 +69,7 @@ def test_hog_says_once_when_it_upsamples_thumbnails(tmp_path, recwarn):
     assert main(args) == 0
     said = [str(w.message) for w in recwarn if "resized to its" in str(w.message)]
     assert len(said) == 1 and said[0].startswith("hog: the images of thumbs (64 x 32) are resized to its 512 x 512")
-    assert "128 times their area, 143 kB a descriptor" in said[0] and "--resize 32 64" in said[0]
+    assert "128 times their area, 35,721 dimensions a descriptor (143 kB in float32)" in said[0] and "--resize 32 64" in said[0]
     recwarn.clear()
     assert main(args + ["--resize", "32", "64"]) == 0
     assert not [w for w in recwarn if "resized to its" in str(w.message)]

@@ -74,13 +74,14 @@ class HOG(Method):
 
     def _say_upsampling(self, width: int, height: int) -> None:
         """Once per run: images far smaller than the window are upsampled to it (the protocol's rule)."""
-        (w, h), descriptor = self.size, 4 * self.hog.getDescriptorSize()
+        (w, h), dims = self.size, self.hog.getDescriptorSize()
         if self.upsampling_said or w * h < UPSAMPLED_AREA * width * height:
             return
         self.upsampling_said = True
         where = f" of {self.dataset}" if self.dataset else ""
         warnings.warn(f"hog: the images{where} ({width} x {height}) are resized to its {w} x {h} window, VPR-Bench's "
-                      f"rule: {w * h / (width * height):.0f} times their area, {descriptor / 1e3:.0f} kB a descriptor. "
+                      f"rule: {w * h / (width * height):.0f} times their area, {dims:,} dimensions a descriptor "
+                      f"({4 * dims / 1e3:.0f} kB in float32). "
                       f"To describe them near their own size, give --resize (e.g. --resize {self._fit(height)} "
                       f"{self._fit(width)}); its own leaderboard row (docs/methods.md).", stacklevel=2)
 
