@@ -168,3 +168,24 @@ def test_domain_vocabulary_names_every_missing_dataset(tmp_path):
         method.fingerprint()
     assert all(name in str(info.value) for name in ("gardens-point", "17places", "baidu-mall"))
     assert str(info.value).startswith("dense-vlad: cannot fit the 'indoor' vocabulary: missing")
+
+
+def test_kmeans_words_do_not_depend_on_the_thread_count():
+    """Was: faiss's k-means ran on the machine's OpenMP count, and one sample gave another vocabulary at
+    each of 1, 2, 3 and 8 threads (torchrun's one thread a vocabulary of its own)."""
+    import faiss
+
+    from vprbench.methods.dense_vlad import kmeans_words
+
+    sample = np.random.default_rng(0).random((20_000, 128), dtype=np.float32)
+    before = faiss.omp_get_max_threads()
+    try:
+        found = []
+        for threads in (1, 3):
+            faiss.omp_set_num_threads(threads)
+            found.append(kmeans_words(sample, 64, seed=0))
+            assert faiss.omp_get_max_threads() == threads  # the caller's count, restored
+    finally:
+        faiss.omp_set_num_threads(before)
+    assert found[0].shape == (64, 128) and found[0].dtype == np.float32
+    assert np.array_equal(found[0], found[1])

@@ -140,9 +140,7 @@ class DenseVLAD(Method):
         sample = np.concatenate(chunks) if chunks else np.zeros((0, SIFT_DIM), np.float32)
         if len(sample) < self.clusters:
             raise VPRBenchError(f"dense-vlad: {len(sample)} sampled descriptors cannot make {self.clusters} clusters")
-        kmeans = faiss.Kmeans(sample.shape[1], self.clusters, niter=25, seed=self.seed, verbose=False)
-        kmeans.train(sample)
-        return kmeans.centroids.astype(np.float32)
+        return kmeans_words(sample, self.clusters, self.seed)
 
     def fit(self, database: Sequence[Path]) -> None:
         if self.needs_fit:
@@ -167,6 +165,25 @@ class DenseVLAD(Method):
         centres = self.vocabulary_centres()
         return np.stack([vlad_hard(self.rootsift(gray), centres, metric="euclidean").numpy()
                          for gray in loaded(self, images)])
+
+
+#: OpenMP threads faiss's k-means runs on, whatever the machine's or torchrun's count: its centres
+#: depend on the count (one sample gave another vocabulary at each of 1, 2, 3 and 8 threads). 2: the
+#: count the published Corridor runs were fitted with, whose vocabulary this keeps
+KMEANS_THREADS = 2
+
+
+def kmeans_words(sample: np.ndarray, clusters: int, seed: int) -> np.ndarray:
+    """faiss k-means (25 iterations) of the sampled descriptors: (clusters, D) float32 centres, the
+    same on any thread count (the caller's count is restored)."""
+    before = faiss.omp_get_max_threads()
+    faiss.omp_set_num_threads(KMEANS_THREADS)
+    try:
+        kmeans = faiss.Kmeans(sample.shape[1], clusters, niter=25, seed=seed, verbose=False)
+        kmeans.train(sample)
+    finally:
+        faiss.omp_set_num_threads(before)
+    return kmeans.centroids.astype(np.float32)
 
 
 def _sha256(centres: np.ndarray) -> str:
