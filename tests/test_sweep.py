@@ -155,6 +155,21 @@ def test_a_dataset_folder_at_fault_is_named_once_at_its_own_line(tmp_path, capsy
     assert "1 problem(s)" in err and "bad.toml:8: Dataset folder" in err and "does not exist" in err, err
 
 
+def test_stages_at_fault_are_named_once_at_the_line_they_are_written_on(tmp_path, capsys, monkeypatch):
+    """Was: the plan's stages' error given once per method, at each method entry's line."""
+    monkeypatch.setenv("COLUMNS", "1000")
+    plan = tmp_path / "bad.toml"
+    plan.write_text('k = [1, 5]\nstages = [{ name = "aqe", k = 10 }, { name = "dba", k = 50 }]\n\n'
+                    '[[methods]]\nname = "hog"\n\n[[methods]]\nname = "dense-vlad"\n\n'
+                    '[[methods]]\nname = "hog"\noptions = { resize = [32, 32] }\nstages = [{ name = "aqe", n = "x" }]\n\n'
+                    '[[datasets]]\nname = "corridor"\n')
+    assert main(["run", str(plan)]) == 1
+    err = " ".join(capsys.readouterr().err.split())
+    assert "2 problem(s)" in err, err
+    assert "bad.toml:2: Stage 'dba' re-ranks the top 50, but stage 'aqe' before it hands over only its top 10" in err, err
+    assert "bad.toml:13: Stage 'aqe' option n:" in err, err
+
+
 def test_evaluate_matrix_continues_past_a_failing_cell(shared_data, tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("COLUMNS", "1000")
     code = main(["evaluate", "--method", "hog", "--dataset", "corridor", "hawkins", "--data-dir", str(shared_data),

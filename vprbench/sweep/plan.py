@@ -37,7 +37,7 @@ from ..errors import ProblemList, VPRBenchError, closest_names
 from ..paths import regular_file
 from ..registration import looked_up
 from ..spec import (RUN_SETTINGS, STORE_DTYPES, RunSettings, RunSpec, _choice, check_ks, resolve_dataset, resolve_search,
-                    resolve_spec, split_run_settings)
+                    resolve_spec, resolve_stage, split_run_settings)
 from ..text import one_line, toml_data
 
 PLAN_KEYS = {"name", "description", "k", "methods", "datasets", "search", "store_dtype", "stages"}
@@ -171,6 +171,7 @@ def plan_entries(data: dict, origin: str, lines: dict | None = None, *, override
     from ..evaluation.retrieve import check_compare
     from ..methods import available_methods
     from ..methods.registry import checked_run_options, failed_plugins_hint
+    from ..stages.run import check_stage_chain
 
     lines, overrides = lines or {}, dict(overrides or {})
     problems: list[str] = []
@@ -194,6 +195,10 @@ def plan_entries(data: dict, origin: str, lines: dict | None = None, *, override
         search = resolve_search(shared["search"])
     except VPRBenchError:
         search = None  # named above, at its own line
+    try:
+        ks = check_ks(shared["ks"])
+    except VPRBenchError:
+        ks = None  # named above, at its own line
     methods, known_methods = [], available_methods()
     for i, entry in enumerate(_entries(data, "methods", problems, where)):
         entry = {"name": entry} if isinstance(entry, str) else entry
@@ -236,6 +241,16 @@ def plan_entries(data: dict, origin: str, lines: dict | None = None, *, override
         if not isinstance(stages, list):
             problems.append(f"{where('methods', i, 'stages')}: stages of method {name!r} must be a list of tables, "
                             f"e.g. [{{ name = \"aqe\", k = 20 }}]; got {stages!r}")
+            continue
+        # the stages' own problems at the line they are written on: the plan's shared ones once, not at each entry
+        stages_at = ("the command line" if overrides.get("stages") else
+                     where('methods', i, 'stages') if "stages" in entry else where('', 0, 'stages'))
+        try:
+            chain = tuple(resolve_stage(stage) for stage in stages)
+            if ks is not None:
+                check_stage_chain(chain, ks)
+        except VPRBenchError as error:
+            problems.append(f"{stages_at}: {error}")
             continue
         methods.append((i, name, options, str(entry.get("label", "")), stages))
 
