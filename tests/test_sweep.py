@@ -170,6 +170,19 @@ def test_stages_at_fault_are_named_once_at_the_line_they_are_written_on(tmp_path
     assert "bad.toml:13: Stage 'aqe' option n:" in err, err
 
 
+def test_a_stage_that_cannot_use_a_methods_comparison_is_refused_with_the_plan(tmp_path, capsys, monkeypatch):
+    """Was: 'sad + aqe' in a plan passed its check and failed when its cell ran (the single run
+    refuses it before any work)."""
+    monkeypatch.setenv("COLUMNS", "1000")
+    plan = tmp_path / "bad.toml"
+    plan.write_text('stages = [{ name = "aqe", k = 20 }]\n\n[[methods]]\nname = "hog"\n\n[[methods]]\nname = "sad"\n\n'
+                    '[[datasets]]\nname = "corridor"\n')
+    assert main(["run", str(plan)]) == 1
+    err = " ".join(capsys.readouterr().err.split())
+    assert "1 problem(s)" in err and "bad.toml:7: Stage 'aqe' expands descriptors compared by cosine" in err, err
+    assert "'mean-absolute-difference': use a method compared by cosine" in err, err
+
+
 def test_evaluate_matrix_continues_past_a_failing_cell(shared_data, tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("COLUMNS", "1000")
     code = main(["evaluate", "--method", "hog", "--dataset", "corridor", "hawkins", "--data-dir", str(shared_data),

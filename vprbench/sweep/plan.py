@@ -171,7 +171,8 @@ def plan_entries(data: dict, origin: str, lines: dict | None = None, *, override
     from ..evaluation.retrieve import check_compare
     from ..methods import available_methods
     from ..methods.registry import checked_run_options, failed_plugins_hint
-    from ..stages.run import check_stage_chain
+    from ..stages.registry import create_stage
+    from ..stages.run import check_stage_chain, in_stage
 
     lines, overrides = lines or {}, dict(overrides or {})
     problems: list[str] = []
@@ -251,6 +252,15 @@ def plan_entries(data: dict, origin: str, lines: dict | None = None, *, override
                 check_stage_chain(chain, ks)
         except VPRBenchError as error:
             problems.append(f"{stages_at}: {error}")
+            continue
+        compare = known_methods[name].compare  # None: only the method made knows (its cells check it)
+        try:  # a stage that cannot use the method's comparison (aqe on sad), as the single run refuses it
+            for stage in chain if compare else ():
+                made = create_stage(stage.name, stage.options)
+                with in_stage(made, "check_compare"):
+                    made.check_compare(compare)
+        except VPRBenchError as error:
+            problems.append(f"{where('methods', i, 'name')}: {error}")
             continue
         methods.append((i, name, options, str(entry.get("label", "")), stages))
 
