@@ -108,7 +108,7 @@ def test_verify_own_data(mydata):
     assert not missing.ok and "does not exist" in missing.problems[0]
 
 
-def test_counts_and_radii_read_in_the_singular_and_plural(mydata, capsys):
+def test_counts_and_radii_read_in_the_singular_and_plural(mydata, capsys, monkeypatch):
     from vprbench.cli.main import main
     from vprbench.text import plural, quantity
 
@@ -119,9 +119,10 @@ def test_counts_and_radii_read_in_the_singular_and_plural(mydata, capsys):
     assert (quantity(None, "frames"), quantity(3, None)) == ("–", "3")
     pd.DataFrame({"image": images(mydata), "frame": [0, 1, 2, 3, 4, 0, 4]}).to_csv(mydata / "positions.csv", index=False)
     (mydata / "dataset.toml").write_text('name = "mine"\nradius = 1\n')
-    assert main(["datasets", "verify", str(mydata)]) == 0
+    monkeypatch.chdir(mydata.parent)  # a relative path is shown as the folder it is (was: 'OK at mydata')
+    assert main(["datasets", "verify", mydata.name]) == 0
     out = capsys.readouterr().out
-    assert out.startswith(f"mine: OK at {mydata} (layout own)")  # the dataset's name, then where it is
+    assert out.startswith(f"mine: OK at {mydata.resolve()} (layout own)")  # the dataset's name, then where it is
     assert "2 queries, 2 with a positive, 4 positive pairs (frames, radius 1 frame); 7 images decoded" in out, out
     assert main(["datasets", "info", str(mydata)]) == 0
     assert "within 1 frame " in capsys.readouterr().out

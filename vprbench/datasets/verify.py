@@ -14,6 +14,7 @@ import numpy as np
 
 from ..errors import VPRBenchError
 from ..images import load_image
+from ..paths import resolved
 from ..text import plural, quantity
 from .download import how_to_get
 from .layouts import MissingPart, candidates, describe_layout, detect_layout, missing_paths, read_layout
@@ -67,7 +68,7 @@ def verify_dataset(name: str, data_dir=None, strict: bool = False, sample: int |
     if is_path(name):
         from .layouts.own_data import own_manifest
 
-        root = Path(name).expanduser()
+        root = resolved(name, "The folder to verify")  # shown as the folder it is, not as typed
         if not root.is_dir():
             problem = f"{root} is a file, not a folder" if root.exists() else f"folder {root} does not exist"
             return VerifyReport(name=name, root=root, problems=[problem])
