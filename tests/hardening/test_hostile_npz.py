@@ -12,6 +12,7 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
+import torch
 import pytest
 from numpy.lib import format as npy_format
 
@@ -273,3 +274,16 @@ def test_npz_weights_of_shapes_that_fit_nothing_are_a_misfit(member, shape, said
     with pytest.raises(VPRBenchError, match="does not fit this backbone") as caught:
         load_backbone(spec.name, tmp_path / "release.npz")
     assert said in str(caught.value)
+
+
+def test_a_classifier_head_the_model_has_no_layer_for_is_never_read(siglip, tmp_path):
+    """A release with an in21k classifier (width x 21843, more values than any parameter of a model
+    without a head) loads: timm never reads a head the model has no linear layer for (and the
+    autouse check fails the test if numpy is asked to read it). Was: refused as a misfit."""
+    from vprbench.features.backbones import load_backbone
+
+    spec, arrays = siglip
+    np.savez(tmp_path / "release.npz", **arrays, **{"params/img/head/kernel": np.zeros((96, 21843), np.float32),
+                                                     "params/img/head/bias": np.zeros(21843, np.float32)})
+    model, _, identity = load_backbone(spec.name, tmp_path / "release.npz")
+    assert identity.startswith("sha256:") and all(torch.isfinite(p).all() for p in model.parameters())
