@@ -248,8 +248,16 @@ def test_a_map_vocabulary_of_a_folder_fitted_before_names_carried_its_content_is
 
     old = Vocabulary(torch.randn(4, 16), {"source": "map-place", "datasets": {"place": 3}, "features_seen": 48})
     save_to_cache(old, "fake", 0, "token", "map-place", tmp_path)
-    with pytest.raises(VPRBenchError, match=r"fitted on a folder of your own named 'place' before .* fit it again"):
+    refit = Vocabulary(torch.randn(4, 16), {"source": "map-place-0123456789ab", "datasets": {"place": 3},
+                                            "folder": "/data/place"})
+    save_to_cache(refit, "fake", 0, "token", "map-place-0123456789ab", tmp_path)  # fitted again since
+    with pytest.raises(VPRBenchError) as caught:  # was: "fit it again" alone, the refit's name never given
         resolve_vocabulary("map-place", "fake", 0, "token", 4, tmp_path)
+    said = str(caught.value)
+    assert "fitted on a folder of your own named 'place' before" in said and "\n" not in said, said
+    assert "cached are map-place-0123456789ab (fitted on /data/place)" in said, said
+    assert said.endswith("Fit it again (`vprbench vocabulary fit --method METHOD --dataset YOUR-FOLDER ...` with this "
+                         "run's options) and give the name it prints, map-place-<12 hex digits>."), said
     imported = Vocabulary(torch.randn(4, 16), {"datasets": {"place": 3}, "imported_from": "/x/c_centers.pt"})
     save_to_cache(imported, "fake", 0, "token", "map-place", tmp_path)  # named so by its user: served
     assert resolve_vocabulary("map-place", "fake", 0, "token", 4, tmp_path).meta["imported_from"] == "/x/c_centers.pt"

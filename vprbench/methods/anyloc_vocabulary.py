@@ -327,9 +327,12 @@ def check_folder_known(vocabulary: Vocabulary, source: str) -> None:
     meta = vocabulary.meta
     if (source.startswith(MAP_PREFIX) and name not in dataset_manifests() and "folder" not in meta
             and "imported_from" not in meta and isinstance(meta.get("datasets"), dict) and list(meta["datasets"]) == [name]):
+        cached = own_map_names(Path(meta["path"]).parent) if meta.get("path") else ""
         raise VPRBenchError(f"Vocabulary {source!r} ({meta.get('path')}) was fitted on a folder of your own named "
                             f"{name!r} before vprbench named such vocabularies by the folder's content too, so which "
-                            f"folder is unknown: fit it again (`vprbench vocabulary fit --dataset YOUR-FOLDER`).")
+                            f"folder is unknown. {cached}Fit it again (`vprbench vocabulary fit --method METHOD --dataset "
+                            f"YOUR-FOLDER ...` with this run's options) and give the name it prints, "
+                            f"{source}-<{OWN_CONTENT_DIGITS} hex digits>.")
 
 
 def own_map_names(where: Path) -> str:
