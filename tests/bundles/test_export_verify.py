@@ -359,3 +359,6 @@ def test_a_run_no_one_can_rescore_is_not_exported(records, kind, tmp_path):
                                             "bundles carry benchmark runs only.*Nothing was exported"):
         export_bundle([records[1], record], to)
     assert not to.exists()
+    # a folder of one's own named as the benchmark is: its runs left out of a choice by method and dataset
+    assert select_records([record, records[1]], method="hog", dataset="corridor") == [records[1]]
+    assert select_records([record], method="hog", dataset="corridor") == [record]  # alone: refused when exported

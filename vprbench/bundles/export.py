@@ -48,7 +48,8 @@ def select_records(records: list[dict], *, run_ids=(), method: str | None = None
     if not chosen:
         raise VPRBenchError(f"No stored run of {method!r} on {dataset!r}; run 'vprbench evaluate --method {method} "
                             f"--dataset {dataset}' first.")
-    return chosen
+    # a folder of one's own may bear a benchmark's name: its runs are left out (alone, refused as such)
+    return [r for r in chosen if r.get("dataset_kind") == "benchmark"] or chosen
 
 
 #: what a record's dataset kind is, in words, where a bundle cannot carry it
