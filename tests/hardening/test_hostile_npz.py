@@ -205,21 +205,22 @@ def test_a_hostile_post_processing_state_is_named_and_fitted_again(kind, tmp_pat
     assert fit_postprocessor(PCAWhitening(8), rows, 2**28)["state"] == "loaded"  # the file was replaced
 
 
-def test_a_state_bigger_than_the_default_bound_loads_within_the_runs_memory(tmp_path, monkeypatch):
+def test_a_state_bigger_than_the_default_bound_is_bounded_by_its_rows(tmp_path, monkeypatch):
     """A PCA state of wide VLAD rows may exceed the reader's default bound (196,608 dims to 4,096:
-    3 GB): what a run may hold in memory (`memory_budget`) bounds it then, not the default."""
+    3 GB): a (D x D) matrix or the rows themselves, in float64, bound it then, whatever the memory
+    budget of the run that loads it (was: that budget, so a run with less memory refitted a sound state)."""
     from vprbench.datasets.layouts import npy
+    from vprbench.evaluation.postprocess import _load_state
 
     rows, info, _ = saved_state(tmp_path)
     size = sum(zipfile.ZipFile(info["file"]).getinfo(n).file_size for n in zipfile.ZipFile(info["file"]).namelist())
     monkeypatch.setattr(npy, "NPZ_MAX_BYTES", size - 1)
-    assert fit_postprocessor(PCAWhitening(8), rows, 2**28)["state"] == "loaded"  # the budget it was fitted in
-    from vprbench.evaluation.postprocess import _load_state
-
+    assert 8 * 16 * (64 + 1) > size  # 64 rows of 16 dims bound it
+    assert fit_postprocessor(PCAWhitening(8), rows, 2**28)["state"] == "loaded"
     with np.load(info["file"]) as saved:
         key = str(saved["key"])
-    assert _load_state(PCAWhitening(8), Path(info["file"]), key, 16, size) is None
-    assert "compression bomb" in _load_state(PCAWhitening(8), Path(info["file"]), key, 16, size - 1)  # beyond both
+    assert _load_state(PCAWhitening(8), Path(info["file"]), key, 16, 64) is None
+    assert "compression bomb" in _load_state(PCAWhitening(8), Path(info["file"]), key, 1, 1)  # beyond both bounds
 
 
 # ---------------------------------------------------------------- .npz weights

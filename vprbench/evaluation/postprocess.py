@@ -121,7 +121,7 @@ def fit_postprocessor(postprocessor, database: RowSource, memory_budget: int, st
     path = Path(folder) / f"postprocess-{hashlib.sha256(text.encode()).hexdigest()[:16]}.npz" if folder else None
     info = {"key": key, "file": str(path) if path else None}
     if path is not None and path.is_file():
-        unusable = _load_state(postprocessor, path, text, int(database.dim), memory_budget)
+        unusable = _load_state(postprocessor, path, text, int(database.dim), int(database.row_count))
         if unusable is None:
             return {**info, "state": "loaded"}
         warnings.warn(f"Refitting: {unusable}", stacklevel=2)  # the fit below replaces the file
@@ -141,18 +141,19 @@ def fit_postprocessor(postprocessor, database: RowSource, memory_budget: int, st
     return info
 
 
-def _load_state(postprocessor, path: Path, text: str, dim: int, memory_budget: int) -> str | None:
+def _load_state(postprocessor, path: Path, text: str, dim: int, rows: int) -> str | None:
     """None when `postprocessor` loaded the state saved at `path` under the key `text` and applies
-    it to `dim`-wide rows, else a line saying why that state is unusable (refitted); what else its
+    it to `rows` x `dim` rows, else a line saying why that state is unusable (refitted); what else its
     load_state raises is its one line (`in_postprocessor`)."""
     from ..datasets.layouts.npy import NPZ_MAX_BYTES, read_npz
 
     unusable = f"the post-processing state {path} is unusable"
     try:
-        # the one guarded reader: a header claiming terabytes, objects or a torn zip are a line, not a traceback
-        # a state fitted within the run's memory may be that big (PCA of 196,608-dim VLAD to 4,096: 3 GB)
+        # the one guarded reader: a header claiming terabytes, objects or a torn zip are a line, not a traceback.
+        # A state of these rows may be as big as a (D x D) matrix or the rows themselves, and a mean, in
+        # float64 (PCA of 196,608-dim VLAD to 4,096: 3 GB), whatever the budget it is loaded under
         saved = read_npz(path, "post-processing state", "the arrays vprbench saves (it is fitted again and replaced)",
-                         max_bytes=max(NPZ_MAX_BYTES, memory_budget))
+                         max_bytes=max(NPZ_MAX_BYTES, 8 * dim * (max(rows, dim) + 1)))
     except OSError as error:
         return f"{unusable} ({error})."
     except VPRBenchError as error:

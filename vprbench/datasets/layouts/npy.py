@@ -53,10 +53,11 @@ class _ArrayUnpickler(pickle.Unpickler):
         return _ALLOWED[module, name]
 
 
-#: the most an .npz's members may unpack to, together, unless its caller gives another bound: ten
-#: times what the largest vprbench writes needs (AnyLoc's PCA state, 512 x 49,152 float32: 100 MB;
-#: per-query arrays of 27,592 queries x 100 candidates: 33 MB). A deflated member of zeros is a
-#: thousandth of its size: a 1 MB file could otherwise claim a gigabyte.
+#: the most an .npz's members may unpack to, together, unless its caller gives another bound (a PCA
+#: state of wide rows may need more: its reader bounds it by its rows): ten times what AnyLoc's
+#: default PCA state needs (512 x 49,152 float32: 100 MB; per-query arrays of 27,592 queries x 100
+#: candidates: 33 MB). A deflated member of zeros is a thousandth of its size: a 1 MB file could
+#: otherwise claim a gigabyte.
 NPZ_MAX_BYTES = 1 << 30
 
 
