@@ -67,6 +67,9 @@ def test_datasets_commands_refuse_a_mistyped_data_root(tmp_path, no_network, cli
                     ("evaluate", "--method", "hog", "--dataset", "corridor", "--download")):
         code, _, err = cli(*command, "--data-dir", deep)
         assert_refused(code, err, None, f"--data-dir {deep}: the folder {typo} does not exist: create it first")
+    monkeypatch.setenv("VPRBENCH_DATA", str(deep))  # named as given: was '--data-dir' for evaluate --download
+    code, _, err = cli("evaluate", "--method", "hog", "--dataset", "corridor", "--download")
+    assert_refused(code, err, None, f"$VPRBENCH_DATA {deep}: the folder {typo} does not exist: create it first")
     assert tree(tmp_path) == ["shared"] and no_network == []
 
 

@@ -47,24 +47,16 @@ def add_parsers(commands) -> None:
     p.set_defaults(run=run_verify)
 
 
-def data_root_source(args) -> str:
-    """Where a named data root comes from, told before `resolve_locations` reads the environment."""
-    from ..paths import DATA_ENV
-
-    return "--data-dir" if args.data_dir is not None else f"${DATA_ENV}"
-
-
 def run_list(args) -> int:
     from rich.table import Table
 
     from ..datasets import dataset_location, dataset_manifests, nearest_existing
 
-    source = data_root_source(args)
     resolve_locations(args)
     named = None if args.data_dir is None else Path(args.data_dir).expanduser()
     if named is not None and not named.exists():  # the default one is made on first use: missing, it is listed
         # listed, every dataset would read "not on disk", as if the folder (a typo?) held none of them
-        raise VPRBenchError(f"The data root {named} ({source}) does not exist (closest existing path: "
+        raise VPRBenchError(f"The data root {named} ({args.data_dir_source}) does not exist (closest existing path: "
                             f"{nearest_existing(named)}): check the path (a dataset downloaded or imported into it "
                             "makes it).")
     rows = []
@@ -160,10 +152,9 @@ def protocol_table(name: str, listed: list[dict]):
 def run_download(args) -> int:
     from ..datasets import download_dataset
 
-    source = data_root_source(args)
     resolve_locations(args)
     if args.data_dir is not None:  # a typo would otherwise make a tree of folders anywhere
-        check_new_folder(Path(args.data_dir), source)
+        check_new_folder(Path(args.data_dir), args.data_dir_source)
     dataset = download_dataset(args.name, args.data_dir, strict=args.strict)
     say(f"{args.name}: {len(dataset.database)} database and {len(dataset.queries)} query images at {dataset.root}")
     return 0
@@ -172,10 +163,9 @@ def run_download(args) -> int:
 def run_import(args) -> int:
     from ..datasets import import_dataset
 
-    source = data_root_source(args)
     resolve_locations(args)
     if args.data_dir is not None:
-        check_new_folder(Path(args.data_dir), source)
+        check_new_folder(Path(args.data_dir), args.data_dir_source)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         dataset = import_dataset(args.name, args.path, args.data_dir, strict=args.strict)

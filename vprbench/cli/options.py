@@ -32,7 +32,8 @@ def resolve_locations(args) -> None:
     would otherwise go on as if it were fine)."""
     from ..paths import CACHE_ENV, DATA_ENV, cache_root, environment_folder
 
-    if hasattr(args, "data_dir"):
+    if hasattr(args, "data_dir"):  # where it came from, for messages about it
+        args.data_dir_source = "--data-dir" if args.data_dir is not None else f"${DATA_ENV}"
         args.data_dir = environment_folder(args.data_dir, DATA_ENV, "--data-dir")
     if hasattr(args, "cache_dir"):
         source = "--cache-dir" if args.cache_dir is not None else f"${CACHE_ENV}"
@@ -305,7 +306,7 @@ def run_settings(args):
     if hasattr(args, "lease"):  # checked even when this run makes no claim (one evaluation)
         checked_lease(args.lease)
     if getattr(args, "download", False) and args.data_dir is not None:  # as `datasets download` checks it
-        check_new_folder(Path(args.data_dir), "--data-dir")
+        check_new_folder(Path(args.data_dir), args.data_dir_source)
     return RunSettings(cache_dir=args.cache_dir, data_dir=args.data_dir, **explicit_run_options(args),
                        download=True if getattr(args, "download", False) else None, strict=getattr(args, "strict", False))
 
