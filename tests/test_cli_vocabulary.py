@@ -280,7 +280,7 @@ class CountedFake(FakeMethod):
 
 @pytest.mark.parametrize("more, said", [
     (["--clusters", "200000", "--budget", "300000"], "Cannot fit 200000 clusters on 133,200 features (111 images x "
-                                                     "1,200 patches each at this resize): give at most 133200 clusters"),
+                                                     "1,200 patches each at this input size): give at most 133200 clusters, or fit on more images"),
     (["--clusters", "600", "--budget", "500"], "Cannot fit 600 clusters on a sample of at most 500 features"),
 ])
 def test_more_clusters_than_the_fit_has_features_are_refused_before_any_image_is_described(

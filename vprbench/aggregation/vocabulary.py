@@ -375,8 +375,8 @@ def fit_vocabulary(
                             f"give fewer clusters or a budget of at least {clusters}.")
     if images is not None and per_image is not None and clusters > images * per_image:
         raise VPRBenchError(f"Cannot fit {clusters} clusters on {images * per_image:,} features ({images:,} images x "
-                            f"{per_image:,} patches each at this resize): give at most {images * per_image} clusters, "
-                            "or more images or a larger resize.")
+                            f"{per_image:,} patches each at this input size): give at most {images * per_image} clusters, "
+                            "or fit on more images.")  # a larger resize gives more only where the backbone takes it
     if exact:
         chunks = [torch.as_tensor(f).float().reshape(-1, torch.as_tensor(f).shape[-1]) for f in features]
         if not chunks:
