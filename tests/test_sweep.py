@@ -179,7 +179,7 @@ def test_a_stage_that_cannot_use_a_methods_comparison_is_refused_with_the_plan(t
                     '[[datasets]]\nname = "corridor"\n')
     assert main(["run", str(plan)]) == 1
     err = " ".join(capsys.readouterr().err.split())
-    assert "1 problem(s)" in err and "bad.toml:7: Stage 'aqe' expands descriptors compared by cosine" in err, err
+    assert "1 problem(s)" in err and "bad.toml:7: Method 'sad': Stage 'aqe' expands descriptors compared by cosine" in err, err
     assert "'mean-absolute-difference': use a method compared by cosine" in err, err
 
 

@@ -25,7 +25,7 @@ from .record import result_record
 from .retrieve import check_compare, retrieve
 from ..stages.base import Candidates, StageContext
 from ..loader import postprocessor_of, use_dataset
-from ..stages.run import create_stages, in_stage, retrieval_depth, run_stages, track_of
+from ..stages.run import check_compares, create_stages, in_stage, retrieval_depth, run_stages, track_of
 
 
 def load_data(spec: RunSpec, settings: RunSettings):
@@ -147,8 +147,7 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
     for stage in stages:  # before any descriptor is computed
         with in_stage(stage, "check"):
             stage.check(dataset)
-        with in_stage(stage, "check_compare"):
-            stage.check_compare(getattr(method, "compare", "cosine"))
+    check_compares(stages, getattr(method, "compare", "cosine"))
     depth = depth or retrieval_depth(stages, ks, len(dataset.database), dataset.name)
     if depth > len(dataset.database):
         raise VPRBenchError(f"{depth} candidates per query asked for, but the database of {dataset.name} holds "

@@ -16,6 +16,14 @@ def in_stage(stage, part: str):
     return plugin_part(stage, part, f"Stage {getattr(stage, 'name', '?')!r}")
 
 
+def check_compares(stages, compare: str) -> None:
+    """Refuse, before any work, a stage that cannot use descriptors compared by `compare` (the method's:
+    aqe cannot use sad's distances)."""
+    for stage in stages:
+        with in_stage(stage, "check_compare"):
+            stage.check_compare(compare)
+
+
 def create_stages(spec) -> list:
     from .registry import create_stage
 

@@ -172,7 +172,7 @@ def plan_entries(data: dict, origin: str, lines: dict | None = None, *, override
     from ..methods import available_methods
     from ..methods.registry import checked_run_options, failed_plugins_hint
     from ..stages.registry import create_stage
-    from ..stages.run import check_stage_chain, in_stage
+    from ..stages.run import check_compares, check_stage_chain
 
     lines, overrides = lines or {}, dict(overrides or {})
     problems: list[str] = []
@@ -255,12 +255,9 @@ def plan_entries(data: dict, origin: str, lines: dict | None = None, *, override
             continue
         compare = known_methods[name].compare  # None: only the method made knows (its cells check it)
         try:  # a stage that cannot use the method's comparison (aqe on sad), as the single run refuses it
-            for stage in chain if compare else ():
-                made = create_stage(stage.name, stage.options)
-                with in_stage(made, "check_compare"):
-                    made.check_compare(compare)
+            check_compares([create_stage(stage.name, stage.options) for stage in chain] if compare else [], compare)
         except VPRBenchError as error:
-            problems.append(f"{where('methods', i, 'name')}: {error}")
+            problems.append(f"{where('methods', i, 'name')}: Method {name!r}: {error}")
             continue
         methods.append((i, name, options, str(entry.get("label", "")), stages))
 
