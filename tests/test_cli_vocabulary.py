@@ -233,6 +233,10 @@ def test_two_folders_of_one_name_keep_their_own_map_vocabularies(shared_data, mo
                          "--cache-dir", str(cache), "--quiet")) == 0
         names.append(re.search(r"Vocabulary (map-place-[0-9a-f]{12}):", capsys.readouterr().out)[1])
     assert names[0] != names[1]
+    from vprbench.paths import cache_root
+
+    # the images' hashes memoised in the cache given (was: the user's default cache, whatever --cache-dir said)
+    assert (cache / "image-hashes.sqlite").is_file() and not (cache_root() / "image-hashes.sqlite").exists()
     for name, folder, count in zip(names, (a, b), (3, 4)):
         found = resolve_vocabulary(name, "fake", 0, "token", 4, cache)
         assert found.meta["folder"] == str(folder.resolve()) and found.meta["datasets"] == {"place": count}

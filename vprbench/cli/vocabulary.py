@@ -102,7 +102,7 @@ def run_fit(args) -> int:
     # the resize is not keyed (a domain's centres serve each dataset at its own size, as the paper's): recorded
     resize = getattr(method, "resize", None)
     meta = {**setting, **({} if args.domain is not None else {"resize": list(resize) if resize else "native"})}
-    common = {"exact": args.exact, "budget": DEFAULT_BUDGET if args.budget is None else args.budget, "seed": args.seed, "meta": meta}
+    common = {"cache_dir": args.cache_dir, "exact": args.exact, "budget": DEFAULT_BUDGET if args.budget is None else args.budget, "seed": args.seed, "meta": meta}
     data_dir = args.data_dir
     size = domain_image_size() if args.domain is not None else None  # None: the dataset's own (the method's resize)
     # the features per image where the resize fixes them: too many clusters are refused before any is described

@@ -21,14 +21,15 @@ from .anyloc_vocabulary import (MAP_PREFIX, OWN_CONTENT_DIGITS, domain_datasets,
 Extractor = Callable[[Sequence[Path]], Iterable]
 
 
-def _load_all(pairs: list[tuple[str, int]], data_dir) -> list[tuple[object, list[Path]]]:
-    """(dataset, its database images strided) of every dataset; one error naming every dataset that is missing."""
+def _load_all(pairs: list[tuple[str, int]], data_dir, cache_dir=None) -> list[tuple[object, list[Path]]]:
+    """(dataset, its database images strided) of every dataset; one error naming every dataset that is missing.
+    `cache_dir` memoises the hashes of a folder of one's own's images (its identity)."""
     from ..datasets import load_dataset
 
     loaded, missing = [], []
     for name, stride in pairs:
         try:
-            dataset = load_dataset(name, data_dir, fetch=False)
+            dataset = load_dataset(name, data_dir, fetch=False, cache_dir=cache_dir)
         except VPRBenchError as exc:
             missing.append(f"  - {one_line(name)}: {one_line(exc)}")
             continue
@@ -46,15 +47,16 @@ def _load_all(pairs: list[tuple[str, int]], data_dir) -> list[tuple[object, list
 def fit_domain_vocabulary(
     domain: str, extract: Extractor, clusters: int, *, data_dir=None, exact: bool = False,
     budget: int = DEFAULT_BUDGET, seed: int = KMEANS_SEED, meta: dict | None = None, progress=None,
-    per_image: int | None = None,
+    per_image: int | None = None, cache_dir=None,
 ) -> Vocabulary:
     """Fit AnyLoc's vocabulary of a domain (indoor, urban, aerial, ..., structured, global).
 
     `extract` must produce features of images resized to `domain_image_size()`; `progress`
     (vprbench.progress) counts the images described, then shows the k-means. `per_image`: the
-    features each image gives, when known (too many clusters are refused before any is described).
+    features each image gives, when known (too many clusters are refused before any is described);
+    `cache_dir`: the cache the images' hashes are memoised in.
     """
-    loaded = _load_all(domain_datasets(domain), data_dir)
+    loaded = _load_all(domain_datasets(domain), data_dir, cache_dir)
     paths = [path for _, images in loaded for path in images]
     sources = {dataset.name: len(images) for dataset, images in loaded}
     info = {**(meta or {}), "source": domain, "datasets": sources, "image_size": list(domain_image_size())}
@@ -66,25 +68,25 @@ def fit_domain_vocabulary(
 def fit_map_vocabulary(
     dataset: str, extract: Extractor, clusters: int, *, data_dir=None, exact: bool = False,
     budget: int = DEFAULT_BUDGET, seed: int = KMEANS_SEED, meta: dict | None = None, progress=None,
-    per_image: int | None = None,
+    per_image: int | None = None, cache_dir=None,
 ) -> Vocabulary:
     """Fit a map-specific vocabulary on the dataset's own database images (distractors left out);
-    `progress` and `per_image` as for `fit_domain_vocabulary`."""
-    (loaded, images), = _load_all([(dataset, map_stride(dataset))], data_dir)
+    `progress` and `per_image` as for `fit_domain_vocabulary`; `cache_dir` memoises the images' hashes."""
+    (loaded, images), = _load_all([(dataset, map_stride(dataset))], data_dir, cache_dir)
     own = {"folder": str(loaded.root.resolve())} if loaded.kind == "own" else {}
-    info = {**(meta or {}), "source": map_source(loaded), "datasets": {loaded.name: len(images)}, **own}
+    info = {**(meta or {}), "source": map_source(loaded, cache_dir), "datasets": {loaded.name: len(images)}, **own}
     return fit_vocabulary(_counted(extract(images), len(images), info["source"], progress), clusters, exact=exact,
                           budget=budget, seed=seed, meta=info, progress=progress, images=len(images),
                           per_image=per_image)
 
 
-def map_source(dataset) -> str:
+def map_source(dataset, cache_dir=None) -> str:
     """The source name of a dataset's map-specific vocabulary: map-<its name> (not the path given: a folder's
     './mydata' would key its centres by that path); a folder of one's own's also by its database's content,
     as two folders may share a name (the authors' released centres are found by a benchmark's plain name)."""
     if dataset.kind != "own":
         return f"{MAP_PREFIX}{dataset.name}"
-    return f"{MAP_PREFIX}{dataset.name}-{dataset.images_fingerprint()['database'][:OWN_CONTENT_DIGITS]}"
+    return f"{MAP_PREFIX}{dataset.name}-{dataset.images_fingerprint(cache_dir)['database'][:OWN_CONTENT_DIGITS]}"
 
 
 def _counted(features: Iterable, total: int, source: str, progress) -> Iterator:
