@@ -215,7 +215,7 @@ def test_domain_fit_order_strides_and_metadata(monkeypatch):
     from pathlib import Path
 
     databases = {name: [Path(f"{name}/{i:03d}.jpg") for i in range(9)] for name, _ in domain_datasets("urban")}
-    monkeypatch.setattr(datasets, "load_dataset", lambda name, data_dir=None, fetch=True: SimpleNamespace(name=name, database=databases[name]))
+    monkeypatch.setattr(datasets, "load_dataset", lambda name, data_dir=None, fetch=True, cache_dir=None: SimpleNamespace(name=name, database=databases[name]))
     seen = []
 
     def extract(paths):
