@@ -135,7 +135,7 @@ def test_a_named_vocabulary_that_is_no_domain_is_not_told_to_fit_one(tmp_path):
     said = str(caught.value)
     assert "Did you mean: urban?" in said and "vocabulary import FILE --source urbn" in said
     assert "--domain urbn" not in said and "\n" not in said
-    with pytest.raises(VPRBenchError, match=r"Fit it with `vprbench vocabulary fit --domain urban \.\.\.`"):
+    with pytest.raises(VPRBenchError, match=r"Fit it with `vprbench vocabulary fit --method METHOD --domain urban \.\.\.`"):
         resolve_vocabulary("urban", "dinov2_vits14", 9, "value", 4, tmp_path)
 
 

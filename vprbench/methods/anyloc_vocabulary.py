@@ -305,7 +305,7 @@ def resolve_vocabulary(spec: str, backbone: str, layer: int, facet: str, cluster
                 name = spec[len(MAP_PREFIX):]
                 name = name if name in dataset_manifests() else "YOUR-FOLDER"  # a folder of one's own: by its path
                 how = f"--dataset {name}" if spec.startswith(MAP_PREFIX) else f"--domain {spec}"
-                how = own_map_names(where) + f"Fit it with `vprbench vocabulary fit {how} ...`"
+                how = own_map_names(where) + f"Fit it with `vprbench vocabulary fit --method METHOD {how} ...`"
             else:  # no domain to fit: a typo, or a name only `vocabulary import` gives
                 how = (f"{spec!r} is no domain ({', '.join(domain_names())}) nor map-DATASET."
                        f"{closest_names(spec, domain_names())} Name one, or put your centres under this name with "
