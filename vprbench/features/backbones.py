@@ -192,8 +192,8 @@ def read_npz_release(spec: BackboneEntry, path: Path) -> nn.Module:
     # timm reads each array it loads whole before it compares it with a parameter: one holding more
     # values than any parameter (a deflated bomb of zeros) fits none. A classifier it has no layer
     # for (vprbench's models have none) it never reads: an in21k release's (D, 21843) head is harmless
-    unread = tuple(prefix + part for part, layer in (("head/", model.head), ("pre_logits/", getattr(
-        getattr(model, "pre_logits", None), "fc", None))) if not isinstance(layer, nn.Linear))
+    classifiers = {"head/": model.head, "pre_logits/": getattr(getattr(model, "pre_logits", None), "fc", None)}
+    unread = tuple(prefix + part for part, layer in classifiers.items() if not isinstance(layer, nn.Linear))
     largest = max(parameter.numel() for parameter in model.parameters())
     oversized = [f"{name}: file {shape} holds more values than any parameter of the model ({largest:,})"
                  for name, shape in shapes.items()

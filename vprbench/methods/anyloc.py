@@ -278,8 +278,7 @@ class AnyLoc(Method):
 
     # ------------------------------------------------------------ extraction
     def prepare(self) -> None:
-        if self.resize is not None and self.spec.resize != "fixed":  # a size below one patch: refused as an image's
-            crop_offsets(*self.resize, self.spec.patch)
+        self.patches_per_image()  # a resize below one patch is refused here, as an image's would be
         self.extractor  # the backbone loaded: weights of another architecture are refused here  # noqa: B018
 
     @property
