@@ -183,6 +183,23 @@ def test_a_resize_below_one_patch_says_what_to_do(cli, shared_data, monkeypatch)
     assert_refused(code, err, "Image of 8x8 pixels is smaller than one 16x16 patch: resize to at least 16x16")
 
 
+def test_images_below_one_patch_are_named_before_any_store_folder_exists(cli, monkeypatch, tmp_path):
+    from PIL import Image
+
+    spec = tiny("dinov3_vits16", monkeypatch)
+    rows = ["image,x,y"]
+    for split in ("database", "queries"):
+        (tmp_path / "small" / split).mkdir(parents=True)
+        for i in range(2):
+            Image.new("RGB", (12, 10), (i * 90, 40, 200)).save(tmp_path / "small" / split / f"{i}.png")
+            rows.append(f"{split}/{i}.png,{i},0")
+    (tmp_path / "small" / "positions.csv").write_text("\n".join(rows) + "\n")
+    code, _, err = cli("evaluate", "--method", "anyloc", "--backbone", spec.name, "--weights", "random", "--layer", "1",
+                       "--aggregation", "gem", "--dataset", tmp_path / "small", "--k", "1", "--quiet")
+    assert_refused(code, err, f"Image {tmp_path / 'small' / 'database' / '0.png'} of 10x12 pixels is smaller than "
+                              "one 16x16 patch: resize to at least 16x16")
+
+
 # ---------------------------------------------------------------- vocabulary import
 @pytest.mark.parametrize("backbone, layer, facet, source, said", [
     ("dinov2_vits14", 12, "value", "indoor", "option --layer takes a whole number from 0 to 11 (0-based block of "

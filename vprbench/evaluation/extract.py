@@ -91,6 +91,9 @@ def describe_splits(method, splits: dict[str, list[Path]], *, root: Path | None 
         def plan():
             with plugin_part(method, "prepare"):  # a bad weights file is refused before the folders exist
                 method.prepare()
+            with plugin_part(method, "load"):  # so is what every image shares (too small, a format not read)
+                for paths in splits.values():
+                    method.load(paths[0])
             held.enter_context(folder.locked(lock_timeout))
             return job.plan(timings)
 

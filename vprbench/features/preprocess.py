@@ -35,20 +35,21 @@ def resize_tensor(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     return F.interpolate(x[None], size=size, mode="bilinear", align_corners=False, antialias=False)[0]
 
 
-def crop_offsets(height: int, width: int, patch: int) -> tuple[int, int, int, int]:
-    """(top, left, new_h, new_w) of the centre crop to multiples of `patch`.
+def crop_offsets(height: int, width: int, patch: int, image: str | Path | None = None) -> tuple[int, int, int, int]:
+    """(top, left, new_h, new_w) of the centre crop to multiples of `patch` (of the file `image`, named
+    when too small).
 
     torchvision's CenterCrop uses Python's round(), i.e. half to even: 227 -> 224 starts at row 2.
     """
     new_h, new_w = (height // patch) * patch, (width // patch) * patch
     if new_h == 0 or new_w == 0:
-        raise VPRBenchError(f"Image of {height}x{width} pixels is smaller than one {patch}x{patch} patch: resize to at "
+        raise VPRBenchError(f"Image {f'{image} ' if image else ''}of {height}x{width} pixels is smaller than one {patch}x{patch} patch: resize to at "
                             f"least {patch}x{patch} (--resize HEIGHT WIDTH, or the option resize).")
     return round((height - new_h) / 2), round((width - new_w) / 2), new_h, new_w
 
 
-def centre_crop_to_patches(x: torch.Tensor, patch: int) -> torch.Tensor:
-    top, left, h, w = crop_offsets(x.shape[-2], x.shape[-1], patch)
+def centre_crop_to_patches(x: torch.Tensor, patch: int, image: str | Path | None = None) -> torch.Tensor:
+    top, left, h, w = crop_offsets(x.shape[-2], x.shape[-1], patch, image)
     return x[..., top:top + h, left:left + w]
 
 
@@ -60,4 +61,4 @@ def preprocess(path: str | Path, spec, *, resize: tuple[int, int] | None = None)
     if spec.resize == "fixed":
         # F.interpolate with the entry's mode (nearest for DINO v1, as the official script calls it)
         return F.interpolate(x[None], size=tuple(spec.input_size), mode=spec.interpolation)[0]
-    return centre_crop_to_patches(x, spec.patch)
+    return centre_crop_to_patches(x, spec.patch, image=path if resize is None else None)
