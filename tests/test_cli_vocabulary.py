@@ -246,6 +246,41 @@ def test_two_folders_of_one_name_keep_their_own_map_vocabularies(shared_data, mo
     assert all(str(part) in said for part in (*names, a.resolve(), b.resolve())) and "\n" not in said, said
 
 
+def test_an_own_folders_map_vocabulary_is_fitted_on_the_evaluated_database_by_its_images_not_its_name(shared_data,
+                                                                                                       tmp_path, capsys):
+    """map-place-<a's content> on /x/b/place (other images) was marked "fitted on the evaluated database": the
+    names matched. On a itself it is; the record names the folder and the vocabulary it was fitted as."""
+    from vprbench import create_method
+    from vprbench.datasets import load_dataset
+    from vprbench.evaluation.provenance import method_provenance
+    from vprbench.methods.anyloc_fit import fit_map_vocabulary
+    from vprbench.methods.anyloc_vocabulary import save_to_cache
+
+    a = corridor_folder(shared_data, tmp_path / "a" / "place", database=3)
+    b = corridor_folder(shared_data, tmp_path / "b" / "place", database=3, first=3)  # one name, other images
+    cache, setting = tmp_path / "cache", ("dino_vits8@random", 1, "key")  # its features never computed
+    fitted = fit_map_vocabulary(str(a), lambda paths: (torch.randn(40, 384) for _ in paths), 4, cache_dir=cache)
+    name = fitted.meta["source"]
+    path = save_to_cache(fitted, *setting, name, cache, stride=4)
+    method = create_method("anyloc", backbone="dino_vits8", weights="random", layer=1, facet="key", clusters=4,
+                           vocabulary=name, cache_dir=cache)
+    for folder, flagged in ((b, False), (a, True)):
+        dataset = load_dataset(str(folder), cache_dir=cache)
+        method.use_dataset(dataset.name)
+        found = method_provenance(method, dataset, cache)
+        assert found["fitted_on_evaluated_database"] is flagged, (folder, found)
+        assert found["vocabulary"]["fitted_on"] == f"the database of the folder {a.resolve()} ({name})", found
+    assert found["vocabulary"]["evaluated_images_fitted_on"] == 3
+    run(parse("vocabulary", "show", str(path)))
+    assert "  image_digests: 3 sha256 (of the images fitted on)\n" in capsys.readouterr().out  # not a list of hex
+    del fitted.meta["image_digests"]  # a fit that did not record its images: which they were is not known
+    save_to_cache(fitted, *setting, name, cache, stride=4)
+    unknown = create_method("anyloc", backbone="dino_vits8", weights="random", layer=1, facet="key", clusters=4,
+                            vocabulary=name, cache_dir=cache)
+    unknown.use_dataset("place")
+    assert method_provenance(unknown, dataset, cache)["fitted_on_evaluated_database"] is None
+
+
 def test_a_map_vocabulary_of_a_folder_fitted_before_names_carried_its_content_is_refused(tmp_path):
     """Cached as 'map-place' by an earlier vprbench: any folder named place would be served it."""
     from vprbench.methods.anyloc_vocabulary import save_to_cache

@@ -20,8 +20,8 @@ from ..aggregation import pooling, vlad
 from ..aggregation.pca import PCAWhitening
 from . import anyloc_options
 from .anyloc_options import AGGREGATIONS, VLADS
-from .anyloc_vocabulary import (MAP_PREFIX, check_proven, names_file, paper_choice, released_provenance, resolve_vocabulary,
-                                 vocabulary_images)
+from .anyloc_vocabulary import (MAP_PREFIX, check_proven, file_provenance, names_file, paper_choice, recorded_image_digests,
+                                 resolve_vocabulary, vocabulary_images)
 from ..aggregation.vlad import vlad_hard
 from ..aggregation.vocabulary import fit_vocabulary
 from ..errors import VPRBenchError
@@ -115,6 +115,7 @@ class AnyLoc(Method):
         self._weights_id: str | None = None
         #: where the centres came from, for provenance(): name, source, file, sha256, note
         self.vocabulary_info: dict = {}
+        self.fitted_digests: set[str] = set()  # of the images an own folder's map vocabulary was fitted on
         # "domain" (the paper's choice per dataset) is settled in use_dataset; until then, fit on the database
         self.needs_fit = aggregation in VLADS and self.vocabulary in ("map", "domain")
         if aggregation in VLADS and self.vocabulary not in ("map", "domain"):
@@ -156,7 +157,7 @@ class AnyLoc(Method):
             self.needs_fit = found is None
             self.centres = None if found is None else found.centres.float()
             self.vocabulary_info = {"name": source, **({"note": note} if note else {}),
-                                    **(self._file_info(found) if found is not None else {})}
+                                    **(file_provenance(found) if found is not None else {})}
             if note:
                 warnings.warn(note, stacklevel=2)
 
@@ -194,23 +195,9 @@ class AnyLoc(Method):
             found.check_setting(self.vocabulary_backbone, self.layer, self.facet, self.stride)
         else:  # served by its key: only for the features it proves it was fitted on
             check_proven(found, self.vocabulary_backbone, self.layer, self.facet, self.stride)
-        self.vocabulary_info = {"name": self.vocabulary, **self._file_info(found)}
+        self.vocabulary_info = {"name": self.vocabulary, **file_provenance(found)}
+        self.fitted_digests = recorded_image_digests(found)
         return found.centres.float()
-
-    @staticmethod
-    def _file_info(vocabulary) -> dict:
-        """Where the centres came from, and the datasets whose databases they were fitted on (a vprbench
-        fit records them; the authors' release is known by its name)."""
-        found = released_provenance(vocabulary)
-        if found.get("source") == "file" and "vocabularies" in Path(found["file"]).parts:
-            found["source"] = "cache"  # fitted earlier with `vprbench vocabulary fit` or imported
-        fitted = vocabulary.meta.get("datasets")
-        if isinstance(fitted, (dict, list)) and fitted and all(isinstance(name, str) for name in fitted):
-            found["datasets"] = list(fitted)
-        # the features' settings the key leaves out: the record tells what the centres were fitted at
-        found.update({f"fitted_{key}": vocabulary.meta[key] for key in ("stride", "resize", "image_size")
-                      if key in vocabulary.meta})
-        return found
 
     # ------------------------------------------------------------ identity
     def weights_identity(self) -> str:
@@ -264,7 +251,10 @@ class AnyLoc(Method):
         """Which vocabulary, its source and sha256, and whether it was fitted on the evaluated database."""
         info = {"option": self.vocabulary, **self.vocabulary_info, "fitted_on_evaluated_database": self.needs_fit}
         datasets = self.vocabulary_info.get("datasets") or []
-        if not self.needs_fit and self.dataset in datasets:  # map-<dataset>, or a domain holding the dataset
+        if not self.needs_fit and "folder" in self.vocabulary_info:  # a folder of one's own's: two may share a name,
+            # so it is known by its images (fitted_image_digests), unknown where its fit did not record them
+            info["fitted_on_evaluated_database"] = False if self.fitted_digests else None
+        elif not self.needs_fit and self.dataset in datasets:  # map-<dataset>, or a domain holding the dataset
             info.update(fitted_on_evaluated_database=True,
                         fitted_on=" + ".join(f"the database of {name}" for name in datasets))
         if self.needs_fit:
@@ -275,6 +265,10 @@ class AnyLoc(Method):
             info["centres_sha256"] = hashlib.sha256(self.centres.numpy().tobytes()).hexdigest()
             info["clusters"], info["dim"] = int(self.centres.shape[0]), int(self.centres.shape[1])
         return info
+
+    def fitted_image_digests(self) -> dict[str, set[str]]:
+        """The record marks the vocabulary fitted on the evaluated database when these are its images."""
+        return {"vocabulary": self.fitted_digests} if self.fitted_digests else {}
 
     # ------------------------------------------------------------ extraction
     def prepare(self) -> None:

@@ -73,7 +73,10 @@ def fit_map_vocabulary(
     """Fit a map-specific vocabulary on the dataset's own database images (distractors left out);
     `progress` and `per_image` as for `fit_domain_vocabulary`; `cache_dir` memoises the images' hashes."""
     (loaded, images), = _load_all([(dataset, map_stride(dataset))], data_dir, cache_dir)
-    own = {"folder": str(loaded.root.resolve())} if loaded.kind == "own" else {}
+    own = {}
+    if loaded.kind == "own":  # its images by content: a run on another folder of its name is not fitted on them
+        digest_of = dict(zip(loaded.database, loaded.image_digests(cache_dir)["database"]))
+        own = {"folder": str(loaded.root.resolve()), "image_digests": sorted({digest_of[p] for p in images})}
     info = {**(meta or {}), "source": map_source(loaded, cache_dir), "datasets": {loaded.name: len(images)}, **own}
     return fit_vocabulary(_counted(extract(images), len(images), info["source"], progress), clusters, exact=exact,
                           budget=budget, seed=seed, meta=info, progress=progress, images=len(images),

@@ -154,6 +154,31 @@ def released_provenance(vocabulary: Vocabulary) -> dict:
     return {"source": "file", "sha256": digest, "file": str(path)}
 
 
+def file_provenance(vocabulary: Vocabulary) -> dict:
+    """Where the centres came from, and what they were fitted on: the datasets whose databases a vprbench fit
+    records (the authors' release is known by its name) and, for a folder of one's own's, its path."""
+    found = released_provenance(vocabulary)
+    meta = vocabulary.meta
+    if found.get("source") == "file" and "vocabularies" in Path(found["file"]).parts:
+        found["source"] = "cache"  # fitted earlier with `vprbench vocabulary fit` or imported
+    fitted = meta.get("datasets")
+    if isinstance(fitted, (dict, list)) and fitted and all(isinstance(name, str) for name in fitted):
+        found["datasets"] = list(fitted)
+    if isinstance(meta.get("folder"), str):  # named by its content too: the name alone may be another folder's
+        named = f" ({meta['source']})" if isinstance(meta.get("source"), str) else ""
+        found.update(folder=meta["folder"], fitted_on=f"the database of the folder {meta['folder']}{named}")
+    # the features' settings the key leaves out: the record tells what the centres were fitted at
+    found.update({f"fitted_{key}": meta[key] for key in ("stride", "resize", "image_size") if key in meta})
+    return found
+
+
+def recorded_image_digests(vocabulary: Vocabulary) -> set[str]:
+    """sha256 of each image a folder of one's own's map vocabulary was fitted on, as its fit recorded them
+    (empty where it did not)."""
+    digests = vocabulary.meta.get("image_digests")
+    return set(digests) if isinstance(digests, list) and all(isinstance(d, str) for d in digests) else set()
+
+
 def paper_choice(dataset: str, backbone: str, layer: int, facet: str, clusters: int,
                  cache_dir=None, stride: int | None = None) -> tuple[Vocabulary | None, str, str]:
     """(vocabulary or None, source name, note) for the paper's vocabulary of `dataset`.
