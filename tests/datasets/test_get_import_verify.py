@@ -191,6 +191,21 @@ def test_cli_import_verify_list_info(tmp_path, gardens, capsys):
     assert info["layout"] == "folders" and "night_right" in info["notes"]
 
 
+def test_importing_from_a_path_that_is_no_folder_says_what_to_give(tmp_path, capsys):
+    """Was: "/data/pitts30k is not a folder." for the README's example path: neither that it is missing
+    nor what to give instead."""
+    data = ["--data-dir", str(tmp_path / "data")]
+    (tmp_path / "copies").mkdir()
+    assert main(["datasets", "import", "pitts30k", str(tmp_path / "copies" / "pitts30k"), *data]) == 1
+    assert capsys.readouterr().err == (f"error: Cannot import 'pitts30k': {tmp_path / 'copies' / 'pitts30k'} does not "
+                                       f"exist; closest existing path: {tmp_path / 'copies'}. Give the folder holding "
+                                       "your copy of pitts30k.\n")
+    (tmp_path / "copy.tar.gz").write_bytes(b"")
+    assert main(["datasets", "import", "pitts30k", str(tmp_path / "copy.tar.gz"), *data]) == 1
+    assert "copy.tar.gz is a file, not a folder. Give the folder holding your copy of pitts30k." in capsys.readouterr().err
+    assert not (tmp_path / "data").exists()
+
+
 def test_a_database_image_more_or_fewer_is_refused_where_positives_are_indices(tmp_path, gardens):
     """Was a warning: a copy with one database image more (or fewer) was read, its ground truth (indices into
     the sorted database) then pointing every later index at another image: a wrong Recall, exit 0."""

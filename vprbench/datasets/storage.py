@@ -159,7 +159,8 @@ def import_dataset(name: str, path: str | Path, data_dir=None, strict: bool = Fa
     manifest = dataset_manifest(name)
     root = resolved(path, f"The folder to import {name!r} from")
     if not root.is_dir():
-        raise VPRBenchError(f"Cannot import {name!r}: {root} is not a folder.")
+        what = "is a file, not a folder" if root.exists() else f"does not exist; closest existing path: {nearest_existing(root)}"
+        raise VPRBenchError(f"Cannot import {name!r}: {root} {what}. Give the folder holding your copy of {name}.")
     dataset = read_layout(root, manifest, data_dir)  # raises, naming what is missing, before anything is written
     check_counts(dataset, manifest, strict, data_dir)  # first: an image more or fewer is named as such
     dataset.positives  # ground truth must match the images  # noqa: B018
