@@ -67,8 +67,12 @@ def test_missing_rows_and_bad_values_are_named(mydata):
     table.to_csv(mydata / "positions.csv", index=False)
     with pytest.raises(VPRBenchError, match=r"non-numeric positions in 2 row\(s\), e.g. for \['database/002.jpg', 'queries/q1.jpg'\]"):
         load_dataset(str(mydata))
-    pd.DataFrame({"image": images(mydata), "latitude": 95.0, "longitude": 0.0}).to_csv(mydata / "positions.csv", index=False)
-    with pytest.raises(VPRBenchError, match="latitudes must lie within"):
+    # one row with latitude and longitude swapped: named, as the other bad rows are (was: no row named)
+    table = pd.DataFrame({"image": images(mydata), "latitude": -33.87, "longitude": 151.21})
+    table.loc[5, ["latitude", "longitude"]] = [151.21, -33.87]
+    table.to_csv(mydata / "positions.csv", index=False)
+    with pytest.raises(VPRBenchError, match=r"latitudes beyond \+-84 degrees \(outside UTM\) or longitudes beyond \+-180 "
+                                            r"in 1 row\(s\), e.g. for \['queries/q0.jpg'\]; fix those rows"):
         load_dataset(str(mydata))
 
 

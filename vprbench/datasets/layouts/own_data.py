@@ -140,8 +140,13 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
             f"{[str(table['image'].iloc[i]) for i in huge[:3]]}; give metres, degrees or frame numbers."
         )
     if unit == "degrees":
-        if (np.abs(values[:, 0]) > 84).any() or (np.abs(values[:, 1]) > 180).any():
-            raise VPRBenchError(f"{csv}: latitudes must lie within +-84 degrees (UTM) and longitudes within +-180.")
+        outside = np.flatnonzero((np.abs(values[:, 0]) > 84) | (np.abs(values[:, 1]) > 180))
+        if len(outside):  # named as the other bad rows are, so the user finds them (often swapped columns)
+            raise VPRBenchError(
+                f"{csv} has latitudes beyond +-84 degrees (outside UTM) or longitudes beyond +-180 in {len(outside)} "
+                f"row(s), e.g. for {[str(table['image'].iloc[i]) for i in outside[:3]]}; fix those rows (latitude "
+                "and longitude swapped?), or give x,y in metres of a local frame."
+            )
         values, unit = latlon_to_metres(values[:, 0], values[:, 1]), "metres"
     by_name = dict(zip(listed, values))
     missing = [name for name in found if name not in by_name]
