@@ -362,7 +362,8 @@ def resolve_search(search) -> SearchSpec:
     if not isinstance(options, dict):
         raise VPRBenchError(f"Search options must be a table of name = value, got {options!r}.")
     if index == "exact" and options:
-        raise VPRBenchError(f"Exact search takes no index options; got {', '.join(sorted(options))}.")
+        raise VPRBenchError(f"Exact search takes no index options; got {', '.join(sorted(options))}: drop them, or "
+                            "choose an approximate index (--index ivf-pq or hnsw; in a plan, search.index).")
     if index != "exact":
         from .evaluation.approximate import DEFAULTS, check_options
 

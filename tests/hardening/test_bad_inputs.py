@@ -81,6 +81,9 @@ OPTIONS = [
     (HOG + ["--index", "ivf-pq", "--index-option", "nprobe=0"], "--index ivf-pq option nprobe takes a whole number >= 1; got 0"),
     (HOG + ["--index", "hnsw", "--index-option", "ef_search=x"], "--index hnsw option ef_search takes a whole number >= 1"),
     (HOG + ["--index", "hnsw", "--index-option", "seed=-1"], "--index hnsw option seed takes a whole number >= 0; got -1"),
+    # was: no word of what to do ("Exact search takes no index options; got nprobe.")
+    (HOG + ["--index-option", "nprobe=8"], "Exact search takes no index options; got nprobe: drop them, or choose an "
+                                           "approximate index (--index ivf-pq or hnsw"),
 ]
 
 

@@ -65,6 +65,9 @@ def test_approximate_options_unsuited_to_the_database_are_refused():
         retrieve(None, db, q, 5, index="hnsw", memory_budget="1MB")
     with pytest.raises(VPRBenchError, match="Unknown index 'annoy': use one of exact, ivf-pq, hnsw"):
         retrieve(None, db, q, 5, index="annoy")
+    with pytest.raises(VPRBenchError, match=r"index='exact' takes no index options, got \['nprobe'\]: drop them, or "
+                                             r"choose an approximate index \(index='ivf-pq' or 'hnsw'\)"):
+        retrieve(None, db, q, 5, index_options={"nprobe": 3})
 
 
 def test_nprobe_beyond_the_lists_is_refused_not_lowered_in_silence():

@@ -29,7 +29,8 @@ def retrieve(method, database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_
     started = time.perf_counter()
     if index == "exact":
         if index_options:
-            raise VPRBenchError(f"index='exact' takes no index options, got {sorted(index_options)}.")
+            raise VPRBenchError(f"index='exact' takes no index options, got {sorted(index_options)}: drop them, or "
+                                "choose an approximate index (index='ivf-pq' or 'hnsw').")
         result = exact_search(database, queries, k, memory_budget=budget)
     else:
         result = approximate_search(database, queries, k, kind=index, memory_budget=budget, options=index_options)
