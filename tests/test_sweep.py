@@ -227,10 +227,10 @@ def test_reproduce_dry_run_and_bad_table(shared_data, capsys, monkeypatch):
         assert text.count(f"PCA to 512 dimensions needs more than 512 database images; {name} has {count} (the "
                           "authors' code fits this PCA jointly over its domain's datasets, which vprbench does not)") == 1
     assert text.count("not runnable [") == 12
-    assert text.count("not runnable [1]") == 6 and text.count("[1] no vprbench method matches this row") == 1
+    assert text.count("not runnable [1]") == 6 and text.count("[1] the authors ran a NetVLAD checkpoint of their own") == 1
     for need in ("dataset baidu-mall: Download baidu_datasets.tar.gz",
                  "weights dinov2_vitg14_pretrain.pth: download https://dl.fbaipublicfiles.com/dinov2/dinov2_vitg14/",
-                 "weights ResNet101_2048_cosplace.pth: from https://github.com/gmberton/CosPlace/"):
+                 "weights ResNet101_2048_cosplace.pth: download https://github.com/gmberton/CosPlace/"):
         assert text.count(need) == 1, need
     number = re.search(r"\[(\d+)\] dataset baidu-mall:", text).group(1)
     assert text.count(f"missing [{number}] ") == 10  # the ten runnable rows on baidu-mall refer to it

@@ -287,3 +287,96 @@ def test_the_released_vocabulary_download_command_runs_as_printed(tmp_path):
     assert command[:3] == ["vprbench", "vocabulary", "download"], how
     args = build_parser().parse_args(command[1:])
     assert args.cache_dir == given["cache-dir"]
+
+
+def test_the_paper_table_prints_each_reported_value_as_published(tmp_path):
+    """The authors' ablation runs publish two decimals: key 80.62 and query 80.56 (Pitts-30k, DINOv2
+    layer 31) both read 80.6, and 58.25 read 58.2, so the table no longer said which facet won."""
+    from rich.console import Console
+
+    from vprbench.cli.reproduce import paper_table
+    from vprbench.run_settings import RunSettings
+
+    def cells_of(table: str) -> dict:
+        spec, cells = table_cells("anyloc", table, cache_dir=tmp_path)
+        console = Console(width=400, record=True, markup=False)
+        console.print(paper_table(spec, cells, RunSettings(cache_dir=tmp_path)))
+        lines = [x for x in console.export_text().splitlines() if x.count("│") > 2]
+        return {line.split("│")[1].strip(): [c.strip() for c in line.split("│")[2:-1]] for line in lines}
+
+    facet = cells_of("facet")  # columns: baidu-mall, oxford, pitts30k (R@1)
+    assert facet["dinov2_vitg14 layer 31 key 32 clusters"][2] == "80.62 / not measured"
+    assert facet["dinov2_vitg14 layer 31 query 32 clusters"][2] == "80.56 / not measured"
+    assert facet["dino_vits8 layer 9 query 128 clusters"][0] == "58.25 / not measured"
+    # one decimal stays one decimal, a whole number keeps it: Table II NetVLAD, Gardens Point R@5 = 85.0
+    assert cells_of("2")["NetVLAD"][2:4] == ["58.5 / not measured", "85.0 / not measured"]
+
+
+def test_the_backbones_table_says_it_is_not_the_papers(tmp_path, capsys, monkeypatch):
+    # its title read "Backbones: ... on the paper's datasets" beside rows marked "(paper)": a reader took
+    # it for one of the paper's tables whose reported values were missing
+    from rich.console import Console
+
+    from vprbench.cli.reproduce import paper_table
+    from vprbench.run_settings import RunSettings
+
+    monkeypatch.setenv("COLUMNS", "400")
+    code = main(["reproduce", "anyloc", "--table", "backbones", "--dry-run", "--data-dir", str(tmp_path / "data"),
+                 "--cache-dir", str(tmp_path / "cache")])
+    out = " ".join(capsys.readouterr().out.split())
+    assert code == 0 and "vprbench's own table (not the paper's; nothing reported)" in out
+    spec, cells = table_cells("anyloc", "backbones", cache_dir=tmp_path / "cache")
+    console = Console(width=400, record=True, markup=False)
+    console.print(paper_table(spec, cells, RunSettings(cache_dir=tmp_path / "cache")))
+    assert "vprbench's own table (not the paper's; nothing reported)" in console.export_text()
+
+
+def test_a_baseline_rows_weights_are_needed_where_the_run_reads_them(tmp_path):
+    """MixVPR's checkpoint is only on Google Drive: the dry run said "into <cache>/torch/hub/checkpoints, or
+    pass weights=PATH"; a file put there made the dry run say 'would run' and the run stop asking for
+    --weights, which reproduce refuses. A CLIP file put loose under <cache>/huggingface counted as present
+    though the run reads the hub's cache layout only."""
+    from vprbench.sweep.reproduce import missing_for
+    from vprbench.weights import hub_folder, weights_folder
+
+    def needs(row):
+        spec, cells = _cells("2", row, tmp_path)
+        cell = cells["oxford"].cells[0]
+        weights = {r["row"]: r.get("weights") for r in spec["rows"]}[row]
+        return cell, [how for thing, how in missing_for(cell, weights, tmp_path, tmp_path) if thing.startswith("weights")]
+
+    name = "resnet50_MixVPR_4096_channels(1024)_rows(4).ckpt"
+    cell, (how,) = needs("MixVPR")
+    assert how == ("download it from https://drive.google.com/file/d/1vuz3PvnR7vxnDDLQrdHJaOA04SQrtk5L/view (no "
+                   f"direct download) and put it at {weights_folder(tmp_path) / name}")
+    assert "weights" not in cell.spec.options
+    weights_folder(tmp_path).mkdir(parents=True)
+    (weights_folder(tmp_path) / name).write_bytes(b"checkpoint")
+    cell, found = needs("MixVPR")  # put there, the run is given it: nothing missing, and it is the file read
+    assert found == [] and cell.spec.options["weights"] == str(weights_folder(tmp_path) / name)
+    assert cell.spec.files["weights"].startswith("sha256:")
+
+    _, (how,) = needs("CLIP-CLS")
+    assert how == f"download https://huggingface.co/laion/CLIP-ViT-bigG-14-laion2B-39B-b160k into {hub_folder(tmp_path)}"
+    hub_folder(tmp_path).mkdir(parents=True)
+    (hub_folder(tmp_path) / "open_clip_pytorch_model.bin").write_bytes(b"loose")
+    assert len(needs("CLIP-CLS")[1]) == 1  # not in the hub's layout: the run would not read it
+    _, (how,) = needs("CosPlace")
+    assert "pass weights=PATH" not in how and how.endswith(f"into {weights_folder(tmp_path)}")
+
+
+def test_the_netvlad_rows_say_why_they_cannot_run_as_the_paper_ran_them(tmp_path):
+    # "no vprbench method matches this row" beside a 'netvlad' method vprbench has: what is missing is the
+    # authors' own checkpoint (dvgl_benchmark/dvgl_many.sh: a best_model.pth of their training), not a method
+    from vprbench.methods.registry import method_entry
+
+    assert method_entry("netvlad")
+    for table in ("2", "3"):
+        _, cells = _cells(table, "NetVLAD", tmp_path)
+        assert {tc.reason for tc in cells.values()} == {
+            "the authors ran a NetVLAD checkpoint of their own training (dvgl_benchmark/dvgl_many.sh loads their "
+            "best_model.pth; ResNet-18 conv4 by the benchmark's defaults), which they did not release; vprbench's "
+            "netvlad runs other weights, so its numbers would not be the paper's run"}
+        assert all(not tc.cells for tc in cells.values())
+    _, vii = _cells("7", "ViT-B CosPlace", tmp_path)  # no reason given: no vprbench method is still the reason
+    assert {tc.reason for tc in vii.values()} == {"no vprbench method matches this row"}

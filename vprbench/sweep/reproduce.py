@@ -135,9 +135,9 @@ def table_cells(paper: str, table: str, ks=(1, 5), *, settings: dict | None = No
         columns = row.get("cells") or {c: {"datasets": d} for c, d in spec["columns"].items()}
         for column, where in columns.items():
             if not row.get("method"):
-                out.append(TableCell(row["row"], column, reason="no vprbench method matches this row"))
+                out.append(TableCell(row["row"], column, reason=row.get("reason", "no vprbench method matches this row")))
                 continue
-            options = {**row.get("options", {}), **where.get("options", {})}
+            options = {**row.get("options", {}), **where.get("options", {}), **placed_weights(row, cache_dir)}
             datasets = where.get("datasets") or [where["dataset"]]
             cells = []
             for group, resize in _resize_groups(row, datasets):
@@ -184,13 +184,42 @@ def cannot_run(cell: Cell) -> str:
 Need = tuple[str, str]
 
 
+def row_source(row_weights: dict):
+    """A plan row's `weights` (file + url, hub or page, as its authors publish it) as the resolver's source."""
+    from ..weights import WeightSource
+
+    return WeightSource(row_weights["file"], url=row_weights.get("url"), hub=row_weights.get("hub"),
+                        page=row_weights.get("page"))
+
+
+def placed_weights(row: dict, cache_dir=None) -> dict:
+    """{"weights": path} for a row whose checkpoint has no download (a Google Drive page) once the file
+    is where the dry run says to put it: the run cannot fetch it, and reproduce takes no weights option."""
+    from ..weights import weights_folder
+
+    source = row_source(row["weights"]) if row.get("weights") else None
+    if source is None or source.url or source.hub:
+        return {}
+    path = weights_folder(cache_dir) / source.file_name
+    return {"weights": str(path)} if path.is_file() else {}
+
+
+def how_to_fetch(source, cache_dir=None) -> str:
+    """Where the run reads `source`'s file, and how to put it there first (a compute node may be offline)."""
+    from ..weights import hub_folder, weights_folder
+
+    if source.url or source.hub:
+        return f"download {source.where} into {weights_folder(cache_dir) if source.url else hub_folder(cache_dir)}"
+    return (f"download it from {source.where} (no direct download) and put it at "
+            f"{weights_folder(cache_dir) / source.file_name}")
+
+
 def weights_for(row_weights: dict | None, cell: Cell, cache_dir=None) -> Need | None:
     """What is missing of the cell's weights (None: present, or not knowable before running)."""
     from ..features.catalogue import backbone_spec
     from ..methods.anyloc import AnyLoc
     from ..methods.registry import method_entry
-    from ..paths import cache_root
-    from ..weights import cached_weights, hub_folder, local_weights, weights_folder
+    from ..weights import cached_weights, local_weights
 
     entry = method_entry(cell.spec.method)
     merged = {**entry.defaults, **cell.spec.given}
@@ -207,13 +236,12 @@ def weights_for(row_weights: dict | None, cell: Cell, cache_dir=None) -> Need | 
         if spec.gated:
             return (f"weights of {spec.name}", f"gated, {spec.licence}: request access at {spec.page}; "
                     f"then downloaded from {spec.source.where} on first use")
-        into = hub_folder(cache_dir) if spec.source.hub else weights_folder(cache_dir)
-        return f"weights {spec.file_name}", f"download {spec.source.where} into {into}"
+        return f"weights {spec.file_name}", how_to_fetch(spec.source, cache_dir)
     if merged.get("weights") or not row_weights:
         return None
-    folder = cache_root(cache_dir) / row_weights["folder"] if "folder" in row_weights else weights_folder(cache_dir)
-    found = list(folder.rglob(row_weights["file"])) if folder.is_dir() else []
-    return None if found else (f"weights {row_weights['file']}", f"from {row_weights['url']}, into {folder}, or pass weights=PATH")
+    # where the run looks, as it looks (not "pass weights=PATH": reproduce refuses method options)
+    source = row_source(row_weights)
+    return None if cached_weights(source, cache_dir) else (f"weights {source.file_name}", how_to_fetch(source, cache_dir))
 
 
 def vocabulary_for(cell: Cell, cache_dir=None, given: dict | None = None) -> Need | None:
