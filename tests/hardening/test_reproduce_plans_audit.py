@@ -380,3 +380,30 @@ def test_the_netvlad_rows_say_why_they_cannot_run_as_the_paper_ran_them(tmp_path
         assert all(not tc.cells for tc in cells.values())
     _, vii = _cells("7", "ViT-B CosPlace", tmp_path)  # no reason given: no vprbench method is still the reason
     assert {tc.reason for tc in vii.values()} == {"no vprbench method matches this row"}
+
+
+def test_a_pca_cell_that_runs_says_it_is_not_the_papers_joint_fit(tmp_path, capsys, monkeypatch):
+    # was: Baidu Mall, Pitts-30k and St Lucia "would run" with PCA fitted on their own database, beside the
+    # paper's values from a PCA fitted on the domain's databases stacked (scripts/joint_pca_project.py)
+    from rich.console import Console
+
+    from vprbench.cli.reproduce import DIFFERS, paper_table
+    from vprbench.run_settings import RunSettings
+
+    spec, cells = _cells("2", "AnyLoc-VLAD-DINOv2-PCA", tmp_path)
+    runs = {column for column, tc in cells.items() if tc.cells}
+    assert runs == {"baidu-mall", "pitts30k", "st-lucia"}
+    assert all("joint_pca_project.py" in tc.differs for tc in cells.values())
+    console = Console(width=400, record=True, markup=False)
+    console.print(paper_table(spec, list(cells.values()), RunSettings(cache_dir=tmp_path)))
+    text = " ".join(console.export_text().split())
+    assert f"AnyLoc-VLAD-DINOv2-PCA: {DIFFERS}vprbench fits PCA-whitening on the evaluated dataset's database alone" in text
+    _, others = _cells("2", "AnyLoc-VLAD-DINOv2", tmp_path)
+    assert not any(tc.differs for tc in others.values())
+    monkeypatch.setenv("COLUMNS", "400")
+    assert main(["reproduce", "anyloc", "--table", "2", "--dry-run", "--data-dir", str(tmp_path / "data"),
+                 "--cache-dir", str(tmp_path)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    note = next(x.split("]")[0] + "]" for x in lines if x.startswith("[") and DIFFERS in x)
+    pca = [x for x in lines if "AnyLoc-VLAD-DINOv2-PCA" in x]
+    assert sum(note in x for x in pca) == 3 and sum("not runnable" in x for x in pca) == 3

@@ -21,6 +21,7 @@ class TableCell:
     column: str
     cells: list[Cell] = field(default_factory=list)  # several for a per-domain mean
     reason: str = ""  # why it cannot run as the paper ran it (no vprbench method, ...)
+    differs: str = ""  # how its run differs from the paper's where it runs (the plan row's `differs`)
 
 
 def reproduce_tables(paper: str) -> dict:
@@ -147,7 +148,7 @@ def table_cells(paper: str, table: str, ks=(1, 5), *, settings: dict | None = No
                                   data_dir=data_dir, cache_dir=cache_dir)
                 cells += [replace(c, label=row["row"]) for c in plan.cells]
             reason = next((r for r in map(cannot_run, cells) if r), "")
-            out.append(TableCell(row["row"], column, [] if reason else cells, reason))
+            out.append(TableCell(row["row"], column, [] if reason else cells, reason, row.get("differs", "")))
     return spec, out
 
 
