@@ -44,3 +44,33 @@ def test_describe_applies_pca_fitted_on_fit_on_images(shared_data, tmp_path, cap
     assert main(args) == 0  # a second run is served from the stores
     np.testing.assert_array_equal(np.load(out), described)
 
+
+ANYLOC = ["--method", "anyloc", "--backbone", "dino_vits8", "--weights", "random", "--layer", "3", "--facet", "value",
+          "--resize", "56", "56"]
+
+
+def test_describe_with_a_dataset_uses_its_ready_domain_vocabulary(shared_data, tmp_path, cli):
+    """--dataset applies the dataset's vocabulary: pitts30k's is 'urban'. Before: refused with 'give --fit-on',
+    needs_fit read before the dataset was applied."""
+    torch.manual_seed(0)
+    torch.save(torch.nn.functional.normalize(torch.randn(4, 384), dim=1), tmp_path / "c_centers.pt")
+    code, _, err = cli("vocabulary", "import", tmp_path / "c_centers.pt", "--source", "urban", "--backbone",
+                       "dino_vits8@random", "--layer", 3, "--facet", "value")
+    assert code == 0, err
+    images = [str(p) for p in sorted((shared_data / "corridor" / "query").glob("*.jpg"))[:2]]
+    vlad = [*ANYLOC, "--aggregation", "vlad", "--clusters", 4, *images, "--quiet"]
+    code, _, err = cli("describe", *vlad, "--vocabulary", "domain", "--dataset", "pitts30k", "--out", tmp_path / "d.npy")
+    assert code == 0, err
+    code, _, err = cli("describe", *vlad, "--vocabulary", "urban", "--out", tmp_path / "urban.npy")
+    assert code == 0, err
+    np.testing.assert_array_equal(np.load(tmp_path / "d.npy"), np.load(tmp_path / "urban.npy"))
+
+
+def test_pca_wider_than_the_images_fitted_on_is_refused_before_describing(shared_data, tmp_path, cli):
+    """Before: every image was described (the model loaded, the store written), then PCA's fit refused."""
+    queries = sorted((shared_data / "corridor" / "query").glob("*.jpg"))[:2]
+    cache = tmp_path / "cache"
+    code, _, err = cli("describe", *ANYLOC, "--aggregation", "gem", "--pca-dim", 2, *queries, "--out",
+                       tmp_path / "d.npy", "--cache-dir", cache)
+    assert code == 1 and "PCA dimension 2" in err and "the images described (no --fit-on) (2)" in err
+    assert not cache.exists() and not (tmp_path / "d.npy").exists()

@@ -184,7 +184,7 @@ def run_describe(args) -> int:
     from ..distributed import Ranks
     from ..evaluation.extract import describe_splits
     from ..evaluation.pipeline import create_run_method, loader_workers
-    from ..evaluation.postprocess import postprocessed
+    from ..evaluation.postprocess import check_database_size, postprocessed
     from ..fsutil import atomic_write
     from ..loader import use_dataset
     from ..paths import regular_file
@@ -220,17 +220,20 @@ def run_describe(args) -> int:
         splits["database"] = [_absolute(p) if root else p for p in list_images(args.fit_on)]
         if not splits["database"]:  # was 'No images to describe in the database split', naming no folder
             raise VPRBenchError(f"--fit-on folder {args.fit_on} holds no images: give the folder of database images.")
-    elif method.needs_fit:
-        raise VPRBenchError(f"Method {args.method!r} fits a vocabulary on database images: give --fit-on FOLDER "
-                            "(or a ready vocabulary with --vocabulary, where the method takes one).")
     splits["queries"] = [_absolute(p) if root else p for p in args.images]
     keyed = None  # the method's own settings
-    if args.dataset is not None:
+    if args.dataset is not None:  # before needs_fit is read: the dataset's vocabulary may be ready (AnyLoc's domain)
         from ..spec import given_options, spec_options
 
         use_dataset(method, args.dataset)
         # keyed as evaluate keys them (its spec's options): an option naming this dataset is as unset
         keyed = spec_options(method.name, given_options(method.options, method.name, args.dataset))
+    if args.fit_on is None and method.needs_fit:
+        raise VPRBenchError(f"Method {args.method!r} fits a vocabulary on database images: give --fit-on FOLDER "
+                            "(or a ready vocabulary with --vocabulary, where the method takes one).")
+    # before any image is described, as evaluate checks it (PCA wider than the images it is fitted on)
+    fitted_on = f"--fit-on {args.fit_on}" if args.fit_on is not None else "the images described (no --fit-on)"
+    check_database_size(method, len(splits.get("database", splits["queries"])), fitted_on)
     ranks = Ranks.from_environment(settings.device)
     try:
         with progress(args, ranks.rank == 0) as shown:

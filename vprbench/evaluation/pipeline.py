@@ -21,10 +21,11 @@ from ..spec import RunSettings, RunSpec
 from .extract import describe_splits
 from .identity import protocol_of
 from .metrics import check_ks
+from .postprocess import check_database_size
 from .record import result_record
 from .retrieve import check_compare, retrieve
 from ..stages.base import Candidates, StageContext
-from ..loader import postprocessor_of, use_dataset
+from ..loader import use_dataset
 from ..stages.run import check_compares, create_stages, in_stage, retrieval_depth, run_stages, track_of
 
 
@@ -160,12 +161,7 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
                                  images_identity(dataset, settings.cache_dir))
     use_dataset(method, dataset.name)
     check_found(spec, dataset.name, settings.cache_dir)
-    post = postprocessor_of(method)
-    if post is not None and hasattr(post, "check_rows"):  # e.g. PCA wider than the database: before describing it
-        from .postprocess import in_postprocessor
-
-        with in_postprocessor(post, "check_rows"):
-            post.check_rows(len(dataset.database), dataset.name)
+    check_database_size(method, len(dataset.database), dataset.name)
     workers = loader_workers(settings, method)
     described = describe_splits(
         method, {"database": dataset.database, "queries": dataset.queries}, root=dataset.root, label=dataset.name,

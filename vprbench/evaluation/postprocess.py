@@ -211,6 +211,15 @@ def _overrides_postprocess(method) -> bool:
     return getattr(type(method), "postprocess", Method.postprocess) is not Method.postprocess
 
 
+def check_database_size(method, rows: int, where: str) -> None:
+    """Before any descriptor is computed: a post-processor that cannot be fitted on `rows` database rows (PCA
+    wider than them) is refused, naming `where` they come from."""
+    post = postprocessor_of(method)
+    if post is not None and hasattr(post, "check_rows"):
+        with in_postprocessor(post, "check_rows"):
+            post.check_rows(rows, where)
+
+
 def postprocessed(method, database: RowSource, queries: RowSource, memory_budget: int, state_folder=None):
     """(database, queries, info): both row sources as `method` post-processes them (its
     post-processor fitted on the database, or a plugin's whole-matrix `postprocess`); info
