@@ -1,6 +1,8 @@
 """Frozen candidates: exported once, re-rankers start from them; a file of another protocol or retriever is refused."""
 import dataclasses
+import os
 import shutil
+import time
 
 import h5py
 import numpy as np
@@ -54,6 +56,8 @@ def edited(path, tmp_path, **attrs):
     # before: accepted, its rows indexing another copy's images scored against this copy's ground truth
     ({}, {"images_key": "0" * 16}, "was exported on other images of corridor than this run's"),
     ({"options": {"resize": [32, 32]}}, {}, r"was exported by another retriever \(hog \{\}\), not this run's hog"),
+    # before: 'another retriever (hog {}), not this run's hog {}', the store (or weights) that differ unnamed
+    ({"store_dtype": "float16"}, {}, r"another retriever \(hog \{\}, store float32\), not this run's hog \{\}, store float16:"),
     ({"stages": [{"name": "aqe", "k": 50}]}, {}, r"holds the top 30 per query, but this run needs 50"),
     ({}, {"indices": 5000}, "holds indices outside the 111 database images"),
     ({}, {"format": "something"}, "is not a vprbench candidates file"),
@@ -78,6 +82,17 @@ def test_a_file_that_does_not_fit_the_run_is_refused(shared_data, exported, tmp_
     spec = resolve_spec("hog", "corridor", data_dir=shared_data, **parts)
     with pytest.raises(VPRBenchError, match=message):
         evaluate(spec, dataclasses.replace(settings, candidates=edited(path, tmp_path, **attrs)))
+
+
+def test_a_file_of_another_content_under_a_cached_name_is_refused(shared_data, exported):
+    """What an option named in the cache (an AnyLoc vocabulary 'urban', imported or fitted in another cache) is part
+    of the retriever. Before: a file exported with one 'urban' was taken by a run whose 'urban' holds other centres."""
+    path, settings = exported
+    spec = resolve_spec("hog", "corridor", stages=RERANK, ks=(1, 5), data_dir=shared_data)
+    spec = spec.model_copy(update={"found": {"vocabulary": "sha256:" + "1" * 64}})
+    with pytest.raises(VPRBenchError, match=r"another retriever \(hog \{\}, cached files \{\}\), not this run's hog \{\}, "
+                                            r"cached files \{'vocabulary': 'sha256:1{64}'\}"):
+        evaluate(spec, dataclasses.replace(settings, candidates=path))
 
 
 def _replaced(name, **dataset):
@@ -128,6 +143,16 @@ def test_a_file_from_another_copy_of_the_dataset_is_refused(shared_data, exporte
     spec = resolve_spec("hog", "corridor", stages=RERANK, ks=(1, 5), data_dir=shared_data)
     with pytest.raises(VPRBenchError, match="was exported on other images of corridor than this run's"):
         evaluate(spec, dataclasses.replace(settings, candidates=path))
+
+
+def test_an_export_removes_what_a_killed_export_left(shared_data, exported, tmp_path):
+    """Before: the temporary file of an export killed while writing stayed beside --out for good."""
+    _, settings = exported
+    left = tmp_path / ".hog.h5.killed.tmp"
+    left.write_bytes(b"half")
+    os.utime(left, (time.time() - 7200,) * 2)  # a live writer's would be younger
+    export_candidates(resolve_spec("hog", "corridor", data_dir=shared_data), settings, tmp_path / "hog.h5", k=5)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["hog.h5"]
 
 
 def test_export_needs_a_retriever_without_stages(shared_data, exported, tmp_path):

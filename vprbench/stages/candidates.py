@@ -11,8 +11,8 @@ compared on exactly the same candidates.
 
 A re-ranking run started from a file (`--candidates FILE`) refuses one exported under another
 protocol, on other images (another copy of the dataset: files changed or in another order) or by
-another retriever (method, options, weights, search, store), and names the file and its sha256 in
-its record.
+another retriever (method, options, weights, a named vocabulary's content, search, store), and names
+the file and its sha256 in its record.
 """
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ import numpy as np
 
 from ..errors import VPRBenchError
 from ..text import shortened
-from ..fsutil import atomic_path, file_sha256
+from ..fsutil import atomic_path, file_sha256, remove_stale, temporaries_of
 from ..hashing import canonical_hash, canonical_json
 from ..paths import regular_file
 from .base import repeated_row, unordered_row
@@ -32,11 +32,15 @@ from .base import repeated_row, unordered_row
 FORMAT = "vprbench-candidates"
 VERSION = 1
 DEFAULT_K = 100
+#: the parts of a retriever's spec, beside its method and options, that change its candidates, as a message names them
+RETRIEVER_PARTS = {"search": "search", "store_dtype": "store", "files": "files", "found": "cached files",
+                   "version": "spec version"}
 
 
 def retriever_identity(spec) -> dict:
-    """What decides the candidates: the spec's retrieval (method, files, search, store), not its stages or K."""
-    return {**spec.row_identity(), "stages": []}
+    """What decides the candidates: the spec's retrieval (method, files, search, store, and what its options named
+    in the cache: an AnyLoc vocabulary 'urban' fitted in another cache is another retriever), not its stages or K."""
+    return {**spec.row_identity(), "stages": [], **({"found": spec.found} if spec.found else {})}
 
 
 def images_identity(dataset, cache_dir=None) -> str:
@@ -62,6 +66,7 @@ def write_candidates(path: Path, spec, found, images: str) -> Path:
             if found.all_zero is not None:
                 f.create_dataset("all_zero", data=np.asarray(found.all_zero.queries, dtype=np.uint8))
                 f.attrs["all_zero_database"] = int(found.all_zero.database)
+    remove_stale(temporaries_of(path))  # a killed export's half-written file, as atomic_write removes them
     return path
 
 
@@ -104,13 +109,15 @@ def read_candidates(path, spec, queries: int, database: int, depth: int, images:
                             "than this run's (files changed or in another order): export candidates from this copy "
                             "of the dataset.")
     if attrs.get("retriever_key") != canonical_hash(retriever_identity(spec)):
-        theirs, ours = _json(attrs.get("retriever_spec")), spec.search.model_dump()
-        shown = f"{shortened(theirs.get('method'))} {shortened(theirs.get('options'))}" if theirs else "an unreadable spec"
-        if theirs.get("search", ours) != ours:  # e.g. an hnsw shortlist as deep as the export's --k
-            shown += f", search {shortened(theirs['search'])}"
+        # what else tells the two apart is named on both sides, else both may read 'hog {}': the search (e.g. an
+        # hnsw shortlist as deep as the export's --k), the store, the files' contents (weights, cached vocabularies)
+        theirs, ours = _json(attrs.get("retriever_spec")), {"found": {}, **spec.to_json()}  # 'found' is written when any
+        parts = [p for p in RETRIEVER_PARTS if theirs and {"found": {}, **theirs}.get(p, ours[p]) != ours[p]]
+        shown = (f"{shortened(theirs.get('method'))} {shortened(theirs.get('options'))}" + "".join(
+            f", {RETRIEVER_PARTS[p]} {shortened(theirs.get(p, {}))}" for p in parts)) if theirs else "an unreadable spec"
         raise VPRBenchError(f"Candidates file {path} was exported by another retriever ({shown}), not this run's "
-                            f"{spec.method} {spec.options}, search {spec.search.model_dump()} (with its store): export "
-                            "candidates with this method, options and search.")
+                            f"{spec.method} {spec.options}" + "".join(f", {RETRIEVER_PARTS[p]} {ours[p]}" for p in parts)
+                            + ": export candidates with this run's method, options, search, store and files.")
     if indices.ndim != 2 or indices.shape != scores.shape or indices.shape[0] != queries:
         raise VPRBenchError(f"Candidates file {path} holds {indices.shape} candidates for {queries} queries; export "
                             "it again.")
