@@ -161,6 +161,12 @@ def test_as_many_dims_as_database_images_is_refused_before_describing():
                                             r"\(40\) less one \(centring leaves 39 directions\): choose pca_dim <= 39\."):
         PCAWhitening(40).check_rows(40, "toy")
     PCAWhitening(39).check_rows(40, "toy")
+    # was "choose pca_dim <= 0" for one image, a dimension PCA refuses
+    with pytest.raises(VPRBenchError, match=r"\(1\) less one \(centring leaves 0 directions\): give at least 2 "
+                                            r"database images, or no PCA\."):
+        PCAWhitening(1).check_rows(1, "toy")
+    with pytest.raises(VPRBenchError, match=r"descriptor dimension \(10\): give at least 2 database images, or no PCA\."):
+        PCAWhitening(1).fit(data(1, 10, 0))
     with pytest.raises(VPRBenchError, match=r"images \(40\) less one or the descriptor dimension \(100\): choose "
                                             r"pca_dim <= 39\."):
         PCAWhitening(40).fit(data(40, 100, 0))

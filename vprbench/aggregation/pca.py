@@ -87,8 +87,9 @@ class PCAWhitening:
         """Before any descriptor is computed: whitening to `dim` needs more than `dim` database rows
         (centred on their mean, N rows span at most N - 1 directions)."""
         if self.dim > n - 1:
+            do = f"choose pca_dim <= {n - 1}" if n > 1 else "give at least 2 database images, or no PCA"
             raise VPRBenchError(f"PCA dimension {self.dim} is larger than the number of database images of {where} "
-                                f"({n}) less one (centring leaves {n - 1} directions): choose pca_dim <= {n - 1}.")
+                                f"({n}) less one (centring leaves {max(n - 1, 0)} directions): {do}.")
 
     # ------------------------------------------------------------ fitting
     def fit(self, database, memory_budget=DEFAULT_MEMORY_BUDGET) -> "PCAWhitening":
@@ -96,9 +97,10 @@ class PCAWhitening:
         rows, budget = as_rows(database, "database descriptors"), parse_memory(memory_budget)
         n, d = rows.row_count, rows.dim
         if self.dim > min(n - 1, d):  # centred, N rows span at most N - 1 directions
+            do = f"choose pca_dim <= {min(n - 1, d)}" if min(n - 1, d) > 0 else "give at least 2 database images, or no PCA"
             raise VPRBenchError(
                 f"PCA dimension {self.dim} is larger than the number of database images ({n}) less one or the "
-                f"descriptor dimension ({d}): choose pca_dim <= {min(n - 1, d)}.")
+                f"descriptor dimension ({d}): {do}.")
         solver = self.solver(rows, budget)
         held = _solver_memory(solver, n, d, self.dim)
         row_cost = ROW_COPIES * read_bytes_per_row(rows)
