@@ -43,8 +43,9 @@ def crop_offsets(height: int, width: int, patch: int, image: str | Path | None =
     """
     new_h, new_w = (height // patch) * patch, (width // patch) * patch
     if new_h == 0 or new_w == 0:
-        raise VPRBenchError(f"Image {f'{image} ' if image else ''}of {height}x{width} pixels is smaller than one {patch}x{patch} patch: resize to at "
-                            f"least {patch}x{patch} (--resize HEIGHT WIDTH, or the option resize).")
+        named = f"Image {image}" if image else "Image"
+        raise VPRBenchError(f"{named} of {height}x{width} pixels is smaller than one {patch}x{patch} patch: resize to "
+                            f"at least {patch}x{patch} (--resize HEIGHT WIDTH, or the option resize).")
     return round((height - new_h) / 2), round((width - new_w) / 2), new_h, new_w
 
 
