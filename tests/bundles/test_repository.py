@@ -164,7 +164,7 @@ def test_verify_a_repository_rescores_every_run_however_it_got_there(bundles, re
     lines = capsys.readouterr().out.splitlines()
     member = path.relative_to(repo).as_posix()
     assert f"{repo}: {member} (run {r['run_id']}, hog on corridor:vpr-bench): R@1 is 99.0 in the record but " \
-           f"{records[0]['recall']['1']:.4f} from its arrays" in lines
+           f"{records[0]['recall']['1']:.6f} from its arrays" in lines
     assert f"{repo}: {link.relative_to(repo).as_posix()} is a link, not a regular file; refused." in lines
     assert f"{repo}: notes/misc/stray.json is not where a results repository keeps a record (<protocol hash>/" \
            "<row key>/<run id>.json); move or remove it." in lines

@@ -34,7 +34,7 @@ def expected_recall(similarity, positives, ks=(1, 5, 10, 20)):
     """Recall@K computed here, apart from vprbench: rank by similarity, look for a positive."""
     order = np.argsort(-similarity, axis=1, kind="stable")
     return {str(k): round(100 * np.mean([bool(set(order[q, :k]) & set(positives[q].tolist()))
-                                         for q in range(len(order))]), 4) for k in ks}
+                                         for q in range(len(order))]), 6) for k in ks}
 
 
 def test_the_files_are_python2_pickles_that_numpy_reads_only_with_latin1(similarity, tmp_path):

@@ -88,7 +88,7 @@ def test_the_python_snippet_of_runs_md_runs_as_written(shared_data, tmp_path):
     exec(compile(code, "docs/runs.md", "exec"), scope)
     record = scope["record"]
     assert (record["method"], record["dataset"], record["label"]) == ("hog", "corridor", "hog [resize=64x64]")
-    assert record["recall"] == {"1": 33.3333, "5": 67.5676}
+    assert record["recall"] == {"1": 33.333333, "5": 67.567568}
     # the page's layout: <cache>/results/<protocol hash>/<row key>/<run id>.json, plus the row's method card
     saved = tmp_path / "results" / "f60ac2fa1d51bc67" / record["row_key"] / f"{record['run_id']}.json"
     assert saved.is_file() and saved.with_suffix(".npz").is_file()

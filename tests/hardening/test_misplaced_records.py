@@ -41,7 +41,7 @@ def test_a_record_of_another_protocol_copied_over_one_is_not_served(shared_data,
         runs[radius] = json.loads(out)
     spec = resolve_spec("hog", "./own", ks=(1, 2), cache_dir=cache)  # radius 1
     assert spec.dataset.protocol_hash == runs[1]["protocol"]["hash"] != runs[2]["protocol"]["hash"]
-    assert find_result(spec, cache)["recall"] == runs[1]["recall"] == {"1": 33.3333, "2": 66.6667}
+    assert find_result(spec, cache)["recall"] == runs[1]["recall"] == {"1": 33.333333, "2": 66.666667}
     mine = next(cache.glob(f"results/{runs[1]['protocol']['hash']}/*/*.json"))
     theirs = next(cache.glob(f"results/{runs[2]['protocol']['hash']}/*/*.json"))
     shutil.copy(theirs.with_suffix(".npz"), mine.parent)

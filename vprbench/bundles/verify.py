@@ -5,7 +5,7 @@ every member (archive.py). Each record is then validated (a record of a newer sc
 its spec's and vprbench's (claims.py), its protocol hash must be one vprbench ships for its
 dataset, and its metrics are recomputed from its per-query arrays against that protocol's ground truth, read from the dataset on this machine: query and database
 counts, indices in range, every query present, first-positive ranks, and Recall@K (records keep
-4 decimals) and the top-1 PR metrics (6 decimals, computed from the similarities the record keeps;
+6 decimals, earlier ones 4) and the top-1 PR metrics (6 decimals, computed from the similarities the record keeps;
 tolerance 1e-3 for records of earlier versions, computed before rounding). Units of the bootstrap a record keeps (each query's place,
 the traverse order, blocks lengthened by its stages' sequence window) must be the protocol's, or its
 intervals would be drawn from the wrong ones.
@@ -215,7 +215,7 @@ def _arrays(record: dict, members: dict[str, bytes], folder: str, problems: list
 
 def rescore(record: dict, arrays: dict, gt: Truth, problems: list) -> dict[str, float]:
     """The record's metrics recomputed from its arrays against `gt`; each disagreement appended to `problems`."""
-    from ..evaluation.metrics import correct_at, first_positive_rank, recall_at_k, top1_precision_recall
+    from ..evaluation.metrics import PR_DECIMALS, RECALL_DECIMALS, correct_at, first_positive_rank, recall_at_k, top1_precision_recall
 
     indices, scores = arrays["database_indices"].astype(np.int64), arrays["similarities"].astype(np.float64)
     queries, k = indices.shape
@@ -258,15 +258,15 @@ def rescore(record: dict, arrays: dict, gt: Truth, problems: list) -> dict[str, 
                         f"{int(arrays['first_positive_rank'][q])}")
     _check_positives(record, arrays["positives"], gt, problems)
     _check_top_predictions(record.get("top_predictions"), indices, problems)
-    recall = {str(k): round(v, 4) for k, v in recall_at_k(first, ks).items()}
+    recall = {str(k): round(v, RECALL_DECIMALS) for k, v in recall_at_k(first, ks).items()}
     for key, value in recall.items():
         if abs(float(record["recall"][key]) - value) > RECALL_TOLERANCE:
-            problems.append(f"R@{key} is {record['recall'][key]} in the record but {value:.4f} from its arrays")
+            problems.append(f"R@{key} is {record['recall'][key]} in the record but {value:.{RECALL_DECIMALS}f} from its arrays")
     if queries and "auc_pr" in record:
         pr = top1_precision_recall(scores[:, 0], first == 1)
         for name in ("auc_pr", "recall_at_100_precision", "max_f1"):
             if name in record and abs(float(record[name]) - pr[name]) > PR_TOLERANCE:
-                problems.append(f"{name} is {record[name]} in the record but {pr[name]:.6f} from its arrays")
+                problems.append(f"{name} is {record[name]} in the record but {pr[name]:.{PR_DECIMALS}f} from its arrays")
     _check_fingerprints(record, gt, problems)
     stated = for_record(record, arrays)
     # the protocol's units for this run: blocks lengthen by its stages' query window, by the same rule;

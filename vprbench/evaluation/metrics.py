@@ -6,6 +6,13 @@ import numpy as np
 from ..errors import VPRBenchError
 from ..text import plural
 
+#: decimals a record keeps of a recall in percent, and of the PR metrics (0 to 1): what is shown from them
+#: (one decimal of R@K and R@100%P in percent, three of max F1) is then the metric's own rounding up to
+#: 50,000 queries. Kept to 2 decimals fewer, a value rounded onto a .x5 was rounded again: 1,330 of VP-Air's
+#: 2,706 queries, 49.150037 %, kept as 49.15 was shown as 49.1; an R@100%P of 836 / 1003 = 0.8334995 as 83.4.
+RECALL_DECIMALS = 6
+PR_DECIMALS = 8
+
 
 def check_ks(ks, n_database: int, dataset: str = "the dataset") -> tuple[int, ...]:
     """K values within the database: the largest must not exceed it."""
@@ -38,6 +45,13 @@ def first_positive_rank(correct: np.ndarray) -> np.ndarray:
     return np.where(correct.any(axis=1), correct.argmax(axis=1) + 1, 0)
 
 
+def percent_true(found: np.ndarray) -> float:
+    """100 x the share of True in `found` (0 when empty), from the count: 100 * count / n is rounded once,
+    100 * mean twice (23 of 80 came out 28.749999999999996 and was shown as 28.7, not 28.8)."""
+    found = np.asarray(found)
+    return 100.0 * int(np.count_nonzero(found)) / len(found) if len(found) else 0.0
+
+
 def successes(first_rank: np.ndarray, k: int) -> np.ndarray:
     """Per query: is a positive among the top k (ranks are 1-based, 0 = none in the top K)?"""
     first = np.asarray(first_rank)
@@ -52,7 +66,13 @@ def successes(first_rank: np.ndarray, k: int) -> np.ndarray:
 def recall_at_k(first_rank: np.ndarray, ks) -> dict[int, float]:
     """Recall@K in percent over ALL queries (queries without positives count as failures), from
     each query's first-positive rank: the one Recall@K of vprbench (records, cells, figures)."""
-    return {int(k): float(100.0 * found.mean()) if len(found := successes(first_rank, k)) else 0.0 for k in ks}
+    return {int(k): percent_true(successes(first_rank, k)) for k in ks}
+
+
+def kept_metrics(recalls: dict[int, float], pr: dict) -> dict:
+    """Recall@K ({K: percent}) and the PR metrics as a record keeps them (and a proof recomputes them)."""
+    return {"recall": {str(k): round(v, RECALL_DECIMALS) for k, v in recalls.items()},
+            **{name: round(pr[name], PR_DECIMALS) for name in ("auc_pr", "max_f1", "recall_at_100_precision")}}
 
 
 def top1_precision_recall(top1_scores: np.ndarray, top1_correct: np.ndarray) -> dict:

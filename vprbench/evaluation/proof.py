@@ -15,10 +15,10 @@ import warnings
 
 import numpy as np
 
-from .metrics import recall_at_k, top1_precision_recall
+from .metrics import kept_metrics, recall_at_k, top1_precision_recall
 from .results import per_query
 
-#: records keep Recall@K to 4 decimals
+#: records keep Recall@K to metrics.RECALL_DECIMALS decimals (earlier ones 4): a recomputed value is within this
 RECALL_TOLERANCE = 1e-4
 #: similarities are kept to 6 decimals, so near-ties may reorder the PR curve a little
 PR_TOLERANCE = 1e-3
@@ -95,8 +95,6 @@ def _recompute(record: dict, arrays: dict[str, np.ndarray], ks: list[int]) -> di
         return f"it reports R@{ks[-1]} but keeps only the top {k} per query; rerun it"
     if ks and ks[0] < 1:  # (Recall@K refuses K = 0)
         return f"it reports R@{ks[0]}, but K is a whole number >= 1; rerun it"
-    recall = {str(key): round(value, 4) for key, value in recall_at_k(first, ks).items()}
     pr = top1_precision_recall(similarities[:, 0].astype(np.float64), first == 1) if len(first) else \
         {"auc_pr": 0.0, "recall_at_100_precision": 0.0, "max_f1": 0.0}
-    return {"recall": recall, "auc_pr": round(pr["auc_pr"], 6), "max_f1": round(pr["max_f1"], 6),
-            "recall_at_100_precision": round(pr["recall_at_100_precision"], 6), "k": int(k)}
+    return {**kept_metrics(recall_at_k(first, ks), pr), "k": int(k)}

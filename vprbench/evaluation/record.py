@@ -252,7 +252,7 @@ def result_record(*, spec: RunSpec, method, fingerprint, dataset, dataset_key: s
     """The record of one run, from the search's top-K (scores and database indices per query):
     every metric is computed here, from what the record keeps. `all_zero` (search.AllZero, None when
     not counted): the all-zero rows, counted; on the track's terms their queries count as failures."""
-    from .metrics import correct_at, recall_at_k, top1_precision_recall
+    from .metrics import correct_at, kept_metrics, recall_at_k, top1_precision_recall
 
     from .blocks import for_dataset, query_window
 
@@ -305,10 +305,7 @@ def result_record(*, spec: RunSpec, method, fingerprint, dataset, dataset_key: s
         "descriptor_dim": descriptor_dim,
         # what the map keeps per image: the store's precision (a float16 store halves it; search reads float32)
         "descriptor_bytes": int(descriptor_dim) * np.dtype(spec.store_dtype).itemsize,
-        "recall": {str(k): round(v, 4) for k, v in recalls.items()},
-        "auc_pr": round(pr["auc_pr"], 6),
-        "max_f1": round(pr["max_f1"], 6),
-        "recall_at_100_precision": round(pr["recall_at_100_precision"], 6),
+        **kept_metrics(recalls, pr),
         "descriptors_computed": computed,
         "served_from_store": described == 0,
         "timings": {k: round(v, 4) for k, v in timings.items()},

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..errors import VPRBenchError
 from ..evaluation.blocks import Resampling
+from ..evaluation.metrics import percent_true
 
 RESAMPLES = 10_000
 LEVEL = 0.95
@@ -118,7 +119,7 @@ def paired_test(a: np.ndarray, b: np.ndarray, resampling: Resampling | None = No
     discordant = int(counts[1] + counts[2])
     p_mcnemar = binomtest(int(counts[1]), discordant, 0.5).pvalue if discordant else 1.0
     return {
-        "queries": n, "a": float(100 * a.mean()), "b": float(100 * b.mean()),
+        "queries": n, "a": percent_true(a), "b": percent_true(b),
         "difference": float(100 * (counts[1] - counts[2]) / n), "ci": (low, high),
         "p_bootstrap": float(p_boot), "only_a": int(counts[1]), "only_b": int(counts[2]),
         "both": int(counts[0]), "neither": int(counts[3]), "p_mcnemar": float(p_mcnemar),
@@ -135,8 +136,9 @@ def overlaps(a: tuple[float, float], b: tuple[float, float]) -> bool:
 
 
 def format_p(p: float, resamples: int = RESAMPLES) -> str:
-    """A bootstrap p-value of 0 means below the resolution of the resamples, not zero."""
-    return f"< {1 / resamples:g}" if p == 0 else f"= {p:.3g}"
+    """A bootstrap p-value of 0 means below the resolution of the resamples, not zero: the p-value is
+    twice a tail's share of the resamples, so its least value above 0 is 2 / resamples."""
+    return f"< {2 / resamples:g}" if p == 0 else f"= {p:.3g}"
 
 
 #: what a paired test between runs with the same success on every query shows instead of p = 1
@@ -144,6 +146,6 @@ IDENTICAL = "same queries right"
 
 
 def format_test(test: dict) -> str:
-    """A paired test's bootstrap p-value as shown ('0.034', '< 0.0001'), or IDENTICAL when the two
+    """A paired test's bootstrap p-value as shown ('0.034', '< 0.0002'), or IDENTICAL when the two
     runs succeed on exactly the same queries: no test is meaningful then, and p = 1 would read as one."""
     return IDENTICAL if test.get("identical") else format_p(test["p_bootstrap"], test.get("resamples", RESAMPLES)).lstrip("= ")

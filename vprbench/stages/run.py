@@ -135,10 +135,10 @@ def run_stages(stages, candidates: Candidates, context: StageContext, ks, positi
         code = stage_fingerprint(stage)
         ceiling = {}
         if positives is not None and stage.track == "re-ranked":  # a sequence stage ignores what it is given: no ceiling
-            from ..evaluation.metrics import correct_at
+            from ..evaluation.metrics import RECALL_DECIMALS, correct_at, percent_true
 
             found_any = correct_at(given.indices, positives, all_zero).any(1)
-            ceiling = {"ceiling_recall": round(100 * float(found_any.mean()), 4)}
+            ceiling = {"ceiling_recall": round(percent_true(found_any), RECALL_DECIMALS)}
         costs.append({**ceiling, "name": stage.name, "track": stage.track, "options": stage.options.model_dump(mode="json"),
                       "candidates_in": given.k, "ms_per_query": round(1000 * seconds / max(queries, 1), 3),
                       "seconds": round(seconds, 3), "stored_bytes_per_database_image": round(stored / max(database, 1), 1),
