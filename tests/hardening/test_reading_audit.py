@@ -140,6 +140,19 @@ def test_the_overview_does_not_say_a_filled_cell_is_never_filled(runs, tmp_path)
     assert "approximate search" in other and "float16 store" in other
 
 
+def test_a_cell_just_outside_the_tolerance_does_not_read_as_inside_it(runs, tmp_path, monkeypatch):
+    """Before: a delta of +1.04 against a tolerance of 1.0 read "+1.0 | ±1.0 | **no**"."""
+    from vprbench.leaderboard import site
+
+    board = build_board([runs["single-image"]])
+    found = {"method": "hog", "row": "hog", "dataset": "baidu-mall", "metric": "R@1", "measured": 76.24, "ci": None,
+             "reported": 75.2, "delta": 76.24 - 75.2, "tolerance": 1.0, "reproduced": False, "table": "II"}
+    monkeypatch.setattr(site, "comparisons", lambda board, seed=0: [found])
+    (tmp_path / "figures").mkdir()
+    page = overview(tmp_path, board, [runs["single-image"]], {key: cell_stats(c) for key, c in board.cells.items()})
+    assert "| 76.2 | *75.2* (Table II) | +1.04 | ±1.00 | **no** |" in page
+
+
 def test_a_stage_cost_under_a_twentieth_of_a_millisecond_is_not_shown_as_zero(runs):
     """Before: SeqSLAM's 0.038 ms per query on Corridor read '0.0' on the sequence page."""
     sequence = copy.deepcopy(runs["sequence"])

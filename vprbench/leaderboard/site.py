@@ -193,7 +193,8 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
         for c in found:
             ci = f" [{c['ci'][0]:.1f}, {c['ci'][1]:.1f}]" if c["ci"] else ""
             lines.append(f"| {text(c['row'])} | {text(c['dataset'])} | {c['metric']} | {c['measured']:.1f}{ci} | *{c['reported']:.1f}* "
-                         f"(Table {c['table']}) | {c['delta']:+.1f} | ±{c['tolerance']:.1f} | {'yes' if c['reproduced'] else '**no**'} |")
+                         # two decimals: a delta of +1.04 at one read "+1.0 | ±1.0 | no"
+                         f"(Table {c['table']}) | {c['delta']:+.2f} | ±{c['tolerance']:.2f} | {'yes' if c['reproduced'] else '**no**'} |")
     else:
         lines.append("No measured cell has a counterpart in the paper yet (the paper reports none of the "
                      "datasets measured here, or none of the methods).")
