@@ -281,6 +281,22 @@ def test_an_own_folders_map_vocabulary_is_fitted_on_the_evaluated_database_by_it
     assert method_provenance(unknown, dataset, cache)["fitted_on_evaluated_database"] is None
 
 
+def test_a_folders_image_digests_at_pitts250k_size_are_kept_as_bytes(tmp_path):
+    """The largest folder a map vocabulary serves: Pitts-250k's 254,064 database images. Kept as one hex
+    string each, its file held 18.7 MB of pickled strings (1.5 s to load on every run using it)."""
+    import hashlib
+
+    from vprbench.aggregation.vocabulary import load_vocabulary
+    from vprbench.methods.anyloc_vocabulary import packed_digests, recorded_image_digests
+
+    digests = [hashlib.sha256(i.to_bytes(4, "little")).hexdigest() for i in range(254_064)]
+    saved = Vocabulary(torch.zeros(32, 1536), {"image_digests": packed_digests(digests[::-1] + digests[:5])})
+    path = saved.save(tmp_path / "vocabulary.pt")
+    assert path.stat().st_size < 1.6 * 32 * 254_064 + 32 * 1536 * 4 + 2**20  # torch pickles bytes as latin-1 text
+    assert recorded_image_digests(load_vocabulary(path)) == set(digests)
+    assert recorded_image_digests(Vocabulary(torch.zeros(2, 4), {"image_digests": b"\0" * 33})) == set()  # torn
+
+
 def test_a_map_vocabulary_of_a_folder_fitted_before_names_carried_its_content_is_refused(tmp_path):
     """Cached as 'map-place' by an earlier vprbench: any folder named place would be served it."""
     from vprbench.methods.anyloc_vocabulary import save_to_cache

@@ -221,8 +221,8 @@ def run_show(args) -> int:
     say(f"{vocabulary.meta['path']}: {vocabulary.clusters} clusters x {vocabulary.dim} dims")
     say(f"  fitted on: {fitted_on(vocabulary)}")
     for key, value in sorted(vocabulary.meta.items()):  # a file's metadata: text from data
-        if key == "image_digests" and isinstance(value, list):  # a folder's fit: one sha256 per image, counted
-            value = f"{len(value)} sha256 (of the images fitted on)"
+        if key == "image_digests" and isinstance(value, bytes):  # a folder's fit: one sha256 per image, counted
+            value = f"{len(value) // 32} sha256 (of the images fitted on)"
         say(f"  {key}: {value}")
     return 0
 

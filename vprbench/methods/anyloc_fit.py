@@ -16,7 +16,7 @@ from ..aggregation.vocabulary import DEFAULT_BUDGET, KMEANS_SEED, Vocabulary, fi
 from ..errors import ProblemList, VPRBenchError
 from ..text import one_line
 from .anyloc_vocabulary import (MAP_PREFIX, OWN_CONTENT_DIGITS, domain_datasets, domain_image_size, map_stride,
-                                vocabulary_images)
+                                packed_digests, vocabulary_images)
 
 Extractor = Callable[[Sequence[Path]], Iterable]
 
@@ -76,7 +76,7 @@ def fit_map_vocabulary(
     own = {}
     if loaded.kind == "own":  # its images by content: a run on another folder of its name is not fitted on them
         digest_of = dict(zip(loaded.database, loaded.image_digests(cache_dir)["database"]))
-        own = {"folder": str(loaded.root.resolve()), "image_digests": sorted({digest_of[p] for p in images})}
+        own = {"folder": str(loaded.root.resolve()), "image_digests": packed_digests(digest_of[p] for p in images)}
     info = {**(meta or {}), "source": map_source(loaded, cache_dir), "datasets": {loaded.name: len(images)}, **own}
     return fit_vocabulary(_counted(extract(images), len(images), info["source"], progress), clusters, exact=exact,
                           budget=budget, seed=seed, meta=info, progress=progress, images=len(images),
