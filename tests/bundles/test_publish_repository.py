@@ -60,6 +60,9 @@ def test_a_site_from_a_repository_marks_each_cell(repository, records, tmp_path,
     assert set(found) == {"hog", "hog [resize=96x128]"}
     assert {d["source"] for d in found.values()} == {CONTRIBUTED}
     assert {found["hog"]["contributor"], found["hog [resize=96x128]"]["contributor"]} == {"alice", "bob"}
+    # was: the intervals' level, resamples and seed only on the pages, not in a download read alone
+    assert {d["ci_method"] for d in found.values()} == {"95% percentile bootstrap, 10,000 resamples, seed 0"}
+    assert "ci_method" in (docs / "leaderboard" / "downloads" / "corridor.csv").read_text().splitlines()[0]
     page = (docs / "leaderboard" / "corridor.md").read_text()
     for record, who in zip(records, ("alice", "bob")):
         [line] = [row for row in page.splitlines() if f"<code>{record['run_id']}</code>" in row and row.startswith("| hog")]

@@ -10,6 +10,7 @@ from ..evaluation.blocks import for_record
 from .cells import CELL_KS, Cell, hardware_of, licence_shown, weights_shown
 from .escape import public_data
 from .shown import descriptor_bytes
+from .stats import LEVEL, RESAMPLES
 
 
 def plain(value):
@@ -20,7 +21,8 @@ def plain(value):
     raise TypeError(type(value).__name__)
 
 
-def summary(cell: Cell, stats: dict) -> dict:
+def summary(cell: Cell, stats: dict, seed: int = 0) -> dict:
+    """One cell's row of the downloads; `stats` as `tables.cell_stats` drew them with `seed`."""
     r = cell.record
     entry = {"row": cell.row.name, "method": cell.row.label, "weights": weights_shown(cell.row, r), "licence": licence_shown(r),
              "dataset": cell.column.dataset,
@@ -40,6 +42,7 @@ def summary(cell: Cell, stats: dict) -> dict:
     entry["speed_run_id"] = (cell.timed or {}).get("run_id")
     entry["protocol"] = (r.get("protocol") or {}).get("id")
     entry["ci_resampling"] = for_record(r, cell.arrays).text()  # which queries the intervals draw together
+    entry["ci_method"] = f"{LEVEL:.0%} percentile bootstrap, {RESAMPLES:,} resamples, seed {seed}"  # a file read alone says it
     entry["vprbench"] = (r.get("versions") or {}).get("vprbench")
     entry["provenance"] = json.dumps(r.get("provenance") or {}, sort_keys=True)
     return public_data(entry)

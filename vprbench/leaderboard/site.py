@@ -133,7 +133,7 @@ def write_section(out: Path, board: Board, records: list[dict], *, cache_dir=Non
                                                        cache_dir=cache_dir, colours=colours))
     _write(out / "reported.md", reported_page())
     _write(out / NAV_FILE, navigation(board, [t for t in full.tracks if t != "single-image"]))
-    rows = [summary(cell, stats[key]) for key, cell in full.cells.items()]
+    rows = [summary(cell, stats[key], seed) for key, cell in full.cells.items()]
     to_csv(pd.DataFrame(rows), out / "downloads" / "leaderboard.csv", index=False)
     _write(out / "downloads" / "leaderboard.json", json.dumps(rows, indent=1, sort_keys=True, default=plain))
 
@@ -308,7 +308,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
                          f"{cell.row.name}: queries and their top {top}", f"Mosaic of {cell.row.name}")
     download = [record_download(c) for c in cells]
     _write(out / "downloads" / f"{slug}.json", json.dumps(download, sort_keys=True, default=plain))  # compact: per-query arrays
-    to_csv(pd.DataFrame([summary(c, stats[(c.row, column.key)]) for c in cells]), out / "downloads" / f"{slug}.csv",
+    to_csv(pd.DataFrame([summary(c, stats[(c.row, column.key)], seed) for c in cells]), out / "downloads" / f"{slug}.csv",
            index=False)
     lines += ["## Downloads", "", f"[{slug}.csv](downloads/{slug}.csv) (one row per cell), "
               f"[{slug}.json](downloads/{slug}.json) (the cells' full records, per-query predictions included; "
