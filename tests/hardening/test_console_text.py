@@ -9,6 +9,7 @@ import io
 import json
 
 import pytest
+import torch
 from rich.console import Console
 from rich.table import Table
 
@@ -91,3 +92,24 @@ def test_dataset_texts_and_plugin_descriptions_print_literally(tmp_path, cli, mo
     code, out, _ = cli("methods", "list")
     assert code == 0
     assert_literal(out)
+
+
+def test_a_vocabulary_files_metadata_prints_one_line_per_item(tmp_path, cli):
+    """`vocabulary show` and `list` print a hand-made file's metadata as one line per item: a newline in a
+    value cannot forge a line, control characters are written out, a huge value is cut, and metadata
+    lacking what a fit writes beside it (features_used without features_seen) is no traceback."""
+    from vprbench.aggregation import Vocabulary
+
+    forged = f"/x\n  fake: line {CONTROLS}"
+    meta = {"folder": forged, "imported_from": forged, "datasets": {forged: 3}, f"key\n{CONTROLS}": "v",
+            "source": "x" * 100_000, "features_used": 5, "image_digests": b"\0" * 33}
+    folder = tmp_path / "cache" / "vocabularies" / "dino_vits8-l11-value-c2" / "mine"
+    Vocabulary(torch.zeros(2, 4), meta).save(folder / "vocabulary.pt")
+    shown = []
+    for args in (["show", folder / "vocabulary.pt"], ["list", "--cache-dir", tmp_path / "cache"]):
+        code, out, err = cli("vocabulary", *args)
+        assert code == 0, err
+        assert SHOWN in out and "\x1b" not in out and "\r" not in out and "\n  fake" not in out, out
+        assert len(out) < 5_000, len(out)
+        shown.append(out)
+    assert "image_digests: 33 bytes, not whole sha256" in shown[0]  # not counted as one image's

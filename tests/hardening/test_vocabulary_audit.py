@@ -167,3 +167,30 @@ def test_a_save_removes_what_a_killed_save_left(tmp_path):
     Vocabulary(torch.ones(4, 8), {"source": "mine"}).save(folder / "vocabulary.pt")
     assert sorted(p.name for p in folder.iterdir()) == [young.name, "vocabulary.pt"]
     assert load_vocabulary(folder / "vocabulary.pt").clusters == 4
+
+
+def test_a_hand_made_files_metadata_reaches_a_record_cut(tmp_path):
+    """What a file's metadata puts in a run's record (its folder, source, fitted stride, resize, image size)
+    is kept as a fit writes it, and a hand-made file's megabyte-long value, or one of another type, as its
+    text cut to one line's length: a record and the leaderboard's Weights cell stay readable."""
+    from vprbench.methods.anyloc_vocabulary import file_provenance
+
+    huge = "y" * 1_000_000
+    Vocabulary(centres(), {"folder": huge, "source": huge, "resize": huge, "image_size": {"h": [0] * 10**5},
+                           "stride": 4}).save(tmp_path / "huge.pt")
+    found = file_provenance(load_vocabulary(tmp_path / "huge.pt"))
+    assert len(str(found)) < 10_000 and found["fitted_stride"] == 4
+    assert found["folder"].endswith("...") and isinstance(found["fitted_image_size"], str)
+    Vocabulary(centres(), {"folder": "/data/mine", "resize": [56, 56], "image_size": "native"}).save(tmp_path / "fit.pt")
+    found = file_provenance(load_vocabulary(tmp_path / "fit.pt"))
+    assert (found["folder"], found["fitted_resize"], found["fitted_image_size"]) == ("/data/mine", [56, 56], "native")
+
+
+def test_a_hand_made_files_setting_is_named_cut_in_its_refusal(tmp_path, cli):
+    """A file whose metadata names other features is refused in one line of readable length, however long
+    (and whatever characters) its hand-made setting."""
+    Vocabulary(torch.randn(4, 384), {"backbone": "x\n\x1b[2J" * 10**5, "layer": 3}).save(tmp_path / "v.pt")
+    code, out, err = cli("vocabulary", "import", tmp_path / "v.pt", "--source", "mine", "--backbone", "dino_vits8",
+                         "--layer", "11", "--facet", "value", "--cache-dir", tmp_path / "cache")
+    assert code == 1 and out == "" and len(err) < 1_000 and err.count("\n") == 1, err[:300]
+    assert "was fitted on backbone x\\n\\x1b[2J" in err and "\x1b" not in err

@@ -31,6 +31,7 @@ import torch.nn.functional as F
 from ..errors import VPRBenchError
 from ..fsutil import atomic_write
 from ..paths import cache_root, portable_name, regular_file
+from ..text import shortened
 from ..weights import read_torch_file
 
 #: AnyLoc's k-means settings (fast_pytorch_kmeans 0.1.6 defaults + AnyLoc's seed)
@@ -175,7 +176,7 @@ class Vocabulary:
         if any(str(value) != str(asked[key]) for key, value in made.items()):
             source = self.meta.get("path") or self.meta.get("imported_from") or self.meta.get("source") or "the vocabulary"
             named = [key for key in made if key != "stride" or str(made[key]) != str(asked[key])]  # a stride if it differs
-            shown = " ".join(f"{key} {made[key]}" for key in named)
+            shown = " ".join(f"{key} {shortened(made[key])}" for key in named)  # a hand-made file's may be huge
             wanted = " ".join(f"{key} {asked[key]}" for key in asked if key != "stride" or key in named)
             raise VPRBenchError(
                 f"Vocabulary {source} was fitted on {shown}, but these features are {wanted}: use a vocabulary "

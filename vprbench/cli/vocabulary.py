@@ -10,9 +10,13 @@ import re
 
 # The vocabulary machinery (torch) is imported by each subcommand, so `vprbench --help` answers at once.
 from ..errors import VPRBenchError
+from ..text import one_line, shortened
 from .console import say
 from .options import (add_location_options, add_method_options, method_options, output_file, path_argument, progress,
                       resolve_locations)
+
+#: at most this many characters of a vocabulary file's value are shown (a domain's datasets fit in it)
+SHOWN_LIMIT = 400
 
 
 def add_parsers(commands) -> None:
@@ -218,13 +222,20 @@ def run_show(args) -> int:
     from ..aggregation.vocabulary import load_vocabulary
 
     vocabulary = load_vocabulary(args.path)
-    say(f"{vocabulary.meta['path']}: {vocabulary.clusters} clusters x {vocabulary.dim} dims")
+    say(one_line(f"{vocabulary.meta['path']}: {vocabulary.clusters} clusters x {vocabulary.dim} dims"))
     say(f"  fitted on: {fitted_on(vocabulary)}")
-    for key, value in sorted(vocabulary.meta.items()):  # a file's metadata: text from data
+    for key, value in sorted(vocabulary.meta.items()):  # a file's metadata: text from data, one line per key
         if key == "image_digests" and isinstance(value, bytes):  # a folder's fit: one sha256 per image, counted
-            value = f"{len(value) // 32} sha256 (of the images fitted on)"
-        say(f"  {key}: {value}")
+            value = (f"{len(value) // 32} sha256 (of the images fitted on)" if len(value) % 32 == 0 else
+                     f"{len(value)} bytes, not whole sha256 (unusable: runs do not know the images fitted on)")
+        say(f"  {shown(key)}: {shown(value)}")
     return 0
+
+
+def shown(value) -> str:
+    """A value from a vocabulary file as one line of at most SHOWN_LIMIT characters (a hand-made file's
+    newline cannot forge a line, nor its megabyte-long value flood the terminal)."""
+    return one_line(shortened(value if isinstance(value, str) else str(value), SHOWN_LIMIT))
 
 
 def fitted_on(vocabulary) -> str:
@@ -245,11 +256,12 @@ def fitted_on(vocabulary) -> str:
         datasets = ", ".join(f"{name} ({count} images)" for name, count in datasets.items())
     learnt = ", ".join(part for part in (
         " of ".join(part for part in (f"{setting} features" if setting else "", str(datasets or "")) if part),
-        f"{meta['features_used']} of {meta['features_seen']} features sampled" if "features_used" in meta else "",
+        f"{meta['features_used']} of {meta['features_seen']} features sampled"
+        if "features_used" in meta and "features_seen" in meta else "",
         f"imported from {meta['imported_from']}" if "imported_from" in meta else "",
     ) if part)
     if learnt:
-        return learnt
+        return shown(learnt)
     return "not recorded in the file (centres without metadata; sha256 " + found.get("sha256", "?")[:16] + ")"
 
 
@@ -262,16 +274,17 @@ def run_list(args) -> int:
     found = [(folder, vocabulary_file_in(folder)) for folder in folders]
     found = [(folder, file) for folder, file in found if file is not None]
     if not found:
-        say(f"No vocabularies in {root}: `vprbench vocabulary fit`, `import` or `download` makes them.")
+        say(one_line(f"No vocabularies in {root}: `vprbench vocabulary fit`, `import` or `download` makes them."))
         return 0
-    say(f"Vocabularies in {root} (setting/name: clusters x dims, fitted on):")
+    say(one_line(f"Vocabularies in {root} (setting/name: clusters x dims, fitted on):"))
     for folder, file in found:
         try:
             vocabulary = load_vocabulary(file)
         except VPRBenchError as error:  # one damaged file does not hide the others
-            say(f"  {folder.parent.name}/{folder.name}: unusable: {error}")
+            say(one_line(f"  {folder.parent.name}/{folder.name}: unusable: {error}"))
             continue
-        say(f"  {folder.parent.name}/{folder.name}: {vocabulary.clusters} x {vocabulary.dim}, {fitted_on(vocabulary)}")
+        say(f"  {shown(folder.parent.name)}/{shown(folder.name)}: {vocabulary.clusters} x {vocabulary.dim}, "
+            f"{fitted_on(vocabulary)}")
     return 0
 
 

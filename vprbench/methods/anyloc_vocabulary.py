@@ -18,6 +18,7 @@ from ..aggregation.vocabulary import (
 )
 from ..errors import VPRBenchError, closest_names, network_reason
 from ..fsutil import lock, remove_stale, write_in_turn
+from ..text import shortened
 
 MAP_PREFIX = "map-"
 #: hex digits of a folder of one's own's database content in its map vocabulary's name
@@ -165,11 +166,19 @@ def file_provenance(vocabulary: Vocabulary) -> dict:
     if isinstance(fitted, (dict, list)) and fitted and all(isinstance(name, str) for name in fitted):
         found["datasets"] = list(fitted)
     if isinstance(meta.get("folder"), str):  # named by its content too: the name alone may be another folder's
-        named = f" ({meta['source']})" if isinstance(meta.get("source"), str) else ""
-        found.update(folder=meta["folder"], fitted_on=f"the database of the folder {meta['folder']}{named}")
+        named = f" ({recorded(meta['source'])})" if isinstance(meta.get("source"), str) else ""
+        folder = recorded(meta["folder"])
+        found.update(folder=folder, fitted_on=f"the database of the folder {folder}{named}")
     # the features' settings the key leaves out: the record tells what the centres were fitted at
-    found.update({f"fitted_{key}": meta[key] for key in ("stride", "resize", "image_size") if key in meta})
+    found.update({f"fitted_{key}": recorded(meta[key]) for key in ("stride", "resize", "image_size") if key in meta})
     return found
+
+
+def recorded(value):
+    """A file's metadata value as a record keeps it: a fit's (number, size, path) as it is, else its text, cut."""
+    if isinstance(value, int) or isinstance(value, list) and len(value) <= 2 and all(type(v) is int for v in value):
+        return value
+    return shortened(value, 1000)
 
 
 def packed_digests(digests) -> bytes:
