@@ -30,7 +30,15 @@ def test_import_then_resolve_by_name(tmp_path, capsys):
                          "--backbone", "dinov2_vits14", "--layer", "9", "--facet", "key")) == 0
     found = resolve_vocabulary("urban", "dinov2_vits14", 9, "key", 3)
     assert found.centres.shape == (3, 384) and found.meta["source"] == "urban"
-    assert "Imported 3 x 384 centres as 'urban'" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "Imported 3 x 384 centres as 'urban'" in out and "replacing" not in out
+    # was: a second import under the name replaced the first without a word
+    Vocabulary(torch.randn(3, 384)).save(tmp_path / "other.pt")
+    assert run(parse("vocabulary", "import", str(tmp_path / "other.pt"), "--source", "urban",
+                     "--backbone", "dinov2_vits14", "--layer", "9", "--facet", "key")) == 0
+    assert "(replacing the centres cached as 'urban' before; runs naming it are run again)" in capsys.readouterr().out
+    torch.testing.assert_close(resolve_vocabulary("urban", "dinov2_vits14", 9, "key", 3).centres,
+                               Vocabulary(torch.load(tmp_path / "other.pt")["centres"]).centres)
 
 
 def test_import_for_ones_own_checkpoint_takes_its_digest(tmp_path, capsys):

@@ -162,7 +162,7 @@ def run_import(args) -> int:
     from pathlib import Path
 
     from ..methods.anyloc_vocabulary import is_released_setting, release, save_to_cache
-    from ..aggregation.vocabulary import RELEASED_FILE, load_vocabulary, vocabulary_dir
+    from ..aggregation.vocabulary import RELEASED_FILE, load_vocabulary, vocabulary_dir, vocabulary_file_in
     from ..fsutil import atomic_write, write_in_turn
     from ..weights import file_sha256
     from ..features.backbones import RANDOM
@@ -188,16 +188,19 @@ def run_import(args) -> int:
     vocabulary.check_dim(spec.width)
     source_file = Path(vocabulary.meta["path"])
     released = is_released_setting(args.backbone, args.layer, args.facet, vocabulary.clusters, stride)
+    folder = vocabulary_dir(args.backbone, args.layer, args.facet, vocabulary.clusters, args.source, args.cache_dir, stride)
+    replaced = vocabulary_file_in(folder) is not None
     if released and file_sha256(source_file) in release()["sha256"].values():
         # the authors' file for their setting, placed as it is: a run naming it keeps its key (their
         # published sha256); under another setting it is saved with the metadata that names it
-        path = vocabulary_dir(args.backbone, args.layer, args.facet, vocabulary.clusters, args.source,
-                              args.cache_dir, stride) / RELEASED_FILE  # under the authors' own file name
+        path = folder / RELEASED_FILE  # under the authors' own file name
         write_in_turn(path, lambda into: atomic_write(into, source_file.read_bytes()), f"the vocabulary {path}")
     else:
         vocabulary.meta["imported_from"] = vocabulary.meta.pop("path")
         path = save_to_cache(vocabulary, args.backbone, args.layer, args.facet, args.source, args.cache_dir, stride)
-    print(f"Imported {vocabulary.clusters} x {vocabulary.dim} centres as {args.source!r} -> {path}")
+    # a second import under one name replaces the first: said, as runs naming it now give other results
+    again = f" (replacing the centres cached as {args.source!r} before; runs naming it are run again)" if replaced else ""
+    print(f"Imported {vocabulary.clusters} x {vocabulary.dim} centres as {args.source!r} -> {path}{again}")
     return 0
 
 
