@@ -14,7 +14,7 @@ from .cells import STRUCTURED, UNSTRUCTURED, Board, Cell
 from .domains import DomainMean, domain_averages, domain_datasets, paper_domain_averages
 from .escape import public
 from .shown import descriptor_bytes
-from ..evaluation.metrics import successes
+from ..evaluation.metrics import recall_at_k
 from ..hashing import canonical_hash
 from ..text import literal
 
@@ -104,7 +104,7 @@ def recall_curves(cells: list[Cell], path: Path, colours: dict[str, str] | None 
         if cell.arrays is not None:
             first, depth = cell.arrays["first_positive_rank"], cell.record["per_query"]["k"]
             ks = np.arange(1, depth + 1)
-            drawn += ax.plot(ks, [100 * successes(first, k).mean() for k in ks], marker=".",
+            drawn += ax.plot(ks, list(recall_at_k(first, ks).values()), marker=".",
                              label=_label(cell.row.name), color=colours[cell.row.name])
         else:
             points = sorted((int(k), v) for k, v in cell.record["recall"].items())
