@@ -295,7 +295,7 @@ def test_a_folders_image_digests_at_pitts250k_size_are_kept_as_bytes(tmp_path):
     import hashlib
 
     from vprbench.aggregation.vocabulary import load_vocabulary
-    from vprbench.methods.anyloc_vocabulary import packed_digests, recorded_image_digests
+    from vprbench.methods.anyloc_fit import packed_digests, recorded_image_digests
 
     digests = [hashlib.sha256(i.to_bytes(4, "little")).hexdigest() for i in range(254_064)]
     saved = Vocabulary(torch.zeros(32, 1536), {"image_digests": packed_digests(digests[::-1] + digests[:5])})

@@ -20,7 +20,8 @@ from ..aggregation import pooling, vlad
 from ..aggregation.pca import PCAWhitening
 from . import anyloc_options
 from .anyloc_options import AGGREGATIONS, VLADS
-from .anyloc_vocabulary import (MAP_PREFIX, check_proven, file_provenance, names_file, paper_choice, recorded_image_digests,
+from .anyloc_fit import recorded_image_digests
+from .anyloc_vocabulary import (MAP_PREFIX, check_proven, file_provenance, names_file, paper_choice,
                                  resolve_vocabulary, vocabulary_images)
 from ..aggregation.vlad import vlad_hard
 from ..aggregation.vocabulary import fit_vocabulary

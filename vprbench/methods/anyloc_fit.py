@@ -16,7 +16,7 @@ from ..aggregation.vocabulary import DEFAULT_BUDGET, KMEANS_SEED, Vocabulary, fi
 from ..errors import ProblemList, VPRBenchError
 from ..text import one_line
 from .anyloc_vocabulary import (MAP_PREFIX, OWN_CONTENT_DIGITS, domain_datasets, domain_image_size, map_stride,
-                                packed_digests, vocabulary_images)
+                                vocabulary_images)
 
 Extractor = Callable[[Sequence[Path]], Iterable]
 
@@ -63,6 +63,21 @@ def fit_domain_vocabulary(
     return fit_vocabulary(_counted(extract(paths), len(paths), domain, progress), clusters, exact=exact,
                           budget=budget, seed=seed, meta=info, progress=progress, images=len(paths),
                           per_image=per_image)
+
+
+def packed_digests(digests) -> bytes:
+    """Images' sha256 (hex) as a vocabulary's metadata keeps them: 32 bytes each, sorted, one bytes object, so
+    a fit on a Pitts-250k-size folder adds 12 MB loaded in 0.05 s (as 254,064 strings: 19 MB, 0.9 s)."""
+    return b"".join(sorted({bytes.fromhex(d) for d in digests}))
+
+
+def recorded_image_digests(vocabulary: Vocabulary) -> set[str]:
+    """sha256 (hex) of each image a folder of one's own's map vocabulary was fitted on, as its fit recorded
+    them (empty where it did not)."""
+    packed = vocabulary.meta.get("image_digests")
+    if not isinstance(packed, bytes) or len(packed) % 32:
+        return set()
+    return {packed[i:i + 32].hex() for i in range(0, len(packed), 32)}
 
 
 def fit_map_vocabulary(

@@ -181,21 +181,6 @@ def recorded(value):
     return shortened(value, 1000)
 
 
-def packed_digests(digests) -> bytes:
-    """Images' sha256 (hex) as a vocabulary's metadata keeps them: 32 bytes each, sorted, one bytes object, so
-    a fit on a Pitts-250k-size folder adds 12 MB loaded in 0.05 s (as 254,064 strings: 19 MB, 0.9 s)."""
-    return b"".join(sorted({bytes.fromhex(d) for d in digests}))
-
-
-def recorded_image_digests(vocabulary: Vocabulary) -> set[str]:
-    """sha256 (hex) of each image a folder of one's own's map vocabulary was fitted on, as its fit recorded
-    them (empty where it did not)."""
-    packed = vocabulary.meta.get("image_digests")
-    if not isinstance(packed, bytes) or len(packed) % 32:
-        return set()
-    return {packed[i:i + 32].hex() for i in range(0, len(packed), 32)}
-
-
 def paper_choice(dataset: str, backbone: str, layer: int, facet: str, clusters: int,
                  cache_dir=None, stride: int | None = None) -> tuple[Vocabulary | None, str, str]:
     """(vocabulary or None, source name, note) for the paper's vocabulary of `dataset`.
