@@ -15,6 +15,18 @@ def _cells(table: str, row: str, cache_dir) -> dict:
     return spec, found
 
 
+def printed_table(spec, cells, cache_dir, stored=None, width: int = 400) -> str:
+    """The paper's table `reproduce` prints, as text at `width` columns."""
+    from rich.console import Console
+
+    from vprbench.cli.reproduce import paper_table
+    from vprbench.run_settings import RunSettings
+
+    console = Console(width=width, record=True, markup=False)
+    console.print(paper_table(spec, cells, RunSettings(cache_dir=cache_dir), stored))
+    return console.export_text()
+
+
 def test_dino_vlad_rows_of_tables_2_and_3_use_the_domain_vocabularies(tmp_path):
     # Table VII's map-specific ViT-S means equal Tables II/III's AnyLoc-VLAD-DINO only where the
     # domain's vocabulary is the map's (SubT 52.7, underwater 41.6), not indoor (72.9 vs 73.3)
@@ -81,15 +93,8 @@ def test_a_dino_domain_cell_names_the_vocabulary_it_needs(tmp_path):
 
 
 def test_table_6_shows_the_papers_descriptor_dimensions(tmp_path):
-    from rich.console import Console
-
-    from vprbench.cli.reproduce import paper_table
-    from vprbench.run_settings import RunSettings
-
     spec, cells = table_cells("anyloc", "6", cache_dir=tmp_path)
-    console = Console(width=220, record=True, markup=False)
-    console.print(paper_table(spec, cells, RunSettings(cache_dir=tmp_path)))
-    text = console.export_text().splitlines()
+    text = printed_table(spec, cells, tmp_path, width=220).splitlines()
     assert [cell.strip() for cell in text[3].split("┃")[1:-1]] == ["row", "baidu-mall R1", "oxford R1", "dim"], text
     lines = {line.split("│")[1].strip(): line for line in text if line.count("│") > 2}
     for row, dim in (("DINO GAP", 384), ("DINO hard VLAD", 49152), ("DINOv2 GeM", 1536), ("DINOv2 soft VLAD", 49152)):
@@ -130,11 +135,6 @@ def test_publish_with_a_dry_run_is_refused_not_ignored(tmp_path, capsys):
 def test_the_backbones_plan_runs_to_its_table_with_nothing_reported(tmp_path, capsys):
     # no table of the paper: the real (not dry) run ended in "error: The anyloc paper has no table
     # 'backbones'" once its cells were judged, so its table was never printed
-    from rich.console import Console
-
-    from vprbench.cli.reproduce import paper_table
-    from vprbench.run_settings import RunSettings
-
     (tmp_path / "data").mkdir()
     code = main(["reproduce", "anyloc", "--table", "backbones", "--quiet", "--data-dir", str(tmp_path / "data"),
                  "--cache-dir", str(tmp_path / "cache")])
@@ -142,9 +142,7 @@ def test_the_backbones_plan_runs_to_its_table_with_nothing_reported(tmp_path, ca
     assert code == 0 and "error" not in captured.err, captured.err
     assert "reported (paper) / measured here" in captured.out
     spec, cells = table_cells("anyloc", "backbones", cache_dir=tmp_path / "cache")
-    console = Console(width=1000, record=True, markup=False)
-    console.print(paper_table(spec, cells, RunSettings(cache_dir=tmp_path / "cache")))
-    line = next(x for x in console.export_text().splitlines() if x.startswith("│ VLAD DINOv2 ViT-G/14 (paper)"))
+    line = next(x for x in printed_table(spec, cells, tmp_path / "cache", width=1000).splitlines() if x.startswith("│ VLAD DINOv2 ViT-G/14 (paper)"))
     values = [cell.strip() for cell in line.split("│")[2:-1]]
     assert values == ["- / not measured"] * 24, values  # 12 datasets x R@1, R@5
 
@@ -253,11 +251,7 @@ def test_a_stored_run_that_fell_back_to_the_maps_vocabulary_is_not_the_papers(mo
 
 def test_the_paper_table_shows_measured_minus_reported(tmp_path, monkeypatch):
     """A cell reads 'reported / measured (delta) [CI]'; the delta is measured - reported (+ above the paper)."""
-    from rich.console import Console
-
     import vprbench.sweep.reproduce as reproduce_module
-    from vprbench.cli.reproduce import paper_table
-    from vprbench.run_settings import RunSettings
 
     class Stored:
         def record(self, spec, settings):
@@ -267,9 +261,7 @@ def test_the_paper_table_shows_measured_minus_reported(tmp_path, monkeypatch):
     monkeypatch.setattr(reproduce_module, "measured", lambda records, metric: (99.0, 98.0, 99.5))
     reported = reproduce_module.reported_value(spec, "DINOv2 GeM", "baidu-mall", "r1")
     assert reported is not None and reported < 99.0
-    console = Console(width=220, record=True, markup=False)
-    console.print(paper_table(spec, cells, RunSettings(cache_dir=tmp_path), Stored()))
-    line = next(line for line in console.export_text().splitlines() if "│ DINOv2 GeM" in line)
+    line = next(line for line in printed_table(spec, cells, tmp_path, Stored(), width=220).splitlines() if "│ DINOv2 GeM" in line)
     assert line.split("│")[2].strip() == f"{reported:.1f} / 99.0 (+{99.0 - reported:.1f}) [98.0, 99.5]"
 
 
@@ -292,16 +284,9 @@ def test_the_released_vocabulary_download_command_runs_as_printed(tmp_path):
 def test_the_paper_table_prints_each_reported_value_as_published(tmp_path):
     """The authors' ablation runs publish two decimals: key 80.62 and query 80.56 (Pitts-30k, DINOv2
     layer 31) both read 80.6, and 58.25 read 58.2, so the table no longer said which facet won."""
-    from rich.console import Console
-
-    from vprbench.cli.reproduce import paper_table
-    from vprbench.run_settings import RunSettings
-
     def cells_of(table: str) -> dict:
         spec, cells = table_cells("anyloc", table, cache_dir=tmp_path)
-        console = Console(width=400, record=True, markup=False)
-        console.print(paper_table(spec, cells, RunSettings(cache_dir=tmp_path)))
-        lines = [x for x in console.export_text().splitlines() if x.count("│") > 2]
+        lines = [x for x in printed_table(spec, cells, tmp_path).splitlines() if x.count("│") > 2]
         return {line.split("│")[1].strip(): [c.strip() for c in line.split("│")[2:-1]] for line in lines}
 
     facet = cells_of("facet")  # columns: baidu-mall, oxford, pitts30k (R@1)
@@ -315,20 +300,13 @@ def test_the_paper_table_prints_each_reported_value_as_published(tmp_path):
 def test_the_backbones_table_says_it_is_not_the_papers(tmp_path, capsys, monkeypatch):
     # its title read "Backbones: ... on the paper's datasets" beside rows marked "(paper)": a reader took
     # it for one of the paper's tables whose reported values were missing
-    from rich.console import Console
-
-    from vprbench.cli.reproduce import paper_table
-    from vprbench.run_settings import RunSettings
-
     monkeypatch.setenv("COLUMNS", "400")
     code = main(["reproduce", "anyloc", "--table", "backbones", "--dry-run", "--data-dir", str(tmp_path / "data"),
                  "--cache-dir", str(tmp_path / "cache")])
     out = " ".join(capsys.readouterr().out.split())
     assert code == 0 and "vprbench's own table (not the paper's; nothing reported)" in out
     spec, cells = table_cells("anyloc", "backbones", cache_dir=tmp_path / "cache")
-    console = Console(width=400, record=True, markup=False)
-    console.print(paper_table(spec, cells, RunSettings(cache_dir=tmp_path / "cache")))
-    assert "vprbench's own table (not the paper's; nothing reported)" in console.export_text()
+    assert "vprbench's own table (not the paper's; nothing reported)" in printed_table(spec, cells, tmp_path / "cache")
 
 
 def test_a_baseline_rows_weights_are_needed_where_the_run_reads_them(tmp_path):
@@ -385,18 +363,13 @@ def test_the_netvlad_rows_say_why_they_cannot_run_as_the_paper_ran_them(tmp_path
 def test_a_pca_cell_that_runs_says_it_is_not_the_papers_joint_fit(tmp_path, capsys, monkeypatch):
     # was: Baidu Mall, Pitts-30k and St Lucia "would run" with PCA fitted on their own database, beside the
     # paper's values from a PCA fitted on the domain's databases stacked (scripts/joint_pca_project.py)
-    from rich.console import Console
-
-    from vprbench.cli.reproduce import DIFFERS, paper_table
-    from vprbench.run_settings import RunSettings
+    from vprbench.cli.reproduce import DIFFERS
 
     spec, cells = _cells("2", "AnyLoc-VLAD-DINOv2-PCA", tmp_path)
     runs = {column for column, tc in cells.items() if tc.cells}
     assert runs == {"baidu-mall", "pitts30k", "st-lucia"}
     assert all("joint_pca_project.py" in tc.differs for tc in cells.values())
-    console = Console(width=400, record=True, markup=False)
-    console.print(paper_table(spec, list(cells.values()), RunSettings(cache_dir=tmp_path)))
-    text = " ".join(console.export_text().split())
+    text = " ".join(printed_table(spec, list(cells.values()), tmp_path).split())
     assert f"AnyLoc-VLAD-DINOv2-PCA: {DIFFERS}vprbench fits PCA-whitening on the evaluated dataset's database alone" in text
     _, others = _cells("2", "AnyLoc-VLAD-DINOv2", tmp_path)
     assert not any(tc.differs for tc in others.values())
