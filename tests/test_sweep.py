@@ -113,6 +113,15 @@ def test_a_killed_runner_s_cell_is_resumed_by_another(shared_data, tmp_path):
     assert record["counts"]["queries"] == 111 and record["descriptors_computed"]["queries"] <= 111
 
 
+def refused_plan(tmp_path, capsys, monkeypatch, text: str) -> str:
+    """The one-line-per-problem refusal of the plan `text` (bad.toml), unwrapped, whitespace folded."""
+    monkeypatch.setenv("COLUMNS", "1000")
+    plan = tmp_path / "bad.toml"
+    plan.write_text(text)
+    assert main(["run", str(plan)]) == 1
+    return " ".join(capsys.readouterr().err.split())
+
+
 def test_bad_plan_lists_every_problem_with_lines_and_runs_nothing(tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("COLUMNS", "1000")  # one problem per line, unwrapped
     plan = tmp_path / "bad.toml"
@@ -132,12 +141,9 @@ def test_bad_plan_lists_every_problem_with_lines_and_runs_nothing(tmp_path, caps
 
 
 def test_bad_k_search_and_store_dtype_of_a_plan_are_listed_with_the_rest_at_their_lines(tmp_path, capsys, monkeypatch):
-    monkeypatch.setenv("COLUMNS", "1000")
-    plan = tmp_path / "bad.toml"
-    plan.write_text('name = "bad"\nk = [1, 0]\nsearch = { index = "foo" }\nstore_dtype = "int8"\n\n'
-                    '[[methods]]\nname = "hogg"\n\n[[datasets]]\nname = "corridor"\n')
-    assert main(["run", str(plan)]) == 1
-    err = " ".join(capsys.readouterr().err.split())
+    err = refused_plan(tmp_path, capsys, monkeypatch,
+                       'name = "bad"\nk = [1, 0]\nsearch = { index = "foo" }\nstore_dtype = "int8"\n\n'
+                       '[[methods]]\nname = "hogg"\n\n[[datasets]]\nname = "corridor"\n')
     for expected in ("4 problem(s)", "bad.toml:2: --k (ks) takes whole numbers >= 1", "got 1 0",
                      "bad.toml:3: --index takes one of exact, ivf-pq, hnsw; got 'foo'",
                      "bad.toml:4: --store-dtype takes one of float32, float16; got 'int8'", "bad.toml:7: unknown method 'hogg'"):
@@ -146,25 +152,19 @@ def test_bad_k_search_and_store_dtype_of_a_plan_are_listed_with_the_rest_at_thei
 
 def test_a_dataset_folder_at_fault_is_named_once_at_its_own_line(tmp_path, capsys, monkeypatch):
     """Was: the folder's error given once per method, at each method entry's line."""
-    monkeypatch.setenv("COLUMNS", "1000")
-    plan = tmp_path / "bad.toml"
-    plan.write_text('[[methods]]\nname = "hog"\n\n[[methods]]\nname = "sad"\n\n'
-                    f'[[datasets]]\nname = "{tmp_path / "no-such-folder"}"\n')
-    assert main(["run", str(plan)]) == 1
-    err = " ".join(capsys.readouterr().err.split())
+    err = refused_plan(tmp_path, capsys, monkeypatch,
+                       '[[methods]]\nname = "hog"\n\n[[methods]]\nname = "sad"\n\n'
+                       f'[[datasets]]\nname = "{tmp_path / "no-such-folder"}"\n')
     assert "1 problem(s)" in err and "bad.toml:8: Dataset folder" in err and "does not exist" in err, err
 
 
 def test_stages_at_fault_are_named_once_at_the_line_they_are_written_on(tmp_path, capsys, monkeypatch):
     """Was: the plan's stages' error given once per method, at each method entry's line."""
-    monkeypatch.setenv("COLUMNS", "1000")
-    plan = tmp_path / "bad.toml"
-    plan.write_text('k = [1, 5]\nstages = [{ name = "aqe", k = 10 }, { name = "dba", k = 50 }]\n\n'
-                    '[[methods]]\nname = "hog"\n\n[[methods]]\nname = "dense-vlad"\n\n'
-                    '[[methods]]\nname = "hog"\noptions = { resize = [32, 32] }\nstages = [{ name = "aqe", n = "x" }]\n\n'
-                    '[[datasets]]\nname = "corridor"\n')
-    assert main(["run", str(plan)]) == 1
-    err = " ".join(capsys.readouterr().err.split())
+    err = refused_plan(tmp_path, capsys, monkeypatch,
+                       'k = [1, 5]\nstages = [{ name = "aqe", k = 10 }, { name = "dba", k = 50 }]\n\n'
+                       '[[methods]]\nname = "hog"\n\n[[methods]]\nname = "dense-vlad"\n\n'
+                       '[[methods]]\nname = "hog"\noptions = { resize = [32, 32] }\nstages = [{ name = "aqe", n = "x" }]\n\n'
+                       '[[datasets]]\nname = "corridor"\n')
     assert "2 problem(s)" in err, err
     assert "bad.toml:2: Stage 'dba' re-ranks the top 50, but stage 'aqe' before it hands over only its top 10" in err, err
     assert "bad.toml:13: Stage 'aqe' option n:" in err, err
@@ -173,12 +173,9 @@ def test_stages_at_fault_are_named_once_at_the_line_they_are_written_on(tmp_path
 def test_a_stage_that_cannot_use_a_methods_comparison_is_refused_with_the_plan(tmp_path, capsys, monkeypatch):
     """Was: 'sad + aqe' in a plan passed its check and failed when its cell ran (the single run
     refuses it before any work)."""
-    monkeypatch.setenv("COLUMNS", "1000")
-    plan = tmp_path / "bad.toml"
-    plan.write_text('stages = [{ name = "aqe", k = 20 }]\n\n[[methods]]\nname = "hog"\n\n[[methods]]\nname = "sad"\n\n'
-                    '[[datasets]]\nname = "corridor"\n')
-    assert main(["run", str(plan)]) == 1
-    err = " ".join(capsys.readouterr().err.split())
+    err = refused_plan(tmp_path, capsys, monkeypatch,
+                       'stages = [{ name = "aqe", k = 20 }]\n\n[[methods]]\nname = "hog"\n\n[[methods]]\nname = "sad"\n\n'
+                       '[[datasets]]\nname = "corridor"\n')
     assert "1 problem(s)" in err and "bad.toml:7: Method 'sad': Stage 'aqe' expands descriptors compared by cosine" in err, err
     assert "'mean-absolute-difference': use a method compared by cosine" in err, err
 
