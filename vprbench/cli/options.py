@@ -21,7 +21,7 @@ from ..errors import VPRBenchError, name_roots, os_error_message
 
 #: method options with a flag of their own (the rest go through -o KEY=VALUE)
 METHOD_FLAGS = ("backbone", "weights", "layer", "facet", "aggregation", "clusters", "vocabulary", "resize", "pca_dim",
-                "precision")
+                "pca_on", "precision")
 INDEXES = ("exact", "ivf-pq", "hnsw")
 DEFAULT_LEASE_S = 120.0
 
@@ -96,6 +96,8 @@ def add_method_flags(parser: argparse.ArgumentParser, shown: bool = True) -> Non
     group.add_argument("--vocabulary", help=h("vocabulary name (map, indoor, urban, ...) or file (e.g. c_centers.pt)"))
     group.add_argument("--resize", type=int, nargs=2, metavar=("H", "W"), help=h("resize images to H x W"))
     group.add_argument("--pca-dim", type=int, help=h("PCA-whitening output dimension"))
+    group.add_argument("--pca-on", help=h("what PCA-whitening is fitted on: database (the evaluated one, default) or "
+                       "domain (its domain's databases stacked, as the AnyLoc authors' code)"))
     group.add_argument("--precision", choices=("fp32", "fp16", "bf16"), help=h("autocast precision on GPU (default fp32)"))
     group.add_argument("-o", "--option", action="append", default=[], metavar="KEY=VALUE",
                        help=h("any other method option (repeatable)"))

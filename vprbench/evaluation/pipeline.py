@@ -20,6 +20,7 @@ from ..methods.registry import checked_run_options
 from ..spec import RunSettings, RunSpec
 from .extract import describe_splits
 from .identity import protocol_of
+from .joint import describe_members, joint_members
 from .metrics import check_ks
 from .postprocess import check_database_size
 from .record import result_record
@@ -81,14 +82,17 @@ def loader_workers(settings: RunSettings, method) -> int:
     return settings.workers if settings.workers is not None else default_workers(str(getattr(method, "device", "cpu")))
 
 
-def stage_context(spec: RunSpec, settings: RunSettings, method, dataset, described, progress) -> StageContext:
-    """What stages see: the dataset and the retriever's descriptors as its search saw them."""
+def stage_context(spec: RunSpec, settings: RunSettings, method, dataset, described, progress,
+                  fit_on=None) -> StageContext:
+    """What stages see: the dataset and the retriever's descriptors as its search saw them (post-processed
+    as fitted on `fit_on`, several databases stacked, when the search's was)."""
     from ..loader import resolve_device
     from ..row_sources import DEFAULT_MEMORY_BUDGET
     from .postprocess import postprocessed
 
     budget = settings.memory_budget or DEFAULT_MEMORY_BUDGET
-    database, queries, _ = postprocessed(method, described.stores["database"], described.stores["queries"], budget)
+    database, queries, _ = postprocessed(method, described.stores["database"], described.stores["queries"], budget,
+                                         fit_on=fit_on)
     prefix = {**spec.row_identity(), "stages": [], "protocol": spec.dataset.protocol_hash}
     return StageContext(dataset=dataset, database=database, queries=queries, spec=spec, prefix=prefix,
                         cache_dir=settings.cache_dir, memory_budget=budget, lock_timeout=settings.lock_timeout,
@@ -122,6 +126,8 @@ class Retrieved:
     timings: dict
     workers: int
     frozen: dict | None = None  # the candidates file the run started from
+    fit_on: object = None  # the databases stacked its post-processor is fitted on (joint.py), or None
+    joint: dict | None = None  # what each of them is
 
 
 def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, method=None, progress=None,
@@ -161,13 +167,22 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
                                  images_identity(dataset, settings.cache_dir))
     use_dataset(method, dataset.name)
     check_found(spec, dataset.name, settings.cache_dir)
-    check_database_size(method, len(dataset.database), dataset.name)
+    members = joint_members(method, dataset, settings, ranks)
+    if members is None:
+        check_database_size(method, len(dataset.database), dataset.name)
+    else:
+        check_database_size(method, sum(len(m.database) for m in members),
+                            f"the databases of {', '.join(m.name for m in members)} stacked")
     workers = loader_workers(settings, method)
     described = describe_splits(
         method, {"database": dataset.database, "queries": dataset.queries}, root=dataset.root, label=dataset.name,
         digests=dataset.image_digests(settings.cache_dir), names=dataset.image_names(), cache_dir=settings.cache_dir,
         store_dtype=spec.store_dtype, workers=workers, lock_timeout=settings.lock_timeout, ranks=ranks,
         progress=progress, settings=spec.options)  # keyed as the spec: one run, one store
+    fit_on, joint = None, None
+    if members is not None:  # every rank describes its share of each
+        fit_on, joint = describe_members(spec, settings, method, dataset, members, described, workers=workers,
+                                         ranks=ranks, progress=progress)
     if described.stores is None:  # not rank 0: its shard is written; rank 0 evaluates
         return None
     timings = {"fit_s": described.timings["fit_s"], "database_s": described.timings["database_s"],
@@ -181,9 +196,9 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
         with phase(progress, f"{method.name} {dataset.name} search ({spec.search.index}, {queries.row_count:,} queries "
                              f"x {database.row_count:,} database)"):
             found = retrieve(method, database, queries, depth, index=spec.search.index,
-                             index_options=spec.search.options or None, **memory)
+                             index_options=spec.search.options or None, fit_on=fit_on, **memory)
     timings["search_s"] = time.perf_counter() - t
-    return Retrieved(method, dataset, ks, described, found, timings, workers, frozen)
+    return Retrieved(method, dataset, ks, described, found, timings, workers, frozen, fit_on, joint)
 
 
 def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None, method=None, progress=None,
@@ -226,7 +241,7 @@ def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None
     candidates, stage_costs = Candidates(found.indices, found.scores), []
     if stages:
         t = time.perf_counter()
-        context = stage_context(spec, settings, method, dataset, described, progress)
+        context = stage_context(spec, settings, method, dataset, described, progress, run.fit_on)
         flags = None if found.all_zero is None else found.all_zero.failures(track_of(stages))
         candidates, stage_costs = run_stages(stages, candidates, context, run.ks, dataset.positives, flags)
         timings["stages_s"] = time.perf_counter() - t
@@ -236,6 +251,8 @@ def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None
     context = {"store": {"folders": dict(described.folder.keys)}}
     if ranks.distributed:
         context["distributed"] = {**ranks.describe(), "computed_per_rank": described.per_rank}
+    if run.joint is not None:
+        context["postprocess_datasets"] = run.joint  # the databases its post-processor was fitted on
     if run.frozen is not None:
         context["candidates"] = run.frozen  # the file the re-ranking started from
     return result_record(

@@ -220,10 +220,12 @@ def check_database_size(method, rows: int, where: str) -> None:
             post.check_rows(rows, where)
 
 
-def postprocessed(method, database: RowSource, queries: RowSource, memory_budget: int, state_folder=None):
+def postprocessed(method, database: RowSource, queries: RowSource, memory_budget: int, state_folder=None,
+                  fit_on: RowSource | None = None):
     """(database, queries, info): both row sources as `method` post-processes them (its
-    post-processor fitted on the database, or a plugin's whole-matrix `postprocess`); info
-    None when there is nothing to do. `retrieve` and `vprbench describe` share it."""
+    post-processor fitted on the database, or on `fit_on` (several databases stacked, joint.py), or
+    a plugin's whole-matrix `postprocess`); info None when there is nothing to do. `retrieve` and
+    `vprbench describe` share it."""
     postprocessor = postprocessor_of(method) if method is not None else None
     if method is not None and _overrides_postprocess(method):  # a plugin's whole-matrix hook
         db, q = database.read_rows(0, database.row_count), queries.read_rows(0, queries.row_count)
@@ -236,6 +238,6 @@ def postprocessed(method, database: RowSource, queries: RowSource, memory_budget
                                                                                                db.shape[1])))
         return database, queries, {"kind": f"{type(method).__name__}.postprocess", "in_memory": True}
     if postprocessor is not None:
-        info = fit_postprocessor(postprocessor, database, memory_budget, state_folder)
+        info = fit_postprocessor(postprocessor, database if fit_on is None else fit_on, memory_budget, state_folder)
         return TransformedRows(database, postprocessor), TransformedRows(queries, postprocessor), info
     return database, queries, None

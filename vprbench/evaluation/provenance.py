@@ -42,8 +42,10 @@ def method_provenance(method, dataset=None, cache_dir=None) -> dict:
         found["vocabulary"].setdefault("fitted_on_evaluated_database", True)
     post = postprocessor_of(method)
     if post is not None and not any(k in found for k in ("pca", "postprocessor")):
-        found["postprocessor"] = {"source": "fitted", "fitted_on": "the evaluated database's descriptors",
-                                  "fitted_on_evaluated_database": True}
+        with plugin_part(method, "postprocess_datasets"):
+            stacked = method.postprocess_datasets()
+        found["postprocessor"] = {"source": "fitted", "fitted_on_evaluated_database": True, "fitted_on": (
+            f"the databases of {', '.join(map(str, stacked))} stacked" if stacked else "the evaluated database's descriptors")}
     parts = {k: v for k, v in found.items() if isinstance(v, dict) and "fitted_on_evaluated_database" in v}
     with plugin_part(method, "fitted_image_digests"):
         fitted_images = getattr(method, "fitted_image_digests", lambda: {})()  # part -> set of sha256

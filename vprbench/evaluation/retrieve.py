@@ -12,10 +12,11 @@ from .search import INDEXES, SearchResult, check_pair, exact_search
 
 
 def retrieve(method, database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDGET, index: str = "exact",
-             state_folder=None, index_options: dict | None = None) -> SearchResult:
+             state_folder=None, index_options: dict | None = None, fit_on=None) -> SearchResult:
     """Top-k database rows per query for `method`'s descriptors, within `memory_budget` bytes
-    (or "1GB"): its post-processor fitted on the database (or loaded from `state_folder`,
-    default the database's folder), applied chunk by chunk, then searched with `index`
+    (or "1GB"): its post-processor fitted on the database or on `fit_on` (rows of several
+    databases, joint.py), or loaded from `state_folder` (default the folder of the rows it is
+    fitted on), applied chunk by chunk, then searched with `index`
     ("exact", "ivf-pq" or "hnsw"; `index_options` tune the approximate ones, see
     approximate.py). `method` None searches the rows as they are. The result's info is the
     result record's "search" section."""
@@ -25,7 +26,7 @@ def retrieve(method, database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_
     database, queries = as_rows(database, "database"), as_rows(queries, "queries")
     if getattr(method, "compare", "cosine") != "cosine":
         return compared_search(method, database, queries, k, index, index_options, budget)
-    database, queries, postprocess = postprocessed(method, database, queries, budget, state_folder)
+    database, queries, postprocess = postprocessed(method, database, queries, budget, state_folder, fit_on)
     started = time.perf_counter()
     if index == "exact":
         if index_options:

@@ -19,7 +19,7 @@ import torch.nn.functional as F
 from ..aggregation import pooling, vlad
 from ..aggregation.pca import PCAWhitening
 from . import anyloc_options
-from .anyloc_options import AGGREGATIONS, VLADS
+from .anyloc_options import AGGREGATIONS, PCA_ON, VLADS, pca_datasets
 from .anyloc_fit import recorded_image_digests
 from .anyloc_vocabulary import (MAP_PREFIX, check_proven, file_provenance, names_file, paper_choice,
                                  resolve_vocabulary, vocabulary_images)
@@ -62,7 +62,7 @@ class AnyLoc(Method):
     def __init__(self, *, backbone: str = "dinov2_vitg14", weights: str | None = None, layer: int | None = None,
                  layer_for: str = "dinov2_vitg14:31",
                  facet: str = "value", aggregation: str = "vlad", clusters: int = 32,
-                 vocabulary: str = "map", resize=None, pca_dim: int | None = None, batch_size: int = 8,
+                 vocabulary: str = "map", resize=None, pca_dim: int | None = None, pca_on: str = "database", batch_size: int = 8,
                  precision: str = "fp32", device: str = "cpu", dataset: str | None = None,
                  stride: int | None = None, gem_p: float = 3.0, cache_dir=None):
         # every option is checked here, before weights or vocabularies are touched
@@ -84,6 +84,7 @@ class AnyLoc(Method):
         self.user_resize = parse_size(resize)
         self.native = asks_native(resize)  # "native": no resize, not "unset" (the per-dataset policy)
         self.pca_dim = None if pca_dim is None else whole("anyloc", "pca_dim", pca_dim, 1, what="PCA output dimension; leave it unset for none")
+        self.pca_on = choice("anyloc", "pca_on", pca_on, PCA_ON)
         self.batch_size = whole("anyloc", "batch_size", batch_size, 1, what="images per batch")
         self.precision = precision
         self.dataset = self.given_dataset = None if dataset is None else text("anyloc", "dataset", dataset)
@@ -227,6 +228,8 @@ class AnyLoc(Method):
             fp["gem_p"] = self.gem_p
         if self.pca_dim:
             fp["pca_dim"] = self.pca_dim
+            if self.pca_on != "database":  # unset, the key of the stores and records made before the option
+                fp["pca_on"] = self.pca_on
         return fp
 
     def provenance(self) -> dict:
@@ -234,8 +237,10 @@ class AnyLoc(Method):
         if self.aggregation in VLADS:
             found["vocabulary"] = self.vocabulary_provenance()
         if self.pca_dim:
-            found["pca"] = {"dim": self.pca_dim, "fitted_on": "the evaluated database's descriptors",
-                            "fitted_on_evaluated_database": True}
+            joint = pca_datasets(self.pca_on, self.dataset)
+            found["pca"] = {"dim": self.pca_dim, "fitted_on_evaluated_database": True, "fitted_on": (
+                f"the databases of the {joint[0]} domain stacked: {', '.join(joint[1])}" if joint
+                else "the evaluated database's descriptors"), **({"datasets": joint[1]} if joint else {})}
         return found
 
     def weights_provenance(self) -> dict:
@@ -381,6 +386,10 @@ class AnyLoc(Method):
     def postprocessor(self) -> PCAWhitening | None:
         """The -PCA presets: whitening fitted on the database descriptors (output L2-normalised)."""
         return PCAWhitening(self.pca_dim) if self.pca_dim else None
+
+    def postprocess_datasets(self) -> list[str] | None:
+        joint = pca_datasets(self.pca_on, self.dataset) if self.pca_dim else None
+        return joint and joint[1]
 
 
 # ---------------------------------------------------------------- presets

@@ -6,10 +6,12 @@ from __future__ import annotations
 import warnings
 
 from ..errors import VPRBenchError
-from .anyloc_vocabulary import bare_folder_identity, named_identity, names_file
+from .anyloc_vocabulary import bare_folder_identity, domain_datasets, named_identity, names_file, vocabulary_policies
 
 AGGREGATIONS = ("vlad", "vlad-soft-official", "vlad-soft", "gem", "gap", "gmp", "cls")
 VLADS = ("vlad", "vlad-soft-official", "vlad-soft")
+#: what PCA-whitening is fitted on: the evaluated database, or its domain's databases stacked (the authors' code)
+PCA_ON = ("database", "domain")
 
 
 def cached_identities(cls, options: dict, dataset: str, cache_dir=None) -> dict[str, str]:
@@ -40,7 +42,25 @@ def unused_options(cls, options: dict) -> dict[str, str]:
     made = probe(cls, options) if aggregation == "cls" else None  # None too for a backbone it refuses
     no_block = dict.fromkeys(("layer", "layer_for", "facet"), "the CLS token comes from the final norm, after the "
                              "last block") if made and made.spec.cls == "final-norm" else {}
-    return vlad_only | gem_only | no_block
+    no_pca = {} if options.get("pca_dim") else {"pca_on": "only PCA-whitening uses it, pca_dim is unset"}
+    return vlad_only | gem_only | no_block | no_pca
+
+
+def pca_datasets(pca_on: str, dataset: str | None) -> tuple[str, list[str]] | None:
+    """(domain, its datasets) whose databases PCA-whitening is fitted on, stacked (None: the evaluated
+    database alone): with "domain", the evaluated dataset's vocabulary domain, as the authors'
+    joint_pca_project.py."""
+    if pca_on == "database":
+        return None
+    if dataset is None:
+        raise VPRBenchError("anyloc: option pca_on=domain fits PCA on the databases of the evaluated dataset's "
+                            "domain; it needs that dataset: run it with `vprbench evaluate`, or use pca_on=database.")
+    domains = vocabulary_policies()["domains"]
+    found = [domain for domain, members in domains.items() if dataset in (name for name, _ in members)]
+    if not found:
+        raise VPRBenchError(f"anyloc: option pca_on=domain: dataset {dataset!r} is in no domain (domains: "
+                            f"{', '.join(domains)}); use pca_on=database.")
+    return found[0], [name for name, _ in domain_datasets(found[0])]
 
 
 def probe(cls, options: dict, cache_dir=None) -> "AnyLoc | None":  # noqa: F821 - cls is AnyLoc

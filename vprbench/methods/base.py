@@ -124,6 +124,12 @@ class Method(ABC):
         chunk by chunk with bounded memory), or None."""
         return None
 
+    def postprocess_datasets(self) -> list[str] | None:
+        """The benchmarks whose databases `postprocessor()` is fitted on, stacked in this order (the
+        evaluated one among them), once `use_dataset` has named it; None: the evaluated database alone.
+        Each is described as its own evaluation would, so their stores serve those runs too."""
+        return None
+
     def postprocess(self, database: np.ndarray, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Whole matrices in memory: the `postprocessor()` fitted on `database` and applied to both.
         A plugin may still override this older hook; the evaluation then holds both splits in
