@@ -163,8 +163,6 @@ def dry_run_listing(spec: dict, table_cells_, missing: dict, settings, counted: 
             needs = " ".join(notes.refer(f"{thing}: {how}") for thing, how in missing[c.key])
             status = (Text.assemble(("complete", "cyan"), f" ({_minute(record.get('created'))})") if record else
                       Text.assemble(("missing", "yellow"), f" {needs}") if needs else Text("would run", style="green"))
-            if tc.differs:
-                status.append(f" {notes.refer(DIFFERS + tc.differs)}")
             where = c.spec.dataset.protocol_id
             listing.add_row(tc.row, where if where.startswith(f"{tc.column}:") else f"{tc.column}: {where}", status)
     return notes.below(listing)
@@ -180,9 +178,6 @@ def as_published(value: float) -> str:
     (80.62 key and 80.56 query read 80.6 and 80.6 at one)."""
     return f"{value:.{max(1, decimals(value))}f}"
 
-
-#: what a cell's note says of a run that differs from the paper's (a plan row's `differs`)
-DIFFERS = "runs, but not as the paper ran it, so its delta is no like-for-like comparison: "
 
 #: a plan's reported_columns -> the record field measured for it
 RECORD_FIELD = {"dim": "descriptor_dim"}
@@ -236,8 +231,6 @@ def paper_table(spec: dict, table_cells_, settings, stored=None):
             got = sorted({str(r[RECORD_FIELD[extra]]) for r in found if r.get(RECORD_FIELD[extra])})
             values.append(f"{'-' if reported is None else f'{reported:.0f}'} / {', '.join(got) or 'not measured'}")
         table.add_row(row, *values)
-    differ = {tc.row: tc.differs for tc in table_cells_ if tc.differs}
-    table.caption = "\n".join(f"{row}: {DIFFERS}{how}" for row, how in differ.items()) or None
     return table
 
 

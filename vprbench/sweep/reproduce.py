@@ -21,7 +21,6 @@ class TableCell:
     column: str
     cells: list[Cell] = field(default_factory=list)  # several for a per-domain mean
     reason: str = ""  # why it cannot run as the paper ran it (no vprbench method, ...)
-    differs: str = ""  # how its run differs from the paper's where it runs (the plan row's `differs`)
 
 
 def reproduce_tables(paper: str) -> dict:
@@ -148,7 +147,7 @@ def table_cells(paper: str, table: str, ks=(1, 5), *, settings: dict | None = No
                                   data_dir=data_dir, cache_dir=cache_dir)
                 cells += [replace(c, label=row["row"]) for c in plan.cells]
             reason = next((r for r in map(cannot_run, cells) if r), "")
-            out.append(TableCell(row["row"], column, [] if reason else cells, reason, row.get("differs", "")))
+            out.append(TableCell(row["row"], column, [] if reason else cells, reason))
     return spec, out
 
 
@@ -165,20 +164,29 @@ def _resize_groups(row: dict, datasets: list[str]) -> list[tuple[list[str], tupl
 
 def cannot_run(cell: Cell) -> str:
     """Why the cell cannot run as the paper ran it, known before any image is read ('' if it can):
-    PCA to more dimensions than the dataset has database images, which the authors' code fits
-    jointly over the datasets of the domain (vprbench fits PCA on the evaluated database only)."""
-    from ..datasets import dataset_manifest, find_protocol
+    PCA to more dimensions than the database images it is fitted on (the evaluated dataset's, or
+    with pca_on=domain its domain's stacked, as the authors' code fitted it)."""
+    from ..methods.anyloc_options import pca_datasets
 
     dim, dataset = cell.spec.options.get("pca_dim"), cell.spec.dataset
     if not dim or dataset.kind != "benchmark":
         return ""
-    manifest = dataset_manifest(dataset.name)
-    protocol = find_protocol(manifest, dataset.protocol)
-    count = protocol.database_count or (manifest.query_count if protocol.swap else manifest.database_count)
+    joint = pca_datasets(cell.spec.options.get("pca_on", "database"), dataset.name)
+    names = joint[1] if joint else [dataset.name]
+    count = sum(_database_count(name, dataset.protocol if name == dataset.name else None) for name in names)
     if not count or dim < count:  # centred, N images span at most N - 1 directions
         return ""
-    return (f"PCA to {dim} dimensions needs more than {dim} database images; {dataset.name} has {count} (the authors' "
-            "code fits this PCA jointly over its domain's datasets, which vprbench does not)")
+    where = f"the databases of {', '.join(names)} hold" if joint else f"{dataset.name} has"
+    return (f"PCA to {dim} dimensions needs more than {dim} database images; {where} {count} (the authors' code fits "
+            "this PCA jointly over its domain's datasets: pca_on = \"domain\")")
+
+
+def _database_count(name: str, protocol) -> int:
+    from ..datasets import dataset_manifest, find_protocol
+
+    manifest = dataset_manifest(name)
+    found = find_protocol(manifest, protocol)
+    return found.database_count or (manifest.query_count if found.swap else manifest.database_count) or 0
 
 
 #: what a cell lacks: (the thing, how to get it), e.g. ("dataset hawkins", "Download ...")
@@ -305,12 +313,16 @@ def missing_for(cell: Cell, row_weights, data_dir=None, cache_dir=None, given: d
     from ..datasets import dataset_location, dataset_manifest
     from ..datasets.download import how_to_get
 
+    from ..methods.anyloc_options import pca_datasets
+
     needs = []
-    if cell.spec.dataset.kind == "benchmark":
-        manifest = dataset_manifest(cell.spec.dataset.name)
-        root = dataset_location(manifest, data_dir)
-        if not root.is_dir():
-            needs.append((f"dataset {cell.spec.dataset.name}", how_to_get(manifest, data_dir)))
+    if cell.spec.dataset.kind == "benchmark":  # with the other databases its PCA is fitted on (pca_on = "domain")
+        joint = cell.spec.options.get("pca_dim") and pca_datasets(cell.spec.options.get("pca_on", "database"),
+                                                                  cell.spec.dataset.name)
+        for name in joint[1] if joint else [cell.spec.dataset.name]:
+            manifest = dataset_manifest(name)
+            if not dataset_location(manifest, data_dir).is_dir():
+                needs.append((f"dataset {name}", how_to_get(manifest, data_dir)))
     return needs + [need for need in (weights_for(row_weights, cell, cache_dir), vocabulary_for(cell, cache_dir, given)) if need]
 
 
