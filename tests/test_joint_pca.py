@@ -142,9 +142,11 @@ def test_a_run_fits_on_the_domains_databases_stacked_and_the_next_reuses_them(cl
     code, out, err = cli("evaluate", *SMALL, "--pca-on", "domain", "--dataset", "gardens-point", *where, "--json")
     assert code == 0, err
     record = json.loads(out)
-    assert record["context"]["postprocess_datasets"] == {
+    stack = record["context"]["postprocess_datasets"]
+    assert {name: {k: v for k, v in found.items() if k != "images"} for name, found in stack.items()} == {
         "gardens-point": {"protocol": "gardens-point:anyloc", "database_images": 200, "computed": 200},
         "17places": {"protocol": "17places:anyloc", "database_images": 406, "computed": 406}}
+    assert stack["gardens-point"]["images"] == record["dataset_fingerprints"]["images"]
     assert record["provenance"]["pca"]["datasets"] == ["gardens-point", "17places"]
     post = record["search"]["postprocess"]
     assert post["state"] == "fitted" and post["key"]["rows"]["count"] == 606
@@ -162,6 +164,7 @@ def test_a_run_fits_on_the_domains_databases_stacked_and_the_next_reuses_them(cl
     assert code == 0, err
     places = json.loads(out)
     assert places["context"]["postprocess_datasets"]["17places"]["computed"] == 0
+    assert stack["17places"]["images"] == places["dataset_fingerprints"]["images"]  # the content each was read with
     assert places["descriptors_computed"]["database"] == 0 and places["descriptors_computed"]["queries"] == 406
     assert places["search"]["postprocess"]["state"] == "loaded" and places["search"]["postprocess"]["file"] == post["file"]
 
@@ -246,3 +249,36 @@ def test_two_torchrun_ranks_describe_every_database_of_the_stack_as_one_process(
     # the fit's float sums may differ in the last bit between thread counts (OMP 1 here, the default in process):
     # at most one of the 200 queries changes its rank-K answer
     assert all(abs(ranks["recall"][k] - one["recall"][k]) <= 100 / 200 for k in one["recall"])
+
+
+def test_two_datasets_of_a_stack_evaluated_at_once_share_its_stores_and_fit(indoor_data, tmp_path, cli, two_dataset_indoor):
+    """Each run describes the other's database: they meet at the store folders' locks and at the fit's file."""
+    import subprocess
+    import sys
+
+    driver = tmp_path / "driver.py"
+    driver.write_text(DRIVER)
+    runs = {name: subprocess.Popen(
+        [sys.executable, str(driver), "evaluate", *SMALL, "--pca-on", "domain", "--dataset", name, "--data-dir",
+         str(indoor_data), "--cache-dir", str(tmp_path / "cache"), "--json"], stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True) for name in ("gardens-point", "17places")}
+    records = {}
+    for name, run in runs.items():
+        out, err = run.communicate(timeout=600)
+        assert run.returncode == 0, err[-3000:]
+        records[name] = json.loads(out)
+    posts = [r["search"]["postprocess"] for r in records.values()]
+    assert posts[0]["file"] == posts[1]["file"] and posts[0]["key"] == posts[1]["key"]
+    assert len(list((tmp_path / "cache" / "stores").glob("*/*/postprocess-*.npz"))) == 1
+    assert len(list((tmp_path / "cache" / "stores").glob("*/*/*.h5"))) == 4  # two databases, two query sets
+    # what each described, the other did not: every database image was described once
+    described = sum(r["context"]["postprocess_datasets"][other]["computed"] + r["descriptors_computed"]["database"]
+                    for (name, r), other in zip(records.items(), ("17places", "gardens-point")))
+    assert described == 606
+    # served again, one at a time, from what the two left: the same results
+    for name, record in records.items():
+        code, out, err = cli("evaluate", *SMALL, "--pca-on", "domain", "--dataset", name, "--data-dir", indoor_data,
+                             "--cache-dir", tmp_path / "cache", "--json")
+        assert code == 0, err
+        again = json.loads(out)
+        assert again["recall"] == record["recall"] and sum(again["descriptors_computed"].values()) == 0

@@ -113,7 +113,7 @@ def describe_members(spec, settings, method, dataset, members: list, described, 
                 part, computed = done.stores and done.stores["database"], done.computed["database"]
             parts.append(part)
             info[member.name] = {"protocol": protocol_of(member)["id"], "database_images": len(member.database),
-                                 "computed": int(computed)}
+                                 "images": member.images_fingerprint(settings.cache_dir), "computed": int(computed)}
     finally:
         use_dataset(method, dataset.name)
     return (JointRows(parts) if ranks.rank == 0 else None), info
