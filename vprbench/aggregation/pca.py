@@ -17,6 +17,8 @@ Components follow sklearn's sign convention (each one's largest-magnitude entry 
 """
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from ..errors import VPRBenchError
@@ -70,10 +72,14 @@ class PCAWhitening:
     def solver(self, rows, memory_budget: int) -> str:
         """The exact path on the smaller side when it fits the budget (with one chunk of rows),
         else the randomized one."""
+        exact = "covariance" if rows.dim <= rows.row_count else "gram"
+        return exact if self.exact_memory(rows) <= memory_budget else "randomized"
+
+    def exact_memory(self, rows) -> int:
+        """The least budget the exact path on the smaller side takes (with one chunk of rows)."""
         n, d = rows.row_count, rows.dim
         exact = "covariance" if d <= n else "gram"
-        least_rows = ROW_COPIES * read_bytes_per_row(rows) * (2 if exact == "gram" else 1)
-        return exact if _solver_memory(exact, n, d, self.dim) + least_rows <= memory_budget else "randomized"
+        return _solver_memory(exact, n, d, self.dim) + ROW_COPIES * read_bytes_per_row(rows) * (2 if exact == "gram" else 1)
 
     def key(self, rows, memory_budget: int = DEFAULT_MEMORY_BUDGET) -> dict:
         """What defines the fitted state (its file name in the store folder)."""
@@ -111,6 +117,12 @@ class PCAWhitening:
                 f"A memory budget of {format_bytes(budget)} is too small to fit PCA-whitening of {d:,}-dim descriptors "
                 f"to {self.dim} dims: its {solver} path needs at least {format_bytes(held + row_cost * blocks)}. "
                 "Raise --search-memory (memory_budget).")
+        if solver == "randomized":  # the authors' sklearn PCA is exact: say what budget would match it
+            need = self.exact_memory(rows)
+            step = 10 ** max(len(str(need)) - 2, 0)  # rounded up to two digits, so the budget said is enough
+            warnings.warn(f"PCA-whitening of {n:,} x {d:,} descriptors is fitted by randomized subspace iteration "
+                          f"(approximate) within the {format_bytes(budget)} memory budget; a budget of "
+                          f"{format_bytes(-(-need // step) * step)} (--search-memory) fits it exactly.", stacklevel=2)
         fit = {"covariance": _fit_covariance, "gram": _fit_gram, "randomized": _fit_randomized}[solver]
         mean, components, variances = fit(rows, self.dim, int(chunk_rows), self.seed)
         floor = RANK_TOLERANCE * max(variances[0], 1e-300)
