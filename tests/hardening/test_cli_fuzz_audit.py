@@ -137,6 +137,15 @@ def test_an_output_under_a_file_names_the_file_as_not_a_folder(shared_data, cli,
     assert not list(cache_root().rglob("*.h5")), "the output path is checked before any work"
 
 
+def test_an_output_that_is_a_folder_is_refused_before_any_work(shared_data, cli, tmp_path):
+    folder = tmp_path / "d.npy"
+    folder.mkdir()
+    code, _, err = cli("describe", "--method", "hog", "--out", folder, image(shared_data))
+    assert code == 2 and err.strip() == (f"error: argument --out: {folder} is a folder: give a file name in it; "
+                                         "see 'vprbench describe --help'"), err
+    assert not cache_root().exists(), "the output path is checked before any work"
+
+
 @pytest.mark.parametrize("args, flag", [
     (["describe", "--method", "hog", "IMAGE", "--out", "OUT/d.npy"], "--out"),
     (["candidates", "export", "--method", "hog", "--dataset", "corridor", "--out", "OUT/c.h5"], "--out"),

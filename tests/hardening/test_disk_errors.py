@@ -17,6 +17,7 @@ import threading
 import pytest
 
 from vprbench.errors import os_error_message
+from vprbench.paths import cache_root
 
 from hostile_files import assert_refused
 
@@ -70,6 +71,24 @@ def test_read_only_cache_warm_still_shows_the_result(mounts, tmp_path, shared_da
     folder = frozen / "results" / again["protocol"]["hash"] / again["row_key"]  # the run's identity folder
     assert err.strip() == (f"error: Cannot use {folder}: Read-only file system; "
                            "point --cache-dir at a folder on a writable disk. The result was not stored.")
+
+
+@pytest.mark.parametrize("args, flag", [
+    (["describe", "--method", "hog", "IMAGE", "--out", "OUT/d.npy"], "--out"),
+    (["candidates", "export", "--method", "hog", "--dataset", "corridor", "--out", "OUT/c.h5"], "--out"),
+    (["vocabulary", "fit", "--method", "anyloc", "--backbone", "dinov2_vits14", "--weights", "random", "--layer", "0",
+      "--clusters", "4", "--budget", "2000", "--dataset", "corridor", "--output", "OUT/v.pt"], "--output"),
+])
+def test_an_output_on_a_read_only_disk_is_refused_before_any_work(args, flag, mounts, tmp_path, shared_data, cli):
+    """Was: the whole description (or export, or fit) ran, then writing the file failed."""
+    read_only = mounts("-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", target=tmp_path / "ro")
+    image = shared_data / "corridor" / "query" / "0000000.jpg"
+    code, _, err = cli(*[str(image) if a == "IMAGE" else a.replace("OUT", str(read_only)) for a in args],
+                       *(["--data-dir", shared_data] if "--dataset" in args else []))
+    out = read_only / args[-1].removeprefix("OUT/")
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert f"argument {flag}: Cannot use {out}: Read-only file system; use a folder on a writable disk" in err
+    assert not cache_root().exists(), "the output is checked before anything is cached"
 
 
 @pytest.fixture

@@ -15,6 +15,7 @@ import argparse
 import math
 import os
 import shlex
+import tempfile
 from pathlib import Path
 
 from ..errors import VPRBenchError, name_roots, os_error_message
@@ -241,8 +242,9 @@ def path_argument(text: str) -> Path:
 
 def output_file(*suffixes: str):
     """argparse type: a file to write, checked before any work. Its folder must exist (a typo would
-    otherwise create folders anywhere, found only once the work is done); `suffixes`, when given,
-    are the endings it may have."""
+    otherwise create folders anywhere, found only once the work is done) and take a new file (a
+    read-only disk or folder would otherwise fail the final write); `suffixes`, when given, are the
+    endings it may have."""
     def parse(text: str) -> Path:
         path = path_argument(text)
         if suffixes and path.suffix.lower() not in suffixes:
@@ -253,7 +255,9 @@ def output_file(*suffixes: str):
                 raise argparse.ArgumentTypeError(f"{text} is a folder: give a file name in it")
             if folder.exists() and not folder.is_dir():
                 raise argparse.ArgumentTypeError(f"{folder} is a file, not a folder: check the path")
-        except OSError as error:  # a name too long, a folder not readable
+            if folder.is_dir():  # the file is renamed into it at the end: one made there now (unnamed on Linux)
+                tempfile.TemporaryFile(dir=folder).close()
+        except OSError as error:  # a name too long, a folder not readable, or not writable
             raise argparse.ArgumentTypeError(os_error_message(error, path).rstrip(".")) from None
         if not folder.is_dir():
             raise argparse.ArgumentTypeError(f"the folder {folder} does not exist: create it first or write elsewhere")
