@@ -74,3 +74,25 @@ def test_pca_wider_than_the_images_fitted_on_is_refused_before_describing(shared
                        tmp_path / "d.npy", "--cache-dir", cache)
     assert code == 1 and "PCA dimension 2" in err and "the images described (no --fit-on) (2)" in err
     assert not cache.exists() and not (tmp_path / "d.npy").exists()
+
+
+def test_fit_on_for_a_method_that_fits_nothing_is_refused_before_describing(shared_data, tmp_path, cli):
+    """Before: hog, or AnyLoc's GeM without PCA, described every --fit-on image into a store nothing read, then
+    wrote the queries' descriptors as without it: --fit-on ignored, silently."""
+    queries = sorted((shared_data / "corridor" / "query").glob("*.jpg"))[:2]
+    database, cache = tmp_path / "db", tmp_path / "cache"
+    database.mkdir()
+    for path in sorted((shared_data / "corridor" / "ref").glob("*.jpg"))[:4]:
+        shutil.copy(path, database / path.name)
+    for method in (["--method", "hog"], [*ANYLOC, "--aggregation", "gem"]):
+        code, _, err = cli("describe", *method, "--fit-on", database, *queries, "--out", tmp_path / "d.npy",
+                           "--cache-dir", cache)
+        assert code == 1 and "Traceback" not in err and err.count("\n") == 1, err
+        assert err.strip() == (f"error: Method {method[1]!r} fits nothing on database images with these options (no "
+                               f"vocabulary to fit, no post-processing such as PCA): --fit-on {database} would be "
+                               "described for nothing; drop it.")
+        assert not cache.exists() and not (tmp_path / "d.npy").exists()
+    # PCA is fitted on them: of use
+    code, _, err = cli("describe", *ANYLOC, "--aggregation", "gem", "--pca-dim", 2, "--fit-on", database, *queries,
+                       "--out", tmp_path / "d.npy", "--cache-dir", cache, "--quiet")
+    assert code == 0 and np.load(tmp_path / "d.npy").shape == (2, 2), err

@@ -184,7 +184,7 @@ def run_describe(args) -> int:
     from ..distributed import Ranks
     from ..evaluation.extract import describe_splits
     from ..evaluation.pipeline import create_run_method, loader_workers
-    from ..evaluation.postprocess import check_database_size, postprocessed
+    from ..evaluation.postprocess import check_database_size, fits_on_database, postprocessed
     from ..fsutil import atomic_write
     from ..loader import plugin_part, use_dataset
     from ..paths import regular_file
@@ -237,6 +237,11 @@ def run_describe(args) -> int:
     if args.fit_on is None and method.needs_fit:
         raise VPRBenchError(f"Method {args.method!r} fits a vocabulary on database images: give --fit-on FOLDER "
                             "(or a ready vocabulary with --vocabulary, where the method takes one).")
+    # a dataset's own database images are still of use: described into the stores evaluate reads
+    if args.fit_on is not None and root is None and not fits_on_database(method):
+        raise VPRBenchError(f"Method {args.method!r} fits nothing on database images with these options (no vocabulary "
+                            f"to fit, no post-processing such as PCA): --fit-on {args.fit_on} would be described for "
+                            "nothing; drop it.")
     # before any image is described, as evaluate checks it (PCA wider than the images it is fitted on)
     fitted_on = f"--fit-on {args.fit_on}" if args.fit_on is not None else "the images described (no --fit-on)"
     check_database_size(method, len(splits.get("database", splits["queries"])), fitted_on)

@@ -211,6 +211,12 @@ def _overrides_postprocess(method) -> bool:
     return getattr(type(method), "postprocess", Method.postprocess) is not Method.postprocess
 
 
+def fits_on_database(method) -> bool:
+    """Whether `method` learns anything from database images: a vocabulary, a post-processor, or a plugin's
+    whole-matrix `postprocess` (which is handed the database)."""
+    return bool(method.needs_fit) or _overrides_postprocess(method) or postprocessor_of(method) is not None
+
+
 def check_database_size(method, rows: int, where: str) -> None:
     """Before any descriptor is computed: a post-processor that cannot be fitted on `rows` database rows (PCA
     wider than them) is refused, naming `where` they come from."""
