@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import os
 import shutil
+import subprocess
+import sys
 import time
 import zipfile
 from pathlib import Path
@@ -194,3 +196,24 @@ def test_a_hand_made_files_setting_is_named_cut_in_its_refusal(tmp_path, cli):
                          "--layer", "11", "--facet", "value", "--cache-dir", tmp_path / "cache")
     assert code == 1 and out == "" and len(err) < 1_000 and err.count("\n") == 1, err[:300]
     assert "was fitted on backbone x\\n\\x1b[2J" in err and "\x1b" not in err
+
+
+def test_two_fits_of_one_vocabulary_at_once_leave_one_whole_file(shared_data, tmp_path, cli):
+    """Two `vocabulary fit` runs of the same key on one cache, at the same time: both finish, and one whole
+    vocabulary is cached (each save is atomic and they take turns), listed once."""
+    cache = tmp_path / "cache"
+    fit = [sys.executable, "-m", "vprbench", "vocabulary", "fit", "--method", "anyloc", "--backbone", "dinov2_vits14",
+           "--weights", "random", "--layer", "0", "--clusters", "4", "--budget", "2000", "--dataset", "corridor",
+           "--data-dir", str(shared_data), "--cache-dir", str(cache), "--quiet"]
+    runs = [subprocess.Popen(fit, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    done = [(run.wait(timeout=600), *run.communicate()) for run in runs]
+    folder = cache / "vocabularies" / "dinov2_vits14@random-l0-value-c4" / "map-corridor"
+    for code, out, err in done:
+        assert code == 0 and "Traceback" not in err, err
+        assert out.strip() == f"Vocabulary map-corridor: 4 x 384, 2000 of 9768 features -> {folder / 'vocabulary.pt'}"
+    assert sorted(p.name for p in folder.iterdir()) == [".vocabulary.pt.lock", "vocabulary.pt"]  # no temporaries
+    assert load_vocabulary(folder / "vocabulary.pt").centres.shape == (4, 384)  # whole: its checksum holds
+    code, out, err = cli("vocabulary", "list", "--cache-dir", cache)
+    assert code == 0 and out.count("map-corridor: 4 x 384") == 1 and len(out.strip().splitlines()) == 2, out
+    code, out, err = cli("vocabulary", "show", folder / "vocabulary.pt")
+    assert code == 0 and "4 clusters x 384 dims" in out and "corridor (111 images)" in out, out
