@@ -148,10 +148,12 @@ def test_pca_errors():
     pca = PCAWhitening(4).fit(data(30, 10, 0))
     with pytest.raises(VPRBenchError, match="fitted on 10-dimensional descriptors"):
         pca.transform(data(3, 11, 0))
-    with pytest.raises(VPRBenchError, match=r"budget of 10\.0 kB is too small to fit PCA-whitening of 256-dim "
-                                             r"descriptors to 48 dims: its randomized path needs at least .* "
-                                             r"Raise --search-memory"):
+    with pytest.raises(VPRBenchError, match=r"budget of 10\.0 kB is too small to fit PCA-whitening of 1,000 x 256 "
+                                             r"descriptors to 48 dims: its randomized path needs at least \S+ kB, the "
+                                             r"exact one \S+ kB\. Raise --search-memory") as refused:
         PCAWhitening(48).fit(descriptors(1000, 256, 9), 10_000)
+    randomized, exact = (parse_memory(x.replace(" ", "")) for x in re.findall(r"[\d.]+ kB", str(refused.value))[1:])
+    assert PCAWhitening(48).solver(ArrayRows(descriptors(1000, 256, 9)), exact) == "covariance" and randomized < exact
     flat = np.repeat(descriptors(50, 8, 10)[:3], 20, axis=0)  # 60 rows spanning a plane
     with pytest.raises(VPRBenchError, match="vary along only 2 directions; .* choose pca_dim <= 2"):
         PCAWhitening(4).fit(flat)

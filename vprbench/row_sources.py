@@ -121,3 +121,9 @@ def format_bytes(n: float) -> str:
         if n >= size:
             return f"{n / size:.1f} {unit}"
     return f"{int(n)} B"
+
+
+def format_budget(n: int) -> str:
+    """`n` bytes rounded up to two digits, as a budget to give (format_bytes may round below `n`)."""
+    step = 10 ** max(len(str(int(n))) - 2, 0)
+    return format_bytes(-(-int(n) // step) * step)

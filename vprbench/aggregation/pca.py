@@ -22,7 +22,8 @@ import warnings
 import numpy as np
 
 from ..errors import VPRBenchError
-from ..row_sources import DEFAULT_MEMORY_BUDGET, READ_BYTES, as_rows, chunks, format_bytes, parse_memory, read_bytes_per_row
+from ..row_sources import (DEFAULT_MEMORY_BUDGET, READ_BYTES, as_rows, chunks, format_budget, format_bytes, parse_memory,
+                           read_bytes_per_row)
 
 DEFAULT_PCA_DIM = 512
 PASSES = 10
@@ -115,17 +116,16 @@ class PCAWhitening:
         row_cost = ROW_COPIES * read_bytes_per_row(rows)
         blocks = 2 if solver == "gram" else 1  # the Gram path holds two chunks
         chunk_rows = min(READ_BYTES // row_cost, (budget - held) // (row_cost * blocks))
+        exact = format_budget(self.exact_memory(rows))  # the authors' sklearn PCA is exact
         if chunk_rows < 1:
             raise VPRBenchError(
-                f"A memory budget of {format_bytes(budget)} is too small to fit PCA-whitening of {d:,}-dim descriptors "
-                f"to {self.dim} dims: its {solver} path needs at least {format_bytes(held + row_cost * blocks)}. "
-                "Raise --search-memory (memory_budget).")
-        if solver == "randomized":  # the authors' sklearn PCA is exact: say what budget would match it
-            need = self.exact_memory(rows)
-            step = 10 ** max(len(str(need)) - 2, 0)  # rounded up to two digits, so the budget said is enough
+                f"A memory budget of {format_bytes(budget)} is too small to fit PCA-whitening of {n:,} x {d:,} "
+                f"descriptors to {self.dim} dims: its {solver} path needs at least "
+                f"{format_budget(held + row_cost * blocks)}, the exact one {exact}. Raise --search-memory (memory_budget).")
+        if solver == "randomized":
             warnings.warn(f"PCA-whitening of {n:,} x {d:,} descriptors is fitted by randomized subspace iteration "
-                          f"(approximate) within the {format_bytes(budget)} memory budget; a budget of "
-                          f"{format_bytes(-(-need // step) * step)} (--search-memory) fits it exactly.", stacklevel=2)
+                          f"(approximate) within the {format_bytes(budget)} memory budget; a budget of {exact} "
+                          "(--search-memory) fits it exactly.", stacklevel=2)
         fit = {"covariance": _fit_covariance, "gram": _fit_gram, "randomized": _fit_randomized}[solver]
         mean, components, variances = fit(rows, self.dim, int(chunk_rows), self.seed)
         floor = RANK_TOLERANCE * max(variances[0], 1e-300)

@@ -70,7 +70,7 @@ def run_reproduce(args) -> int:
     weights = _row_weights(spec)
     cells = {c.key: (c, tc) for tc in table_cells_ for c in tc.cells}
     console = make_console()
-    missing = {key: missing_for(c, weights.get(tc.row), settings.data_dir, settings.cache_dir, given)
+    missing = {key: missing_for(c, weights.get(tc.row), settings.data_dir, settings.cache_dir, given, settings.memory_budget)
                for key, (c, tc) in cells.items()}
     unrunnable = [tc for tc in table_cells_ if not tc.cells]
     no_method = f"{len(unrunnable)} not runnable as the paper ran them ({', '.join(sorted({tc.row for tc in unrunnable}))})"

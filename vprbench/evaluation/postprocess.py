@@ -179,7 +179,7 @@ def _load_state(postprocessor, path: Path, text: str, dim: int, rows: int) -> st
     return None
 
 
-class _Shape:
+class RowShape:
     """A row source's shape without its rows: all a post-processor's key is computed from."""
 
     folder = None
@@ -200,7 +200,7 @@ def fits_as_recorded(postprocessor, record: dict, memory_budget: int) -> bool:
     if postprocessor is None or not isinstance(found, dict):
         return True
     try:
-        return postprocessor_key(postprocessor, _Shape(found["rows"]), memory_budget) == found.get("postprocessor")
+        return postprocessor_key(postprocessor, RowShape(found["rows"]), memory_budget) == found.get("postprocessor")
     except Exception:  # noqa: BLE001 - a key that needs the rows cannot be told from the record: run again
         return False
 

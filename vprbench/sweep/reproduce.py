@@ -308,11 +308,45 @@ class PaperRecords(StoredRecords):
         return super().record(spec, options)
 
 
-def missing_for(cell: Cell, row_weights, data_dir=None, cache_dir=None, given: dict | None = None) -> list[Need]:
-    """Everything the cell lacks on this machine, none when it can run (`given`: as vocabulary_for)."""
+def memory_for(cell: Cell, memory_budget: int | None = None) -> Need | None:
+    """AnyLoc's PCA-whitening fitted exactly, as the authors' sklearn PCA: a memory budget too small for
+    the database rows it is fitted on (their count from the manifests, their width from the features)
+    is said before hours of description, not at the fit."""
+    import warnings
+
+    from ..aggregation.pca import PCAWhitening
+    from ..evaluation.postprocess import RowShape
+    from ..methods.anyloc import VLADS, AnyLoc
+    from ..methods.anyloc_options import pca_datasets
+    from ..methods.registry import method_entry
+    from ..row_sources import DEFAULT_MEMORY_BUDGET, format_budget, format_bytes
+
+    entry, dataset = method_entry(cell.spec.method), cell.spec.dataset
+    options = {**entry.effective_defaults(), **cell.spec.options}  # a default is not written in a spec
+    if entry.factory is not AnyLoc or not options.get("pca_dim") or dataset.kind != "benchmark":
+        return None
+    with warnings.catch_warnings():  # a preset's layer on another backbone: the same relative depth
+        warnings.simplefilter("ignore")
+        method = AnyLoc(**{**options, "vocabulary": "map"})  # the cell's features; nothing loads
+    dim = method.spec.width * (method.clusters if method.aggregation in VLADS else 1)
+    joint = pca_datasets(method.pca_on, dataset.name)
+    rows = sum(_database_count(name, dataset.protocol if name == dataset.name else None)
+               for name in (joint[1] if joint else [dataset.name]))
+    need = PCAWhitening(method.pca_dim).exact_memory(RowShape({"count": rows, "dim": dim, "dtype": cell.spec.store_dtype}))
+    budget = memory_budget or DEFAULT_MEMORY_BUDGET
+    if need <= budget:
+        return None
+    return (f"memory for PCA-whitening of {rows:,} x {dim:,} descriptors",
+            f"run with --search-memory {format_budget(need)} or more, so it is fitted exactly as the authors' sklearn "
+            f"PCA ({format_bytes(budget)} given)")
+
+
+def missing_for(cell: Cell, row_weights, data_dir=None, cache_dir=None, given: dict | None = None,
+                memory_budget: int | None = None) -> list[Need]:
+    """Everything the cell lacks on this machine, none when it can run (`given`: as vocabulary_for;
+    `memory_budget`: the run's)."""
     from ..datasets import dataset_location, dataset_manifest
     from ..datasets.download import how_to_get
-
     from ..methods.anyloc_options import pca_datasets
 
     needs = []
@@ -323,7 +357,8 @@ def missing_for(cell: Cell, row_weights, data_dir=None, cache_dir=None, given: d
             manifest = dataset_manifest(name)
             if not dataset_location(manifest, data_dir).is_dir():
                 needs.append((f"dataset {name}", how_to_get(manifest, data_dir)))
-    return needs + [need for need in (weights_for(row_weights, cell, cache_dir), vocabulary_for(cell, cache_dir, given)) if need]
+    return needs + [need for need in (weights_for(row_weights, cell, cache_dir), vocabulary_for(cell, cache_dir, given),
+                                      memory_for(cell, memory_budget)) if need]
 
 
 def needs_text(needs: list[Need]) -> str:
