@@ -13,6 +13,7 @@ import pytest
 from vprbench.aggregation.pca import PCAWhitening
 from vprbench.errors import VPRBenchError
 from vprbench.evaluation.joint import JointRows
+from vprbench.evaluation.results import read_results
 from vprbench.row_sources import ArrayRows
 
 #: the urban domain's databases: Oxford, St Lucia, Pitts-30k (the largest stack a joint PCA serves)
@@ -88,6 +89,32 @@ def test_a_methods_stack_names_distinct_benchmarks_the_evaluated_one_among_them(
         joint_members(_Stacks(names), evaluated, None, None)
     assert joint_members(_Stacks(["gardens-point"]), evaluated, None, None) is None  # its own database: no stack
     assert joint_members(_Stacks(None), evaluated, None, None) is None
+
+
+class _Unfitted(_Stacks):
+    """A plugin that names a stack but fits nothing on it: no postprocessor(), or not compared by cosine."""
+
+    compare = "cosine"
+
+    def postprocessor(self):
+        return None
+
+
+@pytest.mark.parametrize("compare", ["cosine", "l2"])
+def test_a_stack_is_refused_for_a_method_that_fits_no_post_processor_on_it(compare):
+    """Before: every database of the stack was described and the record named them, for a fit never made."""
+    from types import SimpleNamespace
+
+    from vprbench.aggregation.pca import PCAWhitening
+    from vprbench.evaluation.joint import joint_members
+
+    method = _Unfitted(["gardens-point", "17places"])
+    method.compare = compare
+    if compare != "cosine":
+        method.postprocessor = lambda: PCAWhitening(8)
+    with pytest.raises(VPRBenchError, match=r"Method 'stacks': postprocess_datasets\(\) names gardens-point, 17places "
+                                            r"to fit its postprocessor\(\) on, but "):
+        joint_members(method, SimpleNamespace(name="gardens-point"), None, None)
 
 
 # ---------------------------------------------------------------- runs on two small benchmarks
@@ -282,3 +309,69 @@ def test_two_datasets_of_a_stack_evaluated_at_once_share_its_stores_and_fit(indo
         assert code == 0, err
         again = json.loads(out)
         assert again["recall"] == record["recall"] and sum(again["descriptors_computed"].values()) == 0
+
+
+PLAN = """name = "joint"
+k = [1, 5]
+
+[[methods]]
+name = "anyloc"
+[methods.options]
+backbone = "dinov2_vits14"
+weights = "random"
+layer = 0
+resize = [42, 42]
+aggregation = "gem"
+pca_dim = 8
+pca_on = "{pca_on}"
+
+[[datasets]]
+name = "gardens-point"
+"""
+
+
+def test_a_sweep_runs_a_stacked_cell_again_once_another_database_of_its_stack_changed(cli, indoor_data,
+                                                                                      two_dataset_indoor, tmp_path):
+    """The cell's stored record was fitted on 17 Places' database as it was: edited, the fit is not that one."""
+    import shutil
+
+    from PIL import Image
+
+    data, cache, plan = tmp_path / "data", tmp_path / "cache", tmp_path / "plan.toml"
+    shutil.copytree(indoor_data, data)
+    plan.write_text(PLAN.format(pca_on="domain"))
+    sweep = ("run", plan, "--data-dir", data, "--cache-dir", cache)
+    code, out, err = cli(*sweep)
+    assert code == 0, out + err
+    assert "1 skipped" in cli(*sweep)[1]  # nothing changed: served
+    rng = np.random.default_rng(1)
+    for i in range(0, 406, 2):
+        image = Image.fromarray(rng.integers(0, 255, (42, 42, 3), dtype=np.uint8))
+        image.save(data / "17places" / "ref" / f"{i:07d}.jpg")
+    code, out, err = cli(*sweep)
+    assert code == 0 and "1 ran" in out, out
+    code, out, err = cli("evaluate", *SMALL, "--pca-on", "domain", "--dataset", "gardens-point", "--k", 1, 5,
+                         "--data-dir", data, "--cache-dir", tmp_path / "fresh", "--json")
+    assert code == 0, err
+    fresh = json.loads(out)
+    (record,) = [r for r in read_results(cache) if r["created"] == max(r["created"] for r in read_results(cache))]
+    assert record["search"]["postprocess"]["key"] == fresh["search"]["postprocess"]["key"]
+    assert record["recall"] == fresh["recall"]
+
+
+def test_candidates_exported_with_the_stack_refuse_a_run_fitted_on_its_own_database_naming_pca_on(
+        cli, indoor_data, two_dataset_indoor, tmp_path):
+    """Before: the file's options were cut after four ('pca_dim': 8,...), so the one that differs was not named."""
+    where = ("--data-dir", indoor_data, "--cache-dir", tmp_path / "cache")
+    code, out, err = cli("candidates", "export", *SMALL, "--pca-on", "domain", "--dataset", "gardens-point", "--k", 20,
+                         "--out", tmp_path / "top.h5", *where)
+    assert code == 0, err
+    rerank = ("--rerank", "aqe", "--rerank-k", 20, "--candidates", tmp_path / "top.h5", *where)
+    code, out, err = cli("evaluate", *SMALL, "--pca-on", "domain", "--dataset", "gardens-point", *rerank, "--json")
+    assert code == 0, err
+    record = json.loads(out)
+    assert record["context"]["postprocess_datasets"]["17places"]["computed"] == 0  # described by the export
+    assert record["provenance"]["pca"]["datasets"] == ["gardens-point", "17places"]
+    err = _refused(cli, "evaluate", *SMALL, "--dataset", "gardens-point", *rerank)
+    assert "was exported by another retriever" in err and "options that differ: pca_on 'domain' in the file, " \
+           "unset in this run" in err

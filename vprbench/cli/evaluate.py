@@ -183,6 +183,7 @@ def run_describe(args) -> int:
 
     from ..distributed import Ranks
     from ..evaluation.extract import describe_splits
+    from ..evaluation.joint import stacked
     from ..evaluation.pipeline import create_run_method, loader_workers
     from ..evaluation.postprocess import check_database_size, fits_on_database, postprocessed
     from ..fsutil import atomic_write
@@ -229,11 +230,11 @@ def run_describe(args) -> int:
         # keyed as evaluate keys them (its spec's options): an option naming this dataset is as unset
         keyed = spec_options(method.name, given_options(method.options, method.name, args.dataset))
     with plugin_part(method, "postprocess_datasets"):
-        stacked = method.postprocess_datasets()
-    if stacked is not None and list(stacked) != [args.dataset]:
-        raise VPRBenchError(f"Method {args.method!r} fits its post-processor on the databases of {', '.join(stacked)} "
-                            f"stacked, as `vprbench evaluate --dataset {args.dataset}` does; describe fits it on --fit-on "
-                            "(or the images described): evaluate, or drop the option that stacks them (AnyLoc: --pca-on).")
+        names = method.postprocess_datasets()
+    if names is not None and list(names) != [args.dataset]:
+        raise VPRBenchError(f"{stacked(args.method, names)}, as `vprbench evaluate --dataset {args.dataset}` does; "
+                            "describe fits it on --fit-on (or the images described): evaluate, or drop the option that "
+                            "stacks them (AnyLoc: --pca-on).")
     if args.fit_on is None and method.needs_fit:
         raise VPRBenchError(f"Method {args.method!r} fits a vocabulary on database images: give --fit-on FOLDER "
                             "(or a ready vocabulary with --vocabulary, where the method takes one).")

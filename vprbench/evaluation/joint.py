@@ -10,9 +10,10 @@ import hashlib
 import numpy as np
 
 from ..errors import VPRBenchError
-from ..loader import plugin_part, use_dataset
+from ..loader import plugin_part, postprocessor_of, use_dataset
 from .extract import describe_splits
 from .identity import protocol_of
+from .postprocess import overrides_postprocess
 
 
 class JointRows:
@@ -53,6 +54,11 @@ class JointRows:
         return out
 
 
+def stacked(method: str, names) -> str:
+    """The start of what is said of a method fitting on several databases."""
+    return f"Method {method!r} fits its post-processor on the databases of {', '.join(names)} stacked"
+
+
 def joint_members(method, dataset, settings, ranks) -> list | None:
     """The datasets (the evaluated `dataset` among them, in the method's order) whose databases the
     method's post-processor is fitted on, loaded and checked before any image is described; None
@@ -69,13 +75,21 @@ def joint_members(method, dataset, settings, ranks) -> list | None:
                             f"among them the evaluated {dataset.name!r}, got {names!r}; fix the method.")
     if list(names) == [dataset.name]:
         return None
+    # else the stack would be described, and the record name it, for a fit never made
+    if (getattr(method, "compare", "cosine") != "cosine" or overrides_postprocess(method)
+            or postprocessor_of(method) is None):
+        raise VPRBenchError(f"Method {method.name!r}: postprocess_datasets() names {', '.join(names)} to fit its "
+                            "postprocessor() on, but it fits none there (no postprocessor(), a whole-matrix "
+                            "postprocess() or a comparison other than cosine sees the evaluated database alone); "
+                            "fix the method.")
+
     def load(name):
         try:
             return load_dataset(name, settings.data_dir, strict=settings.strict, fetch=settings.download,
                                 cache_dir=settings.cache_dir)
         except VPRBenchError as error:  # the user named another dataset: say why this one is read
-            raise VPRBenchError(f"Method {method.name!r} fits its post-processor on the databases of "
-                                f"{', '.join(names)} stacked, so evaluating {dataset.name} needs {name}: {error}") from None
+            raise VPRBenchError(f"{stacked(method.name, names)}, so evaluating {dataset.name} needs {name}: "
+                                f"{error}") from None
 
     members = [dataset if name == dataset.name else ranks.on_zero(lambda name=name: load(name)) for name in names]
     try:
@@ -83,8 +97,7 @@ def joint_members(method, dataset, settings, ranks) -> list | None:
             use_dataset(method, member.name)
             if method.needs_fit:
                 raise VPRBenchError(
-                    f"Method {method.name!r} fits its post-processor on the databases of {', '.join(names)} stacked, "
-                    f"but it would fit a vocabulary on {member.name}'s own database (none shared by all of them is "
+                    f"{stacked(method.name, names)}, but it would fit a vocabulary on {member.name}'s own database (none shared by all of them is "
                     "ready), so their descriptors would not be comparable: give it one vocabulary for all (a domain's: "
                     "`vprbench vocabulary fit --domain DOMAIN --method ...`), or fit the post-processor on the "
                     "evaluated database alone.")
@@ -112,8 +125,46 @@ def describe_members(spec, settings, method, dataset, members: list, described, 
                     lock_timeout=settings.lock_timeout, ranks=ranks, progress=progress, settings=spec.options)
                 part, computed = done.stores and done.stores["database"], done.computed["database"]
             parts.append(part)
-            info[member.name] = {"protocol": protocol_of(member)["id"], "database_images": len(member.database),
-                                 "images": member.images_fingerprint(settings.cache_dir), "computed": int(computed)}
+            info[member.name] = {**member_identity(member, settings.cache_dir), "computed": int(computed)}
     finally:
         use_dataset(method, dataset.name)
     return (JointRows(parts) if ranks.rank == 0 else None), info
+
+
+def member_identity(member, cache_dir=None) -> dict:
+    """What a stacked database is, as the record names it: its protocol and its images' content."""
+    return {"protocol": protocol_of(member)["id"], "database_images": len(member.database),
+            "images": member.images_fingerprint(cache_dir)}
+
+
+def stack_identity(method, spec, settings) -> dict | None:
+    """`member_identity` of each dataset the method (made for `spec`'s dataset) fits its post-processor
+    on, as found now (never downloaded); None when that is the evaluated database alone."""
+    from ..datasets import load_dataset
+
+    with plugin_part(method, "postprocess_datasets"):
+        names = method.postprocess_datasets()
+    if not names or list(names) == [spec.dataset.name]:
+        return None
+    return {name: member_identity(load_dataset(
+        name, settings.data_dir, fetch=False, protocol=spec.dataset.protocol if name == spec.dataset.name else None,
+        cache_dir=settings.cache_dir), settings.cache_dir) for name in names}
+
+
+def stack_as_recorded(record: dict, identities: dict | None) -> bool:
+    """Whether a stored record's post-processor was fitted on the databases `identities` name, as they
+    are now (`stack_identity`): the spec names the stack, not its content, so an edited member's
+    database makes another fit. True when nothing is stacked."""
+    if identities is None:
+        return True
+    found = (record.get("context") or {}).get("postprocess_datasets")
+    if not isinstance(found, dict) or set(found) != set(identities):
+        return False
+    return all(_fitted_on(found[name]) == _fitted_on(identity) for name, identity in identities.items())
+
+
+def _fitted_on(entry) -> tuple:
+    """What of a member's identity its database rows depend on."""
+    entry = entry if isinstance(entry, dict) else {}
+    images = entry.get("images") if isinstance(entry.get("images"), dict) else {}
+    return entry.get("protocol"), entry.get("database_images"), images.get("database")

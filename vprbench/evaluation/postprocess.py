@@ -205,7 +205,7 @@ def fits_as_recorded(postprocessor, record: dict, memory_budget: int) -> bool:
         return False
 
 
-def _overrides_postprocess(method) -> bool:
+def overrides_postprocess(method) -> bool:
     from ..methods.base import Method
 
     return getattr(type(method), "postprocess", Method.postprocess) is not Method.postprocess
@@ -214,7 +214,7 @@ def _overrides_postprocess(method) -> bool:
 def fits_on_database(method) -> bool:
     """Whether `method` learns anything from database images: a vocabulary, a post-processor, or a plugin's
     whole-matrix `postprocess` (which is handed the database)."""
-    return bool(method.needs_fit) or _overrides_postprocess(method) or postprocessor_of(method) is not None
+    return bool(method.needs_fit) or overrides_postprocess(method) or postprocessor_of(method) is not None
 
 
 def check_database_size(method, rows: int, where: str) -> None:
@@ -233,7 +233,7 @@ def postprocessed(method, database: RowSource, queries: RowSource, memory_budget
     a plugin's whole-matrix `postprocess`); info None when there is nothing to do. `retrieve` and
     `vprbench describe` share it."""
     postprocessor = postprocessor_of(method) if method is not None else None
-    if method is not None and _overrides_postprocess(method):  # a plugin's whole-matrix hook
+    if method is not None and overrides_postprocess(method):  # a plugin's whole-matrix hook
         db, q = database.read_rows(0, database.row_count), queries.read_rows(0, queries.row_count)
         undescribed = zero_rows(db, "database descriptors"), zero_rows(q, "query descriptors")
         with plugin_part(method, "postprocess"):

@@ -117,6 +117,7 @@ def read_candidates(path, spec, queries: int, database: int, depth: int, images:
             f", {RETRIEVER_PARTS[p]} {shortened(theirs.get(p, {}))}" for p in parts)) if theirs else "an unreadable spec"
         raise VPRBenchError(f"Candidates file {path} was exported by another retriever ({shown}), not this run's "
                             f"{spec.method} {spec.options}" + "".join(f", {RETRIEVER_PARTS[p]} {ours[p]}" for p in parts)
+                            + _options_differ(theirs.get("options"), spec.options)
                             + ": export candidates with this run's method, options, search, store and files.")
     if indices.ndim != 2 or indices.shape != scores.shape or indices.shape[0] != queries:
         raise VPRBenchError(f"Candidates file {path} holds {indices.shape} candidates for {queries} queries; export "
@@ -192,6 +193,18 @@ def _attributes(f, path: Path) -> dict:
             raise VPRBenchError(f"Candidates file {path}: its attribute {shortened(key)} holds "
                                 f"{type(found[key]).__name__} {shortened(found[key])}, not one value; export it again.")
     return found
+
+
+def _options_differ(theirs, ours: dict) -> str:
+    """The options a file's retriever and this run's set apart, named: the file's are shown cut short
+    (AnyLoc's pca_on comes after the first four)."""
+    if not isinstance(theirs, dict):
+        return ""
+    unset = object()
+    differ = sorted(k for k in {*theirs, *ours} if theirs.get(k, unset) != ours.get(k, unset))
+    shown = [f"{k} {shortened(repr(theirs[k])) if k in theirs else 'unset'} in the file, "
+             f"{shortened(repr(ours[k])) if k in ours else 'unset'} in this run" for k in differ]
+    return f"; options that differ: {'; '.join(shown)}" if shown else ""
 
 
 def _json(text) -> dict:

@@ -111,7 +111,7 @@ class StoredRecords:
     protocol, not the bytes of the copy (an image or the ground truth edited, a file renamed)."""
 
     def __init__(self, settings: RunSettings):
-        self.settings, self.fingerprints, self.methods = settings, {}, {}
+        self.settings, self.fingerprints, self.methods, self.stacks = settings, {}, {}, {}
 
     def record(self, spec, options: dict | None = None) -> dict | None:
         """The newest record made for the computation this cell would make now: on the data at hand,
@@ -120,6 +120,7 @@ class StoredRecords:
         when the method cannot be made here (its factory, use_dataset, postprocessor or fingerprint fails)."""
         if not self.may_hold(spec):  # no method made (nor centres fetched) for a cell without records
             return None
+        from ..evaluation.joint import stack_as_recorded
         from ..evaluation.postprocess import fits_as_recorded
         from ..row_sources import DEFAULT_MEMORY_BUDGET
 
@@ -127,9 +128,11 @@ class StoredRecords:
         if described is None:  # the method's identity cannot be checked now: no stored number; its run says why
             return None
         budget = self.settings.with_options(options or {}).memory_budget or DEFAULT_MEMORY_BUDGET
+        stack = self.stacks.get((spec.key, spec.dataset.name))  # the databases its post-processor is fitted on
         return find_result(spec, self.settings.cache_dir, dataset_fingerprint=self.fingerprint(spec),
                            method_fingerprint=described,
-                           accept=lambda record: fits_as_recorded(postprocessor, record, budget))
+                           accept=lambda record: fits_as_recorded(postprocessor, record, budget)
+                           and stack_as_recorded(record, stack))
 
     def may_hold(self, spec) -> bool:
         """Whether the spec's results folder holds any record (a listing, nothing read)."""
@@ -142,10 +145,11 @@ class StoredRecords:
     def described_as(self, spec) -> tuple[dict | None, object]:
         """The store key the spec's method has now (`store.method_fingerprint`: what its descriptors depend
         on beyond the options, a version its author raised, a library's; a record made with another was
-        computed by other code) and its post-processor. (None, None) when the method cannot be made here:
-        no record answers then (the run says why)."""
+        computed by other code) and its post-processor (the databases it is fitted on kept in `stacks`).
+        (None, None) when the method cannot be made here: no record answers then (the run says why)."""
         import warnings
 
+        from ..evaluation.joint import stack_identity
         from ..evaluation.pipeline import create_run_method
         from ..loader import postprocessor_of, use_dataset
         from ..store import method_fingerprint
@@ -158,6 +162,7 @@ class StoredRecords:
                     method = create_run_method(spec.method, spec.given, self.settings)
                     use_dataset(method, spec.dataset.name)
                     postprocessor = postprocessor_of(method)
+                    self.stacks[key] = stack_identity(method, spec, self.settings)
                     self.methods[key] = method_fingerprint(method, spec.store_dtype, spec.options,
                                                            self.settings.cache_dir), postprocessor
             except Exception:  # noqa: BLE001 - a lookup: whatever stops the method here stops its run, which names it
