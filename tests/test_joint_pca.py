@@ -25,7 +25,8 @@ def test_joint_rows_read_as_the_stacked_matrix_at_the_urban_domains_size():
     arrays = [rng.standard_normal((n, 32)).astype(np.float32) + i for i, n in enumerate(URBAN)]
     joint, stacked = JointRows([ArrayRows(a) for a in arrays]), np.concatenate(arrays)
     assert (joint.row_count, joint.dim) == (11762, 32)
-    for start, stop in ((0, 11762), (200, 1800), (212, 214), (1761, 1763), (5000, 5001)):
+    for start, stop in ((0, 11762), (200, 1800), (212, 214), (1761, 1763), (5000, 5001), (213, 1762), (0, 213),
+                        (11761, 11762), (11762, 11762)):
         np.testing.assert_array_equal(joint.read_rows(start, stop), stacked[start:stop])
     picked = np.sort(rng.choice(11762, 500, replace=False))
     np.testing.assert_array_equal(joint.read_rows_at(picked), stacked[picked])
@@ -175,6 +176,7 @@ def test_a_run_fits_on_the_domains_databases_stacked_and_the_next_reuses_them(cl
         "17places": {"protocol": "17places:anyloc", "database_images": 406, "computed": 406}}
     assert stack["gardens-point"]["images"] == record["dataset_fingerprints"]["images"]
     assert record["provenance"]["pca"]["datasets"] == ["gardens-point", "17places"]
+    assert 0 < record["timings"]["stack_s"] < record["timings"]["total_s"]  # describing 17 Places' database
     post = record["search"]["postprocess"]
     assert post["state"] == "fitted" and post["key"]["rows"]["count"] == 606
     # the state is fitted on both databases: its mean is the stack's, not Gardens Point's alone
@@ -372,6 +374,7 @@ def test_candidates_exported_with_the_stack_refuse_a_run_fitted_on_its_own_datab
     record = json.loads(out)
     assert record["context"]["postprocess_datasets"]["17places"]["computed"] == 0  # described by the export
     assert record["provenance"]["pca"]["datasets"] == ["gardens-point", "17places"]
+    assert 0 < record["timings"]["stack_s"] < record["timings"]["total_s"]  # describing 17 Places' database
     err = _refused(cli, "evaluate", *SMALL, "--dataset", "gardens-point", *rerank)
     assert "was exported by another retriever" in err and "options that differ: pca_on 'domain' in the file, " \
            "unset in this run" in err

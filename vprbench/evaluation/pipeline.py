@@ -179,14 +179,15 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
         digests=dataset.image_digests(settings.cache_dir), names=dataset.image_names(), cache_dir=settings.cache_dir,
         store_dtype=spec.store_dtype, workers=workers, lock_timeout=settings.lock_timeout, ranks=ranks,
         progress=progress, settings=spec.options)  # keyed as the spec: one run, one store
-    fit_on, joint = None, None
+    fit_on, joint, t = None, None, time.perf_counter()
     if members is not None:  # every rank describes its share of each
         fit_on, joint = describe_members(spec, settings, method, dataset, members, described, workers=workers,
                                          ranks=ranks, progress=progress)
     if described.stores is None:  # not rank 0: its shard is written; rank 0 evaluates
         return None
     timings = {"fit_s": described.timings["fit_s"], "database_s": described.timings["database_s"],
-               "queries_s": described.timings["queries_s"]}
+               "queries_s": described.timings["queries_s"],
+               **({"stack_s": time.perf_counter() - t} if members else {})}  # the other databases of the stack
     t = time.perf_counter()
     if frozen is not None:
         found = frozen.pop("found")
