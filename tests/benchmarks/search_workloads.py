@@ -2,7 +2,8 @@
 
 `python tests/benchmarks/search_workloads.py make DATA_DIR` writes the seeded inputs into
 DATA_DIR when they are missing (HDF5 files: a 1,000,000 x 512 database with 1,000 queries,
-and 100,000 x 4,096 descriptors for PCA). `... NAME DATA_DIR` runs one workload (see
+and 100,000 x 4,096 descriptors for PCA; the urban stack's 11,762 x 49,152 on its first use).
+`... NAME DATA_DIR` runs one workload (see
 WORKLOADS) and prints one JSON line: its time, the process's RSS when the workload starts (baseline: interpreter, libraries, open
 files) and its peak RSS (the kernel's VmHWM, reset to the baseline through
 /proc/self/clear_refs just before the workload runs).
@@ -145,7 +146,44 @@ def _pca_sklearn(folder: Path):
     return run
 
 
+#: the urban domain's databases (Oxford, St Lucia, Pitts-30k) at AnyLoc-VLAD-DINOv2's width (32 x 1,536)
+STACK_ROWS, STACK_IN, STACK_LATENT = (213, 1549, 10000), 49152, 2048
+
+
+def _stack(folder: Path):
+    """The three databases as row sources (HDF5 files written on first use, outside the timed run):
+    a spectrum decaying like 1/i over 2,048 random directions, each database with its own mean."""
+    from vprbench.evaluation.joint import JointRows
+
+    paths = [folder / f"pca-stack-{i}.h5" for i in range(len(STACK_ROWS))]
+    if not all(p.is_file() for p in paths):
+        rng = np.random.default_rng(6)
+        basis = (rng.normal(size=(STACK_LATENT, STACK_IN)) / np.sqrt(STACK_IN)).astype(np.float32)
+        scale = (np.arange(1, STACK_LATENT + 1) ** -0.5).astype(np.float32)
+        for i, (path, rows) in enumerate(zip(paths, STACK_ROWS)):
+            offset = 0.2 * basis[i]
+            _write(path, rows, STACK_IN, lambda b, n, i=i, offset=offset: (
+                np.random.default_rng([7, i, b]).normal(size=(n, STACK_LATENT)).astype(np.float32) * scale) @ basis + offset)
+    return JointRows([H5Rows(p) for p in paths])
+
+
+def _pca_stack(folder: Path, budget: int, name: str):
+    from vprbench.aggregation import PCAWhitening
+
+    source = _stack(folder)
+
+    def run():
+        pca = PCAWhitening(PCA_OUT)
+        solver = pca.solver(source, budget)
+        pca.fit(source, budget)
+        np.savez(folder / f"{name}.npz", **pca.state())
+        return {"solver": solver, "rows": source.row_count, "dim": source.dim, "budget": budget}
+    return run
+
+
 WORKLOADS = {
+    "pca-urban-stack": lambda folder: _pca_stack(folder, 1_200_000_000, "pca-urban-stack"),
+    "pca-urban-stack-randomized": lambda folder: _pca_stack(folder, 1_100_000_000, "pca-urban-stack-randomized"),
     "exact-chunked": _exact_chunked,
     "flat-full": _flat_full,
     "ivf-pq": _ivf_pq,
@@ -162,7 +200,7 @@ def tolerance(folder: Path, name: str, reference: str) -> dict:
     the next 5,000 (as database): max |score difference| and max |whitened value difference|."""
     from vprbench.aggregation import PCAWhitening
 
-    rows = H5Rows(folder / "pca.h5").read_rows(0, 7000)
+    rows = (_stack(folder) if name.startswith("pca-urban") else H5Rows(folder / "pca.h5")).read_rows(0, 7000)
     out = {}
     for label, file in (("ours", name), ("reference", reference)):
         pca = PCAWhitening(PCA_OUT)

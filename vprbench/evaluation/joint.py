@@ -36,6 +36,9 @@ class JointRows:
         return hashlib.sha256(keys.encode()).hexdigest()[:16]
 
     def read_rows(self, start: int, stop: int) -> np.ndarray:
+        i = int(np.searchsorted(self.starts, start, side="right")) - 1
+        if start < stop and stop <= self.starts[i + 1]:  # within one part: its fresh rows, not a second copy
+            return self.parts[i].read_rows(start - int(self.starts[i]), stop - int(self.starts[i]))
         out = np.empty((stop - start, self.dim), dtype=np.float32)
         for part, first in zip(self.parts, self.starts):
             lo, hi = max(start, int(first)), min(stop, int(first) + part.row_count)
