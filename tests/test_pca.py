@@ -1,6 +1,7 @@
 """PCA-whitening fitted with bounded memory: each path against sklearn's exact fit, memory
 bound, state, errors."""
 import re
+import warnings
 
 import numpy as np
 import pytest
@@ -205,3 +206,29 @@ def test_the_eigen_solver_works_in_place_without_a_copy_of_the_matrix():
     assert peak < matrix.nbytes / 4, peak
     np.testing.assert_allclose(values, reference, rtol=1e-9)
     assert vectors.shape == (1500, 16)
+
+
+@pytest.mark.parametrize("n, d, dim, solver", [(300, 8000, 64, "gram"), (2500, 1200, 64, "randomized")])
+def test_a_fit_at_a_tight_budget_peaks_within_it(n, d, dim, solver):
+    """tracemalloc's peak over a whole fit (its input excluded) at a budget of what the path holds plus
+    ten rows. The Gram path made a D x dim product per chunk and three more to finish (3 x its budget
+    at 600 x 20,000 to 256 dims); the randomized one QR'd a C-ordered Gaussian (a copy, 1.17 x)."""
+    import tracemalloc
+
+    import scipy.linalg  # noqa: F401  (its import is no part of a fit's memory)
+
+    from vprbench.aggregation.pca import _solver_memory
+
+    rows = ArrayRows(data(n, d, 0))
+    budget = _solver_memory(solver, n, d, dim) + 10 * ROW_COPIES * 4 * d * (2 if solver == "gram" else 1)
+    pca = PCAWhitening(dim)
+    assert pca.solver(rows, budget) == solver
+    tracemalloc.start()
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the randomized path's notice
+            pca.fit(rows, budget)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 1.05 * budget, (peak, budget)
