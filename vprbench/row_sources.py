@@ -60,7 +60,8 @@ class ArrayRows:
         return np.array(self.array[start:stop], dtype=np.float32)
 
     def read_rows_at(self, indices) -> np.ndarray:
-        return np.array(self.array[np.asarray(indices, dtype=np.int64)], dtype=np.float32)
+        # the fancy index is a fresh copy already: np.array would make a second
+        return np.asarray(self.array[np.asarray(indices, dtype=np.int64)], dtype=np.float32)
 
     def view_rows(self, start: int, stop: int) -> np.ndarray | None:
         """Rows start:stop of the array itself, read-only, when it is C-ordered float32."""
