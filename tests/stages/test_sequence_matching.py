@@ -192,3 +192,24 @@ def test_second_best_skips_both_ends_of_the_window():
     assert second_best(costs, np.array([2]), 2).tolist() == [5.0]
     assert second_best(costs, np.array([2]), 4).tolist() == [7.0]  # 0..4 skipped
     assert second_best(costs, np.array([2]), 1).tolist() == [1.0]  # window 1: only the best itself
+
+
+def test_a_tight_budget_holds_one_database_chunk_and_the_query_rows(monkeypatch):
+    """High-dimensional rows and few database images: each block's query rows (read, then put in
+    traverse order) went uncounted, and each database chunk was held while the next was read (1.9 x
+    the budget at 1,000 x 16,384)."""
+    from vprbench.stages.sequence import search
+
+    monkeypatch.setattr(search, "READ_BYTES", 4 * 2**20)  # several chunks of this small database
+    database, queries = traverse(600, dim=8192)
+    queries = queries[:200]
+    n, dim, span = len(database), database.shape[1], len(query_offsets(10, "offline")) - 1
+    budget = 4 * 2**20 + 200 * 128 + span * (4 * n + 8 * dim) + 10 * (search.BYTES_PER_CELL * n + 8 * dim)
+    tracemalloc.start()
+    try:
+        found = sequence_search(database, queries, 5, length=10, memory_budget=budget)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < budget, (peak, budget)
+    assert found.info["blocks"] == 20  # ten query rows a block, as the budget was made for

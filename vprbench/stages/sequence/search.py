@@ -56,6 +56,7 @@ def cost_rows(queries: np.ndarray, database, database_order: np.ndarray, score: 
         if check:  # once per search: every block of queries reads the same rows
             check_finite(block, "Database", start)
         out[:, start:start + len(block)] = similarities_or_distances(queries, block, compare)
+        del block  # before the next chunk is read: the budget holds one
     out = out[:, database_order]
     if compare == "cosine":
         if score == "diagonal":
@@ -66,13 +67,14 @@ def cost_rows(queries: np.ndarray, database, database_order: np.ndarray, score: 
 
 def plan_blocks(n_queries: int, n_database: int, dim: int, span: int, budget: int) -> int:
     """Query rows per block within `budget`: each costs BYTES_PER_CELL per database image, the
-    window's extra rows one cost row each; one chunk of database rows is read at a time."""
+    window's extra rows one cost row each, and every row its descriptor twice (read, then put in
+    traverse order); one chunk of database rows is read at a time."""
     reading = min(READ_BYTES, n_database * dim * 4)
     fixed = reading + n_queries * 64 * 2  # the reduced results (top K, a little per query)
-    per_row = BYTES_PER_CELL * n_database
-    rows = (budget - fixed - span * 4 * n_database) // per_row
+    per_row = BYTES_PER_CELL * n_database + 8 * dim
+    rows = (budget - fixed - span * (4 * n_database + 8 * dim)) // per_row
     if rows < 1:
-        need = fixed + (span * 4 + BYTES_PER_CELL) * n_database
+        need = fixed + span * (4 * n_database + 8 * dim) + per_row
         raise VPRBenchError(f"A memory budget of {format_bytes(budget)} is too small for sequence matching against "
                             f"{n_database:,} database images: one block needs {format_bytes(need)}. Raise "
                             f"--search-memory (memory_budget) to at least {format_bytes(need)}.")
@@ -123,6 +125,7 @@ def sequence_search(database, queries, k: int, *, score: str = "seqslam", compar
         rows = queries.read_rows_at(sorted_rows)[np.searchsorted(sorted_rows, wanted)]
         check_finite(rows, "Query", numbers=wanted)
         matrix = cost_rows(rows, database, database_order, score, compare, chunk_rows, enhance_window, check=start == 0)
+        del rows  # not held while the next block's rows are read
         lowest = min(lowest, float(matrix.min()))
         best = trajectory_costs(matrix, first, start, stop, q, offsets, paths)
         del matrix
