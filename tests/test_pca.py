@@ -189,20 +189,14 @@ def test_as_many_dims_as_database_images_is_refused_before_describing():
 def test_the_eigen_solver_works_in_place_without_a_copy_of_the_matrix():
     """The fit budgets one D x D (or N x N) matrix; LAPACK copied it (C order to Fortran order): the
     urban stack's exact fit (11,762 x 49,152) peaked 1 GB above its 1.2 GB budget."""
-    import tracemalloc
-
+    from traced import peak_of
     from vprbench.aggregation.pca import _top_eigen
 
     rng = np.random.default_rng(0)
     x = rng.standard_normal((1500, 1500))
     matrix = x @ x.T  # symmetric, C-ordered, 18 MB
     reference = np.linalg.eigvalsh(matrix)[::-1][:16]
-    tracemalloc.start()
-    try:
-        values, vectors = _top_eigen(matrix, 16)
-        peak = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
+    (values, vectors), peak = peak_of(lambda: _top_eigen(matrix, 16))
     assert peak < matrix.nbytes / 4, peak
     np.testing.assert_allclose(values, reference, rtol=1e-9)
     assert vectors.shape == (1500, 16)
@@ -213,22 +207,16 @@ def test_a_fit_at_a_tight_budget_peaks_within_it(n, d, dim, solver):
     """tracemalloc's peak over a whole fit (its input excluded) at a budget of what the path holds plus
     ten rows. The Gram path made a D x dim product per chunk and three more to finish (3 x its budget
     at 600 x 20,000 to 256 dims); the randomized one QR'd a C-ordered Gaussian (a copy, 1.17 x)."""
-    import tracemalloc
-
     import scipy.linalg  # noqa: F401  (its import is no part of a fit's memory)
 
+    from traced import peak_of
     from vprbench.aggregation.pca import _solver_memory
 
     rows = ArrayRows(data(n, d, 0))
     budget = _solver_memory(solver, n, d, dim) + 10 * ROW_COPIES * 4 * d * (2 if solver == "gram" else 1)
     pca = PCAWhitening(dim)
     assert pca.solver(rows, budget) == solver
-    tracemalloc.start()
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # the randomized path's notice
-            pca.fit(rows, budget)
-        peak = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the randomized path's notice
+        _, peak = peak_of(lambda: pca.fit(rows, budget))
     assert peak < 1.05 * budget, (peak, budget)

@@ -126,7 +126,7 @@ def test_an_approximate_search_at_a_tight_budget_holds_one_chunk_of_rows(kind):
     """tracemalloc's peak (numpy's arrays: faiss's index is counted apart, as index_bytes) within the
     budget less the index. Each loop held its last chunk while it read the next: twice the rows budgeted
     (ivf-pq on 100,000 x 256 at 25.8 MB: 34.7 MB of rows + the index)."""
-    import tracemalloc
+    from traced import peak_of
 
     from vprbench.evaluation.approximate import _index_bytes, approximate_search, index_options
     from vprbench.evaluation.search import ArrayRows
@@ -139,12 +139,8 @@ def test_an_approximate_search_at_a_tight_budget_holds_one_chunk_of_rows(kind):
     budget = o["train_rows"] * 4 * d + index_bytes + q * k * 12 + 4 * d + o["shortlist"] * (4 * d + 12) + 12_100_000
     import faiss  # noqa: F401  (their imports, 4 MB and more, are no part of a search's memory)
     import vprbench.gemm  # noqa: F401
-    tracemalloc.start()
-    try:
-        found = approximate_search(ArrayRows(db), ArrayRows(near_copies(db, q, 1)), k, kind=kind, memory_budget=budget)
-        peak = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
+    queries = ArrayRows(near_copies(db, q, 1))
+    found, peak = peak_of(lambda: approximate_search(ArrayRows(db), queries, k, kind=kind, memory_budget=budget))
     assert peak < 1.05 * (budget - index_bytes), (peak, budget - index_bytes)
     # faiss's own copy, untraced: IVF-PQ adds a chunk with the float32 residual of each row (VmHWM: 18.8 MB
     # to add 17.2 MB), so its chunks leave room for that

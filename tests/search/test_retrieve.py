@@ -232,19 +232,13 @@ def test_transformed_rows_come_from_one_fixed_padded_grid():
 def test_transformed_rows_read_at_indices_within_their_read_cost():
     """Rows at indices are read and transformed a tile at a time, as read_cost budgets: all the source
     rows at once were an approximate index's whole training sample at the source's dimension."""
-    import tracemalloc
-
+    from traced import peak_of
     from vprbench.evaluation.search import read_cost
 
     db = unit(20000, 512, 0)
     rows = TransformedRows(ArrayRows(db), PCAWhitening(32).fit(db[:2000]))
     indices = np.arange(0, 20000, 1)
     per_row, fixed = read_cost(rows)
-    tracemalloc.start()
-    try:
-        picked = rows.read_rows_at(indices)
-        peak = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
+    picked, peak = peak_of(lambda: rows.read_rows_at(indices))
     assert peak < 1.05 * (len(indices) * per_row + fixed), (peak, len(indices) * per_row + fixed)
     np.testing.assert_array_equal(picked[5000:7000], rows.read_rows(5000, 7000))

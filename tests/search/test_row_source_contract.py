@@ -49,14 +49,9 @@ def test_a_source_returning_the_wrong_block_is_named():
 def test_rows_read_at_indices_cost_what_read_bytes_per_row_says(dtype):
     """A float32 array's rows were copied twice (the fancy index, then np.array): an approximate index's
     training sample took twice the memory its search budgets."""
-    import tracemalloc
+    from traced import peak_of
 
     rows = ArrayRows(np.ones((4000, 256), dtype))
     indices = np.arange(0, 4000, 2)
-    tracemalloc.start()
-    try:
-        picked = rows.read_rows_at(indices)
-        peak = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
+    picked, peak = peak_of(lambda: rows.read_rows_at(indices))
     assert picked.shape == (2000, 256) and peak < 1.05 * len(indices) * read_bytes_per_row(rows), peak

@@ -1,11 +1,11 @@
 """SeqSLAM and the descriptor-sequence score: against plain loops over their definitions,
 blocks against one block, traverse orders, and memory within the budget."""
-import tracemalloc
 from fractions import Fraction
 
 import numpy as np
 import pytest
 
+from traced import peak_of
 from vprbench.errors import VPRBenchError
 from vprbench.stages.sequence.matching import (enhance, query_offsets, second_best, top_k, trajectories,
                                                trajectory_costs, velocities)
@@ -140,10 +140,7 @@ def test_blocks_and_orders_do_not_change_results():
 def test_memory_stays_within_the_budget_never_the_whole_matrix():
     database, queries = traverse(2000, dim=8)
     budget = 8_000_000  # the whole 2,000 x 2,000 matrix and its temporaries would need ~200 MB
-    tracemalloc.start()
-    found = sequence_search(database, queries, 5, length=10, memory_budget=budget)
-    peak = tracemalloc.get_traced_memory()[1]
-    tracemalloc.stop()
+    found, peak = peak_of(lambda: sequence_search(database, queries, 5, length=10, memory_budget=budget))
     assert found.info["blocks"] > 10
     assert peak < budget, peak
 
@@ -205,11 +202,6 @@ def test_a_tight_budget_holds_one_database_chunk_and_the_query_rows(monkeypatch)
     queries = queries[:200]
     n, dim, span = len(database), database.shape[1], len(query_offsets(10, "offline")) - 1
     budget = 4 * 2**20 + 200 * 128 + span * (4 * n + 8 * dim) + 10 * (search.BYTES_PER_CELL * n + 8 * dim)
-    tracemalloc.start()
-    try:
-        found = sequence_search(database, queries, 5, length=10, memory_budget=budget)
-        peak = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
+    found, peak = peak_of(lambda: sequence_search(database, queries, 5, length=10, memory_budget=budget))
     assert peak < budget, (peak, budget)
     assert found.info["blocks"] == 20  # ten query rows a block, as the budget was made for
