@@ -19,7 +19,7 @@ import torch.nn.functional as F
 from ..aggregation import pooling, vlad
 from ..aggregation.pca import PCAWhitening
 from . import anyloc_options
-from .anyloc_options import AGGREGATIONS, PCA_ON, VLADS, pca_datasets
+from .anyloc_options import AGGREGATIONS, PCA_ON, VLADS, pca_datasets, pca_provenance
 from .anyloc_fit import recorded_image_digests
 from .anyloc_vocabulary import (MAP_PREFIX, check_proven, file_provenance, names_file, paper_choice,
                                  resolve_vocabulary, vocabulary_images)
@@ -237,10 +237,7 @@ class AnyLoc(Method):
         if self.aggregation in VLADS:
             found["vocabulary"] = self.vocabulary_provenance()
         if self.pca_dim:
-            joint = pca_datasets(self.pca_on, self.dataset)
-            found["pca"] = {"dim": self.pca_dim, "fitted_on_evaluated_database": True, "fitted_on": (
-                f"the databases of the {joint[0]} domain stacked: {', '.join(joint[1])}" if joint
-                else "the evaluated database's descriptors"), **({"datasets": joint[1]} if joint else {})}
+            found["pca"] = pca_provenance(self.pca_dim, self.pca_on, self.dataset)
         return found
 
     def weights_provenance(self) -> dict:
