@@ -166,19 +166,31 @@ def cannot_run(cell: Cell) -> str:
     """Why the cell cannot run as the paper ran it, known before any image is read ('' if it can):
     PCA to more dimensions than the database images it is fitted on (the evaluated dataset's, or
     with pca_on=domain its domain's stacked, as the authors' code fitted it)."""
-    from ..methods.anyloc_options import pca_datasets
-
-    dim, dataset = cell.spec.options.get("pca_dim"), cell.spec.dataset
-    if not dim or dataset.kind != "benchmark":
+    dim, names = cell.spec.options.get("pca_dim"), pca_stack(cell)
+    count = stack_images(cell, names)
+    if not names or not count or dim < count:  # centred, N images span at most N - 1 directions
         return ""
-    joint = pca_datasets(cell.spec.options.get("pca_on", "database"), dataset.name)
-    names = joint[1] if joint else [dataset.name]
-    count = sum(_database_count(name, dataset.protocol if name == dataset.name else None) for name in names)
-    if not count or dim < count:  # centred, N images span at most N - 1 directions
-        return ""
-    where = f"the databases of {', '.join(names)} hold" if joint else f"{dataset.name} has"
+    where = f"the databases of {', '.join(names)} hold" if len(names) > 1 else f"{names[0]} has"
     return (f"PCA to {dim} dimensions needs more than {dim} database images; {where} {count} (the authors' code fits "
             "this PCA jointly over its domain's datasets: pca_on = \"domain\")")
+
+
+def pca_stack(cell: Cell) -> list[str]:
+    """The benchmarks whose databases the cell's PCA-whitening is fitted on: the evaluated one, or with
+    pca_on = "domain" its domain's; none without PCA or on a dataset that is no benchmark."""
+    from ..methods.anyloc_options import pca_datasets
+
+    dataset = cell.spec.dataset
+    if not cell.spec.options.get("pca_dim") or dataset.kind != "benchmark":
+        return []
+    joint = pca_datasets(cell.spec.options.get("pca_on", "database"), dataset.name)
+    return joint[1] if joint else [dataset.name]
+
+
+def stack_images(cell: Cell, names: list[str]) -> int:
+    """The database images of `names` (the cell's dataset at its protocol, the others at their default)."""
+    dataset = cell.spec.dataset
+    return sum(_database_count(name, dataset.protocol if name == dataset.name else None) for name in names)
 
 
 def _database_count(name: str, protocol) -> int:
@@ -312,26 +324,19 @@ def memory_for(cell: Cell, memory_budget: int | None = None) -> Need | None:
     """AnyLoc's PCA-whitening fitted exactly, as the authors' sklearn PCA: a memory budget too small for
     the database rows it is fitted on (their count from the manifests, their width from the features)
     is said before hours of description, not at the fit."""
-    import warnings
-
     from ..aggregation.pca import PCAWhitening
     from ..evaluation.postprocess import RowShape
     from ..methods.anyloc import VLADS, AnyLoc
-    from ..methods.anyloc_options import pca_datasets
+    from ..methods.anyloc_options import probe
     from ..methods.registry import method_entry
     from ..row_sources import DEFAULT_MEMORY_BUDGET, format_budget, format_bytes
 
-    entry, dataset = method_entry(cell.spec.method), cell.spec.dataset
-    options = {**entry.effective_defaults(), **cell.spec.options}  # a default is not written in a spec
-    if entry.factory is not AnyLoc or not options.get("pca_dim") or dataset.kind != "benchmark":
+    entry, names = method_entry(cell.spec.method), pca_stack(cell)
+    # the cell's features, nothing loaded (a default is not written in a spec); None: an option its run refuses
+    method = probe(AnyLoc, {**entry.effective_defaults(), **cell.spec.options}) if entry.factory is AnyLoc else None
+    if method is None or not names:
         return None
-    with warnings.catch_warnings():  # a preset's layer on another backbone: the same relative depth
-        warnings.simplefilter("ignore")
-        method = AnyLoc(**{**options, "vocabulary": "map"})  # the cell's features; nothing loads
-    dim = method.spec.width * (method.clusters if method.aggregation in VLADS else 1)
-    joint = pca_datasets(method.pca_on, dataset.name)
-    rows = sum(_database_count(name, dataset.protocol if name == dataset.name else None)
-               for name in (joint[1] if joint else [dataset.name]))
+    rows, dim = stack_images(cell, names), method.spec.width * (method.clusters if method.aggregation in VLADS else 1)
     need = PCAWhitening(method.pca_dim).exact_memory(RowShape({"count": rows, "dim": dim, "dtype": cell.spec.store_dtype}))
     budget = memory_budget or DEFAULT_MEMORY_BUDGET
     if need <= budget:
@@ -347,13 +352,10 @@ def missing_for(cell: Cell, row_weights, data_dir=None, cache_dir=None, given: d
     `memory_budget`: the run's)."""
     from ..datasets import dataset_location, dataset_manifest
     from ..datasets.download import how_to_get
-    from ..methods.anyloc_options import pca_datasets
 
     needs = []
     if cell.spec.dataset.kind == "benchmark":  # with the other databases its PCA is fitted on (pca_on = "domain")
-        joint = cell.spec.options.get("pca_dim") and pca_datasets(cell.spec.options.get("pca_on", "database"),
-                                                                  cell.spec.dataset.name)
-        for name in joint[1] if joint else [cell.spec.dataset.name]:
+        for name in pca_stack(cell) or [cell.spec.dataset.name]:
             manifest = dataset_manifest(name)
             if not dataset_location(manifest, data_dir).is_dir():
                 needs.append((f"dataset {name}", how_to_get(manifest, data_dir)))
