@@ -42,6 +42,11 @@ def _solver_memory(solver: str, n: int, d: int, dim: int) -> int:
     return 20 * d * min(d, n, 2 * dim)  # float32 basis, float64 product, and a float64 temporary or its QR
 
 
+def _exact_path(rows) -> str:
+    """The exact path on the smaller side: D x D when D <= N, else N x N."""
+    return "covariance" if rows.dim <= rows.row_count else "gram"
+
+
 def _flip(components: np.ndarray) -> None:
     """sklearn's svd_flip(u_based_decision=False), in place: each row's largest-|.| entry positive.
     Row by row: |components| at once would be one more dim x D matrix than the budget holds."""
@@ -78,14 +83,13 @@ class PCAWhitening:
     def solver(self, rows, memory_budget: int) -> str:
         """The exact path on the smaller side when it fits the budget (with one chunk of rows),
         else the randomized one."""
-        exact = "covariance" if rows.dim <= rows.row_count else "gram"
-        return exact if self.exact_memory(rows) <= memory_budget else "randomized"
+        return _exact_path(rows) if self.exact_memory(rows) <= memory_budget else "randomized"
 
     def exact_memory(self, rows) -> int:
         """The least budget the exact path on the smaller side takes (with one chunk of rows)."""
-        n, d = rows.row_count, rows.dim
-        exact = "covariance" if d <= n else "gram"
-        return _solver_memory(exact, n, d, self.dim) + ROW_COPIES * read_bytes_per_row(rows) * (2 if exact == "gram" else 1)
+        exact = _exact_path(rows)
+        return (_solver_memory(exact, rows.row_count, rows.dim, self.dim)
+                + ROW_COPIES * read_bytes_per_row(rows) * (2 if exact == "gram" else 1))
 
     def key(self, rows, memory_budget: int = DEFAULT_MEMORY_BUDGET) -> dict:
         """What defines the fitted state (its file name in the store folder)."""
