@@ -100,8 +100,9 @@ def joint_members(method, dataset, settings, ranks) -> list | None:
             use_dataset(method, member.name)
             if method.needs_fit:
                 raise VPRBenchError(
-                    f"{stacked(method.name, names)}, but it would fit a vocabulary on {member.name}'s own database (none shared by all of them is "
-                    "ready), so their descriptors would not be comparable: give it one vocabulary for all (a domain's: "
+                    f"{stacked(method.name, names)}, but it would fit a vocabulary on {member.name}'s own database "
+                    "(none shared by all of them is ready), so their descriptors would not be comparable: give it one "
+                    "vocabulary for all (a domain's: "
                     "`vprbench vocabulary fit --domain DOMAIN --method ...`), or fit the post-processor on the "
                     "evaluated database alone.")
     finally:
