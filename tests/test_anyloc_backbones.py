@@ -260,3 +260,36 @@ def test_a_timm_name_of_dinov3s_release_runs_as_the_release():
                                     "fair-noncommercial-research-license")):
         entry = backbone_spec(name)
         assert (entry.rope_periods, entry.licence, entry.gated) == (periods, licence, periods == "bfloat16")
+
+
+@pytest.mark.parametrize("name", ["dinov2_vits14", "dinov3_vits16"])  # a hook on the qkv linear; on the attention
+def test_two_threads_extract_through_one_model_each_its_own_facet(name):
+    """A thread's pass reaches the facet's block while another thread's extraction waits there with
+    its hook in place: each gets its own images' features."""
+    import threading
+
+    spec = backbone_spec(name)
+    torch.manual_seed(0)
+    model = create_model(spec, **TINY)
+    extract = DenseExtractor(model, spec, 1, "value")
+    first, second = (torch.randn(1, 3, 2 * spec.patch, 3 * spec.patch) for _ in range(2))
+    alone = [extract(images) for images in (first, second)]
+    waiting, passed, got = threading.Event(), threading.Event(), {}
+
+    def hold_second(_block, _args):  # the second thread waits at block 1, its extractor's hook set
+        if threading.current_thread().name == "second":
+            waiting.set()
+            assert passed.wait(30)
+
+    held = model.blocks[1].register_forward_pre_hook(hold_second)
+    other = threading.Thread(target=lambda: got.update(second=extract(second)), name="second")
+    other.start()
+    assert waiting.wait(30)
+    try:
+        got["first"] = extract(first)
+    finally:
+        passed.set()
+        other.join(30)
+        held.remove()
+    torch.testing.assert_close(got["first"], alone[0], rtol=0, atol=0)
+    torch.testing.assert_close(got["second"], alone[1], rtol=0, atol=0)

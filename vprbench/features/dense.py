@@ -8,6 +8,7 @@ blocks never run.
 from __future__ import annotations
 
 import math
+import threading
 
 import torch
 import torch.nn.functional as F
@@ -65,6 +66,7 @@ class DenseExtractor(nn.Module):
     `stride` < patch size runs overlapping patches (the DINO v1 extractor's stride 4).
     `head_interleaved` orders q/k/v channels as the DINO v1 extractor does (channel
     j*heads + h, i.e. dims within a head vary slowest); otherwise the natural [q|k|v] thirds.
+    Threads may share an extractor or its model: each pass's hook acts in its own thread only.
     """
 
     def __init__(self, model: nn.Module, spec: BackboneEntry, layer: int, facet: str, *,
@@ -128,11 +130,12 @@ class DenseExtractor(nn.Module):
         if self.facet == "token":
             out = block(x)
         else:
-            captured = {}
+            captured, caller = {}, threading.get_ident()
 
             def hook(_module, _inputs, output):
-                captured["qkv"] = output
-                raise _Stop
+                if threading.get_ident() == caller:  # not another thread's pass through a shared model
+                    captured["qkv"] = output
+                    raise _Stop
 
             handle = block.attn.qkv.register_forward_hook(hook)
             try:
@@ -174,11 +177,12 @@ class DenseExtractor(nn.Module):
                                                      return_prefix_tokens=self.num_prefix > 0)[0]
             patches, prefix = found if isinstance(found, tuple) else (found, None)
             return torch.cat([prefix, patches], dim=1) if keep_prefix and prefix is not None else patches
-        captured = {}
+        captured, caller = {}, threading.get_ident()
 
         def hook(attn, args, kwargs):
-            captured.update(attention_qkv(attn, args[0], kwargs.get("rope")))
-            raise _Stop
+            if threading.get_ident() == caller:  # not another thread's pass through a shared model
+                captured.update(attention_qkv(attn, args[0], kwargs.get("rope")))
+                raise _Stop
 
         handle = self.model.blocks[self.layer].attn.register_forward_pre_hook(hook, with_kwargs=True)
         try:
