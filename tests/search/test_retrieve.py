@@ -242,3 +242,32 @@ def test_transformed_rows_read_at_indices_within_their_read_cost():
     picked, peak = peak_of(lambda: rows.read_rows_at(indices))
     assert peak < 1.05 * (len(indices) * per_row + fixed), (peak, len(indices) * per_row + fixed)
     np.testing.assert_array_equal(picked[5000:7000], rows.read_rows(5000, 7000))
+
+
+def test_a_transform_holds_no_float64_copy_of_the_projection(monkeypatch):
+    """PCA's projection is applied in float64 a block at a time, within read_cost, and nothing of it is
+    kept: a float64 copy of all of it (201 MB at AnyLoc's 49,152 -> 512 dims) was held from the first
+    transform on, beside any search's budget."""
+    import tracemalloc
+
+    from vprbench.aggregation import pca as pca_module
+    from vprbench.evaluation import postprocess
+    from vprbench.evaluation.search import read_cost
+
+    db = unit(1000, 2048, 0)
+    pca, at_once = PCAWhitening(256).fit(db), PCAWhitening(256)  # its float64 projection: 4 MB
+    at_once.load_state(pca.state())
+    whole = TransformedRows(ArrayRows(db), at_once).read_rows(0, 1000)  # projected in one block
+    for module in (pca_module, postprocess):  # applied and counted a MiB at a time
+        monkeypatch.setattr(module, "PROJECTION_BLOCK_BYTES", 2**20)
+    tracemalloc.start()
+    try:
+        rows = TransformedRows(ArrayRows(db), pca)
+        got = rows.read_rows(0, 1000)
+        held, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert held < got.nbytes + 2**20, held
+    per_row, fixed = read_cost(rows)
+    assert peak < 1.05 * (len(got) * per_row + fixed), (peak, len(got) * per_row + fixed)
+    np.testing.assert_array_equal(got, whole)  # the blocks' sums are the whole projection's

@@ -31,6 +31,9 @@ PASSES = 10
 RANK_TOLERANCE = 1e-6
 #: a chunk (centred in place) and one product of at most its size
 ROW_COPIES = 2
+#: the projection is applied in float64 this many bytes of it at a time: a float64 copy of all of
+#: it (201 MB at AnyLoc's 49,152 -> 512 dims) were held beside whatever budget a search runs in
+PROJECTION_BLOCK_BYTES = 32 * 2**20
 
 
 def _solver_memory(solver: str, n: int, d: int, dim: int) -> int:
@@ -77,7 +80,6 @@ class PCAWhitening:
         self.dim, self.seed = int(dim), int(seed)
         self.mean: np.ndarray | None = None
         self.projection: np.ndarray | None = None  # (dim, D): components / sqrt(explained variance)
-        self._projection64: np.ndarray | None = None  # its float64 copy, made when first applied
 
     # ------------------------------------------------------------ planning
     def solver(self, rows, memory_budget: int) -> str:
@@ -143,7 +145,6 @@ class PCAWhitening:
         _flip(components)  # in place: the fits' own arrays, and a copy would be one matrix past the budget
         components /= np.sqrt(variances)[:, None]
         self.projection = components.astype(np.float32)
-        self._projection64 = None
         return self
 
     # ------------------------------------------------------------ applying
@@ -159,11 +160,12 @@ class PCAWhitening:
             raise VPRBenchError(
                 f"PCA was fitted on {self.projection.shape[1]}-dimensional descriptors, got shape {descriptors.shape}: "
                 "fit it on descriptors of this method, or load the state fitted on them.")
-        if self._projection64 is None:
-            self._projection64 = self.projection.astype(np.float64)
         centred = descriptors.astype(np.float64)
         centred -= self.mean
-        out = centred @ self._projection64.T
+        out = np.empty((len(centred), len(self.projection)))
+        step = max(1, PROJECTION_BLOCK_BYTES // (8 * self.projection.shape[1]))
+        for start in range(0, len(self.projection), step):  # by output columns: each value still sums a whole row
+            out[:, start:start + step] = centred @ self.projection[start:start + step].astype(np.float64).T
         del centred
         out /= np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
         return out.astype(np.float32)
@@ -186,7 +188,6 @@ class PCAWhitening:
         if not (np.isfinite(projection).all() and np.isfinite(mean).all()):
             raise VPRBenchError("Saved PCA state holds NaN or infinite values.")
         self.mean, self.projection = mean, projection
-        self._projection64 = None
 
 
 def _shifted(rows, chunk_rows: int):

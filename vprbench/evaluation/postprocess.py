@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..aggregation.pca import PROJECTION_BLOCK_BYTES
 from ..errors import VPRBenchError
 from ..fsutil import atomic_path, write_in_turn
 from ..hashing import exact_data
@@ -73,8 +74,10 @@ class TransformedRows:
                                                out[:len(block)], len(block)))
 
     def read_cost(self) -> tuple[int, int]:
-        # a tile read, padded, and computed in float64 (PCA-whitening does), with its output
-        return self.dim * 4, self.tile * (read_bytes_per_row(self.source) + 12 * self.source.dim + 20 * self.dim)
+        # a tile read, padded, and computed in float64 (PCA-whitening does), with its output, and a
+        # float64 block of PCA's projection
+        block = min(PROJECTION_BLOCK_BYTES, 8 * self.source.dim * self.dim)
+        return self.dim * 4, self.tile * (read_bytes_per_row(self.source) + 12 * self.source.dim + 20 * self.dim) + block
 
     def read_rows(self, start: int, stop: int) -> np.ndarray:
         out = np.empty((stop - start, self.dim), dtype=np.float32)
