@@ -51,7 +51,7 @@ def test_aqe_scores_closer_than_the_grid_tie_to_the_lower_database_index():
     np.testing.assert_allclose(found.scores[0], [1.0, 0.5, 0.5], atol=1e-6)
 
 
-@pytest.mark.parametrize("budget", [1_000_000, 2600])  # 2600 B: two blocks of two database rows
+@pytest.mark.parametrize("budget", [1_000_000, 5000])  # 5000 B: two blocks of two database rows
 def test_dba_excludes_each_image_itself_in_every_block(budget):
     """d0..d3 = (1, 0), (0.8, 0.6), (0, 1), (-0.6, 0.8); n = 1, alpha = 1: each is augmented by its nearest other
     (d1, d0, d3, d2, similarity 0.8 each), all four to norm 1.7088. For q = (0.6, 0.8) the scores are

@@ -174,12 +174,18 @@ def check_pair(database: RowSource, queries: RowSource, k: int) -> None:
         raise VPRBenchError(f"K = {k} must be between 1 and the {database.row_count} database rows; use a smaller --k.")
 
 
-def _plan(database, queries, k: int, budget: int) -> dict:
-    """Chunk rows (whole tiles) for the budget, or a clear error when it is too small. The
-    budget holds the candidates, one tile of scores, a chunk of queries and two chunks of the
-    database (one searched while the next is read); queries get the most, as every chunk of
-    queries is one more pass over the database."""
-    tile, dim = tile_rows(database.dim), database.dim
+class _Least(NamedTuple):
+    """What exact search holds whatever its budget: the candidates (`results`), and with the rest
+    (`fixed`) a tile of scores; `need` adds one tile of query rows and two of database rows."""
+    tile: int
+    keep: int
+    results: int
+    fixed: int
+    need: int
+
+
+def _least(database, queries, k: int) -> _Least:
+    tile = tile_rows(database.dim)
     (db_row, db_fixed), (q_row, q_fixed) = read_cost(database), read_cost(queries)
     n, q = int(database.row_count), int(queries.row_count)
     keep = min(n, k + EXTRA_CANDIDATES)
@@ -187,7 +193,23 @@ def _plan(database, queries, k: int, budget: int) -> dict:
     d_tile, q_tile = min(n, tile), min(q, tile)
     # a score tile, a trimmed copy of it, and the products being written into it (at most a tile)
     fixed = results + db_fixed + q_fixed + 3 * q_tile * d_tile * 4
-    need = fixed + 2 * d_tile * db_row + q_tile * q_row
+    return _Least(tile, keep, results, fixed, fixed + 2 * d_tile * db_row + q_tile * q_row)
+
+
+def least_budget(database, query_count: int, k: int) -> int:
+    """The least budget exact search of `query_count` float32 query rows held in memory takes."""
+    return _least(database, ArrayRows(np.broadcast_to(np.float32(0), (query_count, database.dim))), k).need
+
+
+def _plan(database, queries, k: int, budget: int) -> dict:
+    """Chunk rows (whole tiles) for the budget, or a clear error when it is too small. The
+    budget holds the candidates, one tile of scores, a chunk of queries and two chunks of the
+    database (one searched while the next is read); queries get the most, as every chunk of
+    queries is one more pass over the database."""
+    tile, keep, results, fixed, need = _least(database, queries, k)
+    dim, (db_row, _), (q_row, _) = database.dim, read_cost(database), read_cost(queries)
+    n, q = int(database.row_count), int(queries.row_count)
+    d_tile, q_tile = min(n, tile), min(q, tile)
     if budget < need:
         raise VPRBenchError(
             f"A memory budget of {format_bytes(budget)} is too small for this search: it must hold the top-{keep} "

@@ -12,8 +12,8 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from ..errors import VPRBenchError
-from ..evaluation.search import SCORE_TOLERANCE, exact_search
-from ..row_sources import ArrayRows
+from ..evaluation.search import SCORE_TOLERANCE, exact_search, least_budget
+from ..row_sources import ArrayRows, format_budget, format_bytes, read_bytes_per_row
 from .base import Candidates, RerankOptions, Stage, StageContext, progress_task, reordered
 
 
@@ -103,13 +103,12 @@ class DatabaseAugmentation(_Expansion):
         n, alpha, database = self.options.n, self.options.alpha, context.database
         needed = np.unique(candidates.indices)
         n += 1  # an image is its own nearest neighbour
+        block, search_budget = self._blocks(database, len(needed), n, context.memory_budget)
         augmented = np.empty((len(needed), database.dim), dtype=np.float32)
-        # blocks of at most BLOCK_ROWS, so progress moves during an 84k-image database's expansion
-        block = max(1, min(len(needed), BLOCK_ROWS, context.memory_budget // (8 * database.dim * (n + 1))))
         advance = progress_task(context, f"{self.name} augmenting database images", len(needed))
         for start in range(0, len(needed), block):
             rows = database.read_rows_at(needed[start:start + block])
-            found = exact_search(database, ArrayRows(rows), n, memory_budget=context.memory_budget)
+            found = exact_search(database, ArrayRows(rows), n, memory_budget=search_budget)
             for i, (row, neighbours) in enumerate(zip(rows, found.indices)):
                 others = _rows_at(database, neighbours[neighbours != needed[start + i]][: n - 1])
                 augmented[start + i] = _weighted(row, others, alpha)
@@ -119,3 +118,22 @@ class DatabaseAugmentation(_Expansion):
         for q in range(candidates.query_count):
             scores[q] = augmented[position[q]] @ context.queries.read_rows(q, q + 1)[0]
         return reordered(candidates.indices, scores, SCORE_TOLERANCE)
+
+    def _blocks(self, database, needed: int, n: int, budget: int) -> tuple[int, int]:
+        """(database images augmented per search of the database, that search's budget): the budget holds
+        the augmented rows until every query is scored, a block of rows with one row's n neighbours, and
+        the search. Blocks of at most BLOCK_ROWS, so progress moves during an 84k-image database's expansion."""
+        row, read = database.dim * 4, read_bytes_per_row(database)
+        held = needed * row + n * read
+        block = max(1, min(needed, BLOCK_ROWS, (budget - held) // (8 * database.dim * (n + 1))))
+        while block > 1 and budget - held - block * read < least_budget(database, block, n):
+            block //= 2
+        if budget - held - block * read < least_budget(database, block, n):
+            least = held + block * read + least_budget(database, block, n)
+            raise VPRBenchError(
+                f"Stage {self.name!r}: a memory budget of {format_bytes(budget)} is too small. It holds the {needed:,} "
+                f"augmented database rows of {database.dim:,} dims ({format_bytes(needed * row)}) until every query "
+                f"is scored, and a search of the database beside them: {format_bytes(least)} in all. Raise "
+                f"--search-memory to at least {format_budget(least)}, or re-rank fewer candidates (--rerank-k) or "
+                "descriptors of fewer dims.")
+        return block, budget - held - block * read

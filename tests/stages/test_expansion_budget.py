@@ -1,0 +1,51 @@
+"""Database-side augmentation within the memory budget: its augmented rows, a block of rows and its search
+of the database all fit, or the run is refused up front naming the budget it needs."""
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from traced import peak_of
+from vprbench import VPRBenchError
+from vprbench.row_sources import ArrayRows, parse_memory
+from vprbench.stages import Candidates
+from vprbench.stages.base import StageContext
+from vprbench.stages.registry import create_stage
+
+
+def unit_rows(rng, count: int) -> np.ndarray:
+    rows = rng.standard_normal((count, 64)).astype(np.float32)
+    return rows / np.linalg.norm(rows, axis=1, keepdims=True)
+
+
+@pytest.fixture(scope="module")
+def searched():
+    rng = np.random.default_rng(0)
+    database, queries = unit_rows(rng, 2000), unit_rows(rng, 10)
+    indices = np.stack([rng.choice(2000, 40, replace=False) for _ in queries]).astype(np.int64)
+    return database, queries, Candidates(indices, np.zeros(indices.shape, dtype=np.float32))
+
+
+def dba(searched, budget: int) -> Candidates:
+    database, queries, candidates = searched
+    context = StageContext(dataset=None, database=ArrayRows(database), queries=ArrayRows(queries), memory_budget=budget)
+    return create_stage("dba", {"k": 40, "n": 5, "alpha": 3.0}).apply(candidates, context)
+
+
+def test_dba_runs_within_the_budget_it_says_it_needs(searched):
+    """The need it names is enough, and the run at it stays within it with the same ranking as with room to
+    spare. Blocks were sized without the search beside them, which then refused the budget for a block's
+    "queries", or held the augmented rows beyond it."""
+    with pytest.raises(VPRBenchError, match=r"Stage 'dba': a memory budget of 1\.0 MB is too small\. It holds the "
+                                            r"362 augmented database rows of 64 dims \(92\.7 kB\)") as refused:
+        dba(searched, 1_000_000)
+    need = parse_memory(re.search(r"at least (\S+ \S+),", str(refused.value)).group(1))
+    roomy = dba(searched, 1 << 30)  # first: a first search's imports are not the stage's
+    found, peak = peak_of(lambda: dba(searched, need))
+    assert peak <= need, (peak, need)
+    np.testing.assert_array_equal(found.indices, roomy.indices)
+    np.testing.assert_array_equal(found.scores, roomy.scores)
+    found, peak = peak_of(lambda: dba(searched, 3_000_000))
+    assert peak <= 3_000_000 and np.array_equal(found.indices, roomy.indices)
