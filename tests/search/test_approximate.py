@@ -1,4 +1,5 @@
 """Approximate indexes (IVF-PQ, HNSW): their measured recall loss and the options refused."""
+import functools
 import json
 
 import numpy as np
@@ -7,6 +8,7 @@ import pytest
 from vprbench.errors import VPRBenchError
 from vprbench.evaluation.search import exact_search
 from vprbench.evaluation.retrieve import retrieve
+from vprbench.row_sources import parse_memory
 from search_rows import h5_rows
 
 
@@ -146,3 +148,30 @@ def test_an_approximate_search_at_a_tight_budget_holds_one_chunk_of_rows(kind):
     # to add 17.2 MB), so its chunks leave room for that
     residual = 4 * d if kind == "ivf-pq" else 0
     assert found.info["chunk_rows"] * (4 * d + residual) <= budget - index_bytes
+
+
+def test_the_exact_searches_beside_the_answers_fit_the_budget_or_are_refused_before_the_build(monkeypatch):
+    """Queries searched exactly (the recall check, short shortlists) run beside the answers kept, within the
+    budget: one too small for them is refused before the index is built, naming the budget they need (it
+    took the whole budget again after the build, and refused it only then), and that budget is enough."""
+    import re
+
+    from traced import peak_of
+
+    import vprbench.evaluation.approximate as approximate
+    from vprbench.evaluation.search import ArrayRows
+
+    db, queries = ArrayRows(clustered(3000, 256, 0)), ArrayRows(clustered(300, 256, 1))
+    search = functools.partial(approximate.approximate_search, db, queries, 5, kind="hnsw")
+    search(memory_budget=1 << 30)  # faiss's and the products' first-call memory is no part of a search's
+    built = approximate._build
+    monkeypatch.setattr(approximate, "_build", lambda *args: pytest.fail("the index was built"))
+    with pytest.raises(VPRBenchError, match=r"the exact search of 200 queries that checks its recall, beside the "
+                                            r"answers, 13\.\d MB\. Raise --search-memory") as refused:
+        search(memory_budget=8_000_000)
+    need = parse_memory(re.search(r"at least (\S+ \S+),", str(refused.value)).group(1))
+    monkeypatch.setattr(approximate, "_build", built)
+    found, peak = peak_of(lambda: search(memory_budget=need))
+    index_bytes = found.info["index_bytes"]
+    assert peak <= need - index_bytes, (peak, need - index_bytes)  # faiss's index is untraced
+    assert found.info["recall_loss"]["queries"] == 200

@@ -10,9 +10,9 @@ import time
 import numpy as np
 
 from ..errors import VPRBenchError
-from ..row_sources import READ_BYTES, ArrayRows, RowSource, chunks, format_bytes
-from .search import (AllZero, SearchResult, TIE_ORDER, check_finite, check_pair, exact_search, order_results,
-                     read_cost, rounded_scores, zero_rows)
+from ..row_sources import READ_BYTES, ArrayRows, RowSource, chunks, format_budget, format_bytes
+from .search import (AllZero, SearchResult, TIE_ORDER, check_finite, check_pair, exact_search, least_budget,
+                     order_results, read_cost, rounded_scores, zero_rows)
 
 APPROXIMATE = ("ivf-pq", "hnsw")
 #: faiss's k-means wants at least 39 training points per centroid
@@ -148,12 +148,17 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
     per_query = q_row + o["shortlist"] * (row_bytes + 12)
     training = o["train_rows"] * (row_bytes + _residual_bytes(kind, dim))
     need = training + fixed + index_bytes + q_fixed + n_queries * k * 12 + per_query
-    if memory_budget < need:
+    # then, beside the answers: queries searched exactly (short shortlists, the recall check), a batch at a time
+    held, batch = n_queries * k * 12, min(n_queries, o["recall_queries"])
+    exact_need = held + batch * q_row + q_fixed + least_budget(database, batch, k)
+    if memory_budget < max(need, exact_need):
         raise VPRBenchError(
             f"A memory budget of {format_bytes(memory_budget)} is too small for index={kind!r} on {n:,} rows of {dim:,} "
             f"dims: the index takes about {format_bytes(index_bytes)}, its training sample of {o['train_rows']:,} rows "
-            f"(and faiss's work on it) {format_bytes(training)}, {format_bytes(need)} in all. Raise --search-memory "
-            "(memory_budget) to at least that, or lower train_rows / pq_m.")
+            f"(and faiss's work on it) {format_bytes(training)}, {format_bytes(need)} in all; the exact search of "
+            f"{batch:,} queries that checks its recall, beside the answers, {format_bytes(exact_need)}. Raise "
+            f"--search-memory (memory_budget) to at least {format_budget(max(need, exact_need))}, or lower train_rows / "
+            "pq_m / recall_queries.")
     started = time.perf_counter()
     index, chunk_rows, zero_database = _build(kind, database, o, memory_budget - index_bytes)
     build_s = time.perf_counter() - started
@@ -184,26 +189,33 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
             scores[q0 + i], indices[q0 + i] = s[0, :k], c[0, :k]
         del block, rows  # the budget holds one chunk's shortlist rows, not this and the next
     del index
-    if short:  # honest fallback: those queries are searched exactly
-        fallback = exact_search(database, ArrayRows(queries.read_rows_at(np.array(short))), k, memory_budget=memory_budget)
-        scores[short], indices[short] = fallback.scores, fallback.indices
+    for start in range(0, len(short), batch):  # honest fallback: those queries are searched exactly
+        some = np.array(short[start:start + batch])
+        scores[some], indices[some] = _exact(database, queries, some, k, memory_budget - held)
     query_s = time.perf_counter() - started
 
     info = {"index": kind, "memory_budget": int(memory_budget), "options": o, "index_bytes": index_bytes,
             "chunk_rows": int(chunk_rows), "chunks": -(-n // chunk_rows), "query_chunk_rows": int(min(q_chunk, n_queries)),
             "query_chunks": -(-n_queries // q_chunk), "exact_fallback_queries": len(short),
             "build_s": round(build_s, 3), "query_s": round(query_s, 3), "tie_order": TIE_ORDER,
-            "recall_loss": recall_loss(database, queries, k, indices, o, memory_budget)}
+            "recall_loss": recall_loss(database, queries, k, indices, o, memory_budget - held)}
     return SearchResult(scores, indices, info, AllZero(zero_queries, zero_database))
 
 
+def _exact(database: RowSource, queries: RowSource, picked: np.ndarray, k: int, budget: int):
+    """(scores, indices) of exact search for the queries at `picked`, their rows read within `budget`."""
+    rows = queries.read_rows_at(picked)
+    found = exact_search(database, ArrayRows(rows), k, memory_budget=budget - rows.nbytes - read_cost(queries)[1])
+    return found.scores, found.indices
+
+
 def recall_loss(database: RowSource, queries: RowSource, k: int, indices: np.ndarray, o: dict, budget: int) -> dict:
-    """Agreement with exact search on a seeded sample of queries: the share whose top-1 is the
-    exact top-1, and the mean share of the exact top-k found."""
+    """Agreement with exact search on a seeded sample of queries (searched within `budget`): the share
+    whose top-1 is the exact top-1, and the mean share of the exact top-k found."""
     n_queries = queries.row_count
     sample = np.sort(np.random.default_rng(o["seed"]).choice(n_queries, min(n_queries, o["recall_queries"]),
                                                               replace=False))
-    exact = exact_search(database, ArrayRows(queries.read_rows_at(sample)), k, memory_budget=budget).indices
+    exact = _exact(database, queries, sample, k, budget)[1]
     approx = indices[sample]
     overlap = np.mean([len(np.intersect1d(a, e)) / k for a, e in zip(approx, exact)])
     agreement = float(np.mean(approx[:, 0] == exact[:, 0]))
