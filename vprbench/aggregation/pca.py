@@ -32,7 +32,7 @@ RANK_TOLERANCE = 1e-6
 #: a chunk (centred in place) and one product of at most its size
 ROW_COPIES = 2
 #: the projection is applied in float64 this many bytes of it at a time: a float64 copy of all of
-#: it (201 MB at AnyLoc's 49,152 -> 512 dims) were held beside whatever budget a search runs in
+#: it (201 MB at AnyLoc's 49,152 -> 512 dims) would sit beside whatever budget a search runs in
 PROJECTION_BLOCK_BYTES = 32 * 2**20
 
 

@@ -182,6 +182,10 @@ class _Least(NamedTuple):
     results: int
     fixed: int
     need: int
+    d_tile: int
+    q_tile: int
+    db_row: int
+    q_row: int
 
 
 def _least(database, queries, k: int) -> _Least:
@@ -193,7 +197,7 @@ def _least(database, queries, k: int) -> _Least:
     d_tile, q_tile = min(n, tile), min(q, tile)
     # a score tile, a trimmed copy of it, and the products being written into it (at most a tile)
     fixed = results + db_fixed + q_fixed + 3 * q_tile * d_tile * 4
-    return _Least(tile, keep, results, fixed, fixed + 2 * d_tile * db_row + q_tile * q_row)
+    return _Least(tile, keep, results, fixed, fixed + 2 * d_tile * db_row + q_tile * q_row, d_tile, q_tile, db_row, q_row)
 
 
 def least_budget(database, query_count: int, k: int) -> int:
@@ -206,10 +210,8 @@ def _plan(database, queries, k: int, budget: int) -> dict:
     budget holds the candidates, one tile of scores, a chunk of queries and two chunks of the
     database (one searched while the next is read); queries get the most, as every chunk of
     queries is one more pass over the database."""
-    tile, keep, results, fixed, need = _least(database, queries, k)
-    dim, (db_row, _), (q_row, _) = database.dim, read_cost(database), read_cost(queries)
-    n, q = int(database.row_count), int(queries.row_count)
-    d_tile, q_tile = min(n, tile), min(q, tile)
+    tile, keep, results, fixed, need, d_tile, q_tile, db_row, q_row = _least(database, queries, k)
+    dim, n, q = database.dim, int(database.row_count), int(queries.row_count)
     if budget < need:
         raise VPRBenchError(
             f"A memory budget of {format_bytes(budget)} is too small for this search: it must hold the top-{keep} "
