@@ -93,6 +93,23 @@ class PCAWhitening:
         return (_solver_memory(exact, rows.row_count, rows.dim, self.dim)
                 + ROW_COPIES * read_bytes_per_row(rows) * (2 if exact == "gram" else 1))
 
+    def check_budget(self, rows, memory_budget: int) -> tuple[str, int]:
+        """(solver, rows per chunk) of a fit on `rows` (a row source, or only its shape) within the budget, or
+        a clear error when even the randomized path does not fit: said before the rows are described."""
+        n, d, budget = rows.row_count, rows.dim, parse_memory(memory_budget)
+        solver = self.solver(rows, budget)
+        held = _solver_memory(solver, n, d, self.dim)
+        row_cost = ROW_COPIES * read_bytes_per_row(rows)
+        blocks = 2 if solver == "gram" else 1  # the Gram path holds two chunks
+        chunk_rows = min(READ_BYTES // row_cost, (budget - held) // (row_cost * blocks))
+        if chunk_rows < 1:
+            raise VPRBenchError(
+                f"A memory budget of {format_bytes(budget)} is too small to fit PCA-whitening of {n:,} x {d:,} "
+                f"descriptors to {self.dim} dims: its {solver} path needs at least "
+                f"{format_budget(held + row_cost * blocks)}, the exact one {format_budget(self.exact_memory(rows))}. "
+                "Raise --search-memory (memory_budget).")
+        return solver, int(chunk_rows)
+
     def key(self, rows, memory_budget: int = DEFAULT_MEMORY_BUDGET) -> dict:
         """What defines the fitted state (its file name in the store folder)."""
         solver = self.solver(rows, memory_budget)
@@ -119,21 +136,11 @@ class PCAWhitening:
             raise VPRBenchError(
                 f"PCA dimension {self.dim} is larger than the number of database images ({n}) less one or the "
                 f"descriptor dimension ({d}): {do}.")
-        solver = self.solver(rows, budget)
-        held = _solver_memory(solver, n, d, self.dim)
-        row_cost = ROW_COPIES * read_bytes_per_row(rows)
-        blocks = 2 if solver == "gram" else 1  # the Gram path holds two chunks
-        chunk_rows = min(READ_BYTES // row_cost, (budget - held) // (row_cost * blocks))
-        exact = format_budget(self.exact_memory(rows))  # the authors' sklearn PCA is exact
-        if chunk_rows < 1:
-            raise VPRBenchError(
-                f"A memory budget of {format_bytes(budget)} is too small to fit PCA-whitening of {n:,} x {d:,} "
-                f"descriptors to {self.dim} dims: its {solver} path needs at least "
-                f"{format_budget(held + row_cost * blocks)}, the exact one {exact}. Raise --search-memory (memory_budget).")
-        if solver == "randomized":
+        solver, chunk_rows = self.check_budget(rows, budget)
+        if solver == "randomized":  # the authors' sklearn PCA is exact
             warnings.warn(f"PCA-whitening of {n:,} x {d:,} descriptors is fitted by randomized subspace iteration "
-                          f"(approximate) within the {format_bytes(budget)} memory budget; a budget of {exact} "
-                          "(--search-memory) fits it exactly.", stacklevel=2)
+                          f"(approximate) within the {format_bytes(budget)} memory budget; a budget of "
+                          f"{format_budget(self.exact_memory(rows))} (--search-memory) fits it exactly.", stacklevel=2)
         fit = {"covariance": _fit_covariance, "gram": _fit_gram, "randomized": _fit_randomized}[solver]
         mean, components, variances = fit(rows, self.dim, int(chunk_rows), self.seed)
         floor = RANK_TOLERANCE * max(variances[0], 1e-300)

@@ -14,6 +14,7 @@ from ..distributed import Ranks
 from ..errors import VPRBenchError, require
 from ..progress import phase
 from ..registration import source_of
+from ..row_sources import DEFAULT_MEMORY_BUDGET
 from ..methods.attributes import set_attributes
 from ..methods.objects import check_method
 from ..methods.registry import checked_run_options
@@ -22,7 +23,7 @@ from .extract import describe_splits
 from .identity import protocol_of
 from .joint import describe_members, joint_members
 from .metrics import check_ks
-from .postprocess import check_database_size
+from .postprocess import check_database_size, check_fit_budget
 from .record import result_record
 from .retrieve import check_compare, retrieve
 from ..stages.base import Candidates, StageContext
@@ -87,7 +88,6 @@ def stage_context(spec: RunSpec, settings: RunSettings, method, dataset, describ
     """What stages see: the dataset and the retriever's descriptors as its search saw them (post-processed
     as fitted on `fit_on`, several databases stacked, when the search's was)."""
     from ..loader import resolve_device
-    from ..row_sources import DEFAULT_MEMORY_BUDGET
     from .postprocess import postprocessed
 
     budget = settings.memory_budget or DEFAULT_MEMORY_BUDGET
@@ -180,7 +180,9 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
         store_dtype=spec.store_dtype, workers=workers, lock_timeout=settings.lock_timeout, ranks=ranks,
         progress=progress, settings=spec.options)  # keyed as the spec: one run, one store
     fit_on, joint, t = None, None, time.perf_counter()
-    if members is not None:  # every rank describes its share of each
+    if members is not None:  # every rank describes its share of each, once the stack's fit is known to fit
+        stacked, budget = sum(len(m.database) for m in members), settings.memory_budget or DEFAULT_MEMORY_BUDGET
+        ranks.on_zero(lambda: check_fit_budget(method, stacked, described.stores["database"], budget))
         fit_on, joint = describe_members(spec, settings, method, dataset, members, described, workers=workers,
                                          ranks=ranks, progress=progress)
     if described.stores is None:  # not rank 0: its shard is written; rank 0 evaluates

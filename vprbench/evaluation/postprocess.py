@@ -233,6 +233,15 @@ def check_database_size(method, rows: int, where: str) -> None:
             post.check_rows(rows, where)
 
 
+def check_fit_budget(method, rows: int, described: RowSource, memory_budget: int) -> None:
+    """Before more databases are described for it: a post-processor whose fit on `rows` rows like
+    `described` (its width and dtype) does not fit the budget is refused (its `check_budget`)."""
+    post = postprocessor_of(method)
+    if post is not None and hasattr(post, "check_budget"):
+        with in_postprocessor(post, "check_budget"):
+            post.check_budget(RowShape({"count": rows, "dim": described.dim, "dtype": described.dtype}), memory_budget)
+
+
 def postprocessed(method, database: RowSource, queries: RowSource, memory_budget: int, state_folder=None,
                   fit_on: RowSource | None = None):
     """(database, queries, info): both row sources as `method` post-processes them (its
