@@ -235,7 +235,8 @@ def test_budget_too_small_names_what_it_must_hold_and_the_option():
     with pytest.raises(VPRBenchError, match=r"memory budget of 1\.0 MB is too small for this search: it must hold "
                                              r"the top-36 candidates of 3,000 queries \(1\.3 MB\) plus a tile of 3000 "
                                              r"query rows, two tiles of 4096 database rows of 128 dims.*"
-                                             r"Raise --search-memory \(memory_budget\) to at least 154\.5 MB"):
+                                             r"154\.5 MB in all\. Raise --search-memory \(memory_budget\) to at least "
+                                             r"160\.0 MB"):
         exact_search(db, q, 20, memory_budget="1MB")
     with pytest.raises(VPRBenchError, match="K = 6000 must be between 1 and the 5000 database rows"):
         exact_search(db, q, 6000)
@@ -250,3 +251,13 @@ def test_memory_sizes(text, value):
     assert parse_memory(text) == value
 
 
+def test_the_budget_a_refusal_names_is_one_the_search_runs_in():
+    """The least budget was named rounded to one decimal, often below it (29.9 MB for 29,902,716
+    bytes): a run given it was refused again."""
+    import re
+
+    db, q = unit(3000, 64, 11), unit(777, 64, 12)
+    with pytest.raises(VPRBenchError, match="too small for this search") as refused:
+        exact_search(db, q, 5, memory_budget="1MB")
+    named = re.search(r"to at least ([0-9.]+ [kMG]B)\.", str(refused.value)).group(1)
+    assert exact_search(db, q, 5, memory_budget=named.replace(" ", "")).indices.shape == (777, 5)

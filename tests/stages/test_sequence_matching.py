@@ -1,5 +1,6 @@
 """SeqSLAM and the descriptor-sequence score: against plain loops over their definitions,
 blocks against one block, traverse orders, and memory within the budget."""
+import re
 from fractions import Fraction
 
 import numpy as np
@@ -7,6 +8,7 @@ import pytest
 
 from traced import peak_of
 from vprbench.errors import VPRBenchError
+from vprbench.row_sources import parse_memory
 from vprbench.stages.sequence.matching import (enhance, query_offsets, second_best, top_k, trajectories,
                                                trajectory_costs, velocities)
 from vprbench.stages.sequence.search import sequence_search
@@ -23,6 +25,11 @@ def traverse(n_places=120, dim=32, noise=0.9, seed=0):
     queries = route + noise * np.linalg.norm(route, axis=1, keepdims=True) / np.sqrt(dim) * rng.standard_normal(route.shape)
     queries /= np.linalg.norm(queries, axis=1, keepdims=True)
     return database.astype(np.float32), queries.astype(np.float32)
+
+
+def named_budget(error) -> int:
+    """The least budget a refusal names ("to at least 75.0 MB"), in bytes."""
+    return parse_memory(re.search(r"to at least ([0-9.]+ [kMG]B)", str(error)).group(1).replace(" ", ""))
 
 
 def naive_enhance(d, window):
@@ -201,7 +208,57 @@ def test_a_tight_budget_holds_one_database_chunk_and_the_query_rows(monkeypatch)
     database, queries = traverse(600, dim=8192)
     queries = queries[:200]
     n, dim, span = len(database), database.shape[1], len(query_offsets(10, "offline")) - 1
-    budget = 4 * 2**20 + 200 * 128 + span * (4 * n + 8 * dim) + 10 * (search.BYTES_PER_CELL * n + 8 * dim)
+    row = search.BYTES_PER_CELL * n + 8 * dim
+    budget = 4 * 2**20 + 200 * (12 * 5 + 128) + span * (4 * n + 8 * dim) + 10 * row
     found, peak = peak_of(lambda: sequence_search(database, queries, 5, length=10, memory_budget=budget))
     assert peak < budget, (peak, budget)
     assert found.info["blocks"] == 20  # ten query rows a block, as the budget was made for
+
+
+def test_many_queries_top_k_are_held_within_the_budget_or_refused_naming_one_that_holds_them():
+    """Many queries, a deep K and a small database: every query's top K (and, at the end, the results
+    put in query order beside them) went uncounted beside blocks sized to the whole budget (3.6 x a
+    20 MB budget at 20,000 queries x K = 100)."""
+    database, _ = traverse(300, dim=8)
+    queries = np.tile(traverse(300, dim=8)[1], (67, 1))[:20_000]
+    sequence_search(database, queries[:300], 100, score="diagonal", length=1)  # a warm-up, as below
+    with pytest.raises(VPRBenchError, match="top 100 of 20,000 queries") as refused:
+        sequence_search(database, queries, 100, score="diagonal", length=1, memory_budget=20_000_000)
+    named = named_budget(refused.value)
+    found, peak = peak_of(lambda: sequence_search(database, queries, 100, score="diagonal", length=1,
+                                                  memory_budget=named))
+    assert found.indices.shape == (20_000, 100) and peak < named, (peak, named)
+
+
+def test_post_processed_rows_are_read_within_the_budget_or_refused_naming_one_that_holds_them():
+    """A stage's rows post-processed as the search's (PCA-whitening, transformed a tile at a time as
+    they are read): the transform's tile, its float64 copies and a block of the projection went
+    uncounted beside blocks sized to the whole budget (1.2 x a 60 MB budget at 4,096 -> 256 dims)."""
+    from vprbench.aggregation.pca import PCAWhitening
+    from vprbench.evaluation.postprocess import TransformedRows
+    from vprbench.row_sources import ArrayRows
+
+    rng = np.random.default_rng(5)
+    database, queries = (rng.standard_normal((1000, 4096)).astype(np.float32) for _ in range(2))
+    pca = PCAWhitening(256).fit(database, "2GB")
+    database, queries = TransformedRows(ArrayRows(database), pca), TransformedRows(ArrayRows(queries), pca)
+    sequence_search(database, queries, 5, length=3)  # a warm-up: nothing first-time in the traced calls
+    with pytest.raises(VPRBenchError, match="too small for sequence matching") as refused:
+        sequence_search(database, queries, 5, length=10, memory_budget=60_000_000)
+    named = named_budget(refused.value)
+    found, peak = peak_of(lambda: sequence_search(database, queries, 5, length=10, memory_budget=named))
+    assert found.indices.shape == (1000, 5) and peak < named, (peak, named)
+
+
+def test_seqslam_at_the_least_budget_it_names_enhances_the_windows_rows_within_it():
+    """A long database and blocks of a few queries: SeqSLAM enhances the window's extra rows too (float64
+    copies and running sums), which were counted as one cost row each, so the least budget a refusal
+    named was 1.25 x exceeded (at 20,000 database images, a window of 10)."""
+    rng = np.random.default_rng(6)
+    database, queries = (rng.standard_normal((rows, 64)).astype(np.float32) for rows in (20_000, 300))
+    sequence_search(database[:100], queries[:30], 5, length=10)  # a warm-up: nothing first-time in the traced call
+    with pytest.raises(VPRBenchError, match="too small for sequence matching") as refused:
+        sequence_search(database, queries, 5, length=10, memory_budget=1000)
+    named = named_budget(refused.value)
+    found, peak = peak_of(lambda: sequence_search(database, queries, 5, length=10, memory_budget=named))
+    assert found.info["block_rows"] < 10 and peak < named, (peak, named, found.info["block_rows"])

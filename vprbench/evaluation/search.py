@@ -28,8 +28,8 @@ import numpy as np
 from ..errors import VPRBenchError
 from ..features.allocator import keep_freed_memory
 from ..loader import ZERO_LENGTH
-from ..row_sources import (DEFAULT_MEMORY_BUDGET, READ_BYTES, ArrayRows, RowSource, as_rows, format_bytes,
-                    parse_memory, read_bytes_per_row)
+from ..row_sources import (DEFAULT_MEMORY_BUDGET, READ_BYTES, ArrayRows, RowSource, as_rows, format_budget,
+                    format_bytes, parse_memory, read_bytes_per_row)
 from .chunks import Chunk, ChunkReader, tile_rows
 
 INDEXES = ("exact", "ivf-pq", "hnsw")
@@ -217,7 +217,7 @@ def _plan(database, queries, k: int, budget: int) -> dict:
             f"A memory budget of {format_bytes(budget)} is too small for this search: it must hold the top-{keep} "
             f"candidates of {q:,} queries ({format_bytes(results)}) plus a tile of {q_tile} query rows, two tiles of "
             f"{d_tile} database rows of {dim:,} dims and their scores ({format_bytes(need - results)}), "
-            f"{format_bytes(need)} in all. Raise --search-memory (memory_budget) to at least {format_bytes(need)}.")
+            f"{format_bytes(need)} in all. Raise --search-memory (memory_budget) to at least {format_budget(need)}.")
     avail = budget - fixed
     q_tiles = max(1, (avail - 2 * d_tile * db_row) // (q_tile * q_row))
     q_chunk = min(q, q_tiles * q_tile)

@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ...errors import VPRBenchError
-from ...evaluation.search import check_finite, rounded_scores
-from ...row_sources import DEFAULT_MEMORY_BUDGET, READ_BYTES, as_rows, chunks, format_bytes, parse_memory
+from ...evaluation.search import check_finite, read_cost, rounded_scores
+from ...row_sources import DEFAULT_MEMORY_BUDGET, READ_BYTES, as_rows, chunks, format_budget, format_bytes, parse_memory
 from .matching import (SEQSLAM_DEFAULTS, enhance, query_offsets, second_best, top_k, trajectories,
                        trajectory_costs, velocities)
 
@@ -26,6 +26,12 @@ COMPARES = ("cosine", "mean-absolute-difference")
 #: bytes per database column held for each query row of a block: cost row, enhancement's float64
 #: temporaries, the trajectory sums, their mean and the best (measured peak about 60 N per row)
 BYTES_PER_CELL = 96
+#: bytes per query and candidate once the blocks are done: its index and cost, its score, and the
+#: results in query order (indices, scores, and a copy of each while they are placed)
+RESULT_BYTES = 36
+#: bytes per database column of a window's extra row under SeqSLAM: its cost row, the enhancement's
+#: float64 copy, means, deviations and running sums, and the enhanced row
+ENHANCED_BYTES_PER_CELL = 48
 
 
 @dataclass
@@ -65,19 +71,29 @@ def cost_rows(queries: np.ndarray, database, database_order: np.ndarray, score: 
     return enhance(out, enhance_window) if score == "seqslam" else out
 
 
-def plan_blocks(n_queries: int, n_database: int, dim: int, span: int, budget: int) -> int:
-    """Query rows per block within `budget`: each costs BYTES_PER_CELL per database image, the
-    window's extra rows one cost row each, and every row its descriptor twice (read, then put in
-    traverse order); one chunk of database rows is read at a time."""
-    reading = min(READ_BYTES, n_database * dim * 4)
-    fixed = reading + n_queries * 64 * 2  # the reduced results (top K, a little per query)
-    per_row = BYTES_PER_CELL * n_database + 8 * dim
-    rows = (budget - fixed - span * (4 * n_database + 8 * dim)) // per_row
-    if rows < 1:
-        need = fixed + span * (4 * n_database + 8 * dim) + per_row
+def plan_blocks(database, queries, span: int, budget: int, k: int, chunk_rows: int, enhanced: bool) -> int:
+    """Query rows per block within `budget`: each costs BYTES_PER_CELL per database image
+    and its descriptor twice (read, then put in traverse order); the window's
+    extra rows a cost row each, or ENHANCED_BYTES_PER_CELL once the database is read (`enhanced`:
+    SeqSLAM enhances them too). Rows cost what `read_cost` says (a post-processed source transforms
+    as it reads), the database read `chunk_rows` at a time. Beside them every query's top `k`, and
+    once the blocks are done RESULT_BYTES per candidate."""
+    n_queries, n_database, dim = queries.row_count, database.row_count, database.dim
+    (db_row, db_fixed), (q_row, q_fixed) = read_cost(database), read_cost(queries)
+    reading = max(chunk_rows * db_row + db_fixed, q_fixed)  # query rows are read before the database's
+    held = n_queries * (12 * k + 128)  # the top K (int64 index, float32 cost) and a little per query
+    per_row = BYTES_PER_CELL * n_database + q_row + 4 * dim
+    # the window's extra rows beside a database chunk as they are computed, then (SeqSLAM) enhanced
+    extra = max(reading + span * (4 * n_database + q_row + 4 * dim),
+                span * (ENHANCED_BYTES_PER_CELL * n_database + q_row + 4 * dim) if enhanced else 0)
+    rows = (budget - held - extra) // per_row
+    final = n_queries * (RESULT_BYTES * k + 128)
+    if rows < 1 or budget < final:
+        need = max(held + extra + per_row, final)
         raise VPRBenchError(f"A memory budget of {format_bytes(budget)} is too small for sequence matching against "
-                            f"{n_database:,} database images: one block needs {format_bytes(need)}. Raise "
-                            f"--search-memory (memory_budget) to at least {format_bytes(need)}.")
+                            f"{n_database:,} database images: one block and the top {k} of {n_queries:,} queries need "
+                            f"{format_bytes(need)}. Raise --search-memory (memory_budget) to at least "
+                            f"{format_budget(need)}.")
     return int(min(rows, n_queries))
 
 
@@ -110,9 +126,9 @@ def sequence_search(database, queries, k: int, *, score: str = "seqslam", compar
     speeds = velocities(v_min, v_max, v_step) if score == "seqslam" else velocities(1, 1, 1)
     paths = trajectories(offsets, speeds)
     budget = parse_memory(memory_budget)
-    block = plan_blocks(q, n, database.dim, len(offsets) - 1, budget)
     chunk_rows = max(1, min(n, READ_BYTES // (4 * database.dim)))
     k = min(int(k), n)
+    block = plan_blocks(database, queries, len(offsets) - 1, budget, k, chunk_rows, score == "seqslam")
     indices = np.empty((q, k), dtype=np.int64)
     costs = np.empty((q, k), dtype=np.float32)
     second = np.full(q, np.inf, dtype=np.float32)
