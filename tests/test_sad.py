@@ -110,3 +110,16 @@ def test_a_matrix_or_a_run_of_sad_with_an_approximate_index_is_refused_before_an
         assert not (cache / "stores").exists() and not (cache / "results").exists(), methods
     with pytest.raises(VPRBenchError, match="only exact search does; drop --index hnsw"):
         resolve_spec("sad", "corridor", search="hnsw")
+
+
+def test_a_budget_too_small_for_sads_search_names_a_comparison_not_sequence_matching():
+    """sad's retrieval is the sequence search with sequences of one frame: its refusal said "sequence
+    matching", which a run without a sequence stage does not do."""
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(0)
+    database, queries = (rng.random((50, 16), dtype=np.float32) for _ in range(2))
+    sad = SimpleNamespace(name="sad", compare="mean-absolute-difference")
+    with pytest.raises(VPRBenchError, match=r"too small for comparing queries against 50 database images: .* Raise "
+                                            r"--search-memory"):
+        retrieve(sad, database, queries, 5, memory_budget=10_000)

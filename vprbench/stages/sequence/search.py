@@ -90,7 +90,8 @@ def plan_blocks(database, queries, span: int, budget: int, k: int, chunk_rows: i
     final = n_queries * (RESULT_BYTES * k + 128)
     if rows < 1 or budget < final:
         need = max(held + extra + per_row, final)
-        raise VPRBenchError(f"A memory budget of {format_bytes(budget)} is too small for sequence matching against "
+        what = "sequence matching" if span else "comparing queries"  # sequences of one frame: a distance search
+        raise VPRBenchError(f"A memory budget of {format_bytes(budget)} is too small for {what} against "
                             f"{n_database:,} database images: one block and the top {k} of {n_queries:,} queries need "
                             f"{format_bytes(need)}. Raise --search-memory (memory_budget) to at least "
                             f"{format_budget(need)}.")
