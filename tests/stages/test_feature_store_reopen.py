@@ -73,7 +73,7 @@ def test_reading_images_of_more_segments_than_kept_open_opens_none_with_hdf5(tmp
     close) for nearly every read (about 0.7 ms of 1 ms a read at Pitts-250k size)."""
     store = written(tmp_path, monkeypatch, rows=48)
     monkeypatch.setattr("vprbench.stages.features.OPEN_SEGMENTS", 2)
-    monkeypatch.setattr("vprbench.stages.features.KEPT_BYTES", 0)
+    store.kept_bytes = 0
     opened = hdf5_opens(monkeypatch)
     order = np.random.default_rng(0).permutation(np.tile(np.arange(48), 4))
     with store.opened("database", lambda row: pytest.fail(f"image {row} computed")) as get:
@@ -133,3 +133,26 @@ def test_a_layout_of_other_numbers_than_whole_ones_is_recomputed(tmp_path, monke
     assert computed == [0, 1, 2, 3] and not path.exists()
     assert [str(w.message) for w in caught] == [
         f"Local features {path} are damaged ({reason}); the file was discarded and its images are computed again."]
+
+
+def test_a_stage_keeps_a_quarter_of_its_memory_budget_of_features_per_split(tmp_path, monkeypatch):
+    """Per-image arrays read back are kept for the images that recur, within the stage's budget: it was
+    a fixed 256 MB per open split whatever --search-memory said."""
+    from types import SimpleNamespace
+
+    from traced import peak_of
+    from vprbench.stages.base import StageContext
+
+    monkeypatch.setattr("vprbench.stages.features.SEGMENT_IMAGES", 4)
+    images = SimpleNamespace(name="pitts250k", images_fingerprint=lambda cache_dir: {"database": "d"})
+    context = StageContext(dataset=images, database=None, queries=None, cache_dir=tmp_path, memory_budget=4 * 2**20)
+    store = context.features("wide", {"benchmark": 1})
+    wide = lambda row: {"values": np.full((2**18,), row, np.float32)}  # noqa: E731  (1 MB an image)
+    with store.opened("database", wide) as get:
+        for row in range(16):
+            get(row)
+    with store.opened("database", lambda row: pytest.fail(f"image {row} computed")) as get:
+        get(0)
+        _, peak = peak_of(lambda: [float(get(row)["values"][0]) for row in range(16)])
+    assert peak < 4 * 2**20, peak  # the kept MB and one image read (its bytes, its array), not all 16
+    assert store.kept_bytes == 2**20

@@ -101,9 +101,10 @@ class StageContext:
     def features(self, name: str, identity: dict):
         """The store of per-image data `name` (e.g. "sift") computed as `identity` says (its options,
         the library version): one per dataset image set, resumable, lock-safe."""
-        from .features import FeatureStore
+        from .features import KEPT_BYTES, FeatureStore
 
-        store = FeatureStore.for_images(name, identity, self.dataset, self.cache_dir, self.lock_timeout)
+        store = FeatureStore.for_images(name, identity, self.dataset, self.cache_dir, self.lock_timeout,
+                                        min(KEPT_BYTES, self.memory_budget // 4))  # two splits open at once
         self.stores.append(store)
         return store
 

@@ -41,7 +41,8 @@ from ..paths import cache_root, safe_name
 from ..text import shortened
 from ..store.rows_file import close_quietly
 
-#: bytes of per-image arrays kept in memory per open split (database images recur across queries)
+#: bytes of per-image arrays kept in memory per open split (database images recur across queries), at
+#: most: a stage keeps a quarter of its memory budget per split (stages' `features`)
 KEPT_BYTES = 256 * 2**20
 #: images computed are written as one segment once this many (or SEGMENT_BYTES) are waiting, and
 #: when the split is closed: a kill loses at most one segment's work, a run adds few files
@@ -55,17 +56,19 @@ PLAIN = "biufc"
 
 class FeatureStore:
     def __init__(self, name: str, identity: dict, label: str, images_keys: dict[str, str], cache_dir=None,
-                 lock_timeout: float | None = None):
+                 lock_timeout: float | None = None, kept_bytes: int = KEPT_BYTES):
         self.name, self.identity_json = name, canonical_json({"name": name, **identity})
-        self.images_keys, self.lock_timeout = images_keys, lock_timeout
+        self.images_keys, self.lock_timeout, self.kept_bytes = images_keys, lock_timeout, kept_bytes
         #: images computed (not read) through this store: 0 on a run served from the cache
         self.computed = 0
         self.path = (cache_root(cache_dir) / "features" / f"{safe_name(name)}-{canonical_hash(json.loads(self.identity_json))}"
                      / f"{safe_name(label)}-{canonical_hash(images_keys)}")
 
     @classmethod
-    def for_images(cls, name: str, identity: dict, dataset, cache_dir=None, lock_timeout=None) -> "FeatureStore":
-        return cls(name, identity, dataset.name, dataset.images_fingerprint(cache_dir), cache_dir, lock_timeout)
+    def for_images(cls, name: str, identity: dict, dataset, cache_dir=None, lock_timeout=None,
+                   kept_bytes: int = KEPT_BYTES) -> "FeatureStore":
+        return cls(name, identity, dataset.name, dataset.images_fingerprint(cache_dir), cache_dir, lock_timeout,
+                   kept_bytes)
 
     def files(self, split: str) -> list[Path]:
         """The split's segments, oldest first (`<split>.h5`, one file appended to by earlier versions, first)."""
@@ -112,7 +115,7 @@ class FeatureStore:
                         write()
                 kept[row] = found
                 held += _size([found])
-                while held > KEPT_BYTES and len(kept) > 1:
+                while held > self.kept_bytes and len(kept) > 1:
                     held -= _size([kept.popitem(last=False)[1]])
                 return found
 
