@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from vprbench.aggregation import PCAWhitening
+from vprbench.errors import VPRBenchError
 from vprbench.evaluation.postprocess import TransformedRows, transform_rows
 from vprbench.evaluation.search import ArrayRows, exact_search
 from vprbench.evaluation.retrieve import retrieve
@@ -271,3 +272,22 @@ def test_a_transform_holds_no_float64_copy_of_the_projection(monkeypatch):
     per_row, fixed = read_cost(rows)
     assert peak < 1.05 * (len(got) * per_row + fixed), (peak, len(got) * per_row + fixed)
     np.testing.assert_array_equal(got, whole)  # the blocks' sums are the whole projection's
+
+
+def test_the_fitted_state_is_counted_once_in_the_search_budget():
+    """A fitted post-processor's state is held while rows are read through it: the database counts it
+    (the queries share it), so a search plans for it and a budget without room for it is refused
+    (PCA's projection at AnyLoc's 49,152 -> 512: 100 MB, uncounted beside the search before)."""
+    from vprbench.evaluation.postprocess import postprocessed
+    from vprbench.evaluation.search import _least
+
+    db, q = spectrum(600, 2048, 3), spectrum(50, 2048, 4)
+    database, queries, _ = postprocessed(Whitened(256), ArrayRows(db), ArrayRows(q), 10**9)
+    state = 256 * 2048 * 4 + 2048 * 4  # the projection and the mean, float32
+    assert (database.state_bytes, queries.state_bytes) == (state, 0)
+    uncounted = TransformedRows(ArrayRows(db), database.postprocessor)
+    without = _least(uncounted, queries, 5).need
+    assert _least(database, queries, 5).need == without + state
+    with pytest.raises(VPRBenchError, match="too small for this search"):
+        exact_search(database, queries, 5, memory_budget=without)
+    assert exact_search(database, queries, 5, memory_budget=without + state).indices.shape == (50, 5)

@@ -55,11 +55,14 @@ class TransformedRows:
     of `transform_rows(source.dim)` (aligned to row 0, short tiles padded with zero rows), so a
     row's values depend neither on how a caller chunks its reads nor on its neighbours."""
 
-    def __init__(self, source: RowSource, postprocessor):
+    def __init__(self, source: RowSource, postprocessor, counts_state: bool = False):
         self.source, self.postprocessor = source, postprocessor
         self.row_count, self.folder, self.dtype = int(source.row_count), source.folder, np.dtype(np.float32)
         self.tile = transform_rows(source.dim)
         self.dim = int(self._transform(source.read_rows(0, 1)).shape[1])
+        # the fitted state (PCA's projection: 100 MB at AnyLoc's 49,152 -> 512), held while rows are read;
+        # counted by one of the sources sharing it (`counts_state`)
+        self.state_bytes = _state_bytes(postprocessor) if counts_state else 0
 
     def _transform(self, block: np.ndarray) -> np.ndarray:
         """At most one tile of rows, transformed as one full tile."""
@@ -77,7 +80,8 @@ class TransformedRows:
         # a tile read, padded, and computed in float64 (PCA-whitening does), with its output, and a
         # float64 block of PCA's projection
         block = min(PROJECTION_BLOCK_BYTES, 8 * self.source.dim * self.dim)
-        return self.dim * 4, self.tile * (read_bytes_per_row(self.source) + 12 * self.source.dim + 20 * self.dim) + block
+        tile = self.tile * (read_bytes_per_row(self.source) + 12 * self.source.dim + 20 * self.dim)
+        return self.dim * 4, tile + block + self.state_bytes
 
     def read_rows(self, start: int, stop: int) -> np.ndarray:
         out = np.empty((stop - start, self.dim), dtype=np.float32)
@@ -99,6 +103,14 @@ class TransformedRows:
         for a in range(0, len(indices), self.tile):
             out[a:a + self.tile] = self._transform(self.source.read_rows_at(indices[a:a + self.tile]))
         return out
+
+
+def _state_bytes(postprocessor) -> int:
+    """Bytes of a fitted post-processor's state arrays (0 when it keeps none)."""
+    if not callable(getattr(postprocessor, "state", None)):
+        return 0
+    with in_postprocessor(postprocessor, "state"):
+        return sum(int(np.asarray(array).nbytes) for array in postprocessor.state().values())
 
 
 def in_postprocessor(postprocessor, part: str):
@@ -261,5 +273,5 @@ def postprocessed(method, database: RowSource, queries: RowSource, memory_budget
         return database, queries, {"kind": f"{type(method).__name__}.postprocess", "in_memory": True}
     if postprocessor is not None:
         info = fit_postprocessor(postprocessor, database if fit_on is None else fit_on, memory_budget, state_folder)
-        return TransformedRows(database, postprocessor), TransformedRows(queries, postprocessor), info
+        return TransformedRows(database, postprocessor, counts_state=True), TransformedRows(queries, postprocessor), info
     return database, queries, None
