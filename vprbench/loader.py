@@ -105,6 +105,13 @@ def postprocessor_of(method):
         return method.postprocessor()
 
 
+def postprocess_datasets_of(method):
+    """`method.postprocess_datasets()` (the databases its post-processor is fitted on, stacked), what a
+    plugin's raises as its one line."""
+    with plugin_part(method, "postprocess_datasets"):
+        return method.postprocess_datasets()
+
+
 class _Failed:
     """A `VPRBenchError` (or a plugin's failure, `plugin_failure`) raised in a worker, carried to the main
     process as a plain message."""

@@ -187,7 +187,7 @@ def run_describe(args) -> int:
     from ..evaluation.pipeline import create_run_method, loader_workers
     from ..evaluation.postprocess import check_database_size, fits_on_database, postprocessed
     from ..fsutil import atomic_write
-    from ..loader import plugin_part, use_dataset
+    from ..loader import postprocess_datasets_of, use_dataset
     from ..paths import regular_file
     from ..row_sources import DEFAULT_MEMORY_BUDGET
 
@@ -229,8 +229,7 @@ def run_describe(args) -> int:
         use_dataset(method, args.dataset)
         # keyed as evaluate keys them (its spec's options): an option naming this dataset is as unset
         keyed = spec_options(method.name, given_options(method.options, method.name, args.dataset))
-    with plugin_part(method, "postprocess_datasets"):
-        names = method.postprocess_datasets()
+    names = postprocess_datasets_of(method)
     if names is not None and list(names) != [args.dataset]:
         raise VPRBenchError(f"{stacked(args.method, names)}, as `vprbench evaluate --dataset {args.dataset}` does; "
                             "describe fits it on --fit-on (or the images described): evaluate, or drop the option that "

@@ -10,7 +10,7 @@ import hashlib
 import numpy as np
 
 from ..errors import VPRBenchError
-from ..loader import plugin_part, postprocessor_of, use_dataset
+from ..loader import postprocess_datasets_of, postprocessor_of, use_dataset
 from .extract import describe_splits
 from .identity import protocol_of
 from .postprocess import overrides_postprocess
@@ -68,8 +68,7 @@ def joint_members(method, dataset, settings, ranks) -> list | None:
     when that is the evaluated database alone."""
     from ..datasets import load_dataset
 
-    with plugin_part(method, "postprocess_datasets"):
-        names = method.postprocess_datasets()
+    names = postprocess_datasets_of(method)
     if names is None:
         return None
     if (not isinstance(names, (list, tuple)) or not all(isinstance(n, str) for n in names)
@@ -146,8 +145,7 @@ def stack_identity(method, spec, settings) -> dict | None:
     on, as found now (never downloaded); None when that is the evaluated database alone."""
     from ..datasets import load_dataset
 
-    with plugin_part(method, "postprocess_datasets"):
-        names = method.postprocess_datasets()
+    names = postprocess_datasets_of(method)
     if not names or list(names) == [spec.dataset.name]:
         return None
     return {name: member_identity(load_dataset(

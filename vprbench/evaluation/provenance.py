@@ -26,7 +26,7 @@ def method_provenance(method, dataset=None, cache_dir=None) -> dict:
     them is an image of the evaluated `dataset`, whatever the method says."""
     from ..methods import Method
 
-    from ..loader import plugin_part, postprocessor_of
+    from ..loader import plugin_part, postprocess_datasets_of, postprocessor_of
 
     with plugin_part(method, "provenance"):
         own = method.provenance() or {}
@@ -42,8 +42,7 @@ def method_provenance(method, dataset=None, cache_dir=None) -> dict:
         found["vocabulary"].setdefault("fitted_on_evaluated_database", True)
     post = postprocessor_of(method)
     if post is not None and not any(k in found for k in ("pca", "postprocessor")):
-        with plugin_part(method, "postprocess_datasets"):
-            stacked = method.postprocess_datasets()
+        stacked = postprocess_datasets_of(method)
         found["postprocessor"] = {"source": "fitted", "fitted_on_evaluated_database": True, "fitted_on": (
             f"the databases of {', '.join(map(str, stacked))} stacked" if stacked else "the evaluated database's descriptors")}
     parts = {k: v for k, v in found.items() if isinstance(v, dict) and "fitted_on_evaluated_database" in v}

@@ -63,13 +63,13 @@ def pca_datasets(pca_on: str, dataset: str | None) -> tuple[str, list[str]] | No
     return found[0], [name for name, _ in domain_datasets(found[0])]
 
 
-
 def pca_provenance(dim: int, pca_on: str, dataset: str | None) -> dict:
     """What the record says PCA-whitening was fitted on (the evaluated database is always among it)."""
     joint = pca_datasets(pca_on, dataset)
     return {"dim": dim, "fitted_on_evaluated_database": True, "fitted_on": (
         f"the databases of the {joint[0]} domain stacked: {', '.join(joint[1])}" if joint
         else "the evaluated database's descriptors"), **({"datasets": joint[1]} if joint else {})}
+
 
 def probe(cls, options: dict, cache_dir=None) -> "AnyLoc | None":  # noqa: F821 - cls is AnyLoc
     """The method these options make, without loading the model or any centres; None when an option

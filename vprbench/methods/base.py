@@ -15,7 +15,8 @@ class PostProcessor(Protocol):
     within a memory budget, saves `state()` in the store's folder under a name made from
     `key(...)`, and applies `transform` chunk by chunk, so no split is ever whole in memory.
     An optional `check_rows(n, dataset_name)` refuses a database of `n` images it cannot fit,
-    before any descriptor is computed.
+    before any descriptor is computed; an optional `check_budget(rows, memory_budget)` (rows: their
+    shape only) refuses a fit the budget cannot hold, before a stack's other databases are described.
     """
 
     def key(self, rows, memory_budget: int) -> dict:
