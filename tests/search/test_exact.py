@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from vprbench.errors import VPRBenchError
-from vprbench.evaluation.search import SCORE_TOLERANCE, exact_search, search
+from vprbench.evaluation.search import SCORE_TOLERANCE, ArrayRows, exact_search, search
 from vprbench.row_sources import parse_memory
 from search_rows import budget_for, h5_rows, lattice, ranked, reference_topk, torch_products, unit
 
@@ -22,7 +22,7 @@ def test_tie_order_is_score_then_lower_index_across_chunk_and_query_borders(tile
         np.testing.assert_array_equal(result.indices, ref_indices)
         np.testing.assert_array_equal(result.scores, ref_scores.astype(np.float32))
         assert result.indices.dtype == np.int64 and result.scores.dtype == np.float32
-    assert result.info["chunks"] == 5 and result.info["query_chunks"] == 2 and result.info["chunk_rows"] == 1024
+    assert result.info["chunks"] == 5 and result.info["query_chunks"] == 3 and result.info["chunk_rows"] == 1024
     # small integers: some queries tie more rows at their K-th score than there are candidates
     assert 0 < result.info["queries_searched_again_for_ties"] < 2500
     assert result.info["tie_order"] == "score rounded to 2^-16 descending, then database index ascending"
@@ -261,3 +261,22 @@ def test_the_budget_a_refusal_names_is_one_the_search_runs_in():
         exact_search(db, q, 5, memory_budget="1MB")
     named = re.search(r"to at least ([0-9.]+ [kMG]B)\.", str(refused.value)).group(1)
     assert exact_search(db, q, 5, memory_budget=named.replace(" ", "")).indices.shape == (777, 5)
+
+
+def test_the_candidates_ordered_and_ties_searched_again_stay_within_the_budget(tiles_of_1024):
+    """Ordering the candidates and searching tied queries again held memory beyond the budget
+    (3.5 times the least budget here): the merged candidates, every sorting copy of them and a
+    second search given the whole budget beside the first one's answers."""
+    from traced import peak_of
+
+    from vprbench.evaluation.search import least_budget
+
+    db, q = lattice(10_000, 32, 1), lattice(2_000, 32, 2)  # most queries tie at their 500th row
+    whole = exact_search(db, q, 500, memory_budget=10**9)
+    assert whole.info["queries_searched_again_for_ties"] > 1_000
+    least = least_budget(ArrayRows(db), len(q), 500)
+    for budget in (least, 2 * least):
+        result, peak = peak_of(lambda: exact_search(db, q, 500, memory_budget=budget))
+        assert peak <= budget, (peak, budget)
+        np.testing.assert_array_equal(result.indices, whole.indices)
+        np.testing.assert_array_equal(result.scores, whole.scores)

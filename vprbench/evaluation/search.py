@@ -48,6 +48,11 @@ _UNITS = np.float32(-1 / SCORE_TOLERANCE)
 ZERO_SQUARED = np.float32(ZERO_LENGTH) ** 2
 #: the largest product computed at once (bytes of scores): below glibc's mmap threshold
 PRODUCT_BYTES = 16 * 2**20
+#: bytes one candidate takes while its query's candidates are put in order (its negated score twice,
+#: the sort's order, the ordered score and index: 24 measured)
+ORDER_BYTES = 32
+#: bytes per query beside its candidates: whether it is all zero, whether it ties at k, a tied one's index
+FLAG_BYTES = 10
 
 __all__ = ["AllZero", "ArrayRows", "DEFAULT_MEMORY_BUDGET", "INDEXES", "SCORE_TOLERANCE", "SearchResult",
            "exact_search", "search", "tile_rows"]
@@ -176,7 +181,8 @@ def check_pair(database: RowSource, queries: RowSource, k: int) -> None:
 
 class _Least(NamedTuple):
     """What exact search holds whatever its budget: the candidates (`results`), and with the rest
-    (`fixed`) a tile of scores; `need` adds one tile of query rows and two of database rows."""
+    (`fixed`) a tile of scores; `need` adds one tile of query rows and two of database rows, or
+    what ordering the candidates or searching a tied query again takes, if more."""
     tile: int
     keep: int
     results: int
@@ -188,29 +194,41 @@ class _Least(NamedTuple):
     q_row: int
 
 
-def _least(database, queries, k: int) -> _Least:
+def _in_memory(count: int, dim: int) -> ArrayRows:
+    """`count` float32 rows held in memory, for sizing a search (no memory of its own)."""
+    return ArrayRows(np.broadcast_to(np.float32(0), (count, dim)))
+
+
+def _least(database, queries, k: int, again: bool = False) -> _Least:
+    """`again`: a search of tied queries again, whose answers go into those held beside it."""
     tile = tile_rows(database.dim)
     (db_row, db_fixed), (q_row, q_fixed) = read_cost(database), read_cost(queries)
     n, q = int(database.row_count), int(queries.row_count)
     keep = min(n, k + EXTRA_CANDIDATES)
-    results = q * keep * 12  # float32 score + int64 index per candidate
+    results, answers = q * keep * 12, 0 if again else q * k * 12  # float32 score + int64 index each
     d_tile, q_tile = min(n, tile), min(q, tile)
+    flags = q * FLAG_BYTES
     # a score tile, a trimmed copy of it, and the products being written into it (at most a tile)
-    fixed = results + db_fixed + q_fixed + 3 * q_tile * d_tile * 4
-    return _Least(tile, keep, results, fixed, fixed + 2 * d_tile * db_row + q_tile * q_row, d_tile, q_tile, db_row, q_row)
+    fixed = results + flags + db_fixed + q_fixed + 3 * q_tile * d_tile * 4
+    need = max(fixed + 2 * d_tile * db_row + q_tile * q_row,
+               results + answers + flags + ORDER_BYTES * keep)  # then the answers, a query's candidates at a time
+    if not again:  # beside the answers, one query whose k-th ties searched again: its row and that search
+        need = max(need, answers + flags + queries.dim * 4
+                   + _least(database, _in_memory(1, queries.dim), k, True).need)
+    return _Least(tile, keep, results, fixed, need, d_tile, q_tile, db_row, q_row)
 
 
 def least_budget(database, query_count: int, k: int) -> int:
     """The least budget exact search of `query_count` float32 query rows held in memory takes."""
-    return _least(database, ArrayRows(np.broadcast_to(np.float32(0), (query_count, database.dim))), k).need
+    return _least(database, _in_memory(query_count, database.dim), k).need
 
 
-def _plan(database, queries, k: int, budget: int) -> dict:
+def _plan(database, queries, k: int, budget: int, again: bool = False) -> dict:
     """Chunk rows (whole tiles) for the budget, or a clear error when it is too small. The
     budget holds the candidates, one tile of scores, a chunk of queries and two chunks of the
     database (one searched while the next is read); queries get the most, as every chunk of
     queries is one more pass over the database."""
-    tile, keep, results, fixed, need, d_tile, q_tile, db_row, q_row = _least(database, queries, k)
+    tile, keep, results, fixed, need, d_tile, q_tile, db_row, q_row = _least(database, queries, k, again)
     dim, n, q = database.dim, int(database.row_count), int(queries.row_count)
     if budget < need:
         raise VPRBenchError(
@@ -355,21 +373,60 @@ def exact_search(database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDG
     keep = plan["candidates"]
     distances, indices, all_zero = _scan(database, queries, keep, plan, on_grid=False)
     check_products(distances)
-    units, indices = order_results(-np.rint(distances), indices)  # units: rounded scores in grid steps
+    units, answers = np.empty((queries.row_count, k), np.float32), np.empty((queries.row_count, k), np.int64)
+    flags = queries.row_count * FLAG_BYTES
+    tied = _order(distances, indices, units, answers, budget - distances.nbytes - indices.nbytes - units.nbytes
+                  - answers.nbytes - flags, on_grid=False)
+    distances = indices = None
     # an all-zero query ties everywhere, matches nothing: its list is not worth another pass over the database
-    tied = (units[:, keep - 1] == units[:, k - 1]) & ~all_zero.queries
-    ambiguous = np.flatnonzero(tied) if keep < database.row_count else []
-    units, indices = units[:, :k], indices[:, :k]
+    ambiguous = np.flatnonzero(tied & ~all_zero.queries) if keep < database.row_count else []
     if len(ambiguous):
-        subset = ArrayRows(queries.read_rows_at(ambiguous))
-        again = _plan(database, subset, k, budget)
-        exact, exact_indices, _ = _scan(database, subset, k, {**again, "candidates": k}, on_grid=True)
-        check_products(exact)
-        units[ambiguous], indices[ambiguous] = order_results(-exact, exact_indices)
-    scores = (units * np.float32(SCORE_TOLERANCE)).astype(np.float32)
-    return SearchResult(scores, indices, {"index": "exact", "memory_budget": budget, **plan,
-                                          "queries_searched_again_for_ties": len(ambiguous), "tie_order": TIE_ORDER},
+        _search_again(database, queries, ambiguous, k, budget - units.nbytes - answers.nbytes - flags, units, answers)
+    np.multiply(units, np.float32(SCORE_TOLERANCE), out=units)  # exact: a power of two
+    return SearchResult(units, answers, {"index": "exact", "memory_budget": budget, **plan,
+                                         "queries_searched_again_for_ties": len(ambiguous), "tie_order": TIE_ORDER},
                         all_zero)
+
+
+def _order(raw, raw_indices, units, indices, budget: int, on_grid: bool, at=None) -> np.ndarray:
+    """The top k of each query's candidates (negated units, rounded here unless `on_grid`), ordered
+    by the tie rule, into rows `at` (all if None) of units and indices, as many queries at a time
+    as `budget` bytes hold; whether each query's last candidate ties with its k-th."""
+    count, keep = raw.shape
+    k = units.shape[1]
+    step = max(1, budget // (ORDER_BYTES * keep))
+    tied = np.empty(count, dtype=bool)
+    for lo in range(0, count, step):
+        block = raw[lo:lo + step]
+        ordered, order = order_results(-(block if on_grid else np.rint(block)), raw_indices[lo:lo + step])
+        tied[lo:lo + step] = ordered[:, keep - 1] == ordered[:, k - 1]
+        rows = slice(lo, lo + step) if at is None else at[lo:lo + step]
+        units[rows], indices[rows] = ordered[:, :k], order[:, :k]
+        ordered = order = None  # let go before the next are ordered
+    return tied
+
+
+def _search_again(database, queries, tied: np.ndarray, k: int, budget: int, units, indices) -> None:
+    """The queries `tied` searched again, every tile rounded before it is merged (the tie rule
+    exactly), into their rows of units and indices: as many at a time as `budget` holds."""
+    q_row, q_fixed = read_cost(queries)
+
+    def cost(count: int) -> int:  # reading the rows, then holding them beside their search
+        return max(count * q_row + q_fixed,
+                   count * queries.dim * 4 + _least(database, _in_memory(count, queries.dim), k, True).need)
+
+    step = len(tied)
+    while step > 1 and cost(step) > budget:
+        step = -(-step // 2)
+    for lo in range(0, len(tied), step):
+        rows = ArrayRows(queries.read_rows_at(tied[lo:lo + step]))
+        left = budget - rows.array.nbytes
+        plan = {**_plan(database, rows, k, left, again=True), "candidates": k}
+        exact, exact_indices, _ = _scan(database, rows, k, plan, on_grid=True)
+        check_products(exact)
+        _order(exact, exact_indices, units, indices, left - exact.nbytes - exact_indices.nbytes, on_grid=True,
+               at=tied[lo:lo + step])
+        rows = exact = exact_indices = None  # let go before the next are read
 
 
 def search(database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDGET) -> tuple[np.ndarray, np.ndarray]:
