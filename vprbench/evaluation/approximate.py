@@ -11,8 +11,9 @@ import numpy as np
 
 from ..errors import VPRBenchError
 from ..row_sources import READ_BYTES, ArrayRows, RowSource, chunks, format_budget, format_bytes
-from .search import (AllZero, SearchResult, TIE_ORDER, check_finite, check_pair, exact_search, least_budget,
-                     order_results, read_cost, rounded_scores, zero_rows)
+from .row_checks import check_finite, check_pair, zero_rows
+from .search import (AllZero, SearchResult, TIE_ORDER, exact_search, least_budget, order_results, read_cost,
+                     rounded_scores)
 
 APPROXIMATE = ("ivf-pq", "hnsw")
 #: faiss's k-means wants at least 39 training points per centroid

@@ -8,7 +8,8 @@ from ..errors import VPRBenchError
 from ..row_sources import DEFAULT_MEMORY_BUDGET, as_rows, parse_memory
 from .approximate import approximate_search
 from .postprocess import postprocessed
-from .search import INDEXES, SearchResult, check_pair, exact_search
+from .row_checks import check_pair
+from .search import INDEXES, SearchResult, exact_search
 
 
 def retrieve(method, database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDGET, index: str = "exact",

@@ -12,7 +12,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ...errors import VPRBenchError
-from ...evaluation.search import check_finite, read_cost, rounded_scores
+from ...evaluation.row_checks import check_finite
+from ...evaluation.search import read_cost, rounded_scores
 from ...row_sources import DEFAULT_MEMORY_BUDGET, READ_BYTES, as_rows, chunks, format_budget, format_bytes, parse_memory
 from .matching import (SEQSLAM_DEFAULTS, enhance, query_offsets, second_best, top_k, trajectories,
                        trajectory_costs, velocities)
