@@ -262,3 +262,25 @@ def test_seqslam_at_the_least_budget_it_names_enhances_the_windows_rows_within_i
     named = named_budget(refused.value)
     found, peak = peak_of(lambda: sequence_search(database, queries, 5, length=10, memory_budget=named))
     assert found.info["block_rows"] < 10 and peak < named, (peak, named, found.info["block_rows"])
+
+
+def test_ranking_the_whole_database_stays_within_the_least_budget_it_names():
+    """At K = N the results are the search's largest arrays: the scores were made from the costs in
+    three copies and the results put in query order in two more, beside blocks sized to the whole
+    budget (1.07 x the least budget a refusal named, at 1,500 x 1,500)."""
+    database, queries = traverse(1500, dim=8)
+    sequence_search(database[:100], queries[:100], 100)  # a warm-up: nothing first-time in the traced call
+    rng = np.random.default_rng(7)
+    query_order = rng.permutation(1500)
+    whole = sequence_search(database, queries, 1500, query_order=query_order, grid=True)  # as the stage
+    with pytest.raises(VPRBenchError, match="top 1500 of 1,500 queries") as refused:
+        sequence_search(database, queries, 1500, query_order=query_order, memory_budget=1000)
+    named = named_budget(refused.value)
+    found, peak = peak_of(lambda: sequence_search(database, queries, 1500, query_order=query_order,
+                                                  memory_budget=named, grid=True))
+    assert peak < named, (peak, named)
+    # every query ranks every image once, in the same order but where a product's last bits, which
+    # differ with the block's shape, move a cost across a grid step (0.01 % of places here)
+    np.testing.assert_array_equal(np.sort(found.indices, axis=1), np.broadcast_to(np.arange(1500), (1500, 1500)))
+    assert np.mean(found.indices == whole.indices) > 0.999
+    np.testing.assert_allclose(found.scores, whole.scores, rtol=0, atol=1e-4)

@@ -27,9 +27,6 @@ COMPARES = ("cosine", "mean-absolute-difference")
 #: bytes per database column held for each query row of a block: cost row, enhancement's float64
 #: temporaries, the trajectory sums, their mean and the best (measured peak about 60 N per row)
 BYTES_PER_CELL = 96
-#: bytes per query and candidate once the blocks are done: its index and cost, its score, and the
-#: results in query order (indices, scores, and a copy of each while they are placed)
-RESULT_BYTES = 36
 #: bytes per database column of a window's extra row under SeqSLAM: its cost row, the enhancement's
 #: float64 copy, means, deviations and running sums, and the enhanced row
 ENHANCED_BYTES_PER_CELL = 48
@@ -78,7 +75,7 @@ def plan_blocks(database, queries, span: int, budget: int, k: int, chunk_rows: i
     extra rows a cost row each, or ENHANCED_BYTES_PER_CELL once the database is read (`enhanced`:
     SeqSLAM enhances them too). Rows cost what `read_cost` says (a post-processed source transforms
     as it reads), the database read `chunk_rows` at a time. Beside them every query's top `k`, and
-    once the blocks are done RESULT_BYTES per candidate."""
+    the scores are made from them in place."""
     n_queries, n_database, dim = queries.row_count, database.row_count, database.dim
     (db_row, db_fixed), (q_row, q_fixed) = read_cost(database), read_cost(queries)
     reading = max(chunk_rows * db_row + db_fixed, q_fixed)  # query rows are read before the database's
@@ -88,9 +85,8 @@ def plan_blocks(database, queries, span: int, budget: int, k: int, chunk_rows: i
     extra = max(reading + span * (4 * n_database + q_row + 4 * dim),
                 span * (ENHANCED_BYTES_PER_CELL * n_database + q_row + 4 * dim) if enhanced else 0)
     rows = (budget - held - extra) // per_row
-    final = n_queries * (RESULT_BYTES * k + 128)
-    if rows < 1 or budget < final:
-        need = max(held + extra + per_row, final)
+    if rows < 1:
+        need = held + extra + per_row
         what = "sequence matching" if span else "comparing queries"  # sequences of one frame: a distance search
         raise VPRBenchError(f"A memory budget of {format_bytes(budget)} is too small for {what} against "
                             f"{n_database:,} database images: one block and the top {k} of {n_queries:,} queries need "
@@ -150,19 +146,17 @@ def sequence_search(database, queries, k: int, *, score: str = "seqslam", compar
         if grid:
             rounded_scores(best, out=best)  # in place: the block is the search's largest array
         places, values = top_k(best, k, ties=database_order)
-        indices[start:stop], costs[start:stop] = places, values
+        at = query_order[start:stop]  # results by query row and database row as stored
+        indices[at], costs[at] = database_order[places], values
         if score == "seqslam":
-            second[start:stop] = second_best(best, places[:, 0], uniqueness_window)
-        del best
+            second[at] = second_best(best, places[:, 0], uniqueness_window)
+        del best, places, values
+    scores = costs  # made in place: the results are the search's largest arrays at K = N
     if score == "seqslam":
         spread = second - np.float32(lowest)
         spread = np.where(np.isfinite(spread), np.maximum(spread, np.float32(1e-12)), np.float32(1))
-        scores = -(costs - np.float32(lowest)) / spread[:, None]
-    else:
-        scores = -costs
-    result_indices, result_scores = np.empty_like(indices), np.empty_like(scores, dtype=np.float32)
-    result_indices[query_order] = database_order[indices]
-    result_scores[query_order] = scores
+        np.divide(np.subtract(costs, np.float32(lowest), out=scores), spread[:, None], out=scores)
+    np.negative(scores, out=scores)
     info = {"score": score, "compare": compare, "length": int(length), "mode": mode,
             "query_offsets": [int(offsets[0]), int(offsets[-1])], "trajectories": int(len(paths)),
             "velocities": [str(v) for v in speeds], "block_rows": int(block), "blocks": -(-q // block),
@@ -170,7 +164,7 @@ def sequence_search(database, queries, k: int, *, score: str = "seqslam", compar
     if score == "seqslam":
         info.update(enhance_window=int(enhance_window), uniqueness_window=int(uniqueness_window),
                     enhanced_minimum=round(lowest, 6))
-    return SequenceResult(result_indices, result_scores.astype(np.float32), info)
+    return SequenceResult(indices, scores, info)
 
 
 def _order(order, count: int, split: str) -> np.ndarray:
