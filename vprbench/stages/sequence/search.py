@@ -27,6 +27,13 @@ COMPARES = ("cosine", "mean-absolute-difference")
 #: bytes per database column held for each query row of a block: cost row, enhancement's float64
 #: temporaries, the trajectory sums, their mean and the best (measured peak about 60 N per row)
 BYTES_PER_CELL = 96
+#: query rows per product: a fixed tile of the traverse (zero rows pad it), so a query's products,
+#: and so its costs, are the same whatever block the budget puts it in (a product's last bits
+#: change with its shape and a row's place in it)
+PRODUCT_ROWS = 64
+#: a product's database rows, and its scores, are at most this many bytes (or 256 rows): the rows
+#: stay in the CPU's cache while every tile of query rows meets them
+PRODUCT_BYTES = 4 * 2**20
 #: bytes per database column of a window's extra row under SeqSLAM: its cost row, the enhancement's
 #: float64 copy, means, deviations and running sums, and the enhanced row
 ENHANCED_BYTES_PER_CELL = 48
@@ -49,18 +56,39 @@ def similarities_or_distances(queries: np.ndarray, database: np.ndarray, compare
                                     metric=faiss.METRIC_L1) / np.float32(queries.shape[1])
 
 
-def cost_rows(queries: np.ndarray, database, database_order: np.ndarray, score: str, compare: str,
-              chunk_rows: int, enhance_window: int, check: bool = True) -> np.ndarray:
-    """(q, N) float32 costs (lower is better) of query rows against every database image, in
-    database traverse order: SeqSLAM's enhanced difference (distance = sqrt(2 - 2 cos) for unit
-    descriptors, the mean absolute difference for sad); the diagonal's -similarity (the distance
-    for sad)."""
-    out = np.empty((len(queries), database.row_count), dtype=np.float32)
+def product_columns(dim: int) -> int:
+    """Database rows per product (`PRODUCT_BYTES`)."""
+    return max(256, PRODUCT_BYTES // (4 * max(dim, PRODUCT_ROWS)))
+
+
+def traverse_tiles(rows: np.ndarray, order: np.ndarray, first: int) -> tuple[np.ndarray, int]:
+    """(tiles, offset): rows[order], the queries at traverse positions first, first + 1, ..., placed
+    at their positions in whole PRODUCT_ROWS tiles of the traverse (zero rows around them) from
+    row `offset` on."""
+    offset = first % PRODUCT_ROWS
+    tiles = np.zeros((-(-(offset + len(order)) // PRODUCT_ROWS) * PRODUCT_ROWS, rows.shape[1]), dtype=np.float32)
+    np.take(rows, order, axis=0, out=tiles[offset:offset + len(order)], mode="clip")  # no copy beside it
+    return tiles, offset
+
+
+def cost_rows(tiles: np.ndarray, offset: int, count: int, database, database_order: np.ndarray, score: str,
+              compare: str, chunk_rows: int, enhance_window: int, check: bool = True) -> np.ndarray:
+    """(count, N) float32 costs (lower is better) of the query rows in `tiles` (`traverse_tiles`)
+    against every database image, in database traverse order: SeqSLAM's enhanced difference (distance
+    = sqrt(2 - 2 cos) for unit descriptors, the mean absolute difference for sad); the diagonal's
+    -similarity (the distance for sad)."""
+    out = np.empty((count, database.row_count), dtype=np.float32)
     for start, block in chunks(database, chunk_rows):
         if check:  # once per search: every block of queries reads the same rows
             check_finite(block, "Database", start)
-        out[:, start:start + len(block)] = similarities_or_distances(queries, block, compare)
-        del block  # before the next chunk is read: the budget holds one
+        step = product_columns(block.shape[1])
+        for column in range(0, len(block), step):
+            rows = block[column:column + step]
+            for at in range(0, len(tiles), PRODUCT_ROWS):
+                lo, hi = max(at, offset), min(at + PRODUCT_ROWS, offset + count)
+                out[lo - offset:hi - offset, start + column:start + column + len(rows)] = similarities_or_distances(
+                    tiles[at:at + PRODUCT_ROWS], rows, compare)[lo - at:hi - at]
+        del block, rows  # before the next chunk is read: the budget holds one
     out = out[:, database_order]
     if compare == "cosine":
         if score == "diagonal":
@@ -78,7 +106,10 @@ def plan_blocks(database, queries, span: int, budget: int, k: int, chunk_rows: i
     the scores are made from them in place."""
     n_queries, n_database, dim = queries.row_count, database.row_count, database.dim
     (db_row, db_fixed), (q_row, q_fixed) = read_cost(database), read_cost(queries)
-    reading = max(chunk_rows * db_row + db_fixed, q_fixed)  # query rows are read before the database's
+    # query rows are read before the database's; beside a database chunk, the zero rows of the query
+    # rows' tiles (two part tiles at most) and one tile's products
+    product = PRODUCT_ROWS * (2 * dim + 2 * min(chunk_rows, n_database, product_columns(dim))) * 4
+    reading = max(chunk_rows * db_row + db_fixed + product, q_fixed)
     held = n_queries * (12 * k + 128)  # the top K (int64 index, float32 cost) and a little per query
     per_row = BYTES_PER_CELL * n_database + q_row + 4 * dim
     # the window's extra rows beside a database chunk as they are computed, then (SeqSLAM) enhanced
@@ -92,7 +123,8 @@ def plan_blocks(database, queries, span: int, budget: int, k: int, chunk_rows: i
                             f"{n_database:,} database images: one block and the top {k} of {n_queries:,} queries need "
                             f"{format_bytes(need)}. Raise --search-memory (memory_budget) to at least "
                             f"{format_budget(need)}.")
-    return int(min(rows, n_queries))
+    # whole tiles of the traverse: a block's products then waste only the window's two part tiles
+    return int(min(rows if rows < PRODUCT_ROWS else rows - rows % PRODUCT_ROWS, n_queries))
 
 
 def sequence_search(database, queries, k: int, *, score: str = "seqslam", compare: str = "cosine",
@@ -136,10 +168,11 @@ def sequence_search(database, queries, k: int, *, score: str = "seqslam", compar
         first, last = max(0, start + int(offsets[0])), min(q, stop + int(offsets[-1]))
         wanted = query_order[first:last]
         sorted_rows = np.unique(wanted)
-        rows = queries.read_rows_at(sorted_rows)[np.searchsorted(sorted_rows, wanted)]
-        check_finite(rows, "Query", numbers=wanted)
-        matrix = cost_rows(rows, database, database_order, score, compare, chunk_rows, enhance_window, check=start == 0)
-        del rows  # not held while the next block's rows are read
+        tiles, offset = traverse_tiles(queries.read_rows_at(sorted_rows), np.searchsorted(sorted_rows, wanted), first)
+        check_finite(tiles[offset:offset + len(wanted)], "Query", numbers=wanted)
+        matrix = cost_rows(tiles, offset, len(wanted), database, database_order, score, compare, chunk_rows,
+                           enhance_window, check=start == 0)
+        del tiles  # not held while the next block's rows are read
         lowest = min(lowest, float(matrix.min()))
         best = trajectory_costs(matrix, first, start, stop, q, offsets, paths)
         del matrix
