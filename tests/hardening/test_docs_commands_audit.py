@@ -118,3 +118,18 @@ def test_every_candidates_file_stages_md_reranks_from_is_one_it_exports():
     exported = set(re.findall(r"--out (\S+\.h5)", text))
     used = set(re.findall(r"--candidates (\S+\.h5)", text))
     assert used and used <= exported, used - exported
+
+
+def test_every_test_the_docs_name_exists():
+    # the docs cite tests as evidence ("tests/x.py::test_y"); a moved or renamed test leaves the reader nothing to run
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    missing = []
+    for page in [root / "README.md", *sorted((root / "docs").glob("*.md"))]:
+        for path, name in re.findall(r"(tests/[\w/.-]+\.py)(?:::(\w+))?", page.read_text()):
+            found = root / path
+            if not found.is_file() or (name and f"def {name}(" not in found.read_text()):
+                missing.append(f"{page.name}: {path}" + (f"::{name}" if name else ""))
+    assert not missing, missing

@@ -11,7 +11,7 @@ from .console import console
 
 
 def add_parsers(commands) -> None:
-    methods = commands.add_parser("methods", help="list the registered methods")
+    methods = commands.add_parser("methods", help="list the registered methods and the backbones AnyLoc can use")
     sub = methods.add_subparsers(dest="methods_command", required=True, metavar="COMMAND")
     p = sub.add_parser("list", help="every method and preset, with where it comes from")
     p.add_argument("--json", action="store_true")

@@ -20,7 +20,7 @@ SHOWN_LIMIT = 400
 
 
 def add_parsers(commands) -> None:
-    parser = commands.add_parser("vocabulary", help="fit, import, show and list VLAD vocabularies")
+    parser = commands.add_parser("vocabulary", help="fit, import, download, show and list VLAD vocabularies")
     sub = parser.add_subparsers(dest="vocabulary_command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("fit", help="fit a domain or map-specific vocabulary with a method's features")
