@@ -206,3 +206,16 @@ def test_a_folder_of_release_files_may_hold_one_under_the_authors_script_name(tm
     (tmp_path / "empty").mkdir()
     with pytest.raises(VPRBenchError, match=r"weights file .*/empty/pitts_WPCA512.pth.tar does not exist"):
         local_weights(source, tmp_path / "empty", "netvlad-vgg16")
+
+
+@pytest.mark.parametrize("given", ["", "  "])
+def test_weights_that_name_no_file_are_refused_not_read_from_the_working_folder(tmp_path, monkeypatch, given):
+    """--weights '' (an unset shell variable) was Path(''), the working folder: its copy of the release was loaded."""
+    from vprbench.weights import WeightSource, local_weights, resolve_weights
+
+    source = WeightSource("w.pth", url="https://example.org/w.pth")
+    (tmp_path / "w.pth").write_bytes(b"x")
+    monkeypatch.chdir(tmp_path)
+    for call in (lambda: local_weights(source, given, "toy"), lambda: resolve_weights(source, given, "toy", cache_dir=tmp_path)):
+        with pytest.raises(VPRBenchError, match=rf"^toy: --weights '{given}' names no file: give a weights file"):
+            call()

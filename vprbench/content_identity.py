@@ -2,6 +2,7 @@
 fitted on a benchmark by that benchmark's protocol (the spec's `files`)."""
 from __future__ import annotations
 
+import errno
 from pathlib import Path
 
 from .errors import VPRBenchError
@@ -22,6 +23,8 @@ def option_identities(method: str, options: dict, cache_dir=None) -> dict[str, s
         try:
             identity = value_identity(name, value, cache_dir)
         except OSError as error:
+            if error.errno == errno.ENAMETOOLONG:  # no file is named so: a value the method's own check judges
+                continue
             raise VPRBenchError(f"Method {method!r}: cannot read the file of option {name}, {value} "
                                 f"({error.strerror or error}).") from None
         if identity is not None:

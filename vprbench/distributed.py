@@ -15,6 +15,7 @@ from contextlib import contextmanager
 from datetime import timedelta
 
 from .errors import VPRBenchError
+from .text import shortened
 
 #: how long a rank waits for the others (rank 0 may be waiting for another run's lock)
 TIMEOUT_ENV = "VPRBENCH_DIST_TIMEOUT"
@@ -130,11 +131,16 @@ class Ranks:
         return {"world_size": self.world_size, "backend": self.backend}
 
 
+#: the most ranks (or the highest rank) taken: torch's process group holds them in a C int
+MAX_RANKS = 2**31 - 1
+
+
 def _whole_from_environment(name: str, default: str | None = None) -> int:
     """A whole number >= 0 torchrun puts in the environment; one line when it is missing or not one."""
     value = os.environ.get(name, default)
-    if value is None or not (value.strip().isascii() and value.strip().isdigit()):
-        shown = "not set" if value is None else f"{value!r}, not a whole number >= 0"
+    digits = (value or "").strip()  # a long one is no count of ranks (and int() refuses 4,300 digits)
+    if value is None or not (digits.isascii() and digits.isdigit() and len(digits) <= 10 and int(digits) <= MAX_RANKS):
+        shown = "not set" if value is None else f"{shortened(repr(value))}, not a whole number from 0 to {MAX_RANKS}"
         raise VPRBenchError(f"${name} is {shown}: start the ranks with torchrun, "
                             "which sets RANK, WORLD_SIZE and LOCAL_RANK (or unset WORLD_SIZE to run one process).")
     return int(value)

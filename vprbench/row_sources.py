@@ -19,6 +19,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from .errors import VPRBenchError
+from .text import shortened
 
 #: default memory budget of search and post-processing fits (see parse_memory)
 DEFAULT_MEMORY_BUDGET = 1_000_000_000
@@ -102,6 +103,10 @@ def chunks(rows: RowSource, chunk_rows: int) -> Iterator[tuple[int, np.ndarray]]
         del block  # with the caller's reference gone too, one chunk is alive at a time
 
 
+#: the largest memory budget taken, in bytes (int64's largest)
+MAX_MEMORY = 2**63 - 1
+
+
 def parse_memory(text, what: str = "Memory size") -> int:
     """'1GB' (10^9), '512MiB' (2^29), '2.5GB', or a number of bytes -> bytes; `what` names it in an error."""
     if isinstance(text, (int, np.integer)):
@@ -111,9 +116,13 @@ def parse_memory(text, what: str = "Memory size") -> int:
         unit = match.group(2).upper() if match else None
         if unit not in _UNITS:
             raise VPRBenchError(f"{what} {text!r} is not understood: use e.g. 1GB, 512MB, 2GiB or a number of bytes.")
-        value = int(float(match.group(1)) * _UNITS[unit])
+        value = float(match.group(1)) * _UNITS[unit]  # inf for 400 digits: int() of it was an OverflowError
+        value = int(value) if value <= MAX_MEMORY else MAX_MEMORY + 1
     if value <= 0:
         raise VPRBenchError(f"{what} must be positive, got {text!r}.")
+    if value > MAX_MEMORY:  # no machine holds it, and tile sizes are counted in int64
+        raise VPRBenchError(f"{what} {shortened(repr(text))} is more than any machine holds (at most "
+                            f"{MAX_MEMORY:,} bytes): give e.g. 16GB.")
     return value
 
 

@@ -11,6 +11,8 @@ from .errors import VPRBenchError, require
 
 #: options that change how a run goes, never what it computes: in no hash, no label
 RUN_SETTINGS = ("device", "batch_size", "workers", "memory_budget", "lock_timeout")
+#: the most loader processes: each is a copy of this one (a typo's 10**20 forked one per batch)
+MAX_WORKERS = 1024
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,7 +48,7 @@ class RunSettings:
         object.__setattr__(self, "download", flag("run", "download", self.download, "only into the default data root"))
         object.__setattr__(self, "strict", flag("run", "strict", self.strict))
         if self.workers is not None:
-            object.__setattr__(self, "workers", whole("run", "workers", self.workers, 0, what="loader processes"))
+            object.__setattr__(self, "workers", whole("run", "workers", self.workers, 0, MAX_WORKERS, "loader processes"))
         if self.memory_budget is not None:
             object.__setattr__(self, "memory_budget", parse_memory(self.memory_budget, "--search-memory (memory_budget)"))
         if self.lock_timeout is not None:

@@ -58,6 +58,12 @@ def one_line(text) -> str:
     return literal(text).replace("\n", "\\n")
 
 
+def writable(text: str) -> str:
+    """`text` with each character UTF-8 cannot hold written out as its escape ('\\udcff'): a command-line
+    argument of bytes that are not UTF-8 arrives holding one, and writing it to a file would fail."""
+    return text.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
 def shortened(value, limit: int = 80) -> str:
     """`value` as a message shows it, at most `limit` characters (cut with '...'): a hand-edited
     file's megabyte-long value, or a client's paragraph, stays one readable line."""
@@ -68,8 +74,8 @@ def shortened(value, limit: int = 80) -> str:
 def toml_data(text: str, what: str) -> dict:
     """A user's TOML text (a plan, a dataset.toml) parsed; invalid, or nested too deeply to parse,
     it is a VPRBenchError naming `what` (e.g. "Plan p.toml"), never a traceback."""
-    try:
-        return tomllib.loads(text)
+    try:  # a byte order mark (Windows editors write one) is no TOML: tomllib calls it an invalid statement
+        return tomllib.loads(text.removeprefix("\ufeff"))
     except tomllib.TOMLDecodeError as error:
         raise VPRBenchError(f"{what} is not valid TOML: {error}") from None
     except RecursionError:  # tomllib parses nested arrays and tables recursively

@@ -163,6 +163,9 @@ def hub_folder(cache_dir=None) -> Path:
 
 def local_weights(source: WeightSource, weights: str | Path, what: str) -> Path:
     """The file `weights` names (a folder of release files gives `source`'s file), checked to exist."""
+    if not str(weights).strip():  # Path('') is the working folder: its copy of the release would be loaded
+        raise VPRBenchError(f"{what}: --weights {weights!r} names no file: give a weights file (or a folder holding "
+                            f"{source.file_name}), or leave --weights out.")
     path = Path(weights).expanduser()
     if path.is_dir():
         names = (source.file_name, *source.also_named)

@@ -163,3 +163,31 @@ def test_an_import_killed_between_any_two_steps_leaves_a_sound_repository(bundle
 def _files(record) -> list[str]:
     folder = f"{record['protocol']['hash']}/{record['row_key']}/{record['run_id']}"
     return [f"{folder}.json", f"{folder}.npz", f"{folder}.contribution", f"methods/{record['row_key']}.json"]
+
+
+def test_a_contributor_that_is_no_utf8_text_is_kept_as_escapes_and_the_site_is_built(bundle, shared_data, tmp_path):
+    """A manifest's contributor '\\udcff' (JSON can say it, UTF-8 cannot hold it) was imported as it was,
+    and 'leaderboard publish' then died writing its CSV: UnicodeEncodeError ... surrogates not allowed."""
+    from bundles.bundle_files import MANIFEST
+    from vprbench.cli.main import main
+
+    members = read_bundle(bundle)
+    manifest = json.loads(members[MANIFEST])
+    manifest["contributor"] = "eve\udcff\x1b[2J"
+    members[MANIFEST] = json.dumps(manifest).encode()  # ensure_ascii: '\udcff' is written as its escape
+    forged = write_bundle(tmp_path / "forged.tar.gz", members)
+    repo, docs = tmp_path / "repo", tmp_path / "docs"
+    assert all(r.ok for r in import_bundles([forged], repo, DataGroundTruth(shared_data)))
+    assert main(["leaderboard", "publish", "--to", str(docs), "--results", str(repo), "--cache-dir", str(tmp_path / "c")]) == 0
+    assert "eve\\udcff\\x1b[2J" in (docs / "leaderboard" / "downloads" / "corridor.csv").read_text(encoding="utf-8")
+
+
+@pytest.mark.parametrize("contributor", ["", "   ", "a\udcffb", "a\x1b]0;owned\x07", "two\nlines", "a" * 201])
+def test_a_contributor_that_is_not_a_name_is_refused_before_the_bundle_is_written(store, cli, tmp_path, contributor):
+    """Each was written into the bundle (a '\\udcff' from a command-line argument of bytes that are not UTF-8
+    then failed the site's writing wherever it was imported)."""
+    to = tmp_path / "runs.tar.gz"
+    code, out, err = cli("results", "export", "--method", "hog", "--dataset", "corridor", "--to", to,
+                         "--contributor", contributor, "--cache-dir", store)
+    assert code == 1 and "Traceback" not in err and "is not a name: give text of at most 200 characters" in err, err
+    assert len(err.strip().splitlines()) == 1 and not to.exists()

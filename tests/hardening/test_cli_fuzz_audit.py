@@ -62,6 +62,7 @@ def test_vocabulary_fit_sizes_are_checked_before_any_image(args, message, shared
     (["results", "import", "runs.tar.gz", "--into", ""], "--into"),
     (["leaderboard", "publish", "--to", ""], "--to"),
     (["reproduce", "anyloc", "--table", "2", "--publish", ""], "--publish"),
+    (["run", ""], "plan"),  # was: "Cannot read plan .: Is a directory."
 ])
 def test_an_empty_path_is_refused_not_read_as_the_current_folder(args, flag, capsys, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)

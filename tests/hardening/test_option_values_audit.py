@@ -141,9 +141,21 @@ def test_a_run_setting_given_twice_alike_runs(shared_data, cli):
 
 
 @pytest.mark.parametrize("value, said", [("lots", "--search-memory (memory_budget) 'lots' is not understood"),
-                                         ("0", "--search-memory (memory_budget) must be positive, got '0'")])
+                                         ("0", "--search-memory (memory_budget) must be positive, got '0'"),
+                                         # was: OverflowError: cannot convert float infinity to integer
+                                         ("9" * 400, "--search-memory (memory_budget) '9999999999999999999999"),
+                                         ("10000000000TB", "is more than any machine holds (at most "
+                                                           "9,223,372,036,854,775,807 bytes): give e.g. 16GB.")])
 def test_a_bad_search_memory_names_its_option(value, said, shared_data, cli, tmp_path):
     """(was: "Memory size 'lots' is not understood", naming no option)"""
     code, _, err = cli(*HOG, "--data-dir", shared_data, "--search-memory", value, "--cache-dir", tmp_path / "cache")
     assert_refused(code, err, None, said)
     assert not (tmp_path / "cache" / "stores").exists()
+
+
+def test_an_option_value_too_long_for_a_file_name_is_judged_by_the_method(shared_data, cli, tmp_path):
+    """A value longer than a file name may be (ENAMETOOLONG) was "cannot read the file of option cell": no file was
+    meant; the method's own check names what the option takes."""
+    code, _, err = cli(*HOG, "--data-dir", shared_data, "-o", "cell=" + "x" * 300, "--cache-dir", tmp_path / "cache")
+    assert_refused(code, err, None, "hog: option cell takes a whole number >= 1")
+    assert "cannot read the file" not in err and not (tmp_path / "cache" / "stores").exists()

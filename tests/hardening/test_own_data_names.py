@@ -95,3 +95,13 @@ def test_an_image_replaced_after_the_run_was_planned_says_to_run_again(own, shar
     message = str(refused.value)
     assert f"Dataset {planned.path} now has protocol hash" in message and planned.protocol_hash in message
     assert "changed after the run was planned; run it again" in message
+
+
+def test_a_folder_named_in_bytes_that_are_not_utf8_is_evaluated(own, cli, tmp_path):
+    """A folder named in other bytes than UTF-8 (a Latin-1 'é' on Linux) arrives as '\\udce9': the image-hash
+    memo (sqlite, text only) could not hold its images' paths: UnicodeEncodeError, a traceback."""
+    folder = own.rename(tmp_path / os.fsdecode(b"caf\xe9"))
+    positions(folder, ROWS)
+    for _ in range(2):  # the second run reads its stores: its images hashed again, not remembered
+        code, out, err = evaluate(cli, folder)
+        assert code == 0 and "Traceback" not in err, err

@@ -157,6 +157,14 @@ def test_control_characters_in_titles_are_refused_and_markup_is_kept(tmp_path, c
     assert own_manifest(root).name == "lab-corridor_2.v1+x"
 
 
+def test_a_dataset_toml_saved_with_a_byte_order_mark_is_read(tmp_path):
+    """Was: "dataset.toml is not valid TOML: Invalid statement (at line 1, column 1)", of a file that looked right."""
+    root = tmp_path / "mine"
+    (root / "dataset.toml").parent.mkdir()
+    (root / "dataset.toml").write_text('\ufeffname = "lab"\nradius = 3\n', encoding="utf-8")
+    assert (own_manifest(root).name, own_manifest(root).radius) == ("lab", 3)
+
+
 def test_default_names_from_folder_names_are_made_safe(tmp_path):
     assert safe_name("Lab photos <2024>") == "Lab-photos-2024-" and is_safe_name(safe_name("Lab photos <2024>"))
     assert safe_name("..hidden") == "hidden" and safe_name("日本") == "own-data" and safe_name("a..b") == "a.b"

@@ -44,11 +44,36 @@ def test_a_method_name_that_is_not_a_text_is_one_line(cli, tmp_path, entry, expe
     ('protocol = ["vpr-bench"]', "protocol of dataset 'corridor' must be a name; got ['vpr-bench']"),
     # no protocol at all: the plan had no cells and exited 0, having run nothing
     ('protocols = []', "protocols of dataset 'corridor' must be a list of names, e.g. ['vpr-bench']; got []"),
+    # both: protocol was dropped, silently, and the run not the one asked for
+    ('protocol = "nope"\nprotocols = ["vpr-bench"]', "dataset 'corridor' gives both protocol and protocols; give one"),
 ])
 def test_protocols_of_the_wrong_type_are_one_line(cli, tmp_path, key, expected):
     code, output, cache = run_plan(cli, tmp_path, PLAN_HEAD + f'methods = ["hog"]\n[[datasets]]\nname = "corridor"\n{key}\n')
     assert code == 1 and "has 1 problem(s); nothing was run" in output
     assert f"plan.toml:5: {expected}" in output and "no protocol 'v'" not in output and "Traceback" not in output
+
+
+@pytest.mark.parametrize("text, expected", [
+    # each was shown as its Python spelling (a row named "['a', {'b': 1}]"), the plan run all the same
+    ('name = ["x"]\nmethods = ["hog"]\n', "plan.toml:3: the plan's name must be a text; got ['x']"),
+    ('description = { a = 1 }\nmethods = ["hog"]\n', "plan.toml:3: the plan's description must be a text; got {'a': 1}"),
+    ('[[methods]]\nname = "hog"\nlabel = ["a", 1]\n', "plan.toml:5: label of method 'hog' must be a text (the row's name); "
+                                                     "got ['a', 1]"),
+])
+def test_a_plan_name_or_label_that_is_not_a_text_is_one_line(cli, tmp_path, text, expected):
+    code, output, cache = run_plan(cli, tmp_path, PLAN_HEAD + 'datasets = ["corridor"]\n' + text)
+    assert code == 1 and "has 1 problem(s); nothing was run" in output and expected in output
+    assert "Traceback" not in output and not (cache / "results").exists()
+
+
+def test_a_plan_saved_with_a_byte_order_mark_is_read(tmp_path):
+    """Was: "Plan ... is not valid TOML: Invalid statement (at line 1, column 1)", of a plan that looked right."""
+    from vprbench.sweep.plan import read_entries
+
+    plan = tmp_path / "plan.toml"
+    plan.write_text('\ufeffk = [1]\nmethods = ["hog"]\ndatasets = ["corridor"]\n', encoding="utf-8")
+    entries = read_entries(plan)
+    assert [name for _, name, *_ in entries.methods] == ["hog"] and entries.shared["ks"] == [1]
 
 
 def test_a_very_long_name_is_shortened_in_the_message(cli, tmp_path):
@@ -61,7 +86,9 @@ def test_a_very_long_name_is_shortened_in_the_message(cli, tmp_path):
     ("batch_size = 2.5", "plan.toml:5: hog: option batch_size takes a whole number >= 1 (images per batch); got 2.5."),
     ("batch_size = 0", "plan.toml:5: hog: option batch_size takes a whole number >= 1 (images per batch); got 0."),
     ('device = "bogus"', "plan.toml:5: hog: option device takes a torch device such as cpu, cuda or cuda:1; got 'bogus'."),
-    ("workers = -1", "plan.toml:5: run: option workers takes a whole number >= 0 (loader processes); got -1."),
+    ("workers = -1", "plan.toml:5: run: option workers takes a whole number from 0 to 1024 (loader processes); got -1."),
+    # was: run, with a loader process forked for each batch of images
+    ("workers = 100000", "plan.toml:5: run: option workers takes a whole number from 0 to 1024 (loader processes); got 100000."),
     ('memory_budget = "x"', "plan.toml:5: --search-memory (memory_budget) 'x' is not understood"),
     ("lock_timeout = -1", "plan.toml:5: --lock-timeout (lock_timeout) takes a finite number of seconds >= 0"),
 ])
@@ -99,11 +126,15 @@ def test_reproduce_paper_is_a_shipped_name_not_a_path(cli, tmp_path):
 
 # ---------------------------------------------------------------- torch.distributed: the environment
 @pytest.mark.parametrize("environment, expected", [
-    ({"WORLD_SIZE": "abc"}, "$WORLD_SIZE is 'abc', not a whole number >= 0: start the ranks with torchrun"),
-    ({"WORLD_SIZE": "²"}, "$WORLD_SIZE is '²', not a whole number >= 0"),
+    ({"WORLD_SIZE": "abc"}, "$WORLD_SIZE is 'abc', not a whole number from 0 to 2147483647: start the ranks with torchrun"),
+    ({"WORLD_SIZE": "²"}, "$WORLD_SIZE is '²', not a whole number from 0 to 2147483647"),
+    # was: TypeError: incompatible constructor arguments (TCPStore's world_size is a C int)
+    ({"WORLD_SIZE": "99999999999999999999999"}, "$WORLD_SIZE is '99999999999999999999999', not a whole number from 0"),
+    # was: ValueError: Exceeds the limit (4300 digits) for integer string conversion
+    ({"WORLD_SIZE": "1" * 5000}, "not a whole number from 0 to 2147483647: start the ranks with torchrun"),
     ({"WORLD_SIZE": "2"}, "$RANK is not set: start the ranks with torchrun"),
     ({"WORLD_SIZE": "2", "RANK": "5"}, "$RANK is 5 but $WORLD_SIZE is 2"),
-    ({"WORLD_SIZE": "2", "RANK": "0", "LOCAL_RANK": "-1"}, "$LOCAL_RANK is '-1', not a whole number >= 0"),
+    ({"WORLD_SIZE": "2", "RANK": "0", "LOCAL_RANK": "-1"}, "$LOCAL_RANK is '-1', not a whole number from 0 to 2147483647"),
     ({"WORLD_SIZE": "2", "RANK": "0", "VPRBENCH_DIST_TIMEOUT": "soon"}, "$VPRBENCH_DIST_TIMEOUT is 'soon'; it takes the seconds"),
     ({"WORLD_SIZE": "2", "RANK": "0", "VPRBENCH_DIST_TIMEOUT": "nan"}, "$VPRBENCH_DIST_TIMEOUT is 'nan'"),
     # was: OverflowError: Python int too large to convert to C int (from timedelta)

@@ -282,7 +282,8 @@ def add_run_options(parser: argparse.ArgumentParser, *, download: bool = True, q
                        help="torch device: auto (cuda when available, else cpu), cpu, cuda, cuda:1 (default: auto)")
     group.add_argument("--batch-size", type=int, help="images per forward pass (>= 1)")
     group.add_argument("--workers", type=whole_number(0),
-                       help="data-loader worker processes reading images (default: 0 on cpu, up to 4 on cuda)")
+                       help="data-loader worker processes reading images, at most 1024 (default: 0 on cpu, up to 4 "
+                             "on cuda)")
     group.add_argument("--search-memory", metavar="SIZE",
                        help="memory budget of search and PCA fitting, e.g. 1GB, 512MB, 4GiB (default 1.0 GB)")
     group.add_argument("--lock-timeout", type=float, metavar="SECONDS",

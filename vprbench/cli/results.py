@@ -17,7 +17,8 @@ def add_parsers(commands) -> None:
     e.add_argument("--method", help="with --dataset: every run of this method (name or label) on the dataset")
     e.add_argument("--dataset", help="with --method: the dataset")
     e.add_argument("--to", type=output_file(), required=True, metavar="FILE", help="the bundle to write (e.g. runs.tar.gz)")
-    e.add_argument("--contributor", help="who contributes the runs (shown beside them on the leaderboard)")
+    e.add_argument("--contributor", help="who contributes the runs, at most 200 characters (shown beside them on the "
+                                         "leaderboard)")
     e.add_argument("--cache-dir", help="the results store to export from")
     e.set_defaults(run=run_export)
 

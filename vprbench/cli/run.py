@@ -4,13 +4,13 @@ from __future__ import annotations
 from .console import console
 from ..errors import DESCRIBED
 from .options import (add_location_options, add_method_flags, add_run_options, add_spec_options, add_sweep_options,
-                      explicit_run_options, method_options, progress, refuse_unused, resolve_locations,
-                      run_settings, spec_overrides)
+                      explicit_run_options, method_options, path_argument, progress, refuse_unused,
+                      resolve_locations, run_settings, spec_overrides)
 
 
 def add_parsers(commands) -> None:
     p = commands.add_parser("run", help="run a plan: methods x datasets (protocols) x K; several processes share the cells")
-    p.add_argument("plan", help="plan file (TOML; see docs/sweeps.md)")
+    p.add_argument("plan", type=path_argument, help="plan file (TOML; see docs/sweeps.md)")
     add_method_flags(p)
     add_spec_options(p)
     add_run_options(p)

@@ -183,6 +183,9 @@ def plan_entries(data: dict, origin: str, lines: dict | None = None, *, override
 
     for key in sorted(set(data) - PLAN_KEYS):
         problems.append(f"{where('', 0, key)}: unknown key {key!r}{closest_names(key, PLAN_KEYS)} (allowed: {', '.join(sorted(PLAN_KEYS))})")
+    for key in ("name", "description"):  # else a table or list is shown as its Python spelling
+        if not isinstance(data.get(key, ""), str):
+            problems.append(f"{where('', 0, key)}: the plan's {key} must be a text; got {reprlib.repr(data[key])}")
     shared = {"ks": overrides.get("k") or data.get("k"), "search": layered_search(data.get("search"), overrides.get("search")),
               "store_dtype": overrides.get("store_dtype") or data.get("store_dtype", "float32")}
     for key, check in (("k", lambda: check_ks(shared["ks"])), ("search", lambda: resolve_search(shared["search"])),
@@ -259,7 +262,11 @@ def plan_entries(data: dict, origin: str, lines: dict | None = None, *, override
         except VPRBenchError as error:
             problems.append(f"{where('methods', i, 'name')}: Method {name!r}: {error}")
             continue
-        methods.append((i, name, options, str(entry.get("label", "")), stages))
+        if not isinstance(entry.get("label", ""), str):
+            problems.append(f"{where('methods', i, 'label')}: label of method {name!r} must be a text (the row's name); "
+                            f"got {reprlib.repr(entry['label'])}")
+            continue
+        methods.append((i, name, options, entry.get("label", ""), stages))
 
     datasets, manifests = [], dataset_manifests()
     for i, entry in enumerate(_entries(data, "datasets", problems, where)):
@@ -267,6 +274,10 @@ def plan_entries(data: dict, origin: str, lines: dict | None = None, *, override
         for key in sorted(set(entry) - DATASET_KEYS):
             problems.append(f"{where('datasets', i, key)}: dataset entry {i + 1} has unknown key {key!r} (allowed: {', '.join(sorted(DATASET_KEYS))})")
         name = str(entry.get("name"))
+        if "protocol" in entry and "protocols" in entry:  # else `protocol` was dropped, silently
+            problems.append(f"{where('datasets', i, 'protocol')}: dataset {reprlib.repr(name)} gives both protocol and "
+                            "protocols; give one (protocols = [...] for several)")
+            continue
         wanted = entry.get("protocols", [entry["protocol"]] if "protocol" in entry else [overrides.get("protocol")])
         if not isinstance(wanted, list) or not wanted or not all(isinstance(p, str) or p is None for p in wanted):
             key, kind = ("protocols", "a list of names, e.g. ['vpr-bench']") if "protocols" in entry else ("protocol", "a name")
@@ -289,7 +300,7 @@ def plan_entries(data: dict, origin: str, lines: dict | None = None, *, override
                 datasets.append((i, name, protocol))
 
     _raise_problems(origin, problems)
-    return PlanEntries(str(data.get("name", default_name)), str(data.get("description", "")), origin, where,
+    return PlanEntries(data.get("name", default_name), data.get("description", ""), origin, where,
                        methods, datasets, shared)
 
 

@@ -4,7 +4,7 @@
       database/*.jpg
       queries/*.jpg
       positions.csv      # optional if file names carry UTM as @easting@northing@...
-      dataset.toml       # optional: name, radius, unit, domain, title, citation, licence
+      dataset.toml       # optional: name, title, radius, domain, citation, licence
 
 positions.csv has a column `image` (path relative to mydata/, e.g. database/0001.jpg) and
 one of: `x,y` or `easting,northing` (metres), `latitude,longitude` or `lat,lon` (degrees,
