@@ -33,7 +33,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from .errors import VPRBenchError, os_error_message
-from .text import literal
+from .text import literal, one_line
 
 
 class CacheError(VPRBenchError):
@@ -259,7 +259,8 @@ def lock(path: str | os.PathLike, timeout: float | None = None, *, what: str | N
             raise Timeout(str(path))
     except Timeout:
         if announce:
-            print(f"waiting for {what}: locked by {_describe_holder(path)}", file=sys.stderr, flush=True)
+            # one line: `what` names a folder the user gave, which may hold a newline or an escape sequence
+            print(f"waiting for {one_line(what)}: locked by {_describe_holder(path)}", file=sys.stderr, flush=True)
         try:
             held.acquire(timeout=-1 if timeout is None else timeout)
         except Timeout:

@@ -150,10 +150,22 @@ def natural_key(path: Path) -> list:
 
 def list_images(folder: Path, *, recursive: bool = False, natural: bool = False) -> list[Path]:
     """The image files in `folder` (and below it when `recursive`), sorted by path, or in natural
-    name order when `natural` (the order a released dataset's ground truth indexes)."""
+    name order when `natural` (the order a released dataset's ground truth indexes); names alike in
+    natural order ('a1.jpg', 'a01.jpg'; one name in two subfolders) by path, not as the folder lists them."""
     found = folder.rglob("*") if recursive else folder.iterdir()
-    images = [p for p in found if p.suffix.lower() in IMAGE_SUFFIXES and _is_image_file(p)]
-    return sorted(images, key=natural_key if natural else None)
+    images = [_utf8_name(p) for p in found if p.suffix.lower() in IMAGE_SUFFIXES and _is_image_file(p)]
+    return sorted(images, key=(lambda p: (natural_key(p), p)) if natural else None)
+
+
+def _utf8_name(path: Path) -> Path:
+    """`path`, refused when its name is bytes that are no UTF-8 text (written in another encoding): stores and
+    records keep image names as text, and positions.csv could not name it."""
+    try:
+        path.name.encode("utf-8")
+    except UnicodeEncodeError:
+        raise VPRBenchError(f"Image {os.fsencode(path.name)!r} in {path.parent}: its name is not UTF-8 text (another "
+                            "encoding's bytes); rename it.") from None
+    return path
 
 
 def _is_image_file(path: Path) -> bool:

@@ -161,7 +161,7 @@ def test_a_claim_removes_what_killed_claims_of_its_cell_left(tmp_path):
     claims = Claims(tmp_path)
     try:
         assert claims.claim("cell", lambda: False) == ("claimed", "")
-        assert sorted(p.name for p in folder.iterdir()) == ["cell.lease", "cell.lock"]
+        assert sorted(p.name for p in folder.iterdir()) == ["cell.alive", "cell.lease", "cell.lock"]
         claims.release("cell", "it failed")
         assert sorted(p.name for p in folder.iterdir()) == ["cell.failed", "cell.lock"]
     finally:

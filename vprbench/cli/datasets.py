@@ -7,7 +7,7 @@ import warnings
 from pathlib import Path
 
 from ..errors import VPRBenchError
-from ..text import literal, quantity
+from ..text import literal, one_line, quantity
 from .console import console, say, styled
 from .options import add_location_options, check_new_folder, path_argument, refuse_unused, resolve_locations
 
@@ -170,7 +170,7 @@ def run_import(args) -> int:
         warnings.simplefilter("always")
         dataset = import_dataset(args.name, args.path, args.data_dir, strict=args.strict)
     for warning in caught:
-        say(f"warning: {warning.message}")
+        say(f"warning: {one_line(warning.message)}")  # one line, as every other warning
     say(
         f"Imported {args.name!r} from {dataset.root} (layout {dataset.layout}): "
         f"{len(dataset.database)} database and {len(dataset.queries)} query images."

@@ -240,12 +240,14 @@ def publish(args, spec: dict, rendered, settings) -> None:
 
     from .. import leaderboard
     from ..errors import VPRBenchError
+    from ..fsutil import atomic_write
 
     capture = RichConsole(record=True, width=200, markup=False)
     capture.print(rendered)
     page = args.publish / f"{args.paper}-table-{args.table}.md"
-    page.write_text(f"# {spec['title']}\n\nReported by the paper / measured by vprbench here.\n\n```\n{capture.export_text()}```\n",
-                    encoding="utf-8")
+    # whole or not at all: a full disk (or a second reproduce writing the page) never leaves half a page
+    atomic_write(page, f"# {spec['title']}\n\nReported by the paper / measured by vprbench here.\n\n```\n"
+                       f"{capture.export_text()}```\n")
     try:
         leaderboard.publish(args.publish, settings.cache_dir)
     except VPRBenchError:

@@ -48,6 +48,16 @@ def _damaged(error: sqlite3.Error) -> bool:
 TABLE = "CREATE TABLE IF NOT EXISTS hashes_v2 (path TEXT PRIMARY KEY, stamp TEXT, sha256 TEXT)"
 
 
+def _key(path: str):
+    """A path as the memo keys it: its text, or its bytes (stored as a BLOB, never equal to a text) when
+    it holds bytes that are no UTF-8 (a folder named in another encoding), which SQLite cannot take as text."""
+    try:
+        path.encode("utf-8")
+        return path
+    except UnicodeEncodeError:
+        return os.fsencode(path)
+
+
 def stamp(st: os.stat_result) -> str:
     """What must stay unchanged for a remembered hash to be reused (see the module's docstring)."""
     return f"{st.st_ino}:{st.st_size}:{st.st_mtime_ns}:{st.st_ctime_ns}"
@@ -120,12 +130,13 @@ class _Memo:
         """The remembered hashes of the paths whose stamp is unchanged."""
         if self.db is None:
             return {}
-        found, paths = {}, list(keys)
+        found, paths = {}, [_key(path) for path in keys]
         try:
             for start in range(0, len(paths), 500):
                 part = paths[start:start + 500]
                 query = f"SELECT path, stamp, sha256 FROM hashes_v2 WHERE path IN ({','.join('?' * len(part))})"
-                for path, found_stamp, digest in self.db.execute(query, part):
+                for key, found_stamp, digest in self.db.execute(query, part):
+                    path = os.fsdecode(key) if isinstance(key, bytes) else key
                     if keys.get(path) == found_stamp and isinstance(digest, str):
                         found[path] = digest
         except sqlite3.Error as error:
@@ -140,7 +151,8 @@ class _Memo:
                 return
             try:
                 with self.db:
-                    self.db.executemany("INSERT OR REPLACE INTO hashes_v2 VALUES (?, ?, ?)", rows)
+                    self.db.executemany("INSERT OR REPLACE INTO hashes_v2 VALUES (?, ?, ?)",
+                                        [(_key(path), taken, digest) for path, taken, digest in rows])
                 return
             except sqlite3.Error as error:  # read-only or full: the hashes are right, only not remembered
                 if not _damaged(error) or attempt:
@@ -183,5 +195,6 @@ def images_key(paths: Sequence[Path], root: Path | None, cache_dir=None, digests
     h = hashlib.sha256()
     digests = content_hashes(paths, cache_dir) if digests is None else digests
     for name, digest in zip(image_names(paths, root) if names is None else names, digests, strict=True):
-        h.update(f"{name}\0{digest}\n".encode())
+        # a name in another encoding's bytes (a file beside an option's images) as those bytes: one key per name
+        h.update(f"{name}\0{digest}\n".encode("utf-8", "surrogateescape"))
     return h.hexdigest()

@@ -15,7 +15,7 @@ import numpy as np
 from ..errors import VPRBenchError
 from ..images import load_image
 from ..paths import resolved
-from ..text import plural, quantity
+from ..text import one_line, plural, quantity
 from .download import how_to_get
 from .layouts import MissingPart, candidates, describe_layout, detect_layout, missing_paths, read_layout
 from .manifest import dataset_manifest
@@ -39,8 +39,10 @@ class VerifyReport:
         return not self.problems
 
     def lines(self) -> list[str]:
-        head = f"{self.name}: {'OK' if self.ok else 'PROBLEMS'} at {self.root}" + (f" (layout {self.layout})" if self.layout else "")
-        body = [f"  error: {p}" for p in self.problems] + [f"  warning: {w}" for w in self.warnings]
+        # one line each: a path or name holding a newline (a file named so) cannot split a problem in two
+        head = f"{self.name}: {'OK' if self.ok else 'PROBLEMS'} at {one_line(self.root)}" + (
+            f" (layout {self.layout})" if self.layout else "")
+        body = [f"  error: {one_line(p)}" for p in self.problems] + [f"  warning: {one_line(w)}" for w in self.warnings]
         if self.summary:
             s = self.summary
             body.append(

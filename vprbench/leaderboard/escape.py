@@ -30,10 +30,16 @@ def public(value) -> str:
     return _ABSOLUTE.sub(lambda found: re.split(r"[/\\]", found.group().rstrip("/\\"))[-1], str(value))
 
 
+#: a value that is one path as a whole ('/a/b', '~/a'): cut to its last name whatever it holds, as `public`'s
+#: names end at a blank ('/home/ann lee/my data/own' was shown as 'ann lee/my data/own')
+_ONE_PATH = re.compile(r"(?:~|\.\.?)?/[^/]+(?:/[^/]+)+/?|~/[^/]+/?", re.S)
+
+
 def public_data(value):
-    """A record or download entry with `public` applied to every string in it (keys included)."""
+    """A record or download entry with `public` applied to every string in it (keys included); a string
+    that is a path as a whole (a dataset's folder) cut to its last name."""
     if isinstance(value, str):
-        return public(value)
+        return value.rstrip("/").rpartition("/")[2] if _ONE_PATH.fullmatch(value) else public(value)
     if isinstance(value, dict):
         return {public(k) if isinstance(k, str) else k: public_data(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):

@@ -194,7 +194,7 @@ def _run_claimed(cell, claims, taken_over, settings, progress, plan) -> Outcome:
         record = evaluate_cell(cell, settings, progress=progress,
                                context={"plan": plan, "worker": claims.worker, **({"resumed": taken_over} if taken_over else {})})
         if not claims.still_mine(cell.key):  # this process stalled past its lease and the cell was taken over
-            claims.held.discard(cell.key)
+            claims.forget(cell.key)
             return Outcome(cell, ELSEWHERE, "lease lost while running; the other process's result counts")
         save_result(record, settings.cache_dir)
     except (Exception, KeyboardInterrupt) as error:  # a failing cell must not stop the sweep
