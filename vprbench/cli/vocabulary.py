@@ -41,9 +41,11 @@ def add_parsers(commands) -> None:
     p.add_argument("path", type=path_argument)
     p.add_argument("--source", required=True, help="domain name or map-<dataset>")
     p.add_argument("--backbone", default="dinov2_vitg14",
-                   help="the features the centres fit: BACKBONE, BACKBONE@random, or BACKBONE@<16 hex of your checkpoint's sha256>")
-    p.add_argument("--layer", type=int, default=31)
-    p.add_argument("--facet", default="value")
+                   help="the features the centres fit: BACKBONE, BACKBONE@random, or BACKBONE@<16 hex of your "
+                        "checkpoint's sha256 (default: dinov2_vitg14, the authors' release; a file that names its "
+                        "features must match them)")
+    p.add_argument("--layer", type=int, default=31, help="0-based block the centres were fitted on (default: 31)")
+    p.add_argument("--facet", default="value", help="facet the centres were fitted on (default: value)")
     p.add_argument("--stride", type=int, help="the patch stride the centres were fitted at (default: the backbone's own)")
     add_location_options(p, data=False)
     p.set_defaults(run=run_import)
