@@ -412,7 +412,7 @@ def check_ks(ks) -> tuple[int, ...]:
     if ks is None:
         return DEFAULT_KS
     if isinstance(ks, (Mapping, bytes)) or not isinstance(ks, (Real, str, Iterable)):
-        raise VPRBenchError(f"--k (ks) takes whole numbers >= 1 in a list, e.g. [1, 5, 10]; got {ks!r}.")
+        raise VPRBenchError(f"--k (ks) takes whole numbers >= 1 in a list, e.g. [1, 5, 10]; got {shortened(repr(ks))}.")
     values = [ks] if isinstance(ks, (Real, str)) else list(ks)
     found = []
     for value in values:
@@ -422,7 +422,7 @@ def check_ks(ks) -> tuple[int, ...]:
             except ValueError:
                 number = math.nan
             if not math.isfinite(number) or number != int(number) or number < 1 or isinstance(value, bool):
-                raise VPRBenchError(f"--k (ks) takes whole numbers >= 1 (e.g. --k 1 5 10), got {' '.join(map(str, values))}.")
+                raise VPRBenchError(f"--k (ks) takes whole numbers >= 1 (e.g. --k 1 5 10), got {shortened(' '.join(map(str, values)))}.")
             found.append(int(number))
     if not found:
         raise VPRBenchError("--k (ks) needs at least one value, e.g. --k 1 5 10.")

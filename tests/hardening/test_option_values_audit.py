@@ -14,6 +14,8 @@ from own_folders import corridor_folder
 
 from vprbench.errors import VPRBenchError
 from vprbench.evaluation.approximate import check_options
+from vprbench.methods.checks import choice, whole
+from vprbench.spec import check_ks
 
 from hostile_files import assert_refused
 
@@ -159,3 +161,12 @@ def test_an_option_value_too_long_for_a_file_name_is_judged_by_the_method(shared
     code, _, err = cli(*HOG, "--data-dir", shared_data, "-o", "cell=" + "x" * 300, "--cache-dir", tmp_path / "cache")
     assert_refused(code, err, None, "hog: option cell takes a whole number >= 1")
     assert "cannot read the file" not in err and not (tmp_path / "cache" / "stores").exists()
+
+
+@pytest.mark.parametrize("check", [check_ks, lambda big: whole("hog", "cell", big),
+                                   lambda big: choice("hog", "norm", big, ["l2"])])
+def test_a_value_thousands_of_characters_long_is_shown_short(check):
+    """A 5,000-digit --k or method option was echoed whole: one line, but thousands of characters."""
+    with pytest.raises(VPRBenchError) as refused:
+        check("9" * 5000)
+    assert len(str(refused.value)) < 300 and "..." in str(refused.value)

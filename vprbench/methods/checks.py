@@ -13,6 +13,7 @@ import math
 from collections.abc import Sequence
 
 from ..errors import VPRBenchError
+from ..text import shortened
 
 
 def _bounds(minimum, maximum) -> str:
@@ -34,7 +35,7 @@ def whole(method: str, option: str, value, minimum: int | None = 1, maximum: int
     if number is None or not math.isfinite(number) or number != int(number) or \
             (minimum is not None and number < minimum) or (maximum is not None and number > maximum):
         raise VPRBenchError(f"{method}: option {option} takes a whole number{_bounds(minimum, maximum)}"
-                            f"{f' ({what})' if what else ''}; got {value!r}.")
+                            f"{f' ({what})' if what else ''}; got {shortened(repr(value))}.")
     return int(number)
 
 
@@ -50,7 +51,7 @@ def number(method: str, option: str, value, minimum: float | None = None, above:
             (above is not None and result <= above):
         bound = f" > {above:g}" if above is not None else (f" >= {minimum:g}" if minimum is not None else "")
         raise VPRBenchError(f"{method}: option {option} takes a finite number{bound}"
-                            f"{f' ({what})' if what else ''}; got {value!r}.")
+                            f"{f' ({what})' if what else ''}; got {shortened(repr(value))}.")
     return result
 
 
@@ -61,12 +62,12 @@ def wholes(method: str, option: str, value, minimum: int | None = 1, what: str =
         items = [items]
     if not items or any(isinstance(v, str) and not v for v in items):
         raise VPRBenchError(f"{method}: option {option} takes one or more whole numbers{_bounds(minimum, None)}, "
-                            f"e.g. 4,6,8{f' ({what})' if what else ''}; got {value!r}.")
+                            f"e.g. 4,6,8{f' ({what})' if what else ''}; got {shortened(repr(value))}.")
     try:
         return tuple(whole(method, option, v, minimum, what=what) for v in items)
     except VPRBenchError:
         raise VPRBenchError(f"{method}: option {option} takes one or more whole numbers{_bounds(minimum, None)}, "
-                            f"e.g. 4,6,8{f' ({what})' if what else ''}; got {value!r}.") from None
+                            f"e.g. 4,6,8{f' ({what})' if what else ''}; got {shortened(repr(value))}.") from None
 
 
 def flag(method: str, option: str, value, none: str = "") -> bool | None:
@@ -75,20 +76,20 @@ def flag(method: str, option: str, value, none: str = "") -> bool | None:
     if isinstance(value, bool) or value is None and none:
         return value
     allowed = f"True, False or None ({none})" if none else "True or False"
-    raise VPRBenchError(f"{method}: option {option} takes {allowed}; got {value!r}.")
+    raise VPRBenchError(f"{method}: option {option} takes {allowed}; got {shortened(repr(value))}.")
 
 
 def choice(method: str, option: str, value, choices: Sequence[str]) -> str:
     """One of `choices` (exactly)."""
     if not isinstance(value, str) or value not in choices:
-        raise VPRBenchError(f"{method}: option {option} takes one of {', '.join(choices)}; got {value!r}.")
+        raise VPRBenchError(f"{method}: option {option} takes one of {', '.join(choices)}; got {shortened(repr(value))}.")
     return value
 
 
 def text(method: str, option: str, value, what: str = "") -> str:
     """A non-empty string (a name or a path)."""
     if not isinstance(value, str) or not value.strip():
-        raise VPRBenchError(f"{method}: option {option} takes a non-empty text{f' ({what})' if what else ''}; got {value!r}.")
+        raise VPRBenchError(f"{method}: option {option} takes a non-empty text{f' ({what})' if what else ''}; got {shortened(repr(value))}.")
     return value
 
 
@@ -99,7 +100,7 @@ def device(method: str, value) -> str:
     try:
         chosen = torch.device(text(method, "device", value, "e.g. cpu or cuda"))
     except (RuntimeError, TypeError):
-        raise VPRBenchError(f"{method}: option device takes a torch device such as cpu, cuda or cuda:1; got {value!r}.") from None
+        raise VPRBenchError(f"{method}: option device takes a torch device such as cpu, cuda or cuda:1; got {shortened(repr(value))}.") from None
     if chosen.type == "cuda" and not torch.cuda.is_available():
         raise VPRBenchError(f"{method}: device {value!r} was asked for but no CUDA GPU is available; use --device cpu.")
     if chosen.type == "meta":  # tensors without data: every descriptor would be made of nothing
