@@ -18,6 +18,7 @@ Components follow sklearn's sign convention (each one's largest-magnitude entry 
 from __future__ import annotations
 
 import warnings
+from typing import NamedTuple
 
 import numpy as np
 
@@ -31,6 +32,9 @@ PASSES = 10
 RANK_TOLERANCE = 1e-6
 #: a chunk (centred in place) and one product of at most its size
 ROW_COPIES = 2
+#: rows per sum and product of a fit (fewer where 64 MiB reads fewer): a fixed tile of the database,
+#: so any budget that reads whole tiles fits the same state, bit for bit
+FIT_TILE = 1024
 #: the projection is applied in float64 this many bytes of it at a time: a float64 copy of all of
 #: it (201 MB at AnyLoc's 49,152 -> 512 dims) would sit beside whatever budget a search runs in
 PROJECTION_BLOCK_BYTES = 32 * 2**20
@@ -102,6 +106,8 @@ class PCAWhitening:
         row_cost = ROW_COPIES * read_bytes_per_row(rows)
         blocks = 2 if solver == "gram" else 1  # the Gram path holds two chunks
         chunk_rows = min(READ_BYTES // row_cost, (budget - held) // (row_cost * blocks))
+        tile = fit_tile(rows)
+        chunk_rows -= chunk_rows % tile if chunk_rows >= tile else 0  # whole tiles (a tighter budget: smaller sums)
         if chunk_rows < 1:
             raise VPRBenchError(
                 f"A memory budget of {format_bytes(budget)} is too small to fit PCA-whitening of {n:,} x {d:,} "
@@ -142,7 +148,7 @@ class PCAWhitening:
                           f"(approximate) within the {format_bytes(budget)} memory budget; a budget of "
                           f"{format_budget(self.exact_memory(rows))} (--search-memory) fits it exactly.", stacklevel=2)
         fit = {"covariance": _fit_covariance, "gram": _fit_gram, "randomized": _fit_randomized}[solver]
-        mean, components, variances = fit(rows, self.dim, int(chunk_rows), self.seed)
+        mean, components, variances = fit(rows, self.dim, _Reads(int(chunk_rows), fit_tile(rows)), self.seed)
         floor = RANK_TOLERANCE * max(variances[0], 1e-300)
         if not variances[-1] > floor:
             rank = int(np.sum(variances > floor))
@@ -197,22 +203,35 @@ class PCAWhitening:
         self.mean, self.projection = mean, projection
 
 
-def _shifted(rows, chunk_rows: int):
-    """Chunks minus the first chunk's mean (a shift keeps float32 sums well conditioned),
-    shifted in place; callers drop each before the next is read."""
+def fit_tile(rows) -> int:
+    """Rows per sum and product of a fit on `rows` (FIT_TILE, or what 64 MiB reads): set by their shape."""
+    return max(1, min(FIT_TILE, READ_BYTES // (ROW_COPIES * read_bytes_per_row(rows))))
+
+
+class _Reads(NamedTuple):
+    """How a fit reads its rows: `chunk` rows at a time, computed on tiles of `tile` rows."""
+    chunk: int
+    tile: int
+
+
+def _shifted(rows, reads: _Reads):
+    """(start, tile) of the rows minus the first chunk's first tile's mean (a shift keeps float32 sums
+    well conditioned), read a chunk at a time and shifted in place; callers drop each chunk's tiles
+    before the next is read."""
     shift = None
-    for start, block in chunks(rows, chunk_rows):
+    for start, block in chunks(rows, reads.chunk):
         if shift is None:
-            shift = block.mean(axis=0, dtype=np.float64).astype(np.float32)
+            shift = block[:reads.tile].mean(axis=0, dtype=np.float64).astype(np.float32)
         block -= shift
-        yield start, block, shift
+        for at in range(0, len(block), reads.tile):
+            yield start + at, block[at:at + reads.tile], shift
         del block
 
 
-def _fit_covariance(rows, dim: int, chunk_rows: int, seed: int):
+def _fit_covariance(rows, dim: int, reads: _Reads, seed: int):
     n, d = rows.row_count, rows.dim
     sums, products = np.zeros(d), np.zeros((d, d))
-    for _, x, shift in _shifted(rows, chunk_rows):
+    for _, x, shift in _shifted(rows, reads):
         sums += x.sum(axis=0, dtype=np.float64)
         products += x.T @ x
         del x
@@ -224,20 +243,21 @@ def _fit_covariance(rows, dim: int, chunk_rows: int, seed: int):
     return shift + m, vectors.T, variances
 
 
-def _fit_gram(rows, dim: int, chunk_rows: int, seed: int):
+def _fit_gram(rows, dim: int, reads: _Reads, seed: int):
     from scipy.linalg.blas import dgemm
 
     n, d = rows.row_count, rows.dim
     gram, sums = np.zeros((n, n)), np.zeros(d)
-    for i, xi, shift in _shifted(rows, chunk_rows):
+    for i, xi, shift in _shifted(rows, reads):
         sums += xi.sum(axis=0, dtype=np.float64)
         gram[i:i + len(xi), i:i + len(xi)] = xi @ xi.T
-        for j in range(i + len(xi), n, chunk_rows):
-            xj = np.asarray(rows.read_rows(j, min(j + chunk_rows, n)), dtype=np.float32)
+        for j in range(i + len(xi), n, reads.chunk):
+            xj = np.asarray(rows.read_rows(j, min(j + reads.chunk, n)), dtype=np.float32)
             xj -= shift
-            block = xi @ xj.T
-            gram[i:i + len(xi), j:j + len(xj)] = block
-            gram[j:j + len(xj), i:i + len(xi)] = block.T
+            for at in range(j, j + len(xj), reads.tile):  # tile by tile, as every product of the fit
+                block = xi @ xj[at - j:at - j + reads.tile].T
+                gram[i:i + len(xi), at:at + len(block.T)] = block
+                gram[at:at + len(block.T), i:i + len(xi)] = block.T
             del xj, block
         del xi
     means = gram.mean(axis=0)  # double centring: X_c X_c^T = J G J
@@ -248,7 +268,7 @@ def _fit_gram(rows, dim: int, chunk_rows: int, seed: int):
     del gram
     m = sums / n
     components = np.zeros((d, dim), order="F")
-    for start, x, _ in _shifted(rows, chunk_rows):
+    for start, x, _ in _shifted(rows, reads):
         x -= m.astype(np.float32)
         # accumulated by BLAS in place: `components += x.T @ v` makes a D x dim temporary each chunk
         dgemm(1.0, x.astype(np.float64).T, vectors[start:start + len(x)], beta=1.0, c=components, overwrite_c=True)
@@ -266,7 +286,7 @@ def _gaussian(seed: int, d: int, sketch: int) -> np.ndarray:
     return out
 
 
-def _fit_randomized(rows, dim: int, chunk_rows: int, seed: int):
+def _fit_randomized(rows, dim: int, reads: _Reads, seed: int):
     from scipy.linalg import qr
 
     n, d = rows.row_count, rows.dim
@@ -274,7 +294,7 @@ def _fit_randomized(rows, dim: int, chunk_rows: int, seed: int):
     basis = qr(_gaussian(seed, d, sketch), mode="economic", overwrite_a=True, check_finite=False)[0].astype(np.float32)
     for p in range(PASSES):  # basis <- orth(C basis), C the covariance, never formed
         product, sums = np.zeros((d, sketch), order="F"), np.zeros(d)
-        for _, x, shift in _shifted(rows, chunk_rows):
+        for _, x, shift in _shifted(rows, reads):
             sums += x.sum(axis=0, dtype=np.float64)
             product += x.T @ (x @ basis)
             del x
