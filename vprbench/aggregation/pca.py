@@ -215,7 +215,7 @@ class _Reads(NamedTuple):
 
 
 def _shifted(rows, reads: _Reads):
-    """(start, tile) of the rows minus the first chunk's first tile's mean (a shift keeps float32 sums
+    """(start, tile, shift): tiles of the rows minus `shift`, the first tile's mean (a shift keeps float32 sums
     well conditioned), read a chunk at a time and shifted in place; callers drop each chunk's tiles
     before the next is read."""
     shift = None
