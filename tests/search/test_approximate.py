@@ -89,10 +89,10 @@ def test_the_index_searches_with_the_nprobe_and_ef_search_it_records():
 
     db = clustered(10_000, 16, 3)
     o = index_options("ivf-pq", len(db), 16, 5, {"nlist": 16, "nprobe": 5, "pq_m": 4})
-    index, _, _ = _build("ivf-pq", ArrayRows(db), o, 10**9)
+    index, _, _ = _build("ivf-pq", ArrayRows(db), o)
     assert o["nprobe"] == 5 and index.nprobe == 5
     o = index_options("hnsw", 2000, 16, 5, {"ef_search": 77, "shortlist": 50})
-    index, _, _ = _build("hnsw", ArrayRows(db[:2000]), o, 10**9)
+    index, _, _ = _build("hnsw", ArrayRows(db[:2000]), o)
     assert o["ef_search"] == 77 and index.hnsw.efSearch == 77
 
 
@@ -104,8 +104,8 @@ def test_a_short_shortlist_is_searched_exactly_whatever_k_is(tmp_path, monkeypat
     db, q = clustered(4000, 16, 30), clustered(40, 16, 31)
     built = approximate._build
 
-    def short_answers(kind, database, o, budget):
-        index, *rest = built(kind, database, o, budget)
+    def short_answers(kind, database, o):
+        index, *rest = built(kind, database, o)
 
         class Short:  # every other query gets 3 arbitrary rows, padded with -1 as faiss pads
             def search(self, block, shortlist):
@@ -130,15 +130,18 @@ def test_an_approximate_search_at_a_tight_budget_holds_one_chunk_of_rows(kind):
     (ivf-pq on 100,000 x 256 at 25.8 MB: 34.7 MB of rows + the index)."""
     from traced import peak_of
 
-    from vprbench.evaluation.approximate import _index_bytes, approximate_search, index_options
+    from vprbench.evaluation.approximate import _index_bytes, add_rows, approximate_search, index_options
     from vprbench.evaluation.search import ArrayRows
 
     n, q, d, k = 70000, 300, 64, 5
     db = clustered(n, d, 0)
     o = index_options(kind, n, d, k, None)
     index_bytes = _index_bytes(kind, n, d, o)
-    # what the index asks, and the 12 MB its exact recall check asks at this size
-    budget = o["train_rows"] * 4 * d + index_bytes + q * k * 12 + 4 * d + o["shortlist"] * (4 * d + 12) + 12_100_000
+    residual = 4 * d if kind == "ivf-pq" else 0
+    # what the index asks (its training sample, or the rows it adds at a time), and the 12 MB its exact
+    # recall check asks at this size
+    rows = max(o["train_rows"], min(n, add_rows(kind, ArrayRows(db)))) * (4 * d + residual)
+    budget = rows + index_bytes + q * k * 12 + 4 * d + o["shortlist"] * (4 * d + 12) + 12_100_000
     import faiss  # noqa: F401  (their imports, 4 MB and more, are no part of a search's memory)
     import vprbench.gemm  # noqa: F401
     queries = ArrayRows(near_copies(db, q, 1))
@@ -146,7 +149,6 @@ def test_an_approximate_search_at_a_tight_budget_holds_one_chunk_of_rows(kind):
     assert peak < 1.05 * (budget - index_bytes), (peak, budget - index_bytes)
     # faiss's own copy, untraced: IVF-PQ adds a chunk with the float32 residual of each row (VmHWM: 18.8 MB
     # to add 17.2 MB), so its chunks leave room for that
-    residual = 4 * d if kind == "ivf-pq" else 0
     assert found.info["chunk_rows"] * (4 * d + residual) <= budget - index_bytes
 
 
@@ -175,3 +177,26 @@ def test_the_exact_searches_beside_the_answers_fit_the_budget_or_are_refused_bef
     index_bytes = found.info["index_bytes"]
     assert peak <= need - index_bytes, (peak, need - index_bytes)  # faiss's index is untraced
     assert found.info["recall_loss"]["queries"] == 200
+
+
+def test_an_hnsw_search_is_the_same_at_every_budget_it_runs_at():
+    """HNSW inserts each batch of added rows by level, so another batching builds another graph: rows were
+    added as many at a time as the budget held, and a tight budget (20,000 x 128 at the 5.3 MB it named)
+    gave other shortlists (95 % of the top-10 of 300 queries changed). Now they are
+    added a fixed number at a time, and the least budget named holds that many."""
+    import re
+
+    from vprbench.evaluation.approximate import approximate_search
+    from vprbench.evaluation.search import ArrayRows
+
+    db, queries = ArrayRows(clustered(20_000, 128, 5)), ArrayRows(clustered(300, 128, 6))
+    options = {"hnsw_m": 4, "ef_construction": 8, "ef_search": 20, "shortlist": 20, "train_rows": 1000,
+               "recall_queries": 20}
+    search = functools.partial(approximate_search, db, queries, 10, kind="hnsw", options=options)
+    roomy = search(memory_budget=1 << 30)
+    with pytest.raises(VPRBenchError, match="Raise --search-memory") as refused:
+        search(memory_budget=1_000_000)
+    tight = search(memory_budget=parse_memory(re.search(r"at least (\S+ \S+),", str(refused.value)).group(1)))
+    np.testing.assert_array_equal(tight.indices, roomy.indices)
+    np.testing.assert_array_equal(tight.scores, roomy.scores)
+    assert tight.info["recall_loss"] == roomy.info["recall_loss"]

@@ -111,7 +111,13 @@ def _residual_bytes(kind: str, dim: int) -> int:
     return 4 * dim if kind == "ivf-pq" else 0
 
 
-def _build(kind: str, database: RowSource, o: dict, budget: int):
+def add_rows(kind: str, database: RowSource) -> int:
+    """Rows added to the index at a time: set by the rows' size, never by the budget, as HNSW inserts each
+    batch's rows by level (another batching builds another graph, other shortlists)."""
+    return max(1, READ_BYTES // (read_cost(database)[0] + _residual_bytes(kind, database.dim)))
+
+
+def _build(kind: str, database: RowSource, o: dict):
     import faiss
 
     dim, n = database.dim, database.row_count
@@ -126,8 +132,7 @@ def _build(kind: str, database: RowSource, o: dict, budget: int):
     check_finite(training, "Database", numbers=sample)  # before faiss trains on it
     index.train(training)
     del training
-    row_bytes, fixed = read_cost(database)
-    chunk_rows = max(1, min(READ_BYTES, budget - fixed) // (row_bytes + _residual_bytes(kind, dim)))
+    chunk_rows = min(n, add_rows(kind, database))
     zeros = 0  # counted on this one pass over every row
     for start, rows in chunks(database, chunk_rows):
         zeros += int(np.count_nonzero(zero_rows(rows, "Database", start)))  # and faiss indexes no NaN row
@@ -147,7 +152,8 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
     (row_bytes, fixed), (q_row, q_fixed) = read_cost(database), read_cost(queries)
     # training set + index, and per query: its row, its shortlist's rows and the index's answers
     per_query = q_row + o["shortlist"] * (row_bytes + 12)
-    training = o["train_rows"] * (row_bytes + _residual_bytes(kind, dim))
+    # the training sample, then (in its place) a chunk of rows being added
+    training = max(o["train_rows"], min(n, add_rows(kind, database))) * (row_bytes + _residual_bytes(kind, dim))
     need = training + fixed + index_bytes + q_fixed + n_queries * k * 12 + per_query
     # then, beside the answers: queries searched exactly (short shortlists, the recall check), a batch at a time
     held, batch = n_queries * k * 12, min(n_queries, o["recall_queries"])
@@ -156,12 +162,12 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
         raise VPRBenchError(
             f"A memory budget of {format_bytes(memory_budget)} is too small for index={kind!r} on {n:,} rows of {dim:,} "
             f"dims: the index takes about {format_bytes(index_bytes)}, its training sample of {o['train_rows']:,} rows "
-            f"(and faiss's work on it) {format_bytes(training)}, {format_bytes(need)} in all; the exact search of "
-            f"{batch:,} queries that checks its recall, beside the answers, {format_bytes(exact_need)}. Raise "
-            f"--search-memory (memory_budget) to at least {format_budget(max(need, exact_need))}, or lower train_rows / "
-            "pq_m / recall_queries.")
+            f"or the rows it adds at a time (and faiss's work on them) {format_bytes(training)}, "
+            f"{format_bytes(need)} in all; the exact search of {batch:,} queries that checks its recall, beside the "
+            f"answers, {format_bytes(exact_need)}. Raise --search-memory (memory_budget) to at least "
+            f"{format_budget(max(need, exact_need))}, or lower train_rows / pq_m / recall_queries.")
     started = time.perf_counter()
-    index, chunk_rows, zero_database = _build(kind, database, o, memory_budget - index_bytes)
+    index, chunk_rows, zero_database = _build(kind, database, o)
     build_s = time.perf_counter() - started
 
     started = time.perf_counter()
