@@ -42,26 +42,26 @@ CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f-\x9f]")
 #: after them: a name's cell, a terminal's line of numbers) and zero-width ones (two names that
 #: read alike, 'hog' and 'h\u200bog')
 INVISIBLE = re.compile("[\u061c\u200b-\u200f\u202a-\u202e\u2060-\u2064\u2066-\u2069\ufeff]")
+#: lone surrogates: the bytes of a name in another encoding as Python reads them (a command-line
+#: argument, a folder), which no UTF-8 terminal or file can take
+UNWRITABLE = re.compile("[\ud800-\udfff]")
 
 
 def literal(text) -> str:
     """Text from data as a terminal should show it: each control character written out as its
     escape ('\\x1b'), so a name or path holding one is seen, never acted on (a title set, a
-    screen cleared, a line overwritten); each INVISIBLE character too ('\\u202e')."""
+    screen cleared, a line overwritten); each INVISIBLE and UNWRITABLE character too ('\\u202e',
+    '\\udcff'), so it is seen and can be written."""
     shown = CONTROL.sub(lambda found: f"\\x{ord(found.group()):02x}", str(text))
-    return INVISIBLE.sub(lambda found: f"\\u{ord(found.group()):04x}", shown)
+    for hidden in (INVISIBLE, UNWRITABLE):
+        shown = hidden.sub(lambda found: f"\\u{ord(found.group()):04x}", shown)
+    return shown
 
 
 def one_line(text) -> str:
     """`literal`, and line breaks written out too ('\\n'): a name or path holding one cannot split
     a message into lines (or forge a line of its own)."""
     return literal(text).replace("\n", "\\n")
-
-
-def writable(text: str) -> str:
-    """`text` with each character UTF-8 cannot hold written out as its escape ('\\udcff'): a command-line
-    argument of bytes that are not UTF-8 arrives holding one, and writing it to a file would fail."""
-    return text.encode("utf-8", "backslashreplace").decode("utf-8")
 
 
 def shortened(value, limit: int = 80) -> str:

@@ -113,3 +113,14 @@ def test_a_vocabulary_files_metadata_prints_one_line_per_item(tmp_path, cli):
         assert len(out) < 5_000, len(out)
         shown.append(out)
     assert "image_digests: 33 bytes, not whole sha256" in shown[0]  # not counted as one image's
+
+
+def test_text_from_data_in_another_encoding_is_written_out_so_it_can_be_shown_and_written():
+    """A name of bytes that are not UTF-8 (a folder, a command-line argument) arrives holding lone
+    surrogates; shown or written as they are they fail (UnicodeEncodeError), as a contributor's did."""
+    from vprbench.leaderboard.escape import text
+    from vprbench.text import literal
+
+    name = "caf\udce9"
+    assert literal(name) == "caf\\udce9" and text(name) == "caf\\udce9"
+    text(name).encode("utf-8")  # what a page takes

@@ -23,7 +23,7 @@ from .. import __version__
 from ..errors import VPRBenchError, os_error_message
 from ..evaluation.results import card_bytes
 from ..fsutil import CacheError, atomic_write
-from ..text import one_line, shortened, writable
+from ..text import one_line, shortened
 
 #: the bundle's format; a bundle of a newer version is refused by older verifiers
 FORMAT = "vprbench-bundle"
@@ -96,9 +96,9 @@ MAX_CONTRIBUTOR = 200
 def bundle_bytes(records: list[dict], contributor: str | None = None) -> bytes:
     """The bundle of `records` (read from a results store) as bytes."""
     plain = isinstance(contributor, str) and contributor.strip() and len(contributor) <= MAX_CONTRIBUTOR
-    if contributor is not None and not (plain and one_line(writable(contributor)) == contributor):
+    if contributor is not None and not (plain and one_line(contributor) == contributor):
         # shown beside the runs on every leaderboard page; one that is no UTF-8 text failed the site's writing
-        raise VPRBenchError(f"--contributor {shortened(one_line(writable(repr(contributor))))} is not a name: give "
+        raise VPRBenchError(f"--contributor {shortened(one_line(repr(contributor)))} is not a name: give "
                             f"text of at most {MAX_CONTRIBUTOR} characters, in UTF-8, without control characters.")
     files: dict[str, bytes] = {}
     for record in records:

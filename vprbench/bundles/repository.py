@@ -28,7 +28,7 @@ from pathlib import Path
 from ..errors import VPRBenchError
 from ..evaluation.results import LAYOUT, LAYOUT_FILE, check_layout, read_record
 from ..fsutil import CacheError, LockTimeout, atomic_write, check_lock_timeout, lock
-from ..text import one_line, writable
+from ..text import one_line
 from .export import CARDS, MAX_CONTRIBUTOR
 from .claims import one_record_per_run
 from .archive import MAX_BYTES, RECORD_NAME
@@ -117,7 +117,7 @@ def _merge(verified, into: Path, report: ImportReport) -> None:
             report.duplicates.append(f"{verdict.run_id} = {same}")
             continue
         # a bundle's own text: one that is no UTF-8 (a '\udcff' in its JSON) failed the site's writing
-        contributor = one_line(writable(str(manifest.get("contributor") or "anonymous")))[:MAX_CONTRIBUTOR]
+        contributor = one_line(str(manifest.get("contributor") or "anonymous"))[:MAX_CONTRIBUTOR]
         contribution = {"contributor": contributor,
                         "bundle_created": str(manifest.get("created", ""))[:40], "bundle_sha256": bundle_sha,
                         "imported": datetime.now(timezone.utc).isoformat(timespec="seconds")}
