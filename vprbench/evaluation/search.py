@@ -167,6 +167,13 @@ def least_budget(database, query_count: int, k: int) -> int:
     return _least(database, _in_memory(query_count, database.dim), k).need
 
 
+def most_that_fit(count: int, cost, budget: int) -> int:
+    """`count`, halved until `cost(count)` fits `budget` (at least 1: the caller refuses what one costs)."""
+    while count > 1 and cost(count) > budget:
+        count = -(-count // 2)
+    return count
+
+
 def _plan(database, queries, k: int, budget: int, again: bool = False) -> dict:
     """Chunk rows (whole tiles) for the budget, or a clear error when it is too small. The
     budget holds the candidates, one tile of scores, a chunk of queries and two chunks of the
@@ -359,9 +366,7 @@ def _search_again(database, queries, tied: np.ndarray, k: int, budget: int, unit
         return max(count * q_row + q_fixed,
                    count * queries.dim * 4 + _least(database, _in_memory(count, queries.dim), k, True).need)
 
-    step = len(tied)
-    while step > 1 and cost(step) > budget:
-        step = -(-step // 2)
+    step = most_that_fit(len(tied), cost, budget)
     for lo in range(0, len(tied), step):
         rows = ArrayRows(queries.read_rows_at(tied[lo:lo + step]))
         left = budget - rows.array.nbytes

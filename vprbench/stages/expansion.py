@@ -12,7 +12,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from ..errors import VPRBenchError
-from ..evaluation.search import SCORE_TOLERANCE, exact_search, least_budget
+from ..evaluation.search import SCORE_TOLERANCE, exact_search, least_budget, most_that_fit
 from ..row_sources import ArrayRows, format_budget, format_bytes, read_bytes_per_row
 from .base import Candidates, RerankOptions, Stage, StageContext, progress_task, reordered
 
@@ -125,15 +125,17 @@ class DatabaseAugmentation(_Expansion):
         the search. Blocks of at most BLOCK_ROWS, so progress moves during an 84k-image database's expansion."""
         row, read = database.dim * 4, read_bytes_per_row(database)
         held = needed * row + n * read
+
+        def least(rows: int) -> int:  # the augmented rows, a block of them read, and its search
+            return held + rows * read + least_budget(database, rows, n)
+
         block = max(1, min(needed, BLOCK_ROWS, (budget - held) // (8 * database.dim * (n + 1))))
-        while block > 1 and budget - held - block * read < least_budget(database, block, n):
-            block //= 2
-        if budget - held - block * read < least_budget(database, block, n):
-            least = held + block * read + least_budget(database, block, n)
+        block = most_that_fit(block, least, budget)
+        if least(block) > budget:
             raise VPRBenchError(
                 f"Stage {self.name!r}: a memory budget of {format_bytes(budget)} is too small. It holds the {needed:,} "
                 f"augmented database rows of {database.dim:,} dims ({format_bytes(needed * row)}) until every query "
-                f"is scored, and a search of the database beside them: {format_bytes(least)} in all. Raise "
-                f"--search-memory to at least {format_budget(least)}, or re-rank fewer candidates (--rerank-k) or "
+                f"is scored, and a search of the database beside them: {format_bytes(least(block))} in all. Raise "
+                f"--search-memory to at least {format_budget(least(block))}, or re-rank fewer candidates (--rerank-k) or "
                 "descriptors of fewer dims.")
         return block, budget - held - block * read
