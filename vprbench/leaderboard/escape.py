@@ -24,22 +24,25 @@ _NAME = r"[^\s/\\|\[\]()<>'\",;]+"
 _ABSOLUTE = re.compile(rf"(?<![\w.~/\\-])(?:(?:~|\.\.?)(?:/{_NAME})+|(?:/{_NAME}){{2,}})/?|\b[A-Za-z]:\\(?:{_NAME}\\?)+")
 
 
-def public(value) -> str:
-    """`value` as text with each absolute path cut to its last name:
-    'dense-vlad [vocabulary=/home/me/images/tokyo]' -> 'dense-vlad [vocabulary=tokyo]'."""
-    return _ABSOLUTE.sub(lambda found: re.split(r"[/\\]", found.group().rstrip("/\\"))[-1], str(value))
-
-
-#: a value that is one path as a whole ('/a/b', '~/a'): cut to its last name whatever it holds, as `public`'s
-#: names end at a blank ('/home/ann lee/my data/own' was shown as 'ann lee/my data/own')
+#: a value that is one path as a whole ('/a/b', '~/a'): cut to its last name whatever it holds, as
+#: `_ABSOLUTE`'s names end at a blank ('/home/ann lee/my data/own' was shown as 'ann lee/my data/own')
 _ONE_PATH = re.compile(r"(?:~|\.\.?)?/[^/]+(?:/[^/]+)+/?|~/[^/]+/?", re.S)
 
 
+def public(value) -> str:
+    """`value` as text with each absolute path cut to its last name:
+    'dense-vlad [vocabulary=/home/me/images/tokyo]' -> 'dense-vlad [vocabulary=tokyo]'; a value that is
+    one path as a whole (a dataset's folder) whatever its names hold."""
+    value = str(value)
+    if _ONE_PATH.fullmatch(value):
+        return value.rstrip("/").rpartition("/")[2]
+    return _ABSOLUTE.sub(lambda found: re.split(r"[/\\]", found.group().rstrip("/\\"))[-1], value)
+
+
 def public_data(value):
-    """A record or download entry with `public` applied to every string in it (keys included); a string
-    that is a path as a whole (a dataset's folder) cut to its last name."""
+    """A record or download entry with `public` applied to every string in it (keys included)."""
     if isinstance(value, str):
-        return value.rstrip("/").rpartition("/")[2] if _ONE_PATH.fullmatch(value) else public(value)
+        return public(value)
     if isinstance(value, dict):
         return {public(k) if isinstance(k, str) else k: public_data(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
