@@ -122,7 +122,8 @@ class Passes(Stage):
         return candidates
 
 
-@pytest.mark.parametrize("part", ["__init__", "apply", "fingerprint", "provenance", "stored_bytes", "check"])
+@pytest.mark.parametrize("part", ["__init__", "apply", "fingerprint", "provenance", "stored_bytes", "check",
+                                  "least_budget"])
 def test_a_stage_part_that_raises_is_one_line(part, cli, shared_data):
     register_stage("wobbly", type("Wobbly", (Passes,), {"__module__": "my_plugin", part: boom}))
     code, _, err = evaluate(cli, shared_data, plugin("plain"), "--rerank", "wobbly", "--rerank-k", 5)

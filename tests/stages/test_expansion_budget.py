@@ -9,6 +9,7 @@ import pytest
 
 from traced import peak_of
 from vprbench import VPRBenchError
+from vprbench.evaluation.budget import check_run_budget, stage_needs
 from vprbench.row_sources import ArrayRows, parse_memory
 from vprbench.stages import Candidates
 from vprbench.stages.base import StageContext
@@ -49,3 +50,23 @@ def test_dba_runs_within_the_budget_it_says_it_needs(searched):
     np.testing.assert_array_equal(found.scores, roomy.scores)
     found, peak = peak_of(lambda: dba(searched, 8_000_000))
     assert peak <= 8_000_000 and np.array_equal(found.indices, roomy.indices)
+
+
+
+def test_the_run_plan_refuses_no_budget_dba_runs_in():
+    """Before the search, which images dba augments is unknown: the run's plan counts the images it is sure
+    to (one query's k), never more, so the budget the stage names and runs in passes the plan. Counting
+    every candidate as another image (8 x 20 here, 20 in truth: the queries share their candidates)
+    refused it."""
+    rng = np.random.default_rng(1)
+    database, queries = rng.standard_normal((500, 2048), dtype=np.float32), rng.standard_normal((8, 2048), dtype=np.float32)
+    indices = np.tile(rng.choice(500, 20, replace=False), (8, 1)).astype(np.int64)
+    searched = database, queries, Candidates(indices, np.zeros(indices.shape, dtype=np.float32))
+    with pytest.raises(VPRBenchError, match="too small") as refused:
+        dba(searched, 100_000)
+    need = parse_memory(re.search(r"at least (\S+ \S+),", str(refused.value)).group(1))
+    stage = create_stage("dba", {"k": 20, "n": 5, "alpha": 3.0})
+    [(part, planned)] = stage_needs([stage], ArrayRows(database), ArrayRows(queries), 20)
+    assert part == "stage 'dba'" and 0 < planned <= need
+    check_run_budget([(part, planned)], need)
+    dba(searched, need)

@@ -141,11 +141,9 @@ def _build(kind: str, database: RowSource, o: dict):
     return index, chunk_rows, zeros
 
 
-def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind: str, memory_budget: int,
-                       options: dict | None = None) -> SearchResult:
-    if kind not in APPROXIMATE:
-        raise VPRBenchError(f"Unknown approximate index {kind!r}: use one of {', '.join(APPROXIMATE)}.")
-    check_pair(database, queries, k)
+def _needs(database, queries, k: int, kind: str, options: dict | None):
+    """(options, index bytes, training bytes, bytes per query, the index's need, the recall check's need, its
+    batch of queries) of an approximate search on these rows' shapes."""
     n, dim, n_queries = database.row_count, database.dim, queries.row_count
     o = index_options(kind, n, dim, k, options)
     index_bytes = _index_bytes(kind, n, dim, o)
@@ -158,6 +156,22 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
     # then, beside the answers: queries searched exactly (short shortlists, the recall check), a batch at a time
     held, batch = n_queries * k * 12, min(n_queries, o["recall_queries"])
     exact_need = held + batch * q_row + q_fixed + least_budget(database, batch, k)
+    return o, index_bytes, training, per_query, need, exact_need, batch
+
+
+def approximate_need(database, queries, k: int, kind: str, options: dict | None = None) -> int:
+    """The least budget `approximate_search` of these rows takes (their shapes and read costs only)."""
+    return max(_needs(database, queries, k, kind, options)[4:6])
+
+
+def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind: str, memory_budget: int,
+                       options: dict | None = None) -> SearchResult:
+    if kind not in APPROXIMATE:
+        raise VPRBenchError(f"Unknown approximate index {kind!r}: use one of {', '.join(APPROXIMATE)}.")
+    check_pair(database, queries, k)
+    n, dim, n_queries = database.row_count, database.dim, queries.row_count
+    o, index_bytes, training, per_query, need, exact_need, batch = _needs(database, queries, k, kind, options)
+    q_fixed, held = read_cost(queries)[1], n_queries * k * 12  # the answers
     if memory_budget < max(need, exact_need):
         raise VPRBenchError(
             f"A memory budget of {format_bytes(memory_budget)} is too small for index={kind!r} on {n:,} rows of {dim:,} "

@@ -19,6 +19,7 @@ from ..methods.attributes import set_attributes
 from ..methods.objects import check_method
 from ..methods.registry import checked_run_options
 from ..spec import RunSettings, RunSpec
+from .budget import check_run_budget, retrieval_need, stage_needs
 from .extract import describe_splits
 from .identity import protocol_of
 from .joint import describe_members, joint_members
@@ -84,15 +85,18 @@ def loader_workers(settings: RunSettings, method) -> int:
 
 
 def stage_context(spec: RunSpec, settings: RunSettings, method, dataset, described, progress,
-                  fit_on=None) -> StageContext:
+                  fit_on=None, stages=(), candidates_k: int = 0) -> StageContext:
     """What stages see: the dataset and the retriever's descriptors as its search saw them (post-processed
-    as fitted on `fit_on`, several databases stacked, when the search's was)."""
+    as fitted on `fit_on`, several databases stacked, when the search's was), once the budget is known
+    to hold `stages` on `candidates_k` candidates per query."""
     from ..loader import resolve_device
     from .postprocess import postprocessed
 
     budget = settings.memory_budget or DEFAULT_MEMORY_BUDGET
     database, queries, _ = postprocessed(method, described.stores["database"], described.stores["queries"], budget,
                                          fit_on=fit_on)
+    # checked before retrieval when it ran here; run from exported candidates, the stages alone
+    check_run_budget(stage_needs(stages, database, queries, candidates_k), budget)
     prefix = {**spec.row_identity(), "stages": [], "protocol": spec.dataset.protocol_hash}
     return StageContext(dataset=dataset, database=database, queries=queries, spec=spec, prefix=prefix,
                         cache_dir=settings.cache_dir, memory_budget=budget, lock_timeout=settings.lock_timeout,
@@ -196,10 +200,16 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
     else:
         memory = {} if settings.memory_budget is None else {"memory_budget": settings.memory_budget}
         database, queries = described.stores["database"], described.stores["queries"]
+        budget, compare = settings.memory_budget or DEFAULT_MEMORY_BUDGET, getattr(method, "compare", "cosine")
+
+        def plan(rows, asked):  # the rows as the search and the stages read them, before either runs
+            search = retrieval_need(compare, rows, asked, depth, spec.search.index, spec.search.options or None)
+            parts = [(f"retrieval's {spec.search.index} search", search), *stage_needs(stages, rows, asked, depth)]
+            check_run_budget(parts, budget)
         with phase(progress, f"{method.name} {dataset.name} search ({spec.search.index}, {queries.row_count:,} queries "
                              f"x {database.row_count:,} database)"):
             found = retrieve(method, database, queries, depth, index=spec.search.index,
-                             index_options=spec.search.options or None, fit_on=fit_on, **memory)
+                             index_options=spec.search.options or None, fit_on=fit_on, check=plan, **memory)
     timings["search_s"] = time.perf_counter() - t
     return Retrieved(method, dataset, ks, described, found, timings, workers, frozen, fit_on, joint)
 
@@ -244,7 +254,8 @@ def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None
     candidates, stage_costs = Candidates(found.indices, found.scores), []
     if stages:
         t = time.perf_counter()
-        context = stage_context(spec, settings, method, dataset, described, progress, run.fit_on)
+        context = stage_context(spec, settings, method, dataset, described, progress, run.fit_on, stages,
+                                candidates.k)
         flags = None if found.all_zero is None else found.all_zero.failures(track_of(stages))
         candidates, stage_costs = run_stages(stages, candidates, context, run.ks, dataset.positives, flags)
         timings["stages_s"] = time.perf_counter() - t

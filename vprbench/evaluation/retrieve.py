@@ -13,21 +13,24 @@ from .search import INDEXES, SearchResult, exact_search
 
 
 def retrieve(method, database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDGET, index: str = "exact",
-             state_folder=None, index_options: dict | None = None, fit_on=None) -> SearchResult:
+             state_folder=None, index_options: dict | None = None, fit_on=None, check=None) -> SearchResult:
     """Top-k database rows per query for `method`'s descriptors, within `memory_budget` bytes
     (or "1GB"): its post-processor fitted on the database or on `fit_on` (rows of several
     databases, joint.py), or loaded from `state_folder` (default the folder of the rows it is
     fitted on), applied chunk by chunk, then searched with `index`
     ("exact", "ivf-pq" or "hnsw"; `index_options` tune the approximate ones, see
     approximate.py). `method` None searches the rows as they are. The result's info is the
-    result record's "search" section."""
+    result record's "search" section. `check(database, queries)`, if given, sees the rows as the
+    search reads them before it starts (the run's budget plan, budget.py)."""
     budget = parse_memory(memory_budget)
     if index not in INDEXES:
         raise VPRBenchError(f"Unknown index {index!r}: use one of {', '.join(INDEXES)}.")
     database, queries = as_rows(database, "database"), as_rows(queries, "queries")
     if getattr(method, "compare", "cosine") != "cosine":
-        return compared_search(method, database, queries, k, index, index_options, budget)
+        return compared_search(method, database, queries, k, index, index_options, budget, check)
     database, queries, postprocess = postprocessed(method, database, queries, budget, state_folder, fit_on)
+    if check is not None:
+        check(database, queries)
     started = time.perf_counter()
     if index == "exact":
         if index_options:
@@ -40,7 +43,8 @@ def retrieve(method, database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_
     return result
 
 
-def compared_search(method, database, queries, k: int, index: str, index_options, budget: int) -> SearchResult:
+def compared_search(method, database, queries, k: int, index: str, index_options, budget: int,
+                    check=None) -> SearchResult:
     """Exact top-k for a method whose descriptors are compared by a distance (the mean absolute
     difference of `sad`): the sequence search with sequences of one frame; scores are minus the
     distance, so higher is still better."""
@@ -49,6 +53,8 @@ def compared_search(method, database, queries, k: int, index: str, index_options
     check_compare(method.name, method.compare, index, index_options)
     started = time.perf_counter()
     check_pair(database, queries, k)
+    if check is not None:
+        check(database, queries)
     found = sequence_search(database, queries, k, score="diagonal", compare=method.compare, length=1,
                             memory_budget=budget)
     return SearchResult(found.scores, found.indices, {

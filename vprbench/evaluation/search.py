@@ -162,6 +162,11 @@ def _least(database, queries, k: int, again: bool = False) -> _Least:
     return _Least(tile, keep, results, fixed, need, d_tile, q_tile, db_row, q_row)
 
 
+def search_need(database, queries, k: int) -> int:
+    """The least budget `exact_search` of these row sources takes (their shapes and read costs only)."""
+    return _least(database, queries, k).need
+
+
 def least_budget(database, query_count: int, k: int) -> int:
     """The least budget exact search of `query_count` float32 query rows held in memory takes."""
     return _least(database, _in_memory(query_count, database.dim), k).need

@@ -125,6 +125,9 @@ class Stage:
     - `check(dataset)`: refuse a dataset the stage cannot run on (VPRBenchError), before any work.
     - `check_compare(compare)`: refuse a method whose descriptors are compared by `compare` (its
       `Method.compare`) when the stage cannot use them, before any work.
+    - `least_budget(database, queries, k)`: the least memory budget `apply` takes on rows of these
+      shapes with `k` candidates per query (None: it refuses none); the run refuses once, before
+      any search, a budget below the largest of its parts' (evaluation/budget.py).
     - `query_window(options)`: the consecutive queries one query's result reads (sequence stages: their window).
     - `stored_bytes(context)`: bytes it keeps per database image (for the record's cost), 0 if none.
     - `file_identities(options)`: the options that name files, by content (part of the run's identity).
@@ -151,6 +154,10 @@ class Stage:
     def check_compare(self, compare: str) -> None:
         """Refuse a method compared by `compare` ("cosine", or a distance such as sad's
         "mean-absolute-difference") before any work, when the stage's arithmetic needs another."""
+
+    def least_budget(self, database, queries, k: int) -> int | None:
+        """Bytes `apply` needs at least, from the row sources' shapes and read costs only (no row read)."""
+        return None
 
     def apply(self, candidates: Candidates, context: StageContext) -> Candidates:
         raise NotImplementedError

@@ -56,6 +56,13 @@ def _rows_at(source, indices: np.ndarray) -> np.ndarray:
     return source.read_rows_at(unique)[inverse]
 
 
+def _augmenting(database, needed: int, n: int, rows: int) -> int:
+    """Bytes dba holds augmenting `needed` database images, `rows` of them per search of their `n` nearest:
+    the augmented rows, one row's neighbours, a block of rows read, and its search."""
+    read = read_bytes_per_row(database)
+    return needed * database.dim * 4 + n * read + rows * read + least_budget(database, rows, n)
+
+
 class _Expansion(Stage):
     track = "re-ranked"
     Options = ExpansionOptions
@@ -119,6 +126,12 @@ class DatabaseAugmentation(_Expansion):
             scores[q] = augmented[position[q]] @ context.queries.read_rows(q, q + 1)[0]
         return reordered(candidates.indices, scores, SCORE_TOLERANCE)
 
+    def least_budget(self, database, queries, k: int) -> int:
+        # which images it augments is known once retrieval has run; at least one query's k: what is sure to be
+        # needed, so no budget the stage would take is refused (a larger need is refused by the stage then)
+        needed = min(database.row_count, k)
+        return _augmenting(database, needed, self.options.n + 1, 1)
+
     def _blocks(self, database, needed: int, n: int, budget: int) -> tuple[int, int]:
         """(database images augmented per search of the database, that search's budget): the budget holds
         the augmented rows until every query is scored, a block of rows with one row's n neighbours, and
@@ -126,8 +139,8 @@ class DatabaseAugmentation(_Expansion):
         row, read = database.dim * 4, read_bytes_per_row(database)
         held = needed * row + n * read
 
-        def least(rows: int) -> int:  # the augmented rows, a block of them read, and its search
-            return held + rows * read + least_budget(database, rows, n)
+        def least(rows: int) -> int:
+            return _augmenting(database, needed, n, rows)
 
         block = max(1, min(needed, BLOCK_ROWS, (budget - held) // (8 * database.dim * (n + 1))))
         block = most_that_fit(block, least, budget)

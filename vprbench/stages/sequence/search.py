@@ -97,13 +97,8 @@ def cost_rows(tiles: np.ndarray, offset: int, count: int, database, database_ord
     return enhance(out, enhance_window) if score == "seqslam" else out
 
 
-def plan_blocks(database, queries, span: int, budget: int, k: int, chunk_rows: int, enhanced: bool) -> int:
-    """Query rows per block within `budget`: each costs BYTES_PER_CELL per database image
-    and its descriptor twice (read, then put in traverse order); the window's
-    extra rows a cost row each, or ENHANCED_BYTES_PER_CELL once the database is read (`enhanced`:
-    SeqSLAM enhances them too). Rows cost what `read_cost` says (a post-processed source transforms
-    as it reads), the database read `chunk_rows` at a time. Beside them every query's top `k`, and
-    the scores are made from them in place."""
+def _costs(database, queries, span: int, k: int, chunk_rows: int, enhanced: bool) -> tuple[int, int]:
+    """(bytes held whatever the block, bytes per query row of a block) of `plan_blocks`."""
     n_queries, n_database, dim = queries.row_count, database.row_count, database.dim
     (db_row, db_fixed), (q_row, q_fixed) = read_cost(database), read_cost(queries)
     # query rows are read before the database's; beside a database chunk, the zero rows of the query
@@ -115,9 +110,35 @@ def plan_blocks(database, queries, span: int, budget: int, k: int, chunk_rows: i
     # the window's extra rows beside a database chunk as they are computed, then (SeqSLAM) enhanced
     extra = max(reading + span * (4 * n_database + q_row + 4 * dim),
                 span * (ENHANCED_BYTES_PER_CELL * n_database + q_row + 4 * dim) if enhanced else 0)
-    rows = (budget - held - extra) // per_row
+    return held + extra, per_row
+
+
+def database_chunk_rows(database) -> int:
+    """Database rows the search reads at a time."""
+    return max(1, min(database.row_count, READ_BYTES // (4 * database.dim)))
+
+
+def sequence_need(database, queries, k: int, *, score: str = "seqslam", length: int = SEQSLAM_DEFAULTS["length"],
+                  mode: str = "offline") -> int:
+    """The least budget `sequence_search` takes on these rows (only their shapes and read costs are
+    used): one block of one query row, beside every query's top `k`. A run checks it before any search."""
+    fixed, per_row = _costs(database, queries, len(query_offsets(length, mode)) - 1, min(int(k), database.row_count),
+                            database_chunk_rows(database), score == "seqslam")
+    return fixed + per_row
+
+
+def plan_blocks(database, queries, span: int, budget: int, k: int, chunk_rows: int, enhanced: bool) -> int:
+    """Query rows per block within `budget`: each costs BYTES_PER_CELL per database image
+    and its descriptor twice (read, then put in traverse order); the window's
+    extra rows a cost row each, or ENHANCED_BYTES_PER_CELL once the database is read (`enhanced`:
+    SeqSLAM enhances them too). Rows cost what `read_cost` says (a post-processed source transforms
+    as it reads), the database read `chunk_rows` at a time. Beside them every query's top `k`, and
+    the scores are made from them in place."""
+    n_queries, n_database = queries.row_count, database.row_count
+    fixed, per_row = _costs(database, queries, span, k, chunk_rows, enhanced)
+    rows = (budget - fixed) // per_row
     if rows < 1:
-        need = held + extra + per_row
+        need = fixed + per_row
         what = "sequence matching" if span else "comparing queries"  # sequences of one frame: a distance search
         raise VPRBenchError(f"A memory budget of {format_bytes(budget)} is too small for {what} against "
                             f"{n_database:,} database images: one block and the top {k} of {n_queries:,} queries need "
@@ -156,7 +177,7 @@ def sequence_search(database, queries, k: int, *, score: str = "seqslam", compar
     speeds = velocities(v_min, v_max, v_step) if score == "seqslam" else velocities(1, 1, 1)
     paths = trajectories(offsets, speeds)
     budget = parse_memory(memory_budget)
-    chunk_rows = max(1, min(n, READ_BYTES // (4 * database.dim)))
+    chunk_rows = database_chunk_rows(database)
     k = min(int(k), n)
     block = plan_blocks(database, queries, len(offsets) - 1, budget, k, chunk_rows, score == "seqslam")
     indices = np.empty((q, k), dtype=np.int64)

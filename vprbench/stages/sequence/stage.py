@@ -65,6 +65,12 @@ class _SequenceStage(Stage):
     def search_options(self) -> dict:
         return {}
 
+    def least_budget(self, database, queries, k: int) -> int:
+        from .search import sequence_need
+
+        return sequence_need(database, queries, k, score=self.score, length=self.options.length,
+                             mode=self.options.mode)
+
     @classmethod
     def query_window(cls, options: dict) -> int:
         """The frames of a query's sequence, offline or causal (their offsets' span: `length`);
