@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import time
+from typing import NamedTuple
 
 import numpy as np
 
@@ -141,9 +142,20 @@ def _build(kind: str, database: RowSource, o: dict):
     return index, chunk_rows, zeros
 
 
-def _needs(database, queries, k: int, kind: str, options: dict | None):
-    """(options, index bytes, training bytes, bytes per query, the index's need, the recall check's need, its
-    batch of queries) of an approximate search on these rows' shapes."""
+class _Plan(NamedTuple):
+    """An approximate search's memory on its rows' shapes: its options, the index, the training sample (or
+    a chunk of rows added), each query; the least budget of the index's part and of the recall check's
+    exact search of `batch` queries."""
+    options: dict
+    index_bytes: int
+    training: int
+    per_query: int
+    need: int
+    exact_need: int
+    batch: int
+
+
+def _plan(database, queries, k: int, kind: str, options: dict | None) -> _Plan:
     n, dim, n_queries = database.row_count, database.dim, queries.row_count
     o = index_options(kind, n, dim, k, options)
     index_bytes = _index_bytes(kind, n, dim, o)
@@ -156,12 +168,13 @@ def _needs(database, queries, k: int, kind: str, options: dict | None):
     # then, beside the answers: queries searched exactly (short shortlists, the recall check), a batch at a time
     held, batch = n_queries * k * 12, min(n_queries, o["recall_queries"])
     exact_need = held + batch * q_row + q_fixed + least_budget(database, batch, k)
-    return o, index_bytes, training, per_query, need, exact_need, batch
+    return _Plan(o, index_bytes, training, per_query, need, exact_need, batch)
 
 
 def approximate_need(database, queries, k: int, kind: str, options: dict | None = None) -> int:
     """The least budget `approximate_search` of these rows takes (their shapes and read costs only)."""
-    return max(_needs(database, queries, k, kind, options)[4:6])
+    plan = _plan(database, queries, k, kind, options)
+    return max(plan.need, plan.exact_need)
 
 
 def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind: str, memory_budget: int,
@@ -170,7 +183,7 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
         raise VPRBenchError(f"Unknown approximate index {kind!r}: use one of {', '.join(APPROXIMATE)}.")
     check_pair(database, queries, k)
     n, dim, n_queries = database.row_count, database.dim, queries.row_count
-    o, index_bytes, training, per_query, need, exact_need, batch = _needs(database, queries, k, kind, options)
+    o, index_bytes, training, per_query, need, exact_need, batch = _plan(database, queries, k, kind, options)
     q_fixed, held = read_cost(queries)[1], n_queries * k * 12  # the answers
     if memory_budget < max(need, exact_need):
         raise VPRBenchError(
