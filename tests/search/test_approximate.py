@@ -200,3 +200,67 @@ def test_an_hnsw_search_is_the_same_at_every_budget_it_runs_at():
     np.testing.assert_array_equal(tight.indices, roomy.indices)
     np.testing.assert_array_equal(tight.scores, roomy.scores)
     assert tight.info["recall_loss"] == roomy.info["recall_loss"]
+
+
+def test_an_ivf_pq_search_is_the_same_at_every_budget_it_runs_at():
+    """The budget set how many queries faiss searched at once, and faiss picks its kernel by that count
+    (BLAS for a large batch, its own loops for a small one): they round a query's products with the lists'
+    centroids differently, so a query halfway between two lists probed one at one budget and the other at
+    another: on one thread, of 600 such queries searched at once, 24 got other top-10s when searched 294 + 294
+    + 12 at a time, and 185 when 237 at a time. Now faiss searches a fixed tile of queries at a time,
+    whatever the budget."""
+    import re
+
+    import faiss
+
+    from vprbench.evaluation.approximate import _build, approximate_search, index_options
+    from vprbench.evaluation.search import ArrayRows
+
+    rows = clustered(6000, 512, 7)
+    db = ArrayRows(np.concatenate([rows, rows[::-1]]))  # every row twice: ties the order settles
+    options = {"nprobe": 1, "recall_queries": 20}
+    index = _build("ivf-pq", db, index_options("ivf-pq", 12_000, 512, 10, options))[0]
+    centroids = faiss.extract_index_ivf(index).quantizer.reconstruct_n(0, 128).astype(np.float64)
+    # each query on the plane halfway between two lists' centroids: which list it probes is a tie
+    rng = np.random.default_rng(8)
+    a, b = rng.integers(0, 128, 600), rng.integers(0, 128, 600)
+    a[a == b] = (b[a == b] + 1) % 128
+    apart, middle = centroids[a] - centroids[b], (centroids[a] + centroids[b]) / 2
+    queries = middle - (np.sum(middle * apart, 1) / np.sum(apart * apart, 1))[:, None] * apart
+    search = functools.partial(approximate_search, db, ArrayRows(queries.astype(np.float32)), 10, kind="ivf-pq",
+                               options=options)
+    with pytest.raises(VPRBenchError, match="Raise --search-memory") as refused:
+        search(memory_budget=1_000_000)
+    least = parse_memory(re.search(r"at least (\S+ \S+),", str(refused.value)).group(1))
+    whole = search(memory_budget=1 << 30)
+    assert whole.info["query_chunks"] == 1
+    per_query = 512 * 4 + 100 * (512 * 4 + 12)  # a query's row and its shortlist's rows and answers
+    # the fewest queries the least budget holds, and more (before: 294 + 294 + 12 at once, and 237)
+    runs = [search(memory_budget=budget) for budget in (least + 57 * per_query, least)]
+    assert len({run.info["query_chunk_rows"] for run in [whole, *runs]}) == 3
+    assert all(run.info["query_chunks"] > 1 for run in runs)
+    for run in runs:
+        assert run.info["chunk_rows"] == whole.info["chunk_rows"]  # the index built the same way
+        np.testing.assert_array_equal(run.indices, whole.indices)
+        np.testing.assert_array_equal(run.scores, whole.scores)
+
+
+def test_a_budget_too_small_for_a_tile_of_shortlists_reads_them_a_few_queries_at_a_time():
+    """Under a budget that holds the shortlist rows of fewer queries than faiss searches at once, the
+    index still searches whole tiles, and the rows are read for a few of their queries at a time."""
+    import re
+
+    from vprbench.evaluation.approximate import QUERY_TILE, approximate_search
+    from vprbench.evaluation.search import ArrayRows
+
+    db, queries = ArrayRows(clustered(3000, 64, 9)), ArrayRows(clustered(150, 64, 10))
+    options = {"shortlist": 1000, "ef_search": 1000, "recall_queries": 5}
+    search = functools.partial(approximate_search, db, queries, 10, kind="hnsw", options=options)
+    with pytest.raises(VPRBenchError, match="Raise --search-memory") as refused:
+        search(memory_budget=1_000_000)
+    least = parse_memory(re.search(r"at least (\S+ \S+),", str(refused.value)).group(1))
+    tight, whole = search(memory_budget=least), search(memory_budget=1 << 30)
+    assert tight.info["query_chunk_rows"] == QUERY_TILE and whole.info["query_chunks"] == 1
+    assert (least - tight.info["index_bytes"]) // (1000 * 64 * 4) < QUERY_TILE  # rows of fewer queries than a tile
+    np.testing.assert_array_equal(tight.indices, whole.indices)
+    np.testing.assert_array_equal(tight.scores, whole.scores)

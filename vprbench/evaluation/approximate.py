@@ -20,6 +20,9 @@ APPROXIMATE = ("ivf-pq", "hnsw")
 #: faiss's k-means wants at least 39 training points per centroid
 POINTS_PER_CENTROID = 39
 PQ_CENTROIDS = 256  # 8-bit PQ codes
+#: queries faiss searches at once, whatever the budget: it picks its kernels by their count (BLAS for many
+#: queries, its own loops for few), which round a query's products with the lists' centroids differently
+QUERY_TILE = 64
 LARGEST = 2**31 - 1  # faiss takes its sizes as C int: a larger one overflowed in its setters
 DEFAULTS = {"shortlist": 100, "recall_queries": 200, "seed": 0,
             "nprobe": 32, "hnsw_m": 32, "ef_construction": 40}
@@ -144,12 +147,16 @@ def _build(kind: str, database: RowSource, o: dict):
 
 class _Plan(NamedTuple):
     """An approximate search's memory on its rows' shapes: its options, the index, the training sample (or
-    a chunk of rows added), each query; the least budget of the index's part and of the recall check's
-    exact search of `batch` queries."""
+    a chunk of rows added), a tile of queries, each query searched and its shortlist re-scored, the index's
+    answers for a tile; the least budget of the index's part and of the recall check's exact search of
+    `batch` queries."""
     options: dict
     index_bytes: int
     training: int
-    per_query: int
+    tile: int
+    searched: int
+    rescored: int
+    answers: int
     need: int
     exact_need: int
     batch: int
@@ -160,15 +167,17 @@ def _plan(database, queries, k: int, kind: str, options: dict | None) -> _Plan:
     o = index_options(kind, n, dim, k, options)
     index_bytes = _index_bytes(kind, n, dim, o)
     (row_bytes, fixed), (q_row, q_fixed) = read_cost(database), read_cost(queries)
-    # training set + index, and per query: its row, its shortlist's rows and the index's answers
-    per_query = q_row + o["shortlist"] * (row_bytes + 12)
+    # training set + index, and per query: its row and shortlist (8 bytes each), then its shortlist's rows;
+    # beside them the index's answers (12 bytes a candidate) for one tile of queries
+    tile = min(n_queries, QUERY_TILE)
+    searched, rescored, answers = q_row + o["shortlist"] * 8, o["shortlist"] * row_bytes, tile * o["shortlist"] * 12
     # the training sample, then (in its place) a chunk of rows being added
     training = max(o["train_rows"], min(n, add_rows(kind, database))) * (row_bytes + _residual_bytes(kind, dim))
-    need = training + fixed + index_bytes + q_fixed + n_queries * k * 12 + per_query
+    need = training + fixed + index_bytes + q_fixed + n_queries * k * 12 + answers + tile * searched + rescored
     # then, beside the answers: queries searched exactly (short shortlists, the recall check), a batch at a time
     held, batch = n_queries * k * 12, min(n_queries, o["recall_queries"])
     exact_need = held + batch * q_row + q_fixed + least_budget(database, batch, k)
-    return _Plan(o, index_bytes, training, per_query, need, exact_need, batch)
+    return _Plan(o, index_bytes, training, tile, searched, rescored, answers, need, exact_need, batch)
 
 
 def approximate_need(database, queries, k: int, kind: str, options: dict | None = None) -> int:
@@ -183,22 +192,25 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
         raise VPRBenchError(f"Unknown approximate index {kind!r}: use one of {', '.join(APPROXIMATE)}.")
     check_pair(database, queries, k)
     n, dim, n_queries = database.row_count, database.dim, queries.row_count
-    o, index_bytes, training, per_query, need, exact_need, batch = _plan(database, queries, k, kind, options)
+    plan = _plan(database, queries, k, kind, options)
+    o, least = plan.options, max(plan.need, plan.exact_need)
     q_fixed, held = read_cost(queries)[1], n_queries * k * 12  # the answers
-    if memory_budget < max(need, exact_need):
+    if memory_budget < least:
         raise VPRBenchError(
             f"A memory budget of {format_bytes(memory_budget)} is too small for index={kind!r} on {n:,} rows of {dim:,} "
-            f"dims: the index takes about {format_bytes(index_bytes)}, its training sample of {o['train_rows']:,} rows "
-            f"or the rows it adds at a time (and faiss's work on them) {format_bytes(training)}, "
-            f"{format_bytes(need)} in all; the exact search of {batch:,} queries that checks its recall, beside the "
-            f"answers, {format_bytes(exact_need)}. Raise --search-memory (memory_budget) to at least "
-            f"{format_budget(max(need, exact_need))}, or lower train_rows / pq_m / recall_queries.")
+            f"dims: the index takes about {format_bytes(plan.index_bytes)}, its training sample of "
+            f"{o['train_rows']:,} rows or the rows it adds at a time (and faiss's work on them) "
+            f"{format_bytes(plan.training)}, {format_bytes(plan.need)} in all; the exact search of {plan.batch:,} "
+            f"queries that checks its recall, beside the answers, {format_bytes(plan.exact_need)}. Raise "
+            f"--search-memory (memory_budget) to at least {format_budget(least)}, or lower train_rows / pq_m / "
+            "recall_queries.")
     started = time.perf_counter()
     index, chunk_rows, zero_database = _build(kind, database, o)
     build_s = time.perf_counter() - started
 
     started = time.perf_counter()
-    q_chunk = max(1, (memory_budget - index_bytes - q_fixed - n_queries * k * 12) // per_query)
+    free = memory_budget - plan.index_bytes - q_fixed - n_queries * k * 12 - plan.answers
+    q_chunk, group = _query_chunks(free, plan.tile, plan.searched, plan.rescored)
     scores = np.empty((n_queries, k), dtype=np.float32)
     indices = np.empty((n_queries, k), dtype=np.int64)
     # queries whose shortlist came back short: searched exactly, whatever k is, so a run's top-1 does not
@@ -207,33 +219,54 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
     zero_queries = np.zeros(n_queries, dtype=bool)
     for q0, block in chunks(queries, q_chunk):
         zero_queries[q0:q0 + len(block)] = zero_rows(block, "Query", q0)
-        _, found = index.search(block, o["shortlist"])
-        rows_ids = np.unique(found[found >= 0])
-        rows = database.read_rows_at(rows_ids)
-        for i, candidates in enumerate(found):
-            candidates = candidates[candidates >= 0]
-            if len(candidates) < o["shortlist"]:
-                short.append(q0 + i)
-                continue
-            exact = rounded_scores(rows[np.searchsorted(rows_ids, candidates)] @ block[i])  # as exact search
-            if not np.isfinite(exact).all():  # every row is finite (checked above): too long, their products overflow
-                raise VPRBenchError(f"Inner products of query row {q0 + i} and its shortlist exceed float32's range: "
-                                    "the descriptors are too long to compare; L2-normalise them.")
-            s, c = order_results(exact[None], candidates[None])
-            scores[q0 + i], indices[q0 + i] = s[0, :k], c[0, :k]
-        del block, rows  # the budget holds one chunk's shortlist rows, not this and the next
+        found = _shortlists(index, block, o["shortlist"])
+        for g0 in range(0, len(block), group):
+            some = found[g0:g0 + group]
+            rows_ids = np.unique(some[some >= 0])
+            rows = database.read_rows_at(rows_ids)
+            for i in range(g0, min(g0 + group, len(block))):
+                candidates = found[i][found[i] >= 0]
+                if len(candidates) < o["shortlist"]:
+                    short.append(q0 + i)
+                    continue
+                exact = rounded_scores(rows[np.searchsorted(rows_ids, candidates)] @ block[i])  # as exact search
+                if not np.isfinite(exact).all():  # every row is finite (checked above): too long, they overflow
+                    raise VPRBenchError(f"Inner products of query row {q0 + i} and its shortlist exceed float32's "
+                                        "range: the descriptors are too long to compare; L2-normalise them.")
+                s, c = order_results(exact[None], candidates[None])
+                scores[q0 + i], indices[q0 + i] = s[0, :k], c[0, :k]
+            del rows  # the budget holds one group's shortlist rows, not this and the next
+        del block, found
     del index
-    for start in range(0, len(short), batch):  # honest fallback: those queries are searched exactly
-        some = np.array(short[start:start + batch])
+    for start in range(0, len(short), plan.batch):  # honest fallback: those queries are searched exactly
+        some = np.array(short[start:start + plan.batch])
         scores[some], indices[some] = _exact(database, queries, some, k, memory_budget - held)
     query_s = time.perf_counter() - started
 
-    info = {"index": kind, "memory_budget": int(memory_budget), "options": o, "index_bytes": index_bytes,
+    info = {"index": kind, "memory_budget": int(memory_budget), "options": o, "index_bytes": plan.index_bytes,
             "chunk_rows": int(chunk_rows), "chunks": -(-n // chunk_rows), "query_chunk_rows": int(min(q_chunk, n_queries)),
             "query_chunks": -(-n_queries // q_chunk), "exact_fallback_queries": len(short),
             "build_s": round(build_s, 3), "query_s": round(query_s, 3), "tie_order": TIE_ORDER,
             "recall_loss": recall_loss(database, queries, k, indices, o, memory_budget - held)}
     return SearchResult(scores, indices, info, AllZero(zero_queries, zero_database))
+
+
+def _query_chunks(free: int, tile: int, searched: int, rescored: int) -> tuple[int, int]:
+    """(queries read and searched at a time, queries whose shortlist rows are read at a time) in `free` bytes:
+    whole tiles of queries, so each tile faiss searches starts at a multiple of the tile whatever the budget;
+    a budget too small for a tile's shortlist rows takes one tile and reads its rows a few queries at a time."""
+    fit = free // (searched + rescored)
+    if fit >= tile:
+        return fit // tile * tile, fit // tile * tile
+    return tile, max(1, (free - tile * searched) // rescored)
+
+
+def _shortlists(index, block: np.ndarray, shortlist: int) -> np.ndarray:
+    """Each query's shortlist (-1 where the index found fewer), searched QUERY_TILE queries at a time."""
+    found = np.empty((len(block), shortlist), dtype=np.int64)
+    for t0 in range(0, len(block), QUERY_TILE):
+        found[t0:t0 + QUERY_TILE] = index.search(block[t0:t0 + QUERY_TILE], shortlist)[1]
+    return found
 
 
 def _exact(database: RowSource, queries: RowSource, picked: np.ndarray, k: int, budget: int):
