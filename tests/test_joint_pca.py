@@ -225,10 +225,12 @@ def test_what_a_joint_fit_refuses(cli, indoor_data, two_dataset_indoor, tmp_path
                    "--pca-on", "domain", "--dataset", "gardens-point", "--data-dir", indoor_data, "--cache-dir", cache)
     assert "it would fit a vocabulary on gardens-point's own database" in err and "not be comparable" in err
     assert not (cache / "stores").exists()
-    # a memory budget too small for the stack's fit: said once the evaluated dataset is described, before the others
+    # a memory budget too small for the stack's fit and the search: said once, in one line naming the most that
+    # any part of the run needs, once the evaluated dataset is described, before the others
     err = _refused(cli, "evaluate", *SMALL, "--pca-on", "domain", "--dataset", "gardens-point", "--data-dir",
                    indoor_data, "--cache-dir", cache, "--search-memory", "20kB")
-    assert "A memory budget of 20.0 kB is too small to fit PCA-whitening of 606 x 384 descriptors to 8 dims" in err
+    assert "A memory budget of 20.0 kB is too small for this run: retrieval's exact search needs the most " \
+           "(the PCAWhitening fit " in err
     assert len(list((cache / "stores").glob("*/gardens-point-database-*/database.h5"))) == 1
     assert not list((cache / "stores").glob("*/17places-database-*"))
     # a dataset in no domain

@@ -105,10 +105,12 @@ def test_a_fit_state_of_another_shape_is_refused(returned, fragment, cli, shared
     assert "extract.py" not in err
 
 
-@pytest.mark.parametrize("part", ["key", "fit", "transform", "state", "check_rows"])
+@pytest.mark.parametrize("part", ["key", "fit", "transform", "state", "check_rows", "output_dim", "state_bytes",
+                                  "least_budget"])
 def test_a_postprocessor_part_that_raises_is_one_line(part, cli, shared_data):
+    # the run's plan asks for its state and fit's need once it says its output's dimension
     broken = type("Broken", (Arrayed,), {"__module__": "my_plugin", "key": lambda self, rows, budget: {"k": 1},
-                                         part: boom})
+                                         "output_dim": lambda self, rows: rows.dim, part: boom})
     code, _, err = evaluate(cli, shared_data, plugin("post", postprocessor=lambda self: broken()))
     assert_refused(code, err, None, f"Post-processor Broken (my_plugin) failed in {part}(): RuntimeError: server "
                                     "said no at ", line_of(boom), stores_allowed=True)

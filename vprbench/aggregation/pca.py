@@ -49,6 +49,13 @@ def _solver_memory(solver: str, n: int, d: int, dim: int) -> int:
     return 20 * d * min(d, n, 2 * dim)  # float32 basis, float64 product, and a float64 temporary or its QR
 
 
+def _path_need(solver: str, rows, dim: int) -> int:
+    """The least budget `solver`'s path takes on `rows`: what it holds, and a chunk of one row (the Gram
+    path holds two chunks)."""
+    blocks = 2 if solver == "gram" else 1
+    return _solver_memory(solver, rows.row_count, rows.dim, dim) + ROW_COPIES * read_bytes_per_row(rows) * blocks
+
+
 def _exact_path(rows) -> str:
     """The exact path on the smaller side: D x D when D <= N, else N x N."""
     return "covariance" if rows.dim <= rows.row_count else "gram"
@@ -93,27 +100,43 @@ class PCAWhitening:
 
     def exact_memory(self, rows) -> int:
         """The least budget the exact path on the smaller side takes (with one chunk of rows)."""
-        exact = _exact_path(rows)
-        return (_solver_memory(exact, rows.row_count, rows.dim, self.dim)
-                + ROW_COPIES * read_bytes_per_row(rows) * (2 if exact == "gram" else 1))
+        return _path_need(_exact_path(rows), rows, self.dim)
+
+    def least_budget(self, rows, memory_budget: int) -> int:
+        """The least budget a fit on `rows` (their shape only) takes: the exact path's where `memory_budget`
+        holds it (the path taken there), else the smaller of the two paths' (below the exact one's, the
+        randomized one is taken). The run's budget plan reads it before the fit; `check_budget` refuses below it."""
+        exact = self.exact_memory(rows)
+        if exact <= parse_memory(memory_budget):
+            return exact
+        return min(exact, _path_need("randomized", rows, self.dim))
+
+    def output_dim(self, rows) -> int:
+        """The dimension of the rows it makes, known before the fit (the run's budget plan reads it)."""
+        return self.dim
+
+    def state_bytes(self, rows) -> int:
+        """Bytes of the state a fit on `rows` keeps (a float32 mean and projection), known before the fit."""
+        return 4 * rows.dim * (self.dim + 1)
 
     def check_budget(self, rows, memory_budget: int) -> tuple[str, int]:
         """(solver, rows per chunk) of a fit on `rows` (a row source, or only its shape) within the budget, or
         a clear error when even the randomized path does not fit: said before the rows are described."""
         n, d, budget = rows.row_count, rows.dim, parse_memory(memory_budget)
         solver = self.solver(rows, budget)
-        held = _solver_memory(solver, n, d, self.dim)
         row_cost = ROW_COPIES * read_bytes_per_row(rows)
         blocks = 2 if solver == "gram" else 1  # the Gram path holds two chunks
-        chunk_rows = min(READ_BYTES // row_cost, (budget - held) // (row_cost * blocks))
+        # a chunk of one row at the path's least need, one more row for each row's cost beyond it
+        spare = budget - _path_need(solver, rows, self.dim)
+        chunk_rows = min(READ_BYTES // row_cost, 1 + spare // (row_cost * blocks))
         tile = fit_tile(rows)
         chunk_rows -= chunk_rows % tile if chunk_rows >= tile else 0  # whole tiles (a tighter budget: smaller sums)
         if chunk_rows < 1:
             raise VPRBenchError(
                 f"A memory budget of {format_bytes(budget)} is too small to fit PCA-whitening of {n:,} x {d:,} "
                 f"descriptors to {self.dim} dims: its {solver} path needs at least "
-                f"{format_budget(held + row_cost * blocks)}, the exact one {format_budget(self.exact_memory(rows))}. "
-                "Raise --search-memory (memory_budget).")
+                f"{format_budget(_path_need(solver, rows, self.dim))}, the exact one "
+                f"{format_budget(self.exact_memory(rows))}. Raise --search-memory (memory_budget).")
         return solver, int(chunk_rows)
 
     def key(self, rows, memory_budget: int = DEFAULT_MEMORY_BUDGET) -> dict:

@@ -24,7 +24,7 @@ from .extract import describe_splits
 from .identity import protocol_of
 from .joint import describe_members, joint_members
 from .metrics import check_ks
-from .postprocess import check_database_size, check_fit_budget
+from .postprocess import check_database_size, check_joint_budget
 from .record import result_record
 from .retrieve import check_compare, retrieve
 from ..stages.base import Candidates, StageContext
@@ -93,10 +93,12 @@ def stage_context(spec: RunSpec, settings: RunSettings, method, dataset, describ
     from .postprocess import postprocessed
 
     budget = settings.memory_budget or DEFAULT_MEMORY_BUDGET
+
+    def plan(rows, asked, fit=()):  # checked before retrieval when it ran here; from exported candidates, here
+        check_run_budget([*fit, *stage_needs(stages, rows, asked, candidates_k)], budget)
     database, queries, _ = postprocessed(method, described.stores["database"], described.stores["queries"], budget,
-                                         fit_on=fit_on)
-    # checked before retrieval when it ran here; run from exported candidates, the stages alone
-    check_run_budget(stage_needs(stages, database, queries, candidates_k), budget)
+                                         fit_on=fit_on, plan=plan)
+    plan(database, queries)
     prefix = {**spec.row_identity(), "stages": [], "protocol": spec.dataset.protocol_hash}
     return StageContext(dataset=dataset, database=database, queries=queries, spec=spec, prefix=prefix,
                         cache_dir=settings.cache_dir, memory_budget=budget, lock_timeout=settings.lock_timeout,
@@ -183,10 +185,16 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
         digests=dataset.image_digests(settings.cache_dir), names=dataset.image_names(), cache_dir=settings.cache_dir,
         store_dtype=spec.store_dtype, workers=workers, lock_timeout=settings.lock_timeout, ranks=ranks,
         progress=progress, settings=spec.options)  # keyed as the spec: one run, one store
+    budget, compare = settings.memory_budget or DEFAULT_MEMORY_BUDGET, getattr(method, "compare", "cosine")
+
+    def plan(rows, asked, fit=()):  # the fit's need, and the rows as the search and the stages read them
+        search = [] if frozen is not None else [(f"retrieval's {spec.search.index} search", retrieval_need(
+            compare, rows, asked, depth, spec.search.index, spec.search.options or None))]
+        check_run_budget([*fit, *search, *stage_needs(stages, rows, asked, depth)], budget)
     fit_on, joint, t = None, None, time.perf_counter()
     if members is not None:  # every rank describes its share of each, once the stack's fit is known to fit
-        stacked, budget = sum(len(m.database) for m in members), settings.memory_budget or DEFAULT_MEMORY_BUDGET
-        ranks.on_zero(lambda: check_fit_budget(method, stacked, described.stores["database"], budget))
+        stacked = sum(len(m.database) for m in members)
+        ranks.on_zero(lambda: check_joint_budget(method, stacked, described.stores, budget, plan))
         fit_on, joint = describe_members(spec, settings, method, dataset, members, described, workers=workers,
                                          ranks=ranks, progress=progress)
     if described.stores is None:  # not rank 0: its shard is written; rank 0 evaluates
@@ -200,12 +208,6 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
     else:
         memory = {} if settings.memory_budget is None else {"memory_budget": settings.memory_budget}
         database, queries = described.stores["database"], described.stores["queries"]
-        budget, compare = settings.memory_budget or DEFAULT_MEMORY_BUDGET, getattr(method, "compare", "cosine")
-
-        def plan(rows, asked):  # the rows as the search and the stages read them, before either runs
-            search = retrieval_need(compare, rows, asked, depth, spec.search.index, spec.search.options or None)
-            parts = [(f"retrieval's {spec.search.index} search", search), *stage_needs(stages, rows, asked, depth)]
-            check_run_budget(parts, budget)
         with phase(progress, f"{method.name} {dataset.name} search ({spec.search.index}, {queries.row_count:,} queries "
                              f"x {database.row_count:,} database)"):
             found = retrieve(method, database, queries, depth, index=spec.search.index,

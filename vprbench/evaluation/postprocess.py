@@ -8,6 +8,7 @@ import hashlib
 import json
 import time
 import warnings
+from numbers import Integral
 from pathlib import Path
 
 import numpy as np
@@ -77,11 +78,7 @@ class TransformedRows:
                                                out[:len(block)], len(block)))
 
     def read_cost(self) -> tuple[int, int]:
-        # a tile read, padded, and computed in float64 (PCA-whitening does), with its output, and a
-        # float64 block of PCA's projection
-        block = min(PROJECTION_BLOCK_BYTES, 8 * self.source.dim * self.dim)
-        tile = self.tile * (read_bytes_per_row(self.source) + 12 * self.source.dim + 20 * self.dim)
-        return self.dim * 4, tile + block + self.state_bytes
+        return transformed_cost(self.source, self.dim, self.state_bytes)
 
     def read_rows(self, start: int, stop: int) -> np.ndarray:
         out = np.empty((stop - start, self.dim), dtype=np.float32)
@@ -105,6 +102,56 @@ class TransformedRows:
         return out
 
 
+def transformed_cost(source: RowSource, dim: int, state_bytes: int) -> tuple[int, int]:
+    """(bytes per row, fixed bytes) of reading `source` through a post-processor to `dim` dims that holds
+    `state_bytes` of state: a tile read, padded, and computed in float64 (PCA-whitening does), with its
+    output, and a float64 block of PCA's projection. From shapes only: the run's plan reads it before the fit."""
+    block = min(PROJECTION_BLOCK_BYTES, 8 * source.dim * dim)
+    tile = transform_rows(source.dim) * (read_bytes_per_row(source) + 12 * source.dim + 20 * dim)
+    return dim * 4, tile + block + state_bytes
+
+
+class PlannedRows:
+    """The rows a post-processor will make of `source`, by shape and read cost only (no row): what the
+    run's budget plan reads before the post-processor is fitted."""
+
+    def __init__(self, source: RowSource, dim: int, state_bytes: int = 0):
+        self.source, self.dim, self.state_bytes = source, int(dim), int(state_bytes)
+        self.row_count, self.folder, self.dtype = int(source.row_count), source.folder, np.dtype(np.float32)
+
+    def read_cost(self) -> tuple[int, int]:
+        return transformed_cost(self.source, self.dim, self.state_bytes)
+
+    def read_rows(self, start, stop):
+        raise VPRBenchError("Rows planned before the post-processor is fitted have a shape, not values.")
+
+
+def _number_said(postprocessor, hook: str, rows, *args, least: int = 0) -> int | None:
+    """`postprocessor.<hook>(rows, *args)` when it has that hook (None when not): a whole number >= `least`."""
+    if not callable(getattr(postprocessor, hook, None)):
+        return None
+    with in_postprocessor(postprocessor, hook):
+        found = getattr(postprocessor, hook)(rows, *args)
+    if isinstance(found, bool) or not isinstance(found, Integral) or found < least:  # sizes compared as numbers
+        raise VPRBenchError(f"Post-processor {type(postprocessor).__name__}: {hook}() returned {found!r}, not a whole "
+                            f"number >= {least}; fix the post-processor.")
+    return int(found)
+
+
+def planned(postprocessor, database: RowSource, queries: RowSource, fit_rows, memory_budget: int):
+    """(database, queries, parts) before `postprocessor` is fitted on `fit_rows` (a row source or its shape):
+    the rows it will make of both (PlannedRows), and its fit's least budget as (part, bytes) when it says it
+    (`least_budget`). None when it cannot say its output dim before the fit (`output_dim`): the plan is
+    then made after the fit."""
+    dim = _number_said(postprocessor, "output_dim", fit_rows, least=1)
+    if dim is None:
+        return None
+    state = _number_said(postprocessor, "state_bytes", fit_rows) or 0  # none said: counted once it is fitted
+    need = _number_said(postprocessor, "least_budget", fit_rows, memory_budget)
+    parts = [] if need is None else [(f"the {type(postprocessor).__name__} fit", need)]
+    return PlannedRows(database, dim, state), PlannedRows(queries, dim), parts
+
+
 def _state_bytes(postprocessor) -> int:
     """Bytes of a fitted post-processor's state arrays (0 when it keeps none)."""
     if not callable(getattr(postprocessor, "state", None)):
@@ -126,11 +173,13 @@ def postprocessor_key(postprocessor, rows, memory_budget: int):
     return exact_data(found, f"Post-processor {type(postprocessor).__name__}: key()")
 
 
-def fit_postprocessor(postprocessor, database: RowSource, memory_budget: int, state_folder=None) -> dict:
+def fit_postprocessor(postprocessor, database: RowSource, memory_budget: int, state_folder=None,
+                      before_fit=None) -> dict:
     """Fit on the database rows, or load the state a previous run saved in `state_folder`
     (default: the database's folder) under a name keyed by what defines it: the post-processor,
     and the rows' shape and content (a store's `content_key`). A saved state is used only if the
-    key saved in it is that key (a file copied from another store under this name is refitted)."""
+    key saved in it is that key (a file copied from another store under this name is refitted).
+    `before_fit()`, if given, runs when the state is to be fitted, before the fit (the run's plan)."""
     content = getattr(database, "content_key", None)
     key = {"postprocessor": postprocessor_key(postprocessor, database, memory_budget),
            "rows": {"count": int(database.row_count), "dim": int(database.dim), "dtype": str(np.dtype(database.dtype)),
@@ -144,6 +193,8 @@ def fit_postprocessor(postprocessor, database: RowSource, memory_budget: int, st
         if unusable is None:
             return {**info, "state": "loaded"}
         warnings.warn(f"Refitting: {unusable}", stacklevel=2)  # the fit below replaces the file
+    if before_fit is not None:
+        before_fit()
     started = time.perf_counter()
     with in_postprocessor(postprocessor, "fit"):
         postprocessor.fit(database, memory_budget)
@@ -254,12 +305,27 @@ def check_fit_budget(method, rows: int, described: RowSource, memory_budget: int
             post.check_budget(RowShape({"count": rows, "dim": described.dim, "dtype": described.dtype}), memory_budget)
 
 
+def check_joint_budget(method, rows: int, stores: dict, memory_budget: int, plan) -> None:
+    """Before a stack's other databases are described: `plan(database, queries, parts)` of the fit on
+    `rows` rows like the evaluated database (`stores`), when its post-processor says its output's shape
+    (`planned`), else that fit's own `check_budget`."""
+    post = postprocessor_of(method)
+    database, queries = stores["database"], stores["queries"]
+    shape = RowShape({"count": rows, "dim": database.dim, "dtype": database.dtype})
+    found = None if post is None else planned(post, database, queries, shape, memory_budget)
+    if found is not None:
+        plan(*found)
+    else:
+        check_fit_budget(method, rows, database, memory_budget)
+
+
 def postprocessed(method, database: RowSource, queries: RowSource, memory_budget: int, state_folder=None,
-                  fit_on: RowSource | None = None):
+                  fit_on: RowSource | None = None, plan=None):
     """(database, queries, info): both row sources as `method` post-processes them (its
     post-processor fitted on the database, or on `fit_on` (several databases stacked, joint.py), or
     a plugin's whole-matrix `postprocess`); info None when there is nothing to do. `retrieve` and
-    `vprbench describe` share it."""
+    `vprbench describe` share it. `plan(database, queries, parts)`, if given, sees the rows as the
+    post-processor will make them and its fit's need (`planned`) before it is fitted."""
     postprocessor = postprocessor_of(method) if method is not None else None
     if method is not None and overrides_postprocess(method):  # a plugin's whole-matrix hook
         db, q = database.read_rows(0, database.row_count), queries.read_rows(0, queries.row_count)
@@ -272,6 +338,13 @@ def postprocessed(method, database: RowSource, queries: RowSource, memory_budget
                                                                                                db.shape[1])))
         return database, queries, {"kind": f"{type(method).__name__}.postprocess", "in_memory": True}
     if postprocessor is not None:
-        info = fit_postprocessor(postprocessor, database if fit_on is None else fit_on, memory_budget, state_folder)
+        fit_rows = database if fit_on is None else fit_on
+
+        def before_fit():
+            found = planned(postprocessor, database, queries, fit_rows, memory_budget)
+            if found is not None:
+                plan(*found)
+        info = fit_postprocessor(postprocessor, fit_rows, memory_budget, state_folder,
+                                 before_fit if plan is not None else None)
         return TransformedRows(database, postprocessor, counts_state=True), TransformedRows(queries, postprocessor), info
     return database, queries, None

@@ -20,16 +20,18 @@ def retrieve(method, database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_
     fitted on), applied chunk by chunk, then searched with `index`
     ("exact", "ivf-pq" or "hnsw"; `index_options` tune the approximate ones, see
     approximate.py). `method` None searches the rows as they are. The result's info is the
-    result record's "search" section. `check(database, queries)`, if given, sees the rows as the
-    search reads them before it starts (the run's budget plan, budget.py)."""
+    result record's "search" section. `check(database, queries, parts=())`, if given, sees the rows
+    as the search reads them before it starts (the run's budget plan, budget.py), and before a
+    post-processor is fitted, when it says its output's shape, those rows by shape with the fit's
+    need in `parts` ((part, bytes), postprocess.planned)."""
     budget = parse_memory(memory_budget)
     if index not in INDEXES:
         raise VPRBenchError(f"Unknown index {index!r}: use one of {', '.join(INDEXES)}.")
     database, queries = as_rows(database, "database"), as_rows(queries, "queries")
     if getattr(method, "compare", "cosine") != "cosine":
         return compared_search(method, database, queries, k, index, index_options, budget, check)
-    database, queries, postprocess = postprocessed(method, database, queries, budget, state_folder, fit_on)
-    if check is not None:
+    database, queries, postprocess = postprocessed(method, database, queries, budget, state_folder, fit_on, check)
+    if check is not None:  # again on the rows made (a plugin's state it did not say, a state loaded, not fitted)
         check(database, queries)
     started = time.perf_counter()
     if index == "exact":

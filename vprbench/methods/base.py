@@ -17,6 +17,10 @@ class PostProcessor(Protocol):
     An optional `check_rows(n, dataset_name)` refuses a database of `n` images it cannot fit,
     before any descriptor is computed; an optional `check_budget(rows, memory_budget)` (rows: their
     shape only) refuses a fit the budget cannot hold, before a stack's other databases are described.
+    Optional, read from the fit rows' shape before the fit so the run's budget is checked once for
+    the fit, the search and the stages: `output_dim(rows)` (the dimension `transform` returns; without
+    it the run is planned after the fit), `state_bytes(rows)` (what `state()` will hold) and
+    `least_budget(rows, memory_budget)` (the least budget `fit` takes under that budget).
     """
 
     def key(self, rows, memory_budget: int) -> dict:
