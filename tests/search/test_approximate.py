@@ -202,15 +202,9 @@ def test_an_hnsw_search_is_the_same_at_every_budget_it_runs_at():
     assert tight.info["recall_loss"] == roomy.info["recall_loss"]
 
 
-def test_an_ivf_pq_search_is_the_same_at_every_budget_it_runs_at():
-    """The budget set how many queries faiss searched at once, and faiss picks its kernel by that count
-    (BLAS for a large batch, its own loops for a small one): they round a query's products with the lists'
-    centroids differently, so a query halfway between two lists probed one at one budget and the other at
-    another: on one thread, of 600 such queries searched at once, 24 got other top-10s when searched 294 + 294
-    + 12 at a time, and 185 when 237 at a time. Now faiss searches a fixed tile of queries at a time,
-    whatever the budget."""
-    import re
-
+def ivf_pq_on_ties():
+    """An IVF-PQ search (nprobe 1) of 600 queries each on the plane halfway between two lists' centroids:
+    which list a query probes is a tie, settled by the last bits of its products with them."""
     import faiss
 
     from vprbench.evaluation.approximate import _build, approximate_search, index_options
@@ -221,14 +215,25 @@ def test_an_ivf_pq_search_is_the_same_at_every_budget_it_runs_at():
     options = {"nprobe": 1, "recall_queries": 20}
     index = _build("ivf-pq", db, index_options("ivf-pq", 12_000, 512, 10, options))[0]
     centroids = faiss.extract_index_ivf(index).quantizer.reconstruct_n(0, 128).astype(np.float64)
-    # each query on the plane halfway between two lists' centroids: which list it probes is a tie
     rng = np.random.default_rng(8)
     a, b = rng.integers(0, 128, 600), rng.integers(0, 128, 600)
     a[a == b] = (b[a == b] + 1) % 128
     apart, middle = centroids[a] - centroids[b], (centroids[a] + centroids[b]) / 2
     queries = middle - (np.sum(middle * apart, 1) / np.sum(apart * apart, 1))[:, None] * apart
-    search = functools.partial(approximate_search, db, ArrayRows(queries.astype(np.float32)), 10, kind="ivf-pq",
-                               options=options)
+    return functools.partial(approximate_search, db, ArrayRows(queries.astype(np.float32)), 10, kind="ivf-pq",
+                             options=options)
+
+
+def test_an_ivf_pq_search_is_the_same_at_every_budget_it_runs_at():
+    """The budget set how many queries faiss searched at once, and faiss picks its kernel by that count
+    (BLAS for a large batch, its own loops for a small one): they round a query's products with the lists'
+    centroids differently, so a query halfway between two lists probed one at one budget and the other at
+    another: on one thread, of 600 such queries searched at once, 24 got other top-10s when searched 294 + 294
+    + 12 at a time, and 185 when 237 at a time. Now faiss searches a fixed tile of queries at a time,
+    whatever the budget."""
+    import re
+
+    search = ivf_pq_on_ties()
     with pytest.raises(VPRBenchError, match="Raise --search-memory") as refused:
         search(memory_budget=1_000_000)
     least = parse_memory(re.search(r"at least (\S+ \S+),", str(refused.value)).group(1))
@@ -264,3 +269,29 @@ def test_a_budget_too_small_for_a_tile_of_shortlists_reads_them_a_few_queries_at
     assert (least - tight.info["index_bytes"]) // (1000 * 64 * 4) < QUERY_TILE  # rows of fewer queries than a tile
     np.testing.assert_array_equal(tight.indices, whole.indices)
     np.testing.assert_array_equal(tight.scores, whole.scores)
+
+
+def test_an_ivf_pq_search_is_the_same_on_every_thread_count():
+    """faiss's IVF search cut each tile of queries among its threads before it picked its kernel for the
+    lists' centroids by a slice's size: at 2,048 dims, of 600 queries on ties between two lists, 277 got other
+    shortlists on two threads than on one (BLAS for the 64 queries of a tile, faiss's own loops for a thread's
+    32; from 2,000 dims on at faiss's threshold of 128,000). Here the threshold is lowered to show it at 512
+    dims. Now the lists are picked in one product per tile on a thread of its own, whatever the thread count."""
+    import faiss
+    from threadpoolctl import threadpool_limits
+
+    search = ivf_pq_on_ties()
+    threads, threshold = faiss.omp_get_max_threads(), faiss.cvar.distance_compute_blas_threshold
+    faiss.cvar.distance_compute_blas_threshold = 64 * 512  # as at 2,048 dims: a tile on BLAS, a thread's half not
+    runs = []
+    try:
+        for count in (1, 2):
+            faiss.omp_set_num_threads(count)
+            with threadpool_limits(count, user_api="blas"):
+                runs.append(search(memory_budget=1 << 30))
+    finally:
+        faiss.omp_set_num_threads(threads)
+        faiss.cvar.distance_compute_blas_threshold = threshold
+    np.testing.assert_array_equal(runs[1].indices, runs[0].indices)
+    np.testing.assert_array_equal(runs[1].scores, runs[0].scores)
+    assert runs[1].info["recall_loss"] == runs[0].info["recall_loss"]

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import time
+from contextlib import contextmanager, nullcontext
 from typing import NamedTuple
 
 import numpy as np
@@ -13,15 +14,16 @@ import numpy as np
 from ..errors import VPRBenchError
 from ..row_sources import READ_BYTES, ArrayRows, RowSource, chunks, format_budget, format_bytes
 from .row_checks import check_finite, check_pair, zero_rows
-from .search import (AllZero, SearchResult, TIE_ORDER, exact_search, least_budget, order_results, read_cost,
-                     rounded_scores)
+from .search import (ORDER_BYTES, SCORE_UNITS, TIE_ORDER, AllZero, SearchResult, exact_search, inner_products,
+                     least_budget, one_thread_each, order_results, read_cost, rounded_scores, top_heap)
 
 APPROXIMATE = ("ivf-pq", "hnsw")
 #: faiss's k-means wants at least 39 training points per centroid
 POINTS_PER_CENTROID = 39
 PQ_CENTROIDS = 256  # 8-bit PQ codes
 #: queries faiss searches at once, whatever the budget: it picks its kernels by their count (BLAS for many
-#: queries, its own loops for few), which round a query's products with the lists' centroids differently
+#: queries, its own loops for few), which round a query's products with the lists' centroids differently;
+#: IVF's lists are picked here instead (`_Probes`), a tile of queries in one product of this shape
 QUERY_TILE = 64
 LARGEST = 2**31 - 1  # faiss takes its sizes as C int: a larger one overflowed in its setters
 DEFAULTS = {"shortlist": 100, "recall_queries": 200, "seed": 0,
@@ -148,8 +150,8 @@ def _build(kind: str, database: RowSource, o: dict):
 class _Plan(NamedTuple):
     """An approximate search's memory on its rows' shapes: its options, the index, the training sample (or
     a chunk of rows added), a tile of queries, each query searched and its shortlist re-scored, the index's
-    answers for a tile; the least budget of the index's part and of the recall check's exact search of
-    `batch` queries."""
+    answers for a tile, IVF's coarse step (`_Probes`); the least budget of the index's part and of the recall
+    check's exact search of `batch` queries."""
     options: dict
     index_bytes: int
     training: int
@@ -157,6 +159,7 @@ class _Plan(NamedTuple):
     searched: int
     rescored: int
     answers: int
+    coarse: int
     need: int
     exact_need: int
     batch: int
@@ -173,11 +176,12 @@ def _plan(database, queries, k: int, kind: str, options: dict | None) -> _Plan:
     searched, rescored, answers = q_row + o["shortlist"] * 8, o["shortlist"] * row_bytes, tile * o["shortlist"] * 12
     # the training sample, then (in its place) a chunk of rows being added
     training = max(o["train_rows"], min(n, add_rows(kind, database))) * (row_bytes + _residual_bytes(kind, dim))
-    need = training + fixed + index_bytes + q_fixed + n_queries * k * 12 + answers + tile * searched + rescored
+    coarse = _coarse_bytes(dim, o) if kind == "ivf-pq" else 0
+    need = training + fixed + index_bytes + coarse + q_fixed + n_queries * k * 12 + answers + tile * searched + rescored
     # then, beside the answers: queries searched exactly (short shortlists, the recall check), a batch at a time
     held, batch = n_queries * k * 12, min(n_queries, o["recall_queries"])
     exact_need = held + batch * q_row + q_fixed + least_budget(database, batch, k)
-    return _Plan(o, index_bytes, training, tile, searched, rescored, answers, need, exact_need, batch)
+    return _Plan(o, index_bytes, training, tile, searched, rescored, answers, coarse, need, exact_need, batch)
 
 
 def approximate_need(database, queries, k: int, kind: str, options: dict | None = None) -> int:
@@ -209,7 +213,7 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
     build_s = time.perf_counter() - started
 
     started = time.perf_counter()
-    free = memory_budget - plan.index_bytes - q_fixed - n_queries * k * 12 - plan.answers
+    free = memory_budget - plan.index_bytes - plan.coarse - q_fixed - n_queries * k * 12 - plan.answers
     q_chunk, group = _query_chunks(free, plan.tile, plan.searched, plan.rescored)
     scores = np.empty((n_queries, k), dtype=np.float32)
     indices = np.empty((n_queries, k), dtype=np.int64)
@@ -217,9 +221,10 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
     # depend on the deepest K asked (the K list is not part of a leaderboard row)
     short = []
     zero_queries = np.zeros(n_queries, dtype=bool)
+    probes = _Probes(index) if kind == "ivf-pq" else None
     for q0, block in chunks(queries, q_chunk):
         zero_queries[q0:q0 + len(block)] = zero_rows(block, "Query", q0)
-        found = _shortlists(index, block, o["shortlist"])
+        found = _shortlists(index, probes, block, o["shortlist"])
         for g0 in range(0, len(block), group):
             some = found[g0:g0 + group]
             rows_ids = np.unique(some[some >= 0])
@@ -237,7 +242,7 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
                 scores[q0 + i], indices[q0 + i] = s[0, :k], c[0, :k]
             del rows  # the budget holds one group's shortlist rows, not this and the next
         del block, found
-    del index
+    del probes, index
     for start in range(0, len(short), plan.batch):  # honest fallback: those queries are searched exactly
         some = np.array(short[start:start + plan.batch])
         scores[some], indices[some] = _exact(database, queries, some, k, memory_budget - held)
@@ -261,12 +266,67 @@ def _query_chunks(free: int, tile: int, searched: int, rescored: int) -> tuple[i
     return tile, max(1, (free - tile * searched) // rescored)
 
 
-def _shortlists(index, block: np.ndarray, shortlist: int) -> np.ndarray:
-    """Each query's shortlist (-1 where the index found fewer), searched QUERY_TILE queries at a time."""
+def _shortlists(index, probes, block: np.ndarray, shortlist: int) -> np.ndarray:
+    """Each query's shortlist (-1 where the index found fewer), searched QUERY_TILE queries at a time; an IVF
+    index's lists picked by `probes`, a tile at a time on a thread of its own."""
     found = np.empty((len(block), shortlist), dtype=np.int64)
-    for t0 in range(0, len(block), QUERY_TILE):
-        found[t0:t0 + QUERY_TILE] = index.search(block[t0:t0 + QUERY_TILE], shortlist)[1]
+    with _one_thread() if probes is not None else nullcontext() as pool:
+        for t0 in range(0, len(block), QUERY_TILE):
+            tile = block[t0:t0 + QUERY_TILE]
+            if probes is None:
+                found[t0:t0 + QUERY_TILE] = index.search(tile, shortlist)[1]
+                continue
+            dis, lists = pool.submit(probes.lists, tile).result()
+            found[t0:t0 + QUERY_TILE] = probes.ivf.search_preassigned(tile, shortlist, lists, dis)[1]
     return found
+
+
+@contextmanager
+def _one_thread():
+    """A thread that computes alone (one OpenMP thread for oneDNN, one BLAS thread: set as exact search sets
+    its own), so a product's rounding does not depend on how many threads this machine gives it."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from threadpoolctl import threadpool_limits
+
+    with ThreadPoolExecutor(1, "vprbench-probes", one_thread_each) as pool, threadpool_limits(1, user_api="blas"):
+        yield pool
+
+
+class _Probes:
+    """IVF's coarse step done here, not by faiss: faiss splits a tile of queries among its threads first and
+    picks its kernel by a slice's size, so a query on a tie between two lists probed one or the other as the
+    thread count went. Here a tile's products with the lists' centroids are one product of a fixed shape (the
+    tile padded to QUERY_TILE rows) on one thread, and each query probes its `nprobe` best lists by exact
+    search's tie rule (score on the grid, then the lower list); faiss scans each query's lists on its own."""
+
+    def __init__(self, index):
+        import faiss
+
+        self.ivf = faiss.extract_index_ivf(index)
+        self.centroids = self.ivf.quantizer.reconstruct_n(0, self.ivf.nlist)  # (nlist, dim) float32, held once
+
+    def lists(self, tile: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(products with the centroids, list numbers) of the lists each query of `tile` probes, best first."""
+        import faiss
+
+        padded = np.zeros((QUERY_TILE, tile.shape[1]), dtype=np.float32)
+        padded[:len(tile)] = tile
+        raw = np.empty((QUERY_TILE, len(self.centroids)), dtype=np.float32)
+        inner_products(padded, self.centroids, raw, np.float32(1))
+        with np.errstate(over="ignore"):  # too long to compare: refused when the shortlist is scored
+            units = np.rint(raw * SCORE_UNITS)  # negated grid units, as exact search merges them
+        shape = (len(tile), self.ivf.nprobe)
+        dis, lists = np.empty(shape, dtype=np.float32), np.empty(shape, dtype=np.int64)
+        top_heap(dis, lists).addn(len(self.centroids), faiss.swig_ptr(units), 0, 0, len(tile))  # lower list on ties
+        lists = order_results(-dis, lists)[1]
+        return np.take_along_axis(raw[:len(tile)], lists, 1), lists
+
+
+def _coarse_bytes(dim: int, o: dict) -> int:
+    """`_Probes`' memory: the centroids, and for a tile their products (twice, and the product being
+    written), then each query's lists put in order."""
+    return o["nlist"] * dim * 4 + QUERY_TILE * (dim * 4 + 3 * o["nlist"] * 4 + o["nprobe"] * (ORDER_BYTES + 24))
 
 
 def _exact(database: RowSource, queries: RowSource, picked: np.ndarray, k: int, budget: int):

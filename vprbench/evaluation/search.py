@@ -42,7 +42,7 @@ MIN_SLICE_ROWS = 64
 EXTRA_CANDIDATES = 16
 #: scores are scaled by this after their products: exact (a power of two), giving the negated
 #: grid units the heaps keep
-_UNITS = np.float32(-1 / SCORE_TOLERANCE)
+SCORE_UNITS = np.float32(-1 / SCORE_TOLERANCE)
 #: the largest product computed at once (bytes of scores): below glibc's mmap threshold
 PRODUCT_BYTES = 16 * 2**20
 #: bytes one candidate takes while its query's candidates are put in order (its negated score twice,
@@ -202,7 +202,7 @@ def _plan(database, queries, k: int, budget: int, again: bool = False) -> dict:
             "query_chunk_rows": int(q_chunk), "query_chunks": int(-(-q // q_chunk)), "candidates": int(keep)}
 
 
-def _heap(distances: np.ndarray, ids: np.ndarray):
+def top_heap(distances: np.ndarray, ids: np.ndarray):
     """faiss max-heaps over rows of (negated) scores: they keep the k smallest distances and,
     fed in ascending id order, the lower id on ties (faiss's min-heaps would keep the higher)."""
     import faiss
@@ -232,7 +232,7 @@ def slices(rows: int, threads: int) -> list[tuple[int, int]]:
     return list(zip(bounds[:-1], bounds[1:]))
 
 
-def _one_thread_each() -> None:
+def one_thread_each() -> None:
     """Each search thread computes and merges its own slice alone: one OpenMP thread for faiss
     and oneDNN, set for this thread only (torch.set_num_threads would change every new thread's)."""
     import faiss
@@ -268,8 +268,8 @@ def _scan(database, queries, keep: int, plan: dict, on_grid: bool) -> tuple[np.n
         distances = np.empty((n_queries, keep), dtype=np.float32)
         indices = np.empty((n_queries, keep), dtype=np.int64)
         threads = len(slices(q_tile, search_threads()))
-        scan = _Scan(_heap(distances, indices), q_tile, d_tile, threads, on_grid)
-        pool = ThreadPoolExecutor(threads, "vprbench-search", _one_thread_each) if threads > 1 else None
+        scan = _Scan(top_heap(distances, indices), q_tile, d_tile, threads, on_grid)
+        pool = ThreadPoolExecutor(threads, "vprbench-search", one_thread_each) if threads > 1 else None
         zero_queries, zero_database = np.zeros(n_queries, dtype=bool), 0
         with threadpool_limits(1, user_api="blas") if pool else _nothing():
             for number, query_chunk in enumerate(query_reader):
@@ -309,7 +309,7 @@ class _Scan:
                 lo, hi = cut[worker]
                 real = min(hi, m) - lo  # rows past m are the tile's zero padding
                 out = self.scores[worker][:(hi - lo) * len(rows)].reshape(hi - lo, len(rows))
-                inner_products(block[lo:hi], rows, out, _UNITS)
+                inner_products(block[lo:hi], rows, out, SCORE_UNITS)
                 if self.on_grid:
                     np.rint(out, out=out)
                 merged = out if n == len(rows) else np.ascontiguousarray(out[:real, :n])
