@@ -8,12 +8,13 @@ Memory is set by a budget in bytes (block rows follow from it), not by the trave
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
 from ...errors import VPRBenchError
 from ...evaluation.row_checks import check_finite
-from ...evaluation.search import read_cost, rounded_scores
+from ...evaluation.search import one_thread_each, read_cost, rounded_scores, search_threads
 from ...row_sources import DEFAULT_MEMORY_BUDGET, READ_BYTES, as_rows, chunks, format_budget, format_bytes, parse_memory
 from .matching import (SEQSLAM_DEFAULTS, enhance, query_offsets, second_best, top_k, trajectories,
                        trajectory_costs, velocities)
@@ -78,17 +79,15 @@ def cost_rows(tiles: np.ndarray, offset: int, count: int, database, database_ord
     = sqrt(2 - 2 cos) for unit descriptors, the mean absolute difference for sad); the diagonal's
     -similarity (the distance for sad)."""
     out = np.empty((count, database.row_count), dtype=np.float32)
-    for start, block in chunks(database, chunk_rows):
-        if check:  # once per search: every block of queries reads the same rows
-            check_finite(block, "Database", start)
-        step = product_columns(block.shape[1])
-        for column in range(0, len(block), step):
-            rows = block[column:column + step]
-            for at in range(0, len(tiles), PRODUCT_ROWS):
-                lo, hi = max(at, offset), min(at + PRODUCT_ROWS, offset + count)
-                out[lo - offset:hi - offset, start + column:start + column + len(rows)] = similarities_or_distances(
-                    tiles[at:at + PRODUCT_ROWS], rows, compare)[lo - at:hi - at]
-        del block, rows  # before the next chunk is read: the budget holds one
+    with _ProductThreads(compare) as threads:
+        for start, block in chunks(database, chunk_rows):
+            if check:  # once per search: every block of queries reads the same rows
+                check_finite(block, "Database", start)
+            step = product_columns(block.shape[1])
+            threads.run(partial(_tile_product, tiles, offset, count, block, start, step, compare, out),
+                        [(column, at) for column in range(0, len(block), step)
+                         for at in range(0, len(tiles), PRODUCT_ROWS)])
+            del block  # before the next chunk is read: the budget holds one
     out = out[:, database_order]
     if compare == "cosine":
         if score == "diagonal":
@@ -228,3 +227,48 @@ def _order(order, count: int, split: str) -> np.ndarray:
     if order.shape != (count,) or not np.array_equal(np.sort(order), np.arange(count)):
         raise VPRBenchError(f"The {split} traverse order must name each of its {count} images once.")
     return order
+
+
+def _tile_product(tiles, offset: int, count: int, block, start: int, step: int, compare: str, out, column: int,
+                  at: int) -> None:
+    """Into `out` (the cost rows) the products of the tile of query rows at `at` with the rows column ..
+    column + step of the database chunk `block` (from row `start`): always a whole tile's product, a whole
+    tile's written where it lands (no copy held beside it), a part tile's cut from it."""
+    rows, tile = block[column:column + step], tiles[at:at + PRODUCT_ROWS]
+    out = out[:, start + column:start + column + len(rows)]
+    lo, hi = max(at, offset), min(at + PRODUCT_ROWS, offset + count)
+    if compare == "cosine" and hi - lo == PRODUCT_ROWS:
+        np.matmul(tile, rows.T, out=out[lo - offset:hi - offset])
+    else:
+        out[lo - offset:hi - offset] = similarities_or_distances(tile, rows, compare)[lo - at:hi - at]
+
+
+class _ProductThreads:
+    """Where a block's cosine products run: as exact search's (evaluation/search.py), each fixed-shape
+    product on one thread of its own, as many side by side as the BLAS has threads. A BLAS on several
+    threads splits a product's sums by its thread count (1,000-dim rows: costs a grid step apart at 1
+    and 2 threads). sad's distances (faiss, one row pair at a time) stay as they were."""
+
+    def __init__(self, compare: str):
+        self.pool = None
+        if compare == "cosine" and (threads := search_threads()) > 1:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self.pool = ThreadPoolExecutor(threads, "vprbench-sequence", one_thread_each)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(wait=True)
+
+    def run(self, product, work: list) -> None:
+        if self.pool is None:
+            for args in work:
+                product(*args)
+            return
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(1, user_api="blas"):  # only here: reading a post-processed chunk keeps its threads
+            list(self.pool.map(product, *zip(*work)))
