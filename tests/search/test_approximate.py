@@ -8,7 +8,7 @@ import pytest
 from vprbench.errors import VPRBenchError
 from vprbench.evaluation.search import exact_search
 from vprbench.evaluation.retrieve import retrieve
-from vprbench.row_sources import parse_memory
+from vprbench.row_sources import ArrayRows, parse_memory
 from search_rows import h5_rows
 
 
@@ -295,3 +295,30 @@ def test_an_ivf_pq_search_is_the_same_on_every_thread_count():
     np.testing.assert_array_equal(runs[1].indices, runs[0].indices)
     np.testing.assert_array_equal(runs[1].scores, runs[0].scores)
     assert runs[1].info["recall_loss"] == runs[0].info["recall_loss"]
+
+
+def test_a_shortlist_is_rescored_the_same_on_every_thread_count(monkeypatch):
+    """The shortlist's exact scores are products of long rows (8,192 dims here): a BLAS on several threads
+    cut their sums by its thread count, 4 % of the scores a rounding apart at 1 and 2 or 3 threads (and a
+    grid step where one lay on a boundary). Now they are computed on one BLAS thread, the rows read before."""
+    from threadpoolctl import threadpool_limits
+
+    import vprbench.evaluation.approximate as approximate
+
+    rng = np.random.default_rng(3)
+    database = rng.standard_normal((600, 8192), dtype=np.float32)
+    database /= np.linalg.norm(database, axis=1, keepdims=True)
+    queries = database[:40] + 0.02 * rng.standard_normal((40, 8192), dtype=np.float32)
+    raw, runs = [], []
+    real = approximate.rounded_scores
+    monkeypatch.setattr(approximate, "rounded_scores", lambda scores: raw[-1].append(scores.copy()) or real(scores))
+    for count in (1, 3):
+        raw.append([])
+        with threadpool_limits(count, user_api="blas"):
+            runs.append(approximate.approximate_search(ArrayRows(database), ArrayRows(queries), 10, kind="hnsw",
+                                                       memory_budget=1 << 30, options={"recall_queries": 1}))
+    assert len(raw[0]) == len(raw[1]) == 40
+    for one, more in zip(*raw):
+        np.testing.assert_array_equal(more, one)
+    np.testing.assert_array_equal(runs[1].indices, runs[0].indices)
+    np.testing.assert_array_equal(runs[1].scores, runs[0].scores)

@@ -10,6 +10,7 @@ from contextlib import contextmanager, nullcontext
 from typing import NamedTuple
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from ..errors import VPRBenchError
 from ..row_sources import READ_BYTES, ArrayRows, RowSource, chunks, format_budget, format_bytes
@@ -228,18 +229,21 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
         for g0 in range(0, len(block), group):
             some = found[g0:g0 + group]
             rows_ids = np.unique(some[some >= 0])
-            rows = database.read_rows_at(rows_ids)
-            for i in range(g0, min(g0 + group, len(block))):
-                candidates = found[i][found[i] >= 0]
-                if len(candidates) < o["shortlist"]:
-                    short.append(q0 + i)
-                    continue
-                exact = rounded_scores(rows[np.searchsorted(rows_ids, candidates)] @ block[i])  # as exact search
-                if not np.isfinite(exact).all():  # every row is finite (checked above): too long, they overflow
-                    raise VPRBenchError(f"Inner products of query row {q0 + i} and its shortlist exceed float32's "
-                                        "range: the descriptors are too long to compare; L2-normalise them.")
-                s, c = order_results(exact[None], candidates[None])
-                scores[q0 + i], indices[q0 + i] = s[0, :k], c[0, :k]
+            rows = database.read_rows_at(rows_ids)  # read with the BLAS's threads (a post-processed store's)
+            # re-scored on one BLAS thread: a product of long rows is summed in pieces cut by the thread count
+            with threadpool_limits(1, user_api="blas"):
+                for i in range(g0, min(g0 + group, len(block))):
+                    candidates = found[i][found[i] >= 0]
+                    if len(candidates) < o["shortlist"]:
+                        short.append(q0 + i)
+                        continue
+                    exact = rounded_scores(rows[np.searchsorted(rows_ids, candidates)] @ block[i])  # as exact search
+                    if not np.isfinite(exact).all():  # every row is finite (checked above): too long, they overflow
+                        raise VPRBenchError(f"Inner products of query row {q0 + i} and its shortlist exceed "
+                                            "float32's range: the descriptors are too long to compare; L2-normalise "
+                                            "them.")
+                    s, c = order_results(exact[None], candidates[None])
+                    scores[q0 + i], indices[q0 + i] = s[0, :k], c[0, :k]
             del rows  # the budget holds one group's shortlist rows, not this and the next
         del block, found
     del probes, index
@@ -286,8 +290,6 @@ def _one_thread():
     """A thread that computes alone (one OpenMP thread for oneDNN, one BLAS thread: set as exact search sets
     its own), so a product's rounding does not depend on how many threads this machine gives it."""
     from concurrent.futures import ThreadPoolExecutor
-
-    from threadpoolctl import threadpool_limits
 
     with ThreadPoolExecutor(1, "vprbench-probes", one_thread_each) as pool, threadpool_limits(1, user_api="blas"):
         yield pool
