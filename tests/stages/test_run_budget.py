@@ -78,7 +78,7 @@ def test_a_stage_least_budget_that_is_not_bytes_is_refused_naming_the_stage():
     assert stage_needs([Says(None), Says(np.int64(5))], rows, rows, 2) == [("stage 'says'", 5)]
     for wrong in ("lots", 1.5, -1, True):
         with pytest.raises(VPRBenchError, match=rf"Stage 'says': least_budget\(\) returned {re.escape(repr(wrong))}, "
-                                                r"not a number of bytes"):
+                                                r"not a whole number >= 0 or None; fix the stage\.$"):
             stage_needs([Says(wrong)], rows, rows, 2)
 
 

@@ -39,13 +39,19 @@ def stage_needs(stages, database, queries, depth: int) -> list[tuple[str, int]]:
             k = stage.candidates_needed() or k
         with in_stage(stage, "least_budget"):
             need = stage.least_budget(database, queries, k)
-        if need is None:
-            continue
-        if isinstance(need, bool) or not isinstance(need, Integral) or need < 0:  # compared with the budget as bytes
-            raise VPRBenchError(f"Stage {stage.name!r}: least_budget() returned {need!r}, not a number of bytes "
-                                "(an int >= 0) or None; fix the stage.")
-        found.append((f"stage {stage.name!r}", int(need)))
+        if need is not None:
+            found.append((f"stage {stage.name!r}", said_number(need, f"Stage {stage.name!r}: least_budget()", "stage",
+                                                               or_none=True)))
     return found
+
+
+def said_number(found, hook: str, kind: str, least: int = 0, or_none: bool = False) -> int:
+    """`found`, what a plugin's `hook` returned for a size, as an int >= `least` (compared with the budget as a
+    number), or refused in one line naming the hook."""
+    if isinstance(found, bool) or not isinstance(found, Integral) or found < least:
+        raise VPRBenchError(f"{hook} returned {found!r}, not a whole number >= {least}{' or None' if or_none else ''}; "
+                            f"fix the {kind}.")
+    return int(found)
 
 
 def check_run_budget(parts: list[tuple[str, int]], budget: int) -> None:

@@ -8,7 +8,6 @@ import hashlib
 import json
 import time
 import warnings
-from numbers import Integral
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +18,7 @@ from ..fsutil import atomic_path, write_in_turn
 from ..hashing import exact_data
 from ..loader import checked, plugin_part, postprocessor_of
 from ..row_sources import ArrayRows, RowSource, read_bytes_per_row
+from .budget import said_number
 from .row_checks import zero_rows
 
 #: a post-processor transforms tiles of at most this many input bytes (see transform_rows)
@@ -132,10 +132,7 @@ def _number_said(postprocessor, hook: str, rows, *args, least: int = 0) -> int |
         return None
     with in_postprocessor(postprocessor, hook):
         found = getattr(postprocessor, hook)(rows, *args)
-    if isinstance(found, bool) or not isinstance(found, Integral) or found < least:  # sizes compared as numbers
-        raise VPRBenchError(f"Post-processor {type(postprocessor).__name__}: {hook}() returned {found!r}, not a whole "
-                            f"number >= {least}; fix the post-processor.")
-    return int(found)
+    return said_number(found, f"Post-processor {type(postprocessor).__name__}: {hook}()", "post-processor", least)
 
 
 def planned(postprocessor, database: RowSource, queries: RowSource, fit_rows, memory_budget: int):
