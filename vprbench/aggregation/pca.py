@@ -49,11 +49,14 @@ def _solver_memory(solver: str, n: int, d: int, dim: int) -> int:
     return 20 * d * min(d, n, 2 * dim)  # float32 basis, float64 product, and a float64 temporary or its QR
 
 
+def _chunks_held(solver: str) -> int:
+    return 2 if solver == "gram" else 1  # the Gram path holds two chunks of rows
+
+
 def _path_need(solver: str, rows, dim: int) -> int:
-    """The least budget `solver`'s path takes on `rows`: what it holds, and a chunk of one row (the Gram
-    path holds two chunks)."""
-    blocks = 2 if solver == "gram" else 1
-    return _solver_memory(solver, rows.row_count, rows.dim, dim) + ROW_COPIES * read_bytes_per_row(rows) * blocks
+    """The least budget `solver`'s path takes on `rows`: what it holds, and its chunks of one row."""
+    return (_solver_memory(solver, rows.row_count, rows.dim, dim)
+            + ROW_COPIES * read_bytes_per_row(rows) * _chunks_held(solver))
 
 
 def _exact_path(rows) -> str:
@@ -125,7 +128,7 @@ class PCAWhitening:
         n, d, budget = rows.row_count, rows.dim, parse_memory(memory_budget)
         solver = self.solver(rows, budget)
         row_cost = ROW_COPIES * read_bytes_per_row(rows)
-        blocks = 2 if solver == "gram" else 1  # the Gram path holds two chunks
+        blocks = _chunks_held(solver)
         # a chunk of one row at the path's least need, one more row for each row's cost beyond it
         spare = budget - _path_need(solver, rows, self.dim)
         chunk_rows = min(READ_BYTES // row_cost, 1 + spare // (row_cost * blocks))

@@ -10,7 +10,7 @@ from contextlib import contextmanager, nullcontext
 from typing import NamedTuple
 
 import numpy as np
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController, threadpool_limits
 
 from ..errors import VPRBenchError
 from ..row_sources import READ_BYTES, ArrayRows, RowSource, chunks, format_budget, format_bytes
@@ -223,6 +223,7 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
     short = []
     zero_queries = np.zeros(n_queries, dtype=bool)
     probes = _Probes(index) if kind == "ivf-pq" else None
+    blas = ThreadpoolController()  # its libraries found once: a limit is then cheap, one per group of queries
     for q0, block in chunks(queries, q_chunk):
         zero_queries[q0:q0 + len(block)] = zero_rows(block, "Query", q0)
         found = _shortlists(index, probes, block, o["shortlist"])
@@ -231,7 +232,7 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
             rows_ids = np.unique(some[some >= 0])
             rows = database.read_rows_at(rows_ids)  # read with the BLAS's threads (a post-processed store's)
             # re-scored on one BLAS thread: a product of long rows is summed in pieces cut by the thread count
-            with threadpool_limits(1, user_api="blas"):
+            with blas.limit(limits=1, user_api="blas"):
                 for i in range(g0, min(g0 + group, len(block))):
                     candidates = found[i][found[i] >= 0]
                     if len(candidates) < o["shortlist"]:
