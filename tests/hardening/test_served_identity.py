@@ -32,6 +32,32 @@ def test_a_sweep_does_not_serve_an_approximate_search_made_for_another_largest_k
     assert len(run(1, 111)) == 2  # and the deep one serves a K its shortlist was made for
 
 
+def test_a_sweep_does_not_serve_an_approximate_search_made_by_another_version_of_its_code(shared_data, tmp_path,
+                                                                                           capsys, monkeypatch):
+    """ivf-pq's lists came to be picked by vprbench, not faiss (other lists where two centroids tie): its spec
+    and options stayed the same, so a sweep kept serving records of the old code. The search's version is now
+    in its record, and a record of another version is not served."""
+    from vprbench.evaluation import approximate
+
+    plan, cache = tmp_path / "plan.toml", tmp_path / "cache"
+    plan.write_text(PLAN)
+
+    def run() -> list[dict]:
+        code = main([str(a) for a in ("run", plan, "--k", 1, "--quiet", "--data-dir", shared_data, "--cache-dir", cache)])
+        assert code == 0, capsys.readouterr().err
+        capsys.readouterr()
+        return read_results(cache)
+
+    [old] = run()
+    assert old["search"]["version"] == approximate.VERSIONS["hnsw"] == 1
+    assert len(run()) == 1  # found again while the code is the same
+    monkeypatch.setitem(approximate.VERSIONS, "hnsw", 2)
+    records = run()
+    assert len(records) == 2, "the record of the old search code was served"
+    assert records[-1]["search"]["version"] == 2
+    assert len(run()) == 2  # the new record is found again
+
+
 def test_a_sweep_does_not_serve_a_record_whose_descriptors_the_method_no_longer_computes(shared_data, tmp_path,
                                                                                        capsys, monkeypatch):
     """A method's fingerprint names what its descriptors depend on beyond its options (a version its author

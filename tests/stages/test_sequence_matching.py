@@ -187,7 +187,7 @@ def test_a_stages_costs_are_ranked_on_the_grid_ties_to_the_lower_database_index(
     found = sequence_search(database, queries, 2, score="diagonal", length=1, database_order=order,
                             query_order=np.arange(3), grid=True)
     assert found.indices.tolist() == [[1, 2]] * 3 and found.info["tie_order"].startswith("cost rounded to 2^-16")
-    assert create_stage("diagonal", {}).fingerprint()["version"] == 2
+    assert create_stage("diagonal", {}).fingerprint()["version"] == 3  # 3: products on one thread each
 
 
 def test_second_best_skips_both_ends_of_the_window():

@@ -19,6 +19,10 @@ from .search import (ORDER_BYTES, SCORE_UNITS, TIE_ORDER, AllZero, SearchResult,
                      least_budget, one_thread_each, order_results, read_cost, rounded_scores, top_heap)
 
 APPROXIMATE = ("ivf-pq", "hnsw")
+#: what an index's results depend on beyond its options, raised when the code changes them: a stored record
+#: is served only while it is the one it was made with (a record without one: 1). ivf-pq 2: lists picked by
+#: vprbench on fixed tiles of queries (`_Probes`), not by faiss
+VERSIONS = {"ivf-pq": 2, "hnsw": 1}
 #: faiss's k-means wants at least 39 training points per centroid
 POINTS_PER_CENTROID = 39
 PQ_CENTROIDS = 256  # 8-bit PQ codes
@@ -253,7 +257,7 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
         scores[some], indices[some] = _exact(database, queries, some, k, memory_budget - held)
     query_s = time.perf_counter() - started
 
-    info = {"index": kind, "memory_budget": int(memory_budget), "options": o, "index_bytes": plan.index_bytes,
+    info = {"index": kind, "version": VERSIONS[kind], "memory_budget": int(memory_budget), "options": o, "index_bytes": plan.index_bytes,
             "chunk_rows": int(chunk_rows), "chunks": -(-n // chunk_rows), "query_chunk_rows": int(min(q_chunk, n_queries)),
             "query_chunks": -(-n_queries // q_chunk), "exact_fallback_queries": len(short),
             "build_s": round(build_s, 3), "query_s": round(query_s, 3), "tie_order": TIE_ORDER,

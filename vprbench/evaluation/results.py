@@ -234,15 +234,18 @@ def _created_stages(spec) -> list | None:
 
 def _same_search(record: dict, spec, stages: list | None) -> bool:
     """An approximate search's unset shortlist and ef_search follow the largest K: a record made with
-    another largest K searched with another shortlist, so its Recall@1 is not this spec's."""
+    another largest K searched with another shortlist, so its Recall@1 is not this spec's. A record made
+    by another version of the index's code (`approximate.VERSIONS`) is not this spec's either."""
     if not spec.search.approximate:
         return True
     if stages is None:  # a stage that cannot be made here: its depth is unknown
         return False
     from ..stages.run import retrieval_depth
-    from .approximate import index_options
+    from .approximate import VERSIONS, index_options
 
     found = record.get("search") or {}
+    if found.get("version", 1) != VERSIONS[spec.search.index]:
+        return False
     try:
         database = int(record["counts"]["database"])
         depth = retrieval_depth(stages, spec.ks, database, spec.dataset.name)

@@ -82,7 +82,9 @@ class _SequenceStage(Stage):
     def fingerprint(self) -> dict:
         from .search import TIE_ORDER
 
-        return {"version": 2, "tie_order": TIE_ORDER}  # 2: costs on a grid, ties to the lower database index
+        # 2: costs on a grid, ties to the lower database index; 3: products on one thread each (the same for
+        # every thread count; on several threads a version 2 cost could differ by a grid step)
+        return {"version": 3, "tie_order": TIE_ORDER}
 
     def apply(self, candidates: Candidates, context: StageContext) -> Candidates:
         from ...datasets.traverse import traverse_orders
