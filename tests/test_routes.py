@@ -51,12 +51,8 @@ def the_record(cache, dataset="corridor") -> dict:
     return record
 
 
-@pytest.fixture(scope="module")
-def records(shared_data, tmp_path_factory):
-    """The record of the same run through every route (each with its own cache)."""
-    base = tmp_path_factory.mktemp("routes")
-    where = lambda route: ["--data-dir", shared_data, "--cache-dir", base / route]  # noqa: E731
-    own = base / "own"
+def own_folder(shared_data, own):
+    """A folder of one's own: Corridor's first 12 images of each split, 'corridor-own'."""
     rows = ["image,frame"]
     for split, folder in (("database", "ref"), ("queries", "query")):
         (own / split).mkdir(parents=True)
@@ -65,6 +61,15 @@ def records(shared_data, tmp_path_factory):
             rows.append(f"{split}/{i:07d}.jpg,{i}")
     (own / "positions.csv").write_text("\n".join(rows) + "\n")
     (own / "dataset.toml").write_text('radius = 2\nname = "corridor-own"\n')
+    return own
+
+
+@pytest.fixture(scope="module")
+def records(shared_data, tmp_path_factory):
+    """The record of the same run through every route (each with its own cache)."""
+    base = tmp_path_factory.mktemp("routes")
+    where = lambda route: ["--data-dir", shared_data, "--cache-dir", base / route]  # noqa: E731
+    own = own_folder(shared_data, base / "own")
     plan = base / "plan.toml"
     plan.write_text('[[methods]]\nname = "hog"\noptions = { resize = [32, 32] }\n\n[[datasets]]\nname = "corridor"\n')
     found = {}
@@ -200,3 +205,87 @@ def test_run_settings_given_with_o_count_in_every_route_and_flags_win(shared_dat
     cli(capsys, "run", plan, "--workers", "0", *where[:3], tmp_path / "p", *where[4:])
     record = the_record(tmp_path / "p")
     assert (record["run"]["workers"], record["run"]["batch_size"]) == (0, 3)
+
+
+def test_a_protocol_asked_of_a_dataset_already_loaded_is_the_one_it_was_loaded_under(shared_data, tmp_path):
+    """The Python API's protocol was dropped, unsaid, for a Dataset already loaded: the spec named (and the run
+    computed) the protocol it was loaded under, whatever protocol asked; by name it is applied or refused."""
+    from vprbench import VPRBenchError, create_method
+    from vprbench.datasets import load_dataset
+    from vprbench.spec import resolve_spec, spec_for
+
+    hog, cache = create_method("hog"), tmp_path / "cache"
+    corridor = load_dataset("corridor", shared_data)
+    for protocol in (None, "default", "vpr-bench"):
+        assert spec_for(hog, corridor, protocol=protocol).key == resolve_spec("hog", "corridor", protocol=protocol).key
+    with pytest.raises(VPRBenchError, match="Dataset 'corridor' has no protocol 'tolerance-10'. Its protocols: "):
+        spec_for(hog, corridor, protocol="tolerance-10")  # as by name
+    own = own_folder(shared_data, tmp_path / "own")
+    mine = load_dataset(own, cache_dir=cache)
+    for protocol in (None, "default", "own"):
+        assert resolve_spec("hog", mine, protocol=protocol, cache_dir=cache).key == \
+            resolve_spec("hog", own, protocol=protocol, cache_dir=cache).key
+    one = r"The dataset given has one protocol, corridor-own:own \(its own positions and radius\), not 'vpr-bench'"
+    with pytest.raises(VPRBenchError, match=one):
+        spec_for(hog, mine, protocol="vpr-bench", cache_dir=cache)
+
+
+def test_a_search_given_as_a_searchspec_is_the_search_given_as_a_table():
+    """resolve_spec took a SearchSpec as it was: a default written out (hnsw_m=32) made another run and leaderboard
+    row than the same search as a table or --index-option, and an option the index does not take (exact search's
+    nprobe) was kept, unused, in the run's identity."""
+    from vprbench import VPRBenchError
+    from vprbench.spec import SearchSpec, resolve_spec
+
+    table = resolve_spec("hog", "corridor", search={"index": "hnsw", "options": {"hnsw_m": 32}})
+    given = resolve_spec("hog", "corridor", search=SearchSpec(index="hnsw", options={"hnsw_m": 32}))
+    assert given.key == table.key == resolve_spec("hog", "corridor", search="hnsw").key and given.search.options == {}
+    deep = resolve_spec("hog", "corridor", search="hnsw", ks=(1, 5, 111))  # a spec's own search, handed on
+    assert resolve_spec("hog", "corridor", search=deep.search, ks=(1, 5, 111)).key == deep.key
+    for search, message in ((SearchSpec(index="exact", options={"nprobe": 3}), "Exact search takes no index options"),
+                            (SearchSpec(index="hnsw", options={"nprobe": 3}), "--index hnsw does not take nprobe")):
+        with pytest.raises(VPRBenchError, match=message):
+            resolve_spec("hog", "corridor", search=search)
+
+
+def test_a_file_edited_after_a_sweep_planned_its_cell_is_not_recorded_under_the_old_bytes(shared_data, tmp_path,
+                                                                                           monkeypatch):
+    """A sweep makes every spec first: a file an option names, written again before its cell ran, was read anew
+    (its store keyed by the new bytes) while the record's spec, key and leaderboard row named the old ones."""
+    import numpy as np
+
+    from vprbench import register_method
+    from vprbench.evaluation import read_results
+    from vprbench.images import load_image
+    from vprbench.methods import registry
+    from vprbench.methods.base import Method
+    from vprbench.spec import RunSettings
+    from vprbench.sweep import build_plan, run_cells
+    from vprbench.sweep.runner import FAILED
+
+    class Weighted(Method):  # a method whose one option names a file
+        def __init__(self, table: str = "", device: str = "cpu"):
+            self.table = np.load(table)
+
+        def describe(self, images):
+            rows = np.stack([np.asarray(load_image(p, "L").resize((4, 4)), np.float32).ravel() * self.table
+                             for p in images])
+            return rows / np.linalg.norm(rows, axis=1, keepdims=True)
+
+    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
+    register_method("weighted-grey", Weighted)
+    table, cache = tmp_path / "table.npy", tmp_path / "cache"
+    settings = RunSettings(data_dir=shared_data, cache_dir=cache)
+    data = {"methods": [{"name": "weighted-grey", "options": {"table": str(table)}}], "datasets": ["corridor"],
+            "k": [1]}
+    np.save(table, np.ones(16))
+    planned = build_plan(data, "a plan", data_dir=shared_data, cache_dir=cache).cells
+    np.save(table, np.arange(1.0, 17.0))  # written again while the sweep ran other cells
+    [outcome] = run_cells(planned, settings)
+    assert outcome.status == FAILED and outcome.detail.startswith(
+        "weighted-grey: the file option table names changed after this run was planned (sha256:"), outcome.detail
+    assert outcome.detail.endswith("written again meanwhile): run it again.") and read_results(cache) == []
+    [again] = run_cells(build_plan(data, "a plan", data_dir=shared_data, cache_dir=cache).cells, settings)
+    [record] = read_results(cache)  # planned again: named by the bytes it read
+    assert again.status == "ran"
+    assert record["spec"]["files"] == {"table": record["method_fingerprint"]["settings"]["table"]}

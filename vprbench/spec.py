@@ -328,9 +328,10 @@ def resolve_dataset(dataset, protocol: str | None = None, data_dir=None, cache_d
     if isinstance(dataset, DatasetSpec):  # resolved already (a plan's folder, read once for all its cells)
         return dataset
     if isinstance(dataset, Dataset):
-        from .evaluation.identity import protocol_of
+        from .evaluation.identity import check_loaded_protocol, protocol_of
 
         found = protocol_of(dataset)
+        check_loaded_protocol(dataset, found, protocol)  # else a protocol asked of it would be dropped, unsaid
         return DatasetSpec(name=dataset.name, kind="own" if found["name"] == "own" else
                            ("benchmark" if dataset.kind == "benchmark" and not found.get("provisional") else "given"),
                            protocol=found["name"], protocol_id=found["id"], protocol_hash=found["hash"],
@@ -348,8 +349,8 @@ def resolve_dataset(dataset, protocol: str | None = None, data_dir=None, cache_d
 
 
 def resolve_search(search) -> SearchSpec:
-    if isinstance(search, SearchSpec):
-        return search
+    if isinstance(search, SearchSpec):  # checked and written as its table is: else a default written out was
+        search = search.model_dump()    # another run, an option the index does not take kept in its identity
     if search is None or isinstance(search, str):
         search = {"index": search or "exact"}
     if not isinstance(search, dict):

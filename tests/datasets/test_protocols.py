@@ -97,6 +97,25 @@ def test_nordland_protocols_on_the_real_lists(nordland_root):
     assert len({default.protocol["hash"], wide.protocol["hash"], swapped.protocol["hash"]}) == 3
 
 
+def test_a_dataset_loaded_under_one_protocol_is_not_specified_under_another(nordland_root):
+    """`spec_for(method, load_dataset("nordland"), protocol="tolerance-10")` dropped the protocol unsaid: the
+    spec named, and evaluate(spec, dataset=...) computed, vpr-bench's +-1 frames."""
+    from vprbench import create_method
+    from vprbench.spec import resolve_spec, spec_for
+
+    hog, default = create_method("hog"), load_dataset("nordland", nordland_root)
+    with pytest.raises(VPRBenchError, match=r"loaded under protocol nordland:vpr-bench, not 'tolerance-10'"):
+        spec_for(hog, default, protocol="tolerance-10")
+    with pytest.raises(VPRBenchError, match=r"loaded under protocol nordland:vpr-bench, not 'tolerance-10'"):
+        resolve_spec("hog", default, protocol="tolerance-10")
+    with pytest.raises(VPRBenchError, match="no protocol 'tolerance-5'.*vpr-bench, tolerance-10, swapped"):
+        spec_for(hog, default, protocol="tolerance-5")  # as by name
+    wide = load_dataset("nordland", nordland_root, protocol="tolerance-10")
+    by_name = resolve_spec("hog", "nordland", protocol="tolerance-10")
+    assert spec_for(hog, wide, protocol="tolerance-10").key == spec_for(hog, wide).key == by_name.key
+    assert spec_for(hog, default, protocol="default").key == resolve_spec("hog", "nordland").key != by_name.key
+
+
 def test_vp_air_without_distractors(tmp_path, make_images, save_rows):
     """VP-Air's real counts (2,706 references + 10,000 distractors, 2,706 queries); lists within 3 frames."""
     root = tmp_path / "VPAir"

@@ -23,6 +23,30 @@ def protocol_of(dataset) -> dict:
     return provisional_protocol(dataset.name, len(dataset.database), len(dataset.queries), gt.unit, gt.radius)
 
 
+def check_loaded_protocol(dataset, found: dict, protocol) -> None:
+    """A `protocol` asked of a Dataset already loaded (its protocol `found`, `protocol_of`) must be the
+    one it was loaded under: the spec names, and the run computes, the loaded one, so another was
+    dropped unsaid (`spec_for(method, load_dataset("nordland"), protocol="tolerance-10")` ran vpr-bench)."""
+    from ..datasets import dataset_manifests, find_protocol
+    from ..datasets.protocol import DEFAULT
+    from ..errors import VPRBenchError
+    from ..text import shortened
+
+    if protocol is None:
+        return
+    manifest = dataset_manifests().get(dataset.name)
+    if found["name"] == "own" or found.get("provisional") or manifest is None:  # it has one protocol
+        if protocol not in (DEFAULT, found["name"]):
+            raise VPRBenchError(f"The dataset given has one protocol, {found['id']} (its own positions and radius), "
+                                f"not {shortened(repr(protocol))}: leave protocol out.")
+        return
+    # a name it does not have is refused as for the dataset by name, listing those it has
+    if find_protocol(manifest, protocol).name != found["name"]:
+        raise VPRBenchError(f"The dataset given was loaded under protocol {found['id']}, not {protocol!r}: load it "
+                            f"under that one (load_dataset({dataset.name!r}, protocol={protocol!r})), or leave "
+                            "protocol out.")
+
+
 def benchmark_protocols(name: str) -> dict[str, dict]:
     """Hash -> protocol record of every protocol a benchmark's manifest defines, the default first;
     {} for a name that is no benchmark."""

@@ -77,6 +77,23 @@ def check_found(spec: RunSpec, dataset: str, cache_dir) -> None:
                                 "placed again meanwhile): run it again.")
 
 
+def check_files(spec: RunSpec, cache_dir) -> None:
+    """The files the spec names by content (spec.files, each stage's) hold that content still: edited since
+    the spec was made (a sweep makes every spec before its cells run), the record would name the earlier
+    bytes while holding results of the new, in the earlier bytes' row."""
+    from ..content_identity import option_identities
+    from ..spec import resolve_stage
+
+    named = [("option", spec.method, spec.files, option_identities(spec.method, spec.options, cache_dir))]
+    named += [("stage option", stage.name, stage.files, resolve_stage(stage).files) for stage in spec.stages]
+    for what, owner, then, now in named:
+        for option in sorted(set(then) | set(now)):
+            if then.get(option) != now.get(option):
+                raise VPRBenchError(f"{owner}: the file {what} {option} names changed after this run was planned "
+                                    f"({then.get(option, 'none')} then, {now.get(option, 'none')} now; written again "
+                                    "meanwhile): run it again.")
+
+
 def loader_workers(settings: RunSettings, method) -> int:
     """--workers, else the loader's default for the method's device."""
     from ..loader import default_workers
@@ -173,6 +190,7 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
                                  images_identity(dataset, settings.cache_dir))
     use_dataset(method, dataset.name)
     check_found(spec, dataset.name, settings.cache_dir)
+    check_files(spec, settings.cache_dir)
     members = joint_members(method, dataset, settings, ranks)
     if members is None:
         check_database_size(method, len(dataset.database), dataset.name)
