@@ -86,6 +86,17 @@ def regular_file(path, what: str) -> bool:
     raise VPRBenchError(f"{what} {path} is not a regular file (a named pipe, device or socket): give a file.")
 
 
+def special_file(path) -> bool:
+    """Whether `path` (links followed) is a named pipe, device or socket. A cache file replaced by one (or by
+    a link to one) hung its reader (a pipe) or had it read without end (/dev/zero): its readers take it
+    for a damaged file, as `regular_file` refuses one a user names."""
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):  # nothing there, or a NUL in the name: the reader's own check says so
+        return False
+    return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
+
+
 def _no_nul(path, what: str):
     """`path`, refused when it holds a NUL character (which no file name can: the system calls raise a ValueError)."""
     if "\0" in os.fsdecode(path):

@@ -16,6 +16,7 @@ import hashlib
 import io
 import json
 import tarfile
+import warnings
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -23,6 +24,7 @@ from .. import __version__
 from ..errors import VPRBenchError, os_error_message
 from ..evaluation.results import card_bytes
 from ..fsutil import CacheError, atomic_write
+from ..paths import special_file
 from ..text import one_line, shortened
 
 #: the bundle's format; a bundle of a newer version is refused by older verifiers
@@ -73,15 +75,42 @@ def _record_files(record: dict) -> dict[str, bytes]:
         raise VPRBenchError(f"Run {record['run_id']} ({source}) keeps no per-query arrays, which a bundle needs to be "
                             "checked; rerun that evaluation.")
     card = source.parents[2] / CARDS / f"{record['row_key']}.json"
+    arrays = source.parent / str(section["file"])
+    for path in (source, arrays, card):
+        if special_file(path):  # its read would hang (a pipe) or never end (/dev/zero)
+            raise VPRBenchError(f"Run {record['run_id']}: {path} is a named pipe, device or socket, not a file: "
+                                "remove it (a card is rebuilt; for a record or its arrays, run the evaluation again). "
+                                "Nothing was exported.")
     try:
-        files = {f"{folder}/{source.name}": source.read_bytes(),
-                 f"{folder}/{section['file']}": (source.parent / str(section["file"])).read_bytes()}
-        # a store of an older vprbench may hold a record without its card: the card is what the
-        # record decides (verifiers check exactly that) and the method's description, so rebuild it
-        files[f"{CARDS}/{card.name}"] = card.read_bytes() if card.exists() else card_bytes(_stored(record))
+        files = {f"{folder}/{source.name}": source.read_bytes(), f"{folder}/{section['file']}": arrays.read_bytes()}
+        # trusted by its name, a file replaced in the store (another run's arrays copied over these) made a bundle
+        # every verifier refuses: checked here, as they check it
+        if hashlib.sha256(files[f"{folder}/{section['file']}"]).hexdigest() != section.get("sha256"):
+            raise VPRBenchError(f"Run {record['run_id']}: its per-query arrays {arrays} do not match the sha256 its "
+                                f"record gives (replaced, edited or damaged): delete it and its record {source.name} (an "
+                                "evaluation runs it again), or leave that run out (--run). Nothing was exported.")
+        files[f"{CARDS}/{card.name}"] = _card(card, record)
         return files
     except OSError as error:
         raise VPRBenchError(f"Run {record['run_id']}: {os_error_message(error)} Nothing was exported.") from None
+
+
+def _card(path: Path, record: dict) -> bytes:
+    """The row's method card as the store has it. The card is what the record decides (verifiers check exactly
+    that) and the method's description, so one missing (an older vprbench's store) is rebuilt, and so is one that
+    does not describe the record (copied from another row, or edited), said in a warning: verifiers refuse it."""
+    from .claims import false_card  # claims imports this module
+
+    if not path.exists():
+        return card_bytes(_stored(record))
+    data = path.read_bytes()
+    wrong = false_card(data, record)
+    if not wrong:
+        return data
+    warnings.warn(f"Method card {path} does not describe run {record['run_id']} "
+                  f"({wrong[0].split(' ', 4)[-1]}: copied or edited); the bundle holds the card rebuilt from the record. "
+                  "Delete that file: the next run of that row writes it again.", stacklevel=4)
+    return card_bytes(_stored(record))
 
 
 def _stored(record: dict) -> dict:

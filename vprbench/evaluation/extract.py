@@ -31,6 +31,7 @@ from ..store import (DTYPES, NO_FIT, DamagedRows, DescriptorStore, RowWriter, St
 from ..store.folder import unsaved_fit_id
 from ..store.rows_file import merge_rows_files
 from ..progress import phase
+from ..text import shortened
 
 #: the split a method fits on (and PCA-whitening is fitted on)
 FIT_SPLIT = "database"
@@ -175,11 +176,9 @@ class _Job:
             if FIT_SPLIT not in self.splits:
                 raise VPRBenchError(f"Method {self.method.name!r} fits on database images: give them "
                                     "(describe --fit-on FOLDER).")
-            found = self.folder.read_fit_state()
+            found = self._saved_fit()
             if found is not None:
                 state, fit_id = found
-                with plugin_part(self.method, "load_fit_state"):
-                    self.method.load_fit_state(state)
             else:
                 started = time.perf_counter()
                 with phase(self.progress if self.ranks.rank == 0 else None,
@@ -210,6 +209,25 @@ class _Job:
                 self.folder.discard(path, found.reason or "it is not complete")
             todo.append(split)
         return todo, fit_id, state if self.ranks.distributed else None
+
+    def _saved_fit(self) -> tuple[dict, str] | None:
+        """(state, fit id) of the saved fit, loaded into the method; None when there is none, or the
+        method refuses it (its fit id is a hash anyone may write again over edited or crafted centres):
+        that file is discarded, said in a warning, and the method fits again. Before this, the stores it
+        no longer matched were discarded and the run failed on it, every time, without naming it."""
+        found = self.folder.read_fit_state()
+        if found is None:
+            return None
+        refused = None
+        with plugin_part(self.method, "load_fit_state"):
+            try:
+                self.method.load_fit_state(found[0])
+            except (VPRBenchError, ValueError, KeyError) as error:  # as a post-processor's load_state
+                refused = error
+        if refused is None:
+            return found
+        self.folder.discard(self.folder.fit_path, f"the method refuses it ({shortened(str(refused).rstrip('.'), 200)})")
+        return None
 
     def _check_fitted_images(self, seen: dict[str, str]) -> None:
         """The fit is saved under the database's key: refuse it when an image it read (or one it may

@@ -32,7 +32,7 @@ from ..features.dense import FACETS, DenseExtractor, patch_grid
 from ..features.preprocess import crop_offsets, preprocess
 from ..features.resize import asks_native, dataset_resize, parse_size
 from ..loader import loaded
-from .base import Method, l2_normalise
+from .base import Method, fitted_centres, l2_normalise
 from .checks import choice, number, text, whole
 from .checks import device as check_device
 from .registry import register_method
@@ -376,8 +376,8 @@ class AnyLoc(Method):
         return {"centres": self.centres.cpu().numpy()} if self.needs_fit and self.centres is not None else {}
 
     def load_fit_state(self, state: dict[str, np.ndarray]) -> None:
-        if "centres" in state:
-            self.centres = torch.from_numpy(np.asarray(state["centres"], dtype=np.float32))
+        # read from the cache: checked (as wide as the facet, as a named vocabulary is: `check_dim`)
+        self.centres = torch.from_numpy(fitted_centres(state, self.clusters, self.spec.width, "anyloc"))
 
     # ------------------------------------------------------------ PCA-whitening
     def postprocessor(self) -> PCAWhitening | None:

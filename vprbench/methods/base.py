@@ -8,6 +8,8 @@ from typing import Protocol
 
 import numpy as np
 
+from ..errors import VPRBenchError
+
 
 class PostProcessor(Protocol):
     """A transform of stored descriptors learnt from the database (never the queries), e.g.
@@ -101,7 +103,9 @@ class Method(ABC):
         return {}
 
     def load_fit_state(self, state: dict[str, np.ndarray]) -> None:  # pragma: no cover
-        """Restore what `fit` learnt, as returned by `fit_state`."""
+        """Restore what `fit` learnt, as returned by `fit_state`. The state is read from the cache, where
+        a file may have been edited or crafted (its fit id is a hash anyone can write again): raise a
+        VPRBenchError, ValueError or KeyError for one that is not what `fit` gives; it is discarded and fitted again."""
 
     def load(self, path: Path):
         """Read and preprocess one image for `describe`; runs in data-loader worker processes.
@@ -152,3 +156,16 @@ def l2_normalise(x: np.ndarray, axis: int = -1) -> np.ndarray:
     x = np.asarray(x, dtype=np.float32)
     norm = np.linalg.norm(x, axis=axis, keepdims=True)
     return x / np.maximum(norm, 1e-12)
+
+
+def fitted_centres(state: dict[str, np.ndarray], clusters: int, dim: int, who: str) -> np.ndarray:
+    """The (clusters, dim) finite float32 centres of a saved fit state (`Method.load_fit_state`); a
+    VPRBenchError saying what it holds instead (the file is then discarded and fitted again)."""
+    if "centres" not in state:
+        raise VPRBenchError(f"{who}: the fit state holds no centres (it holds {', '.join(map(repr, sorted(state)))[:80]})")
+    found = np.asarray(state["centres"])
+    if found.dtype.kind != "f" or found.shape != (clusters, dim) or not np.isfinite(found).all():
+        raise VPRBenchError(f"{who}: the fit state holds centres of {found.dtype} {found.shape}"
+                            + (" with NaN or infinite values" if found.dtype.kind == "f" and found.shape == (clusters, dim)
+                               else "") + f", not {clusters} x {dim} finite numbers")
+    return found.astype(np.float32)

@@ -24,7 +24,7 @@ from ..aggregation import vlad_hard
 from ..errors import VPRBenchError
 from ..images import load_rgb
 from ..loader import loaded
-from .base import Method
+from .base import Method, fitted_centres
 from .checks import text, whole, wholes
 from .dense_vlad_vocabulary import SIFT_DIM, VocabularySource, cached_vocabulary, parse_vocabulary
 
@@ -156,8 +156,7 @@ class DenseVLAD(Method):
         return {"centres": self.centres} if self.needs_fit else {}
 
     def load_fit_state(self, state: dict[str, np.ndarray]) -> None:
-        if "centres" in state:
-            self.centres = np.asarray(state["centres"], dtype=np.float32)
+        self.centres = fitted_centres(state, self.clusters, SIFT_DIM, "dense-vlad")  # read from the cache: checked
 
     def describe(self, images: Sequence) -> np.ndarray:
         if self.centres is None and self.needs_fit:

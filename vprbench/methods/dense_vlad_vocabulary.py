@@ -156,12 +156,12 @@ def cached_vocabulary(method, source: VocabularySource) -> tuple[np.ndarray, dic
                            for name, stride, protocol in identity["datasets"]))
     info = {"source": "fitted", "name": source.option, "fitted_on": fitted_on, "file": str(path), "images": len(images),
             **({"datasets": counts} if counts else {"folder": str(source.path.resolve())}), "data_identity": identity}
-    found = _cached(path)
+    found = _cached(path, method, key)
     if found is None:
         from ..fsutil import atomic_path, lock
 
         with lock(path.with_name(".fit.lock"), what=f"the dense-vlad vocabulary {source.option!r}"):
-            found = _cached(path)  # another process may have fitted it while this one waited
+            found = _cached(path, method, key)  # another process may have fitted it while this one waited
             if found is None:
                 import torch
 
@@ -174,16 +174,24 @@ def cached_vocabulary(method, source: VocabularySource) -> tuple[np.ndarray, dic
     return check_centres(found.centres.numpy(), method.clusters, str(path), found.meta), info
 
 
-def _cached(path: Path):
-    """The vocabulary fitted earlier at `path`; None when there is none, or it is damaged: it is
-    the cache's own, fitted from data named in its key, so it is fitted again (and said so)."""
+def _cached(path: Path, method, key: str):
+    """The vocabulary fitted earlier at `path`; None when there is none, or it is damaged, or it says it
+    was fitted on other data or settings than its folder's `key` names (another entry's file copied or
+    moved there: its centres would be recorded as fitted on this entry's data): it is the cache's own,
+    fitted from data named in its key, so it is fitted again (and said so)."""
     from ..aggregation.vocabulary import load_vocabulary
 
     if not path.is_file():
         return None
     try:
-        return load_vocabulary(path)
+        found = load_vocabulary(path)
     except VPRBenchError as error:
         warnings.warn(f"The cached dense-vlad vocabulary {path} is damaged or unreadable; fitting it again. "
                       f"(Why: {error})", stacklevel=2)
         return None
+    made = canonical_hash({"fit": {k: found.meta.get(k) for k in method.fit_recipe()}, "data": found.meta.get("data")})
+    if made != key:
+        warnings.warn(f"The cached dense-vlad vocabulary {path} was fitted on other data or settings than its "
+                      "folder names (another entry's file copied or moved there); fitting it again.", stacklevel=2)
+        return None
+    return found

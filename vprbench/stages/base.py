@@ -74,8 +74,9 @@ class StageContext:
     - `database`, `queries`: the retriever's descriptors as its search saw them (post-processed,
       e.g. PCA-whitened) as row sources (`vprbench.row_sources`: `row_count`, `dim`,
       `read_rows(start, stop)`, `read_rows_at(sorted indices)`); float32 rows, never re-extracted.
-    - `features(name, identity)`: a `FeatureStore` for per-image data (local features), kept in the
-      cache beside descriptor stores, resumable and lock-safe (vprbench/stages/features.py).
+    - `features(name, identity, form=None)`: a `FeatureStore` for per-image data (local features), kept
+      in the cache beside descriptor stores, resumable and lock-safe (vprbench/stages/features.py);
+      `form` (array name -> dtype and trailing shape) has stored images that do not fit it recomputed.
     - `memory_budget` (bytes), `progress` (rich-like: add_task/advance), `cache_dir`, `lock_timeout`,
       `device` (the run's torch device, for a stage that runs a network).
     - `spec`: the run's spec; `prefix`: the identity of everything before this stage (the
@@ -98,13 +99,14 @@ class StageContext:
     #: the feature stores handed out in this run (features_computed sums theirs)
     stores: list = field(default_factory=list, repr=False)
 
-    def features(self, name: str, identity: dict):
+    def features(self, name: str, identity: dict, form: dict | None = None):
         """The store of per-image data `name` (e.g. "sift") computed as `identity` says (its options,
-        the library version): one per dataset image set, resumable, lock-safe."""
+        the library version): one per dataset image set, resumable, lock-safe. `form`: what each image's
+        arrays are (`FeatureStore`'s), so a stored image that is not is recomputed, never handed to the stage."""
         from .features import KEPT_BYTES, FeatureStore
 
         store = FeatureStore.for_images(name, identity, self.dataset, self.cache_dir, self.lock_timeout,
-                                        min(KEPT_BYTES, self.memory_budget // 4))  # two splits open at once
+                                        min(KEPT_BYTES, self.memory_budget // 4), form)  # two splits open at once
         self.stores.append(store)
         return store
 

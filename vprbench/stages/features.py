@@ -17,7 +17,8 @@ rerun reads every segment written and computes the rest. A run holds the folder'
 reads and writes; a segment written for another extractor or other images is refused by name.
 What is read is checked, as descriptor stores are: an image whose arrays no longer match their
 crc32 is recomputed, a segment HDF5 cannot open is discarded (each said in a warning). The newest
-segment holding an image wins.
+segment holding an image wins. A crc32 is no proof against a file edited or crafted with its checksums
+written again: a store given the arrays' `form` recomputes an image that does not fit it (said too).
 """
 from __future__ import annotations
 
@@ -37,7 +38,7 @@ import numpy as np
 from ..errors import VPRBenchError
 from ..fsutil import CacheError, atomic_path, cache_error, lock, remove_stale
 from ..hashing import canonical_hash, canonical_json
-from ..paths import cache_root, safe_name
+from ..paths import cache_root, safe_name, special_file
 from ..text import shortened
 from ..store.rows_file import close_quietly
 
@@ -56,8 +57,11 @@ PLAIN = "biufc"
 
 class FeatureStore:
     def __init__(self, name: str, identity: dict, label: str, images_keys: dict[str, str], cache_dir=None,
-                 lock_timeout: float | None = None, kept_bytes: int = KEPT_BYTES):
+                 lock_timeout: float | None = None, kept_bytes: int = KEPT_BYTES, form: dict | None = None):
         self.name, self.identity_json = name, canonical_json({"name": name, **identity})
+        #: array name -> (dtype, trailing shape; None for any length) of each image, the arrays sharing their
+        #: first axis (one row per keypoint or patch); None: not checked (a plugin stage's store)
+        self.form = form
         self.images_keys, self.lock_timeout, self.kept_bytes = images_keys, lock_timeout, kept_bytes
         #: images computed (not read) through this store: 0 on a run served from the cache
         self.computed = 0
@@ -66,9 +70,9 @@ class FeatureStore:
 
     @classmethod
     def for_images(cls, name: str, identity: dict, dataset, cache_dir=None, lock_timeout=None,
-                   kept_bytes: int = KEPT_BYTES) -> "FeatureStore":
+                   kept_bytes: int = KEPT_BYTES, form: dict | None = None) -> "FeatureStore":
         return cls(name, identity, dataset.name, dataset.images_fingerprint(cache_dir), cache_dir, lock_timeout,
-                   kept_bytes)
+                   kept_bytes, form)
 
     def files(self, split: str) -> list[Path]:
         """The split's segments, oldest first (`<split>.h5`, one file appended to by earlier versions, first)."""
@@ -86,7 +90,7 @@ class FeatureStore:
             where, layouts = self._index(split)
             kept: OrderedDict[int, dict] = OrderedDict()
             waiting: dict[int, dict] = {}  # computed, not yet written
-            held, damaged, failed = 0, {}, False
+            held, damaged, misfits, failed = 0, {}, {}, False
             readers: OrderedDict[Path, h5py.File] = OrderedDict()  # segments kept open to read
 
             def write() -> None:
@@ -107,6 +111,10 @@ class FeatureStore:
                     found = _read_at(path, layouts[path], row) if path in layouts else self._read(readers, path, row)
                     if found is False:
                         damaged.setdefault(where.pop(row), []).append(row)
+                    elif self.form is not None and (misfit := _misfit(found, self.form)):
+                        # its checksum matches, yet the stage would fail on it (a traceback) or read nonsense
+                        misfits.setdefault(where.pop(row), [misfit, []])[1].append(row)
+                        found = None
                 if not isinstance(found, dict):
                     found = {key: np.asarray(value) for key, value in compute(row).items()}
                     waiting[row] = found
@@ -136,6 +144,10 @@ class FeatureStore:
                     shown = ", ".join(map(str, rows[:5])) + (", ..." if len(rows) > 5 else "")
                     warnings.warn(f"Local features of {len(rows)} image(s) ({shown}) in {path} no longer matched "
                                   "the checksums written with them; they were recomputed.", stacklevel=3)
+                for path, (misfit, rows) in misfits.items():
+                    shown = ", ".join(map(str, rows[:5])) + (", ..." if len(rows) > 5 else "")
+                    warnings.warn(f"Local features of {len(rows)} image(s) ({shown}) in {path} are not what "
+                                  f"{self.name!r} computes ({misfit}); they were recomputed.", stacklevel=3)
 
     def _index(self, split: str) -> tuple[dict[int, Path], dict[Path, "Layout"]]:
         """row -> the newest segment holding it, and the layout of each segment that has one. A
@@ -145,6 +157,8 @@ class FeatureStore:
         layouts: dict[Path, Layout] = {}
         for path in self.files(split):
             try:
+                if special_file(path):  # HDF5 would wait on a pipe for good
+                    raise ValueError("it is a named pipe, device or socket, not a file")
                 with h5py.File(path, "r") as f:
                     found, images, rows = (f.attrs.get(key) for key in ("feature_identity", "images_key", "rows"))
                     if rows is None:  # a segment of an earlier version: every group's attributes (~7 ms a file)
@@ -168,6 +182,8 @@ class FeatureStore:
         return where, layouts
 
     def _check(self, path: Path, found, images, split: str) -> None:
+        # an attribute edited into an array compared element by element (a traceback): text only
+        found, images = (value if isinstance(value, str) else None for value in (found, images))
         if found == self.identity_json and images == self.images_keys[split]:
             return
         ours = self.name
@@ -233,7 +249,7 @@ class FeatureStore:
         sizes: dict[int, int] = {}
         try:
             with lock(self.path / ".lock", self.lock_timeout, announce=False):
-                for path in self.files(split):
+                for path in (p for p in self.files(split) if not special_file(p)):  # a pipe would hang HDF5
                     with h5py.File(path, "r") as f:
                         rows, row_bytes = f.attrs.get("rows"), f.attrs.get("row_bytes")
                         if rows is not None and row_bytes is not None:
@@ -324,6 +340,22 @@ def _discarded(path: Path, row: int, error: Exception) -> VPRBenchError:
         return cache_error(failure, path)
     return VPRBenchError(f"Local features {path} are damaged (image {row} cannot be read: {error}); the file "
                          "was discarded: run again to recompute it.")
+
+
+def _misfit(arrays: dict[str, np.ndarray], form: dict) -> str | None:
+    """What in an image's stored arrays does not fit `form` (FeatureStore's), None when they fit."""
+    if set(arrays) != set(form):
+        return shortened(f"arrays {sorted(arrays)!r}, not {sorted(form)!r}", 160)  # names from the file, quoted
+    for key, (dtype, rest) in form.items():
+        value = np.asarray(arrays[key])  # a scalar string dataset reads as bytes
+        if value.dtype != np.dtype(dtype) or value.ndim != 1 + len(rest) \
+                or any(want is not None and n != want for n, want in zip(value.shape[1:], rest)):
+            wanted = ", ".join(["n", *("any" if n is None else str(n) for n in rest)])
+            return f"{key} {value.dtype} {value.shape}, not {dtype} ({wanted})"
+        if value.dtype.kind in "fc" and not np.isfinite(value).all():
+            return f"{key} holds values that are not finite"
+    lengths = {arrays[key].shape[0] for key in form}
+    return f"arrays of {sorted(lengths)} rows, not one row per feature" if len(lengths) > 1 else None
 
 
 def _size(images) -> int:

@@ -36,6 +36,10 @@ class SiftRansacOptions(RerankOptions):
     max_iterations: int = Field(10000, ge=1, le=C_INT_MAX)
 
 
+#: what `sift_features` gives per image: a stored image that is not is recomputed (features.FeatureStore)
+SIFT_FORM = {"points": ("float32", (2,)), "descriptors": ("uint8", (128,))}
+
+
 def sift_features(path, max_features: int) -> dict[str, np.ndarray]:
     """Keypoints (n, 2) float32 pixel coordinates and SIFT descriptors (n, 128) uint8 of one image."""
     import cv2
@@ -102,7 +106,7 @@ class SiftRansac(Stage):
                 "decoding": ORIENTATION}
 
     def _store(self, context: StageContext):
-        return context.features("sift", self.feature_identity())
+        return context.features("sift", self.feature_identity(), SIFT_FORM)
 
     def apply(self, candidates: Candidates, context: StageContext) -> Candidates:
         options = self.options

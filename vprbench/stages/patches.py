@@ -151,7 +151,10 @@ class PatchMNN(Stage):
             identity = self.feature_identity(context)
         except VPRBenchError as error:
             raise self._named(error) from None
-        return context.features("patches", identity)
+        # (N, width) float16 per image, as `patches` gives them (a facet is as wide as the backbone, as
+        # AnyLoc's vocabularies are checked): a stored image that is not is recomputed
+        form = {"patches": ("float16", (self.extractor(context).spec.width,))}
+        return context.features("patches", identity, form)
 
     def patches(self, path) -> dict[str, np.ndarray]:
         """One image's (N, D) unit patch features, float16, as stored."""

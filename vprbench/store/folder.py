@@ -28,7 +28,7 @@ import numpy as np
 
 from ..errors import VPRBenchError
 from ..fsutil import CacheError, atomic_path, cache_error, is_temporary, lock
-from ..paths import cache_root, safe_name
+from ..paths import cache_root, safe_name, special_file
 from ..hashing import exact_data
 from ..loader import plugin_part
 from ..spec import RUN_SETTINGS, canonical_hash, canonical_json
@@ -169,6 +169,8 @@ class StoreFolder:
 
     def recorded_fit_id(self, split: str) -> str | None:
         """The fit id a split's complete store says it was computed with."""
+        if special_file(self.store_path(split)):  # HDF5 would wait on a pipe for good (inspection discards it)
+            return None
         try:
             with h5py.File(self.store_path(split), "r") as f:
                 value = f.attrs.get("fit_id")
@@ -213,6 +215,8 @@ class StoreFolder:
 
     # ------------------------------------------------------------ fit state
     def fit_id_on_disk(self) -> str | None:
+        if special_file(self.fit_path):  # HDF5 would wait on a pipe for good (read_fit_state discards it)
+            return None
         try:
             with h5py.File(self.fit_path, "r") as f:
                 value = f.attrs["fit_id"]
@@ -226,6 +230,8 @@ class StoreFolder:
         if not self.fit_path.exists():
             return None
         try:
+            if special_file(self.fit_path):  # HDF5 would wait on a pipe for good
+                raise ValueError("it is a named pipe, device or socket, not a file")
             with h5py.File(self.fit_path, "r") as f:
                 state = {key: f["state"][key][...] for key in f["state"]}
                 recorded, store = f.attrs["fit_id"], f.attrs.get("store")

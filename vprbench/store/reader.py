@@ -20,6 +20,7 @@ import numpy as np
 
 from ..errors import VPRBenchError
 from ..fsutil import cache_error
+from ..paths import special_file
 from .rows_file import BLOCK_BYTES, DamagedRows, RowsIdentity, check_rows, folder_lock, inspect_rows_file, _plain
 
 
@@ -39,6 +40,8 @@ class DescriptorStore:
     def recorded(cls, path: Path, store: str) -> "DescriptorStore | None":
         """The complete store at `path` as its own content describes it (for readers that do
         not know the images, e.g. the leaderboard), or None when it is absent or incomplete."""
+        if special_file(path):  # HDF5 would wait on a pipe for good
+            return None
         try:
             with h5py.File(path, "r") as f:
                 attrs = {k: _plain(v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}

@@ -27,6 +27,7 @@ import numpy as np
 
 from ..errors import VPRBenchError
 from ..fsutil import atomic_path, cache_error, lock
+from ..paths import special_file
 
 FORMAT = "vprbench-rows-3"
 #: the format before rows carried checksums: such a file is stale (recomputed), never trusted
@@ -179,6 +180,8 @@ def close_quietly(f: h5py.File) -> None:
 def inspect_rows_file(path: Path, identity: RowsIdentity) -> Inspection:
     if not path.exists():
         return Inspection("absent")
+    if special_file(path):  # HDF5 would wait on a pipe for good: discarded as a torn file is
+        return Inspection("torn", "it is a named pipe, device or socket, not a file")
     try:
         with h5py.File(path, "r") as f:
             attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}

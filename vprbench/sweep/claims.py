@@ -31,7 +31,7 @@ from pathlib import Path
 
 from ..errors import VPRBenchError
 from ..fsutil import LockTimeout, atomic_write, cache_error, lock, remove_stale, temporaries_of
-from ..paths import cache_root
+from ..paths import cache_root, special_file
 
 #: the shortest lease: four heartbeats, so a live process on a busy machine is not judged dead
 MIN_LEASE_S = 1.0
@@ -69,8 +69,9 @@ def _read_claim(path: Path) -> dict | None:
     to <name>.damaged) with a warning naming it, so it neither stops the sweep nor blocks the
     cell until someone finds and deletes it."""
     fields = _FIELDS[path.suffix[1:]]
+    special = special_file(path)  # a pipe would hang the sweep, /dev/zero fill its memory: set aside unread
     try:
-        raw = path.read_bytes()
+        raw = b"" if special else path.read_bytes()
     except FileNotFoundError:
         return None
     except OSError as error:
@@ -87,7 +88,9 @@ def _read_claim(path: Path) -> dict | None:
                 raise ValueError(f"its {name!r} is {reprlib.repr(value)}, not a text")
         return data
     except (ValueError, RecursionError) as error:  # JSON and UTF-8 errors are ValueErrors
-        if not raw.strip():
+        if special:
+            reason = "it is a named pipe, device or socket, not a file"
+        elif not raw.strip():
             reason = "it is empty"
         elif isinstance(error, json.JSONDecodeError):
             reason = f"it is not JSON: {error.msg.lower()} at byte {error.pos}"

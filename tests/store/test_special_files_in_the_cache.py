@@ -1,0 +1,56 @@
+"""A descriptor store, a fit state, a local-features segment or a sweep's claim replaced by a named pipe
+(or a link to one): HDF5 (or the claim's reader) waited on it for good, so the run hung. Each is now taken
+for a damaged file: discarded or set aside (said) and recomputed, or, read by the leaderboard, left out."""
+import numpy as np
+import pytest
+from special_files import no_hang, pipe_at
+
+from vprbench.stages.features import FeatureStore
+from vprbench.store import DescriptorStore, StoreFolder, inspect_rows_file
+
+
+def test_a_store_that_is_a_pipe_is_torn_and_left_out(tmp_path):
+    folder = StoreFolder("m", {"a": 1}, "d", {"database": "x"}, tmp_path)
+    folder.paths["database"].mkdir(parents=True)
+    path = pipe_at(folder.store_path("database"))
+    with no_hang():
+        found = inspect_rows_file(path, folder.identity("database", ["a.jpg"], "none", "float32"))
+        assert (found.status, found.reason) == ("torn", "it is a named pipe, device or socket, not a file")
+        assert DescriptorStore.recorded(path, folder.keys["database"]) is None
+        assert folder.recorded_fit_id("database") is None
+
+
+def test_a_fit_state_that_is_a_pipe_is_discarded(tmp_path):
+    folder = StoreFolder("m", {"a": 1}, "d", {"database": "x"}, tmp_path)
+    folder.paths["database"].mkdir(parents=True)
+    pipe_at(folder.fit_path)
+    with no_hang():
+        assert folder.fit_id_on_disk() is None
+        with pytest.warns(UserWarning, match=r"Discarding \S+fit_state\.h5: the fit state cannot be read \(it is a "
+                                             r"named pipe, device or socket, not a file\); it is recomputed\."):
+            assert folder.read_fit_state() is None
+    assert not folder.fit_path.exists() and not folder.fit_path.is_symlink()
+
+
+def test_a_features_segment_that_is_a_pipe_is_discarded_and_computed_again(tmp_path):
+    store = FeatureStore("sift", {"n": 1}, "set", {"database": "abc"}, tmp_path)
+    store.path.mkdir(parents=True)
+    segment = pipe_at(store.path / "database.1.h5")
+    computed = []
+    with no_hang():
+        assert store.bytes_per_image() == 0
+        with pytest.warns(UserWarning, match=rf"Local features {segment} are damaged \(it is a named pipe, device or "
+                                             r"socket, not a file\); the file was discarded"):
+            with store.opened("database", lambda row: computed.append(row) or {"points": np.ones((1, 2))}) as get:
+                get(0)
+    assert computed == [0] and [p.name for p in store.files("database")] == ["database.1.h5"]  # written anew
+
+
+def test_a_claim_file_that_is_a_pipe_is_set_aside_unread(tmp_path):
+    from vprbench.sweep.claims import _read_claim
+
+    path = pipe_at(tmp_path / "cell.lease")
+    with no_hang(), pytest.warns(UserWarning, match=rf"The claim file {path} cannot be read \(it is a named pipe, device "
+                                                     rf"or socket, not a file\); it is set aside as {path}\.damaged"):
+        assert _read_claim(path) is None
+    assert not path.exists() and path.with_name("cell.lease.damaged").exists()
