@@ -9,7 +9,7 @@ import shutil
 import warnings
 from pathlib import Path
 
-from vprbench.evaluation.results import find_result
+from vprbench.evaluation.served import find_result
 from vprbench.spec import resolve_spec
 
 

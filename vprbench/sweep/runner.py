@@ -14,7 +14,8 @@ from rich.table import Table
 from rich.text import Text
 
 from ..errors import VPRBenchError
-from ..evaluation.results import find_result, save_result
+from ..evaluation.results import save_result
+from ..evaluation.served import find_result
 from ..spec import RunSettings
 from .claims import Claims
 from .plan import Cell
