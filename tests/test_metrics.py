@@ -36,6 +36,20 @@ def test_precision_recall_follows_vpr_bench():
     assert pr["max_f1"] == pytest.approx(6 / 7, abs=1e-9)
 
 
+def test_precision_recall_thresholds_tied_scores_together_and_counts_queries_without_positives_as_wrong():
+    # as VPR-Bench (sklearn's curve over each query's best score): the two top matches tie at 0.9, one wrong,
+    # so no threshold has precision 1; queries without positives are wrong matches, and recall is over the
+    # 2 correct matches (not the 5 queries): accepting all is recall 1, precision 2/5
+    scores = np.array([0.9, 0.9, 0.5, 0.4, 0.3])
+    correct = correct_at(np.array([[0], [1], [2], [3], [4]]), [np.array([0]), np.array([]), np.array([2]),
+                                                               np.array([], dtype=np.int64), np.array([7])])[:, 0]
+    pr = top1_precision_recall(scores, correct)
+    assert pr["recall_at_100_precision"] == 0.0
+    assert pr["max_f1"] == pytest.approx(2 * (2 / 3) * 1 / (2 / 3 + 1))  # P 2/3, R 1 at threshold 0.5
+    # trapezoids: (R 0, P 1) -> (1/2, 1/2) -> (1, 2/3); lower thresholds stay at recall 1
+    assert pr["auc_pr"] == pytest.approx((1 + 1 / 2) / 4 + (1 / 2 + 2 / 3) / 4)
+
+
 def test_most_confident_match_wrong_gives_zero_recall_at_full_precision():
     pr = top1_precision_recall(np.array([0.9, 0.5]), np.array([False, True]))
     assert pr["recall_at_100_precision"] == 0.0

@@ -19,8 +19,11 @@ def plural(count, word: str) -> str:
 
 
 def percent(fraction: float | None) -> str:
-    """A fraction (recall at 100 % precision) shown like Recall@K, in percent with one decimal."""
-    return "–" if fraction is None else f"{100 * fraction:.1f}"
+    """A fraction (recall at 100 % precision) shown like Recall@K, in percent with one decimal. The
+    fraction is kept to 8 decimals (metrics.PR_DECIMALS), so its percent has 6: rounded there, as a
+    recall is kept, before it is shown (100 x 0.2875 is 28.749999999999996, which showed 28.7 where
+    a recall of 23 / 80 shows 28.8)."""
+    return "–" if fraction is None else f"{round(100 * fraction, 6):.1f}"
 
 
 def quantity(value, unit: str | None) -> str:

@@ -6,10 +6,11 @@ one decimal 28.8 by round-half-even and round-half-up alike; 836 / 1003 = 0.8334
 import numpy as np
 
 from vprbench.evaluation import read_results, save_result
-from vprbench.evaluation.metrics import kept_metrics, top1_precision_recall
+from vprbench.evaluation.metrics import kept_metrics, percent_true, top1_precision_recall
 from vprbench.leaderboard import build_board
 from vprbench.leaderboard.compare import compare, describe
-from vprbench.leaderboard.tables import fmt
+from vprbench.leaderboard.stats import bootstrap_ci, paired_test
+from vprbench.leaderboard.tables import fmt, with_ci
 from vprbench.text import percent
 
 
@@ -53,3 +54,24 @@ def test_a_recall_at_full_precision_just_below_a_half_is_not_shown_rounded_up():
     metrics = kept_metrics({1: 0.0}, top1_precision_recall(np.linspace(1, 0, len(correct), endpoint=False), correct))
     assert metrics["recall_at_100_precision"] == 0.8334995
     assert percent(metrics["recall_at_100_precision"]) == "83.3"
+
+
+def test_recall_at_full_precision_reads_as_a_recall_of_the_same_fraction():
+    # 23 (49) of 80 right top-1 matches before the first wrong one: R@100%P 0.2875 (0.6125), shown as an R@1
+    # of 23 (49) of 80 queries is, 28.8 (61.2); 100 x the fraction is 28.749999999999996 (61.25000000000001),
+    # which showed 28.7 (61.3)
+    for right, shown in ((23, "28.8"), (49, "61.2")):
+        correct = np.r_[np.ones(right), 0, np.ones(80 - right)].astype(bool)
+        metrics = kept_metrics({1: percent_true(np.arange(80) < right)},
+                               top1_precision_recall(np.linspace(1, 0, 81, endpoint=False), correct))
+        assert metrics["recall_at_100_precision"] == right / 80
+        assert percent(metrics["recall_at_100_precision"]) == fmt(metrics["recall"]["1"]) == shown
+
+
+def test_interval_ends_read_as_the_recalls_they_equal():
+    # 31 of 80 queries right: the interval's low end is a resample with 23 right, 28.75 %, shown 28.8 like an R@1
+    # of 23 of 80; 100 x (23 / 80) made it 28.749999999999996, shown 28.7. A paired difference's end alike.
+    wins = np.arange(80) < 31
+    assert with_ci({"value": percent_true(wins), "ci": bootstrap_ci(wins)}) == "38.8 [28.8, 50.0]"
+    test = paired_test(np.zeros(80, dtype=bool), np.arange(80) >= 64)  # only B right on 16 of 80
+    assert test["ci"][0] == -28.75 and f"{test['ci'][0]:+.1f}" == "-28.8"

@@ -80,7 +80,8 @@ def top1_precision_recall(top1_scores: np.ndarray, top1_correct: np.ndarray) -> 
 
     auc_pr is the area under that curve; recall_at_100_precision the largest recall whose
     precision is 1 (0 when even the most confident match is wrong); max_f1 the largest
-    2PR / (P + R) over its thresholds (robotics' summary of a sequence matcher).
+    2PR / (P + R) over its thresholds. Recall is VPR-Bench's, over the correct top-1 matches (not
+    the robotics' over queries with a positive: docs/evaluation.md), so accepting all gives 1.
     """
     from sklearn.metrics import auc, precision_recall_curve
 

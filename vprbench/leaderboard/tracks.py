@@ -13,8 +13,11 @@ INTRO = {
                  "...). Each row sits beside its retriever alone (the single-image run of the same method, options "
                  "and search) and the ceiling its re-ranker could reach: the share of queries with a positive among "
                  "the K candidates it was given.",
-    "sequence": "Runs matched over sequences of frames of an ordered traverse; the robotics convention's AUC-PR, "
-                "R@100%P and the largest F1 beside Recall@K.",
+    # the curve is VPR-Bench's, whose recall is over the correct top-1 matches: calling it the robotics'
+    # convention (recall over the queries with a positive) invited comparison with SeqSLAM papers' F1max
+    "sequence": "Runs matched over sequences of frames of an ordered traverse; AUC-PR, R@100%P and the largest F1 "
+                "of VPR-Bench's precision-recall curve of the top-1 matches (recall over the correct matches, not "
+                "over the queries with a positive as in robotics' single-match curves) beside Recall@K.",
 }
 
 
