@@ -206,3 +206,43 @@ def test_an_output_written_again_removes_what_a_killed_write_of_it_left(shared_d
     assert cli(*args)[0] == 0
     assert sorted(p.name for p in out.parent.iterdir()) == [live.name, "d.npy"]
     assert np.load(out).shape[0] == 1
+
+
+#: makes dense-vlad fit a vocabulary on a folder of images into the cache, killed (SIGKILL) just before the
+#: fitted file is renamed in place
+KILLED_DENSE_VLAD_FIT = """
+import os, signal, sys
+import vprbench
+replace = os.replace
+def killed(source, target, *args, **kwargs):
+    if str(target).endswith("vocabulary.pt"):
+        os.kill(os.getpid(), signal.SIGKILL)
+    return replace(source, target, *args, **kwargs)
+os.replace = killed
+vprbench.create_method("dense-vlad", clusters=8, bin_sizes=(6,), step=8, vocabulary=sys.argv[2],
+                       cache_dir=sys.argv[1]).fingerprint()  # its vocabulary's centres: fitted now
+"""
+
+
+def test_a_dense_vlad_vocabulary_fitted_again_removes_what_killed_fits_left(shared_data, tmp_path):
+    """Was: each dense-vlad run killed while saving the vocabulary it fitted into the cache left a
+    `.vocabulary.pt.*.tmp` (the vocabulary's size) beside it for good: the fit after it kept them."""
+    import shutil
+
+    import vprbench
+
+    images, cache = tmp_path / "images", tmp_path / "cache"
+    images.mkdir()
+    for path in sorted((shared_data / "corridor" / "ref").glob("*.jpg"))[:3]:
+        shutil.copyfile(path, images / path.name)
+    for _ in range(2):
+        killed = subprocess.run([sys.executable, "-c", KILLED_DENSE_VLAD_FIT, str(cache), str(images)],
+                                capture_output=True, text=True, timeout=120)
+        assert killed.returncode == -9, killed.stderr
+    [folder] = (cache / "vocabularies" / "dense-vlad").iterdir()
+    assert len([p for p in folder.iterdir() if p.name.endswith(".tmp")]) == 2
+    method = vprbench.create_method("dense-vlad", clusters=8, bin_sizes=(6,), step=8, vocabulary=str(images),
+                                    cache_dir=cache)
+    assert method.fingerprint()["vocabulary"].startswith("sha256:")  # fitted (once more) and saved
+    assert sorted(p.name for p in folder.iterdir()) == [".fit.lock", "vocabulary.pt"]
+    assert load_vocabulary(folder / "vocabulary.pt").centres.shape == (8, 128)

@@ -156,9 +156,9 @@ def cached_vocabulary(method, source: VocabularySource) -> tuple[np.ndarray, dic
                            for name, stride, protocol in identity["datasets"]))
     info = {"source": "fitted", "name": source.option, "fitted_on": fitted_on, "file": str(path), "images": len(images),
             **({"datasets": counts} if counts else {"folder": str(source.path.resolve())}), "data_identity": identity}
-    found = _cached(path, method, key)
+    found = _cached(path, method, key, said=False)  # said under the lock: another process may be fitting it now
     if found is None:
-        from ..fsutil import atomic_path, lock
+        from ..fsutil import lock, remove_stale, temporaries_of
 
         with lock(path.with_name(".fit.lock"), what=f"the dense-vlad vocabulary {source.option!r}"):
             found = _cached(path, method, key)  # another process may have fitted it while this one waited
@@ -166,19 +166,21 @@ def cached_vocabulary(method, source: VocabularySource) -> tuple[np.ndarray, dic
                 import torch
 
                 centres = method.fit_centres(images)
-                with atomic_path(path) as temporary:
-                    Vocabulary(torch.from_numpy(centres), {**method.fit_recipe(), "source": source.option,
-                                                          "fitted_on": fitted_on, "data": identity,
-                                                          **({"datasets": counts} if counts else {})}).save(temporary)
+                Vocabulary(torch.from_numpy(centres), {**method.fit_recipe(), "source": source.option,
+                                                      "fitted_on": fitted_on, "data": identity,
+                                                      **({"datasets": counts} if counts else {})}).save(path)
+                # every writer of `path` holds this lock: a temporary found now is a killed fit's (else kept for good)
+                remove_stale(temporaries_of(path), age_s=0)
                 found = load_vocabulary(path)
     return check_centres(found.centres.numpy(), method.clusters, str(path), found.meta), info
 
 
-def _cached(path: Path, method, key: str):
+def _cached(path: Path, method, key: str, said: bool = True):
     """The vocabulary fitted earlier at `path`; None when there is none, or it is damaged, or it says it
     was fitted on other data or settings than its folder's `key` names (another entry's file copied or
     moved there: its centres would be recorded as fitted on this entry's data): it is the cache's own,
-    fitted from data named in its key, so it is fitted again (and said so)."""
+    fitted from data named in its key, so it is fitted again (and said so, when `said`: by the lock holder,
+    which fits it; not by a process that then finds another's fit, nor twice by one)."""
     from ..aggregation.vocabulary import load_vocabulary
 
     if not path.is_file():
@@ -186,12 +188,14 @@ def _cached(path: Path, method, key: str):
     try:
         found = load_vocabulary(path)
     except VPRBenchError as error:
-        warnings.warn(f"The cached dense-vlad vocabulary {path} is damaged or unreadable; fitting it again. "
-                      f"(Why: {error})", stacklevel=2)
+        if said:
+            warnings.warn(f"The cached dense-vlad vocabulary {path} is damaged or unreadable; fitting it again. "
+                          f"(Why: {error})", stacklevel=2)
         return None
     made = canonical_hash({"fit": {k: found.meta.get(k) for k in method.fit_recipe()}, "data": found.meta.get("data")})
     if made != key:
-        warnings.warn(f"The cached dense-vlad vocabulary {path} was fitted on other data or settings than its "
-                      "folder names (another entry's file copied or moved there); fitting it again.", stacklevel=2)
+        if said:
+            warnings.warn(f"The cached dense-vlad vocabulary {path} was fitted on other data or settings than its "
+                          "folder names (another entry's file copied or moved there); fitting it again.", stacklevel=2)
         return None
     return found
