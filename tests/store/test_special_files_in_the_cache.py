@@ -54,3 +54,17 @@ def test_a_claim_file_that_is_a_pipe_is_set_aside_unread(tmp_path):
                                                      rf"or socket, not a file\); it is set aside as {path}\.damaged"):
         assert _read_claim(path) is None
     assert not path.exists() and path.with_name("cell.lease.damaged").exists()
+
+
+@pytest.mark.parametrize("kind", ["pipe", "zero"])
+def test_a_liveness_file_that_is_a_pipe_or_device_is_made_again(tmp_path, kind):
+    """<cell>.alive, which a claim opens to append and flock: a named pipe there made the open wait for a reader
+    for good, so the sweep hung at its first cell."""
+    from vprbench.sweep.claims import Claims
+
+    claims = Claims(tmp_path)
+    path = pipe_at(claims.folder / "cell.alive", kind)
+    with no_hang(10):
+        assert claims.claim("cell", lambda: False)[0] == "claimed"
+    assert path.is_file() and not path.is_symlink()  # a file of its own again (a link's target untouched)
+    claims.release("cell")

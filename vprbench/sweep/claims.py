@@ -134,7 +134,10 @@ class Claims:
         try:
             import fcntl
 
-            alive = open(self.folder / f"{key}.alive", "a")
+            path = self.folder / f"{key}.alive"
+            if special_file(path):  # a pipe or device put in its place: opening a pipe waits for a reader for good
+                path.unlink(missing_ok=True)  # (a link: the link alone)
+            alive = open(path, "a")
         except (ImportError, OSError):
             return None
         try:
