@@ -220,8 +220,11 @@ def _holder_path(path: Path) -> Path:
 
 
 def _describe_holder(path: Path) -> str:
+    holder = _holder_path(path)
+    if not holder.is_file():  # nothing there, or a pipe or device put there: reading it would wait for good
+        return "another process"
     try:
-        return literal(_holder_path(path).read_text(encoding="utf-8", errors="replace").strip()) or "another process"
+        return literal(holder.read_text(encoding="utf-8", errors="replace").strip()) or "another process"
     except OSError:
         return "another process"
 

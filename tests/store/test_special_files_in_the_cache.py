@@ -68,3 +68,20 @@ def test_a_liveness_file_that_is_a_pipe_or_device_is_made_again(tmp_path, kind):
         assert claims.claim("cell", lambda: False)[0] == "claimed"
     assert path.is_file() and not path.is_symlink()  # a file of its own again (a link's target untouched)
     claims.release("cell")
+
+
+def test_a_lock_holders_note_or_a_lease_that_is_a_pipe_is_not_read(tmp_path):
+    """The note naming a lock's holder (read while waiting for the lock) and a held cell's lease (read to know it
+    is still this process's): a pipe in either's place made the read wait for a writer for good."""
+    from vprbench.fsutil import _describe_holder
+    from vprbench.sweep.claims import Claims
+
+    path = tmp_path / "x.lock"
+    pipe_at(path.with_name("x.lock.holder"))
+    with no_hang(10):
+        assert _describe_holder(path) == "another process"  # as said while waiting for the lock
+    claims = Claims(tmp_path)
+    assert claims.claim("cell", lambda: False)[0] == "claimed"
+    pipe_at(claims.folder / "cell.lease")
+    with no_hang(10):
+        assert claims.still_mine("cell") is False

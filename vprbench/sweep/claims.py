@@ -219,8 +219,8 @@ class Claims:
 
     def still_mine(self, key: str) -> bool:
         lease = self._paths(key)[1]
-        try:
-            return json.loads(lease.read_text())["token"] == self.token
+        try:  # a pipe or device put in its place is no lease of this process's (reading it would wait for good)
+            return lease.is_file() and json.loads(lease.read_text())["token"] == self.token
         except (OSError, ValueError, KeyError, TypeError):
             return False
 
