@@ -49,12 +49,13 @@ def test_a_sweep_does_not_serve_an_approximate_search_made_by_another_version_of
         return read_results(cache)
 
     [old] = run()
-    assert old["search"]["version"] == approximate.VERSIONS["hnsw"] == 1
+    version = approximate.VERSIONS["hnsw"]
+    assert old["search"]["version"] == version
     assert len(run()) == 1  # found again while the code is the same
-    monkeypatch.setitem(approximate.VERSIONS, "hnsw", 2)
+    monkeypatch.setitem(approximate.VERSIONS, "hnsw", version + 1)
     records = run()
     assert len(records) == 2, "the record of the old search code was served"
-    assert records[-1]["search"]["version"] == 2
+    assert records[-1]["search"]["version"] == version + 1
     assert len(run()) == 2  # the new record is found again
 
 

@@ -182,12 +182,13 @@ def test_results_are_the_same_along_every_arithmetic_path(monkeypatch, torch_thr
     expected_scores, expected = ranked((np.round(exact * 2**16) * 2**-16).astype(np.float32), 10)
     assert len(np.unique(expected_scores)) < 0.5 * expected_scores.size  # ties everywhere
 
-    # without the rule: the raw float32 products differ in their last bits between paths,
+    # without the rule: the raw float32 products differ in their last bits between paths (on the x86 CPUs
+    # seen; two libraries that happen to agree, e.g. both OpenBLAS, show nothing here, not a failure),
     # and so does the order they give tied rows
     raw_numpy, raw_torch = q @ db.T, torch_products(q, db)
-    assert not np.array_equal(raw_numpy, raw_torch)
-    assert not np.array_equal(ranked(raw_numpy, 10)[1], ranked(raw_torch, 10)[1])
-    assert not np.array_equal(ranked(raw_numpy, 10)[1], expected)
+    if not np.array_equal(raw_numpy, raw_torch):
+        assert not np.array_equal(ranked(raw_numpy, 10)[1], ranked(raw_torch, 10)[1])
+        assert not np.array_equal(ranked(raw_numpy, 10)[1], expected)
 
     def run(threads=1, product=None, tile=None, chunks=None, onednn=True):
         with (monkeypatch.context() as patch, threadpool_limits(threads),

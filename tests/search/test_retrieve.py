@@ -11,7 +11,7 @@ from vprbench.evaluation.postprocess import TransformedRows, transform_rows
 from vprbench.evaluation.search import ArrayRows, exact_search
 from vprbench.evaluation.retrieve import retrieve
 from vprbench.methods import Method
-from search_rows import budget_for, h5_rows, torch_products, unit
+from search_rows import budget_for, h5_rows, unit
 
 
 class Whitened(Method):
@@ -90,9 +90,7 @@ def test_a_rows_transform_is_the_same_along_every_arithmetic_path(monkeypatch, t
     db = spectrum(2000, 1024, 23)
     db[1024] = db[700]  # a copy at a tile's edge of a row in a tile's middle
     pca = PCAWhitening(64).fit(db)
-    # in float32 numpy and torch round the same product differently
-    centred = db - pca.mean
-    assert not np.array_equal(centred @ pca.projection.T, torch_products(centred, pca.projection))
+    # in float32 numpy and torch round the same product differently (on the x86 CPUs seen: their BLAS differ)
     # computed in float64 and rounded once, the rows are the same whichever path computes them
     x = torch.from_numpy(db.astype(np.float64)) - torch.from_numpy(pca.mean.astype(np.float64))
     out = x @ torch.from_numpy(pca.projection.astype(np.float64)).T

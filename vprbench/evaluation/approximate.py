@@ -21,8 +21,9 @@ from .search import (ORDER_BYTES, SCORE_UNITS, TIE_ORDER, AllZero, SearchResult,
 APPROXIMATE = ("ivf-pq", "hnsw")
 #: what an index's results depend on beyond its options, raised when the code changes them: a stored record
 #: is served only while it is the one it was made with (a record without one: 1). ivf-pq 2: lists picked by
-#: vprbench on fixed tiles of queries (`_Probes`), not by faiss
-VERSIONS = {"ivf-pq": 2, "hnsw": 1}
+#: vprbench on fixed tiles of queries (`_Probes`), not by faiss; 3 (hnsw 2): queries searched exactly on one
+#: thread (`_exact`)
+VERSIONS = {"ivf-pq": 3, "hnsw": 2}
 #: faiss's k-means wants at least 39 training points per centroid
 POINTS_PER_CENTROID = 39
 PQ_CENTROIDS = 256  # 8-bit PQ codes
@@ -337,9 +338,15 @@ def _coarse_bytes(dim: int, o: dict) -> int:
 
 
 def _exact(database: RowSource, queries: RowSource, picked: np.ndarray, k: int, budget: int):
-    """(scores, indices) of exact search for the queries at `picked`, their rows read within `budget`."""
+    """(scores, indices) of exact search for the queries at `picked`, their rows read within `budget`, on one
+    thread: exact search computes with the BLAS's threads (a tile's slices side by side, or a small tile as one
+    product the BLAS cuts among them), and a product's last bits follow how it is cut (OpenBLAS's AVX2 kernels
+    round by a part's shape), so the thread count moved these queries' scores across grid boundaries, and with
+    them their answers and the recall check's."""
     rows = queries.read_rows_at(picked)
-    found = exact_search(database, ArrayRows(rows), k, memory_budget=budget - rows.nbytes - read_cost(queries)[1])
+    with _one_thread() as pool:
+        found = pool.submit(exact_search, database, ArrayRows(rows), k,
+                            memory_budget=budget - rows.nbytes - read_cost(queries)[1]).result()
     return found.scores, found.indices
 
 
