@@ -12,3 +12,26 @@ def evaluate_method(method, dataset, *, ks=None, cache_dir=None, index="exact", 
                     store_dtype=store_dtype, cache_dir=cache_dir)
     return evaluate(spec, RunSettings(cache_dir=cache_dir, **settings), dataset=dataset, method=method,
                     progress=progress, ranks=ranks)
+
+
+def register_weighted_grey(monkeypatch) -> None:
+    """Registers, for this test alone, "weighted-grey": 4 x 4 grey thumbnails weighted by the .npy file its one
+    option, `table`, names (a plugin whose fingerprint() does not name its file: the spec's files do)."""
+    import numpy as np
+
+    from vprbench import register_method
+    from vprbench.images import load_image
+    from vprbench.methods import registry
+    from vprbench.methods.base import Method
+
+    class Weighted(Method):
+        def __init__(self, table: str = "", device: str = "cpu"):
+            self.table = np.load(table)
+
+        def describe(self, images):
+            rows = np.stack([np.asarray(load_image(p, "L").resize((4, 4)), np.float32).ravel() * self.table
+                             for p in images])
+            return rows / np.linalg.norm(rows, axis=1, keepdims=True)
+
+    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
+    register_method("weighted-grey", Weighted)

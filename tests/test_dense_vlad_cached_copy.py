@@ -12,7 +12,9 @@ from vprbench.methods import create_method
 SMALL = {"clusters": 8, "bin_sizes": (6,), "step": 8}
 
 
-def test_another_entrys_vocabulary_copied_over_one_is_fitted_again_and_said(shared_data, tmp_path):
+@pytest.fixture
+def two_folders(shared_data, tmp_path):
+    """Two folders of three Corridor images each, a cache, and the vocabulary identity dense-vlad fits on one."""
     ours, theirs = tmp_path / "ours", tmp_path / "theirs"
     for folder, images in ((ours, range(0, 3)), (theirs, range(3, 6))):
         folder.mkdir()
@@ -22,6 +24,12 @@ def test_another_entrys_vocabulary_copied_over_one_is_fitted_again_and_said(shar
 
     def centres_of(folder):
         return create_method("dense-vlad", vocabulary=str(folder), cache_dir=cache, **SMALL).fingerprint()["vocabulary"]
+
+    return ours, theirs, cache, centres_of
+
+
+def test_another_entrys_vocabulary_copied_over_one_is_fitted_again_and_said(two_folders):
+    ours, theirs, cache, centres_of = two_folders
 
     first, other = centres_of(ours), centres_of(theirs)
     assert first != other
@@ -37,8 +45,7 @@ def test_another_entrys_vocabulary_copied_over_one_is_fitted_again_and_said(shar
         assert centres_of(ours) == first and centres_of(theirs) == other  # fitted again in place: read silently
 
 
-def test_a_copied_vocabulary_is_said_once_and_not_by_a_run_that_finds_another_runs_fit(shared_data, tmp_path,
-                                                                                          monkeypatch):
+def test_a_copied_vocabulary_is_said_once_and_not_by_a_run_that_finds_another_runs_fit(two_folders, monkeypatch):
     """Was: said twice by the run that fits it again (looked at before and under the fit's lock), and said
     ("fitting it again") by a run that, waiting for that lock, then found the other run's fit and used it."""
     from contextlib import contextmanager
@@ -46,15 +53,7 @@ def test_a_copied_vocabulary_is_said_once_and_not_by_a_run_that_finds_another_ru
     from vprbench import fsutil
     from vprbench.methods.dense_vlad import DenseVLAD
 
-    ours, theirs = tmp_path / "ours", tmp_path / "theirs"
-    for folder, images in ((ours, range(0, 3)), (theirs, range(3, 6))):
-        folder.mkdir()
-        for path in sorted((shared_data / "corridor" / "ref").glob("*.jpg"))[images.start:images.stop]:
-            shutil.copyfile(path, folder / path.name)
-    cache = tmp_path / "cache"
-
-    def centres_of(folder):
-        return create_method("dense-vlad", vocabulary=str(folder), cache_dir=cache, **SMALL).fingerprint()["vocabulary"]
+    ours, theirs, cache, centres_of = two_folders
 
     first, _ = centres_of(ours), centres_of(theirs)
     root = cache / "vocabularies" / "dense-vlad"

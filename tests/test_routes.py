@@ -16,6 +16,7 @@ import pytest
 
 from vprbench.cli.main import main
 from vprbench.evaluation import read_results
+from runs import register_weighted_grey
 
 METHOD = ["--method", "hog", "--resize", "32", "32"]
 SPEC = ["--index", "hnsw", "--index-option", "hnsw_m=16", "--k", "1", "3", "--store-dtype", "float16"]
@@ -254,26 +255,12 @@ def test_a_file_edited_after_a_sweep_planned_its_cell_is_not_recorded_under_the_
     (its store keyed by the new bytes) while the record's spec, key and leaderboard row named the old ones."""
     import numpy as np
 
-    from vprbench import register_method
     from vprbench.evaluation import read_results
-    from vprbench.images import load_image
-    from vprbench.methods import registry
-    from vprbench.methods.base import Method
     from vprbench.spec import RunSettings
     from vprbench.sweep import build_plan, run_cells
     from vprbench.sweep.runner import FAILED
 
-    class Weighted(Method):  # a method whose one option names a file
-        def __init__(self, table: str = "", device: str = "cpu"):
-            self.table = np.load(table)
-
-        def describe(self, images):
-            rows = np.stack([np.asarray(load_image(p, "L").resize((4, 4)), np.float32).ravel() * self.table
-                             for p in images])
-            return rows / np.linalg.norm(rows, axis=1, keepdims=True)
-
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
-    register_method("weighted-grey", Weighted)
+    register_weighted_grey(monkeypatch)  # a method whose one option names a file
     table, cache = tmp_path / "table.npy", tmp_path / "cache"
     settings = RunSettings(data_dir=shared_data, cache_dir=cache)
     data = {"methods": [{"name": "weighted-grey", "options": {"table": str(table)}}], "datasets": ["corridor"],

@@ -5,9 +5,20 @@ from __future__ import annotations
 from vprbench.cli.main import main
 from vprbench.evaluation import read_results
 from vprbench.spec import resolve_spec
+from runs import register_weighted_grey
 
 PLAN = ('search = { index = "hnsw", options = { hnsw_m = 2 } }\n\n[[methods]]\nname = "hog"\n'
         'options = { resize = [32, 32] }\n\n[[datasets]]\nname = "corridor"\n')
+
+
+def runs_of(plan, shared_data, cache, capsys):
+    """A function running the plan at K 1 and returning the records the cache then holds."""
+    def run() -> list[dict]:
+        code = main([str(a) for a in ("run", plan, "--k", 1, "--quiet", "--data-dir", shared_data, "--cache-dir", cache)])
+        assert code == 0, capsys.readouterr().err
+        capsys.readouterr()
+        return read_results(cache)
+    return run
 
 
 def test_a_sweep_does_not_serve_an_approximate_search_made_for_another_largest_k(shared_data, tmp_path, capsys):
@@ -41,12 +52,7 @@ def test_a_sweep_does_not_serve_an_approximate_search_made_by_another_version_of
 
     plan, cache = tmp_path / "plan.toml", tmp_path / "cache"
     plan.write_text(PLAN)
-
-    def run() -> list[dict]:
-        code = main([str(a) for a in ("run", plan, "--k", 1, "--quiet", "--data-dir", shared_data, "--cache-dir", cache)])
-        assert code == 0, capsys.readouterr().err
-        capsys.readouterr()
-        return read_results(cache)
+    run = runs_of(plan, shared_data, cache, capsys)
 
     [old] = run()
     version = approximate.VERSIONS["hnsw"]
@@ -68,12 +74,7 @@ def test_a_sweep_does_not_serve_a_record_whose_descriptors_the_method_no_longer_
 
     plan, cache = tmp_path / "plan.toml", tmp_path / "cache"
     plan.write_text('[[methods]]\nname = "hog"\noptions = { resize = [32, 32] }\n\n[[datasets]]\nname = "corridor"\n')
-
-    def run() -> list[dict]:
-        code = main([str(a) for a in ("run", plan, "--k", 1, "--quiet", "--data-dir", shared_data, "--cache-dir", cache)])
-        assert code == 0, capsys.readouterr().err
-        capsys.readouterr()
-        return read_results(cache)
+    run = runs_of(plan, shared_data, cache, capsys)
 
     [old] = run()
     fingerprint = HOG.fingerprint
@@ -197,24 +198,10 @@ def test_a_file_an_option_names_keys_the_store_by_its_bytes(shared_data, tmp_pat
     run was another (its own key, the new sha256 in its record) but read the descriptors of the old bytes."""
     import numpy as np
 
-    from vprbench import register_method
     from vprbench.evaluation import evaluate
-    from vprbench.images import load_image
-    from vprbench.methods import registry
-    from vprbench.methods.base import Method
     from vprbench.spec import RunSettings
 
-    class Weighted(Method):  # a plugin whose fingerprint() forgets its file: the store key still sees it
-        def __init__(self, table: str = "", device: str = "cpu"):
-            self.table = np.load(table)
-
-        def describe(self, images):
-            rows = np.stack([np.asarray(load_image(p, "L").resize((4, 4)), np.float32).ravel() * self.table
-                             for p in images])
-            return rows / np.linalg.norm(rows, axis=1, keepdims=True)
-
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
-    register_method("weighted-grey", Weighted)
+    register_weighted_grey(monkeypatch)  # a plugin whose fingerprint() forgets its file: the store key still sees it
     table, run = tmp_path / "table.npy", RunSettings(data_dir=shared_data, cache_dir=tmp_path / "cache")
     records = []
     for content in (np.ones(16), np.arange(1.0, 17.0)):

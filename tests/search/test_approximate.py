@@ -271,19 +271,12 @@ def test_a_budget_too_small_for_a_tile_of_shortlists_reads_them_a_few_queries_at
     np.testing.assert_array_equal(tight.scores, whole.scores)
 
 
-def test_an_ivf_pq_search_is_the_same_on_every_thread_count():
-    """faiss's IVF search cut each tile of queries among its threads before it picked its kernel for the
-    lists' centroids by a slice's size: at 2,048 dims, of 600 queries on ties between two lists, 277 got other
-    shortlists on two threads than on one (BLAS for the 64 queries of a tile, faiss's own loops for a thread's
-    32; from 2,000 dims on at faiss's threshold of 128,000). Here the threshold is lowered to show it at 512
-    dims. Now the lists are picked in one product per tile on a thread of its own, whatever the thread count."""
+def on_one_and_two_threads(search) -> list:
+    """`search` (an approximate search of fixed rows) run with faiss's and the BLAS's threads at 1, then 2."""
     import faiss
     from threadpoolctl import threadpool_limits
 
-    search = ivf_pq_on_ties()
-    threads, threshold = faiss.omp_get_max_threads(), faiss.cvar.distance_compute_blas_threshold
-    faiss.cvar.distance_compute_blas_threshold = 64 * 512  # as at 2,048 dims: a tile on BLAS, a thread's half not
-    runs = []
+    threads, runs = faiss.omp_get_max_threads(), []
     try:
         for count in (1, 2):
             faiss.omp_set_num_threads(count)
@@ -291,6 +284,22 @@ def test_an_ivf_pq_search_is_the_same_on_every_thread_count():
                 runs.append(search(memory_budget=1 << 30))
     finally:
         faiss.omp_set_num_threads(threads)
+    return runs
+
+
+def test_an_ivf_pq_search_is_the_same_on_every_thread_count():
+    """faiss's IVF search cut each tile of queries among its threads before it picked its kernel for the
+    lists' centroids by a slice's size: at 2,048 dims, of 600 queries on ties between two lists, 277 got other
+    shortlists on two threads than on one (BLAS for the 64 queries of a tile, faiss's own loops for a thread's
+    32; from 2,000 dims on at faiss's threshold of 128,000). Here the threshold is lowered to show it at 512
+    dims. Now the lists are picked in one product per tile on a thread of its own, whatever the thread count."""
+    import faiss
+
+    threshold = faiss.cvar.distance_compute_blas_threshold
+    faiss.cvar.distance_compute_blas_threshold = 64 * 512  # as at 2,048 dims: a tile on BLAS, a thread's half not
+    try:
+        runs = on_one_and_two_threads(ivf_pq_on_ties())
+    finally:
         faiss.cvar.distance_compute_blas_threshold = threshold
     np.testing.assert_array_equal(runs[1].indices, runs[0].indices)
     np.testing.assert_array_equal(runs[1].scores, runs[0].scores)
@@ -330,8 +339,6 @@ def test_queries_searched_exactly_are_the_same_on_every_thread_count(monkeypatch
     (OpenBLAS's AVX2 kernels round by a part's shape: 2 of these 600 queries got other top-10s on two threads
     than on one). A BLAS whose products' last bits follow its thread count is stood in for, so this shows on
     any CPU; those queries are now searched on one thread, as the shortlists are re-scored."""
-    import faiss
-    from threadpoolctl import threadpool_limits
 
     import vprbench.evaluation.search as search_module
 
@@ -339,15 +346,7 @@ def test_queries_searched_exactly_are_the_same_on_every_thread_count(monkeypatch
         np.multiply(queries @ rows.T, scale * np.float32(1 + (search_module.search_threads() - 1) * 2**-16), out=out)
 
     monkeypatch.setattr(search_module, "inner_products", by_threads)
-    search = ivf_pq_on_ties()
-    threads, runs = faiss.omp_get_max_threads(), []
-    try:
-        for count in (1, 2):
-            faiss.omp_set_num_threads(count)
-            with threadpool_limits(count, user_api="blas"):
-                runs.append(search(memory_budget=1 << 30))
-    finally:
-        faiss.omp_set_num_threads(threads)
+    runs = on_one_and_two_threads(ivf_pq_on_ties())
     assert runs[0].info["exact_fallback_queries"] > 300  # 355 or 356: the index is trained on the BLAS too
     np.testing.assert_array_equal(runs[1].scores, runs[0].scores)
     np.testing.assert_array_equal(runs[1].indices, runs[0].indices)
