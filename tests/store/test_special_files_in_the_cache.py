@@ -85,3 +85,17 @@ def test_a_lock_holders_note_or_a_lease_that_is_a_pipe_is_not_read(tmp_path):
     pipe_at(claims.folder / "cell.lease")
     with no_hang(10):
         assert claims.still_mine("cell") is False
+
+
+def test_a_folder_in_place_of_a_store_is_refused_once_and_left_as_it_is(tmp_path):
+    """Was: warned "Discarding ...: it is recomputed", then stopped on "Is a directory": said twice, the first
+    wrong. A folder is not the cache's to delete (it may hold anything): one line, nothing in it touched."""
+    from vprbench.errors import VPRBenchError
+
+    folder = StoreFolder("m", {"a": 1}, "d", {"database": "x"}, tmp_path)
+    path = folder.store_path("database")
+    (path / "kept").mkdir(parents=True)
+    with pytest.raises(VPRBenchError, match=rf"^{path} is a folder where a descriptor store belongs: move or delete "
+                                            r"it \(nothing in it was changed\), then run again\.$"):
+        inspect_rows_file(path, folder.identity("database", ["a.jpg"], "none", "float32"))
+    assert (path / "kept").is_dir()

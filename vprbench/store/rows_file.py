@@ -180,6 +180,9 @@ def close_quietly(f: h5py.File) -> None:
 def inspect_rows_file(path: Path, identity: RowsIdentity) -> Inspection:
     if not path.exists():
         return Inspection("absent")
+    if path.is_dir():  # not the cache's to delete (it may hold anything): said once, before any warning
+        raise VPRBenchError(f"{path} is a folder where a descriptor store belongs: move or delete it (nothing in it "
+                            "was changed), then run again.")
     if special_file(path):  # HDF5 would wait on a pipe for good: discarded as a torn file is
         return Inspection("torn", "it is a named pipe, device or socket, not a file")
     try:
