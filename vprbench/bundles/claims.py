@@ -66,12 +66,18 @@ def one_record_per_run(verdicts: list) -> None:
 def false_card(data: bytes, record: dict) -> list[str]:
     """The row's method card (stored beside the runs, once per row) describes the record's method:
     each field the record decides that the card has must be the record's."""
+    why = card_disagreement(data, record)
+    return [f"its method card {CARDS}/{record['row_key']}.json {why}"] if why else []
+
+
+def card_disagreement(data: bytes, record: dict) -> str | None:
+    """How the card `data` fails to describe `record` ("disagrees with the record on label, ..."), None when
+    it describes it."""
     try:
         card = json.loads(data)
     except (ValueError, RecursionError):
         card = None
-    name = f"{CARDS}/{record['row_key']}.json"
     if not isinstance(card, dict):
-        return [f"its method card {name} is not a JSON object"]
+        return "is not a JSON object"
     wrong = [key for key, value in card_of(record).items() if key in card and card[key] != value]
-    return [f"its method card {name} disagrees with the record on {', '.join(wrong)}"] if wrong else []
+    return f"disagrees with the record on {', '.join(wrong)}" if wrong else None

@@ -99,16 +99,16 @@ def _card(path: Path, record: dict) -> bytes:
     """The row's method card as the store has it. The card is what the record decides (verifiers check exactly
     that) and the method's description, so one missing (an older vprbench's store) is rebuilt, and so is one that
     does not describe the record (copied from another row, or edited), said in a warning: verifiers refuse it."""
-    from .claims import false_card  # claims imports this module
+    from .claims import card_disagreement  # claims imports this module
 
     if not path.exists():
         return card_bytes(_stored(record))
     data = path.read_bytes()
-    wrong = false_card(data, record)
-    if not wrong:
+    why = card_disagreement(data, record)
+    if why is None:
         return data
     warnings.warn(f"Method card {path} does not describe run {record['run_id']} "
-                  f"({wrong[0].split(' ', 4)[-1]}: copied or edited); the bundle holds the card rebuilt from the record. "
+                  f"({why}: copied or edited); the bundle holds the card rebuilt from the record. "
                   "Delete that file: the next run of that row writes it again.", stacklevel=4)
     return card_bytes(_stored(record))
 

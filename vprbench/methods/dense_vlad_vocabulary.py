@@ -147,7 +147,7 @@ def cached_vocabulary(method, source: VocabularySource) -> tuple[np.ndarray, dic
             info["datasets"] = found.meta["datasets"]
         return centres, info
     identity, counts, images = _fit_images(method, source)
-    key = canonical_hash({"fit": method.fit_recipe(), "data": identity})
+    key = _key(method.fit_recipe(), identity)
     path = vocabularies_root(method.cache_dir) / "dense-vlad" / f"{safe_name(source.path.name or source.option)}-{key}" / VOCABULARY_FILE
     fitted_on = (f"{len(images)} images in {source.path.resolve()} (content {identity['images'][:16]})"
                  if source.kind == "folder" else
@@ -192,10 +192,15 @@ def _cached(path: Path, method, key: str, said: bool = True):
             warnings.warn(f"The cached dense-vlad vocabulary {path} is damaged or unreadable; fitting it again. "
                           f"(Why: {error})", stacklevel=2)
         return None
-    made = canonical_hash({"fit": {k: found.meta.get(k) for k in method.fit_recipe()}, "data": found.meta.get("data")})
-    if made != key:
+    if _key({k: found.meta.get(k) for k in method.fit_recipe()}, found.meta.get("data")) != key:
         if said:
             warnings.warn(f"The cached dense-vlad vocabulary {path} was fitted on other data or settings than its "
                           "folder names (another entry's file copied or moved there); fitting it again.", stacklevel=2)
         return None
     return found
+
+
+def _key(recipe: dict, data) -> str:
+    """The key of a vocabulary fitted as `recipe` says on `data` (their identity): its folder's name, and what
+    the metadata in its file must give again."""
+    return canonical_hash({"fit": recipe, "data": data})
