@@ -163,7 +163,7 @@ def check_fit_sizes(args, width: int | None) -> None:
 def run_import(args) -> int:
     from pathlib import Path
 
-    from ..methods.anyloc_vocabulary import is_released_setting, release, save_to_cache
+    from ..methods.anyloc_vocabulary import content_source, is_released_setting, release, save_to_cache
     from ..aggregation.vocabulary import RELEASED_FILE, load_vocabulary, vocabulary_dir, vocabulary_file_in
     from ..fsutil import atomic_write, write_in_turn
     from ..weights import file_sha256
@@ -188,6 +188,9 @@ def run_import(args) -> int:
     check_source(args.source)
     vocabulary = load_vocabulary(args.path)
     vocabulary.check_dim(spec.width)
+    if own := content_source(vocabulary, args.source):
+        raise VPRBenchError(f"{args.path} holds the centres of {own!r}, not of {args.source!r}: import it with "
+                            f"--source {own} (or under a name of your own).")
     source_file = Path(vocabulary.meta["path"])
     released = is_released_setting(args.backbone, args.layer, args.facet, vocabulary.clusters, stride)
     folder = vocabulary_dir(args.backbone, args.layer, args.facet, vocabulary.clusters, args.source, args.cache_dir, stride)

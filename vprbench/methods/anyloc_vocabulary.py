@@ -210,7 +210,24 @@ def find_vocabulary(source: str, backbone: str, layer: int, facet: str, clusters
     """A cached vocabulary for these feature settings and source, or None; `stride` None: the
     backbone's own. Its user checks it proves them (`check_proven`) once its size is checked."""
     path = cached_vocabulary_file(source, backbone, layer, facet, clusters, cache_dir, stride)
-    return None if path is None else load_vocabulary(path)
+    found = None if path is None else load_vocabulary(path)
+    if found is not None and (own := content_source(found, source)):
+        belongs = vocabulary_dir(backbone, layer, facet, found.clusters, own, cache_dir, stride)
+        raise VPRBenchError(f"Vocabulary {path} holds the centres of {own!r} but sits in the cache folder of {source!r}: "
+                            f"move it to {belongs} (or delete it), then run again.")
+    return found
+
+
+def content_source(vocabulary: Vocabulary, name: str) -> str | None:
+    """The source the centres' content names when `name` claims another (a domain, map-DATASET): what a
+    vprbench fit records, or the authors' release known by its sha256. None: no conflict (or a name of one's own)."""
+    if name not in domain_names() and not name.startswith(MAP_PREFIX):
+        return None
+    own = vocabulary.meta.get("source")
+    if not isinstance(own, str) or own not in domain_names() and not own.startswith(MAP_PREFIX):
+        release_folder = released_provenance(vocabulary).get("released_as")
+        own = next((s for s, folder in vocabulary_policies()["released"].items() if folder == release_folder), None)
+    return own if own not in (None, name) else None
 
 
 def cached_vocabulary_file(source: str, backbone: str, layer: int, facet: str, clusters: int, cache_dir=None,
