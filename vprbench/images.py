@@ -21,6 +21,7 @@ import re
 import struct
 import threading
 import warnings
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -108,14 +109,17 @@ def load_image(path: str | Path, mode: str = "RGB") -> Image.Image:
     """Open an image fully decoded in `mode` ("RGB" or "L"), upright (EXIF orientation applied)."""
     path = Path(path)
     try:
-        with warnings.catch_warnings():  # Pillow warns of what check_decode_budget refuses, naming the file
-            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+        # Pillow's warnings name no file (a damaged EXIF block): recorded here, said below naming it
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
             image = Image.open(io.BytesIO(_read_bytes(path)), formats=IMAGE_FORMATS)
-        with image:
-            check_decode_budget(*image.size, f"Image {path}")  # from the header: nothing decoded yet
-            image.load()
-            ImageOps.exif_transpose(image, in_place=True)
-            return (to_8bit(image) if image.mode in _FULL_SCALE else image).convert(mode)
+            with image:
+                check_decode_budget(*image.size, f"Image {path}")  # from the header: nothing decoded yet
+                image.load()
+                ImageOps.exif_transpose(image, in_place=True)
+                loaded = (to_8bit(image) if image.mode in _FULL_SCALE else image).convert(mode)
+        _say_again(said, path)
+        return loaded
     except FileNotFoundError:
         raise VPRBenchError(f"Image not found: {path}") from None
     except PermissionError:
@@ -138,6 +142,19 @@ def load_image(path: str | Path, mode: str = "RGB") -> Image.Image:
         ) from None
 
 
+#: Pillow warnings not passed on: what check_decode_budget refuses itself, naming the file; and a
+#: palette's transparency, which RGB drops, as the authors' loaders' convert("RGB") does
+_UNSAID = re.compile(r"Palette images with Transparency")
+
+
+def _say_again(said: list, path: Path) -> None:
+    """Each warning Pillow gave while reading `path`, once, naming the file."""
+    texts = [str(w.message).strip() for w in said if not issubclass(w.category, Image.DecompressionBombWarning)]
+    for text in dict.fromkeys(t for t in texts if not _UNSAID.match(t)):
+        warnings.warn(f"Image {path}: Pillow warns {text!r}; it is read as Pillow reads it (replace the file if "
+                      "it is damaged).", stacklevel=3)
+
+
 def load_rgb(path: str | Path) -> np.ndarray:
     """HxWx3 uint8 array."""
     return np.asarray(load_image(path, "RGB"))
@@ -152,9 +169,28 @@ def list_images(folder: Path, *, recursive: bool = False, natural: bool = False)
     """The image files in `folder` (and below it when `recursive`), sorted by path, or in natural
     name order when `natural` (the order a released dataset's ground truth indexes); names alike in
     natural order ('a1.jpg', 'a01.jpg'; one name in two subfolders) by path, not as the folder lists them."""
-    found = folder.rglob("*") if recursive else folder.iterdir()
+    found = _below(folder) if recursive else folder.iterdir()
     images = [_utf8_name(p) for p in found if p.suffix.lower() in IMAGE_SUFFIXES and _is_image_file(p)]
     return sorted(images, key=(lambda p: (natural_key(p), p)) if natural else None)
+
+
+def _below(folder: Path) -> Iterator[Path]:
+    """Every entry below `folder`, linked folders followed as the top folder's are (rglob skipped them, dropping
+    their images unseen), except a link back up to a folder it lies in (a loop; `..` would add the other split);
+    each real folder once, so other loops end too; an unreadable folder is an error."""
+    seen = set()
+
+    def refuse(error: OSError):
+        raise error
+
+    for top, folders, files in os.walk(folder, onerror=refuse, followlinks=True):
+        found, here = os.stat(top), Path(top).resolve()
+        if (found.st_dev, found.st_ino) in seen:
+            folders.clear()
+            continue
+        seen.add((found.st_dev, found.st_ino))
+        folders[:] = [name for name in folders if not here.is_relative_to((Path(top) / name).resolve())]
+        yield from (Path(top) / name for name in folders + files)
 
 
 def _utf8_name(path: Path) -> Path:

@@ -120,9 +120,14 @@ def as_indices(values) -> np.ndarray:
     array = np.asarray(values, dtype=object).reshape(-1)
     out = np.empty(len(array), dtype=np.int64)
     for i, value in enumerate(array):
-        whole = _number(value) and math.isfinite(value) and float(value).is_integer()
-        if not whole or not -2**63 <= int(value) < 2**63:
+        # a Python int is whole however large (and too large for a float: math.isfinite would overflow)
+        whole = _number(value) and (isinstance(value, (int, np.integer)) or math.isfinite(value)
+                                    and float(value).is_integer())
+        if not whole:
             raise ValueError(f"{value!r} is not an image index (a whole number)")
+        if not -2**63 <= int(value) < 2**63:  # a crafted one may have thousands of digits: said by its size
+            shown = repr(value) if int(value).bit_length() < 128 else f"a whole number of {int(value).bit_length()} bits"
+            raise ValueError(f"{shown} is not an image index (it is beyond the 64-bit integer range)")
         out[i] = int(value)
     return out
 

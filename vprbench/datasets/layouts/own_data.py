@@ -82,11 +82,19 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
 
     try:
         table = pd.read_csv(csv, skipinitialspace=True)  # "image, x, y" as typed by hand: no column ' x'
+        header = pd.read_csv(csv, skipinitialspace=True, header=None, nrows=1, dtype=str).iloc[0].tolist()
     except OSError as error:
         raise VPRBenchError(f"Cannot read {csv}: {error}") from None
+    except pd.errors.ParserError as error:  # a row of more values than the header has names
+        raise VPRBenchError(f"Cannot read {csv}: {str(error).strip()}; give each row one value for each column "
+                            "of the header row (e.g. image,x,y).") from None
     except ValueError as error:  # not UTF-8 (a spreadsheet's "CSV" in a Windows code page), empty, malformed
-        raise VPRBenchError(f"Cannot read {csv}: {error}. Save it as UTF-8 text, a header row first "
+        raise VPRBenchError(f"Cannot read {csv}: {str(error).strip()}. Save it as UTF-8 text, a header row first "
                             "(e.g. image,x,y).") from None
+    # pandas renames a repeated column (x, x.1) and the first would be used unseen; empty names are NaN here
+    repeated = sorted({name for name in header if isinstance(name, str) and header.count(name) > 1})
+    if repeated:
+        raise VPRBenchError(f"{csv} names the column(s) {repeated} more than once in its header row; keep one of each.")
     if "image" not in table.columns:
         # one column whose name holds ';' or a tab: a spreadsheet's export in another separator
         other = next((sep for sep in (";", "\t") if len(table.columns) == 1 and sep in str(table.columns[0])), None)
@@ -110,6 +118,10 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
         warnings.warn(f"{csv.resolve()} has several kinds of position: {','.join(names)} ({unit}) is used, "
                       f"{' and '.join(others)} ignored (the first kind of x,y; easting,northing; latitude,longitude; "
                       "lat,lon; frame is used): to use another, remove the columns of the one used.", stacklevel=2)
+    unnamed = int(table["image"].isna().sum())
+    if unnamed:  # a spreadsheet's trailing ',,' row: said as the row it is, not as an image named 'nan'
+        warnings.warn(f"{csv.resolve()} has {unnamed} row(s) with no image name; they are left out.", stacklevel=2)
+        table = table[table["image"].notna()].reset_index(drop=True)
     written = [str(name) for name in table["image"]]
     # rows are matched to the images found by name and never opened; one naming a file outside
     # the folder is still refused, as everything a data file names must lie inside its dataset
@@ -126,7 +138,7 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
         raise VPRBenchError(
             f"{csv} lists {len(repeated)} image(s) more than once, e.g. {repeated[:3]}; keep one row per image."
         )
-    values = table[list(names)].apply(pd.to_numeric, errors="coerce").to_numpy(float)
+    values = np.stack([_numbers(table[name]) for name in names], axis=1)
     bad = np.flatnonzero(~np.isfinite(values).all(axis=1))
     if len(bad):
         raise VPRBenchError(
@@ -177,6 +189,20 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
     return np.stack([by_name[name] for name in found]), unit
 
 
+def _numbers(column) -> np.ndarray:
+    """A column's values as floats, NaN where not a number. pandas reads a whole number of hundreds of digits
+    as a Python int, which overflows a float (even told to coerce): it becomes the largest float of its sign,
+    refused as too large, as 1e300 is."""
+    import pandas as pd
+
+    try:
+        return pd.to_numeric(column, errors="coerce").to_numpy(float)
+    except OverflowError:
+        huge = float(np.finfo(float).max)
+        return np.array([(huge if value > 0 else -huge) if isinstance(value, int) and abs(value) >= 2**1024
+                         else pd.to_numeric(value, errors="coerce") for value in column], dtype=float)
+
+
 def row_name(name: str) -> str:
     """How an image is named for matching rows to files: one spelling per path (`queries/../database/a.jpg`
     is `database/a.jpg`) in Unicode NFC, as the same name typed or copied may arrive in either form."""
@@ -201,9 +227,18 @@ def image_row_names(images: list[Path], root: Path) -> list[str]:
 def _nested_images(folder: Path) -> str:
     """The subfolders of `folder` that hold images (at any depth), named for a message; "" if none."""
     with os.scandir(folder) as entries:  # the folder's own images were listed already: only its folders
-        found = sorted(entry.name for entry in entries if entry.is_dir()
+        found = sorted(entry.name for entry in entries if _is_folder(entry)
                        and any(path.suffix.lower() in IMAGE_SUFFIXES for path in Path(entry.path).rglob("*")))
     return ", ".join(ascii(name) for name in found[:3]) + (f" and {len(found) - 3} more" if len(found) > 3 else "")
+
+
+def _is_folder(entry: os.DirEntry) -> bool:
+    """Whether `entry` is a folder; False for a link that loops (ELOOP), which is no folder of images and,
+    not named like an image, is ignored as other files are."""
+    try:
+        return entry.is_dir()
+    except OSError:
+        return False
 
 
 @layout("own", expects=lambda options: ["database/", "queries/"])

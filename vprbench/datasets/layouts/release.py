@@ -67,7 +67,7 @@ def pose_rows(path: Path, gt: dict, n_database: int, n_queries: int) -> tuple[np
     poses = read_npy(path, "poses", expected)
     try:
         poses = np.asarray(poses[:, :dims], dtype=np.float64)
-    except (ValueError, TypeError, IndexError) as error:
+    except (ValueError, TypeError, IndexError, OverflowError) as error:  # OverflowError: an int beyond any float
         raise VPRBenchError(f"Cannot read poses {path}: {error}. Expected {expected}.") from None
     if poses.shape[1] < dims:
         raise VPRBenchError(f"Cannot read poses {path}: {poses.shape[1]} columns. Expected {expected}.")
@@ -115,8 +115,8 @@ def top_k_csv(path: Path, gt: dict, n_queries: int) -> list[np.ndarray]:
     try:
         table = pd.read_csv(path)
         values = [as_indices(row) for row in table[columns].apply(pd.to_numeric).to_numpy()]
-    except (OSError, ValueError, KeyError) as error:
-        raise VPRBenchError(f"Cannot read ground truth {path}: {error}. Expected columns {columns}.") from None
+    except (OSError, ValueError, KeyError, OverflowError) as error:  # OverflowError: a number of hundreds of digits
+        raise VPRBenchError(f"Cannot read ground truth {path}: {str(error).strip()}. Expected columns {columns}.") from None
     if len(values) != n_queries:
         raise VPRBenchError(f"Ground truth {path} has {len(values)} rows but {n_queries} query images were found.")
     return values
