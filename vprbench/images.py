@@ -170,14 +170,16 @@ def list_images(folder: Path, *, recursive: bool = False, natural: bool = False)
     name order when `natural` (the order a released dataset's ground truth indexes); names alike in
     natural order ('a1.jpg', 'a01.jpg'; one name in two subfolders) by path, not as the folder lists them."""
     found = _below(folder) if recursive else folder.iterdir()
-    images = [_utf8_name(p) for p in found if p.suffix.lower() in IMAGE_SUFFIXES and _is_image_file(p)]
+    # hidden names (macOS's ._x.jpg copies of metadata) are no images, as for the authors' glob-based loaders
+    images = [_utf8_name(p) for p in found
+              if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".") and _is_image_file(p)]
     return sorted(images, key=(lambda p: (natural_key(p), p)) if natural else None)
 
 
 def _below(folder: Path) -> Iterator[Path]:
     """Every entry below `folder`, linked folders followed as the top folder's are (rglob skipped them, dropping
-    their images unseen), except a link back up to a folder it lies in (a loop; `..` would add the other split);
-    each real folder once, so other loops end too; an unreadable folder is an error."""
+    their images unseen), except hidden folders and a link back up to a folder it lies in (a loop; `..` would add the
+    other split); each real folder once, so other loops end too; an unreadable folder is an error."""
     seen = set()
 
     def refuse(error: OSError):
@@ -189,7 +191,8 @@ def _below(folder: Path) -> Iterator[Path]:
             folders.clear()
             continue
         seen.add((found.st_dev, found.st_ino))
-        folders[:] = [name for name in folders if not here.is_relative_to((Path(top) / name).resolve())]
+        folders[:] = [name for name in folders
+                      if not name.startswith(".") and not here.is_relative_to((Path(top) / name).resolve())]
         yield from (Path(top) / name for name in folders + files)
 
 

@@ -166,3 +166,16 @@ def test_a_top_k_index_of_hundreds_of_digits_is_one_line(tmp_path):
     path.write_text("top_1_ref_ind,top_2_ref_ind\n0,1\n1" + "0" * 400 + ",2\n")
     with pytest.raises(VPRBenchError, match=f"Cannot read ground truth {re.escape(str(path))}: int too large"):
         top_k_csv(path, {"columns": ["top_1_ref_ind", "top_2_ref_ind"]}, 2)
+
+
+def test_hidden_names_are_no_images(tmp_path):
+    """macOS's ._x.jpg metadata files (and hidden folders) were listed as images: a benchmark copied from a Mac
+    was then refused by its image count without naming them."""
+    from vprbench.images import list_images
+
+    Image.new("RGB", (4, 4)).save(tmp_path / "a.jpg")
+    (tmp_path / "._a.jpg").write_bytes(b"\x00\x05\x16\x07 AppleDouble")
+    (tmp_path / ".thumbs").mkdir()
+    Image.new("RGB", (4, 4)).save(tmp_path / ".thumbs" / "b.jpg")
+    assert list_images(tmp_path) == [tmp_path / "a.jpg"]
+    assert list_images(tmp_path, recursive=True) == [tmp_path / "a.jpg"]
