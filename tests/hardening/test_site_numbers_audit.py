@@ -77,7 +77,7 @@ def test_the_sequence_track_gives_recall_at_full_precision_in_percent(corridor_r
     terminal and `evaluate` give it in percent (5.6 for hog on Corridor)."""
     board, rows = _sequence_rows(corridor_runs)
     fraction = next(iter(board.cells.values())).record["recall_at_100_precision"]
-    assert 0 < fraction < 1 and [row[4] for row in rows] == [f"{100 * fraction:.1f}"] * 3, rows
+    assert 0 < fraction < 1 and [row[6] for row in rows] == [f"{100 * fraction:.1f}"] * 3, rows
 
 
 def test_the_runs_table_of_a_dataset_page_names_each_row(corridor_runs, tmp_path):

@@ -142,3 +142,23 @@ def test_numbers_stay_numbers_and_only_formula_text_is_quoted():
     frame = pd.DataFrame({"value": [-1.5, 2, None], "name": ["-1.5", "a-b", "-"]}, index=["=x", "y", "z"])
     rows = list(csv.reader(io.StringIO(to_csv(frame))))
     assert rows == [["", "value", "name"], ["'=x", "-1.5", "'-1.5"], ["y", "2.0", "a-b"], ["z", "", "-"]]
+
+
+#: `created` values that are no UTC time as vprbench writes it: runs are ordered by this text, so each sorted
+#: after every real run (or, '+02:00', two hours late) and kept its cell from the runs made after it
+NOT_TIMES = ["<script>document.title='x'</script>", "z", "2026-01-01T05:00:00+02:00", "2026-13-01T00:00:00+00:00",
+             "2026-01-01"]
+
+
+@pytest.mark.parametrize("value", NOT_TIMES, ids=[repr(v)[:24] for v in NOT_TIMES])
+def test_a_record_whose_time_is_no_utc_time_is_skipped_and_fills_no_cell(make_record, value):
+    from vprbench.leaderboard import build_board
+
+    bad = save_result(make_record("hog", seed=1, created="2026-01-01T00:00:00+00:00"))
+    good = save_result(make_record("hog", seed=2, created="2026-01-01T04:00:00.500+00:00"))
+    _spoil(bad, "created", value)
+    with pytest.warns(UserWarning, match=r"\(created: .*should be a UTC time"):
+        records = read_results(skipped=(skipped := []))
+    assert skipped == [bad] and [r["_source"] for r in records] == [str(good)]
+    (cell,) = build_board(records).cells.values()
+    assert cell.record["_source"] == str(good)

@@ -52,9 +52,9 @@ def test_hostile_option_values_publish_as_text(make_record, tmp_path, capsys):
 
 
 def test_a_records_protocol_and_ground_truth_publish_as_text(make_record, tmp_path, capsys):
-    """The dataset page's protocol and ground-truth lines come from a record too: its description,
-    source, id and units can say anything."""
-    record = make_record("hog", seed=1)
+    """Own data's page takes its protocol and ground-truth lines from a record (a benchmark's are what
+    vprbench ships: test_page_protocol.py): its description, source, id and units can say anything."""
+    record = make_record("hog", seed=1, kind="own", dataset="garden", n_database=40, n_queries=30, fingerprint="g1")
     record["protocol"].update(description=HOSTILE, source=LINK, id=f"x`{HOSTILE}")
     record["ground_truth"].update(unit=HOSTILE, radius_unit=HOSTILE)
     save_result(record)

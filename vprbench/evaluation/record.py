@@ -7,6 +7,7 @@ file is never rewritten). Schema: docs/record-schema.md.
 from __future__ import annotations
 
 import io
+import re
 import uuid
 from datetime import datetime, timezone
 from pathlib import Path
@@ -41,6 +42,20 @@ Count = Annotated[int, Field(strict=True, ge=0, le=2**63 - 1)]
 Amount = Annotated[float, Field(strict=True, ge=0, le=1e12, allow_inf_nan=False)]
 Fraction = Annotated[float, Field(strict=True, ge=0, le=1, allow_inf_nan=False)]
 Percent = Annotated[float, Field(strict=True, ge=0, le=100, allow_inf_nan=False)]
+#: when a run was made, as vprbench writes it: UTC, ISO 8601 ('2026-12-07T09:08:46.045+00:00')
+_UTC_TIME = re.compile(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d(?:\.\d{1,6})?\+00:00")
+
+
+def _utc_time(value: str) -> str:
+    """`created` as vprbench writes it. Runs are ordered by this text (the newest fills its cell), so one that
+    is no such time ('<b>', 'z', another offset) sorted after every real run and kept its cell forever."""
+    try:
+        datetime.fromisoformat(value)  # a real date and time, not month 13
+    except ValueError:
+        value = ""
+    if not _UTC_TIME.fullmatch(value):
+        raise ValueError("should be a UTC time as vprbench writes it, e.g. '2026-12-07T09:08:46.045+00:00'")
+    return value
 
 
 def _numbers(model: type[BaseModel]) -> AfterValidator:
@@ -104,7 +119,7 @@ class Record(BaseModel):
     schema_: Literal["vprbench-result"] = Field(SCHEMA, alias="schema")
     schema_version: int
     run_id: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,80}$")
-    created: str
+    created: Annotated[str, Field(strict=True), AfterValidator(_utc_time)]
     method: str
     dataset: str
     dataset_kind: Literal["benchmark", "own", "given"]

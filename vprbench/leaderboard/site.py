@@ -35,6 +35,7 @@ from .cells import CELL_RULE, Board, Cell, Column, build_board, hardware_of, lic
 from .shown import descriptor_bytes, left_out, row_name
 from .stats import check_k_and_seed
 from ..evaluation.blocks import RULE, for_record
+from ..evaluation.identity import benchmark_protocols
 from ..evaluation.metrics import successes
 from .compare import shared_resampling
 from .stats import RESAMPLES, format_test, overlaps, paired_test
@@ -254,8 +255,14 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
     cells = sorted(board.column_cells(column), key=lambda c: -(c.recall(1) or -1))
     first = cells[0].record
     counts, gt, protocol = first["counts"], first.get("ground_truth", {}), first.get("protocol", {})
+    if column.kind == "benchmark":  # what vprbench ships for the column's protocol hash, not what a record says of it
+        protocol = benchmark_protocols(column.dataset).get(column.protocol_hash) or protocol
+        gt = protocol.get("ground_truth") or gt
     positives = np.asarray((first.get("per_query") or {}).get("positives") or
                            (cells[0].arrays["positives"] if cells[0].arrays is not None else []))
+    if len(positives):  # counted from the run's arrays (sha256-checked), as the positives per query beside them
+        counts = {**counts, "queries_without_positives": int(np.sum(positives == 0)),
+                  "positive_pairs": int(np.sum(positives))}
     colours = colours if colours is not None else site_colours(board)
     lines = [page_head(column.title), f"# {text(column.title)}", "", f"Each cell is one run: {RULE_LINK} (below the tables).", "",
              marks_note(board, column),

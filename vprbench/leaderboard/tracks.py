@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from .cells import Board, Cell
 from .escape import code, text
-from .tables import fmt, with_ci
+from .shown import licence_shown, row_name, weights_shown
+from .tables import fmt, marks_legend, source_mark, with_ci
 from ..text import percent
 
 TITLES = {"single-image": "Single-image retrieval", "re-ranked": "Re-ranked", "sequence": "Sequence matching"}
@@ -46,26 +47,32 @@ def track_page(full: Board, track: str, stats: dict, head: str = "") -> str:
     """The page of `track` (re-ranked or sequence): per dataset, its runs with intervals and costs."""
     board = full.of_track(track)
     alone = {(row.key, key): cell for (row, key), cell in full.cells.items() if row.track == "single-image"}
-    lines = [head, f"# {TITLES[track]}", "", INTRO[track], ""]
+    lines, sources = [], []  # sources: where each number shown comes from, for the marks' legend
     for column in board.columns:
         lines += [f"## {text(column.title)}", ""]
         if track == "re-ranked":
-            lines += ["| Method | R@1 [95 % CI] | R@5 [95 % CI] | Ceiling (R@K of its candidates) | Retriever alone R@1 "
-                      "| Stage ms / query | Stored bytes / database image | Run |",
-                      "|:--|--:|--:|--:|--:|--:|--:|:--|"]
+            lines += ["| Method | Weights | Licence | R@1 [95 % CI] | R@5 [95 % CI] | Ceiling (R@K of its candidates) "
+                      "| Retriever alone R@1 | Stage ms / query | Stored bytes / database image | Run |",
+                      "|:--|:--|:--|--:|--:|--:|--:|--:|--:|:--|"]
         else:
-            lines += ["| Method | R@1 [95 % CI] | R@5 [95 % CI] | AUC-PR | R@100%P | max F1 | Stage ms / query | Run |",
-                      "|:--|--:|--:|--:|--:|--:|--:|:--|"]
+            lines += ["| Method | Weights | Licence | R@1 [95 % CI] | R@5 [95 % CI] | AUC-PR | R@100%P | max F1 "
+                      "| Stage ms / query | Run |", "|:--|:--|:--|--:|--:|--:|--:|--:|--:|:--|"]
         for row in board.rows:
             cell = board.cell(row, column)
             if cell is None:
                 continue
             s, r = stats[(row, column.key)], cell.record
-            name = text(row.name)  # with what sets it apart: the table has no Weights column
+            # as on the dataset pages: the weights and their licence beside the row, and a mark saying where its
+            # number comes from (a contributed run is not measured here)
+            name = (f"{row_name(row)}{source_mark(cell.source)} | {text(weights_shown(row, r))} | "
+                    f"{text(licence_shown(r))}")
+            sources.append(cell.source)
             if track == "re-ranked":
                 base = alone.get((retriever_key(cell), column.key))
+                sources += [base.source] if base else []
+                alone_r1 = fmt(base.recall(1)) + source_mark(base.source) if base else "–"
                 lines.append(f"| {name} | {with_ci(s[1])} | {with_ci(s[5])} | {_cost(cell, 'ceiling_recall')} | "
-                             f"{fmt(base.recall(1)) if base else '–'} | {_cost(cell, 'ms_per_query')} | "
+                             f"{alone_r1} | {_cost(cell, 'ms_per_query')} | "
                              f"{_cost(cell, 'stored_bytes_per_database_image', 0)} | {code(r.get('run_id'))} |")
             else:
                 shown = [f"{v:.3f}" if isinstance(v, (int, float)) else "–" for v in (r.get("auc_pr"), r.get("max_f1"))]
@@ -75,4 +82,6 @@ def track_page(full: Board, track: str, stats: dict, head: str = "") -> str:
         lines.append("")
     if not board.columns:
         lines.append("No run in this track yet.")
-    return "\n".join(lines)
+    legend = marks_legend(sources)
+    return "\n".join([head, f"# {TITLES[track]}", "", INTRO[track], "", *([f"Marks:{legend}", ""] if legend else []),
+                      *lines])
