@@ -109,6 +109,21 @@ def test_the_stage_snippet_of_stages_md_defines_a_stage(tmp_path):
         scope["ConsensusOptions"](n=0)
 
 
+def test_the_budget_row_of_stages_md_gives_the_refusal_it_shows(shared_data, tmp_path, cli):
+    # docs/stages.md "Bad input": the row's command, run on Corridor, prints the row's message. It showed the run's
+    # one refusal for a command without --rerank-k 111, whose dba is refused after the search instead
+    import re
+    import shlex
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[2] / "docs" / "stages.md").read_text()
+    command, message = re.search(r"^\| `(--method hog --rerank dba [^`]*)` on Corridor [^|]*\| `([^`]*)` \|$", text,
+                                 flags=re.M).groups()
+    code, _, err = cli("evaluate", *shlex.split(command), "--dataset", "corridor", "--data-dir", shared_data,
+                       "--cache-dir", tmp_path, "--quiet")
+    assert code == 1 and err.strip() == f"error: {message}", err
+
+
 def test_every_candidates_file_stages_md_reranks_from_is_one_it_exports():
     # docs/stages.md: a reader copying the commands in order has only the files `candidates export --out` wrote
     import re

@@ -145,6 +145,20 @@ def test_a_file_from_another_copy_of_the_dataset_is_refused(shared_data, exporte
         evaluate(spec, dataclasses.replace(settings, candidates=path))
 
 
+def test_a_file_of_another_dataset_is_named_as_such(shared_data, exported, tmp_path):
+    """docs/stages.md: a file of another protocol is refused naming both protocols. Corridor's file on a smaller
+    folder of one's own was refused as damaged instead ('its indices holds int64 (111, 30), not at most 6 real
+    numbers stored in the file; export it again'): the arrays' size bound came before the protocol."""
+    from own_folders import corridor_folder
+
+    path, settings = exported
+    own = corridor_folder(shared_data, tmp_path / "mine", database=3, queries=2)
+    spec = resolve_spec("hog", str(own), stages=[{"name": "aqe", "k": 3, "n": 2}], ks=(1,), data_dir=shared_data)
+    with pytest.raises(VPRBenchError, match=r"was exported under protocol corridor:vpr-bench \(f60ac2fa1d51bc67\), "
+                                            r"not this run's mine:own .*export candidates on this dataset and protocol"):
+        evaluate(spec, dataclasses.replace(settings, candidates=path))
+
+
 def test_an_export_removes_what_a_killed_export_left(shared_data, exported, tmp_path):
     """Before: the temporary file of an export killed while writing stayed beside --out for good."""
     _, settings = exported

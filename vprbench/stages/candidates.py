@@ -92,6 +92,9 @@ def read_candidates(path, spec, queries: int, database: int, depth: int, images:
             if attrs.get("version", 0) > VERSION:
                 raise VPRBenchError(f"Candidates file {path} is from a newer vprbench (version {attrs['version']}); "
                                     "upgrade vprbench.")
+            # which data the file indexes is told by its attributes, before its arrays are bounded by this run's
+            # size: a file of another dataset is named as such, not as a damaged one to export again
+            _check_data(attrs, path, spec, images)
             indices = _numbers(f, "indices", path, "iub", queries * database)
             scores = _numbers(f, "scores", path, "iuf", queries * database)
             flags = _numbers(f, "all_zero", path, "iub", queries) if "all_zero" in f else None
@@ -99,15 +102,6 @@ def read_candidates(path, spec, queries: int, database: int, depth: int, images:
         raise VPRBenchError(f"Candidates file not found: {path}") from None
     except (OSError, KeyError) as error:
         raise VPRBenchError(f"Cannot read candidates file {path} ({error}); export it again.") from None
-    if attrs.get("protocol_hash") != spec.dataset.protocol_hash:
-        raise VPRBenchError(f"Candidates file {path} was exported under protocol {attrs.get('protocol_id')} "
-                            f"({attrs.get('protocol_hash')}), not this run's {spec.dataset.protocol_id} "
-                            f"({spec.dataset.protocol_hash}): export candidates on this dataset and protocol.")
-    if attrs.get("images_key") != images:  # same protocol, another copy: its rows index other images
-        raise VPRBenchError(f"Candidates file {path} was exported on " + ("other images of " if attrs.get("images_key")
-                            else "images it does not name (an earlier vprbench's file) of ") + f"{spec.dataset.name} "
-                            "than this run's (files changed or in another order): export candidates from this copy "
-                            "of the dataset.")
     if attrs.get("retriever_key") != canonical_hash(retriever_identity(spec)):
         # what else tells the two apart is named on both sides, else both may read 'hog {}': the search (e.g. an
         # hnsw shortlist as deep as the export's --k), the store, the files' contents (weights, cached vocabularies)
@@ -146,6 +140,19 @@ def read_candidates(path, spec, queries: int, database: int, depth: int, images:
     found = SearchResult(scores[:, :depth].astype(np.float32), indices[:, :depth].astype(np.int64), info,
                          _all_zero(path, flags, attrs.get("all_zero_database"), queries, database))
     return {"found": found, "file": str(path.resolve()), "sha256": file_sha256(path), "k": int(indices.shape[1])}
+
+
+def _check_data(attrs: dict, path: Path, spec, images: str) -> None:
+    """Refuse a file exported on another protocol, or on another copy of this run's dataset."""
+    if attrs.get("protocol_hash") != spec.dataset.protocol_hash:
+        raise VPRBenchError(f"Candidates file {path} was exported under protocol {attrs.get('protocol_id')} "
+                            f"({attrs.get('protocol_hash')}), not this run's {spec.dataset.protocol_id} "
+                            f"({spec.dataset.protocol_hash}): export candidates on this dataset and protocol.")
+    if attrs.get("images_key") != images:  # same protocol, another copy: its rows index other images
+        raise VPRBenchError(f"Candidates file {path} was exported on " + ("other images of " if attrs.get("images_key")
+                            else "images it does not name (an earlier vprbench's file) of ") + f"{spec.dataset.name} "
+                            "than this run's (files changed or in another order): export candidates from this copy "
+                            "of the dataset.")
 
 
 def _numbers(f: h5py.File, name: str, path: Path, kinds: str, most: int) -> np.ndarray:
