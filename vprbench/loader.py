@@ -50,11 +50,12 @@ def loaded(method, items: Sequence) -> list:
 
 
 def plugin_failure(owner, part: str, error: BaseException, who: str | None = None,
-                   attribute: bool = False) -> str | None:
+                   attribute: bool = False, on: str | None = None) -> str | None:
     """One line for what a plugin's `part` (describe, load, fit, ..., or an `attribute` read) raised, naming `who` (default: the
-    method `owner`), its package and the line of its code that raised (its user is not its author: a
-    traceback through vprbench helps neither); None for vprbench's own code (a bug of vprbench's keeps its
-    traceback) and for what the command already says in a line (vprbench's errors, paths, memory)."""
+    method `owner`), what it was given (`on`: the images), its package and the line of its code that raised
+    (its user is not its author: a traceback through vprbench helps neither); None for vprbench's own code (a
+    bug of vprbench's keeps its traceback) and for what the command already says in a line (vprbench's errors,
+    paths, memory)."""
     import traceback
 
     top = (getattr(owner, "__module__", None) or type(owner).__module__ or "").split(".")[0]
@@ -71,19 +72,19 @@ def plugin_failure(owner, part: str, error: BaseException, who: str | None = Non
     own = own or frames[-1:]
     at = f" at {own[-1].filename}:{own[-1].lineno}" if own else ""
     who = who or f"Method {getattr(owner, 'name', '?')!r}"
-    doing = f"reading its attribute {part}" if attribute else f"in {part}()"
+    doing = f"reading its attribute {part}" if attribute else f"in {part}()" + (f" of {on}" if on else "")
     return (f"{who} ({top}) failed {doing}: {type(error).__name__}: "
             f"{error}{at}; fix the plugin, or report it to its authors.")
 
 
 @contextlib.contextmanager
-def plugin_part(owner, part: str, who: str | None = None, attribute: bool = False):
+def plugin_part(owner, part: str, who: str | None = None, attribute: bool = False, on: str | None = None):
     """Runs a call into `owner`'s code (a plugin's method, stage or post-processor, or a property read): what it
     raises is the one line of `plugin_failure`, a VPRBenchError (its chain kept for a Python caller)."""
     try:
         yield
     except (Exception, SystemExit) as error:
-        message = plugin_failure(owner, part, error, who, attribute)
+        message = plugin_failure(owner, part, error, who, attribute, on)
         if message is None:
             raise
         raise VPRBenchError(message) from error
@@ -149,7 +150,7 @@ class _Images:
         except VPRBenchError as error:
             return _Failed(str(error))
         except (Exception, SystemExit) as error:
-            message = plugin_failure(self.method, "load", error)
+            message = plugin_failure(self.method, "load", error, on=f"image {self.paths[i]}")
             if message is None:
                 raise
             return _Failed(message)
@@ -169,6 +170,12 @@ def changed_message(path: Path, expected: str, before: str, after: str) -> str:
     return (f"Image {path} changed {when} (sha256 {expected[:12]}… expected, {after[:12]}… now): its row is not "
             "described, so no store holds descriptors of other bytes than its key names; the rows already "
             "described are kept. Let whatever is writing the images finish, then run again.")
+
+
+def batch_named(paths: Sequence) -> str:
+    """The images of a batch a plugin failed on, for its message: the first, and how many more."""
+    more = f" (and {len(paths) - 1} more in its batch)" if len(paths) > 1 else ""
+    return f"image {paths[0]}{more}"
 
 
 def _as_batch(items: list) -> list:
@@ -193,12 +200,12 @@ MAX_LENGTH = float(np.sqrt(np.finfo(np.float32).max))
 def _numbers(source: str, rows, n: int) -> np.ndarray:
     """`rows` (an array, a torch tensor on any device, nested lists) as an array of real numbers."""
     torch = sys.modules.get("torch")
-    if torch is not None and isinstance(rows, torch.Tensor):  # with grad, on a GPU, in bfloat16: all fine
-        rows = rows.detach().cpu()
-        rows = (rows.float() if rows.is_floating_point() else rows).numpy()
     try:
+        if torch is not None and isinstance(rows, torch.Tensor):  # with grad, on a GPU, in bfloat16: all fine
+            rows = rows.detach().cpu()  # a meta tensor (no data) or a sparse one is refused below, not a traceback
+            rows = (rows.float() if rows.is_floating_point() else rows).numpy()
         out = np.asarray(rows)
-    except (TypeError, ValueError, RuntimeError) as error:
+    except (TypeError, ValueError, RuntimeError, NotImplementedError) as error:
         out, reason = None, f" ({error})"
     else:
         reason = f" of {out.dtype} values"
@@ -292,10 +299,10 @@ def describe_batches(method, paths: Sequence[Path], *, workers: int = 0, device:
         for item in items:
             if isinstance(item, _Failed):
                 raise VPRBenchError(item.message)
-        with plugin_part(method, "describe"):
+        n = len(items)  # counted before describe, which may pop from its list: else rows shift onto other images
+        with plugin_part(method, "describe", on=batch_named(paths[offset:offset + n])):
             described = method.describe(items)
-        descriptors = checked(f"Method {method.name!r}", described, len(items), dim,
-                              getattr(method, "compare", "cosine"))
+        descriptors = checked(f"Method {method.name!r}", described, n, dim, getattr(method, "compare", "cosine"))
         dim = descriptors.shape[1]
         yield offset, descriptors
-        offset += len(items)
+        offset += n

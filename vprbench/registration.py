@@ -16,6 +16,10 @@ def check_name(kind: str, name) -> None:
     """`name` is lower-case text without spaces; `kind` is "Method" or "Stage"."""
     if not isinstance(name, str) or not name or name != name.strip().lower() or " " in name:
         raise ValueError(f"{kind} names are lower-case without spaces, got {name!r}")
+    # a line break or tab in a name splits the leaderboard's row in two (a forged row); '-x' reads as an option
+    if any(c.isspace() or unicodedata.category(c)[0] == "C" for c in name) or name.startswith("-"):
+        raise ValueError(f"{kind} names hold no whitespace or control characters and do not start with '-' (the "
+                         f"command line reads that as an option); got {name!r}")
     if not unicodedata.is_normalized("NFC", name):  # 'é' as e + accent would be a second name that looks the same
         raise ValueError(f"{kind} names are written in Unicode NFC (composed), got {name!r} ({name.encode()!r}); "
                          "register it as unicodedata.normalize('NFC', name)")

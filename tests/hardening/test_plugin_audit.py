@@ -332,7 +332,9 @@ def leaves(*_):
 ])
 def test_a_plugin_that_raises_is_one_line_naming_it_and_its_line(part, attributes, error, cli, tmp_path, images):
     code, _, err = describe(cli, tmp_path, plugin("crashes", __module__="my_plugin", **attributes), images)
-    assert_refused(code, err, None, f"Method 'crashes' (my_plugin) failed in {part}(): {error} at ",
+    # the image it failed on is named too (describe: the batch's first, batch size 2)
+    on = f"image {images[0]} (and 1 more in its batch)" if part == "describe" else f"image {images[0]}"
+    assert_refused(code, err, None, f"Method 'crashes' (my_plugin) failed in {part}() of {on}: {error} at ",
                    f"test_plugin_audit.py:{next(iter(attributes.values())).__code__.co_firstlineno + 1}; fix the "
                    "plugin, or report it to its authors.")
 

@@ -92,8 +92,8 @@ def describe_splits(method, splits: dict[str, list[Path]], *, root: Path | None 
         def plan():
             with plugin_part(method, "prepare"):  # a bad weights file is refused before the folders exist
                 method.prepare()
-            with plugin_part(method, "load"):  # so is what every image shares (too small, a format not read)
-                for paths in splits.values():
+            for paths in splits.values():  # so is what every image shares (too small, a format not read)
+                with plugin_part(method, "load", on=f"image {paths[0]}"):
                     method.load(paths[0])
             held.enter_context(folder.locked(lock_timeout))
             return job.plan(timings)
@@ -184,7 +184,8 @@ class _Job:
                 with phase(self.progress if self.ranks.rank == 0 else None,
                            f"{self.method.name} {self.label} fitting on {len(self.splits[FIT_SPLIT]):,} database images"):
                     with reads_seen() as seen, plugin_part(self.method, "fit"):
-                        self.method.fit(self.splits[FIT_SPLIT])
+                        # a copy: a fit that sorts or shuffles its list would reorder the rows described next
+                        self.method.fit(list(self.splits[FIT_SPLIT]))
                 self._check_fitted_images(seen)
                 timings["fit_s"] = time.perf_counter() - started
                 state = fitted_state(self.method)

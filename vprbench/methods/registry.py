@@ -29,6 +29,7 @@ from ..loader import plugin_part
 from ..paths import folder_path
 from ..registration import (check_name, check_target, claim, core_entries, imported, looked_up, run_plugins, source_of,
                             unloaded_hint)
+from ..text import shortened
 from .attributes import MAX_BATCH_SIZE, check_attributes, set_attributes
 from .checks import canonical, plain_options, whole
 
@@ -86,8 +87,20 @@ class MethodEntry:
         found = getattr(self.factory, "cached_identities", None)
         if not callable(found):
             return {}
-        with self.in_factory("cached_identities"):
-            return dict(found(options, dataset, cache_dir))
+        # a copy: the spec's options key the run
+        return self.hook("cached_identities", lambda: found(copy.deepcopy(options), dataset, cache_dir), str)
+
+    def hook(self, part: str, call, values=object) -> dict:
+        """What the factory's hook `part` returns (by `call()`): a dict of option name -> `values`, else one
+        line naming the plugin (not an AttributeError from vprbench's line, nor a spec refusing it later)."""
+        with self.in_factory(part):
+            found = call()
+        if not isinstance(found, dict) or not all(isinstance(k, str) and isinstance(v, values)
+                                                  for k, v in found.items()):
+            what = "text" if values is str else "value"
+            raise VPRBenchError(f"Method {self.name!r} ({self.source}): its {part}() returned {shortened(repr(found))}; "
+                                f"it returns a dict of option name -> {what}. Fix the plugin.")
+        return found
 
     def in_form(self, given: dict) -> dict:
         """`given` with a list written as text ('4,6,8,10' from `-o bin_sizes=4,6,8,10`) as that list,
@@ -116,8 +129,9 @@ class MethodEntry:
         defaults = self.effective_defaults()
         given = self.in_form(given)
         implied = getattr(self.factory, "implied_options", None)  # an unset option's value, from the others
-        with self.in_factory("implied_options"):
-            implied = implied({**defaults, **given}) if callable(implied) else {}
+        # copies: a hook appending to a list option would change the preset (and the options given)
+        implied = self.hook("implied_options", lambda: implied(copy.deepcopy({**defaults, **given}))) \
+            if callable(implied) else {}
         defaults |= {k: v for k, v in implied.items() if defaults.get(k) is None}
         named = getattr(self.factory, "dataset_option", None)  # unset, it is the dataset evaluated (use_dataset)
         if dataset is not None and isinstance(named, str) and defaults.get(named) is None:
@@ -127,8 +141,8 @@ class MethodEntry:
         kept = {k: v for k, v in given.items() if k not in defaults or not _same(k, v, defaults[k])
                 or k not in self.defaults and _names_a_path(v)}
         unused = getattr(self.factory, "unused_options", None)  # options the other options leave idle
-        with self.in_factory("unused_options"):
-            unused = unused({**defaults, **given}) if callable(unused) else {}
+        unused = self.hook("unused_options", lambda: unused(copy.deepcopy({**defaults, **given}))) \
+            if callable(unused) else {}
         idle = {k: why for k, why in unused.items() if k in kept}
         if idle:
             name, why = sorted(idle.items())[0]
@@ -161,6 +175,15 @@ def register_method(
     check_target("Method", name, factory, description, source)
     if defaults is not None and not isinstance(defaults, dict):
         raise ValueError(f"Method {name!r}: defaults takes a dict of option name -> value; got {defaults!r}")
+    if defaults:  # checked now, as a user's options are: else each command using the method is a traceback
+        bad = [k for k in defaults if not isinstance(k, str)]
+        try:
+            if bad:
+                raise VPRBenchError(f"Method {name!r}: an option's name is text, not {bad[0]!r}.")
+            plain_options(name, defaults)
+        except VPRBenchError as error:
+            raise ValueError(f"{str(error).rstrip('.')}, in its defaults: register plain data (numbers, text, "
+                             "lists, tables; no NaN).") from None
     entry = MethodEntry(name, factory, dict(defaults or {}), description, source or source_of(factory))
     _load_plugins()  # the core's and installed plugins' names are taken before any other registers
     claim(_REGISTRY, "Method", entry)
@@ -252,7 +275,7 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
         raise VPRBenchError(f"Method {name!r} ({entry.source}) needs option(s) {', '.join(needed)}, for which it has no "
                             f"default: give {'them' if len(needed) > 1 else 'it'}, e.g. -o {needed[0]}=VALUE.")
     with entry.in_factory(f"its factory {getattr(factory, '__name__', type(factory).__name__)}"):
-        method = factory(**arguments)
+        method = factory(**copy.deepcopy(arguments))  # a factory appending to a list would change the preset
     if not isinstance(method, Method):
         raise VPRBenchError(f"Method {name!r} ({entry.source}): its factory returned {type(method).__name__}, not a "
                             "vprbench.Method; return an instance of a subclass of vprbench.Method (see 'Add your "
