@@ -13,7 +13,9 @@ INTRO = {
     "re-ranked": "Runs whose retrieval's top K was re-ordered by a stage (geometric verification, query expansion, "
                  "...). Each row sits beside its retriever alone (the single-image run of the same method, options "
                  "and search) and the ceiling its re-ranker could reach: the share of queries with a positive among "
-                 "the K candidates it was given.",
+                 "the K candidates it was given. Stage ms / query is the stage's own wall clock, with the per-image "
+                 "features it computed (SIFT keypoints, patches): a run that found them cached spends less (its "
+                 "record's features_computed says how many it computed).",
     # the curve is VPR-Bench's, whose recall is over the correct top-1 matches: calling it the robotics'
     # convention (recall over the queries with a positive) invited comparison with SeqSLAM papers' F1max
     "sequence": "Runs matched over sequences of frames of an ordered traverse; AUC-PR, R@100%P and the largest F1 "
