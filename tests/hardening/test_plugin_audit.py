@@ -46,14 +46,7 @@ def plugin(name: str, shape=None, base=Returns, **attributes) -> str:
     return name
 
 
-@pytest.fixture(autouse=True)
-def own_registry(monkeypatch):
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
-
-
-@pytest.fixture
-def images(shared_data) -> list:
-    return sorted((shared_data / "corridor" / "query").glob("*.jpg"))[:5]
+pytestmark = pytest.mark.usefixtures("own_registry")  # what a test registers is its own
 
 
 def describe(cli, tmp_path, method: str, images, *options):

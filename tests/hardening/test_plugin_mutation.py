@@ -12,14 +12,7 @@ from vprbench.evaluation.results import read_results
 from vprbench.methods import registry
 
 
-@pytest.fixture(autouse=True)
-def own_registry(monkeypatch):
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
-
-
-@pytest.fixture
-def images(shared_data) -> list:
-    return sorted((shared_data / "corridor" / "query").glob("*.jpg"))[:5]
+pytestmark = pytest.mark.usefixtures("own_registry")  # what a test registers is its own
 
 
 class Pops(Returns):
