@@ -81,7 +81,10 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
     import pandas as pd
 
     try:
-        table = pd.read_csv(csv, skipinitialspace=True)  # "image, x, y" as typed by hand: no column ' x'
+        # skipinitialspace: "image, x, y" as typed by hand is no column ' x'; low_memory=False: read in one
+        # piece, as a long file (100,000s of rows) read in chunks had a typo in its last chunk said as pandas'
+        # DtypeWarning before the refusal naming its row
+        table = pd.read_csv(csv, skipinitialspace=True, low_memory=False)
         header = pd.read_csv(csv, skipinitialspace=True, header=None, nrows=1, dtype=str).iloc[0].tolist()
     except OSError as error:
         raise VPRBenchError(f"Cannot read {csv}: {error}") from None
