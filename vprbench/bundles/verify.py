@@ -50,8 +50,9 @@ class Truth:
 class DataGroundTruth:
     """Ground truth of a protocol vprbench ships, read from the dataset on this machine (once per protocol)."""
 
-    def __init__(self, data_dir=None, cache_dir=None):
-        self.data_dir, self.cache_dir, self._found = data_dir, cache_dir, {}
+    def __init__(self, data_dir=None, cache_dir=None, *, images: bool = True):
+        # images=False: the ground truth's fingerprint only (the leaderboard re-scores where the images may be absent)
+        self.data_dir, self.cache_dir, self.images, self._found = data_dir, cache_dir, images, {}
 
     def __call__(self, dataset: str, protocol_hash: str) -> Truth:
         if (dataset, protocol_hash) not in self._found:
@@ -75,8 +76,9 @@ class DataGroundTruth:
                                 f"{data.protocol.get('hash')}, not {protocol_hash}")
         # the board keeps one copy of a column's data (the fingerprint most runs share): a record
         # naming another copy than the one re-scored here could push the true runs out
-        fingerprints = {"dataset": data.fingerprint(self.cache_dir), "images": data.images_fingerprint(self.cache_dir),
-                        "ground_truth": data.ground_truth_fingerprint()}
+        fingerprints = {"ground_truth": data.ground_truth_fingerprint()}
+        if self.images:
+            fingerprints.update(dataset=data.fingerprint(self.cache_dir), images=data.images_fingerprint(self.cache_dir))
         return Truth(protocol["id"], len(data.database), data.positives, for_dataset(data), fingerprints)
 
 

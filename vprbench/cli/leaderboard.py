@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from ..errors import VPRBenchError
 from .console import console, say
-from .options import check_new_folder, path_argument, refuse_unused, resolve_locations
+from .options import check_new_folder, path_argument, resolve_locations
 
 FORMATS = ("table", "markdown", "csv", "json")
 
@@ -26,7 +26,8 @@ def add_parsers(commands) -> None:
     p.add_argument("--cache-dir", help="where the results store lives")
     p.add_argument("--results", type=path_argument, metavar="DIR",
                    help="with 'publish': a results repository (vprbench results import) whose runs join this cache's")
-    p.add_argument("--data-dir", help="with 'publish': where the datasets' images are, for the retrieval mosaics")
+    p.add_argument("--data-dir", help="where the datasets are: their ground truth re-scores every cell's run (and "
+                                      "'publish' draws its retrieval mosaics from their images)")
     p.set_defaults(run=run)
 
 
@@ -36,9 +37,8 @@ def run(args) -> int:
     from ..evaluation import read_results
     from ..leaderboard import build_board, grid, publish, render
     from ..leaderboard.stats import check_k_and_seed
+    from ..leaderboard.truth import LocalTruth, truth_note
 
-    if args.action != "publish":
-        refuse_unused(args, "data_dir", f"by 'leaderboard {args.action}' (only 'publish' reads images, for its mosaics)")
     resolve_locations(args)
     for flag, value, action in (("--to", args.to, "publish"), ("--dataset", args.dataset, "compare"),
                                 ("--k", args.k, "compare"), ("--format", args.format, "show"),
@@ -55,13 +55,14 @@ def run(args) -> int:
             raise VPRBenchError("leaderboard publish needs --to FOLDER (e.g. --to docs/)")
         check_new_folder(args.to, "--to")
         skipped: list = []
-        say(f"Wrote {publish(args.to, args.cache_dir, data_dir=args.data_dir, seed=args.seed, skipped=skipped, results=args.results)}")
-        return unread(skipped)
-    skipped = []
+        refused: list = []
+        say(f"Wrote {publish(args.to, args.cache_dir, data_dir=args.data_dir, seed=args.seed, skipped=skipped, results=args.results, refused=refused)}")
+        return unread(skipped, refused)
+    skipped, refused = [], []
     records = read_results(args.cache_dir, skipped=skipped)
     if not records:
         raise VPRBenchError(NO_RESULTS)
-    board = build_board(records)
+    board = build_board(records, LocalTruth(args.data_dir, args.cache_dir), refused)
     if args.action == "compare":
         from ..leaderboard.compare import compare, describe
 
@@ -69,7 +70,7 @@ def run(args) -> int:
             raise VPRBenchError("leaderboard compare needs two methods and a dataset: "
                                 "vprbench leaderboard compare A B --dataset D")
         say(describe(compare(board, *args.methods, args.dataset, k=args.k, seed=args.seed)))
-        return unread(skipped)
+        return unread(skipped, refused)
     if args.methods:
         raise VPRBenchError(f"'leaderboard {args.action}' takes no method names (got {' '.join(args.methods)}); "
                             "did you mean 'leaderboard compare A B --dataset D'?")
@@ -83,7 +84,7 @@ def run(args) -> int:
     table = grid(board)
     if args.format != "table":
         say(render(table, args.format, board))
-        return unread(skipped)
+        return unread(skipped, refused)
     view = Table(title=f"R@1 / R@5 (%), {args.track} track: one run per cell")
     view.add_column("method")
     for column in table.columns:
@@ -94,7 +95,9 @@ def run(args) -> int:
     out.print(view)
     if board.excluded:
         out.print(left_out_lines(board.excluded), highlight=False)
-    return unread(skipped)
+    if note := truth_note(board):
+        out.print(note, highlight=False, soft_wrap=True)
+    return unread(skipped, refused)
 
 
 #: left-out runs named one by one on the terminal; the rest are counted (the site lists them all)
@@ -119,10 +122,15 @@ def left_out_lines(excluded: list) -> str:
     return "\n".join([f"{len(excluded)} run(s) left out of every cell:", *(f"- {line}" for line in named), *more])
 
 
-def unread(skipped: list) -> int:
-    """Exit 1 when stored files could not be read (each named in a warning above); they are kept."""
+def unread(skipped: list, refused: list = ()) -> int:
+    """Exit 1 when stored files could not be read, or hold runs that do not re-score to their numbers
+    against the ground truth (each named in a warning above); they are kept."""
+    if refused:
+        console(stderr=True).print(f"error: {len(refused)} run(s) do not re-score to their numbers against the ground "
+                                   "truth (named above) and fill no cell; nothing was deleted. Check them with "
+                                   "'vprbench results verify', or rerun those evaluations.", highlight=False, soft_wrap=True)
     if not skipped:
-        return 0
+        return 1 if refused else 0
     console(stderr=True).print(f"error: {len(skipped)} stored file(s) could not be read (named above) and are left out; "
                                "nothing was deleted. Fix or move them, or rerun those evaluations.", highlight=False,
                                soft_wrap=True)  # one line, however narrow the terminal

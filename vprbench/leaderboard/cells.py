@@ -29,6 +29,7 @@ from ..evaluation.metrics import recall_at_k
 from ..evaluation.proof import proven
 from ..evaluation.results import per_query
 from .escape import public
+from .truth import PROVEN, REFUSED, against_truth, refuse
 from .shown import (OFFICIAL_WEIGHTS, RANDOM, TRANSDUCTIVE, hardware_of, licence_shown,  # noqa: F401
                     method_label, random_weights, stage_marks, weights_of, weights_shown)
 
@@ -248,8 +249,10 @@ def _row_of(record: dict) -> Row:
     return Row(spec.row_key, public(spec.label()), weights, "; ".join(marks), track, "; ".join(spec.marks()))
 
 
-def build_board(records: list[dict]) -> Board:
-    """Apply the rules above to every record (oldest first, as read_results gives them)."""
+def build_board(records: list[dict], truth=None, refused: list | None = None) -> Board:
+    """Apply the rules above to every record (oldest first, as read_results gives them). With `truth`
+    (truth.LocalTruth), each run is re-scored from its top-K indices against its ground truth first: one
+    that does not re-score to its numbers fills no cell, its file appended to `refused`."""
     if not isinstance(records, (list, tuple)) or not all(isinstance(r, dict) for r in records):
         raise VPRBenchError("The leaderboard is built from a list of result records: pass "
                             f"vprbench.evaluation.read_results(cache_dir); got {type(records).__name__} "
@@ -270,6 +273,14 @@ def build_board(records: list[dict]) -> Board:
             excluded.append((record, found))
             continue
         kind, protocol, default = found
+        if truth is not None:
+            verdict, why = against_truth(record, truth)
+            if verdict == REFUSED:
+                excluded.append((record, refuse(record, why)))
+                if refused is not None:
+                    refused.append(record.get("_source") or record.get("run_id"))
+                continue
+            record = {**record, "_proof": {**record["_proof"], "ground_truth": why or PROVEN}}
         name, fingerprint = record["dataset"], str(record.get("dataset_fingerprint", ""))
         protocol_hash = str((record.get("protocol") or {}).get("hash", ""))
         if kind == "benchmark":

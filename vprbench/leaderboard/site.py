@@ -33,6 +33,7 @@ from .downloads import plain, record_download, summary
 from .escape import code, public, text, to_csv
 from .cells import CELL_RULE, Board, Cell, Column, build_board, hardware_of, licence_shown, weights_shown
 from .shown import descriptor_bytes, left_out, row_name
+from .truth import LocalTruth, truth_note
 from .stats import check_k_and_seed
 from ..evaluation.blocks import RULE, for_record
 from ..evaluation.identity import benchmark_protocols
@@ -59,10 +60,12 @@ MOSAIC_ROWS = 4
 
 
 def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0, skipped: list | None = None,
-            results=None) -> Path:
+            results=None, refused: list | None = None) -> Path:
     """Write <folder>/leaderboard/ (overview, one page per dataset, figures, downloads) from the
     results store, and from the results repository `results` when given (each cell marked by where
-    its number comes from); returns that folder. Nothing is changed when anything fails."""
+    its number comes from); returns that folder. Nothing is changed when anything fails. Each run is
+    re-scored against its ground truth first (a benchmark's under `data_dir`, else the default data root; an own
+    folder's at its path): the files of those that do not re-score to their numbers are appended to `refused`."""
     require(folder, (str, os.PathLike), "publish takes the docs folder to write the leaderboard into, e.g. 'docs'")
     folder, (_, seed) = Path(folder), check_k_and_seed(1, seed)  # before any record is read
     data_dir = folder_path(data_dir, "data_dir")  # else a wrong one is found out only when a page needs images
@@ -93,7 +96,8 @@ def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0, skipp
     try:
         with lock(alive(staging), announce=False):  # held while it is written: a staging folder whose lock is free is dead
             staging.mkdir(exist_ok=True)  # another publish may have taken it for dead before this lock was held
-            write_section(staging, build_board(records), records, cache_dir=cache_dir, data_dir=data_dir, seed=seed)
+            truth = LocalTruth(data_dir, cache_dir)
+            write_section(staging, build_board(records, truth, refused), records, cache_dir=cache_dir, data_dir=data_dir, seed=seed)
             with lock(folder / f".{SECTION}.lock", timeout=60, what=f"the leaderboard in {folder}"):
                 swap(staging, target)
                 remove_stale_sections(folder, SECTION, staging)
@@ -182,6 +186,8 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
              f"Measured by `vprbench evaluate` ({len(records)} stored run(s){_from_repository(records)}; vprbench "
              f"{__version__}; written {written}). Regenerate with `vprbench leaderboard publish --to docs/`. Each cell is one run: "
              f"{RULE_LINK} (below the tables).", "", marks_note(board)]
+    if note := truth_note(board):
+        lines += ["", text(note), ""]
     for table in GROUPS:
         lines += [group_table(board, table, link=lambda c: f"{c.slug}.md"), ""]
     lines += ["## Measured against reported", "",
@@ -265,7 +271,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
                   "positive_pairs": int(np.sum(positives))}
     colours = colours if colours is not None else site_colours(board)
     lines = [page_head(column.title), f"# {text(column.title)}", "", f"Each cell is one run: {RULE_LINK} (below the tables).", "",
-             marks_note(board, column),
+             marks_note(board, column), *([text(note), ""] if (note := truth_note(board.of_column(column))) else []),
              f"Domain: {text(column.domain or '–')}. Kind: {'benchmark' if column.kind == 'benchmark' else 'own data (not a benchmark)'}.", "",
              "## Data and ground truth", "",
              "| Database | Queries | Queries without positives | Positive pairs | Positives per query (min / median / max) | Ground truth | Protocol | Dataset fingerprint |",
