@@ -18,6 +18,13 @@ def plural(count, word: str) -> str:
     return f"{shown} {word if shown == '1' else IRREGULAR.get(word, word + 's')}"
 
 
+def recall_text(value: float | None) -> str:
+    """A recall in percent (or an interval's end) as the tables, pages and `results` commands show it:
+    one decimal, '–' without a value. One rounding everywhere: a verify line's 48.65
+    beside the leaderboard's 48.6 read as a wrong rounding of one number."""
+    return "–" if value is None or value != value else f"{value:.1f}"  # value != value: NaN
+
+
 def percent(fraction: float | None) -> str:
     """A fraction (recall at 100 % precision) shown like Recall@K, in percent with one decimal. The
     fraction is kept to 8 decimals (metrics.PR_DECIMALS), so its percent has 6: rounded there, as a

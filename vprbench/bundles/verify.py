@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import VPRBenchError
-from ..text import one_line
+from ..text import one_line, recall_text
 from ..evaluation.blocks import Resampling, for_dataset, for_record, record_window
 from ..evaluation.record import UNIT_FIELDS, per_query_arrays_in, validated
 from ..evaluation.results import check_kinds
@@ -116,7 +116,8 @@ class BundleReport:
         for verdict in self.verdicts:
             head = f"{self.path}: {verdict.member} (run {verdict.run_id}{', ' + verdict.label if verdict.label else ''})"
             if verdict.ok:
-                shown = " ".join(f"R@{k} {v:.2f}" for k, v in verdict.recall.items())
+                # rounded as the leaderboard shows it
+                shown = " ".join(f"R@{k} {recall_text(v)}" for k, v in verdict.recall.items())
                 out.append(f"{head}: ok, re-scored from its arrays: {shown}")
             out += [f"{head}: {problem}" for problem in verdict.problems]
         if not self.problems and not self.verdicts:
@@ -158,7 +159,11 @@ def check_record(name: str, place: tuple, members: dict[str, bytes], cards: set,
     except VPRBenchError as error:
         problems.append(str(error).removeprefix(f"{name} ").removeprefix(f"{name}: "))
         return verdict
-    verdict.label = f"{record.get('label') or record['method']} on {record['protocol']['id']}"
+    from ..leaderboard.cells import row_of
+
+    # the row as the leaderboard names it, marks included: a run on random weights (which fills no cell)
+    # or fitted on the evaluated database does not read as an official one
+    verdict.label = f"{row_of(record).name} on {record['protocol']['id']}"
     found = (record["protocol"]["hash"], record["row_key"], record["run_id"])
     if found != place or record["spec"]["dataset"]["protocol_hash"] != protocol_hash:
         problems.append(f"its protocol hash, row key and run id {'/'.join(found)} are not its place in the bundle")

@@ -133,15 +133,16 @@ def run_matrix(args, settings, options, overrides) -> int:
 def results_table(record: dict):
     from rich.table import Table
 
+    from ..leaderboard.cells import row_of
     from ..leaderboard.shown import descriptor_bytes, random_weights
-    from ..spec import RunSpec
     from ..text import percent
 
     counts, timings = record["counts"], record["timings"]
     # the board keeps such a run out of every cell; its own table says so too
     random = " (random weights: a pipeline check, not a result)" if random_weights(record) else ""
-    # an approximate search or a float16 store is a row of its own on the board: its table names it too
-    marks = RunSpec.model_validate(record["spec"]).marks()
+    # a row of its own on the board (other weights, an approximate search, a float16 store, a part fitted on
+    # the evaluated database): its table names it by the board's marks (random weights are said after the dataset)
+    marks = [m for m in row_of(record).mark.split("; ") if m and m != "weights random"]
     label = (record.get("label") or record["method"]) + (f" ({', '.join(marks)})" if marks else "")
     table = Table(title=f"{label} on {record['protocol']['id']}{random}", show_header=True)
     for k in record["recall"]:

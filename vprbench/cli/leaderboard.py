@@ -75,12 +75,13 @@ def run(args) -> int:
         raise VPRBenchError(f"'leaderboard {args.action}' takes no method names (got {' '.join(args.methods)}); "
                             "did you mean 'leaderboard compare A B --dataset D'?")
     everything, board = board, board.of_track(args.track)
-    if not board.cells and everything.cells:
+    if not board.cells and everything.cells and not board.excluded:
         raise VPRBenchError(f"No run in the {args.track} track yet; the stored runs are in: {', '.join(everything.tracks)} "
                             "(--track).")
     if not board.cells:
-        raise VPRBenchError(f"None of the {len(records)} stored run(s) can fill a cell: "
-                            + "; ".join(sum(named_left_out(board.excluded), [])) if board.excluded else NO_RESULTS)
+        runs = f"No run in the {args.track} track" if everything.cells else f"None of the {len(records)} stored run(s)"
+        raise VPRBenchError(f"{runs} can fill a cell: " + "; ".join(sum(named_left_out(board.excluded), []))
+                            if board.excluded else NO_RESULTS)
     table = grid(board)
     if args.format != "table":
         say(render(table, args.format, board))

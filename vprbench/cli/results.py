@@ -108,12 +108,13 @@ def add_vpr_bench_parser(actions) -> None:
 def run_import_vpr_bench(args) -> int:
     from ..bundles.vpr_bench import import_vpr_bench
     from ..evaluation import save_result
+    from ..text import recall_text
 
     resolve_locations(args)
     records = import_vpr_bench(args.folder, args.dataset, data_dir=args.data_dir, cache_dir=args.cache_dir)
     for record in records:
         path = save_result(record, args.cache_dir)
-        shown = " ".join(f"R@{k} {v:.2f}" for k, v in record["recall"].items())
+        shown = " ".join(f"R@{k} {recall_text(v)}" for k, v in record["recall"].items())  # as the leaderboard shows it
         say(f"{record['imported']['method']} on {record['protocol']['id']}: {shown} (imported from VPR-Bench, "
               f"re-scored) -> {path}")
     return 0

@@ -176,7 +176,9 @@ class Board:
         rows = [r for r in self.rows if r.track == track]
         cells = {key: cell for key, cell in self.cells.items() if key[0].track == track}
         filled = {key for _, key in cells}
-        excluded = self.excluded if track == "single-image" else []
+        # the single-image board (the overview, the terminal's default) names every run left out; another, its own
+        excluded = self.excluded if track == "single-image" else \
+            [(record, why) for record, why in self.excluded if record.get("track") == track]
         return Board(rows, [c for c in self.columns if c.key in filled], cells, excluded)
 
     def of_column(self, column: Column) -> "Board":
@@ -238,7 +240,7 @@ def _own_detail(record: dict) -> str:
     return f"own, {value} {'m' if unit == 'metres' else unit}".rstrip()
 
 
-def _row_of(record: dict) -> Row:
+def row_of(record: dict) -> Row:
     from ..spec import RunSpec
 
     spec = RunSpec.model_validate(record["spec"])
@@ -289,7 +291,7 @@ def build_board(records: list[dict], truth=None, refused: list | None = None) ->
             key, detail = f"{name} (own {protocol_hash[:8]})", _own_detail(record)
         column = Column(key, name, kind, str(record.get("domain") or ""), fingerprint, protocol, default, detail,
                         protocol_hash)
-        placed.append((record, _row_of(record), column))
+        placed.append((record, row_of(record), column))
 
     # one copy of each benchmark column's data: the fingerprint most runs share (the newest on a tie)
     chosen: dict[str, str] = {}

@@ -5,6 +5,7 @@ from __future__ import annotations
 from ..errors import VPRBenchError, closest_names, require
 from ..text import plural
 from .cells import Board, Cell
+from .shown import left_out
 from ..evaluation.blocks import for_record, shared
 from ..evaluation.metrics import successes
 from .stats import RESAMPLES, bootstrap_ci, check_k_and_seed, format_p, overlaps, paired_test
@@ -18,6 +19,7 @@ def _cell(board: Board, method: str, dataset: str) -> Cell:
         [c for c in board.columns if c.dataset == dataset]
     benchmark = [c for c in columns if c.kind == "benchmark"]
     if not columns:
+        _left_out(board, method, dataset)
         titles = [c.title for c in board.columns]
         raise VPRBenchError(f"No run on dataset {dataset!r} fills a cell.{closest_names(dataset, titles)} "
                             f"Datasets on the leaderboard: {known}.")
@@ -27,6 +29,7 @@ def _cell(board: Board, method: str, dataset: str) -> Cell:
     column = ([c for c in benchmark if dataset in (c.title, c.key) or c.default] or benchmark or columns)[0]
     rows = [r for r in board.find_row(method) if board.cell(r, column)]
     if not rows:
+        _left_out(board, method, column.dataset)
         names = [r.name for r in board.rows if board.cell(r, column)]
         raise VPRBenchError(f"No run of {method!r} on {column.title}.{closest_names(method, names)} "
                             f"Rows on {column.title}: {', '.join(names)}.")
@@ -34,6 +37,16 @@ def _cell(board: Board, method: str, dataset: str) -> Cell:
     if len(rows) > 1 and len(official) != 1:
         raise VPRBenchError(f"{method!r} has several rows on {column.title}: give one of {', '.join(repr(r.name) for r in rows)}.")
     return board.cell((official or rows)[0], column)
+
+
+def _left_out(board: Board, method: str, dataset: str) -> None:
+    """A run of `method` on the column's dataset that the board left out of every cell (random weights,
+    damaged arrays) is named with why, as the board and the site name it: 'no run' would deny it exists."""
+    for record, why in board.excluded:
+        run, label, shown = left_out(record)
+        if record.get("dataset") == dataset and method in (label, record.get("method"), record.get("label")):
+            raise VPRBenchError(f"Run {run} of {method!r} on {shown} is left out of every cell: {why}. Compare "
+                                "two rows the leaderboard shows ('vprbench leaderboard' lists them).")
 
 
 def shared_resampling(first: Cell, second: Cell):

@@ -11,6 +11,7 @@ from .cells import CELL_KS, Cell, hardware_of, licence_shown, weights_shown
 from .escape import public_data
 from .shown import descriptor_bytes
 from .stats import LEVEL, RESAMPLES
+from .tracks import track_file
 
 
 def plain(value):
@@ -21,12 +22,18 @@ def plain(value):
     raise TypeError(type(value).__name__)
 
 
+def page_of(cell: Cell) -> str:
+    """The page that shows the cell: its column's, or its track's (a re-ranked or sequence run is on no
+    dataset page, site.write_section)."""
+    return f"{cell.column.slug}.md" if cell.row.track == "single-image" else track_file(cell.row.track)
+
+
 def summary(cell: Cell, stats: dict, seed: int = 0) -> dict:
     """One cell's row of the downloads; `stats` as `tables.cell_stats` drew them with `seed`."""
     r = cell.record
     entry = {"row": cell.row.name, "method": cell.row.label, "weights": weights_shown(cell.row, r), "licence": licence_shown(r),
              "dataset": cell.column.dataset,
-             "column": cell.column.title, "page": f"{cell.column.slug}.md", "dataset_kind": cell.column.kind,
+             "column": cell.column.title, "page": page_of(cell), "dataset_kind": cell.column.kind,
              "domain": cell.column.domain, "row_key": cell.row.key, "track": cell.row.track}
     for k in CELL_KS:
         entry[f"r{k}"] = stats[k]["value"]
@@ -40,7 +47,8 @@ def summary(cell: Cell, stats: dict, seed: int = 0) -> dict:
     entry["source"], entry["hardware"] = cell.source, hardware_of(r)
     entry["contributor"] = (r.get("_contribution") or {}).get("contributor") or "this machine"
     entry["speed_run_id"] = (cell.timed or {}).get("run_id")
-    entry["protocol"] = (r.get("protocol") or {}).get("id")
+    # as the dataset page gives it, id and hash: one own folder's ±1 and ±10 frames share the id 'name:own'
+    entry["protocol"], entry["protocol_hash"] = (r.get("protocol") or {}).get("id"), cell.column.protocol_hash or None
     entry["ci_resampling"] = for_record(r, cell.arrays).text()  # which queries the intervals draw together
     entry["ci_method"] = f"{LEVEL:.0%} percentile bootstrap, {RESAMPLES:,} resamples, seed {seed}"  # a file read alone says it
     entry["vprbench"] = (r.get("versions") or {}).get("vprbench")

@@ -2,17 +2,16 @@
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import asdict, dataclass
 
 import pandas as pd
 
 from ..errors import VPRBenchError
 from ..reference import paper_results
-from ..text import CONTROL, literal
+from ..text import CONTROL, literal, recall_text
 from .cells import (AGREES, CELL_KS, CONTRIBUTED, IMPORTED, STRUCTURED, UNSTRUCTURED, Board, Cell, Column, Row,  # noqa: F401
                     licence_shown, weights_shown)
-from .escape import text, to_csv
+from .escape import public_data, text, to_csv
 from ..evaluation.blocks import for_record
 from ..evaluation.metrics import successes
 from .stats import bootstrap_ci
@@ -23,8 +22,7 @@ TOLERANCE_PP = 1.0
 GROUPS = {"II": ("Structured environments", STRUCTURED), "III": ("Unstructured environments", UNSTRUCTURED)}
 
 
-def fmt(value) -> str:
-    return "–" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.1f}"
+fmt = recall_text  # a recall as every surface shows it (text.recall_text)
 
 
 def with_ci(entry) -> str:
@@ -44,6 +42,9 @@ class Shown:
     r5: float | None
     source: str    # where the cell's number comes from (Cell.source)
     run_id: str
+    #: the run's protocol id and track, as the site's downloads give them: a JSON entry read alone names its run
+    protocol: str | None
+    track: str
 
 
 #: the mark after a cell's numbers in the site's tables, by where they come from (measured here: none;
@@ -70,7 +71,8 @@ def marks_legend(sources) -> str:
 def computed(board: Board) -> list[Shown]:
     """The board's cells, row by row in the board's order: what every format renders."""
     return [Shown(row.name, row.label, weights_shown(row, cell.record), licence_shown(cell.record), column.title,
-                  cell.recall(1), cell.recall(5), cell.source, str(cell.record.get("run_id")))
+                  cell.recall(1), cell.recall(5), cell.source, str(cell.record.get("run_id")),
+                  public_data((cell.record.get("protocol") or {}).get("id")), row.track)
             for row in board.rows for column in board.columns if (cell := board.cell(row, column))]
 
 
