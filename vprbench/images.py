@@ -29,6 +29,7 @@ import numpy as np
 from PIL import Image, ImageOps, UnidentifiedImageError
 
 from .errors import VPRBenchError
+from .fsutil import warn_once
 from .paths import regular_file
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".ppm", ".webp")
@@ -105,6 +106,15 @@ def to_8bit(image: Image.Image) -> Image.Image:
     return Image.fromarray(scaled.astype(np.uint8), "L")
 
 
+def _beyond_full_scale(image: Image.Image) -> float:
+    """The largest finite value of a float image above its full scale 1 (most often one written in 0..255), else 0."""
+    if image.mode != "F":
+        return 0.0
+    values = np.asarray(image)
+    top = float(np.max(values, initial=0.0, where=np.isfinite(values)))
+    return top if top > _FULL_SCALE["F"] else 0.0
+
+
 def load_image(path: str | Path, mode: str = "RGB") -> Image.Image:
     """Open an image fully decoded in `mode` ("RGB" or "L"), upright (EXIF orientation applied)."""
     path = Path(path)
@@ -117,8 +127,13 @@ def load_image(path: str | Path, mode: str = "RGB") -> Image.Image:
                 check_decode_budget(*image.size, f"Image {path}")  # from the header: nothing decoded yet
                 image.load()
                 ImageOps.exif_transpose(image, in_place=True)
+                brightest = _beyond_full_scale(image)
                 loaded = (to_8bit(image) if image.mode in _FULL_SCALE else image).convert(mode)
         _say_again(said, path)
+        if brightest:  # said here, not among Pillow's warnings; once per image however often it is read
+            warn_once(path, f"Image {path}: a float image with values up to {brightest:g} is read as values in "
+                            "[0, 1] (1 is white, above it clipped), so it reads almost white: save it as 8- or "
+                            "16-bit integers, or as floats scaled to [0, 1].", stacklevel=2)
         return loaded
     except FileNotFoundError:
         raise VPRBenchError(f"Image not found: {path}") from None
@@ -169,14 +184,14 @@ def list_images(folder: Path, *, recursive: bool = False, natural: bool = False)
     """The image files in `folder` (and below it when `recursive`), sorted by path, or in natural
     name order when `natural` (the order a released dataset's ground truth indexes); names alike in
     natural order ('a1.jpg', 'a01.jpg'; one name in two subfolders) by path, not as the folder lists them."""
-    found = _below(folder) if recursive else folder.iterdir()
+    found = entries_below(folder) if recursive else folder.iterdir()
     # hidden names (macOS's ._x.jpg copies of metadata) are no images, as for the authors' glob-based loaders
     images = [_utf8_name(p) for p in found
               if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".") and _is_image_file(p)]
     return sorted(images, key=(lambda p: (natural_key(p), p)) if natural else None)
 
 
-def _below(folder: Path) -> Iterator[Path]:
+def entries_below(folder: Path) -> Iterator[Path]:
     """Every entry below `folder`, linked folders followed as the top folder's are (rglob skipped them, dropping
     their images unseen), except hidden folders and a link back up to a folder it lies in (a loop; `..` would add the
     other split); each real folder once, so other loops end too; an unreadable folder is an error."""

@@ -204,6 +204,12 @@ def _numbers(source: str, rows, n: int) -> np.ndarray:
         if torch is not None and isinstance(rows, torch.Tensor):  # with grad, on a GPU, in bfloat16: all fine
             rows = rows.detach().cpu()  # a meta tensor (no data) or a sparse one is refused below, not a traceback
             rows = (rows.float() if rows.is_floating_point() else rows).numpy()
+        if isinstance(rows, np.ma.MaskedArray):  # np.asarray drops the mask: its masked entries are missing values
+            mask = np.atleast_1d(np.ma.getmaskarray(rows))
+            missing = np.flatnonzero(mask.any(axis=tuple(range(1, mask.ndim))))
+            if missing.size:
+                raise VPRBenchError(f"{source} returned a masked array with masked (missing) entries, first in row "
+                                    f"{missing[0]} of {n}: return plain rows with every value filled in.")
         out = np.asarray(rows)
     except (TypeError, ValueError, RuntimeError, NotImplementedError) as error:
         out, reason = None, f" ({error})"

@@ -179,3 +179,65 @@ def test_hidden_names_are_no_images(tmp_path):
     Image.new("RGB", (4, 4)).save(tmp_path / ".thumbs" / "b.jpg")
     assert list_images(tmp_path) == [tmp_path / "a.jpg"]
     assert list_images(tmp_path, recursive=True) == [tmp_path / "a.jpg"]
+
+
+def test_an_unreadable_subfolder_of_a_split_is_named_not_skipped(own, cli, monkeypatch):
+    """The check for images left in a split's subfolders skipped one it could not read without a word (rglob),
+    where list_images names an unreadable folder. Tests run as root: the folder is made unreadable by hand."""
+    import os
+
+    locked = own / "database" / "old"
+    locked.mkdir()
+    scandir = os.scandir
+
+    def refusing(path="."):
+        if os.fspath(path) == str(locked):
+            raise PermissionError(13, "Permission denied", os.fspath(path))
+        return scandir(path)
+
+    monkeypatch.setattr(os, "scandir", refusing)
+    code, _, err = cli("datasets", "info", own)
+    assert_refused(code, err, None, f"Cannot use {locked}: Permission denied")
+
+
+def test_a_fractional_frame_is_refused_naming_its_row(own, cli):
+    """A frame is an index along a route: 'frame' 12.5 was taken as a position between frames."""
+    (own / "dataset.toml").write_text("radius = 2\n")
+    (own / "positions.csv").write_text("image,frame\ndatabase/d0.jpg,-1\ndatabase/d1.jpg,12.5\nqueries/q0.jpg,0\n")
+    code, _, err = cli("datasets", "info", own)
+    assert_refused(code, err, None, f"{own / 'positions.csv'} has frame numbers that are not whole in 1 row(s), "
+                                    "e.g. for ['database/d1.jpg']; give each image's frame index")
+    (own / "positions.csv").write_text("image,frame\ndatabase/d0.jpg,-1\ndatabase/d1.jpg,12.0\nqueries/q0.jpg,0\n")
+    assert cli("datasets", "info", own)[0] == 0  # whole numbers written as 12.0, and a negative frame, are taken
+
+
+def test_an_own_folders_table_is_titled_with_its_radius_as_its_board_column(own, cli):
+    """'vprbench evaluate' titled it 'hog [resize=32x32] on own:own', where the board's column reads 'own (own, ±2 frames)'."""
+    from vprbench.cli.evaluate import results_table
+    from vprbench.evaluation.results import read_results
+    from vprbench.leaderboard.cells import build_board
+
+    (own / "dataset.toml").write_text("radius = 2\n")
+    (own / "positions.csv").write_text("image,frame\ndatabase/d0.jpg,0\ndatabase/d1.jpg,10\nqueries/q0.jpg,1\n")
+    code, _, err = evaluate(cli, own)
+    assert code == 0, err
+    [record] = read_results()
+    [column] = build_board([record]).columns
+    assert column.title == "own (own, ±2 frames)"
+    assert results_table(record).title == f"hog [resize=32x32] on {column.title}"
+
+
+def test_a_float_image_in_0_to_255_is_warned_of_once_naming_it(tmp_path):
+    """Float images are read as values in [0, 1]: one written in 0..255 read almost white, unsaid."""
+    levels = np.linspace(0, 255, 64, dtype=np.float32).reshape(8, 8)
+    Image.fromarray(levels, "F").save(tmp_path / "bright.tif")
+    Image.fromarray(levels / 255, "F").save(tmp_path / "unit.tif")
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        for _ in range(2):  # read again (another method, a resumed run): said once
+            assert (np.asarray(load_image(tmp_path / "bright.tif")) == 255).mean() > 0.9
+        load_image(tmp_path / "unit.tif")
+    assert [str(w.message) for w in said] == [
+        f"Image {tmp_path / 'bright.tif'}: a float image with values up to 255 is read as values in [0, 1] (1 is "
+        "white, above it clipped), so it reads almost white: save it as 8- or 16-bit integers, or as floats scaled "
+        "to [0, 1]."]

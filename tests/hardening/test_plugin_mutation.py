@@ -2,6 +2,7 @@
 lists): its rows still land on their own images, and the preset stays what was registered."""
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -37,6 +38,22 @@ def test_a_tensor_without_rows_to_read_is_refused_in_one_line(shape, fragment, c
     # was a NotImplementedError / TypeError traceback from vprbench's conversion
     code, _, err = describe(cli, tmp_path, plugin("tensor", shape), images)
     assert_refused(code, err, None, f"Method 'tensor' {fragment}", "expected a (2, dim) array of real numbers")
+
+
+@pytest.mark.parametrize("hidden", [True, False], ids=["masked-entry", "nothing-masked"])
+def test_masked_entries_are_missing_values_not_silently_unmasked(hidden, cli, tmp_path, images):
+    def masked(rows):
+        mask = np.zeros(rows.shape, bool)
+        mask[-1, 0] = hidden  # one value of each batch's last row
+        return np.ma.masked_array(rows, mask)
+
+    code, _, err = describe(cli, tmp_path, plugin("masks", masked), images)
+    if not hidden:  # a mask hiding nothing loses nothing
+        assert code == 0, err
+        return
+    # was: accepted, the masked value used as if it were real
+    assert_refused(code, err, None, "Method 'masks' returned a masked array with masked (missing) entries, "
+                                    "first in row 1 of 2: return plain rows")
 
 
 class Reverses(Returns):

@@ -133,7 +133,7 @@ def run_matrix(args, settings, options, overrides) -> int:
 def results_table(record: dict):
     from rich.table import Table
 
-    from ..leaderboard.cells import row_of
+    from ..leaderboard.cells import own_detail, row_of
     from ..leaderboard.shown import descriptor_bytes, random_weights
     from ..text import percent
 
@@ -144,7 +144,10 @@ def results_table(record: dict):
     # the evaluated database): its table names it by the board's marks (random weights are said after the dataset)
     marks = [m for m in row_of(record).mark.split("; ") if m and m != "weights random"]
     label = (record.get("label") or record["method"]) + (f" ({', '.join(marks)})" if marks else "")
-    table = Table(title=f"{label} on {record['protocol']['id']}{random}", show_header=True)
+    # an own folder's protocol id ('name:own') hides its radius: titled as its board column is
+    own = record.get("dataset_kind") == "own"
+    dataset = f"{record['dataset']} ({own_detail(record)})" if own else record["protocol"]["id"]
+    table = Table(title=f"{label} on {dataset}{random}", show_header=True)
     for k in record["recall"]:
         table.add_column(f"R@{k}", justify="right")
     table.add_column("AUC-PR", justify="right")

@@ -228,7 +228,7 @@ def _column_of(record: dict) -> tuple[str, str, bool] | str:
     return "benchmark", protocol["name"], found["hash"] == next(iter(known))
 
 
-def _own_detail(record: dict) -> str:
+def own_detail(record: dict) -> str:
     """'own, ±1 frame' / 'own, 25 m': what an own column's protocol is, in its heading."""
     gt = record.get("ground_truth") or {}
     radius, unit = gt.get("radius"), gt.get("radius_unit") or gt.get("unit") or ""
@@ -288,7 +288,7 @@ def build_board(records: list[dict], truth=None, refused: list | None = None) ->
         if kind == "benchmark":
             key, detail = (name if default else f"{name} [{protocol}]"), ""
         else:
-            key, detail = f"{name} (own {protocol_hash[:8]})", _own_detail(record)
+            key, detail = f"{name} (own {protocol_hash[:8]})", own_detail(record)
         column = Column(key, name, kind, str(record.get("domain") or ""), fingerprint, protocol, default, detail,
                         protocol_hash)
         placed.append((record, row_of(record), column))

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import VPRBenchError
-from ...images import IMAGE_SUFFIXES, list_images
+from ...images import IMAGE_SUFFIXES, entries_below, list_images
 from ...paths import regular_file
 from ...text import CONTROL, toml_data
 from ..manifest import DatasetManifest
@@ -154,6 +154,12 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
             f"{csv} has positions beyond +-{MAX_COORDINATE:.0e} in {len(huge)} row(s), e.g. for "
             f"{[str(table['image'].iloc[i]) for i in huge[:3]]}; give metres, degrees or frame numbers."
         )
+    fractional = np.flatnonzero(values[:, 0] != np.round(values[:, 0])) if unit == "frames" else []
+    if len(fractional):  # a frame is an index along the route: 12.5 is a typo or another unit (seconds?)
+        raise VPRBenchError(
+            f"{csv} has frame numbers that are not whole in {len(fractional)} row(s), e.g. for "
+            f"{[str(table['image'].iloc[i]) for i in fractional[:3]]}; give each image's frame index (0, 1, 2, ...)."
+        )
     if unit == "degrees":
         outside = np.flatnonzero((np.abs(values[:, 0]) > 84) | (np.abs(values[:, 1]) > 180))
         if len(outside):  # named as the other bad rows are, so the user finds them (often swapped columns)
@@ -229,9 +235,11 @@ def image_row_names(images: list[Path], root: Path) -> list[str]:
 
 def _nested_images(folder: Path) -> str:
     """The subfolders of `folder` that hold images (at any depth), named for a message; "" if none."""
-    with os.scandir(folder) as entries:  # the folder's own images were listed already: only its folders
+    # the folder's own images were listed already: only its folders, walked as list_images walks them
+    # (rglob skipped an unreadable one unsaid; the walk names it)
+    with os.scandir(folder) as entries:
         found = sorted(entry.name for entry in entries if _is_folder(entry)
-                       and any(path.suffix.lower() in IMAGE_SUFFIXES for path in Path(entry.path).rglob("*")))
+                       and any(path.suffix.lower() in IMAGE_SUFFIXES for path in entries_below(Path(entry.path))))
     return ", ".join(ascii(name) for name in found[:3]) + (f" and {len(found) - 3} more" if len(found) > 3 else "")
 
 
