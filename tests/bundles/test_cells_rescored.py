@@ -91,3 +91,17 @@ def test_the_dataset_page_says_so_too(store, tmp_path, capsys):
         text = " ".join((docs / "leaderboard" / page).read_text().split())
         assert "2 of 2 cell(s) were NOT re-scored against a ground truth" in text, page
         assert str(tmp_path) not in text  # the data root's path cut to its name, as every page does
+
+
+def test_the_python_api_re_scores_as_the_command_line_does(records, shared_data, tmp_path):
+    """Before: leaderboard(records) and build_board(records) re-scored nothing and truth_note said
+    nothing, where `vprbench leaderboard` re-scores every cell and says which it could not."""
+    from vprbench.leaderboard import build_board, leaderboard
+    from vprbench.leaderboard.truth import truth_note
+
+    note = truth_note(build_board(records))  # no ground truth given: said, not silent
+    assert "2 of 2 cell(s) were NOT re-scored" in note and "built without a ground truth" in note
+    table = leaderboard(records, shared_data)
+    assert table.attrs["truth_note"].startswith("Every cell was re-scored"), table.attrs
+    with pytest.warns(UserWarning, match="2 of 2 cell.s. were NOT re-scored"):
+        leaderboard(records, tmp_path / "no-data")

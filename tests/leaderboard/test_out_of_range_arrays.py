@@ -46,10 +46,10 @@ def test_the_attack_is_real(forged, tmp_path, shared_data, monkeypatch, capsys):
     mosaic indexes past Corridor's database list (the re-score against the ground truth, which would
     also refuse it, left out too)."""
     from vprbench.datasets import load_dataset
-    from vprbench.leaderboard import cells, figures
+    from vprbench.leaderboard import figures, truth
 
     monkeypatch.setattr(results, "_in_range", lambda record, arrays: arrays)
-    monkeypatch.setattr(cells, "against_truth", lambda record, truth: ("unproven", "not re-scored in this test"))
+    monkeypatch.setattr(truth, "against_truth", lambda record, truth: ("unproven", "not re-scored in this test"))
     corridor = load_dataset("corridor", shared_data, fetch=False)
     monkeypatch.setattr(figures, "_dataset_of", lambda *args, **kwargs: corridor)
     with pytest.raises(IndexError):

@@ -123,3 +123,12 @@ def test_a_download_tells_apart_two_protocols_of_one_own_folder(make_record, tmp
     hashes = sorted(c.record["protocol"]["hash"] for c in board.cells.values())
     assert sorted(e["protocol_hash"] for e in entries) == hashes
     assert len({e["protocol_hash"] for e in entries}) == 2
+
+
+def test_the_downloads_give_an_intervals_ends_to_the_recalls_decimals(make_record):
+    """Before: r1 48.648649 beside r1_ci_low 34.54545454545455 (a full float) in leaderboard.csv/json."""
+    (cell,) = build_board([make_record("hog", seed=1)]).cells.values()
+    entry = summary(cell, cell_stats(cell))
+    values = [entry[f"r{k}{end}"] for k in (1, 5) for end in ("", "_ci_low", "_ci_high")]
+    assert all(isinstance(v, float) for v in values), values
+    assert all(v == round(v, 6) for v in values), values

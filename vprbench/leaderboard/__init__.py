@@ -11,9 +11,21 @@ from .site import publish
 from .tables import Shown, computed, grid, render
 
 
-def leaderboard(records: list[dict]):
-    """Methods x datasets table of 'R@1 / R@5' (one run per cell) from result records."""
-    return grid(build_board(records))
+def leaderboard(records: list[dict], data_dir=None, cache_dir=None, *, rescore: bool = True):
+    """Methods x datasets table of 'R@1 / R@5' (one run per cell) from result records, each run first
+    re-scored from its top-K indices against the ground truth on this machine as the command line does
+    (a benchmark's under `data_dir`, else the default data root; `rescore=False` skips it). The table's
+    `attrs["truth_note"]` says which cells were not re-scored, and a warning says so too."""
+    import warnings
+
+    from .truth import PROVEN, LocalTruth, truth_note
+
+    board = build_board(records, LocalTruth(data_dir, cache_dir) if rescore else None)
+    table = grid(board)
+    table.attrs["truth_note"] = truth_note(board)
+    if any(cell.record["_proof"].get("ground_truth") != PROVEN for cell in board.cells.values()):
+        warnings.warn(table.attrs["truth_note"], stacklevel=2)  # a notebook shows it; it is not silent
+    return table
 
 
 __all__ = ["CELL_RULE", "Board", "Cell", "Shown", "build_board", "computed", "grid", "leaderboard", "method_label",

@@ -29,7 +29,7 @@ from ..evaluation.metrics import recall_at_k
 from ..evaluation.proof import proven
 from ..evaluation.results import per_query
 from .escape import public
-from .truth import PROVEN, REFUSED, against_truth, refuse
+from .truth import judge
 from .shown import (OFFICIAL_WEIGHTS, RANDOM, TRANSDUCTIVE, hardware_of, licence_shown,  # noqa: F401
                     method_label, random_weights, stage_marks, weights_of, weights_shown)
 
@@ -275,14 +275,11 @@ def build_board(records: list[dict], truth=None, refused: list | None = None) ->
             excluded.append((record, found))
             continue
         kind, protocol, default = found
-        if truth is not None:
-            verdict, why = against_truth(record, truth)
-            if verdict == REFUSED:
-                excluded.append((record, refuse(record, why)))
-                if refused is not None:
-                    refused.append(record.get("_source") or record.get("run_id"))
-                continue
-            record = {**record, "_proof": {**record["_proof"], "ground_truth": why or PROVEN}}
+        judged = judge(record, truth, refused)  # re-scored against its ground truth, or said not to be
+        if isinstance(judged, str):
+            excluded.append((record, judged))
+            continue
+        record = judged
         name, fingerprint = record["dataset"], str(record.get("dataset_fingerprint", ""))
         protocol_hash = str((record.get("protocol") or {}).get("hash", ""))
         if kind == "benchmark":

@@ -7,6 +7,7 @@ import json
 import numpy as np
 
 from ..evaluation.blocks import for_record
+from ..evaluation.metrics import RECALL_DECIMALS
 from .cells import CELL_KS, Cell, hardware_of, licence_shown, weights_shown
 from .escape import public_data
 from .shown import descriptor_bytes
@@ -20,6 +21,12 @@ def plain(value):
     if isinstance(value, np.ndarray):
         return value.tolist()
     raise TypeError(type(value).__name__)
+
+
+def decimals(value):
+    """A recall or an interval's end as the downloads give it: the records' RECALL_DECIMALS (6), where
+    an interval's end came as a full float (34.54545454545455); the pages show one decimal."""
+    return None if value is None else round(float(value), RECALL_DECIMALS)
 
 
 def page_of(cell: Cell) -> str:
@@ -36,10 +43,10 @@ def summary(cell: Cell, stats: dict, seed: int = 0) -> dict:
              "column": cell.column.title, "page": page_of(cell), "dataset_kind": cell.column.kind,
              "domain": cell.column.domain, "row_key": cell.row.key, "track": cell.row.track}
     for k in CELL_KS:
-        entry[f"r{k}"] = stats[k]["value"]
-        entry[f"r{k}_ci_low"], entry[f"r{k}_ci_high"] = stats[k]["ci"] or (None, None)
+        entry[f"r{k}"] = decimals(stats[k]["value"])
+        entry[f"r{k}_ci_low"], entry[f"r{k}_ci_high"] = (decimals(end) for end in stats[k]["ci"] or (None, None))
     for k in (10, 20):
-        entry[f"r{k}"] = cell.recall(k)
+        entry[f"r{k}"] = decimals(cell.recall(k))
     entry.update({key: r.get(key) for key in ("auc_pr", "recall_at_100_precision", "max_f1", "descriptor_dim")})
     entry["descriptor_bytes"] = descriptor_bytes(r)  # as the pages give it
     entry.update({key: r.get(key) for key in ("run_id", "created", "dataset_fingerprint")})

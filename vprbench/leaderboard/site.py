@@ -32,7 +32,7 @@ from .domains import domain_datasets
 from .downloads import plain, record_download, summary
 from .escape import code, public, text, to_csv
 from .cells import CELL_RULE, Board, Cell, Column, build_board, hardware_of, licence_shown, weights_shown
-from .shown import descriptor_bytes, left_out, row_name
+from .shown import descriptor_bytes, row_name
 from .truth import LocalTruth, truth_note
 from .stats import check_k_and_seed
 from ..evaluation.blocks import RULE, for_record
@@ -41,7 +41,7 @@ from ..evaluation.metrics import successes
 from .compare import shared_resampling
 from .stats import RESAMPLES, format_test, overlaps, paired_test
 from .tables import (DOWNLOAD_UNITS, GROUPS, RESULTS_LEGEND, TOLERANCE_PP, cell_stats, comparisons, fmt, group_table,
-                     marks_note, other_rows, reported_page, source_mark, with_ci)
+                     left_out_section, marks_note, other_rows, reported_page, source_mark, with_ci)
 
 SECTION = "leaderboard"
 #: MkDocs Material front matter: the wide tables get the table-of-contents column
@@ -232,14 +232,7 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
                          f"{with_ci(s[5])} | {text(cell.source)} | {code(cell.record.get('run_id'))} |")
     else:
         lines.append("None.")
-    lines += ["", "## Runs left out", ""]
-    if board.excluded:
-        lines += ["| Run | Method | Dataset | Why |", "|:--|:--|:--|:--|"]
-        for record, why in board.excluded:
-            run, label, dataset = left_out(record)
-            lines.append(f"| {code(run)} | {text(label)} | {text(dataset)} | {text(why)} |")
-    else:
-        lines.append("None.")
+    lines += ["", *left_out_section(board)]
     lines += ["", "## Datasets", ""]
     lines += [f"- [{text(c.title)}]({c.slug}.md): {text(c.domain or 'no domain')}, {len(board.column_cells(c))} row(s)" for c in board.columns]
     lines += ["", "The paper's reported tables (II–VII), as reported: [reported numbers](reported.md).", "",

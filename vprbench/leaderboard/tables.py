@@ -11,7 +11,8 @@ from ..reference import paper_results
 from ..text import CONTROL, literal, recall_text
 from .cells import (AGREES, CELL_KS, CONTRIBUTED, IMPORTED, STRUCTURED, UNSTRUCTURED, Board, Cell, Column, Row,  # noqa: F401
                     licence_shown, weights_shown)
-from .escape import public_data, text, to_csv
+from .escape import code, public_data, text, to_csv
+from .shown import left_out
 from ..evaluation.blocks import for_record
 from ..evaluation.metrics import successes
 from .stats import bootstrap_ci
@@ -66,6 +67,24 @@ def marks_legend(sources) -> str:
     shown = [f"<sup>{mark}</sup> {meaning}" for start, mark, meaning in SOURCE_MARKS
              if any(source_mark(s) == f"<sup>{mark}</sup>" for s in sources)]
     return (" " + "; ".join(shown) + ".") if shown else ""
+
+
+def left_out_section(board: Board) -> list[str]:
+    """"## Runs left out": every run of `board` that fills no cell, with why; one renderer for the
+    overview and the track pages. A contributed or imported run carries its cells' source mark."""
+    lines = ["## Runs left out", ""]
+    if not board.excluded:
+        return lines + ["None."]
+    sources = [IMPORTED if r.get("imported") else CONTRIBUTED if r.get("_contribution") else "" for r, _ in board.excluded]
+    # its mark as on a cell, without the cell's meaning ("re-scored here"): a run left out may not re-score
+    legend = [f"{source_mark(s)} {meaning}" for s, meaning in ((CONTRIBUTED, "contributed to a results repository"),
+              (IMPORTED, "imported from VPR-Bench")) if s in sources]
+    lines += [f"Marks: {'; '.join(legend)}.", ""] if legend else []
+    lines += ["| Run | Method | Dataset | Why |", "|:--|:--|:--|:--|"]
+    for (record, why), source in zip(board.excluded, sources):
+        run, label, dataset = left_out(record)
+        lines.append(f"| {code(run)} | {text(label)}{source_mark(source)} | {text(dataset)} | {text(why)} |")
+    return lines
 
 
 def computed(board: Board) -> list[Shown]:
@@ -306,7 +325,7 @@ RESULTS_LEGEND = ("R@K and R@100%P in percent (R@100%P: the share of correct top
                   "confident wrong one); AUC-PR from 0 to 1. Dim: descriptor dimensions. Bytes: one descriptor as stored (4 per "
                   "dimension, 2 in a float16 store). Images/s: descriptors computed per second of extraction, by the "
                   "run named below.")
-DOWNLOAD_UNITS = ("r1 .. r20 and their intervals in percent; auc_pr, max_f1 and recall_at_100_precision from 0 to 1, "
+DOWNLOAD_UNITS = ("r1 .. r20 and their intervals in percent, to 6 decimals where the pages show one; auc_pr, max_f1 and recall_at_100_precision from 0 to 1, "
                   "as in the records")
 PARTIAL_LEGEND = (" Measured so far: a measured row's mean over the datasets it has been run on, of all those "
                   "shown (n of m); not comparable with the averages.")

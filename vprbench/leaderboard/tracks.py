@@ -5,7 +5,7 @@ from __future__ import annotations
 from .cells import Board, Cell
 from .escape import code, text
 from .shown import licence_shown, row_name, weights_shown
-from .tables import fmt, marks_legend, source_mark, with_ci
+from .tables import fmt, left_out_section, marks_legend, source_mark, with_ci
 from ..text import percent
 
 TITLES = {"single-image": "Single-image retrieval", "re-ranked": "Re-ranked", "sequence": "Sequence matching"}
@@ -83,7 +83,8 @@ def track_page(full: Board, track: str, stats: dict, head: str = "") -> str:
                              f"{_cost(cell, 'ms_per_query')} | {code(r.get('run_id'))} |")
         lines.append("")
     if not board.columns:
-        lines.append("No run in this track yet.")
+        lines += ["No run in this track yet.", ""]
+    lines += left_out_section(board)  # the track's own (random weights, refused by the re-score)
     legend = marks_legend(sources)
     return "\n".join([head, f"# {TITLES[track]}", "", INTRO[track], "", *([f"Marks:{legend}", ""] if legend else []),
                       *lines])

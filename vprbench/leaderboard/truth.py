@@ -100,18 +100,33 @@ def against_truth(record: dict, truth) -> tuple[str, str]:
     return verdict
 
 
+#: why a board built without `truth` (a library caller's build_board(records)) has no cell re-scored
+NO_TRUTH = "the board was built without a ground truth (build_board(records, LocalTruth(data_dir)) re-scores them)"
+
+
+def judge(record: dict, truth, refused: list | None) -> dict | str:
+    """The record with its verdict in `_proof` (PROVEN, or why it was not re-scored), or the reason it
+    fills no cell (its file appended to `refused`). Without `truth` every cell says so: truth_note is
+    then never silent about numbers no ground truth checked."""
+    verdict, why = against_truth(record, truth) if truth is not None else (UNPROVEN, NO_TRUTH)
+    if verdict == REFUSED:
+        if refused is not None:
+            refused.append(record.get("_source") or record.get("run_id"))
+        return refuse(record, why)
+    return {**record, "_proof": {**(record.get("_proof") or {}), "ground_truth": why or PROVEN}}
+
+
 def refuse(record: dict, why: str) -> str:
     """The reason a record fills no cell, warned naming its file."""
     where = record.get("_source") or f"run {record.get('run_id')}"
     reason = (f"its per-query top-K indices do not re-score to its numbers against the ground truth of "
               f"{record.get('dataset')} on this machine ({why}); 'vprbench results verify' says the same")
-    warnings.warn(f"{where}: {reason}; it fills no cell.", stacklevel=3)
+    warnings.warn(f"{where}: {reason}; it fills no cell.", stacklevel=4)  # the caller of build_board
     return reason
 
 
 def truth_note(board) -> str:
-    """Which cells were not re-scored against the ground truth here, and why ("" when every one was,
-    or when the board was built without ground truth, as a library caller may)."""
+    """Which cells were not re-scored against the ground truth here, and why ("" for a board of no cell)."""
     cells = [c for c in board.cells.values() if "ground_truth" in (c.record.get("_proof") or {})]
     unproven = [c for c in cells if c.record["_proof"]["ground_truth"] != PROVEN]
     if not unproven:
