@@ -175,7 +175,7 @@ def test_a_hand_made_files_metadata_reaches_a_record_cut(tmp_path):
     """What a file's metadata puts in a run's record (its folder, source, fitted stride, resize, image size)
     is kept as a fit writes it, and a hand-made file's megabyte-long value, or one of another type, as its
     text cut to one line's length: a record and the leaderboard's Weights cell stay readable."""
-    from vprbench.methods.anyloc_vocabulary import file_provenance
+    from vprbench.methods.anyloc_provenance import file_provenance
 
     huge = "y" * 1_000_000
     Vocabulary(centres(), {"folder": huge, "source": huge, "resize": huge, "image_size": {"h": [0] * 10**5},

@@ -163,7 +163,8 @@ def check_fit_sizes(args, width: int | None) -> None:
 def run_import(args) -> int:
     from pathlib import Path
 
-    from ..methods.anyloc_vocabulary import content_source, is_released_setting, release, save_to_cache
+    from ..methods.anyloc_provenance import content_source
+    from ..methods.anyloc_vocabulary import is_released_setting, release, save_to_cache
     from ..aggregation.vocabulary import RELEASED_FILE, load_vocabulary, vocabulary_dir, vocabulary_file_in
     from ..fsutil import atomic_write, write_in_turn
     from ..weights import file_sha256
@@ -249,7 +250,8 @@ def shown(value) -> str:
 def fitted_on(vocabulary) -> str:
     """What the centres were learnt from, in words: the authors' release (known by its sha256), the
     datasets and features the metadata names, or that the file does not say (a bare tensor)."""
-    from ..methods.anyloc_vocabulary import release, released_provenance
+    from ..methods.anyloc_provenance import released_provenance
+    from ..methods.anyloc_vocabulary import release
 
     meta = vocabulary.meta
     found = released_provenance(vocabulary)

@@ -21,8 +21,8 @@ from ..aggregation.pca import PCAWhitening
 from . import anyloc_options
 from .anyloc_options import AGGREGATIONS, PCA_ON, VLADS, pca_datasets, pca_provenance
 from .anyloc_fit import recorded_image_digests
-from .anyloc_vocabulary import (MAP_PREFIX, check_proven, file_provenance, names_file, paper_choice,
-                                 resolve_vocabulary, vocabulary_images)
+from .anyloc_provenance import file_provenance
+from .anyloc_vocabulary import MAP_PREFIX, check_proven, names_file, paper_choice, resolve_vocabulary, vocabulary_images
 from ..aggregation.vlad import vlad_hard
 from ..aggregation.vocabulary import fit_vocabulary
 from ..errors import VPRBenchError

@@ -1,7 +1,8 @@
 """AnyLoc's vocabulary policy: which images a VLAD vocabulary is fitted on (map-specific
 and domain vocabularies), the authors' released centres, and the `vocabulary` option.
 
-Domain membership is data (manifests/vocabularies.toml); fitting is anyloc_fit.py.
+Domain membership is data (manifests/vocabularies.toml); fitting is anyloc_fit.py; what a file's
+content says it is (the release by sha256, a fit's metadata) is anyloc_provenance.py.
 """
 from __future__ import annotations
 
@@ -18,7 +19,6 @@ from ..aggregation.vocabulary import (
 )
 from ..errors import VPRBenchError, closest_names, network_reason
 from ..fsutil import lock, remove_stale, write_in_turn
-from ..text import shortened
 
 MAP_PREFIX = "map-"
 #: hex digits of a folder of one's own's database content in its map vocabulary's name
@@ -138,49 +138,6 @@ def source_datasets(source: str) -> list[str]:
     return [name for name, _ in domain_datasets(source)] if source in domain_names() else []
 
 
-def released_provenance(vocabulary: Vocabulary) -> dict:
-    """{"source": "released", repository, commit, url, sha256} when the file is a released one, else the file's sha256."""
-    from ..weights import file_sha256
-
-    path = vocabulary.meta.get("path") or vocabulary.meta.get("imported_from")
-    if not path or not Path(path).is_file():
-        return {}
-    digest = file_sha256(path)
-    for source in released_sources():
-        if release()["sha256"][released_name(source)] == digest:
-            r = release()
-            return {"source": "released", "released_as": released_name(source), "repository": r["repository"],
-                    "commit": r["commit"], "url": released_url(source), "sha256": digest, "file": str(path),
-                    "datasets": source_datasets(source)}
-    return {"source": "file", "sha256": digest, "file": str(path)}
-
-
-def file_provenance(vocabulary: Vocabulary) -> dict:
-    """Where the centres came from, and what they were fitted on: the datasets whose databases a vprbench fit
-    records (the authors' release is known by its name) and, for a folder of one's own's, its path."""
-    found = released_provenance(vocabulary)
-    meta = vocabulary.meta
-    if found.get("source") == "file" and "vocabularies" in Path(found["file"]).parts:
-        found["source"] = "cache"  # fitted earlier with `vprbench vocabulary fit` or imported
-    fitted = meta.get("datasets")
-    if isinstance(fitted, (dict, list)) and fitted and all(isinstance(name, str) for name in fitted):
-        found["datasets"] = list(fitted)
-    if isinstance(meta.get("folder"), str):  # named by its content too: the name alone may be another folder's
-        named = f" ({recorded(meta['source'])})" if isinstance(meta.get("source"), str) else ""
-        folder = recorded(meta["folder"])
-        found.update(folder=folder, fitted_on=f"the database of the folder {folder}{named}")
-    # the features' settings the key leaves out: the record tells what the centres were fitted at
-    found.update({f"fitted_{key}": recorded(meta[key]) for key in ("stride", "resize", "image_size") if key in meta})
-    return found
-
-
-def recorded(value):
-    """A file's metadata value as a record keeps it: a fit's (number, size, path) as it is, else its text, cut."""
-    if isinstance(value, int) or isinstance(value, list) and len(value) <= 2 and all(type(v) is int for v in value):
-        return value
-    return shortened(value, 1000)
-
-
 def paper_choice(dataset: str, backbone: str, layer: int, facet: str, clusters: int,
                  cache_dir=None, stride: int | None = None) -> tuple[Vocabulary | None, str, str]:
     """(vocabulary or None, source name, note) for the paper's vocabulary of `dataset`.
@@ -211,23 +168,13 @@ def find_vocabulary(source: str, backbone: str, layer: int, facet: str, clusters
     backbone's own. Its user checks it proves them (`check_proven`) once its size is checked."""
     path = cached_vocabulary_file(source, backbone, layer, facet, clusters, cache_dir, stride)
     found = None if path is None else load_vocabulary(path)
+    from .anyloc_provenance import content_source
+
     if found is not None and (own := content_source(found, source)):
         belongs = vocabulary_dir(backbone, layer, facet, found.clusters, own, cache_dir, stride)
         raise VPRBenchError(f"Vocabulary {path} holds the centres of {own!r} but sits in the cache folder of {source!r}: "
                             f"move it to {belongs} (or delete it), then run again.")
     return found
-
-
-def content_source(vocabulary: Vocabulary, name: str) -> str | None:
-    """The source the centres' content names when `name` claims another (a domain, map-DATASET): what a
-    vprbench fit records, or the authors' release known by its sha256. None: no conflict (or a name of one's own)."""
-    if name not in domain_names() and not name.startswith(MAP_PREFIX):
-        return None
-    own = vocabulary.meta.get("source")
-    if not isinstance(own, str) or own not in domain_names() and not own.startswith(MAP_PREFIX):
-        release_folder = released_provenance(vocabulary).get("released_as")
-        own = next((s for s, folder in vocabulary_policies()["released"].items() if folder == release_folder), None)
-    return own if own not in (None, name) else None
 
 
 def cached_vocabulary_file(source: str, backbone: str, layer: int, facet: str, clusters: int, cache_dir=None,
@@ -262,6 +209,8 @@ def check_proven(vocabulary: Vocabulary, backbone: str, layer: int, facet: str, 
     vocabulary.check_setting(backbone, layer, facet, stride)
     if vocabulary.meta.get("stride") is not None:
         return
+    from .anyloc_provenance import released_provenance
+
     entry = catalogued(backbone)
     one_stride = entry is not None and entry.one_stride
     released = at_default_stride(backbone, stride) and released_provenance(vocabulary).get("source") == "released"

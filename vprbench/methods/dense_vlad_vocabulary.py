@@ -137,7 +137,7 @@ def cached_vocabulary(method, source: VocabularySource) -> tuple[np.ndarray, dic
     from ..aggregation.vocabulary import Vocabulary, load_vocabulary, vocabularies_root
 
     if source.kind == "file":
-        from .anyloc_vocabulary import released_provenance
+        from .anyloc_provenance import released_provenance
 
         found = load_vocabulary(source.path)
         centres = check_centres(found.centres.numpy(), method.clusters, str(source.path), found.meta)

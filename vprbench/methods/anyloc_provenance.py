@@ -1,0 +1,65 @@
+"""What a vocabulary's content says it is, whatever name it is found under: the authors' release
+(known by its sha256), or the datasets and source a vprbench fit recorded; what a record names of it."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..aggregation.vocabulary import Vocabulary
+from ..text import shortened
+from .anyloc_vocabulary import (MAP_PREFIX, domain_names, release, released_name, released_sources, released_url,
+                                source_datasets, vocabulary_policies)
+
+
+def released_provenance(vocabulary: Vocabulary) -> dict:
+    """{"source": "released", repository, commit, url, sha256} when the file is a released one, else the file's sha256."""
+    from ..weights import file_sha256
+
+    path = vocabulary.meta.get("path") or vocabulary.meta.get("imported_from")
+    if not path or not Path(path).is_file():
+        return {}
+    digest = file_sha256(path)
+    for source in released_sources():
+        if release()["sha256"][released_name(source)] == digest:
+            r = release()
+            return {"source": "released", "released_as": released_name(source), "repository": r["repository"],
+                    "commit": r["commit"], "url": released_url(source), "sha256": digest, "file": str(path),
+                    "datasets": source_datasets(source)}
+    return {"source": "file", "sha256": digest, "file": str(path)}
+
+
+def file_provenance(vocabulary: Vocabulary) -> dict:
+    """Where the centres came from, and what they were fitted on: the datasets whose databases a vprbench fit
+    records (the authors' release is known by its name) and, for a folder of one's own's, its path."""
+    found = released_provenance(vocabulary)
+    meta = vocabulary.meta
+    if found.get("source") == "file" and "vocabularies" in Path(found["file"]).parts:
+        found["source"] = "cache"  # fitted earlier with `vprbench vocabulary fit` or imported
+    fitted = meta.get("datasets")
+    if isinstance(fitted, (dict, list)) and fitted and all(isinstance(name, str) for name in fitted):
+        found["datasets"] = list(fitted)
+    if isinstance(meta.get("folder"), str):  # named by its content too: the name alone may be another folder's
+        named = f" ({recorded(meta['source'])})" if isinstance(meta.get("source"), str) else ""
+        folder = recorded(meta["folder"])
+        found.update(folder=folder, fitted_on=f"the database of the folder {folder}{named}")
+    # the features' settings the key leaves out: the record tells what the centres were fitted at
+    found.update({f"fitted_{key}": recorded(meta[key]) for key in ("stride", "resize", "image_size") if key in meta})
+    return found
+
+
+def recorded(value):
+    """A file's metadata value as a record keeps it: a fit's (number, size, path) as it is, else its text, cut."""
+    if isinstance(value, int) or isinstance(value, list) and len(value) <= 2 and all(type(v) is int for v in value):
+        return value
+    return shortened(value, 1000)
+
+
+def content_source(vocabulary: Vocabulary, name: str) -> str | None:
+    """The source the centres' content names when `name` claims another (a domain, map-DATASET): what a
+    vprbench fit records, or the authors' release known by its sha256. None: no conflict (or a name of one's own)."""
+    if name not in domain_names() and not name.startswith(MAP_PREFIX):
+        return None
+    own = vocabulary.meta.get("source")
+    if not isinstance(own, str) or own not in domain_names() and not own.startswith(MAP_PREFIX):
+        release_folder = released_provenance(vocabulary).get("released_as")
+        own = next((s for s, folder in vocabulary_policies()["released"].items() if folder == release_folder), None)
+    return own if own not in (None, name) else None
