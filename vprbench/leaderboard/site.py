@@ -41,7 +41,7 @@ from ..evaluation.metrics import successes
 from .compare import shared_resampling
 from .stats import RESAMPLES, format_test, overlaps, paired_test
 from .tables import (DOWNLOAD_UNITS, GROUPS, RESULTS_LEGEND, TOLERANCE_PP, cell_stats, comparisons, fmt, group_table,
-                     left_out_section, marks_note, other_rows, reported_page, source_mark, with_ci)
+                     left_out_section, marks_note, number, other_rows, reported_page, row_cells, with_ci)
 
 SECTION = "leaderboard"
 #: MkDocs Material front matter: the wide tables get the table-of-contents column
@@ -286,12 +286,11 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
             "Older runs of the row | Images/s measured by |", "|:--|:--|:--|:--|:--|:--|:--|:--|--:|--:|:--|"]
     for cell in cells:
         s, r = stats[(cell.row, column.key)], cell.record
-        name = row_name(cell.row)
-        lines.append(f"| {name}{source_mark(cell.source)} | {text(weights_shown(cell.row, r))} | {text(licence_shown(r))} | "
+        lines.append(f"| {row_cells(cell.row, cell)} | "
                      f"{with_ci(s[1])} | {with_ci(s[5])} | {fmt(cell.recall(10))} | {fmt(cell.recall(20))} | "
-                     f"{_num(r.get('auc_pr'), 3)} | {percent(r.get('recall_at_100_precision'))} | {text(r.get('descriptor_dim') or '–')} | "
+                     f"{number(r.get('auc_pr'), 3)} | {percent(r.get('recall_at_100_precision'))} | {text(r.get('descriptor_dim') or '–')} | "
                      f"{descriptor_bytes(r) or '–'} | "
-                     f"{_num(cell.images_per_second, 1)} |")
+                     f"{number(cell.images_per_second, 1)} |")
         versions, computed = r.get("versions") or {}, r.get("descriptors_computed") or {}
         sent = (r.get("_contribution") or {}).get("contributor") or "this machine"
         runs.append(f"| {text(cell.row.name)} | {text(cell.source)} | {text(sent)} | {code(r.get('run_id'))} | {text(r.get('created', '–'))} | "
@@ -376,7 +375,3 @@ def _commit(value) -> str:
     """A record's git commit as a code span when it is one (hex), else '–': a record can say anything."""
     found = str(value or "")
     return f"`{found[:10]}`" if re.fullmatch(r"[0-9a-f]{7,40}", found) else "–"
-
-
-def _num(value, digits: int) -> str:
-    return "–" if value is None else f"{value:.{digits}f}"

@@ -62,6 +62,20 @@ def source_mark(source: str) -> str:
     return next((f"<sup>{mark}</sup>" for start, mark, _ in SOURCE_MARKS if source.startswith(start)), "")
 
 
+def row_cells(row: Row, cell: Cell) -> str:
+    """A row's first three cells on every page: its name (escaped) with the mark of where its number comes
+    from, its weights and their licence."""
+    from .shown import row_name
+
+    return (f"{row_name(row)}{source_mark(cell.source)} | {text(weights_shown(row, cell.record))} | "
+            f"{text(licence_shown(cell.record))}")
+
+
+def number(value, digits: int) -> str:
+    """A metric other than a recall (AUC-PR, max F1, images/s) to `digits` decimals, '–' without one."""
+    return "–" if value is None else f"{value:.{digits}f}"
+
+
 def marks_legend(sources) -> str:
     """What each source mark among `sources` means, for a table's legend ("" when none is there)."""
     shown = [f"<sup>{mark}</sup> {meaning}" for start, mark, meaning in SOURCE_MARKS

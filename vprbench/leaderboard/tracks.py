@@ -4,8 +4,7 @@ from __future__ import annotations
 
 from .cells import Board, Cell
 from .escape import code, text
-from .shown import licence_shown, row_name, weights_shown
-from .tables import fmt, left_out_section, marks_legend, source_mark, with_ci
+from .tables import fmt, left_out_section, marks_legend, number, row_cells, source_mark, with_ci
 from ..text import percent
 
 TITLES = {"single-image": "Single-image retrieval", "re-ranked": "Re-ranked", "sequence": "Sequence matching"}
@@ -64,10 +63,7 @@ def track_page(full: Board, track: str, stats: dict, head: str = "") -> str:
             if cell is None:
                 continue
             s, r = stats[(row, column.key)], cell.record
-            # as on the dataset pages: the weights and their licence beside the row, and a mark saying where its
-            # number comes from (a contributed run is not measured here)
-            name = (f"{row_name(row)}{source_mark(cell.source)} | {text(weights_shown(row, r))} | "
-                    f"{text(licence_shown(r))}")
+            name = row_cells(row, cell)  # as on the dataset pages
             sources.append(cell.source)
             if track == "re-ranked":
                 base = alone.get((retriever_key(cell), column.key))
@@ -77,7 +73,7 @@ def track_page(full: Board, track: str, stats: dict, head: str = "") -> str:
                              f"{alone_r1} | {_cost(cell, 'ms_per_query')} | "
                              f"{_cost(cell, 'stored_bytes_per_database_image', 0)} | {code(r.get('run_id'))} |")
             else:
-                shown = [f"{v:.3f}" if isinstance(v, (int, float)) else "–" for v in (r.get("auc_pr"), r.get("max_f1"))]
+                shown = [number(r.get("auc_pr"), 3), number(r.get("max_f1"), 3)]
                 shown.insert(1, percent(r.get("recall_at_100_precision")))  # in percent, as on the dataset pages
                 lines.append(f"| {name} | {with_ci(s[1])} | {with_ci(s[5])} | {' | '.join(shown)} | "
                              f"{_cost(cell, 'ms_per_query')} | {code(r.get('run_id'))} |")
