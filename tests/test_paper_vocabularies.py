@@ -134,3 +134,25 @@ def test_importing_the_released_file_keeps_the_runs_key(tmp_path, shared_data, n
     assert main(["vocabulary", "import", str(released), "--source", "urban", "--layer", "20", "--cache-dir", str(cache)]) == 0
     (other,) = (cache / "vocabularies").glob("dinov2_vitg14-l20-value-c32/urban/*.pt")
     assert other.name == "vocabulary.pt" and torch.load(other, weights_only=True)["meta"]["layer"] == 20
+
+
+def test_importing_the_released_file_over_centres_of_that_name_takes_their_place(tmp_path, shared_data, no_network,
+                                                                                  capsys):
+    """Centres fitted or imported as 'urban' before (vocabulary.pt, read first), then the authors' file imported as
+    'urban' (a fit of that key ending while the import was on its way, or run before): runs use the release. It was
+    written beside vocabulary.pt as c_centers.pt, said to replace the centres, and never read."""
+    from vprbench.spec import resolve_spec
+
+    cache = tmp_path / "cache"
+    own = tmp_path / "own.pt"
+    torch.save(torch.randn(32, 1536), own)
+    assert main(["vocabulary", "import", str(own), "--source", "urban", "--cache-dir", str(cache)]) == 0
+    mine = resolve_spec("anyloc-vlad-dinov2", "pitts30k", cache_dir=cache).found
+    assert mine != {"vocabulary": "sha256:" + release()["sha256"]["urban"]}
+    released = shared_data / "vocabularies" / "anyloc-dinov2_vitg14-l31-value-c32" / "urban" / "c_centers.pt"
+    assert main(["vocabulary", "import", str(released), "--source", "urban", "--cache-dir", str(cache)]) == 0
+    assert "replacing the centres cached as 'urban'" in capsys.readouterr().out
+    after = resolve_spec("anyloc-vlad-dinov2", "pitts30k", cache_dir=cache)
+    assert after.found == {"vocabulary": "sha256:" + release()["sha256"]["urban"]}
+    method = create_method("anyloc-vlad-dinov2", vocabulary="urban", cache_dir=cache)
+    assert method.provenance()["vocabulary"]["source"] == "released"

@@ -177,7 +177,8 @@ def test_a_publish_onto_a_full_disk_keeps_the_site_and_says_what_to_do(one_run, 
         f"error: Cannot write the leaderboard to {docs} (No space left on device); the previous {docs / 'leaderboard'} "
         "is unchanged: free some space, then publish again, or publish to a folder on another disk.\n")
     assert tree(docs / "leaderboard") == before
-    assert sorted(p.name for p in docs.iterdir()) == [".leaderboard.lock", "leaderboard"]  # no half-written section
+    # no half-written section
+    assert sorted(p.name for p in docs.iterdir()) == [".leaderboard.lock", ".leaderboard.read-at", "leaderboard"]
 
 
 

@@ -69,7 +69,7 @@ def test_a_publish_removes_what_a_killed_publish_left(shared_data, tmp_path, cli
     assert any(p.is_dir() and p.name.startswith(".leaderboard-new-") for p in docs.iterdir())
     code, _, err = cli(*args)
     assert code == 0 and "Traceback" not in err, err
-    assert sorted(p.name for p in docs.iterdir()) == [".leaderboard.lock", "leaderboard"]
+    assert sorted(p.name for p in docs.iterdir()) == [".leaderboard.lock", ".leaderboard.read-at", "leaderboard"]
     assert (docs / "leaderboard" / "index.md").is_file()
 
 

@@ -143,7 +143,7 @@ def test_publish_again_replaces_the_section_and_leaves_no_temporary_folder(capsy
     (docs / ".leaderboard-old-x1").mkdir()  # what a publish killed during its swap would leave
     assert run(capsys, "leaderboard", "publish", "--to", str(docs))[0] == 0
     assert not (docs / "leaderboard" / "stale-page.md").exists()
-    assert sorted(p.name for p in docs.iterdir()) == [".leaderboard.lock", "leaderboard"]
+    assert sorted(p.name for p in docs.iterdir()) == [".leaderboard.lock", ".leaderboard.read-at", "leaderboard"]
 
 
 def test_no_results_writes_nothing(capsys, tmp_path):

@@ -165,8 +165,7 @@ def run_import(args) -> int:
 
     from ..methods.anyloc_provenance import content_source
     from ..methods.anyloc_vocabulary import is_released_setting, release, save_to_cache
-    from ..aggregation.vocabulary import RELEASED_FILE, load_vocabulary, vocabulary_dir, vocabulary_file_in
-    from ..fsutil import atomic_write, write_in_turn
+    from ..aggregation.vocabulary import load_vocabulary, vocabulary_dir, vocabulary_file_in
     from ..weights import file_sha256
     from ..features.backbones import RANDOM
     from ..features.catalogue import backbone_spec
@@ -199,8 +198,7 @@ def run_import(args) -> int:
     if released and file_sha256(source_file) in release()["sha256"].values():
         # the authors' file for their setting, placed as it is: a run naming it keeps its key (their
         # published sha256); under another setting it is saved with the metadata that names it
-        path = folder / RELEASED_FILE  # under the authors' own file name
-        write_in_turn(path, lambda into: atomic_write(into, source_file.read_bytes()), f"the vocabulary {path}")
+        path = place_release(folder, source_file.read_bytes())
     else:
         vocabulary.meta["imported_from"] = vocabulary.meta.pop("path")
         path = save_to_cache(vocabulary, args.backbone, args.layer, args.facet, args.source, args.cache_dir, stride)
@@ -208,6 +206,26 @@ def run_import(args) -> int:
     again = f" (replacing the centres cached as {args.source!r} before; runs naming it are run again)" if replaced else ""
     print(f"Imported {vocabulary.clusters} x {vocabulary.dim} centres as {args.source!r} -> {path}{again}")
     return 0
+
+
+def place_release(folder, data: bytes):
+    """The authors' file put in `folder` as it is, where the folder is read from: under their own name, or over our
+    vocabulary.pt when one is there (fitted or imported before, or by a fit that ended meanwhile), which is read first
+    and would hide it. Under that file's lock, as fits write it: the check and the write are one step for them, and the
+    file is replaced whole, so a run reading the folder meanwhile finds the old centres or the new, never neither."""
+    from ..aggregation.vocabulary import RELEASED_FILE, VOCABULARY_FILE
+    from ..fsutil import atomic_write, write_in_turn
+
+    def place(ours):
+        if ours.is_file():
+            placed.append(atomic_write(ours, data))
+        else:  # its own name has its own lock too: downloads of the release write it
+            placed.append(write_in_turn(folder / RELEASED_FILE, lambda into: atomic_write(into, data),
+                                        f"the vocabulary {folder / RELEASED_FILE}"))
+
+    placed = []
+    write_in_turn(folder / VOCABULARY_FILE, place, f"the vocabulary in {folder}")
+    return placed[0]
 
 
 def check_source(source: str) -> None:

@@ -13,6 +13,7 @@ import os
 import re
 import shutil
 import tempfile
+import time
 import warnings
 from datetime import datetime, timezone
 from pathlib import Path
@@ -27,7 +28,7 @@ from ..paths import folder_path, safe_name
 from ..evaluation.results import read_results
 from ..text import percent, quantity
 from . import figures
-from .staging import alive, remove_stale_sections, swap
+from .staging import alive, mark_read_at, newer_in_place, remove_stale_sections, swap
 from .domains import domain_datasets
 from .downloads import plain, record_download, summary
 from .escape import code, public, text, to_csv
@@ -73,6 +74,7 @@ def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0, skipp
         require(results, (str, os.PathLike), "publish's results take the folder 'vprbench results import --into' wrote")
     if folder.exists() and not folder.is_dir():
         raise VPRBenchError(f"--to {folder} is a file, not a folder: give the docs folder, e.g. --to docs/")
+    read_at = time.time_ns()  # before the results are read: of publishes at once, the one that read them last wins
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         records = read_results(cache_dir, skipped=skipped)
@@ -99,7 +101,12 @@ def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0, skipp
             truth = LocalTruth(data_dir, cache_dir)
             write_section(staging, build_board(records, truth, refused), records, cache_dir=cache_dir, data_dir=data_dir, seed=seed)
             with lock(folder / f".{SECTION}.lock", timeout=60, what=f"the leaderboard in {folder}"):
-                swap(staging, target)
+                if newer_in_place(folder, SECTION, read_at):  # swapped in, its site would lack runs stored meanwhile
+                    warnings.warn(f"{target} was written meanwhile by a publish that read the results after this one "
+                                  "did: its site is kept, not this one's.", stacklevel=2)
+                else:
+                    swap(staging, target)
+                    mark_read_at(folder, SECTION, read_at)
                 remove_stale_sections(folder, SECTION, staging)
     except OSError as error:
         full = error.errno in (errno.ENOSPC, errno.EDQUOT)

@@ -1,15 +1,18 @@
 """How a published section replaces the old one: written into a staging folder beside it, held by a lock
-while it is written, swapped in at the end in one step; what killed publishes left is removed by the next."""
+while it is written, swapped in at the end in one step; what killed publishes left is removed by the next.
+Of publishes to one folder at once, the site stays the one built from the results read last (`newer_in_place`)."""
 from __future__ import annotations
 
 import contextlib
 import os
 import shutil
 import tempfile
+import time
 from pathlib import Path
 
 from ..errors import VPRBenchError
-from ..fsutil import LockTimeout, exchange, lock
+from ..fsutil import CacheError, LockTimeout, atomic_write, exchange, lock
+from ..paths import special_file
 
 
 def alive(staging: Path) -> Path:
@@ -43,3 +46,25 @@ def remove_stale_sections(folder: Path, section: str, own: Path) -> None:
         with contextlib.suppress(LockTimeout), lock(alive(path), timeout=0, announce=False):  # else: live
             shutil.rmtree(path, ignore_errors=True)
             alive(path).unlink(missing_ok=True)
+
+
+def _read_at(folder: Path, section: str) -> Path:
+    return folder / f".{section}.read-at"  # beside the lock: the section itself is the site (and a git tree)
+
+
+def newer_in_place(folder: Path, section: str, read_at: int) -> bool:
+    """Under the section's lock: whether the section in place was built from results read after `read_at` (ns,
+    this host's clock) by another publish. A date ahead of now (a clock set ahead) is not believed: it would stop
+    every publish until then."""
+    note = _read_at(folder, section)
+    try:  # a pipe put in its place would be waited on for good
+        found = 0 if special_file(note) else int(note.read_text(encoding="utf-8")[:40])
+    except (OSError, ValueError):
+        return False
+    return (folder / section).is_dir() and read_at < found <= time.time_ns()
+
+
+def mark_read_at(folder: Path, section: str, read_at: int) -> None:
+    """Under the section's lock, once it is swapped in: when the results it was built from were read."""
+    with contextlib.suppress(CacheError):  # the site is in place: a note not written only loses this ordering
+        atomic_write(_read_at(folder, section), str(read_at))
