@@ -9,6 +9,7 @@ import math
 import os
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -85,3 +86,40 @@ def test_a_short_lease_never_takes_a_long_leased_live_claim(tmp_path):
     finally:
         holder.close()
         judge.close()
+
+
+def test_a_process_stalled_past_its_lease_while_storing_cannot_store_beside_the_one_that_took_over(
+        plan, tmp_path, shared_data, monkeypatch):
+    """The check that this process still holds the cell and the store of its result are one step under the
+    cell's lock: a takeover either comes before it (the stalled result is dropped) or sees the cell complete."""
+    from vprbench.spec import RunSettings
+    from vprbench.sweep import runner
+
+    cache = tmp_path / "cache"
+    (cell,) = read_plan(plan).cells
+    stalled, other = Claims(cache, lease_s=MIN_LEASE_S), Claims(cache, lease_s=MIN_LEASE_S)
+    seen = {}
+    save = runner.save_result
+
+    def stall_while_storing(record, cache_dir):  # frozen (no heartbeat) past the lease, then stores
+        stalled._stop.set()
+        time.sleep(2 * MIN_LEASE_S)
+        taker = threading.Thread(target=lambda: seen.update(state=other.claim(cell.key, lambda: bool(read_results(cache)))))
+        taker.start()
+        taker.join(timeout=5)  # with the fix it waits for this store, under the cell's lock
+        save(record, cache_dir)
+
+    monkeypatch.setattr(runner, "save_result", stall_while_storing)
+    try:
+        assert stalled.claim(cell.key, lambda: False) == ("claimed", "")
+        outcome = runner._run_claimed(cell, stalled, "", RunSettings(cache_dir=cache, data_dir=shared_data), None, str(plan))
+        deadline = time.monotonic() + 30
+        while "state" not in seen and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert outcome.status == runner.RAN, outcome.detail
+        assert seen["state"] == ("complete", "")  # not taken over: the stalled process stored first, and only it
+        (record,) = read_results(cache)
+        assert record["run_id"] == outcome.record["run_id"]
+    finally:
+        stalled.close()
+        other.close()

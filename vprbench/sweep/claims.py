@@ -224,6 +224,15 @@ class Claims:
         except (OSError, ValueError, KeyError, TypeError):
             return False
 
+    def keep_if_mine(self, key: str, keep) -> bool:
+        """Call `keep()` (store the cell's result) if this process still holds `key`, under the cell's lock: a
+        process stalled past its lease cannot store a result beside the one of the process that took it over."""
+        with _lock(self._paths(key)[0]):
+            if not self.still_mine(key):
+                return False
+            keep()
+            return True
+
     def release(self, key: str, failure: str | None = None) -> None:
         lock, lease, failed = self._paths(key)
         with _lock(lock):

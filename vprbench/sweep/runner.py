@@ -194,10 +194,9 @@ def _run_claimed(cell, claims, taken_over, settings, progress, plan) -> Outcome:
     try:
         record = evaluate_cell(cell, settings, progress=progress,
                                context={"plan": plan, "worker": claims.worker, **({"resumed": taken_over} if taken_over else {})})
-        if not claims.still_mine(cell.key):  # this process stalled past its lease and the cell was taken over
-            claims.forget(cell.key)
+        if not claims.keep_if_mine(cell.key, lambda: save_result(record, settings.cache_dir)):
+            claims.forget(cell.key)  # this process stalled past its lease and the cell was taken over
             return Outcome(cell, ELSEWHERE, "lease lost while running; the other process's result counts")
-        save_result(record, settings.cache_dir)
     except (Exception, KeyboardInterrupt) as error:  # a failing cell must not stop the sweep
         if isinstance(error, KeyboardInterrupt):
             claims.release(cell.key)
