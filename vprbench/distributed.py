@@ -120,6 +120,29 @@ class Ranks:
                 "Start every rank with the same command, options, --cache-dir and data."
             )
 
+    def said_once(self, error: VPRBenchError) -> None:
+        """An error every rank meets alike (bad input: a missing dataset, an unknown option) is said by rank 0
+        alone: rank 0 posts its message in torchrun's key-value store, and another rank holding the same one
+        marks it `said` (the command line then prints nothing). A rank's own error is still said, after waiting
+        `SAID_WAIT_S` for rank 0's."""
+        if not self.distributed:
+            return
+        import time
+
+        import torch.distributed as dist
+
+        try:
+            store = dist.distributed_c10d._get_default_store()
+            if self.rank == 0:
+                store.set(SAID_KEY, str(error))
+                return
+            deadline = time.monotonic() + SAID_WAIT_S
+            while not store.check([SAID_KEY]) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            error.said = store.check([SAID_KEY]) and store.get(SAID_KEY).decode() == str(error)
+        except Exception:  # noqa: BLE001 - no store (rank 0 gone, a group never joined): this rank says its own
+            return
+
     def close(self) -> None:
         if self.distributed:
             import torch.distributed as dist
@@ -130,6 +153,9 @@ class Ranks:
     def describe(self) -> dict:
         return {"world_size": self.world_size, "backend": self.backend}
 
+
+#: where rank 0 posts the error it says, and how long another rank waits for it before saying its own
+SAID_KEY, SAID_WAIT_S = "vprbench/error", 5.0
 
 #: the most ranks (or the highest rank) taken: torch's process group holds them in a C int
 MAX_RANKS = 2**31 - 1

@@ -88,7 +88,7 @@ def test_killed_rank_resumes_only_its_missing_rows(shared_data, tmp_path, one_pr
 def test_ranks_that_disagree_on_the_cache_folder_are_refused(shared_data, tmp_path):
     done = torchrun(shared_data, tmp_path / "cache-{rank}")
     assert done.returncode != 0
-    assert "error: torchrun ranks disagree on the run (spec, cache folder, data root)" in done.stderr and "cache-0" in done.stderr and "cache-1" in done.stderr
+    assert "error: torchrun ranks disagree on the run (spec, cache folder, data root, run settings)" in done.stderr and "cache-0" in done.stderr and "cache-1" in done.stderr
     assert "VPRBenchError" not in done.stderr  # each rank printed one message and exited 1, no traceback
     assert not list(tmp_path.rglob("*.h5"))  # refused before any work
 

@@ -81,6 +81,9 @@ def run_evaluate(args) -> int:
                                     "'vprbench leaderboard --format csv'.")
             return run_matrix(args, settings, options, overrides)
         return run_one(args, settings, options, overrides, ranks)
+    except VPRBenchError as error:
+        ranks.said_once(error)  # while the group stands
+        raise
     finally:
         ranks.close()
 
@@ -256,6 +259,9 @@ def run_describe(args) -> int:
                                         cache_dir=settings.cache_dir, progress=shown, store_dtype=args.store_dtype,
                                         workers=loader_workers(settings, method), lock_timeout=settings.lock_timeout,
                                         settings=keyed, ranks=ranks)
+    except VPRBenchError as error:
+        ranks.said_once(error)
+        raise
     finally:
         ranks.close()
     if described.stores is None:  # another rank than 0 under torchrun: its share is written, rank 0 writes --out

@@ -83,7 +83,8 @@ def _run(args) -> int:
     try:
         return args.run(args)
     except VPRBenchError as error:
-        print_error(str(error), lines=isinstance(error, ProblemList))
+        if not getattr(error, "said", False):  # under torchrun, rank 0 says what every rank met
+            print_error(str(error), lines=isinstance(error, ProblemList))
         return 1
     except BrokenPipeError:  # output piped into a reader that stopped (| head): end quietly, as other tools do
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

@@ -87,7 +87,9 @@ def describe_splits(method, splits: dict[str, list[Path]], *, root: Path | None 
             folder.tidy_if_free(split)
         # one entry per rank, as when they compute: nothing, on every rank
         per_rank = [dict(computed) for _ in range(ranks.world_size)]
-        return Described(same_dim(method, stores), computed, timings, fingerprint, folder, per_rank)
+        # the other ranks hold no stores: rank 0 alone found them complete
+        return Described(same_dim(method, stores) if stores is not None else None, computed, timings, fingerprint,
+                         folder, per_rank)
     with ExitStack() as held:
         def plan():
             with plugin_part(method, "prepare"):  # a bad weights file is refused before the folders exist

@@ -170,7 +170,9 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
     check_compare(spec.method, getattr(method, "compare", "cosine"), spec.search.index, spec.search.options)
     ranks.agree({"spec": spec.key, "cache": str(settings.cache_dir.resolve()) if settings.cache_dir else None,
                  "data": str(settings.data_dir) if settings.data_dir else None,
-                 "memory_budget": settings.memory_budget}, "the run (spec, cache folder, data root)")
+                 # how it runs too (the record names rank 0's settings for every rank's rows); not the device,
+                 # which a rank may name by its own GPU (cuda:1)
+                 "run": {k: v for k, v in settings.describe().items() if k != "device"}}, "the run (spec, cache folder, data root, run settings)")
     if dataset is None:
         dataset = ranks.on_zero(lambda: load_data(spec, settings))  # fetched on first use by rank 0 alone
     ks = check_ks(spec.ks, len(dataset.database), dataset.name)
