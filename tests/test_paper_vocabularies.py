@@ -129,11 +129,6 @@ def test_importing_the_released_file_keeps_the_runs_key(tmp_path, shared_data, n
     assert after.key == before.key
     method = create_method("anyloc-vlad-dinov2", vocabulary="urban", cache_dir=cache)
     assert method.provenance()["vocabulary"]["source"] == "released"
-    # imported for other features (the centres are ViT-G block 31's), it carries the setting it was given,
-    # so the folder of another block never takes it for its own without saying so
-    assert main(["vocabulary", "import", str(released), "--source", "urban", "--layer", "20", "--cache-dir", str(cache)]) == 0
-    (other,) = (cache / "vocabularies").glob("dinov2_vitg14-l20-value-c32/urban/*.pt")
-    assert other.name == "vocabulary.pt" and torch.load(other, weights_only=True)["meta"]["layer"] == 20
 
 
 def test_importing_the_released_file_over_centres_of_that_name_takes_their_place(tmp_path, shared_data, no_network,
@@ -156,3 +151,35 @@ def test_importing_the_released_file_over_centres_of_that_name_takes_their_place
     assert after.found == {"vocabulary": "sha256:" + release()["sha256"]["urban"]}
     method = create_method("anyloc-vlad-dinov2", vocabulary="urban", cache_dir=cache)
     assert method.provenance()["vocabulary"]["source"] == "released"
+
+
+@pytest.mark.parametrize("claimed, shown", [
+    (["--layer", "20"], "dinov2_vitg14 layer 20 value"), (["--facet", "key"], "dinov2_vitg14 layer 31 key"),
+    (["--backbone", "dinov2_vitg14@random"], "dinov2_vitg14@random layer 31 value")])
+def test_released_centres_serve_only_the_features_they_were_fitted_on(tmp_path, shared_data, capsys, claimed, shown):
+    """The authors' file names no setting, its sha256 does (ViT-G/14 block 31 value, official weights): imported
+    for another block, facet or random weights it is refused in one line naming both, and nothing is cached (it was
+    cached as layer 20's, or key's, and served to those features with a record saying 'cache', not 'released');
+    named by its path for other features, the method refuses it too."""
+    cache = tmp_path / "cache"
+    released = shared_data / "vocabularies" / "anyloc-dinov2_vitg14-l31-value-c32" / "urban" / "c_centers.pt"
+    assert main(["vocabulary", "import", str(released), "--source", "urban", *claimed, "--cache-dir", str(cache)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "Traceback" not in err
+    assert (f"is the authors' released 'urban' centres, fitted on dinov2_vitg14 layer 31 value with 32 clusters "
+            f"(official weights), but these features are {shown} with 32 clusters") in err
+    assert not list(cache.glob("vocabularies/*/urban/*.pt"))
+    options = {"--layer": "layer", "--facet": "facet"}
+    given = ({"weights": "random"} if claimed[0] == "--backbone" else {options[claimed[0]]: claimed[1]})
+    with pytest.raises(VPRBenchError, match=f"these features are {shown} with 32 clusters"):
+        create_method("anyloc-vlad-dinov2", vocabulary=str(released), cache_dir=cache, **{
+            k: int(v) if k == "layer" else v for k, v in given.items()})
+
+
+def test_released_centres_are_taken_with_a_checkpoint_of_ones_own(tmp_path, shared_data):
+    """A local ViT-G/14 file may be the official one (DINOv2 publishes no sha256): its key (BACKBONE@<hex>) takes
+    the authors' centres on the user's word, imported or as a path, as before; random weights never do (above)."""
+    released = shared_data / "vocabularies" / "anyloc-dinov2_vitg14-l31-value-c32" / "urban" / "c_centers.pt"
+    assert main(["vocabulary", "import", str(released), "--source", "urban", "--backbone", "dinov2_vitg14@0123456789abcdef",
+                 "--cache-dir", str(tmp_path)]) == 0
+    assert list(tmp_path.glob("vocabularies/dinov2_vitg14@0123456789abcdef-l31-value-c32/urban/*.pt"))

@@ -198,6 +198,9 @@ def _edited(monkeypatch, edit):
      "the paper's table II has row 'AnyLoc-GeM-DINOv2', which the plan leaves out"),
     (lambda t: t["4"]["columns"].update(indoor=["baidu-mall", "gardens-point"]),
      "column 'indoor' runs baidu-mall, gardens-point; the indoor domain is 17places, baidu-mall, gardens-point"),
+    # the same set of datasets, one twice: Baidu Mall counted twice in the indoor mean shown beside the paper's
+    (lambda t: t["4"]["columns"].update(indoor=["baidu-mall", "gardens-point", "17places", "baidu-mall"]),
+     "column 'indoor' lists baidu-mall more than once"),
     (lambda t: t["5"]["rows"][0]["cells"]["vocab-transfer"].update(dataset="gardens-point"),
      "row 'baidu-mall->17places': cell 'vocab-transfer' runs gardens-point"),
     (lambda t: t["2"].update(metrics=["r1"]), "the paper's table II has metric 'r5', which the plan leaves out"),
@@ -388,3 +391,46 @@ def test_the_pca_rows_fit_on_the_domains_databases_stacked_as_the_authors_did(tm
     lines = capsys.readouterr().out.splitlines()
     pca = [x for x in lines if "-PCA " in x and "│" in x]
     assert len(pca) == 12 and not any("not runnable" in x for x in pca)
+
+
+def test_a_cached_vocabulary_the_run_would_refuse_is_a_need_of_the_dry_run(tmp_path, capsys, monkeypatch):
+    """A file in the cell's vocabulary folder counted as ready whatever it held: the dry run said nothing was
+    missing and the run then refused it (here centres of block 30 copied into block 31's 'indoor' folder).
+    The dry run now checks it as the run does and names the run's refusal."""
+    import torch
+
+    from vprbench import VPRBenchError, create_method
+    from vprbench.aggregation.vocabulary import Vocabulary, vocabulary_dir
+
+    cache = tmp_path / "cache"
+    folder = vocabulary_dir("dinov2_vitg14", 31, "value", 32, "indoor", cache)
+    folder.mkdir(parents=True)
+    Vocabulary(torch.randn(32, 1536), {"backbone": "dinov2_vitg14", "layer": 30, "facet": "value", "stride": 14,
+                                       "source": "indoor"}).save(folder / "vocabulary.pt")
+    _, cells = _cells("2", "AnyLoc-VLAD-DINOv2", cache)
+    refusal = "was fitted on backbone dinov2_vitg14 layer 30 facet value, but these features are backbone dinov2_vitg14 layer 31"
+    with pytest.raises(VPRBenchError, match=refusal):  # the run
+        create_method("anyloc-vlad-dinov2", cache_dir=cache).use_dataset("baidu-mall")
+    what, how = vocabulary_for(cells["baidu-mall"].cells[0], cache)  # was None: "would run"
+    assert what == "the cached vocabulary 'indoor' for dinov2_vitg14 layer 31 value with 32 clusters" and refusal in how
+    assert vocabulary_for(cells["pitts30k"].cells[0], cache)[0] == "the authors' vocabulary 'urban'"  # others as before
+    monkeypatch.setenv("COLUMNS", "400")
+    assert main(["reproduce", "anyloc", "--table", "2", "--dry-run", "--data-dir", str(tmp_path / "data"),
+                 "--cache-dir", str(cache)]) == 0
+    assert refusal in " ".join(capsys.readouterr().out.split())
+
+
+def test_a_dataset_folder_without_its_layout_is_a_need_of_the_dry_run(tmp_path):
+    """A dataset counted as on disk when its folder existed: an unfinished extraction (gardens/ with day_right/
+    only) left the cell 'would run' once its weights were there, and the run then failed reading it. The dry run
+    now names what the run would: the layouts' missing folders and files, and how to get the data."""
+    from vprbench.sweep.reproduce import missing_for
+
+    data = tmp_path / "data"
+    (data / "gardens" / "day_right").mkdir(parents=True)
+    _, cells = _cells("2", "DINO-CLS", tmp_path / "cache")
+    needs = dict(missing_for(cells["gardens-point"].cells[0], None, data, tmp_path / "cache"))
+    assert "layout 'folders' (the authors' release) is missing folder 'night_right', file 'gardens_gt.npy'" in \
+        needs["dataset gardens-point"]
+    assert "Place it at" in needs["dataset gardens-point"]
+    assert "dataset baidu-mall" in dict(missing_for(cells["baidu-mall"].cells[0], None, data, tmp_path / "cache"))

@@ -39,6 +39,9 @@ BAD = {
     "bool": (centres() > 0.5, "holds bool values, expected floating-point centres"),
     "complex": (torch.complex(centres(), centres()), "holds complex64 values, expected floating-point centres"),
     "meta": ({"centres": centres(), "meta": "indoor"}, "has a 'meta' entry that is no table of named values (str)"),
+    # was imported, then shown as "32 clusters x 1536 dims" beside "clusters: 64" and cached so
+    "clusters": ({"centres": centres(), "meta": {"clusters": 64, "backbone": "dinov2_vitg14"}},
+                 "says it has 64 clusters but holds 32 centres (edited by hand?)"),
 }
 
 

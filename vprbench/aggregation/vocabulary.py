@@ -257,7 +257,9 @@ def load_vocabulary(path: str | Path) -> Vocabulary:
         raise VPRBenchError(f"Vocabulary file {path} has {len(bad)} NaN or infinite value(s) in its centres (first "
                             f"{float(centres[cluster, column])} at cluster {cluster}, dim {column}), expected finite "
                             "numbers: fit it again (`vprbench vocabulary fit`).")
-    meta.setdefault("clusters", int(centres.shape[0]))
+    if str(meta.setdefault("clusters", int(centres.shape[0]))) != str(centres.shape[0]):  # shown and imported as said
+        raise VPRBenchError(f"Vocabulary file {path} says it has {shortened(meta['clusters'])} clusters but holds "
+                            f"{centres.shape[0]} centres (edited by hand?): fit it again (`vprbench vocabulary fit`).")
     meta["path"] = str(path)
     return Vocabulary(centres, meta)
 

@@ -163,7 +163,7 @@ def check_fit_sizes(args, width: int | None) -> None:
 def run_import(args) -> int:
     from pathlib import Path
 
-    from ..methods.anyloc_provenance import content_source
+    from ..methods.anyloc_provenance import check_released_setting, content_source
     from ..methods.anyloc_vocabulary import is_released_setting, release, save_to_cache
     from ..aggregation.vocabulary import load_vocabulary, vocabulary_dir, vocabulary_file_in
     from ..weights import file_sha256
@@ -191,6 +191,8 @@ def run_import(args) -> int:
     if own := content_source(vocabulary, args.source):
         raise VPRBenchError(f"{args.path} holds the centres of {own!r}, not of {args.source!r}: import it with "
                             f"--source {own} (or under a name of your own).")
+    # the authors' file names no setting, its sha256 does: never cached as another block's, facet's or weights'
+    check_released_setting(vocabulary, args.backbone, args.layer, args.facet, stride)
     source_file = Path(vocabulary.meta["path"])
     released = is_released_setting(args.backbone, args.layer, args.facet, vocabulary.clusters, stride)
     folder = vocabulary_dir(args.backbone, args.layer, args.facet, vocabulary.clusters, args.source, args.cache_dir, stride)

@@ -21,7 +21,7 @@ from ..aggregation.pca import PCAWhitening
 from . import anyloc_options
 from .anyloc_options import AGGREGATIONS, PCA_ON, VLADS, pca_datasets, pca_provenance
 from .anyloc_fit import recorded_image_digests
-from .anyloc_provenance import file_provenance
+from .anyloc_provenance import check_released_setting, file_provenance
 from .anyloc_vocabulary import MAP_PREFIX, check_proven, names_file, paper_choice, resolve_vocabulary, vocabulary_images
 from ..aggregation.vlad import vlad_hard
 from ..aggregation.vocabulary import fit_vocabulary
@@ -195,6 +195,7 @@ class AnyLoc(Method):
         found.check_dim(self.spec.width)  # before the model loads, naming the file
         if names_file(self.vocabulary):  # a path: the user vouches for what its metadata does not say
             found.check_setting(self.vocabulary_backbone, self.layer, self.facet, self.stride)
+            check_released_setting(found, self.vocabulary_backbone, self.layer, self.facet, self.stride)
         else:  # served by its key: only for the features it proves it was fitted on
             check_proven(found, self.vocabulary_backbone, self.layer, self.facet, self.stride)
         self.vocabulary_info = {"name": self.vocabulary, **file_provenance(found)}

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..aggregation.vocabulary import Vocabulary
+from ..errors import VPRBenchError
 from ..text import shortened
 from .anyloc_vocabulary import (MAP_PREFIX, domain_names, release, released_name, released_sources, released_url,
                                 source_datasets, vocabulary_policies)
@@ -25,6 +26,42 @@ def released_provenance(vocabulary: Vocabulary) -> dict:
                     "commit": r["commit"], "url": released_url(source), "sha256": digest, "file": str(path),
                     "datasets": source_datasets(source)}
     return {"source": "file", "sha256": digest, "file": str(path)}
+
+
+def released_as(vocabulary: Vocabulary) -> str | None:
+    """The released folder whose bytes the file is, or the file it was imported from ('indoor'); None otherwise.
+    An import re-saved under other metadata keeps the original's path: its content is still the release's."""
+    from ..weights import file_sha256
+
+    digests = {digest: folder for folder, digest in release()["sha256"].items()}
+    for key in ("path", "imported_from"):
+        path = vocabulary.meta.get(key)
+        if isinstance(path, str) and Path(path).is_file() and (folder := digests.get(file_sha256(path))):
+            return folder
+    return None
+
+
+def check_released_setting(vocabulary: Vocabulary, backbone: str, layer: int, facet: str,
+                           stride: int | None = None) -> None:
+    """The authors' released centres serve the features they were fitted on only (ViT-G/14 block 31 value with
+    the official weights): a bare tensor names no setting, so its sha256 says it, whatever a path or import claims.
+    A checkpoint file of one's own (BACKBONE@<hex>) may be the official one (DINOv2 publishes no sha256): taken on
+    the user's word; random weights never are."""
+    from ..features.backbones import RANDOM
+    from .anyloc_vocabulary import is_released_setting, setting_words
+
+    folder = released_as(vocabulary)
+    name, _, weights = backbone.partition("@")
+    if folder is None or weights != RANDOM and is_released_setting(name, layer, facet, vocabulary.clusters, stride):
+        return
+    r = release()
+    path = vocabulary.meta.get("imported_from") or vocabulary.meta.get("path")
+    raise VPRBenchError(
+        f"Vocabulary {path} is the authors' released {folder!r} centres, fitted on "
+        f"{setting_words(r['backbone'], int(r['layer']), r['facet'], int(r['clusters']))} (official weights), but these "
+        f"features are {setting_words(backbone, layer, facet, vocabulary.clusters, stride)}: use them with "
+        f"--backbone {r['backbone']} --layer {r['layer']} --facet {r['facet']}, or fit a vocabulary for these "
+        "features (`vprbench vocabulary fit`).")
 
 
 def file_provenance(vocabulary: Vocabulary) -> dict:

@@ -206,10 +206,12 @@ def check_proven(vocabulary: Vocabulary, backbone: str, layer: int, facet: str, 
     """A cached file is served by its key only for the features it proves it was fitted on. The stride
     is recorded since it is keyed; a file that does not record it (saved before) proves it only as the
     authors' release (by its sha256) or for a backbone that runs at one stride only."""
+    from .anyloc_provenance import check_released_setting, released_provenance
+
     vocabulary.check_setting(backbone, layer, facet, stride)
+    check_released_setting(vocabulary, backbone, layer, facet, stride)  # imported under another setting's key
     if vocabulary.meta.get("stride") is not None:
         return
-    from .anyloc_provenance import released_provenance
 
     entry = catalogued(backbone)
     one_stride = entry is not None and entry.one_stride
