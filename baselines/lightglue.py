@@ -148,18 +148,17 @@ def load_lightglue(path: Path | None, options: SuperPointLightGlueOptions):
 
 def load_models(options: SuperPointLightGlueOptions, cache_dir=None, device: str = "cpu"):
     """(SuperPoint, LightGlue) on `device`, as `options.weights` says."""
-    import torch
-
+    from vprbench.features.backbones import own_defaults
     from vprbench.weights import resolve_weights
 
     if options.weights == RANDOM:
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(RANDOM_SEED)
+        with own_defaults(RANDOM_SEED):  # float32 and these weights whatever the caller's torch defaults
             return load_superpoint(None).to(device), load_lightglue(None, options).to(device)
     paths = release_files(options.weights) if options.weights else {
         s.file_name: resolve_weights(s, None, f"Stage {NAME!r}", cache_dir=cache_dir).path for s in (SUPERPOINT, LIGHTGLUE)}
-    return (load_superpoint(paths[SUPERPOINT.file_name]).to(device),
-            load_lightglue(paths[LIGHTGLUE.file_name], options).to(device))
+    with own_defaults():  # float32 under a caller's torch.set_default_dtype(torch.float64)
+        return (load_superpoint(paths[SUPERPOINT.file_name]).to(device),
+                load_lightglue(paths[LIGHTGLUE.file_name], options).to(device))
 
 
 def weights_identities(options: SuperPointLightGlueOptions) -> dict[str, str | None]:

@@ -291,17 +291,21 @@ def describe_batches(method, paths: Sequence[Path], *, workers: int = 0, device:
         raise VPRBenchError(f"--workers must be a whole number >= 0, got {workers!r}.")
     if not paths:
         return
+    import torch
     from torch.utils.data import DataLoader
 
     from .features.allocator import keep_freed_memory
 
     keep_freed_memory()  # each batch's tensors reuse the last one's memory
     batches = -(-len(paths) // size)
+    # a generator of its own: the loader draws its workers' seed from it, not from the user's random stream
     loader = DataLoader(_Images(method, paths, digests), batch_size=size, shuffle=False, collate_fn=_as_batch,
                         num_workers=min(int(workers), batches), pin_memory=str(device).startswith("cuda"),
-                        worker_init_fn=functools.partial(_exit_with_parent, os.getpid()))
+                        worker_init_fn=functools.partial(_exit_with_parent, os.getpid()), generator=torch.Generator())
+    with torch.device("cpu"):  # its seed drawn on the CPU, as its generator is, whatever torch.set_default_device says
+        loaded = iter(loader)
     offset, dim = 0, None
-    for items in loader:
+    for items in loaded:
         for item in items:
             if isinstance(item, _Failed):
                 raise VPRBenchError(item.message)

@@ -57,6 +57,11 @@ _claims: list[list[tuple[dict, str]] | None] = []
 def claim(registry: dict, kind: str, entry) -> None:
     """`entry` put under its name in `registry`, unless a different entry holds that name."""
     taken = registry.get(entry.name)
+    if taken is not None and taken != entry and taken.source == entry.source:  # its own name, defined again
+        raise ValueError(f"{kind} name {entry.name!r} is taken (registered by {taken.source} already, with another "
+                         "definition: a class defined again, as a notebook cell run again after an edit makes); a name "
+                         "is registered once per process, so register the new one under another name, or restart "
+                         "Python to register it under this one")
     if taken is not None and taken != entry:
         raise ValueError(f"{kind} name {entry.name!r} is taken (registered by {taken.source}); register yours under "
                          "another name")

@@ -44,6 +44,20 @@ class GroundTruth:
         elif self.database_positions is None or self.query_positions is None or self.radius is None:
             raise ValueError(f"unit {self.unit!r} needs database/query positions and a radius")
 
+    def said(self) -> str:
+        """'positives within 25 metres', 'positive lists': what counts as a positive, in a few words."""
+        return "positive lists" if self.unit == "positives" else f"positives within {self.radius:g} {self.unit}"
+
+    def __repr__(self) -> str:
+        """One line: the lists or positions of a large benchmark are not printed whole."""
+        try:
+            if self.unit == "positives":
+                return f"GroundTruth('positives', {len(self.positive_lists)} positive lists)"
+            return (f"GroundTruth({self.unit!r}, radius={self.radius:g}, {len(self.database_positions)} database and "
+                    f"{len(self.query_positions)} query positions)")
+        except (TypeError, ValueError):  # fields set by hand to what no reader makes: the plain repr, never a failing one
+            return object.__repr__(self)
+
     def positives(self) -> list[np.ndarray]:
         """For each query, the sorted int64 indices of its positive database images."""
         if self.unit == "positives":
@@ -101,6 +115,17 @@ class Dataset:
         if self.root is not None:
             require(self.root, (str, os.PathLike), "Dataset's root takes a folder path, or None")
             self.root = Path(self.root)
+
+    def __repr__(self) -> str:
+        """One line, not every image path (a notebook showing a Pitts30k Dataset printed 17,000 of them)."""
+        if not isinstance(self.ground_truth, GroundTruth):  # set by hand after it was made
+            return object.__repr__(self)
+        protocol = self.protocol.get("id") if isinstance(self.protocol, dict) else None
+        parts = [repr(self.name), f"{len(self.database)} database", f"{len(self.queries)} queries",
+                 self.ground_truth.said()]
+        parts += [f"protocol {protocol}"] if protocol else []
+        parts += [f"root={str(self.root)!r}"] if self.root is not None else []
+        return f"Dataset({', '.join(parts)})"
 
     @cached_property
     def positives(self) -> list[np.ndarray]:

@@ -7,8 +7,10 @@ initialisation (a pipeline check; recorded as random).
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import torch
@@ -24,17 +26,35 @@ RANDOM = "random"
 RANDOM_SEED = 0
 
 
-def create_model(spec: BackboneEntry, *, empty: bool = False, **overrides) -> nn.Module:
-    """The timm architecture without a classifier head: random weights, or, with `empty`,
-    parameters without storage (on the meta device) to be filled by a state dict.
+@contextlib.contextmanager
+def own_defaults(seed: int | None = None) -> Iterator[None]:
+    """Modules built inside get float32 CPU tensors and (with `seed`) a seeded initialisation whatever the
+    caller set (torch.set_default_dtype/device, their own seed): else `weights="random"` gave other weights,
+    under the same fingerprint, in a notebook that had set float64. The caller's random stream and
+    defaults are left as they were."""
+    dtype = torch.get_default_dtype()
+    with torch.random.fork_rng(devices=[]), torch.device("cpu"):
+        torch.set_default_dtype(torch.float32)
+        try:
+            if seed is not None:
+                torch.default_generator.manual_seed(seed)  # the CPU's only: initialisation runs there
+            yield
+        finally:
+            torch.set_default_dtype(dtype)
+
+
+def create_model(spec: BackboneEntry, *, empty: bool = False, seed: int | None = None, **overrides) -> nn.Module:
+    """The timm architecture without a classifier head: random weights (seeded with `seed`), or,
+    with `empty`, parameters without storage (on the meta device) to be filled by a state dict.
     `overrides` are timm keyword arguments (tests build tiny models: depth=2, embed_dim=...)."""
     import timm
 
     kwargs = {"pretrained": False, "num_classes": 0, **spec.timm_kwargs, **overrides}
-    if empty:
-        with torch.device("meta"):  # skips the random initialisation of large models
-            return timm.create_model(spec.timm, **kwargs).eval()
-    return _as_released(timm.create_model(spec.timm, **kwargs).eval(), spec)
+    with own_defaults(seed):
+        if empty:
+            with torch.device("meta"):  # skips the random initialisation of large models
+                return timm.create_model(spec.timm, **kwargs).eval()
+        return _as_released(timm.create_model(spec.timm, **kwargs).eval(), spec)
 
 
 def _as_released(model: nn.Module, spec: BackboneEntry) -> nn.Module:
@@ -240,9 +260,8 @@ def load_backbone(name: str, weights: str | Path | None = None, device: str | to
     if weights == RANDOM:
         key = (name, RANDOM, str(device))
         if key not in _LOADED:
-            torch.manual_seed(RANDOM_SEED)
             _LOADED.clear()
-            _LOADED[key] = (create_model(spec).float().to(device), None)
+            _LOADED[key] = (create_model(spec, seed=RANDOM_SEED).float().to(device), None)
         model, identity = _LOADED[key]
         return model, spec, identity
     resolved = resolve_weights(spec.source, weights, f"backbone {spec.name}", cache_dir=cache_dir)
@@ -265,4 +284,5 @@ def load_backbone(name: str, weights: str | Path | None = None, device: str | to
 def _load_state(spec: BackboneEntry, path: Path) -> nn.Module:
     model = create_model(spec, empty=True)
     model.load_state_dict(convert_official(read_checkpoint(path), model), strict=True, assign=True)
-    return _materialise(model, spec)
+    with own_defaults():  # the buffers no checkpoint holds (RoPE tables) computed as timm does
+        return _materialise(model, spec)

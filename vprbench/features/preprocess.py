@@ -23,8 +23,9 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 def to_normalised_tensor(rgb: np.ndarray, mean=IMAGENET_MEAN, std=IMAGENET_STD) -> torch.Tensor:
     """HxWx3 uint8 -> 3xHxW float32, as ToTensor() then Normalize(mean, std)."""
     x = torch.from_numpy(np.array(rgb, copy=True)).permute(2, 0, 1).float().div(255.0)
-    mean_t = torch.tensor(mean, dtype=torch.float32).view(3, 1, 1)
-    std_t = torch.tensor(std, dtype=torch.float32).view(3, 1, 1)
+    # beside the image, whatever torch.set_default_device a notebook set (a CUDA default failed here)
+    mean_t = torch.tensor(mean, dtype=torch.float32, device=x.device).view(3, 1, 1)
+    std_t = torch.tensor(std, dtype=torch.float32, device=x.device).view(3, 1, 1)
     return (x - mean_t) / std_t
 
 

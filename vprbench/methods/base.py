@@ -67,6 +67,14 @@ class Method(ABC):
     #: exactly, without post-processing)
     compare: str = "cosine"
 
+    def __repr__(self) -> str:
+        """`HOG('hog', options={'resize': [64, 64]})`: what `create_method` made it as, not an address."""
+        try:
+            name, options = getattr(self, "name", ""), getattr(self, "options", {})
+        except Exception:  # a plugin's property that raises: the plain repr, never a failing one
+            return object.__repr__(self)
+        return f"{type(self).__name__}({f'{name!r}, ' if name else ''}options={options!r})"
+
     @classmethod
     def cached_identities(cls, options: dict, dataset: str, cache_dir=None) -> dict[str, str]:
         """Option -> the content of what it names in the cache by name (a vocabulary fitted earlier
