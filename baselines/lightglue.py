@@ -205,6 +205,16 @@ class SuperPointLightGlue(Stage):
                 "nms_radius": options.nms_radius, "resize": options.resize, "torch": torch.__version__,
                 "kornia": kornia.__version__, "decoding": ORIENTATION}
 
+    def fingerprint(self) -> dict:
+        import cv2
+        import kornia
+        import torch
+
+        # the matches are kornia's LightGlue on torch, the inliers OpenCV's USAC: a sweep after an upgrade must run
+        # again, as the SuperPoint features (keyed by these versions) are computed again
+        return {"torch": torch.__version__, "kornia": kornia.__version__,
+                **({"opencv": cv2.__version__} if self.options.model != "none" else {})}
+
     def _store(self, context: StageContext):
         return context.features("superpoint", self.feature_identity())
 

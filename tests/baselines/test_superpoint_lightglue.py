@@ -283,3 +283,17 @@ def test_the_same_place_comes_first_in_any_format(corridor, tmp_path, official_c
     found = stage.apply(given, StageContext(dataset=images, database=None, queries=None, cache_dir=tmp_path / "cache"))
     assert_oracle(given, found)
     assert (found.scores[:, 0] > found.scores[:, 1]).all()  # first by a margin, not by the tie rule
+
+
+def test_the_record_names_the_libraries_the_matches_come_from():
+    """Before: no fingerprint, so after a torch, kornia or OpenCV upgrade a sweep served the old matches, while the
+    same run not served computed new SuperPoint features (stored per torch and kornia version)."""
+    import cv2
+    import kornia
+
+    from vprbench.stages.run import stage_fingerprint
+
+    versions = {"torch": torch.__version__, "kornia": kornia.__version__}
+    assert stage_fingerprint(create_stage("superpoint-lightglue", {"weights": "random"})) == versions
+    assert stage_fingerprint(create_stage("superpoint-lightglue", {"weights": "random", "model": "homography"})) == \
+        {**versions, "opencv": cv2.__version__}

@@ -112,6 +112,9 @@ ARRAYS = {
     "huge-indices": _replaced("indices", shape=(111, 2**40), dtype="i8", chunks=(1, 1024)),
     "huge-all-zero": _replaced("all_zero", shape=(2**40,), dtype="u1", chunks=(1024,)),
     "external-scores": _replaced("scores", shape=(111, 30), dtype="f4", external=[("/etc/hostname", 0, 2**20)]),
+    # before: followed, the arrays read from another file (outside the sha256 recorded), or a named pipe (a hang)
+    "linked-indices": lambda f: (f.__delitem__("indices"),
+                                 f.__setitem__("indices", h5py.ExternalLink(f.filename + ".other", "/indices"))),
 }
 
 
@@ -123,6 +126,8 @@ def test_arrays_a_file_cannot_hold_are_refused_before_they_are_read(shared_data,
         ARRAYS[edit](f)
     spec = resolve_spec("hog", "corridor", stages=RERANK, ks=(1, 5), data_dir=shared_data)
     name = edit.split("-", 1)[1].replace("-", "_")
+    if edit == "linked-indices":  # the link's target: the export's own file, whose arrays would fit
+        shutil.copy(path, str(copy) + ".other")
     with pytest.raises(VPRBenchError, match=rf"Candidates file .*: its {name} holds .*, not at most [\d,]+ real "
                                             "numbers stored in the file; export it again"):
         evaluate(spec, dataclasses.replace(settings, candidates=copy))
@@ -206,3 +211,34 @@ def test_the_export_command_takes_the_index_options_evaluate_takes(shared_data, 
     code, _, err = cli("evaluate", "--method", "hog", "--dataset", "corridor", "--k", 1, 5, *search, "--rerank", "aqe",
                        "--rerank-k", 20, "--candidates", out, *where)
     assert code == 0, err
+
+
+def test_a_file_flagging_queries_all_zero_that_are_not_is_refused(shared_data, exported, tmp_path):
+    """Before: every query flagged all zero was taken, each counted a failure: R@1 0 stored under the genuine key."""
+    path, settings = exported
+    copy = edited(path, tmp_path)
+    with h5py.File(copy, "a") as f:
+        f["all_zero"][5] = 1
+    spec = resolve_spec("hog", "corridor", stages=RERANK, ks=(1, 5), data_dir=shared_data)
+    with pytest.raises(VPRBenchError, match=r"edited.h5: its all_zero flags say query 5's descriptor is all zero, but "
+                                            "this run's is not: export it again"):
+        evaluate(spec, dataclasses.replace(settings, candidates=copy))
+
+
+@pytest.mark.parametrize("edit", ["rows-moved", "scores-halved"])
+def test_a_file_whose_rows_are_not_the_retrievers_is_refused(shared_data, exported, tmp_path, edit):
+    """The file's candidates scored again from the run's descriptors. Before: a file whose rows were moved one query
+    on was re-ranked and stored under the genuine run's key (hog + aqe@10 R@1 4.5 on the board instead of 45.9)."""
+    path, settings = exported
+    copy = edited(path, tmp_path)
+    with h5py.File(copy, "a") as f:
+        indices, scores = f["indices"][...], f["scores"][...]
+        if edit == "rows-moved":
+            f["indices"][...], f["scores"][...] = np.roll(indices, 1, 0), np.roll(scores, 1, 0)
+        else:  # the order kept, the scores not the retriever's
+            f["scores"][...] = scores / 2
+    spec = resolve_spec("hog", "corridor", stages=RERANK, ks=(1, 5), data_dir=shared_data)
+    with pytest.raises(VPRBenchError, match=r"Candidates file .*edited.h5: query 0's candidate \d+ has the score .* "
+                                            "there, but .* from this run's descriptors: its rows are not this "
+                                            "retriever's candidates"):
+        evaluate(spec, dataclasses.replace(settings, candidates=copy))

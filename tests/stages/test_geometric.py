@@ -127,3 +127,28 @@ def test_equal_counts_keep_their_retrieval_order():
     expected = sorted(range(k), key=lambda c: -counts[0, c])  # Python's sort is stable
     assert found.indices[0].tolist() == [100 + c for c in expected]
     assert found.scores[0].tolist() == [float(counts[0, c]) for c in expected]
+
+
+def test_a_sweep_runs_again_under_another_opencv(shared_data, tmp_path, capsys, monkeypatch):
+    """Before: sift-ransac had no fingerprint, so after an OpenCV upgrade a sweep served the inliers the old
+    version counted, while the same run not served computed new SIFT features (stored per OpenCV version)."""
+    import cv2
+
+    from vprbench.cli.main import main
+    from vprbench.evaluation import read_results
+
+    plan, cache = tmp_path / "plan.toml", tmp_path / "cache"
+    plan.write_text('[[methods]]\nname = "hog"\noptions = { resize = [32, 32] }\n\n[[datasets]]\nname = "corridor"\n')
+
+    def run() -> list[dict]:
+        code = main([str(a) for a in ("run", plan, "--k", 1, "--rerank", "sift-ransac", "--rerank-k", 2, "--quiet",
+                                      "--data-dir", shared_data, "--cache-dir", cache)])
+        assert code == 0, capsys.readouterr().err
+        capsys.readouterr()
+        return read_results(cache)
+
+    [first] = run()
+    assert first["stages"][0]["fingerprint"] == {"opencv": cv2.__version__}
+    assert len(run()) == 1  # served
+    monkeypatch.setattr(cv2, "__version__", "0.0.1")
+    assert len(run()) == 2, "the record of another OpenCV's inliers was served"

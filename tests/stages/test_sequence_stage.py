@@ -63,6 +63,15 @@ def test_a_sequence_longer_than_the_queries_is_refused(shared_data, tmp_path):
     assert not list(tmp_path.rglob("*.h5"))  # refused before any descriptor is computed
 
 
+def test_a_uniqueness_window_over_the_whole_database_is_refused(shared_data, tmp_path):
+    """Before: accepted; a match in the middle had no second best, its score fell back to minus its bare cost,
+    another scale than the other queries' ratios in one PR curve (AUC-PR 0.51 at window 500, 0.63 at 10)."""
+    with pytest.raises(VPRBenchError, match="uniqueness_window 110 leaves out every one of the 111 database images "
+                                            "of corridor .* give uniqueness_window <= 109"):
+        run("hog", {"name": "seqslam", "length": 3, "uniqueness_window": 110}, shared_data, tmp_path)
+    assert not list(tmp_path.rglob("*.h5"))  # refused before any descriptor is computed
+
+
 @pytest.mark.parametrize("dataset", ["pitts30k", "tokyo247"])
 def test_unordered_benchmarks_are_refused_from_their_manifest(dataset, capsys, tmp_path):
     code = main(["evaluate", "--method", "hog", "--dataset", dataset, "--sequence", "seqslam",

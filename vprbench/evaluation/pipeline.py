@@ -278,6 +278,11 @@ def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None
         t = time.perf_counter()
         context = stage_context(spec, settings, method, dataset, described, progress, run.fit_on, stages,
                                 candidates.k)
+        if run.frozen is not None:  # a file's rows checked against the descriptors before a stage re-ranks them
+            from ..stages.candidates import check_scores
+
+            check_scores(settings.candidates, found, context.database, context.queries, context.compare,
+                         context.memory_budget)
         flags = None if found.all_zero is None else found.all_zero.failures(track_of(stages))
         candidates, stage_costs = run_stages(stages, candidates, context, run.ks, dataset.positives, flags)
         timings["stages_s"] = time.perf_counter() - t

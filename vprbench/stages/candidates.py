@@ -161,6 +161,13 @@ def _numbers(f: h5py.File, name: str, path: Path, kinds: str, most: int) -> np.n
     images bound every array the export writes: a header claiming more would be read whole first)."""
     from ..store.rows_file import stored_inside
 
+    link = f.get(name, getlink=True)
+    if link is not None and not isinstance(link, h5py.HardLink):
+        # a link is resolved by opening what it names: another file (outside the sha256 the record gives), a
+        # named pipe (a hang); the export writes its arrays in the file
+        target = f"{link.filename}:{link.path}" if isinstance(link, h5py.ExternalLink) else link.path
+        raise VPRBenchError(f"Candidates file {path}: its {name} holds a link to {shortened(target)}, not at most "
+                            f"{most:,} real numbers stored in the file; export it again.")
     data = f.get(name)
     if not isinstance(data, h5py.Dataset) or data.dtype.kind not in kinds or not stored_inside(data) \
             or data.size > most:
@@ -247,3 +254,52 @@ def _depth(k) -> int:
     if isinstance(k, bool) or not isinstance(k, int) or k < 1:
         raise VPRBenchError(f"--k takes a whole number >= 1 of candidates per query, got {k!r}.")
     return k
+
+
+#: how far a file's score may lie from the one computed again: the search's grid (2^-16) and float32 products
+#: of long rows are far inside it; another query's row, another retriever's scores are far outside
+SCORE_SLACK = 1e-3
+#: queries whose rows are read at once for that check (fewer when the budget is small)
+CHECK_QUERIES = 256
+
+
+def check_scores(path, found, database, queries, compare: str, budget: int) -> None:
+    """Each query's first and last candidate in the file scored again from the retriever's descriptors (as its
+    search saw them: `database`, `queries` row sources), two database rows per query. A file whose rows were moved
+    between queries, whose scores or all-zero flags were edited or which another retriever wrote under this one's
+    name was re-ranked and stored as this run's, its record served for it; the file cannot say so, the descriptors
+    can. The count of all-zero database rows (a count in the record, no metric) is not read again: it takes a pass
+    over the database."""
+    from ..evaluation.row_checks import zero_rows
+
+    if compare not in ("cosine", "mean-absolute-difference"):  # a plugin's own distance: not known here
+        return
+    columns = [0, found.indices.shape[1] - 1]
+    # a query's row and its two candidates' in float64, and sad's differences: within a tenth of the run's budget
+    step = max(1, min(CHECK_QUERIES, budget // 10 // (48 * max(1, queries.dim))))
+    for lo in range(0, found.indices.shape[0], step):
+        hi = min(lo + step, found.indices.shape[0])
+        rows = queries.read_rows(lo, hi)
+        flags = None if found.all_zero is None else found.all_zero.queries[lo:hi]
+        wrong = None if flags is None else zero_rows(rows, "Query", lo) != flags  # a flagged query counts as failed
+        if wrong is not None and wrong.any():
+            q = lo + int(np.flatnonzero(wrong)[0])
+            said, found_now = ("all zero", "is not") if flags[q - lo] else ("not all zero", "is all zero")
+            raise VPRBenchError(f"Candidates file {path}: its all_zero flags say query {q}'s descriptor is {said}, but "
+                                f"this run's {found_now}: export it again.")
+        rows = rows.astype(np.float64)
+        wanted = found.indices[lo:hi, columns]
+        unique, at = np.unique(wanted, return_inverse=True)
+        images = database.read_rows_at(unique).astype(np.float64)[at.reshape(wanted.shape)]
+        if compare == "cosine":
+            again = np.einsum("qd,qcd->qc", rows, images)
+        else:  # sad's scores are minus the distance
+            again = -np.abs(rows[:, None, :] - images).mean(-1)
+        stored = found.scores[lo:hi, columns].astype(np.float64)
+        off = np.abs(again - stored) > SCORE_SLACK * np.maximum(1.0, np.abs(again))
+        if off.any():
+            q, c = np.argwhere(off)[0]
+            raise VPRBenchError(f"Candidates file {path}: query {lo + q}'s candidate {int(wanted[q, c])} has the score "
+                                f"{stored[q, c]:.6g} there, but {again[q, c]:.6g} from this run's descriptors: its "
+                                "rows are not this retriever's candidates for these queries (edited, or rows of "
+                                "another order or retriever); export it again.")

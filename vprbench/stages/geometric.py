@@ -105,6 +105,13 @@ class SiftRansac(Stage):
         return {"extractor": "opencv-sift", "opencv": cv2.__version__, "max_features": self.options.max_features,
                 "decoding": ORIENTATION}
 
+    def fingerprint(self) -> dict:
+        import cv2
+
+        # the inliers are OpenCV's (its SIFT, its USAC): the features are stored per OpenCV version, and so must the
+        # record be, or a sweep after an upgrade served the old version's numbers for a run that computes new ones
+        return {"opencv": cv2.__version__}
+
     def _store(self, context: StageContext):
         return context.features("sift", self.feature_identity(), SIFT_FORM)
 

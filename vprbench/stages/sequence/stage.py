@@ -105,6 +105,18 @@ class SeqSLAM(_SequenceStage):
                    "OpenSeqSLAM's defaults")
     score = "seqslam"
 
+    def check(self, dataset) -> None:
+        super().check(dataset)
+        # a window leaving out every database image around a match in the middle leaves it no second best: its
+        # score fell back to minus the bare cost, another scale than the other queries' ratios in one PR curve
+        n, half = len(dataset.database), self.options.uniqueness_window // 2
+        if half >= n // 2:
+            raise VPRBenchError(f"Sequence stage {self.name!r}: uniqueness_window {self.options.uniqueness_window} "
+                                f"leaves out every one of the {n} database images of {dataset.name} around a match "
+                                "in its middle, so that match has no second best to be scored against: "
+                                + (f"give uniqueness_window <= {2 * (n // 2) - 1}." if n > 1 else
+                                   "SeqSLAM needs two database images or more."))
+
     def search_options(self) -> dict:
         o = self.options
         return {"enhance_window": o.enhance_window, "v_min": o.v_min, "v_max": o.v_max, "v_step": o.v_step,
