@@ -218,6 +218,14 @@ def _gated(source: WeightSource, what: str) -> VPRBenchError:
                          "--weights random runs a pipeline check without them.")
 
 
+def _hash_mismatch(source: WeightSource, got: str, what: str) -> VPRBenchError:
+    """A download whose bytes are not the release's: both sha256 in full (none is kept), not "Offline?"."""
+    return VPRBenchError(f"{what}: the download of {source.file_name} from {source.url} has sha256 {got.lower()}, "
+                         f"not the published {source.sha256.lower()}, and was not kept: the file changed at the source "
+                         f"or was damaged on the way; try again, or {source.how_to_get()} once its sha256 is the "
+                         "published one.")
+
+
 def _no_download(source: WeightSource, what: str) -> str:
     return (f"{what}: the authors publish {source.file_name} only at {source.where}, which cannot be downloaded "
             f"automatically; download it there and pass it with {source.pass_with}.")
@@ -246,8 +254,14 @@ def resolve_weights(source: WeightSource, weights: str | Path | None, what: str,
                 for partial in found.parent.glob(f"{glob.escape(found.name)}.*.partial"):
                     partial.unlink(missing_ok=True)
                 if not found.is_file():
-                    torch.hub.download_url_to_file(source.url, str(found), progress=False,
-                                                   hash_prefix=source.sha256 and source.sha256.lower())  # lower-case hex
+                    try:
+                        torch.hub.download_url_to_file(source.url, str(found), progress=False,
+                                                       hash_prefix=source.sha256 and source.sha256.lower())  # lower-case hex
+                    except RuntimeError as error:  # torch keeps nothing of a file whose hash differs
+                        got = re.search(r'invalid hash value .*got "([0-9a-fA-F]+)"', str(error))
+                        if got is None:
+                            raise
+                        raise _hash_mismatch(source, got.group(1), what) from None
         else:
             from huggingface_hub import get_hf_file_metadata, hf_hub_download, hf_hub_url
             from huggingface_hub.errors import EntryNotFoundError, LocalEntryNotFoundError
@@ -264,6 +278,8 @@ def resolve_weights(source: WeightSource, weights: str | Path | None, what: str,
                     if isinstance(error, LocalEntryNotFoundError) or name == names[-1]:  # offline, or none there
                         raise
             found = Path(hf_hub_download(source.hub, name, cache_dir=str(hub_folder(cache_dir))))
+    except VPRBenchError:
+        raise
     except Exception as error:  # noqa: BLE001 - network clients raise their own types (urllib, httpx, hub errors)
         if type(error).__name__ == "GatedRepoError":  # not logged in, or logged in without access
             raise _gated(source, what) from None

@@ -50,11 +50,26 @@ def create_model(spec: BackboneEntry, *, empty: bool = False, seed: int | None =
     import timm
 
     kwargs = {"pretrained": False, "num_classes": 0, **spec.timm_kwargs, **overrides}
+    with own_defaults(), torch.device("meta"):  # skips the random initialisation of large models
+        shape = timm.create_model(spec.timm, **kwargs).eval()
+    _check_memory(spec, shape)
+    if empty:
+        return shape
     with own_defaults(seed):
-        if empty:
-            with torch.device("meta"):  # skips the random initialisation of large models
-                return timm.create_model(spec.timm, **kwargs).eval()
         return _as_released(timm.create_model(spec.timm, **kwargs).eval(), spec)
+
+
+def _check_memory(spec: BackboneEntry, model: nn.Module) -> None:
+    """A model whose float32 weights exceed this machine's memory is refused from its shapes alone,
+    before it is built or a file read: built, it (a 7B ViT: 28 GB) got the process killed without a word."""
+    from ..evaluation import provenance  # the module, so the machine's memory can be stood in for
+
+    needed = 4 * sum(t.numel() for t in (*model.parameters(), *model.buffers()))
+    memory = provenance.memory_bytes()
+    if memory is not None and needed > memory:
+        raise VPRBenchError(f"Backbone {spec.name} needs {needed / 2**30:.1f} GiB for its float32 weights alone, more "
+                            f"than this machine's {memory / 2**30:.1f} GiB of memory: choose a smaller backbone, or run "
+                            "on a machine with more memory.")
 
 
 def _as_released(model: nn.Module, spec: BackboneEntry) -> nn.Module:
