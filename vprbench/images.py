@@ -186,7 +186,7 @@ def list_images(folder: Path, *, recursive: bool = False, natural: bool = False)
     natural order ('a1.jpg', 'a01.jpg'; one name in two subfolders) by path, not as the folder lists them."""
     found = entries_below(folder) if recursive else folder.iterdir()
     # hidden names (macOS's ._x.jpg copies of metadata) are no images, as for the authors' glob-based loaders
-    images = [_utf8_name(p) for p in found
+    images = [utf8_name(p) for p in found
               if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".") and _is_image_file(p)]
     return sorted(images, key=(lambda p: (natural_key(p), p)) if natural else None)
 
@@ -211,11 +211,31 @@ def entries_below(folder: Path) -> Iterator[Path]:
         yield from (Path(top) / name for name in folders + files)
 
 
-def _utf8_name(path: Path) -> Path:
-    """`path`, refused when its name is bytes that are no UTF-8 text (written in another encoding): stores and
-    records keep image names as text, and positions.csv could not name it."""
+def nested_image_folders(folder: Path) -> str:
+    """The subfolders of `folder` that hold images (at any depth), named for a message; "" if none: the images
+    `list_images` leaves out, which an own folder and `describe --fit-on` say."""
+    # the folder's own images were listed already: only its folders, walked as list_images walks them
+    # (rglob skipped an unreadable one unsaid; the walk names it)
+    with os.scandir(folder) as entries:
+        found = sorted(entry.name for entry in entries if _is_folder(entry)
+                       and any(path.suffix.lower() in IMAGE_SUFFIXES for path in entries_below(Path(entry.path))))
+    return ", ".join(ascii(name) for name in found[:3]) + (f" and {len(found) - 3} more" if len(found) > 3 else "")
+
+
+def _is_folder(entry: os.DirEntry) -> bool:
+    """Whether `entry` is a folder; False for a link that loops (ELOOP), which is no folder of images and,
+    not named like an image, is ignored as other files are."""
     try:
-        path.name.encode("utf-8")
+        return entry.is_dir()
+    except OSError:
+        return False
+
+
+def utf8_name(path: Path, name: str | None = None) -> Path:
+    """`path`, refused when its name (or `name`, what a store calls it) is bytes that are no UTF-8 text (written
+    in another encoding): stores and records keep image names as text, and positions.csv could not name it."""
+    try:
+        (path.name if name is None else name).encode("utf-8")
     except UnicodeEncodeError:
         raise VPRBenchError(f"Image {os.fsencode(path.name)!r} in {path.parent}: its name is not UTF-8 text (another "
                             "encoding's bytes); rename it.") from None
@@ -225,10 +245,10 @@ def _utf8_name(path: Path) -> Path:
 def _is_image_file(path: Path) -> bool:
     """A file to read; False for a folder named like an image; an error for a named pipe (reading
     it would hang) or a device, and for a link that leads nowhere (skipping it would drop an image unseen)."""
-    return _refuse_dead_link(path) if path.is_symlink() and not path.exists() else regular_file(path, "Image")
+    return refuse_dead_link(path) if path.is_symlink() and not path.exists() else regular_file(path, "Image")
 
 
-def _refuse_dead_link(path: Path) -> bool:
+def refuse_dead_link(path: Path) -> bool:
     """False for a folder named like an image; an error for a link named like one that leads
     nowhere (or loops): skipping it would drop an image unseen."""
     if path.is_symlink() and not path.exists():

@@ -147,6 +147,19 @@ def test_an_output_that_is_a_folder_is_refused_before_any_work(shared_data, cli,
     assert not cache_root().exists(), "the output path is checked before any work"
 
 
+def test_an_output_that_is_a_named_pipe_is_refused_before_any_work(shared_data, cli, tmp_path):
+    """Was: described, then renamed over the pipe, so a reader waiting on it hung and the pipe was gone."""
+    import os
+    import stat
+
+    pipe = tmp_path / "d.npy"
+    os.mkfifo(pipe)
+    code, _, err = cli("describe", "--method", "hog", "--out", pipe, image(shared_data))
+    assert code == 2 and err.strip() == (f"error: argument --out: {pipe} is a named pipe, device or socket, not a "
+                                         "file: give the path of a file to write; see 'vprbench describe --help'"), err
+    assert stat.S_ISFIFO(os.lstat(pipe).st_mode) and not cache_root().exists(), "checked before any work"
+
+
 @pytest.mark.parametrize("args, flag", [
     (["describe", "--method", "hog", "IMAGE", "--out", "OUT/d.npy"], "--out"),
     (["candidates", "export", "--method", "hog", "--dataset", "corridor", "--out", "OUT/c.h5"], "--out"),
@@ -180,6 +193,15 @@ def test_an_output_name_too_long_is_named_not_its_folder(shared_data, cli, tmp_p
     assert not list(cache_root().rglob("*.h5")), "the output path is checked before any work"
 
 
+def test_describe_names_a_link_to_a_missing_image_as_such(cli, tmp_path):
+    """'Image not found: a.jpg' of a link that `ls` shows there; an own folder's lister names it as the link it is."""
+    link = tmp_path / "a.jpg"
+    link.symlink_to(tmp_path / "moved" / "a.jpg")
+    code, _, err = cli("describe", "--method", "hog", "--out", tmp_path / "d.npy", link)
+    assert_refused(code, err, None, f"Image {link} is a symbolic link to a missing file (or a link loop): point it "
+                                    "at the image or remove it.")
+
+
 def test_describe_names_a_folder_given_as_an_image(shared_data, cli, tmp_path):
     """'Image not found: .' said of a folder that is there."""
     code, _, err = cli("describe", "--method", "hog", "--out", tmp_path / "d.npy", shared_data / "corridor" / "query")
@@ -210,6 +232,25 @@ def test_describe_names_a_fit_on_folder_without_images(shared_data, cli, tmp_pat
     empty.mkdir()
     code, _, err = cli("describe", "--method", "hog", "--fit-on", empty, "--out", tmp_path / "d.npy", image(shared_data))
     assert_refused(code, err, None, f"--fit-on folder {empty} holds no images: give the folder of database images.")
+
+
+def test_describe_says_the_fit_on_images_in_subfolders_it_does_not_read(shared_data, cli, tmp_path):
+    """A --fit-on folder with images only in subfolders was 'holds no images'; with one image at the top the
+    vocabulary was fitted on that one alone, silently (an own folder's database/ says both)."""
+    import shutil
+
+    fit = tmp_path / "fit"
+    (fit / "sub").mkdir(parents=True)
+    for name in ("0000000.jpg", "0000001.jpg"):
+        shutil.copy(shared_data / "corridor" / "ref" / name, fit / "sub" / name)
+    out = tmp_path / "d.npy"
+    code, _, err = cli("describe", "--method", "dense-vlad", "--fit-on", fit, "--out", out, image(shared_data))
+    assert_refused(code, err, None, f"--fit-on folder {fit} holds no images directly (only in its subfolders "
+                                    "'sub': move them up into it)")
+    shutil.copy(shared_data / "corridor" / "ref" / "0000002.jpg", fit / "top.jpg")
+    with pytest.warns(UserWarning, match=r"--fit-on .*fit: the images in its subfolders \('sub'\) are not read"):
+        code, _, err = cli("describe", "--method", "hog", "--fit-on", fit, "--out", out, image(shared_data))
+    assert code == 1 and "fits nothing" in err, err  # hog fits nothing: warned first, then refused
 
 
 def test_vocabulary_fit_refuses_an_empty_domain(shared_data, cli):

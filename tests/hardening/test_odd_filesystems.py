@@ -165,3 +165,15 @@ def test_waiting_for_a_lock_in_a_folder_named_with_escapes_is_one_literal_line(t
     finally:
         holder.kill()
         holder.wait()
+
+
+def test_describe_names_an_image_named_in_another_encoding(shared_data, tmp_path, cli):
+    """`describe caf\\xe9.jpg` (a path given as bytes of another encoding): was a UnicodeEncodeError traceback
+    when its store was created (stores keep names as UTF-8), after the images before it were described."""
+    image = os.path.join(os.fsencode(tmp_path), b"caf\xe9.jpg")
+    shutil.copy(shared_data / "corridor" / "ref" / "0000003.jpg", image)
+    out = tmp_path / "d.npy"
+    code, _, err = cli("describe", "--method", "hog", "--resize", 32, 32, shared_data / "corridor" / "ref" / "0000001.jpg",
+                       os.fsdecode(image), "--out", out)
+    assert_refused(code, err, None, r"b'caf\xe9.jpg'", "not UTF-8", "rename it")
+    assert not out.exists()

@@ -45,8 +45,9 @@ def add_parsers(commands) -> None:
     p.add_argument("images", nargs="+", type=path_argument, help="image files")
     p.add_argument("--out", required=True, type=output_file(".npy"), help="output .npy file")
     p.add_argument("--fit-on", type=path_argument,
-                   help="folder of database images: the method's vocabulary and PCA-whitening are fitted on them "
-                        "(without it, PCA is fitted on the images described)")
+                   help="folder of database images (those directly in it, not in its subfolders): the method's "
+                        "vocabulary and PCA-whitening are fitted on them (without it, PCA is fitted on the images "
+                        "described)")
     p.add_argument("--dataset", help="apply this dataset's per-method settings (e.g. AnyLoc's resize and vocabulary); "
                                      "its own images then share the descriptor stores 'evaluate' keeps")
     add_location_options(p)
@@ -194,6 +195,7 @@ def run_describe(args) -> int:
     from ..evaluation.pipeline import create_run_method, loader_workers
     from ..evaluation.postprocess import check_database_size, fits_on_database, postprocessed
     from ..fsutil import atomic_write
+    from ..images import refuse_dead_link
     from ..loader import postprocess_datasets_of, use_dataset
     from ..paths import regular_file
     from ..row_sources import DEFAULT_MEMORY_BUDGET
@@ -218,16 +220,26 @@ def run_describe(args) -> int:
         if image.is_dir():
             raise VPRBenchError(f"{image} is a folder: give its image files (e.g. {image / '*.jpg'}).")
         if not regular_file(image, "Image"):  # a named pipe is refused as such, not as missing
+            refuse_dead_link(image)  # said as the image lister says it ('not found' of a file ls shows)
             raise VPRBenchError(f"Image not found: {image}")
     splits = {}
     if args.fit_on is not None:
         if not args.fit_on.is_dir():
             raise VPRBenchError(f"--fit-on must be a folder of images, got {args.fit_on}")
-        from ..images import list_images
+        from ..images import list_images, nested_image_folders
 
         splits["database"] = [_absolute(p) if root else p for p in list_images(args.fit_on)]
+        # as an own folder's database/ says them: a fit on the few images at the top was silent
+        nested = nested_image_folders(args.fit_on)
         if not splits["database"]:  # was 'No images to describe in the database split', naming no folder
-            raise VPRBenchError(f"--fit-on folder {args.fit_on} holds no images: give the folder of database images.")
+            where = f" directly (only in its subfolders {nested}: move them up into it)" if nested else ""
+            raise VPRBenchError(f"--fit-on folder {args.fit_on} holds no images{where}: give the folder of database "
+                                "images.")
+        if nested:
+            import warnings
+
+            warnings.warn(f"--fit-on {args.fit_on}: the images in its subfolders ({nested}) are not read, only those "
+                          "directly in it; move them up to fit on them too.", stacklevel=2)
     splits["queries"] = [_absolute(p) if root else p for p in args.images]
     keyed = None  # the method's own settings
     if args.dataset is not None:  # before needs_fit is read: the dataset's vocabulary may be ready (AnyLoc's domain)

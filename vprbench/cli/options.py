@@ -19,6 +19,7 @@ import tempfile
 from pathlib import Path
 
 from ..errors import VPRBenchError, name_roots, os_error_message
+from ..paths import special_file
 
 #: method options with a flag of their own (the rest go through -o KEY=VALUE)
 METHOD_FLAGS = ("backbone", "weights", "layer", "facet", "aggregation", "clusters", "vocabulary", "resize", "pca_dim",
@@ -253,6 +254,9 @@ def output_file(*suffixes: str):
         try:
             if path.expanduser().is_dir():
                 raise argparse.ArgumentTypeError(f"{text} is a folder: give a file name in it")
+            if special_file(path.expanduser()):  # the final rename would put a file where the pipe or device was
+                raise argparse.ArgumentTypeError(f"{text} is a named pipe, device or socket, not a file: give the "
+                                                 "path of a file to write")
             if folder.exists() and not folder.is_dir():
                 raise argparse.ArgumentTypeError(f"{folder} is a file, not a folder: check the path")
             if folder.is_dir():  # the file is renamed into it at the end: one made there now (unnamed on Linux)

@@ -31,6 +31,19 @@ def image_names(paths: Sequence[Path], root: Path | None) -> list[str]:
     return [p.relative_to(root).as_posix() if root and p.is_relative_to(root) else p.name for p in paths]
 
 
+def check_store_names(paths: Sequence[Path], names: Sequence[str]) -> None:
+    """Refuse, naming the image, a name a store cannot keep (stores keep names as UTF-8 text): a path given to
+    `describe` in another encoding's bytes was a traceback when its store was created, after the images
+    before it were described. (A key, `images_key`, takes any name: a folder's stray files are keyed too.)"""
+    try:
+        "\n".join(names).encode("utf-8")  # one encode for the common case; the image at fault found below
+    except UnicodeEncodeError:
+        from ..images import utf8_name
+
+        for path, name in zip(paths, names):
+            utf8_name(Path(path), name)
+
+
 def _file_sha256(path: str) -> str:
     try:
         return file_sha256(path)

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..datasets.identity import content_hashes, image_names, images_key
+from ..datasets.identity import check_store_names, content_hashes, image_names, images_key
 from ..distributed import Ranks
 from ..errors import VPRBenchError
 from ..fsutil import cache_error
@@ -67,6 +67,8 @@ def describe_splits(method, splits: dict[str, list[Path]], *, root: Path | None 
         if not paths:
             raise VPRBenchError(f"No images to describe in the {split} split.")
     names = names or {split: image_names(paths, root) for split, paths in splits.items()}
+    for split, paths in splits.items():
+        check_store_names(paths, names[split])
     digests = digests or {split: content_hashes(paths, cache_dir) for split, paths in splits.items()}
     image_keys = {split: images_key(paths, root, digests=digests[split], names=names[split]) for split, paths in splits.items()}
     fingerprint = method_fingerprint(method, store_dtype, settings, cache_dir)

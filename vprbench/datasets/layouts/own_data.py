@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import VPRBenchError
-from ...images import IMAGE_SUFFIXES, entries_below, list_images
+from ...images import IMAGE_SUFFIXES, list_images, nested_image_folders
 from ...paths import regular_file
 from ...text import CONTROL, toml_data
 from ..manifest import DatasetManifest
@@ -233,31 +233,12 @@ def image_row_names(images: list[Path], root: Path) -> list[str]:
     return names
 
 
-def _nested_images(folder: Path) -> str:
-    """The subfolders of `folder` that hold images (at any depth), named for a message; "" if none."""
-    # the folder's own images were listed already: only its folders, walked as list_images walks them
-    # (rglob skipped an unreadable one unsaid; the walk names it)
-    with os.scandir(folder) as entries:
-        found = sorted(entry.name for entry in entries if _is_folder(entry)
-                       and any(path.suffix.lower() in IMAGE_SUFFIXES for path in entries_below(Path(entry.path))))
-    return ", ".join(ascii(name) for name in found[:3]) + (f" and {len(found) - 3} more" if len(found) > 3 else "")
-
-
-def _is_folder(entry: os.DirEntry) -> bool:
-    """Whether `entry` is a folder; False for a link that loops (ELOOP), which is no folder of images and,
-    not named like an image, is ignored as other files are."""
-    try:
-        return entry.is_dir()
-    except OSError:
-        return False
-
-
 @layout("own", expects=lambda options: ["database/", "queries/"])
 def read_own(root: Path, manifest: DatasetManifest):
     database = list_images(require(root, "database", manifest))
     queries = list_images(require(root, "queries", manifest))
     empty = [f"{root}/{name}" for name, images in (("database", database), ("queries", queries)) if not images]
-    nested = {name: _nested_images(root / name) for name in ("database", "queries")}
+    nested = {name: nested_image_folders(root / name) for name in ("database", "queries")}
     if empty:
         hint = next((f"{root}/{name} has images only in its subfolders ({nested[name]}): move them up into it"
                      for name in ("database", "queries") if f"{root}/{name}" in empty and nested[name]),
