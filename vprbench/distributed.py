@@ -54,8 +54,10 @@ class Ranks:
             try:
                 dist.init_process_group(backend, timeout=timedelta(seconds=_timeout_s()), **kwargs)
             except (RuntimeError, ValueError) as error:  # no MASTER_ADDR, a rendezvous that timed out
-                raise VPRBenchError(f"torchrun rank {rank} could not join the other ranks ({_first_line(error)}). "
-                                    "Start every rank with torchrun and the same --rdzv-endpoint.") from None
+                failed = VPRBenchError(f"torchrun rank {rank} could not join the other ranks ({_first_line(error)}). "
+                                       "Start every rank with torchrun and the same --rdzv-endpoint.")
+                failed.said = False  # this rank's own: every rank says it
+                raise failed from None
         return cls(rank, world, local_rank, backend)
 
     def all_gather(self, value) -> list:
@@ -127,6 +129,7 @@ class Ranks:
         `SAID_WAIT_S` for rank 0's."""
         if not self.distributed:
             return
+        error.said = False  # known to the ranks' exchange: never taken for an error met before the ranks joined
         import time
 
         import torch.distributed as dist
@@ -194,10 +197,21 @@ def _first_line(error: BaseException) -> str:
     return text.split(". ", 1)[0].rstrip(".")
 
 
+def said_by_first_local_rank(error: VPRBenchError) -> bool:
+    """Under torchrun, whether `error`, met before the ranks joined (bad input: the same command read on the same
+    files by every rank of a node, e.g. --k 0 or a missing image), is said by the node's first rank, not this one."""
+    if hasattr(error, "said"):  # it went through `Ranks.said_once`
+        return False
+    world, local = os.environ.get("WORLD_SIZE", "1").strip(), os.environ.get("LOCAL_RANK", "0").strip()
+    return world.isdigit() and int(world) > 1 and local.isdigit() and int(local) != 0
+
+
 def refuse_torchrun(command: str) -> None:
     """Plans' cells are shared by plain processes (claims on the cache); torchrun shards one evaluation.
     Under torchrun each rank would run cells of its own, each printing a table: refused, saying both ways."""
     if _whole_from_environment("WORLD_SIZE", "1") > 1:
-        raise VPRBenchError(f"'vprbench {command}' runs under torchrun as independent copies, not sharded: start it "
-                            "without torchrun (several plain processes on one --cache-dir share the cells), or "
-                            "torchrun one 'vprbench evaluate' at a time.")
+        error = VPRBenchError(f"'vprbench {command}' runs under torchrun as independent copies, not sharded: start it "
+                              "without torchrun (several plain processes on one --cache-dir share the cells), or "
+                              "torchrun one 'vprbench evaluate' at a time.")
+        error.said = _whole_from_environment("RANK", "0") != 0  # every rank meets it alike: rank 0 says it
+        raise error

@@ -148,3 +148,158 @@ def test_every_test_the_docs_name_exists():
             if not found.is_file() or (name and f"def {name}(" not in found.read_text()):
                 missing.append(f"{page.name}: {path}" + (f"::{name}" if name else ""))
     assert not missing, missing
+
+
+@pytest.mark.parametrize("source, weights, backbone, suggested", [
+    ("indoor", "random", "dinov2_vitg14", False),  # docs/anyloc.md: the released centres are refused for these features
+    ("structured", None, "dinov2_vits14", False),
+    ("structured", None, "dinov2_vitg14", True),  # the release's own setting: its c_centers.pt is taken
+])
+def test_a_missing_named_vocabulary_suggests_the_released_file_only_where_it_is_taken(tmp_path, source, weights,
+                                                                                      backbone, suggested):
+    from vprbench import VPRBenchError
+    from vprbench.methods.anyloc_vocabulary import resolve_vocabulary
+
+    name = "dinov2_vitg14@random" if weights == "random" else backbone
+    layer = 31 if backbone == "dinov2_vitg14" else 9
+    with pytest.raises(VPRBenchError) as refused:
+        resolve_vocabulary(source, name, layer, "value", 32, tmp_path)
+    message = str(refused.value)
+    assert f"vprbench vocabulary fit --method METHOD --domain {source}" in message
+    assert ("released c_centers.pt" in message) is suggested, message
+
+
+def _commands(parser, name="vprbench"):
+    import argparse
+
+    yield name, parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub, child in action.choices.items():
+                yield from _commands(child, f"{name} {sub}")
+
+
+def test_every_flag_of_every_command_is_documented():
+    # a flag `--help` lists but no page names is one a reader cannot find out about (--no-strict, --output, --pca-dim were)
+    import re
+    from pathlib import Path
+
+    from vprbench.cli.main import build_parser
+
+    root = Path(__file__).resolve().parents[2]
+    text = "\n".join(page.read_text() for page in [root / "README.md", *sorted((root / "docs").glob("*.md"))])
+    missing = [f"{name}: {action.option_strings}" for name, parser in _commands(build_parser())
+               for action in parser._actions if action.option_strings and action.help != "==SUPPRESS=="
+               and not {"-h", "--version"} & set(action.option_strings)
+               and not any(re.search(re.escape(flag) + r"(?![\w-])", text) for flag in action.option_strings)]
+    assert not missing, missing
+
+
+def test_the_vocabulary_fit_defaults_help_gives_are_the_ones_the_code_and_anyloc_md_use(cli):
+    # docs/anyloc.md: a sample of at most 250,000 features by default; initial centres drawn by RandomState(42)
+    from pathlib import Path
+
+    from vprbench.aggregation.vocabulary import DEFAULT_BUDGET, KMEANS_SEED
+
+    code, out, _ = cli("vocabulary", "fit", "--help")
+    out = " ".join(out.split())
+    page = (Path(__file__).resolve().parents[2] / "docs" / "anyloc.md").read_text()
+    assert code == 0 and f"(default {DEFAULT_BUDGET:,})" in out and f"(default {KMEANS_SEED}, the authors')" in out, out
+    assert f"{DEFAULT_BUDGET:,} by" in " ".join(page.split()) and f"RandomState({KMEANS_SEED})" in page
+
+
+def test_the_export_and_verify_lines_of_contributing_results_md_are_what_they_print(shared_data, tmp_path, cli,
+                                                                                    monkeypatch):
+    # docs/contributing-results.md "1. Export" and "2. Verify": the commands as shown, on Corridor, print the
+    # page's lines (but the run id, the date and the bundle's size); recalls have one decimal, as the leaderboard's
+    import re
+    import shlex
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[2] / "docs" / "contributing-results.md").read_text()
+    export, wrote, verify, verified = re.search(r"\$ vprbench (results export [^\n]*)\n(Wrote [^\n]*)\n```.*?"
+                                                r"\$ vprbench (results verify [^\n]*)\n([^\n]*)\n", text, flags=re.S).groups()
+    monkeypatch.chdir(tmp_path)
+    where = ("--data-dir", shared_data, "--cache-dir", tmp_path / "cache")
+    assert cli("evaluate", "--method", "hog", "--dataset", "corridor", *where, "--quiet")[0] == 0
+    code, out, _ = cli(*shlex.split(export), "--cache-dir", tmp_path / "cache")
+    assert code == 0 and out.split(":")[0] == wrote.split(":")[0] and "1 run(s)" in out and "1 run(s)" in wrote
+    code, out, _ = cli(*shlex.split(verify.replace("--data-dir /data", "")), *where)
+    shown = re.compile(r"\(run \S+, (.*)\Z")
+    assert code == 0 and shown.search(out.strip()).group(1) == shown.search(verified).group(1), (out, verified)
+
+
+def test_the_help_of_datasets_info_says_what_its_cache_dir_is_for(shared_data, tmp_path, cli):
+    # `datasets info` uses --cache-dir for a folder of one's own only (and refuses it with a benchmark's name);
+    # its --help said "where descriptor stores, vocabularies and results live", as for evaluate
+    import re
+
+    code, _, err = cli("datasets", "info", "corridor", "--data-dir", shared_data, "--cache-dir", tmp_path)
+    assert code == 1 and "folder of your own" in err
+    _, out, _ = cli("datasets", "info", "--help")
+    said = " ".join(re.search(r"--cache-dir CACHE_DIR\s+(.*?)\n  --", out, flags=re.S).group(1).split())
+    assert "folder of your own" in said and "descriptor stores" not in said, said
+
+
+def test_registering_a_method_again_is_refused_only_as_add_your_method_md_says():
+    # docs/add-your-method.md: the same factory again (same defaults and description) is no clash; with another
+    # description it is refused saying so, not as "a class defined again", which it is not
+    import numpy as np
+
+    import vprbench
+    from vprbench.methods import registry
+
+    class Again(vprbench.Method):
+        def describe(self, images):
+            return np.full((len(images), 4), 0.5, dtype=np.float32)
+
+    try:
+        vprbench.register_method("docs-audit-again", Again, defaults={"a": 1}, description="one")
+        vprbench.register_method("docs-audit-again", Again, defaults={"a": 1}, description="one")
+        with pytest.raises(ValueError, match="same definition but other defaults or description") as refused:
+            vprbench.register_method("docs-audit-again", Again, defaults={"a": 2}, description="one")
+        assert "a class defined again" not in str(refused.value)
+
+        class Again(vprbench.Method):  # noqa: F811 - a notebook cell run again after an edit
+            def describe(self, images):
+                return np.full((len(images), 4), 0.5, dtype=np.float32)
+
+        with pytest.raises(ValueError, match="a class defined again"):
+            vprbench.register_method("docs-audit-again", Again, defaults={"a": 1}, description="one")
+    finally:
+        registry._REGISTRY.pop("docs-audit-again", None)
+
+
+@pytest.mark.parametrize("command", [["run", "plan.toml"], ["reproduce", "anyloc", "--table", "2", "--dry-run"]])
+def test_run_and_reproduce_under_torchrun_are_refused_once_by_rank_0(tmp_path, cli, monkeypatch, command):
+    # docs/distributed.md: bad input stops every rank with exit code 1 and one `error:` line, said once, by rank 0;
+    # `vprbench run` and `reproduce` are refused under torchrun (they were said by every rank)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "plan.toml").write_text('[[methods]]\nname = "hog"\n[[datasets]]\nname = "corridor"\n')
+    said = {}
+    for rank in (0, 1):
+        monkeypatch.setenv("WORLD_SIZE", "2")
+        monkeypatch.setenv("RANK", str(rank))
+        code, out, err = cli(*command, "--cache-dir", tmp_path)
+        assert code == 1 and not out
+        said[rank] = err
+    assert said[0].startswith("error: ") and said[0].count("error:") == 1 and "runs under torchrun" in said[0]
+    assert said[1] == ""
+
+
+@pytest.mark.parametrize("command", [["evaluate", "--method", "hog", "--dataset", "corridor", "--k", "0"],
+                                     ["describe", "--method", "hog", "nope.jpg", "--out", "d.npy"]])
+def test_bad_input_met_before_the_ranks_join_is_said_by_the_first_rank_only(tmp_path, cli, monkeypatch, command):
+    # docs/distributed.md: bad input is said once; `--k 0` or a missing image, found before the process group is
+    # made, was said by every rank (torchrun --nproc-per-node 4: four identical lines)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    said = {}
+    for rank in (0, 1):
+        monkeypatch.setenv("RANK", str(rank))
+        monkeypatch.setenv("LOCAL_RANK", str(rank))
+        code, _, err = cli(*command, "--cache-dir", tmp_path)
+        assert code == 1
+        said[rank] = err
+    assert said[0].startswith("error: ") and said[0].count("error:") == 1, said[0]
+    assert said[1] == ""

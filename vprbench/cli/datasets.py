@@ -23,7 +23,7 @@ def add_parsers(commands) -> None:
     p.add_argument("name", help="dataset name or a folder of your own")
     p.add_argument("--protocol", help="show the dataset under this protocol (default: its first)")
     p.add_argument("--protocols", action="store_true", help="only list the dataset's protocols (no data needed)")
-    add_location_options(p)
+    add_location_options(p, cache_help="with a folder of your own: where its image identities are remembered")
     p.add_argument("--json", action="store_true")
     p.set_defaults(run=run_info)
     p = sub.add_parser("download", help="fetch a dataset with a direct source, else print how to get it")

@@ -61,14 +61,14 @@ class Unused(argparse.Action):
         parser.error(f"{option_string} is not used by '{parser.prog}': leave it out")
 
 
-def add_location_options(parser: argparse.ArgumentParser, *, data: bool = True, cache: bool = True) -> None:
+def add_location_options(parser: argparse.ArgumentParser, *, data: bool = True, cache: bool = True,
+                         cache_help: str = "where descriptor stores, vocabularies and results live") -> None:
     """The folder options; one a command never uses is refused (ignored, it would look as if it mattered)."""
     parser.add_argument("--data-dir", **({} if data else {"action": Unused, "default": argparse.SUPPRESS}),
                         help="data root holding the datasets (default: $VPRBENCH_DATA or the user cache)"
                         if data else argparse.SUPPRESS)
     parser.add_argument("--cache-dir", **({} if cache else {"action": Unused, "default": argparse.SUPPRESS}),
-                        help="where descriptor stores, vocabularies and results live (default: $VPRBENCH_CACHE or the "
-                             "user cache)" if cache else argparse.SUPPRESS)
+                        help=f"{cache_help} (default: $VPRBENCH_CACHE or the user cache)" if cache else argparse.SUPPRESS)
 
 
 # ---------------------------------------------------------------- method options

@@ -27,9 +27,10 @@ def add_parsers(commands) -> None:
     which = p.add_mutually_exclusive_group(required=True)
     which.add_argument("--domain", help="a domain or group of domains (`vprbench vocabulary domains` lists them)")
     which.add_argument("--dataset", help="map-specific: the dataset's own database")
-    p.add_argument("--budget", type=int, help="features kept by the seeded sampler (default: its standard budget)")
+    p.add_argument("--budget", type=int, help="features kept by the seeded sampler (default 250,000)")
     p.add_argument("--exact", action="store_true", help="the authors' fit on every patch (memory grows with the data)")
-    p.add_argument("--seed", type=int, default=42)
+    p.add_argument("--seed", type=int, default=42,
+                   help="seed of the sampler and of k-means' initial centres (default 42, the authors')")
     p.add_argument("--output", type=output_file(".pt"), help="also write the vocabulary file (.pt) here")
     p.add_argument("--quiet", action="store_true",
                    help="no progress (without a terminal, progress is a line to stderr at most every 30 s)")

@@ -305,9 +305,11 @@ def resolve_vocabulary(spec: str, backbone: str, layer: int, facet: str, cluster
                 how = (f"{spec!r} is no domain ({', '.join(domain_names())}) nor map-DATASET."
                        f"{closest_names(spec, domain_names())} Name one, or put your centres under this name with "
                        f"`vprbench vocabulary import FILE --source {spec}`")
+            released = is_released_setting(backbone, layer, facet, clusters, stride)  # else their centres are refused
             raise VPRBenchError(
                 f"No {spec!r} vocabulary for {setting_words(backbone, layer, facet, clusters, stride)} "
-                f"(looked in {where}). {how}, or pass the path of the authors' released c_centers.pt as the vocabulary."
+                f"(looked in {where}). {how}"
+                + (", or pass the path of the authors' released c_centers.pt as the vocabulary." if released else ".")
             )
     check_clusters(vocabulary, clusters, spec)
     return vocabulary

@@ -167,9 +167,11 @@ def register_method(
     """Make `name` available to `vprbench evaluate --method name`.
 
     `factory(**options)` returns a `Method` (or give its import path, "module:attribute");
-    `defaults` are the preset's options, which the user's options override. A name already taken, a
-    factory neither callable nor an import path, defaults that are no dict, a description that is no
-    text: a ValueError, and nothing is registered.
+    `defaults` are the preset's options, which the user's options override. Registering the same
+    factory again with the same defaults and description changes nothing. A name already taken
+    (by another factory: a class defined again, as a notebook cell run again makes, is another; or
+    by this one with other defaults or description), a factory neither callable nor an import path,
+    defaults that are no dict, a description that is no text: a ValueError, and nothing is registered.
     """
     check_name("Method", name)
     check_target("Method", name, factory, description, source)
