@@ -57,15 +57,12 @@ _claims: list[list[tuple[dict, str]] | None] = []
 def claim(registry: dict, kind: str, entry) -> None:
     """`entry` put under its name in `registry`, unless a different entry holds that name."""
     taken = registry.get(entry.name)
-    if taken is not None and taken != entry and taken.source == entry.source and taken.target == entry.target:
-        raise ValueError(f"{kind} name {entry.name!r} is taken (registered by {taken.source} already, with the same "
-                         "definition but other defaults or description); a name is registered once per process, so "
-                         "register it again as it was, under another name, or restart Python to change it")
-    if taken is not None and taken != entry and taken.source == entry.source:  # its own name, defined again
-        raise ValueError(f"{kind} name {entry.name!r} is taken (registered by {taken.source} already, with another "
-                         "definition: a class defined again, as a notebook cell run again after an edit makes); a name "
-                         "is registered once per process, so register the new one under another name, or restart "
-                         "Python to register it under this one")
+    if taken is not None and taken != entry and taken.source == entry.source:  # its own name, registered again
+        why = ("with the same definition but other defaults or description" if taken.target == entry.target else
+               "with another definition: a class defined again, as a notebook cell run again after an edit makes")
+        raise ValueError(f"{kind} name {entry.name!r} is taken (registered by {taken.source} already, {why}); a name "
+                         "is registered once per process, so register it under another name, or restart Python to "
+                         "register it under this one")
     if taken is not None and taken != entry:
         raise ValueError(f"{kind} name {entry.name!r} is taken (registered by {taken.source}); register yours under "
                          "another name")
