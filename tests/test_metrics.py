@@ -75,3 +75,25 @@ def test_k_equal_to_the_database_is_kept_and_one_more_is_refused():
     assert check_ks([1, 10], 10) == (1, 10)
     with pytest.raises(VPRBenchError, match=r"^K = 11 exceeds the 10 database images"):
         check_ks([1, 11], 10)
+
+
+def test_pr_thresholds_merge_best_matches_on_one_grid_point_not_all_within_one_step():
+    # the PR metrics rank the search's scores on its grid of 2^-16: a right and a wrong best match
+    # merge into one threshold only when they round to the same point. HOG on Corridor has a pair
+    # 7e-6 apart that does and one 1.0e-5 apart (< 2^-16) that does not; docs/evaluation.md said
+    # "within 2^-16 of each other are one threshold", which the second pair contradicts
+    from pathlib import Path
+
+    from vprbench.evaluation.search import rounded_scores
+
+    g = SCORE_TOLERANCE
+    correct = np.array([True, False, True])
+    apart = rounded_scores(np.array([(52000 - 0.2) * g, (52000 - 0.86) * g, 0.5]))  # 1.0e-5 apart, a boundary between
+    assert apart[0] - apart[1] == g
+    assert top1_precision_recall(apart, correct)["recall_at_100_precision"] == pytest.approx(0.5, abs=1e-12)
+    merged = rounded_scores(np.array([(52000 + 0.2) * g, (52000 - 0.27) * g, 0.5]))  # 7.2e-6 apart, one grid point
+    assert merged[0] == merged[1]
+    assert top1_precision_recall(merged, correct)["recall_at_100_precision"] == 0.0
+    doc = " ".join((Path(__file__).resolve().parents[1] / "docs" / "evaluation.md").read_text().split())
+    assert "best matches within 2^-16 of each other are one threshold" not in doc
+    assert "round to the same multiple of 2^-16 are one threshold" in doc
