@@ -11,15 +11,19 @@ import io
 import json
 import re
 import tarfile
+import zlib
 from pathlib import Path, PurePosixPath
 
 from ..errors import VPRBenchError
 from ..paths import regular_file
+from ..text import shortened
 from .export import CARDS, FORMAT, FORMAT_VERSION, MANIFEST
 
 #: the most bytes a bundle may unpack to (an MSLS-size run is ~10 MB); `--max-size` raises it
 MAX_BYTES = 1 << 30
 MAX_MEMBERS = 200_000
+#: the most problems of a manifest named (the rest counted): a manifest listing a million names is one line
+SHOWN = 5
 _HEX = r"[0-9a-f]{16}"
 _RUN = r"[A-Za-z0-9][A-Za-z0-9_.-]{0,80}"
 #: where a record or its arrays lie: <protocol hash>/<row key>/<run id>.json or .npz (in a bundle and a repository)
@@ -44,10 +48,13 @@ class _Bounded(io.RawIOBase):
         data = self.inner.read(min(len(buffer), self.left + 1))
         self.left -= len(data)
         if self.left < 0:
-            raise BundleError(f"{self.where}: it unpacks to more than the bound of {self.limit / 2**20:g} MiB "
-                              "(an archive bomb, or a bundle too big: raise --max-size).")
+            raise BundleError(self.over())
         buffer[: len(data)] = data
         return len(data)
+
+    def over(self) -> str:
+        return (f"{self.where}: it unpacks to more than the bound of {self.limit / 2**20:g} MiB "
+                "(an archive bomb, or a bundle too big: raise --max-size).")
 
 
 def read_members(path: Path, max_bytes: int = MAX_BYTES) -> dict[str, bytes]:
@@ -65,6 +72,7 @@ def read_members(path: Path, max_bytes: int = MAX_BYTES) -> dict[str, bytes]:
         inner = gzip.GzipFile(fileobj=raw) if magic == b"\x1f\x8b" else raw
         stream = _Bounded(inner, max_bytes, where)
         members: dict[str, bytes] = {}
+        total = 0  # the sizes members declare, together: what reading them allocates
         try:
             with tarfile.open(fileobj=io.BufferedReader(stream), mode="r|") as archive:
                 for count, info in enumerate(archive):
@@ -79,9 +87,13 @@ def read_members(path: Path, max_bytes: int = MAX_BYTES) -> dict[str, bytes]:
                         raise BundleError(f"{where}: member {name} claims {info.size} bytes, over the bound of "
                                           f"{max_bytes / 2**20:g} MiB (an archive bomb, or a bundle too big: "
                                           "raise --max-size).")
+                    total += max(info.size, 0)
+                    if total > max_bytes:  # the members together, however few bytes of the archive hold them
+                        raise BundleError(stream.over())
                     handle = archive.extractfile(info)
                     members[name] = handle.read() if handle else b""
-        except (tarfile.TarError, EOFError, OSError, gzip.BadGzipFile, ValueError) as error:
+        # zlib.error: a damaged deflate stream met inside a member, past the headers tarfile reads itself
+        except (tarfile.TarError, EOFError, OSError, gzip.BadGzipFile, ValueError, zlib.error) as error:
             raise BundleError(f"{where} is not a readable bundle archive ({type(error).__name__}: {error}).") from None
     return members
 
@@ -91,23 +103,26 @@ def _member_name(info: tarfile.TarInfo, where: str) -> str | None:
     name = info.name
     parts = PurePosixPath(name).parts
     if name.startswith(("/", "\\")) or ".." in parts or "\\" in name or re.match(r"^[A-Za-z]:", name):
-        raise BundleError(f"{where}: member {name!r} escapes the folder it would be written to; refused.")
+        raise BundleError(f"{where}: member {shortened(repr(name))} escapes the folder it would be written to; "
+                          "refused.")
     if info.isdir():  # nothing is ever extracted: a folder entry inside the bundle is harmless, and ignored
         return None
     name = "/".join(parts)  # PurePosixPath drops '.' parts and repeated slashes
-    if not info.isreg():
-        raise BundleError(f"{where}: member {name!r} is a {'link' if info.issym() or info.islnk() else 'special file'}, "
-                          "not a regular file; refused.")
+    if not info.isreg() or info.issparse():  # a sparse member's holes unpack from nothing: a bomb past the bound
+        kind = "link" if info.issym() or info.islnk() else "sparse file" if info.isreg() else "special file"
+        raise BundleError(f"{where}: member {shortened(repr(name))} is a {kind}, not a regular file; refused.")
     if name != MANIFEST and not (RECORD_NAME.match(name) or _CARD.match(name)):
-        raise BundleError(f"{where}: member {name!r} is no file a bundle holds (records, per-query arrays, method "
-                          "cards, the manifest); refused.")
+        raise BundleError(f"{where}: member {shortened(repr(name))} is no file a bundle holds (records, per-query "
+                          "arrays, method cards, the manifest); refused.")
     return name
 
 
 def _json(data: bytes):
-    """JSON from a bundle; nesting too deep to parse (a hostile file) is a ValueError like any other."""
+    """JSON from a bundle, in UTF-8 without a byte order mark as every reader of a results store or
+    repository reads it (json.loads of bytes takes UTF-16 and a BOM too: a record 'ok' here, skipped by
+    the site); nesting too deep to parse (a hostile file) is a ValueError like any other."""
     try:
-        return json.loads(data)
+        return json.loads(data.decode("utf-8"))
     except RecursionError:
         raise ValueError("nested too deeply") from None
 
@@ -124,10 +139,10 @@ def check_manifest(members: dict[str, bytes], where: str) -> dict:
     except (ValueError, KeyError, TypeError) as error:
         raise BundleError(f"{where}: {MANIFEST} is not a bundle manifest ({type(error).__name__}: {error}).") from None
     if manifest.get("format") != FORMAT:
-        raise BundleError(f"{where}: {MANIFEST} says format {manifest.get('format')!r}, not {FORMAT}.")
+        raise BundleError(f"{where}: {MANIFEST} says format {shortened(repr(manifest.get('format')))}, not {FORMAT}.")
     version = manifest.get("version")
     if isinstance(version, bool) or not isinstance(version, int) or version < 1:  # JSON true is no version
-        raise BundleError(f"{where}: {MANIFEST} says format version {version!r}, which no vprbench writes; it is "
+        raise BundleError(f"{where}: {MANIFEST} says format version {shortened(repr(version))}, which no vprbench writes; it is "
                           "damaged or not a vprbench bundle: export it again.")
     if version > FORMAT_VERSION:
         raise BundleError(f"{where}: bundle format version {version!r} is from a newer vprbench (this one reads up to "
@@ -136,10 +151,11 @@ def check_manifest(members: dict[str, bytes], where: str) -> dict:
     for name in sorted(set(members) - {MANIFEST} - set(files)):
         problems.append(f"{where}: {name} is not listed in {MANIFEST}.")
     for name, entry in sorted(files.items()):
-        if name not in members:
-            problems.append(f"{where}: {name} is listed in {MANIFEST} but missing.")
+        if name not in members:  # any text a manifest gives: a few names, each cut, make a line one can read
+            problems.append(f"{where}: {shortened(name)} is listed in {MANIFEST} but missing.")
         elif not isinstance(entry, dict) or hashlib.sha256(members[name]).hexdigest() != entry.get("sha256"):
             problems.append(f"{where}: {name} does not match its sha256 sum in {MANIFEST} (changed after export).")
     if problems:
-        raise BundleError(" ".join(problems))
+        more = f" And {len(problems) - SHOWN} more." if len(problems) > SHOWN else ""
+        raise BundleError(" ".join(problems[:SHOWN]) + more)
     return manifest

@@ -28,6 +28,7 @@ from pathlib import Path
 from ..errors import VPRBenchError
 from ..evaluation.results import LAYOUT, LAYOUT_FILE, check_layout, read_record
 from ..fsutil import CacheError, LockTimeout, atomic_write, check_lock_timeout, lock
+from ..paths import special_file
 from ..text import one_line
 from .export import CARDS, MAX_CONTRIBUTOR
 from .claims import one_record_per_run
@@ -97,6 +98,11 @@ def _merge(verified, into: Path, report: ImportReport) -> None:
             report.problems.append(f"{verified.path}: {verdict.member} (run {verdict.run_id}): {into / linked} is a "
                                    "link, not a file or folder of the repository; remove it, then import again.")
             continue
+        special = next((name for name in names[1:] if special_file(into / name)), None)
+        if special:  # its read (is it the same run?) would hang on a pipe, or never end on a device
+            report.problems.append(f"{verified.path}: {verdict.member} (run {verdict.run_id}): {into / special} is a "
+                                   "named pipe, device or socket, not a file; remove it, then import again.")
+            continue
         if target.exists():
             if target.read_bytes() == members[verdict.member]:
                 report.duplicates.append(verdict.run_id)
@@ -147,7 +153,7 @@ def _merge(verified, into: Path, report: ImportReport) -> None:
 def _same_result(folder: Path, record: dict) -> str | None:
     """The run id of a record in `folder` with the same spec and the same per-query arrays."""
     for path in sorted(folder.glob("*.json")) if folder.is_dir() else []:
-        if path.is_symlink():
+        if path.is_symlink() or not path.is_file():  # a pipe would hang the read
             continue
         try:
             other = json.loads(path.read_text(encoding="utf-8"))
@@ -198,6 +204,9 @@ def verify_repository(root: Path, truth=None, *, max_bytes: int = MAX_BYTES) -> 
             file = root / member
             if file.is_symlink() or (file.exists() and file.resolve() != root.resolve() / member):
                 report.problems.append(f"{root}: {member} is a link, not a regular file; refused.")
+            elif special_file(file) or file.is_dir():  # else passed over unread, unchecked
+                report.problems.append(f"{root}: {member} is not a regular file (a folder, named pipe, device or "
+                                       "socket); remove it.")
             elif file.is_file() and file.stat().st_size > max_bytes:
                 report.problems.append(f"{root}: {member} is over the bound of {max_bytes / 2**20:g} MiB "
                                        "(raise --max-size).")
@@ -274,8 +283,10 @@ def read_repository(root: Path, skipped: list | None = None) -> list[dict]:
 
 
 def _contribution(path: Path) -> dict:
+    """A run's contribution note as the site shows it: each value one line, cut as an import cuts the
+    contributor (a pull request can carry a note written by hand); a pipe in its place is not read."""
     try:
-        found = json.loads(path.read_text(encoding="utf-8"))
+        found = {} if special_file(path) else json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return {}
-    return {k: str(v) for k, v in found.items()} if isinstance(found, dict) else {}
+    return {k: one_line(v)[:MAX_CONTRIBUTOR] for k, v in found.items()} if isinstance(found, dict) else {}

@@ -22,16 +22,18 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import VPRBenchError
-from ..text import one_line, recall_text
+from ..text import one_line, recall_text, shortened
 from ..evaluation.blocks import Resampling, for_dataset, for_record, record_window
 from ..evaluation.record import UNIT_FIELDS, per_query_arrays_in, validated
 from ..evaluation.results import check_kinds
 from ..stages.base import unordered_row
 from .archive import _CARD, MAX_BYTES, RECORD_NAME, BundleError, _json, check_manifest, read_members
-from .claims import false_card, false_claims, one_record_per_run
+from .claims import false_card, false_claims, malformed, one_record_per_run
 from .export import CARDS, KIND_WORDS
 
 RECALL_TOLERANCE = 1e-4
+#: the longest row label a verdict line shows
+MAX_LABEL = 200
 PR_TOLERANCE = 1e-3
 
 
@@ -161,9 +163,14 @@ def check_record(name: str, place: tuple, members: dict[str, bytes], cards: set,
         return verdict
     from ..leaderboard.cells import row_of
 
+    shapeless = malformed(record)  # the row's name and marks are read from these parts: none can be told
+    if shapeless:
+        problems += shapeless
+        return verdict
     # the row as the leaderboard names it, marks included: a run on random weights (which fills no cell)
     # or fitted on the evaluated database does not read as an official one
-    verdict.label = f"{row_of(record).name} on {record['protocol']['id']}"
+    # cut: a method name or protocol id a stranger wrote can be megabytes, printed on each of the record's lines
+    verdict.label = shortened(f"{row_of(record).name} on {record['protocol']['id']}", MAX_LABEL)
     found = (record["protocol"]["hash"], record["row_key"], record["run_id"])
     if found != place or record["spec"]["dataset"]["protocol_hash"] != protocol_hash:
         problems.append(f"its protocol hash, row key and run id {'/'.join(found)} are not its place in the bundle")

@@ -27,6 +27,7 @@ import numpy as np
 
 from ..errors import VPRBenchError
 from ..methods import Method
+from ..paths import regular_file
 
 FILE = "precomputed_data_corrected.npy"
 SOURCE = "VPR-Bench"
@@ -86,8 +87,11 @@ def method_files(folder: Path) -> list[tuple[str, Path]]:
         state = "is a file, not a folder" if folder.exists() else "does not exist"
         raise VPRBenchError(f"VPR-Bench folder {folder} {state}: give the folder of its precomputed matches "
                             f"(precomputed_matches/<dataset>/, or one method's folder in it).")
-    found = [(folder.name, folder / FILE)] if (folder / FILE).is_file() else \
+    found = [(folder.name, folder / FILE)] if (folder / FILE).exists() else \
         [(p.parent.name, p) for p in sorted(folder.glob(f"*/{FILE}"))]
+    # a named pipe there (an archive of VPR-Bench's folders can carry one) would hang the read, a device never end it
+    for _, path in found:
+        regular_file(path, "VPR-Bench precomputed matches")
     if not found:
         raise VPRBenchError(f"{folder} holds no {FILE} (expected precomputed_matches/<dataset>/<method>/{FILE}).")
     for name, path in found:
