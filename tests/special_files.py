@@ -18,8 +18,8 @@ def pipe_at(path: Path, kind: str = "pipe") -> Path:
     return path
 
 
-class Hung(Exception):
-    pass
+class Hung(BaseException):
+    """A block that hung (a BaseException: a command's own error handling lets it through)."""
 
 
 @contextmanager

@@ -4,17 +4,16 @@ a manifest or a record whose text is megabytes long, a stage's weights said to b
 named pipes where a file is read."""
 from __future__ import annotations
 
-import contextlib
 import gzip
 import hashlib
 import json
 import os
 import random
-import signal
 import tarfile
 
 import pytest
 from bundle_files import edit_record, read_bundle, record_names, respec, write_bundle
+from special_files import no_hang
 
 from vprbench.bundles import export_bundle
 from vprbench.bundles.export import MANIFEST
@@ -25,24 +24,6 @@ ROW = "0123456789abcdef/0123456789abcdef"
 @pytest.fixture
 def bundle(records, tmp_path):
     return export_bundle(records, tmp_path / "runs.tar.gz", contributor="alice")
-
-
-class Hung(BaseException):
-    """Raised in a block that hangs (a BaseException: the command's own error handling lets it through)."""
-
-
-@contextlib.contextmanager
-def at_most(seconds: int):
-    """The block fails after `seconds` instead of hanging (a read of a named pipe waits for a writer)."""
-    def hung(*_):
-        raise Hung(f"still running after {seconds} s")
-    previous = signal.signal(signal.SIGALRM, hung)
-    signal.alarm(seconds)
-    try:
-        yield
-    finally:
-        signal.alarm(0)
-        signal.signal(signal.SIGALRM, previous)
 
 
 def _sparse_member(name: str, real_size: int) -> bytes:
@@ -145,7 +126,7 @@ def test_a_named_pipe_among_vpr_bench_files_is_refused_not_read(cli, shared_data
     folder = tmp_path / "Corridor" / "Thumbs"
     folder.mkdir(parents=True)
     os.mkfifo(folder / "precomputed_data_corrected.npy")
-    with at_most(20):
+    with no_hang(20):
         code, out, err = cli("results", "import-vpr-bench", folder.parent, "--dataset", "corridor",
                              "--data-dir", shared_data, "--cache-dir", tmp_path / "cache")
     assert code == 1 and "Traceback" not in err
@@ -160,14 +141,14 @@ def test_a_named_pipe_in_a_repository_is_named_and_hangs_no_import(bundle, recor
     name = record_names(read_bundle(bundle))[0]
     (repo / name).parent.mkdir(parents=True)
     os.mkfifo(repo / name)
-    with at_most(20):
+    with no_hang(20):
         code, out, err = cli("results", "import", bundle, "--into", repo, "--data-dir", shared_data)
     assert code == 1 and "Traceback" not in err
     assert f"{repo / name} is a named pipe, device or socket, not a file; remove it, then import again." in out
     os.unlink(repo / name)
     assert cli("results", "import", bundle, "--into", repo, "--data-dir", shared_data)[0] == 0
     os.mkfifo(repo / f"{name.rsplit('/', 1)[0]}/{'0' * 16}.json")
-    with at_most(20):
+    with no_hang(20):
         code, out, err = cli("results", "verify", repo, "--data-dir", shared_data)
     assert code == 1 and f"{'0' * 16}.json is not a regular file (a folder, named pipe, device or socket)" in out
 
