@@ -197,11 +197,13 @@ def _first_line(error: BaseException) -> str:
     return text.split(". ", 1)[0].rstrip(".")
 
 
-def said_by_first_local_rank(error: VPRBenchError) -> bool:
-    """Under torchrun, whether `error`, met before the ranks joined (bad input: the same command read on the same
-    files by every rank of a node, e.g. --k 0 or a missing image), is said by the node's first rank, not this one."""
-    if hasattr(error, "said"):  # it went through `Ranks.said_once`
-        return False
+def said_elsewhere(error: VPRBenchError) -> bool:
+    """Under torchrun, whether another rank says `error`: rank 0 when the ranks exchanged it (`Ranks.said_once`,
+    `refuse_torchrun`), else, for an error met before the ranks joined (bad input: the same command read on the
+    same files by every rank of a node, e.g. --k 0 or a missing image), the node's first rank."""
+    said = getattr(error, "said", None)
+    if said is not None:
+        return said
     world, local = os.environ.get("WORLD_SIZE", "1").strip(), os.environ.get("LOCAL_RANK", "0").strip()
     return world.isdigit() and int(world) > 1 and local.isdigit() and int(local) != 0
 

@@ -11,7 +11,7 @@ import json
 import sys
 
 from ..errors import DESCRIBED, VPRBenchError
-from ..text import plural
+from ..text import plural, recall_text
 from .console import console as make_console
 from .options import (add_location_options, add_method_options, add_run_options, add_spec_options, add_sweep_options,
                       explicit_run_options, method_options, output_file, path_argument, progress, refuse_unused,
@@ -158,7 +158,7 @@ def results_table(record: dict):
     table.add_column("R@100%P", justify="right")
     table.add_column("max F1", justify="right")
     max_f1 = record.get("max_f1")  # older records lack it
-    table.add_row(*[f"{v:.1f}" for v in record["recall"].values()],
+    table.add_row(*[recall_text(v) for v in record["recall"].values()],
                   f"{record['auc_pr']:.3f}", percent(record["recall_at_100_precision"]),
                   "-" if max_f1 is None else f"{max_f1:.3f}")
     computed = record["descriptors_computed"]

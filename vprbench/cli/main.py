@@ -7,7 +7,7 @@ import sys
 import warnings
 
 from .. import __version__
-from ..distributed import said_by_first_local_rank
+from ..distributed import said_elsewhere
 from ..errors import KEPT, ProblemList, VPRBenchError, keeping, os_error_message
 from . import datasets, evaluate, leaderboard, methods, reproduce, repeats, results, run, stages, vocabulary
 from ..text import one_line
@@ -84,7 +84,7 @@ def _run(args) -> int:
     try:
         return args.run(args)
     except VPRBenchError as error:
-        if not getattr(error, "said", False) and not said_by_first_local_rank(error):  # torchrun: said once
+        if not said_elsewhere(error):  # under torchrun, one rank says what every rank met
             print_error(str(error), lines=isinstance(error, ProblemList))
         return 1
     except BrokenPipeError:  # output piped into a reader that stopped (| head): end quietly, as other tools do

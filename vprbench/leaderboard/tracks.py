@@ -63,19 +63,19 @@ def track_page(full: Board, track: str, stats: dict, head: str = "") -> str:
             if cell is None:
                 continue
             s, r = stats[(row, column.key)], cell.record
-            name = row_cells(row, cell)  # as on the dataset pages
+            first = row_cells(row, cell)  # escaped name, weights, licence: as on the dataset pages
             sources.append(cell.source)
             if track == "re-ranked":
                 base = alone.get((retriever_key(cell), column.key))
                 sources += [base.source] if base else []
                 alone_r1 = fmt(base.recall(1)) + source_mark(base.source) if base else "–"
-                lines.append(f"| {name} | {with_ci(s[1])} | {with_ci(s[5])} | {_cost(cell, 'ceiling_recall')} | "
+                lines.append(f"| {first} | {with_ci(s[1])} | {with_ci(s[5])} | {_cost(cell, 'ceiling_recall')} | "
                              f"{alone_r1} | {_cost(cell, 'ms_per_query')} | "
                              f"{_cost(cell, 'stored_bytes_per_database_image', 0)} | {code(r.get('run_id'))} |")
             else:
                 shown = [number(r.get("auc_pr"), 3), number(r.get("max_f1"), 3)]
                 shown.insert(1, percent(r.get("recall_at_100_precision")))  # in percent, as on the dataset pages
-                lines.append(f"| {name} | {with_ci(s[1])} | {with_ci(s[5])} | {' | '.join(shown)} | "
+                lines.append(f"| {first} | {with_ci(s[1])} | {with_ci(s[5])} | {' | '.join(shown)} | "
                              f"{_cost(cell, 'ms_per_query')} | {code(r.get('run_id'))} |")
         lines.append("")
     if not board.columns:

@@ -11,32 +11,34 @@ from .anyloc_vocabulary import (MAP_PREFIX, domain_names, release, released_name
                                 source_datasets, vocabulary_policies)
 
 
-def released_provenance(vocabulary: Vocabulary) -> dict:
-    """{"source": "released", repository, commit, url, sha256} when the file is a released one, else the file's sha256."""
+def _released_folder(path) -> tuple[str, str | None]:
+    """(the file's sha256, the authors' released folder whose bytes it is, else None)."""
     from ..weights import file_sha256
 
+    digest = file_sha256(path)
+    return digest, next((folder for folder, known in release()["sha256"].items() if known == digest), None)
+
+
+def released_provenance(vocabulary: Vocabulary) -> dict:
+    """{"source": "released", repository, commit, url, sha256} when the file is a released one, else the file's sha256."""
     path = vocabulary.meta.get("path") or vocabulary.meta.get("imported_from")
     if not path or not Path(path).is_file():
         return {}
-    digest = file_sha256(path)
-    for source in released_sources():
-        if release()["sha256"][released_name(source)] == digest:
-            r = release()
-            return {"source": "released", "released_as": released_name(source), "repository": r["repository"],
-                    "commit": r["commit"], "url": released_url(source), "sha256": digest, "file": str(path),
-                    "datasets": source_datasets(source)}
-    return {"source": "file", "sha256": digest, "file": str(path)}
+    digest, folder = _released_folder(path)
+    source = next((s for s in released_sources() if released_name(s) == folder), None) if folder else None
+    if source is None:
+        return {"source": "file", "sha256": digest, "file": str(path)}
+    r = release()
+    return {"source": "released", "released_as": folder, "repository": r["repository"], "commit": r["commit"],
+            "url": released_url(source), "sha256": digest, "file": str(path), "datasets": source_datasets(source)}
 
 
 def released_as(vocabulary: Vocabulary) -> str | None:
     """The released folder whose bytes the file is, or the file it was imported from ('indoor'); None otherwise.
     An import re-saved under other metadata keeps the original's path: its content is still the release's."""
-    from ..weights import file_sha256
-
-    digests = {digest: folder for folder, digest in release()["sha256"].items()}
     for key in ("path", "imported_from"):
         path = vocabulary.meta.get(key)
-        if isinstance(path, str) and Path(path).is_file() and (folder := digests.get(file_sha256(path))):
+        if isinstance(path, str) and Path(path).is_file() and (folder := _released_folder(path)[1]):
             return folder
     return None
 

@@ -17,6 +17,7 @@ from ..errors import VPRBenchError
 from ..evaluation.results import save_result
 from ..evaluation.served import find_result
 from ..spec import RunSettings
+from ..text import recall_text
 from .claims import Claims
 from .plan import Cell
 
@@ -227,6 +228,6 @@ def summary_table(outcomes: list[Outcome], title: str = "Sweep"):
         if o.record and random_weights(o.record):  # as the evaluation's own table: these numbers are no result
             detail = "; ".join(filter(None, ["random weights: a pipeline check, not a result", detail]))
         table.add_row(o.cell.title(), Text(o.status, style=colour[o.status]),
-                      f"{recall['1']:.1f}" if "1" in recall else "", f"{recall['5']:.1f}" if "5" in recall else "",
+                      recall_text(recall["1"]) if "1" in recall else "", recall_text(recall["5"]) if "5" in recall else "",
                       f"{computed['database'] + computed['queries']}" if computed else "", notes.short(detail))
     return notes.below(table)
