@@ -73,21 +73,21 @@ def traverse_tiles(rows: np.ndarray, order: np.ndarray, first: int) -> tuple[np.
 
 
 def cost_rows(tiles: np.ndarray, offset: int, count: int, database, database_order: np.ndarray, score: str,
-              compare: str, chunk_rows: int, enhance_window: int, check: bool = True) -> np.ndarray:
+              compare: str, chunk_rows: int, enhance_window: int, threads: _ProductThreads,
+              check: bool = True) -> np.ndarray:
     """(count, N) float32 costs (lower is better) of the query rows in `tiles` (`traverse_tiles`)
     against every database image, in database traverse order: SeqSLAM's enhanced difference (distance
     = sqrt(2 - 2 cos) for unit descriptors, the mean absolute difference for sad); the diagonal's
     -similarity (the distance for sad)."""
     out = np.empty((count, database.row_count), dtype=np.float32)
-    with _ProductThreads(compare) as threads:
-        for start, block in chunks(database, chunk_rows):
-            if check:  # once per search: every block of queries reads the same rows
-                check_finite(block, "Database", start)
-            step = product_columns(block.shape[1])
-            threads.run(partial(_tile_product, tiles, offset, count, block, start, step, compare, out),
-                        [(column, at) for column in range(0, len(block), step)
-                         for at in range(0, len(tiles), PRODUCT_ROWS)])
-            del block  # before the next chunk is read: the budget holds one
+    for start, block in chunks(database, chunk_rows):
+        if check:  # once per search: every block of queries reads the same rows
+            check_finite(block, "Database", start)
+        step = product_columns(block.shape[1])
+        threads.run(partial(_tile_product, tiles, offset, count, block, start, step, compare, out),
+                    [(column, at) for column in range(0, len(block), step)
+                     for at in range(0, len(tiles), PRODUCT_ROWS)])
+        del block  # before the next chunk is read: the budget holds one
     out = out[:, database_order]
     if compare == "cosine":
         if score == "diagonal":
@@ -183,27 +183,29 @@ def sequence_search(database, queries, k: int, *, score: str = "seqslam", compar
     costs = np.empty((q, k), dtype=np.float32)
     second = np.full(q, np.inf, dtype=np.float32)
     lowest = np.inf
-    for start in range(0, q, block):
-        stop = min(q, start + block)
-        first, last = max(0, start + int(offsets[0])), min(q, stop + int(offsets[-1]))
-        wanted = query_order[first:last]
-        sorted_rows = np.unique(wanted)
-        tiles, offset = traverse_tiles(queries.read_rows_at(sorted_rows), np.searchsorted(sorted_rows, wanted), first)
-        check_finite(tiles[offset:offset + len(wanted)], "Query", numbers=wanted)
-        matrix = cost_rows(tiles, offset, len(wanted), database, database_order, score, compare, chunk_rows,
-                           enhance_window, check=start == 0)
-        del tiles  # not held while the next block's rows are read
-        lowest = min(lowest, float(matrix.min()))
-        best = trajectory_costs(matrix, first, start, stop, q, offsets, paths)
-        del matrix
-        if grid:
-            rounded_scores(best, out=best)  # in place: the block is the search's largest array
-        places, values = top_k(best, k, ties=database_order)
-        at = query_order[start:stop]  # results by query row and database row as stored
-        indices[at], costs[at] = database_order[places], values
-        if score == "seqslam":
-            second[at] = second_best(best, places[:, 0], uniqueness_window)
-        del best, places, values
+    # one pool and one look for the BLAS a search: made per block of queries, they were most of its time
+    with _ProductThreads(compare) as threads:
+        for start in range(0, q, block):
+            stop = min(q, start + block)
+            first, last = max(0, start + int(offsets[0])), min(q, stop + int(offsets[-1]))
+            wanted = query_order[first:last]
+            sorted_rows = np.unique(wanted)
+            tiles, offset = traverse_tiles(queries.read_rows_at(sorted_rows), np.searchsorted(sorted_rows, wanted), first)
+            check_finite(tiles[offset:offset + len(wanted)], "Query", numbers=wanted)
+            matrix = cost_rows(tiles, offset, len(wanted), database, database_order, score, compare, chunk_rows,
+                               enhance_window, threads, check=start == 0)
+            del tiles  # not held while the next block's rows are read
+            lowest = min(lowest, float(matrix.min()))
+            best = trajectory_costs(matrix, first, start, stop, q, offsets, paths)
+            del matrix
+            if grid:
+                rounded_scores(best, out=best)  # in place: the block is the search's largest array
+            places, values = top_k(best, k, ties=database_order)
+            at = query_order[start:stop]  # results by query row and database row as stored
+            indices[at], costs[at] = database_order[places], values
+            if score == "seqslam":
+                second[at] = second_best(best, places[:, 0], uniqueness_window)
+            del best, places, values
     scores = costs  # made in place: the results are the search's largest arrays at K = N
     if score == "seqslam":
         spread = second - np.float32(lowest)
@@ -254,7 +256,10 @@ class _ProductThreads:
         if compare == "cosine" and (threads := search_threads()) > 1:
             from concurrent.futures import ThreadPoolExecutor
 
+            from threadpoolctl import ThreadpoolController
+
             self.pool = ThreadPoolExecutor(threads, "vprbench-sequence", one_thread_each)
+            self.blas = ThreadpoolController()  # its libraries found once: a limit is then cheap
 
     def __enter__(self):
         return self
@@ -268,7 +273,5 @@ class _ProductThreads:
             for args in work:
                 product(*args)
             return
-        from threadpoolctl import threadpool_limits
-
-        with threadpool_limits(1, user_api="blas"):  # only here: reading a post-processed chunk keeps its threads
+        with self.blas.limit(limits=1, user_api="blas"):  # only here: reading a post-processed chunk keeps its threads
             list(self.pool.map(product, *zip(*work)))
