@@ -81,6 +81,9 @@ OPTIONS = [
     (HOG + ["--index", "ivf-pq", "--index-option", "nprobe=0"], "--index ivf-pq option nprobe takes a whole number >= 1; got 0"),
     (HOG + ["--index", "hnsw", "--index-option", "ef_search=x"], "--index hnsw option ef_search takes a whole number >= 1"),
     (HOG + ["--index", "hnsw", "--index-option", "seed=-1"], "--index hnsw option seed takes a whole number >= 0; got -1"),
+    # a database too small for the index: refused before any descriptor is computed (was: after describing it)
+    (HOG + ["--index", "ivf-pq"], "index='ivf-pq' needs at least 9,984 database rows to train its coarse quantizer"),
+    (HOG + ["--index", "hnsw", "--index-option", "shortlist=5000"], "A shortlist of 5000 exceeds the"),
     # was: no word of what to do ("Exact search takes no index options; got nprobe.")
     (HOG + ["--index-option", "nprobe=8"], "Exact search takes no index options; got nprobe: drop them, or choose an "
                                            "approximate index (--index ivf-pq or hnsw"),

@@ -64,6 +64,18 @@ def searched_to(search, depth: int):
 
 def index_options(kind: str, n: int, dim: int, k: int, given: dict | None) -> dict:
     """Every option of `kind`, defaults filled in for this database, checked against its size."""
+    o = sized_options(kind, n, k, given)
+    if kind == "ivf-pq":  # about 8 dims per sub-quantizer, at most 64 bytes per code
+        o["pq_m"] = int((given or {}).get("pq_m", next(m for m in range(min(64, max(1, dim // 8)), 0, -1)
+                                                       if dim % m == 0)))
+        if o["pq_m"] < 1 or dim % o["pq_m"]:
+            raise VPRBenchError(f"pq_m = {o['pq_m']} must divide the descriptor dimension {dim}.")
+    return o
+
+
+def sized_options(kind: str, n: int, k: int, given: dict | None) -> dict:
+    """The options of `kind` that follow from the database's `n` rows and K alone (all but pq_m), checked:
+    known before any descriptor is computed, so a database too small for the index is refused first."""
     given = dict(given or {})
     check_options(kind, given)
     o = {**{name: DEFAULTS[name] for name in OPTIONS[kind] if name in DEFAULTS}, **given}
@@ -79,10 +91,6 @@ def index_options(kind: str, n: int, dim: int, k: int, given: dict | None) -> di
             o["nlist"] = 1 << max(0, round(math.log2(math.sqrt(n))))
             while o["nlist"] > 1 and POINTS_PER_CENTROID * o["nlist"] > n:
                 o["nlist"] //= 2
-        # about 8 dims per sub-quantizer, at most 64 bytes per code
-        o["pq_m"] = int(given.get("pq_m", next(m for m in range(min(64, max(1, dim // 8)), 0, -1) if dim % m == 0)))
-        if o["pq_m"] < 1 or dim % o["pq_m"]:
-            raise VPRBenchError(f"pq_m = {o['pq_m']} must divide the descriptor dimension {dim}.")
         least = POINTS_PER_CENTROID * max(int(o["nlist"]), PQ_CENTROIDS)
         if n < least:
             raise VPRBenchError(

@@ -19,6 +19,7 @@ from ..methods.attributes import set_attributes
 from ..methods.objects import check_method
 from ..methods.registry import checked_run_options
 from ..spec import RunSettings, RunSpec
+from .approximate import sized_options
 from .budget import check_run_budget, retrieval_need, stage_needs
 from .extract import describe_splits
 from .identity import protocol_of
@@ -184,6 +185,8 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
     if depth > len(dataset.database):
         raise VPRBenchError(f"{depth} candidates per query asked for, but the database of {dataset.name} holds "
                             f"{len(dataset.database)} images: ask for at most {len(dataset.database)}.")
+    if settings.candidates is None and spec.search.approximate:  # a database too small for its index: refused now
+        sized_options(spec.search.index, len(dataset.database), depth, spec.search.options)
     frozen = None
     if settings.candidates is not None:  # checked before any descriptor is computed
         from ..stages.candidates import images_identity, read_candidates
