@@ -202,10 +202,20 @@ def said_elsewhere(error: VPRBenchError) -> bool:
     `refuse_torchrun`), else, for an error met before the ranks joined (bad input: the same command read on the
     same files by every rank of a node, e.g. --k 0 or a missing image), the node's first rank."""
     said = getattr(error, "said", None)
-    if said is not None:
-        return said
-    world, local = os.environ.get("WORLD_SIZE", "1").strip(), os.environ.get("LOCAL_RANK", "0").strip()
-    return world.isdigit() and int(world) > 1 and local.isdigit() and int(local) != 0
+    return not_first_of_node() if said is None else said
+
+
+def not_first_of_node() -> bool:
+    """Under torchrun, whether this process is a rank other than its node's first (which says what every
+    rank meets alike: an error before the ranks joined, a warning that is not a `ShardWarning`)."""
+    local = os.environ.get("LOCAL_RANK", "0").strip()
+    return torchrun_rank() is not None and local.isdigit() and int(local) != 0
+
+
+def torchrun_rank() -> str | None:
+    """This process's rank as torchrun names it, when it started several (None for one process)."""
+    world, rank = os.environ.get("WORLD_SIZE", "1").strip(), os.environ.get("RANK", "").strip()
+    return rank if world.isdigit() and int(world) > 1 and rank.isdigit() else None
 
 
 def refuse_torchrun(command: str) -> None:

@@ -12,6 +12,11 @@ class VPRBenchError(Exception):
     """A problem with the user's input or environment; the message says what and how to fix it."""
 
 
+class ShardWarning(UserWarning):
+    """A warning about what one torchrun rank met in its own share (an image it read, a file it removed):
+    said by that rank. Every other warning is met alike by every rank, and said by the node's first."""
+
+
 class ProblemList(VPRBenchError):
     """Several problems found at once, one a line: the command line keeps its line breaks (every
     other message is one line, a line break from data in it written out as '\\n')."""

@@ -205,13 +205,13 @@ def said_of(path) -> bool:
     return _stamp(path) in _SAID
 
 
-def warn_once(path, text: str, stacklevel: int = 2) -> None:
+def warn_once(path, text: str, stacklevel: int = 2, category: type[Warning] = UserWarning) -> None:
     """Warn `text` of the file at `path` once per process (a command, a session), however many look-ups
     meet it: it is said where it is met, not once per look-up. Changed or replaced, it is said again."""
     stamp = _stamp(path)
     if stamp not in _SAID:
         _SAID.add(stamp)
-        warnings.warn(text, stacklevel=stacklevel + 1)
+        warnings.warn(text, category, stacklevel=stacklevel + 1)
 
 
 # ------------------------------------------------------------------ locks

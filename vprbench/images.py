@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageOps, UnidentifiedImageError
 
-from .errors import VPRBenchError
+from .errors import ShardWarning, VPRBenchError
 from .fsutil import warn_once
 from .paths import regular_file
 
@@ -133,7 +133,7 @@ def load_image(path: str | Path, mode: str = "RGB") -> Image.Image:
         if brightest:  # said here, not among Pillow's warnings; once per image however often it is read
             warn_once(path, f"Image {path}: a float image with values up to {brightest:g} is read as values in "
                             "[0, 1] (1 is white, above it clipped), so it reads almost white: save it as 8- or "
-                            "16-bit integers, or as floats scaled to [0, 1].", stacklevel=2)
+                            "16-bit integers, or as floats scaled to [0, 1].", stacklevel=2, category=ShardWarning)
         return loaded
     except FileNotFoundError:
         raise VPRBenchError(f"Image not found: {path}") from None
@@ -167,7 +167,7 @@ def _say_again(said: list, path: Path) -> None:
     texts = [str(w.message).strip() for w in said if not issubclass(w.category, Image.DecompressionBombWarning)]
     for text in dict.fromkeys(t for t in texts if not _UNSAID.match(t)):
         warnings.warn(f"Image {path}: Pillow warns {text!r}; it is read as Pillow reads it (replace the file if "
-                      "it is damaged).", stacklevel=3)
+                      "it is damaged).", ShardWarning, stacklevel=3)
 
 
 def load_rgb(path: str | Path) -> np.ndarray:

@@ -6,6 +6,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 import vprbench
 from vprbench.cli.main import main
 from vprbench.datasets import load_dataset
@@ -114,3 +116,20 @@ def test_rank_zero_says_what_every_rank_met_and_another_rank_its_own(monkeypatch
     alone = VPRBenchError("Unknown dataset 'x'.")
     Ranks().said_once(alone)  # one process: it says its own
     assert not getattr(alone, "said", False)
+
+
+@pytest.mark.parametrize("local_rank, rank, said, own", [
+    ("0", "0", "warning: layer 31 is another backbone's\n", "warning (rank 0): Image a.png: Pillow warns\n"),
+    ("1", "1", "", "warning (rank 1): Image a.png: Pillow warns\n"),  # was: every rank said the first again
+    (None, None, "warning: layer 31 is another backbone's\n", "warning: Image a.png: Pillow warns\n"),  # one process
+])
+def test_a_warning_every_rank_meets_is_said_once_a_node_and_one_about_a_rank_s_share_by_that_rank(
+        monkeypatch, local_rank, rank, said, own):
+    from vprbench.cli.main import warning_format
+    from vprbench.errors import ShardWarning
+
+    for name, value in (("WORLD_SIZE", "2" if rank else None), ("RANK", rank), ("LOCAL_RANK", local_rank)):
+        monkeypatch.setenv(name, value) if value else monkeypatch.delenv(name, raising=False)
+    shown = warning_format()
+    assert shown("layer 31 is another backbone's", UserWarning, "x.py", 1) == said
+    assert shown("Image a.png: Pillow warns", ShardWarning, "x.py", 1) == own

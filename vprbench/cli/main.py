@@ -7,8 +7,8 @@ import sys
 import warnings
 
 from .. import __version__
-from ..distributed import said_elsewhere
-from ..errors import KEPT, ProblemList, VPRBenchError, keeping, os_error_message
+from ..distributed import not_first_of_node, said_elsewhere, torchrun_rank
+from ..errors import KEPT, ProblemList, ShardWarning, VPRBenchError, keeping, os_error_message
 from . import datasets, evaluate, leaderboard, methods, reproduce, repeats, results, run, stages, vocabulary
 from ..text import one_line
 from .console import console, styled
@@ -43,11 +43,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 def warning_format():
     """Warnings are for people: one line, no source location, each text once per command (a
-    dataset read for the run's identity and again for the run would otherwise say it twice)."""
+    dataset read for the run's identity and again for the run would otherwise say it twice) and,
+    under torchrun, once per node: by its first rank, or by the rank it is about (`ShardWarning`)."""
     shown = set()
 
     def format_warning(message, category, filename, lineno, line=None) -> str:
-        text = f"warning: {one_line(message)}\n"
+        own = issubclass(category, ShardWarning)
+        if not own and not_first_of_node():
+            return ""
+        rank = torchrun_rank() if own else None
+        text = f"warning{'' if rank is None else f' (rank {rank})'}: {one_line(message)}\n"
         if text in shown:
             return ""
         shown.add(text)

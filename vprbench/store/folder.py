@@ -26,7 +26,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ..errors import VPRBenchError
+from ..errors import ShardWarning, VPRBenchError
 from ..fsutil import CacheError, atomic_path, cache_error, is_temporary, lock
 from ..paths import cache_root, safe_name, special_file
 from ..hashing import exact_data
@@ -180,7 +180,7 @@ class StoreFolder:
 
     def discard(self, path: Path, reason: str) -> None:
         """Remove a file of this folder; only the lock holder calls this."""
-        warnings.warn(f"Discarding {path}: {reason}; it is recomputed.", stacklevel=3)
+        warnings.warn(f"Discarding {path}: {reason}; it is recomputed.", ShardWarning, stacklevel=3)
         try:
             path.unlink(missing_ok=True)
         except OSError as error:
