@@ -363,3 +363,17 @@ def test_a_run_no_one_can_rescore_is_not_exported(records, kind, tmp_path):
     # a folder of one's own named as the benchmark is: its runs left out of a choice by method and dataset
     assert select_records([record, records[1]], method="hog", dataset="corridor") == [records[1]]
     assert select_records([record], method="hog", dataset="corridor") == [record]  # alone: refused when exported
+
+
+def test_an_own_folder_is_found_by_the_path_evaluate_was_given(records, tmp_path, monkeypatch):
+    """Was: `results export --method hog --dataset ./mydata` said "No stored run ...; run 'vprbench
+    evaluate --method hog --dataset ./mydata' first" of a run just made so: the path is now matched
+    with the folder the record names, and the export refused for what it is, a run on one's own data."""
+    (tmp_path / "mydata").mkdir()
+    record = {**records[0], "dataset_kind": "own", "dataset": "mycorr", "dataset_root": str(tmp_path / "mydata")}
+    monkeypatch.chdir(tmp_path)
+    assert select_records([record, records[1]], method="hog", dataset="./mydata") == [record]
+    with pytest.raises(VPRBenchError, match="No stored run of 'hog' on './other'"):
+        select_records([record], method="hog", dataset="./other")
+    with pytest.raises(VPRBenchError, match="is on a folder of your own"):
+        export_bundle(select_records([record], method="hog", dataset="./mydata"), tmp_path / "own.tar.gz")

@@ -4,7 +4,9 @@ the board shows. Expected values by exact arithmetic (fractions.Fraction):
 one decimal 28.8 by round-half-even and round-half-up alike; 836 / 1003 = 0.833499501495... -> R@100%P
 83.3 %."""
 import numpy as np
+import pytest
 
+from vprbench.errors import VPRBenchError
 from vprbench.evaluation import read_results, save_result
 from vprbench.evaluation.metrics import kept_metrics, percent_true, top1_precision_recall
 from vprbench.leaderboard import build_board
@@ -45,6 +47,20 @@ def test_compare_shows_the_boards_recall(make_record):
     assert result["test"]["a"] == 28.75
     lines = describe(result).splitlines()
     assert "R@1  28.8 %" in lines[1] and "R@1  50.0 %" in lines[2], lines
+
+
+def test_compare_finds_an_own_folder_by_the_path_evaluate_was_given(make_record, tmp_path, monkeypatch):
+    """Was: `leaderboard compare A B --dataset ./mydata`, the path `evaluate` took, was 'No run on dataset
+    './mydata' fills a cell': the folder is now found by the one its runs' records name."""
+    (tmp_path / "mydata").mkdir()
+    own = dict(dataset="mycorr", kind="own", n_database=80, n_queries=80, k=5, ks=(1, 5), root=tmp_path / "mydata")
+    board = _board(make_record("method-a", quality=23 / 80, seed=8, **own),
+                   make_record("method-b", quality=0.5, seed=16, **own))
+    monkeypatch.chdir(tmp_path)
+    result = compare(board, "method-a", "method-b", "./mydata")
+    assert result["dataset"].startswith("mycorr (own") and result["test"]["a"] == 28.75
+    with pytest.raises(VPRBenchError, match="No run on dataset './other' fills a cell"):
+        compare(board, "method-a", "method-b", "./other")
 
 
 def test_a_recall_at_full_precision_just_below_a_half_is_not_shown_rounded_up():

@@ -47,7 +47,11 @@ def select_records(records: list[dict], *, run_ids=(), method: str | None = None
         return [by_id[r] for r in dict.fromkeys(run_ids)]
     if not (method and dataset):
         raise VPRBenchError("results export needs --run ID, or --method M --dataset D.")
-    chosen = [r for r in records if dataset == r["dataset"] and method in (r["method"], r.get("label"))]
+    from ..datasets import own_root
+
+    root = own_root(dataset)  # evaluate took a folder's path: its runs are found by it (and refused as own data)
+    chosen = [r for r in records if method in (r["method"], r.get("label"))
+              and (dataset == r["dataset"] or (root is not None and r.get("dataset_root") == root))]
     if not chosen:
         raise VPRBenchError(f"No stored run of {method!r} on {dataset!r}; run 'vprbench evaluate --method {method} "
                             f"--dataset {dataset}' first.")

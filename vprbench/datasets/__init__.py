@@ -31,6 +31,12 @@ def is_path(name: str) -> bool:
     return name not in dataset_manifests() and Path(name).is_dir()
 
 
+def own_root(name: str) -> str | None:
+    """The folder a dataset argument names as records keep it (`dataset_root`, resolved), None for a
+    benchmark's name: the path given to evaluate finds its runs again in export and compare."""
+    return str(Path(name).expanduser().resolve()) if is_path(name) else None
+
+
 def is_on_disk(name: str, data_dir=None) -> bool:
     """Whether the dataset's folder (default or imported) exists; for `datasets list`."""
     return dataset_location(dataset_manifest(name), data_dir).is_dir()

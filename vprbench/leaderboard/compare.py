@@ -16,7 +16,7 @@ def _cell(board: Board, method: str, dataset: str) -> Cell:
     (e.g. 'my-traverse (own, ±10 frames)'), its key, or a dataset name that only one column has."""
     known = ", ".join(repr(c.title) for c in board.columns) or "none"
     columns = [c for c in board.columns if dataset in (c.title, c.key)] or \
-        [c for c in board.columns if c.dataset == dataset]
+        [c for c in board.columns if c.dataset == dataset] or _own_columns(board, dataset)
     benchmark = [c for c in columns if c.kind == "benchmark"]
     if not columns:
         _left_out(board, method, dataset)
@@ -37,6 +37,16 @@ def _cell(board: Board, method: str, dataset: str) -> Cell:
     if len(rows) > 1 and len(official) != 1:
         raise VPRBenchError(f"{method!r} has several rows on {column.title}: give one of {', '.join(repr(r.name) for r in rows)}.")
     return board.cell((official or rows)[0], column)
+
+
+def _own_columns(board: Board, dataset: str) -> list:
+    """The columns of the folder `--dataset ./mydata` names, the path evaluate was given: by the folder
+    its runs' records name (dataset_root, resolved)."""
+    from ..datasets import own_root
+
+    root = own_root(dataset)
+    keys = {c.column.key for c in board.cells.values() if root is not None and c.record.get("dataset_root") == root}
+    return [c for c in board.columns if c.key in keys]
 
 
 def _left_out(board: Board, method: str, dataset: str) -> None:
