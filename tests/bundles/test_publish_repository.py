@@ -74,6 +74,9 @@ def test_a_site_from_a_repository_marks_each_cell(repository, records, tmp_path,
     assert "2 cell(s) have runs contributed to a results repository or imported" in overview
     assert "<sup>c</sup> contributed to the results repository, re-scored here from its per-query arrays" in overview
     assert "| hog<sup>c</sup> | none (nothing learnt) |" in page
+    # was: "Regenerate with `vprbench leaderboard publish --to docs/`", which without --results drops these runs
+    assert "Regenerate with `vprbench leaderboard publish --to docs/ --results DIR` (DIR: the results repository)" \
+        in overview
 
     # this machine re-runs both: one agrees within the contributed run's interval, one does not
     local = tmp_path / "local-cache"
@@ -91,6 +94,7 @@ def test_a_site_from_a_repository_marks_each_cell(repository, records, tmp_path,
     assert main(["leaderboard", "publish", "--to", str(docs), "--cache-dir", str(local)]) == 0
     assert {d["source"] for d in entries(docs).values()} == {MEASURED}
     assert "<sup>" not in (docs / "leaderboard" / "index.md").read_text()
+    assert "Regenerate with `vprbench leaderboard publish --to docs/`." in (docs / "leaderboard" / "index.md").read_text()
 
 
 def test_results_is_refused_outside_publish_and_a_missing_repository_is_named(tmp_path, capsys):

@@ -187,11 +187,18 @@ def _from_repository(records) -> str:
     return f", {sent} of them contributed to a results repository and re-scored here" if sent else ""
 
 
+def _regenerate(records) -> str:
+    """The command that writes this section again: without --results, the repository's runs would be gone."""
+    if any(r.get("_contribution") for r in records):
+        return "`vprbench leaderboard publish --to docs/ --results DIR` (DIR: the results repository)"
+    return "`vprbench leaderboard publish --to docs/`"
+
+
 def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: int = 0, colours=None) -> str:
     written = datetime.now(timezone.utc).date().isoformat()
     lines = [PAGE_HEAD, "# Leaderboard", "",
              f"Measured by `vprbench evaluate` ({len(records)} stored run(s){_from_repository(records)}; vprbench "
-             f"{__version__}; written {written}). Regenerate with `vprbench leaderboard publish --to docs/`. Each cell is one run: "
+             f"{__version__}; written {written}). Regenerate with {_regenerate(records)}. Each cell is one run: "
              f"{RULE_LINK} (below the tables).", "", marks_note(board)]
     if note := truth_note(board):
         lines += ["", text(note), ""]
