@@ -74,6 +74,15 @@ def one_line(text) -> str:
     return literal(text).replace("\n", "\\n")
 
 
+def first_clause(message: str) -> str:
+    """A message's first clause, up to its first ': ' (what is wrong, not the how-to after it), without
+    a parenthesis that cut leaves open ('... does not exist (closest existing folder')."""
+    clause = str(message).split(": ")[0].rstrip(".")
+    while clause.count("(") > clause.count(")"):
+        clause = clause[:clause.rindex("(")].rstrip()
+    return clause
+
+
 def shortened(value, limit: int = 80) -> str:
     """`value` as a message shows it, at most `limit` characters (cut with '...'): a hand-edited
     file's megabyte-long value, or a client's paragraph, stays one readable line."""

@@ -82,6 +82,10 @@ def test_a_forged_run_on_a_folder_of_ones_own_is_refused_and_a_moved_folder_said
     assert main(["leaderboard", "show", "--cache-dir", str(cache)]) == 0  # not provable here: shown, and said
     out = " ".join(capsys.readouterr().out.split())
     assert "1 of 1 cell(s) were NOT re-scored against a ground truth" in out and "does not exist" in out
+    # was: "(Dataset folder ... does not exist (closest existing folder)." (cut inside its parenthesis), and only
+    # "A benchmark's copy under --data-dir proves its cells", which cannot prove a folder of one's own
+    assert f"its ground truth is not here (Dataset folder {own} does not exist)." in out
+    assert "a folder of your own, back unchanged at the path its runs name, proves theirs." in out
 
 
 def test_the_dataset_page_says_so_too(store, tmp_path, capsys):

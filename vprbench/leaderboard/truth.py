@@ -17,6 +17,7 @@ import warnings
 
 from ..errors import VPRBenchError
 from ..evaluation.results import per_query
+from ..text import first_clause
 
 #: a record that re-scores to its numbers / does not / could not be re-scored here
 PROVEN, REFUSED, UNPROVEN = "proven", "refused", "unproven"
@@ -75,7 +76,7 @@ def against_truth(record: dict, truth) -> tuple[str, str]:
         gt = truth(record)
     except (VPRBenchError, OSError, ValueError) as error:  # no copy here: said, not hidden
         # its first clause ("Dataset 'x' is not in the data root /d"): the note lists it once per column
-        return UNPROVEN, f"its ground truth is not here ({str(error).split(': ')[0].rstrip('.')})"
+        return UNPROVEN, f"its ground truth is not here ({first_clause(str(error))})"
     given = (record.get("dataset_fingerprints") or {}).get("ground_truth")
     if given != gt.fingerprints["ground_truth"]:
         # it names another copy's positives: re-scoring it against these would judge it by other data
@@ -135,5 +136,9 @@ def truth_note(board) -> str:
     for cell in unproven:
         why.setdefault(cell.record["_proof"]["ground_truth"], []).append(cell.column.title)
     reasons = "; ".join(f"{', '.join(sorted(set(titles)))}: {reason}" for reason, titles in why.items())
+    # an own folder is re-read at the path its runs name, never looked for under --data-dir
+    own = "; a folder of your own, back unchanged at the path its runs name, proves theirs" \
+        if any(c.column.kind != "benchmark" for c in unproven) else ""
     return (f"{len(unproven)} of {len(cells)} cell(s) were NOT re-scored against a ground truth (their numbers are "
-            f"their own arrays', checked for consistency only): {reasons}. A benchmark's copy under --data-dir proves its cells.")
+            f"their own arrays', checked for consistency only): {reasons}. A benchmark's copy under --data-dir proves "
+            f"its cells{own}.")
