@@ -191,6 +191,16 @@ def test_cli_import_verify_list_info(tmp_path, gardens, capsys):
     assert info["layout"] == "folders" and "night_right" in info["notes"]
 
 
+def test_the_list_shows_every_name_whole_in_a_narrow_terminal(tmp_path, capsys, monkeypatch):
+    """Was: at 80 columns the table cut a name to 'mid-atlantic-…', not a name one can type."""
+    monkeypatch.setenv("COLUMNS", "80")
+    assert main(["datasets", "list", "--data-dir", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "…" not in out
+    shown = {line.split("│")[1].strip() for line in out.splitlines() if line.startswith("│")}
+    assert set(datasets.dataset_manifests()) <= shown
+
+
 def test_importing_from_a_path_that_is_no_folder_says_what_to_give(tmp_path, capsys):
     """Was: "/data/pitts30k is not a folder." for the README's example path: neither that it is missing
     nor what to give instead."""

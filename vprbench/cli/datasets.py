@@ -71,7 +71,9 @@ def run_list(args) -> int:
         print(json.dumps(rows, indent=2))
         return 0
     table = Table(title="Datasets")
-    for column in ("name", "domain", "database", "queries", "radius", "on disk"):
+    # a name is what the user types next: whole on one line, never cut to "mid-atlantic-…" at 80 columns
+    table.add_column("name", no_wrap=True, min_width=max((len(r["name"]) for r in rows), default=4))
+    for column in ("domain", "database", "queries", "radius", "on disk"):
         table.add_column(column)
     for r in rows:
         radius = quantity(r["radius"], r["radius_unit"])
