@@ -6,7 +6,9 @@ import sys
 
 
 def vprbench_cli(args, site, cache):
-    env = {**os.environ, "PYTHONPATH": str(site), "VPRBENCH_CACHE": str(cache)}
+    # the tree under test stays importable (a PYTHONPATH already set), the plugin's folder first
+    path = os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")]))
+    env = {**os.environ, "PYTHONPATH": path, "VPRBENCH_CACHE": str(cache)}
     return subprocess.run([sys.executable, "-m", "vprbench.cli.main", *args], env=env, capture_output=True, text=True)
 
 
@@ -22,6 +24,8 @@ def test_plugin_is_listed_and_evaluated(example_plugin_site, shared_data, tmp_pa
     assert record["method"] == "thumbnail" and record["descriptor_dim"] == 256
     assert record["counts"]["queries"] == 111 and 0 <= record["recall"]["1"] <= 100
     assert record["provenance"]["weights"] == {"source": "none"}  # declared, as the guide shows
+    assert record["origins"]["method"] == {"name": "thumbnail", "module": "vprbench_example_plugin",
+                                           "distribution": "vprbench-example-plugin", "version": "0.1.0"}
 
     board = vprbench_cli(["leaderboard", "--format", "csv"], example_plugin_site, tmp_path)
     assert board.returncode == 0 and "thumbnail" in board.stdout

@@ -233,3 +233,25 @@ def test_a_results_folder_of_another_layout_and_unreadable_records_fail_the_comm
     with pytest.raises(VPRBenchError, match="another vprbench"):
         save_result(make_record("hog", seed=3))
     assert sorted(p.name for p in path.parent.iterdir()) == sorted([path.name, path.with_suffix(".npz").name, "torn.json"])
+
+
+def test_old_records_without_origins_still_publish_and_a_plugin_is_shown_escaped(capsys, tmp_path, make_record):
+    from vprbench.cli.main import main
+    from vprbench.leaderboard.escape import text
+
+    old = make_record("hog", seed=1, created="2026-01-01T00:00:00+00:00")
+    del old["origins"]
+    save_result(old)
+    assert main(["leaderboard", "publish", "--to", str(tmp_path / "core")]) == 0, capsys.readouterr().err
+    assert "Plugins" not in (tmp_path / "core" / "leaderboard" / "corridor.md").read_text()  # vprbench's own runs only
+    plugin = make_record("thumbnail", seed=2)
+    plugin["origins"] = {"method": {"name": "thumbnail", "module": "acme", "distribution": "acme-<b>vpr</b>",
+                                    "version": "1.2|3"}, "stages": []}
+    save_result(plugin)
+    assert {r["run_id"] for r in read_results()} == {old["run_id"], plugin["run_id"]}
+    assert main(["leaderboard", "publish", "--to", str(tmp_path / "docs")]) == 0, capsys.readouterr().err
+    page = (tmp_path / "docs" / "leaderboard" / "corridor.md").read_text()
+    assert "| Plugins |" in page and f"| {text('thumbnail: acme-<b>vpr</b> 1.2|3')} |" in page, page
+    assert "<b>" not in page
+    old_row = next(line for line in page.splitlines() if old["run_id"] in line)
+    assert "| – |" in old_row  # a record written before origins: nothing claimed

@@ -1,10 +1,12 @@
-"""Where a run's parts came from (`method_provenance`) and what it ran on (`environment`): the
-provenance and hardware sections of a result record (record.py)."""
+"""Where a run's parts came from (`method_provenance`, `origins`) and what it ran on (`environment`): the
+provenance, software and hardware sections of a result record (record.py)."""
 from __future__ import annotations
 
 import json
 import os
 import platform
+import sys
+from importlib import metadata
 from pathlib import Path
 
 import numpy as np
@@ -76,13 +78,72 @@ def environment() -> dict:
 
     versions = {"vprbench": __version__, "python": platform.python_version(), "numpy": np.__version__,
                 "torch": torch.__version__, "faiss": faiss.__version__, "h5py": h5py.__version__,
-                "git": _git_commit()}
+                "git": _git_commit(), **_library_versions()}
     hardware = {"platform": platform.platform(), "machine": platform.machine(), "cpu": _cpu_name(),
                 "cpu_count": os.cpu_count(), "memory_gib": _memory_gib(),
                 "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
                 # what computed fp32 products on the CPU: its speed (and their last bits) depend on it
                 "cpu_capability": torch.backends.cpu.get_cpu_capability(), "cpu_products": library()}
     return {"versions": versions, "hardware": hardware}
+
+
+#: libraries that decide the numbers when a run uses them: import name -> the key its version has in the record
+LIBRARIES = {"timm": "timm", "torchvision": "torchvision", "cv2": "opencv", "kornia": "kornia",
+             "sklearn": "scikit-learn", "scipy": "scipy", "PIL": "pillow"}
+
+
+def _library_versions() -> dict:
+    """The version of each of LIBRARIES this process imported (one it did not import took no part in the numbers:
+    left out), read from its installed distribution's metadata; the module's own __version__ if none is found."""
+    found = {}
+    for module, key in LIBRARIES.items():
+        if module in sys.modules:
+            _, version = distribution_of(module)
+            found[key] = version or getattr(sys.modules[module], "__version__", None)
+    return found
+
+
+def origins(method_name: str, stage_names) -> dict:
+    """Who provides the run's method and each of its stages: the top-level module of what is registered
+    under the name, and the installed distribution (name and version) holding that module; both null for
+    code from a script or notebook, which no distribution holds."""
+    from ..methods.registry import available_methods
+    from ..registration import source_of
+    from ..stages.registry import available_stages
+
+    def origin(name, entry) -> dict:
+        module = source_of(entry.target) if entry else None
+        distribution, version = distribution_of(module) if module else (None, None)
+        return {"name": name, "module": module, "distribution": distribution, "version": version}
+
+    stages = available_stages() if stage_names else {}  # a run without stages loads no stage plugin
+    return {"method": origin(method_name, available_methods().get(method_name)),
+            "stages": [origin(name, stages.get(name)) for name in stage_names]}
+
+
+#: top-level module -> distributions, read once per process (reading every distribution's file list takes
+#: 0.3 to 1 s) and again for a module it lacks, once (a plugin installed since, as in a notebook; a module
+#: of one's own that no distribution holds is not looked for at every record)
+_top_levels: dict[str, list[str]] = {}
+_looked_for: set[str] = set()
+
+
+def distribution_of(module: str) -> tuple[str | None, str | None]:
+    """The installed distribution holding top-level `module`, and its version; (None, None) when none does.
+    Several (a namespace package): their names and versions, comma-separated."""
+    global _top_levels
+    if module not in _top_levels and module not in _looked_for and module != "__main__":  # __main__: a script's
+        _top_levels = metadata.packages_distributions()
+        _looked_for.add(module)
+    listed = []
+    for name in sorted(set(_top_levels.get(module, []))):
+        try:
+            listed.append((name, metadata.version(name)))
+        except metadata.PackageNotFoundError:  # uninstalled since it was listed
+            pass
+    if not listed:
+        return None, None
+    return ", ".join(name for name, _ in listed), ", ".join(version for _, version in listed)
 
 
 def _git_commit() -> str | None:

@@ -19,7 +19,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationErr
 from ..errors import VPRBenchError
 from ..spec import RUN_SETTINGS, RunSpec, plain
 from .identity import dataset_fingerprints, dataset_kind, fingerprint_of, protocol_of
-from .provenance import environment, method_provenance
+from .provenance import environment, method_provenance, origins
 
 SCHEMA = "vprbench-result"
 SCHEMA_VERSION = 3  # 2 = vprbench 0.2 (no spec), 1 = the JSON lines of 0.1 (no longer read)
@@ -333,6 +333,8 @@ def result_record(*, spec: RunSpec, method, fingerprint, dataset, dataset_key: s
         "run": run or {},  # how it ran (device, batch size, workers, budget, ...): never part of its identity
         **({"context": context} if context else {}),
         **environment(),
+        # the distribution (and version) providing the method and each stage: a plugin's, not only vprbench's
+        "origins": origins(method.name, [s.name for s in spec.stages]),
         "per_query": section,
     }
     if dataset_kind(dataset) == "own" and record["dataset_kind"] != "own":

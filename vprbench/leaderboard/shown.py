@@ -141,3 +141,18 @@ def left_out(record: dict) -> tuple[str, str, str]:
     name it; the label falls back to the method (a damaged record may lack one), paths cut."""
     label = record.get("label") or record.get("method")
     return tuple(public(value) if value else "?" for value in (record.get("run_id"), label, record.get("dataset")))
+
+
+def plugins_shown(record: dict) -> str:
+    """The run's method and stages that vprbench itself does not provide, each with the distribution and
+    version it came from (the record's `origins`), escaped; '–' when there are none or the record predates them."""
+    found = record.get("origins") if isinstance(record.get("origins"), dict) else {}
+    parts = [found.get("method"), *(found.get("stages") if isinstance(found.get("stages"), list) else [])]
+    shown = []
+    for part in parts:
+        if not isinstance(part, dict) or part.get("module") in (None, "vprbench"):
+            continue
+        where = (f"{part['distribution']} {part.get('version') or ''}".strip() if part.get("distribution")
+                 else f"{part['module']} (no installed distribution)")
+        shown.append(text(f"{part.get('name')}: {where}"))
+    return "; ".join(shown) or "–"

@@ -33,7 +33,7 @@ from .domains import domain_datasets
 from .downloads import plain, record_download, summary
 from .escape import code, public, text, to_csv
 from .cells import CELL_RULE, Board, Cell, Column, build_board, hardware_of, licence_shown, weights_shown
-from .shown import descriptor_bytes, row_name
+from .shown import descriptor_bytes, plugins_shown, row_name
 from .truth import LocalTruth, truth_note
 from .stats import check_k_and_seed
 from ..evaluation.blocks import RULE, for_record
@@ -296,9 +296,12 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
              f"{_units(cells)}.", "",
              "| Method | Weights | Licence | R@1 [95 % CI] | R@5 [95 % CI] | R@10 | R@20 | AUC-PR | R@100%P | Dim | Bytes "
              "| Images/s |", "|:--|:--|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|"]
+    plugins = [plugins_shown(cell.record) for cell in cells]
+    shown = any(p != "–" for p in plugins)  # a column of dashes only when every run is vprbench's own
     runs = ["| Method | Source | Contributor | Run | Created | Hardware | vprbench | Commit | Descriptors computed | "
-            "Older runs of the row | Images/s measured by |", "|:--|:--|:--|:--|:--|:--|:--|:--|--:|--:|:--|"]
-    for cell in cells:
+            f"{'Plugins | ' * shown}Older runs of the row | Images/s measured by |",
+            f"|:--|:--|:--|:--|:--|:--|:--|:--|--:|{':--|' * shown}--:|:--|"]
+    for cell, plugin in zip(cells, plugins):
         s, r = stats[(cell.row, column.key)], cell.record
         lines.append(f"| {row_cells(cell.row, cell)} | "
                      f"{with_ci(s[1])} | {with_ci(s[5])} | {fmt(cell.recall(10))} | {fmt(cell.recall(20))} | "
@@ -309,7 +312,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
         sent = (r.get("_contribution") or {}).get("contributor") or "this machine"
         runs.append(f"| {text(cell.row.name)} | {text(cell.source)} | {text(sent)} | {code(r.get('run_id'))} | {text(r.get('created', '–'))} | "
                     f"{text(hardware_of(r))} | {text(versions.get('vprbench', '–'))} | "
-                    f"{_commit(versions.get('git'))} | {sum(computed.values()) if computed else '–'} | {cell.passed_over} | "
+                    f"{_commit(versions.get('git'))} | {sum(computed.values()) if computed else '–'} | {f'{plugin} | ' * shown}{cell.passed_over} | "
                     + (f"{code(cell.timed.get('run_id'))} on {text(cell.hardware)} |" if cell.timed else "no run computed its descriptors |"))
     lines += ["", RESULTS_LEGEND, "", "The runs in the cells above:", "", *runs, "", *_paired(cells, seed), "## Figures", ""]
     slug = column.slug

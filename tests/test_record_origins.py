@@ -1,0 +1,45 @@
+"""What software computed a record: the versions of the libraries that decide its numbers, and the
+distribution (and version) that provides its method and each stage, shown on the dataset page."""
+import json
+import sys
+from importlib import metadata
+
+import numpy as np
+
+from vprbench.evaluation import read_results
+
+
+def test_a_real_run_records_the_libraries_and_the_distributions_it_ran(cli, shared_data):
+    code, out, err = cli("evaluate", "--method", "hog", "--dataset", "corridor", "--data-dir", shared_data,
+                         "--resize", 64, 64, "--rerank", "aqe", "--json")
+    assert code == 0, err
+    record = json.loads(out)
+    versions = record["versions"]
+    assert versions["opencv"] == metadata.version(metadata.packages_distributions()["cv2"][0])  # HOG is OpenCV's
+    assert versions["scikit-learn"] == metadata.version("scikit-learn")  # AUC-PR is sklearn's
+    assert versions["pillow"] == metadata.version("pillow")  # decodes every image
+    for module, key in (("timm", "timm"), ("torchvision", "torchvision"), ("kornia", "kornia")):
+        assert (key in versions) == (module in sys.modules)  # left out when the run did not import it
+    core = {"module": "vprbench", "distribution": "vprbench", "version": metadata.version("vprbench")}
+    assert record["origins"] == {"method": {"name": "hog", **core}, "stages": [{"name": "aqe", **core}]}
+    [stored] = read_results()
+    assert stored["origins"] == record["origins"] and stored["versions"] == versions
+
+
+def test_a_method_registered_from_a_script_is_recorded_without_a_distribution(monkeypatch, shared_data):
+    from runs import evaluate_method
+
+    from vprbench import register_method
+    from vprbench.datasets import load_dataset
+    from vprbench.methods import Method, create_method, registry
+
+    class Scripted(Method):
+        def describe(self, images):
+            return np.eye(len(images), 8, dtype=np.float32)
+
+    Scripted.__module__ = "__main__"  # as a class defined in a script or a notebook cell is
+    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
+    register_method("scripted", Scripted)
+    record = evaluate_method(create_method("scripted"), load_dataset("corridor", shared_data), ks=(1,))
+    assert record["origins"]["method"] == {"name": "scripted", "module": "__main__", "distribution": None,
+                                           "version": None}
