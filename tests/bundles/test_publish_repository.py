@@ -1,9 +1,11 @@
 """`leaderboard publish --results DIR`: the site built from a results repository fed by two
 contributors' bundles, each row with its contributor, date, hardware and vprbench version, each
-cell marked by where its number comes from."""
+cell marked by where its number comes from; `leaderboard show` and `compare` with `--results DIR`
+read the very same runs."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -97,8 +99,88 @@ def test_a_site_from_a_repository_marks_each_cell(repository, records, tmp_path,
     assert "Regenerate with `vprbench leaderboard publish --to docs/`." in (docs / "leaderboard" / "index.md").read_text()
 
 
-def test_results_is_refused_outside_publish_and_a_missing_repository_is_named(tmp_path, capsys):
-    assert main(["leaderboard", "--results", str(tmp_path)]) == 1
-    assert "--results DIR is for 'leaderboard publish'" in capsys.readouterr().err
-    assert main(["leaderboard", "publish", "--to", str(tmp_path / "docs"), "--results", str(tmp_path / "nowhere")]) == 1
-    assert "nowhere does not exist" in capsys.readouterr().err
+def shown(capsys, repository, cache, *args) -> str:
+    """`leaderboard show --results` over `cache`: its stdout (exit 0)."""
+    code = main(["leaderboard", "show", *args, "--results", str(repository), "--cache-dir", str(cache)])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    return out
+
+
+def test_show_gives_the_cells_publish_writes_from_a_repository(repository, records, tmp_path, capsys, monkeypatch):
+    """Was: 'leaderboard show --results DIR' refused ('--results DIR is for leaderboard publish'): a
+    repository's maintainer could not see in the terminal what publish would put on the site."""
+    local, docs = tmp_path / "local-cache", tmp_path / "docs"
+    same = rerun(records[0], records[0]["run_id"])  # alice's run, on this machine too: one run, this machine's
+    same["created"] = records[0]["created"]
+    save_result(same, local)
+    save_result(rerun(records[1], "20300101T000000Z-rerun-b", ranks=[0] * records[1]["counts"]["queries"]), local)
+    assert main(["leaderboard", "publish", "--to", str(docs), "--results", str(repository), "--cache-dir", str(local)]) == 0
+    capsys.readouterr()
+    published = {m: (d["run_id"], d["source"], d["r1"], d["r5"]) for m, d in entries(docs).items()}
+    cells = {s["label"]: (s["run_id"], s["source"], round(s["r1"], 6), round(s["r5"], 6))
+             for s in json.loads(shown(capsys, repository, local, "--format", "json"))}
+    assert cells == published
+    # counted once: not 'contributed, re-run here and agreeing' (its contributed copy beside it)
+    assert published["hog"][:2] == (records[0]["run_id"], MEASURED)
+    assert published["hog [resize=96x128]"][1].startswith("contributed, re-run here and disagreeing")
+
+    # every other format marks the cells as the site does
+    csv = shown(capsys, repository, local, "--format", "csv")
+    assert csv.strip().splitlines()[1:] == ["hog,none (nothing learnt),–,48.6 / 75.7", "hog [resize=96x128],none (nothing learnt),–,0.0 / 0.0 c≠"]
+    markdown = shown(capsys, repository, local, "--format", "markdown")
+    assert "| 48.6 / 75.7 " in markdown and "| 0.0 / 0.0<sup>c≠</sup> " in markdown
+    assert markdown.rstrip().endswith("Marks: <sup>c≠</sup> contributed, and re-run here outside its interval.")
+    monkeypatch.setenv("COLUMNS", "300")
+    terminal = shown(capsys, repository, tmp_path / "empty-cache")
+    assert "│ 48.6 / 75.7 c │" in terminal and "│ 42.3 / 66.7 c │" in terminal
+    assert "Marks: c: contributed to the results repository, re-scored here from its per-query arrays." in terminal
+
+
+def test_compare_sets_a_contributed_run_against_a_local_one(repository, records, shared_data, tmp_path, capsys):
+    local = tmp_path / "local-cache"
+    same = rerun(records[0], records[0]["run_id"])
+    same["created"] = records[0]["created"]
+    save_result(same, local)
+    compare = ["leaderboard", "compare", "hog", "hog [resize=96x128]", "--dataset", "corridor", "--cache-dir", str(local),
+               "--data-dir", str(shared_data)]
+    assert main(compare) == 1  # bob's run is in the repository only
+    assert "No run of 'hog [resize=96x128]' on corridor" in capsys.readouterr().err
+    assert main([*compare, "--results", str(repository)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[1].endswith(f"run {records[0]['run_id']}") and f"R@1 {records[0]['recall']['1']:5.1f} %" in lines[1]
+    assert lines[2].endswith(f"run {records[1]['run_id']} (c: contributed, re-scored, sent by bob)")
+    assert f"R@1 {records[1]['recall']['1']:5.1f} %" in lines[2]
+
+
+def test_show_and_compare_report_a_repositorys_unreadable_and_refused_records(repository, shared_data, tmp_path, cli):
+    from bundles.test_cells_rescored import _forge_perfect
+    from vprbench.bundles import read_repository
+
+    [first, _] = read_repository(repository)
+    damaged = Path(first["_source"]).with_name("20300101T000000Z-damaged.json")
+    damaged.write_text("{not json")
+    args = ["--results", repository, "--cache-dir", tmp_path / "empty-cache", "--data-dir", shared_data]
+    with pytest.warns(UserWarning, match=f"{damaged}"):  # named in a warning, as publish names it
+        code, out, err = cli("leaderboard", "compare", "hog", "hog [resize=96x128]", "--dataset", "corridor", *args)
+    assert code == 1 and "Traceback" not in err and "R@1" in out
+    assert "1 stored file(s) could not be read" in err and "nothing was deleted" in err
+    forged = _forge_perfect(first)
+    with pytest.warns(UserWarning) as said:
+        code, out, err = cli("leaderboard", "show", "--format", "csv", *args)
+    assert code == 1 and "Traceback" not in err and "100.0" not in out
+    assert any(f"{forged}: its per-query top-K indices do not re-score" in str(w.message) for w in said)
+    assert "1 run(s) do not re-score to their numbers" in err and "1 stored file(s) could not be read" in err
+
+
+@pytest.mark.parametrize("action", [["show"], ["show", "--format", "json"], ["compare", "hog", "sad", "--dataset", "corridor"],
+                                    ["publish", "--to", "{tmp}/docs"]])
+@pytest.mark.parametrize("kind, said", [("nowhere", "does not exist"), ("empty", "holds no records"),
+                                        ("file", "is a file, not a folder")])
+def test_a_folder_that_is_no_repository_is_refused_in_one_line(action, kind, said, tmp_path, cli):
+    results = tmp_path / kind
+    results.mkdir() if kind == "empty" else results.write_text("x") if kind == "file" else None
+    code, out, err = cli("leaderboard", *[a.format(tmp=tmp_path) for a in action], "--results", results)
+    assert code == 1 and out == "" and "Traceback" not in err
+    assert err.count("\n") == 1 and f"error: The results repository {results} {said}: give the folder" in err
+    assert not (tmp_path / "docs").exists()

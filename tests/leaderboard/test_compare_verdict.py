@@ -3,6 +3,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from vprbench.leaderboard.cells import MEASURED
 from vprbench.leaderboard.compare import describe
 from vprbench.leaderboard.stats import bootstrap_ci, paired_test, per_query
 
@@ -20,7 +21,7 @@ def test_a_difference_whose_interval_excludes_zero_is_called_one():
     test = paired_test(a, b, seed=1)
     assert round(test["ci"][0], 3) == 1.625 and test["p_bootstrap"] == 0.05
     assert test["significant"] is True
-    cells = [SimpleNamespace(row=SimpleNamespace(name=n), record={"run_id": n}) for n in ("A", "B")]
+    cells = [SimpleNamespace(row=SimpleNamespace(name=n), record={"run_id": n}, source=MEASURED) for n in ("A", "B")]
     wins = (a, b)
     result = {"dataset": "d", "k": 1, "cells": cells, "intervals": [bootstrap_ci(w, seed=1) for w in wins],
               "overlap": True, "test": test, "resampling": per_query(60),
@@ -44,7 +45,7 @@ def test_the_verdict_names_its_units_in_words_that_read_for_every_scheme():
 
     a, b = np.zeros(60, bool), np.zeros(60, bool)
     a[:7], b[7:12] = True, True
-    cells = [SimpleNamespace(row=SimpleNamespace(name=n), record={"run_id": n}) for n in ("A", "B")]
+    cells = [SimpleNamespace(row=SimpleNamespace(name=n), record={"run_id": n}, source=MEASURED) for n in ("A", "B")]
     for units, said in ((per_query(60), "resampled per query,"),
                         (Resampling("places", 60, places=np.arange(60) // 3, radius=25), "resampled by place (20 places")):
         test = paired_test(a, b, units, seed=0)

@@ -21,12 +21,13 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 
-from ..errors import VPRBenchError
-from ..evaluation.results import LAYOUT, LAYOUT_FILE, check_layout, read_record
+from ..errors import VPRBenchError, require
+from ..evaluation.results import LAYOUT, LAYOUT_FILE, check_layout, read_record, read_results
 from ..fsutil import CacheError, LockTimeout, atomic_write, check_lock_timeout, lock
 from ..paths import special_file
 from ..text import one_line
@@ -280,6 +281,20 @@ def read_repository(root: Path, skipped: list | None = None) -> list[dict]:
                                    "version": (record.get("versions") or {}).get("vprbench")}
         records.append(record)
     return sorted(records, key=lambda r: (str(r.get("created", "")), str(r.get("run_id", ""))))
+
+
+def read_runs(cache_dir=None, results=None, skipped: list | None = None) -> list[dict]:
+    """The runs a leaderboard is built from (`leaderboard show`, `compare` and `publish` alike): this
+    cache's results store, and with `results` the repository's runs too, oldest first. A run in both
+    is this machine's (read once, unmarked). Unreadable files are named in a warning and appended to
+    `skipped`."""
+    records = read_results(cache_dir, skipped=skipped)
+    if results is None:
+        return records
+    require(results, (str, os.PathLike), "results take the folder 'vprbench results import --into' wrote")
+    here = {r["run_id"] for r in records}
+    return sorted(records + [r for r in read_repository(results, skipped) if r["run_id"] not in here],
+                  key=lambda r: (str(r.get("created", "")), str(r.get("run_id", ""))))
 
 
 def _contribution(path: Path) -> dict:

@@ -25,7 +25,9 @@ def add_parsers(commands) -> None:
                    help="with 'show': which track's table (default single-image; each track is a table of its own)")
     p.add_argument("--cache-dir", help="where the results store lives")
     p.add_argument("--results", type=path_argument, metavar="DIR",
-                   help="with 'publish': a results repository (vprbench results import) whose runs join this cache's")
+                   help="a results repository (vprbench results import --into DIR) whose runs join this cache's, "
+                        "each cell marked as the site marks it (a run in both counts once, as this machine's): "
+                        "'show' and 'compare' preview what 'publish --results DIR' publishes")
     p.add_argument("--data-dir", help="where the datasets are: their ground truth re-scores every cell's run (and "
                                       "'publish' draws its retrieval mosaics from their images)")
     p.set_defaults(run=run)
@@ -34,9 +36,10 @@ def add_parsers(commands) -> None:
 def run(args) -> int:
     from rich.table import Table
 
-    from ..evaluation import read_results
+    from ..bundles.repository import read_runs
     from ..leaderboard import build_board, grid, publish, render
     from ..leaderboard.stats import check_k_and_seed
+    from ..leaderboard.tables import marks_legend
     from ..leaderboard.truth import LocalTruth, truth_note
 
     resolve_locations(args)
@@ -48,8 +51,6 @@ def run(args) -> int:
                                 "drop it.")
     args.format, args.track = args.format or "table", args.track or "single-image"
     args.k, args.seed = check_k_and_seed(1 if args.k is None else args.k, args.seed)  # before any record is read
-    if args.results is not None and args.action != "publish":
-        raise VPRBenchError("--results DIR is for 'leaderboard publish' (it builds the site from a results repository).")
     if args.action == "publish":
         if args.to is None:
             raise VPRBenchError("leaderboard publish needs --to FOLDER (e.g. --to docs/)")
@@ -59,7 +60,7 @@ def run(args) -> int:
         say(f"Wrote {publish(args.to, args.cache_dir, data_dir=args.data_dir, seed=args.seed, skipped=skipped, results=args.results, refused=refused)}")
         return unread(skipped, refused)
     skipped, refused = [], []
-    records = read_results(args.cache_dir, skipped=skipped)
+    records = read_runs(args.cache_dir, args.results, skipped)  # the very runs 'publish --results DIR' would use
     if not records:
         raise VPRBenchError(NO_RESULTS)
     board = build_board(records, LocalTruth(args.data_dir, args.cache_dir), refused)
@@ -83,8 +84,11 @@ def run(args) -> int:
         raise VPRBenchError(f"{runs} can fill a cell: " + "; ".join(sum(named_left_out(board.excluded), []))
                             if board.excluded else NO_RESULTS)
     table = grid(board)
+    sources = [cell.source for cell in board.cells.values()]
     if args.format != "table":
-        say(render(table, args.format, board))
+        # Markdown for a page: the legend of its marks below it, as on the site (CSV and JSON stay data)
+        legend = marks_legend(sources, "markdown") if args.format == "markdown" else ""
+        say(render(table, args.format, board) + (f"\n\nMarks:{legend}" if legend else ""))
         return unread(skipped, refused)
     view = Table(title=f"R@1 / R@5 (%), {args.track} track: one run per cell")
     view.add_column("method")
@@ -94,6 +98,8 @@ def run(args) -> int:
         view.add_row(str(method), *[str(v) for v in row.tolist()])
     out = console()
     out.print(view)
+    if legend := marks_legend(sources, "terminal"):
+        out.print(f"Marks:{legend}", highlight=False, soft_wrap=True)
     if board.excluded:
         out.print(left_out_lines(board.excluded), highlight=False)
     if note := truth_note(board):

@@ -6,6 +6,7 @@ from ..errors import VPRBenchError, closest_names, require
 from ..text import plural
 from .cells import Board, Cell
 from .shown import left_out
+from .tables import plain_mark
 from ..evaluation.blocks import for_record, shared
 from ..evaluation.metrics import successes
 from .stats import RESAMPLES, bootstrap_ci, check_k_and_seed, format_p, overlaps, paired_test
@@ -107,6 +108,15 @@ def compare(board: Board, a: str, b: str, dataset: str, *, k: int = 1, seed: int
                                                     "test": paired_test(*wins, seed=seed)}}
 
 
+def _source(cell: Cell) -> str:
+    """Where a cell's number comes from, with the site's mark, when not measured here: a contributed run
+    set against a local one says which is which (and who sent it)."""
+    if not (mark := plain_mark(cell.source)):
+        return ""
+    sent = (cell.record.get("_contribution") or {}).get("contributor")
+    return f" ({mark}: {cell.source}" + (f", sent by {sent})" if sent else ")")
+
+
 def describe(result: dict) -> str:
     first, second = result["cells"]
     t, k, units = result["test"], result["k"], result["resampling"]
@@ -119,7 +129,8 @@ def describe(result: dict) -> str:
     for cell, (low, high), value, (p_low, p_high) in zip((first, second), result["intervals"], (t["a"], t["b"]),
                                                           plain["intervals"]):
         lines.append(f"  {cell.row.name:<{width}}  R@{k} {value:5.1f} %  95 % CI [{low:.1f}, {high:.1f}]  "
-                     + (f"(per query [{p_low:.1f}, {p_high:.1f}])  " if per else "") + f"run {cell.record.get('run_id')}")
+                     + (f"(per query [{p_low:.1f}, {p_high:.1f}])  " if per else "") + f"run {cell.record.get('run_id')}"
+                     + _source(cell))
     q = plain["test"]["ci"]
     if t["identical"]:  # the same queries right and wrong: nothing to test, p = 1 would read as a finding
         lines += [f"  intervals overlap: {'yes' if result['overlap'] else 'no'}",

@@ -25,7 +25,6 @@ from .. import __version__
 from ..errors import VPRBenchError, require
 from ..fsutil import LockTimeout, lock
 from ..paths import folder_path, safe_name
-from ..evaluation.results import read_results
 from ..text import percent, quantity
 from . import figures
 from .staging import alive, mark_read_at, newer_in_place, remove_stale_sections, swap
@@ -77,13 +76,9 @@ def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0, skipp
     read_at = time.time_ns()  # before the results are read: of publishes at once, the one that read them last wins
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        records = read_results(cache_dir, skipped=skipped)
-        if results is not None:  # a run both here and in the repository is this machine's
-            from ..bundles.repository import read_repository
+        from ..bundles.repository import read_runs
 
-            here = {r["run_id"] for r in records}
-            records = sorted(records + [r for r in read_repository(results, skipped) if r["run_id"] not in here],
-                             key=lambda r: (str(r.get("created", "")), str(r.get("run_id", ""))))
+        records = read_runs(cache_dir, results, skipped)  # the runs 'leaderboard show' and 'compare' read too
     for warning in caught:  # corrupt or foreign records: named, then left out
         warnings.warn(str(warning.message), stacklevel=2)
     if not records:

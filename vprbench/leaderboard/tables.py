@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import asdict, dataclass
 
 import pandas as pd
@@ -57,9 +58,18 @@ SOURCE_MARKS = ((AGREES, "c✓", "contributed, and re-run here agreeing within t
                 (IMPORTED, "v", "VPR-Bench's matches, imported and re-scored here"))
 
 
+#: a grid cell's plain mark (grid), set as the site sets it in Markdown
+MARKED = re.compile(f" ({'|'.join(re.escape(mark) for _, mark, _ in SOURCE_MARKS)})$")
+
+
+def plain_mark(source: str) -> str:
+    """The mark of a cell's source (Cell.source) as plain text ('c', 'c✓', 'c≠', 'v'), "" when measured here."""
+    return next((mark for start, mark, _ in SOURCE_MARKS if source.startswith(start)), "")
+
+
 def source_mark(source: str) -> str:
     """`<sup>mark</sup>` for a cell's source (Cell.source), or "" when it was measured here."""
-    return next((f"<sup>{mark}</sup>" for start, mark, _ in SOURCE_MARKS if source.startswith(start)), "")
+    return f"<sup>{mark}</sup>" if (mark := plain_mark(source)) else ""
 
 
 def row_cells(row: Row, cell: Cell) -> str:
@@ -76,10 +86,14 @@ def number(value, digits: int) -> str:
     return "–" if value is None else f"{value:.{digits}f}"
 
 
-def marks_legend(sources) -> str:
-    """What each source mark among `sources` means, for a table's legend ("" when none is there)."""
-    shown = [f"<sup>{mark}</sup> {meaning}" for start, mark, meaning in SOURCE_MARKS
-             if any(source_mark(s) == f"<sup>{mark}</sup>" for s in sources)]
+def marks_legend(sources, form: str = "site") -> str:
+    """What each source mark among `sources` means, for a table's legend ("" when none is there). Forms:
+    "site", "markdown" (`leaderboard show`'s: no page of the site to point to), "terminal" (plain marks too)."""
+    def said(mark: str, meaning: str) -> str:
+        meaning = meaning if form == "site" else meaning.split(" (")[0]  # '(the dataset page gives ...)'
+        return f"{mark}: {meaning}" if form == "terminal" else f"<sup>{mark}</sup> {meaning}"
+
+    shown = [said(mark, meaning) for _, mark, meaning in SOURCE_MARKS if any(plain_mark(s) == mark for s in sources)]
     return (" " + "; ".join(shown) + ".") if shown else ""
 
 
@@ -111,11 +125,11 @@ def computed(board: Board) -> list[Shown]:
 
 def grid(board: Board) -> pd.DataFrame:
     """Rows x dataset columns of 'R@1 / R@5', with each row's weights and licence: the terminal, Markdown
-    and CSV view."""
+    and CSV view. A cell not measured here ends with the site's mark of its source ('48.6 / 75.7 c')."""
     data: dict[str, dict] = {}
     for shown in computed(board):
         entry = data.setdefault(shown.row, {"method": shown.row, "weights": shown.weights, "licence": shown.licence})
-        entry[shown.column] = f"{fmt(shown.r1)} / {fmt(shown.r5)}"
+        entry[shown.column] = f"{fmt(shown.r1)} / {fmt(shown.r5)}" + (f" {mark}" if (mark := plain_mark(shown.source)) else "")
     columns = [c.title for c in board.columns]
     frame = pd.DataFrame(list(data.values()), columns=["method", "weights", "licence", *columns]).set_index("method")
     return frame.fillna("-")
@@ -132,7 +146,9 @@ def render(table: pd.DataFrame, fmt_name: str, board: Board | None = None) -> st
     table = table.rename(index=literal, columns=literal).map(literal)
     if fmt_name == "csv":
         return to_csv(table, lineterminator="\n")  # printed as lines; literal() wrote out every carriage return
-    return table.rename(index=text, columns=text).map(text).to_markdown()  # Markdown from records: escaped as on the site
+    table = table.rename(index=text, columns=text).map(text)  # Markdown from records: escaped as on the site
+    table.iloc[:, 2:] = table.iloc[:, 2:].map(lambda v: MARKED.sub(r"<sup>\1</sup>", v))  # the dataset columns
+    return table.to_markdown()
 
 
 def cell_stats(cell: Cell, ks=CELL_KS, seed: int = 0) -> dict[int, dict]:
