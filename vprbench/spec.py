@@ -119,6 +119,8 @@ class DatasetSpec(_Frozen):
 
 
 class RunSpec(_Frozen):
+    """What one run computes, every part resolved and checked (frozen): made by `resolve_spec` or
+    `spec_for`, run by `evaluate`. `key` names the run, `row_key` its leaderboard row (docs/runs.md)."""
     version: int = SPEC_VERSION
     method: str
     #: the method's options: preset defaults overridden by those given (run settings left out)

@@ -9,6 +9,7 @@
 from .cells import CELL_RULE, Board, Cell, build_board, method_label
 from .site import publish
 from .tables import Shown, computed, grid, render
+from .truth import LocalTruth, truth_note  # with build_board, as docs/leaderboard-guide.md uses them
 
 
 def leaderboard(records: list[dict], data_dir=None, cache_dir=None, *, rescore: bool = True):
@@ -18,7 +19,7 @@ def leaderboard(records: list[dict], data_dir=None, cache_dir=None, *, rescore: 
     `attrs["truth_note"]` says which cells were not re-scored, and a warning says so too."""
     import warnings
 
-    from .truth import PROVEN, LocalTruth, truth_note
+    from .truth import PROVEN
 
     board = build_board(records, LocalTruth(data_dir, cache_dir) if rescore else None)
     table = grid(board)
@@ -28,5 +29,5 @@ def leaderboard(records: list[dict], data_dir=None, cache_dir=None, *, rescore: 
     return table
 
 
-__all__ = ["CELL_RULE", "Board", "Cell", "Shown", "build_board", "computed", "grid", "leaderboard", "method_label",
-           "publish", "render"]
+__all__ = ["CELL_RULE", "Board", "Cell", "LocalTruth", "Shown", "build_board", "computed", "grid", "leaderboard",
+           "method_label", "publish", "render", "truth_note"]
