@@ -69,6 +69,14 @@ def test_a_plugin_that_does_not_declare_weights_is_never_official(make_record):
 
     assert method_provenance(Plugin())["weights"] == {"source": "undeclared"}
 
+    class Speaking(Plugin):  # says where its vocabulary came from, not its weights (was: "nothing learnt")
+        def provenance(self):
+            return {"vocabulary": {"source": "file", "fitted_on": "x", "fitted_on_evaluated_database": False}}
+
+    assert method_provenance(Speaking())["weights"] == {"source": "undeclared"}
+    assert method_provenance(type("Empty", (Plugin,), {"provenance": lambda self: {}})())["weights"] == {
+        "source": "undeclared"}
+
 
 def test_weights_sources(monkeypatch):
     assert weights_provenance(None) == {"source": "random"}

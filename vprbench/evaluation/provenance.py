@@ -26,8 +26,6 @@ def method_provenance(method, dataset=None, cache_dir=None) -> dict:
     (transductive), null when a part does not say, else false. A part fitted on images the method
     names by content (`fitted_image_digests()`, sha256 of each file) is transductive when any of
     them is an image of the evaluated `dataset`, whatever the method says."""
-    from ..methods import Method
-
     from ..loader import plugin_part, postprocess_datasets_of, postprocessor_of
 
     with plugin_part(method, "provenance"):
@@ -37,8 +35,9 @@ def method_provenance(method, dataset=None, cache_dir=None) -> dict:
                             f"{{\"weights\": {{\"source\": \"none\"}}}}, got {type(own).__name__}.")
     own = json.loads(json.dumps(own, default=str))  # the record is JSON: a value that is not is kept as its text
     found = {k: dict(v) if isinstance(v, dict) else v for k, v in own.items()}
-    declared = type(method).provenance is not Method.provenance
-    found.setdefault("weights", {"source": "none" if declared else "undeclared"})
+    # weights a method does not name are undeclared, also when it says other things (a vocabulary): "none" is a
+    # claim (nothing learnt, the official row) the method must make itself
+    found.setdefault("weights", {"source": "undeclared"})
     if method.needs_fit:
         found.setdefault("vocabulary", {"source": "map", "fitted_on": "the evaluated database"})
         found["vocabulary"].setdefault("fitted_on_evaluated_database", True)
