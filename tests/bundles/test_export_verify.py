@@ -377,3 +377,18 @@ def test_an_own_folder_is_found_by_the_path_evaluate_was_given(records, tmp_path
         select_records([record], method="hog", dataset="./other")
     with pytest.raises(VPRBenchError, match="is on a folder of your own"):
         export_bundle(select_records([record], method="hog", dataset="./mydata"), tmp_path / "own.tar.gz")
+
+
+@pytest.mark.parametrize("given, said", [("loop/", "a symbolic link in this path leads back to itself"),
+                                         ("my\0data/", "holds a NUL character")])
+def test_a_dataset_path_no_folder_can_have_is_one_line_in_export_and_compare(records, tmp_path, monkeypatch, given, said):
+    """Was: a RuntimeError (a link loop) or a ValueError (a NUL) from resolving the path, a traceback."""
+    from vprbench.leaderboard import build_board
+    from vprbench.leaderboard.compare import compare
+
+    (tmp_path / "loop").symlink_to(tmp_path / "loop")
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(VPRBenchError, match=said):
+        select_records(records, method="hog", dataset=given)
+    with pytest.raises(VPRBenchError, match=said):
+        compare(build_board(records), "hog", "hog", given)

@@ -5,7 +5,7 @@ import os
 from pathlib import Path
 
 from ..errors import VPRBenchError, require
-from ..paths import folder_path
+from ..paths import folder_path, resolved
 from .download import download, how_to_get
 from .layouts import read_layout
 from .layouts.own_data import own_manifest
@@ -34,7 +34,7 @@ def is_path(name: str) -> bool:
 def own_root(name: str) -> str | None:
     """The folder a dataset argument names as records keep it (`dataset_root`, resolved), None for a
     benchmark's name: the path given to evaluate finds its runs again in export and compare."""
-    return str(Path(name).expanduser().resolve()) if is_path(name) else None
+    return str(resolved(name, "Dataset folder")) if is_path(name) else None  # a link loop, a NUL: one line
 
 
 def is_on_disk(name: str, data_dir=None) -> bool:
