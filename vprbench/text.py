@@ -77,10 +77,10 @@ def one_line(text) -> str:
 def first_clause(message: str) -> str:
     """A message's first clause, up to its first ': ' (what is wrong, not the how-to after it), without
     a parenthesis that cut leaves open ('... does not exist (closest existing folder')."""
-    clause = str(message).split(": ")[0].rstrip(".")
+    clause = str(message).split(": ")[0]
     while clause.count("(") > clause.count(")"):
         clause = clause[:clause.rindex("(")].rstrip()
-    return clause
+    return clause.rstrip(".")  # after the cut: a sentence's own period stood before its parenthesis
 
 
 def shortened(value, limit: int = 80) -> str:

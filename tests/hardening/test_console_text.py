@@ -124,3 +124,12 @@ def test_text_from_data_in_another_encoding_is_written_out_so_it_can_be_shown_an
     name = "caf\udce9"
     assert literal(name) == "caf\\udce9" and text(name) == "caf\\udce9"
     text(name).encode("utf-8")  # what a page takes
+
+
+def test_a_messages_first_clause_ends_with_no_period_nor_open_parenthesis():
+    # was: "Folder /d does not exist." when its period stood before the parenthesis the cut left open
+    from vprbench.text import first_clause
+
+    assert first_clause("Folder /d does not exist. (closest existing folder: /)") == "Folder /d does not exist"
+    assert first_clause("Folder /d does not exist (closest existing folder: /).") == "Folder /d does not exist"
+    assert first_clause("Dataset 'x' is not in the data root /d.") == "Dataset 'x' is not in the data root /d"
