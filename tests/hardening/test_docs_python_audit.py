@@ -35,6 +35,11 @@ def test_every_python_block_of_the_docs_is_run_by_a_test():
     pages = ["README.md", *sorted(p.name for p in (ROOT / "docs").glob("*.md"))]
     found = {(page, block.splitlines()[0]) for page in pages for block in _blocks(page)}
     assert found == set(BLOCKS), (found - set(BLOCKS), set(BLOCKS) - found)
+    # and each test named runs: a renamed or deleted one would leave its block unrun while this still passed
+    for where in BLOCKS.values():
+        named = where.split(" ")[0]
+        path, _, name = named.partition("::") if named.startswith("tests/") else (__file__, "", named)
+        assert (ROOT / path).is_file() and (not name or f"def {name}(" in (ROOT / path).read_text()), where
 
 
 def test_the_register_line_of_add_your_method_md_registers_the_pages_thumbnail(monkeypatch):

@@ -27,7 +27,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from ..errors import VPRBenchError, require
-from ..evaluation.results import LAYOUT, LAYOUT_FILE, check_layout, read_record, read_results
+from ..evaluation.results import LAYOUT, LAYOUT_FILE, check_layout, oldest_first, read_record, read_results
 from ..fsutil import CacheError, LockTimeout, atomic_write, check_lock_timeout, lock
 from ..paths import special_file
 from ..text import one_line
@@ -280,7 +280,7 @@ def read_repository(root: Path, skipped: list | None = None) -> list[dict]:
                                    "hardware": record.get("hardware") or {},
                                    "version": (record.get("versions") or {}).get("vprbench")}
         records.append(record)
-    return sorted(records, key=lambda r: (str(r.get("created", "")), str(r.get("run_id", ""))))
+    return oldest_first(records)
 
 
 def read_runs(cache_dir=None, results=None, skipped: list | None = None) -> list[dict]:
@@ -293,8 +293,7 @@ def read_runs(cache_dir=None, results=None, skipped: list | None = None) -> list
         return records
     require(results, (str, os.PathLike), "results take the folder 'vprbench results import --into' wrote")
     here = {r["run_id"] for r in records}
-    return sorted(records + [r for r in read_repository(results, skipped) if r["run_id"] not in here],
-                  key=lambda r: (str(r.get("created", "")), str(r.get("run_id", ""))))
+    return oldest_first(records + [r for r in read_repository(results, skipped) if r["run_id"] not in here])
 
 
 def _contribution(path: Path) -> dict:

@@ -154,5 +154,5 @@ def plugins_shown(record: dict) -> str:
             continue
         where = (f"{part['distribution']} {part.get('version') or ''}".strip() if part.get("distribution")
                  else f"{part['module']} (no installed distribution)")
-        shown.append(text(f"{part.get('name')}: {where}"))
+        shown.append(text(f"{part.get('name') or '?'}: {where}"))
     return "; ".join(shown) or "–"

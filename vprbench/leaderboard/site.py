@@ -292,7 +292,7 @@ def dataset_page(out: Path, board: Board, column: Column, stats, *, data_dir=Non
              "| Method | Weights | Licence | R@1 [95 % CI] | R@5 [95 % CI] | R@10 | R@20 | AUC-PR | R@100%P | Dim | Bytes "
              "| Images/s |", "|:--|:--|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|"]
     plugins = [plugins_shown(cell.record) for cell in cells]
-    shown = any(p != "–" for p in plugins)  # a column of dashes only when every run is vprbench's own
+    shown = any(p != "–" for p in plugins)  # no column when every run is vprbench's own: it would be all dashes
     runs = ["| Method | Source | Contributor | Run | Created | Hardware | vprbench | Commit | Descriptors computed | "
             f"{'Plugins | ' * shown}Older runs of the row | Images/s measured by |",
             f"|:--|:--|:--|:--|:--|:--|:--|:--|--:|{':--|' * shown}--:|:--|"]
