@@ -6,6 +6,8 @@ disagree, a truncated checkpoint, and the evaluation's own table of a run on ran
 Each refusal: one line naming the values and what to do, exit 1, no traceback, nothing cached."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -158,6 +160,42 @@ def test_the_summary_of_several_runs_marks_those_on_random_weights(tiny_dinov3, 
                          "corridor", "--data-dir", shared_data, "--quiet")
     assert code == 0, err
     assert "random weights: a pipeline check, not a result" in " ".join(out.split())
+
+
+def test_the_json_record_of_a_run_on_random_weights_is_said_to_be_a_pipeline_check(tiny_dinov3, cli, shared_data):
+    """Before: with --json no table titles the run, and nothing on the terminal said its numbers are no result."""
+    code, out, err = cli("evaluate", "--method", "anyloc", "--backbone", "dinov3_vits16", "--weights", "random",
+                         "--layer", "1", "--aggregation", "gem", "--resize", "32", "32", "--dataset", "corridor",
+                         "--data-dir", shared_data, "--quiet", "--json")
+    assert code == 0, err
+    assert json.loads(out)["provenance"]["weights"]["source"] == "random"  # stdout: the record alone
+    assert err.strip() == "random weights: a pipeline check, not a result"
+
+
+def test_results_verify_says_a_run_on_random_weights_is_a_pipeline_check(tiny_dinov3, cli, shared_data, tmp_path):
+    """Before: 'ok, re-scored from its arrays: R@1 ...' read alike for a run on random weights and a real one
+    (export and import take both: the board leaves the random one out, and now verify says why)."""
+    for method in (("anyloc", "--backbone", "dinov3_vits16", "--weights", "random", "--layer", "1", "--aggregation",
+                    "gem", "--resize", "32", "32"), ("hog", "--resize", "16", "16")):
+        code, _, err = cli("evaluate", "--method", *method, "--dataset", "corridor", "--data-dir", shared_data, "--quiet")
+        assert code == 0, err
+    lines = {}
+    for method in ("anyloc", "hog"):
+        bundle = tmp_path / f"{method}.tar.gz"
+        assert cli("results", "export", "--method", method, "--dataset", "corridor", "--to", bundle)[0] == 0
+        code, out, err = cli("results", "verify", bundle, "--data-dir", shared_data)
+        assert code == 0, err
+        [lines[method]] = out.splitlines()
+    assert lines["anyloc"].endswith("(random weights: a pipeline check, not a result; it fills no leaderboard cell)")
+    assert "pipeline check" not in lines["hog"] and ": ok, re-scored from its arrays: R@1 " in lines["hog"]
+
+
+def test_describe_says_descriptors_of_random_weights_are_a_pipeline_check(tiny_dinov3, cli, shared_data, tmp_path):
+    """Before: 'Wrote 2 descriptors of dimension 384 to out.npy', as for the released weights."""
+    code, _, err = describe(cli, shared_data, tmp_path, "--backbone", "dinov3_vits16", "--weights", "random", "--layer",
+                            "1", "--aggregation", "gem", "--resize", "32", "32")
+    assert code == 0, err
+    assert err.strip().endswith("out.npy (random weights: a pipeline check, not a result)"), err
 
 
 def test_a_missing_file_of_gated_weights_says_where_access_is_requested(cli, shared_data, tmp_path):

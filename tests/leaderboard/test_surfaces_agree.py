@@ -132,3 +132,25 @@ def test_the_downloads_give_an_intervals_ends_to_the_recalls_decimals(make_recor
     values = [entry[f"r{k}{end}"] for k in (1, 5) for end in ("", "_ci_low", "_ci_high")]
     assert all(isinstance(v, float) for v in values), values
     assert all(v == round(v, 6) for v in values), values
+
+
+def test_a_sweep_summary_puts_no_random_weights_number_in_its_recall_columns(make_record):
+    """Before: the sweep's (and reproduce's) summary showed R@1 20.7 and R@5 44.1 of a run on random
+    weights in the columns beside real runs' numbers, with only a note '[1]' saying it was a check."""
+    from types import SimpleNamespace
+
+    from rich.console import Console
+
+    from vprbench.sweep import Outcome, summary_table
+
+    hog, random = make_record("hog", seed=1), make_record("dense-vlad", weights={"source": "random"}, seed=2)
+    outcomes = [Outcome(SimpleNamespace(title=lambda m=m: f"{m} | corridor:vpr-bench"), "ran", "", r)
+                for m, r in (("hog", hog), ("dense-vlad", random))]
+    group = summary_table(outcomes)
+    table = group.renderables[0]
+    recall = {c.header: list(c._cells) for c in table.columns if c.header in ("R@1", "R@5")}
+    assert recall["R@1"] == [fmt(hog["recall"]["1"]), ""] and recall["R@5"] == [fmt(hog["recall"]["5"]), ""]
+    console = Console(width=300, record=True)
+    console.print(group)
+    shown = console.export_text()
+    assert f"random weights: a pipeline check, not a result (R@1 {fmt(random['recall']['1'])}, R@5 {fmt(random['recall']['5'])})" in shown

@@ -94,6 +94,8 @@ class Verdict:
     label: str = ""
     problems: list[str] = field(default_factory=list)
     recall: dict[str, float] = field(default_factory=dict)
+    #: a run on random weights: sound, but a pipeline check that fills no leaderboard cell
+    check: bool = False
 
     @property
     def ok(self) -> bool:
@@ -114,13 +116,16 @@ class BundleReport:
 
     def lines(self) -> list[str]:
         """One line per problem (naming the file and the record), or per record found sound."""
+        from ..leaderboard.shown import PIPELINE_CHECK
+
         out = list(self.problems)
         for verdict in self.verdicts:
             head = f"{self.path}: {verdict.member} (run {verdict.run_id}{', ' + verdict.label if verdict.label else ''})"
             if verdict.ok:
                 # rounded as the leaderboard shows it
                 shown = " ".join(f"R@{k} {recall_text(v)}" for k, v in verdict.recall.items())
-                out.append(f"{head}: ok, re-scored from its arrays: {shown}")
+                check = f" ({PIPELINE_CHECK}; it fills no leaderboard cell)" if verdict.check else ""
+                out.append(f"{head}: ok, re-scored from its arrays: {shown}{check}")
             out += [f"{head}: {problem}" for problem in verdict.problems]
         if not self.problems and not self.verdicts:
             out.append(f"{self.path}: it holds no records.")
@@ -162,6 +167,7 @@ def check_record(name: str, place: tuple, members: dict[str, bytes], cards: set,
         problems.append(str(error).removeprefix(f"{name} ").removeprefix(f"{name}: "))
         return verdict
     from ..leaderboard.cells import row_of
+    from ..leaderboard.shown import random_weights
 
     shapeless = malformed(record)  # the row's name and marks are read from these parts: none can be told
     if shapeless:
@@ -171,6 +177,7 @@ def check_record(name: str, place: tuple, members: dict[str, bytes], cards: set,
     # or fitted on the evaluated database does not read as an official one
     # cut: a method name or protocol id a stranger wrote can be megabytes, printed on each of the record's lines
     verdict.label = shortened(f"{row_of(record).name} on {record['protocol']['id']}", MAX_LABEL)
+    verdict.check = random_weights(record)
     found = (record["protocol"]["hash"], record["row_key"], record["run_id"])
     if found != place or record["spec"]["dataset"]["protocol_hash"] != protocol_hash:
         problems.append(f"its protocol hash, row key and run id {'/'.join(found)} are not its place in the bundle")

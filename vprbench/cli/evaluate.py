@@ -13,6 +13,7 @@ import sys
 from ..errors import DESCRIBED, VPRBenchError
 from ..text import plural, recall_text
 from .console import console as make_console
+from .console import say
 from .options import (add_location_options, add_method_options, add_run_options, add_spec_options, add_sweep_options,
                       explicit_run_options, method_options, output_file, path_argument, progress, refuse_unused,
                       resolve_locations, run_settings, spec_overrides)
@@ -92,6 +93,7 @@ def run_evaluate(args) -> int:
 def run_one(args, settings, options, overrides, ranks) -> int:
     from ..datasets import is_path, load_dataset
     from ..evaluation import evaluate, save_result
+    from ..leaderboard.shown import PIPELINE_CHECK, random_weights
     from ..methods.registry import method_entry
     from ..spec import resolve_spec, split_run_settings
 
@@ -110,6 +112,8 @@ def run_one(args, settings, options, overrides, ranks) -> int:
         return 0
     if not args.json:
         make_console().print(results_table(record))
+    elif random_weights(record):  # no table titles the record: stderr says it, stdout stays the record alone
+        say(PIPELINE_CHECK, stderr=True)
     try:
         stored = save_result(record, settings.cache_dir)
     except VPRBenchError:
@@ -138,12 +142,12 @@ def results_table(record: dict):
     from rich.table import Table
 
     from ..leaderboard.cells import own_detail, row_of
-    from ..leaderboard.shown import descriptor_bytes, random_weights
+    from ..leaderboard.shown import PIPELINE_CHECK, descriptor_bytes, random_weights
     from ..text import percent
 
     counts, timings = record["counts"], record["timings"]
     # the board keeps such a run out of every cell; its own table says so too
-    random = " (random weights: a pipeline check, not a result)" if random_weights(record) else ""
+    random = f" ({PIPELINE_CHECK})" if random_weights(record) else ""
     # a row of its own on the board (other weights, an approximate search, a float16 store, a part fitted on
     # the evaluated database): its table names it by the board's marks (random weights are said after the dataset)
     marks = [m for m in row_of(record).mark.split("; ") if m and m != "weights random"]
@@ -196,6 +200,7 @@ def run_describe(args) -> int:
     from ..evaluation.postprocess import check_database_size, fits_on_database, postprocessed
     from ..fsutil import atomic_write
     from ..images import refuse_dead_link
+    from ..leaderboard.shown import PIPELINE_CHECK, random_weights
     from ..loader import postprocess_datasets_of, use_dataset
     from ..paths import regular_file
     from ..row_sources import DEFAULT_MEMORY_BUDGET
@@ -285,7 +290,10 @@ def run_describe(args) -> int:
     buffer = io.BytesIO()
     np.save(buffer, descriptors)
     atomic_write(args.out, buffer.getvalue())
-    print(f"Wrote {plural(descriptors.shape[0], 'descriptor')} of dimension {descriptors.shape[1]} to {args.out}", file=sys.stderr)
+    # descriptors of random weights are a pipeline check too: said as evaluate's table says it
+    check = f" ({PIPELINE_CHECK})" if random_weights({"spec": {"options": method.options}}) else ""
+    print(f"Wrote {plural(descriptors.shape[0], 'descriptor')} of dimension {descriptors.shape[1]} to {args.out}{check}",
+          file=sys.stderr)
     return 0
 
 

@@ -102,6 +102,10 @@ RANDOM = ("random weights (a pipeline check, e.g. without access to gated weight
           "initialisation never fill a cell")
 
 
+#: what every terminal surface says of such a run beside (or instead of) its numbers
+PIPELINE_CHECK = "random weights: a pipeline check, not a result"
+
+
 def random_weights(record: dict) -> bool:
     """The method or any stage ran on random weights (as recorded, or as its options asked)."""
     weights = (record.get("provenance") or {}).get("weights") or {}

@@ -212,7 +212,7 @@ def _run_claimed(cell, claims, taken_over, settings, progress, plan) -> Outcome:
 
 def summary_table(outcomes: list[Outcome], title: str = "Sweep"):
     """One line per cell; long details (a missing dataset's instructions, an error) follow the table once."""
-    from ..leaderboard.shown import random_weights
+    from ..leaderboard.shown import PIPELINE_CHECK, random_weights
     from ..notes import Notes
 
     notes = Notes()
@@ -225,8 +225,10 @@ def summary_table(outcomes: list[Outcome], title: str = "Sweep"):
         recall = (o.record or {}).get("recall", {})
         computed = (o.record or {}).get("descriptors_computed") if o.status == RAN else None
         detail = o.detail
-        if o.record and random_weights(o.record):  # as the evaluation's own table: these numbers are no result
-            detail = "; ".join(filter(None, ["random weights: a pipeline check, not a result", detail]))
+        if o.record and random_weights(o.record):  # no result: its numbers fill no R@K column, the note keeps them
+            checked = ", ".join(f"R@{k} {recall_text(recall[k])}" for k in ("1", "5") if k in recall)
+            detail = "; ".join(filter(None, [f"{PIPELINE_CHECK}{f' ({checked})' if checked else ''}", detail]))
+            recall = {}
         table.add_row(o.cell.title(), Text(o.status, style=colour[o.status]),
                       recall_text(recall["1"]) if "1" in recall else "", recall_text(recall["5"]) if "5" in recall else "",
                       f"{computed['database'] + computed['queries']}" if computed else "", notes.short(detail))
