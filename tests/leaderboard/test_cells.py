@@ -184,3 +184,18 @@ def test_two_copies_with_as_many_runs_go_to_the_newest_copy(make_record):
     assert only_cell(board).record["run_id"] == newer["run_id"]
     reasons = {r["run_id"]: why for r, why in board.excluded}
     assert list(reasons) == [older["run_id"]] and "first-copy differs from the second-copy" in reasons[older["run_id"]]
+
+
+def test_the_python_leaderboard_shows_one_track_at_a_time(make_record):
+    """vprbench.leaderboard.leaderboard(records) put a re-ranked run in the single-image table, as the
+    command line never does (each track is a table of its own)."""
+    from vprbench.errors import VPRBenchError
+    from vprbench.leaderboard import leaderboard
+
+    plain, reranked = make_record(seed=1), make_record(stages=[{"name": "aqe", "k": 10}], seed=2)
+    single = leaderboard([plain, reranked], rescore=False)
+    assert list(single.index) == ["hog"]
+    again = leaderboard([plain, reranked], rescore=False, track="re-ranked")
+    assert len(again.index) == 1 and again.index[0] != "hog" and "aqe" in again.index[0]
+    with pytest.raises(VPRBenchError, match="track takes one of single-image, re-ranked, sequence; got 'reranked'"):
+        leaderboard([plain], rescore=False, track="reranked")
