@@ -1,6 +1,8 @@
 """The user's own data: folders + positions.csv (metres, lat/lon, frames) or UTM file names."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -130,6 +132,8 @@ def test_counts_and_radii_read_in_the_singular_and_plural(mydata, capsys, monkey
     assert "2 queries, 2 with a positive, 4 positive pairs (frames, radius 1 frame); 7 images decoded" in out, out
     assert main(["datasets", "info", str(mydata)]) == 0
     assert "within 1 frame " in capsys.readouterr().out
+    assert main(["datasets", "info", mydata.name, "--json"]) == 0  # was: the root as typed, 'mydata'
+    assert json.loads(capsys.readouterr().out)["root"] == str(mydata.resolve())
 
 
 def test_positions_either_side_of_a_utm_zone_boundary_share_one_plane():

@@ -168,7 +168,8 @@ class Dataset:
             "unit": self.ground_truth.unit,
             "radius": self.ground_truth.radius,
             "radius_unit": self.radius_unit or (self.ground_truth.unit if self.ground_truth.unit != "positives" else None),
-            "root": str(self.root) if self.root else None,
+            # the folder itself, as records and `datasets verify` name it (not the relative path typed)
+            "root": str(Path(self.root).resolve()) if self.root else None,
             "layout": self.layout,
         }
 
