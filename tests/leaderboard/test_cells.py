@@ -193,9 +193,10 @@ def test_the_python_leaderboard_shows_one_track_at_a_time(make_record):
     from vprbench.leaderboard import leaderboard
 
     plain, reranked = make_record(seed=1), make_record(stages=[{"name": "aqe", "k": 10}], seed=2)
-    single = leaderboard([plain, reranked], rescore=False)
+    with pytest.warns(UserWarning, match="NOT re-scored"):  # rescore=False: said, not silent
+        single = leaderboard([plain, reranked], rescore=False)
+        again = leaderboard([plain, reranked], rescore=False, track="re-ranked")
     assert list(single.index) == ["hog"]
-    again = leaderboard([plain, reranked], rescore=False, track="re-ranked")
     assert len(again.index) == 1 and again.index[0] != "hog" and "aqe" in again.index[0]
     with pytest.raises(VPRBenchError, match="track takes one of single-image, re-ranked, sequence; got 'reranked'"):
         leaderboard([plain], rescore=False, track="reranked")
