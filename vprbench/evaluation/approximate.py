@@ -10,13 +10,12 @@ from contextlib import contextmanager, nullcontext
 from typing import NamedTuple
 
 import numpy as np
-from threadpoolctl import ThreadpoolController, threadpool_limits
 
 from ..errors import VPRBenchError
 from ..row_sources import READ_BYTES, ArrayRows, RowSource, chunks, format_budget, format_bytes
 from .row_checks import check_finite, check_pair, zero_rows
-from .search import (ORDER_BYTES, SCORE_UNITS, TIE_ORDER, AllZero, SearchResult, exact_search, inner_products,
-                     least_budget, one_thread_each, order_results, read_cost, rounded_scores, top_heap)
+from .search import (ORDER_BYTES, SCORE_UNITS, TIE_ORDER, AllZero, SearchResult, blas_controller, exact_search,
+                     inner_products, least_budget, one_thread_each, order_results, read_cost, rounded_scores, top_heap)
 
 APPROXIMATE = ("ivf-pq", "hnsw")
 #: what an index's results depend on beyond its options, raised when the code changes them: a stored record
@@ -236,10 +235,10 @@ def approximate_search(database: RowSource, queries: RowSource, k: int, *, kind:
     short = []
     zero_queries = np.zeros(n_queries, dtype=bool)
     probes = _Probes(index) if kind == "ivf-pq" else None
-    blas = ThreadpoolController()  # its libraries found once: a limit is then cheap, one per group of queries
+    blas = blas_controller()  # found once: a limit is then cheap, one per chunk and group of queries
     for q0, block in chunks(queries, q_chunk):
         zero_queries[q0:q0 + len(block)] = zero_rows(block, "Query", q0)
-        found = _shortlists(index, probes, block, o["shortlist"])
+        found = _shortlists(index, probes, block, o["shortlist"], blas)
         for g0 in range(0, len(block), group):
             some = found[g0:g0 + group]
             rows_ids = np.unique(some[some >= 0])
@@ -284,11 +283,11 @@ def _query_chunks(free: int, tile: int, searched: int, rescored: int) -> tuple[i
     return tile, max(1, (free - tile * searched) // rescored)
 
 
-def _shortlists(index, probes, block: np.ndarray, shortlist: int) -> np.ndarray:
+def _shortlists(index, probes, block: np.ndarray, shortlist: int, blas) -> np.ndarray:
     """Each query's shortlist (-1 where the index found fewer), searched QUERY_TILE queries at a time; an IVF
     index's lists picked by `probes`, a tile at a time on a thread of its own."""
     found = np.empty((len(block), shortlist), dtype=np.int64)
-    with _one_thread() if probes is not None else nullcontext() as pool:
+    with _one_thread(blas) if probes is not None else nullcontext() as pool:
         for t0 in range(0, len(block), QUERY_TILE):
             tile = block[t0:t0 + QUERY_TILE]
             if probes is None:
@@ -300,12 +299,14 @@ def _shortlists(index, probes, block: np.ndarray, shortlist: int) -> np.ndarray:
 
 
 @contextmanager
-def _one_thread():
+def _one_thread(blas=None):
     """A thread that computes alone (one OpenMP thread for oneDNN, one BLAS thread: set as exact search sets
-    its own), so a product's rounding does not depend on how many threads this machine gives it."""
+    its own), so a product's rounding does not depend on how many threads this machine gives it; `blas` from
+    `blas_controller`."""
     from concurrent.futures import ThreadPoolExecutor
 
-    with ThreadPoolExecutor(1, "vprbench-probes", one_thread_each) as pool, threadpool_limits(1, user_api="blas"):
+    with ThreadPoolExecutor(1, "vprbench-probes", one_thread_each) as pool, \
+            (blas or blas_controller()).limit(limits=1, user_api="blas"):
         yield pool
 
 

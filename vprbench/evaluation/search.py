@@ -214,12 +214,19 @@ def top_heap(distances: np.ndarray, ids: np.ndarray):
     return heap
 
 
-def search_threads() -> int:
-    """Threads a search computes on: as many as the BLAS would use (threadpoolctl sees its
-    setting, e.g. OMP_NUM_THREADS or threadpool_limits)."""
-    from threadpoolctl import threadpool_info
+def blas_controller():
+    """threadpoolctl's handle on the BLAS and OpenMP libraries this process loaded. Finding them reads the
+    process's libraries (milliseconds): a search finds them once, then reads and limits their threads
+    through it (found once per block of queries, they were most of a small-block search's time)."""
+    from threadpoolctl import ThreadpoolController
 
-    found = [int(lib["num_threads"]) for lib in threadpool_info() if lib.get("user_api") == "blas"]
+    return ThreadpoolController()
+
+
+def search_threads(libraries=None) -> int:
+    """Threads a search computes on: as many as the BLAS would use now (threadpoolctl sees its
+    setting, e.g. OMP_NUM_THREADS or threadpool_limits); `libraries` from `blas_controller`."""
+    found = [int(lib["num_threads"]) for lib in (libraries or blas_controller()).info() if lib.get("user_api") == "blas"]
     return max(1, min(found) if found else 1)
 
 
@@ -254,8 +261,6 @@ def _scan(database, queries, keep: int, plan: dict, on_grid: bool) -> tuple[np.n
     exactly, at the cost of one more pass over the scores); otherwise raw units are merged."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from threadpoolctl import threadpool_limits
-
     keep_freed_memory()  # every product's scores reuse the last one's memory
     tile, q_chunk = plan["tile_rows"], plan["query_chunk_rows"]
     n_queries = queries.row_count
@@ -267,11 +272,12 @@ def _scan(database, queries, keep: int, plan: dict, on_grid: bool) -> tuple[np.n
         readers.append(reader := ChunkReader(database, plan["chunk_rows"], d_tile, passes=-(-n_queries // q_chunk)))
         distances = np.empty((n_queries, keep), dtype=np.float32)
         indices = np.empty((n_queries, keep), dtype=np.int64)
-        threads = len(slices(q_tile, search_threads()))
+        libraries = blas_controller()
+        threads = len(slices(q_tile, search_threads(libraries)))
         scan = _Scan(top_heap(distances, indices), q_tile, d_tile, threads, on_grid)
         pool = ThreadPoolExecutor(threads, "vprbench-search", one_thread_each) if threads > 1 else None
         zero_queries, zero_database = np.zeros(n_queries, dtype=bool), 0
-        with threadpool_limits(1, user_api="blas") if pool else _nothing():
+        with libraries.limit(limits=1, user_api="blas") if pool else _nothing():
             for number, query_chunk in enumerate(query_reader):
                 zero_queries[checked(query_chunk, "Query")] = True
                 for chunk in reader:

@@ -14,7 +14,7 @@ import numpy as np
 
 from ...errors import VPRBenchError
 from ...evaluation.row_checks import check_finite
-from ...evaluation.search import one_thread_each, read_cost, rounded_scores, search_threads
+from ...evaluation.search import blas_controller, one_thread_each, read_cost, rounded_scores, search_threads
 from ...row_sources import DEFAULT_MEMORY_BUDGET, READ_BYTES, as_rows, chunks, format_budget, format_bytes, parse_memory
 from .matching import (SEQSLAM_DEFAULTS, enhance, query_offsets, second_best, top_k, trajectories,
                        trajectory_costs, velocities)
@@ -253,13 +253,12 @@ class _ProductThreads:
 
     def __init__(self, compare: str):
         self.pool = None
-        if compare == "cosine" and (threads := search_threads()) > 1:
+        libraries = blas_controller() if compare == "cosine" else None  # found once a search
+        if libraries is not None and (threads := search_threads(libraries)) > 1:
             from concurrent.futures import ThreadPoolExecutor
 
-            from threadpoolctl import ThreadpoolController
-
             self.pool = ThreadPoolExecutor(threads, "vprbench-sequence", one_thread_each)
-            self.blas = ThreadpoolController()  # its libraries found once: a limit is then cheap
+            self.blas = libraries
 
     def __enter__(self):
         return self
