@@ -105,9 +105,8 @@ def _stage_weights_claims(record: dict, spec: RunSpec, is_file_identity, weights
             continue
         sources = {weights_provenance(f)["source"] for f in files}
         cost = costs[at] if at < len(costs) and isinstance(costs[at], dict) else {}
-        provenance = cost.get("provenance") if isinstance(cost.get("provenance"), dict) else {}
-        weights = provenance.get("weights") if isinstance(provenance.get("weights"), dict) else {}
-        stated = weights.get("source")
+        # its provenance and weights are tables or absent: `malformed` refused the record before any claim is read
+        stated = ((cost.get("provenance") or {}).get("weights") or {}).get("source")
         found.append((f"stage {stage.name} weights source", stated, "user" if "user" in sources else "official",
                       f"its weights file{'s' if len(files) > 1 else ''} {', '.join(f[:19] for f in files)}"))
     return found
