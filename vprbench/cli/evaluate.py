@@ -200,7 +200,7 @@ def run_describe(args) -> int:
     from ..evaluation.postprocess import check_database_size, fits_on_database, postprocessed
     from ..fsutil import atomic_write
     from ..images import refuse_dead_link
-    from ..leaderboard.shown import PIPELINE_CHECK, random_weights
+    from ..leaderboard.shown import PIPELINE_CHECK, asks_random
     from ..loader import postprocess_datasets_of, use_dataset
     from ..paths import regular_file
     from ..row_sources import DEFAULT_MEMORY_BUDGET
@@ -291,7 +291,7 @@ def run_describe(args) -> int:
     np.save(buffer, descriptors)
     atomic_write(args.out, buffer.getvalue())
     # descriptors of random weights are a pipeline check too: said as evaluate's table says it
-    check = f" ({PIPELINE_CHECK})" if random_weights({"spec": {"options": method.options}}) else ""
+    check = f" ({PIPELINE_CHECK})" if asks_random(method.options) else ""
     print(f"Wrote {plural(descriptors.shape[0], 'descriptor')} of dimension {descriptors.shape[1]} to {args.out}{check}",
           file=sys.stderr)
     return 0

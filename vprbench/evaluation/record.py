@@ -10,7 +10,6 @@ import io
 import re
 import uuid
 from datetime import datetime, timezone
-from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -305,7 +304,7 @@ def result_record(*, spec: RunSpec, method, fingerprint, dataset, dataset_key: s
         "dataset_kind": spec.dataset.kind,
         "dataset_fingerprint": dataset_key,
         "dataset_fingerprints": dataset_fingerprints(dataset, dataset_key, cache_dir),
-        "dataset_root": str(Path(dataset.root).resolve()) if dataset.root else None,
+        "dataset_root": summary["root"],  # the folder itself, resolved
         "protocol": protocol_of(dataset),
         "domain": dataset.domain,
         "counts": {

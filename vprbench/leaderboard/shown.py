@@ -2,6 +2,8 @@
 its label, its weights and the marks they earn, the licence of those weights, the machine."""
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 from .escape import public, text
 
 #: weights sources that make a row official: the authors' release, or nothing learnt at all
@@ -110,10 +112,15 @@ def random_weights(record: dict) -> bool:
     """The method or any stage ran on random weights (as recorded, or as its options asked)."""
     weights = (record.get("provenance") or {}).get("weights") or {}
     spec = record.get("spec") or {}
-    stage_options = [s.get("options") or {} for s in spec.get("stages") or [] if isinstance(s, dict)]
-    return (weights.get("source") == "random" or spec.get("options", {}).get("weights") == "random"
+    stage_options = [s.get("options") for s in spec.get("stages") or [] if isinstance(s, dict)]
+    return (weights.get("source") == "random" or asks_random(spec.get("options"))
             or any(w.get("source") == "random" for _, w in _stage_weights(record))
-            or any(options.get("weights") == "random" for options in stage_options))
+            or any(asks_random(options) for options in stage_options))
+
+
+def asks_random(options) -> bool:
+    """Whether a method's or a stage's options ask for random weights (`weights=random`)."""
+    return isinstance(options, Mapping) and options.get("weights") == "random"
 
 
 def _stage_weights(record: dict) -> list[tuple[str, dict]]:
