@@ -71,7 +71,10 @@ def _read_in_child(path: Path) -> dict:
     # -P: nothing imported from the working folder (a dataset folder's files are data, never code)
     command = [sys.executable, "-P", "-c", "import sys; from vprbench.datasets.layouts.oxford import _child; _child(sys.argv[1])",
                str(path)]
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}  # the same vprbench as this process
+    # the same vprbench as this process: the folder holding its package first (a checkout run in place, a
+    # worktree), then what the user's PYTHONPATH names
+    package_parent = str(Path(__file__).resolve().parents[3])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [package_parent, os.environ.get("PYTHONPATH")]))}
     try:
         done = subprocess.run(command, stdin=subprocess.DEVNULL, capture_output=True, text=True,
                               timeout=READ_TIMEOUT_S, env=env)
