@@ -12,7 +12,8 @@ from PIL import Image
 
 from vprbench.aggregation import pooling, vlad
 from vprbench.aggregation.pca import PCAWhitening
-from vprbench.aggregation.vocabulary import fit_vocabulary, kmeans_cosine
+from vprbench.aggregation.kmeans import kmeans_cosine
+from vprbench.aggregation.vocabulary import fit_vocabulary
 from vprbench.errors import VPRBenchError
 from vprbench.evaluation.metrics import correct_at, first_positive_rank, recall_at_k
 from vprbench.evaluation.search import search

@@ -199,7 +199,7 @@ def test_the_vocabulary_fit_defaults_help_gives_are_the_ones_the_code_and_anyloc
     # docs/anyloc.md: a sample of at most 250,000 features by default; initial centres drawn by RandomState(42)
     from pathlib import Path
 
-    from vprbench.aggregation.vocabulary import DEFAULT_BUDGET, KMEANS_SEED
+    from vprbench.aggregation.kmeans import DEFAULT_BUDGET, KMEANS_SEED
 
     code, out, _ = cli("vocabulary", "fit", "--help")
     out = " ".join(out.split())

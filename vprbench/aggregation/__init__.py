@@ -7,13 +7,8 @@ pooling (GAP/GMP/GeM), VLAD (hard, AnyLoc soft, textbook soft), the VLAD vocabul
 from .pca import PCAWhitening, pca_whiten
 from .pooling import gap, gem, gmp
 from .vlad import vlad_hard, vlad_soft, vlad_soft_official
-from .vocabulary import (
-    FeatureSampler,
-    Vocabulary,
-    fit_vocabulary,
-    kmeans_cosine,
-    load_vocabulary,
-)
+from .kmeans import FeatureSampler, kmeans_cosine
+from .vocabulary import Vocabulary, fit_vocabulary, load_vocabulary
 
 __all__ = [
     "FeatureSampler", "PCAWhitening", "Vocabulary", "fit_vocabulary", "gap", "gem", "gmp",

@@ -71,7 +71,7 @@ def add_parsers(commands) -> None:
 def run_fit(args) -> int:
     from ..methods.anyloc_fit import fit_domain_vocabulary, fit_map_vocabulary
     from ..methods.anyloc_vocabulary import domain_image_size, save_to_cache
-    from ..aggregation.vocabulary import DEFAULT_BUDGET
+    from ..aggregation.kmeans import DEFAULT_BUDGET
     from ..methods import create_method
     from ..loader import use_dataset
     from ..methods.anyloc import VLADS
@@ -145,7 +145,7 @@ def _patch_features(method, paths, resize):
 def check_fit_sizes(args, width: int | None) -> None:
     """--budget against this machine's memory and --exact, before any image is read (the
     sample is allocated at the first image; the seed is checked where the fit starts)."""
-    from ..aggregation.vocabulary import DEFAULT_BUDGET
+    from ..aggregation.kmeans import DEFAULT_BUDGET
     from ..evaluation.provenance import memory_bytes
     from ..row_sources import format_bytes
 

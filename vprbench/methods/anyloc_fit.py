@@ -12,7 +12,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Sequence
 
-from ..aggregation.vocabulary import DEFAULT_BUDGET, KMEANS_SEED, Vocabulary, fit_vocabulary
+from ..aggregation.kmeans import DEFAULT_BUDGET, KMEANS_SEED
+from ..aggregation.vocabulary import Vocabulary, fit_vocabulary
 from ..errors import ProblemList, VPRBenchError
 from ..text import one_line
 from .anyloc_vocabulary import (MAP_PREFIX, OWN_CONTENT_DIGITS, domain_datasets, domain_image_size, map_stride,
