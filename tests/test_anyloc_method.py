@@ -6,7 +6,8 @@ import torch
 from vprbench import VPRBenchError, available_methods, create_method
 from vprbench.features.backbones import backbone_spec, create_model
 from release_formats import official_state_dict
-from vprbench.methods.anyloc import AnyLoc, presets
+from vprbench.methods.anyloc import AnyLoc
+from vprbench.methods.builtin import anyloc_presets
 
 
 @pytest.fixture(scope="module")
@@ -25,7 +26,7 @@ def corridor(shared_data):
 
 
 def test_presets_are_the_papers():
-    p = presets()
+    p = anyloc_presets()
     assert set(p) >= {"anyloc-vlad-dinov2", "anyloc-vlad-dinov2-pca", "anyloc-gem-dinov2", "anyloc-vlad-dino",
                       "anyloc-vlad-dino-pca", "dinov2-cls", "dino-cls"}
     assert p["anyloc-vlad-dinov2"]["options"] == dict(backbone="dinov2_vitg14", layer_for="dinov2_vitg14:31", facet="value",

@@ -13,7 +13,7 @@ from vprbench.aggregation import Vocabulary
 from vprbench.cli.main import main
 from vprbench.features.catalogue import backbones
 from vprbench.methods import anyloc_vocabulary
-from vprbench.methods.anyloc import presets
+from vprbench.methods.builtin import anyloc_presets
 
 
 def cli(capsys, *args):
@@ -23,7 +23,7 @@ def cli(capsys, *args):
 
 
 def test_dinov3_presets_carry_the_papers_method_over_as_vprbenchs_choice():
-    found = presets()
+    found = anyloc_presets()
     for name, aggregation in (("anyloc-vlad-dinov3", "vlad"), ("anyloc-gem-dinov3", "gem")):
         options = found[name]["options"]
         assert "vprbench's choice" in found[name]["description"]

@@ -323,9 +323,9 @@ def test_search_is_cosine_and_recall_counts_queries_without_positives():
 
 # ---------------------------------------------------------------- presets, policies, plans
 def test_presets_are_the_paper_settings():
-    from vprbench.methods.anyloc import presets
+    from vprbench.methods.builtin import anyloc_presets
 
-    p = {name: preset["options"] for name, preset in presets().items()}
+    p = {name: preset["options"] for name, preset in anyloc_presets().items()}
     vlad_v2 = dict(backbone="dinov2_vitg14", layer_for="dinov2_vitg14:31", facet="value", aggregation="vlad",
                    clusters=32, vocabulary="domain")
     assert p["anyloc-vlad-dinov2"] == vlad_v2 and p["anyloc-vlad-dinov2-pca"] == {**vlad_v2, "pca_dim": 512}

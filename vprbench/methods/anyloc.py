@@ -7,9 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import warnings
-import tomllib
 from collections.abc import Sequence
-from importlib.resources import files
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +33,6 @@ from ..loader import loaded
 from .base import Method, fitted_centres, l2_normalise
 from .checks import choice, number, text, whole
 from .checks import device as check_device
-from .registry import register_method
 
 #: bump when a change in this code changes descriptors (part of the fingerprint)
 DESCRIPTOR_VERSION = 1
@@ -389,15 +386,3 @@ class AnyLoc(Method):
         joint = pca_datasets(self.pca_on, self.dataset) if self.pca_dim else None
         return joint and joint[1]
 
-
-# ---------------------------------------------------------------- presets
-def presets() -> dict[str, dict]:
-    """Preset name -> {"description": ..., "options": {...}} from manifests/methods/anyloc.toml."""
-    text = (files("vprbench.manifests") / "methods" / "anyloc.toml").read_text()
-    return tomllib.loads(text)["presets"]
-
-
-def register() -> None:
-    for name, preset in presets().items():
-        register_method(name, AnyLoc, defaults=preset.get("options", {}), description=preset.get("description", ""))
-    register_method("anyloc", AnyLoc, description="AnyLoc composition; every option settable (see docs/anyloc.md)")
