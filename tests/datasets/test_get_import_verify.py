@@ -336,7 +336,7 @@ def test_hints_name_the_data_root_the_user_gave(tmp_path, gardens, make_images, 
     folder being imported's) as --data-dir, or no --data-dir at all: followed, they ran on another root."""
     import shutil
 
-    from vprbench.datasets import layouts
+    from vprbench.datasets.layouts.base import EXPECTS
 
     data = tmp_path / "data"
     assert run("datasets", "import", "gardens-point", str(gardens), "--data-dir", str(data)) == 0
@@ -352,7 +352,7 @@ def test_hints_name_the_data_root_the_user_gave(tmp_path, gardens, make_images, 
     # a part missing that only the reader looks for: the check it suggests is of this data root's copy
     shutil.move(moved, gardens)
     (gardens / "gardens_gt.npy").unlink()
-    monkeypatch.setitem(layouts.EXPECTS, "folders", lambda options: [])
+    monkeypatch.setitem(EXPECTS, "folders", lambda options: [])
     said = f"expected file 'gardens_gt.npy' under {gardens.resolve()} (layout 'folders') but it is missing."
     with pytest.raises(VPRBenchError) as error:
         load_dataset("gardens-point", data)

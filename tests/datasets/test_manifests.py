@@ -6,7 +6,8 @@ from pathlib import Path
 import pytest
 
 from vprbench.datasets import dataset_manifests, how_to_get
-from vprbench.datasets.layouts import EXPECTS, LAYOUTS, candidates
+from vprbench.datasets.layouts import candidates
+from vprbench.datasets.layouts.base import EXPECTS, LAYOUTS
 
 ANYLOC = {
     # name: (directory, domain, database, queries, radius, radius unit)

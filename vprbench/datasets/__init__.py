@@ -6,13 +6,15 @@ from pathlib import Path
 
 from ..errors import VPRBenchError, require
 from ..paths import folder_path, resolved
-from .download import download, how_to_get
+from .download import download
 from .layouts import read_layout
 from .layouts.own_data import own_manifest
-from .manifest import DatasetManifest, data_root, dataset_manifest, dataset_manifests, is_default_data_root
+from .locations import dataset_location, how_to_get, read_registry
+from .manifest import (DatasetManifest, data_root, dataset_manifest, dataset_manifests, is_default_data_root,
+                       is_path)
 from .model import Dataset, GroundTruth
 from .protocol import apply_protocol, find_protocol, own_protocol, protocols
-from .storage import check_counts, dataset_location, import_dataset, missing_dataset_message, nearest_existing, read_registry
+from .storage import check_counts, import_dataset, missing_dataset_message, nearest_existing
 from .verify import VerifyReport, verify_dataset
 
 __all__ = [
@@ -20,15 +22,6 @@ __all__ = [
     "dataset_manifest", "dataset_manifests", "download_dataset", "import_dataset", "is_on_disk",
     "load_dataset", "protocols", "read_registry", "verify_dataset",
 ]
-
-
-def is_path(name: str) -> bool:
-    """A folder of the user's own: a path-like name, or an existing folder that is no manifest's name."""
-    if not name.strip():
-        return False  # Path('') is the current folder; an empty name is an unknown dataset
-    if "/" in name or name.startswith((".", "~")):
-        return True
-    return name not in dataset_manifests() and Path(name).is_dir()
 
 
 def own_root(name: str) -> str | None:

@@ -2,40 +2,19 @@
 from __future__ import annotations
 
 import contextlib
-import shlex
 from importlib.resources import files
 from pathlib import Path
 
 from ..errors import VPRBenchError, network_reason, url_host
 from ..fsutil import lock, remove_stale
-from .manifest import DatasetManifest, data_root, default_data_root
+from .locations import data_root_flag, how_to_get
+from .manifest import DatasetManifest, data_root
 
 
 def read_registry(name: str) -> dict[str, str]:
     """A sha256 registry shipped beside the manifests: lines '<relative path> <sha256>'."""
     text = (files("vprbench.manifests") / "datasets" / name).read_text()
     return dict(line.split() for line in text.splitlines() if line.strip() and not line.startswith("#"))
-
-
-def data_root_flag(base: Path) -> str:
-    """The `--data-dir` a printed command needs to act on the data root `base` (none for the default
-    one): downloads and imports go to, and are looked up in, one data root."""
-    return "" if base == default_data_root() else f" --data-dir {shlex.quote(str(base))}"
-
-
-def how_to_get(manifest: DatasetManifest, data_dir=None) -> str:
-    """What to do to have the dataset where the data root `data_dir` (None: the default) looks for it
-    (its folder there, or the place of the copy imported into it), the printed commands naming that
-    data root. Manifests' instructions say how to get the data, never where it goes: that is said
-    here, once."""
-    from .storage import dataset_location  # (storage reads the layouts, which give this hint)
-
-    root, named = dataset_location(manifest, data_dir), data_root_flag(data_root(data_dir))
-    if manifest.download:
-        return f"Run 'vprbench datasets download {manifest.name}{named}' to fetch it into {root}."
-    text = manifest.instructions.strip() or f"Get it from {manifest.source or 'its authors'}."
-    return (f"{text} Place it at {root}, or run 'vprbench datasets import {manifest.name} PATH{named}' on a copy "
-            "elsewhere.")
 
 
 def download(manifest: DatasetManifest, root: Path, progress: bool = True, data_dir=None) -> Path:

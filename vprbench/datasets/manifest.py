@@ -11,6 +11,9 @@ from pathlib import Path
 from ..errors import VPRBenchError, closest_names
 from ..paths import folder_path
 
+#: the values of `sequence_order`: how a traverse's capture order is known (see datasets/traverse.py)
+ORDERS = ("", "listing", "file-name-frame")
+
 
 @dataclass(frozen=True)
 class DatasetManifest:
@@ -49,8 +52,6 @@ class DatasetManifest:
         unknown = set(data) - known
         if unknown:
             raise VPRBenchError(f"Manifest {origin}: unknown field(s) {sorted(unknown)}")
-        from .traverse import ORDERS
-
         if data.get("sequence_order", "") not in ORDERS:
             raise VPRBenchError(f"Manifest {origin}: sequence_order must be one of {ORDERS}, got {data['sequence_order']!r}")
         try:
@@ -81,8 +82,6 @@ def _parsed(text: str, origin: str) -> DatasetManifest:
 def dataset_manifest(name: str) -> DatasetManifest:
     manifests = dataset_manifests()
     if name not in manifests:
-        from . import is_path
-
         if is_path(name):  # else told to 'pass a folder path for your own data', the very thing given
             raise VPRBenchError(f"{name} is a folder of your own; here a benchmark's name is needed: run "
                                 "'vprbench datasets list' to see them.")
@@ -91,6 +90,15 @@ def dataset_manifest(name: str) -> DatasetManifest:
             "Run 'vprbench datasets list' to see all datasets, or pass a folder path for your own data."
         )
     return manifests[name]
+
+
+def is_path(name: str) -> bool:
+    """A folder of the user's own: a path-like name, or an existing folder that is no manifest's name."""
+    if not name.strip():
+        return False  # Path('') is the current folder; an empty name is an unknown dataset
+    if "/" in name or name.startswith((".", "~")):
+        return True
+    return name not in dataset_manifests() and Path(name).is_dir()
 
 
 def default_data_root() -> Path:

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import VPRBenchError, closest_names
-from .layouts import climbs_out
+from .layouts.base import climbs_out
 from .layouts.npy import read_npy
 from .model import Dataset, GroundTruth
 

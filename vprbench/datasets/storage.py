@@ -1,65 +1,23 @@
-"""Where each dataset lives: the data root's default folder, or a copy registered with `import`.
+"""A copy of a dataset: importing one, and checking one against its manifest (counts, images).
 
 `vprbench datasets import NAME PATH` records NAME -> PATH in `datasets.json` in the data
-root, after the copy at PATH has been read completely (layout, images, ground truth), so a
-failed import leaves nothing behind. The registry is read, changed and rewritten (atomically)
-under one lock, `datasets.json.lock` beside it, so imports running at once all stay recorded.
+root (see locations.py), after the copy at PATH has been read completely (layout, images, ground
+truth), so a failed import leaves nothing behind. The registry is read, changed and rewritten
+(atomically) under one lock, `datasets.json.lock` beside it, so imports running at once all stay
+recorded.
 """
 from __future__ import annotations
 
-import json
 import warnings
 from pathlib import Path
 
 from ..errors import VPRBenchError
-from ..fsutil import atomic_write, lock
+from ..fsutil import lock
 from ..paths import resolved
-from .download import data_root_flag, how_to_get
 from .layouts import candidates, detect_layout, missing_paths, read_layout
+from .locations import data_root_flag, how_to_get, read_registry, registry_path, verify_command, write_registry
 from .manifest import DatasetManifest, data_root, dataset_manifest, is_default_data_root
 from .model import Dataset
-
-REGISTRY = "datasets.json"
-
-
-def registry_path(data_dir=None) -> Path:
-    return data_root(data_dir) / REGISTRY
-
-
-def read_registry(data_dir=None) -> dict[str, str]:
-    path = registry_path(data_dir)
-    if not path.is_file():
-        return {}
-    try:
-        entries = json.loads(path.read_text())
-        if not isinstance(entries, dict):
-            raise ValueError("expected a JSON object of name -> path")
-        for name, where in entries.items():  # import writes absolute paths; anything else was not written by it
-            if not isinstance(where, str) or not Path(where).is_absolute():
-                raise ValueError(f"the entry {name!r} is {where!r}, not the absolute path of a folder")
-    except (OSError, ValueError, RecursionError) as error:
-        raise VPRBenchError(f"Cannot read the dataset registry {path}: {error}. Fix or delete it, then import again.") from None
-    return entries
-
-
-def write_registry(entries: dict[str, str], data_dir=None) -> Path:
-    """Write atomically, so a crash or a full disk never leaves half a registry."""
-    return atomic_write(registry_path(data_dir), json.dumps(dict(sorted(entries.items())), indent=2))
-
-
-def dataset_location(manifest: DatasetManifest, data_dir=None) -> Path:
-    """The imported copy if one is registered, else <data root>/<manifest directory>."""
-    registered = read_registry(data_dir).get(manifest.name)
-    return Path(registered) if registered else data_root(data_dir) / manifest.directory
-
-
-def verify_command(manifest: DatasetManifest, root: Path, data_dir=None) -> str | None:
-    """The command that checks the copy at `root`, naming the data root `data_dir` as the user did;
-    None when that data root looks for the dataset elsewhere (`root` is a folder being imported): its
-    command would check another copy."""
-    if Path(root) != dataset_location(manifest, data_dir):
-        return None
-    return f"vprbench datasets verify {manifest.name}{data_root_flag(data_root(data_dir))}"
 
 
 def nearest_existing(path: Path) -> str:

@@ -17,8 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import VPRBenchError
-
-ORDERS = ("", "listing", "file-name-frame")
+from .manifest import dataset_manifest
 
 
 def traverse_orders(dataset, stage: str = "Sequence matching") -> dict[str, np.ndarray]:
@@ -38,8 +37,6 @@ def traverse_orders(dataset, stage: str = "Sequence matching") -> dict[str, np.n
 
 def require_traverse_manifest(name: str, stage: str = "Sequence matching") -> None:
     """Refuse a benchmark that is no traverse from its manifest alone (before its data is read)."""
-    from .manifest import dataset_manifest
-
     if not dataset_manifest(name).sequence_order:
         raise VPRBenchError(_not_a_traverse(stage, name, ""))
 

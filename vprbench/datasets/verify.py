@@ -16,10 +16,12 @@ from ..errors import VPRBenchError
 from ..images import load_image
 from ..paths import resolved
 from ..text import one_line, plural, quantity
-from .download import how_to_get
-from .layouts import MissingPart, candidates, describe_layout, detect_layout, missing_paths, read_layout
-from .manifest import dataset_manifest
-from .storage import BY_POSITION, absent_or_empty, by_position, dataset_location
+from .layouts import candidates, describe_layout, detect_layout, missing_paths, read_layout
+from .layouts.base import MissingPart
+from .layouts.own_data import own_manifest
+from .locations import dataset_location, how_to_get
+from .manifest import dataset_manifest, is_path
+from .storage import BY_POSITION, absent_or_empty, by_position
 
 
 @dataclass
@@ -65,11 +67,7 @@ def verify_dataset(name: str, data_dir=None, strict: bool = False, sample: int |
     """`name` is a dataset name, or a folder of the user's own data (a path)."""
     if sample is not None and sample < 0:
         raise VPRBenchError(f"--sample must be 0 or more images per split, got {sample}")
-    from . import is_path  # the rule every command reads a name by
-
-    if is_path(name):
-        from .layouts.own_data import own_manifest
-
+    if is_path(name):  # the rule every command reads a name by
         root = resolved(name, "The folder to verify")  # shown as the folder it is, not as typed
         if not root.is_dir():
             problem = f"{root} is a file, not a folder" if root.exists() else f"folder {root} does not exist"

@@ -155,8 +155,8 @@ def missing_for(cell: Cell, row_weights, data_dir=None, cache_dir=None, given: d
     """Everything the cell lacks on this machine, none when it can run (`given`: as vocabulary_for;
     `memory_budget`: the run's)."""
     from ..datasets import dataset_location, dataset_manifest
-    from ..datasets.download import how_to_get
     from ..datasets.layouts import detect_layout
+    from ..datasets.locations import how_to_get
     from .reproduce import pca_stack
 
     needs = []

@@ -28,7 +28,7 @@ from ...paths import regular_file
 from ...text import CONTROL, toml_data
 from ..manifest import DatasetManifest
 from ..model import GroundTruth
-from . import climbs_out, from_manifest, layout, require
+from .base import climbs_out, from_manifest, layout, require
 
 DEFAULT_RADIUS_M = 25.0
 #: the largest |coordinate| accepted: beyond it no real position lies, and distances overflow

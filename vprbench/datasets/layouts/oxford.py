@@ -24,7 +24,7 @@ import numpy as np
 from ...errors import VPRBenchError
 from ..manifest import DatasetManifest
 from ..model import GroundTruth
-from . import from_manifest, inside, layout, require
+from .base import from_manifest, inside, layout, require
 
 #: seconds the MATLAB reader may take (the release's file reads in about a second)
 READ_TIMEOUT_S = 300

@@ -17,13 +17,12 @@ from ...errors import VPRBenchError
 from ..manifest import DatasetManifest
 from ..model import GroundTruth
 from ...images import list_images
-from . import from_manifest, layout, require
+from .base import from_manifest, layout, require
+from .own_data import utm_from_name
 
 
 def utm_positions(paths: list[Path], root: Path) -> np.ndarray:
     """(N, 2) easting/northing from the file names, naming the first file that has none."""
-    from .own_data import utm_from_name
-
     if not paths:
         return np.zeros((0, 2))
     try:

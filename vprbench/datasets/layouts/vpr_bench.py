@@ -14,7 +14,7 @@ from ...errors import VPRBenchError
 from ..manifest import DatasetManifest
 from ..model import GroundTruth
 from ...images import list_images
-from . import from_manifest, layout, require
+from .base import from_manifest, layout, require
 from .npy import as_indices, read_npy
 
 ROWS = ("rows [query_index, [positive reference indices]] of integers; the file is damaged "
