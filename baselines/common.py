@@ -19,9 +19,9 @@ from vprbench.images import load_image
 from vprbench.loader import loaded
 from vprbench.methods import l2_normalise
 from vprbench.features.resize import parse_size as as_resize  # noqa: F401  (the one resize parser)
+from vprbench.weight_source import WeightSource  # noqa: F401  (baselines import it from here)
 from vprbench.weights import (  # noqa: F401  (baselines import these from here)
     ResolvedWeights,
-    WeightSource,
     file_sha256,
     read_weights_file,
     resolve_weights,

@@ -25,7 +25,8 @@ from vprbench import VPRBenchError
 from vprbench.images import DECODE_BUDGET_PIXELS
 from vprbench.stages import Candidates, RerankOptions, Stage, StageContext
 from vprbench.stages.geometric import C_INT_MAX
-from vprbench.weights import WeightSource, file_sha256, weights_identity, weights_provenance
+from vprbench.weight_source import WeightSource
+from vprbench.weights import file_sha256, weights_identity, weights_provenance
 
 NAME = "superpoint-lightglue"
 RANDOM = "random"

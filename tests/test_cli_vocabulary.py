@@ -9,7 +9,7 @@ import torch
 from own_folders import corridor_folder
 from vprbench import Method
 from vprbench.aggregation import Vocabulary
-from vprbench.methods.anyloc_vocabulary import resolve_vocabulary
+from vprbench.methods.anyloc_lookup import resolve_vocabulary
 from vprbench.cli import vocabulary as cli
 from vprbench.errors import VPRBenchError
 

@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from vprbench import VPRBenchError, create_method
-from vprbench.methods.anyloc_vocabulary import fetch_released, paper_choice, release, released_path, released_sources
+from vprbench.methods.anyloc_lookup import paper_choice
+from vprbench.methods.anyloc_vocabulary import fetch_released, release, released_path, released_sources
 from vprbench.cli.main import main
 from vprbench.weights import file_sha256
 

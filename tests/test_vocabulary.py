@@ -5,7 +5,8 @@ import torch.nn.functional as F
 
 from vprbench.aggregation import FeatureSampler, Vocabulary, fit_vocabulary, kmeans_cosine, load_vocabulary, vlad_hard
 from vprbench.methods.anyloc_fit import fit_domain_vocabulary
-from vprbench.methods.anyloc_vocabulary import domain_datasets, paper_vocabulary, resolve_vocabulary, save_to_cache
+from vprbench.methods.anyloc_lookup import resolve_vocabulary
+from vprbench.methods.anyloc_vocabulary import domain_datasets, paper_vocabulary, save_to_cache
 from vprbench.errors import VPRBenchError
 
 RELEASED = "vocabularies/anyloc-dinov2_vitg14-l31-value-c32"

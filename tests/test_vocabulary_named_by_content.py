@@ -11,7 +11,8 @@ from vprbench.aggregation import Vocabulary
 from vprbench.aggregation.vocabulary import vocabulary_dir
 from vprbench.cli import vocabulary as cli
 from vprbench.errors import VPRBenchError
-from vprbench.methods.anyloc_vocabulary import paper_choice, resolve_vocabulary, save_to_cache
+from vprbench.methods.anyloc_lookup import paper_choice, resolve_vocabulary
+from vprbench.methods.anyloc_vocabulary import save_to_cache
 
 RELEASED = "vocabularies/anyloc-dinov2_vitg14-l31-value-c32"
 AUTHORS = ("dinov2_vitg14", 31, "value")

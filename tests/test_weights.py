@@ -33,7 +33,8 @@ def test_numpy_scores_beside_weights_load_and_hash_is_stable(tmp_path):
 # ---------------------------------------------------------------- the one resolver
 from pathlib import Path  # noqa: E402
 
-from vprbench.weights import WeightSource, resolve_weights, weights_identity, weights_provenance  # noqa: E402
+from vprbench.weight_source import WeightSource  # noqa: E402
+from vprbench.weights import resolve_weights, weights_identity, weights_provenance  # noqa: E402
 
 
 def _refuse_network(monkeypatch):
@@ -211,7 +212,8 @@ def test_a_folder_of_release_files_may_hold_one_under_the_authors_script_name(tm
 @pytest.mark.parametrize("given", ["", "  "])
 def test_weights_that_name_no_file_are_refused_not_read_from_the_working_folder(tmp_path, monkeypatch, given):
     """--weights '' (an unset shell variable) was Path(''), the working folder: its copy of the release was loaded."""
-    from vprbench.weights import WeightSource, local_weights, resolve_weights
+    from vprbench.weight_source import WeightSource
+    from vprbench.weights import local_weights, resolve_weights
 
     source = WeightSource("w.pth", url="https://example.org/w.pth")
     (tmp_path / "w.pth").write_bytes(b"x")

@@ -5,7 +5,10 @@ import errno as codes
 import io
 import os
 import re
+import tomllib
 from contextlib import contextmanager
+
+from .text import shortened
 
 
 class VPRBenchError(Exception):
@@ -65,8 +68,6 @@ def network_reason(error: BaseException) -> str:
         pending += [current.__cause__, current.__context__, _attribute(current, "reason"), *current.args]
     text = _text(error).strip()
     found = found or (text.splitlines()[0] if text else type(error).__name__)
-    from .text import shortened  # text imports this module
-
     return shortened(found, 160)
 
 
@@ -190,3 +191,15 @@ def os_error_message(error: OSError, path: str | os.PathLike | None = None, kept
     kept = kept or KEPT["what"]
     said = f" ({kept} are kept)" if kept else ""
     return f"Cannot use{where}: {reason}" + (f"; {advice.format(move=_move(path), kept=said)}." if advice else ".")
+
+
+# ---------------------------------------------------------------- TOML errors
+def toml_data(text: str, what: str) -> dict:
+    """A user's TOML text (a plan, a dataset.toml) parsed; invalid, or nested too deeply to parse,
+    it is a VPRBenchError naming `what` (e.g. "Plan p.toml"), never a traceback."""
+    try:  # a byte order mark (Windows editors write one) is no TOML: tomllib calls it an invalid statement
+        return tomllib.loads(text.removeprefix("\ufeff"))
+    except tomllib.TOMLDecodeError as error:
+        raise VPRBenchError(f"{what} is not valid TOML: {error}") from None
+    except RecursionError:  # tomllib parses nested arrays and tables recursively
+        raise VPRBenchError(f"{what} nests arrays or tables too deeply to be read; check its brackets.") from None

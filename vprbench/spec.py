@@ -21,7 +21,6 @@ the results folder of a run: results/<protocol hash>/<row key>/<run id>.json.
 """
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Iterable, Mapping
@@ -33,8 +32,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from .errors import VPRBenchError, closest_names, require
 from .content_identity import option_identities
-from .hashing import canonical_hash, canonical_json
+from .hashing import canonical_hash
+from .methods.objects import created_as
 from .paths import folder_path
+from .spec_options import given_options, plain, spec_options
 from .text import shortened
 from .run_settings import RUN_SETTINGS, RunSettings, split_run_settings  # noqa: F401 (how a run goes, beside what it is)
 
@@ -43,11 +44,6 @@ SPEC_VERSION = 1
 INDEXES = ("exact", "ivf-pq", "hnsw")
 STORE_DTYPES = ("float32", "float16")
 DEFAULT_KS = (1, 5, 10, 20)
-
-
-def plain(value: Any) -> Any:
-    """`value` as plain data: tuples become lists (so a spec read back equals the one written)."""
-    return json.loads(canonical_json(value))
 
 
 # ---------------------------------------------------------------- the specification
@@ -285,37 +281,9 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
                    dataset=data, stages=stages, ks=ks, store_dtype=_choice("--store-dtype", store_dtype, STORE_DTYPES))
 
 
-def given_options(options, method: str | None = None, dataset: str | None = None) -> dict:
-    """The options given that are part of a spec, each in its one form (methods/checks.py
-    `canonical`): None (unset), run settings and (with the method's name) those set to the
-    value they have anyway left out (an option naming the `dataset` evaluated among them)."""
-    require(options or {}, dict, "options takes a dict of option name -> value, e.g. {'resize': [64, 64]}")
-    names = [k for k in options or {} if not isinstance(k, str)]
-    if names:
-        raise VPRBenchError(f"Option names are text, e.g. {{'resize': [64, 64]}}; got {names[0]!r}.")
-    from .methods.checks import canonical
-
-    given = {k: canonical(k, v) for k, v in (options or {}).items() if v is not None and k not in RUN_SETTINGS}
-    if method is not None:
-        from .methods.registry import method_entry
-
-        given = method_entry(method).without_defaults(given, dataset)
-    return given
-
-
-def spec_options(method: str, given: dict) -> dict:
-    """A spec's options: `method`'s preset defaults (but run settings) under the options `given` (as
-    `given_options` leaves them), which its stores are keyed by."""
-    from .methods.registry import method_entry
-
-    return plain({**{k: v for k, v in method_entry(method).defaults.items() if k not in RUN_SETTINGS}, **given})
-
-
 def spec_for(method, dataset, **parts) -> RunSpec:
     """The spec of evaluating an already created method (its name and the options it was given)
     on `dataset` (a name, a folder or a `Dataset`): the Python API's way to `resolve_spec`."""
-    from .methods.objects import created_as
-
     name = created_as(method)  # first: it checks the attributes read here
     if parts.get("cache_dir") is None:  # what the spec finds by name (spec.found) is what the method itself resolves
         parts["cache_dir"] = getattr(method, "cache_dir", None)

@@ -1,12 +1,9 @@
 """Counts and quantities in words: '1 frame', '0 frames', '2 queries', '25 metres'; text from data
-made safe for a terminal; a user's TOML text read with a one-line error."""
+made safe for a terminal. It imports nothing of vprbench: errors' messages are written with it."""
 from __future__ import annotations
 
 import re
 import reprlib
-import tomllib
-
-from .errors import VPRBenchError
 
 #: plurals that are not the word + "s"
 IRREGULAR = {"query": "queries"}
@@ -88,14 +85,3 @@ def shortened(value, limit: int = 80) -> str:
     file's megabyte-long value, or a client's paragraph, stays one readable line."""
     shown = value if isinstance(value, str) else reprlib.repr(value)
     return shown if len(shown) <= limit else shown[:limit - 3] + "..."
-
-
-def toml_data(text: str, what: str) -> dict:
-    """A user's TOML text (a plan, a dataset.toml) parsed; invalid, or nested too deeply to parse,
-    it is a VPRBenchError naming `what` (e.g. "Plan p.toml"), never a traceback."""
-    try:  # a byte order mark (Windows editors write one) is no TOML: tomllib calls it an invalid statement
-        return tomllib.loads(text.removeprefix("\ufeff"))
-    except tomllib.TOMLDecodeError as error:
-        raise VPRBenchError(f"{what} is not valid TOML: {error}") from None
-    except RecursionError:  # tomllib parses nested arrays and tables recursively
-        raise VPRBenchError(f"{what} nests arrays or tables too deeply to be read; check its brackets.") from None

@@ -19,6 +19,7 @@ from pathlib import Path
 from . import fsutil
 from .errors import VPRBenchError, network_reason, require
 from .paths import cache_root, regular_file
+from .weight_source import WeightSource
 
 _SHA256: dict[tuple, str] = {}
 
@@ -106,42 +107,6 @@ def read_torch_file(path: str | Path, what: str = "checkpoint", *, mmap: bool = 
 
 
 # ---------------------------------------------------------------- the one resolver
-@dataclass(frozen=True)
-class WeightSource:
-    """Where the authors publish a checkpoint.
-
-    `url` is a direct download of the release; `hub` a Hugging Face hub repository holding
-    `file_name` (used when there is no `url`); `page` is where a person gets the file when
-    neither can be downloaded (Google Drive, a gated model); `sha256` only when the authors
-    publish one (a download that does not match it is refused). `gated`: access must be
-    requested first (under `licence`), so nothing is downloaded without being logged in.
-    """
-
-    file_name: str
-    url: str | None = None
-    hub: str | None = None
-    page: str | None = None
-    sha256: str | None = None
-    #: how a local copy is given, in messages (a stage takes it as an option)
-    pass_with: str = "--weights PATH"
-    gated: bool = False
-    licence: str | None = None
-    #: other names a folder of release files may hold it under (the authors' own download scripts'), and
-    #: other files of a hub repository holding it, tried in this order after `file_name` (timm's)
-    also_named: tuple[str, ...] = ()
-
-    @property
-    def where(self) -> str:
-        if self.url:
-            return self.url
-        if self.hub:
-            return f"https://huggingface.co/{self.hub}"
-        return self.page or "the authors' release page"
-
-    def how_to_get(self) -> str:
-        return f"download {self.file_name} from {self.where} and pass it with {self.pass_with}"
-
-
 @dataclass(frozen=True)
 class ResolvedWeights:
     """A weight file on disk and its identity for fingerprints: 'sha256:<hex>' of a local file or of a
@@ -356,7 +321,7 @@ def weights_provenance(identity: str | None) -> dict:
         return {"source": "official", "url": identity, "recognised_by": "download",
                 **({"release": release["name"]} if release else {})}
     digest = identity.removeprefix("sha256:")
-    from .features.catalogue import backbones  # imports this module: here, not at the top
+    from .features.catalogue import backbones  # pydantic: not loaded where only a file is hashed
 
     url = next((e.url for e in backbones().values() if e.url and e.sha256 and e.sha256.lower() == digest.lower()), None)
     if url is not None:  # a pinned release's bytes, downloaded or a local copy alike: its URL and sha256

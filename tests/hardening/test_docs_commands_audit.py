@@ -158,7 +158,7 @@ def test_every_test_the_docs_name_exists():
 def test_a_missing_named_vocabulary_suggests_the_released_file_only_where_it_is_taken(tmp_path, source, weights,
                                                                                       backbone, suggested):
     from vprbench import VPRBenchError
-    from vprbench.methods.anyloc_vocabulary import resolve_vocabulary
+    from vprbench.methods.anyloc_lookup import resolve_vocabulary
 
     name = "dinov2_vitg14@random" if weights == "random" else backbone
     layer = 31 if backbone == "dinov2_vitg14" else 9

@@ -76,7 +76,8 @@ def test_a_publish_removes_what_a_killed_publish_left(shared_data, tmp_path, cli
 #: downloads weights (a file:// release, no network needed) into the cache, killed before its '.partial' file is moved in
 KILLED_DOWNLOAD = """
 import os, shutil, signal, sys
-from vprbench.weights import WeightSource, resolve_weights
+from vprbench.weight_source import WeightSource
+from vprbench.weights import resolve_weights
 shutil.move = lambda *args: os.kill(os.getpid(), signal.SIGKILL)
 resolve_weights(WeightSource("w.pth", url=sys.argv[1]), None, "test", cache_dir=sys.argv[2])
 """
@@ -85,7 +86,8 @@ resolve_weights(WeightSource("w.pth", url=sys.argv[1]), None, "test", cache_dir=
 def test_a_download_removes_what_a_killed_download_left(tmp_path):
     """Was: torch's `w.pth.<hex>.partial` of a killed download stayed in the cache for good."""
     from vprbench.fsutil import file_sha256
-    from vprbench.weights import WeightSource, resolve_weights, weights_folder
+    from vprbench.weight_source import WeightSource
+    from vprbench.weights import resolve_weights, weights_folder
 
     release = tmp_path / "release.pth"
     torch.save({"w": torch.arange(1000.0)}, release)

@@ -235,7 +235,8 @@ def test_a_dataset_download_failure_is_one_short_line(cli, closed_port, tmp_path
 
 
 def test_a_weights_download_failure_says_why_in_a_few_words(closed_port, tmp_path):
-    from vprbench.weights import WeightSource, resolve_weights
+    from vprbench.weight_source import WeightSource
+    from vprbench.weights import resolve_weights
 
     url = f"http://127.0.0.1:{closed_port}/release/w.pth"
     with pytest.raises(VPRBenchError) as raised:

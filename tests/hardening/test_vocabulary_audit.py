@@ -16,7 +16,8 @@ import torch
 
 from vprbench.aggregation.vocabulary import Vocabulary, load_vocabulary
 from vprbench.errors import VPRBenchError
-from vprbench.methods.anyloc_vocabulary import resolve_vocabulary, save_to_cache
+from vprbench.methods.anyloc_lookup import resolve_vocabulary
+from vprbench.methods.anyloc_vocabulary import save_to_cache
 from vprbench.weights import file_sha256
 
 RELEASED = Path("vocabularies") / "anyloc-dinov2_vitg14-l31-value-c32"

@@ -7,7 +7,8 @@ import numpy as np
 
 from vprbench.datasets.model import Dataset, GroundTruth
 from vprbench.methods import Method
-from vprbench.spec import RUN_SETTINGS, DatasetSpec, RunSpec, SearchSpec, plain
+from vprbench.spec import RUN_SETTINGS, DatasetSpec, RunSpec, SearchSpec
+from vprbench.spec_options import plain
 
 
 class FakeMethod(Method):

@@ -248,7 +248,7 @@ def run_describe(args) -> int:
     splits["queries"] = [_absolute(p) if root else p for p in args.images]
     keyed = None  # the method's own settings
     if args.dataset is not None:  # before needs_fit is read: the dataset's vocabulary may be ready (AnyLoc's domain)
-        from ..spec import given_options, spec_options
+        from ..spec_options import given_options, spec_options
 
         use_dataset(method, args.dataset)
         # keyed as evaluate keys them (its spec's options): an option naming this dataset is as unset

@@ -16,7 +16,8 @@ import numpy as np
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from ..errors import VPRBenchError
-from ..spec import RUN_SETTINGS, RunSpec, plain
+from ..spec import RUN_SETTINGS, RunSpec
+from ..spec_options import plain
 from .identity import dataset_fingerprints, dataset_kind, fingerprint_of, protocol_of
 from .provenance import environment, method_provenance, origins
 

@@ -18,7 +18,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from ..errors import VPRBenchError, closest_names
-from ..weights import WeightSource
+from ..weight_source import WeightSource
 
 TIMM_PREFIX = "timm:"
 #: a timm model name: an architecture (letters, digits, '_'), then optionally '.' and a weights tag

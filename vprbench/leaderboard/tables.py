@@ -169,7 +169,8 @@ def paper_rows(table: str) -> pd.DataFrame:
     """The paper's table, each row's `method` the label of the run that reproduces it: the reproduction
     plan's method with the options it sets on top of the preset (Table II's AnyLoc-VLAD-DINO: the domain
     vocabularies, where the preset fits the map's), so no other setting of a method is set against it."""
-    from ..spec import RunSpec, given_options
+    from ..spec import RunSpec
+    from ..spec_options import given_options
     from ..sweep.reproduce import reproduce_tables
 
     frame = paper_results(table=table).copy()

@@ -20,7 +20,8 @@ from . import anyloc_options
 from .anyloc_options import AGGREGATIONS, PCA_ON, VLADS, pca_datasets, pca_provenance
 from .anyloc_fit import recorded_image_digests
 from .anyloc_provenance import check_released_setting, file_provenance
-from .anyloc_vocabulary import MAP_PREFIX, check_proven, names_file, paper_choice, resolve_vocabulary, vocabulary_images
+from .anyloc_lookup import check_proven, paper_choice, resolve_vocabulary
+from .anyloc_vocabulary import MAP_PREFIX, names_file, vocabulary_images
 from ..aggregation.vlad import vlad_hard
 from ..aggregation.vocabulary import fit_vocabulary
 from ..errors import VPRBenchError

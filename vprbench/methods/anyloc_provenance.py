@@ -7,8 +7,8 @@ from pathlib import Path
 from ..aggregation.vocabulary import Vocabulary
 from ..errors import VPRBenchError
 from ..text import shortened
-from .anyloc_vocabulary import (MAP_PREFIX, domain_names, release, released_name, released_sources, released_url,
-                                source_datasets, vocabulary_policies)
+from .anyloc_vocabulary import (MAP_PREFIX, domain_names, is_released_setting, release, released_name, released_sources,
+                                released_url, setting_words, source_datasets, vocabulary_policies)
 
 
 def _released_folder(path) -> tuple[str, str | None]:
@@ -50,7 +50,6 @@ def check_released_setting(vocabulary: Vocabulary, backbone: str, layer: int, fa
     A checkpoint file of one's own (BACKBONE@<hex>) may be the official one (DINOv2 publishes no sha256): taken on
     the user's word; random weights never are."""
     from ..features.backbones import RANDOM
-    from .anyloc_vocabulary import is_released_setting, setting_words
 
     folder = released_as(vocabulary)
     name, _, weights = backbone.partition("@")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import inspect
 
 from ..errors import VPRBenchError, require
+from ..spec_options import given_options, plain
 from .attributes import check_attributes
 from .base import Method
 from .registry import method_entry
@@ -36,8 +37,6 @@ def created_as(method) -> str:
 def check_method(method, spec) -> None:
     """A method given already built to `evaluate` must be the one `spec` names: its name and the
     options it was created with (else the record would label its results with the spec's)."""
-    from ..spec import given_options, plain
-
     name = created_as(method)
     try:
         given = plain(given_options(dict(getattr(method, "options", {}) or {}), name, spec.dataset.name))

@@ -12,7 +12,7 @@ Need = tuple[str, str]
 
 def row_source(row_weights: dict):
     """A plan row's `weights` (file + url, hub or page, as its authors publish it) as the resolver's source."""
-    from ..weights import WeightSource
+    from ..weight_source import WeightSource
 
     return WeightSource(row_weights["file"], url=row_weights.get("url"), hub=row_weights.get("hub"),
                         page=row_weights.get("page"))
@@ -79,8 +79,9 @@ def vocabulary_for(cell: Cell, cache_dir=None, given: dict | None = None) -> Nee
     import warnings
 
     from ..methods.anyloc import VLADS, AnyLoc
-    from ..methods.anyloc_vocabulary import (check_clusters, check_proven, domain_names, find_vocabulary,
-                                             is_released_setting, paper_vocabulary, released_path, setting_words)
+    from ..methods.anyloc_lookup import check_clusters, check_proven, find_vocabulary
+    from ..methods.anyloc_vocabulary import (domain_names, is_released_setting, paper_vocabulary, released_path,
+                                             setting_words)
     from ..methods.registry import method_entry
 
     entry = method_entry(cell.spec.method)

@@ -33,12 +33,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..errors import ProblemList, VPRBenchError, closest_names
+from ..errors import ProblemList, VPRBenchError, closest_names, toml_data
 from ..paths import regular_file
 from ..registration import looked_up
 from ..spec import (RUN_SETTINGS, STORE_DTYPES, RunSettings, RunSpec, _choice, check_ks, resolve_dataset, resolve_search,
                     resolve_spec, resolve_stage, split_run_settings)
-from ..text import one_line, toml_data
+from ..text import one_line
 
 PLAN_KEYS = {"name", "description", "k", "methods", "datasets", "search", "store_dtype", "stages"}
 METHOD_KEYS = {"name", "options", "label", "stages"}

@@ -22,10 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ...errors import VPRBenchError
+from ...errors import VPRBenchError, toml_data
 from ...images import IMAGE_SUFFIXES, list_images, nested_image_folders
 from ...paths import regular_file
-from ...text import CONTROL, toml_data
+from ...text import CONTROL
 from ..manifest import DatasetManifest
 from ..model import GroundTruth
 from .base import climbs_out, from_manifest, layout, require
