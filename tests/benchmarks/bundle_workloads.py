@@ -92,7 +92,7 @@ def make_inputs(folder: Path) -> None:
 
 def msls_truth():
     """The synthetic ground truth the MSLS-size run was scored on, as `verify_bundle`'s truth."""
-    from vprbench.bundles.verify import Truth
+    from vprbench.evaluation.rescore import Truth
     from vprbench.evaluation.blocks import for_dataset
 
     data = msls_data()

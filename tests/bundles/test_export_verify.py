@@ -13,7 +13,7 @@ from bundle_files import edit_arrays, edit_record, read_bundle, record_names, wr
 
 from vprbench.bundles import export_bundle, select_records, verify_bundle
 from vprbench.bundles.export import MANIFEST
-from vprbench.bundles.verify import DataGroundTruth
+from vprbench.evaluation.rescore import DataGroundTruth
 from vprbench.cli.main import main
 from vprbench.errors import VPRBenchError
 

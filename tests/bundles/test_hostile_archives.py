@@ -190,7 +190,7 @@ def test_a_contribution_note_written_by_hand_is_shown_cut_to_one_line(bundle, sh
     """A pull request can carry a note of its own beside a run. Before: its contributor was taken whole (a
     megabyte on every page naming the run) with its line breaks."""
     from vprbench.bundles import import_bundles, read_repository
-    from vprbench.bundles.verify import DataGroundTruth
+    from vprbench.evaluation.rescore import DataGroundTruth
 
     repo = tmp_path / "repo"
     assert all(r.ok for r in import_bundles([bundle], repo, DataGroundTruth(shared_data)))

@@ -11,7 +11,7 @@ import pytest
 from bundles.bundle_files import edit_record, read_bundle, record_names, respec, write_bundle
 
 from vprbench.bundles import export_bundle, import_bundles, verify_repository
-from vprbench.bundles.verify import DataGroundTruth
+from vprbench.evaluation.rescore import DataGroundTruth
 
 
 @pytest.fixture

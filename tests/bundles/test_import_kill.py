@@ -13,7 +13,7 @@ import time
 import pytest
 
 from vprbench.bundles import export_bundle, read_repository, verify_repository
-from vprbench.bundles.verify import DataGroundTruth
+from vprbench.evaluation.rescore import DataGroundTruth
 
 #: `vprbench ARGS...` that, just after step STEP of the commit, kills itself (die) or says so and
 #: waits to be killed from outside (pause)

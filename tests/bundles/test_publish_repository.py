@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from vprbench.bundles import export_bundle, import_bundles
-from vprbench.bundles.verify import DataGroundTruth
+from vprbench.evaluation.rescore import DataGroundTruth
 from vprbench.cli.main import main
 from vprbench.evaluation import save_result
 from vprbench.evaluation.record import PER_QUERY_FIELDS

@@ -10,7 +10,7 @@ import pytest
 from bundle_files import read_bundle, record_names, write_bundle
 
 from vprbench.bundles import export_bundle, import_bundles, read_repository
-from vprbench.bundles.verify import DataGroundTruth
+from vprbench.evaluation.rescore import DataGroundTruth
 from vprbench.cli.main import main
 from vprbench.errors import VPRBenchError
 

@@ -8,7 +8,7 @@ import pytest
 from bundle_files import edit_arrays, read_bundle, write_bundle
 
 from vprbench.bundles import export_bundle, verify_bundle
-from vprbench.bundles.verify import DataGroundTruth
+from vprbench.evaluation.rescore import DataGroundTruth
 from vprbench.evaluation import evaluate, read_results, save_result
 from vprbench.spec import RunSettings, resolve_spec
 

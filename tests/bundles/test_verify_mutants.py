@@ -10,7 +10,7 @@ import pytest
 from bundles.bundle_files import edit_arrays, edit_record, read_bundle, record_names, respec, write_bundle
 
 from vprbench.bundles import export_bundle, verify_bundle
-from vprbench.bundles.verify import DataGroundTruth
+from vprbench.evaluation.rescore import DataGroundTruth
 
 
 @pytest.fixture(scope="module")

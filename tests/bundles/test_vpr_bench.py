@@ -12,7 +12,7 @@ from hardening.hostile_files import Payload, npy_with_pickle
 from vpr_bench_files import FILE, precomputed, python2_npy, python2_pickle, thumbnail_similarity, write_method
 
 from vprbench.bundles import export_bundle, verify_bundle
-from vprbench.bundles.verify import DataGroundTruth
+from vprbench.evaluation.rescore import DataGroundTruth
 from vprbench.bundles.vpr_bench import import_vpr_bench, read_precomputed
 from vprbench.cli.main import main
 from vprbench.datasets import load_dataset

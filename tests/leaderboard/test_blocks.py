@@ -166,7 +166,7 @@ def test_compare_pairs_the_same_blocks_and_shows_per_query_beside(make_record, t
 def test_verify_refuses_units_that_are_not_the_protocols(make_record):
     from synthetic_runs import synthetic_ground_truth
 
-    from vprbench.bundles.verify import Truth, rescore
+    from vprbench.evaluation.rescore import Truth, rescore
 
     record = make_record("a", "st-lucia")
     gt = synthetic_ground_truth(1549, 1464, "metres", 25)  # the fixture's ground truth
@@ -188,7 +188,7 @@ def test_verify_refuses_a_current_record_without_the_unit_arrays_its_units_need(
     states its resampling but drops the places its units need would have its intervals drawn per query."""
     from synthetic_runs import synthetic_ground_truth
 
-    from vprbench.bundles.verify import Truth, rescore
+    from vprbench.evaluation.rescore import Truth, rescore
 
     record = make_record("a", "st-lucia")
     gt = synthetic_ground_truth(1549, 1464, "metres", 25)

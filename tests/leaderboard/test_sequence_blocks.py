@@ -85,7 +85,7 @@ def test_a_plain_runs_intervals_are_unchanged():
 def test_verify_derives_a_sequence_records_units_from_its_stages(make_record):
     from synthetic_runs import synthetic_ground_truth
 
-    from vprbench.bundles.verify import Truth, rescore
+    from vprbench.evaluation.rescore import Truth, rescore
     from vprbench.evaluation import per_query
 
     order = np.random.default_rng(0).permutation(111)  # a protocol whose queries are listed out of frame order

@@ -14,7 +14,7 @@ import pytest
 
 from runs import evaluate_method
 from vprbench import Method, register_method
-from vprbench.bundles.verify import Truth, rescore
+from vprbench.evaluation.rescore import Truth, rescore
 from vprbench.cli.evaluate import results_table
 from vprbench.datasets import load_dataset
 from vprbench.errors import VPRBenchError

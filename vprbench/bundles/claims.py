@@ -10,12 +10,9 @@ and a method card (methods/<row key>.json) that describes another method than it
 """
 from __future__ import annotations
 
-import json
-
-from ..evaluation.results import card_of
 from ..spec import RunSpec
 from ..text import shortened
-from .export import CARDS
+from .export import CARDS, card_disagreement
 
 
 def malformed(record: dict) -> list[str]:
@@ -127,16 +124,3 @@ def false_card(data: bytes, record: dict) -> list[str]:
     each field the record decides that the card has must be the record's."""
     why = card_disagreement(data, record)
     return [f"its method card {CARDS}/{record['row_key']}.json {why}"] if why else []
-
-
-def card_disagreement(data: bytes, record: dict) -> str | None:
-    """How the card `data` fails to describe `record` ("disagrees with the record on label, ..."), None when
-    it describes it."""
-    try:
-        card = json.loads(data)
-    except (ValueError, RecursionError):
-        card = None
-    if not isinstance(card, dict):
-        return "is not a JSON object"
-    wrong = [key for key, value in card_of(record).items() if key in card and card[key] != value]
-    return f"disagrees with the record on {', '.join(wrong)}" if wrong else None

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from .. import __version__
 from ..errors import VPRBenchError, os_error_message
-from ..evaluation.results import card_bytes
+from ..evaluation.results import card_bytes, card_of
 from ..fsutil import CacheError, atomic_write
 from ..paths import special_file
 from ..text import one_line, shortened
@@ -103,8 +103,6 @@ def _card(path: Path, record: dict) -> bytes:
     """The row's method card as the store has it. The card is what the record decides (verifiers check exactly
     that) and the method's description, so one missing (an older vprbench's store) is rebuilt, and so is one that
     does not describe the record (copied from another row, or edited), said in a warning: verifiers refuse it."""
-    from .claims import card_disagreement  # claims imports this module
-
     if not path.exists():
         return card_bytes(_stored(record))
     data = path.read_bytes()
@@ -115,6 +113,19 @@ def _card(path: Path, record: dict) -> bytes:
                   f"({why}: copied or edited); the bundle holds the card rebuilt from the record. "
                   "Delete that file: the next run of that row writes it again.", stacklevel=4)
     return card_bytes(_stored(record))
+
+
+def card_disagreement(data: bytes, record: dict) -> str | None:
+    """How the card `data` fails to describe `record` ("disagrees with the record on label, ..."), None when
+    it describes it."""
+    try:
+        card = json.loads(data)
+    except (ValueError, RecursionError):
+        card = None
+    if not isinstance(card, dict):
+        return "is not a JSON object"
+    wrong = [key for key, value in card_of(record).items() if key in card and card[key] != value]
+    return f"disagrees with the record on {', '.join(wrong)}" if wrong else None
 
 
 def _stored(record: dict) -> dict:

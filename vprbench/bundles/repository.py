@@ -169,7 +169,7 @@ def _same_result(folder: Path, record: dict) -> str | None:
 def verify_repository(root: Path, truth=None, *, max_bytes: int = MAX_BYTES) -> BundleReport:
     """Every run of the repository `root` checked and re-scored as `verify_bundle` does a bundle's;
     files are read one run at a time, each within `max_bytes`."""
-    from .verify import DataGroundTruth
+    from ..evaluation.rescore import DataGroundTruth
 
     root, truth = Path(root), truth or DataGroundTruth()
     report = BundleReport(root)

@@ -52,7 +52,7 @@ def _max_bytes(args) -> int:
 
 
 def _truth(args):
-    from ..bundles.verify import DataGroundTruth
+    from ..evaluation.rescore import DataGroundTruth
 
     return DataGroundTruth(args.data_dir, args.cache_dir)
 

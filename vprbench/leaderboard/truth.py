@@ -1,6 +1,6 @@
 """Cells proven by their content: before a benchmark run fills a cell, its top-K indices are
 re-scored against the ground truth of the dataset on this machine with the code `vprbench results
-verify` uses (bundles/verify.rescore, one function), so arrays rewritten consistently with their
+verify` uses (evaluation/rescore.rescore, one function), so arrays rewritten consistently with their
 sha256 and summary numbers cannot publish a score. A folder of one's own is re-read at the path its
 record gives. Where the ground truth is not here (no copy of the dataset, another copy's ground truth,
 an own folder moved or changed) the cell is shown but said not to be re-scored.
@@ -16,6 +16,7 @@ import json
 import warnings
 
 from ..errors import VPRBenchError
+from ..evaluation.rescore import DataGroundTruth, Truth, rescore
 from ..evaluation.results import per_query
 from ..text import first_clause
 
@@ -31,8 +32,6 @@ class LocalTruth:
     only (a benchmark's images may be absent; an own folder's are hashed once, as its protocol needs)."""
 
     def __init__(self, data_dir=None, cache_dir=None):
-        from ..bundles.verify import DataGroundTruth
-
         self.benchmark, self.cache_dir, self._own = DataGroundTruth(data_dir, cache_dir, images=False), cache_dir, {}
 
     def __call__(self, record: dict):
@@ -53,7 +52,6 @@ class LocalTruth:
         return found
 
     def _read_own(self, root: str, protocol_hash: str):
-        from ..bundles.verify import Truth
         from ..datasets import load_dataset
         from ..evaluation.blocks import for_dataset
 
@@ -70,8 +68,6 @@ class LocalTruth:
 def against_truth(record: dict, truth) -> tuple[str, str]:
     """(PROVEN, ""), (REFUSED, why) or (UNPROVEN, why) for a record `proven` kept (its arrays fit it);
     `truth(record)` gives its ground truth (LocalTruth)."""
-    from ..bundles.verify import rescore
-
     try:
         gt = truth(record)
     except (VPRBenchError, OSError, ValueError) as error:  # no copy here: said, not hidden

@@ -134,7 +134,6 @@ def memory_for(cell: Cell, memory_budget: int | None = None) -> Need | None:
     from ..methods.anyloc_options import probe
     from ..methods.registry import method_entry
     from ..row_sources import DEFAULT_MEMORY_BUDGET, format_budget, format_bytes
-    from .reproduce import pca_stack, stack_images
 
     entry, names = method_entry(cell.spec.method), pca_stack(cell)
     # the cell's features, nothing loaded (a default is not written in a spec); None: an option its run refuses
@@ -158,7 +157,6 @@ def missing_for(cell: Cell, row_weights, data_dir=None, cache_dir=None, given: d
     from ..datasets import dataset_location, dataset_manifest
     from ..datasets.layouts import detect_layout
     from ..datasets.locations import how_to_get
-    from .reproduce import pca_stack
 
     needs = []
     if cell.spec.dataset.kind == "benchmark":  # with the other databases its PCA is fitted on (pca_on = "domain")
@@ -174,6 +172,32 @@ def missing_for(cell: Cell, row_weights, data_dir=None, cache_dir=None, given: d
                 needs.append((f"dataset {name}", str(error)))
     return needs + [need for need in (weights_for(row_weights, cell, cache_dir), vocabulary_for(cell, cache_dir, given),
                                       memory_for(cell, memory_budget)) if need]
+
+
+def pca_stack(cell: Cell) -> list[str]:
+    """The benchmarks whose databases the cell's PCA-whitening is fitted on: the evaluated one, or with
+    pca_on = "domain" its domain's; none without PCA or on a dataset that is no benchmark."""
+    from ..methods.anyloc_options import pca_datasets
+
+    dataset = cell.spec.dataset
+    if not cell.spec.options.get("pca_dim") or dataset.kind != "benchmark":
+        return []
+    joint = pca_datasets(cell.spec.options.get("pca_on", "database"), dataset.name)
+    return joint[1] if joint else [dataset.name]
+
+
+def stack_images(cell: Cell, names: list[str]) -> int:
+    """The database images of `names` (the cell's dataset at its protocol, the others at their default)."""
+    dataset = cell.spec.dataset
+    return sum(_database_count(name, dataset.protocol if name == dataset.name else None) for name in names)
+
+
+def _database_count(name: str, protocol) -> int:
+    from ..datasets import dataset_manifest, find_protocol
+
+    manifest = dataset_manifest(name)
+    found = find_protocol(manifest, protocol)
+    return found.database_count or (manifest.query_count if found.swap else manifest.database_count) or 0
 
 
 def needs_text(needs: list[Need]) -> str:

@@ -11,8 +11,8 @@ from dataclasses import dataclass, field, replace
 from ..errors import ProblemList, VPRBenchError, closest_names
 from ..paths import shipped_file
 from ..reference import paper_results
-from .needs import (Need, how_to_fetch, memory_for, missing_for, needs_text, placed_weights,  # noqa: F401 - its API
-                    row_source, vocabulary_for, weights_for)
+from .needs import (Need, how_to_fetch, memory_for, missing_for, needs_text, pca_stack,  # noqa: F401 - its API
+                    placed_weights, row_source, stack_images, vocabulary_for, weights_for)
 from .plan import Cell, build_plan
 from .runner import StoredRecords
 
@@ -178,32 +178,6 @@ def cannot_run(cell: Cell) -> str:
     where = f"the databases of {', '.join(names)} hold" if len(names) > 1 else f"{names[0]} has"
     return (f"PCA to {dim} dimensions needs more than {dim} database images; {where} {count} (the authors' code fits "
             "this PCA jointly over its domain's datasets: pca_on = \"domain\")")
-
-
-def pca_stack(cell: Cell) -> list[str]:
-    """The benchmarks whose databases the cell's PCA-whitening is fitted on: the evaluated one, or with
-    pca_on = "domain" its domain's; none without PCA or on a dataset that is no benchmark."""
-    from ..methods.anyloc_options import pca_datasets
-
-    dataset = cell.spec.dataset
-    if not cell.spec.options.get("pca_dim") or dataset.kind != "benchmark":
-        return []
-    joint = pca_datasets(cell.spec.options.get("pca_on", "database"), dataset.name)
-    return joint[1] if joint else [dataset.name]
-
-
-def stack_images(cell: Cell, names: list[str]) -> int:
-    """The database images of `names` (the cell's dataset at its protocol, the others at their default)."""
-    dataset = cell.spec.dataset
-    return sum(_database_count(name, dataset.protocol if name == dataset.name else None) for name in names)
-
-
-def _database_count(name: str, protocol) -> int:
-    from ..datasets import dataset_manifest, find_protocol
-
-    manifest = dataset_manifest(name)
-    found = find_protocol(manifest, protocol)
-    return found.database_count or (manifest.query_count if found.swap else manifest.database_count) or 0
 
 
 class PaperRecords(StoredRecords):
