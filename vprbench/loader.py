@@ -24,6 +24,7 @@ import numpy as np
 
 from .errors import VPRBenchError
 from .images import reads_seen
+from .row_lengths import MAX_LENGTH, UNIT_TOLERANCE, ZERO_LENGTH
 
 
 def resolve_device(device: str | None) -> str:
@@ -88,16 +89,6 @@ def plugin_part(owner, part: str, who: str | None = None, attribute: bool = Fals
         if message is None:
             raise
         raise VPRBenchError(message) from error
-
-
-def use_dataset(method, name: str) -> None:
-    """`method.use_dataset(name)`, what a plugin's raises as its one line; the attributes it may set
-    (AnyLoc's needs_fit) checked again after it."""
-    from .methods.attributes import check_attributes
-
-    with plugin_part(method, "use_dataset"):
-        method.use_dataset(name)
-    check_attributes(method)
 
 
 def postprocessor_of(method):
@@ -187,14 +178,6 @@ def check_batch_size(method) -> int:
     if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 1:
         raise VPRBenchError(f"Method {method.name!r}: batch size must be a whole number >= 1, got {size!r}.")
     return int(size)
-
-
-#: how far from 1 the length of a row compared by cosine may be (float16/bfloat16 arithmetic rounds it)
-UNIT_TOLERANCE = 1e-2
-#: a row shorter than this is an all-zero row (an image with nothing to describe): it matches nothing
-ZERO_LENGTH = 1e-6
-#: the longest row whose inner products stay within float32's range (sqrt of its largest value)
-MAX_LENGTH = float(np.sqrt(np.finfo(np.float32).max))
 
 
 def _numbers(source: str, rows, n: int) -> np.ndarray:

@@ -277,7 +277,7 @@ def test_an_oracle_stage_reaches_its_ceiling_at_r1(monkeypatch, shared_data, tmp
 @pytest.fixture(scope="module")
 def exported_hog(shared_data, tmp_path_factory):
     from vprbench.spec import RunSettings, resolve_spec
-    from vprbench.stages.candidates import export_candidates
+    from vprbench.evaluation.pipeline import export_candidates
 
     cache = tmp_path_factory.mktemp("frozen-cache")
     path = cache / "hog.h5"

@@ -24,7 +24,7 @@ from vprbench.evaluation.proof import proven
 from vprbench.evaluation.search import exact_search
 from vprbench.methods import create_method, registry
 from vprbench.spec import RunSettings, resolve_spec
-from vprbench.stages.candidates import export_candidates
+from vprbench.evaluation.pipeline import export_candidates
 
 #: (folder, frame) of the Corridor images the oracle describes by nothing, as a blank or dark image
 BLANK = {("query", 0), ("query", 1), ("query", 2), ("ref", 1)}

@@ -11,7 +11,7 @@ import pytest
 from vprbench.errors import VPRBenchError
 from vprbench.evaluation import evaluate
 from vprbench.spec import RunSettings, resolve_spec
-from vprbench.stages.candidates import export_candidates
+from vprbench.evaluation.pipeline import export_candidates
 
 RERANK = [{"name": "aqe", "k": 20, "n": 2}]
 

@@ -201,7 +201,8 @@ def run_describe(args) -> int:
     from ..fsutil import atomic_write
     from ..images import refuse_dead_link
     from ..leaderboard.shown import PIPELINE_CHECK, asks_random
-    from ..loader import postprocess_datasets_of, use_dataset
+    from ..loader import postprocess_datasets_of
+    from ..methods.attributes import use_dataset
     from ..paths import regular_file
     from ..row_sources import DEFAULT_MEMORY_BUDGET
 

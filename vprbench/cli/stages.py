@@ -70,7 +70,7 @@ def run_export(args) -> int:
     import sys
 
     from ..spec import resolve_spec, split_run_settings
-    from ..stages.candidates import export_candidates
+    from ..evaluation.pipeline import export_candidates
     from .options import search_flags
 
     resolve_locations(args)

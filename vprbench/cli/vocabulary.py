@@ -73,7 +73,7 @@ def run_fit(args) -> int:
     from ..methods.anyloc_vocabulary import domain_image_size, save_to_cache
     from ..aggregation.kmeans import DEFAULT_BUDGET
     from ..methods import create_method
-    from ..loader import use_dataset
+    from ..methods.attributes import use_dataset
     from ..methods.anyloc import VLADS
     from ..methods.registry import method_entry
 

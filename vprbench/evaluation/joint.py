@@ -10,7 +10,8 @@ import hashlib
 import numpy as np
 
 from ..errors import VPRBenchError
-from ..loader import postprocess_datasets_of, postprocessor_of, use_dataset
+from ..loader import postprocess_datasets_of, postprocessor_of
+from ..methods.attributes import use_dataset
 from .extract import describe_splits
 from .identity import protocol_of
 from .postprocess import overrides_postprocess

@@ -15,11 +15,11 @@ from ..errors import VPRBenchError, require
 from ..progress import phase
 from ..registration import source_of
 from ..row_sources import DEFAULT_MEMORY_BUDGET
-from ..methods.attributes import set_attributes
+from ..methods.attributes import set_attributes, use_dataset
 from ..methods.objects import check_method
 from ..methods.registry import checked_run_options
 from ..spec import RunSettings, RunSpec
-from .approximate import sized_options
+from .approximate import searched_to, sized_options
 from .budget import check_run_budget, retrieval_need, stage_needs
 from .extract import describe_splits
 from .identity import protocol_of
@@ -29,7 +29,7 @@ from .postprocess import check_database_size, check_joint_budget
 from .record import result_record
 from .retrieve import check_compare, retrieve
 from ..stages.base import Candidates, StageContext
-from ..loader import use_dataset
+from ..stages.candidates import check_scores, images_identity, read_candidates, write_candidates
 from ..stages.run import check_compares, create_stages, in_stage, retrieval_depth, run_stages, track_of
 
 
@@ -189,8 +189,6 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
         sized_options(spec.search.index, len(dataset.database), depth, spec.search.options)
     frozen = None
     if settings.candidates is not None:  # checked before any descriptor is computed
-        from ..stages.candidates import images_identity, read_candidates
-
         frozen = read_candidates(settings.candidates, spec, len(dataset.queries), len(dataset.database), depth,
                                  images_identity(dataset, settings.cache_dir))
     use_dataset(method, dataset.name)
@@ -282,8 +280,6 @@ def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None
         context = stage_context(spec, settings, method, dataset, described, progress, run.fit_on, stages,
                                 candidates.k)
         if run.frozen is not None:  # a file's rows checked against the descriptors before a stage re-ranks them
-            from ..stages.candidates import check_scores
-
             check_scores(settings.candidates, found, context.database, context.queries, context.compare,
                          context.memory_budget)
         flags = None if found.all_zero is None else found.all_zero.failures(track_of(stages))
@@ -308,3 +304,29 @@ def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None
                               "workers": run.workers, "batch_size": method.batch_size},
         cache_dir=settings.cache_dir, track=track_of(stages), stages=stage_costs, all_zero=found.all_zero,
     )
+
+
+#: candidates per query `candidates export` writes unless given --k
+DEFAULT_K = 100
+
+
+def export_candidates(spec, settings, path, k: int = DEFAULT_K, progress=None) -> dict:
+    """Search with `spec`'s retriever (its stores described as evaluate would) and write the top `k`
+    per query to `path`. Returns what was written (path, queries, k)."""
+    if spec.stages:
+        raise VPRBenchError("candidates export writes a retriever's candidates: give the method without stages "
+                            "(no --rerank or --sequence).")
+    if settings.candidates is not None:
+        raise VPRBenchError("candidates export searches; it does not start from --candidates.")
+    # the search as deep as it runs; no Recall@K is computed: the default K (up to 20) was checked against the
+    # database and told to lower --k, which here is the depth (checked by `retrieved`, named as such)
+    spec = spec.model_copy(update={"search": searched_to(spec.search, _depth(k)), "ks": (1,)})
+    run = retrieved(spec, settings, [], progress=progress, depth=k)
+    write_candidates(path, spec, run.found, images_identity(run.dataset, settings.cache_dir))
+    return {"file": str(path), "queries": int(run.found.indices.shape[0]), "k": int(run.found.indices.shape[1])}
+
+
+def _depth(k) -> int:
+    if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+        raise VPRBenchError(f"--k takes a whole number >= 1 of candidates per query, got {k!r}.")
+    return k

@@ -15,6 +15,8 @@ from ..registration import source_of
 
 #: far above any real batch; the data loader crashes on one beyond sys.maxsize
 MAX_BATCH_SIZE = 2**31 - 1
+#: how two descriptors are compared: inner product of unit rows, or the mean absolute difference (sad)
+COMPARES = ("cosine", "mean-absolute-difference")
 #: read with a default (`getattr(method, "device", ...)`): a method need not have them
 OPTIONAL = ("device", "cache_dir")
 
@@ -30,8 +32,6 @@ def _is_batch_size(value) -> bool:
 
 def _rules() -> dict:
     """attribute -> (accepts(value), what it must be)."""
-    from ..stages.sequence.search import COMPARES
-
     return {
         "needs_fit": (lambda v: isinstance(v, (bool, np.bool_)), "True or False"),
         "compare": (lambda v: isinstance(v, str) and v in COMPARES, f"one of {', '.join(COMPARES)}"),
@@ -52,6 +52,14 @@ def check_attributes(method, name: str | None = None, source: str | None = None)
         if not accepts(value):
             hint = "fix the plugin, or pass --batch-size" if attribute == "batch_size" else "fix the plugin"
             raise VPRBenchError(f"Method {name!r} ({source}) has {attribute} {value!r}; it must be {what} ({hint}).")
+
+
+def use_dataset(method, name: str) -> None:
+    """`method.use_dataset(name)`, what a plugin's raises as its one line; the attributes it may set
+    (AnyLoc's needs_fit) checked again after it."""
+    with plugin_part(method, "use_dataset"):
+        method.use_dataset(name)
+    check_attributes(method)
 
 
 def set_attributes(method, name: str, source: str, /, **values) -> None:

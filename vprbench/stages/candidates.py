@@ -31,7 +31,6 @@ from .base import repeated_row, unordered_row
 
 FORMAT = "vprbench-candidates"
 VERSION = 1
-DEFAULT_K = 100
 #: the parts of a retriever's spec, beside its method and options, that change its candidates, as a message names them
 RETRIEVER_PARTS = {"search": "search", "store_dtype": "store", "files": "files", "found": "cached files",
                    "version": "spec version"}
@@ -228,32 +227,6 @@ def _json(text) -> dict:
     except (ValueError, RecursionError):
         return {}
     return found if isinstance(found, dict) else {}
-
-
-def export_candidates(spec, settings, path, k: int = DEFAULT_K, progress=None) -> dict:
-    """Search with `spec`'s retriever (its stores described as evaluate would) and write the top `k`
-    per query to `path`. Returns what was written (path, queries, k)."""
-    from ..evaluation.pipeline import retrieved
-
-    if spec.stages:
-        raise VPRBenchError("candidates export writes a retriever's candidates: give the method without stages "
-                            "(no --rerank or --sequence).")
-    if settings.candidates is not None:
-        raise VPRBenchError("candidates export searches; it does not start from --candidates.")
-    from ..evaluation.approximate import searched_to
-
-    # the search as deep as it runs; no Recall@K is computed: the default K (up to 20) was checked against the
-    # database and told to lower --k, which here is the depth (checked by `retrieved`, named as such)
-    spec = spec.model_copy(update={"search": searched_to(spec.search, _depth(k)), "ks": (1,)})
-    run = retrieved(spec, settings, [], progress=progress, depth=k)
-    write_candidates(path, spec, run.found, images_identity(run.dataset, settings.cache_dir))
-    return {"file": str(path), "queries": int(run.found.indices.shape[0]), "k": int(run.found.indices.shape[1])}
-
-
-def _depth(k) -> int:
-    if isinstance(k, bool) or not isinstance(k, int) or k < 1:
-        raise VPRBenchError(f"--k takes a whole number >= 1 of candidates per query, got {k!r}.")
-    return k
 
 
 #: how far a file's score may lie from the one computed again: the search's grid (2^-16) and float32 products

@@ -153,7 +153,8 @@ class StoredRecords:
 
         from ..evaluation.joint import stack_identity
         from ..evaluation.pipeline import create_run_method
-        from ..loader import postprocessor_of, use_dataset
+        from ..loader import postprocessor_of
+        from ..methods.attributes import use_dataset
         from ..store import method_fingerprint
 
         key = (spec.key, spec.dataset.name)

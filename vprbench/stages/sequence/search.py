@@ -15,6 +15,7 @@ import numpy as np
 from ...errors import VPRBenchError
 from ...evaluation.row_checks import check_finite
 from ...evaluation.search import blas_controller, one_thread_each, read_cost, rounded_scores, search_threads
+from ...methods.attributes import COMPARES
 from ...row_sources import DEFAULT_MEMORY_BUDGET, READ_BYTES, as_rows, chunks, format_budget, format_bytes, parse_memory
 from .matching import (SEQSLAM_DEFAULTS, enhance, query_offsets, second_best, top_k, trajectories,
                        trajectory_costs, velocities)
@@ -23,8 +24,6 @@ from .matching import (SEQSLAM_DEFAULTS, enhance, query_offsets, second_best, to
 TIE_ORDER = "cost rounded to 2^-16 ascending, then database index ascending"
 
 SCORES = ("seqslam", "diagonal")
-#: how two descriptors are compared: inner product of unit rows, or the mean absolute difference (sad)
-COMPARES = ("cosine", "mean-absolute-difference")
 #: bytes per database column held for each query row of a block: cost row, enhancement's float64
 #: temporaries, the trajectory sums, their mean and the best (measured peak about 60 N per row)
 BYTES_PER_CELL = 96

@@ -12,9 +12,10 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from ...errors import VPRBenchError
+from ...methods.attributes import COMPARES
 from ..base import Candidates, Stage, StageContext, StageOptions
 from .matching import SEQSLAM_DEFAULTS, query_offsets
-from .search import COMPARES, sequence_search
+from .search import sequence_search
 
 #: more trajectories than this would be a typo (v_step 0.0001), not a search
 MAX_VELOCITIES = 1000
