@@ -206,7 +206,7 @@ def test_inner_products_of_no_queries_write_nothing():
     """search.inner_products (the one place scores are computed) with an empty query slice."""
     import numpy as np
 
-    from vprbench.evaluation.search import inner_products
+    from vprbench.search.exact import inner_products
 
     out = np.empty((0, 5), dtype=np.float32)
     inner_products(np.zeros((0, 3), np.float32), np.ones((5, 3), np.float32), out, np.float32(2))

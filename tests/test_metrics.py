@@ -3,7 +3,7 @@ import pytest
 
 from vprbench.errors import VPRBenchError
 from vprbench.evaluation.metrics import check_ks, correct_at, first_positive_rank, recall_at_k, top1_precision_recall
-from vprbench.evaluation.search import SCORE_TOLERANCE, search
+from vprbench.search.exact import SCORE_TOLERANCE, search
 
 
 def test_search_ranks_by_inner_product():
@@ -84,7 +84,7 @@ def test_pr_thresholds_merge_best_matches_on_one_grid_point_not_all_within_one_s
     # "within 2^-16 of each other are one threshold", which the second pair contradicts
     from pathlib import Path
 
-    from vprbench.evaluation.search import rounded_scores
+    from vprbench.search.exact import rounded_scores
 
     g = SCORE_TOLERANCE
     correct = np.array([True, False, True])

@@ -254,7 +254,7 @@ def resolve_spec(method: str, dataset, *, options: dict | None = None, protocol:
         stages = [stages]
     require(stages or (), (list, tuple), "stages takes a list of stages, e.g. ['aqe'] or [{'name': 'sift-ransac', 'k': 100}]")
     ks, stages = check_ks(ks), tuple(resolve_stage(s) for s in stages or ())
-    from .evaluation.approximate import searched_to
+    from .search.approximate import searched_to
     from .stages.run import check_stage_chain
 
     check_stage_chain(stages, ks)
@@ -336,7 +336,7 @@ def resolve_search(search) -> SearchSpec:
         raise VPRBenchError(f"Exact search takes no index options; got {', '.join(sorted(options))}: drop them, or "
                             "choose an approximate index (--index ivf-pq or hnsw; in a plan, search.index).")
     if index != "exact":
-        from .evaluation.approximate import DEFAULTS, check_options
+        from .search.approximate import DEFAULTS, check_options
 
         check_options(index, options)
         # a fixed default written out is the same search (shortlist's default depends on the data: kept)

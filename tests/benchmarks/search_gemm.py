@@ -44,7 +44,7 @@ def make_store(path: Path, split: str, rows: int, dim: int, seed: int):
 def run(shape: str, folder: Path, rounds: int) -> dict:
     import threadpoolctl
 
-    from vprbench.evaluation.search import SCORE_TOLERANCE, exact_search
+    from vprbench.search.exact import SCORE_TOLERANCE, exact_search
     from vprbench.gemm import onednn_on, products
 
     n, q, dim = (int(x) for x in shape.split("x"))

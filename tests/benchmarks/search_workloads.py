@@ -79,7 +79,7 @@ def make_inputs(folder: Path) -> None:
 
 # ---------------------------------------------------------------- workloads
 def _exact_chunked(folder: Path):
-    from vprbench.evaluation.search import exact_search
+    from vprbench.search.exact import exact_search
 
     database, queries = H5Rows(folder / "database.h5"), H5Rows(folder / "queries.h5")
 

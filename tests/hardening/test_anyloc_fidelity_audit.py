@@ -16,7 +16,7 @@ from vprbench.aggregation.kmeans import kmeans_cosine
 from vprbench.aggregation.vocabulary import fit_vocabulary
 from vprbench.errors import VPRBenchError
 from vprbench.evaluation.metrics import correct_at, first_positive_rank, recall_at_k
-from vprbench.evaluation.search import search
+from vprbench.search.exact import search
 from vprbench.features.backbones import backbone_spec, create_model
 from vprbench.features.dense import DenseExtractor, interpolate_pos_embed
 from vprbench.features.preprocess import preprocess

@@ -13,7 +13,7 @@ import pytest
 from own_folders import corridor_folder
 
 from vprbench.errors import VPRBenchError
-from vprbench.evaluation.approximate import check_options
+from vprbench.search.approximate import check_options
 from vprbench.methods.checks import choice, whole
 from vprbench.spec import check_ks
 

@@ -48,7 +48,7 @@ def test_a_sweep_does_not_serve_an_approximate_search_made_by_another_version_of
     """ivf-pq's lists came to be picked by vprbench, not faiss (other lists where two centroids tie): its spec
     and options stayed the same, so a sweep kept serving records of the old code. The search's version is now
     in its record, and a record of another version is not served."""
-    from vprbench.evaluation import approximate
+    from vprbench.search import approximate
 
     plan, cache = tmp_path / "plan.toml", tmp_path / "cache"
     plan.write_text(PLAN)

@@ -1,7 +1,7 @@
 """Search tests run on one thread, some on tiles of 1,024 rows or with torch's thread count changed."""
 import pytest
 
-from vprbench.evaluation.search import tile_rows
+from vprbench.search.exact import tile_rows
 
 
 @pytest.fixture(autouse=True)
@@ -18,7 +18,7 @@ def one_thread():
 def tiles_of_1024(monkeypatch):
     """Tiles of 1,024 rows (at these small dimensions the grid has 4,096), so that a few
     thousand rows cross several tile and chunk borders."""
-    import vprbench.evaluation.search as search_module
+    import vprbench.search.exact as search_module
 
     assert tile_rows(8) == tile_rows(1024) == 4096 and tile_rows(35_721) == 1792 and tile_rows(49_152) == 1280
     monkeypatch.setattr(search_module, "tile_rows", lambda dim: 1024)

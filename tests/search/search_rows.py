@@ -3,7 +3,7 @@ import h5py
 import numpy as np
 
 from vprbench.errors import VPRBenchError
-from vprbench.evaluation.search import _plan
+from vprbench.search.exact import _plan
 from vprbench.row_sources import as_rows
 
 

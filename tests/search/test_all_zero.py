@@ -21,7 +21,7 @@ from vprbench.errors import VPRBenchError
 from vprbench.evaluation import evaluate, per_query, read_results, save_result
 from vprbench.evaluation.blocks import for_dataset
 from vprbench.evaluation.proof import proven
-from vprbench.evaluation.search import exact_search
+from vprbench.search.exact import exact_search
 from vprbench.methods import create_method, registry
 from vprbench.spec import RunSettings, resolve_spec
 from vprbench.evaluation.pipeline import export_candidates

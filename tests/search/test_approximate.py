@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from vprbench.errors import VPRBenchError
-from vprbench.evaluation.search import exact_search
+from vprbench.search.exact import exact_search
 from vprbench.evaluation.retrieve import retrieve
 from vprbench.row_sources import ArrayRows, parse_memory
 from search_rows import h5_rows
@@ -74,7 +74,7 @@ def test_approximate_options_unsuited_to_the_database_are_refused():
 
 def test_nprobe_beyond_the_lists_is_refused_not_lowered_in_silence():
     """Before: nprobe=64 on 32 lists ran as nprobe=32 under a spec naming 64 (a second name for one run)."""
-    from vprbench.evaluation.approximate import index_options
+    from vprbench.search.approximate import index_options
 
     assert index_options("ivf-pq", 20_000, 64, 5, {"nlist": 32})["nprobe"] == 32  # the default, within the lists
     assert index_options("ivf-pq", 20_000, 64, 5, {"nlist": 32, "nprobe": 8})["nprobe"] == 8
@@ -84,7 +84,7 @@ def test_nprobe_beyond_the_lists_is_refused_not_lowered_in_silence():
 
 def test_the_index_searches_with_the_nprobe_and_ef_search_it_records():
     """What a record says the index probed is what faiss was told: nprobe lists, efSearch candidates."""
-    from vprbench.evaluation.approximate import _build, index_options
+    from vprbench.search.approximate import _build, index_options
     from vprbench.row_sources import ArrayRows
 
     db = clustered(10_000, 16, 3)
@@ -99,7 +99,7 @@ def test_the_index_searches_with_the_nprobe_and_ef_search_it_records():
 def test_a_short_shortlist_is_searched_exactly_whatever_k_is(tmp_path, monkeypatch):
     """A query whose index answers fewer rows than the shortlist falls back to exact search at every K:
     `--k 1` and `--k 1 5` are one leaderboard row, so their top-1 must agree."""
-    import vprbench.evaluation.approximate as approximate
+    import vprbench.search.approximate as approximate
 
     db, q = clustered(4000, 16, 30), clustered(40, 16, 31)
     built = approximate._build
@@ -130,8 +130,8 @@ def test_an_approximate_search_at_a_tight_budget_holds_one_chunk_of_rows(kind):
     (ivf-pq on 100,000 x 256 at 25.8 MB: 34.7 MB of rows + the index)."""
     from traced import peak_of
 
-    from vprbench.evaluation.approximate import _index_bytes, add_rows, approximate_search, index_options
-    from vprbench.evaluation.search import ArrayRows
+    from vprbench.search.approximate import _index_bytes, add_rows, approximate_search, index_options
+    from vprbench.search.exact import ArrayRows
 
     n, q, d, k = 70000, 300, 64, 5
     db = clustered(n, d, 0)
@@ -160,8 +160,8 @@ def test_the_exact_searches_beside_the_answers_fit_the_budget_or_are_refused_bef
 
     from traced import peak_of
 
-    import vprbench.evaluation.approximate as approximate
-    from vprbench.evaluation.search import ArrayRows
+    import vprbench.search.approximate as approximate
+    from vprbench.search.exact import ArrayRows
 
     db, queries = ArrayRows(clustered(3000, 256, 0)), ArrayRows(clustered(300, 256, 1))
     search = functools.partial(approximate.approximate_search, db, queries, 5, kind="hnsw")
@@ -186,8 +186,8 @@ def test_an_hnsw_search_is_the_same_at_every_budget_it_runs_at():
     added a fixed number at a time, and the least budget named holds that many."""
     import re
 
-    from vprbench.evaluation.approximate import approximate_search
-    from vprbench.evaluation.search import ArrayRows
+    from vprbench.search.approximate import approximate_search
+    from vprbench.search.exact import ArrayRows
 
     db, queries = ArrayRows(clustered(20_000, 128, 5)), ArrayRows(clustered(300, 128, 6))
     options = {"hnsw_m": 4, "ef_construction": 8, "ef_search": 20, "shortlist": 20, "train_rows": 1000,
@@ -207,8 +207,8 @@ def ivf_pq_on_ties():
     which list a query probes is a tie, settled by the last bits of its products with them."""
     import faiss
 
-    from vprbench.evaluation.approximate import _build, approximate_search, index_options
-    from vprbench.evaluation.search import ArrayRows
+    from vprbench.search.approximate import _build, approximate_search, index_options
+    from vprbench.search.exact import ArrayRows
 
     rows = clustered(6000, 512, 7)
     db = ArrayRows(np.concatenate([rows, rows[::-1]]))  # every row twice: ties the order settles
@@ -257,8 +257,8 @@ def test_a_budget_too_small_for_a_tile_of_shortlists_reads_them_a_few_queries_at
     index still searches whole tiles, and the rows are read for a few of their queries at a time."""
     import re
 
-    from vprbench.evaluation.approximate import QUERY_TILE, approximate_search
-    from vprbench.evaluation.search import ArrayRows
+    from vprbench.search.approximate import QUERY_TILE, approximate_search
+    from vprbench.search.exact import ArrayRows
 
     db, queries = ArrayRows(clustered(3000, 64, 9)), ArrayRows(clustered(150, 64, 10))
     options = {"shortlist": 1000, "ef_search": 1000, "recall_queries": 5}
@@ -314,7 +314,7 @@ def test_a_shortlist_is_rescored_the_same_on_every_thread_count(monkeypatch):
     grid step where one lay on a boundary). Now they are computed on one BLAS thread, the rows read before."""
     from threadpoolctl import threadpool_limits
 
-    import vprbench.evaluation.approximate as approximate
+    import vprbench.search.approximate as approximate
 
     rng = np.random.default_rng(3)
     database = rng.standard_normal((600, 8192), dtype=np.float32)
@@ -342,7 +342,7 @@ def test_queries_searched_exactly_are_the_same_on_every_thread_count(monkeypatch
     than on one). A BLAS whose products' last bits follow its thread count is stood in for, so this shows on
     any CPU; those queries are now searched on one thread, as the shortlists are re-scored."""
 
-    import vprbench.evaluation.search as search_module
+    import vprbench.search.exact as search_module
 
     def by_threads(queries, rows, out, scale):  # other last bits on more threads, magnified to show on the grid
         np.multiply(queries @ rows.T, scale * np.float32(1 + (search_module.search_threads() - 1) * 2**-16), out=out)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from vprbench.errors import VPRBenchError
-from vprbench.evaluation.search import SCORE_TOLERANCE, ArrayRows, exact_search, search
+from vprbench.search.exact import SCORE_TOLERANCE, ArrayRows, exact_search, search
 from vprbench.row_sources import parse_memory
 from search_rows import budget_for, h5_rows, lattice, ranked, reference_topk, torch_products, unit
 
@@ -61,7 +61,7 @@ def test_a_short_last_tile_is_computed_at_its_own_rows_or_padded_to_256(monkeypa
     computed in vain: 20 % of the work at MSLS-val's shape): it is computed at its own rows,
     or at 256 rows (zero padding) when it has fewer. The same for rows lent where they are
     (float32 arrays) and rows read into buffers (float64 arrays), bit for bit."""
-    import vprbench.evaluation.search as search_module
+    import vprbench.search.exact as search_module
 
     shapes = []
     real = search_module.inner_products
@@ -89,7 +89,7 @@ def test_search_threads_compute_on_one_thread_each_and_leave_torch_as_it_was():
     import torch
     from threadpoolctl import threadpool_limits
 
-    import vprbench.evaluation.search as search_module
+    import vprbench.search.exact as search_module
 
     def counts():
         seen = []
@@ -111,7 +111,7 @@ def test_threads_take_slices_of_each_query_tile_and_change_nothing(monkeypatch, 
     rows): bitwise the same for every budget, and the same ranking as one thread."""
     from threadpoolctl import threadpool_limits
 
-    import vprbench.evaluation.search as search_module
+    import vprbench.search.exact as search_module
 
     db, q = unit(3 * 1024 + 300, 48, 5), unit(1024 + 300, 48, 6)
     db[1030:1040] = db[1029]  # ties across a tile's rows
@@ -171,7 +171,7 @@ def test_results_are_the_same_along_every_arithmetic_path(monkeypatch, torch_thr
     import torch
     from threadpoolctl import threadpool_limits
 
-    import vprbench.evaluation.search as search_module
+    import vprbench.search.exact as search_module
     import vprbench.gemm as gemm
 
     db, q = lattice(3000, 1024, 21, noise=5e-7), lattice(300, 1024, 22)
@@ -270,7 +270,7 @@ def test_the_candidates_ordered_and_ties_searched_again_stay_within_the_budget(t
     second search given the whole budget beside the first one's answers."""
     from traced import peak_of
 
-    from vprbench.evaluation.search import least_budget
+    from vprbench.search.exact import least_budget
 
     db, q = lattice(10_000, 32, 1), lattice(2_000, 32, 2)  # most queries tie at their 500th row
     whole = exact_search(db, q, 500, memory_budget=10**9)

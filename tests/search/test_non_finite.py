@@ -5,7 +5,7 @@ import pytest
 
 from vprbench.errors import VPRBenchError
 from vprbench.evaluation.retrieve import retrieve
-from vprbench.evaluation.search import exact_search
+from vprbench.search.exact import exact_search
 from search_rows import unit
 
 

@@ -8,7 +8,7 @@ import pytest
 from vprbench.aggregation import PCAWhitening
 from vprbench.errors import VPRBenchError
 from vprbench.evaluation.postprocess import TransformedRows, transform_rows
-from vprbench.evaluation.search import ArrayRows, exact_search
+from vprbench.search.exact import ArrayRows, exact_search
 from vprbench.evaluation.retrieve import retrieve
 from vprbench.methods import Method
 from search_rows import budget_for, h5_rows, unit
@@ -173,7 +173,7 @@ def test_two_processes_fitting_one_state_at_once(tmp_path):
 
     np.save(tmp_path / "db.npy", unit(5000, 32, 19))
     script = CENTRING + (
-        "import sys\nfrom vprbench.evaluation.search import ArrayRows\nfrom vprbench.evaluation.retrieve import retrieve\n"
+        "import sys\nfrom vprbench.search.exact import ArrayRows\nfrom vprbench.evaluation.retrieve import retrieve\n"
         f"db = ArrayRows(np.load({str(tmp_path / 'db.npy')!r}), folder={str(tmp_path)!r})\n"
         "np.save(sys.argv[1], retrieve(Centred(), db, db, 5).indices)\n")
     runs = [subprocess.Popen([sys.executable, "-c", script, str(tmp_path / f"out{i}.npy")]) for i in range(2)]
@@ -232,7 +232,7 @@ def test_transformed_rows_read_at_indices_within_their_read_cost():
     """Rows at indices are read and transformed a tile at a time, as read_cost budgets: all the source
     rows at once were an approximate index's whole training sample at the source's dimension."""
     from traced import peak_of
-    from vprbench.evaluation.search import read_cost
+    from vprbench.search.exact import read_cost
 
     db = unit(20000, 512, 0)
     rows = TransformedRows(ArrayRows(db), PCAWhitening(32).fit(db[:2000]))
@@ -251,7 +251,7 @@ def test_a_transform_holds_no_float64_copy_of_the_projection(monkeypatch):
 
     from vprbench.aggregation import pca as pca_module
     from vprbench.evaluation import postprocess
-    from vprbench.evaluation.search import read_cost
+    from vprbench.search.exact import read_cost
 
     db = unit(1000, 2048, 0)
     pca, at_once = PCAWhitening(256).fit(db), PCAWhitening(256)  # its float64 projection: 4 MB
@@ -277,7 +277,7 @@ def test_the_fitted_state_is_counted_once_in_the_search_budget():
     (the queries share it), so a search plans for it and a budget without room for it is refused
     (PCA's projection at AnyLoc's 49,152 -> 512: 100 MB, uncounted beside the search before)."""
     from vprbench.evaluation.postprocess import postprocessed
-    from vprbench.evaluation.search import _least
+    from vprbench.search.exact import _least
 
     db, q = spectrum(600, 2048, 3), spectrum(50, 2048, 4)
     database, queries, _ = postprocessed(Whitened(256), ArrayRows(db), ArrayRows(q), 10**9)

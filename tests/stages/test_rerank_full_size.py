@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from vprbench.datasets import load_dataset
-from vprbench.evaluation.search import SearchResult, exact_search
+from vprbench.search.exact import SearchResult, exact_search
 from vprbench.row_sources import ArrayRows
 from vprbench.spec import resolve_spec
 from vprbench.stages import Candidates, StageContext, create_stage

@@ -111,8 +111,8 @@ def test_a_float32_store_lends_its_rows_from_its_file(tmp_path):
 def test_search_on_lent_store_rows_equals_search_on_read_rows(tmp_path, monkeypatch):
     """The same products whether rows are lent (a float32 store) or read into buffers (the
     same values in float64): bit for bit, at one chunk and at several (tiles of 512 rows)."""
-    import vprbench.evaluation.search as search_module
-    from vprbench.evaluation.search import exact_search
+    import vprbench.search.exact as search_module
+    from vprbench.search.exact import exact_search
     from vprbench.row_sources import ArrayRows
 
     monkeypatch.setattr(search_module, "tile_rows", lambda dim: 512)

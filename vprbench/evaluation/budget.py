@@ -20,10 +20,10 @@ def retrieval_need(compare: str, database, queries, k: int, index: str = "exact"
 
         return sequence_need(database, queries, k, score="diagonal", length=1)
     if index == "exact":
-        from .search import search_need
+        from ..search.exact import search_need
 
         return search_need(database, queries, k)
-    from .approximate import approximate_need
+    from ..search.approximate import approximate_need
 
     return approximate_need(database, queries, k, index, options)
 

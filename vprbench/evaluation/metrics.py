@@ -1,4 +1,4 @@
-"""Scores of a retrieval: Recall@K and VPR-Bench's top-1 precision-recall (the search itself is in search.py)."""
+"""Scores of a retrieval: Recall@K and VPR-Bench's top-1 precision-recall (the search itself is in search/exact.py)."""
 from __future__ import annotations
 
 import numpy as np

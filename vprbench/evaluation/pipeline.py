@@ -18,8 +18,8 @@ from ..row_sources import DEFAULT_MEMORY_BUDGET
 from ..methods.attributes import set_attributes, use_dataset
 from ..methods.objects import check_method
 from ..methods.registry import checked_run_options
+from ..search.approximate import searched_to, sized_options
 from ..spec import RunSettings, RunSpec
-from .approximate import searched_to, sized_options
 from .budget import check_run_budget, retrieval_need, stage_needs
 from .extract import describe_splits
 from .identity import protocol_of

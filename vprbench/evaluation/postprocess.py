@@ -18,8 +18,8 @@ from ..fsutil import atomic_path, write_in_turn
 from ..hashing import exact_data
 from ..loader import checked, plugin_part, postprocessor_of
 from ..row_sources import ArrayRows, RowSource, read_bytes_per_row
+from ..search.row_checks import zero_rows
 from .budget import said_number
-from .row_checks import zero_rows
 
 #: a post-processor transforms tiles of at most this many input bytes (see transform_rows)
 TRANSFORM_BYTES = 128 * 2**20

@@ -1,15 +1,15 @@
-"""Retrieval: a method's stored descriptors post-processed (search.py) and searched, exactly
-(search.py) or with an approximate index (approximate.py): the top K per query."""
+"""Retrieval: a method's stored descriptors post-processed (postprocess.py) and searched, exactly
+(search/exact.py) or with an approximate index (search/approximate.py): the top K per query."""
 from __future__ import annotations
 
 import time
 
 from ..errors import VPRBenchError
 from ..row_sources import DEFAULT_MEMORY_BUDGET, as_rows, parse_memory
-from .approximate import approximate_search
+from ..search.approximate import approximate_search
+from ..search.exact import INDEXES, SearchResult, exact_search
+from ..search.row_checks import check_pair
 from .postprocess import postprocessed
-from .row_checks import check_pair
-from .search import INDEXES, SearchResult, exact_search
 
 
 def retrieve(method, database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_BUDGET, index: str = "exact",
@@ -19,7 +19,7 @@ def retrieve(method, database, queries, k: int, *, memory_budget=DEFAULT_MEMORY_
     databases, joint.py), or loaded from `state_folder` (default the folder of the rows it is
     fitted on), applied chunk by chunk, then searched with `index`
     ("exact", "ivf-pq" or "hnsw"; `index_options` tune the approximate ones, see
-    approximate.py). `method` None searches the rows as they are. The result's info is the
+    search/approximate.py). `method` None searches the rows as they are. The result's info is the
     result record's "search" section. `check(database, queries, parts=())`, if given, sees the rows
     as the search reads them before it starts (the run's budget plan, budget.py), and before a
     post-processor is fitted, when it says its output's shape, those rows by shape with the fit's

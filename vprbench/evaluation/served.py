@@ -84,8 +84,8 @@ def _same_search(record: dict, spec, stages: list | None) -> bool:
         return True
     if stages is None:  # a stage that cannot be made here: its depth is unknown
         return False
+    from ..search.approximate import VERSIONS, index_options
     from ..stages.run import retrieval_depth
-    from .approximate import VERSIONS, index_options
 
     found = record.get("search") or {}
     if found.get("version", 1) != VERSIONS[spec.search.index]:

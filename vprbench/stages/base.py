@@ -18,6 +18,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from ..errors import VPRBenchError
+from ..search.exact import order_results
 
 TRACKS = ("single-image", "re-ranked", "sequence")
 
@@ -268,8 +269,6 @@ def reordered(indices: np.ndarray, scores: np.ndarray, grid: float | None = None
     """Candidates sorted by score descending, ties by database index ascending (the search's tie
     rule). `grid`: scores rounded to multiples of it first, so a last-bit difference between CPUs
     cannot swap two candidates."""
-    from ..evaluation.search import order_results
-
     scores = np.asarray(scores, dtype=np.float64)
     if grid:
         scores = np.rint(scores / grid) * grid

@@ -27,6 +27,8 @@ from ..text import shortened
 from ..fsutil import atomic_path, file_sha256, remove_stale, temporaries_of
 from ..hashing import canonical_hash, canonical_json
 from ..paths import regular_file
+from ..search.exact import AllZero, SearchResult
+from ..search.row_checks import zero_rows
 from .base import repeated_row, unordered_row
 
 FORMAT = "vprbench-candidates"
@@ -73,8 +75,6 @@ def read_candidates(path, spec, queries: int, database: int, depth: int, images:
     """The file's candidates for `spec` ({"found": SearchResult, "file", "sha256", "k"}), after checking it
     is a candidates file of this protocol, these images (`images_identity`) and retriever, with every query and at
     least `depth` columns."""
-    from ..evaluation.search import SearchResult
-
     path = Path(path)
     regular_file(path, "Candidates file")  # a named pipe would hang the read
     if path.is_dir():  # the HDF5 library's message for a folder runs over several lines
@@ -179,8 +179,6 @@ def _numbers(f: h5py.File, name: str, path: Path, kinds: str, most: int) -> np.n
 
 def _all_zero(path: Path, flags, count, queries: int, database: int):
     """The file's all-zero rows (search.AllZero), None when it has none (an earlier vprbench's file)."""
-    from ..evaluation.search import AllZero
-
     if flags is None and count is None:
         return None
     if not isinstance(flags, np.ndarray) or flags.shape != (queries,) or flags.dtype.kind not in "biu" \
@@ -243,8 +241,6 @@ def check_scores(path, found, database, queries, compare: str, budget: int) -> N
     name was re-ranked and stored as this run's, its record served for it; the file cannot say so, the descriptors
     can. The count of all-zero database rows (a count in the record, no metric) is not read again: it takes a pass
     over the database."""
-    from ..evaluation.row_checks import zero_rows
-
     if compare not in ("cosine", "mean-absolute-difference"):  # a plugin's own distance: not known here
         return
     columns = [0, found.indices.shape[1] - 1]

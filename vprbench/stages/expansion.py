@@ -12,8 +12,8 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from ..errors import VPRBenchError
-from ..evaluation.search import SCORE_TOLERANCE, exact_search, least_budget, most_that_fit
 from ..row_sources import ArrayRows, format_budget, format_bytes, read_bytes_per_row
+from ..search.exact import SCORE_TOLERANCE, exact_search, least_budget, most_that_fit
 from .base import Candidates, RerankOptions, Stage, StageContext, progress_task, reordered
 
 

@@ -13,14 +13,14 @@ from functools import partial
 import numpy as np
 
 from ...errors import VPRBenchError
-from ...evaluation.row_checks import check_finite
-from ...evaluation.search import blas_controller, one_thread_each, read_cost, rounded_scores, search_threads
 from ...methods.attributes import COMPARES
 from ...row_sources import DEFAULT_MEMORY_BUDGET, READ_BYTES, as_rows, chunks, format_budget, format_bytes, parse_memory
+from ...search.exact import blas_controller, one_thread_each, read_cost, rounded_scores, search_threads
+from ...search.row_checks import check_finite
 from .matching import (SEQSLAM_DEFAULTS, enhance, query_offsets, second_best, top_k, trajectories,
                        trajectory_costs, velocities)
 
-#: how a sequence stage ranks (its costs on the exact search's grid, see evaluation/search.py)
+#: how a sequence stage ranks (its costs on the exact search's grid, see search/exact.py)
 TIE_ORDER = "cost rounded to 2^-16 ascending, then database index ascending"
 
 SCORES = ("seqslam", "diagonal")
@@ -245,7 +245,7 @@ def _tile_product(tiles, offset: int, count: int, block, start: int, step: int, 
 
 
 class _ProductThreads:
-    """Where a block's cosine products run: as exact search's (evaluation/search.py), each fixed-shape
+    """Where a block's cosine products run: as exact search's (search/exact.py), each fixed-shape
     product on one thread of its own, as many side by side as the BLAS has threads. A BLAS on several
     threads splits a product's sums by its thread count (1,000-dim rows: costs a grid step apart at 1
     and 2 threads). sad's distances (faiss, one row pair at a time) stay as they were."""
