@@ -24,7 +24,7 @@ import numpy as np
 
 from .errors import VPRBenchError
 from .images import reads_seen
-from .row_lengths import MAX_LENGTH, UNIT_TOLERANCE, ZERO_LENGTH
+from .row_sources import MAX_LENGTH, UNIT_TOLERANCE, ZERO_LENGTH
 
 
 def resolve_device(device: str | None) -> str:

@@ -26,6 +26,15 @@ DEFAULT_MEMORY_BUDGET = 1_000_000_000
 #: reads larger than this buy nothing (h5py and BLAS are at full speed well below it)
 READ_BYTES = 64 * 2**20
 
+# the lengths a descriptor row may have: what the loader checks a method's rows against, what search
+# takes for an all-zero row
+#: how far from 1 the length of a row compared by cosine may be (float16/bfloat16 arithmetic rounds it)
+UNIT_TOLERANCE = 1e-2
+#: a row shorter than this is an all-zero row (an image with nothing to describe): it matches nothing
+ZERO_LENGTH = 1e-6
+#: the longest row whose inner products stay within float32's range (sqrt of its largest value)
+MAX_LENGTH = float(np.sqrt(np.finfo(np.float32).max))
+
 _UNITS = {"": 1, "B": 1, "KB": 10**3, "MB": 10**6, "GB": 10**9, "TB": 10**12,
           "KIB": 2**10, "MIB": 2**20, "GIB": 2**30, "TIB": 2**40}
 

@@ -6,12 +6,11 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import VPRBenchError
-from ..row_lengths import ZERO_LENGTH
-from ..row_sources import RowSource
+from ..row_sources import ZERO_LENGTH, RowSource
 from .chunks import Chunk
 
 #: a row whose squared length is below this is all zero: an image with nothing described, which matches
-#: nothing (row_lengths.ZERO_LENGTH); its query counts as a failure at every K (AllZero)
+#: nothing (row_sources.ZERO_LENGTH); its query counts as a failure at every K (AllZero)
 ZERO_SQUARED = np.float32(ZERO_LENGTH) ** 2
 
 
