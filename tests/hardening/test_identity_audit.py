@@ -140,7 +140,7 @@ def test_a_file_a_plugin_preset_names_is_known_by_its_bytes(tmp_path, monkeypatc
 def test_reproduce_still_sees_the_vocabulary_a_default_aggregation_needs(tmp_path):
     """A default left out of the spec (aggregation = "vlad" written out) must still count as set."""
     from vprbench.sweep.plan import Cell
-    from vprbench.sweep.reproduce import vocabulary_for
+    from vprbench.sweep.needs import vocabulary_for
 
     options = {"backbone": "dino_vits8", "layer": 9, "facet": "key", "clusters": 128, "vocabulary": "aerial"}
     for given in (options, {**options, "aggregation": "vlad"}):

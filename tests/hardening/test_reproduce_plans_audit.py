@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 
 from vprbench.cli.main import main
-from vprbench.sweep.reproduce import reported_value, table_cells, vocabulary_for
+from vprbench.sweep.needs import vocabulary_for
+from vprbench.sweep.reproduce import reported_value, table_cells
 
 
 def _cells(table: str, row: str, cache_dir) -> dict:
@@ -317,7 +318,7 @@ def test_a_baseline_rows_weights_are_needed_where_the_run_reads_them(tmp_path):
     pass weights=PATH"; a file put there made the dry run say 'would run' and the run stop asking for
     --weights, which reproduce refuses. A CLIP file put loose under <cache>/huggingface counted as present
     though the run reads the hub's cache layout only."""
-    from vprbench.sweep.reproduce import missing_for
+    from vprbench.sweep.needs import missing_for
     from vprbench.weights import hub_folder, weights_folder
 
     def needs(row):
@@ -367,7 +368,7 @@ def test_the_pca_rows_fit_on_the_domains_databases_stacked_as_the_authors_did(tm
     # was: Gardens Point, 17 Places and Oxford not runnable (PCA to 512 on 200-406 images) and the other three
     # fitted on their own database, beside the paper's values from a PCA fitted on the domain's databases
     # stacked (scripts/joint_pca_project.py)
-    from vprbench.sweep.reproduce import missing_for
+    from vprbench.sweep.needs import missing_for
 
     for row in ("AnyLoc-VLAD-DINOv2-PCA", "AnyLoc-VLAD-DINO-PCA"):
         _, cells = _cells("2", row, tmp_path)

@@ -45,7 +45,8 @@ def run_reproduce(args) -> int:
     from ..errors import VPRBenchError
     from ..methods.registry import checked_run_options
     from ..sweep import run_cells, summary_table
-    from ..sweep.reproduce import missing_for, needs_text, table_cells
+    from ..sweep.needs import missing_for, needs_text
+    from ..sweep.reproduce import table_cells
     from ..sweep.runner import FAILED
     from .evaluate import explicit_run_options
 

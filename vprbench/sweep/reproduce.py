@@ -11,8 +11,7 @@ from dataclasses import dataclass, field, replace
 from ..errors import ProblemList, VPRBenchError, closest_names
 from ..paths import shipped_file
 from ..reference import paper_results
-from .needs import (Need, how_to_fetch, memory_for, missing_for, needs_text, pca_stack,  # noqa: F401 - its API
-                    placed_weights, row_source, stack_images, vocabulary_for, weights_for)
+from .needs import pca_stack, placed_weights, stack_images, vocabulary_for
 from .plan import Cell, build_plan
 from .runner import StoredRecords
 
