@@ -148,7 +148,7 @@ def test_many_records_each_cell_is_the_newest_complete_one(make_record, tmp_path
 def test_a_vocabulary_fitted_on_the_evaluated_database_is_marked_and_never_nothing_learnt(make_record):
     """dense-vlad with its vocabulary fitted on the database it is evaluated on (transductive) and
     with one fitted elsewhere: two rows, the first marked, neither labelled 'nothing learnt'."""
-    from vprbench.leaderboard.cells import weights_shown
+    from vprbench.leaderboard.shown import weights_shown
 
     own = make_record("dense-vlad", options={"vocabulary": "map"}, quality=0.9, seed=1)
     foreign = make_record("dense-vlad", options={"vocabulary": "tokyo-pair"}, quality=0.7, seed=2)

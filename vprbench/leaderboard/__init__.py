@@ -6,7 +6,8 @@
     figures.py  matplotlib figures written next to the pages
     site.py     `vprbench leaderboard publish`: the leaderboard section of the docs
 """
-from .cells import CELL_RULE, Board, Cell, build_board, method_label
+from .cells import CELL_RULE, Board, Cell, build_board
+from .shown import method_label
 from .site import publish
 from .tables import Shown, computed, grid, render
 from .truth import LocalTruth, truth_note  # with build_board, as docs/leaderboard-guide.md uses them

@@ -30,8 +30,7 @@ from ..evaluation.proof import proven
 from ..evaluation.results import per_query
 from .escape import public
 from .truth import judge
-from .shown import (OFFICIAL_WEIGHTS, RANDOM, TRANSDUCTIVE, hardware_of, licence_shown,  # noqa: F401
-                    method_label, random_weights, stage_marks, weights_of, weights_shown)
+from .shown import RANDOM, TRANSDUCTIVE, hardware_of, random_weights, stage_marks, weights_of
 
 #: the K a cell reports
 CELL_KS = (1, 5)

@@ -31,8 +31,8 @@ from .staging import alive, mark_read_at, newer_in_place, remove_stale_sections,
 from .domains import domain_datasets
 from .downloads import plain, record_download, summary
 from .escape import code, public, text, to_csv
-from .cells import CELL_RULE, Board, Cell, Column, build_board, hardware_of, licence_shown, weights_shown
-from .shown import descriptor_bytes, plugins_shown, row_name
+from .cells import CELL_RULE, Board, Cell, Column, build_board
+from .shown import descriptor_bytes, hardware_of, licence_shown, plugins_shown, row_name, weights_shown
 from .truth import LocalTruth, truth_note
 from .stats import check_k_and_seed
 from ..evaluation.blocks import RULE, for_record

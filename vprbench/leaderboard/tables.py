@@ -10,10 +10,9 @@ import pandas as pd
 from ..errors import VPRBenchError
 from ..reference import paper_results
 from ..text import CONTROL, literal, recall_text
-from .cells import (AGREES, CELL_KS, CONTRIBUTED, IMPORTED, STRUCTURED, UNSTRUCTURED, Board, Cell, Column, Row,  # noqa: F401
-                    licence_shown, weights_shown)
+from .cells import AGREES, CELL_KS, CONTRIBUTED, IMPORTED, STRUCTURED, UNSTRUCTURED, Board, Cell, Column, Row
 from .escape import code, public_data, text, to_csv
-from .shown import left_out
+from .shown import left_out, licence_shown, weights_shown
 from ..evaluation.blocks import for_record
 from ..evaluation.metrics import successes
 from .stats import bootstrap_ci
