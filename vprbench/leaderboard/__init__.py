@@ -6,11 +6,15 @@
     figures.py  matplotlib figures written next to the pages
     site.py     `vprbench leaderboard publish`: the leaderboard section of the docs
 """
+import warnings
+
+from ..errors import VPRBenchError
+from ..stages.base import TRACKS
 from .cells import CELL_RULE, Board, Cell, build_board
 from .shown import method_label
 from .site import publish
 from .tables import Shown, computed, grid, render
-from .truth import LocalTruth, truth_note  # with build_board, as docs/leaderboard-guide.md uses them
+from .truth import PROVEN, LocalTruth, truth_note  # with build_board, as docs/leaderboard-guide.md uses them
 
 
 def leaderboard(records: list[dict], data_dir=None, cache_dir=None, *, rescore: bool = True,
@@ -21,12 +25,6 @@ def leaderboard(records: list[dict], data_dir=None, cache_dir=None, *, rescore: 
     machine as the command line does (a benchmark's under `data_dir`, else the default data root;
     `rescore=False` skips it). The table's `attrs["truth_note"]` says which cells were not re-scored, and
     a warning says so too."""
-    import warnings
-
-    from ..errors import VPRBenchError
-    from ..stages.base import TRACKS
-    from .truth import PROVEN
-
     if track not in TRACKS:  # checked before any record is re-scored
         raise VPRBenchError(f"leaderboard's track takes one of {', '.join(TRACKS)}; got {track!r}.")
     board = build_board(records, LocalTruth(data_dir, cache_dir) if rescore else None).of_track(track)

@@ -9,9 +9,8 @@ import numpy as np
 from ..evaluation.blocks import for_record
 from ..evaluation.metrics import RECALL_DECIMALS
 from .cells import CELL_KS, Cell
-from .shown import hardware_of, licence_shown, weights_shown
 from .escape import public_data
-from .shown import descriptor_bytes
+from .shown import descriptor_bytes, hardware_of, licence_shown, weights_shown
 from .stats import LEVEL, RESAMPLES
 from .tracks import track_file
 

@@ -1,6 +1,6 @@
-"""Retrieval with bounded memory: the method's post-processing fitted on the database and
-applied chunk by chunk, then exact top-K search streamed from row sources (or an approximate
-index, see approximate.py). Peak memory is set by a budget in bytes, not by the data size.
+"""Exact top-K search with bounded memory, streamed from row sources (an approximate index:
+approximate.py; the post-processing before it: evaluation/postprocess.py). Peak memory is set
+by a budget in bytes, not by the data size.
 
 What is promised, on every CPU:
 
