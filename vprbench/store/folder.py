@@ -29,9 +29,9 @@ import numpy as np
 from ..errors import ShardWarning, VPRBenchError
 from ..fsutil import CacheError, atomic_path, cache_error, is_temporary, lock
 from ..paths import cache_root, safe_name, special_file
-from ..hashing import canonical_json, exact_data
+from ..hashing import canonical_hash, canonical_json, exact_data
 from ..loader import plugin_part
-from ..spec import RUN_SETTINGS, canonical_hash
+from ..run_settings import RUN_SETTINGS
 from .reader import DescriptorStore
 from .rows_file import DamagedRows, RowsIdentity, folder_lock, hdf5_written, inspect_rows_file
 
