@@ -18,7 +18,7 @@ COLUMNS = ["table", "row", "method", "column", "metric", "value", "setting", "so
 
 @cache
 def _read(name: str) -> pd.DataFrame:
-    text = (files("vprbench.manifests") / "reference" / f"{name}.csv").read_text()
+    text = (files("vprbench.manifests") / "reference" / f"{name}.csv").read_text(encoding="utf-8")
     frame = pd.read_csv(io.StringIO(text), comment="#", dtype=str, keep_default_na=False)
     frame["value"] = frame["value"].astype(float)
     return frame[COLUMNS]

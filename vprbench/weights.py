@@ -286,7 +286,7 @@ def _safetensors_content(path: Path) -> bool:
 @cache
 def official_releases() -> tuple[dict, ...]:
     """The official weight releases vprbench knows (manifests/weights.toml)."""
-    text = (files("vprbench.manifests") / "weights.toml").read_text()
+    text = (files("vprbench.manifests") / "weights.toml").read_text(encoding="utf-8")
     return tuple(tomllib.loads(text)["release"])
 
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import codecs
 import os
 import sys
 import warnings
@@ -78,7 +79,17 @@ def out_of_memory(error: BaseException) -> str:
             f"(--resize, a stage's resize), or run on a machine with more memory{kept()}.")
 
 
+def escape_unwritable() -> None:
+    """On a terminal or file whose encoding cannot hold a character (an ASCII locale, a Windows code
+    page), the character is written escaped (\\u2026), not a crash: tables and names from data are Unicode."""
+    for stream in (sys.stdout, sys.stderr):
+        utf = codecs.lookup(getattr(stream, "encoding", None) or "ascii").name.startswith("utf")
+        if hasattr(stream, "reconfigure") and (getattr(stream, "errors", None) == "strict" or not utf):
+            stream.reconfigure(errors="backslashreplace")
+
+
 def main(argv=None) -> int:
+    escape_unwritable()
     args = build_parser().parse_args(argv)
     warnings.formatwarning = warning_format()
     with keeping(getattr(args, "kept", None)):  # a command that resumes declares what it keeps (set_defaults)

@@ -13,7 +13,7 @@ from .manifest import DatasetManifest, data_root
 
 def read_registry(name: str) -> dict[str, str]:
     """A sha256 registry shipped beside the manifests: lines '<relative path> <sha256>'."""
-    text = (files("vprbench.manifests") / "datasets" / name).read_text()
+    text = (files("vprbench.manifests") / "datasets" / name).read_text(encoding="utf-8")
     return dict(line.split() for line in text.splitlines() if line.strip() and not line.startswith("#"))
 
 

@@ -24,7 +24,7 @@ def read_registry(data_dir=None) -> dict[str, str]:
     if not path.is_file():
         return {}
     try:
-        entries = json.loads(path.read_text())
+        entries = json.loads(path.read_text(encoding="utf-8"))
         if not isinstance(entries, dict):
             raise ValueError("expected a JSON object of name -> path")
         for name, where in entries.items():  # import writes absolute paths; anything else was not written by it

@@ -239,7 +239,7 @@ def _swapped(gt: GroundTruth, n_database: int) -> GroundTruth:
 def _read_names(path: Path) -> list[str]:
     if path.suffix == ".npy":
         return [str(v) for v in read_npy(path, "query subset file", "image names").reshape(-1)]
-    return [line.strip() for line in path.read_text().splitlines() if line.strip()]
+    return [line.strip() for line in path.read_text(encoding="utf-8").splitlines() if line.strip()]
 
 
 def _query_subset(dataset: Dataset, queries: list[Path], protocol: Protocol) -> np.ndarray:

@@ -145,22 +145,27 @@ def distribution_of(module: str) -> tuple[str | None, str | None]:
     return ", ".join(name for name, _ in listed), ", ".join(version for _, version in listed)
 
 
+def _read(path: Path) -> str:
+    """A git file's text in UTF-8 whatever the locale (a path in it keeps its undecodable bytes)."""
+    return path.read_text(encoding="utf-8", errors="surrogateescape")
+
+
 def _git_commit() -> str | None:
     """The commit of a vprbench source checkout (None for an installed wheel)."""
     head = Path(__file__).resolve().parents[2] / ".git"
     try:
         if head.is_file():  # a worktree: "gitdir: <path>"
-            head = Path(head.read_text().split(":", 1)[1].strip())
-        ref = (head / "HEAD").read_text().strip()
+            head = Path(_read(head).split(":", 1)[1].strip())
+        ref = _read(head / "HEAD").strip()
         if ref.startswith("ref: "):
             name = ref[5:]
             common = head / "commondir"
-            root = (head / common.read_text().strip()).resolve() if common.is_file() else head
+            root = (head / _read(common).strip()).resolve() if common.is_file() else head
             for folder in (head, root):
                 if (folder / name).is_file():
-                    return (folder / name).read_text().strip()
+                    return _read(folder / name).strip()
             packed = root / "packed-refs"
-            lines = packed.read_text().splitlines() if packed.is_file() else []
+            lines = _read(packed).splitlines() if packed.is_file() else []
             return next((line.split()[0] for line in lines if line.endswith(" " + name)), None)
         return ref
     except (OSError, IndexError):
@@ -169,7 +174,7 @@ def _git_commit() -> str | None:
 
 def _cpu_name() -> str | None:
     try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
+        for line in Path("/proc/cpuinfo").read_text(encoding="utf-8", errors="replace").splitlines():
             if line.startswith("model name"):
                 return line.split(":", 1)[1].strip()
     except OSError:

@@ -188,7 +188,7 @@ def backbones() -> dict[str, BackboneEntry]:
     found: dict[str, BackboneEntry] = {}
     for path in sorted(folder.iterdir(), key=lambda p: p.name):
         if path.name.endswith(".toml"):
-            for entry in _entries(path.read_text(), path.name):
+            for entry in _entries(path.read_text(encoding="utf-8"), path.name):
                 if entry.name in found:
                     raise VPRBenchError(f"Backbone {entry.name!r} is listed twice in manifests/backbones.")
                 found[entry.name] = entry

@@ -28,7 +28,7 @@ OWN_CONTENT_DIGITS = 12
 
 @cache
 def vocabulary_policies() -> dict:
-    return tomllib.loads((files("vprbench.manifests") / "vocabularies.toml").read_text())
+    return tomllib.loads((files("vprbench.manifests") / "vocabularies.toml").read_text(encoding="utf-8"))
 
 
 def domain_names() -> list[str]:

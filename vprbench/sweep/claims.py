@@ -137,7 +137,7 @@ class Claims:
             path = self.folder / f"{key}.alive"
             if special_file(path):  # a pipe or device put in its place: opening a pipe waits for a reader for good
                 path.unlink(missing_ok=True)  # (a link: the link alone)
-            alive = open(path, "a")
+            alive = open(path, "ab")
         except (ImportError, OSError):
             return None
         try:
@@ -220,7 +220,7 @@ class Claims:
     def still_mine(self, key: str) -> bool:
         lease = self._paths(key)[1]
         try:  # a pipe or device put in its place is no lease of this process's (reading it would wait for good)
-            return lease.is_file() and json.loads(lease.read_text())["token"] == self.token
+            return lease.is_file() and json.loads(lease.read_text(encoding="utf-8"))["token"] == self.token
         except (OSError, ValueError, KeyError, TypeError):
             return False
 

@@ -26,7 +26,7 @@ class TableCell:
 
 def reproduce_tables(paper: str) -> dict:
     plans = shipped_file("reproduce", paper, ".toml", "reproduction plans for paper")  # a name, never a path
-    return tomllib.loads(plans.read_text())["tables"]
+    return tomllib.loads(plans.read_text(encoding="utf-8"))["tables"]
 
 
 def table_spec(paper: str, table: str) -> dict:

@@ -76,8 +76,8 @@ def _read_in_child(path: Path) -> dict:
     package_parent = str(Path(__file__).resolve().parents[3])
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [package_parent, os.environ.get("PYTHONPATH")]))}
     try:
-        done = subprocess.run(command, stdin=subprocess.DEVNULL, capture_output=True, text=True,
-                              timeout=READ_TIMEOUT_S, env=env)
+        done = subprocess.run(command, stdin=subprocess.DEVNULL, capture_output=True, encoding="utf-8",
+                              errors="replace", timeout=READ_TIMEOUT_S, env=env)
     except subprocess.TimeoutExpired:
         raise ValueError(f"reading it took more than {READ_TIMEOUT_S} s") from None
     if done.returncode < 0:

@@ -89,7 +89,7 @@ def pose_rows(path: Path, gt: dict, n_database: int, n_queries: int) -> tuple[np
 def camera_centre(path: Path) -> np.ndarray:
     """Camera centre (x, y, z) = the second-to-last line of a Baidu Mall .camera file."""
     try:
-        lines = path.read_text().strip().splitlines()
+        lines = path.read_text(encoding="utf-8").strip().splitlines()
         centre = np.array(lines[-2].split(), dtype=np.float64)
         if centre.shape != (3,) or not np.isfinite(centre).all():
             raise ValueError(f"its second-to-last line holds {centre.size} numbers, expected 3 finite ones")
