@@ -111,6 +111,7 @@ _WHAT_TO_DO = {
     codes.EMFILE: "raise the limit (ulimit -n) or run fewer jobs at once",
     codes.EIO: "check the disk",
     codes.ENAMETOOLONG: "use a shorter name",
+    codes.ELOOP: "a symbolic link in this path leads back to itself: fix or remove the link, or give another path",
 }
 
 

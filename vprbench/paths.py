@@ -108,12 +108,19 @@ def _no_nul(path, what: str):
 
 
 def resolved(path, what: str) -> Path:
-    """Path(path).resolve(), a link loop being one line naming `what` (Python < 3.13 raises a RuntimeError)."""
+    """Path(path).resolve(), a link loop being one line naming `what`: the stat finds it on every Python
+    (resolve raises a RuntimeError for one before 3.13, and from 3.13 on returns a path as if nothing were wrong)."""
     from .errors import require
 
     require(path, (str, os.PathLike), f"{what}: give a path (a str or pathlib.Path)")
+    given = Path(_no_nul(path, what)).expanduser()
     try:
-        return Path(_no_nul(path, what)).expanduser().resolve()
+        os.stat(given)
+    except OSError as error:
+        if error.errno == errno.ELOOP:
+            raise _link_loop(path, what) from None
+    try:
+        return given.resolve()
     except RuntimeError as error:
         if not str(error).startswith("Symlink loop"):
             raise

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import codecs
+import errno
 import os
 import sys
 import warnings
@@ -116,9 +117,9 @@ def _run(args) -> int:
         if "can't allocate memory" in str(error) or "out of memory" in str(error):  # torch's CPU and GPU allocators
             print_error(out_of_memory(error))
             return 1
-        if str(error).startswith("Symlink loop from"):  # Path.resolve on a link that leads back to itself
-            print_error(f"{error}: a symbolic link in this path leads back to itself; fix or remove the link, or "
-                        "give another path.")
+        if str(error).startswith("Symlink loop from "):  # Path.resolve on a link loop before Python 3.13 (OSError since)
+            looped = str(error).removeprefix("Symlink loop from ").strip("'")
+            print_error(os_error_message(OSError(errno.ELOOP, os.strerror(errno.ELOOP), looped)))
             return 1
         if "home directory" not in str(error):
             raise
