@@ -164,7 +164,8 @@ def test_attention_scores_computed_a_few_rows_at_a_time_give_the_same_output(mon
         whole = F.scaled_dot_product_attention(q, k, v)
         monkeypatch.setattr(gemm, "SCORE_ELEMENTS", 7 * 450)  # 7 query rows at a time: 65 pieces per head
         pieces = F.scaled_dot_product_attention(q, k, v)
-    torch.testing.assert_close(pieces, whole, rtol=0, atol=1e-6)
+    # float32 rounding of another summation order: up to 8e-7 with torch 2.14's oneDNN, 1.2e-6 with torch 2.6's
+    torch.testing.assert_close(pieces, whole, rtol=0, atol=2e-6)
 
 
 @pytest.mark.parametrize("case", ["few-keys", "mask", "dropout", "causal", "grad", "float64", "grouped", "off"])

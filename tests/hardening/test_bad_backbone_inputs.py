@@ -37,6 +37,20 @@ def test_a_facet_the_attention_cannot_give_is_refused(shared_data, cli, monkeypa
     assert_refused(code, err, None, "facet=key: backbone tokens_only gives token only", "choose one of those")
 
 
+
+def test_an_entry_older_timm_does_not_have_is_refused_naming_the_version(shared_data, cli, monkeypatch):
+    """An entry whose architecture the installed timm lacks (an older timm than pyproject.toml asks
+    for): before, timm's RuntimeError 'Unknown model' ended the run in a traceback."""
+    import timm
+
+    entry = backbone_spec("radio_v3_b16").model_copy(update={"timm": "naflexvit_base_patch16_radio_v99"})
+    monkeypatch.setitem(backbones(), "radio_v3_b16", entry)
+    code, _, err = cli("evaluate", "--method", "anyloc", "--backbone", "radio_v3_b16", "--layer", "3", "--weights",
+                       "random", *RUN, "--data-dir", shared_data)
+    assert_refused(code, err, None, "Backbone radio_v3_b16 is timm's architecture 'naflexvit_base_patch16_radio_v99'",
+                   f"the timm installed here ({timm.__version__}) does not have", "pip install -U timm")
+
+
 @pytest.mark.parametrize("change, said", [
     (lambda s: {k.replace("blocks.", "layers."): v for k, v in s.items()},  # another architecture's names
      ["Missing keys: blocks.0.attn.proj.bias", "Unexpected keys: layers.0.attn.proj.bias"]),

@@ -49,6 +49,9 @@ def create_model(spec: BackboneEntry, *, empty: bool = False, seed: int | None =
     `overrides` are timm keyword arguments (tests build tiny models: depth=2, embed_dim=...)."""
     import timm
 
+    if not timm.is_model(spec.timm):  # an older timm than the entry needs (timm adds architectures release by release)
+        raise VPRBenchError(f"Backbone {spec.name} is timm's architecture {spec.timm!r}, which the timm installed here "
+                            f"({timm.__version__}) does not have: upgrade timm (pip install -U timm).")
     kwargs = {"pretrained": False, "num_classes": 0, **spec.timm_kwargs, **overrides}
     with own_defaults(), torch.device("meta"):  # skips the random initialisation of large models
         shape = timm.create_model(spec.timm, **kwargs).eval()
