@@ -117,7 +117,7 @@ def _run(args) -> int:
         if "can't allocate memory" in str(error) or "out of memory" in str(error):  # torch's CPU and GPU allocators
             print_error(out_of_memory(error))
             return 1
-        if str(error).startswith("Symlink loop from "):  # Path.resolve on a link loop before Python 3.13 (OSError since)
+        if str(error).startswith("Symlink loop from "):  # Path.resolve on a link loop, before Python 3.13
             looped = str(error).removeprefix("Symlink loop from ").strip("'")
             print_error(os_error_message(OSError(errno.ELOOP, os.strerror(errno.ELOOP), looped)))
             return 1

@@ -68,7 +68,8 @@ def dataset_manifests() -> dict[str, DatasetManifest]:
     manifests = {}
     for entry in sorted(_manifest_dir().iterdir(), key=lambda e: e.name):
         if entry.name.endswith(".toml"):
-            manifest = copy.deepcopy(_parsed(entry.read_text(encoding="utf-8"), entry.name))  # a copy: callers may change theirs
+            text = entry.read_text(encoding="utf-8")
+            manifest = copy.deepcopy(_parsed(text, entry.name))  # a copy: callers may change theirs
             manifests[manifest.name] = manifest
     return manifests
 

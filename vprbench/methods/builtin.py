@@ -9,7 +9,8 @@ ANYLOC = "vprbench.methods.anyloc:AnyLoc"
 
 def anyloc_presets() -> dict[str, dict]:
     """Preset name -> {"description": ..., "options": {...}} from manifests/methods/anyloc.toml."""
-    return tomllib.loads((files("vprbench.manifests") / "methods" / "anyloc.toml").read_text(encoding="utf-8"))["presets"]
+    text = (files("vprbench.manifests") / "methods" / "anyloc.toml").read_text(encoding="utf-8")
+    return tomllib.loads(text)["presets"]
 
 
 def core_methods() -> list[dict]:
