@@ -18,8 +18,9 @@ ASCII_LOCALE = {"LC_ALL": "C", "LANG": "C", "PYTHONUTF8": "0", "PYTHONCOERCECLOC
 
 def vprbench_in_ascii_locale(*args: str) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONIOENCODING", "LC_CTYPE")}
+    # 80 columns whatever the caller's terminal: rich's tables then cut long names with an ellipsis
     return subprocess.run([sys.executable, "-m", "vprbench", *args], capture_output=True, timeout=120,
-                          env={**env, **ASCII_LOCALE})
+                          env={**env, **ASCII_LOCALE, "COLUMNS": "80"})
 
 
 @pytest.mark.parametrize("args", [("methods", "backbones"), ("methods", "list"), ("stages", "list")])
