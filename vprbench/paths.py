@@ -75,11 +75,8 @@ def regular_file(path, what: str) -> bool:
     from .errors import VPRBenchError, require
 
     require(path, (str, os.PathLike), f"{what}: give a file path (a str or pathlib.Path)")
-    try:
-        mode = os.stat(_no_nul(path, what)).st_mode
-    except OSError as error:
-        if error.errno == errno.ELOOP:
-            raise _link_loop(path, what) from None
+    mode = _mode(path, what)
+    if mode is None:
         return False  # missing, or not reachable: the caller's own message, or its open(), says which
     if stat.S_ISREG(mode) or stat.S_ISDIR(mode):
         return stat.S_ISREG(mode)
@@ -107,24 +104,26 @@ def _no_nul(path, what: str):
     return path
 
 
+def _mode(path, what: str, at=None) -> int | None:
+    """The st_mode of `at` (else `path`), links followed; None when nothing is reachable there. A link
+    loop is one line naming `path` and `what`, found by the system (ELOOP) on every Python."""
+    try:
+        return os.stat(_no_nul(path if at is None else at, what)).st_mode
+    except OSError as error:
+        if error.errno == errno.ELOOP:
+            raise _link_loop(path, what) from None
+        return None
+
+
 def resolved(path, what: str) -> Path:
-    """Path(path).resolve(), a link loop being one line naming `what`: the stat finds it on every Python
-    (resolve raises a RuntimeError for one before 3.13, and from 3.13 on returns a path as if nothing were wrong)."""
+    """Path(path).resolve(), a link loop being one line naming `what` (resolve itself raised a
+    RuntimeError for one before Python 3.13, and from 3.13 on returns a path as if nothing were wrong)."""
     from .errors import require
 
     require(path, (str, os.PathLike), f"{what}: give a path (a str or pathlib.Path)")
     given = Path(_no_nul(path, what)).expanduser()
-    try:
-        os.stat(given)
-    except OSError as error:
-        if error.errno == errno.ELOOP:
-            raise _link_loop(path, what) from None
-    try:
-        return given.resolve()
-    except RuntimeError as error:
-        if not str(error).startswith("Symlink loop"):
-            raise
-        raise _link_loop(path, what) from None
+    _mode(path, what, at=given)
+    return given.resolve()
 
 
 def safe_name(text: str, limit: int = 60) -> str:
