@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 
 from vprbench.errors import VPRBenchError
-from vprbench.evaluation.metrics import check_ks, correct_at, first_positive_rank, recall_at_k, top1_precision_recall
+from vprbench.evaluation.metrics import (correct_at, first_positive_rank, ks_within_database, recall_at_k,
+                                         top1_precision_recall)
 from vprbench.search.exact import SCORE_TOLERANCE, search
 
 
@@ -59,22 +60,22 @@ def test_most_confident_match_wrong_gives_zero_recall_at_full_precision():
 @pytest.mark.parametrize("ks", [(0,), (-1, 5), (), (200,)])
 def test_invalid_k_is_refused(ks):
     with pytest.raises(VPRBenchError):
-        check_ks(ks, 100)
+        ks_within_database(ks, 100)
 
 
 def test_ks_sorted_and_unique():
-    assert check_ks([5, 1, 5], 10) == (1, 5)
+    assert ks_within_database([5, 1, 5], 10) == (1, 5)
 
 
 def test_k_beyond_a_database_of_one_image_is_said_in_the_singular():
     with pytest.raises(VPRBenchError, match=r"^K = 5 exceeds the 1 database image of own: give --k with values up to 1"):
-        check_ks([1, 5], 1, "own")
+        ks_within_database([1, 5], 1, "own")
 
 
 def test_k_equal_to_the_database_is_kept_and_one_more_is_refused():
-    assert check_ks([1, 10], 10) == (1, 10)
+    assert ks_within_database([1, 10], 10) == (1, 10)
     with pytest.raises(VPRBenchError, match=r"^K = 11 exceeds the 10 database images"):
-        check_ks([1, 11], 10)
+        ks_within_database([1, 11], 10)
 
 
 def test_pr_thresholds_merge_best_matches_on_one_grid_point_not_all_within_one_step():

@@ -14,7 +14,7 @@ RECALL_DECIMALS = 6
 PR_DECIMALS = 8
 
 
-def check_ks(ks, n_database: int, dataset: str = "the dataset") -> tuple[int, ...]:
+def ks_within_database(ks, n_database: int, dataset: str = "the dataset") -> tuple[int, ...]:
     """K values within the database: the largest must not exceed it."""
     ks = tuple(sorted(set(int(k) for k in ks)))
     if not ks or ks[0] < 1:

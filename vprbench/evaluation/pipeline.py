@@ -24,7 +24,7 @@ from .budget import check_run_budget, retrieval_need, stage_needs
 from .extract import describe_splits
 from .identity import protocol_of
 from .joint import describe_members, joint_members
-from .metrics import check_ks
+from .metrics import ks_within_database
 from .postprocess import check_database_size, check_joint_budget
 from .record import result_record
 from .retrieve import check_compare, retrieve
@@ -176,7 +176,7 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
                  "run": {k: v for k, v in settings.describe().items() if k != "device"}}, "the run (spec, cache folder, data root, run settings)")
     if dataset is None:
         dataset = ranks.on_zero(lambda: load_data(spec, settings))  # fetched on first use by rank 0 alone
-    ks = check_ks(spec.ks, len(dataset.database), dataset.name)
+    ks = ks_within_database(spec.ks, len(dataset.database), dataset.name)
     for stage in stages:  # before any descriptor is computed
         with in_stage(stage, "check"):
             stage.check(dataset)
