@@ -4,6 +4,7 @@
 (text.literal), so a name or path from a record or a dataset cannot drive the terminal."""
 from __future__ import annotations
 
+import codecs
 import sys
 
 from rich.console import Console
@@ -33,3 +34,12 @@ def say(text: str, stderr: bool = False) -> None:
     """One plain line (or several) on stdout or stderr, made literal: for output meant for files and
     pipes as well (CSV, Markdown), which rich would wrap."""
     print(literal(text), file=sys.stderr if stderr else sys.stdout)
+
+
+def escape_unwritable() -> None:
+    """On a terminal or file whose encoding cannot hold a character (an ASCII locale, a Windows code
+    page), the character is written escaped (\\u2026), not a crash: tables and names from data are Unicode."""
+    for stream in (sys.stdout, sys.stderr):
+        utf = codecs.lookup(getattr(stream, "encoding", None) or "ascii").name.startswith("utf")
+        if hasattr(stream, "reconfigure") and (getattr(stream, "errors", None) == "strict" or not utf):
+            stream.reconfigure(errors="backslashreplace")

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import codecs
 import errno
 import os
 import sys
@@ -13,7 +12,7 @@ from ..distributed import not_first_of_node, said_elsewhere, torchrun_rank
 from ..errors import KEPT, ProblemList, ShardWarning, VPRBenchError, keeping, os_error_message
 from . import datasets, evaluate, leaderboard, methods, reproduce, repeats, results, run, stages, vocabulary
 from ..text import one_line
-from .console import console, styled
+from .console import console, escape_unwritable, styled
 
 
 class Parser(argparse.ArgumentParser):
@@ -78,15 +77,6 @@ def out_of_memory(error: BaseException) -> str:
     found = str(error).strip().splitlines()
     return (f"Out of memory ({found[-1] if found else type(error).__name__}). Lower --batch-size or the image size "
             f"(--resize, a stage's resize), or run on a machine with more memory{kept()}.")
-
-
-def escape_unwritable() -> None:
-    """On a terminal or file whose encoding cannot hold a character (an ASCII locale, a Windows code
-    page), the character is written escaped (\\u2026), not a crash: tables and names from data are Unicode."""
-    for stream in (sys.stdout, sys.stderr):
-        utf = codecs.lookup(getattr(stream, "encoding", None) or "ascii").name.startswith("utf")
-        if hasattr(stream, "reconfigure") and (getattr(stream, "errors", None) == "strict" or not utf):
-            stream.reconfigure(errors="backslashreplace")
 
 
 def main(argv=None) -> int:
