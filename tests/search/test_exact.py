@@ -1,6 +1,8 @@
 """Exact search streamed from row sources: its tie order, its identity across budgets, threads
 and arithmetic paths, and its memory budget."""
 
+import os
+
 import numpy as np
 import pytest
 
@@ -104,6 +106,47 @@ def test_search_threads_compute_on_one_thread_each_and_leave_torch_as_it_was():
         exact_search(unit(3000, 48, 5), unit(1300, 48, 6), 5)
     assert inside and set(inside) == {1}
     assert counts() == before
+
+
+def test_a_search_on_the_calling_thread_computes_on_one_thread_too(monkeypatch):
+    """A search of one slice (fewer queries than two slices' rows, or a BLAS seen on one thread) ran its
+    products on the calling thread with all of torch's threads: oneDNN before torch 2.11 splits a product's
+    sums by their count, so 1 and 2 threads ranked a tie at the K-th place differently (dba's scores)."""
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    import vprbench.search.exact as search_module
+
+    inside, real = [], search_module.products
+    monkeypatch.setattr(search_module, "products", lambda a, b: (inside.append(torch.get_num_threads()), real(a, b))[1])
+    with threadpool_limits(2):
+        exact_search(unit(3000, 48, 5), unit(50, 48, 6), 5)  # 50 queries: one slice
+        monkeypatch.setattr(search_module, "search_threads", lambda libraries=None: 1)  # a BLAS capped at 1
+        exact_search(unit(3000, 48, 5), unit(1300, 48, 6), 5)
+    assert inside and set(inside) == {1}
+
+
+def test_a_thread_limit_set_before_torch_first_runs_holds_in_the_search():
+    """A caller's limit set before torch was loaded does not reach torch's OpenMP: in a fresh process the
+    search's products ran on every core (the order-dependent failures of the thread tests)."""
+    import subprocess
+    import sys
+
+    script = """
+from threadpoolctl import threadpool_limits
+import numpy as np
+with threadpool_limits(1):
+    import torch
+    import vprbench.search.exact as search_module
+    rows, seen, real = np.eye(300, 48, dtype=np.float32), [], search_module.products
+    search_module.products = lambda a, b: (seen.append(torch.get_num_threads()), real(a, b))[1]
+    search_module.exact_search(rows, rows[:100], 5)
+print(sorted(set(seen)))
+"""
+    found = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+                           env={k: v for k, v in os.environ.items() if not k.endswith("_NUM_THREADS")})
+    assert found.returncode == 0, found.stderr
+    assert found.stdout.strip() == "[1]"
 
 
 def test_threads_take_slices_of_each_query_tile_and_change_nothing(monkeypatch, tmp_path, tiles_of_1024):

@@ -24,3 +24,25 @@ def test_cosine_costs_are_the_same_bit_for_bit_on_1_2_and_3_blas_threads(score):
     for threads in (2, 3):
         assert np.array_equal(found[threads][0], found[1][0])
         assert np.array_equal(found[threads][1], found[1][1]), np.count_nonzero(found[threads][1] != found[1][1])
+
+
+def test_products_on_the_calling_thread_run_on_one_blas_thread(monkeypatch):
+    """With no threads of its own (the BLAS seen on one thread: here another library's, capped at 1) the
+    products ran on the calling thread on every thread of numpy's BLAS, which splits their sums by count."""
+    from threadpoolctl import threadpool_info
+
+    import vprbench.stages.sequence.search as module
+
+    seen, real = [], module._tile_product
+
+    def spy(*args):
+        seen.append(max(lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"))
+        return real(*args)
+
+    monkeypatch.setattr(module, "_tile_product", spy)
+    monkeypatch.setattr(module, "search_threads", lambda libraries=None: 1)
+    rng = np.random.default_rng(0)
+    rows = rng.standard_normal((300, 64)).astype(np.float32)
+    with threadpool_limits(2):
+        sequence_search(rows, rows[:100], 5, score="seqslam", length=5)
+    assert seen and set(seen) == {1}

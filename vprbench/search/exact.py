@@ -19,7 +19,6 @@ What is promised, on every CPU:
 """
 from __future__ import annotations
 
-from contextlib import nullcontext as _nothing
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -277,7 +276,9 @@ def _scan(database, queries, keep: int, plan: dict, on_grid: bool) -> tuple[np.n
         scan = _Scan(top_heap(distances, indices), q_tile, d_tile, threads, on_grid)
         pool = ThreadPoolExecutor(threads, "vprbench-search", one_thread_each) if threads > 1 else None
         zero_queries, zero_database = np.zeros(n_queries, dtype=bool), 0
-        with libraries.limit(limits=1, user_api="blas") if pool else _nothing():
+        # one thread per product, side by side or alone: one on several threads may split its sums by their
+        # count (oneDNN before torch 2.11, numpy's BLAS), so a slice's scores would follow the thread count
+        with libraries.limit(limits=1, user_api="blas" if pool else None):
             for number, query_chunk in enumerate(query_reader):
                 zero_queries[checked(query_chunk, "Query")] = True
                 for chunk in reader:

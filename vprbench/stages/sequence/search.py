@@ -7,6 +7,7 @@ Memory is set by a budget in bytes (block rows follow from it), not by the trave
 """
 from __future__ import annotations
 
+from contextlib import nullcontext as _nothing
 from dataclasses import dataclass, field
 from functools import partial
 
@@ -251,13 +252,11 @@ class _ProductThreads:
     and 2 threads). sad's distances (faiss, one row pair at a time) stay as they were."""
 
     def __init__(self, compare: str):
-        self.pool = None
-        libraries = blas_controller() if compare == "cosine" else None  # found once a search
-        if libraries is not None and (threads := search_threads(libraries)) > 1:
+        self.pool, self.blas = None, blas_controller() if compare == "cosine" else None  # found once a search
+        if self.blas is not None and (threads := search_threads(self.blas)) > 1:
             from concurrent.futures import ThreadPoolExecutor
 
             self.pool = ThreadPoolExecutor(threads, "vprbench-sequence", one_thread_each)
-            self.blas = libraries
 
     def __enter__(self):
         return self
@@ -268,8 +267,9 @@ class _ProductThreads:
 
     def run(self, product, work: list) -> None:
         if self.pool is None:
-            for args in work:
-                product(*args)
+            with self.blas.limit(limits=1) if self.blas is not None else _nothing():  # one thread here too
+                for args in work:
+                    product(*args)
             return
         with self.blas.limit(limits=1, user_api="blas"):  # only here: reading a post-processed chunk keeps its threads
             list(self.pool.map(product, *zip(*work)))
