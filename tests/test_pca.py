@@ -45,9 +45,12 @@ def sklearn_whitening(database, dim) -> PCAWhitening:
     from sklearn.decomposition import PCA
 
     fitted = PCA(dim, svd_solver="full", whiten=True).fit(database)
+    components = fitted.components_
+    # signs as scikit-learn 1.5+ sets them (each component's largest-|.| entry positive); 1.4 set them by the data's
+    components = components * np.sign(components[np.arange(dim), np.abs(components).argmax(axis=1)])[:, None]
     pca = PCAWhitening(dim)
     pca.load_state({"pca_mean": fitted.mean_,
-                    "pca_projection": fitted.components_ / np.sqrt(fitted.explained_variance_)[:, None]})
+                    "pca_projection": components / np.sqrt(fitted.explained_variance_)[:, None]})
     return pca
 
 

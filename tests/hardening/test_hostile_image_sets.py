@@ -164,7 +164,8 @@ def test_a_position_of_hundreds_of_digits_is_refused_as_too_large(sign, own, cli
 def test_a_top_k_index_of_hundreds_of_digits_is_one_line(tmp_path):
     path = tmp_path / "gt_matches.csv"
     path.write_text("top_1_ref_ind,top_2_ref_ind\n0,1\n1" + "0" * 400 + ",2\n")
-    with pytest.raises(VPRBenchError, match=f"Cannot read ground truth {re.escape(str(path))}: int too large"):
+    with pytest.raises(VPRBenchError, match=f"Cannot read ground truth {re.escape(str(path))}: a whole number of "
+                       r"1329 bits is not an image index \(it is beyond the 64-bit integer range\)\. Expected"):
         top_k_csv(path, {"columns": ["top_1_ref_ind", "top_2_ref_ind"]}, 2)
 
 

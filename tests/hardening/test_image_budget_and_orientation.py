@@ -30,7 +30,7 @@ def test_a_small_file_declaring_a_huge_image_is_refused_before_decoding(bomb, mo
     assert bomb.stat().st_size < 400_000
     with pytest.warns(Image.DecompressionBombWarning):  # Pillow only warns: its error is at twice its limit
         with Image.open(bomb) as image:
-            assert image.size == (SIDE, SIDE) and image.mode == "I;16"
+            assert image.size == (SIDE, SIDE) and image.mode in ("I;16", "I")  # Pillow 10.0 named it "I"
     assert SIDE * SIDE > DECODE_BUDGET_PIXELS
     monkeypatch.setattr(ImageFile.ImageFile, "load", lambda self, *a, **k: pytest.fail(f"decoded {self.size}"))
     with warnings.catch_warnings():

@@ -142,7 +142,7 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
             f"{csv} lists {len(repeated)} image(s) more than once, e.g. {repeated[:3]}; keep one row per image."
         )
     values = np.stack([_numbers(table[name]) for name in names], axis=1)
-    bad = np.flatnonzero(~np.isfinite(values).all(axis=1))
+    bad = np.flatnonzero(np.isnan(values).any(axis=1))
     if len(bad):
         raise VPRBenchError(
             f"{csv} has missing or non-numeric positions in {len(bad)} row(s), e.g. for "
@@ -199,17 +199,21 @@ def positions_from_csv(csv: Path, root: Path, images: list[Path]) -> tuple[np.nd
 
 
 def _numbers(column) -> np.ndarray:
-    """A column's values as floats, NaN where not a number. pandas reads a whole number of hundreds of digits
-    as a Python int, which overflows a float (even told to coerce): it becomes the largest float of its sign,
-    refused as too large, as 1e300 is."""
-    import pandas as pd
+    """A column's values as floats: NaN where not a number, +-inf where too large for a float (refused as
+    too large, as 1e300 is). Text is parsed by Python, as every pandas reads a number of hundreds of digits
+    differently (a Python int, text, or an overflow), and pandas 2.1 called it non-numeric."""
+    if column.dtype.kind in "fiub":
+        return column.to_numpy(float)
 
-    try:
-        return pd.to_numeric(column, errors="coerce").to_numpy(float)
-    except OverflowError:
-        huge = float(np.finfo(float).max)
-        return np.array([(huge if value > 0 else -huge) if isinstance(value, int) and abs(value) >= 2**1024
-                         else pd.to_numeric(value, errors="coerce") for value in column], dtype=float)
+    def number(value) -> float:
+        try:
+            return float(value)
+        except OverflowError:  # an int beyond any float
+            return float("inf") if value > 0 else float("-inf")
+        except (TypeError, ValueError):
+            return float("nan")
+
+    return np.array([number(value) for value in column], dtype=float)
 
 
 def row_name(name: str) -> str:

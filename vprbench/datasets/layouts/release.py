@@ -108,14 +108,27 @@ def camera_positions(images: list[Path], folder: Path, suffix: str) -> np.ndarra
     return np.stack([camera_centre(folder / (p.stem + suffix)) for p in images]) if images else np.zeros((0, 3))
 
 
+def _index_cell(text):
+    """A cell's text as a whole number (an int however long) or a float for as_indices to judge; an
+    empty cell (NaN) and other text are left as they are, and refused there by name."""
+    if not isinstance(text, str):
+        return text
+    for parse in (int, float):
+        try:
+            return parse(text)
+        except ValueError:
+            pass
+    return text
+
+
 def top_k_csv(path: Path, gt: dict, n_queries: int) -> list[np.ndarray]:
     import pandas as pd
 
     columns = gt.get("columns", [f"top_{k}_ref_ind" for k in range(1, 6)])
-    try:
-        table = pd.read_csv(path)
-        values = [as_indices(row) for row in table[columns].apply(pd.to_numeric).to_numpy()]
-    except (OSError, ValueError, KeyError, OverflowError) as error:  # OverflowError: a number of hundreds of digits
+    try:  # read as text, each cell parsed by Python: pandas's own parse of a long number differs by version
+        table = pd.read_csv(path, dtype=str)
+        values = [as_indices([_index_cell(cell) for cell in row]) for row in table[columns].to_numpy()]
+    except (OSError, ValueError, KeyError) as error:
         raise VPRBenchError(f"Cannot read ground truth {path}: {str(error).strip()}. Expected columns {columns}.") from None
     if len(values) != n_queries:
         raise VPRBenchError(f"Ground truth {path} has {len(values)} rows but {n_queries} query images were found.")
