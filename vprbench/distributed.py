@@ -122,11 +122,12 @@ class Ranks:
                 "Start every rank with the same command, options, --cache-dir and data."
             )
 
-    def said_once(self, error: VPRBenchError) -> None:
+    def said_once(self, error: VPRBenchError, say: Callable[[VPRBenchError], None] | None = None) -> None:
         """An error every rank meets alike (bad input: a missing dataset, an unknown option) is said by rank 0
         alone: rank 0 posts its message in torchrun's key-value store, and another rank holding the same one
         marks it `said` (the command line then prints nothing). A rank's own error is still said, after waiting
-        `SAID_WAIT_S` for rank 0's."""
+        `SAID_WAIT_S` for rank 0's. Given `say`, rank 0 says it before it posts it: a rank that found it exits,
+        and torchrun then stops rank 0, which had not said it yet."""
         if not self.distributed:
             return
         error.said = False  # known to the ranks' exchange: never taken for an error met before the ranks joined
@@ -134,6 +135,9 @@ class Ranks:
 
         import torch.distributed as dist
 
+        if self.rank == 0 and say is not None:
+            say(error)
+            error.said = True
         try:
             store = dist.distributed_c10d._get_default_store()
             if self.rank == 0:
@@ -145,6 +149,18 @@ class Ranks:
             error.said = store.check([SAID_KEY]) and store.get(SAID_KEY).decode() == str(error)
         except Exception:  # noqa: BLE001 - no store (rank 0 gone, a group never joined): this rank says its own
             return
+
+    @contextmanager
+    def working(self, say: Callable[[VPRBenchError], None] | None = None):
+        """The ranks' work: an error every rank meets is said once (`said_once`, by `say`), and the group is
+        left at the end, whatever happened (`close`)."""
+        try:
+            yield
+        except VPRBenchError as error:
+            self.said_once(error, say)  # while the group stands
+            raise
+        finally:
+            self.close()
 
     def close(self) -> None:
         if self.distributed:

@@ -118,6 +118,20 @@ def test_rank_zero_says_what_every_rank_met_and_another_rank_its_own(monkeypatch
     assert not getattr(alone, "said", False)
 
 
+def test_rank_zero_says_an_error_before_it_posts_it(monkeypatch):
+    """Rank 1 found rank 0's message and exited; torchrun then stopped rank 0 before it had said it (the
+    command line prints after the group is left): under load no rank said the error at all."""
+    import torch.distributed.distributed_c10d as c10d
+
+    from vprbench.distributed import SAID_KEY, Ranks
+
+    store, posted_when_said = FakeStore(), []
+    monkeypatch.setattr(c10d, "_get_default_store", lambda: store)
+    met = VPRBenchError("Unknown dataset 'x'.")
+    Ranks(rank=0, world_size=2).said_once(met, say=lambda error: posted_when_said.append(store.check([SAID_KEY])))
+    assert posted_when_said == [False] and met.said and store.get(SAID_KEY) == b"Unknown dataset 'x'."
+
+
 @pytest.mark.parametrize("local_rank, rank, said, own", [
     ("0", "0", "warning: layer 31 is another backbone's\n", "warning (rank 0): Image a.png: Pillow warns\n"),
     ("1", "1", "", "warning (rank 1): Image a.png: Pillow warns\n"),  # was: every rank said the first again

@@ -10,7 +10,8 @@ import sys
 from rich.console import Console
 from rich.text import Text
 
-from ..text import literal
+from ..errors import ProblemList, VPRBenchError
+from ..text import literal, one_line
 
 
 class _Literal(Console):
@@ -34,6 +35,17 @@ def say(text: str, stderr: bool = False) -> None:
     """One plain line (or several) on stdout or stderr, made literal: for output meant for files and
     pipes as well (CSV, Markdown), which rich would wrap."""
     print(literal(text), file=sys.stderr if stderr else sys.stdout)
+
+
+def print_error(message: str, lines: bool = False) -> None:
+    """One line (a line break from a name or path written out), or a ProblemList's lines (`lines`)."""
+    # soft wrap: no line breaks inserted, so paths in the message stay whole for copying
+    console(stderr=True).print(styled("error:", "bold red"), message if lines else one_line(message), highlight=False,
+                               soft_wrap=True)
+
+
+def say_error(error: VPRBenchError) -> None:
+    print_error(str(error), lines=isinstance(error, ProblemList))
 
 
 def escape_unwritable() -> None:

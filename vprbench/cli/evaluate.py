@@ -13,7 +13,7 @@ import sys
 from ..errors import DESCRIBED, VPRBenchError
 from ..text import plural, recall_text
 from .console import console as make_console
-from .console import say
+from .console import say, say_error
 from .options import (add_location_options, add_method_options, add_run_options, add_spec_options, add_sweep_options,
                       explicit_run_options, method_options, output_file, path_argument, progress, refuse_unused,
                       resolve_locations, run_settings, spec_overrides)
@@ -72,7 +72,7 @@ def run_evaluate(args) -> int:
     options, overrides = method_options(args), spec_overrides(args)
     runs = len(args.method) * len(args.dataset)
     ranks = Ranks.from_environment(settings.device)
-    try:
+    with ranks.working(say_error):
         if runs > 1:
             if ranks.distributed:
                 raise VPRBenchError(f"torchrun shards one evaluation over its ranks; this command names {runs} "
@@ -83,11 +83,6 @@ def run_evaluate(args) -> int:
                                     "'vprbench leaderboard --format csv'.")
             return run_matrix(args, settings, options, overrides)
         return run_one(args, settings, options, overrides, ranks)
-    except VPRBenchError as error:
-        ranks.said_once(error)  # while the group stands
-        raise
-    finally:
-        ranks.close()
 
 
 def run_one(args, settings, options, overrides, ranks) -> int:
@@ -271,17 +266,11 @@ def run_describe(args) -> int:
     fitted_on = f"--fit-on {args.fit_on}" if args.fit_on is not None else "the images described (no --fit-on)"
     check_database_size(method, len(splits.get("database", splits["queries"])), fitted_on)
     ranks = Ranks.from_environment(settings.device)
-    try:
-        with progress(args, ranks.rank == 0) as shown:
-            described = describe_splits(method, splits, root=root, label=label,
-                                        cache_dir=settings.cache_dir, progress=shown, store_dtype=args.store_dtype,
-                                        workers=loader_workers(settings, method), lock_timeout=settings.lock_timeout,
-                                        settings=keyed, ranks=ranks)
-    except VPRBenchError as error:
-        ranks.said_once(error)
-        raise
-    finally:
-        ranks.close()
+    with ranks.working(say_error), progress(args, ranks.rank == 0) as shown:
+        described = describe_splits(method, splits, root=root, label=label,
+                                    cache_dir=settings.cache_dir, progress=shown, store_dtype=args.store_dtype,
+                                    workers=loader_workers(settings, method), lock_timeout=settings.lock_timeout,
+                                    settings=keyed, ranks=ranks)
     if described.stores is None:  # another rank than 0 under torchrun: its share is written, rank 0 writes --out
         return 0
     queries = described.stores["queries"]

@@ -9,10 +9,10 @@ import warnings
 
 from .. import __version__
 from ..distributed import not_first_of_node, said_elsewhere, torchrun_rank
-from ..errors import KEPT, ProblemList, ShardWarning, VPRBenchError, keeping, os_error_message
+from ..errors import KEPT, ShardWarning, VPRBenchError, keeping, os_error_message
 from . import datasets, evaluate, leaderboard, methods, reproduce, repeats, results, run, stages, vocabulary
 from ..text import one_line
-from .console import console, escape_unwritable, styled
+from .console import escape_unwritable, print_error, say_error
 
 
 class Parser(argparse.ArgumentParser):
@@ -61,13 +61,6 @@ def warning_format():
     return format_warning
 
 
-def print_error(message: str, lines: bool = False) -> None:
-    """One line (a line break from a name or path written out), or a ProblemList's lines (`lines`)."""
-    # soft wrap: no line breaks inserted, so paths in the message stay whole for copying
-    console(stderr=True).print(styled("error:", "bold red"), message if lines else one_line(message), highlight=False,
-                               soft_wrap=True)
-
-
 def kept(after: str = "") -> str:
     """'; finished descriptors are kept<after>' for a command that keeps its work, '' for one that keeps none."""
     return f"; {KEPT['what']} are kept{after}" if KEPT["what"] else ""
@@ -92,7 +85,7 @@ def _run(args) -> int:
         return args.run(args)
     except VPRBenchError as error:
         if not said_elsewhere(error):  # under torchrun, one rank says what every rank met
-            print_error(str(error), lines=isinstance(error, ProblemList))
+            say_error(error)
         return 1
     except BrokenPipeError:  # output piped into a reader that stopped (| head): end quietly, as other tools do
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
