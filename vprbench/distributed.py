@@ -52,7 +52,8 @@ class Ranks:
                 torch.cuda.set_device(local_rank)
                 kwargs["device_id"] = torch.device("cuda", local_rank)
             try:
-                dist.init_process_group(backend, timeout=timedelta(seconds=_timeout_s()), **kwargs)
+                with _stdout_to_stderr():
+                    dist.init_process_group(backend, timeout=timedelta(seconds=_timeout_s()), **kwargs)
             except (RuntimeError, ValueError) as error:  # no MASTER_ADDR, a rendezvous that timed out
                 failed = VPRBenchError(f"torchrun rank {rank} could not join the other ranks ({_first_line(error)}). "
                                        "Start every rank with torchrun and the same --rdzv-endpoint.")
@@ -211,6 +212,26 @@ def _first_line(error: BaseException) -> str:
     text = (str(error).strip().splitlines() or [type(error).__name__])[0]
     text = text.split("] ", 1)[1] if text.startswith("[") and "] " in text else text
     return text.split(". ", 1)[0].rstrip(".")
+
+
+@contextmanager
+def _stdout_to_stderr():
+    """What is written to file descriptor 1 meanwhile goes to 2: gloo in torch 2.8 prints which peers a rank
+    joined on stdout, where --json writes the record (it was no JSON then)."""
+    import sys
+
+    sys.stdout.flush()
+    try:
+        saved = os.dup(1)
+        os.dup2(2, 1)
+    except OSError:  # no descriptor 1 or 2 (a daemon's): nothing to keep apart
+        yield
+        return
+    try:
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
 
 
 def said_elsewhere(error: VPRBenchError) -> bool:

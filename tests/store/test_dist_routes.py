@@ -147,3 +147,12 @@ def test_a_warning_every_rank_meets_is_said_once_a_node_and_one_about_a_rank_s_s
     shown = warning_format()
     assert shown("layer 31 is another backbone's", UserWarning, "x.py", 1) == said
     assert shown("Image a.png: Pillow warns", ShardWarning, "x.py", 1) == own
+
+
+def test_what_the_backend_prints_while_ranks_join_goes_to_stderr():
+    """gloo in torch 2.8 printed '[Gloo] Rank 0 is connected to 1 peer ranks...' on stdout while the group was
+    made: under torchrun, --json's record was no JSON."""
+    script = ("import os\nfrom vprbench.distributed import _stdout_to_stderr\nprint('before', flush=True)\n"
+              "with _stdout_to_stderr():\n    os.write(1, b'[Gloo] Rank 0 is connected\\n')\nprint('record')\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert (done.returncode, done.stdout, done.stderr) == (0, "before\nrecord\n", "[Gloo] Rank 0 is connected\n")
