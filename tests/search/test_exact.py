@@ -149,6 +149,21 @@ print(sorted(set(seen)))
     assert found.stdout.strip() == "[1]"
 
 
+def test_a_blas_that_keeps_to_one_thread_does_not_set_the_search_threads():
+    """OpenCV 4.8 ships an OpenBLAS that stays on one thread whatever it is told: loaded beside numpy's
+    (a run that imported cv2), every search ran on one thread."""
+    from vprbench.search.exact import search_threads
+
+    class Libraries:
+        def __init__(self, *counts):
+            self.counts = counts
+
+        def info(self):
+            return [{"user_api": "blas", "num_threads": n} for n in self.counts] + [{"user_api": "openmp", "num_threads": 8}]
+
+    assert (search_threads(Libraries(2, 1)), search_threads(Libraries(1, 1)), search_threads(Libraries())) == (2, 1, 1)
+
+
 def test_threads_take_slices_of_each_query_tile_and_change_nothing(monkeypatch, tmp_path, tiles_of_1024):
     """With 2 threads each computes its half of every query tile (one-thread BLAS, its own heap
     rows): bitwise the same for every budget, and the same ranking as one thread."""

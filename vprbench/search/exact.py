@@ -224,9 +224,11 @@ def blas_controller():
 
 def search_threads(libraries=None) -> int:
     """Threads a search computes on: as many as the BLAS would use now (threadpoolctl sees its
-    setting, e.g. OMP_NUM_THREADS or threadpool_limits); `libraries` from `blas_controller`."""
+    setting, e.g. OMP_NUM_THREADS or threadpool_limits); `libraries` from `blas_controller`. Of
+    several BLAS libraries the most: OpenCV 4.8 ships one that keeps to one thread whatever it is
+    told, and beside it (any run that imported cv2) every search ran on one thread."""
     found = [int(lib["num_threads"]) for lib in (libraries or blas_controller()).info() if lib.get("user_api") == "blas"]
-    return max(1, min(found) if found else 1)
+    return max([1, *found])
 
 
 def slices(rows: int, threads: int) -> list[tuple[int, int]]:
