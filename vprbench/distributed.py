@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
 from collections.abc import Callable
 from contextlib import contextmanager
 from datetime import timedelta
@@ -218,20 +219,18 @@ def _first_line(error: BaseException) -> str:
 def _stdout_to_stderr():
     """What is written to file descriptor 1 meanwhile goes to 2: gloo in torch 2.8 prints which peers a rank
     joined on stdout, where --json writes the record (it was no JSON then)."""
-    import sys
-
     sys.stdout.flush()
     try:
         saved = os.dup(1)
         os.dup2(2, 1)
     except OSError:  # no descriptor 1 or 2 (a daemon's): nothing to keep apart
-        yield
-        return
+        saved = None
     try:
         yield
     finally:
-        os.dup2(saved, 1)
-        os.close(saved)
+        if saved is not None:
+            os.dup2(saved, 1)
+            os.close(saved)
 
 
 def said_elsewhere(error: VPRBenchError) -> bool:
