@@ -152,7 +152,7 @@ print(sorted(set(seen)))
 def test_a_blas_that_keeps_to_one_thread_does_not_set_the_search_threads():
     """OpenCV 4.8 ships an OpenBLAS that stays on one thread whatever it is told: loaded beside numpy's
     (a run that imported cv2), every search ran on one thread."""
-    from vprbench.search.exact import search_threads
+    from vprbench.search.threads import search_threads
 
     class Libraries:
         def __init__(self, *counts):

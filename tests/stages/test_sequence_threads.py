@@ -6,11 +6,11 @@ from threadpoolctl import threadpool_limits
 from vprbench.stages.sequence.search import sequence_search
 
 
-@pytest.mark.parametrize("score", ["seqslam", "diagonal"])
-def test_cosine_costs_are_the_same_bit_for_bit_on_1_2_and_3_blas_threads(score):
+@pytest.mark.parametrize("score,compare", [("seqslam", "cosine"), ("diagonal", "cosine"), ("seqslam", "mean-absolute-difference")])
+def test_costs_are_the_same_bit_for_bit_on_1_2_and_3_blas_threads(score, compare):
     """Products of 1,000-dim rows (an inner length the BLAS splits by its thread count): 2 threads gave
     half the scores different in their last bits, some a grid step apart. Each fixed-shape product now
-    runs on one thread of its own, as exact search's."""
+    runs on one thread of its own, as exact search's (mean absolute differences side by side too)."""
     rng = np.random.default_rng(0)
     database = rng.standard_normal((400, 1000)).astype(np.float32)
     database /= np.linalg.norm(database, axis=1, keepdims=True)
@@ -19,7 +19,7 @@ def test_cosine_costs_are_the_same_bit_for_bit_on_1_2_and_3_blas_threads(score):
     found = {}
     for threads in (1, 2, 3):
         with threadpool_limits(threads):
-            result = sequence_search(database, queries, 10, score=score, length=5)
+            result = sequence_search(database, queries, 10, score=score, compare=compare, length=5)
         found[threads] = result.indices, result.scores
     for threads in (2, 3):
         assert np.array_equal(found[threads][0], found[1][0])

@@ -13,9 +13,10 @@ import numpy as np
 
 from ..errors import VPRBenchError
 from ..row_sources import READ_BYTES, ArrayRows, RowSource, chunks, format_budget, format_bytes
-from .exact import (ORDER_BYTES, SCORE_UNITS, TIE_ORDER, AllZero, SearchResult, blas_controller, exact_search,
-                    inner_products, least_budget, one_thread_each, order_results, read_cost, rounded_scores, top_heap)
+from .exact import (ORDER_BYTES, SCORE_UNITS, TIE_ORDER, AllZero, SearchResult, exact_search,
+                    inner_products, least_budget, order_results, read_cost, rounded_scores, top_heap)
 from .row_checks import check_finite, check_pair, zero_rows
+from .threads import blas_controller, one_thread_each
 
 APPROXIMATE = ("ivf-pq", "hnsw")
 #: what an index's results depend on beyond its options, raised when the code changes them: a stored record

@@ -30,6 +30,7 @@ from ..row_sources import (DEFAULT_MEMORY_BUDGET, READ_BYTES, ArrayRows, as_rows
                     format_bytes, parse_memory, read_bytes_per_row)
 from .chunks import Chunk, ChunkReader, tile_rows
 from .row_checks import check_pair, check_products, checked
+from .threads import ProductThreads, blas_controller, search_threads
 
 INDEXES = ("exact", "ivf-pq", "hnsw")
 #: scores are rounded to multiples of this before they are ranked (a power of two: exact in float32)
@@ -213,24 +214,6 @@ def top_heap(distances: np.ndarray, ids: np.ndarray):
     return heap
 
 
-def blas_controller():
-    """threadpoolctl's handle on the BLAS and OpenMP libraries this process loaded. Finding them reads the
-    process's libraries (milliseconds): a search finds them once, then reads and limits their threads
-    through it (found once per block of queries, they were most of a small-block search's time)."""
-    from threadpoolctl import ThreadpoolController
-
-    return ThreadpoolController()
-
-
-def search_threads(libraries=None) -> int:
-    """Threads a search computes on: as many as the BLAS would use now (threadpoolctl sees its
-    setting, e.g. OMP_NUM_THREADS or threadpool_limits); `libraries` from `blas_controller`. Of
-    several BLAS libraries the most: OpenCV 4.8 ships one that keeps to one thread whatever it is
-    told, and beside it (any run that imported cv2) every search ran on one thread."""
-    found = [int(lib["num_threads"]) for lib in (libraries or blas_controller()).info() if lib.get("user_api") == "blas"]
-    return max([1, *found])
-
-
 def slices(rows: int, threads: int) -> list[tuple[int, int]]:
     """A query tile of `rows` rows cut among `threads` threads: equal slices of at least
     MIN_SLICE_ROWS rows (a tiny product would switch BLAS kernels), fixed by the tile and the
@@ -240,33 +223,19 @@ def slices(rows: int, threads: int) -> list[tuple[int, int]]:
     return list(zip(bounds[:-1], bounds[1:]))
 
 
-def one_thread_each() -> None:
-    """Each search thread computes and merges its own slice alone: one OpenMP thread for faiss
-    and oneDNN, set for this thread only (torch.set_num_threads would change every new thread's)."""
-    import faiss
-    import torch
-    from threadpoolctl import threadpool_limits
-
-    faiss.omp_set_num_threads(1)
-    torch.get_num_threads()  # torch sets a thread's OpenMP count at its first call there: before ours
-    threadpool_limits(1, user_api="openmp")
-
-
 def _scan(database, queries, keep: int, plan: dict, on_grid: bool) -> tuple[np.ndarray, np.ndarray, AllZero]:
     """(negated grid units, indices) of the `keep` best rows per query, unordered, and the all-zero
     rows (the database's counted on its first pass only): queries a
     chunk at a time, the database streamed past each, every product one tile of the grid.
-    With several threads, each takes its own slice of every query tile, with one-thread BLAS
-    and its own heap rows: products and merges run side by side and no thread waits on another
-    within a chunk. `on_grid` rounds each tile of scores before it is merged (the tie rule
+    Each thread takes its own slice of every query tile, computes it on one thread (threads.py) and
+    merges it into its own heap rows: products and merges run side by side and no thread waits on
+    another within a chunk. `on_grid` rounds each tile of scores before it is merged (the tie rule
     exactly, at the cost of one more pass over the scores); otherwise raw units are merged."""
-    from concurrent.futures import ThreadPoolExecutor
-
     keep_freed_memory()  # every product's scores reuse the last one's memory
     tile, q_chunk = plan["tile_rows"], plan["query_chunk_rows"]
     n_queries = queries.row_count
     q_tile, d_tile = min(n_queries, tile), min(database.row_count, tile)
-    pool, readers = None, []
+    readers = []
     try:
         # both start reading now, side by side (the queries into one buffer: the plan holds one chunk)
         readers.append(query_reader := ChunkReader(queries, q_chunk, q_tile, passes=1, buffers=1))
@@ -276,25 +245,19 @@ def _scan(database, queries, keep: int, plan: dict, on_grid: bool) -> tuple[np.n
         libraries = blas_controller()
         threads = len(slices(q_tile, search_threads(libraries)))
         scan = _Scan(top_heap(distances, indices), q_tile, d_tile, threads, on_grid)
-        pool = ThreadPoolExecutor(threads, "vprbench-search", one_thread_each) if threads > 1 else None
         zero_queries, zero_database = np.zeros(n_queries, dtype=bool), 0
-        # one thread per product, side by side or alone: one on several threads may split its sums by their
-        # count (oneDNN before torch 2.11, numpy's BLAS), so a slice's scores would follow the thread count
-        with libraries.limit(limits=1, user_api="blas" if pool else None):
+        with ProductThreads(threads, libraries) as products_on:
             for number, query_chunk in enumerate(query_reader):
                 zero_queries[checked(query_chunk, "Query")] = True
                 for chunk in reader:
                     zeros = checked(chunk, "Database")
                     zero_database += len(zeros) if number == 0 else 0
-                    work = [(w, query_chunk, chunk) for w in range(threads)]
-                    list(pool.map(scan.chunk, *zip(*work))) if pool else scan.chunk(*work[0])
-                    chunk = work = None  # let go before the next is read (ChunkReader)
+                    products_on.run(scan.chunk, [(w, query_chunk, chunk) for w in range(threads)])
+                    chunk = None  # let go before the next is read (ChunkReader)
                 query_chunk = None
     finally:
         for opened in readers:
             opened.close()
-        if pool is not None:
-            pool.shutdown(wait=True)
     return distances, indices, AllZero(zero_queries, zero_database)
 
 

@@ -7,7 +7,6 @@ Memory is set by a budget in bytes (block rows follow from it), not by the trave
 """
 from __future__ import annotations
 
-from contextlib import nullcontext as _nothing
 from dataclasses import dataclass, field
 from functools import partial
 
@@ -16,8 +15,9 @@ import numpy as np
 from ...errors import VPRBenchError
 from ...methods.attributes import COMPARES
 from ...row_sources import DEFAULT_MEMORY_BUDGET, READ_BYTES, as_rows, chunks, format_budget, format_bytes, parse_memory
-from ...search.exact import blas_controller, one_thread_each, read_cost, rounded_scores, search_threads
+from ...search.exact import read_cost, rounded_scores
 from ...search.row_checks import check_finite
+from ...search.threads import ProductThreads, blas_controller, search_threads
 from .matching import (SEQSLAM_DEFAULTS, enhance, query_offsets, second_best, top_k, trajectories,
                        trajectory_costs, velocities)
 
@@ -73,7 +73,7 @@ def traverse_tiles(rows: np.ndarray, order: np.ndarray, first: int) -> tuple[np.
 
 
 def cost_rows(tiles: np.ndarray, offset: int, count: int, database, database_order: np.ndarray, score: str,
-              compare: str, chunk_rows: int, enhance_window: int, threads: _ProductThreads,
+              compare: str, chunk_rows: int, enhance_window: int, threads: ProductThreads,
               check: bool = True) -> np.ndarray:
     """(count, N) float32 costs (lower is better) of the query rows in `tiles` (`traverse_tiles`)
     against every database image, in database traverse order: SeqSLAM's enhanced difference (distance
@@ -183,8 +183,11 @@ def sequence_search(database, queries, k: int, *, score: str = "seqslam", compar
     costs = np.empty((q, k), dtype=np.float32)
     second = np.full(q, np.inf, dtype=np.float32)
     lowest = np.inf
-    # one pool and one look for the BLAS a search: made per block of queries, they were most of its time
-    with _ProductThreads(compare) as threads:
+    # each fixed-shape product on one thread, as exact search's (a BLAS on several splits a product's sums
+    # by their count: 1,000-dim rows gave costs a grid step apart at 1 and 2 threads); one pool and one
+    # look for the BLAS a search: made per block of queries, they were most of its time
+    blas = blas_controller()
+    with ProductThreads(search_threads(blas), blas, "vprbench-sequence") as threads:
         for start in range(0, q, block):
             stop = min(q, start + block)
             first, last = max(0, start + int(offsets[0])), min(q, stop + int(offsets[-1]))
@@ -243,33 +246,3 @@ def _tile_product(tiles, offset: int, count: int, block, start: int, step: int, 
         np.matmul(tile, rows.T, out=out[lo - offset:hi - offset])
     else:
         out[lo - offset:hi - offset] = similarities_or_distances(tile, rows, compare)[lo - at:hi - at]
-
-
-class _ProductThreads:
-    """Where a block's cosine products run: as exact search's (search/exact.py), each fixed-shape
-    product on one thread of its own, as many side by side as the BLAS has threads. A BLAS on several
-    threads splits a product's sums by its thread count (1,000-dim rows: costs a grid step apart at 1
-    and 2 threads). sad's distances (faiss, one row pair at a time) stay as they were."""
-
-    def __init__(self, compare: str):
-        self.pool, self.blas = None, blas_controller() if compare == "cosine" else None  # found once a search
-        if self.blas is not None and (threads := search_threads(self.blas)) > 1:
-            from concurrent.futures import ThreadPoolExecutor
-
-            self.pool = ThreadPoolExecutor(threads, "vprbench-sequence", one_thread_each)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        if self.pool is not None:
-            self.pool.shutdown(wait=True)
-
-    def run(self, product, work: list) -> None:
-        if self.pool is None:
-            with self.blas.limit(limits=1) if self.blas is not None else _nothing():  # one thread here too
-                for args in work:
-                    product(*args)
-            return
-        with self.blas.limit(limits=1, user_api="blas"):  # only here: reading a post-processed chunk keeps its threads
-            list(self.pool.map(product, *zip(*work)))
