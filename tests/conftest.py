@@ -134,3 +134,42 @@ def cli(capsys):
         return code, out, err
 
     return run
+
+
+# ---------------------------------------------------------------- the method and stage registries, the test's own
+class ScratchRegistry:
+    """A registry (vprbench.registration.Registry) whose state is one test's; `module` is the module it is in."""
+
+    def __init__(self, module, registry, monkeypatch):
+        self.module, self.registry, self._monkeypatch = module, registry, monkeypatch
+
+    def fresh(self, *plugins) -> None:
+        """The registry as a new process finds it, with `plugins` (entry points: .name, .value, .load()) the only
+        ones installed: nothing registered yet; its first use registers the core's entries, then runs `plugins`."""
+        for name, value in (("entries", {}), ("loaded", False), ("failures", []), ("installed", lambda: list(plugins))):
+            self._monkeypatch.setattr(self.registry, name, value)
+
+
+def _scratch(module, registry, monkeypatch) -> ScratchRegistry:
+    registry.load()  # loaded first, whichever test is a process's first to use it: the state put back after each test
+    for name, copied in (("entries", dict), ("loaded", bool), ("failures", list)):
+        monkeypatch.setattr(registry, name, copied(getattr(registry, name)))
+    return ScratchRegistry(module, registry, monkeypatch)
+
+
+@pytest.fixture
+def scratch_methods(monkeypatch) -> ScratchRegistry:
+    """The method registry as this test's own copy, which it may register into: the core's and the installed
+    plugins' methods (loaded first; the plugins that failed to load still named); what the test registers or
+    changes is gone after it. `scratch_methods.fresh(*plugins)` makes it the registry of a new process instead."""
+    from vprbench.methods import registry
+
+    return _scratch(registry, registry.METHODS, monkeypatch)
+
+
+@pytest.fixture
+def scratch_stages(monkeypatch) -> ScratchRegistry:
+    """The stage registry as this test's own copy, as `scratch_methods` makes the method registry's."""
+    from vprbench.stages import registry
+
+    return _scratch(registry, registry.STAGES, monkeypatch)

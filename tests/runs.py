@@ -14,14 +14,13 @@ def evaluate_method(method, dataset, *, ks=None, cache_dir=None, index="exact", 
                     progress=progress, ranks=ranks)
 
 
-def register_weighted_grey(monkeypatch) -> None:
-    """Registers, for this test alone, "weighted-grey": 4 x 4 grey thumbnails weighted by the .npy file its one
-    option, `table`, names (a plugin whose fingerprint() does not name its file: the spec's files do)."""
+def register_weighted_grey(scratch_methods) -> None:
+    """Registers, in the test's own registry (`scratch_methods`), "weighted-grey": 4 x 4 grey thumbnails weighted
+    by the .npy file its one option, `table`, names (a plugin whose fingerprint() does not name its file: the spec's
+    files do)."""
     import numpy as np
 
-    from vprbench import register_method
     from vprbench.images import load_image
-    from vprbench.methods import registry
     from vprbench.methods.base import Method
 
     class Weighted(Method):
@@ -33,5 +32,4 @@ def register_weighted_grey(monkeypatch) -> None:
                              for p in images])
             return rows / np.linalg.norm(rows, axis=1, keepdims=True)
 
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
-    register_method("weighted-grey", Weighted)
+    scratch_methods.module.register_method("weighted-grey", Weighted)

@@ -24,19 +24,18 @@ def test_a_real_run_records_the_libraries_and_the_distributions_it_ran(cli, shar
     assert stored["origins"] == record["origins"] and stored["versions"] == versions
 
 
-def test_a_method_registered_from_a_script_is_recorded_without_a_distribution(monkeypatch, shared_data):
+def test_a_method_registered_from_a_script_is_recorded_without_a_distribution(scratch_methods, shared_data):
     from runs import evaluate_method
 
     from vprbench import register_method
     from vprbench.datasets import load_dataset
-    from vprbench.methods import Method, create_method, registry
+    from vprbench.methods import Method, create_method
 
     class Scripted(Method):
         def describe(self, images):
             return np.eye(len(images), 8, dtype=np.float32)
 
     Scripted.__module__ = "__main__"  # as a class defined in a script or a notebook cell is
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
     register_method("scripted", Scripted)
     record = evaluate_method(create_method("scripted"), load_dataset("corridor", shared_data), ks=(1,))
     assert record["origins"]["method"] == {"name": "scripted", "module": "__main__", "distribution": None,

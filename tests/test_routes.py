@@ -250,7 +250,7 @@ def test_a_search_given_as_a_searchspec_is_the_search_given_as_a_table():
 
 
 def test_a_file_edited_after_a_sweep_planned_its_cell_is_not_recorded_under_the_old_bytes(shared_data, tmp_path,
-                                                                                           monkeypatch):
+                                                                                           scratch_methods):
     """A sweep makes every spec first: a file an option names, written again before its cell ran, was read anew
     (its store keyed by the new bytes) while the record's spec, key and leaderboard row named the old ones."""
     import numpy as np
@@ -260,7 +260,7 @@ def test_a_file_edited_after_a_sweep_planned_its_cell_is_not_recorded_under_the_
     from vprbench.sweep import build_plan, run_cells
     from vprbench.sweep.runner import FAILED
 
-    register_weighted_grey(monkeypatch)  # a method whose one option names a file
+    register_weighted_grey(scratch_methods)  # a method whose one option names a file
     table, cache = tmp_path / "table.npy", tmp_path / "cache"
     settings = RunSettings(data_dir=shared_data, cache_dir=cache)
     data = {"methods": [{"name": "weighted-grey", "options": {"table": str(table)}}], "datasets": ["corridor"],

@@ -1,5 +1,5 @@
-"""What the method and stage registries share: the name rule, who registered an entry, loading
-an entry's import path, and the one rule for names and plugins: a taken name is never replaced
+"""What the method and stage registries share: the registry itself (`Registry`), the name rule,
+who registered an entry, loading an entry's import path, and the one rule for names and plugins: a taken name is never replaced
 (its results would be recorded under another's name), and an installed plugin that fails to
 load is a warning, skipped, never the end of the command."""
 from __future__ import annotations
@@ -113,6 +113,45 @@ def unloaded_hint(kind: str, failed: list[str]) -> str:
     which, whose = ("a plugin", "its") if len(failed) == 1 else ("one of the plugins", "their")
     return (f" It may come from {which} that failed to load: {'; '.join(failed)}. To use {whose} "
             f"{kind.lower()}s, {LOAD_FIX}.")
+
+
+class Registry:
+    """One kind's names -> entries (methods or stages): at its first use the core's, then the installed
+    plugins' (entry points of `group`); after them whatever this process registers."""
+
+    def __init__(self, kind: str, group: str, register_core):
+        self.kind, self.group, self.register_core = kind, group, register_core
+        self.entries: dict = {}
+        self.loaded = False
+        self.failures: list[str] = []  # plugins that failed to load, named when a name is unknown
+
+    def installed(self) -> list:
+        """The installed plugins' entry points."""
+        from importlib.metadata import entry_points
+
+        return list(entry_points(group=self.group))
+
+    def load(self) -> None:
+        if self.loaded:
+            return
+        self.loaded = True
+        with core_entries():
+            self.register_core()
+        self.failures = run_plugins(self.kind, self.installed(), self.entries)
+
+    def claim(self, entry) -> None:
+        """`entry` under its name: the core's and installed plugins' names are taken before any other."""
+        self.load()
+        claim(self.entries, self.kind, entry)
+
+    def available(self) -> dict:
+        self.load()
+        return dict(sorted(self.entries.items()))
+
+    def unloaded_hint(self) -> str:
+        """For a name that is unknown: the plugins that failed to load, which may register it ('' if none)."""
+        self.load()
+        return unloaded_hint(self.kind, self.failures)
 
 
 def imported(kind: str, name: str, source: str, target):

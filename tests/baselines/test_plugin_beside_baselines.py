@@ -3,6 +3,7 @@ is listed, describes images, and lands on the leaderboard next to a baseline."""
 import json
 import re
 import sys
+from importlib.metadata import entry_points
 from pathlib import Path
 
 import numpy as np
@@ -24,14 +25,14 @@ def test_doc_shows_the_example_files_verbatim():
 
 
 @pytest.fixture
-def with_plugin(example_plugin_site, monkeypatch, shared_data):
-    """The plugin's folder on the import path, as after 'pip install'; entry points are scanned afresh.
+def with_plugin(example_plugin_site, monkeypatch, shared_data, scratch_methods):
+    """The plugin's folder on the import path, as after 'pip install'; the method registry a new process's, which
+    finds the entry points installed now, the plugin's among them.
     (In-process rather than a subprocess per command: each would import torch again.)"""
     if not (shared_data / "corridor").is_dir():
         pytest.skip("corridor dataset is absent")
     monkeypatch.syspath_prepend(str(example_plugin_site))
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
-    monkeypatch.setattr(registry, "_plugins_loaded", False)
+    scratch_methods.fresh(*entry_points(group=registry.ENTRY_POINT_GROUP))
     monkeypatch.setenv("VPRBENCH_DATA", str(shared_data))  # the CLI's --data-dir sets it; undone after the test
     yield
     sys.modules.pop("vprbench_example_plugin", None)

@@ -38,15 +38,6 @@ def tiny_dinov3(monkeypatch) -> dict:
     return {k: v.detach().clone() for k, v in create_model(entry).state_dict().items()}
 
 
-
-@pytest.fixture
-def own_registry(monkeypatch):
-    """The method registry as the test's own copy: what a test registers is gone after it."""
-    from vprbench.methods import registry
-
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
-
-
 @pytest.fixture
 def images(shared_data) -> list:
     """Five Corridor query images."""

@@ -128,8 +128,7 @@ class Broken(Plain):
     batch_size = 0
 
 
-def test_registry_gives_every_method_a_checked_batch_size(monkeypatch):
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
+def test_registry_gives_every_method_a_checked_batch_size(scratch_methods):
     register_method("plain", Plain)
     register_method("broken", Broken)
     assert "batch_size" in registry.method_entry("plain").options()
@@ -243,7 +242,7 @@ def test_bad_dataset_toml_is_named(own, toml, message, cli):
 
 
 # ---------------------------------------------------------------- names keep their brackets (markup off)
-def test_names_with_brackets_print_whole(shared_data, cli, monkeypatch):
+def test_names_with_brackets_print_whole(shared_data, cli, monkeypatch, scratch_methods):
     code, _, err = cli("evaluate", "--method", "hog[x]", "--dataset", "corridor", "--data-dir", shared_data)
     assert_refused(code, err, None, "Unknown method 'hog[x]'")
 
@@ -252,7 +251,6 @@ def test_names_with_brackets_print_whole(shared_data, cli, monkeypatch):
     code, out, _ = cli("leaderboard")
     assert code == 0 and "hog [bins=4 resize=64x64]" in out
 
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
     register_method("colorhist[bins=4]", Plain, description="colour histogram [bold]4 bins[/bold]")
     monkeypatch.setenv("COLUMNS", "250")  # one table row per method
     code, out, _ = cli("methods", "list")

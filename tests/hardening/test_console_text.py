@@ -15,7 +15,6 @@ from rich.table import Table
 
 from vprbench import register_method
 from vprbench.evaluation import read_results
-from vprbench.methods import registry
 from vprbench.spec import RunSpec
 
 from hostile_files import tiny_images
@@ -77,7 +76,7 @@ def test_names_from_records_print_literally(hostile_run, cli, monkeypatch):
     assert_literal(err)
 
 
-def test_dataset_texts_and_plugin_descriptions_print_literally(tmp_path, cli, monkeypatch):
+def test_dataset_texts_and_plugin_descriptions_print_literally(tmp_path, cli, monkeypatch, scratch_methods):
     root = tmp_path / "mine"
     tiny_images(root / "database", ["0.png", "1.png"])
     tiny_images(root / "queries", ["q.png"])
@@ -87,7 +86,6 @@ def test_dataset_texts_and_plugin_descriptions_print_literally(tmp_path, cli, mo
     code, out, _ = cli("datasets", "info", root)
     assert code == 0 and out.count(MARKUP) >= 2, out
 
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
     register_method("colorhist", "vprbench.methods.hog:HOG", description=f"{MARKUP} {CONTROLS}")
     code, out, _ = cli("methods", "list")
     assert code == 0

@@ -241,33 +241,29 @@ def test_the_help_of_datasets_info_says_what_its_cache_dir_is_for(shared_data, t
     assert "folder of your own" in said and "descriptor stores" not in said, said
 
 
-def test_registering_a_method_again_is_refused_only_as_add_your_method_md_says():
+def test_registering_a_method_again_is_refused_only_as_add_your_method_md_says(scratch_methods):
     # docs/add-your-method.md: the same factory again (same defaults and description) is no clash; with another
     # description it is refused saying so, not as "a class defined again", which it is not
     import numpy as np
 
     import vprbench
-    from vprbench.methods import registry
 
     class Again(vprbench.Method):
         def describe(self, images):
             return np.full((len(images), 4), 0.5, dtype=np.float32)
 
-    try:
-        vprbench.register_method("docs-audit-again", Again, defaults={"a": 1}, description="one")
-        vprbench.register_method("docs-audit-again", Again, defaults={"a": 1}, description="one")
-        with pytest.raises(ValueError, match="same definition but other defaults or description") as refused:
-            vprbench.register_method("docs-audit-again", Again, defaults={"a": 2}, description="one")
-        assert "a class defined again" not in str(refused.value)
+    vprbench.register_method("docs-audit-again", Again, defaults={"a": 1}, description="one")
+    vprbench.register_method("docs-audit-again", Again, defaults={"a": 1}, description="one")
+    with pytest.raises(ValueError, match="same definition but other defaults or description") as refused:
+        vprbench.register_method("docs-audit-again", Again, defaults={"a": 2}, description="one")
+    assert "a class defined again" not in str(refused.value)
 
-        class Again(vprbench.Method):  # noqa: F811 - a notebook cell run again after an edit
-            def describe(self, images):
-                return np.full((len(images), 4), 0.5, dtype=np.float32)
+    class Again(vprbench.Method):  # noqa: F811 - a notebook cell run again after an edit
+        def describe(self, images):
+            return np.full((len(images), 4), 0.5, dtype=np.float32)
 
-        with pytest.raises(ValueError, match="a class defined again"):
-            vprbench.register_method("docs-audit-again", Again, defaults={"a": 1}, description="one")
-    finally:
-        registry._REGISTRY.pop("docs-audit-again", None)
+    with pytest.raises(ValueError, match="a class defined again"):
+        vprbench.register_method("docs-audit-again", Again, defaults={"a": 1}, description="one")
 
 
 @pytest.mark.parametrize("command", [["run", "plan.toml"], ["reproduce", "anyloc", "--table", "2", "--dry-run"]])

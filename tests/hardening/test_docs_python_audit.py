@@ -42,14 +42,12 @@ def test_every_python_block_of_the_docs_is_run_by_a_test():
         assert (ROOT / path).is_file() and (not name or f"def {name}(" in (ROOT / path).read_text()), where
 
 
-def test_the_register_line_of_add_your_method_md_registers_the_pages_thumbnail(monkeypatch):
+def test_the_register_line_of_add_your_method_md_registers_the_pages_thumbnail(scratch_methods):
     # docs/add-your-method.md: the line, run beside section 2's Thumbnail, makes the preset it describes
     # (it showed defaults={...}: a set, refused with a ValueError)
     import vprbench
     from vprbench.methods import registry
 
-    registry.available_methods()  # the core and plugins loaded first, so the copy undone after the test holds them
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
     scope: dict = {}
     exec(compile(_block("add-your-method.md", '"""A method living'), "docs/add-your-method.md", "exec"), scope)
     line = _block("add-your-method.md", 'vprbench.register_method("thumbnail", Thumbnail,')

@@ -113,11 +113,10 @@ def test_a_sweep_does_not_serve_a_result_computed_on_other_data(corridor_copy, s
     assert len(run(shared_data)) == 2  # and the original's
 
 
-def test_a_file_a_plugin_preset_names_is_known_by_its_bytes(tmp_path, monkeypatch):
+def test_a_file_a_plugin_preset_names_is_known_by_its_bytes(tmp_path, scratch_methods):
     """A preset's file (and a file given equal to it) was named by its path: edited in place, the
     run kept its key and a sweep served the result of the old bytes."""
     from vprbench import register_method
-    from vprbench.methods import registry
     from vprbench.methods.base import Method
 
     class Toy(Method):
@@ -127,7 +126,6 @@ def test_a_file_a_plugin_preset_names_is_known_by_its_bytes(tmp_path, monkeypatc
         def describe(self, images):
             return np.ones((len(images), 4), np.float32)
 
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
     weights = tmp_path / "w.npy"
     np.save(weights, np.ones(4))
     register_method("toy-identity", Toy, defaults={"weights": str(weights)})

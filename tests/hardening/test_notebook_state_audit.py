@@ -10,7 +10,6 @@ import vprbench
 from vprbench.datasets import load_dataset
 from vprbench.features import backbones
 from vprbench.loader import describe_batches
-from vprbench.methods import registry
 
 
 @pytest.fixture
@@ -80,8 +79,7 @@ def test_reprs_say_what_was_made_in_one_line(shared_data):
     assert repr(Odd()).startswith("<") and "Odd object at" in repr(Odd())  # a property that raises: still a repr
 
 
-def test_a_name_registered_again_after_an_edit_says_what_to_do(monkeypatch):
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
+def test_a_name_registered_again_after_an_edit_says_what_to_do(scratch_methods):
 
     class Mine(vprbench.Method):
         def describe(self, images):

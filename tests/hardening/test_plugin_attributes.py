@@ -16,7 +16,6 @@ from hostile_files import assert_refused
 from vprbench import VPRBenchError, create_method, register_method
 from vprbench.evaluation.pipeline import evaluate
 from vprbench.evaluation.results import read_results
-from vprbench.methods import registry
 from vprbench.paths import cache_root
 from vprbench.spec import RunSettings, spec_for
 
@@ -43,9 +42,7 @@ RAISES_AT = 6  # the line of `raise` in PLUGIN
 NUMBERS = itertools.count()
 
 
-@pytest.fixture(autouse=True)
-def own_registry(monkeypatch):
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
+pytestmark = pytest.mark.usefixtures("scratch_methods")  # what a test registers is its own
 
 
 def plugin_file(folder, module: str, body: str):

@@ -46,7 +46,7 @@ def plugin(name: str, shape=None, base=Returns, **attributes) -> str:
     return name
 
 
-pytestmark = pytest.mark.usefixtures("own_registry")  # what a test registers is its own
+pytestmark = pytest.mark.usefixtures("scratch_methods")  # what a test registers is its own
 
 
 def describe(cli, tmp_path, method: str, images, *options):
@@ -370,7 +370,7 @@ def test_a_method_without_describe_is_named_not_a_line_of_vprbench(cli, tmp_path
     assert "registry.py" not in err
 
 
-def test_a_stage_without_apply_is_refused_before_retrieval(monkeypatch, cli, shared_data):
+def test_a_stage_without_apply_is_refused_before_retrieval(scratch_stages, cli, shared_data):
     """Was "failed in apply(): NotImplementedError:  at vprbench/stages/base.py:NNN", after retrieval had run."""
     from vprbench.stages import RerankOptions, Stage
     from vprbench.stages import registry as stages
@@ -378,7 +378,6 @@ def test_a_stage_without_apply_is_refused_before_retrieval(monkeypatch, cli, sha
     class NoApply(Stage):
         Options = RerankOptions
 
-    monkeypatch.setattr(stages, "_REGISTRY", dict(stages.available_stages()))
     stages.register_stage("no-apply", NoApply)
     code, _, err = cli("evaluate", "--method", "hog", "--resize", 32, 32, "--dataset", "corridor", "--data-dir",
                        shared_data, "--k", 1, "--rerank", "no-apply", "--rerank-k", 5)

@@ -23,31 +23,18 @@ class Returns(Method):
         raise AssertionError("not described here")
 
 
-@pytest.fixture(autouse=True)
-def own_registry(monkeypatch):
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
-
-
-def installed(monkeypatch, *plugins):
-    """The method registry as a fresh process with these plugins' entry points installed finds it."""
-    monkeypatch.setattr(registry, "_REGISTRY", {})
-    monkeypatch.setattr(registry, "_plugins_loaded", False)
-    monkeypatch.setattr(registry, "_plugin_failures", [])
-    monkeypatch.setattr(registry, "entry_points", lambda group: list(plugins))
-
-
-def test_a_plugin_cannot_take_a_core_method_name(monkeypatch):
+def test_a_plugin_cannot_take_a_core_method_name(scratch_methods):
     class Hijack(Returns):
         pass
 
     def hijack():  # an installed plugin's entry point, registering HOG's name (its rows all ties: R@1 2.7 as HOG)
         register_method("hog", Hijack, description="not HOG")
 
-    installed(monkeypatch)
+    scratch_methods.fresh()
     with pytest.raises(ValueError, match=r"Method name 'hog' is taken \(registered by vprbench\); register yours "
                                          "under another name"):
         register_method("hog", Hijack)  # the Python API, before the registry was ever read: the core's name first
-    installed(monkeypatch, SimpleNamespace(name="hijack", value="x:hijack", load=lambda: hijack))
+    scratch_methods.fresh(SimpleNamespace(name="hijack", value="x:hijack", load=lambda: hijack))
     with pytest.warns(UserWarning, match=r"Method plugin 'hijack' \(x:hijack\) failed to load: Method name 'hog' is "
                                          r"taken \(registered by vprbench\)"):
         entry = registry.method_entry("hog")
@@ -59,23 +46,23 @@ def test_a_plugin_cannot_take_a_core_method_name(monkeypatch):
     assert registry.method_entry("thumb").target is Returns
 
 
-def test_a_plugin_that_exits_while_loading_is_skipped(monkeypatch, cli):
+def test_a_plugin_that_exits_while_loading_is_skipped(scratch_methods, cli):
     def exits():  # e.g. a module that calls sys.exit when a dependency is missing: every command ended with it
         raise SystemExit("please install superlib")
 
-    installed(monkeypatch, SimpleNamespace(name="exits", value="x:exits", load=lambda: exits))
+    scratch_methods.fresh(SimpleNamespace(name="exits", value="x:exits", load=lambda: exits))
     with pytest.warns(UserWarning, match=r"Method plugin 'exits' \(x:exits\) failed to load: please install superlib"):
         code, out, err = cli("methods", "list", "--json")
     assert code == 0 and "hog" in out, err
 
 
-def test_a_method_of_a_plugin_that_failed_to_import_is_not_just_unknown(monkeypatch, cli, tmp_path):
+def test_a_method_of_a_plugin_that_failed_to_import_is_not_just_unknown(scratch_methods, cli, tmp_path):
     """The plugin's methods were 'Unknown method' alone, as if never installed; the error names the plugin
     that failed to load, why, and what to do."""
     def broken():
         import nonexistent_dependency_of_the_plugin  # noqa: F401
 
-    installed(monkeypatch, SimpleNamespace(name="mine", value="my_pkg:register", load=lambda: broken))
+    scratch_methods.fresh(SimpleNamespace(name="mine", value="my_pkg:register", load=lambda: broken))
     with pytest.warns(UserWarning, match="Method plugin 'mine'"):
         code, _, err = cli("evaluate", "--method", "thumbnail", "--dataset", "corridor", "--k", "1")
     assert_refused(code, err, None, "Unknown method 'thumbnail'. Run 'vprbench methods list' to see all methods. It may "
@@ -105,25 +92,21 @@ def test_a_plugin_failing_without_a_message_is_named_by_its_error_type():
         assert run_plugins("Method", [Silent()], {}) == ["'quiet' (pkg:register): RuntimeError"]
 
 
-def test_a_plugin_failing_partway_is_skipped_whole(monkeypatch):
+def test_a_plugin_failing_partway_is_skipped_whole(scratch_methods, scratch_stages):
     """What its register() registered before it failed is taken out again, in every registry (a method
     plugin may register stages too: was, its stages stayed); the core's and other plugins' stay."""
     from vprbench.stages import register_stage
     from vprbench.stages import registry as stages
 
-    installed(monkeypatch)
-    monkeypatch.setattr(stages, "_REGISTRY", {})
-    monkeypatch.setattr(stages, "_plugins_loaded", False)
-    monkeypatch.setattr(stages, "entry_points", lambda group: [SimpleNamespace(
-        name="other", value="o:register", load=lambda: lambda: register_stage("other-stage", "o:Stage"))])
+    scratch_stages.fresh(SimpleNamespace(name="other", value="o:register",
+                                         load=lambda: lambda: register_stage("other-stage", "o:Stage")))
 
     def partway():  # the stage registry is first read here: its core and plugin stages load meanwhile
         register_method("first", Returns)
         register_stage("its-stage", "pkg:Stage")
         raise RuntimeError("the second method's import failed")
 
-    monkeypatch.setattr(registry, "entry_points", lambda group: [SimpleNamespace(name="partway", value="pkg:register",
-                                                                                 load=lambda: partway)])
+    scratch_methods.fresh(SimpleNamespace(name="partway", value="pkg:register", load=lambda: partway))
     with pytest.warns(UserWarning, match="failed to load: the second method's import failed"):
         methods = registry.available_methods()
     assert "first" not in methods and "hog" in methods

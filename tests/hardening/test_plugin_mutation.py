@@ -13,7 +13,7 @@ from vprbench.evaluation.results import read_results
 from vprbench.methods import registry
 
 
-pytestmark = pytest.mark.usefixtures("own_registry")  # what a test registers is its own
+pytestmark = pytest.mark.usefixtures("scratch_methods")  # what a test registers is its own
 
 
 class Pops(Returns):
@@ -113,12 +113,11 @@ def test_a_plugin_changing_its_options_leaves_the_preset_and_the_spec_as_they_we
 
 # ---------------------------------------------------------------- what is registered
 @pytest.mark.parametrize("name", ["a\nb", "a\tb", "a\u200bb", "-o"], ids=["line-break", "tab", "zero-width", "dash"])
-def test_a_name_that_would_split_a_row_or_read_as_an_option_is_refused(name, monkeypatch):
+def test_a_name_that_would_split_a_row_or_read_as_an_option_is_refused(name, scratch_stages):
     # was taken: 'a\nb' printed the leaderboard's row as two, '-o' could not be given to --method
     from vprbench.stages import Stage, register_stage
     from vprbench.stages import registry as stage_registry
 
-    monkeypatch.setattr(stage_registry, "_REGISTRY", dict(stage_registry.available_stages()))
     for register, target in ((register_method, Returns), (register_stage, Stage)):
         with pytest.raises(ValueError, match="no whitespace or control characters and do not start with '-'"):
             register(name, target)

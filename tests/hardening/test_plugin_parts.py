@@ -17,13 +17,9 @@ from vprbench.errors import VPRBenchError
 from vprbench.evaluation.results import read_results
 from vprbench.methods import registry
 from vprbench.stages import RerankOptions, Stage, register_stage
-from vprbench.stages import registry as stage_registry
 
 
-@pytest.fixture(autouse=True)
-def own_registries(monkeypatch):
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
-    monkeypatch.setattr(stage_registry, "_REGISTRY", dict(stage_registry.available_stages()))
+pytestmark = pytest.mark.usefixtures("scratch_methods", "scratch_stages")  # what a test registers is its own
 
 
 def evaluate(cli, shared_data, method, *extra):

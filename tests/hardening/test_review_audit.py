@@ -4,13 +4,11 @@ from __future__ import annotations
 import pytest
 
 from vprbench import Method, register_method
-from vprbench.methods import create_method, registry
+from vprbench.methods import create_method
 from vprbench.spec import resolve_spec
 
 
-@pytest.fixture(autouse=True)
-def own_registry(monkeypatch):
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
+pytestmark = pytest.mark.usefixtures("scratch_methods")  # what a test registers is its own
 
 
 class Sized(Method):

@@ -193,7 +193,7 @@ def test_an_approximate_search_as_deep_as_its_largest_k_is_a_row_of_its_own(shar
     assert shallow.search.options == {}  # a run within the default shortlist keeps its identity
 
 
-def test_a_file_an_option_names_keys_the_store_by_its_bytes(shared_data, tmp_path, monkeypatch):
+def test_a_file_an_option_names_keys_the_store_by_its_bytes(shared_data, tmp_path, scratch_methods):
     """The spec names a file by its bytes, the store named it by its path: the file edited in place, the
     run was another (its own key, the new sha256 in its record) but read the descriptors of the old bytes."""
     import numpy as np
@@ -201,7 +201,7 @@ def test_a_file_an_option_names_keys_the_store_by_its_bytes(shared_data, tmp_pat
     from vprbench.evaluation import evaluate
     from vprbench.spec import RunSettings
 
-    register_weighted_grey(monkeypatch)  # a plugin whose fingerprint() forgets its file: the store key still sees it
+    register_weighted_grey(scratch_methods)  # a plugin whose fingerprint() forgets its file: the store key still sees it
     table, run = tmp_path / "table.npy", RunSettings(data_dir=shared_data, cache_dir=tmp_path / "cache")
     records = []
     for content in (np.ones(16), np.arange(1.0, 17.0)):

@@ -21,15 +21,8 @@ class Hijack(AlphaQE):
     """Another stage, under a built-in stage's name it would have taken (its results recorded as SeqSLAM's)."""
 
 
-def fresh_stages(monkeypatch, *plugins):
-    monkeypatch.setattr(stages, "_REGISTRY", {})
-    monkeypatch.setattr(stages, "_plugins_loaded", False)
-    monkeypatch.setattr(stages, "_plugin_failures", [], raising=False)
-    monkeypatch.setattr(stages, "entry_points", lambda group: list(plugins))
-
-
-def test_a_plugin_cannot_take_a_stage_name(monkeypatch):
-    fresh_stages(monkeypatch)
+def test_a_plugin_cannot_take_a_stage_name(scratch_stages):
+    scratch_stages.fresh()
     with pytest.raises(ValueError, match=r"Stage name 'sift-ransac' is taken \(registered by vprbench\); register "
                                          "yours under another name"):
         stages.register_stage("sift-ransac", Hijack)  # the Python API, before the registry was ever read
@@ -37,7 +30,7 @@ def test_a_plugin_cannot_take_a_stage_name(monkeypatch):
     def hijack():  # an installed plugin's entry point
         stages.register_stage("seqslam", Hijack)
 
-    fresh_stages(monkeypatch, SimpleNamespace(name="hijack", value="x:hijack", load=lambda: hijack))
+    scratch_stages.fresh(SimpleNamespace(name="hijack", value="x:hijack", load=lambda: hijack))
     with pytest.warns(UserWarning, match=r"Stage plugin 'hijack' \(x:hijack\) failed to load: Stage name 'seqslam' "
                                          r"is taken \(registered by vprbench\)"):
         entry = stages.stage_entry("seqslam")
@@ -49,22 +42,22 @@ def test_a_plugin_cannot_take_a_stage_name(monkeypatch):
     assert stages.stage_entry("mine").target is AlphaQE
 
 
-def test_a_stage_plugin_that_exits_while_loading_is_skipped(monkeypatch, cli):
+def test_a_stage_plugin_that_exits_while_loading_is_skipped(scratch_stages, cli):
     def exits():
         raise SystemExit("please install superlib")
 
-    fresh_stages(monkeypatch, SimpleNamespace(name="exits", value="x:exits", load=lambda: exits))
+    scratch_stages.fresh(SimpleNamespace(name="exits", value="x:exits", load=lambda: exits))
     with pytest.warns(UserWarning, match=r"Stage plugin 'exits' \(x:exits\) failed to load: please install superlib"):
         code, out, err = cli("stages", "list", "--json")
     assert code == 0 and "seqslam" in {s["name"] for s in json.loads(out)}, err
 
 
 # ---------------------------------------------------------------- one broken registration in a list
+@pytest.mark.usefixtures("scratch_methods", "scratch_stages")
 @pytest.mark.parametrize("kind", ["methods", "stages"])
-def test_a_list_marks_a_registration_that_cannot_be_loaded(monkeypatch, cli, kind):
-    registry, register = (methods, vprbench.register_method) if kind == "methods" else (stages, stages.register_stage)
+def test_a_list_marks_a_registration_that_cannot_be_loaded(cli, kind):
+    register = vprbench.register_method if kind == "methods" else stages.register_stage
     listed = methods.available_methods() if kind == "methods" else stages.available_stages()
-    monkeypatch.setattr(registry, "_REGISTRY", dict(listed))
     register("broken", "nosuchmodule:thing")
     why = f"{kind[:-1].title()} 'broken' (nosuchmodule) cannot be loaded from nosuchmodule:thing: No module named " \
           "'nosuchmodule'; install what it needs or fix it (or uninstall the plugin)."
@@ -81,13 +74,12 @@ def test_a_list_marks_a_registration_that_cannot_be_loaded(monkeypatch, cli, kin
 
 
 @pytest.mark.parametrize("module, why", [("raises", "needs a GPU"), ("exits", "please install superlib")])
-def test_a_registration_whose_module_fails_on_import_is_one_line(monkeypatch, cli, shared_data, tmp_path, module,
-                                                                  why):
+def test_a_registration_whose_module_fails_on_import_is_one_line(monkeypatch, scratch_methods, cli, shared_data,
+                                                                  tmp_path, module, why):
     """A plugin module that raises or calls sys.exit when imported: a traceback, or the listing ended."""
     (tmp_path / f"{module}_plugin.py").write_text('raise RuntimeError("needs a GPU")\n' if module == "raises" else
                                                   'import sys\nsys.exit("please install superlib")\n')
     monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setattr(methods, "_REGISTRY", dict(methods.available_methods()))
     vprbench.register_method("broken", f"{module}_plugin:Thing")
     code, out, err = cli("methods", "list", "--json")
     assert code == 0, err

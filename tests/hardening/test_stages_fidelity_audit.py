@@ -253,11 +253,10 @@ class Oracle(Stage):
         return by_count(candidates, np.array(hits, dtype=np.int64))
 
 
-def test_an_oracle_stage_reaches_its_ceiling_at_r1(monkeypatch, shared_data, tmp_path):
+def test_an_oracle_stage_reaches_its_ceiling_at_r1(scratch_stages, shared_data, tmp_path):
     from vprbench.evaluation import evaluate
     from vprbench.spec import RunSettings, resolve_spec
 
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
     registry.register_stage("audit-oracle", Oracle)
     settings = RunSettings(data_dir=shared_data, cache_dir=tmp_path / "cache")
     alone = evaluate(resolve_spec("hog", "corridor", ks=(1, 5, 20), data_dir=shared_data), settings)

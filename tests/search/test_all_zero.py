@@ -22,7 +22,7 @@ from vprbench.evaluation import evaluate, per_query, read_results, save_result
 from vprbench.evaluation.blocks import for_dataset
 from vprbench.evaluation.proof import proven
 from vprbench.search.exact import exact_search
-from vprbench.methods import create_method, registry
+from vprbench.methods import create_method
 from vprbench.spec import RunSettings, resolve_spec
 from vprbench.evaluation.pipeline import export_candidates
 
@@ -51,9 +51,7 @@ class Oracle(Method):
         return rows
 
 
-@pytest.fixture(autouse=True)
-def own_registry(monkeypatch):
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
+pytestmark = pytest.mark.usefixtures("scratch_methods")  # what a test registers is its own
 
 
 @pytest.fixture(scope="module")

@@ -89,8 +89,7 @@ class Broken(Stage):
 @pytest.mark.parametrize("k, message", [(11, r"Stage 'broken' returned database indices out of range for query 0 "
                                                 r"\(the database has 111 images, 0..110\)"),
                                         (12, "Stage 'broken' returned candidates for 110 queries, but there are 111")])
-def test_a_stage_that_breaks_the_contract_is_named(shared_data, stage_cache, monkeypatch, k, message):
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_stages()))
+def test_a_stage_that_breaks_the_contract_is_named(shared_data, stage_cache, scratch_stages, k, message):
     registry.register_stage("broken", Broken)
     with pytest.raises(VPRBenchError, match=message):
         evaluate(spec_of(shared_data, [{"name": "broken", "k": k}]), RunSettings(data_dir=shared_data, cache_dir=stage_cache))

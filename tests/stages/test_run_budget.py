@@ -102,10 +102,7 @@ class Whitened(Method):
 
 
 @pytest.fixture
-def whitened(monkeypatch):
-    from vprbench.methods import registry
-
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_methods()))
+def whitened(scratch_methods):
     register_method("whitened", Whitened)
 
 

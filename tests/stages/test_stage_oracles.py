@@ -192,13 +192,12 @@ def searcher():
     return Search
 
 
-def test_a_re_ranker_naming_an_image_it_was_not_given_is_refused(shared_data, stage_cache, monkeypatch):
+def test_a_re_ranker_naming_an_image_it_was_not_given_is_refused(shared_data, stage_cache, scratch_stages):
     """Was taken: recall after it could pass the ceiling recorded for its candidates."""
     from vprbench.evaluation import evaluate
     from vprbench.spec import RunSettings, resolve_spec
     from vprbench.stages import registry
 
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry.available_stages()))
     registry.register_stage("searcher", searcher())
     spec = resolve_spec("hog", "corridor", stages=[{"name": "searcher", "k": 2}], ks=(1, 2), data_dir=shared_data)
     with pytest.raises(VPRBenchError, match=r"^Stage 'searcher' returned database image \d+ for query \d+, which is not "

@@ -45,7 +45,7 @@ class PathsOnly(vprbench.Method):
         return l2_normalise(np.stack([[len(p.name), p.stat().st_size, 1.0] for p in images]))
 
 
-def test_plugin_that_only_describes_paths_keeps_working(corridor_images):
+def test_plugin_that_only_describes_paths_keeps_working(corridor_images, scratch_methods):
     vprbench.register_method("paths-only-test", PathsOnly)
     method = vprbench.create_method("paths-only-test")
     rows = collect(method, corridor_images, workers=2)

@@ -21,14 +21,12 @@ import types
 import typing
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from importlib.metadata import entry_points
 from pathlib import Path
 
 from ..errors import VPRBenchError, closest_names
 from ..loader import plugin_part
 from ..paths import folder_path
-from ..registration import (check_name, check_target, claim, core_entries, imported, looked_up, run_plugins, source_of,
-                            unloaded_hint)
+from ..registration import Registry, check_name, check_target, imported, looked_up, source_of
 from ..text import shortened
 from .attributes import MAX_BATCH_SIZE, check_attributes, set_attributes
 from .checks import canonical, plain_options, whole
@@ -151,9 +149,14 @@ class MethodEntry:
         return kept
 
 
-_REGISTRY: dict[str, MethodEntry] = {}
-_plugins_loaded = False
-_plugin_failures: list[str] = []  # plugins that failed to load, named when a name is unknown
+def _register_core() -> None:
+    from .builtin import core_methods
+
+    for entry in core_methods():
+        register_method(**entry)
+
+
+METHODS = Registry("Method", ENTRY_POINT_GROUP, _register_core)
 
 
 def register_method(
@@ -187,33 +190,16 @@ def register_method(
             raise ValueError(f"{str(error).rstrip('.')}, in its defaults: register plain data (numbers, text, "
                              "lists, tables; no NaN).") from None
     entry = MethodEntry(name, factory, dict(defaults or {}), description, source or source_of(factory))
-    _load_plugins()  # the core's and installed plugins' names are taken before any other registers
-    claim(_REGISTRY, "Method", entry)
-
-
-def _load_plugins() -> None:
-    global _plugins_loaded
-    if _plugins_loaded:
-        return
-    _plugins_loaded = True
-    from .builtin import core_methods
-
-    with core_entries():
-        for entry in core_methods():
-            register_method(**entry)
-    global _plugin_failures
-    _plugin_failures = run_plugins("Method", entry_points(group=ENTRY_POINT_GROUP), _REGISTRY)
+    METHODS.claim(entry)
 
 
 def available_methods() -> dict[str, MethodEntry]:
-    _load_plugins()
-    return dict(sorted(_REGISTRY.items()))
+    return METHODS.available()
 
 
 def failed_plugins_hint() -> str:
     """For a method name that is unknown: the plugins that failed to load, which may register it ('' if none)."""
-    available_methods()
-    return unloaded_hint("Method", _plugin_failures)
+    return METHODS.unloaded_hint()
 
 
 def method_entry(name: str) -> MethodEntry:

@@ -11,13 +11,10 @@ where `my_package.register()` calls `vprbench.stages.register_stage("my-stage", 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from importlib.metadata import entry_points
-
 from pydantic import ValidationError
 
 from ..errors import VPRBenchError, closest_names
-from ..registration import (check_name, check_target, claim, core_entries, imported, looked_up, run_plugins, source_of,
-                            unloaded_hint)
+from ..registration import Registry, check_name, check_target, imported, looked_up, source_of
 
 ENTRY_POINT_GROUP = "vprbench.stages"
 
@@ -43,19 +40,13 @@ class StageEntry:
         return found
 
 
-_REGISTRY: dict[str, StageEntry] = {}
-_plugins_loaded = False
-_plugin_failures: list[str] = []  # plugins that failed to load, named when a name is unknown
-
-
 def register_stage(name: str, target: type | str, *, description: str = "", source: str | None = None) -> None:
     """Make `name` available to `--rerank name` / `--sequence name` and plans' `stages`; a name
     already taken by another stage is refused (ValueError naming who registered it)."""
     check_name("Stage", name)
     check_target("Stage", name, target, description, source)
     entry = StageEntry(name, target, description, source or source_of(target))
-    _load_plugins()  # the core's and installed plugins' names are taken before any other registers
-    claim(_REGISTRY, "Stage", entry)
+    STAGES.claim(entry)
 
 
 def core_stages() -> list[dict]:
@@ -75,28 +66,23 @@ def core_stages() -> list[dict]:
     ]
 
 
-def _load_plugins() -> None:
-    global _plugins_loaded
-    if _plugins_loaded:
-        return
-    _plugins_loaded = True
-    with core_entries():
-        for entry in core_stages():
-            register_stage(**entry, source="vprbench")
-    global _plugin_failures
-    _plugin_failures = run_plugins("Stage", entry_points(group=ENTRY_POINT_GROUP), _REGISTRY)
+def _register_core() -> None:
+    for entry in core_stages():
+        register_stage(**entry, source="vprbench")
+
+
+STAGES = Registry("Stage", ENTRY_POINT_GROUP, _register_core)
 
 
 def available_stages() -> dict[str, StageEntry]:
-    _load_plugins()
-    return dict(sorted(_REGISTRY.items()))
+    return STAGES.available()
 
 
 def stage_entry(name: str) -> StageEntry:
     stages, name = available_stages(), looked_up(name)
     if name not in stages:
         raise VPRBenchError(f"Unknown stage {name!r}.{closest_names(str(name), stages)} "
-                            f"Stages: {', '.join(stages) or 'none'}.{unloaded_hint('Stage', _plugin_failures)}")
+                            f"Stages: {', '.join(stages) or 'none'}.{STAGES.unloaded_hint()}")
     return stages[name]
 
 
