@@ -7,6 +7,7 @@ import dataclasses
 import functools
 import http.server
 import json
+import shlex
 import subprocess
 import sys
 import threading
@@ -196,11 +197,38 @@ def test_explicit_data_dir_is_downloaded_into_only_when_asked(corridor_server, t
     assert tree(target / "corridor")[:3] == ["ReadMe.txt", "ground_truth_new.npy", "query"]
 
 
-def test_readme_main_job_runs_here_as_a_real_process(shared_data, tmp_path):
-    """The README's main job, as written there, on this machine: the data beside the repo, nothing downloaded."""
+def readme_main_job() -> list[list[str]]:
+    """The README's first set-up command after the install: its steps, each as words."""
     setup = (ROOT / "README.md").read_text().split("## Set up", 1)[1].split("## Use", 1)[0]
     line = next(line for line in setup.splitlines() if "vprbench evaluate" in line)
-    words = line.split(".venv/bin/vprbench ", 1)[1].replace("../shared/data", str(shared_data)).split()
+    steps = [shlex.split(step) for step in line.split(" && ")]
+    return steps[next(i for i, step in enumerate(steps) if "install" in step) + 1:]
+
+
+def test_readme_main_job_on_a_fresh_machine_downloads_and_evaluates(corridor_server, tmp_path, monkeypatch, cli):
+    """A fresh machine has no ../shared: the README's command was refused there ('the folder ../shared does not
+    exist') before any download; its steps, as written, now fetch Corridor beside the repo and evaluate it."""
+    import logging
+
+    monkeypatch.setattr(pooch.get_logger(), "level", logging.WARNING)
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    monkeypatch.chdir(repo)
+    for step in readme_main_job():
+        if step[0] == "mkdir":
+            subprocess.run(step, check=True)
+            continue
+        assert step[0] == ".venv/bin/vprbench", step
+        code, out, err = cli(*step[1:], "--cache-dir", tmp_path / "cache")
+        assert code == 0, err
+        assert "hog on corridor" in out
+    assert len(list((tmp_path / "shared" / "data" / "corridor" / "query").glob("*.jpg"))) == 111
+
+
+def test_readme_main_job_runs_here_as_a_real_process(shared_data, tmp_path):
+    """The README's main job, as written there, on this machine: the data beside the repo, nothing downloaded."""
+    *_, job = readme_main_job()
+    words = [word.replace("../shared/data", str(shared_data)) for word in job[1:]]
     before = tree(shared_data)
     done = subprocess.run([str(Path(sys.executable).parent / "vprbench"), *words, "--cache-dir", str(tmp_path / "cache")],
                           capture_output=True, text=True, cwd=ROOT, timeout=300)
