@@ -77,6 +77,8 @@ def test_the_evaluate_caption_gives_every_unit_and_the_stored_bytes(runs):
     half = _variants(runs["single-image"])[2]
     caption = results_table(half).caption
     assert "AUC-PR and max F1 from 0 to 1" in caption
+    # a perfect AUC-PR beside R@1 60 read as a contradiction: the caption says whose recall it is
+    assert "(the last three over each query's top-1 match, recall being the share of correct ones accepted" in caption
     assert f"dim 35721 ({2 * 35721} bytes as stored)" in caption, caption
 
 

@@ -162,7 +162,7 @@ def results_table(record: dict):
                   "-" if max_f1 is None else f"{max_f1:.3f}")
     computed = record["descriptors_computed"]
     table.caption = (
-        f"R@K and R@100%P in percent, AUC-PR and max F1 from 0 to 1; {counts['database']} database, "
+        f"R@K and R@100%P in percent, AUC-PR and max F1 from 0 to 1 ({PR_CONVENTION}); {counts['database']} database, "
         f"{plural(counts['queries'], 'query')} "
         f"({counts['queries_without_positives']} without positives, counted as failures); "
         + all_zero_text(counts) +
@@ -171,6 +171,10 @@ def results_table(record: dict):
         f"{timings['total_s']:.1f} s total"
     )
     return table
+
+
+#: VPR-Bench's precision-recall convention, which a perfect AUC-PR beside R@1 60 would otherwise hide
+PR_CONVENTION = "the last three over each query's top-1 match, recall being the share of correct ones accepted, as VPR-Bench"
 
 
 def all_zero_text(counts: dict) -> str:
