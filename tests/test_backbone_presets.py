@@ -44,6 +44,9 @@ def test_methods_backbones_lists_every_entry_with_its_licence(capsys, monkeypatc
     for name, entry in backbones().items():
         row = next(line for line in out.splitlines() if f" {name} " in line)
         assert entry.licence in row and entry.timm_name in row and (("(gated)" in row) == entry.gated)
+    monkeypatch.setenv("COLUMNS", "80")  # a narrow terminal or a pipe: names were cut to 'dino_v…'
+    code, out, _ = cli(capsys, "methods", "backbones")
+    assert all(re.search(rf"│ {re.escape(name)} +│", out) for name in backbones()), out
     code, out, _ = cli(capsys, "methods", "backbones", "--json")
     listed = json.loads(out)
     assert [e["name"] for e in listed] == list(backbones()) and listed[0]["depth"] == backbones()[listed[0]["name"]].depth

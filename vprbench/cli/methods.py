@@ -54,13 +54,16 @@ def run_backbones(args) -> int:
     if args.json:
         print(json.dumps([e.model_dump(mode="json") for e in entries], indent=2))
         return 0
-    table = Table(title="Backbones (manifests/backbones; or --backbone timm:ARCH.TAG)")
-    for column in ("name", "family", "timm", "patch", "prefix", "position", "blocks x width", "licence"):
+    table = Table(title="Backbones (manifests/backbones; or --backbone timm:ARCH.TAG)",
+                  caption="ViT: blocks x width /patch, tokens before the patches, positions; every field: --json")
+    # the names are what --backbone takes: whole on one line at any width (the rest wraps)
+    table.add_column("name", no_wrap=True, min_width=max(len(e.name) for e in entries))
+    for column in ("family", "ViT", "licence"):
         table.add_column(column)
+    table.add_column("timm", overflow="fold")
     for e in entries:
         prefix = " + ".join(filter(None, ["CLS" if e.cls_token else "", f"{e.registers} reg" if e.registers else ""]))
-        cells = (e.name, e.family, e.timm_name, str(e.patch), prefix or "none", e.position,
-                 f"{e.depth} x {e.width}", e.licence + (" (gated)" if e.gated else ""))
-        table.add_row(*cells)
+        table.add_row(e.name, e.family, f"{e.depth} x {e.width} /{e.patch}, {prefix or 'none'}, {e.position}",
+                      e.licence + (" (gated)" if e.gated else ""), e.timm_name)
     console().print(table)
     return 0
