@@ -225,4 +225,4 @@ def test_describe_offers_no_strict_it_would_ignore(capsys, tmp_path):
     with pytest.raises(SystemExit) as exited:
         main(["describe", "--method", "hog", "--strict", __file__, "--out", str(tmp_path / "x.npy")])
     err = capsys.readouterr().err
-    assert exited.value.code == 2 and err.strip() == "error: unrecognized arguments: --strict; see 'vprbench --help'", err
+    assert exited.value.code == 2 and err.strip() == "error: unrecognized arguments: --strict; see 'vprbench describe --help'", err

@@ -26,7 +26,16 @@ class Parser(argparse.ArgumentParser):
 
     def parse_known_args(self, args=None, namespace=None):
         self.given_flags = {}  # what this parse has seen, for repeats.py
+        Parser.innermost = self.prog  # a subcommand's parse comes after its parent's: the last is the deepest
         return super().parse_known_args(args, namespace)
+
+    def parse_args(self, args=None, namespace=None):
+        """As argparse's, but a flag no parser knows points at the help of the subcommand it was given to."""
+        parsed, unknown = self.parse_known_args(args, namespace)
+        if unknown:
+            print_error(f"unrecognized arguments: {' '.join(unknown)}; see '{Parser.innermost} --help'")
+            sys.exit(2)
+        return parsed
 
     def error(self, message: str):
         print_error(f"{message}; see '{self.prog} --help'")
