@@ -152,9 +152,13 @@ def test_reproduce_backbones_plan_lists_what_each_row_needs(capsys, monkeypatch,
     assert "vocabulary fit" not in paper and "the authors' vocabulary 'indoor': run 'vprbench vocabulary download" in paper
     assert "vocabular" not in needs("GeM SigLIP 2 B/16")
     assert ("vocabularies D = indoor, urban, hawkins, laurel-caverns, aerial: run 'vprbench vocabulary fit --domain D "
-            f"--method anyloc-vlad-dinov3 --backbone dinov3_vitl16 --layer 18 --data-dir {tmp_path / 'no-data'}'") \
+            f"--method anyloc-vlad-dinov3 --backbone dinov3_vitl16 --layer 18 --facet value --clusters 32 --data-dir "
+            f"{tmp_path / 'no-data'}'") \
         in needs("VLAD DINOv3 ViT-L/16")  # the run's data root: the fit reads the same datasets
     assert "gated, DINOv3 License: request access at https://github.com/facebookresearch/dinov3" in needs("GeM DINOv3 ViT-B/16")
     assert "huggingface.co/timm/vit_pe_spatial_base_patch16_512.fb" in needs("VLAD PE-spatial B/16")
+    # timm's weights are all model.safetensors: each named by its repository, not said as another's
+    assert "weights timm/naflexvit_base_patch16_radio_v3.c_radio/model.safetensors: download " \
+           "https://huggingface.co/timm/naflexvit_base_patch16_radio_v3.c_radio into" in needs("VLAD RADIO v3 B/16")
     missing = sorted(re.findall(r"^dataset (\S+): ", "\n".join(notes.values()), re.MULTILINE))
     assert len(missing) == 12 and missing[:2] == ["17places", "baidu-mall"]

@@ -136,6 +136,31 @@ def test_fit_with_the_anyloc_method_then_use_by_name(shared_data, tmp_path, caps
     assert out.shape == (2, 4 * 384) and np.allclose(np.linalg.norm(out, axis=1), 1, atol=1e-5)
 
 
+def test_a_missing_domain_vocabulary_says_the_fit_command_of_the_run(shared_data, tmp_path, capsys):
+    """It said "Fit it with `vprbench vocabulary fit --method METHOD --domain indoor ...`": neither the method nor
+    the options keying the vocabulary (random weights) nor the run's folders. Now the dry run's command, to paste."""
+    import shlex
+
+    from vprbench.cli.main import build_parser, main
+    from vprbench.cli.options import method_options
+    from vprbench.methods import create_method
+
+    cache = tmp_path / "my cache"
+    code = main(["evaluate", "--method", "anyloc-vlad-dinov2", "--weights", "random", "--vocabulary", "indoor",
+                 "--dataset", "corridor", "--data-dir", str(shared_data), "--cache-dir", str(cache)])
+    err = capsys.readouterr().err
+    assert code == 1 and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    command = shlex.split(err.split("Fit it with `", 1)[1].split("`", 1)[0])
+    assert command[:7] == ["vprbench", "vocabulary", "fit", "--domain", "indoor", "--method", "anyloc-vlad-dinov2"]
+    args = build_parser().parse_args(command[1:])
+    assert (str(args.data_dir), str(args.cache_dir)) == (str(shared_data), str(cache))
+    # run as said, the fit caches its centres under the key this run looks in
+    keyed = ("vocabulary_backbone", "layer", "facet", "clusters", "stride")
+    fitted, run = create_method(args.method, **method_options(args)), create_method("anyloc-vlad-dinov2", weights="random")
+    assert [getattr(fitted, a) for a in keyed] == [getattr(run, a) for a in keyed] == ["dinov2_vitg14@random", 31,
+                                                                                        "value", 32, 14]
+
+
 def test_a_named_vocabulary_that_is_no_domain_is_not_told_to_fit_one(tmp_path):
     """'urbn' cannot be fitted with `--domain urbn` (no such domain): the error names the near domain and import."""
     with pytest.raises(VPRBenchError) as caught:
@@ -143,7 +168,8 @@ def test_a_named_vocabulary_that_is_no_domain_is_not_told_to_fit_one(tmp_path):
     said = str(caught.value)
     assert "Did you mean: urban?" in said and "vocabulary import FILE --source urbn" in said
     assert "--domain urbn" not in said and "\n" not in said
-    with pytest.raises(VPRBenchError, match=r"Fit it with `vprbench vocabulary fit --method METHOD --domain urban \.\.\.`"):
+    with pytest.raises(VPRBenchError, match=r"Fit it with `vprbench vocabulary fit --domain urban --method anyloc --backbone "
+                                                  r"dinov2_vits14 --layer 9 --facet value --clusters 4`"):
         resolve_vocabulary("urban", "dinov2_vits14", 9, "value", 4, tmp_path)
 
 

@@ -112,7 +112,7 @@ def test_save_load_roundtrip_and_cache(tmp_path):
         resolve_vocabulary(str(tmp_path / "v.pt"), "dinov2_vits14", 11, "value", 8)
     with pytest.raises(VPRBenchError, match="No 'indoor' vocabulary .* 8 clusters"):
         resolve_vocabulary("indoor", "dinov2_vits14", 11, "value", 8)
-    with pytest.raises(VPRBenchError, match="vocabulary fit --method METHOD --dataset baidu-mall"):
+    with pytest.raises(VPRBenchError, match="vocabulary fit --dataset baidu-mall --method anyloc --backbone dinov2_vits14"):
         resolve_vocabulary("map-baidu-mall", "dinov2_vits14", 11, "value", 4)
 
 

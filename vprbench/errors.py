@@ -15,6 +15,16 @@ class VPRBenchError(Exception):
     """A problem with the user's input or environment; the message says what and how to fix it."""
 
 
+class MethodNeed(VPRBenchError):
+    """What a method lacks to be made, said with the command making it, which names the method and the run's
+    folders: `said(method, locations)` ({"data-dir": ..., "cache-dir": ...}). create_method, which knows
+    both (the factory does not), says it again for the method as created."""
+
+    def __init__(self, said, method: str):
+        super().__init__(said(method, {}))
+        self.said = said
+
+
 class ShardWarning(UserWarning):
     """A warning about what one torchrun rank met in its own share (an image it read, a file it removed):
     said by that rank. Every other warning is met alike by every rank, and said by the node's first."""

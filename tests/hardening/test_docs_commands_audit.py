@@ -165,7 +165,7 @@ def test_a_missing_named_vocabulary_suggests_the_released_file_only_where_it_is_
     with pytest.raises(VPRBenchError) as refused:
         resolve_vocabulary(source, name, layer, "value", 32, tmp_path)
     message = str(refused.value)
-    assert f"vprbench vocabulary fit --method METHOD --domain {source}" in message
+    assert f"vprbench vocabulary fit --domain {source} --method anyloc --backbone {backbone}" in message
     assert ("released c_centers.pt" in message) is suggested, message
 
 

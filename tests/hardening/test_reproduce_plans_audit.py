@@ -88,7 +88,8 @@ def test_a_dino_domain_cell_names_the_vocabulary_it_needs(tmp_path):
     nardo = cells["nardo-air"].cells[0]
     assert vocabulary_for(nardo, tmp_path) == (
         "vocabulary 'aerial' for dino_vits8 layer 9 key c128",
-        "run 'vprbench vocabulary fit --domain aerial --method anyloc-vlad-dino --backbone dino_vits8 --layer 9'")
+        "run 'vprbench vocabulary fit --domain aerial --method anyloc-vlad-dino --backbone dino_vits8 --layer 9 --facet key "
+        "--clusters 128'")
     # Mid-Atlantic Ridge: the paper's vocabulary there is its own map's, fitted in the run
     assert vocabulary_for(cells["mid-atlantic-ridge"].cells[0], tmp_path) is None
 
@@ -158,7 +159,27 @@ def test_a_vocabulary_fit_command_names_the_runs_own_data_root_and_cache(tmp_pat
     out = " ".join(capsys.readouterr().out.split())
     assert code == 0
     assert (f"vocabulary 'aerial' for dino_vits8 layer 9 key c128: run 'vprbench vocabulary fit --domain aerial "
-            f"--method anyloc-vlad-dino --backbone dino_vits8 --layer 9 --data-dir '{data}' --cache-dir {cache}'") in out
+            f"--method anyloc-vlad-dino --backbone dino_vits8 --layer 9 --facet key --clusters 128 --data-dir '{data}' "
+            f"--cache-dir {cache}'") in out
+
+
+def test_a_vocabulary_two_methods_share_is_listed_once(tmp_path, capsys, monkeypatch):
+    """Table II's AnyLoc-VLAD-DINO and -PCA rows lack the same 'indoor' and 'urban' vocabularies (cached by their
+    features, not by method): the notes said each twice, a fit per method, and following them fitted each twice."""
+    import re
+
+    monkeypatch.setenv("COLUMNS", "1000")  # a note a line
+    code = main(["reproduce", "anyloc", "--table", "2", "--dry-run", "--data-dir", str(tmp_path / "data"),
+                 "--cache-dir", str(tmp_path / "cache")])
+    out = capsys.readouterr().out
+    notes = re.findall(r"^\[\d+\] (.*)$", out, re.MULTILINE)
+    assert code == 0
+    for domain in ("indoor", "urban"):
+        said = [note for note in notes if note.startswith(f"vocabulary '{domain}' for dino_vits8 layer 9 key c128: ")]
+        assert len(said) == 1 and said[0].count("vprbench vocabulary fit") == 1, said
+        assert said[0].endswith("(serves rows AnyLoc-VLAD-DINO, AnyLoc-VLAD-DINO-PCA)"), said
+    things = [note.split(": ")[0] for note in notes]
+    assert len(things) == len(set(things)), things  # no need said twice
 
 
 def test_a_released_vocabulary_not_here_is_a_need_until_it_is(tmp_path, shared_data):
@@ -380,7 +401,7 @@ def test_the_pca_rows_fit_on_the_domains_databases_stacked_as_the_authors_did(tm
         assert needs[:3] == ["dataset oxford", "dataset st-lucia", "dataset pitts30k"], needs
         # the urban stack's exact fit (the authors' sklearn PCA) takes more than the default 1 GB: said before the run
         memory = [n for n in missing_for(cells["oxford"].cells[0], None, tmp_path / "data", tmp_path) if "memory" in n[0]]
-        assert memory == [("memory for PCA-whitening of 11,762 x 49,152 descriptors", "run with --search-memory 1.2 GB or "
+        assert memory == [("memory for PCA-whitening of 11,762 x 49,152 descriptors to 512", "run with --search-memory 1.2 GB or "
                            "more, so it is fitted exactly as the authors' sklearn PCA (1.0 GB given)")]
         assert not any("memory" in n[0] for n in missing_for(cells["oxford"].cells[0], None, tmp_path / "data", tmp_path,
                                                              memory_budget=1_200_000_000))

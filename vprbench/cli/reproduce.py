@@ -45,7 +45,7 @@ def run_reproduce(args) -> int:
     from ..errors import VPRBenchError
     from ..methods.registry import checked_run_options
     from ..sweep import run_cells, summary_table
-    from ..sweep.needs import missing_for, needs_text
+    from ..sweep.needs import missing_for, needs_text, once_each
     from ..sweep.reproduce import table_cells
     from ..sweep.runner import FAILED
     from .evaluate import explicit_run_options
@@ -71,8 +71,9 @@ def run_reproduce(args) -> int:
     weights = _row_weights(spec)
     cells = {c.key: (c, tc) for tc in table_cells_ for c in tc.cells}
     console = make_console()
-    missing = {key: missing_for(c, weights.get(tc.row), settings.data_dir, settings.cache_dir, given, settings.memory_budget)
-               for key, (c, tc) in cells.items()}
+    missing = once_each({key: missing_for(c, weights.get(tc.row), settings.data_dir, settings.cache_dir, given,
+                                          settings.memory_budget) for key, (c, tc) in cells.items()},
+                        {key: tc.row for key, (_, tc) in cells.items()})
     unrunnable = [tc for tc in table_cells_ if not tc.cells]
     no_method = f"{len(unrunnable)} not runnable as the paper ran them ({', '.join(sorted({tc.row for tc in unrunnable}))})"
     if args.dry_run:

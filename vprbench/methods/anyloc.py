@@ -20,7 +20,7 @@ from . import anyloc_options
 from .anyloc_options import AGGREGATIONS, PCA_ON, VLADS, pca_datasets, pca_provenance
 from .anyloc_fit import recorded_image_digests
 from .anyloc_provenance import check_released_setting, file_provenance
-from .anyloc_lookup import check_proven, paper_choice, resolve_vocabulary
+from .anyloc_lookup import check_proven, fit_options, paper_choice, resolve_vocabulary
 from .anyloc_vocabulary import MAP_PREFIX, names_file, vocabulary_images
 from ..aggregation.vlad import vlad_hard
 from ..aggregation.vocabulary import fit_vocabulary
@@ -189,7 +189,7 @@ class AnyLoc(Method):
         cached source name (a domain such as "indoor", or "map-<dataset>"); the authors'
         released centres are downloaded on first use where they fit these features."""
         found = resolve_vocabulary(self.vocabulary, self.vocabulary_backbone, self.layer, self.facet, self.clusters,
-                                   self.cache_dir, self.stride)
+                                   self.cache_dir, self.stride, fit_options(self))
         found.check_dim(self.spec.width)  # before the model loads, naming the file
         if names_file(self.vocabulary):  # a path: the user vouches for what its metadata does not say
             found.check_setting(self.vocabulary_backbone, self.layer, self.facet, self.stride)

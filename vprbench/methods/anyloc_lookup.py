@@ -7,10 +7,11 @@ The policy it follows (domains, the release, cache keys) is anyloc_vocabulary.py
 from __future__ import annotations
 
 import glob
+import shlex
 from pathlib import Path
 
 from ..aggregation.vocabulary import Vocabulary, at_default_stride, catalogued, default_stride, load_vocabulary, vocabulary_dir
-from ..errors import VPRBenchError, closest_names
+from ..errors import MethodNeed, VPRBenchError, closest_names
 from .anyloc_provenance import check_released_setting, content_source, released_provenance
 from .anyloc_vocabulary import (MAP_PREFIX, OWN_CONTENT_DIGITS, cached_vocabulary_file, domain_names, fetch_released,
                                 is_released_setting, names_file, paper_vocabulary, released_path, released_setting,
@@ -77,10 +78,29 @@ def check_proven(vocabulary: Vocabulary, backbone: str, layer: int, facet: str, 
         f"{asked}`, else fit it again (`vprbench vocabulary fit`).")
 
 
+def fit_options(method) -> dict:
+    """The options an AnyLoc's vocabularies are keyed by, as `vprbench vocabulary fit` takes them (its weights
+    key them too: random or a checkpoint of one's own; a stride only off the backbone's own)."""
+    stride = None if at_default_stride(method.backbone, method.stride) else f"stride={method.stride}"
+    return {"backbone": method.backbone, "weights": method.weights, "layer": method.layer, "facet": method.facet,
+            "clusters": method.clusters, "option": stride}
+
+
+def fit_command(method: str, source: str, options: dict, locations: dict | None = None) -> str:
+    """The `vprbench vocabulary fit` making the vocabulary `source` (a domain, or map-DATASET) with `method` and
+    the `options` it is keyed by (`fit_options`; None: unset), from and into the run's `locations`
+    ({"data-dir": ..., "cache-dir": ...}; else the defaults, where that run does not look): one to paste."""
+    on = ["--dataset", source[len(MAP_PREFIX):]] if source.startswith(MAP_PREFIX) else ["--domain", source]
+    given = [word for flag, value in {**options, **(locations or {})}.items() if value is not None
+             for word in (f"--{flag}", str(value))]
+    return shlex.join(["vprbench", "vocabulary", "fit", *on, "--method", method, *given])
+
+
 def resolve_vocabulary(spec: str, backbone: str, layer: int, facet: str, clusters: int, cache_dir=None,
-                       stride: int | None = None) -> Vocabulary:
+                       stride: int | None = None, fit: dict | None = None) -> Vocabulary:
     """The `vocabulary` option: a file or folder path, or a cached source name
-    (a domain, or map-<dataset>). Raises a clear error saying how to create it."""
+    (a domain, or map-<dataset>). Raises a clear error saying how to create it: with `fit` (`fit_options`,
+    else these arguments) for a domain or map vocabulary, which create_method completes (MethodNeed)."""
     if names_file(spec):
         vocabulary = load_vocabulary(Path(spec).expanduser())
     else:
@@ -93,26 +113,35 @@ def resolve_vocabulary(spec: str, backbone: str, layer: int, facet: str, cluster
                                                                                            clusters, stride):
             vocabulary = load_vocabulary(fetch_released(spec, cache_dir))
         if vocabulary is None:
-            where = vocabulary_dir(backbone, layer, facet, clusters, spec, cache_dir, stride)
-            if spec.startswith(MAP_PREFIX) or spec in domain_names():
-                from ..datasets import dataset_manifests
-
-                name = spec[len(MAP_PREFIX):]
-                name = name if name in dataset_manifests() else "YOUR-FOLDER"  # a folder of one's own: by its path
-                how = f"--dataset {name}" if spec.startswith(MAP_PREFIX) else f"--domain {spec}"
-                how = own_map_names(where) + f"Fit it with `vprbench vocabulary fit --method METHOD {how} ...`"
-            else:  # no domain to fit: a typo, or a name only `vocabulary import` gives
-                how = (f"{spec!r} is no domain ({', '.join(domain_names())}) nor map-DATASET."
-                       f"{closest_names(spec, domain_names())} Name one, or put your centres under this name with "
-                       f"`vprbench vocabulary import FILE --source {spec}`")
-            released = is_released_setting(backbone, layer, facet, clusters, stride)  # else their centres are refused
-            raise VPRBenchError(
-                f"No {spec!r} vocabulary for {setting_words(backbone, layer, facet, clusters, stride)} "
-                f"(looked in {where}). {how}"
-                + (", or pass the path of the authors' released c_centers.pt as the vocabulary." if released else ".")
-            )
+            raise no_vocabulary(spec, backbone, layer, facet, clusters, cache_dir, stride, fit)
     check_clusters(vocabulary, clusters, spec)
     return vocabulary
+
+
+def no_vocabulary(spec: str, backbone: str, layer: int, facet: str, clusters: int, cache_dir=None,
+                  stride: int | None = None, fit: dict | None = None) -> VPRBenchError:
+    """The refusal of a named vocabulary not here, with how to make it: a domain's or a map's by the command
+    fitting it (`fit`: `fit_options`, else these arguments), which create_method says again naming the preset
+    it made and the run's folders (MethodNeed); another name by `vocabulary import`."""
+    from ..datasets import dataset_manifests
+
+    where = vocabulary_dir(backbone, layer, facet, clusters, spec, cache_dir, stride)
+    said = f"No {spec!r} vocabulary for {setting_words(backbone, layer, facet, clusters, stride)} (looked in {where}). "
+    released = is_released_setting(backbone, layer, facet, clusters, stride)  # else their centres are refused
+    tail = ", or pass the path of the authors' released c_centers.pt as the vocabulary." if released else "."
+    if not spec.startswith(MAP_PREFIX) and spec not in domain_names():  # a typo, or a name only import gives
+        return VPRBenchError(f"{said}{spec!r} is no domain ({', '.join(domain_names())}) nor map-DATASET."
+                             f"{closest_names(spec, domain_names())} Name one, or put your centres under this name "
+                             f"with `vprbench vocabulary import FILE --source {spec}`{tail}")
+    known = spec in domain_names() or spec[len(MAP_PREFIX):] in dataset_manifests()
+    source = spec if known else f"{MAP_PREFIX}YOUR-FOLDER"  # a folder of one's own: fitted by its path
+    name, _, weights = backbone.partition("@")  # BACKBONE@random: random weights' own key
+    options = fit or {"backbone": name, "weights": weights or None, "layer": layer, "facet": facet, "clusters": clusters,
+                      "option": None if at_default_stride(backbone, stride) else f"stride={stride}"}
+    said += own_map_names(where)
+    # 'anyloc': the method these options make, until create_method names the preset it made
+    return MethodNeed(lambda method, locations: f"{said}Fit it with `{fit_command(method, source, options, locations)}`"
+                                                f"{tail}", "anyloc")
 
 
 def check_folder_known(vocabulary: Vocabulary, source: str) -> None:

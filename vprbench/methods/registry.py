@@ -23,7 +23,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..errors import VPRBenchError, closest_names
+from ..errors import MethodNeed, VPRBenchError, closest_names
 from ..loader import plugin_part
 from ..paths import folder_path
 from ..registration import Registry, check_name, check_target, imported, looked_up, source_of
@@ -262,8 +262,11 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
     if needed:  # else a TypeError at the call here, whose line would be named as the plugin's
         raise VPRBenchError(f"Method {name!r} ({entry.source}) needs option(s) {', '.join(needed)}, for which it has no "
                             f"default: give {'them' if len(needed) > 1 else 'it'}, e.g. -o {needed[0]}=VALUE.")
-    with entry.in_factory(f"its factory {getattr(factory, '__name__', type(factory).__name__)}"):
-        method = factory(**copy.deepcopy(arguments))  # a factory appending to a list would change the preset
+    try:
+        with entry.in_factory(f"its factory {getattr(factory, '__name__', type(factory).__name__)}"):
+            method = factory(**copy.deepcopy(arguments))  # a factory appending to a list would change the preset
+    except MethodNeed as need:  # its command names the preset as created and this run's folders, to paste
+        raise VPRBenchError(need.said(entry.name, {"data-dir": data_dir, "cache-dir": cache_dir})) from None
     if not isinstance(method, Method):
         raise VPRBenchError(f"Method {name!r} ({entry.source}): its factory returned {type(method).__name__}, not a "
                             "vprbench.Method; return an instance of a subclass of vprbench.Method (see 'Add your "

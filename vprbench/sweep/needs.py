@@ -62,12 +62,17 @@ def weights_for(row_weights: dict | None, cell: Cell, cache_dir=None) -> Need | 
         if spec.gated:
             return (f"weights of {spec.name}", f"gated, {spec.licence}: request access at {spec.page}; "
                     f"then downloaded from {spec.source.where} on first use")
-        return f"weights {spec.file_name}", how_to_fetch(spec.source, cache_dir)
+        return f"weights {weights_name(spec.source)}", how_to_fetch(spec.source, cache_dir)
     if merged.get("weights") or not row_weights:
         return None
     # where the run looks, as it looks (not "pass weights=PATH": reproduce refuses method options)
     source = row_source(row_weights)
-    return None if cached_weights(source, cache_dir) else (f"weights {source.file_name}", how_to_fetch(source, cache_dir))
+    return None if cached_weights(source, cache_dir) else (f"weights {weights_name(source)}", how_to_fetch(source, cache_dir))
+
+
+def weights_name(source) -> str:
+    """A checkpoint as a need names it: a hub's by its repository too (timm's are all model.safetensors)."""
+    return f"{source.hub}/{source.file_name}" if source.hub else source.file_name
 
 
 def vocabulary_for(cell: Cell, cache_dir=None, given: dict | None = None) -> Need | None:
@@ -78,8 +83,9 @@ def vocabulary_for(cell: Cell, cache_dir=None, given: dict | None = None) -> Nee
     import shlex
     import warnings
 
+    from ..aggregation.vocabulary import at_default_stride
     from ..methods.anyloc import VLADS, AnyLoc
-    from ..methods.anyloc_lookup import check_clusters, check_proven, find_vocabulary
+    from ..methods.anyloc_lookup import check_clusters, check_proven, find_vocabulary, fit_command, fit_options
     from ..methods.anyloc_vocabulary import (domain_names, is_released_setting, paper_vocabulary, released_path,
                                              setting_words)
     from ..methods.registry import method_entry
@@ -111,7 +117,6 @@ def vocabulary_for(cell: Cell, cache_dir=None, given: dict | None = None) -> Nee
     if found is not None or (released is not None and released.is_file()):
         return None  # cached, or the authors' release already here
     located = [(flag, shlex.quote(str(path))) for flag, path in (given or {}).items() if path is not None]
-    where = "".join(f" --{flag} {path}" for flag, path in located)
     if released is not None:  # fetched before the run, as weights are (a compute node may be offline)
         # `vocabulary download` reads no data: only the cache it fills is carried into the command
         into = "".join(f" --{flag} {path}" for flag, path in located if flag == "cache-dir")
@@ -119,9 +124,10 @@ def vocabulary_for(cell: Cell, cache_dir=None, given: dict | None = None) -> Nee
                 f"release's c_centers.pt at {released}")
     if name not in domain_names():
         return None
-    return (f"vocabulary {name!r} for {method.backbone} layer {method.layer} {method.facet} c{method.clusters}",
-            f"run 'vprbench vocabulary fit --domain {name} --method {cell.spec.method} --backbone {method.backbone} "
-            f"--layer {method.layer}{where}'")
+    # named by its cache key (not the method's: cells of several methods share it, once_each says it once)
+    stride = "" if at_default_stride(method.backbone, method.stride) else f" stride {method.stride}"
+    return (f"vocabulary {name!r} for {setting[0]} layer {method.layer} {method.facet} c{method.clusters}{stride}",
+            f"run '{fit_command(cell.spec.method, name, fit_options(method), given)}'")
 
 
 def memory_for(cell: Cell, memory_budget: int | None = None) -> Need | None:
@@ -145,7 +151,8 @@ def memory_for(cell: Cell, memory_budget: int | None = None) -> Need | None:
     budget = memory_budget or DEFAULT_MEMORY_BUDGET
     if need <= budget:
         return None
-    return (f"memory for PCA-whitening of {rows:,} x {dim:,} descriptors",
+    # named by all the need depends on: cells of a plan needing it are told one budget (once_each)
+    return (f"memory for PCA-whitening of {rows:,} x {dim:,} descriptors to {method.pca_dim}",
             f"run with --search-memory {format_budget(need)} or more, so it is fitted exactly as the authors' sklearn "
             f"PCA ({format_bytes(budget)} given)")
 
@@ -198,6 +205,22 @@ def _database_count(name: str, protocol) -> int:
     manifest = dataset_manifest(name)
     found = find_protocol(manifest, protocol)
     return found.database_count or (manifest.query_count if found.swap else manifest.database_count) or 0
+
+
+def once_each(missing: dict[str, list[Need]], rows: dict[str, str]) -> dict[str, list[Need]]:
+    """The needs of a plan's cells (by cell key) with each thing said one way, so it is listed and got once:
+    a domain vocabulary is cached by its features, not by the method fitting it, so the cells of two methods
+    (AnyLoc-VLAD-DINO and its -PCA) lacking it get the first's fit, naming the rows it serves (`rows`: each
+    cell's)."""
+    hows: dict[str, dict[str, None]] = {}
+    served: dict[str, dict[str, None]] = {}
+    for key, needs in missing.items():
+        for thing, how in needs:
+            hows.setdefault(thing, {})[how] = None
+            served.setdefault(thing, {})[rows[key]] = None
+    said = {thing: next(iter(ways)) + (f" (serves rows {', '.join(served[thing])})" if len(ways) > 1 else "")
+            for thing, ways in hows.items()}
+    return {key: [(thing, said[thing]) for thing, _ in needs] for key, needs in missing.items()}
 
 
 def needs_text(needs: list[Need]) -> str:
