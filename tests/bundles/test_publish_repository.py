@@ -37,6 +37,8 @@ def rerun(record: dict, run_id: str, ranks=None) -> dict:
         again["per_query"]["first_positive_rank"] = ranks
         again["recall"] = {k: 0.0 for k in again["recall"]}  # no query found: every metric is 0
         again.update(auc_pr=0.0, recall_at_100_precision=0.0, max_f1=0.0)
+        # ranks that do not fit its indices: shown only while no ground truth here re-scores them (its copy gone)
+        again["dataset_root"] = str(Path(record["dataset_root"]).parent / "moved-away" / "corridor")
     again.update(run_id=run_id, created="2030-01-01T00:00:00+00:00")
     return again
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -41,13 +42,14 @@ class DataGroundTruth:
         # images=False: the ground truth's fingerprint only (the leaderboard re-scores where the images may be absent)
         self.data_dir, self.cache_dir, self.images, self._found = data_dir, cache_dir, images, {}
 
-    def __call__(self, dataset: str, protocol_hash: str) -> Truth:
-        if (dataset, protocol_hash) not in self._found:
-            self._found[dataset, protocol_hash] = self._read(dataset, protocol_hash)
-        return self._found[dataset, protocol_hash]
+    def __call__(self, dataset: str, protocol_hash: str, root: str | None = None) -> Truth:
+        """The protocol's ground truth from the copy in the data root, or from the copy at `root`."""
+        if (dataset, protocol_hash, root) not in self._found:
+            self._found[dataset, protocol_hash, root] = self._read(dataset, protocol_hash, root)
+        return self._found[dataset, protocol_hash, root]
 
-    def _read(self, dataset: str, protocol_hash: str) -> Truth:
-        from ..datasets import load_dataset
+    def _read(self, dataset: str, protocol_hash: str, root: str | None = None) -> Truth:
+        from ..datasets import apply_protocol, check_counts, dataset_manifest, find_protocol, load_dataset, read_layout
         from .identity import benchmark_protocols
 
         known = benchmark_protocols(dataset)
@@ -57,7 +59,14 @@ class DataGroundTruth:
             raise VPRBenchError(f"protocol hash {protocol_hash} is none of the protocols vprbench ships for {dataset} "
                                 "(" + ", ".join(f"{p['id']} {h}" for h, p in known.items()) + ")")
         protocol = known[protocol_hash]
-        data = load_dataset(dataset, self.data_dir, fetch=False, protocol=protocol["name"], cache_dir=self.cache_dir)
+        if root is None:
+            data = load_dataset(dataset, self.data_dir, fetch=False, protocol=protocol["name"],
+                                cache_dir=self.cache_dir)
+        else:  # read as load_dataset reads the copy in a data root
+            manifest = dataset_manifest(dataset)
+            data = read_layout(Path(root), manifest)
+            check_counts(data, manifest, False)
+            data = apply_protocol(data, find_protocol(manifest, protocol["name"]))
         if data.protocol.get("hash") != protocol_hash:
             raise VPRBenchError(f"the copy of {dataset} on this machine ({data.root}) gives protocol hash "
                                 f"{data.protocol.get('hash')}, not {protocol_hash}")

@@ -11,7 +11,8 @@ The rules (stated on every published page, CELL_RULE):
   dataset fingerprint most runs share, the newest on a tie); own datasets get a column per
   protocol (their positions, radius and content), even one named like a benchmark;
 - a cell is exactly one run: the newest eligible run that reports R@1 and R@5 (read from its
-  per-query ranks when its search went deep enough), else the newest eligible run.
+  per-query ranks when its search went deep enough), else the newest eligible run; or a deeper run
+  of the row whose top-K lists are that run's as far as it searched (pick.py).
 """
 from __future__ import annotations
 
@@ -29,20 +30,21 @@ from ..evaluation.metrics import recall_at_k
 from ..evaluation.proof import proven
 from ..evaluation.results import per_query
 from .escape import public
+from .pick import CELL_KS, pick as pick_run  # noqa: F401 (CELL_KS: tables and downloads import it from here)
 from .truth import judge
 from .shown import RANDOM, TRANSDUCTIVE, hardware_of, random_weights, stage_marks, weights_of
 
-#: the K a cell reports
-CELL_KS = (1, 5)
 STRUCTURED = ("indoor", "urban", "outdoor")
 UNSTRUCTURED = ("aerial", "subt", "degraded", "underwater")
 
 CELL_RULE = (
     "Each cell is exactly one run: the newest run of that row (a method with its options, weights, search and "
-    "store) on that dataset that reports R@1 and R@5, else its newest run. A benchmark's column is one of its "
-    "protocols (which images, which ground truth: its id and hash are on the dataset's page) and takes only runs "
-    "on that protocol, with its image counts, and on one copy of its data (the dataset fingerprint most runs "
-    "share; the newest on a tie). Runs on your own data get a column per protocol (positions, radius and images), "
+    "store) on that dataset that reports R@1 and R@5, else its newest run; an older run of the row that reports "
+    "more of R@1, R@5, R@10 and R@20 fills the cell instead when its top-K lists are that run's as far as that run "
+    "searched (the same computation, re-run asking fewer K). A benchmark's column is one of its protocols (which "
+    "images, which ground truth: its id and hash are on the dataset's page) and takes only runs on that protocol, "
+    "with its image counts, and on one copy of its data (the dataset fingerprint most runs share; the newest on a "
+    "tie). Runs on your own data get a column per protocol (positions, radius and images), "
     "even when named like a benchmark. Runs with weights other than the authors' release, with approximate "
     "search (IVF-PQ, HNSW), with a float16 store or with anything fitted on the evaluated database (transductive) get "
     "their own rows, marked †, and never replace an official row; runs on random weights fill no cell at all. Every "
@@ -115,7 +117,7 @@ class Cell:
     row: Row
     column: Column
     record: dict
-    #: other eligible runs of the same row and column (older, or without R@5)
+    #: other eligible runs of the same row and column (older, without R@5, or re-runs asking fewer K)
     passed_over: int = 0
     #: the newest run of the row and column that computed its descriptors (its images/s and
     #: hardware are the cell's): a run served from stores measured no speed
@@ -196,11 +198,6 @@ class Board:
         cells = list(self.cells.values())
         return {"marked_rows": sum(not c.row.official for c in cells),
                 "own_data": sum(c.column.kind == "own" for c in cells), "excluded": len(self.excluded)}
-
-
-def _max_k(record: dict) -> int:
-    ks = [int(k) for k in (record.get("recall") or {}) if str(k).isdigit()]
-    return max([(record.get("per_query") or {}).get("k", 0), *ks], default=0)
 
 
 def _column_of(record: dict) -> tuple[str, str, bool] | str:
@@ -322,8 +319,7 @@ def build_board(records: list[dict], truth=None, refused: list | None = None) ->
                 timed_on.setdefault((row.key, _images(r)), []).append(r)
     cells = {}
     for (row, key), runs in candidates.items():
-        complete = [r for r in runs if _max_k(r) >= max(CELL_KS)]
-        pick = (complete or runs)[-1]
+        pick = pick_run(runs)
         final = rows[row]
         timed = [r for r in runs if _timed(r)] or sorted(timed_on.get((row.key, _images(pick)), []),
                                                          key=lambda r: str(r.get("created")))

@@ -7,6 +7,7 @@ from ..text import plural
 from .cells import Board, Cell
 from .shown import left_out
 from .tables import plain_mark
+from .truth import unproven_note
 from ..evaluation.blocks import for_record, shared
 from ..evaluation.metrics import successes
 from .stats import RESAMPLES, bootstrap_ci, check_k_and_seed, format_p, overlaps, paired_test
@@ -132,10 +133,12 @@ def describe(result: dict) -> str:
                      + (f"(per query [{p_low:.1f}, {p_high:.1f}])  " if per else "") + f"run {cell.record.get('run_id')}"
                      + _source(cell))
     q = plain["test"]["ci"]
+    # as `leaderboard` says it: numbers no ground truth here checked are compared all the same, not silently
+    note = [note] if (note := unproven_note((first, second))) else []
     if t["identical"]:  # the same queries right and wrong: nothing to test, p = 1 would read as a finding
         lines += [f"  intervals overlap: {'yes' if result['overlap'] else 'no'}",
                   f"  same queries right: both get the same {plural(t['both'], 'query')} right at R@{k} and the same "
-                  f"{t['neither']} wrong; no paired test is meaningful (difference 0)."]
+                  f"{t['neither']} wrong; no paired test is meaningful (difference 0).", *note]
         return "\n".join(lines)
     lines += [
         f"  intervals overlap: {'yes' if result['overlap'] else 'no'}",
@@ -147,5 +150,6 @@ def describe(result: dict) -> str:
         f"  {'A difference at the 5 % level' if t['significant'] else 'No difference at the 5 % level'} "
         # units.text() reads after "resampled" ("by place (...)", "per query"), not after "over"
         f"(the paired-bootstrap interval, resampled {units.text()}, {'excludes' if t['significant'] else 'includes'} 0).",
+        *note,
     ]
     return "\n".join(lines)

@@ -2,8 +2,10 @@
 re-scored against the ground truth of the dataset on this machine with the code `vprbench results
 verify` uses (evaluation/rescore.rescore, one function), so arrays rewritten consistently with their
 sha256 and summary numbers cannot publish a score. A folder of one's own is re-read at the path its
-record gives. Where the ground truth is not here (no copy of the dataset, another copy's ground truth,
-an own folder moved or changed) the cell is shown but said not to be re-scored.
+record gives; so is a benchmark's copy when no data root is named and the default one has none (proven
+the run's by its ground truth's fingerprint, never by its name). Where the ground truth is not here (no
+copy of the dataset, another copy's ground truth, an own folder moved or changed) the cell is shown but
+said not to be re-scored.
 
 Cost: the protocol's ground truth is read once per protocol; a re-score is one pass over the top-K
 lists (Pitts-250k's 8,280 queries x K=100 against 254,064 database images: well under a second).
@@ -13,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import os
 import warnings
 
 from ..errors import VPRBenchError
@@ -27,29 +30,46 @@ _CACHE: dict[tuple, tuple[str, str]] = {}
 
 
 class LocalTruth:
-    """The ground truth on this machine: a benchmark's under `data_dir` (else the default data root), and
-    a folder of one's own at the path its record gives; each read once, positives and their fingerprint
-    only (a benchmark's images may be absent; an own folder's are hashed once, as its protocol needs)."""
+    """The ground truth on this machine: a benchmark's under `data_dir` (else the default data root, else
+    the copy its run read), and a folder of one's own at the path its record gives; each read once,
+    positives and their fingerprint only (a benchmark's images may be absent; an own folder's are hashed
+    once, as its protocol needs)."""
 
     def __init__(self, data_dir=None, cache_dir=None):
         self.benchmark, self.cache_dir, self._own = DataGroundTruth(data_dir, cache_dir, images=False), cache_dir, {}
+        self.data_dir = data_dir  # named (--data-dir, $VPRBENCH_DATA): only that data root is looked in
 
     def __call__(self, record: dict):
         protocol_hash = str((record.get("protocol") or {}).get("hash"))
+        root = str(record.get("dataset_root") or "")
         if record.get("dataset_kind") == "benchmark":
-            return self.benchmark(record["dataset"], protocol_hash)
+            try:
+                return self.benchmark(record["dataset"], protocol_hash)
+            except (VPRBenchError, OSError, ValueError):
+                # no data root named and no copy in the default one: the copy this machine's run read, where
+                # its record says. Never trusted by its name: against_truth compares its ground truth's
+                # fingerprint with the run's (another copy there leaves the cell unproven, and says so)
+                if self.data_dir is not None or record.get("_contribution") or not root or not os.path.isdir(root):
+                    raise
+                found = self._once(root, protocol_hash, lambda: self.benchmark(record["dataset"], protocol_hash, root))
+                if isinstance(found, Exception):
+                    raise  # the data root's reason: the run's folder is no copy of it either
+                return found
         if record.get("_contribution"):  # a path from another machine's record: never read here
             raise VPRBenchError("a contributed run on data of its own, whose folder is not on this machine")
-        root = str(record.get("dataset_root") or "")
-        if (root, protocol_hash) not in self._own:  # a failure is remembered too: the folder is read once
-            try:
-                self._own[root, protocol_hash] = self._read_own(root, protocol_hash)
-            except (VPRBenchError, OSError, ValueError) as error:
-                self._own[root, protocol_hash] = error
-        found = self._own[root, protocol_hash]
+        found = self._once(root, protocol_hash, lambda: self._read_own(root, protocol_hash))
         if isinstance(found, Exception):
             raise found
         return found
+
+    def _once(self, root: str, protocol_hash: str, read):
+        """The ground truth of the folder `root` (or why not): a failure is remembered too, so a folder is read once."""
+        if (root, protocol_hash) not in self._own:
+            try:
+                self._own[root, protocol_hash] = read()
+            except (VPRBenchError, OSError, ValueError) as error:
+                self._own[root, protocol_hash] = error
+        return self._own[root, protocol_hash]
 
     def _read_own(self, root: str, protocol_hash: str):
         from ..datasets import load_dataset
@@ -124,7 +144,17 @@ def refuse(record: dict, why: str) -> str:
 
 def truth_note(board) -> str:
     """Which cells were not re-scored against the ground truth here, and why ("" for a board of no cell)."""
-    cells = [c for c in board.cells.values() if "ground_truth" in (c.record.get("_proof") or {})]
+    return cells_note(board.cells.values())
+
+
+def unproven_note(cells) -> str:
+    """cells_note when some of `cells` were not re-scored, else "" (compare says nothing of proven cells)."""
+    return "" if all((c.record.get("_proof") or {}).get("ground_truth") == PROVEN for c in cells) else cells_note(cells)
+
+
+def cells_note(cells) -> str:
+    """truth_note of these cells."""
+    cells = [c for c in cells if "ground_truth" in (c.record.get("_proof") or {})]
     unproven = [c for c in cells if c.record["_proof"]["ground_truth"] != PROVEN]
     if not unproven:
         return "Every cell was re-scored from its top-K indices against the ground truth on this machine." if cells else ""
