@@ -158,9 +158,19 @@ def test_describe_bad_inputs(capsys, tmp_path):
     assert_user_error(code, err, "--fit-on")
 
 
-def test_leaderboard_without_results(capsys):
+def test_leaderboard_without_results(capsys, tmp_path, monkeypatch):
+    monkeypatch.delenv("VPRBENCH_CACHE")  # the user cache, not made before the first run
     code, _, err = run(capsys, "leaderboard")
-    assert_user_error(code, err, "No results yet")
+    assert_user_error(code, err, f"No results yet in the cache folder {tmp_path / 'user-cache' / 'vprbench'}: run")
+
+
+def test_leaderboard_names_a_cache_folder_that_does_not_exist(capsys, tmp_path):
+    """A mistyped --cache-dir said 'No results yet', as if the results were lost."""
+    for command in (["leaderboard"], ["leaderboard", "compare", "hog", "sad", "--dataset", "corridor"],
+                    ["leaderboard", "publish", "--to", str(tmp_path / "site")]):
+        code, _, err = run(capsys, *command, "--cache-dir", str(tmp_path / "cahce"))
+        assert_user_error(code, err, f"No results: the cache folder {tmp_path / 'cahce'} does not exist; check --cache-dir")
+    assert not (tmp_path / "site").exists() and not (tmp_path / "cahce").exists()
 
 
 def test_ablations_get_their_own_leaderboard_rows(capsys, shared_data):

@@ -122,7 +122,7 @@ def test_run_refuses_a_data_root_when_every_dataset_of_the_plan_is_a_folder(cli,
 def test_leaderboard_show_takes_a_data_root_for_its_ground_truth(cli, tmp_path):
     """Was refused outside publish; every action now re-scores its cells against the ground truth there."""
     code, _, err = cli("leaderboard", "show", "--data-dir", tmp_path)
-    assert_refused(code, err, None, "No results yet")
+    assert_refused(code, err, None, "No results")
 
 
 def test_an_empty_unused_option_is_named_so(cli):

@@ -296,6 +296,18 @@ def read_runs(cache_dir=None, results=None, skipped: list | None = None) -> list
     return oldest_first(records + [r for r in read_repository(results, skipped) if r["run_id"] not in here])
 
 
+def no_runs(cache_dir=None) -> str:
+    """Why a leaderboard has no run to show, naming the cache folder read (a mistyped one was 'No results yet',
+    as if the results were lost)."""
+    from ..paths import cache_root
+
+    root = cache_root(cache_dir)
+    if cache_dir is not None and not root.is_dir():  # the default is made by the first run
+        return (f"No results: the cache folder {root} does not exist; check --cache-dir or $VPRBENCH_CACHE (the "
+                "folder 'vprbench evaluate' wrote to).")
+    return f"No results yet in the cache folder {root}: run 'vprbench evaluate --method M --dataset D' first."
+
+
 def _contribution(path: Path) -> dict:
     """A run's contribution note as the site shows it: each value one line, cut as an import cuts the
     contributor (a pull request can carry a note written by hand); a pipe in its place is not read."""

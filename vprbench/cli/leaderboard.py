@@ -8,9 +8,6 @@ from .options import check_new_folder, path_argument, resolve_locations
 
 FORMATS = ("table", "markdown", "csv", "json")
 
-NO_RESULTS = "No results yet: run 'vprbench evaluate --method M --dataset D' first."
-
-
 def add_parsers(commands) -> None:
     p = commands.add_parser("leaderboard", help="leaderboard of all evaluations: show, publish to the docs, compare two methods")
     p.add_argument("action", nargs="?", choices=("show", "publish", "compare"), default="show")
@@ -36,7 +33,7 @@ def add_parsers(commands) -> None:
 def run(args) -> int:
     from rich.table import Table
 
-    from ..bundles.repository import read_runs
+    from ..bundles.repository import no_runs, read_runs
     from ..leaderboard import build_board, grid, publish, render
     from ..leaderboard.stats import check_k_and_seed
     from ..leaderboard.tables import marks_legend
@@ -62,7 +59,7 @@ def run(args) -> int:
     skipped, refused = [], []
     records = read_runs(args.cache_dir, args.results, skipped)  # the very runs 'publish --results DIR' would use
     if not records:
-        raise VPRBenchError(NO_RESULTS)
+        raise VPRBenchError(no_runs(args.cache_dir))
     board = build_board(records, LocalTruth(args.data_dir, args.cache_dir), refused)
     if args.action == "compare":
         from ..leaderboard.compare import compare, describe
@@ -82,7 +79,7 @@ def run(args) -> int:
     if not board.cells:
         runs = f"No run in the {args.track} track" if everything.cells else f"None of the {len(records)} stored run(s)"
         raise VPRBenchError(f"{runs} can fill a cell: " + "; ".join(sum(named_left_out(board.excluded), []))
-                            if board.excluded else NO_RESULTS)
+                            if board.excluded else no_runs(args.cache_dir))
     table = grid(board)
     sources = [cell.source for cell in board.cells.values()]
     if args.format != "table":

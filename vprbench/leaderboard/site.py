@@ -76,13 +76,13 @@ def publish(folder: Path, cache_dir=None, *, data_dir=None, seed: int = 0, skipp
     read_at = time.time_ns()  # before the results are read: of publishes at once, the one that read them last wins
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        from ..bundles.repository import read_runs
+        from ..bundles.repository import no_runs, read_runs
 
         records = read_runs(cache_dir, results, skipped)  # the runs 'leaderboard show' and 'compare' read too
     for warning in caught:  # corrupt or foreign records: named, then left out
         warnings.warn(str(warning.message), stacklevel=2)
     if not records:
-        raise VPRBenchError("No results yet: run 'vprbench evaluate --method M --dataset D' first; nothing was written.")
+        raise VPRBenchError(f"{no_runs(cache_dir)} Nothing was written.")
     target = folder / SECTION
     try:
         folder.mkdir(parents=True, exist_ok=True)
