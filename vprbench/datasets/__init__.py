@@ -20,7 +20,7 @@ from .verify import VerifyReport, verify_dataset
 __all__ = [
     "Dataset", "DatasetManifest", "GroundTruth", "VerifyReport", "data_root", "dataset_location",
     "dataset_manifest", "dataset_manifests", "download_dataset", "import_dataset", "is_on_disk",
-    "load_dataset", "protocols", "read_registry", "verify_dataset",
+    "load_dataset", "protocols", "read_copy", "read_registry", "verify_dataset",
 ]
 
 
@@ -75,9 +75,15 @@ def load_dataset(name: str, data_dir=None, *, fetch: bool | None = None, strict:
         if not (fetch and manifest.download):
             raise VPRBenchError(missing_dataset_message(manifest, root, data_dir))
         download(manifest, root, data_dir=data_dir)
+    return read_copy(root, manifest, chosen.name, strict, data_dir)
+
+
+def read_copy(root: Path, manifest, protocol: str | None = None, strict: bool = False, data_dir=None) -> Dataset:
+    """The benchmark's copy in the folder `root`, read and its counts checked, under one of its protocols: the
+    one in a data root (load_dataset), or the one a run's record names (the leaderboard's re-scoring)."""
     dataset = read_layout(root, manifest, data_dir)
     check_counts(dataset, manifest, strict, data_dir)
-    return apply_protocol(dataset, chosen)
+    return apply_protocol(dataset, find_protocol(manifest, protocol))
 
 
 def download_dataset(name: str, data_dir=None, strict: bool = True) -> Dataset:

@@ -49,7 +49,7 @@ class DataGroundTruth:
         return self._found[dataset, protocol_hash, root]
 
     def _read(self, dataset: str, protocol_hash: str, root: str | None = None) -> Truth:
-        from ..datasets import apply_protocol, check_counts, dataset_manifest, find_protocol, load_dataset, read_layout
+        from ..datasets import dataset_manifest, load_dataset, read_copy
         from .identity import benchmark_protocols
 
         known = benchmark_protocols(dataset)
@@ -62,11 +62,8 @@ class DataGroundTruth:
         if root is None:
             data = load_dataset(dataset, self.data_dir, fetch=False, protocol=protocol["name"],
                                 cache_dir=self.cache_dir)
-        else:  # read as load_dataset reads the copy in a data root
-            manifest = dataset_manifest(dataset)
-            data = read_layout(Path(root), manifest)
-            check_counts(data, manifest, False)
-            data = apply_protocol(data, find_protocol(manifest, protocol["name"]))
+        else:
+            data = read_copy(Path(root), dataset_manifest(dataset), protocol["name"])
         if data.protocol.get("hash") != protocol_hash:
             raise VPRBenchError(f"the copy of {dataset} on this machine ({data.root}) gives protocol hash "
                                 f"{data.protocol.get('hash')}, not {protocol_hash}")
