@@ -399,10 +399,10 @@ def test_the_pca_rows_fit_on_the_domains_databases_stacked_as_the_authors_did(tm
         # a cell needs every database its PCA is fitted on, named with how to get it
         needs = [thing for thing, _ in missing_for(cells["oxford"].cells[0], None, tmp_path / "data", tmp_path)]
         assert needs[:3] == ["dataset oxford", "dataset st-lucia", "dataset pitts30k"], needs
-        # the urban stack's exact fit (the authors' sklearn PCA) takes more than the default 1 GB: said before the run
+        # the urban stack's exact fit takes more than the default 1 GB: said before the run
         memory = [n for n in missing_for(cells["oxford"].cells[0], None, tmp_path / "data", tmp_path) if "memory" in n[0]]
         assert memory == [("memory for PCA-whitening of 11,762 x 49,152 descriptors to 512", "run with --search-memory 1.2 GB or "
-                           "more, so it is fitted exactly as the authors' sklearn PCA (1.0 GB given)")]
+                           "more, so the PCA is fitted exactly, not by randomized iteration (1.0 GB given)")]
         assert not any("memory" in n[0] for n in missing_for(cells["oxford"].cells[0], None, tmp_path / "data", tmp_path,
                                                              memory_budget=1_200_000_000))
         assert not any("memory" in n[0] for n in missing_for(cells["baidu-mall"].cells[0], None, tmp_path / "data",

@@ -1,8 +1,10 @@
 """PCA-whitening of global descriptors (AnyLoc's -PCA presets: 49,152 -> 512 dims).
 
-As AnyLoc: the fit of sklearn `PCA(dim, svd_solver="full", whiten=True)` on the dataset's
-database descriptors (never the queries), applied to database and queries, then L2
-normalisation. Fitted from a row source chunk by chunk, with memory bounded by a budget
+As AnyLoc: PCA with whitening fitted on the dataset's database descriptors (never the queries),
+applied to database and queries, then L2 normalisation; the exact PCA (what sklearn's
+`PCA(dim, svd_solver="full", whiten=True)` computes). The authors' script calls
+`PCA(n_components=512, whiten=True)`, whose "auto" solver is sklearn's randomized one at their
+shapes (unseeded): an approximation of this. Fitted from a row source chunk by chunk, with memory bounded by a budget
 whatever N is, along one of three paths:
 
 - "covariance" (D <= N, D x D fits the budget): the covariance streamed in float64, its top
@@ -169,7 +171,7 @@ class PCAWhitening:
                 f"PCA dimension {self.dim} is larger than the number of database images ({n}) less one or the "
                 f"descriptor dimension ({d}): {do}.")
         solver, chunk_rows = self.check_budget(rows, budget)
-        if solver == "randomized":  # the authors' sklearn PCA is exact
+        if solver == "randomized":  # the exact fit is the one reproduced by any run, whatever its budget
             warnings.warn(f"PCA-whitening of {n:,} x {d:,} descriptors is fitted by randomized subspace iteration "
                           f"(approximate) within the {format_bytes(budget)} memory budget; a budget of "
                           f"{format_budget(self.exact_memory(rows))} (--search-memory) fits it exactly.", stacklevel=2)

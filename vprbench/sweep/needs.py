@@ -131,7 +131,7 @@ def vocabulary_for(cell: Cell, cache_dir=None, given: dict | None = None) -> Nee
 
 
 def memory_for(cell: Cell, memory_budget: int | None = None) -> Need | None:
-    """AnyLoc's PCA-whitening fitted exactly, as the authors' sklearn PCA: a memory budget too small for
+    """AnyLoc's PCA-whitening fitted exactly (docs/anyloc.md, PCA-whitening): a memory budget too small for
     the database rows it is fitted on (their count from the manifests, their width from the features)
     is said before hours of description, not at the fit."""
     from ..aggregation.pca import PCAWhitening
@@ -153,8 +153,8 @@ def memory_for(cell: Cell, memory_budget: int | None = None) -> Need | None:
         return None
     # named by all the need depends on: cells of a plan needing it are told one budget (once_each)
     return (f"memory for PCA-whitening of {rows:,} x {dim:,} descriptors to {method.pca_dim}",
-            f"run with --search-memory {format_budget(need)} or more, so it is fitted exactly as the authors' sklearn "
-            f"PCA ({format_bytes(budget)} given)")
+            f"run with --search-memory {format_budget(need)} or more, so the PCA is fitted exactly, not by randomized "
+            f"iteration ({format_bytes(budget)} given)")
 
 
 def missing_for(cell: Cell, row_weights, data_dir=None, cache_dir=None, given: dict | None = None,
