@@ -140,6 +140,12 @@ def test_17places_positives_are_vpr_bench_lists_cut_to_the_references(gt, tmp_pa
     assert max(max(row[1]) for row in rows) == 407
     assert dataset.positives[405].tolist() == [403, 404, 405]
     assert dataset.summary()["positive_pairs"] == 406 * 5 - (2 + 1) - (1 + 2)  # window of 5, cut at both ends
+    # verify said 'OK, 2,024 positive pairs' and nothing of the 3 it dropped
+    from vprbench.datasets import verify_dataset
+
+    lines = verify_dataset("17places", tmp_path, sample=0).lines()
+    assert "  note: 3 positives of the ground truth name references past the 406 there are: dropped, as AnyLoc " \
+           "evaluates" in lines, lines
 
 
 def test_gardens_point_release_and_vpr_bench_layouts_give_vpr_bench_positives(gt, tmp_path, make_images, save_rows):

@@ -31,6 +31,8 @@ class VerifyReport:
     layout: str = ""
     problems: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    #: what reading the copy did that its counts do not show (positives dropped by the layout's rule)
+    notes: list[str] = field(default_factory=list)
     summary: dict = field(default_factory=dict)
     images_checked: int = 0
     #: of them, those that did not decode (each named in problems)
@@ -44,7 +46,8 @@ class VerifyReport:
         # one line each: a path or name holding a newline (a file named so) cannot split a problem in two
         head = f"{self.name}: {'OK' if self.ok else 'PROBLEMS'} at {one_line(self.root)}" + (
             f" (layout {self.layout})" if self.layout else "")
-        body = [f"  error: {one_line(p)}" for p in self.problems] + [f"  warning: {one_line(w)}" for w in self.warnings]
+        body = [f"  error: {one_line(p)}" for p in self.problems] + [f"  warning: {one_line(w)}" for w in self.warnings] \
+            + [f"  note: {one_line(n)}" for n in self.notes]
         if self.summary:
             s = self.summary
             body.append(
@@ -102,6 +105,7 @@ def verify_dataset(name: str, data_dir=None, strict: bool = False, sample: int |
             if shifted:
                 message += f". {BY_POSITION} use a complete copy"
             (report.problems if strict or shifted else report.warnings).append(message)
+    report.notes = [n for n in dataset.notes if n != manifest.notes]
     absent = absent_or_empty(dataset.database + dataset.queries)
     if absent:
         report.problems.append(absent)

@@ -14,6 +14,7 @@ from ...errors import VPRBenchError
 from ..manifest import DatasetManifest
 from ..model import GroundTruth
 from ...images import list_images
+from ...text import plural
 from .base import from_manifest, layout, require
 from .npy import as_indices, read_npy
 
@@ -70,7 +71,14 @@ def read_vpr_bench(root: Path, manifest: DatasetManifest):
     queries = list_images(require(root, opts.get("queries", "query"), manifest), natural=True)
     gt_path = require(root, opts.get("ground_truth", "ground_truth_new.npy"), manifest, kind="file")
     lists = read_positive_lists(gt_path, len(queries))
+    dropped = 0
     if opts.get("drop_out_of_range", False):  # frames past the last reference only: a negative is an error
-        lists = [p[p < len(database)] for p in lists]
+        kept = [p[p < len(database)] for p in lists]
+        dropped = sum(len(p) - len(k) for p, k in zip(lists, kept))
+        lists = kept
     ground_truth = GroundTruth(unit="positives", radius=manifest.radius, positive_lists=lists)
-    return from_manifest(manifest, root, database, queries, ground_truth)
+    dataset = from_manifest(manifest, root, database, queries, ground_truth)
+    if dropped:  # said by `datasets verify` and `info`, not only in the manifest's notes
+        dataset.notes.append(f"{plural(dropped, 'positive')} of the ground truth name references past the "
+                             f"{len(database)} there are: dropped, as AnyLoc evaluates")
+    return dataset
