@@ -144,8 +144,8 @@ def test_a_sweep_summary_puts_no_random_weights_number_in_its_recall_columns(mak
     from vprbench.sweep import Outcome, summary_table
 
     hog, random = make_record("hog", seed=1), make_record("dense-vlad", weights={"source": "random"}, seed=2)
-    outcomes = [Outcome(SimpleNamespace(title=lambda m=m: f"{m} | corridor:vpr-bench"), "ran", "", r)
-                for m, r in (("hog", hog), ("dense-vlad", random))]
+    outcomes = [Outcome(SimpleNamespace(title=lambda m=m: f"{m} | corridor:vpr-bench", spec=SimpleNamespace(ks=(1, 5))),
+                        "ran", "", r) for m, r in (("hog", hog), ("dense-vlad", random))]
     group = summary_table(outcomes)
     table = group.renderables[0]
     recall = {c.header: list(c._cells) for c in table.columns if c.header in ("R@1", "R@5")}
@@ -154,3 +154,16 @@ def test_a_sweep_summary_puts_no_random_weights_number_in_its_recall_columns(mak
     console.print(group)
     shown = console.export_text()
     assert f"random weights: a pipeline check, not a result (R@1 {fmt(random['recall']['1'])}, R@5 {fmt(random['recall']['5'])})" in shown
+
+
+def test_a_sweep_summary_shows_the_k_its_cells_asked(make_record):
+    """Before: always R@1 and R@5, so 'evaluate --method hog sad --k 10 20' showed two empty columns."""
+    from types import SimpleNamespace
+
+    from vprbench.sweep import Outcome, summary_table
+
+    hog = make_record("hog", seed=1)
+    cell = SimpleNamespace(title=lambda: "hog | corridor:vpr-bench", spec=SimpleNamespace(ks=(10, 20)))
+    table = summary_table([Outcome(cell, "ran", "", hog)]).renderables[0]
+    recall = {c.header: list(c._cells) for c in table.columns if str(c.header).startswith("R@")}
+    assert recall == {"R@10": [fmt(hog["recall"]["10"])], "R@20": [fmt(hog["recall"]["20"])]}, recall

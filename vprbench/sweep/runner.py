@@ -219,7 +219,9 @@ def summary_table(outcomes: list[Outcome], title: str = "Sweep"):
     notes = Notes()
     counts = {s: sum(o.status == s for o in outcomes) for s in (RAN, SKIPPED, ELSEWHERE, MISSING, FAILED)}
     table = Table(title=f"{title}: " + ", ".join(f"{n} {s}" for s, n in counts.items() if n))
-    for column in ("method | dataset:protocol", "status", "R@1", "R@5", "computed", "detail"):
+    # the K the cells asked (R@1 and R@5 alone left '--k 10 20' with two empty columns)
+    ks = [str(k) for k in sorted({int(k) for o in outcomes for k in o.cell.spec.ks})]
+    for column in ("method | dataset:protocol", "status", *(f"R@{k}" for k in ks), "computed", "detail"):
         table.add_column(column, overflow="fold")
     colour = {RAN: "green", SKIPPED: "cyan", ELSEWHERE: "cyan", MISSING: "yellow", FAILED: "red"}
     for o in outcomes:
@@ -227,10 +229,10 @@ def summary_table(outcomes: list[Outcome], title: str = "Sweep"):
         computed = (o.record or {}).get("descriptors_computed") if o.status == RAN else None
         detail = o.detail
         if o.record and random_weights(o.record):  # no result: its numbers fill no R@K column, the note keeps them
-            checked = ", ".join(f"R@{k} {recall_text(recall[k])}" for k in ("1", "5") if k in recall)
+            checked = ", ".join(f"R@{k} {recall_text(recall[k])}" for k in ks if k in recall)
             detail = "; ".join(filter(None, [f"{PIPELINE_CHECK}{f' ({checked})' if checked else ''}", detail]))
             recall = {}
         table.add_row(o.cell.title(), Text(o.status, style=colour[o.status]),
-                      recall_text(recall["1"]) if "1" in recall else "", recall_text(recall["5"]) if "5" in recall else "",
+                      *(recall_text(recall[k]) if k in recall else "" for k in ks),
                       f"{computed['database'] + computed['queries']}" if computed else "", notes.short(detail))
     return notes.below(table)
