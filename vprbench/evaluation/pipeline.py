@@ -15,7 +15,7 @@ from ..errors import VPRBenchError, require
 from ..progress import phase
 from ..registration import source_of
 from ..row_sources import DEFAULT_MEMORY_BUDGET
-from ..methods.attributes import set_attributes, use_dataset
+from ..methods.attributes import restamp_fingerprint, set_attributes, use_dataset
 from ..methods.objects import check_method
 from ..methods.registry import checked_run_options
 from ..search.approximate import searched_to, sized_options
@@ -206,6 +206,7 @@ def retrieved(spec: RunSpec, settings: RunSettings, stages, *, dataset=None, met
         digests=dataset.image_digests(settings.cache_dir), names=dataset.image_names(), cache_dir=settings.cache_dir,
         store_dtype=spec.store_dtype, workers=workers, lock_timeout=settings.lock_timeout, ranks=ranks,
         progress=progress, settings=spec.options)  # keyed as the spec: one run, one store
+    restamp_fingerprint(method)  # as this run left it (weights loaded): the same object may run again
     budget, compare = settings.memory_budget or DEFAULT_MEMORY_BUDGET, getattr(method, "compare", "cosine")
 
     def plan(rows, asked, fit=()):  # the fit's need, and the rows as the search and the stages read them
@@ -244,11 +245,12 @@ def evaluate(spec: RunSpec, settings: RunSettings | None = None, *, dataset=None
 
     `settings` say how it runs and where the data and cache are (default: the user cache and the
     default data root). `dataset`/`method` may be given already built (e.g. a dataset made by
-    hand); they must be the spec's (a method its name, class and options: make the spec with
-    `spec_for(method, dataset)`; a dataset its protocol), and `settings.batch_size` applies to a
-    method given too. Under torchrun (`ranks` from `Ranks.from_environment()`)
-    every rank describes its shard; rank 0 returns the record, the other ranks None. A run with
-    stages may start from exported candidates (`settings.candidates`, vprbench/stages/candidates.py).
+    hand); they must be the spec's (a method its name, class and options, and its fingerprint as
+    `create_method` made it: make the spec with `spec_for(method, dataset)`; a dataset its
+    protocol), and `settings.batch_size` applies to a method given too. Under torchrun (`ranks`
+    from `Ranks.from_environment()`) every rank describes its shard; rank 0 returns the record,
+    the other ranks None. A run with stages may start from exported candidates
+    (`settings.candidates`, vprbench/stages/candidates.py).
     """
     started = time.perf_counter()
     require(spec, RunSpec, "evaluate(spec) takes a RunSpec: make one with vprbench.spec.resolve_spec(name, dataset) "

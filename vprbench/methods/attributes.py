@@ -4,12 +4,14 @@ value of another type ('yes' read as True, batch_size 2.5), is one line naming t
 what to do, before any image is described, not a traceback from wherever vprbench first reads it."""
 from __future__ import annotations
 
+import json
 import os
 import sys
 
 import numpy as np
 
 from ..errors import VPRBenchError
+from ..hashing import exact_data
 from ..loader import plugin_part
 from ..registration import source_of
 
@@ -54,12 +56,48 @@ def check_attributes(method, name: str | None = None, source: str | None = None)
             raise VPRBenchError(f"Method {name!r} ({source}) has {attribute} {value!r}; it must be {what} ({hint}).")
 
 
+#: where create_method keeps the method's fingerprint as made (objects.py refuses one changed since)
+MADE_FINGERPRINT = "_made_fingerprint"
+
+
+def own_fingerprint(method) -> dict:
+    """`method.fingerprint()` as plain data, as the store keys it: what a plugin's raises, or a value that
+    is no dict or names itself inexactly (an array, a set), is one line naming the method."""
+    with plugin_part(method, "fingerprint"):
+        own = method.fingerprint()
+    if not isinstance(own, dict):
+        raise VPRBenchError(f"Method {method.name!r}: fingerprint() must return a dict naming what changes its "
+                            f"descriptors, got {type(own).__name__}.")
+    own = exact_data(own, f"Method {method.name!r}: fingerprint()")  # as text, two arrays could share one key
+    return json.loads(json.dumps(own, default=str))
+
+
+def stamp_fingerprint(method, name: str, source: str) -> None:
+    """Keep the fingerprint `method` has now, as vprbench made it (created, or told its dataset), to refuse
+    it later if changed by hand: `m.size = 4` would be evaluated and stored under the options it was created
+    with. None when its fingerprint cannot be taken yet (a plugin's that needs `use_dataset` first)."""
+    try:
+        made = own_fingerprint(method)
+    except VPRBenchError:
+        made = None  # said when the store asks for it
+    set_attributes(method, name, source, **{MADE_FINGERPRINT: made})
+
+
 def use_dataset(method, name: str) -> None:
     """`method.use_dataset(name)`, what a plugin's raises as its one line; the attributes it may set
-    (AnyLoc's needs_fit) checked again after it."""
+    (AnyLoc's needs_fit) checked again after it, and the fingerprint it may change (AnyLoc's vocabulary)
+    kept again for a method create_method made."""
     with plugin_part(method, "use_dataset"):
         method.use_dataset(name)
     check_attributes(method)
+    restamp_fingerprint(method)
+
+
+def restamp_fingerprint(method) -> None:
+    """For a method create_method made, keep again the fingerprint vprbench's own calls left it with
+    (use_dataset, a run's prepare naming the weights it loaded): only a change by hand is refused."""
+    if hasattr(method, MADE_FINGERPRINT):
+        stamp_fingerprint(method, method.name, source_of(type(method)))
 
 
 def set_attributes(method, name: str, source: str, /, **values) -> None:

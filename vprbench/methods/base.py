@@ -49,7 +49,8 @@ class Method(ABC):
     - `describe` returns one row per image, in input order, and a row never depends on
       which other images share its batch.
     - `fingerprint` names everything that changes descriptors (weights identity,
-      preprocessing, options); the descriptor store is keyed by it.
+      preprocessing, options), read off what `describe` uses; the descriptor store is keyed
+      by it, and a method whose fingerprint changed after `create_method` is refused.
     - A method that learns something (a vocabulary) sets `needs_fit = True`, fits in
       `fit` on database images only, and round-trips it through `fit_state`/`load_fit_state`
       so an interrupted extraction resumes with the same vocabulary.

@@ -54,14 +54,26 @@ class HOG(Method):
                                 f"by a multiple of block_stride ({block_stride}), e.g. {block + 8 * block_stride} {block + 8 * block_stride}.")
         self.size = (width, height)
         self.parameters = {"resize": [height, width], "cell": cell, "block": block, "block_stride": block_stride, "bins": bins}
-        self.hog = cv2.HOGDescriptor(self.size, (block, block), (block_stride, block_stride), (cell, cell), bins)
+        self.hog = self._made()
         self.dataset, self.upsampling_said = None, False
+
+    def _made(self):
+        """The HOGDescriptor its parameters make."""
+        (height, width), p = self.parameters["resize"], self.parameters
+        return cv2.HOGDescriptor((width, height), (p["block"],) * 2, (p["block_stride"],) * 2, (p["cell"],) * 2,
+                                 p["bins"])
 
     def use_dataset(self, name: str) -> None:
         self.dataset = name
 
     def fingerprint(self) -> dict:
-        return {**self.parameters, "opencv": cv2.__version__.split(".")[0]}
+        found = {**self.parameters, "opencv": cv2.__version__.split(".")[0]}
+        # what computes the rows, read off the objects doing it: a HOGDescriptor or window set by hand is
+        # another descriptor (named only then, so the stores made from the parameters keep their key)
+        made, now = _settings(self._made(), self.parameters["resize"][::-1]), _settings(self.hog, self.size)
+        if now != made:
+            found["descriptor"] = now
+        return found
 
     def provenance(self) -> dict:
         return {"weights": {"source": "none"}}  # nothing learnt
@@ -93,3 +105,10 @@ class HOG(Method):
     def describe(self, images: Sequence) -> np.ndarray:
         return l2_normalise(np.stack([self.hog.compute(bgr).reshape(-1) for bgr in loaded(self, images)]))
 
+
+def _settings(hog, size) -> dict:
+    """What a HOGDescriptor computes on images resized to `size` (W, H)."""
+    found = {k: getattr(hog, k) for k in ("winSize", "blockSize", "blockStride", "cellSize", "nbins", "derivAperture",
+                                          "winSigma", "histogramNormType", "L2HysThreshold", "gammaCorrection",
+                                          "nlevels", "signedGradient")}
+    return {"image": [int(v) for v in size], **{k: list(v) if isinstance(v, tuple) else v for k, v in found.items()}}

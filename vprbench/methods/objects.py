@@ -6,7 +6,8 @@ import inspect
 
 from ..errors import VPRBenchError, require
 from ..spec_options import given_options, plain
-from .attributes import check_attributes
+from ..text import shortened
+from .attributes import MADE_FINGERPRINT, check_attributes, own_fingerprint
 from .base import Method
 from .registry import method_entry
 
@@ -31,7 +32,36 @@ def created_as(method) -> str:
                             f"is a {factory.__name__}: a method cannot be renamed; create it with "
                             f"vprbench.create_method({method.name!r}, ...).")
     check_attributes(method)  # an object built without create_method is checked as one built with it
+    check_unchanged(method)
     return method.name
+
+
+def check_unchanged(method) -> None:
+    """The method computes what it was created to (its fingerprint as create_method kept it, or as its
+    dataset last set it): an attribute set by hand (`m.size = 4`) would be evaluated, stored and recorded
+    under the name and options it was created with, and serve a later run of those options."""
+    made = getattr(method, MADE_FINGERPRINT, None)
+    if made is None:  # not made by create_method, or its fingerprint not known yet
+        return
+    now = own_fingerprint(method)
+    changed = sorted(k for k in set(made) | set(now) if made.get(k) != now.get(k))
+    if not changed:
+        return
+    said = "; ".join(f"{k}: {_value(made, k)} then, {_value(now, k)} now" for k in changed)
+    options = dict(getattr(method, "options", {}) or {})
+    if set(changed) <= set(method_entry(method.name).options()):  # e.g. create_method('thumb', size=4)
+        written = ", ".join([repr(method.name)] + [f"{k}={v!r}" for k, v in {**options, **{k: now[k] for k in changed
+                                                                                             if k in now}}.items()])
+        todo = f"create it again with the option, e.g. vprbench.create_method({written})"
+    else:
+        todo = f"create it again with vprbench.create_method({method.name!r}, ...) and leave its attributes as made"
+    raise VPRBenchError(f"The method object {method.name!r} (options {options}) was changed after create_method: its "
+                        f"fingerprint differs ({said}), so its results would be recorded and "
+                        f"stored as those options'; {todo}.")
+
+
+def _value(fingerprint: dict, key: str) -> str:
+    return shortened(repr(fingerprint[key])) if key in fingerprint else "unset"
 
 
 def check_method(method, spec) -> None:

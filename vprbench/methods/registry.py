@@ -28,7 +28,7 @@ from ..loader import plugin_part
 from ..paths import folder_path
 from ..registration import Registry, check_name, check_target, imported, looked_up, source_of
 from ..text import shortened
-from .attributes import MAX_BATCH_SIZE, check_attributes, set_attributes
+from .attributes import MAX_BATCH_SIZE, check_attributes, set_attributes, stamp_fingerprint
 from .checks import canonical, plain_options, whole
 
 ENTRY_POINT_GROUP = "vprbench.methods"
@@ -219,7 +219,9 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
     The registry handles `batch_size` for every method (a whole number >= 1; passed to the
     factory when it takes it, else set on the method), checks `device` for those taking it and
     hands `cache_dir` and `data_dir` to factories that take them. The method gets `name`, `options` (what the
-    user gave) and `settings` (preset + user options, what the store is keyed on).
+    user gave) and `settings` (preset + user options, what the store is keyed on), and keeps its
+    `fingerprint()` as made: changed afterwards (`m.size = 4`), `spec_for` and `evaluate(method=m)`
+    refuse it (its results would be stored and recorded under the options it was created with).
     """
     from .base import Method
 
@@ -278,6 +280,7 @@ def create_method(name: str, *, cache_dir=None, data_dir=None, **options) -> "Me
     set_attributes(method, name, entry.source, name=entry.name, options=options,
                    settings={k: v for k, v in merged.items() if k not in ("device", "batch_size")},
                    _created_as=(entry.name, copy.deepcopy(options)))  # what `name`/`options` may not be changed from
+    stamp_fingerprint(method, name, entry.source)  # nor what it computes (`m.size = 4`): objects.py refuses it
     return method
 
 

@@ -29,8 +29,8 @@ import numpy as np
 from ..errors import ShardWarning, VPRBenchError
 from ..fsutil import CacheError, atomic_path, cache_error, is_temporary, lock
 from ..paths import cache_root, safe_name, special_file
-from ..hashing import canonical_hash, canonical_json, exact_data
-from ..loader import plugin_part
+from ..hashing import canonical_hash, canonical_json
+from ..methods.attributes import own_fingerprint
 from ..run_settings import RUN_SETTINGS
 from .reader import DescriptorStore
 from .rows_file import DamagedRows, RowsIdentity, folder_lock, hdf5_written, inspect_rows_file
@@ -59,16 +59,11 @@ def method_fingerprint(method, store_dtype: str = "float32", settings: dict | No
     # by path, the file edited in place kept its store: a run whose spec names the new bytes read the old ones'
     files = option_identities(method.name, settings, cache_dir if cache_dir is not None else getattr(method, "cache_dir", None))
     settings = {k: files.get(k, v) for k, v in settings.items()}
-    with plugin_part(method, "fingerprint"):
-        own = method.fingerprint()
-    if not isinstance(own, dict):
-        raise VPRBenchError(f"Method {method.name!r}: fingerprint() must return a dict naming what changes its "
-                            f"descriptors, got {type(own).__name__}.")
+    own = own_fingerprint(method)
     clash = sorted(set(own) & set(RESERVED_KEYS))  # its own key would overwrite what keeps two stores apart
     if clash:
         raise VPRBenchError(f"Method {method.name!r}: fingerprint() uses the key(s) {', '.join(clash)}, which the "
                             f"store's key sets itself ({', '.join(RESERVED_KEYS)}); rename them in the method.")
-    own = exact_data(own, f"Method {method.name!r}: fingerprint()")  # as text, two arrays could share one key
     return json.loads(json.dumps({"method": method.name, "settings": settings, **own,
                                   "store_dtype": store_dtype, "decoding": {"orientation": ORIENTATION}}, default=str))
 
