@@ -194,7 +194,7 @@ def run_verify(args) -> int:
         print(json.dumps({
             "name": report.name, "root": str(report.root), "layout": report.layout, "ok": report.ok,
             "problems": report.problems, "warnings": report.warnings, "summary": report.summary,
-            "images_checked": report.images_checked,
+            "images_checked": report.images_checked, "utm_zones": report.zones,
         }, indent=2))
     else:
         say("\n".join(report.lines()))

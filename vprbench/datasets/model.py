@@ -22,6 +22,9 @@ class GroundTruth:
     - unit "frames": positions are (N, 1) frame indices; positive when |i - j| <= radius.
     - unit "positives": `positive_lists[q]` are the database indices positive for query q
       (VPR-Bench style); `radius` documents how the provider made them, if known.
+
+    With unit "metres", `database_zones`/`query_zones` (each position's UTM zone, e.g. "10 north",
+    from file names) make a pair positive only within one zone: each zone is its own plane.
     """
 
     unit: str
@@ -29,6 +32,8 @@ class GroundTruth:
     database_positions: np.ndarray | None = None
     query_positions: np.ndarray | None = None
     positive_lists: list[np.ndarray] | None = None
+    database_zones: np.ndarray | None = None
+    query_zones: np.ndarray | None = None
 
     def __post_init__(self):
         if self.unit not in UNITS:
@@ -43,6 +48,8 @@ class GroundTruth:
                 raise ValueError(f"unit 'positives' needs positive_lists, a list of index lists; got {self.positive_lists!r}")
         elif self.database_positions is None or self.query_positions is None or self.radius is None:
             raise ValueError(f"unit {self.unit!r} needs database/query positions and a radius")
+        if (self.database_zones is None) != (self.query_zones is None):
+            raise ValueError("ground-truth zones are given for both database and queries, or for neither")
 
     def said(self) -> str:
         """'positives within 25 metres', 'positive lists': what counts as a positive, in a few words."""
@@ -62,14 +69,28 @@ class GroundTruth:
         """For each query, the sorted int64 indices of its positive database images."""
         if self.unit == "positives":
             return [np.unique(np.asarray(p, dtype=np.int64)) for p in self.positive_lists]
-        from sklearn.neighbors import NearestNeighbors
-
         db = np.asarray(self.database_positions, dtype=np.float64).reshape(len(self.database_positions), -1)
         q = np.asarray(self.query_positions, dtype=np.float64).reshape(len(self.query_positions), -1)
-        # the tiny slack keeps a pair at exactly the radius positive despite float rounding
-        tree = NearestNeighbors().fit(db)
-        found = tree.radius_neighbors(q, radius=float(self.radius) + 1e-9, return_distance=False)
-        return [np.sort(np.asarray(idx, dtype=np.int64)) for idx in found]
+        if self.query_zones is None:
+            return _within(db, q, float(self.radius))
+        db_zones, q_zones = np.asarray(self.database_zones), np.asarray(self.query_zones)
+        found = [np.zeros(0, dtype=np.int64)] * len(q)
+        for zone in set(q_zones.tolist()):  # each zone's queries against that zone's database images only
+            rows, columns = np.flatnonzero(q_zones == zone), np.flatnonzero(db_zones == zone)
+            for row, near in zip(rows, _within(db[columns], q[rows], float(self.radius))):
+                found[row] = columns[near]
+        return found
+
+
+def _within(db: np.ndarray, q: np.ndarray, radius: float) -> list[np.ndarray]:
+    """For each query, the sorted indices of the database positions within `radius`."""
+    if not len(db):
+        return [np.zeros(0, dtype=np.int64) for _ in q]
+    from sklearn.neighbors import NearestNeighbors
+
+    # the tiny slack keeps a pair at exactly the radius positive despite float rounding
+    found = NearestNeighbors().fit(db).radius_neighbors(q, radius=radius + 1e-9, return_distance=False)
+    return [np.sort(np.asarray(idx, dtype=np.int64)) for idx in found]
 
 
 @dataclass

@@ -210,7 +210,8 @@ def _with_tolerance(dataset: Dataset, protocol: Protocol) -> GroundTruth:
 
 def _keep_database(gt: GroundTruth, keep: np.ndarray) -> GroundTruth:
     if gt.unit != "positives":
-        return dataclasses.replace(gt, database_positions=np.asarray(gt.database_positions)[keep])
+        zones = {} if gt.database_zones is None else {"database_zones": np.asarray(gt.database_zones)[keep]}
+        return dataclasses.replace(gt, database_positions=np.asarray(gt.database_positions)[keep], **zones)
     new_index = np.cumsum(keep) - 1
     lists = []
     for p in gt.positives():
@@ -221,13 +222,15 @@ def _keep_database(gt: GroundTruth, keep: np.ndarray) -> GroundTruth:
 
 def _keep_queries(gt: GroundTruth, keep: np.ndarray) -> GroundTruth:
     if gt.unit != "positives":
-        return dataclasses.replace(gt, query_positions=np.asarray(gt.query_positions)[keep])
+        zones = {} if gt.query_zones is None else {"query_zones": np.asarray(gt.query_zones)[keep]}
+        return dataclasses.replace(gt, query_positions=np.asarray(gt.query_positions)[keep], **zones)
     return dataclasses.replace(gt, positive_lists=[p for p, k in zip(gt.positives(), keep) if k])
 
 
 def _swapped(gt: GroundTruth, n_database: int) -> GroundTruth:
     if gt.unit != "positives":
-        return dataclasses.replace(gt, database_positions=gt.query_positions, query_positions=gt.database_positions)
+        return dataclasses.replace(gt, database_positions=gt.query_positions, query_positions=gt.database_positions,
+                                   database_zones=gt.query_zones, query_zones=gt.database_zones)
     inverted: list[list[int]] = [[] for _ in range(n_database)]
     for query, positives in enumerate(gt.positives()):
         for d in positives:

@@ -19,6 +19,7 @@ from ..text import one_line, plural, quantity
 from .layouts import candidates, describe_layout, detect_layout, missing_paths, read_layout
 from .layouts.base import MissingPart
 from .layouts.own_data import own_manifest
+from .layouts.utm_zones import zone_names
 from .locations import dataset_location, how_to_get
 from .manifest import dataset_manifest, is_path
 from .storage import BY_POSITION, absent_or_empty, by_position
@@ -37,6 +38,8 @@ class VerifyReport:
     images_checked: int = 0
     #: of them, those that did not decode (each named in problems)
     images_failed: int = 0
+    #: the UTM zones the positions span, when more than one (positives never join two)
+    zones: list[str] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -56,6 +59,9 @@ class VerifyReport:
                 + (f"{plural(self.images_checked, 'image')} decoded" if not self.images_failed else
                    f"{self.images_checked - self.images_failed} of {plural(self.images_checked, 'image')} decoded")
             )
+            if self.zones:
+                body.append(f"  positions span {len(self.zones)} UTM zones ({', '.join(self.zones)}); "
+                            "positives are within one zone")
         return [head, *body]
 
 
@@ -114,6 +120,10 @@ def verify_dataset(name: str, data_dir=None, strict: bool = False, sample: int |
     except VPRBenchError as error:
         report.problems.append(str(error))
     else:
+        gt = dataset.ground_truth
+        if gt.query_zones is not None:
+            zones = zone_names(np.concatenate([gt.database_zones, gt.query_zones]))
+            report.zones = zones if len(zones) > 1 else []
         without = report.summary["queries"] - report.summary["queries_with_positives"]
         if without:
             report.warnings.append(f"{plural(without, 'query')} without a positive (counted as failures in Recall@K)")

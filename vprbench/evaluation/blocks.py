@@ -15,8 +15,9 @@ bootstrap draws (with replacement) follow from the ground truth and the run's st
   round(n / L) blocks.
 - "places": the queries have metric positions (positives within r metres). Greedy places: in
   query order, each query not yet placed founds a place with every unplaced query within r of
-  it (so queries of one place are at most 2r apart). Each resample draws as many places as
-  there are, and the recall is the successes over the queries drawn. Chaining "within r of one
+  it (and in its UTM zone, when file names give zones: so queries of one place are at most 2r
+  apart). Each resample draws as many places as there are, and the recall is the successes
+  over the queries drawn. Chaining "within r of one
   another" into connected components would merge a whole densely sampled route into one unit;
   merging the places a sequence window spans would do the same (consecutive windows overlap), so
   a sequence run keeps the places: its window can reach the neighbouring places along the
@@ -185,8 +186,9 @@ def shared(first: Resampling, second: Resampling) -> Resampling | None:
     return None
 
 
-def place_groups(positions: np.ndarray, radius: float) -> np.ndarray:
-    """Each query's place (see the module's rule), numbered in order of foundation."""
+def place_groups(positions: np.ndarray, radius: float, zones=None) -> np.ndarray:
+    """Each query's place (see the module's rule), numbered in order of foundation; with `zones` (UTM
+    zones from file names), a place holds queries of one zone, as positives do."""
     from scipy.spatial import cKDTree
 
     place = np.full(len(positions), -1, dtype=np.int64)
@@ -201,6 +203,7 @@ def place_groups(positions: np.ndarray, radius: float) -> np.ndarray:
             if place[query] >= 0:
                 continue
             found = np.asarray(found, dtype=np.int64)
+            found = found if zones is None else found[zones[found] == zones[query]]
             place[found[place[found] < 0]] = count
             count += 1
     return place
@@ -223,7 +226,9 @@ def for_dataset(dataset, window: int = 1) -> Resampling:
     scheme = scheme_of(gt.unit, radius_unit)
     radius = None if gt.radius is None else float(gt.radius)
     if scheme == "places" and radius is not None and gt.query_positions is not None:
-        return Resampling("places", n, places=place_groups(gt.query_positions, radius), radius=radius, unit="metres")
+        zones = None if gt.query_zones is None else np.asarray(gt.query_zones)
+        places = place_groups(gt.query_positions, radius, zones)
+        return Resampling("places", n, places=places, radius=radius, unit="metres")
     if scheme == "blocks" and radius is not None:
         order, step = None, 1.0
         if gt.unit == "frames" and gt.query_positions is not None:

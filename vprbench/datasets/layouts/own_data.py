@@ -29,10 +29,10 @@ from ...text import CONTROL
 from ..manifest import DatasetManifest
 from ..model import GroundTruth
 from .base import climbs_out, from_manifest, layout, require
+# utm_from_name lived here: still importable from here
+from .utm_zones import MAX_COORDINATE, positions_from_names, utm_from_name, warn_cross_zone_pairs  # noqa: F401
 
 DEFAULT_RADIUS_M = 25.0
-#: the largest |coordinate| accepted: beyond it no real position lies, and distances overflow
-MAX_COORDINATE = 1e12
 
 
 #: a dataset's name becomes part of file names (stores, records) and is shown: a plain file name
@@ -49,21 +49,6 @@ def safe_name(folder_name: str) -> str:
     (spaces, '<', controls...) made one '-' ("Lab photos" -> "Lab-photos")."""
     name = re.sub(r"\.{2,}", ".", re.sub(r"[^A-Za-z0-9._+-]+", "-", folder_name)).lstrip("._+-")[:100]
     return name if is_safe_name(name) else "own-data"
-
-
-def utm_from_name(path: Path) -> tuple[float, float]:
-    """(easting, northing) from a name like @0551234.5@4178910.2@10@S@....jpg"""
-    parts = path.name.split("@")
-    try:
-        easting, northing = float(parts[1]), float(parts[2])
-        if not (abs(easting) <= MAX_COORDINATE and abs(northing) <= MAX_COORDINATE):
-            raise ValueError("not finite or out of range")
-        return easting, northing
-    except (IndexError, ValueError):
-        raise VPRBenchError(
-            f"Cannot read UTM coordinates from the file name {path.name!r}: expected "
-            "'@easting@northing@...' (or provide positions.csv)."
-        ) from None
 
 
 def latlon_to_metres(lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
@@ -252,20 +237,22 @@ def read_own(root: Path, manifest: DatasetManifest):
         if folders:
             warnings.warn(f"{root}/{name}: the images in its subfolders ({folders}) are not read, only those "
                           f"directly in {name}/; move them up to include them.", stacklevel=2)
-    csv = root / "positions.csv"
+    csv, zones = root / "positions.csv", None
     if regular_file(csv, "Positions file"):
         positions, unit = positions_from_csv(csv, root, database + queries)
     else:
-        positions = np.array([utm_from_name(p) for p in database + queries])
+        positions, zones = positions_from_names(database + queries, root)
         unit = "metres"
     radius = manifest.radius
     if radius is None:
         if unit == "frames":
             raise VPRBenchError(f"{root}: frame positions need 'radius = N' (frames) in {root}/dataset.toml")
         radius = DEFAULT_RADIUS_M
-    ground_truth = GroundTruth(
-        unit=unit, radius=radius, database_positions=positions[: len(database)], query_positions=positions[len(database):]
-    )
+    split = {"database_zones": zones[: len(database)], "query_zones": zones[len(database):]} if zones is not None else {}
+    ground_truth = GroundTruth(unit=unit, radius=radius, database_positions=positions[: len(database)],
+                               query_positions=positions[len(database):], **split)
+    if zones is not None:
+        warn_cross_zone_pairs(ground_truth, database, queries, root)
     dataset = from_manifest(manifest, root, database, queries, ground_truth)
     dataset.radius_unit = unit  # the positions' unit (frames or metres), not the manifest's default
     if not any(len(p) for p in dataset.positives):  # computed once: the evaluation reads the same

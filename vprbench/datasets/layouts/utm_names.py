@@ -3,7 +3,8 @@
 File names follow `@easting@northing@zone_number@zone_letter@latitude@longitude@...@.jpg`
 (the convention of the VPR datasets downloader used for Pitts-30k, Pitts-250k, Tokyo 24/7,
 St Lucia, MSLS, SPED...). A query's positives are the database images within `radius`
-metres (easting/northing plane), as in the AnyLoc and deep-visual-geo-localization code.
+metres (easting/northing plane), as in the AnyLoc and deep-visual-geo-localization code, and
+in the same UTM zone (number and hemisphere): the zones' planes are apart (utm_zones.py).
 
 Options: `split` ("test"), `database` ("database"), `queries` ("queries").
 """
@@ -11,24 +12,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from ...errors import VPRBenchError
 from ..manifest import DatasetManifest
 from ..model import GroundTruth
 from ...images import list_images
 from .base import from_manifest, layout, require
-from .own_data import utm_from_name
-
-
-def utm_positions(paths: list[Path], root: Path) -> np.ndarray:
-    """(N, 2) easting/northing from the file names, naming the first file that has none."""
-    if not paths:
-        return np.zeros((0, 2))
-    try:
-        return np.array([utm_from_name(p) for p in paths], dtype=np.float64)
-    except VPRBenchError as error:
-        raise VPRBenchError(f"{error} (under {root})") from None
+from .utm_zones import positions_from_names, warn_cross_zone_pairs
 
 
 def split_folder(options: dict) -> str:
@@ -53,10 +42,14 @@ def read_utm_names(root: Path, manifest: DatasetManifest):
         )
     if manifest.radius is None:
         raise VPRBenchError(f"Dataset {manifest.name!r}: its manifest needs a radius (metres) for layout 'utm-names'.")
+    positions, zones = positions_from_names(database + queries, root)  # one check of the zones across both splits
     ground_truth = GroundTruth(
         unit="metres",
         radius=manifest.radius,
-        database_positions=utm_positions(database, root),
-        query_positions=utm_positions(queries, root),
+        database_positions=positions[: len(database)],
+        query_positions=positions[len(database):],
+        database_zones=zones[: len(database)],
+        query_zones=zones[len(database):],
     )
+    warn_cross_zone_pairs(ground_truth, database, queries, root)
     return from_manifest(manifest, root, database, queries, ground_truth)
