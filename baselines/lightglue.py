@@ -162,13 +162,14 @@ def load_models(options: SuperPointLightGlueOptions, cache_dir=None, device: str
                 load_lightglue(paths[LIGHTGLUE.file_name], options).to(device))
 
 
-def weights_identities(options: SuperPointLightGlueOptions) -> dict[str, str | None]:
-    """Release file -> the URL it is downloaded from or 'sha256:<hex>' of the local file; None for random."""
+def weights_identities(options: SuperPointLightGlueOptions, cache_dir=None) -> dict[str, str | None]:
+    """Release file -> the URL it is downloaded from or 'sha256:<hex>' of the local file (or of a file in
+    `cache_dir` vprbench did not download); None for random."""
     if options.weights == RANDOM:
         return {SUPERPOINT.file_name: None, LIGHTGLUE.file_name: None}
     if options.weights:
         return {name: "sha256:" + file_sha256(path) for name, path in release_files(options.weights).items()}
-    return {s.file_name: weights_identity(s, None, NAME) for s in (SUPERPOINT, LIGHTGLUE)}
+    return {s.file_name: weights_identity(s, None, NAME, cache_dir) for s in (SUPERPOINT, LIGHTGLUE)}
 
 
 # ---------------------------------------------------------------- the stage
@@ -180,6 +181,7 @@ class SuperPointLightGlue(Stage):
     track = "re-ranked"
     Options = SuperPointLightGlueOptions
     description = "SuperPoint keypoints matched by LightGlue (kornia); score = matches, or their RANSAC inliers"
+    _cache_dir = None  # the run's cache, once applied
 
     @classmethod
     def file_identities(cls, options: SuperPointLightGlueOptions) -> dict:
@@ -200,7 +202,7 @@ class SuperPointLightGlue(Stage):
         from vprbench.images import ORIENTATION
 
         options = self.options
-        weights = weights_identities(options)[SUPERPOINT.file_name]
+        weights = weights_identities(options, self._cache_dir)[SUPERPOINT.file_name]
         return {"extractor": "superpoint", "weights": weights or f"random:seed{RANDOM_SEED}",
                 "max_keypoints": options.max_keypoints, "detection_threshold": options.detection_threshold,
                 "nms_radius": options.nms_radius, "resize": options.resize, "torch": torch.__version__,
@@ -229,6 +231,7 @@ class SuperPointLightGlue(Stage):
         from .superpoint import superpoint_features
 
         options, device = self.options, context.device
+        self._cache_dir = context.cache_dir  # where the release files are read: their identity is theirs there
         superpoint, lightglue = load_models(options, context.cache_dir, device)  # refused before anything is stored
 
         def extract(path):
@@ -254,7 +257,8 @@ class SuperPointLightGlue(Stage):
 
     def provenance(self) -> dict:
         """Each release file's source; the stage's is random, else user when either file is the user's."""
-        files = {name: weights_provenance(identity) for name, identity in weights_identities(self.options).items()}
+        files = {name: weights_provenance(identity)
+                 for name, identity in weights_identities(self.options, self._cache_dir).items()}
         sources = {part["source"] for part in files.values()}
         source = next(s for s in ("random", "user", "official") if s in sources)
         return {"weights": {"source": source, "files": files}}

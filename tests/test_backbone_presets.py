@@ -158,7 +158,7 @@ def test_reproduce_backbones_plan_lists_what_each_row_needs(capsys, monkeypatch,
     assert "gated, DINOv3 License: request access at https://github.com/facebookresearch/dinov3" in needs("GeM DINOv3 ViT-B/16")
     assert "huggingface.co/timm/vit_pe_spatial_base_patch16_512.fb" in needs("VLAD PE-spatial B/16")
     # timm's weights are all model.safetensors: each named by its repository, not said as another's
-    assert "weights timm/naflexvit_base_patch16_radio_v3.c_radio/model.safetensors: download " \
-           "https://huggingface.co/timm/naflexvit_base_patch16_radio_v3.c_radio into" in needs("VLAD RADIO v3 B/16")
+    assert "weights timm/naflexvit_base_patch16_radio_v3.c_radio/model.safetensors: let vprbench download " \
+           "https://huggingface.co/timm/naflexvit_base_patch16_radio_v3.c_radio (" in needs("VLAD RADIO v3 B/16")
     missing = sorted(re.findall(r"^dataset (\S+): ", "\n".join(notes.values()), re.MULTILINE))
     assert len(missing) == 12 and missing[:2] == ["17places", "baidu-mall"]

@@ -221,8 +221,8 @@ def test_reproduce_dry_run_and_bad_table(shared_data, capsys, monkeypatch):
     assert "PCA to 512" not in text and text.count("not runnable [") == 6
     assert text.count("not runnable [1]") == 6 and text.count("[1] the authors ran a NetVLAD checkpoint of their own") == 1
     for need in ("dataset baidu-mall: Download baidu_datasets.tar.gz",
-                 "weights dinov2_vitg14_pretrain.pth: download https://dl.fbaipublicfiles.com/dinov2/dinov2_vitg14/",
-                 "weights ResNet101_2048_cosplace.pth: download https://github.com/gmberton/CosPlace/"):
+                 "weights dinov2_vitg14_pretrain.pth: let vprbench download https://dl.fbaipublicfiles.com/dinov2/dinov2_vitg14/",
+                 "weights ResNet101_2048_cosplace.pth: let vprbench download https://github.com/gmberton/CosPlace/"):
         assert text.count(need) == 1, need
     number = re.search(r"\[(\d+)\] dataset baidu-mall:", text).group(1)
     # the ten runnable rows on baidu-mall refer to it, and the two -PCA rows on the other indoor datasets

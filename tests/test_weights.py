@@ -174,8 +174,10 @@ def test_evaluate_reads_weights_from_the_run_settings_cache(shared_data, tmp_pat
     backbone = backbone_spec("dinov2_vits14")
     cache = tmp_path / "X"
     release = cache / "torch" / "hub" / "checkpoints" / backbone.file_name
-    release.parent.mkdir(parents=True)
-    torch.save(official_state_dict(create_model(backbone), backbone), release)
+    state = official_state_dict(create_model(backbone), backbone)
+    monkeypatch.setattr(torch.hub, "download_url_to_file", lambda url, to, **kwargs: torch.save(state, to))
+    resolve_weights(backbone.source, None, "toy", cache_dir=cache)  # downloaded by vprbench (not put there by hand)
+    _refuse_network(monkeypatch)
     dataset = load_dataset("corridor", shared_data)
     spec = resolve_spec("anyloc", dataset, options={"backbone": "dinov2_vits14", "layer": 0, "aggregation": "gem",
                                                     "resize": "28x28"})

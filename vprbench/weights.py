@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import glob
+import json
 import os
 import pickle
 import re
@@ -24,11 +25,14 @@ from .weight_source import WeightSource
 _SHA256: dict[tuple, str] = {}
 
 
+def _sha256_key(path: Path) -> tuple:
+    stat = path.stat()
+    return str(path.resolve()), stat.st_mtime_ns, stat.st_size
+
+
 def file_sha256(path: str | Path) -> str:
     """Hex sha256 of a file's bytes; remembered per (path, mtime, size), so multi-GB files hash once."""
-    path = Path(path)
-    stat = path.stat()
-    key = (str(path.resolve()), stat.st_mtime_ns, stat.st_size)
+    key = _sha256_key(Path(path))
     if key not in _SHA256:
         _SHA256[key] = fsutil.file_sha256(path)
     return _SHA256[key]
@@ -147,7 +151,8 @@ def local_weights(source: WeightSource, weights: str | Path, what: str) -> Path:
 
 
 def cached_weights(source: WeightSource, cache_dir=None) -> Path | None:
-    """The downloaded release file if it is already in the cache (nothing is downloaded)."""
+    """The release's file if one is already in the cache (nothing is downloaded): it is there, not
+    proven the release's (`cached_identity` says which it is)."""
     if source.url:
         path = weights_folder(cache_dir) / source.file_name
         return path if path.is_file() else None
@@ -161,18 +166,61 @@ def cached_weights(source: WeightSource, cache_dir=None) -> Path | None:
     return None
 
 
-def weights_identity(source: WeightSource, weights: str | Path | None, what: str) -> str:
-    """The identity `resolve_weights` gives, without downloading anything. A release whose sha256 a
-    backbone manifest pins is named by it, as a local copy of its bytes is: one computation, one
-    identity; only there, as its records still name its URL from the pin (`weights_provenance`)."""
-    if weights is not None:
-        return "sha256:" + file_sha256(local_weights(source, weights, what))
+def release_identity(source: WeightSource, what: str) -> str:
+    """The identity of the authors' release: a pinned sha256 (as a local copy of its bytes is: one
+    computation, one identity; only there, as its records still name its URL from the pin, see
+    `weights_provenance`), else its URL or 'hf:<repo>/<file>'."""
     if source.url:
         pinned = f"sha256:{source.sha256.lower()}" if source.sha256 else None
         return pinned if pinned and weights_provenance(pinned).get("url") == source.url else source.url
     if source.hub:
         return f"hf:{source.hub}/{source.file_name}"
     raise VPRBenchError(_no_download(source, what))
+
+
+def _download_record(digest: str, cache_dir=None) -> Path:
+    """Where vprbench records a download it made, keyed by the downloaded bytes' sha256 (not by the
+    file's name: any bytes may be put under a release's name)."""
+    return cache_root(cache_dir) / "weights-downloads" / f"{digest}.json"
+
+
+def record_download(source: WeightSource, path: Path, what: str, cache_dir=None) -> str:
+    """After vprbench downloaded `path` from `source`: the record that these bytes are the release's
+    (written atomically before the file takes its place). Returns the file's sha256."""
+    digest = file_sha256(path)
+    fsutil.atomic_write(_download_record(digest, cache_dir), json.dumps(
+        {"identity": release_identity(source, what), "from": source.where, "file": source.file_name, "sha256": digest}))
+    return digest
+
+
+def cached_identity(source: WeightSource, path: Path, what: str, cache_dir=None) -> str:
+    """The identity of a file found in the cache: the release's when vprbench recorded downloading
+    these very bytes from it, else its sha256, as the same file given with --weights (official only
+    when the authors publish that sha256): a file put there by hand proves nothing by its name."""
+    digest = file_sha256(path)
+    try:
+        said = json.loads(_download_record(digest, cache_dir).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        said = None
+    official = release_identity(source, what)
+    proven = isinstance(said, dict) and said.get("sha256") == digest and said.get("identity") == official
+    return official if proven else f"sha256:{digest}"
+
+
+def weights_identity(source: WeightSource, weights: str | Path | None, what: str, cache_dir=None) -> str:
+    """The identity `resolve_weights` gives, without downloading anything: a local file's sha256, a
+    file already in `cache_dir` as `cached_identity` says, else the release's (`release_identity`)."""
+    if weights is not None:
+        return "sha256:" + file_sha256(local_weights(source, weights, what))
+    found = cached_weights(source, cache_dir)
+    return release_identity(source, what) if found is None else cached_identity(source, found, what, cache_dir)
+
+
+def _not_downloaded(source: WeightSource, path: Path, identity: str, what: str) -> str:
+    return (f"{what}: {path} is not a file vprbench downloaded from {source.where} (no record of a download of "
+            f"these bytes), and no published sha256 names it: it runs as your own weights, as with --weights, "
+            f"and its results are marked 'user weights {identity[:19]}'; delete it and vprbench downloads the "
+            "release, recorded as official.")
 
 
 def _gated(source: WeightSource, what: str) -> VPRBenchError:
@@ -203,9 +251,12 @@ def resolve_weights(source: WeightSource, weights: str | Path | None, what: str,
     if weights is not None:
         path = local_weights(source, weights, what)
         return ResolvedWeights(path, weights_identity(source, path, what))
-    identity = weights_identity(source, None, what)
+    identity = release_identity(source, what)  # the source is one that downloads: else said here
     found = cached_weights(source, cache_dir)
     if found is not None:
+        identity = cached_identity(source, found, what, cache_dir)
+        if identity.startswith("sha256:") and weights_provenance(identity)["source"] == "user":
+            fsutil.warn_once(found, _not_downloaded(source, found, identity, what))
         return ResolvedWeights(found, identity)
     try:
         if source.url:
@@ -219,14 +270,19 @@ def resolve_weights(source: WeightSource, weights: str | Path | None, what: str,
                 for partial in found.parent.glob(f"{glob.escape(found.name)}.*.partial"):
                     partial.unlink(missing_ok=True)
                 if not found.is_file():
+                    # into a name of its own, recorded, then in place: the file is never there unrecorded
+                    staging = found.with_name(f"{found.name}.download")
                     try:
-                        torch.hub.download_url_to_file(source.url, str(found), progress=False,
+                        torch.hub.download_url_to_file(source.url, str(staging), progress=False,
                                                        hash_prefix=source.sha256 and source.sha256.lower())  # lower-case hex
                     except RuntimeError as error:  # torch keeps nothing of a file whose hash differs
                         got = re.search(r'invalid hash value .*got "([0-9a-fA-F]+)"', str(error))
                         if got is None:
                             raise
                         raise _hash_mismatch(source, got.group(1), what) from None
+                    digest = record_download(source, staging, what, cache_dir)
+                    os.replace(staging, found)
+                    _SHA256[_sha256_key(found)] = digest  # a multi-GB file is not read again for its identity
         else:
             from huggingface_hub import get_hf_file_metadata, hf_hub_download, hf_hub_url
             from huggingface_hub.errors import EntryNotFoundError, LocalEntryNotFoundError
@@ -243,6 +299,7 @@ def resolve_weights(source: WeightSource, weights: str | Path | None, what: str,
                     if isinstance(error, LocalEntryNotFoundError) or name == names[-1]:  # offline, or none there
                         raise
             found = Path(hf_hub_download(source.hub, name, cache_dir=str(hub_folder(cache_dir))))
+            record_download(source, found, what, cache_dir)
     except VPRBenchError:
         raise
     except Exception as error:  # noqa: BLE001 - network clients raise their own types (urllib, httpx, hub errors)
@@ -300,8 +357,9 @@ def weights_provenance(identity: str | None) -> dict:
 
     `identity` is what fingerprints hold: the official URL (or 'hf:<repo>/<file>') of a file
     vprbench downloaded from the authors' release (or another source's 'SOURCE:NAME', e.g. an
-    open_clip model), 'sha256:<hex>' for a local file or a release with a published sha256, None for
-    a model run without weights (random initialisation); other text is refused. A
+    open_clip model), 'sha256:<hex>' for a local file (or one in the cache vprbench did not download)
+    or a release with a published sha256, None for a model run without weights (random
+    initialisation); other text is refused. A
     sha256 is official only when it equals one the authors publish (a backbone manifest's pinned
     sha256, or manifests/weights.toml); otherwise it is the user's file.
     """

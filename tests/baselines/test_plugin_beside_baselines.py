@@ -103,10 +103,12 @@ def test_the_weights_snippet_builds_a_method_from_the_run_cache(tmp_path, monkey
 
         scope: dict = {}
         exec(compile(snippet, str(DOC), "exec"), scope)
-        release = tmp_path / "cache" / "torch" / "hub" / "checkpoints" / "my_net_512.pth"
-        release.parent.mkdir(parents=True)
-        torch.save(MyNet().state_dict(), release)
+        # downloaded by vprbench (a file put there by hand would be the user's), then found there offline
+        monkeypatch.setattr(torch.hub, "download_url_to_file", lambda url, to, **kw: torch.save(MyNet().state_dict(), to))
+        scope["my_net"](resize=(32, 32), cache_dir=tmp_path / "cache")
+        monkeypatch.setattr(torch.hub, "download_url_to_file", lambda *a, **kw: pytest.fail("downloaded again"))
         method = scope["my_net"](resize=(32, 32), cache_dir=tmp_path / "cache")
+        assert (tmp_path / "cache" / "torch" / "hub" / "checkpoints" / "my_net_512.pth").is_file()
         assert method.fingerprint()["weights_url"] == "https://example.org/my_net_512.pth"
         assert method.provenance()["weights"]["source"] == "official"
     finally:

@@ -109,6 +109,14 @@ def test_without_weights_the_releases_are_downloaded_once(release, tmp_path, mon
     assert {name: (part["source"], part["url"], part["release"]) for name, part in weights["files"].items()} == {
         "superpoint_v1.pth": ("official", SUPERPOINT.url, "superpoint"),
         "superpoint_lightglue.pth": ("official", LIGHTGLUE.url, "lightglue")}
+    from vprbench.weights import file_sha256, weights_folder
+    from vprbench_baselines.lightglue import weights_identities
+
+    assert weights_identities(SuperPointLightGlueOptions(), tmp_path) == {s.file_name: s.url for s in (SUPERPOINT, LIGHTGLUE)}
+    by_hand = weights_folder(tmp_path / "by-hand")  # the same bytes put in a cache by hand: the user's files
+    shutil.copytree(release[0], by_hand)
+    assert weights_identities(SuperPointLightGlueOptions(), tmp_path / "by-hand") == {
+        name: f"sha256:{file_sha256(by_hand / name)}" for name in (SUPERPOINT.file_name, LIGHTGLUE.file_name)}
 
 
 def test_the_weights_folder_is_identified_by_content(release, shared_data, tmp_path):

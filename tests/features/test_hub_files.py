@@ -5,7 +5,7 @@ import torch
 
 from vprbench.features.backbones import create_model, load_backbone
 from vprbench.features.catalogue import backbone_spec, backbones
-from vprbench.weights import hub_folder
+from vprbench.weights import hub_folder, record_download
 
 COMMIT = "0" * 40
 
@@ -42,6 +42,9 @@ def test_a_cached_hub_repository_with_pytorch_model_bin_only_loads_offline(tiny_
     (repo / "refs" / "main").write_text(COMMIT)
     (repo / "snapshots" / COMMIT).mkdir(parents=True)
     torch.save(model.state_dict(), repo / "snapshots" / COMMIT / "pytorch_model.bin")
+    # as vprbench's download leaves it: with the record of the download of these bytes (without it, a
+    # file put in the hub cache by hand, it is the user's file)
+    record_download(entry.source, repo / "snapshots" / COMMIT / "pytorch_model.bin", "test", tmp_path / "cache")
     loaded, _, identity = load_backbone(entry.name, None, cache_dir=tmp_path / "cache")
     assert identity == f"hf:{entry.hub}/model.safetensors"  # the repository's weights, named as before
     for key, value in model.state_dict().items():

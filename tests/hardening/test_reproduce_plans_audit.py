@@ -351,7 +351,9 @@ def test_a_baseline_rows_weights_are_needed_where_the_run_reads_them(tmp_path):
     name = "resnet50_MixVPR_4096_channels(1024)_rows(4).ckpt"
     cell, (how,) = needs("MixVPR")
     assert how == ("download it from https://drive.google.com/file/d/1vuz3PvnR7vxnDDLQrdHJaOA04SQrtk5L/view (no "
-                   f"direct download) and put it at {weights_folder(tmp_path) / name}")
+                   f"direct download) and put it at {weights_folder(tmp_path) / name} (the authors publish no sha256, "
+                   "so one put there by hand runs as your own weights, as with --weights (a † 'user weights' row, "
+                   "not the official one))")
     assert "weights" not in cell.spec.options
     weights_folder(tmp_path).mkdir(parents=True)
     (weights_folder(tmp_path) / name).write_bytes(b"checkpoint")
@@ -360,12 +362,15 @@ def test_a_baseline_rows_weights_are_needed_where_the_run_reads_them(tmp_path):
     assert cell.spec.files["weights"].startswith("sha256:")
 
     _, (how,) = needs("CLIP-CLS")
-    assert how == f"download https://huggingface.co/laion/CLIP-ViT-bigG-14-laion2B-39B-b160k into {hub_folder(tmp_path)}"
+    assert how.startswith("let vprbench download https://huggingface.co/laion/CLIP-ViT-bigG-14-laion2B-39B-b160k (a "
+                          f"run online with this cache), or put the file at the hub cache {hub_folder(tmp_path)}: ")
     hub_folder(tmp_path).mkdir(parents=True)
     (hub_folder(tmp_path) / "open_clip_pytorch_model.bin").write_bytes(b"loose")
     assert len(needs("CLIP-CLS")[1]) == 1  # not in the hub's layout: the run would not read it
     _, (how,) = needs("CosPlace")
-    assert "pass weights=PATH" not in how and how.endswith(f"into {weights_folder(tmp_path)}")
+    assert "pass weights=PATH" not in how and f"put the file at {weights_folder(tmp_path)}/" in how
+    assert how.endswith("one put there by hand runs as your own weights, as with --weights (a † 'user weights' row, "
+                        "not the official one)")
 
 
 def test_the_netvlad_rows_say_why_they_cannot_run_as_the_paper_ran_them(tmp_path):

@@ -189,9 +189,9 @@ def test_the_release_is_taken_through_the_weights_resolver(shared_data, tmp_path
                                             r"dinov2_vits14_pretrain\.pth .*pass it with --rerank-option weights=PATH"):
         evaluate(spec, settings)
     backbone = backbone_spec("dinov2_vits14")
-    release = tmp_path / "torch" / "hub" / "checkpoints" / backbone.file_name  # as a download leaves it
-    release.parent.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(2)
-    torch.save(official_state_dict(create_model(backbone), backbone), release)
-    found = evaluate(spec, settings)["stages"][0]["provenance"]["weights"]
+    state = official_state_dict(create_model(backbone), backbone)
+    monkeypatch.setattr(torch.hub, "download_url_to_file", lambda url, to, **kwargs: torch.save(state, to))
+    found = evaluate(spec, settings)["stages"][0]["provenance"]["weights"]  # downloaded by vprbench: official
+    assert (tmp_path / "torch" / "hub" / "checkpoints" / backbone.file_name).is_file()
     assert found == {"source": "official", "url": backbone.url, "recognised_by": "download", "release": "dinov2"}

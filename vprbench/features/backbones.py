@@ -97,12 +97,12 @@ def _materialise(model: nn.Module, spec: BackboneEntry) -> nn.Module:
     return _as_released(model, spec)
 
 
-def weights_identity(spec: BackboneEntry, weights: str | Path | None) -> str | None:
-    """'sha256:<hex>' of a local file, the release URL / 'hf:<repo>/<file>', None for random weights
-    (nothing is downloaded)."""
+def weights_identity(spec: BackboneEntry, weights: str | Path | None, cache_dir=None) -> str | None:
+    """'sha256:<hex>' of a local file (or of a file in `cache_dir` vprbench did not download), the
+    release URL / 'hf:<repo>/<file>', None for random weights (nothing is downloaded)."""
     if weights == RANDOM:
         return None
-    return resolver_identity(spec.source, weights, f"backbone {spec.name}")
+    return resolver_identity(spec.source, weights, f"backbone {spec.name}", cache_dir)
 
 
 def read_checkpoint(path: Path) -> dict[str, torch.Tensor]:

@@ -168,7 +168,7 @@ class AnyLoc(Method):
         sha256>: centres fitted on their features never serve other weights' features."""
         if self.weights == RANDOM:
             return f"{self.backbone}@{RANDOM}"
-        identity = self.weights_identity() if self.weights is not None else None
+        identity = self.weights_identity()  # a file in the cache vprbench did not download is the user's too
         if identity is not None and weights_provenance(identity)["source"] == "user":
             return f"{self.backbone}@{identity.removeprefix('sha256:')[:16]}"
         return self.backbone
@@ -203,7 +203,7 @@ class AnyLoc(Method):
     # ------------------------------------------------------------ identity
     def weights_identity(self) -> str:
         if self._weights_id is None:
-            self._weights_id = weights_identity(self.spec, self.weights)
+            self._weights_id = weights_identity(self.spec, self.weights, self.cache_dir)
         return self._weights_id
 
     def fingerprint(self) -> dict:

@@ -35,9 +35,20 @@ def how_to_fetch(source, cache_dir=None) -> str:
     from ..weights import hub_folder, weights_folder
 
     if source.url or source.hub:
-        return f"download {source.where} into {weights_folder(cache_dir) if source.url else hub_folder(cache_dir)}"
+        into = f"{weights_folder(cache_dir) / source.file_name}" if source.url else f"the hub cache {hub_folder(cache_dir)}"
+        return (f"let vprbench download {source.where} (a run online with this cache), or put the file at {into}: "
+                f"{by_hand(source)}")
     return (f"download it from {source.where} (no direct download) and put it at "
-            f"{weights_folder(cache_dir) / source.file_name}")
+            f"{weights_folder(cache_dir) / source.file_name} ({by_hand(source)})")
+
+
+def by_hand(source) -> str:
+    """What a file put in the cache by hand is (official only by a published sha256, `weights.cached_identity`)."""
+    if source.sha256:
+        return (f"one put there by hand is the official release only if its sha256 is the published "
+                f"{source.sha256.lower()}, else your own weights (a † 'user weights' row)")
+    return ("the authors publish no sha256, so one put there by hand runs as your own weights, as with --weights "
+            "(a † 'user weights' row, not the official one)")
 
 
 def weights_for(row_weights: dict | None, cell: Cell, cache_dir=None) -> Need | None:
@@ -103,7 +114,7 @@ def vocabulary_for(cell: Cell, cache_dir=None, given: dict | None = None) -> Nee
         return None  # fitted on the map at run time, or a file
     with warnings.catch_warnings():  # a preset's layer on another backbone: the same relative depth
         warnings.simplefilter("ignore")
-        method = AnyLoc(**{**options, "vocabulary": "map"})  # the cell's features; nothing loads
+        method = AnyLoc(**{**options, "vocabulary": "map"}, cache_dir=cache_dir)  # the cell's features; nothing loads
     setting = (method.vocabulary_backbone, method.layer, method.facet, method.clusters)
     released = released_path(name, cache_dir) if is_released_setting(*setting, method.stride) else None
     try:  # what the run checks of a cached file: one it would refuse is a need here, not "would run"
