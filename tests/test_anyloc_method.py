@@ -288,3 +288,29 @@ def test_an_on_demand_fit_of_more_clusters_than_patches_is_refused_before_any_im
     with pytest.raises(VPRBenchError, match=r"Cannot fit 13 clusters on 12 features \(3 images x 4 patches each"):
         method.fit([tmp_path / f"{i}.jpg" for i in range(3)])
     assert AnyLoc(backbone="dinov2_vits14", weights="random", layer=0).patches_per_image() is None  # native size
+
+
+def test_a_fit_in_the_run_records_its_sampling(weights, corridor):
+    """The paper's k-means sees every patch of the database; a run's fit keeps a seeded sample of at most the budget:
+    its record says so (exact, budget, features seen and used), also when the fit is read back from its store."""
+    from vprbench.aggregation.kmeans import DEFAULT_BUDGET
+
+    db, _ = corridor
+    m = create_method("anyloc-vlad-dinov2", backbone="dinov2_vits14", weights=str(weights), layer=3, clusters=4)
+    m.fit(db)
+    sampling = m.provenance()["vocabulary"]["sampling"]
+    assert sampling["exact"] is False and sampling["budget"] == DEFAULT_BUDGET
+    assert sampling["features_seen"] == sampling["features_used"] > 0  # corridor's 6 images fit in the budget
+    again = create_method("anyloc-vlad-dinov2", backbone="dinov2_vits14", weights=str(weights), layer=3, clusters=4)
+    again.load_fit_state(m.fit_state())
+    assert again.provenance()["vocabulary"]["sampling"] == sampling
+
+
+def test_a_vocabulary_file_records_its_sampling(tmp_path):
+    """A `vocabulary fit` file's sampling (its metadata) reaches the record of a run reading it."""
+    from vprbench.aggregation.vocabulary import Vocabulary, load_vocabulary
+    from vprbench.methods.anyloc_provenance import file_provenance
+
+    meta = {"exact": False, "budget": 100, "features_seen": 500, "features_used": 100}
+    Vocabulary(torch.randn(4, 8), meta).save(tmp_path / "v.pt")
+    assert file_provenance(load_vocabulary(tmp_path / "v.pt"))["sampling"] == meta

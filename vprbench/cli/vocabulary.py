@@ -130,6 +130,7 @@ def run_fit(args) -> int:
           f"{vocabulary.meta['features_used']} of {vocabulary.meta['features_seen']} features -> {path}")
     if args.output:
         print(f"Also written to {vocabulary.save(args.output)}")
+    release_note(source, path, clusters=clusters, **setting)
     return 0
 
 
@@ -208,7 +209,21 @@ def run_import(args) -> int:
     # a second import under one name replaces the first: said, as runs naming it now give other results
     again = f" (replacing the centres cached as {args.source!r} before; runs naming it are run again)" if replaced else ""
     print(f"Imported {vocabulary.clusters} x {vocabulary.dim} centres as {args.source!r} -> {path}{again}")
+    if "imported_from" in vocabulary.meta:  # not the release placed as it is
+        release_note(args.source, path, args.backbone, args.layer, args.facet, vocabulary.clusters, stride)
     return 0
+
+
+def release_note(source: str, path, backbone: str, layer: int, facet: str, clusters: int, stride=None) -> None:
+    """Centres of one's own cached under a name of the authors' release at their setting: said once, as they do
+    not pass for the release (the release is read first where it is here)."""
+    from ..methods.anyloc_vocabulary import is_released_setting, released_name
+
+    if released_name(source) and is_released_setting(backbone, layer, facet, clusters, stride):
+        say(one_line(f"Note: {source!r} names the authors' released centres: runs read theirs first where they are in "
+                     "the cache (`vprbench vocabulary download`); these are read under that name only without them, "
+                     f"recorded as not the release (a † row on the leaderboard). To use these beside the release, pass "
+                     f"--vocabulary {path}."))
 
 
 def place_release(folder, data: bytes):
@@ -297,13 +312,14 @@ def fitted_on(vocabulary) -> str:
 
 
 def run_list(args) -> int:
-    from ..aggregation.vocabulary import load_vocabulary, vocabularies_root, vocabulary_file_in
+    from ..aggregation.vocabulary import RELEASED_FILE, VOCABULARY_FILE, load_vocabulary, vocabularies_root
 
     resolve_locations(args)
     root = vocabularies_root(args.cache_dir)
     folders = sorted(folder for folder in root.glob("*/*") if folder.is_dir()) if root.is_dir() else []
-    found = [(folder, vocabulary_file_in(folder)) for folder in folders]
-    found = [(folder, file) for folder, file in found if file is not None]
+    # both files of a folder: one's own beside the authors' is not the one a run reads there
+    found = [(folder, folder / name) for folder in folders for name in (VOCABULARY_FILE, RELEASED_FILE)
+             if (folder / name).is_file()]
     if not found:
         say(one_line(f"No vocabularies in {root}: `vprbench vocabulary fit`, `import` or `download` makes them."))
         return 0
@@ -314,9 +330,24 @@ def run_list(args) -> int:
         except VPRBenchError as error:  # one damaged file does not hide the others
             say(one_line(f"  {folder.parent.name}/{folder.name}: unusable: {error}"))
             continue
-        say(f"  {shown(folder.parent.name)}/{shown(folder.name)}: {vocabulary.clusters} x {vocabulary.dim}, "
-            f"{fitted_on(vocabulary)}")
+        both = sum(f == folder for f, _ in found) > 1
+        say(f"  {shown(folder.parent.name)}/{shown(folder.name)}{f' ({file.name})' if both else ''}: {vocabulary.clusters} "
+            f"x {vocabulary.dim}, {fitted_on(vocabulary)}{not_release(folder, vocabulary)}")
     return 0
+
+
+def not_release(folder, vocabulary) -> str:
+    """', NOT the authors' release ...' for centres cached under a name of the authors' release at their setting
+    that are not it by sha256 (fitted or imported under that name); '' otherwise."""
+    from ..aggregation.vocabulary import vocabulary_key
+    from ..methods.anyloc_provenance import released_as
+    from ..methods.anyloc_vocabulary import released_name, released_setting, released_sources
+
+    names = {*released_sources(), *filter(None, map(released_name, released_sources()))}
+    if folder.parent.name != vocabulary_key(*released_setting()) or folder.name not in names or released_as(vocabulary):
+        return ""
+    return (", NOT the authors' release (runs read their c_centers.pt first where it is here, `vprbench vocabulary "
+            "download`; read without it, a run is recorded as not the release and gets a † row)")
 
 
 def run_download(args) -> int:

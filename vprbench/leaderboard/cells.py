@@ -32,7 +32,7 @@ from ..evaluation.results import per_query
 from .escape import public
 from .pick import CELL_KS, pick as pick_run  # noqa: F401 (CELL_KS: tables and downloads import it from here)
 from .truth import judge
-from .shown import RANDOM, TRANSDUCTIVE, hardware_of, random_weights, stage_marks, weights_of
+from .shown import RANDOM, TRANSDUCTIVE, hardware_of, random_weights, stage_marks, vocabulary_mark, weights_of
 
 STRUCTURED = ("indoor", "urban", "outdoor")
 UNSTRUCTURED = ("aerial", "subt", "degraded", "underwater")
@@ -46,7 +46,8 @@ CELL_RULE = (
     "with its image counts, and on one copy of its data (the dataset fingerprint most runs share; the newest on a "
     "tie). Runs on your own data get a column per protocol (positions, radius and images), "
     "even when named like a benchmark. Runs with weights other than the authors' release, with approximate "
-    "search (IVF-PQ, HNSW), with a float16 store or with anything fitted on the evaluated database (transductive) get "
+    "search (IVF-PQ, HNSW), with a float16 store, with a vocabulary named as the authors' release that is not it (by "
+    "sha256) or with anything fitted on the evaluated database (transductive) get "
     "their own rows, marked †, and never replace an official row; runs on random weights fill no cell at all. Every "
     "metric is recomputed from the run's per-query arrays (a record whose stored numbers disagree is named). Images/s "
     "comes from the newest run of the cell that computed its descriptors (one served from stores measured no speed; "
@@ -242,7 +243,8 @@ def row_of(record: dict) -> Row:
     spec = RunSpec.model_validate(record["spec"])
     weights, mark = weights_of(record)
     transductive = (record.get("provenance") or {}).get("fitted_on_evaluated_database") is True
-    marks = [m for m in (mark, *stage_marks(record), *spec.marks(), TRANSDUCTIVE if transductive else "") if m]
+    marks = [m for m in (mark, vocabulary_mark(record), *stage_marks(record), *spec.marks(),
+                         TRANSDUCTIVE if transductive else "") if m]
     track = record.get("track") or "single-image"  # records before stages had none
     return Row(spec.row_key, public(spec.label()), weights, "; ".join(marks), track, "; ".join(spec.marks()))
 

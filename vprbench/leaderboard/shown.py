@@ -48,6 +48,22 @@ def weights_of(record: dict) -> tuple[str, str]:
 TRANSDUCTIVE = "fitted on the evaluated database"
 
 
+def vocabulary_mark(record: dict) -> str:
+    """The mark of a run whose vocabulary bears the name of the authors' released centres (at their setting)
+    but is not them by sha256 (fitted or imported under that name): never the paper's setting, nor its row."""
+    vocabulary = (record.get("provenance") or {}).get("vocabulary") or {}
+    if not isinstance(vocabulary, Mapping) or "authors_release" not in vocabulary:
+        return ""
+    from ..methods.anyloc_vocabulary import release
+
+    # by the sha256 the record gives, not its word (a contributed record may claim the release)
+    if vocabulary.get("sha256") in release()["sha256"].values():
+        return ""
+    from ..text import shortened
+
+    return f"vocabulary {shortened(str(vocabulary.get('name')), 60)} not the authors' release"
+
+
 def weights_shown(row, record: dict) -> str:
     """The Weights column, the same on every table, page and download: the row's marks of what it
     learnt (weight_marks), else

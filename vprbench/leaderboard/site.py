@@ -228,7 +228,7 @@ def overview(out: Path, board: Board, records, stats, *, cache_dir=None, seed: i
                      "components, coloured by domain (AnyLoc Fig. 1, middle).", "PCA map of GeM descriptors")
     others = other_rows(board)
     lines += ["## Other runs", "", "Runs that are not official runs on a benchmark: rows marked † (weights other than "
-              "the authors' release, approximate search, a float16 store or a part fitted on the evaluated database: "
+              "the authors' release, a vocabulary named as theirs that is not their release, approximate search, a float16 store or a part fitted on the evaluated database: "
               "the mark says which) or the user's own data. Only a row marked for a part fitted on the evaluated "
               "database also fills the tables above, as the paper's own methods do; the others never do.", ""]
     if others:

@@ -330,7 +330,7 @@ def marks_note(board: Board, column: Column | None = None) -> str:
     parts = []
     if found["marked_rows"]:
         parts.append(f"{found['marked_rows']} cell(s) {are} on rows marked † (weights other than the authors' release, "
-                     "approximate search, a float16 store or anything fitted on the evaluated database: the mark says which)")
+                     "a vocabulary named as theirs that is not their release, approximate search, a float16 store or anything fitted on the evaluated database: the mark says which)")
     if found["own_data"]:
         own = next(c.title for c in board.columns if c.kind == "own")  # how such a column is headed: name it as it reads
         parts.append(f"{found['own_data']} cell(s) {are} on the user's own data, in columns headed by the data's name "

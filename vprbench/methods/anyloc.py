@@ -19,10 +19,12 @@ from ..aggregation.pca import PCAWhitening
 from . import anyloc_options
 from .anyloc_options import AGGREGATIONS, PCA_ON, VLADS, pca_datasets, pca_provenance
 from .anyloc_fit import recorded_image_digests
-from .anyloc_provenance import check_released_setting, file_provenance
+from .anyloc_provenance import (SAMPLING_KEYS, check_released_setting, counts_of_state, counts_state, file_provenance,
+                                release_status)
 from .anyloc_lookup import check_proven, fit_options, paper_choice, resolve_vocabulary
 from .anyloc_vocabulary import MAP_PREFIX, names_file, vocabulary_images
 from ..aggregation.vlad import vlad_hard
+from ..aggregation.kmeans import DEFAULT_BUDGET
 from ..aggregation.vocabulary import fit_vocabulary
 from ..errors import VPRBenchError
 from ..features.backbones import RANDOM, backbone_spec, load_backbone, weights_identity
@@ -116,6 +118,7 @@ class AnyLoc(Method):
         #: where the centres came from, for provenance(): name, source, file, sha256, note
         self.vocabulary_info: dict = {}
         self.fitted_digests: set[str] = set()  # of the images an own folder's map vocabulary was fitted on
+        self.fit_counts: dict = {}  # features seen and used by this run's fit (a fit read back from its store: kept there)
         # "domain" (the paper's choice per dataset) is settled in use_dataset; until then, fit on the database
         self.needs_fit = aggregation in VLADS and self.vocabulary in ("map", "domain")
         if aggregation in VLADS and self.vocabulary not in ("map", "domain"):
@@ -156,8 +159,8 @@ class AnyLoc(Method):
                 check_proven(found, self.vocabulary_backbone, self.layer, self.facet, self.stride)
             self.needs_fit = found is None
             self.centres = None if found is None else found.centres.float()
-            self.vocabulary_info = {"name": source, **({"note": note} if note else {}),
-                                    **(file_provenance(found) if found is not None else {})}
+            self.vocabulary_info = {"name": source, **({"note": note} if note else {}), **(
+                {**file_provenance(found), **self._release_status(source, found)} if found is not None else {})}
             if note:
                 warnings.warn(note, stacklevel=2)
 
@@ -196,9 +199,13 @@ class AnyLoc(Method):
             check_released_setting(found, self.vocabulary_backbone, self.layer, self.facet, self.stride)
         else:  # served by its key: only for the features it proves it was fitted on
             check_proven(found, self.vocabulary_backbone, self.layer, self.facet, self.stride)
-        self.vocabulary_info = {"name": self.vocabulary, **file_provenance(found)}
+        self.vocabulary_info = {"name": self.vocabulary, **file_provenance(found),
+                                **({} if names_file(self.vocabulary) else self._release_status(self.vocabulary, found))}
         self.fitted_digests = recorded_image_digests(found)
         return found.centres.float()
+
+    def _release_status(self, name: str, found) -> dict:
+        return release_status(name, found, self.vocabulary_backbone, self.layer, self.facet, self.clusters, self.stride)
 
     # ------------------------------------------------------------ identity
     def weights_identity(self) -> str:
@@ -263,6 +270,8 @@ class AnyLoc(Method):
             info.update(source="fitted", name=f"{MAP_PREFIX}{self.dataset}" if self.dataset else "map",
                         fitted_on=f"the database of {self.dataset}" if self.dataset else "the database given to fit()")
             info.pop("file", None)
+            # the paper's k-means sees every patch of the database; a run's fit a seeded sample (fit below)
+            info["sampling"] = {"exact": False, "budget": DEFAULT_BUDGET, **self.fit_counts}
         if self.centres is not None:
             info["centres_sha256"] = hashlib.sha256(self.centres.numpy().tobytes()).hexdigest()
             info["clusters"], info["dim"] = int(self.centres.shape[0]), int(self.centres.shape[1])
@@ -349,8 +358,10 @@ class AnyLoc(Method):
         if self.dataset is not None:  # as the authors: no distractors, the dataset's stride
             database = vocabulary_images(self.dataset, database)
         # one image's features at a time into the bounded-memory sampler of fit_vocabulary
-        self.centres = fit_vocabulary(self.iter_patch_features(database), self.clusters, images=len(database),
-                                      per_image=self.patches_per_image()).centres.float()
+        fitted = fit_vocabulary(self.iter_patch_features(database), self.clusters, budget=DEFAULT_BUDGET,
+                                images=len(database), per_image=self.patches_per_image())
+        self.centres = fitted.centres.float()
+        self.fit_counts = {key: int(fitted.meta[key]) for key in SAMPLING_KEYS[2:]}
 
     def patches_per_image(self, resize=None) -> int | None:
         """Patch features each image gives at `resize` (else the method's): None where they depend on the
@@ -372,11 +383,13 @@ class AnyLoc(Method):
             yield from self.patch_features(batch).cpu()
 
     def fit_state(self) -> dict[str, np.ndarray]:
-        return {"centres": self.centres.cpu().numpy()} if self.needs_fit and self.centres is not None else {}
+        fitted = self.needs_fit and self.centres is not None
+        return {"centres": self.centres.cpu().numpy(), **counts_state(self.fit_counts)} if fitted else {}
 
     def load_fit_state(self, state: dict[str, np.ndarray]) -> None:
         # read from the cache: checked (as wide as the facet, as a named vocabulary is: `check_dim`)
         self.centres = torch.from_numpy(fitted_centres(state, self.clusters, self.spec.width, "anyloc"))
+        self.fit_counts = counts_of_state(state)
 
     # ------------------------------------------------------------ PCA-whitening
     def postprocessor(self) -> PCAWhitening | None:

@@ -4,11 +4,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from ..aggregation.vocabulary import Vocabulary
 from ..errors import VPRBenchError
 from ..text import shortened
 from .anyloc_vocabulary import (MAP_PREFIX, domain_names, is_released_setting, release, released_name, released_sources,
                                 released_url, setting_words, source_datasets, vocabulary_policies)
+
+#: the keys of a vprbench fit's metadata that say how its k-means saw the features
+SAMPLING_KEYS = ("exact", "budget", "features_seen", "features_used")
 
 
 def _released_folder(path) -> tuple[str, str | None]:
@@ -79,6 +84,9 @@ def file_provenance(vocabulary: Vocabulary) -> dict:
         named = f" ({recorded(meta['source'])})" if isinstance(meta.get("source"), str) else ""
         folder = recorded(meta["folder"])
         found.update(folder=folder, fitted_on=f"the database of the folder {folder}{named}")
+    if found.get("source") in ("cache", "file") and ("imported_from" in meta or "features_seen" in meta):
+        found["made_by"] = "imported" if "imported_from" in meta else "fitted"
+    found.update(fit_sampling(meta))
     # the features' settings the key leaves out: the record tells what the centres were fitted at
     found.update({f"fitted_{key}": recorded(meta[key]) for key in ("stride", "resize", "image_size") if key in meta})
     return found
@@ -101,3 +109,31 @@ def content_source(vocabulary: Vocabulary, name: str) -> str | None:
         release_folder = released_provenance(vocabulary).get("released_as")
         own = next((s for s, folder in vocabulary_policies()["released"].items() if folder == release_folder), None)
     return own if own not in (None, name) else None
+
+
+def fit_sampling(meta: dict) -> dict:
+    """{"sampling": {exact, budget, features_seen, features_used}} of a vprbench fit (the paper's k-means sees
+    every patch: exact; vprbench's default keeps a seeded sample of at most `budget`), {} where a file says none."""
+    if "exact" not in meta:
+        return {}
+    return {"sampling": {key: recorded(meta[key]) for key in SAMPLING_KEYS if key in meta}}
+
+
+def release_status(name: str, vocabulary: Vocabulary, backbone: str, layer: int, facet: str, clusters: int,
+                   stride: int | None = None) -> dict:
+    """For a name the authors released centres under, at their setting: {"authors_release": whether these centres
+    are that release, by sha256}; centres fitted or imported under the name never pass for the paper's. {} else."""
+    if released_name(name) is None or not is_released_setting(backbone, layer, facet, clusters, stride):
+        return {}
+    return {"authors_release": released_provenance(vocabulary).get("source") == "released"}
+
+
+def counts_state(counts: dict) -> dict:
+    """A run's fit's features seen and used as its fit state keeps them beside the centres (read back with them)."""
+    return {"features": np.array([counts[key] for key in SAMPLING_KEYS[2:]], np.int64)} if counts else {}
+
+
+def counts_of_state(state: dict) -> dict:
+    """The features seen and used a fit state keeps ({} for one saved before it kept them, or not two whole numbers)."""
+    counts = np.asarray(state.get("features", []))
+    return dict(zip(SAMPLING_KEYS[2:], map(int, counts))) if counts.shape == (2,) and counts.dtype.kind in "iu" else {}

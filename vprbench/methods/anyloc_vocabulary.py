@@ -144,13 +144,19 @@ def cached_vocabulary_file(source: str, backbone: str, layer: int, facet: str, c
     """Our vocabulary.pt in the cache folder of these settings and source, else the authors'
     c_centers.pt under the source name or the authors' folder name (so their released folders can be
     copied into the cache as they are), each also under the folder name used before names were made
-    portable; None when there is none."""
+    portable; None when there is none. For the release's own names and setting the release's
+    c_centers.pt is read first: centres fitted or imported under its name never pass for it once it is
+    here (they are read only where it is not, and recorded as not the release)."""
     folders = [vocabulary_dir(backbone, layer, facet, clusters, source, cache_dir, stride)]
     old = legacy_vocabulary_dir(backbone, layer, facet, clusters, source, cache_dir, stride)
     folders += [old] if old is not None else []
     released = released_name(source)
     if released:
         folders += [folder.parent / released for folder in folders]
+    if released and is_released_setting(backbone, layer, facet, clusters, stride):
+        first = next((folder / RELEASED_FILE for folder in folders if (folder / RELEASED_FILE).is_file()), None)
+        if first is not None:
+            return first
     return next(filter(None, map(vocabulary_file_in, folders)), None)
 
 

@@ -97,6 +97,7 @@ def vocabulary_for(cell: Cell, cache_dir=None, given: dict | None = None) -> Nee
     from ..aggregation.vocabulary import at_default_stride
     from ..methods.anyloc import VLADS, AnyLoc
     from ..methods.anyloc_lookup import check_clusters, check_proven, find_vocabulary, fit_command, fit_options
+    from ..methods.anyloc_provenance import released_as
     from ..methods.anyloc_vocabulary import (domain_names, is_released_setting, paper_vocabulary, released_path,
                                              setting_words)
     from ..methods.registry import method_entry
@@ -125,14 +126,18 @@ def vocabulary_for(cell: Cell, cache_dir=None, given: dict | None = None) -> Nee
             check_proven(found, *setting[:3], method.stride)
     except VPRBenchError as error:
         return f"the cached vocabulary {name!r} for {setting_words(*setting, method.stride)}", str(error)
-    if found is not None or (released is not None and released.is_file()):
+    # centres of one's own under the release's name serve only until the release is here (then read first)
+    own = found is not None and released is not None and released_as(found) is None
+    if not own and (found is not None or (released is not None and released.is_file())):
         return None  # cached, or the authors' release already here
     located = [(flag, shlex.quote(str(path))) for flag, path in (given or {}).items() if path is not None]
     if released is not None:  # fetched before the run, as weights are (a compute node may be offline)
         # `vocabulary download` reads no data: only the cache it fills is carried into the command
         into = "".join(f" --{flag} {path}" for flag, path in located if flag == "cache-dir")
-        return (f"the authors' vocabulary {name!r}", f"run 'vprbench vocabulary download{into}', or put the "
-                f"release's c_centers.pt at {released}")
+        mine = (f"the centres cached as {name!r} ({found.meta.get('path')}) are not the authors' release (fitted or "
+                "imported here) and would run as a † row; " if own else "")
+        return (f"the authors' vocabulary {name!r}", f"{mine}run 'vprbench vocabulary download{into}', or put the "
+                f"release's c_centers.pt at {released}" + (" (read first under that name)" if own else ""))
     if name not in domain_names():
         return None
     # named by its cache key (not the method's: cells of several methods share it, once_each says it once)
