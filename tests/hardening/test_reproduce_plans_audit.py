@@ -163,44 +163,6 @@ def test_a_vocabulary_fit_command_names_the_runs_own_data_root_and_cache(tmp_pat
             f"--cache-dir {cache}'") in out
 
 
-def test_a_vocabulary_two_methods_share_is_listed_once(tmp_path, capsys, monkeypatch):
-    """Table II's AnyLoc-VLAD-DINO and -PCA rows lack the same 'indoor' and 'urban' vocabularies (cached by their
-    features, not by method): the notes said each twice, a fit per method, and following them fitted each twice."""
-    import re
-
-    monkeypatch.setenv("COLUMNS", "1000")  # a note a line
-    code = main(["reproduce", "anyloc", "--table", "2", "--dry-run", "--data-dir", str(tmp_path / "data"),
-                 "--cache-dir", str(tmp_path / "cache")])
-    out = capsys.readouterr().out
-    notes = re.findall(r"^\[\d+\] (.*)$", out, re.MULTILINE)
-    assert code == 0
-    for domain in ("indoor", "urban"):
-        said = [note for note in notes if note.startswith(f"vocabulary '{domain}' for dino_vits8 layer 9 key c128: ")]
-        assert len(said) == 1 and said[0].count("vprbench vocabulary fit") == 1, said
-        assert said[0].endswith("(serves rows AnyLoc-VLAD-DINO, AnyLoc-VLAD-DINO-PCA)"), said
-    things = [note.split(": ")[0] for note in notes]
-    assert len(things) == len(set(things)), things  # no need said twice
-
-
-def test_a_released_vocabulary_not_here_is_a_need_until_it_is(tmp_path, shared_data):
-    """Before: a cell on the authors' released centres counted as ready (they download on first use), so a
-    dry run on a machine without internet said 'would run' and the cell failed when run. Like weights,
-    it is now a need until the file is where the run reads it."""
-    import shutil
-
-    from vprbench.methods.anyloc_vocabulary import released_path
-
-    _, cells = _cells("2", "AnyLoc-VLAD-DINOv2", tmp_path)
-    baidu = cells["baidu-mall"].cells[0]  # the paper's vocabulary there: indoor, released
-    what, how = vocabulary_for(baidu, tmp_path)
-    target = released_path("indoor", tmp_path)
-    assert what == "the authors' vocabulary 'indoor'" and "vprbench vocabulary download" in how and str(target) in how
-    target.parent.mkdir(parents=True)
-    shutil.copy(shared_data / "vocabularies" / "anyloc-dinov2_vitg14-l31-value-c32" / target.parent.name / "c_centers.pt",
-                target)
-    assert vocabulary_for(baidu, tmp_path) is None
-
-
 def _edited(monkeypatch, edit):
     import copy
 
